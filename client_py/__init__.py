@@ -1,0 +1,29 @@
+"""client_py: Tessera's browser-side Python — NURBS patches in, meshes out.
+
+Runs unchanged in Pyodide and CPython: only the standard library is imported at
+import time (numpy, when importable, accelerates grid evaluation behind
+``client_py._kernel``); no I/O: bytes in, bytes and arrays out.
+
+>>> from client_py import NurbsSurface, tessellate_grid, write_patch, read_patch, write_ply
+"""
+
+from .basis import uniform_clamped_knots
+from .format import PatchFormatError, read_patch, write_patch
+from .ply import write_ply
+from .surface import NurbsSurface
+from .tessellate import Mesh, tessellate_grid
+from .trim import TrimMask
+
+__all__ = [
+    "Mesh",
+    "NurbsSurface",
+    "PatchFormatError",
+    "TrimMask",
+    "read_patch",
+    "tessellate_grid",
+    "uniform_clamped_knots",
+    "write_patch",
+    "write_ply",
+]
+
+__version__ = "0.1.0"

@@ -1,0 +1,43 @@
+"""The one place that decides between the numpy and the pure-Python grid kernels.
+
+numpy is an optional accelerator: it is used when importable, unless the
+environment variable ``TESSERA_KERNEL`` is ``python`` (or ``numpy``, which then
+must be importable). Both kernels give the same results to float32 precision.
+"""
+
+from __future__ import annotations
+
+import os
+
+from . import _kernel_python
+
+
+def _select():
+    wanted = os.environ.get("TESSERA_KERNEL", "").strip().lower()
+    if wanted not in ("", "python", "numpy"):
+        raise ValueError(f"TESSERA_KERNEL must be 'python' or 'numpy', got {wanted!r}")
+    if wanted == "python":
+        return "python", _kernel_python
+    try:
+        from . import _kernel_numpy
+    except ImportError:
+        if wanted == "numpy":
+            raise ImportError("TESSERA_KERNEL=numpy but numpy cannot be imported") from None
+        return "python", _kernel_python
+    return "numpy", _kernel_numpy
+
+
+KERNEL_NAME, _backend = _select()
+
+
+def backend(name: str | None = None):
+    """The kernel module named ``name`` (``'python'`` or ``'numpy'``), default the selected."""
+    if name is None:
+        return _backend
+    if name == "python":
+        return _kernel_python
+    if name == "numpy":
+        from . import _kernel_numpy
+
+        return _kernel_numpy
+    raise ValueError(f"kernel must be 'python' or 'numpy', got {name!r}")

@@ -1,0 +1,122 @@
+"""Tessellation of a ``NurbsSurface`` into a triangle ``Mesh`` held in flat ``array.array``s.
+
+The arrays expose the buffer protocol, so Pyodide's ``PyProxy.getBuffer`` hands
+them to JavaScript as ``Float32Array``/``Uint32Array`` without a copy.
+"""
+
+from __future__ import annotations
+
+from array import array
+from dataclasses import dataclass, field
+
+from . import _kernel
+from .surface import NurbsSurface
+
+MAX_GRID = 8192  # vertices per side: 67 M vertices, far past any screen
+
+
+@dataclass
+class Mesh:
+    """Indexed triangle mesh.
+
+    Attributes
+    ----------
+    positions, normals : array('f'), ``3 * n_vertices``
+        ``x, y, z`` and unit normal per vertex.
+    uvs : array('f'), ``2 * n_vertices``
+        Surface parameters ``(u, v)`` of each vertex.
+    indices : array('I'), ``3 * n_triangles``
+        Counter-clockwise seen from the side the normals point to.
+    colors : array('B') or None, ``3 * n_vertices``
+        Optional 8-bit RGB per vertex.
+    """
+
+    positions: array
+    normals: array
+    uvs: array
+    indices: array
+    colors: array | None = field(default=None)
+
+    @property
+    def vertex_count(self) -> int:
+        return len(self.positions) // 3
+
+    @property
+    def triangle_count(self) -> int:
+        return len(self.indices) // 3
+
+
+def _samples(lo: float, hi: float, count: int) -> list[float]:
+    step = (hi - lo) / (count - 1)
+    return [lo + k * step for k in range(count - 1)] + [hi]
+
+
+def _check_count(name: str, count: object) -> int:
+    if isinstance(count, bool) or not isinstance(count, int):
+        raise ValueError(f"{name} must be an integer, got {count!r}")
+    if not 2 <= count <= MAX_GRID:
+        raise ValueError(f"{name} = {count}; a grid needs 2 to {MAX_GRID} vertices per side")
+    return count
+
+
+def grid_indices(nu: int, nv: int, keep_cell=None) -> array:
+    """Triangles of an ``nu x nv`` vertex grid (vertex ``k = i * nv + j``).
+
+    Cell ``(i, j)`` gives ``(k, k + nv, k + 1)`` and ``(k + 1, k + nv, k + nv + 1)``:
+    both turn counter-clockwise about ``S_u x S_v``. ``keep_cell(i, j)`` may
+    leave cells out (trimming).
+    """
+    indices = array("I")
+    if keep_cell is None:
+        for i in range(nu - 1):
+            base = i * nv
+            row = [0] * (6 * (nv - 1))
+            ks = range(base, base + nv - 1)
+            row[0::6] = ks
+            row[1::6] = range(base + nv, base + 2 * nv - 1)
+            row[2::6] = range(base + 1, base + nv)
+            row[3::6] = range(base + 1, base + nv)
+            row[4::6] = range(base + nv, base + 2 * nv - 1)
+            row[5::6] = range(base + nv + 1, base + 2 * nv)
+            indices.extend(row)
+        return indices
+    for i in range(nu - 1):
+        for j in range(nv - 1):
+            if keep_cell(i, j):
+                k = i * nv + j
+                indices.extend((k, k + nv, k + 1, k + 1, k + nv, k + nv + 1))
+    return indices
+
+
+def tessellate_grid(
+    surface: NurbsSurface, nu: int, nv: int, kernel: str | None = None
+) -> Mesh:
+    """Evaluate ``surface`` on a uniform ``nu x nv`` parameter grid and triangulate it.
+
+    Vertex ``k = i * nv + j`` lies at ``(u_i, v_j)``, ``u_i = u_a + i (u_b - u_a) / (nu - 1)``;
+    there are ``2 (nu - 1) (nv - 1)`` triangles, fewer when the surface's trim
+    mask leaves cells out. Normals come from the analytic derivatives; at
+    degenerate points (poles) they are the limit from inside the domain.
+
+    Parameters
+    ----------
+    kernel : {'python', 'numpy'}, optional
+        Force a kernel; default the one ``TESSERA_KERNEL`` or numpy's presence selects.
+    """
+    if not isinstance(surface, NurbsSurface):
+        raise ValueError(f"surface must be a NurbsSurface, got {type(surface).__name__}")
+    nu, nv = _check_count("nu", nu), _check_count("nv", nv)
+    (u0, u1), (v0, v1) = surface.domain
+    us, vs = _samples(u0, u1, nu), _samples(v0, v1, nv)
+    positions, normals, degenerate = _kernel.backend(kernel).evaluate_grid(surface, us, vs)
+    for k in degenerate:
+        normals[3 * k : 3 * k + 3] = array("f", surface.normal(us[k // nv], vs[k % nv]))
+    uvs = array("f", [0.0]) * (2 * nu * nv)
+    uvs[0::2] = array("f", [u for u in us for _ in range(nv)])
+    uvs[1::2] = array("f", vs * nu)
+    trim = surface.trim
+    keep = None
+    if trim is not None:
+        def keep(i: int, j: int) -> bool:
+            return trim.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))
+    return Mesh(positions, normals, uvs, grid_indices(nu, nv, keep))
