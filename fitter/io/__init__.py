@@ -1,0 +1,113 @@
+"""Scan readers: one entry point, ``load_scan``, over a table of per-format loaders.
+
+``load_scan(path)`` picks the loader by the file name's extension (``.gz``
+stripped first and decompressed on the fly), returns a validated ``Scan``
+(``fitter.io.scan``) and raises ``ScanError`` (a ``ValueError``) with the file
+name and the problem for every bad input. One module per format, as in
+trimesh's ``exchange/``:
+
+==============================  ===========================================================
+extension                       loader
+==============================  ===========================================================
+``.ply``                        ``fitter.io.ply`` (memory-mapped binary point clouds,
+                                ``loadtxt`` for ASCII clouds, trimesh for meshes)
+``.obj .stl .off .gltf .glb``   ``fitter.io.mesh`` (trimesh; OBJ/glTF textures kept)
+``.xyz .pts .asc``              ``fitter.io.text``
+``.conf``                       ``fitter.io.conf`` (Stanford range-scan registration)
+==============================  ===========================================================
+
+Every input is read once; its SHA-256 is computed on that read (streamed in
+chunks, or over the memory map) and stored with its size in ``scan.source``
+for the bundle's provenance. ``thin=h`` keeps one point per voxel of edge
+``h`` (``fitter.io.thin``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+
+from .conf import load_conf
+from .mesh import load_mesh
+from .ply import load_ply
+from .scan import Scan, ScanError
+from .source import check_path
+from .text import load_text
+from .thin import check_voxel_size, thin_scan, voxel_thin_indices
+
+__all__ = ["LOADERS", "SUPPORTED_EXTENSIONS", "Scan", "ScanError", "load_scan", "thin_scan",
+           "voxel_thin_indices"]
+
+
+def _load_conf(path: Path, gzipped: bool) -> Scan:
+    return load_conf(path, gzipped, lambda p: _load(p, allow_conf=False))
+
+
+#: extension (lower case, without ``.gz``) -> loader(path, gzipped) -> Scan
+LOADERS: dict[str, Callable[[Path, bool], Scan]] = {
+    ".ply": load_ply,
+    ".obj": partial(load_mesh, file_type="obj"),
+    ".stl": partial(load_mesh, file_type="stl"),
+    ".off": partial(load_mesh, file_type="off"),
+    ".gltf": partial(load_mesh, file_type="gltf"),
+    ".glb": partial(load_mesh, file_type="glb"),
+    ".xyz": partial(load_text, fmt="xyz"),
+    ".pts": partial(load_text, fmt="pts"),
+    ".asc": partial(load_text, fmt="asc"),
+    ".conf": _load_conf,
+}
+SUPPORTED_EXTENSIONS = tuple(LOADERS)
+
+
+def _split_extension(path: Path) -> tuple[str, bool]:
+    suffixes = [s.lower() for s in path.suffixes]
+    gzipped = bool(suffixes) and suffixes[-1] == ".gz"
+    if gzipped:
+        suffixes = suffixes[:-1]
+    return (suffixes[-1] if suffixes else ""), gzipped
+
+
+def _load(path: Path, allow_conf: bool = True) -> Scan:
+    ext, gzipped = _split_extension(path)
+    loader = LOADERS.get(ext)
+    if loader is None or (ext == ".conf" and not allow_conf):
+        shown = ext + (".gz" if gzipped else "") or "(none)"
+        raise ScanError(f"{path}: unsupported file type {shown!r}; supported: "
+                        f"{', '.join(SUPPORTED_EXTENSIONS)} (each also as .gz)")
+    check_path(path)
+    return loader(path, gzipped)
+
+
+def load_scan(path: str | os.PathLike, thin: float | None = None) -> Scan:
+    """Load a scan file into a ``Scan``.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A ``.ply``, ``.obj``, ``.stl``, ``.off``, ``.gltf``, ``.glb``, ``.xyz``,
+        ``.pts``, ``.asc`` or ``.conf`` file, each optionally gzip-compressed
+        (``NAME.EXT.gz``). A ``.conf`` registers all the scans it lists into one
+        cloud (``fitter.io.conf``).
+    thin : float, optional
+        Voxel edge ``h`` in scan units: keep one point per occupied voxel (the one
+        nearest the voxel's centroid). None keeps every point.
+
+    Returns
+    -------
+    Scan
+        ``points`` (N, 3) float64, all finite, N >= 1; ``normals``, ``colors``,
+        ``faces``, ``uv``/``texture`` when the file has them; ``units``; ``source``
+        (file name, size, SHA-256, format, reader, every file read).
+
+    Raises
+    ------
+    ScanError
+        Missing, empty, unreadable, truncated or corrupt file; unsupported
+        extension; no points; non-finite coordinates; a bad ``thin``.
+    """
+    if thin is not None:
+        check_voxel_size(thin)  # reject a bad argument before reading a large file
+    scan = _load(Path(path))
+    return scan if thin is None else thin_scan(scan, thin)

@@ -1,0 +1,201 @@
+"""Mesh formats through trimesh: OBJ (with its MTL and texture), STL, OFF, glTF/GLB, and PLY meshes.
+
+The file is read once through ``HashedInput`` (so ``.gz`` works and the
+SHA-256 is taken on the way) and handed to trimesh's format loader
+(``trimesh.exchange.load.mesh_loaders``) as bytes. The loader's keyword
+dictionaries are used directly rather than ``trimesh.Trimesh`` objects: they
+say exactly which arrays the file had (a ``Trimesh`` would invent vertex
+normals on request) and nothing is merged or reordered (``process=False``
+semantics). Scenes (glTF nodes, OBJ objects) are flattened here by composing
+the scene graph's 4x4 transforms, ``p_world = M_root ... M_node p``; normals
+go through the inverse transpose of the linear part.
+
+Companion files (OBJ's ``.mtl`` and texture, glTF's ``.bin`` and images) are
+fetched by trimesh through ``_HashingResolver``, which records each file's size
+and SHA-256 in ``source["files"]``, and a missing one in ``source["warnings"]``.
+STL stores three vertices per triangle; exact duplicates are merged (first
+occurrence order) so the points are the surface's vertices, not a triple copy.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source
+from .source import GZIP_ERRORS, HashedInput, file_record
+
+#: what trimesh's loaders raise on corrupt input (caught and reported as ScanError)
+TRIMESH_ERRORS = (ValueError, IndexError, KeyError, TypeError, AttributeError, struct.error,
+                  UnicodeDecodeError, OverflowError, NotImplementedError, *GZIP_ERRORS)
+
+
+def _hashing_resolver(path: Path, records: list[dict], missing: list[str]) -> Any:
+    from trimesh.resolvers import FilePathResolver
+
+    class _HashingResolver(FilePathResolver):
+        """A trimesh resolver that records every companion file it hands out."""
+
+        def get(self, name: str) -> bytes:
+            try:
+                data = super().get(name)
+            except (OSError, ValueError):
+                missing.append(name)
+                raise
+            if not any(r["name"] == name for r in records):
+                records.append(file_record(name, data, role="companion"))
+            return data
+
+    return _HashingResolver(str(path))
+
+
+def load_mesh(path: Path, gzipped: bool, file_type: str) -> Scan:
+    """Read an OBJ, STL, OFF, glTF or GLB file (optionally ``.gz``) through trimesh."""
+    with HashedInput(path, gzipped) as inp:
+        try:
+            data = inp.stream.read()
+        except GZIP_ERRORS as exc:
+            raise ScanError(f"{path.name}: corrupt gzip data: {exc}") from None
+        record = inp.finish()
+    units = "m" if file_type in ("gltf", "glb") else "unknown"  # glTF 2.0 spec: metres
+    return scan_from_trimesh(path, file_type, data, record, gzipped, units=units)
+
+
+def scan_from_trimesh(path: Path, file_type: str, data: bytes, record: dict, gzipped: bool,
+                      units: str = "unknown", extra_source: dict | None = None) -> Scan:
+    """Parse ``data`` (the whole decompressed file) with trimesh's loader for ``file_type``."""
+    from trimesh.exchange.load import mesh_loaders
+
+    name = path.name
+    records: list[dict] = [record]
+    missing: list[str] = []
+    resolver = _hashing_resolver(path, records, missing)
+    loader = mesh_loaders[file_type]
+    try:
+        kwargs = loader(file_obj=io.BytesIO(data), file_type=file_type, resolver=resolver)
+    except TRIMESH_ERRORS as exc:
+        raise ScanError(f"{name}: unreadable {file_type.upper()} content "
+                        f"({type(exc).__name__}: {exc})") from None
+    parts = _flatten(kwargs)
+    source = new_source(name, str(path), file_type, "gzip" if gzipped else None, "trimesh")
+    source.update(bytes=record["bytes"], sha256=record["sha256"], files=records,
+                  hash_method="sha256 of each file as stored, computed on the single read",
+                  **(extra_source or {}))
+    source["warnings"] += [f"companion file {m!r} not found" for m in dict.fromkeys(missing)]
+    arrays = _combine(parts, source["warnings"], name)
+    if file_type == "stl" and arrays["faces"] is not None:
+        arrays["points"], arrays["faces"] = _merge_duplicates(arrays["points"], arrays["faces"])
+    return make_scan(name, arrays["points"], normals=arrays["normals"], colors=arrays["colors"],
+                     faces=arrays["faces"], uv=arrays["uv"], texture=arrays["texture"],
+                     units=units, source=source)
+
+
+def _flatten(kwargs: dict) -> list[tuple[dict, np.ndarray]]:
+    """``[(geometry kwargs, 4x4 world matrix)]`` from a mesh or scene keyword dict."""
+    if "geometry" not in kwargs:
+        return [(kwargs, np.eye(4))]
+    geometry = kwargs["geometry"]
+    graph = kwargs.get("graph") or []
+    if not graph:
+        return [(g, np.eye(4)) for g in geometry.values()]
+    base = kwargs.get("base_frame", "world")
+
+    def frame(edge: dict) -> str:
+        return edge.get("frame_to", edge.get("geometry"))
+
+    parent = {frame(e): (e.get("frame_from", base), np.asarray(e.get("matrix", np.eye(4)), float))
+              for e in graph}
+
+    def world(frame: str, depth: int = 0) -> np.ndarray:
+        if frame not in parent or depth > len(parent):
+            return np.eye(4)
+        up, matrix = parent[frame]
+        return world(up, depth + 1) @ matrix
+
+    return [(geometry[e["geometry"]], world(frame(e)))
+            for e in graph if e.get("geometry") in geometry]
+
+
+def _texture_of(visual: Any) -> tuple[np.ndarray | None, Any]:
+    """``(uv, image)`` of a trimesh TextureVisuals (Simple or PBR material), else Nones."""
+    if visual is None or getattr(visual, "kind", None) != "texture":
+        return None, None
+    uv = getattr(visual, "uv", None)
+    material = getattr(visual, "material", None)
+    image = getattr(material, "image", None)
+    if image is None:
+        image = getattr(material, "baseColorTexture", None)
+    return (None if uv is None else np.asarray(uv, np.float64)), image
+
+
+def _colors_of(geom: dict) -> np.ndarray | None:
+    colors = geom.get("vertex_colors")
+    visual = geom.get("visual")
+    if colors is None and visual is not None:
+        if getattr(visual, "kind", None) == "vertex":
+            colors = visual.vertex_colors
+        elif getattr(visual, "kind", None) == "texture":
+            colors = getattr(visual, "vertex_attributes", {}).get("color")
+    if colors is None:
+        return None
+    colors = np.asarray(colors)
+    return colors_to_uint8(colors) if colors.ndim == 2 and colors.shape[1] >= 3 else None
+
+
+def _combine(parts: list[tuple[dict, np.ndarray]], warnings: list[str], name: str) -> dict:
+    """Concatenate the geometries of a scene, transformed into its root frame."""
+    points, faces, normals, colors, uvs, images = [], [], [], [], [], []
+    offset = 0
+    for geom, matrix in parts:
+        if "entities" in geom:
+            warnings.append("a path/line geometry was skipped (not a surface)")
+            continue
+        vertices = np.asarray(geom.get("vertices", np.empty((0, 3))), np.float64).reshape(-1, 3)
+        if not np.allclose(matrix, np.eye(4)):
+            vertices = vertices @ matrix[:3, :3].T + matrix[:3, 3]
+        points.append(vertices)
+        if geom.get("faces") is not None and len(geom["faces"]):
+            f = np.asarray(geom["faces"], np.int64)
+            if f.ndim != 2 or f.shape[1] != 3:
+                raise ScanError(f"{name}: faces are not triangles (shape {f.shape})")
+            faces.append(f + offset)
+        n = geom.get("vertex_normals")
+        if n is not None:
+            n = np.asarray(n, np.float64).reshape(-1, 3)
+            if not np.allclose(matrix, np.eye(4)):
+                n = n @ np.linalg.inv(matrix[:3, :3])
+                n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        normals.append(n)
+        colors.append(_colors_of(geom))
+        uv, image = _texture_of(geom.get("visual"))
+        uvs.append(uv)
+        images.append(image)
+        offset += len(vertices)
+    if not points:
+        raise ScanError(f"{name}: the file contains no points")
+
+    def joined(arrays: list) -> np.ndarray | None:
+        return np.concatenate(arrays) if all(a is not None for a in arrays) else None
+
+    texture = images[0] if images and all(i is images[0] for i in images) else None
+    if texture is None and any(i is not None for i in images):
+        warnings.append("several texture images: textures and uv were not kept")
+    uv = joined(uvs) if texture is not None else None
+    if any(u is not None for u in uvs) and texture is None and uv is None:
+        if all(i is None for i in images):
+            warnings.append("texture coordinates without a texture image were not kept")
+    return {"points": np.concatenate(points), "faces": np.concatenate(faces) if faces else None,
+            "normals": joined(normals), "colors": joined(colors), "uv": uv, "texture": texture}
+
+
+def _merge_duplicates(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge bit-identical vertices (STL's per-triangle copies), keeping first-occurrence order."""
+    _, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # unique rows sorted by where they first appear
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return points[first[order]], rank[inverse.reshape(-1)][faces]

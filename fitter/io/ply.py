@@ -1,0 +1,418 @@
+"""PLY reader: header parser, a memory-mapped fast path for binary point clouds, trimesh for meshes.
+
+The header (Turk's PLY format, as in the Stanford repository) is parsed here,
+so the reader knows before touching the body which path fits:
+
+* **binary point cloud** (``binary_little_endian`` / ``binary_big_endian``, the
+  ``vertex`` element first with scalar properties, no faces): the vertex block
+  is read as a structured numpy dtype built from the header (byte order,
+  property types and order). Uncompressed files are memory-mapped
+  (``numpy.memmap``) and walked once in chunks of ``CHUNK_VERTICES``: each chunk
+  is hashed (SHA-256 over the map, in file order: header, vertex block, any
+  trailing elements) and converted into preallocated float64 points in the same
+  pass, so a file of any size is read once and peak memory is the output arrays
+  plus one chunk. ``.ply.gz`` is streamed through gzip in the same chunks.
+* **ASCII point cloud** (the Stanford range scans: ``vertex`` then ``range_grid``):
+  the vertex lines go through ``numpy.loadtxt`` (C parser, about 60x faster than
+  a per-line reader); later elements are hashed, not parsed.
+* **everything else** (meshes, vertex elements with list properties): trimesh's
+  PLY loader on the bytes read once (``fitter.io.mesh``).
+
+Recognised vertex properties: ``x y z`` (required), normals ``nx ny nz``, colours
+``red green blue`` (or ``r g b``, ``diffuse_red ...``; uchar as is, floats taken
+as 0..1). Others (``confidence``, ``intensity``, ``alpha``...) are listed in
+``source["ignored_properties"]``. Units come from a header comment such as
+``comment units mm``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source, units_from_comments
+from .source import CHUNK_BYTES, GZIP_ERRORS, HashedInput, file_record, read_exactly
+
+#: vertices per chunk of the binary fast path (bounded memory, hashing and conversion per chunk)
+CHUNK_VERTICES = 1 << 20
+#: a header longer than this is not a PLY header
+MAX_HEADER_BYTES = 1 << 20
+
+PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+COLOR_NAMES = (("red", "green", "blue"), ("r", "g", "b"),
+               ("diffuse_red", "diffuse_green", "diffuse_blue"))
+FACE_ELEMENTS = ("face", "tristrips")
+
+
+@dataclass
+class PlyProperty:
+    """One property: numpy type code (``"f4"``...), and the count type for list properties."""
+
+    name: str
+    type: str
+    list_count_type: str | None = None
+
+
+@dataclass
+class PlyElement:
+    name: str
+    count: int
+    properties: list[PlyProperty] = field(default_factory=list)
+
+    @property
+    def is_scalar(self) -> bool:
+        return all(p.list_count_type is None for p in self.properties)
+
+
+@dataclass
+class PlyHeader:
+    """A parsed header; ``raw`` is its bytes, so the body starts at ``len(raw)``."""
+
+    format: str
+    elements: list[PlyElement]
+    comments: list[str]
+    raw: bytes
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def byte_order(self) -> str | None:
+        return FORMATS[self.format]
+
+    def element(self, name: str) -> PlyElement | None:
+        return next((e for e in self.elements if e.name == name), None)
+
+    def vertex_dtype(self) -> np.dtype:
+        """Structured dtype of one vertex record of a binary file (scalar properties only)."""
+        order = self.byte_order
+        return np.dtype([(p.name, order + p.type) for p in self.elements[0].properties])
+
+
+def parse_header(stream: io.BufferedIOBase, name: str) -> PlyHeader:
+    """Read and parse a PLY header up to and including ``end_header``.
+
+    Raises
+    ------
+    ScanError
+        Not a PLY file, unknown format or type, malformed element/property line,
+        duplicate property, or no ``end_header`` within ``MAX_HEADER_BYTES``.
+    """
+    raw = bytearray()
+    elements: list[PlyElement] = []
+    comments: list[str] = []
+    ignored: list[str] = []
+    fmt = None
+    lineno = 0
+    while True:
+        line = stream.readline(MAX_HEADER_BYTES)
+        lineno += 1
+        raw += line
+        if lineno == 1:
+            if line.rstrip(b"\r\n") != b"ply":
+                raise ScanError(f"{name}: not a PLY file: it starts with {bytes(line[:20])!r} "
+                                "instead of the line 'ply'")
+            continue
+        if not line or len(raw) >= MAX_HEADER_BYTES:
+            raise ScanError(f"{name}: PLY header has no 'end_header' line "
+                            f"(read {len(raw)} bytes, {lineno - 1} lines)")
+        try:
+            text = line.decode("ascii").strip()
+        except UnicodeDecodeError:
+            raise ScanError(f"{name}: PLY header line {lineno} is not ASCII text") from None
+        words = text.split()
+        if not words:
+            continue
+        key = words[0]
+        if key == "end_header":
+            break
+        if key in ("comment", "obj_info"):
+            comments.append(text[len(key):].strip())
+        elif key == "format":
+            if len(words) != 3 or words[1] not in FORMATS:
+                raise ScanError(f"{name}: PLY header line {lineno}: unknown format {text!r} "
+                                f"(expected one of {', '.join(FORMATS)} with a version)")
+            fmt = words[1]
+        elif key == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise ScanError(f"{name}: PLY header line {lineno}: expected 'element NAME "
+                                f"COUNT', got {text!r}")
+            elements.append(PlyElement(words[1], int(words[2])))
+        elif key == "property":
+            if not elements:
+                raise ScanError(f"{name}: PLY header line {lineno}: property before any element")
+            elements[-1].properties.append(_parse_property(words, name, lineno, text))
+            names = [p.name for p in elements[-1].properties]
+            if len(set(names)) != len(names):
+                raise ScanError(f"{name}: PLY header line {lineno}: duplicate property "
+                                f"{names[-1]!r} in element {elements[-1].name!r}")
+        else:  # e.g. the Stanford range scans' 'bye' lines: ignored, as other readers do
+            ignored.append(f"PLY header line {lineno} ignored: {text[:60]!r}")
+    if fmt is None:
+        raise ScanError(f"{name}: PLY header has no 'format' line")
+    return PlyHeader(fmt, elements, comments, bytes(raw), ignored)
+
+
+def _parse_property(words: list[str], name: str, lineno: int, text: str) -> PlyProperty:
+    if len(words) == 3 and words[1] in PLY_TYPES:
+        return PlyProperty(words[2], PLY_TYPES[words[1]])
+    if len(words) == 5 and words[1] == "list" and words[2] in PLY_TYPES and words[3] in PLY_TYPES:
+        return PlyProperty(words[4], PLY_TYPES[words[3]], PLY_TYPES[words[2]])
+    raise ScanError(f"{name}: PLY header line {lineno}: cannot parse {text!r} (expected "
+                    f"'property TYPE NAME' or 'property list TYPE TYPE NAME', TYPE one of "
+                    f"{', '.join(sorted(set(PLY_TYPES)))})")
+
+
+@dataclass
+class _VertexLayout:
+    """Which vertex properties the reader uses."""
+
+    xyz: tuple[str, str, str]
+    normals: tuple[str, str, str] | None
+    colors: tuple[str, str, str] | None
+    ignored: list[str]
+
+    @classmethod
+    def of(cls, element: PlyElement, name: str) -> _VertexLayout:
+        names = [p.name for p in element.properties]
+        if not {"x", "y", "z"} <= set(names):
+            raise ScanError(f"{name}: the PLY vertex element has no x, y, z properties "
+                            f"(it has {', '.join(names) or 'none'})")
+        normals = next((t for t in NORMAL_NAMES if set(t) <= set(names)), None)
+        colors = next((t for t in COLOR_NAMES if set(t) <= set(names)), None)
+        used = {"x", "y", "z", *(normals or ()), *(colors or ())}
+        return cls(("x", "y", "z"), normals, colors, [n for n in names if n not in used])
+
+
+class _VertexArrays:
+    """Output arrays, filled chunk by chunk from structured vertex records."""
+
+    def __init__(self, layout: _VertexLayout, n: int) -> None:
+        self.layout = layout
+        self.points = np.empty((n, 3), np.float64)
+        self.normals = np.empty((n, 3), np.float32) if layout.normals else None
+        self.colors = np.empty((n, 3), np.uint8) if layout.colors else None
+
+    def fill(self, start: int, records: np.ndarray) -> None:
+        stop = start + len(records)
+        for k, prop in enumerate(self.layout.xyz):
+            self.points[start:stop, k] = records[prop]
+        if self.normals is not None:
+            for k, prop in enumerate(self.layout.normals):
+                self.normals[start:stop, k] = records[prop]
+        if self.colors is not None:
+            rgb = np.column_stack([records[p] for p in self.layout.colors])
+            self.colors[start:stop] = colors_to_uint8(rgb)
+
+    def truncate(self, n: int) -> None:
+        self.points = self.points[:n]
+        self.normals = None if self.normals is None else self.normals[:n]
+        self.colors = None if self.colors is None else self.colors[:n]
+
+
+def _is_point_cloud(header: PlyHeader) -> bool:
+    if not header.elements or header.elements[0].name != "vertex":
+        return False
+    faces = sum(e.count for e in header.elements if e.name in FACE_ELEMENTS)
+    return header.elements[0].is_scalar and faces == 0
+
+
+def _is_ascii_triangle_mesh(header: PlyHeader) -> bool:
+    """ASCII ``vertex`` (scalar properties) then ``face`` with one list property."""
+    els = header.elements
+    return (header.byte_order is None and len(els) >= 2 and els[0].name == "vertex"
+            and els[0].is_scalar and els[1].name == "face" and len(els[1].properties) == 1
+            and els[1].properties[0].list_count_type is not None)
+
+
+def load_ply(path: Path, gzipped: bool) -> Scan:
+    """Read a ``.ply`` or ``.ply.gz`` file (see the module docstring for the paths taken)."""
+    name = path.name
+    with HashedInput(path, gzipped) as inp:
+        try:
+            header = parse_header(inp.stream, name)
+            units = units_from_comments(header.comments)
+            if _is_point_cloud(header) and header.byte_order and not gzipped:
+                inp.close()
+                return _load_memmap(path, header, units)
+            if _is_point_cloud(header):
+                reader = "ply-stream" if header.byte_order else "ply-ascii"
+                read = _read_binary_stream if header.byte_order else _read_ascii
+                layout = _VertexLayout.of(header.elements[0], name)
+                arrays = read(inp.stream, header, layout, name)
+                faces = None
+                record = inp.finish()
+            else:
+                body = inp.stream.read()
+                record = inp.finish()
+                parsed = _parse_ascii_mesh(body, header, name)
+                if parsed is None:
+                    return _via_trimesh(path, gzipped, header, body, record, units)
+                reader, (arrays, faces) = "ply-ascii", parsed
+                layout = arrays.layout
+        except GZIP_ERRORS as exc:
+            raise ScanError(f"{name}: corrupt gzip data: {exc}") from None
+    source = _source(path, gzipped, reader, record, header, layout)
+    return make_scan(name, arrays.points, normals=arrays.normals, colors=arrays.colors,
+                     faces=faces, units=units, source=source)
+
+
+def _via_trimesh(path: Path, gzipped: bool, header: PlyHeader, body: bytes, record: dict,
+                 units: str) -> Scan:
+    from .mesh import scan_from_trimesh
+
+    scan = scan_from_trimesh(path, "ply", header.raw + body, record, gzipped, units=units,
+                             extra_source={"ply_format": header.format,
+                                           "elements": {e.name: e.count
+                                                        for e in header.elements}})
+    scan.source["warnings"] += header.warnings
+    return scan
+
+
+def _source(path: Path, gzipped: bool, reader: str, record: dict, header: PlyHeader,
+            layout: _VertexLayout) -> dict:
+    source = new_source(path.name, str(path), "ply", "gzip" if gzipped else None, reader)
+    source.update(bytes=record["bytes"], sha256=record["sha256"], files=[record],
+                  hash_method="sha256 of the stored file, streamed in chunks while parsing",
+                  ply_format=header.format,
+                  elements={e.name: e.count for e in header.elements},
+                  ignored_properties=layout.ignored)
+    source["warnings"] += header.warnings
+    return source
+
+
+def _load_memmap(path: Path, header: PlyHeader, units: str) -> Scan:
+    """Binary point cloud, uncompressed: memory map, hash and convert in one pass."""
+    name = path.name
+    element = header.elements[0]
+    layout = _VertexLayout.of(element, name)
+    dtype = header.vertex_dtype()
+    start = len(header.raw)
+    need = element.count * dtype.itemsize
+    size = path.stat().st_size
+    if size - start < need:
+        have = size - start
+        raise ScanError(f"{name}: truncated binary PLY: the header promises {element.count} "
+                        f"vertices ({need} bytes of {dtype.itemsize} each) but only {have} "
+                        f"bytes follow the header ({have // dtype.itemsize} whole vertices)")
+    hasher = hashlib.sha256()
+    mapped = np.memmap(path, dtype=np.uint8, mode="r")
+    try:
+        hasher.update(mapped[:start])
+        records = mapped[start:start + need].view(dtype)
+        arrays = _VertexArrays(layout, element.count)
+        for first in range(0, element.count, CHUNK_VERTICES):
+            last = min(first + CHUNK_VERTICES, element.count)
+            hasher.update(mapped[start + first * dtype.itemsize:start + last * dtype.itemsize])
+            arrays.fill(first, records[first:last])
+        for pos in range(start + need, size, CHUNK_BYTES):
+            hasher.update(mapped[pos:min(pos + CHUNK_BYTES, size)])
+    finally:
+        del mapped
+    record = file_record(name, nbytes=size, sha256=hasher.hexdigest())
+    source = _source(path, False, "ply-memmap", record, header, layout)
+    source["hash_method"] = "sha256 over the memory map, chunk by chunk in the conversion pass"
+    trailing = size - start - need
+    if trailing and len(header.elements) == 1:
+        source["warnings"].append(f"{trailing} bytes after the vertex block were ignored")
+    return make_scan(name, arrays.points, normals=arrays.normals, colors=arrays.colors,
+                     units=units, source=source)
+
+
+def _read_binary_stream(stream: io.BufferedIOBase, header: PlyHeader, layout: _VertexLayout,
+                        name: str) -> _VertexArrays:
+    """Binary point cloud from a stream (``.ply.gz``): read the vertex block in chunks."""
+    element = header.elements[0]
+    dtype = header.vertex_dtype()
+    chunk = np.empty(min(CHUNK_VERTICES, max(element.count, 1)), dtype)
+    parts: list[_VertexArrays] = []
+    done = 0
+    while done < element.count:
+        want = min(len(chunk), element.count - done)
+        got = read_exactly(stream, memoryview(chunk.view(np.uint8))[:want * dtype.itemsize])
+        whole = got // dtype.itemsize
+        part = _VertexArrays(layout, whole)
+        part.fill(0, chunk[:whole])
+        parts.append(part)
+        done += whole
+        if whole < want:
+            raise ScanError(f"{name}: truncated binary PLY: the header promises {element.count} "
+                            f"vertices ({dtype.itemsize} bytes each) but the data ends after "
+                            f"{done} whole vertices")
+    out = _VertexArrays(layout, 0)
+    out.points = np.concatenate([p.points for p in parts]) if parts else out.points
+    if layout.normals and parts:
+        out.normals = np.concatenate([p.normals for p in parts])
+    if layout.colors and parts:
+        out.colors = np.concatenate([p.colors for p in parts])
+    return out
+
+
+def _read_ascii(stream: io.BufferedIOBase, header: PlyHeader, layout: _VertexLayout,
+                name: str) -> _VertexArrays:
+    """ASCII point cloud: the first ``count`` body lines through ``numpy.loadtxt``."""
+    element = header.elements[0]
+    props = [p.name for p in element.properties]
+    arrays = _VertexArrays(layout, 0)
+    if element.count == 0:
+        return arrays
+    text = io.TextIOWrapper(stream, encoding="ascii", newline=None)
+    try:
+        values = np.loadtxt(text, dtype=np.float64, comments=None, ndmin=2,
+                            max_rows=element.count)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ScanError(f"{name}: unreadable ASCII PLY vertex data: {exc}") from None
+    finally:
+        text.detach()
+    if values.shape[0] < element.count:
+        raise ScanError(f"{name}: truncated ASCII PLY: the header promises {element.count} "
+                        f"vertices but the file holds only {values.shape[0]} vertex lines")
+    if values.shape[1] != len(props):
+        raise ScanError(f"{name}: ASCII PLY vertex lines have {values.shape[1]} values, the "
+                        f"header declares {len(props)} properties ({' '.join(props)})")
+    columns = {p: values[:, i] for i, p in enumerate(props)}
+    arrays.points = np.column_stack([columns[p] for p in layout.xyz])
+    if layout.normals:
+        arrays.normals = np.column_stack([columns[p] for p in layout.normals]).astype(np.float32)
+    if layout.colors:
+        types = {p.name: p.type for p in element.properties}
+        rgb = np.column_stack([columns[p] for p in layout.colors])
+        rgb = rgb.astype(types[layout.colors[0]]) if types[layout.colors[0]][0] in "iu" else rgb
+        arrays.colors = colors_to_uint8(rgb)
+    return arrays
+
+
+def _parse_ascii_mesh(body: bytes, header: PlyHeader,
+                      name: str) -> tuple[_VertexArrays, np.ndarray] | None:
+    """Vertices and triangles of an ASCII mesh by ``loadtxt``; None to defer to trimesh.
+
+    Only the common layout (``vertex`` then an all-triangle ``face`` list) is
+    taken here, about 30x faster than a per-line reader; polygons, extra face
+    properties or irregular line structure return None.
+    """
+    if not _is_ascii_triangle_mesh(header):
+        return None
+    nv, nf = header.elements[0].count, header.elements[1].count
+    newlines = np.flatnonzero(np.frombuffer(body, np.uint8) == ord("\n"))
+    if len(newlines) < nv + nf or nv == 0:
+        return None
+    vertex_end, face_end = newlines[nv - 1] + 1, newlines[nv + nf - 1] + 1
+    layout = _VertexLayout.of(header.elements[0], name)
+    arrays = _read_ascii(io.BytesIO(body[:vertex_end]), header, layout, name)
+    try:
+        faces = np.loadtxt(io.BytesIO(body[vertex_end:face_end]), dtype=np.int64, ndmin=2,
+                           comments=None)
+    except ValueError:  # polygons of mixed sizes: trimesh triangulates them
+        return None
+    if faces.shape != (nf, 4) or np.any(faces[:, 0] != 3):
+        return None
+    return arrays, faces[:, 1:]
