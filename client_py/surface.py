@@ -263,22 +263,31 @@ class NurbsSurface:
     def normal(self, u: float, v: float) -> Vec3:
         """Unit normal ``(S_u x S_v) / |S_u x S_v|``.
 
-        Where the cross product vanishes (a pole or collapsed edge, where a whole
-        row of control points coincides) the normal is the limit taken from
-        inside the domain: the derivatives are evaluated at points moved towards
-        the domain centre by growing steps until they are independent.
+        Where the cross product vanishes, ``|S_u x S_v| <= normal_tolerance(self)``
+        (a pole or collapsed edge, where a whole row of control points
+        coincides), the normal is the limit taken from inside the domain along
+        the line to the domain centre ``c``: with ``n(h)`` the normal at
+        ``(u, v) + h (c - (u, v))``, the smallest ``h = 10^-9 8^k`` at which it
+        exists, extrapolated to ``h = 0`` as ``2 n(h) - n(2h)`` (Richardson),
+        which removes the error linear in ``h``.
         """
-        n = unit_normal(*self.derivatives(u, v)[1:])
+        tol = normal_tolerance(self)
+        n = unit_normal(*self.derivatives(u, v)[1:], tol)
         if n is not None:
             return n
         (u0, u1), (v0, v1) = self.domain
-        cu, cv = 0.5 * (u0 + u1), 0.5 * (v0 + v1)
         u, v = float(u), float(v)
+        du, dv = 0.5 * (u0 + u1) - u, 0.5 * (v0 + v1) - v
         step = 1e-9
-        while step < 0.5:
-            n = unit_normal(*self.derivatives(u + (cu - u) * step, v + (cv - v) * step)[1:])
+        while step < 0.25:
+            n = unit_normal(*self.derivatives(u + du * step, v + dv * step)[1:], tol)
             if n is not None:
-                return n
+                far = unit_normal(*self.derivatives(u + du * 2 * step, v + dv * 2 * step)[1:])
+                if far is None:
+                    return n
+                limit = [2.0 * a - b for a, b in zip(n, far, strict=True)]
+                length = math.sqrt(sum(c * c for c in limit))
+                return (limit[0] / length, limit[1] / length, limit[2] / length)
             step *= 8.0
         raise ValueError(f"the surface is degenerate around ({u}, {v}): no normal exists")
 
@@ -290,15 +299,36 @@ class NurbsSurface:
         )
 
 
-def unit_normal(s_u: Sequence[float], s_v: Sequence[float]) -> Vec3 | None:
-    """Normalised ``s_u x s_v``, or ``None`` when the tangents are (nearly) dependent."""
+# A normal is degenerate where |S_u x S_v| <= NORMAL_TOLERANCE * L_u * L_v (see normal_tolerance).
+NORMAL_TOLERANCE = 1e-12
+
+
+def normal_tolerance(surface: NurbsSurface) -> float:
+    """``|S_u x S_v|`` at or below which ``surface`` has no usable normal.
+
+    ``NORMAL_TOLERANCE * L_u * L_v`` with ``L_u = d / (u_b - u_a)``,
+    ``L_v = d / (v_b - v_a)`` and ``d`` the diagonal of the control points'
+    bounding box plus their largest coordinate magnitude: the size of
+    ``S_u x S_v`` on a patch of that extent, so the test does not depend on
+    scale or parametrisation, and an upper bound of the rounding noise in
+    ``S_u, S_v``, which grows with the coordinates' magnitude. An absolute
+    scale (not the angle between ``S_u`` and ``S_v``) is what detects a pole
+    of a *rational* patch: there the computed ``S_v`` is not zero but rounding
+    noise of any direction, and its angle to ``S_u`` says nothing.
+    """
+    lo, hi = surface.bounding_box()
+    diagonal = math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi, strict=True)))
+    d = diagonal + max(abs(c) for c in lo + hi)
+    (u0, u1), (v0, v1) = surface.domain
+    return NORMAL_TOLERANCE * d * d / ((u1 - u0) * (v1 - v0))
+
+
+def unit_normal(s_u: Sequence[float], s_v: Sequence[float], tol: float = 0.0) -> Vec3 | None:
+    """Normalised ``s_u x s_v``, or ``None`` when ``|s_u x s_v| <= tol``."""
     nx = s_u[1] * s_v[2] - s_u[2] * s_v[1]
     ny = s_u[2] * s_v[0] - s_u[0] * s_v[2]
     nz = s_u[0] * s_v[1] - s_u[1] * s_v[0]
     length = math.sqrt(nx * nx + ny * ny + nz * nz)
-    scale = math.sqrt(
-        (s_u[0] ** 2 + s_u[1] ** 2 + s_u[2] ** 2) * (s_v[0] ** 2 + s_v[1] ** 2 + s_v[2] ** 2)
-    )
-    if length <= 1e-10 * scale or length == 0.0:
+    if not length > tol:
         return None
     return (nx / length, ny / length, nz / length)
