@@ -55,6 +55,36 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be 0 to 65535, got {value}")
+    return value
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from werkzeug.serving import run_simple
+
+    from .server import create_app
+
+    collection = Path(args.collection)
+    if not collection.is_dir():
+        raise UserError(f"{collection}: not a directory "
+                        "(give a folder of bundles from `tessera fit`)")
+    try:
+        app = create_app({"TESSERA_COLLECTION": str(collection)})
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    count = len(app.extensions["tessera_collection"].bundles())
+    print(f"serving {count} object(s) from {collection} at http://{args.host}:{args.port}/ "
+          "(Ctrl-C to stop)")
+    run_simple(args.host, args.port, app, threaded=True)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tessera",
@@ -76,6 +106,20 @@ def build_parser() -> argparse.ArgumentParser:
     tess.add_argument("--ascii", action="store_true",
                       help="write ASCII PLY instead of binary little-endian")
     tess.set_defaults(run=_cmd_tessellate)
+
+    serve = sub.add_parser(
+        "serve",
+        help="serve a collection of bundles: gallery, browser viewer, 3DHOP pages, JSON API",
+        description="Serve a directory of bundles (each the output of `tessera fit`) to web "
+        "browsers: a gallery, a viewer per object (the mesh is tessellated in the browser), "
+        "3DHOP pages and /api/objects. Settings come from TESSERA_* environment variables "
+        "(see fitter.server.DEFAULTS), e.g. TESSERA_3DHOP_DIR.",
+    )
+    serve.add_argument("collection", help="directory of bundle directories")
+    serve.add_argument("--host", default="127.0.0.1",
+                       help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
+    serve.add_argument("--port", type=_port, default=8000, help="port (default 8000)")
+    serve.set_defaults(run=_cmd_serve)
     return parser
 
 

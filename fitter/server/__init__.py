@@ -1,0 +1,147 @@
+"""Tessera's Flask server: a collection of bundles, the browser viewer, its runtime, 3DHOP pages.
+
+``create_app(config=None)`` builds the application (the Flask tutorial's app
+factory pattern). Every setting has its default in :data:`DEFAULTS`, one
+table; an environment variable of the same name overrides the default, and the
+``config`` mapping given to :func:`create_app` overrides both. Each resource is
+one blueprint:
+
+=============  ==============================================================
+``gallery``    ``/``: the collection as a page of cards (title, sizes, error)
+``objects``    ``/objects/<id>/`` viewer, ``/objects/<id>/3dhop`` 3DHOP page,
+               ``/objects/<id>/thumbnail.png``
+``api``        ``/api/objects`` and ``/api/objects/<id>`` (JSON)
+``bundles``    ``/bundles/<id>/<file>``: the immutable bundle files
+``runtime``    ``/web/``, ``/vendor/pyodide/``, ``/vendor/three/``,
+               ``/vendor/3dhop/``, ``/client_py/sources.json``
+=============  ==============================================================
+
+The server does no fitting and writes nothing: a collection is a directory of
+bundle directories (each the output of ``tessera fit``), read as they are.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from flask import Flask, jsonify, render_template, request
+
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+
+def _default_3dhop_dir() -> str:
+    vendored = PROJECT_ROOT.parent / "shared" / "vendor" / "3dhop-4.3"
+    return str(vendored) if vendored.is_dir() else ""
+
+
+#: Every setting, its default and what it means. The environment variable of
+#: the same name overrides the default; ``create_app(config)`` overrides both.
+DEFAULTS: dict[str, tuple[Any, str]] = {
+    "TESSERA_COLLECTION": ("", "directory of bundle directories to serve (required)"),
+    "TESSERA_WEB_DIR": (str(PROJECT_ROOT / "web"), "the viewer's static files (web/)"),
+    "TESSERA_PYODIDE_DIR": (str(PROJECT_ROOT / "web" / "node_modules" / "pyodide"),
+                            "the npm pyodide package (loadPyodide's indexURL)"),
+    "TESSERA_THREE_DIR": (str(PROJECT_ROOT / "web" / "node_modules" / "three"),
+                          "the npm three package"),
+    "TESSERA_3DHOP_DIR": (_default_3dhop_dir(),
+                          "a local copy of 3DHOP 4.3's minimal/ folder, served at /vendor/3dhop/"),
+    "TESSERA_3DHOP_URL": ("", "base URL of a 3DHOP installation elsewhere (instead of a dir)"),
+    "TESSERA_PYODIDE_TIMEOUT": (45.0, "seconds the page waits for Pyodide before an error"),
+    "TESSERA_RESOLUTION": (0, "fixed tessellation grid per side; 0 follows the view"),
+    "TESSERA_GZIP": (True, "gzip compressible responses when the client accepts it"),
+    "TESSERA_BUNDLE_MAX_AGE": (365 * 24 * 3600, "Cache-Control max-age of bundle files (s)"),
+    "TESSERA_RUNTIME_MAX_AGE": (24 * 3600, "Cache-Control max-age of Pyodide and three.js (s)"),
+}
+
+
+def _coerce(name: str, text: str, default: Any) -> Any:
+    """An environment string converted to the type of the setting's default."""
+    if isinstance(default, bool):
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"environment variable {name}={text!r}: expected true/false")
+    if isinstance(default, int | float):
+        try:
+            return type(default)(text)
+        except ValueError:
+            raise ValueError(
+                f"environment variable {name}={text!r}: expected a {type(default).__name__}"
+            ) from None
+    return text
+
+
+def load_settings(config: Mapping[str, Any] | None = None,
+                  environ: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """Settings from :data:`DEFAULTS`, then ``environ`` (``os.environ``), then ``config``."""
+    environ = os.environ if environ is None else environ
+    settings = {}
+    for name, (default, _) in DEFAULTS.items():
+        value = default
+        if name in environ:
+            value = _coerce(name, environ[name], default)
+        settings[name] = value
+    settings.update(config or {})
+    return settings
+
+
+def create_app(config: Mapping[str, Any] | None = None) -> Flask:
+    """The Tessera web application.
+
+    Parameters
+    ----------
+    config : mapping, optional
+        Settings overriding :data:`DEFAULTS` and the environment, plus any
+        Flask setting (``TESTING`` ...).
+
+    Raises
+    ------
+    ValueError
+        When ``TESSERA_COLLECTION`` is unset or not a directory, or a runtime
+        directory (web/, pyodide, three) is missing.
+    """
+    from . import api, bundles, gallery, objects, runtime
+    from .collection import Collection
+
+    settings = load_settings(config)
+    collection_dir = Path(str(settings["TESSERA_COLLECTION"]))
+    if not str(settings["TESSERA_COLLECTION"]):
+        raise ValueError("TESSERA_COLLECTION is not set: give the directory of bundles to serve")
+    if not collection_dir.is_dir():
+        raise ValueError(f"TESSERA_COLLECTION={collection_dir}: not a directory")
+    for name in ("TESSERA_WEB_DIR", "TESSERA_PYODIDE_DIR", "TESSERA_THREE_DIR"):
+        if not Path(settings[name]).is_dir():
+            hint = " (run `npm ci` in web/)" if "node_modules" in str(settings[name]) else ""
+            raise ValueError(f"{name}={settings[name]}: not a directory{hint}")
+
+    web_dir = Path(settings["TESSERA_WEB_DIR"])
+    app = Flask(__name__, template_folder=str(web_dir / "templates"), static_folder=None)
+    app.config.update(settings)
+    app.extensions["tessera_collection"] = Collection(collection_dir)
+    app.extensions["tessera_client_py"] = runtime.client_py_sources()
+
+    for module in (gallery, objects, api, bundles, runtime):
+        app.register_blueprint(module.bp)
+
+    @app.errorhandler(404)
+    def not_found(error):  # noqa: ANN001, ANN202 - Flask's handler signature
+        message = getattr(error, "description", "not found")
+        if request.path.startswith("/api/"):
+            return jsonify({"error": message}), 404
+        return render_template("404.html", message=message), 404
+
+    @app.errorhandler(400)
+    def bad_request(error):  # noqa: ANN001, ANN202
+        message = getattr(error, "description", "bad request")
+        if request.path.startswith("/api/"):
+            return jsonify({"error": message}), 400
+        return render_template("404.html", message=message, status=400), 400
+
+    return app
+
+
+__all__ = ["DEFAULTS", "create_app", "load_settings"]

@@ -1,0 +1,65 @@
+"""The ``api`` blueprint: the collection as JSON for other sites and scripts.
+
+``GET /api/objects`` returns a list of ``{"id", "title", "viewer_url",
+"bundle_url", "bytes", "stats", ...}``; ``GET /api/objects/<id>`` one of them.
+URLs are relative to the server root (they start with ``/``, or with the
+application's mount point when it is mounted under a prefix).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from flask import Blueprint, abort, current_app, jsonify, url_for
+
+from .collection import Bundle, BundleError
+
+bp = Blueprint("api", __name__, url_prefix="/api")
+
+
+def object_summary(bundle: Bundle) -> dict[str, Any]:
+    """The public description of one object (used by the API and the gallery)."""
+    manifest = bundle.manifest
+    sizes = bundle.file_sizes()
+    base = manifest.get("base", {})
+    return {
+        "id": bundle.id,
+        "title": bundle.title,
+        "viewer_url": url_for("objects.viewer", object_id=bundle.id),
+        "hop_url": url_for("objects.hop", object_id=bundle.id),
+        "thumbnail_url": url_for("objects.thumbnail", object_id=bundle.id),
+        "bundle_url": url_for("bundles.bundle_file", object_id=bundle.id, filename=""),
+        "manifest_url": url_for("bundles.bundle_file", object_id=bundle.id,
+                                filename="manifest.json"),
+        "bytes": sum(sizes.values()),
+        "base_bytes": sizes.get(bundle.base_file, 0),
+        # what a visitor's viewer downloads: the manifest and the base patch
+        "view_bytes": sizes.get("manifest.json", 0) + sizes.get(bundle.base_file, 0),
+        "files": sizes,
+        "units": manifest.get("units", "unknown"),
+        "grid": base.get("grid"),
+        "degree": base.get("degree"),
+        "stats": manifest.get("stats", {}),
+        "provenance": manifest.get("provenance", {}),
+    }
+
+
+def get_bundle_or_404(object_id: str) -> Bundle:
+    """The collection's bundle ``object_id``, or a 404 saying why there is none."""
+    try:
+        return current_app.extensions["tessera_collection"].get(object_id)
+    except KeyError:
+        abort(404, description=f"no object {object_id!r} in this collection")
+    except BundleError as exc:
+        abort(404, description=f"object {object_id!r} is not a readable bundle: {exc}")
+
+
+@bp.get("/objects")
+def list_objects():  # noqa: ANN201 - Flask view
+    collection = current_app.extensions["tessera_collection"]
+    return jsonify([object_summary(b) for b in collection.bundles()])
+
+
+@bp.get("/objects/<object_id>")
+def get_object(object_id: str):  # noqa: ANN201
+    return jsonify(object_summary(get_bundle_or_404(object_id)))

@@ -1,0 +1,140 @@
+// The 3DHOP page: client_py writes the PLY in the browser (mesh worker), 3DHOP shows it.
+//
+// The PLY reaches 3DHOP as a blob: URL with mType "ply" (3DHOP's own loader, js/ply.js).
+// Loaded state: 3DHOP's presenter reports its scene ready (presenter._isSceneReady(), set
+// when every mesh of the scene has been parsed and uploaded); the page then sets
+// document.body.dataset.ready = "1" after the next frame, as the viewer page does.
+
+import { ErrorMap } from "./error-map.js";
+import { MeshWorkerClient } from "./mesh-worker-client.js";
+
+const RESOLUTION = 192; // 36,864 vertices: one 3DHOP chunk (its limit is 65,535 per chunk)
+const config = JSON.parse(document.getElementById("tessera-config").textContent);
+const $ = (id) => document.getElementById(id);
+const stats = { vertices: 0, triangles: 0, tessellate_ms: null, pyodide_load_ms: null,
+  first_frame_ms: null, bytes_downloaded: 0, kernel: null, ply_bytes: 0 };
+window.tessera = { config, stats };
+
+const STAGES = {
+  runtime: "Starting the Python runtime (Pyodide)…",
+  client_py: "Installing client_py…",
+  patch: "Reading the NURBS patch…",
+  ply: "Writing the PLY mesh…",
+  hop: "Handing the mesh to 3DHOP…",
+};
+
+function showStage(stage) {
+  $("loading-text").textContent = STAGES[stage] || stage;
+  document.body.dataset.stage = stage;
+}
+
+function showError(message) {
+  document.body.dataset.error = message;
+  $("loading").hidden = true;
+  $("error").hidden = false;
+  $("error-text").textContent = message;
+}
+
+// 3DHOP's toolbar (init.js) calls this global.
+window.actionsToolbar = (action) => {
+  const presenter = window.presenter;
+  if (!presenter) return;
+  if (action === "home") presenter.resetTrackball();
+  else if (action === "zoomin") presenter.zoomIn();
+  else if (action === "zoomout") presenter.zoomOut();
+  else if (action === "light" || action === "light_on") {
+    presenter.enableLightTrackball(!presenter.isLightTrackballEnabled());
+    window.lightSwitch();
+  } else if (action === "full" || action === "full_on") window.fullscreenSwitch();
+};
+
+/** Column-major 4x4 rotation turning the mean normal towards 3DHOP's camera (+z), y up. */
+function facingMatrix(normals) {
+  let f = [0, 0, 0];
+  for (let k = 0; k < normals.length; k += 3) f = [f[0] + normals[k], f[1] + normals[k + 1], f[2] + normals[k + 2]];
+  const norm = (v) => { const l = Math.hypot(...v) || 1; return v.map((x) => x / l); };
+  const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+  const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+  f = Math.hypot(...f) > 1e-9 ? norm(f) : [0, 0, 1];
+  const axes = [[0, 1, 0], [0, 0, 1], [1, 0, 0]].sort((a, b) => Math.abs(dot(a, f)) - Math.abs(dot(b, f)));
+  const up = norm(axes[0].map((x, i) => x - dot(axes[0], f) * f[i]));
+  const right = cross(up, f);
+  // Rows of the rotation are right, up, f; column-major storage puts row r, column c at [4c + r].
+  return [right[0], up[0], f[0], 0, right[1], up[1], f[1], 0, right[2], up[2], f[2], 0, 0, 0, 0, 1];
+}
+
+function waitForScene(presenter, timeoutMs) {
+  return new Promise((resolve, reject) => {
+    const start = performance.now();
+    const poll = () => {
+      if (presenter._isSceneReady()) resolve();
+      else if (performance.now() - start > timeoutMs) reject(new Error(`3DHOP did not load the mesh within ${timeoutMs / 1000} s`));
+      else setTimeout(poll, 20);
+    };
+    poll();
+  });
+}
+
+async function main() {
+  if (typeof Presenter === "undefined") throw new Error("3DHOP's scripts did not load (check TESSERA_3DHOP_DIR / TESSERA_3DHOP_URL)");
+  window.init3dhop();
+  const presenter = new Presenter("draw-canvas");
+  window.presenter = presenter;
+
+  const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
+  const ready = await worker.init({
+    pyodideUrl: config.pyodide_url, clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
+  }, config.pyodide_timeout_s);
+  stats.pyodide_load_ms = ready.pyodide_load_ms;
+  stats.kernel = ready.kernel;
+  stats.bytes_downloaded += ready.patch_bytes;
+
+  let errorMap = null;
+  const useColors = new URLSearchParams(location.search).get("colors") === "error";
+  $("hop-colors").checked = useColors;
+  $("hop-colors").addEventListener("change", () => {
+    const url = new URL(location.href);
+    if ($("hop-colors").checked) url.searchParams.set("colors", "error"); else url.searchParams.delete("colors");
+    location.assign(url);
+  });
+  const resolution = config.resolution || RESOLUTION;
+  showStage("ply");
+  const mesh = await worker.tessellate(resolution);
+  stats.tessellate_ms = mesh.tessellate_ms;
+  let colors = null;
+  if (useColors) {
+    const response = await fetch(config.manifest_url);
+    if (!response.ok) throw new Error(`cannot fetch the manifest: HTTP ${response.status}`);
+    const manifest = await response.json();
+    if (!manifest.error_grid) throw new Error("this bundle has no error data to colour the mesh with");
+    errorMap = new ErrorMap(manifest.error_grid, manifest.units || "");
+    colors = errorMap.vertexColors(mesh.uvs, ready.patch.domain);
+  }
+  const ply = await worker.ply(resolution, colors);
+  stats.vertices = ply.vertices;
+  stats.triangles = mesh.indices.length / 3;
+  stats.ply_bytes = ply.bytes.length;
+  const url = URL.createObjectURL(new Blob([ply.bytes], { type: "application/octet-stream" }));
+  window.tessera.plyUrl = url;
+
+  showStage("hop");
+  presenter.setScene({
+    meshes: { tessera: { url, mType: "ply", transform: { matrix: facingMatrix(mesh.normals) } } },
+    modelInstances: { object: { mesh: "tessera" } },
+    trackball: {
+      type: SphereTrackball,
+      trackOptions: { startDistance: 2.6, minMaxDist: [0.4, 6.0] },
+    },
+    space: { cameraFOV: 40.0 },
+  });
+  await waitForScene(presenter, 20000);
+  presenter.repaint();
+  await new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve)));
+  stats.first_frame_ms = performance.now();
+  $("loading").hidden = true;
+  document.body.dataset.ready = "1";
+}
+
+main().catch((error) => {
+  showError(error.message || String(error));
+});

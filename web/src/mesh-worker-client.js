@@ -1,0 +1,93 @@
+// MeshWorkerClient: the page's handle on mesh-worker.js — promises in, typed arrays out.
+//
+// Owns the Worker, turns its messages into promises, reports progress stages, and
+// enforces the Pyodide load timeout: a runtime that never answers (a wrong MIME
+// type makes loadPyodide hang silently) becomes a visible error, not a spinner forever.
+
+export class MeshWorkerClient {
+  /**
+   * @param {string} workerUrl  URL of mesh-worker.js (from the server's page config)
+   * @param {{onStage?: (stage: string, detail: object) => void}} [options]
+   */
+  constructor(workerUrl, { onStage = () => {} } = {}) {
+    this.onStage = onStage;
+    this.nextId = 1;
+    this.pending = new Map();
+    this.worker = new Worker(workerUrl, { type: "module", name: "tessera-mesh-worker" });
+    this.worker.onmessage = (event) => this._receive(event.data);
+    this.worker.onerror = (event) => {
+      event.preventDefault();
+      this._failAll(`the mesh worker failed to start: ${event.message || "script error"}`);
+    };
+    this.worker.onmessageerror = () => this._failAll("the mesh worker sent an unreadable message");
+  }
+
+  /**
+   * Load Pyodide, client_py and the patch. Resolves with the worker's "ready" message.
+   * @param {{pyodideUrl: string, clientPyUrl: string, patchUrl: string}} urls
+   * @param {number} timeoutS  seconds allowed for the Pyodide runtime to load
+   */
+  init(urls, timeoutS) {
+    return new Promise((resolve, reject) => {
+      const timer = setTimeout(() => {
+        this.worker.terminate();
+        reject(new Error(`the Python runtime (Pyodide) did not load within ${timeoutS} s; ` +
+                         "check that the server sends .wasm as application/wasm"));
+      }, timeoutS * 1000);
+      this.pending.set(0, {
+        resolve: (message) => { clearTimeout(timer); resolve(message); },
+        reject: (error) => { clearTimeout(timer); reject(error); },
+        runtimeLoaded: () => clearTimeout(timer),
+      });
+      this.worker.postMessage({ type: "init", ...urls });
+    });
+  }
+
+  /** Tessellate on a resolution x resolution grid: {positions, normals, uvs, indices, tessellate_ms}. */
+  tessellate(resolution) {
+    return this._request({ type: "tessellate", resolution });
+  }
+
+  /** PLY bytes written by client_py.write_ply; `colors` an optional Uint8Array of RGB per vertex. */
+  ply(resolution, colors = null) {
+    return this._request({ type: "ply", resolution, colors }, colors ? [colors.buffer] : []);
+  }
+
+  terminate() {
+    this.worker.terminate();
+    this._failAll("the mesh worker was stopped");
+  }
+
+  _request(message, transfer = []) {
+    const id = this.nextId++;
+    return new Promise((resolve, reject) => {
+      this.pending.set(id, { resolve, reject });
+      this.worker.postMessage({ ...message, id }, transfer);
+    });
+  }
+
+  _receive(message) {
+    if (message.type === "stage") {
+      if (message.stage !== "runtime") this.pending.get(0)?.runtimeLoaded?.();
+      this.onStage(message.stage, message);
+      return;
+    }
+    const id = message.type === "ready" || (message.type === "error" && message.id === undefined)
+      ? 0 : message.id;
+    const entry = this.pending.get(id);
+    if (!entry) return;
+    this.pending.delete(id);
+    if (message.type === "error") {
+      const error = new Error(message.message);
+      error.stage = message.stage;
+      entry.reject(error);
+    } else {
+      entry.resolve(message);
+    }
+  }
+
+  _failAll(text) {
+    for (const entry of this.pending.values()) entry.reject(new Error(text));
+    this.pending.clear();
+  }
+}

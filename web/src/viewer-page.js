@@ -1,0 +1,210 @@
+// The viewer page: wires the mesh worker, the three.js Viewer and the page's controls.
+//
+// Testing contract: document.body.dataset.ready === "1" once the first mesh is drawn;
+// document.body.dataset.error holds the message on failure; window.tessera.stats =
+// {vertices, triangles, tessellate_ms, pyodide_load_ms, first_frame_ms, bytes_downloaded,
+//  kernel, resolution, ...}. All URLs come from the server's JSON config block.
+
+import { ErrorMap } from "./error-map.js";
+import { MeshWorkerClient } from "./mesh-worker-client.js";
+import { Viewer } from "./viewer.js";
+
+const COARSE = 24; // first mesh: ~1k vertices, drawn within milliseconds of the patch
+const MIN_RES = 48;
+const MAX_RES = 384;
+
+const config = JSON.parse(document.getElementById("tessera-config").textContent);
+const $ = (id) => document.getElementById(id);
+const stats = { vertices: 0, triangles: 0, tessellate_ms: null, pyodide_load_ms: null,
+  first_frame_ms: null, bytes_downloaded: 0, kernel: null, resolution: null, meshes: 0 };
+window.tessera = { config, stats };
+
+const STAGES = {
+  manifest: "Reading the object's description…",
+  runtime: "Starting the Python runtime (Pyodide)…",
+  client_py: "Installing client_py…",
+  patch: "Reading the NURBS patch…",
+  tessellation: "Tessellating…",
+};
+
+function showStage(stage) {
+  $("loading-text").textContent = STAGES[stage] || stage;
+  document.body.dataset.stage = stage;
+}
+
+function showError(message) {
+  document.body.dataset.error = message;
+  $("loading").hidden = true;
+  $("error").hidden = false;
+  $("error-text").textContent = message;
+}
+
+function formatBytes(n) {
+  if (n < 1024) return `${n} B`;
+  if (n < 1024 * 1024) return `${(n / 1024).toFixed(1)} KB`;
+  return `${(n / 1024 / 1024).toFixed(1)} MB`;
+}
+
+function formatLength(value, units) {
+  if (value === undefined || value === null || !Number.isFinite(value)) return "—";
+  const digits = Math.abs(value) >= 10 ? 1 : Math.abs(value) >= 1 ? 2 : 3;
+  return `${value.toFixed(digits)} ${units === "unknown" ? "" : units}`.trim();
+}
+
+function setFact(id, text) {
+  const el = $(id);
+  if (el) el.textContent = text;
+}
+
+/** Grid size that puts a vertex every ~3 device pixels across the object on screen. */
+function viewResolution(viewer) {
+  const pixels = viewer.projectedDiameter() / 3;
+  return Math.min(MAX_RES, Math.max(MIN_RES, Math.round(pixels / 16) * 16));
+}
+
+async function loadManifest() {
+  const response = await fetch(config.manifest_url);
+  if (!response.ok) throw new Error(`cannot fetch the manifest (${config.manifest_url}): HTTP ${response.status}`);
+  const text = await response.text();
+  stats.bytes_downloaded += text.length;
+  try {
+    return JSON.parse(text);
+  } catch (error) {
+    throw new Error(`the manifest is not valid JSON: ${error.message}`);
+  }
+}
+
+function describe(manifest, ready) {
+  const units = manifest.units || ready.patch.units || "unknown";
+  const s = manifest.stats || {};
+  setFact("fact-units", units);
+  setFact("fact-bundle", formatBytes(stats.bytes_downloaded));
+  setFact("fact-patch", formatBytes(ready.patch_bytes));
+  setFact("fact-grid", `${ready.patch.shape.join(" × ")} control points, degree ${ready.patch.degree.join(", ")}` +
+    (ready.patch.rational ? ", rational" : ""));
+  setFact("fact-rms", formatLength(s.rms, units));
+  setFact("fact-max", formatLength(s.max, units));
+  if (manifest.provenance && manifest.provenance.points) {
+    setFact("fact-source", `${manifest.provenance.points.toLocaleString("en")} scan points` +
+      (manifest.provenance.bytes ? `, ${formatBytes(manifest.provenance.bytes)}` : ""));
+  }
+}
+
+function showMeshFacts() {
+  setFact("fact-mesh", `${stats.vertices.toLocaleString("en")} vertices, ` +
+    `${stats.triangles.toLocaleString("en")} triangles`);
+  setFact("fact-time", `${stats.tessellate_ms.toFixed(0)} ms in Python (${stats.kernel} kernel)`);
+}
+
+async function main() {
+  const viewer = new Viewer($("view"));
+  const panel = document.querySelector(".panel");
+  // On wide screens keep the object clear of the information panel.
+  const inset = () => (window.innerWidth > 900 ? panel.getBoundingClientRect().right : 0);
+  viewer.setLeftInset(inset());
+  window.addEventListener("resize", () => viewer.setLeftInset(inset()));
+  const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
+  let domain = null;
+  let errorMap = null;
+  let current = 0;
+  let pending = null;
+
+  async function showResolution(resolution) {
+    const t0 = performance.now();
+    const mesh = await worker.tessellate(resolution);
+    viewer.setMesh(mesh, domain);
+    current = resolution;
+    stats.resolution = resolution;
+    stats.vertices = mesh.positions.length / 3;
+    stats.triangles = mesh.indices.length / 3;
+    stats.tessellate_ms = mesh.tessellate_ms;
+    stats.round_trip_ms = performance.now() - t0;
+    stats.meshes += 1;
+    showMeshFacts();
+    return { ...stats };
+  }
+  window.tessera.tessellate = (resolution) => showResolution(resolution);
+
+  // Zooming in asks for a finer grid, zooming out for a coarser one (after the gesture ends).
+  viewer.controls.addEventListener("end", () => {
+    if (config.resolution || !domain) return;
+    const wanted = viewResolution(viewer);
+    if (wanted === current || Math.abs(Math.log(wanted / current)) < Math.log(1.4)) return;
+    clearTimeout(pending);
+    pending = setTimeout(() => showResolution(wanted).catch((e) => showError(e.message)), 150);
+  });
+
+  showStage("manifest");
+  const manifestPromise = loadManifest();
+  const ready = await worker.init({
+    pyodideUrl: config.pyodide_url, clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
+  }, config.pyodide_timeout_s);
+  const manifest = await manifestPromise;
+  stats.pyodide_load_ms = ready.pyodide_load_ms;
+  stats.kernel = ready.kernel;
+  stats.bytes_downloaded += ready.patch_bytes;
+  domain = ready.patch.domain;
+  describe(manifest, ready);
+
+  showStage("tessellation");
+  const target = config.resolution || viewResolution(viewer);
+  await showResolution(Math.min(COARSE, target));
+  await new Promise((resolve) => requestAnimationFrame(resolve));
+  stats.first_frame_ms = performance.now();
+  stats.coarse_resolution = current;
+  document.body.dataset.ready = "1";
+  $("loading").hidden = true;
+
+  if (manifest.error_grid) {
+    try {
+      errorMap = new ErrorMap(manifest.error_grid, manifest.units || "");
+      $("legend-bar").style.background = errorMap.cssGradient();
+      $("legend-max").textContent = formatLength(errorMap.max, manifest.units || "");
+      $("toggle-error").disabled = false;
+    } catch (error) {
+      $("toggle-error").title = error.message;
+    }
+  }
+  $("toggle-error").addEventListener("click", () => {
+    const on = $("toggle-error").getAttribute("aria-pressed") !== "true";
+    $("toggle-error").setAttribute("aria-pressed", String(on));
+    viewer.setErrorOverlay(on ? { rgba: errorMap.rgba(), cols: errorMap.cols, rows: errorMap.rows } : null);
+    $("legend").hidden = !on;
+  });
+  $("fit-view").addEventListener("click", () => viewer.fitView());
+  $("download-ply").disabled = false;
+  $("download-ply").addEventListener("click", async () => {
+    const button = $("download-ply");
+    button.disabled = true;
+    try {
+      const overlay = $("toggle-error").getAttribute("aria-pressed") === "true";
+      let colors = null;
+      if (overlay && errorMap) {
+        // The worker tessellates the same grid: same vertex order, so colours line up.
+        const mesh = await worker.tessellate(current);
+        colors = errorMap.vertexColors(mesh.uvs, domain);
+      }
+      const ply = await worker.ply(current, colors);
+      const url = URL.createObjectURL(new Blob([ply.bytes], { type: "application/octet-stream" }));
+      const link = document.createElement("a");
+      link.href = url;
+      link.download = config.ply_name;
+      document.body.append(link);
+      link.click();
+      link.remove();
+      setTimeout(() => URL.revokeObjectURL(url), 10000);
+    } catch (error) {
+      showError(`Download PLY failed: ${error.message}`);
+    } finally {
+      button.disabled = false;
+    }
+  });
+
+  if (target !== current) await showResolution(target);
+  document.body.dataset.refined = "1";
+}
+
+main().catch((error) => {
+  console.error(error);
+  showError(error.message || String(error));
+});

@@ -1,0 +1,192 @@
+// Viewer: the three.js scene that shows a tessellated patch — orbit, zoom, pan, fit-to-view,
+// an error-map overlay; rendering on demand (only when the view or the mesh changes).
+
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+
+const STONE = 0xd9cfbf;
+export const BACKGROUND = 0x23262b;
+
+/** Unit mean of the vertex normals (the direction a relief faces), +z if they cancel out. */
+function meanNormal(normals) {
+  const sum = new THREE.Vector3();
+  for (let k = 0; k < normals.length; k += 3) {
+    sum.x += normals[k];
+    sum.y += normals[k + 1];
+    sum.z += normals[k + 2];
+  }
+  return sum.lengthSq() > 1e-12 ? sum.normalize() : new THREE.Vector3(0, 0, 1);
+}
+
+/** Direction of largest spread of the vertices in the plane perpendicular to `facing`
+ *  (the principal eigenvector of their 2x2 in-plane covariance). */
+function principalAxis(positions, centre, facing) {
+  const helper = Math.abs(facing.x) < 0.9 ? new THREE.Vector3(1, 0, 0) : new THREE.Vector3(0, 1, 0);
+  const a = new THREE.Vector3().crossVectors(helper, facing).normalize();
+  const b = new THREE.Vector3().crossVectors(facing, a);
+  let saa = 0, sab = 0, sbb = 0;
+  const step = Math.max(3, 3 * Math.floor(positions.length / 3 / 4096)); // a sample is enough
+  for (let k = 0; k < positions.length; k += step) {
+    const x = positions[k] - centre.x, y = positions[k + 1] - centre.y, z = positions[k + 2] - centre.z;
+    const pa = x * a.x + y * a.y + z * a.z;
+    const pb = x * b.x + y * b.y + z * b.z;
+    saa += pa * pa; sab += pa * pb; sbb += pb * pb;
+  }
+  const angle = 0.5 * Math.atan2(2 * sab, saa - sbb);
+  return a.multiplyScalar(Math.cos(angle)).addScaledVector(b, Math.sin(angle)).normalize();
+}
+
+export class Viewer {
+  /** @param {HTMLCanvasElement} canvas */
+  constructor(canvas) {
+    this.canvas = canvas;
+    // preserveDrawingBuffer: screenshots and the tests read the canvas after drawing.
+    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.renderer.outputColorSpace = THREE.SRGBColorSpace;
+    this.scene = new THREE.Scene();
+    this.scene.background = new THREE.Color(BACKGROUND);
+    this.camera = new THREE.PerspectiveCamera(35, 1, 0.1, 1000);
+    this.scene.add(this.camera);
+
+    // Soft sky/ground fill plus a key light riding with the camera (raking from the upper
+    // left, as photographers light reliefs) and a weak rim light from behind.
+    this.scene.add(new THREE.HemisphereLight(0xf6f2ea, 0x3a3530, 0.55));
+    const key = new THREE.DirectionalLight(0xfff6e8, 2.8);
+    key.position.set(-1.2, 1.0, 0.8);
+    this.camera.add(key);
+    const rim = new THREE.DirectionalLight(0xcfd8ff, 0.5);
+    rim.position.set(1.0, -0.5, -1.0);
+    this.camera.add(rim);
+
+    this.material = new THREE.MeshStandardMaterial({
+      color: STONE, roughness: 0.82, metalness: 0.0, side: THREE.DoubleSide,
+    });
+    this.mesh = null;
+    this.errorTexture = null;
+    this.controls = new OrbitControls(this.camera, canvas);
+    this.controls.addEventListener("change", () => this.render());
+    this.onRender = null;
+    this.leftInset = 0;
+    this._resizeObserver = new ResizeObserver(() => this.resize());
+    this._resizeObserver.observe(canvas);
+    this.resize();
+  }
+
+  resize() {
+    const width = this.canvas.clientWidth || 1;
+    const height = this.canvas.clientHeight || 1;
+    this.renderer.setSize(width, height, false);
+    this.camera.aspect = width / height;
+    const inset = Math.min(this.leftInset, width / 2);
+    if (inset > 0) this.camera.setViewOffset(width, height, -inset / 2, 0, width, height);
+    else this.camera.clearViewOffset();
+    this.camera.updateProjectionMatrix();
+    this.render();
+  }
+
+  render() {
+    this.renderer.render(this.scene, this.camera);
+    if (this.onRender) this.onRender();
+  }
+
+  /**
+   * Show a mesh from the worker; the first one also fits the view.
+   * @param {{positions: Float32Array, normals: Float32Array, uvs: Float32Array, indices: Uint32Array}} data
+   * @param {number[]} domain  [u0, u1, v0, v1] of the patch, to map uvs onto the error map
+   */
+  setMesh(data, domain) {
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute("position", new THREE.BufferAttribute(data.positions, 3));
+    geometry.setAttribute("normal", new THREE.BufferAttribute(data.normals, 3));
+    // Texture coordinates (s, t) = (v, u) normalised: the error grid's columns run along v.
+    const [u0, u1, v0, v1] = domain;
+    const st = new Float32Array(data.uvs.length);
+    for (let k = 0; k < st.length; k += 2) {
+      st[k] = (data.uvs[k + 1] - v0) / (v1 - v0);
+      st[k + 1] = (data.uvs[k] - u0) / (u1 - u0);
+    }
+    geometry.setAttribute("uv", new THREE.BufferAttribute(st, 2));
+    geometry.setIndex(new THREE.BufferAttribute(data.indices, 1));
+    geometry.computeBoundingSphere();
+    const first = this.mesh === null;
+    if (first) {
+      this.mesh = new THREE.Mesh(geometry, this.material);
+      this.scene.add(this.mesh);
+      this.fitView();
+    } else {
+      this.mesh.geometry.dispose();
+      this.mesh.geometry = geometry;
+    }
+    this.render();
+  }
+
+  /** Frame the object, seen from the side its normals face on average (a relief's front),
+   *  its longest extent horizontal, centred in the part of the canvas the panel leaves free. */
+  fitView() {
+    if (!this.mesh) return;
+    const geometry = this.mesh.geometry;
+    const sphere = geometry.boundingSphere;
+    const facing = meanNormal(geometry.getAttribute("normal").array);
+    const right = principalAxis(geometry.getAttribute("position").array, sphere.center, facing);
+    let up = new THREE.Vector3().crossVectors(facing, right).normalize();
+    // Look from a little above the front, so the relief reads as relief and not as a photo.
+    const tilt = THREE.MathUtils.degToRad(20);
+    const view = facing.clone().multiplyScalar(Math.cos(tilt)).addScaledVector(up, Math.sin(tilt));
+    up = new THREE.Vector3().crossVectors(view, right).normalize();
+    const fov = THREE.MathUtils.degToRad(this.camera.fov);
+    const fit = Math.min(fov, 2 * Math.atan(Math.tan(fov / 2) * this.visibleAspect()));
+    const distance = (1.05 * sphere.radius) / Math.sin(fit / 2);
+    this.camera.up.copy(up);
+    this.camera.position.copy(sphere.center).addScaledVector(view, distance);
+    this.camera.near = distance / 100;
+    this.camera.far = distance * 100;
+    this.camera.updateProjectionMatrix();
+    this.controls.target.copy(sphere.center);
+    this.controls.update();
+    this.render();
+  }
+
+  /** Width/height of the canvas area not covered by the left panel. */
+  visibleAspect() {
+    const width = this.canvas.clientWidth || 1;
+    return Math.max(width - this.leftInset, width / 2) / (this.canvas.clientHeight || 1);
+  }
+
+  /** Keep `pixels` at the left for a panel: the view's centre moves to the free area. */
+  setLeftInset(pixels) {
+    this.leftInset = pixels;
+    this.resize();
+  }
+
+  /** Approximate diameter of the object on screen, in device pixels. */
+  projectedDiameter() {
+    if (!this.mesh) return this.canvas.height;
+    const sphere = this.mesh.geometry.boundingSphere;
+    const distance = Math.max(this.camera.position.distanceTo(sphere.center), 1e-9);
+    const viewHeight = 2 * distance * Math.tan(THREE.MathUtils.degToRad(this.camera.fov) / 2);
+    return (2 * sphere.radius / viewHeight) * this.renderer.domElement.height;
+  }
+
+  /**
+   * Overlay the error map (RGBA bytes, cols x rows) or remove it (null).
+   * @param {{rgba: Uint8Array, cols: number, rows: number} | null} image
+   */
+  setErrorOverlay(image) {
+    if (image) {
+      if (!this.errorTexture) {
+        this.errorTexture = new THREE.DataTexture(image.rgba, image.cols, image.rows, THREE.RGBAFormat);
+        this.errorTexture.colorSpace = THREE.SRGBColorSpace;
+        this.errorTexture.magFilter = THREE.NearestFilter;
+        this.errorTexture.needsUpdate = true;
+      }
+      this.material.map = this.errorTexture;
+      this.material.color.set(0xffffff);
+    } else {
+      this.material.map = null;
+      this.material.color.set(STONE);
+    }
+    this.material.needsUpdate = true;
+    this.render();
+  }
+}
