@@ -74,6 +74,8 @@ def scan_from_trimesh(path: Path, file_type: str, data: bytes, record: dict, gzi
     records: list[dict] = [record]
     missing: list[str] = []
     resolver = _hashing_resolver(path, records, missing)
+    if file_type == "stl":
+        _check_stl(data, name)
     loader = mesh_loaders[file_type]
     try:
         kwargs = loader(file_obj=io.BytesIO(data), file_type=file_type, resolver=resolver)
@@ -92,6 +94,19 @@ def scan_from_trimesh(path: Path, file_type: str, data: bytes, record: dict, gzi
     return make_scan(name, arrays["points"], normals=arrays["normals"], colors=arrays["colors"],
                      faces=arrays["faces"], uv=arrays["uv"], texture=arrays["texture"],
                      units=units, source=source)
+
+
+def _check_stl(data: bytes, name: str) -> None:
+    """A binary STL is 84 + 50 n bytes for the n its header states; else it must be ASCII."""
+    if len(data) >= 84:
+        n = struct.unpack("<I", data[80:84])[0]
+        if len(data) == 84 + 50 * n:
+            return
+    if data[:5].lower() == b"solid" and b"facet" in data[:4096].lower():
+        return
+    stated = f"its header states {n} triangles = {84 + 50 * n} bytes, " if len(data) >= 84 else ""
+    raise ScanError(f"{name}: corrupt or truncated STL: {stated}the file has {len(data)} bytes, "
+                    "and it is not ASCII STL ('solid ... facet ...') either")
 
 
 def _flatten(kwargs: dict) -> list[tuple[dict, np.ndarray]]:
