@@ -1,0 +1,174 @@
+"""The geometric error between the scan and the fitted patch (the paper's Fig. 5 and 9).
+
+Every scan point's deviation is its signed foot-point distance: the distance to
+the closest point of the patch (found by :func:`fitter.fit.project_points`
+from the better of two starts: the point's own projection parameters and the
+nearest vertex of a dense tessellation), positive on the side the patch normal
+points to. Statistics: RMS, mean absolute, max (the one-sided Hausdorff
+distance from the scan), P95, P99, in scan units and relative to the scan's
+bounding-box diagonal. Reports: ``error.png`` (a heat map over the parameter
+domain and over a render of the object, with a colour bar in scan units) and
+``error.ply`` (the scan coloured by deviation, the signed value kept as a
+``quality`` property as MeshLab does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .fit import project_points
+from .nurbs import PatchModel
+
+SEED_GRID = 192  # tessellation used to seed foot-point searches
+ERROR_GRID = 32  # cells per side of the manifest's uv error map
+
+
+@dataclass
+class Deviations:
+    """Per-point signed deviation ``d (N,)`` and foot-point parameters ``u, v (N,)``."""
+
+    d: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+
+def deviations(model: PatchModel, points: np.ndarray, u0: np.ndarray, v0: np.ndarray,
+               periodic_u: bool = False, chunk: int = 1 << 20) -> Deviations:
+    """Signed foot-point distance of every point ``(N, 3)`` (patch frame) to ``model``."""
+    g = np.linspace(0.0, 1.0, SEED_GRID)
+    GU, GV = np.meshgrid(g, g, indexing="ij")
+    seeds = model.evaluate(GU.ravel(), GV.ravel())
+    tree = cKDTree(seeds)
+    d = np.empty(len(points))
+    us = np.empty(len(points))
+    vs = np.empty(len(points))
+    for s in range(0, len(points), chunk):
+        p = points[s:s + chunk]
+        _, nearest = tree.query(p, workers=-1)
+        su, sv = GU.ravel()[nearest], GV.ravel()[nearest]
+        own = model.evaluate(u0[s:s + chunk], v0[s:s + chunk])
+        seed_better = (np.einsum("ij,ij->i", seeds[nearest] - p, seeds[nearest] - p)
+                       < np.einsum("ij,ij->i", own - p, own - p))
+        u = np.where(seed_better, su, u0[s:s + chunk])
+        v = np.where(seed_better, sv, v0[s:s + chunk])
+        u, v = project_points(model, p, u, v, periodic_u, iterations=6)
+        S, Su, Sv = model.evaluate(u, v, derivatives=True)
+        n = np.cross(Su, Sv)
+        r = p - S
+        dist = np.linalg.norm(r, axis=1)
+        side = np.sign(np.einsum("ij,ij->i", r, n))
+        d[s:s + chunk] = np.where(side < 0, -dist, dist)
+        us[s:s + chunk], vs[s:s + chunk] = u, v
+    return Deviations(d, us, vs)
+
+
+def error_stats(d: np.ndarray, bbox_diagonal: float, units: str) -> dict:
+    """RMS, mean absolute, signed mean (bias), max, P95, P99 of ``|d|``; relative values
+    divide by ``bbox_diagonal``."""
+    a = np.abs(d)
+    if len(a) == 0:
+        raise ValueError("no deviations to summarise: the scan has no covered point")
+    stats = {
+        "rms": float(np.sqrt(np.mean(d * d))),
+        "mean": float(a.mean()),
+        "bias": float(d.mean()),
+        "max": float(a.max()),
+        "p95": float(np.percentile(a, 95)),
+        "p99": float(np.percentile(a, 99)),
+        "points": int(len(d)),
+        "bbox_diagonal": float(bbox_diagonal),
+        "units": units,
+    }
+    for key in ("rms", "mean", "max", "p95", "p99"):
+        stats[f"{key}_relative"] = stats[key] / bbox_diagonal if bbox_diagonal > 0 else 0.0
+    return stats
+
+
+def error_grid(dev: Deviations, cells: int = ERROR_GRID) -> dict:
+    """RMS deviation per ``(u, v)`` cell (row = ``u``), ``None`` where no point falls."""
+    iu = np.minimum((dev.u * cells).astype(np.int64), cells - 1)
+    iv = np.minimum((dev.v * cells).astype(np.int64), cells - 1)
+    cell = iu * cells + iv
+    count = np.bincount(cell, minlength=cells * cells)
+    sq = np.bincount(cell, weights=dev.d**2, minlength=cells * cells)
+    rms = np.sqrt(sq / np.maximum(count, 1))
+    values = [float(round(x, 9)) if c else None for x, c in zip(rms, count, strict=True)]
+    return {"rows": cells, "cols": cells, "max": float(rms.max()) if len(rms) else 0.0,
+            "values": values}
+
+
+def _colour_limit(d: np.ndarray) -> float:
+    limit = float(np.percentile(np.abs(d), 99)) if len(d) else 0.0
+    return limit if limit > 0 else 1.0
+
+
+def write_error_ply(path: Path, points_scan: np.ndarray, d: np.ndarray) -> None:
+    """Binary PLY of the scan points coloured by signed deviation (blue - white - red at
+    +-P99), with the deviation as float ``quality``."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["coolwarm"]
+    limit = _colour_limit(d)
+    rgb = (cmap(np.clip(0.5 + 0.5 * d / limit, 0.0, 1.0))[:, :3] * 255).round().astype(np.uint8)
+    record = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
+                       ("green", "u1"), ("blue", "u1"), ("quality", "<f4")])
+    data = np.empty(len(d), dtype=record)
+    data["x"], data["y"], data["z"] = points_scan.T
+    data["red"], data["green"], data["blue"] = rgb.T
+    data["quality"] = d
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        "comment Tessera error report: quality = signed deviation from the patch, scan units\n"
+        f"comment colour scale: blue -{limit:.6g} .. white 0 .. red +{limit:.6g}\n"
+        f"element vertex {len(d)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        "property float quality\nend_header\n"
+    )
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(data.tobytes())
+
+
+def write_error_png(path: Path, dev: Deviations, points_local: np.ndarray, units: str,
+                    title: str) -> None:
+    """Two panels: mean signed deviation over the ``(u, v)`` domain, and the scan seen
+    along the patch frame's third axis, points coloured by deviation; one colour bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    limit = _colour_limit(dev.d)
+    res = 200
+    iu = np.minimum((dev.u * res).astype(np.int64), res - 1)
+    iv = np.minimum((dev.v * res).astype(np.int64), res - 1)
+    cell = iu * res + iv
+    count = np.bincount(cell, minlength=res * res)
+    total = np.bincount(cell, weights=dev.d, minlength=res * res)
+    heat = np.where(count > 0, total / np.maximum(count, 1), np.nan).reshape(res, res)
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), dpi=100,
+                             gridspec_kw={"width_ratios": [1, 1.25]})
+    kw = {"cmap": "coolwarm", "vmin": -limit, "vmax": limit}
+    axes[0].imshow(heat.T, origin="lower", extent=(0, 1, 0, 1), interpolation="nearest", **kw)
+    axes[0].set_xlabel("u")
+    axes[0].set_ylabel("v")
+    axes[0].set_title("deviation over the parameter domain")
+    order = np.argsort(points_local[:, 2])  # painter's order: far points first
+    step = max(1, len(order) // 400_000)
+    shown = order[::step]
+    image = axes[1].scatter(points_local[shown, 0], points_local[shown, 1], c=dev.d[shown],
+                            s=0.3, linewidths=0, rasterized=True, **kw)
+    axes[1].set_aspect("equal")
+    axes[1].set_axis_off()
+    axes[1].set_title("deviation on the scan")
+    bar = fig.colorbar(image, ax=axes, shrink=0.85)
+    bar.set_label(f"signed deviation ({units}); colour range = P99 of |d|")
+    fig.suptitle(title)
+    fig.savefig(path, metadata={"Software": "Tessera", "CreationDate": None})
+    plt.close(fig)

@@ -1,0 +1,347 @@
+"""``fit_scan``: one scan in, one bundle out — the whole fit with progress reporting.
+
+Stages (each timed, each reported to ``progress(stage, fraction)``):
+
+1. load — ``fitter.io.load_scan`` (or an in-memory array);
+2. project — choose the map to ``[0, 1]^2`` and the covered points
+   (``fitter.parameterize``); the rest are reported, not dropped;
+3. sections — the paper's section matrix (``fitter.sections``);
+4. linear — the initial B-spline, weights 1, uniform clamped knots (``fitter.fit``);
+5. refine — ``paper``: Levenberg-Marquardt over ``Q`` and ``W`` on the section
+   matrix (eq. 5); ``tessera``: rounds of parameter correction (foot points of
+   a feature-adaptive sample of the scan itself) and linear re-fits, then the
+   weights by Levenberg-Marquardt on the same orthogonal residuals;
+6. encode — ``base.tsp`` written and read back: the error is measured on the
+   quantised patch a visitor downloads;
+7. error — foot-point deviation of every scan point, statistics, ``error.png``,
+   ``error.ply``;
+8. bundle — ``manifest.json``; the bundle directory appears by an atomic
+   rename once complete.
+
+With ``max_error`` the control grid grows (x1.25 per side) from ``grid`` until
+the RMS deviation is at most ``max_error`` or ``max_grid`` is reached.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from client_py import TrimMask, read_patch, write_patch
+
+from . import io as scan_io
+from .error import deviations, error_grid, error_stats, write_error_ply, write_error_png
+from .features import adaptive_sample, feature_weights, surface_variation
+from .fit import fit_points_linear, fit_section_matrix, project_points, refine_nurbs
+from .io.scan import Scan, ScanError
+from .nurbs import PatchModel
+from .parameterize import KINDS, Coverage, choose_projection, trim_cells
+from .sections import section_matrix, section_shape
+
+BUNDLE_FORMAT_VERSION = 1
+METHODS = ("tessera", "paper")
+MIN_POINTS = 64
+FIT_SAMPLE = 60_000  # scan points the tessera refinement fits (feature-adaptive sample)
+FEATURE_SAMPLE = 150_000  # points whose local PCA drives the sampling density
+CORRECTION_ROUNDS = 3
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class FitOptions:
+    """Options of one fit (recorded in the manifest).
+
+    grid : control points per side ``(n_u, n_v)``; degree : ``p = q``;
+    method : ``tessera`` (default, the best we have) or ``paper`` (as published);
+    bits : quantisation of the patch file; max_error : target RMS in scan units
+    (grows the grid); max_grid : cap for that growth; projection : ``auto`` or
+    one of ``plane``, ``cylinder``, ``sphere``; title : the object's title.
+    """
+
+    grid: tuple[int, int] = (40, 40)
+    degree: int = 2
+    method: str = "tessera"
+    bits: int = 16
+    max_error: float | None = None
+    max_grid: int = 128
+    projection: str = "auto"
+    title: str | None = None
+    feature_strength: float = 4.0
+    seed: int = 0
+
+    def validate(self) -> None:
+        grid = tuple(self.grid)
+        if len(grid) != 2 or not all(isinstance(g, int) and not isinstance(g, bool)
+                                     for g in grid):
+            raise ValueError(f"grid must be two integers, got {self.grid!r}")
+        if not isinstance(self.degree, int) or not 1 <= self.degree <= 5:
+            raise ValueError(f"degree must be an integer in 1..5, got {self.degree!r}")
+        if any(g < self.degree + 1 or g > 1024 for g in grid):
+            raise ValueError(f"grid {grid[0]}x{grid[1]}: each side must be in "
+                             f"{self.degree + 1}..1024 for degree {self.degree}")
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if not isinstance(self.bits, int) or not 8 <= self.bits <= 24:
+            raise ValueError(f"bits must be an integer in 8..24, got {self.bits!r}")
+        if self.max_error is not None and not (np.isfinite(self.max_error)
+                                               and self.max_error > 0):
+            raise ValueError(f"max_error must be a positive number, got {self.max_error!r}")
+        if not isinstance(self.max_grid, int) or not max(grid) <= self.max_grid <= 1024:
+            raise ValueError(f"max_grid must be in {max(grid)}..1024, got {self.max_grid!r}")
+        if self.projection not in ("auto",) + KINDS:
+            raise ValueError(f"projection must be auto or one of {', '.join(KINDS)}, "
+                             f"got {self.projection!r}")
+        if not (np.isfinite(self.feature_strength) and 0 <= self.feature_strength <= 100):
+            raise ValueError(f"feature_strength must be in 0..100, got {self.feature_strength}")
+
+
+@dataclass
+class Bundle:
+    """A written bundle: its directory and manifest."""
+
+    path: Path
+    manifest: dict
+
+
+@dataclass
+class FitResult:
+    """One fitted size: the quantised patch, its bytes and its error."""
+
+    model: PatchModel
+    data: bytes
+    dev: object
+    stats: dict
+    history: dict = field(default_factory=dict)
+
+
+class _Stages:
+    """Times stages and forwards progress."""
+
+    def __init__(self, progress: Progress | None) -> None:
+        self.progress = progress
+        self.timings: dict[str, float] = {}
+        self._name: str | None = None
+        self._start = 0.0
+
+    def start(self, name: str) -> None:
+        self.stop()
+        self._name, self._start = name, time.perf_counter()
+        self.report(0.0)
+
+    def report(self, fraction: float) -> None:
+        if self.progress is not None and self._name is not None:
+            self.progress(self._name, float(fraction))
+
+    def stop(self) -> None:
+        if self._name is not None:
+            self.timings[self._name] = round(self.timings.get(self._name, 0.0)
+                                             + time.perf_counter() - self._start, 4)
+            self.report(1.0)
+            self._name = None
+
+
+def _as_scan(scan: object) -> Scan:
+    if isinstance(scan, Scan):
+        return scan
+    if isinstance(scan, str | os.PathLike):
+        return scan_io.load_scan(Path(scan))
+    if isinstance(scan, np.ndarray):
+        return Scan.from_array(scan)
+    raise ScanError(f"scan must be a file path, a Scan or an (N, 3) array, got "
+                    f"{type(scan).__name__}")
+
+
+def _grid_sizes(options: FitOptions) -> list[tuple[int, int]]:
+    sizes = [tuple(options.grid)]
+    if options.max_error is not None:
+        while max(sizes[-1]) < options.max_grid:
+            nxt = tuple(min(options.max_grid, max(g + 1, int(round(g * 1.25))))
+                        for g in sizes[-1])
+            sizes.append(nxt)
+    return sizes
+
+
+def _fit_one(grid: tuple[int, int], options: FitOptions, cov: Coverage, local: np.ndarray,
+             u: np.ndarray, v: np.ndarray, h: np.ndarray, sample: np.ndarray,
+             trim: TrimMask | None, metadata: dict, stages: _Stages) -> tuple[PatchModel, dict]:
+    proj = cov.projection
+    periodic = proj.periodic_u
+    covered = cov.covered
+    deg = (options.degree, options.degree)
+    model = PatchModel.uniform(grid, deg)
+    stages.start("sections")
+    sm = section_matrix(proj, u[covered], v[covered], h[covered],
+                        section_shape(int(covered.sum()), grid))
+    stages.start("linear")
+    smoothing = 0.0 if (sm.full and options.method == "paper") else 1e-6
+    model = fit_section_matrix(model, sm.u, sm.v, sm.points, sm.valid, periodic, smoothing)
+    history: dict = {"section_matrix": list(sm.points.shape[:2]),
+                     "section_holes": int((~sm.valid).sum())}
+    stages.start("refine")
+    if options.method == "paper":
+        UU, VV = np.meshgrid(sm.u, sm.v, indexing="ij")
+        keep = sm.valid.ravel()
+        model, energy = refine_nurbs(model, UU.ravel()[keep], VV.ravel()[keep],
+                                     sm.points.reshape(-1, 3)[keep], iterations=8,
+                                     smoothing=smoothing)
+        history["energy"] = energy
+        return model, history
+    pts = local[sample]
+    su, sv = u[sample], v[sample]
+    for k in range(CORRECTION_ROUNDS):
+        su, sv = project_points(model, pts, su, sv, periodic, iterations=2)
+        model = fit_points_linear(model, su, sv, pts, periodic)
+        stages.report((k + 1) / (CORRECTION_ROUNDS + 1))
+    if not periodic:  # weights change the seam's derivatives: periodic patches stay B-splines
+        su, sv = project_points(model, pts, su, sv, periodic)
+        model, energy = refine_nurbs(model, su, sv, pts, iterations=8)
+        history["energy"] = energy
+    return model, history
+
+
+def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | None = None,
+             progress: Progress | None = None) -> Bundle:
+    """Fit ``scan`` (a path, a ``Scan`` or an ``(N, 3)`` array) and write the bundle
+    ``out_dir`` (``manifest.json``, ``base.tsp``, ``error.png``, ``error.ply``).
+
+    Raises
+    ------
+    ScanError
+        Unreadable, empty or non-finite scans, or too few points to fit.
+    ValueError
+        Invalid options.
+    """
+    options = options or FitOptions()
+    options.grid = tuple(options.grid)
+    options.validate()
+    out_dir = Path(out_dir)
+    stages = _Stages(progress)
+
+    stages.start("load")
+    scan = _as_scan(scan)
+    points = scan.points
+    name = scan.source.get("name", "scan")
+    if len(points) < MIN_POINTS:
+        raise ScanError(f"{name}: {len(points)} points; a fit needs at least {MIN_POINTS}")
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    diagonal = float(np.linalg.norm(hi - lo))
+    if not diagonal > 0:
+        raise ScanError(f"{name}: all {len(points)} points coincide; there is no surface to fit")
+
+    stages.start("project")
+    normals = None
+    if scan.normals is not None:
+        nrm = np.asarray(scan.normals, dtype=float)
+        length = np.linalg.norm(nrm, axis=1, keepdims=True)
+        if np.all(length > 0):
+            normals = nrm / length
+    cov = choose_projection(points, normals, options.projection)
+    proj = cov.projection
+    local = proj.local(points)
+    u, v, h = proj.to_uvh(points)
+    n_cov = int(cov.covered.sum())
+    if n_cov < MIN_POINTS:
+        raise ScanError(f"{name}: only {n_cov} points lie on a surface a single patch can "
+                        f"represent; at least {MIN_POINTS} are needed")
+    cells = trim_cells(cov.mask, proj.periodic_u)
+    trim = None if cells.all() else TrimMask(cells)
+
+    covered_idx = np.flatnonzero(cov.covered)
+    if options.method == "tessera":
+        stages.start("features")
+        rng = np.random.default_rng([options.seed, 0xFEA7])
+        probe = covered_idx if n_cov <= FEATURE_SAMPLE else np.sort(
+            rng.choice(covered_idx, FEATURE_SAMPLE, replace=False))
+        weights = feature_weights(surface_variation(points[probe]), options.feature_strength)
+        sample = probe[adaptive_sample(weights, min(FIT_SAMPLE, len(probe)), options.seed)]
+    else:
+        sample = covered_idx
+
+    metadata = {"transform": proj.transform, "units": scan.units,
+                "projection": proj.kind, "generator": "tessera fit"}
+    best: FitResult | None = None
+    for grid in _grid_sizes(options):
+        model, history = _fit_one(grid, options, cov, local, u, v, h, sample, trim, metadata,
+                                  stages)
+        stages.start("encode")
+        data = write_patch(model.to_surface(trim, metadata), bits=options.bits)
+        decoded = PatchModel.from_surface(read_patch(data))
+        stages.start("error")
+        dev = deviations(decoded, local, u, v, proj.periodic_u)
+        stats = error_stats(dev.d[cov.covered], diagonal, scan.units)
+        best = FitResult(decoded, data, dev, stats, history | {"grid": list(grid)})
+        if options.max_error is None or stats["rms"] <= options.max_error:
+            break
+
+    stages.start("report")
+    parent = out_dir.resolve().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=parent))
+    try:
+        (tmp / "base.tsp").write_bytes(best.data)
+        write_error_ply(tmp / "error.ply", points, best.dev.d)
+        title = options.title or Path(name).name
+        write_error_png(tmp / "error.png", best.dev, local, scan.units,
+                        f"{title}: RMS {best.stats['rms']:.4g} {scan.units}, "
+                        f"max {best.stats['max']:.4g} {scan.units}")
+        uncovered = ~cov.covered
+        manifest = {
+            "format": "tessera-bundle",
+            "format_version": BUNDLE_FORMAT_VERSION,
+            "title": title,
+            "units": scan.units,
+            "files": {},
+            "base": {"file": "base.tsp", "degree": [options.degree] * 2,
+                     "grid": best.history["grid"], "bits": options.bits,
+                     "rational": bool(not np.all(best.model.W == 1.0)),
+                     "trimmed": trim is not None},
+            "transform": proj.transform,
+            "projection": {"kind": proj.kind, "requested": options.projection,
+                           "coverage": round(cov.fraction, 6),
+                           "uncovered_points": int(uncovered.sum()),
+                           "uncovered_bbox": (
+                               [points[uncovered].min(axis=0).tolist(),
+                                points[uncovered].max(axis=0).tolist()]
+                               if uncovered.any() else None)},
+            "provenance": {"input": name, "bytes": scan.source.get("bytes"),
+                           "sha256": scan.source.get("sha256"), "points": int(len(points)),
+                           "format": scan.source.get("format")},
+            "options": {k: (list(x) if isinstance(x, tuple) else x)
+                        for k, x in asdict(options).items()},
+            "stats": best.stats,
+            "stats_all_points": error_stats(best.dev.d, diagonal, scan.units),
+            "fit": best.history,
+            "timings": {},
+            "error_grid": error_grid(type(best.dev)(best.dev.d[cov.covered],
+                                                    best.dev.u[cov.covered],
+                                                    best.dev.v[cov.covered])),
+        }
+        for f in ("base.tsp", "error.png", "error.ply"):
+            manifest["files"][f] = (tmp / f).stat().st_size
+        stages.stop()
+        manifest["timings"] = dict(stages.timings)
+        with open(tmp / "manifest.json", "w") as fh:
+            json.dump(manifest, fh, indent=1, sort_keys=True)
+        for f in tmp.iterdir():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        if out_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=parent))
+            os.rename(out_dir, old / "bundle")
+            os.rename(tmp, out_dir)
+            shutil.rmtree(old)
+        else:
+            os.rename(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return Bundle(out_dir, manifest)
