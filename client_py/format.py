@@ -41,6 +41,7 @@ KNOWN_FLAGS = FLAG_RATIONAL | FLAG_TRIM | FLAG_UNIFORM_U | FLAG_UNIFORM_V
 MIN_BITS, MAX_BITS = 2, 30
 MAX_DEGREE = 15
 MAX_METADATA = 1 << 20
+MAX_CONTROL_POINTS = 1 << 24  # as NurbsSurface accepts; bounds the payload a header announces
 
 
 class PatchFormatError(ValueError):
@@ -252,6 +253,17 @@ def _read_knots(cur: _Cursor, uniform: bool, degree: int, n_ctrl: int, lo: float
     return [lo] * (degree + 1) + inner + [hi] * (degree + 1)
 
 
+def _reject_constant(name: str) -> float:
+    raise ValueError(f"{name} is not JSON (write_patch never writes it)")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text} overflows a double")
+    return value
+
+
 def read_header(data: bytes) -> dict:
     """Check the framing (magic, version, sizes, CRC32) and return the header fields."""
     if not isinstance(data, bytes | bytearray | memoryview):
@@ -284,6 +296,8 @@ def read_header(data: bytes) -> dict:
     for offset, name, n, degree in ((10, "n_u", n_u, p), (12, "n_v", n_v, q)):
         if n < degree + 1:
             raise PatchFormatError(offset, f"{name} = {n} control points < degree + 1")
+    if n_u * n_v > MAX_CONTROL_POINTS:
+        raise PatchFormatError(10, f"grid {n_u}x{n_v} exceeds {MAX_CONTROL_POINTS} control points")
     if not MIN_BITS <= bits <= MAX_BITS:
         raise PatchFormatError(14, f"bits = {bits} outside {MIN_BITS}..{MAX_BITS}")
     if reserved:
@@ -313,12 +327,17 @@ def read_patch(data: bytes) -> NurbsSurface:
     try:
         inflater = zlib.decompressobj()
         raw = inflater.decompress(blob, head["raw_size"] + 1)
-        if not inflater.eof:
-            raise PatchFormatError(HEADER_SIZE, "compressed payload is longer than announced")
     except zlib.error as exc:
         raise PatchFormatError(HEADER_SIZE, f"payload does not decompress: {exc}") from None
     if len(raw) != head["raw_size"]:
-        raise PatchFormatError(20, f"payload is {len(raw)} bytes, header says {head['raw_size']}")
+        raise PatchFormatError(
+            20, f"payload inflates to {'more than ' if len(raw) > head['raw_size'] else ''}"
+            f"{len(raw)} bytes, header says {head['raw_size']}")
+    if not inflater.eof:
+        raise PatchFormatError(HEADER_SIZE + len(blob), "compressed payload ends early")
+    if inflater.unused_data:
+        raise PatchFormatError(HEADER_SIZE + len(blob) - len(inflater.unused_data),
+                               f"{len(inflater.unused_data)} bytes after the compressed payload")
 
     cur = _Cursor(raw)
     u_lo, u_hi, v_lo, v_hi = cur.finite("<4d", "domain")
@@ -350,8 +369,11 @@ def read_patch(data: bytes) -> NurbsSurface:
     (meta_len,) = cur.unpack("<I", "metadata length")
     meta_at = cur.pos
     try:
-        metadata = json.loads(cur.take(meta_len, "metadata").decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        metadata = json.loads(cur.take(meta_len, "metadata").decode("utf-8"),
+                              parse_constant=_reject_constant, parse_float=_finite_float)
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, ...
+        if isinstance(exc, PatchFormatError):
+            raise
         raise PatchFormatError(meta_at, f"metadata is not UTF-8 JSON: {exc}", "payload") from None
     if not isinstance(metadata, dict):
         raise PatchFormatError(meta_at, "metadata JSON is not an object", "payload")

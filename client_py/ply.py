@@ -67,9 +67,11 @@ def _check(mesh: Mesh, texture_file: str | None) -> None:
         raise ValueError(f"mesh.indices has {len(mesh.indices)} values, not a multiple of 3")
     if mesh.indices and max(mesh.indices) >= n:
         raise ValueError(f"mesh.indices refers to vertex {max(mesh.indices)} of {n}")
-    if texture_file is not None and (not texture_file or any(c in texture_file for c in "\r\n")
-                                     or texture_file != texture_file.strip()):
-        raise ValueError(f"texture_file must be a plain file name, got {texture_file!r}")
+    # 3DHOP splits header lines at spaces and keeps the comment's first word only
+    if texture_file is not None and (not texture_file or texture_file.split() != [texture_file]):
+        raise ValueError(
+            f"texture_file must be a file name without whitespace, got {texture_file!r}"
+        )
 
 
 def write_ply(mesh: Mesh, binary: bool = True, texture_file: str | None = None,
@@ -115,4 +117,6 @@ def _ascii_body(mesh: Mesh) -> bytes:
         lines.append(" ".join(fields))
     idx = mesh.indices
     lines += [f"3 {idx[t]} {idx[t + 1]} {idx[t + 2]}" for t in range(0, len(idx), 3)]
-    return ("\n".join(lines) + "\n").encode("ascii")
+    # Every value ends with a space, the last of a line too (as MeshLab writes): 3DHOP's
+    # ASCII reader splits the body at spaces only, so "x\ny" would read as one token.
+    return ("".join(line + " \n" for line in lines)).encode("ascii")
