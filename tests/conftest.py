@@ -17,3 +17,50 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real scans not available: {SHARED_DATA} does not exist")
     return SHARED_DATA
+
+
+# ------------------------------------------------------------- web server and browser (issue 5)
+@pytest.fixture(scope="session")
+def web_collection(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A collection of two bundles: ``relief``, fitted from the generated relief scan (20x20
+    grid), and ``corrupt``, the same with one byte of ``base.tsp`` flipped."""
+    import shutil
+
+    from fitter.examples import relief_scan
+    from fitter.pipeline import FitOptions, fit_scan
+
+    root = tmp_path_factory.mktemp("collection")
+    fit_scan(relief_scan(20_000), root / "relief",
+             FitOptions(grid=(20, 20), title="Carved relief (generated example)"))
+    shutil.copytree(root / "relief", root / "corrupt")
+    patch = root / "corrupt" / "base.tsp"
+    data = bytearray(patch.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    patch.write_bytes(bytes(data))
+    return root
+
+
+@pytest.fixture(scope="session")
+def web_app(web_collection: Path):
+    from fitter.server import create_app
+
+    return create_app({"TESSERA_COLLECTION": str(web_collection), "TESTING": True})
+
+
+@pytest.fixture(scope="session")
+def live_server(web_app):
+    """The app on 127.0.0.1 and an OS-chosen port, in a background thread."""
+    from fitter.server.live import LiveServer
+
+    with LiveServer(web_app) as live:
+        yield live
+
+
+@pytest.fixture(scope="session")
+def browser_type_launch_args(browser_type_launch_args: dict) -> dict:
+    """pytest-playwright launches Debian's Chromium (never a downloaded build)."""
+    from fitter.server.live import CHROMIUM_PATH, chromium_launch_args
+
+    if not Path(CHROMIUM_PATH).exists():
+        pytest.skip(f"{CHROMIUM_PATH} is missing: `make chromium` installs Debian's chromium")
+    return {**browser_type_launch_args, **chromium_launch_args()}

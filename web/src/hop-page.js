@@ -120,7 +120,12 @@ async function main() {
   showStage("hop");
   presenter.setScene({
     meshes: { tessera: { url, mType: "ply", transform: { matrix: facingMatrix(mesh.normals) } } },
-    modelInstances: { object: { mesh: "tessera" } },
+    // useSolidColor: client_py's PLY carries texture_u/texture_v (the surface parameters) and
+    // 3DHOP's shader samples its texture whenever a vertex has u != 0, even with no texture
+    // bound (black); a solid colour, or -2,-2,-2 meaning "the vertex colours", avoids that.
+    modelInstances: { object: { mesh: "tessera", useSolidColor: true,
+                                color: colors ? [-2.0, -2.0, -2.0] : [0.86, 0.82, 0.75],
+                                specularColor: [0.08, 0.08, 0.08, 32.0] } },
     trackball: {
       type: SphereTrackball,
       trackOptions: { startDistance: 2.6, minMaxDist: [0.4, 6.0] },

@@ -153,7 +153,7 @@ function tessellate({ id, resolution }) {
 }
 
 function ply({ id, resolution, colors }) {
-  const result = glue.ply(resolution, colors || null);
+  const result = glue.ply(resolution, colors || undefined); // undefined -> None (null is JsNull)
   try {
     const [data, vertices, ms] = result;
     const bytes = copyBuffer(data);

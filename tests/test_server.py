@@ -1,0 +1,275 @@
+"""The Flask server through its test client: routes, JSON, caching, ranges, gzip, MIME types,
+404s and path traversal, settings, the ``serve`` command. Browser behaviour is in test_browser.py.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fitter.cli import build_parser, main
+from fitter.server import DEFAULTS, PROJECT_ROOT, create_app, load_settings
+from fitter.server.collection import Collection
+
+PYODIDE = PROJECT_ROOT / "web" / "node_modules" / "pyodide"
+HOP_DIR = Path(DEFAULTS["TESSERA_3DHOP_DIR"][0]) if DEFAULTS["TESSERA_3DHOP_DIR"][0] else None
+
+
+@pytest.fixture()
+def client(web_app):
+    return web_app.test_client()
+
+
+def _bundle_bytes(directory: Path) -> int:
+    return sum(p.stat().st_size for p in directory.rglob("*") if p.is_file())
+
+
+# ------------------------------------------------------------------------ settings
+def test_settings_environment_overrides_default_and_config_overrides_both():
+    env = {"TESSERA_PYODIDE_TIMEOUT": "12.5", "TESSERA_GZIP": "off", "TESSERA_COLLECTION": "/x"}
+    settings = load_settings({"TESSERA_COLLECTION": "/y"}, environ=env)
+    assert settings["TESSERA_PYODIDE_TIMEOUT"] == 12.5
+    assert settings["TESSERA_GZIP"] is False
+    assert settings["TESSERA_COLLECTION"] == "/y"
+    assert settings["TESSERA_RESOLUTION"] == DEFAULTS["TESSERA_RESOLUTION"][0]
+
+
+def test_settings_reject_a_malformed_environment_value():
+    with pytest.raises(ValueError, match="TESSERA_PYODIDE_TIMEOUT='soon'"):
+        load_settings(environ={"TESSERA_PYODIDE_TIMEOUT": "soon"})
+    with pytest.raises(ValueError, match="TESSERA_GZIP='maybe'"):
+        load_settings(environ={"TESSERA_GZIP": "maybe"})
+
+
+def test_create_app_needs_a_collection_directory(tmp_path, monkeypatch):
+    monkeypatch.delenv("TESSERA_COLLECTION", raising=False)
+    with pytest.raises(ValueError, match="TESSERA_COLLECTION is not set"):
+        create_app()
+    with pytest.raises(ValueError, match="not a directory"):
+        create_app({"TESSERA_COLLECTION": str(tmp_path / "missing")})
+    with pytest.raises(ValueError, match="TESSERA_PYODIDE_DIR"):
+        create_app({"TESSERA_COLLECTION": str(tmp_path),
+                    "TESSERA_PYODIDE_DIR": str(tmp_path / "x")})
+
+
+# ------------------------------------------------------------------------ API and pages
+def test_api_lists_the_collection_with_root_relative_urls(client, web_collection):
+    response = client.get("/api/objects")
+    assert response.status_code == 200
+    objects = {o["id"]: o for o in response.get_json()}
+    assert set(objects) == {"corrupt", "relief"}
+    relief = objects["relief"]
+    manifest = json.loads((web_collection / "relief" / "manifest.json").read_text())
+    assert relief["title"] == "Carved relief (generated example)" == manifest["title"]
+    assert relief["viewer_url"] == "/objects/relief/"
+    assert relief["bundle_url"] == "/bundles/relief/"
+    assert relief["bytes"] == _bundle_bytes(web_collection / "relief")
+    assert relief["stats"]["rms"] == pytest.approx(manifest["stats"]["rms"])
+    assert relief["grid"] == [20, 20]
+    # every URL it gives works
+    for key in ("viewer_url", "hop_url", "thumbnail_url", "manifest_url"):
+        assert client.get(relief[key]).status_code == 200, key
+
+
+def test_api_unknown_object_is_a_json_404(client):
+    response = client.get("/api/objects/no-such-thing")
+    assert response.status_code == 404
+    assert "no object 'no-such-thing'" in response.get_json()["error"]
+
+
+def test_gallery_lists_every_object(client):
+    page = client.get("/").get_data(as_text=True)
+    assert page.count('class="card"') == 2
+    assert "Carved relief (generated example)" in page
+    assert 'href="/objects/relief/"' in page
+
+
+def test_viewer_page_passes_its_urls_and_import_map(client):
+    html = client.get("/objects/relief/?resolution=64").get_data(as_text=True)
+    config = json.loads(html.split('id="tessera-config">', 1)[1].split("</script>", 1)[0])
+    assert config["patch_url"] == "/bundles/relief/base.tsp"
+    assert config["pyodide_url"] == "/vendor/pyodide/"
+    assert config["resolution"] == 64
+    import_map = json.loads(html.split('type="importmap">', 1)[1].split("</script>", 1)[0])
+    assert import_map["imports"]["three"] == "/vendor/three/build/three.module.js"
+    for url in (config["worker_url"], config["client_py_url"], import_map["imports"]["three"]):
+        assert url.startswith("/")
+
+
+@pytest.mark.parametrize("value", ["abc", "1", "5000"])
+def test_viewer_rejects_a_bad_resolution_with_400(client, value):
+    response = client.get(f"/objects/relief/?resolution={value}")
+    assert response.status_code == 400
+    assert "resolution must be" in response.get_data(as_text=True)
+
+
+def test_unknown_object_is_a_404_page(client):
+    response = client.get("/objects/no-such-thing/")
+    assert response.status_code == 404
+    assert response.mimetype == "text/html"
+    assert "no object &#39;no-such-thing&#39;" in response.get_data(as_text=True)
+
+
+def test_thumbnail_is_a_rendered_png_and_a_corrupt_patch_has_none(client):
+    response = client.get("/objects/relief/thumbnail.png")
+    assert response.status_code == 200 and response.mimetype == "image/png"
+    image = Image.open(io.BytesIO(response.data))
+    assert image.size == (320, 240)
+    alpha = np.asarray(image.getchannel("A"))
+    assert (alpha > 0).mean() > 0.4  # the object fills most of the card
+    bad = client.get("/objects/corrupt/thumbnail.png")
+    assert bad.status_code == 404
+    assert "CRC32" in bad.get_data(as_text=True)
+
+
+# ------------------------------------------------------------------------ bundle files
+def test_bundle_files_are_immutable_with_etag_and_304(client, web_collection):
+    response = client.get("/bundles/relief/base.tsp")
+    assert response.status_code == 200
+    assert response.data == (web_collection / "relief" / "base.tsp").read_bytes()
+    cache = response.headers["Cache-Control"]
+    assert "immutable" in cache and "max-age=31536000" in cache and "public" in cache
+    etag = response.headers["ETag"]
+    again = client.get("/bundles/relief/base.tsp", headers={"If-None-Match": etag})
+    assert again.status_code == 304 and again.data == b""
+
+
+def test_bundle_files_serve_http_ranges(client, web_collection):
+    data = (web_collection / "relief" / "base.tsp").read_bytes()
+    response = client.get("/bundles/relief/base.tsp", headers={"Range": "bytes=4-27"})
+    assert response.status_code == 206
+    assert response.data == data[4:28]
+    assert response.headers["Content-Range"] == f"bytes 4-27/{len(data)}"
+
+
+def test_gzip_only_when_accepted_and_when_it_helps(client, web_collection):
+    manifest = (web_collection / "relief" / "manifest.json").read_bytes()
+    zipped = client.get("/bundles/relief/manifest.json", headers={"Accept-Encoding": "gzip"})
+    assert zipped.headers.get("Content-Encoding") == "gzip"
+    assert gzip.decompress(zipped.data) == manifest
+    assert len(zipped.data) < len(manifest)
+    assert "Accept-Encoding" in zipped.headers["Vary"]
+    revalidated = client.get("/bundles/relief/manifest.json", headers={
+        "Accept-Encoding": "gzip", "If-None-Match": zipped.headers["ETag"]})
+    assert revalidated.status_code == 304
+    plain = client.get("/bundles/relief/manifest.json")
+    assert "Content-Encoding" not in plain.headers and plain.data == manifest
+    # base.tsp is zlib-compressed already: never gzipped again
+    patch = client.get("/bundles/relief/base.tsp", headers={"Accept-Encoding": "gzip"})
+    assert "Content-Encoding" not in patch.headers
+
+
+@pytest.mark.parametrize("url", [
+    "/bundles/relief/..%2f..%2fcorrupt/base.tsp",
+    "/bundles/relief/%2e%2e/corrupt/base.tsp",
+    "/bundles/relief/..%2F..%2F..%2F..%2Fetc%2Fpasswd",
+    "/bundles/..%2frelief/manifest.json",
+    "/bundles/relief//etc/passwd",
+    "/vendor/pyodide/..%2fthree%2fpackage.json",
+    "/vendor/three/package.json",
+    "/web/package.json",
+    "/web/templates/viewer.html",
+    "/web/node_modules/three/package.json",
+])
+def test_paths_outside_are_404(client, url):
+    # werkzeug may first redirect a URL with "//" to its merged form: follow it
+    assert client.get(url, follow_redirects=True).status_code == 404
+
+
+def test_symlink_out_of_a_bundle_is_404(web_collection, tmp_path):
+    outside = tmp_path / "secret.txt"
+    outside.write_text("not for the web")
+    link = web_collection / "relief" / "leak.txt"
+    link.symlink_to(outside)
+    try:
+        app = create_app({"TESSERA_COLLECTION": str(web_collection)})
+        assert app.test_client().get("/bundles/relief/leak.txt").status_code == 404
+    finally:
+        link.unlink()
+
+
+def test_a_single_bundle_directory_is_a_collection_of_one(web_collection):
+    bundles = Collection(web_collection / "relief").bundles()
+    assert [b.id for b in bundles] == ["relief"]
+
+
+# ------------------------------------------------------------------------ runtime
+@pytest.mark.parametrize("gzip_ok", [False, True])
+def test_pyodide_mime_types(client, gzip_ok):
+    headers = {"Accept-Encoding": "gzip"} if gzip_ok else {}
+    wasm = client.get("/vendor/pyodide/pyodide.asm.wasm", headers=headers)
+    assert wasm.status_code == 200
+    assert wasm.headers["Content-Type"] == "application/wasm"
+    body = gzip.decompress(wasm.data) if gzip_ok else wasm.data
+    assert body[:4] == b"\0asm"
+    for name in ("pyodide.mjs", "pyodide.asm.mjs"):
+        module = client.get(f"/vendor/pyodide/{name}", headers=headers)
+        assert module.status_code == 200
+        assert module.headers["Content-Type"].startswith("text/javascript")
+    assert client.get("/vendor/pyodide/python_stdlib.zip").headers["Content-Type"] == \
+        "application/zip"
+
+
+def test_three_and_web_modules_are_javascript(client):
+    for url in ("/vendor/three/build/three.module.js",
+                "/vendor/three/examples/jsm/controls/OrbitControls.js",
+                "/web/src/viewer-page.js", "/web/src/mesh-worker.js"):
+        response = client.get(url)
+        assert response.status_code == 200, url
+        assert response.headers["Content-Type"].startswith("text/javascript"), url
+
+
+def test_client_py_sources_are_the_package_files(client):
+    response = client.get("/client_py/sources.json")
+    sources = response.get_json()
+    package = PROJECT_ROOT / "client_py"
+    on_disk = {p.name for p in package.glob("*.py")}
+    assert set(sources["files"]) >= on_disk
+    assert sources["files"]["format.py"] == (package / "format.py").read_text(encoding="utf-8")
+    etag = response.headers["ETag"]
+    again = client.get("/client_py/sources.json", headers={"If-None-Match": etag})
+    assert again.status_code == 304
+
+
+@pytest.mark.skipif(HOP_DIR is None, reason="3DHOP 4.3 is not in ../shared/vendor/3dhop-4.3")
+def test_3dhop_page_and_files_are_served(client):
+    page = client.get("/objects/relief/3dhop").get_data(as_text=True)
+    assert 'src="/vendor/3dhop/js/presenter.js"' in page
+    assert client.get("/vendor/3dhop/js/presenter.js").status_code == 200
+    assert client.get("/vendor/3dhop/..%2f..%2fREADME.md").status_code == 404
+
+
+def test_3dhop_page_is_404_when_not_configured(web_collection):
+    app = create_app({"TESSERA_COLLECTION": str(web_collection), "TESSERA_3DHOP_DIR": "",
+                      "TESSERA_3DHOP_URL": ""})
+    response = app.test_client().get("/objects/relief/3dhop")
+    assert response.status_code == 404
+    assert "TESSERA_3DHOP_DIR" in response.get_data(as_text=True)
+    viewer = app.test_client().get("/objects/relief/").get_data(as_text=True)
+    assert "Open in 3DHOP" not in viewer
+
+
+def test_3dhop_from_a_url(web_collection):
+    app = create_app({"TESSERA_COLLECTION": str(web_collection), "TESSERA_3DHOP_DIR": "",
+                      "TESSERA_3DHOP_URL": "https://museum.example/3dhop"})
+    page = app.test_client().get("/objects/relief/3dhop").get_data(as_text=True)
+    assert 'src="https://museum.example/3dhop/js/presenter.js"' in page
+
+
+# ------------------------------------------------------------------------ CLI
+def test_serve_command_parses_and_validates(tmp_path):
+    args = build_parser().parse_args(["serve", str(tmp_path), "--host", "0.0.0.0", "--port", "0"])
+    assert (args.collection, args.host, args.port) == (str(tmp_path), "0.0.0.0", 0)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["serve", str(tmp_path), "--port", "70000"])
+
+
+def test_serve_command_reports_a_missing_collection(tmp_path, capsys):
+    assert main(["serve", str(tmp_path / "nowhere")]) == 2
+    assert "not a directory" in capsys.readouterr().err
