@@ -384,6 +384,16 @@ def test_voxel_thinning_matches_bruteforce():
     assert voxel_thin_indices(pts, h).tolist() == sorted(expected)
 
 
+def test_voxel_thinning_ties_keep_the_lowest_index():
+    """Points symmetric about their voxel's centroid are equidistant: the lowest index wins."""
+    square = np.array([[0.25, 0.5, 0.5], [0.75, 0.5, 0.5], [0.5, 0.25, 0.5], [0.5, 0.75, 0.5]])
+    pts = np.vstack([square + [v, 0, 0] for v in range(50)])  # 50 voxels of edge 1
+    perm = RNG.permutation(len(pts))
+    kept = voxel_thin_indices(pts[perm], 1.0)
+    expected = sorted(int(np.flatnonzero(perm // 4 == v).min()) for v in range(50))
+    assert kept.tolist() == expected
+
+
 def test_load_with_thinning(tmp_path):
     rec = cloud_records(2000)
     path = tmp_path / "c.ply"

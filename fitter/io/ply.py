@@ -204,19 +204,29 @@ class _VertexArrays:
 
     def fill(self, start: int, records: np.ndarray) -> None:
         stop = start + len(records)
-        for k, prop in enumerate(self.layout.xyz):
-            self.points[start:stop, k] = records[prop]
+        self.points[start:stop] = _columns(records, self.layout.xyz)
         if self.normals is not None:
-            for k, prop in enumerate(self.layout.normals):
-                self.normals[start:stop, k] = records[prop]
+            self.normals[start:stop] = _columns(records, self.layout.normals)
         if self.colors is not None:
-            rgb = np.column_stack([records[p] for p in self.layout.colors])
-            self.colors[start:stop] = colors_to_uint8(rgb)
+            self.colors[start:stop] = colors_to_uint8(_columns(records, self.layout.colors))
 
-    def truncate(self, n: int) -> None:
-        self.points = self.points[:n]
-        self.normals = None if self.normals is None else self.normals[:n]
-        self.colors = None if self.colors is None else self.colors[:n]
+
+def _columns(records: np.ndarray, names: tuple[str, str, str]) -> np.ndarray:
+    """Three fields of contiguous structured records as an ``(m, 3)`` array.
+
+    When the fields are adjacent and of one type (``x y z`` almost always are)
+    this is a strided view on the records, so the caller's assignment is one
+    2-D converting copy instead of three 1-D ones; otherwise a stacked copy.
+    """
+    fields = [records.dtype.fields[n] for n in names]
+    ftype, offset = fields[0]
+    step = ftype.itemsize
+    adjacent = all(f[0] == ftype and f[1] == offset + i * step for i, f in enumerate(fields))
+    if adjacent and records.flags.c_contiguous:
+        raw = records.view(np.uint8)
+        return np.ndarray((len(records), 3), ftype, buffer=raw, offset=offset,
+                          strides=(records.dtype.itemsize, step))
+    return np.column_stack([records[n] for n in names])
 
 
 def _is_point_cloud(header: PlyHeader) -> bool:

@@ -96,7 +96,7 @@ class Scan:
         pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64))
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ScanError(f"{name}: points must have shape (N, 3), got {pts.shape}")
-        digest = hashlib.sha256(memoryview(pts).cast("B")).hexdigest()
+        digest = hashlib.sha256(memoryview(pts).cast("B") if pts.size else b"").hexdigest()
         source = new_source(name, None, "array", compression=None, reader="array")
         source.update(bytes=pts.nbytes, sha256=digest,
                       hash_method="sha256 of the float64 C-order points")

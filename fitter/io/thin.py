@@ -5,8 +5,8 @@ The grid has cubes of edge ``h`` anchored at the cloud's minimum corner
 occupied voxel the point nearest to the voxel's mean (centroid) is kept, ties
 going to the lower index, so the result is a subset of the input (no new,
 averaged points) and deterministic.
-Kept points stay in their original order. Cost: one stable ``argsort`` of the
-int64 voxel keys (``O(N log N)``) and segment reductions (``reduceat``).
+Kept points stay in their original order. Cost: one ``argsort`` of the int64
+voxel keys (``O(N log N)``) and segment reductions (``reduceat``).
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def voxel_thin_indices(points: np.ndarray, size: float) -> np.ndarray:
         cells = np.floor((pts - lo) / h).astype(np.int64)
         keys = np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
         del cells
-    order = np.argsort(keys, kind="stable")  # by voxel, then by index within a voxel
+    order = np.argsort(keys)  # by voxel (quicksort: ties are broken explicitly below)
     np.take(keys, order, out=keys)
     starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
     counts = np.diff(np.r_[starts, n])
@@ -86,9 +86,10 @@ def voxel_thin_indices(points: np.ndarray, size: float) -> np.ndarray:
         column *= column
         dist2 += column
     nearest = dist2 == np.minimum.reduceat(dist2, starts)[group]
-    candidates = np.flatnonzero(nearest)  # ascending: the first per voxel has the lowest index
-    first = np.r_[True, group[candidates[1:]] != group[candidates[:-1]]]
-    return np.sort(order[candidates[first]])
+    candidates = np.flatnonzero(nearest)  # in voxel order; several per voxel only on ties
+    voxel_of = group[candidates]
+    first = np.flatnonzero(np.r_[True, voxel_of[1:] != voxel_of[:-1]])
+    return np.sort(np.minimum.reduceat(order[candidates], first))  # ties: the lowest index
 
 
 def thin_scan(scan: Scan, size: object) -> Scan:
