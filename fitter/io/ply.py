@@ -13,10 +13,13 @@ so the reader knows before touching the body which path fits:
   pass, so a file of any size is read once and peak memory is the output arrays
   plus one chunk. ``.ply.gz`` is streamed through gzip in the same chunks.
 * **ASCII point cloud** (the Stanford range scans: ``vertex`` then ``range_grid``):
-  the vertex lines go through ``numpy.loadtxt`` (C parser, about 60x faster than
-  a per-line reader); later elements are hashed, not parsed.
-* **everything else** (meshes, vertex elements with list properties): trimesh's
-  PLY loader on the bytes read once (``fitter.io.mesh``).
+  the vertex lines go through ``numpy.loadtxt`` (C parser: 23 ms for a 78k-point
+  Buddha scan against 1.5 s in trimesh's ASCII reader); later elements are
+  hashed, not parsed.
+* **ASCII triangle mesh** (``vertex`` then an all-triangle ``face`` list, e.g.
+  the zippered bunny): vertex and face lines both through ``loadtxt``.
+* **everything else** (binary meshes, polygons, vertex elements with list
+  properties): trimesh's PLY loader on the bytes read once (``fitter.io.mesh``).
 
 Recognised vertex properties: ``x y z`` (required), normals ``nx ny nz``, colours
 ``red green blue`` (or ``r g b``, ``diffuse_red ...``; uchar as is, floats taken
@@ -406,8 +409,8 @@ def _parse_ascii_mesh(body: bytes, header: PlyHeader,
     """Vertices and triangles of an ASCII mesh by ``loadtxt``; None to defer to trimesh.
 
     Only the common layout (``vertex`` then an all-triangle ``face`` list) is
-    taken here, about 30x faster than a per-line reader; polygons, extra face
-    properties or irregular line structure return None.
+    taken here (``bun_zipper.ply``: 0.1 s against 0.4 s in trimesh); polygons,
+    extra face properties or irregular line structure return None.
     """
     if not _is_ascii_triangle_mesh(header):
         return None
