@@ -55,6 +55,79 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _grid(text: str) -> tuple[int, int]:
+    try:
+        parts = [int(x) for x in text.lower().split("x")]
+    except ValueError:
+        parts = []
+    if len(parts) == 1:
+        parts *= 2
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"expected NxM such as 40x40, got {text!r}")
+    return parts[0], parts[1]
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
+    return value
+
+
+def _cmd_fit(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from .io import ScanError
+    from .pipeline import FitOptions, fit_scan
+
+    options = FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
+                         max_error=args.max_error, projection=args.projection, title=args.title)
+    bars: dict[str, tqdm] = {}
+
+    def progress(stage: str, fraction: float) -> None:
+        if args.quiet:
+            return
+        bar = bars.get(stage)
+        if bar is None:
+            bar = bars[stage] = tqdm(total=100, desc=f"{stage:>9}", leave=True, file=sys.stderr,
+                                     bar_format="{desc} |{bar}| {percentage:3.0f}% {elapsed}")
+        bar.n = int(round(100 * fraction))
+        bar.refresh()
+        if fraction >= 1.0:
+            bar.close()
+
+    try:
+        bundle = fit_scan(args.scan, args.output, options, progress)
+    except (ScanError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    finally:
+        for bar in bars.values():
+            bar.close()
+    m = bundle.manifest
+    s, units = m["stats"], m["units"]
+    rows = [
+        ("bundle", str(bundle.path)),
+        ("points", f"{m['provenance']['points']:,}"),
+        ("projection", f"{m['projection']['kind']}, covers "
+                       f"{100 * m['projection']['coverage']:.1f}% of the points"),
+        ("patch", f"{m['base']['grid'][0]}x{m['base']['grid'][1]} degree {m['base']['degree'][0]}"
+                  f"{', rational' if m['base']['rational'] else ''}: "
+                  f"{m['files']['base.tsp']:,} bytes"),
+        ("RMS", f"{s['rms']:.4g} {units} ({100 * s['rms_relative']:.3f}% of the diagonal)"),
+        ("mean |d|", f"{s['mean']:.4g} {units}"),
+        ("P95 / P99", f"{s['p95']:.4g} / {s['p99']:.4g} {units}"),
+        ("max", f"{s['max']:.4g} {units} ({100 * s['max_relative']:.3f}% of the diagonal)"),
+        ("time", f"{sum(m['timings'].values()):.2f} s"),
+    ]
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        print(f"{key:>{width}}  {value}")
+    return 0
+
+
 def _port(text: str) -> int:
     try:
         value = int(text)
@@ -91,6 +164,33 @@ def build_parser() -> argparse.ArgumentParser:
         description="Turn heritage scans into tiny NURBS patches and view them in a browser.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    fit = sub.add_parser(
+        "fit",
+        help="fit a scan with a NURBS patch and write a bundle",
+        description="Fit a scan (PLY, OBJ, STL, OFF, GLB/glTF, XYZ/PTS/ASC, .gz, Stanford .conf) "
+        "with one NURBS patch following Curkovic, Vucina et al., and write OUTDIR: "
+        "manifest.json, base.tsp, error.png, error.ply.",
+    )
+    fit.add_argument("scan", help="the scan file")
+    fit.add_argument("-o", "--output", required=True, help="bundle directory to write")
+    fit.add_argument("--grid", type=_grid, default=(40, 40),
+                     help="control points per side, NxM (default 40x40)")
+    fit.add_argument("--degree", type=int, default=2, help="B-spline degree (default 2)")
+    fit.add_argument("--method", choices=("tessera", "paper", "linear"), default="tessera",
+                     help="tessera (default): parameter correction on the scan itself and "
+                     "weights; paper: the published method as a baseline; linear: the "
+                     "paper's initial linear fit alone")
+    fit.add_argument("--max-error", type=_positive_float, default=None,
+                     help="grow the control grid until the RMS deviation (scan units) is at "
+                     "most this")
+    fit.add_argument("--bits", type=int, default=16,
+                     help="quantisation bits per control-point axis (default 16)")
+    fit.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
+                     default="auto", help="map to the parameter domain (default auto)")
+    fit.add_argument("--title", default=None, help="object title (default: the file name)")
+    fit.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    fit.set_defaults(run=_cmd_fit)
 
     tess = sub.add_parser(
         "tessellate",

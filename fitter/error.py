@@ -144,7 +144,7 @@ def write_error_png(path: Path, dev: Deviations, points_local: np.ndarray, units
     import matplotlib.pyplot as plt
 
     limit = _colour_limit(dev.d)
-    res = 200
+    res = int(np.clip(np.sqrt(len(dev.d) / 6.0), 32, 200))  # a few points per pixel
     iu = np.minimum((dev.u * res).astype(np.int64), res - 1)
     iv = np.minimum((dev.v * res).astype(np.int64), res - 1)
     cell = iu * res + iv

@@ -36,7 +36,7 @@ from scipy.sparse.linalg import spsolve
 
 from client_py._numpy_basis import basis_arrays
 
-from .nurbs import PatchModel
+from .nurbs import BasisRows, PatchModel
 
 DEFAULT_SMOOTHING = 1e-6
 
@@ -141,18 +141,20 @@ def _direction_matrix(model: PatchModel, t: np.ndarray, axis: int) -> np.ndarray
 
 
 def fit_points_linear(model: PatchModel, u: np.ndarray, v: np.ndarray, points: np.ndarray,
-                      periodic_u: bool = False, smoothing: float = DEFAULT_SMOOTHING
-                      ) -> PatchModel:
+                      periodic_u: bool = False, smoothing: float = DEFAULT_SMOOTHING,
+                      rows: BasisRows | None = None) -> PatchModel:
     """Control points for scattered ``points (m, 3)`` at ``(u, v)``, weights held fixed.
 
     With ``W`` fixed the NURBS is linear in ``Q`` through the rational basis
     ``R_l = w_l N_l / sum_j w_j N_j``, so this is one sparse least-squares solve.
+    ``rows`` may pass ``model.basis_rows(u, v)`` when it is already at hand.
     """
-    rows = model.basis_rows(u, v)
+    rows = model.basis_rows(u, v) if rows is None else rows
     w = model.W.ravel()[rows.index]
-    rows.value = rows.value * w / np.einsum("mk,mk->m", rows.value, w)[:, None]
+    rational = rows.value * w / np.einsum("mk,mk->m", rows.value, w)[:, None]
+    A = BasisRows(rows.index, rational, rows.du, rows.dv).matrix(model.n_ctrl)
     T = seam_closure(model.shape, periodic_u)
-    Q = _regularised_solve(rows.matrix(model.n_ctrl), points, T, smoothing, model.shape)
+    Q = _regularised_solve(A, points, T, smoothing, model.shape)
     out = model.copy()
     out.Q = Q.reshape(model.Q.shape)
     return out
@@ -180,7 +182,7 @@ def refine_nurbs(model: PatchModel, u: np.ndarray, v: np.ndarray, points: np.nda
     m, k = rows.value.shape
     row_ids = np.repeat(np.arange(m), k)
     scale = float(np.sum(rows.value**2)) / n  # typical diagonal of A^T A
-    current = fit_points_linear(model, u, v, points, periodic_u, smoothing)
+    current = fit_points_linear(model, u, v, points, periodic_u, smoothing, rows)
 
     def evaluate(cand: PatchModel):
         w = cand.W.ravel()[rows.index]
@@ -210,7 +212,7 @@ def refine_nurbs(model: PatchModel, u: np.ndarray, v: np.ndarray, points: np.nda
             step = _solve_banded_spd(H, mu * diag + 1e-12 * diag.max(), -grad)
             cand = current.copy()
             cand.W = np.exp(np.clip(omega + step, -4.0, 4.0)).reshape(shape)
-            cand = fit_points_linear(cand, u, v, points, periodic_u, smoothing)
+            cand = fit_points_linear(cand, u, v, points, periodic_u, smoothing, rows)
             R_c, Ql_c, C_c, res_c, E_c = evaluate(cand)
             if E_c < E:
                 current, R, Ql, C, res, E = cand, R_c, Ql_c, C_c, res_c, E_c

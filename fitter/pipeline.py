@@ -47,7 +47,7 @@ from .parameterize import KINDS, Coverage, choose_projection, trim_cells
 from .sections import section_matrix, section_shape
 
 BUNDLE_FORMAT_VERSION = 1
-METHODS = ("tessera", "paper")
+METHODS = ("tessera", "paper", "linear")
 MIN_POINTS = 64
 FIT_SAMPLE = 60_000  # scan points the tessera refinement fits (feature-adaptive sample)
 FEATURE_SAMPLE = 150_000  # points whose local PCA drives the sampling density
@@ -61,7 +61,8 @@ class FitOptions:
     """Options of one fit (recorded in the manifest).
 
     grid : control points per side ``(n_u, n_v)``; degree : ``p = q``;
-    method : ``tessera`` (default, the best we have) or ``paper`` (as published);
+    method : ``tessera`` (default, the best we have), ``paper`` (as published) or
+    ``linear`` (the paper's initial linear solution alone, a baseline);
     bits : quantisation of the patch file; max_error : target RMS in scan units
     (grows the grid); max_grid : cap for that growth; projection : ``auto`` or
     one of ``plane``, ``cylinder``, ``sphere``; title : the object's title.
@@ -182,10 +183,12 @@ def _fit_one(grid: tuple[int, int], options: FitOptions, cov: Coverage, local: n
     sm = section_matrix(proj, u[covered], v[covered], h[covered],
                         section_shape(int(covered.sum()), grid))
     stages.start("linear")
-    smoothing = 0.0 if (sm.full and options.method == "paper") else 1e-6
+    smoothing = 0.0 if (sm.full and options.method != "tessera") else 1e-6
     model = fit_section_matrix(model, sm.u, sm.v, sm.points, sm.valid, periodic, smoothing)
     history: dict = {"section_matrix": list(sm.points.shape[:2]),
                      "section_holes": int((~sm.valid).sum())}
+    if options.method == "linear":
+        return model, history
     stages.start("refine")
     if options.method == "paper":
         UU, VV = np.meshgrid(sm.u, sm.v, indexing="ij")
@@ -334,6 +337,7 @@ def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | Non
         for f in tmp.iterdir():
             with open(f, "rb") as fh:
                 os.fsync(fh.fileno())
+        tmp.chmod(0o755)  # mkdtemp made it private; a bundle is published content
         if out_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=parent))
             os.rename(out_dir, old / "bundle")
