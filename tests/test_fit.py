@@ -14,8 +14,8 @@ from fitter.fit import (
     fit_section_matrix,
     project_points,
     refine_nurbs,
-    second_differences,
     seam_closure,
+    second_differences,
 )
 from fitter.nurbs import PatchModel
 
