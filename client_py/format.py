@@ -368,6 +368,8 @@ def read_patch(data: bytes) -> NurbsSurface:
         trim = TrimMask.from_flat(rows, cols, cells)
     (meta_len,) = cur.unpack("<I", "metadata length")
     meta_at = cur.pos
+    if meta_len > MAX_METADATA:
+        raise PatchFormatError(meta_at - 4, f"metadata length {meta_len} exceeds 1 MiB", "payload")
     try:
         metadata = json.loads(cur.take(meta_len, "metadata").decode("utf-8"),
                               parse_constant=_reject_constant, parse_float=_finite_float)

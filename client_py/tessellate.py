@@ -68,17 +68,14 @@ def grid_indices(nu: int, nv: int, keep_cell=None) -> array:
     """
     indices = array("I")
     if keep_cell is None:
+        row = [0] * (6 * (nv - 1))
         for i in range(nu - 1):
             base = i * nv
-            row = [0] * (6 * (nv - 1))
-            ks = range(base, base + nv - 1)
-            row[0::6] = ks
-            row[1::6] = range(base + nv, base + 2 * nv - 1)
-            row[2::6] = range(base + 1, base + nv)
-            row[3::6] = range(base + 1, base + nv)
-            row[4::6] = range(base + nv, base + 2 * nv - 1)
+            row[0::6] = range(base, base + nv - 1)
+            row[1::6] = row[4::6] = range(base + nv, base + 2 * nv - 1)
+            row[2::6] = row[3::6] = range(base + 1, base + nv)
             row[5::6] = range(base + nv + 1, base + 2 * nv)
-            indices.extend(row)
+            indices.fromlist(row)  # twice as fast as extend() for a list
         return indices
     for i in range(nu - 1):
         for j in range(nv - 1):

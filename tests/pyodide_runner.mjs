@@ -9,6 +9,7 @@
 // runner prints one JSON line on stdout:
 //   {"result": RESULT, "python": sys.version, "load_seconds": s, "run_seconds": s}
 // Everything the script prints goes to stderr, so stdout stays machine-readable.
+// CLIENT_PY_DIR=/path/to/client_py runs another copy of the package (before/after timings).
 // A Python exception prints its traceback on stderr and exits with status 1.
 // Used by tests/test_pyodide.py and bench/bench_tessellate.py.
 
@@ -35,10 +36,11 @@ const loadSeconds = (performance.now() - loadStart) / 1000;
 
 // client_py as a package in the working directory (on sys.path).
 const home = "/home/pyodide";
+const clientDir = process.env.CLIENT_PY_DIR || join(root, "client_py");
 pyodide.FS.mkdirTree(`${home}/client_py`);
-for (const name of readdirSync(join(root, "client_py"))) {
+for (const name of readdirSync(clientDir)) {
   if (name.endsWith(".py")) {
-    pyodide.FS.writeFile(`${home}/client_py/${name}`, readFileSync(join(root, "client_py", name)));
+    pyodide.FS.writeFile(`${home}/client_py/${name}`, readFileSync(join(clientDir, name)));
   }
 }
 

@@ -229,6 +229,8 @@ def corrupt_cases():
         (with_metadata(b'{"a": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"), None,
          "metadata is not UTF-8 JSON"),
         (with_metadata(b'{"a": ' + b"9" * 5000 + b"}"), None, "metadata is not UTF-8 JSON"),
+        (with_metadata(b'{"a": "' + b"x" * (1 << 20) + b'"}'), None,
+         "metadata length 1048585 exceeds 1 MiB"),
     ]
 
 
