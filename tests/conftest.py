@@ -44,7 +44,10 @@ def web_collection(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def web_app(web_collection: Path):
     from fitter.server import create_app
 
-    return create_app({"TESSERA_COLLECTION": str(web_collection), "TESTING": True})
+    app = create_app({"TESSERA_COLLECTION": str(web_collection), "TESTING": True})
+    if app.extensions["tessera_snapshot"] is not None:
+        app.extensions["tessera_snapshot"].ensure()  # pages start Pyodide from it (cached)
+    return app
 
 
 @pytest.fixture(scope="session")

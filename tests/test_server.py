@@ -237,6 +237,28 @@ def test_client_py_sources_are_the_package_files(client):
     assert again.status_code == 304
 
 
+def test_pyodide_snapshot_is_served_immutable_and_gzipped(client, web_app):
+    builder = web_app.extensions["tessera_snapshot"]
+    if builder is None or not builder.ready():
+        pytest.skip(f"no Pyodide snapshot on this machine: {builder and builder.failure}")
+    html = client.get("/objects/relief/").get_data(as_text=True)
+    config = json.loads(html.split('id="tessera-config">', 1)[1].split("</script>", 1)[0])
+    assert config["pyodide_snapshot_url"] == f"/vendor/pyodide-snapshot/{builder.key}.bin"
+    response = client.get(config["pyodide_snapshot_url"], headers={"Accept-Encoding": "gzip"})
+    assert response.status_code == 200
+    assert "immutable" in response.headers["Cache-Control"]
+    assert response.headers["Content-Encoding"] == "gzip"
+    assert gzip.decompress(response.data) == builder.path.read_bytes()
+    assert client.get("/vendor/pyodide-snapshot/pyodide-0-stale.bin").status_code == 404
+
+
+def test_pages_load_pyodide_plainly_without_a_snapshot(web_collection):
+    app = create_app({"TESSERA_COLLECTION": str(web_collection),
+                      "TESSERA_PYODIDE_SNAPSHOT": False})
+    html = app.test_client().get("/objects/relief/").get_data(as_text=True)
+    assert '"pyodide_snapshot_url": null' in html
+
+
 @pytest.mark.skipif(HOP_DIR is None, reason="3DHOP 4.3 is not in ../shared/vendor/3dhop-4.3")
 def test_3dhop_page_and_files_are_served(client):
     page = client.get("/objects/relief/3dhop").get_data(as_text=True)

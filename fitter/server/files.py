@@ -9,7 +9,8 @@ Uncompressed responses go through werkzeug's ``send_file`` with
 ``conditional=True``: strong ETags, ``If-None-Match`` -> 304 and HTTP range
 requests (206). When the client accepts gzip, does not ask for a range, and the
 file is of a type that compresses (text, JSON, JavaScript, PLY, WebAssembly),
-the gzip form is sent instead, built once per file version and kept in memory;
+the gzip form is sent instead (a fresh ``<file>.gz`` next to it, else compressed once per
+file version), kept in memory;
 it carries its own ETag (``-gz`` suffix) and ``Vary: Accept-Encoding``.
 """
 
@@ -42,7 +43,8 @@ MIME_TYPES = {
 }
 
 #: Suffixes worth compressing (``.tsp``, ``.png``, ``.zip`` are compressed already).
-COMPRESSIBLE = {".wasm", ".mjs", ".js", ".json", ".map", ".css", ".html", ".ply", ".py", ".txt"}
+COMPRESSIBLE = {".wasm", ".mjs", ".js", ".json", ".map", ".css", ".html", ".ply", ".py", ".txt",
+                ".bin"}
 GZIP_MIN_BYTES = 1024
 GZIP_MAX_BYTES = 64 << 20  # keep memory bounded: bigger files go uncompressed
 
@@ -84,7 +86,12 @@ def _gzipped(path: Path, size: int, mtime: int) -> bytes:
     with _gzip_lock:
         data = _gzip_cache.get(key)
     if data is None:
-        data = gzip.compress(path.read_bytes(), compresslevel=6, mtime=0)
+        sibling = Path(f"{path}.gz")  # made ahead of time (e.g. the Pyodide snapshot)
+        try:
+            fresh = sibling.stat().st_mtime_ns >= mtime
+        except OSError:
+            fresh = False
+        data = sibling.read_bytes() if fresh else gzip.compress(path.read_bytes(), mtime=0)
         with _gzip_lock:
             _gzip_cache[key] = data
     return data

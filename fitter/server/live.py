@@ -11,7 +11,7 @@ import threading
 from types import TracebackType
 
 from flask import Flask
-from werkzeug.serving import BaseWSGIServer, make_server
+from werkzeug.serving import BaseWSGIServer, WSGIRequestHandler, make_server
 
 CHROMIUM_PATH = "/usr/bin/chromium"
 
@@ -35,14 +35,25 @@ def chromium_launch_args() -> dict[str, object]:
     return {"executable_path": CHROMIUM_PATH, "args": list(CHROMIUM_ARGS), "headless": True}
 
 
+class _QuietHandler(WSGIRequestHandler):
+    """Logs errors only: tests and benchmarks would drown in one line per request."""
+
+    def log_request(self, code: int | str = "-", size: int | str = "-") -> None:
+        return None
+
+
 class LiveServer:
     """``app`` served on ``host:port`` by a threaded werkzeug server in a daemon thread.
 
     Use as a context manager; ``url`` is ``http://host:port`` (no trailing slash).
+    ``quiet`` (default) leaves out the access log.
     """
 
-    def __init__(self, app: Flask, host: str = "127.0.0.1", port: int = 0) -> None:
-        self.server: BaseWSGIServer = make_server(host, port, app, threaded=True)
+    def __init__(self, app: Flask, host: str = "127.0.0.1", port: int = 0,
+                 quiet: bool = True) -> None:
+        handler = _QuietHandler if quiet else None
+        self.server: BaseWSGIServer = make_server(host, port, app, threaded=True,
+                                                  request_handler=handler)
         self.url = f"http://{host}:{self.server.server_port}"
         self._thread = threading.Thread(target=self.server.serve_forever, daemon=True,
                                         name="tessera-live-server")

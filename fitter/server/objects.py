@@ -51,6 +51,18 @@ def _hop_base() -> str | None:
     return None
 
 
+def _snapshot_url() -> str | None:
+    """URL of the Pyodide snapshot when it is built; otherwise start building it for later."""
+    builder = current_app.extensions.get("tessera_snapshot")
+    if builder is None:
+        return None
+    if builder.ready():
+        return url_for("runtime.pyodide_snapshot", key=builder.key)
+    if builder.failure is None:
+        builder.start_background_build()  # this page loads Pyodide plainly; later ones won't
+    return None
+
+
 def page_config(bundle: Bundle) -> dict[str, Any]:
     """Everything the viewer and 3DHOP pages need, as JSON-ready data."""
     summary = object_summary(bundle)
@@ -61,6 +73,7 @@ def page_config(bundle: Bundle) -> dict[str, Any]:
         "patch_url": url_for("bundles.bundle_file", object_id=bundle.id,
                              filename=bundle.base_file),
         "pyodide_url": url_for("runtime.pyodide_file", filename=""),
+        "pyodide_snapshot_url": _snapshot_url(),
         "client_py_url": url_for("runtime.client_py_sources_json"),
         "worker_url": url_for("runtime.web_file", filename="src/mesh-worker.js"),
         "viewer_url": summary["viewer_url"],

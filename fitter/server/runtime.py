@@ -5,6 +5,7 @@
 ``/vendor/pyodide/<file>``      npm ``pyodide`` (``loadPyodide``'s indexURL)
 ``/vendor/three/<file>``        npm ``three`` (ES modules, via an import map)
 ``/vendor/3dhop/<file>``        3DHOP from ``TESSERA_3DHOP_DIR`` (404 if unset)
+``/vendor/pyodide-snapshot/``   Pyodide memory snapshot (:mod:`.snapshot`)
 ``/client_py/sources.json``     ``client_py``'s source files for the worker
 ==============================  ===========================================
 
@@ -25,7 +26,7 @@ from flask import Blueprint, Response, abort, current_app, request
 
 import client_py
 
-from .files import send_from
+from .files import send_from, send_path
 
 bp = Blueprint("runtime", __name__)
 
@@ -68,6 +69,14 @@ def pyodide_file(filename: str):  # noqa: ANN201
         abort(404, description="name a file of the Pyodide runtime")
     return send_from(Path(current_app.config["TESSERA_PYODIDE_DIR"]), filename,
                      current_app.config["TESSERA_RUNTIME_MAX_AGE"])
+
+
+@bp.get("/vendor/pyodide-snapshot/<key>.bin")
+def pyodide_snapshot(key: str):  # noqa: ANN201
+    builder = current_app.extensions.get("tessera_snapshot")
+    if builder is None or key != builder.key or builder.ensure() is None:
+        abort(404, description="no Pyodide snapshot here")
+    return send_path(builder.path, current_app.config["TESSERA_BUNDLE_MAX_AGE"], immutable=True)
 
 
 @bp.get("/vendor/three/", defaults={"filename": ""})

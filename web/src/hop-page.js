@@ -83,7 +83,8 @@ async function main() {
 
   const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
   const ready = await worker.init({
-    pyodideUrl: config.pyodide_url, clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
+    pyodideUrl: config.pyodide_url, pyodideSnapshotUrl: config.pyodide_snapshot_url,
+    clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
   }, config.pyodide_timeout_s);
   stats.pyodide_load_ms = ready.pyodide_load_ms;
   stats.kernel = ready.kernel;

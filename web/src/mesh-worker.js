@@ -1,7 +1,7 @@
 // The mesh worker: Pyodide + client_py in a module Web Worker, so the page never blocks on Python.
 //
 // Protocol (every request carries an `id`; every reply echoes it):
-//   page -> {type: "init", pyodideUrl, clientPyUrl, patchUrl}
+//   page -> {type: "init", pyodideUrl, pyodideSnapshotUrl?, clientPyUrl, patchUrl}
 //   worker -> {type: "stage", stage: "runtime" | "client_py" | "patch", ...}   (progress)
 //   worker -> {type: "ready", pyodide_load_ms, kernel, patch: {...}}           (init done)
 //   page -> {type: "tessellate", resolution}  -> {type: "mesh", positions, normals, uvs, indices, ...}
@@ -96,14 +96,22 @@ async function fetchBytes(url, what) {
   return new Uint8Array(await response.arrayBuffer());
 }
 
-async function init({ pyodideUrl, clientPyUrl, patchUrl }) {
+async function init({ pyodideUrl, pyodideSnapshotUrl, clientPyUrl, patchUrl }) {
   let stage = "runtime";
   try {
     post({ type: "stage", stage });
     const t0 = performance.now();
     const { loadPyodide } = await import(`${pyodideUrl}pyodide.mjs`);
-    pyodide = await loadPyodide({ indexURL: pyodideUrl });
+    const tImported = performance.now();
+    const options = { indexURL: pyodideUrl };
+    if (pyodideSnapshotUrl) {
+      // Interpreter memory with client_py imported, made by the server (fitter/server/snapshot.py).
+      options._loadSnapshot = fetchBytes(pyodideSnapshotUrl, "the Pyodide snapshot");
+    }
+    pyodide = await loadPyodide(options);
     const pyodideLoadMs = performance.now() - t0;
+    const stages = { import_ms: tImported - t0, load_pyodide_ms: pyodideLoadMs - (tImported - t0),
+                     snapshot: Boolean(pyodideSnapshotUrl) };
 
     stage = "client_py";
     post({ type: "stage", stage, pyodide_load_ms: pyodideLoadMs });
@@ -116,6 +124,7 @@ async function init({ pyodideUrl, clientPyUrl, patchUrl }) {
       pyodide.FS.writeFile(path, text);
     }
     pyodide.runPython(PY_GLUE);
+    stages.client_py_ms = performance.now() - t0 - pyodideLoadMs;
     glue = {
       load: pyodide.globals.get("tessera_load"),
       tessellate: pyodide.globals.get("tessera_tessellate"),
@@ -125,12 +134,14 @@ async function init({ pyodideUrl, clientPyUrl, patchUrl }) {
 
     stage = "patch";
     post({ type: "stage", stage });
+    const tPatch = performance.now();
     const bytes = await fetchBytes(patchUrl, "the base patch");
     const infoProxy = glue.load(bytes, patchUrl.split("/").pop());
     const patch = infoProxy.toJs({ dict_converter: Object.fromEntries });
     infoProxy.destroy();
+    stages.patch_ms = performance.now() - tPatch;
     post({ type: "ready", pyodide_load_ms: pyodideLoadMs, kernel, patch, patch_bytes: bytes.length,
-           client_py_version: sources.version });
+           client_py_version: sources.version, stages });
   } catch (error) {
     post({ type: "error", stage, message: reason(error) });
   }

@@ -7,7 +7,6 @@
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { Viewer } from "./viewer.js";
 
 const COARSE = 24; // first mesh: ~1k vertices, drawn within milliseconds of the patch
 const MIN_RES = 48;
@@ -97,13 +96,22 @@ function showMeshFacts() {
 }
 
 async function main() {
+  // Start the worker (Pyodide: seconds) before three.js is even fetched: they load in parallel.
+  const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
+  const readyPromise = worker.init({
+    pyodideUrl: config.pyodide_url, pyodideSnapshotUrl: config.pyodide_snapshot_url,
+    clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
+  }, config.pyodide_timeout_s);
+  readyPromise.catch(() => {}); // awaited below; this only keeps an early failure "handled"
+  const manifestPromise = loadManifest();
+  manifestPromise.catch(() => {});
+  const { Viewer } = await import("./viewer.js");
   const viewer = new Viewer($("view"));
   const panel = document.querySelector(".panel");
   // On wide screens keep the object clear of the information panel.
   const inset = () => (window.innerWidth > 900 ? panel.getBoundingClientRect().right : 0);
   viewer.setLeftInset(inset());
   window.addEventListener("resize", () => viewer.setLeftInset(inset()));
-  const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
   let domain = null;
   let errorMap = null;
   let current = 0;
@@ -134,13 +142,10 @@ async function main() {
     pending = setTimeout(() => showResolution(wanted).catch((e) => showError(e.message)), 150);
   });
 
-  showStage("manifest");
-  const manifestPromise = loadManifest();
-  const ready = await worker.init({
-    pyodideUrl: config.pyodide_url, clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
-  }, config.pyodide_timeout_s);
+  const ready = await readyPromise;
   const manifest = await manifestPromise;
   stats.pyodide_load_ms = ready.pyodide_load_ms;
+  stats.worker_stages = ready.stages;
   stats.kernel = ready.kernel;
   stats.bytes_downloaded += ready.patch_bytes;
   domain = ready.patch.domain;
@@ -201,6 +206,8 @@ async function main() {
   });
 
   if (target !== current) await showResolution(target);
+  await new Promise((resolve) => requestAnimationFrame(resolve));
+  stats.refined_ms = performance.now();
   document.body.dataset.refined = "1";
 }
 

@@ -1,0 +1,126 @@
+"""Pyodide memory snapshots with ``client_py`` imported: the viewer's fast start.
+
+Starting Pyodide in a browser spends most of its time initialising the Python
+interpreter (several seconds on a modest machine). A memory snapshot taken after
+that initialisation, and after ``import client_py``, restores in about a second
+(Pyodide's experimental ``_makeSnapshot`` / ``_loadSnapshot`` options). The
+snapshot is made here once, by node running ``web/tools/make-pyodide-snapshot.mjs``
+against the served Pyodide package, and cached on disk under a name derived from
+the Pyodide version, the ``client_py`` sources and the script, so it can never be
+served stale and can be cached by browsers forever. A gzip copy is written next to
+it (31 MB of memory compress to about 6 MB).
+
+When node is missing or the build fails the server logs why and the pages load
+Pyodide the ordinary way (``pyodide_snapshot_url`` is null in their config).
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import logging
+import shutil
+import subprocess
+import threading
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+SCRIPT = Path(__file__).resolve().parents[2] / "web" / "tools" / "make-pyodide-snapshot.mjs"
+BUILD_TIMEOUT_S = 180
+
+
+class SnapshotBuilder:
+    """Builds (once) and locates the snapshot for one Pyodide directory and client_py version.
+
+    Parameters
+    ----------
+    pyodide_dir : Path
+        The npm ``pyodide`` package that the pages load.
+    sources : dict
+        ``client_py``'s sources document (``runtime.client_py_sources()``).
+    cache_dir : Path
+        Where snapshots are kept.
+    node : str, optional
+        The node executable (default: ``node`` on ``PATH``).
+    """
+
+    def __init__(self, pyodide_dir: Path, sources: dict, cache_dir: Path,
+                 node: str | None = None) -> None:
+        self.pyodide_dir = Path(pyodide_dir)
+        self.sources = sources
+        self.cache_dir = Path(cache_dir)
+        self.node = node or shutil.which("node")
+        self._lock = threading.Lock()
+        self._failed: str | None = None
+        try:
+            version = json.loads((self.pyodide_dir / "package.json").read_text())["version"]
+        except (OSError, ValueError, KeyError):
+            version = "unknown"
+        digest = hashlib.sha256(f"{version}\0{sources['sha256']}\0".encode())
+        digest.update(SCRIPT.read_bytes())
+        self.key = f"pyodide-{version}-client_py-{digest.hexdigest()[:16]}"
+
+    @property
+    def path(self) -> Path:
+        return self.cache_dir / f"{self.key}.bin"
+
+    @property
+    def failure(self) -> str | None:
+        """Why the snapshot could not be made, or None."""
+        return self._failed
+
+    def ready(self) -> bool:
+        return self.path.is_file()
+
+    def ensure(self) -> Path | None:
+        """The snapshot file, built now if needed; None (and a logged reason) if it cannot be."""
+        if self.ready():
+            return self.path
+        with self._lock:
+            if self.ready():
+                return self.path
+            if self._failed is not None:
+                return None
+            if self.node is None:
+                self._failed = "node is not installed"
+            else:
+                self._failed = self._build()
+            if self._failed is not None:
+                log.warning("no Pyodide snapshot (pages load Pyodide the slow way): %s",
+                            self._failed)
+                return None
+            return self.path
+
+    def _build(self) -> str | None:
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        sources = self.path.with_suffix(".sources.json")
+        sources.write_text(json.dumps(self.sources))
+        try:
+            subprocess.run([self.node, str(SCRIPT), str(self.pyodide_dir), str(sources), str(tmp)],
+                           check=True, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+            data = tmp.read_bytes()
+            gz = self.path.with_suffix(".bin.gz.tmp")
+            gz.write_bytes(gzip.compress(data, compresslevel=6, mtime=0))
+            tmp.replace(self.path)
+            gz.replace(Path(f"{self.path}.gz"))  # after the .bin: the sibling must be newer
+        except subprocess.CalledProcessError as exc:
+            return f"make-pyodide-snapshot.mjs failed: {exc.stderr.strip()[-500:]}"
+        except (OSError, subprocess.SubprocessError) as exc:
+            return f"make-pyodide-snapshot.mjs could not run: {exc}"
+        finally:
+            sources.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
+        for old in self.cache_dir.glob("pyodide-*.bin*"):
+            if not old.name.startswith(self.key):  # snapshots of older client_py versions
+                old.unlink(missing_ok=True)
+        log.info("made the Pyodide snapshot %s", self.path)
+        return None
+
+    def start_background_build(self) -> threading.Thread:
+        """Build in a daemon thread (``tessera serve`` does this at start-up)."""
+        thread = threading.Thread(target=self.ensure, daemon=True, name="pyodide-snapshot")
+        thread.start()
+        return thread

@@ -1,0 +1,37 @@
+// Make a Pyodide memory snapshot with client_py already imported (run by the server, in node).
+//
+//   node make-pyodide-snapshot.mjs PYODIDE_DIR SOURCES_JSON OUT_FILE
+//
+// A snapshot restores the Python interpreter's memory instead of initialising it: the
+// browser's loadPyodide({_loadSnapshot}) then takes about a second instead of several.
+// SOURCES_JSON is the server's /client_py/sources.json document. The snapshot is only valid
+// for this Pyodide build and these client_py sources; the server keys its file name on both.
+// _makeSnapshot/_loadSnapshot are Pyodide's experimental snapshot API (pyodide.d.ts).
+
+import { readFileSync, writeFileSync } from "node:fs";
+import { pathToFileURL } from "node:url";
+
+const PY_ROOT = "/home/pyodide/tessera"; // the worker's path for client_py (mesh-worker.js)
+
+const [pyodideDir, sourcesPath, outPath] = process.argv.slice(2);
+if (!outPath) {
+  console.error("usage: node make-pyodide-snapshot.mjs PYODIDE_DIR SOURCES_JSON OUT_FILE");
+  process.exit(2);
+}
+const indexURL = pyodideDir.endsWith("/") ? pyodideDir : `${pyodideDir}/`;
+const { loadPyodide } = await import(pathToFileURL(`${indexURL}pyodide.mjs`).href);
+const pyodide = await loadPyodide({ indexURL, _makeSnapshot: true });
+const sources = JSON.parse(readFileSync(sourcesPath, "utf8"));
+for (const [name, text] of Object.entries(sources.files)) {
+  const path = `${PY_ROOT}/${sources.package}/${name}`;
+  pyodide.FS.mkdirTree(path.slice(0, path.lastIndexOf("/")));
+  pyodide.FS.writeFile(path, text);
+}
+pyodide.runPython(`
+import sys
+sys.path.insert(0, ${JSON.stringify(PY_ROOT)})
+import client_py, client_py.tessellate, client_py.ply, client_py.format
+`);
+const snapshot = pyodide.makeMemorySnapshot();
+writeFileSync(outPath, snapshot);
+console.log(`${outPath}: ${snapshot.length} bytes`);
