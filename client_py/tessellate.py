@@ -68,14 +68,20 @@ def grid_indices(nu: int, nv: int, keep_cell=None) -> array:
     """
     indices = array("I")
     if keep_cell is None:
-        row = [0] * (6 * (nv - 1))
-        for i in range(nu - 1):
-            base = i * nv
-            row[0::6] = range(base, base + nv - 1)
-            row[1::6] = row[4::6] = range(base + nv, base + 2 * nv - 1)
-            row[2::6] = row[3::6] = range(base + 1, base + nv)
-            row[5::6] = range(base + nv + 1, base + 2 * nv)
-            indices.fromlist(row)  # twice as fast as extend() for a list
+        # Whole columns by strided copies (C speed, no per-index Python work): left[r * c1 + j]
+        # and right[...] are vertices (r, j) and (r, j + 1) of every vertex row r, c1 = nv - 1
+        # cells per row; then cell k's corners are left/right of its row and of the next.
+        c1, cells = nv - 1, (nu - 1) * (nv - 1)
+        every = array("I", range(nu * nv))
+        left, right = array("I", bytes(4 * nu * c1)), array("I", bytes(4 * nu * c1))
+        for j in range(c1):
+            left[j::c1] = every[j::nv]
+            right[j::c1] = every[j + 1 :: nv]
+        indices = array("I", bytes(24 * cells))
+        indices[0::6] = left[:cells]  # k
+        indices[1::6] = indices[4::6] = left[c1:]  # k + nv
+        indices[2::6] = indices[3::6] = right[:cells]  # k + 1
+        indices[5::6] = right[c1:]  # k + nv + 1
         return indices
     for i in range(nu - 1):
         for j in range(nv - 1):
@@ -108,9 +114,10 @@ def tessellate_grid(
     positions, normals, degenerate = _kernel.backend(kernel).evaluate_grid(surface, us, vs)
     for k in degenerate:
         normals[3 * k : 3 * k + 3] = array("f", surface.normal(us[k // nv], vs[k % nv]))
-    uvs = array("f", [0.0]) * (2 * nu * nv)
-    uvs[0::2] = array("f", [u for u in us for _ in range(nv)])
-    uvs[1::2] = array("f", vs * nu)
+    uvs = array("f", bytes(8 * nu * nv))
+    for i, u in enumerate(us):
+        uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
+    uvs[1::2] = array("f", vs) * nu
     trim = surface.trim
     keep = None
     if trim is not None:
