@@ -7,7 +7,7 @@ With the homogeneous control points stacked as ``P^w`` of shape ``(C, n_u, n_v)`
 ``p + 1`` non-zeros per row, so each product is done as ``p + 1`` broadcast
 multiply-adds of gathered rows (:func:`_blend`) instead of a dense ``matmul``:
 ``O(p)`` rather than ``O(n_u)`` work per point, the same summation order as the
-pure-Python kernel (so the two round alike), and no BLAS threads, which on
+pure-Python kernel, and no BLAS threads, which on
 a small busy machine cost more than they save.
 """
 
@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .basis import basis_table
+from ._numpy_basis import basis_arrays
 from .surface import normal_tolerance
 
 
@@ -29,9 +29,8 @@ def _basis_bands(degree: int, knots, n_ctrl: int, params: Sequence[float]):
     with window start ``s_t = span(t) - p``: the non-zero diagonals of the
     basis matrix ``B[t, a] = N_a(t)``.
     """
-    spans, values, derivs = basis_table(degree, knots, n_ctrl, params)
-    starts = np.asarray(spans, dtype=np.intp) - degree
-    return starts, np.asarray(values).T.copy(), np.asarray(derivs).T.copy()
+    spans, values, derivs = basis_arrays(degree, knots, n_ctrl, params)
+    return spans.astype(np.intp) - degree, values.T.copy(), derivs.T.copy()
 
 
 def _blend(bands, starts, rows, axis: int) -> np.ndarray:
