@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 from . import _kernel
 from .surface import NurbsSurface
+from .trim import TrimMask
 
 MAX_GRID = 8192  # vertices per side: 67 M vertices, far past any screen
 
@@ -91,6 +92,40 @@ def grid_indices(nu: int, nv: int, keep_cell=None) -> array:
     return indices
 
 
+def trimmed_grid_indices(nu: int, nv: int, trim: TrimMask) -> array:
+    """:func:`grid_indices` without the cells whose centre ``trim`` does not cover.
+
+    The same cells as ``grid_indices(nu, nv, keep)`` with ``keep(i, j) =
+    trim.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))``, found per run:
+    a grid row's kept cells form runs (between the mask's column boundaries)
+    whose triangles are copied from the full grid as whole array slices.
+    """
+    full = grid_indices(nu, nv)
+    c1 = nv - 1
+    mask_cols = [min(int((j + 0.5) / c1 * trim.cols), trim.cols - 1) for j in range(c1)]
+    runs_by_mask_row: dict[int, list[tuple[int, int]]] = {}
+    indices = array("I")
+    for i in range(nu - 1):
+        r = min(int((i + 0.5) / (nu - 1) * trim.rows), trim.rows - 1)
+        runs = runs_by_mask_row.get(r)
+        if runs is None:
+            row = trim.flat[r * trim.cols : (r + 1) * trim.cols]
+            runs, start = [], None
+            for j, c in enumerate(mask_cols):
+                if row[c] and start is None:
+                    start = j
+                elif not row[c] and start is not None:
+                    runs.append((start, j))
+                    start = None
+            if start is not None:
+                runs.append((start, c1))
+            runs_by_mask_row[r] = runs
+        base = 6 * i * c1
+        for j0, j1 in runs:
+            indices.extend(full[base + 6 * j0 : base + 6 * j1])  # array to array: a copy
+    return indices
+
+
 def tessellate_grid(
     surface: NurbsSurface, nu: int, nv: int, kernel: str | None = None
 ) -> Mesh:
@@ -118,9 +153,8 @@ def tessellate_grid(
     for i, u in enumerate(us):
         uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
     uvs[1::2] = array("f", vs) * nu
-    trim = surface.trim
-    keep = None
-    if trim is not None:
-        def keep(i: int, j: int) -> bool:
-            return trim.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))
-    return Mesh(positions, normals, uvs, grid_indices(nu, nv, keep))
+    if surface.trim is None:
+        indices = grid_indices(nu, nv)
+    else:
+        indices = trimmed_grid_indices(nu, nv, surface.trim)
+    return Mesh(positions, normals, uvs, indices)

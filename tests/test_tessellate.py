@@ -21,7 +21,7 @@ from nurbs_cases import (
 
 from client_py import Mesh, NurbsSurface, TrimMask, tessellate_grid
 from client_py._kernel import KERNEL_NAME, backend
-from client_py.tessellate import grid_indices
+from client_py.tessellate import grid_indices, trimmed_grid_indices
 
 KERNELS = ["python", "numpy"]
 
@@ -207,3 +207,15 @@ def test_float64_output_on_request():
     pos, nrm, bad = backend("python").evaluate_grid(s, [0.0, 0.3], [0.0, 1.0], "d")
     assert isinstance(pos, array) and pos.typecode == "d" and bad == []
     assert abs(np.hypot(pos[6], pos[7]) - 1.0) <= 1e-15
+
+
+@pytest.mark.parametrize(("rows", "cols", "nu", "nv"), [(1, 1, 2, 2), (3, 4, 5, 9), (7, 5, 40, 33),
+                                                        (64, 64, 30, 100), (1, 9, 17, 3)])
+def test_trimmed_indices_are_the_covered_cells(rows, cols, nu, nv):
+    """The run-based trimming equals the definition: cell (i, j) is kept where the mask
+    covers its centre."""
+    rng = np.random.default_rng(rows * cols + nu)
+    mask = TrimMask(rng.random((rows, cols)) < 0.6)
+    def keep(i, j):
+        return mask.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))
+    assert trimmed_grid_indices(nu, nv, mask) == grid_indices(nu, nv, keep)
