@@ -112,6 +112,24 @@ def test_download_ply_is_the_mesh_trimesh_reads(viewer, tmp_path):
     assert np.median(distance) < 2.0  # point spacing of 20k points over 200x140 mm is ~1.2 mm
 
 
+def test_download_ply_with_the_error_map_carries_its_colours(viewer, tmp_path):
+    viewer.click("#toggle-error")
+    try:
+        with viewer.expect_download() as info:
+            viewer.click("#download-ply")
+        path = tmp_path / "coloured.ply"
+        info.value.save_as(path)
+    finally:
+        viewer.click("#toggle-error")
+    header = path.read_bytes().split(b"end_header", 1)[0].decode()
+    assert "property uchar red" in header
+    with open(path, "rb") as handle:  # the loader's raw arrays: trimesh keeps uv over colour
+        loaded = trimesh.exchange.ply.load_ply(handle, fix_texture=False)
+    colours = np.asarray(loaded["vertex_colors"])[:, :3]
+    assert len(colours) == RESOLUTION * RESOLUTION
+    assert len(np.unique(colours, axis=0)) > 10  # a colour scale, not one flat colour
+
+
 def test_corrupt_patch_shows_its_error_quickly(page, live_server):
     page.goto(f"{live_server.url}/objects/corrupt/")
     page.wait_for_function(READY, timeout=30_000)

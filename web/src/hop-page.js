@@ -48,19 +48,37 @@ window.actionsToolbar = (action) => {
   } else if (action === "full" || action === "full_on") window.fullscreenSwitch();
 };
 
-/** Column-major 4x4 rotation turning the mean normal towards 3DHOP's camera (+z), y up. */
-function facingMatrix(normals) {
-  let f = [0, 0, 0];
-  for (let k = 0; k < normals.length; k += 3) f = [f[0] + normals[k], f[1] + normals[k + 1], f[2] + normals[k + 2]];
-  const norm = (v) => { const l = Math.hypot(...v) || 1; return v.map((x) => x / l); };
+/** Column-major 4x4 rotation turning the mean normal towards 3DHOP's camera (+z) and the
+ *  longest in-plane extent of the vertices horizontal (+x), as the three.js viewer frames it. */
+function facingMatrix(positions, normals, tilt = (20 * Math.PI) / 180) {
   const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
   const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+  const norm = (v) => { const l = Math.hypot(...v) || 1; return v.map((x) => x / l); };
+  let f = [0, 0, 0];
+  for (let k = 0; k < normals.length; k += 3) f = [f[0] + normals[k], f[1] + normals[k + 1], f[2] + normals[k + 2]];
   f = Math.hypot(...f) > 1e-9 ? norm(f) : [0, 0, 1];
-  const axes = [[0, 1, 0], [0, 0, 1], [1, 0, 0]].sort((a, b) => Math.abs(dot(a, f)) - Math.abs(dot(b, f)));
-  const up = norm(axes[0].map((x, i) => x - dot(axes[0], f) * f[i]));
-  const right = cross(up, f);
-  // Rows of the rotation are right, up, f; column-major storage puts row r, column c at [4c + r].
-  return [right[0], up[0], f[0], 0, right[1], up[1], f[1], 0, right[2], up[2], f[2], 0, 0, 0, 0, 1];
+  // In-plane principal axis: 2x2 covariance of the vertices in a basis (a, b) orthogonal to f.
+  const a = norm(cross(Math.abs(f[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0], f));
+  const b = cross(f, a);
+  const n = positions.length / 3;
+  const c = [0, 0, 0];
+  for (let k = 0; k < positions.length; k += 3) for (let i = 0; i < 3; i++) c[i] += positions[k + i] / n;
+  let saa = 0, sab = 0, sbb = 0;
+  for (let k = 0; k < positions.length; k += 3) {
+    const d = [positions[k] - c[0], positions[k + 1] - c[1], positions[k + 2] - c[2]];
+    const pa = dot(d, a), pb = dot(d, b);
+    saa += pa * pa; sab += pa * pb; sbb += pb * pb;
+  }
+  const angle = 0.5 * Math.atan2(2 * sab, saa - sbb);
+  const right = norm(a.map((x, i) => Math.cos(angle) * x + Math.sin(angle) * b[i]));
+  const up0 = cross(f, right);
+  // Then tilt by `tilt` about x: the camera looks from a little above, like the three.js viewer.
+  const ct = Math.cos(tilt), st = Math.sin(tilt);
+  const up = up0.map((x, i) => ct * x - st * f[i]);
+  const back = up0.map((x, i) => st * x + ct * f[i]);
+  // Rows of the rotation are right, up, back; column-major storage puts row r, column c at [4c + r].
+  return [right[0], up[0], back[0], 0, right[1], up[1], back[1], 0, right[2], up[2], back[2], 0,
+          0, 0, 0, 1];
 }
 
 function waitForScene(presenter, timeoutMs) {
@@ -120,7 +138,7 @@ async function main() {
 
   showStage("hop");
   presenter.setScene({
-    meshes: { tessera: { url, mType: "ply", transform: { matrix: facingMatrix(mesh.normals) } } },
+    meshes: { tessera: { url, mType: "ply", transform: { matrix: facingMatrix(mesh.positions, mesh.normals) } } },
     // useSolidColor: client_py's PLY carries texture_u/texture_v (the surface parameters) and
     // 3DHOP's shader samples its texture whenever a vertex has u != 0, even with no texture
     // bound (black); a solid colour, or -2,-2,-2 meaning "the vertex colours", avoids that.
@@ -129,7 +147,7 @@ async function main() {
                                 specularColor: [0.08, 0.08, 0.08, 32.0] } },
     trackball: {
       type: SphereTrackball,
-      trackOptions: { startDistance: 2.6, minMaxDist: [0.4, 6.0] },
+      trackOptions: { startDistance: 2.4, minMaxDist: [0.4, 6.0] },
     },
     space: { cameraFOV: 40.0 },
   });

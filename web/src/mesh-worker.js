@@ -18,14 +18,16 @@ import sys, time
 if ${JSON.stringify(PY_ROOT)} not in sys.path:
     sys.path.insert(0, ${JSON.stringify(PY_ROOT)})
 from array import array
+from dataclasses import replace
 from client_py import read_patch, tessellate_grid, write_ply
 from client_py import _kernel
 
 _surface = None
 _source = None
+_last = (None, None)  # (resolution, mesh): "Download PLY" reuses the mesh on screen
 
 def tessera_load(js_bytes, source):
-    global _surface, _source
+    global _surface, _source, _last
     surface = read_patch(js_bytes.to_bytes())
     (u0, u1), (v0, v1) = surface.domain
     info = {
@@ -35,20 +37,23 @@ def tessera_load(js_bytes, source):
     }
     _surface = surface.to_scan_frame()
     _source = source
+    _last = (None, None)
     lo, hi = _surface.bounding_box()
     info["bbox"] = [list(lo), list(hi)]
     return info
 
 def tessera_tessellate(resolution):
+    global _last
     t0 = time.perf_counter()
     mesh = tessellate_grid(_surface, resolution, resolution)
+    _last = (resolution, mesh)
     return mesh, (time.perf_counter() - t0) * 1000.0
 
 def tessera_ply(resolution, js_colors):
     t0 = time.perf_counter()
-    mesh = tessellate_grid(_surface, resolution, resolution)
+    mesh = _last[1] if _last[0] == resolution else tessellate_grid(_surface, resolution, resolution)
     if js_colors is not None:
-        mesh.colors = array("B", js_colors.to_bytes())
+        mesh = replace(mesh, colors=array("B", js_colors.to_bytes()))
     comments = [f"source {_source}", f"units {_surface.metadata.get('units', 'unknown')}",
                 f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
     data = write_ply(mesh, binary=True, comments=comments)

@@ -115,6 +115,7 @@ async function main() {
   let domain = null;
   let errorMap = null;
   let current = 0;
+  let currentUvs = null;
   let pending = null;
 
   async function showResolution(resolution) {
@@ -122,6 +123,7 @@ async function main() {
     const mesh = await worker.tessellate(resolution);
     viewer.setMesh(mesh, domain);
     current = resolution;
+    currentUvs = mesh.uvs; // same vertex order as the worker's PLY of this grid
     stats.resolution = resolution;
     stats.vertices = mesh.positions.length / 3;
     stats.triangles = mesh.indices.length / 3;
@@ -184,11 +186,7 @@ async function main() {
     try {
       const overlay = $("toggle-error").getAttribute("aria-pressed") === "true";
       let colors = null;
-      if (overlay && errorMap) {
-        // The worker tessellates the same grid: same vertex order, so colours line up.
-        const mesh = await worker.tessellate(current);
-        colors = errorMap.vertexColors(mesh.uvs, domain);
-      }
+      if (overlay && errorMap) colors = errorMap.vertexColors(currentUvs, domain);
       const ply = await worker.ply(current, colors);
       const url = URL.createObjectURL(new Blob([ply.bytes], { type: "application/octet-stream" }));
       const link = document.createElement("a");
