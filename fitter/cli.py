@@ -151,6 +151,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         app = create_app({"TESSERA_COLLECTION": str(collection)})
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    snapshot = app.extensions["tessera_snapshot"]
+    if snapshot is not None:
+        snapshot.start_background_build()  # the viewer's fast start, made once with node
     count = len(app.extensions["tessera_collection"].bundles())
     print(f"serving {count} object(s) from {collection} at http://{args.host}:{args.port}/ "
           "(Ctrl-C to stop)")

@@ -130,6 +130,25 @@ def test_download_ply_with_the_error_map_carries_its_colours(viewer, tmp_path):
     assert len(np.unique(colours, axis=0)) > 10  # a colour scale, not one flat colour
 
 
+def test_zooming_in_refines_the_tessellation(page, live_server):
+    """Without a fixed ?resolution the grid follows the object's size on screen."""
+    page.set_viewport_size({"width": 900, "height": 600})
+    page.goto(f"{live_server.url}/objects/relief/")
+    page.wait_for_function("document.body.dataset.refined === '1' || !!document.body.dataset.error",
+                           timeout=60_000)
+    before = page.evaluate("window.tessera.stats")
+    assert before["coarse_resolution"] < before["resolution"]  # coarse first, then refined
+    assert before["vertices"] == before["resolution"] ** 2
+    page.mouse.move(600, 300)
+    for _ in range(6):
+        page.mouse.wheel(0, -400)
+        page.wait_for_timeout(50)
+    page.wait_for_function(f"window.tessera.stats.resolution > {before['resolution']}",
+                           timeout=20_000)
+    after = page.evaluate("window.tessera.stats")
+    assert after["vertices"] == after["resolution"] ** 2
+
+
 def test_corrupt_patch_shows_its_error_quickly(page, live_server):
     page.goto(f"{live_server.url}/objects/corrupt/")
     page.wait_for_function(READY, timeout=30_000)
