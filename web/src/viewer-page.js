@@ -108,10 +108,16 @@ async function main() {
   const { Viewer } = await import("./viewer.js");
   const viewer = new Viewer($("view"));
   const panel = document.querySelector(".panel");
-  // On wide screens keep the object clear of the information panel.
-  const inset = () => (window.innerWidth > 900 ? panel.getBoundingClientRect().right : 0);
-  viewer.setLeftInset(inset());
-  window.addEventListener("resize", () => viewer.setLeftInset(inset()));
+  // Keep the object clear of the information panel: beside it on wide screens, above it on
+  // narrow ones (style.css moves the panel to the bottom below 700 px).
+  const insets = () => {
+    const box = panel.getBoundingClientRect();
+    if (window.innerWidth > 900) return { left: box.right };
+    if (window.innerWidth <= 700) return { bottom: window.innerHeight - box.top };
+    return {};
+  };
+  viewer.setInsets(insets());
+  window.addEventListener("resize", () => viewer.setInsets(insets()));
   let domain = null;
   let errorMap = null;
   let current = 0;

@@ -67,7 +67,7 @@ export class Viewer {
     this.controls = new OrbitControls(this.camera, canvas);
     this.controls.addEventListener("change", () => this.render());
     this.onRender = null;
-    this.leftInset = 0;
+    this.insets = { left: 0, bottom: 0 };
     this._resizeObserver = new ResizeObserver(() => this.resize());
     this._resizeObserver.observe(canvas);
     this.resize();
@@ -78,9 +78,13 @@ export class Viewer {
     const height = this.canvas.clientHeight || 1;
     this.renderer.setSize(width, height, false);
     this.camera.aspect = width / height;
-    const inset = Math.min(this.leftInset, width / 2);
-    if (inset > 0) this.camera.setViewOffset(width, height, -inset / 2, 0, width, height);
-    else this.camera.clearViewOffset();
+    const left = Math.min(this.insets.left, width / 2);
+    const bottom = Math.min(this.insets.bottom, height / 2);
+    if (left > 0 || bottom > 0) {
+      this.camera.setViewOffset(width, height, -left / 2, bottom / 2, width, height);
+    } else {
+      this.camera.clearViewOffset();
+    }
     this.camera.updateProjectionMatrix();
     this.render();
   }
@@ -147,15 +151,17 @@ export class Viewer {
     this.render();
   }
 
-  /** Width/height of the canvas area not covered by the left panel. */
+  /** Width/height of the canvas area not covered by the panel. */
   visibleAspect() {
     const width = this.canvas.clientWidth || 1;
-    return Math.max(width - this.leftInset, width / 2) / (this.canvas.clientHeight || 1);
+    const height = this.canvas.clientHeight || 1;
+    return Math.max(width - this.insets.left, width / 2) /
+      Math.max(height - this.insets.bottom, height / 2);
   }
 
-  /** Keep `pixels` at the left for a panel: the view's centre moves to the free area. */
-  setLeftInset(pixels) {
-    this.leftInset = pixels;
+  /** Keep room for a panel at the left or the bottom (pixels): the view centres in the rest. */
+  setInsets({ left = 0, bottom = 0 }) {
+    this.insets = { left, bottom };
     this.resize();
   }
 
