@@ -28,6 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from flask import Flask, jsonify, render_template, request
+from flask.typing import ResponseReturnValue
+from werkzeug.exceptions import HTTPException
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -138,14 +140,14 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
         app.register_blueprint(module.bp)
 
     @app.errorhandler(404)
-    def not_found(error):  # noqa: ANN001, ANN202 - Flask's handler signature
+    def not_found(error: HTTPException) -> ResponseReturnValue:
         message = getattr(error, "description", "not found")
         if request.path.startswith("/api/"):
             return jsonify({"error": message}), 404
         return render_template("404.html", message=message), 404
 
     @app.errorhandler(400)
-    def bad_request(error):  # noqa: ANN001, ANN202
+    def bad_request(error: HTTPException) -> ResponseReturnValue:
         message = getattr(error, "description", "bad request")
         if request.path.startswith("/api/"):
             return jsonify({"error": message}), 400

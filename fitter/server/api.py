@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from flask import Blueprint, abort, current_app, jsonify, url_for
+from flask.typing import ResponseReturnValue
 
 from .collection import Bundle, BundleError
 
@@ -55,11 +56,11 @@ def get_bundle_or_404(object_id: str) -> Bundle:
 
 
 @bp.get("/objects")
-def list_objects():  # noqa: ANN201 - Flask view
+def list_objects() -> ResponseReturnValue:
     collection = current_app.extensions["tessera_collection"]
     return jsonify([object_summary(b) for b in collection.bundles()])
 
 
 @bp.get("/objects/<object_id>")
-def get_object(object_id: str):  # noqa: ANN201
+def get_object(object_id: str) -> ResponseReturnValue:
     return jsonify(object_summary(get_bundle_or_404(object_id)))

@@ -10,6 +10,7 @@ directory is a 404.
 from __future__ import annotations
 
 from flask import Blueprint, abort, current_app
+from flask.typing import ResponseReturnValue
 
 from .api import get_bundle_or_404
 from .files import send_from
@@ -19,7 +20,7 @@ bp = Blueprint("bundles", __name__, url_prefix="/bundles")
 
 @bp.get("/<object_id>/", defaults={"filename": ""})
 @bp.get("/<object_id>/<path:filename>")
-def bundle_file(object_id: str, filename: str):  # noqa: ANN201 - Flask view
+def bundle_file(object_id: str, filename: str) -> ResponseReturnValue:
     bundle = get_bundle_or_404(object_id)
     if not filename:
         abort(404, description="name a file of the bundle, e.g. manifest.json")

@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 from flask import Blueprint, Response, abort, current_app, render_template, request, url_for
+from flask.typing import ResponseReturnValue
 
 from client_py import PatchFormatError
 from client_py.tessellate import MAX_GRID
@@ -95,14 +96,14 @@ def _import_map() -> dict[str, Any]:
 
 
 @bp.get("/<object_id>/")
-def viewer(object_id: str):  # noqa: ANN201 - Flask view
+def viewer(object_id: str) -> ResponseReturnValue:
     bundle = get_bundle_or_404(object_id)
     return render_template("viewer.html", config=page_config(bundle), import_map=_import_map(),
                            summary=object_summary(bundle))
 
 
 @bp.get("/<object_id>/3dhop")
-def hop(object_id: str):  # noqa: ANN201
+def hop(object_id: str) -> ResponseReturnValue:
     bundle = get_bundle_or_404(object_id)
     hop_base = _hop_base()
     if hop_base is None:
@@ -113,7 +114,7 @@ def hop(object_id: str):  # noqa: ANN201
 
 
 @bp.get("/<object_id>/thumbnail.png")
-def thumbnail(object_id: str):  # noqa: ANN201
+def thumbnail(object_id: str) -> ResponseReturnValue:
     bundle = get_bundle_or_404(object_id)
     path = bundle.path / bundle.base_file
     try:

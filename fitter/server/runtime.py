@@ -23,6 +23,7 @@ import json
 from pathlib import Path
 
 from flask import Blueprint, Response, abort, current_app, request
+from flask.typing import ResponseReturnValue
 
 import client_py
 
@@ -45,7 +46,7 @@ def client_py_sources() -> dict[str, object]:
 
 
 @bp.get("/client_py/sources.json")
-def client_py_sources_json():  # noqa: ANN201 - Flask view
+def client_py_sources_json() -> ResponseReturnValue:
     sources = current_app.extensions["tessera_client_py"]
     response = Response(json.dumps(sources), mimetype="application/json")
     response.set_etag(str(sources["sha256"]))
@@ -54,7 +55,7 @@ def client_py_sources_json():  # noqa: ANN201 - Flask view
 
 
 @bp.get("/web/<path:filename>")
-def web_file(filename: str):  # noqa: ANN201
+def web_file(filename: str) -> ResponseReturnValue:
     if filename.startswith(("node_modules/", "templates/")) or filename.endswith(".json"):
         abort(404, description=f"no file {filename!r} here")
     response = send_from(Path(current_app.config["TESSERA_WEB_DIR"]), filename, max_age=0)
@@ -64,7 +65,7 @@ def web_file(filename: str):  # noqa: ANN201
 
 @bp.get("/vendor/pyodide/", defaults={"filename": ""})
 @bp.get("/vendor/pyodide/<path:filename>")
-def pyodide_file(filename: str):  # noqa: ANN201
+def pyodide_file(filename: str) -> ResponseReturnValue:
     if not filename:
         abort(404, description="name a file of the Pyodide runtime")
     return send_from(Path(current_app.config["TESSERA_PYODIDE_DIR"]), filename,
@@ -72,7 +73,7 @@ def pyodide_file(filename: str):  # noqa: ANN201
 
 
 @bp.get("/vendor/pyodide-snapshot/<key>.bin")
-def pyodide_snapshot(key: str):  # noqa: ANN201
+def pyodide_snapshot(key: str) -> ResponseReturnValue:
     builder = current_app.extensions.get("tessera_snapshot")
     if builder is None or key != builder.key or builder.ensure() is None:
         abort(404, description="no Pyodide snapshot here")
@@ -81,7 +82,7 @@ def pyodide_snapshot(key: str):  # noqa: ANN201
 
 @bp.get("/vendor/three/", defaults={"filename": ""})
 @bp.get("/vendor/three/<path:filename>")
-def three_file(filename: str):  # noqa: ANN201
+def three_file(filename: str) -> ResponseReturnValue:
     if not filename.startswith(THREE_PUBLIC):
         abort(404, description=f"no file {filename!r} here")
     return send_from(Path(current_app.config["TESSERA_THREE_DIR"]), filename,
@@ -90,7 +91,7 @@ def three_file(filename: str):  # noqa: ANN201
 
 @bp.get("/vendor/3dhop/", defaults={"filename": ""})
 @bp.get("/vendor/3dhop/<path:filename>")
-def hop_file(filename: str):  # noqa: ANN201
+def hop_file(filename: str) -> ResponseReturnValue:
     directory = current_app.config.get("TESSERA_3DHOP_DIR")
     if not directory:
         abort(404, description="3DHOP is not configured: set TESSERA_3DHOP_DIR")

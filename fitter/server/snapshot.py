@@ -54,6 +54,7 @@ class SnapshotBuilder:
         self.node = node or shutil.which("node")
         self._lock = threading.Lock()
         self._failed: str | None = None
+        self._building = False
         try:
             version = json.loads((self.pyodide_dir / "package.json").read_text())["version"]
         except (OSError, ValueError, KeyError):
@@ -119,8 +120,10 @@ class SnapshotBuilder:
         log.info("made the Pyodide snapshot %s", self.path)
         return None
 
-    def start_background_build(self) -> threading.Thread:
-        """Build in a daemon thread (``tessera serve`` does this at start-up)."""
-        thread = threading.Thread(target=self.ensure, daemon=True, name="pyodide-snapshot")
-        thread.start()
-        return thread
+    def start_background_build(self) -> None:
+        """Build in a daemon thread, once (``tessera serve`` does this at start-up)."""
+        with self._lock:
+            if self._building or self.ready():
+                return
+            self._building = True
+        threading.Thread(target=self.ensure, daemon=True, name="pyodide-snapshot").start()
