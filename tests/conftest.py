@@ -66,4 +66,6 @@ def browser_type_launch_args(browser_type_launch_args: dict) -> dict:
 
     if not Path(CHROMIUM_PATH).exists():
         pytest.skip(f"{CHROMIUM_PATH} is missing: `make chromium` installs Debian's chromium")
-    return {**browser_type_launch_args, **chromium_launch_args()}
+    launch = chromium_launch_args()
+    del launch["headless"]  # pytest-playwright's --headed decides
+    return {**browser_type_launch_args, **launch}
