@@ -3,10 +3,10 @@
 Runs ``client_py.tessellate_grid`` with the pure-Python kernel and the numpy
 kernel in CPython, and the pure-Python kernel in Pyodide under node (the
 browser's path: Pyodide from web/node_modules, no numpy), on a rational and a
-non-rational patch. The patch is the example relief (``fitter.examples``:
-rosette, groove, step on a convex face, 200 x 140 mm) sampled as a height
-field at the Greville abscissae, with smooth weights ``1 + 0.2 sin cos``.
-Writes ``bench/results/tessellate.json``.
+non-rational patch, and on the rational one with a trim mask. The patch is the
+example relief (``fitter.examples``: rosette, groove, step on a convex face,
+200 x 140 mm) sampled as a height field at the Greville abscissae, with smooth
+weights ``1 + 0.2 sin cos``. Writes ``bench/results/tessellate.json``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import tempfile
 from pathlib import Path
 
 from bench import ROOT, best_of, print_table, write_results
-from client_py import NurbsSurface, tessellate_grid, uniform_clamped_knots
+from client_py import NurbsSurface, TrimMask, tessellate_grid, uniform_clamped_knots
 
 GRID = 256
 CTRL = 40
@@ -31,14 +31,15 @@ PYODIDE = ROOT / "web" / "node_modules" / "pyodide"
 # Runs inside Pyodide with INPUT = {"surfaces": {name: spec}, "grid": n, "repeat": r}.
 PYODIDE_SCRIPT = """
 import statistics, time
-from client_py import NurbsSurface, tessellate_grid
+from client_py import NurbsSurface, TrimMask, tessellate_grid
 from client_py._kernel import KERNEL_NAME
 
 n, repeat = INPUT["grid"], INPUT["repeat"]
 timings = {}
 for name, spec in INPUT["surfaces"].items():
+    trim = TrimMask(spec["trim"]) if spec["trim"] else None
     s = NurbsSurface(tuple(spec["degree"]), tuple(spec["knots"]), spec["control_points"],
-                     spec["weights"])
+                     spec["weights"], trim=trim)
     tessellate_grid(s, n, n)  # warm-up: imports, generated kernel code
     runs = []
     for _ in range(repeat):
@@ -51,8 +52,12 @@ RESULT = {"kernel": KERNEL_NAME, "timings": timings}
 """
 
 
-def relief_patch(rational: bool) -> NurbsSurface:
-    """The example relief as a ``CTRL x CTRL`` degree-``DEGREE`` height-field patch."""
+def relief_patch(rational: bool, trimmed: bool = False) -> NurbsSurface:
+    """The example relief as a ``CTRL x CTRL`` degree-``DEGREE`` height-field patch.
+
+    ``trimmed``: with a 100 x 100 trim mask covering an ellipse inscribed in the
+    domain (78.5 % of it), like the coverage mask of a fitted scan.
+    """
     from fitter.examples import relief_height  # numpy: CPython only
 
     knots_x = uniform_clamped_knots(CTRL, DEGREE, -100.0, 100.0)
@@ -65,12 +70,20 @@ def relief_patch(rational: bool) -> NurbsSurface:
     P = np.stack([X, Y, relief_height(X, Y)], axis=-1)
     W = 1.0 + 0.2 * np.sin(3 * X / 100) * np.cos(2 * Y / 70) if rational else None
     knots = uniform_clamped_knots(CTRL, DEGREE)
-    return NurbsSurface((DEGREE, DEGREE), (knots, knots), P, W)
+    trim = None
+    if trimmed:
+        side = 100
+        trim = TrimMask([[((r + 0.5) / side - 0.5) ** 2 + ((c + 0.5) / side - 0.5) ** 2 <= 0.25
+                          for c in range(side)] for r in range(side)])
+    return NurbsSurface((DEGREE, DEGREE), (knots, knots), P, W, trim=trim)
 
 
 def _spec(s: NurbsSurface) -> dict:
     return {"degree": list(s.degree), "knots": [list(k) for k in s.knots],
-            "control_points": s.control_points, "weights": s.weights if s.is_rational else None}
+            "control_points": s.control_points, "weights": s.weights if s.is_rational else None,
+            "trim": None if s.trim is None else [list(s.trim.flat[r * s.trim.cols :
+                                                                  (r + 1) * s.trim.cols])
+                                                 for r in range(s.trim.rows)]}
 
 
 def _pyodide(surfaces: dict) -> dict | None:
@@ -98,7 +111,8 @@ def _pyodide(surfaces: dict) -> dict | None:
 def run() -> dict:
     import platform
 
-    surfaces = {"rational": relief_patch(True), "non-rational": relief_patch(False)}
+    surfaces = {"rational": relief_patch(True), "non-rational": relief_patch(False),
+                "rational, trimmed": relief_patch(True, trimmed=True)}
     cpython = f"CPython {platform.python_version()}"
     rows, results = [], []
     for kernel in ("python", "numpy"):
