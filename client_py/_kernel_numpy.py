@@ -7,8 +7,8 @@ With the homogeneous control points stacked as ``P^w`` of shape ``(C, n_u, n_v)`
 ``p + 1`` non-zeros per row, so each product is done as ``p + 1`` broadcast
 multiply-adds of gathered rows (:func:`_blend`) instead of a dense ``matmul``:
 ``O(p)`` rather than ``O(n_u)`` work per point, the same summation order as the
-pure-Python kernel, and no BLAS threads, which on
-a small busy machine cost more than they save.
+pure-Python kernel, and no BLAS threads, which on a small busy machine cost
+more than they save. The basis tables come vectorised from ``_numpy_basis``.
 """
 
 from __future__ import annotations
