@@ -1,10 +1,14 @@
 """PLY writer for a ``Mesh``, in the layout 3DHOP 4.3's loader (``minimal/js/ply.js``) reads.
 
-Vertices: float32 ``x y z``, ``nx ny nz``, ``texture_u texture_v`` (the surface
-parameters, or texture coordinates) and, when the mesh has colours, uchar
-``red green blue``. Faces: ``property list uchar int vertex_indices``, all
-triangles. A texture is named by a ``comment TextureFile NAME`` header line,
-which 3DHOP resolves next to the mesh URL. Binary little-endian by default.
+Vertices: float32 ``x y z``, ``nx ny nz``; with a texture, float32
+``texture_u texture_v`` (the mesh's uvs) and a ``comment TextureFile NAME``
+header line, which 3DHOP resolves next to the mesh URL; when the mesh has
+colours, uchar ``red green blue``. Faces: ``property list uchar int
+vertex_indices``, all triangles. Binary little-endian by default.
+
+Texture coordinates are written only with a texture: 3DHOP's shader samples
+its texture wherever a vertex has ``texture_u != 0``, so uvs without an image
+render black.
 
 Binary records are assembled with strided slice assignment into one
 ``bytearray`` (one C-level copy per byte column), not one ``struct`` call per
@@ -18,7 +22,8 @@ from array import array
 
 from .tessellate import Mesh
 
-VERTEX_FLOATS = ("x", "y", "z", "nx", "ny", "nz", "texture_u", "texture_v")
+VERTEX_FLOATS = ("x", "y", "z", "nx", "ny", "nz")
+TEXTURE_FLOATS = ("texture_u", "texture_v")
 
 
 def _header(mesh: Mesh, binary: bool, texture_file: str | None, comments: list[str]) -> bytes:
@@ -29,6 +34,8 @@ def _header(mesh: Mesh, binary: bool, texture_file: str | None, comments: list[s
         lines.append(f"comment TextureFile {texture_file}")
     lines.append(f"element vertex {mesh.vertex_count}")
     lines += [f"property float {name}" for name in VERTEX_FLOATS]
+    if texture_file is not None:
+        lines += [f"property float {name}" for name in TEXTURE_FLOATS]
     if mesh.colors is not None:
         lines += [f"property uchar {c}" for c in ("red", "green", "blue")]
     lines += [f"element face {mesh.triangle_count}", "property list uchar int vertex_indices",
@@ -83,8 +90,8 @@ def write_ply(mesh: Mesh, binary: bool = True, texture_file: str | None = None,
     binary : bool
         ``binary_little_endian`` (default) or ``ascii``.
     texture_file : str, optional
-        Image name written as ``comment TextureFile NAME``; the per-vertex
-        ``texture_u/texture_v`` then index it.
+        Image name written as ``comment TextureFile NAME``; the mesh's uvs are
+        then written as ``texture_u/texture_v`` to index it (and only then).
     comments : list of str, optional
         Extra header comments (provenance, units).
     """
@@ -93,11 +100,12 @@ def write_ply(mesh: Mesh, binary: bool = True, texture_file: str | None = None,
     header = _header(mesh, binary, texture_file, comments)
     n = mesh.vertex_count
     if not binary:
-        return header + _ascii_body(mesh)
+        return header + _ascii_body(mesh, texture_file is not None)
     pos = _little_endian(mesh.positions)
     nrm = _little_endian(mesh.normals)
-    uv = _little_endian(mesh.uvs)
-    columns = [(pos, 12), (nrm, 12), (uv, 8)]
+    columns = [(pos, 12), (nrm, 12)]
+    if texture_file is not None:
+        columns.append((_little_endian(mesh.uvs), 8))
     if mesh.colors is not None:
         columns.append((bytes(mesh.colors), 3))
     vertices = _interleave(columns, n)
@@ -106,12 +114,14 @@ def write_ply(mesh: Mesh, binary: bool = True, texture_file: str | None = None,
     return header + bytes(vertices) + bytes(faces)
 
 
-def _ascii_body(mesh: Mesh) -> bytes:
+def _ascii_body(mesh: Mesh, with_uvs: bool) -> bytes:
     lines = []
     p, nrm, uv, col = mesh.positions, mesh.normals, mesh.uvs, mesh.colors
     for k in range(mesh.vertex_count):
-        fields = [format(x, ".9g") for x in (*p[3 * k : 3 * k + 3], *nrm[3 * k : 3 * k + 3],
-                                           *uv[2 * k : 2 * k + 2])]
+        values = [*p[3 * k : 3 * k + 3], *nrm[3 * k : 3 * k + 3]]
+        if with_uvs:
+            values += uv[2 * k : 2 * k + 2]
+        fields = [format(x, ".9g") for x in values]
         if col is not None:
             fields += [str(c) for c in col[3 * k : 3 * k + 3]]
         lines.append(" ".join(fields))

@@ -39,11 +39,12 @@ def load(data: bytes) -> trimesh.Trimesh:
     return trimesh.load(io.BytesIO(data), file_type="ply", process=False, fix_texture=False)
 
 
-def expected_header(mesh: Mesh, fmt: str, extra: list[str]) -> list[str]:
+def expected_header(mesh: Mesh, fmt: str, extra: list[str], uvs: bool) -> list[str]:
     lines = ["ply", f"format {fmt} 1.0", "comment written by Tessera client_py", *extra,
              f"element vertex {mesh.vertex_count}"]
-    lines += [f"property float {n}" for n in ("x", "y", "z", "nx", "ny", "nz", "texture_u",
-                                             "texture_v")]
+    lines += [f"property float {n}" for n in ("x", "y", "z", "nx", "ny", "nz")]
+    if uvs:
+        lines += ["property float texture_u", "property float texture_v"]
     if mesh.colors is not None:
         lines += ["property uchar red", "property uchar green", "property uchar blue"]
     return lines + [f"element face {mesh.triangle_count}", "property list uchar int vertex_indices",
@@ -59,7 +60,8 @@ def test_round_trip_through_trimesh(binary, colors):
     header, _ = split_header(data)
     fmt = "binary_little_endian" if binary else "ascii"
     assert header == expected_header(
-        mesh, fmt, ["comment units mm", "comment two lines", "comment TextureFile relief_tex.png"])
+        mesh, fmt, ["comment units mm", "comment two lines", "comment TextureFile relief_tex.png"],
+        uvs=True)
     tm = load(data)
     pos = np.array(mesh.positions, dtype=np.float32).reshape(-1, 3)
     assert tm.vertices.shape == (mesh.vertex_count, 3)
@@ -78,20 +80,34 @@ def test_round_trip_through_trimesh(binary, colors):
         assert "red" not in (raw.keys() if isinstance(raw, dict) else raw.dtype.names)
 
 
-def test_binary_layout():
+def test_no_texture_no_uvs():
+    """Without a texture the header has no texture_u/v: 3DHOP would sample an unbound
+    texture wherever u != 0 and draw those vertices black."""
+    mesh = sample_mesh(colors=False)
+    for binary in (True, False):
+        header, _ = split_header(write_ply(mesh, binary=binary))
+        fmt = "binary_little_endian" if binary else "ascii"
+        assert header == expected_header(mesh, fmt, [], uvs=False)
+    tm = load(write_ply(mesh))
+    assert np.array_equal(tm.vertices, np.array(mesh.positions, np.float32).reshape(-1, 3))
+
+
+@pytest.mark.parametrize("texture", [None, "t.png"])
+def test_binary_layout(texture):
     mesh = sample_mesh()
-    header, body = split_header(write_ply(mesh))
-    vertex = np.dtype([(n, "<f4") for n in ("x", "y", "z", "nx", "ny", "nz", "u", "v")]
-                      + [(c, "u1") for c in "rgb"])
+    header, body = split_header(write_ply(mesh, texture_file=texture))
+    floats = ("x", "y", "z", "nx", "ny", "nz") + (("u", "v") if texture else ())
+    vertex = np.dtype([(n, "<f4") for n in floats] + [(c, "u1") for c in "rgb"])
     face = np.dtype([("count", "u1"), ("idx", "<i4", 3)])
     n, m = mesh.vertex_count, mesh.triangle_count
-    assert len(body) == n * 35 + m * 13
-    verts = np.frombuffer(body[: n * 35], vertex)
-    faces = np.frombuffer(body[n * 35 :], face)
+    assert len(body) == n * vertex.itemsize + m * 13
+    verts = np.frombuffer(body[: n * vertex.itemsize], vertex)
+    faces = np.frombuffer(body[n * vertex.itemsize :], face)
     assert np.array_equal(np.column_stack([verts["x"], verts["y"], verts["z"]]).ravel(),
                           np.array(mesh.positions, np.float32))
-    assert np.array_equal(np.column_stack([verts["u"], verts["v"]]).ravel(),
-                          np.array(mesh.uvs, np.float32))
+    if texture:
+        assert np.array_equal(np.column_stack([verts["u"], verts["v"]]).ravel(),
+                              np.array(mesh.uvs, np.float32))
     assert np.array_equal(np.column_stack([verts[c] for c in "rgb"]).ravel(),
                           np.array(mesh.colors))
     assert (faces["count"] == 3).all()
@@ -108,7 +124,7 @@ def test_ascii_body_reads_with_3dhops_tokenisation():
     """ply.js reads an ASCII body as ``text.split(" ")`` and parseFloat/parseInt per value:
     only spaces separate values, so every line must end with one before its newline."""
     mesh = sample_mesh()
-    _, body = split_header(write_ply(mesh, binary=False))
+    _, body = split_header(write_ply(mesh, binary=False, texture_file="t.png"))
     tokens = body.decode("ascii").split(" ")
     n, m = mesh.vertex_count, mesh.triangle_count
     per_vertex = 11

@@ -139,9 +139,8 @@ async function main() {
   showStage("hop");
   presenter.setScene({
     meshes: { tessera: { url, mType: "ply", transform: { matrix: facingMatrix(mesh.positions, mesh.normals) } } },
-    // useSolidColor: client_py's PLY carries texture_u/texture_v (the surface parameters) and
-    // 3DHOP's shader samples its texture whenever a vertex has u != 0, even with no texture
-    // bound (black); a solid colour, or -2,-2,-2 meaning "the vertex colours", avoids that.
+    // A stone-like solid colour, or -2,-2,-2 meaning "the vertex colours" when the mesh has
+    // them (client_py writes texture_u/v only with a texture, which 3DHOP would sample).
     modelInstances: { object: { mesh: "tessera", useSolidColor: true,
                                 color: colors ? [-2.0, -2.0, -2.0] : [0.86, 0.82, 0.75],
                                 specularColor: [0.08, 0.08, 0.08, 32.0] } },
