@@ -187,8 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--max-error", type=_positive_float, default=None,
                      help="grow the control grid until the RMS deviation (scan units) is at "
                      "most this")
-    fit.add_argument("--bits", type=int, default=16,
-                     help="quantisation bits per control-point axis (default 16)")
+    fit.add_argument("--bits", type=int, default=None,
+                     help="quantisation bits per control-point axis, 8..24 (default: the "
+                          "fewest that keep the RMS within 0.5%%)")
     fit.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
                      default="auto", help="map to the parameter domain (default auto)")
     fit.add_argument("--title", default=None, help="object title (default: the file name)")
