@@ -82,3 +82,33 @@ def evaluate_grid(surface, us: Sequence[float], vs: Sequence[float], typecode: s
     positions = array(typecode, np.moveaxis(pos, 0, -1).astype(dtype).tobytes())
     normals = array(typecode, np.moveaxis(n, 0, -1).astype(dtype).tobytes())
     return positions, normals, degenerate
+
+
+def field_grid(degree: int, knots_u, knots_v, n_u: int, n_v: int, coefficients,
+               us: Sequence[float], vs: Sequence[float]) -> array:
+    """Same contract as :func:`client_py._kernel_python.field_grid`."""
+    su, Nu, _ = _basis_bands(degree, knots_u, n_u, us)
+    sv, Nv, _ = _basis_bands(degree, knots_v, n_v, vs)
+    C = np.asarray(coefficients, dtype=float).reshape(n_u, n_v)
+    D = _blend(Nu, su, _blend(Nv, sv, C, 1), 0)
+    return array("d", D.ravel().tobytes())
+
+
+def displace_grid(positions, normals, displacement, n_rows: int, n_cols: int,
+                  window: tuple[int, int, int, int]) -> tuple[array, array]:
+    """Same contract as :func:`client_py._kernel_python.displace_grid`."""
+    S = np.frombuffer(positions, dtype=float).reshape(n_rows, n_cols, 3)
+    n = np.frombuffer(normals, dtype=float).reshape(n_rows, n_cols, 3)
+    X = S + np.frombuffer(displacement, dtype=float).reshape(n_rows, n_cols, 1) * n
+    r0, r1, c0, c1 = window
+    rows, cols = np.arange(r0, r1), np.arange(c0, c1)
+    up, down = np.minimum(rows + 1, n_rows - 1), np.maximum(rows - 1, 0)
+    right, left = np.minimum(cols + 1, n_cols - 1), np.maximum(cols - 1, 0)
+    a = X[up][:, cols] - X[down][:, cols]
+    b = X[rows][:, right] - X[rows][:, left]
+    (ax, ay, az), (bx, by, bz) = np.moveaxis(a, -1, 0), np.moveaxis(b, -1, 0)
+    m = np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+    length = np.sqrt(np.einsum("ijc,ijc->ij", m, m))[..., None]
+    m = np.where(length > 0.0, m / np.where(length > 0.0, length, 1.0), n[r0:r1, c0:c1])
+    return (array("f", X[r0:r1, c0:c1].astype(np.float32).tobytes()),
+            array("f", m.astype(np.float32).tobytes()))

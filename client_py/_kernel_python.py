@@ -211,3 +211,73 @@ def evaluate_grid(surface, us: Sequence[float], vs: Sequence[float], typecode: s
         normals.frombytes(pack(*nrm))
         degenerate += [i * n_j + j for j in bad]
     return positions, normals, degenerate
+
+
+# ------------------------------------------------------------------ detail layers
+def field_grid(degree: int, knots_u: Sequence[float], knots_v: Sequence[float], n_u: int,
+               n_v: int, coefficients: Sequence[float], us: Sequence[float],
+               vs: Sequence[float]) -> array:
+    """Scalar B-spline field ``D(u_i, v_j) = sum_a sum_b N_a(u_i) N_b(v_j) c_ab`` on a grid.
+
+    ``coefficients`` are ``c_ab`` row-major over ``(n_u, n_v)``; the knot
+    vectors need not be clamped (a tile's slice of its level's knots), but every
+    parameter must lie in the spans ``knots[p] .. knots[n]``. Returns
+    ``array('d')`` of ``len(us) * len(vs)`` values, row-major in ``i``; the same
+    separable scheme as :func:`evaluate_grid` (blend along ``v``, then ``u``).
+    """
+    p = degree
+    spans_u, Nu, _ = basis_table(p, knots_u, n_u, us)
+    spans_v, Nv, _ = basis_table(p, knots_v, n_v, vs)
+    gather = [[span - p + k for span in spans_v] for k in range(p + 1)]
+    coeffs = [[row[k] for row in Nv] for k in range(p + 1)]
+    blend = _blend(p + 1)
+    rows: dict[int, list[float]] = {}
+    for a in range(min(spans_u) - p, max(spans_u) + 1):
+        get = coefficients[a * n_v : (a + 1) * n_v].__getitem__
+        rows[a] = blend(coeffs, [list(map(get, index)) for index in gather])
+    out = array("d")
+    n_j = len(vs)
+    for span, nu_i in zip(spans_u, Nu, strict=True):
+        window = [rows[span - p + k] for k in range(p + 1)]
+        out.extend(blend([[c] * n_j for c in nu_i], window))
+    return out
+
+
+def displace_grid(positions: array, normals: array, displacement: array, n_rows: int,
+                  n_cols: int, window: tuple[int, int, int, int]) -> tuple[array, array]:
+    """``X = S + D n`` on an ``n_rows x n_cols`` grid and unit normals of ``X`` by differences.
+
+    ``positions``/``normals`` hold ``S`` and the unit normal ``n`` of the base per
+    vertex (``3`` values each, row-major), ``displacement`` holds ``D``. Only the
+    vertices of ``window = (r0, r1, c0, c1)`` (rows ``r0 <= i < r1``, columns
+    ``c0 <= j < c1``) are returned: positions and normals as ``array('f')``. The
+    normal at ``(i, j)`` is ``(X_{i+1,j} - X_{i-1,j}) x (X_{i,j+1} - X_{i,j-1})``
+    normalised, one-sided on the grid's outer rows/columns (which is why the
+    caller evaluates one ring beyond its region where the domain allows); where
+    that vanishes (a pole) the base normal is kept.
+    """
+    count = n_rows * n_cols
+    xs = [positions[3 * k] + displacement[k] * normals[3 * k] for k in range(count)]
+    ys = [positions[3 * k + 1] + displacement[k] * normals[3 * k + 1] for k in range(count)]
+    zs = [positions[3 * k + 2] + displacement[k] * normals[3 * k + 2] for k in range(count)]
+    r0, r1, c0, c1 = window
+    pos: list[float] = []
+    nrm: list[float] = []
+    for i in range(r0, r1):
+        up, down = min(i + 1, n_rows - 1) * n_cols, max(i - 1, 0) * n_cols
+        row = i * n_cols
+        for j in range(c0, c1):
+            k = row + j
+            jp, jm = min(j + 1, n_cols - 1), max(j - 1, 0)
+            ax, ay, az = xs[up + j] - xs[down + j], ys[up + j] - ys[down + j], \
+                zs[up + j] - zs[down + j]
+            bx, by, bz = xs[row + jp] - xs[row + jm], ys[row + jp] - ys[row + jm], \
+                zs[row + jp] - zs[row + jm]
+            nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            length = math.sqrt(nx * nx + ny * ny + nz * nz)
+            pos += (xs[k], ys[k], zs[k])
+            if length > 0.0:
+                nrm += (nx / length, ny / length, nz / length)
+            else:
+                nrm += (normals[3 * k], normals[3 * k + 1], normals[3 * k + 2])
+    return array("f", pos), array("f", nrm)

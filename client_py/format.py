@@ -22,6 +22,9 @@ import zlib
 from collections.abc import Sequence
 
 from .basis import is_uniform_clamped
+from .layers import MAX_DETAIL_DEGREE, DetailTile
+from .layers import MAX_LEVEL as MAX_TILE_LEVEL
+from .layers import MAX_SPANS as MAX_TILE_SPANS
 from .surface import NurbsSurface
 from .trim import MAX_SIDE as TRIM_MAX_SIDE
 from .trim import TrimMask
@@ -323,21 +326,7 @@ def read_patch(data: bytes) -> NurbsSurface:
     head = read_header(data)
     flags, bits = head["flags"], head["bits"]
     (p, q), (n_u, n_v) = head["degree"], head["shape"]
-    blob = head["data"][HEADER_SIZE : HEADER_SIZE + head["payload_size"]]
-    try:
-        inflater = zlib.decompressobj()
-        raw = inflater.decompress(blob, head["raw_size"] + 1)
-    except zlib.error as exc:
-        raise PatchFormatError(HEADER_SIZE, f"payload does not decompress: {exc}") from None
-    if len(raw) != head["raw_size"]:
-        raise PatchFormatError(
-            20, f"payload inflates to {'more than ' if len(raw) > head['raw_size'] else ''}"
-            f"{len(raw)} bytes, header says {head['raw_size']}")
-    if not inflater.eof:
-        raise PatchFormatError(HEADER_SIZE + len(blob), "compressed payload ends early")
-    if inflater.unused_data:
-        raise PatchFormatError(HEADER_SIZE + len(blob) - len(inflater.unused_data),
-                               f"{len(inflater.unused_data)} bytes after the compressed payload")
+    raw = _inflate(head["data"], HEADER_SIZE, head["payload_size"], head["raw_size"], 20)
 
     cur = _Cursor(raw)
     u_lo, u_hi, v_lo, v_hi = cur.finite("<4d", "domain")
@@ -390,3 +379,133 @@ def read_patch(data: bytes) -> NurbsSurface:
         return NurbsSurface((p, q), (U, V), points, weights, trim=trim, metadata=metadata)
     except ValueError as exc:
         raise PatchFormatError(HEADER_SIZE, f"decoded surface is invalid: {exc}") from None
+
+
+# ------------------------------------------------------------------ detail tiles (.tsd)
+TILE_MAGIC = b"TSDT"
+TILE_VERSION = 1
+# magic version flags level degree planes reserved spans i j step payload_size raw_size
+TILE_HEADER = struct.Struct("<4sHHBBBBHHHdII")
+TILE_HEADER_SIZE = TILE_HEADER.size  # 34
+TILE_FLAG_PREDICTED = 1  # values coded as parallelogram residuals (else as themselves)
+MAX_TILE_VALUE = (1 << 28) - 1  # |q|: residuals then fit 4 byte planes
+
+
+def _compressed_values(values: Sequence[int], size: int, predicted: bool) -> tuple[bytes, bytes]:
+    coded = _parallelogram_residuals(values, size, size) if predicted else list(values)
+    zig = max((2 * r if r >= 0 else -2 * r - 1) for r in coded)
+    planes = max(1, (zig.bit_length() + 7) // 8)
+    raw = _encode_planes(coded, planes)
+    deflate = zlib.compressobj(9, zlib.DEFLATED, -15, 9)  # raw DEFLATE: the CRC32 guards it
+    return raw, deflate.compress(raw) + deflate.flush()
+
+
+def write_detail_tile(tile: DetailTile) -> bytes:
+    """Encode a :class:`~client_py.layers.DetailTile` as a ``.tsd`` v1 file (docs/format.md).
+
+    The integers ``q_ab`` are stored as they are or as parallelogram-prediction
+    residuals, whichever compresses smaller (detail fields are close to noise,
+    where prediction does not pay), zig-zag coded in byte planes as in ``.tsp``.
+    The same tile always gives the same bytes.
+    """
+    if not isinstance(tile, DetailTile):
+        raise ValueError(f"tile must be a DetailTile, got {type(tile).__name__}")
+    if any(abs(q) > MAX_TILE_VALUE for q in tile.values):
+        raise ValueError(f"tile values must lie within +-{MAX_TILE_VALUE}: raise the step")
+    best = None
+    for predicted in (False, True):
+        raw, payload = _compressed_values(tile.values, tile.size, predicted)
+        if best is None or len(payload) < len(best[2]):
+            best = (predicted, raw, payload)
+    predicted, raw, payload = best
+    planes = len(raw) // tile.size**2
+    header = TILE_HEADER.pack(TILE_MAGIC, TILE_VERSION, TILE_FLAG_PREDICTED if predicted else 0,
+                              tile.level, tile.degree, planes, 0, tile.spans, tile.i, tile.j,
+                              float(tile.step), len(payload), len(raw))
+    body = header + payload
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+def _inflate(data: bytes, start: int, size: int, raw_size: int, size_at: int,
+             wbits: int = 15) -> bytes:
+    """The zlib stream (``wbits = 15``; raw DEFLATE: ``-15``) ``data[start : start + size]``,
+    inflated to exactly ``raw_size`` bytes (at most ``raw_size + 1`` are ever inflated);
+    ``size_at`` is where the header holds ``raw_size``, the offset a wrong size is reported at."""
+    blob = data[start : start + size]
+    try:
+        inflater = zlib.decompressobj(wbits)
+        raw = inflater.decompress(blob, raw_size + 1)
+    except zlib.error as exc:
+        raise PatchFormatError(start, f"payload does not decompress: {exc}") from None
+    if len(raw) != raw_size:
+        more = "more than " if len(raw) > raw_size else ""
+        raise PatchFormatError(size_at, f"payload inflates to {more}{len(raw)} bytes, "
+                               f"header says {raw_size}")
+    if not inflater.eof:
+        raise PatchFormatError(start + len(blob), "compressed payload ends early")
+    if inflater.unused_data:
+        raise PatchFormatError(start + len(blob) - len(inflater.unused_data),
+                               f"{len(inflater.unused_data)} bytes after the compressed payload")
+    return raw
+
+
+def read_detail_tile(data: bytes) -> DetailTile:
+    """Decode a ``.tsd`` v1 detail tile.
+
+    Raises
+    ------
+    PatchFormatError
+        For anything but a valid tile (truncation, corruption, a foreign file),
+        with the byte offset and the reason; never anything else.
+    """
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise PatchFormatError(0, f"expected bytes, got {type(data).__name__}")
+    data = bytes(data)
+    if len(data) < 4 or data[:4] != TILE_MAGIC:
+        raise PatchFormatError(0, f"magic is {data[:4]!r}, not {TILE_MAGIC!r}: "
+                               "not a Tessera detail tile")
+    if len(data) < TILE_HEADER_SIZE + CRC_SIZE:
+        raise PatchFormatError(len(data), f"truncated: {len(data)} bytes, the header alone "
+                               f"needs {TILE_HEADER_SIZE + CRC_SIZE}")
+    (_, version, flags, level, degree, planes, reserved, spans, i, j, step, size,
+     raw_size) = TILE_HEADER.unpack_from(data)
+    if version != TILE_VERSION:
+        raise PatchFormatError(4, f"tile format version {version} is not supported "
+                               f"(this reader: {TILE_VERSION})")
+    expected = TILE_HEADER_SIZE + size + CRC_SIZE
+    if len(data) < expected:
+        raise PatchFormatError(len(data), f"truncated: {len(data)} bytes of {expected}")
+    if len(data) > expected:
+        raise PatchFormatError(expected, f"{len(data) - expected} unexpected trailing bytes")
+    (crc,) = struct.unpack_from("<I", data, TILE_HEADER_SIZE + size)
+    if zlib.crc32(data[: TILE_HEADER_SIZE + size]) != crc:
+        raise PatchFormatError(TILE_HEADER_SIZE + size, "CRC32 mismatch: the file is corrupted")
+    if flags & ~TILE_FLAG_PREDICTED:
+        raise PatchFormatError(6, f"unknown flags 0x{flags:04x}")
+    if level > MAX_TILE_LEVEL:
+        raise PatchFormatError(8, f"level {level} outside 0..{MAX_TILE_LEVEL}")
+    if not 1 <= degree <= MAX_DETAIL_DEGREE:
+        raise PatchFormatError(9, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
+    if not 1 <= planes <= 4:
+        raise PatchFormatError(10, f"{planes} byte planes; 1..4 accepted")
+    if reserved:
+        raise PatchFormatError(11, f"reserved byte is {reserved}, must be 0")
+    if not 1 <= spans <= MAX_TILE_SPANS:
+        raise PatchFormatError(12, f"spans = {spans} outside 1..{MAX_TILE_SPANS}")
+    for offset, name, index in ((14, "i", i), (16, "j", j)):
+        if index >= 1 << level:
+            raise PatchFormatError(offset, f"{name} = {index} outside 0..{(1 << level) - 1} "
+                                   f"at level {level}")
+    if not (math.isfinite(step) and step > 0):
+        raise PatchFormatError(18, f"quantisation step {step} is not a positive finite number")
+    count = (spans + degree) ** 2
+    if raw_size != planes * count:
+        raise PatchFormatError(30, f"payload size {raw_size}: {planes} planes of {count} "
+                               f"coefficients are {planes * count} bytes")
+    raw = _inflate(data, TILE_HEADER_SIZE, size, raw_size, 30, -15)
+    coded = _decode_planes(raw, count, planes)
+    n = spans + degree
+    values = _undo_parallelogram(coded, n, n) if flags & TILE_FLAG_PREDICTED else coded
+    if any(abs(q) > MAX_TILE_VALUE for q in values):
+        raise PatchFormatError(TILE_HEADER_SIZE, f"decoded values beyond +-{MAX_TILE_VALUE}")
+    return DetailTile(level, i, j, degree, spans, step, tuple(values))

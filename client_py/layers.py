@@ -1,0 +1,419 @@
+"""Detail and texture layers superimposed on a base patch: the zoom path of the viewer.
+
+A bundle's base patch ``S(u, v)`` is refined by a pyramid of *detail levels*:
+level ``k`` is a scalar uniform B-spline field ``D_k`` over the normalised
+domain ``[0, 1]^2`` with ``m 2^k`` spans per side (``m`` = spans per tile),
+cut into ``2^k x 2^k`` tiles; the refined surface is the displacement along
+the base's unit normal ``n``
+
+    X(u, v) = S(u, v) + sum_k D_k(u, v) n(u, v).
+
+Tile ``(i, j)`` of level ``k`` covers ``[i / 2^k, (i + 1) / 2^k] x [j / 2^k,
+(j + 1) / 2^k]`` and stores the ``(m + p)^2`` coefficients whose support meets
+it (:class:`DetailTile`); neighbouring tiles store the ``p`` shared rows with the
+same quantised values, so both evaluate the same field on their common border
+and no crack opens where both are applied. A tile absent from the bundle is a
+zero field. *Texture tiles* (:class:`TextureImage`) are RGB images over the same
+quadtree rectangles. :func:`tessellate_region` evaluates the base on a grid
+over a uv rectangle, adds every given detail tile where it applies and samples
+the finest given texture tile for vertex colours. Pure Python (numpy only
+through ``client_py._kernel``), no I/O: the bytes come from
+``client_py.format.read_detail_tile``.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+from . import _kernel
+from .basis import basis_functions, find_span
+from .surface import NurbsSurface
+from .tessellate import Mesh, _check_count, _samples, grid_indices
+
+MAX_LEVEL = 15
+MAX_DETAIL_DEGREE = 3
+MAX_SPANS = 256  # spans per tile side
+
+UVRect = tuple[float, float, float, float]
+
+
+def level_knots(degree: int, spans_per_tile: int, level: int) -> list[float]:
+    """Clamped uniform knot vector of level ``level``'s field over ``[0, 1]``.
+
+    ``S = spans_per_tile 2^level`` spans: ``(0,) * p + (s / S for s = 0..S) + (1,) * p``,
+    ``S + 2p + 1`` knots for ``S + p`` coefficients per side. Tile borders
+    ``i / 2^level`` are knots ``p + i m`` and exact in binary64.
+    """
+    spans = spans_per_tile << level
+    return [0.0] * degree + [s / spans for s in range(spans + 1)] + [1.0] * degree
+
+
+def tile_rect(level: int, i: int, j: int) -> UVRect:
+    """``(u0, v0, u1, v1)`` of quadtree node ``(level, i, j)`` in the normalised domain."""
+    n = 1 << level
+    return (i / n, j / n, (i + 1) / n, (j + 1) / n)
+
+
+def _check_int(name: str, value: object, lo: int, hi: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {value!r}")
+    return value
+
+
+def _check_node(level: object, i: object, j: object) -> None:
+    _check_int("level", level, 0, MAX_LEVEL)
+    _check_int("i", i, 0, (1 << level) - 1)
+    _check_int("j", j, 0, (1 << level) - 1)
+
+
+@dataclass(frozen=True)
+class DetailTile:
+    """One tile of a detail level: quantised B-spline coefficients over its rectangle.
+
+    The field inside ``uv_rect`` is ``D(u, v) = sum_a sum_b N_a(u) N_b(v) step q_ab``
+    with the basis of :func:`level_knots` ``(degree, spans, level)``; ``values``
+    are the integers ``q_ab``, row-major over ``(size, size)``, ``size = spans +
+    degree``, ``a`` along ``u``: global coefficient ``(i spans + a, j spans + b)``.
+
+    Attributes
+    ----------
+    level, i, j : int
+        Quadtree node: ``0 <= i, j < 2^level``.
+    degree : int
+        ``p`` in ``1..3``.
+    spans : int
+        Knot spans per tile side ``m`` in ``1..256``.
+    step : float
+        Quantisation step (scan units of the patch frame), ``> 0``.
+    values : tuple of int
+        ``size^2`` quantised coefficients.
+    """
+
+    level: int
+    i: int
+    j: int
+    degree: int
+    spans: int
+    step: float
+    values: tuple[int, ...]
+    _knots: tuple = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        _check_node(self.level, self.i, self.j)
+        _check_int("degree", self.degree, 1, MAX_DETAIL_DEGREE)
+        _check_int("spans", self.spans, 1, MAX_SPANS)
+        if not (isinstance(self.step, float | int) and math.isfinite(self.step)
+                and self.step > 0):
+            raise ValueError(f"step must be a positive finite number, got {self.step!r}")
+        values = tuple(self.values)
+        if len(values) != self.size**2 or not all(isinstance(q, int) for q in values):
+            raise ValueError(f"values must be {self.size}^2 = {self.size**2} integers, "
+                             f"got {len(values)} items")
+        object.__setattr__(self, "values", values)
+        knots = level_knots(self.degree, self.spans, self.level)
+        n = self.size + self.degree + 1  # a tile's slice of its level's knot vector
+        object.__setattr__(self, "_knots", (tuple(knots[self.i * self.spans:][:n]),
+                                            tuple(knots[self.j * self.spans:][:n])))
+
+    @property
+    def size(self) -> int:
+        """Coefficients per side, ``spans + degree``."""
+        return self.spans + self.degree
+
+    @property
+    def uv_rect(self) -> UVRect:
+        """``(u0, v0, u1, v1)``: where the tile applies, in the normalised domain."""
+        return tile_rect(self.level, self.i, self.j)
+
+    @property
+    def knots(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The tile's slices ``(U, V)`` of its level's knot vector (``size + p + 1`` each)."""
+        return self._knots
+
+    @property
+    def coefficients(self) -> list[float]:
+        """``step q_ab``, row-major."""
+        return [q * self.step for q in self.values]
+
+    def contains(self, u: float, v: float) -> bool:
+        """Whether ``(u, v)`` lies in the closed rectangle ``uv_rect``."""
+        u0, v0, u1, v1 = self.uv_rect
+        return u0 <= u <= u1 and v0 <= v <= v1
+
+    def evaluate(self, u: float, v: float) -> float:
+        """``D(u, v)`` at one point of ``uv_rect`` (A2.1, A2.2); ``ValueError`` outside it."""
+        u, v = float(u), float(v)
+        if not self.contains(u, v):
+            raise ValueError(f"({u}, {v}) lies outside tile {self.level}/{self.i}_{self.j}'s "
+                             f"rectangle {self.uv_rect}")
+        p, n = self.degree, self.size
+        U, V = self._knots
+        su, sv = find_span(p, U, n, u), find_span(p, V, n, v)
+        Nu, Nv = basis_functions(p, U, su, u), basis_functions(p, V, sv, v)
+        total = 0.0
+        for a in range(p + 1):
+            row = (su - p + a) * n + sv - p
+            total += Nu[a] * sum(Nv[b] * self.values[row + b] for b in range(p + 1))
+        return total * self.step
+
+    def evaluate_grid(self, us: Sequence[float], vs: Sequence[float],
+                      kernel: str | None = None) -> array:
+        """``D(u_i, v_j)`` for parameters inside ``uv_rect``: ``array('d')``, row-major in ``i``."""
+        U, V = self._knots
+        return _kernel.backend(kernel).field_grid(self.degree, U, V, self.size, self.size,
+                                                  self.coefficients, us, vs)
+
+
+@dataclass(frozen=True)
+class TextureImage:
+    """A decoded texture tile: 8-bit RGB over quadtree node ``(level, i, j)``.
+
+    Pixel ``(x, y)`` (``y = 0`` the top row) is centred at ``u = u0 + (x + 1/2)
+    (u1 - u0) / width``, ``v = v1 - (y + 1/2) (v1 - v0) / height``: ``u`` to the
+    right, ``v`` up, as GL texture coordinates ``s = (u - u0) / (u1 - u0)``,
+    ``t = (v - v0) / (v1 - v0)`` address an image uploaded top row first with
+    ``flipY`` (three.js's default). ``rgb`` holds ``3 width height`` bytes, rows
+    top to bottom. (client_py decodes no images: the browser or Pillow does.)
+    """
+
+    level: int
+    i: int
+    j: int
+    width: int
+    height: int
+    rgb: bytes
+
+    def __post_init__(self) -> None:
+        _check_node(self.level, self.i, self.j)
+        _check_int("width", self.width, 1, 1 << 15)
+        _check_int("height", self.height, 1, 1 << 15)
+        if len(self.rgb) != 3 * self.width * self.height:
+            raise ValueError(f"rgb has {len(self.rgb)} bytes; a {self.width}x{self.height} "
+                             f"RGB image needs {3 * self.width * self.height}")
+
+    @property
+    def uv_rect(self) -> UVRect:
+        return tile_rect(self.level, self.i, self.j)
+
+    def contains(self, u: float, v: float) -> bool:
+        u0, v0, u1, v1 = self.uv_rect
+        return u0 <= u <= u1 and v0 <= v <= v1
+
+    def sample(self, u: float, v: float) -> tuple[int, int, int]:
+        """Bilinear RGB at ``(u, v)`` (clamped to the edge texels), rounded to bytes."""
+        u0, v0, u1, v1 = self.uv_rect
+        x = (u - u0) / (u1 - u0) * self.width - 0.5
+        y = (v1 - v) / (v1 - v0) * self.height - 0.5
+        x = min(max(x, 0.0), self.width - 1.0)
+        y = min(max(y, 0.0), self.height - 1.0)
+        x0, y0 = min(int(x), self.width - 2) if self.width > 1 else 0, \
+            min(int(y), self.height - 2) if self.height > 1 else 0
+        fx, fy = x - x0, y - y0
+        x1, y1 = min(x0 + 1, self.width - 1), min(y0 + 1, self.height - 1)
+        rgb, w = self.rgb, self.width
+        out = []
+        for c in range(3):
+            top = rgb[3 * (y0 * w + x0) + c] * (1 - fx) + rgb[3 * (y0 * w + x1) + c] * fx
+            bottom = rgb[3 * (y1 * w + x0) + c] * (1 - fx) + rgb[3 * (y1 * w + x1) + c] * fx
+            out.append(int(top * (1 - fy) + bottom * fy + 0.5))
+        return out[0], out[1], out[2]
+
+
+def _check_rect(uv_rect: object) -> UVRect:
+    try:
+        u0, v0, u1, v1 = (float(x) for x in uv_rect)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"uv_rect must be four numbers (u0, v0, u1, v1), got {uv_rect!r}"
+                         ) from None
+    if not (0.0 <= u0 < u1 <= 1.0 and 0.0 <= v0 < v1 <= 1.0):
+        raise ValueError(f"uv_rect {uv_rect!r} must satisfy 0 <= u0 < u1 <= 1 and "
+                         "0 <= v0 < v1 <= 1")
+    return u0, v0, u1, v1
+
+
+def _index_range(samples: Sequence[float], lo: float, hi: float) -> range:
+    """Indices of the sorted ``samples`` inside the closed interval ``[lo, hi]``."""
+    first = next((k for k, t in enumerate(samples) if t >= lo), len(samples))
+    last = next((k for k in range(len(samples) - 1, -1, -1) if samples[k] <= hi), -1)
+    return range(first, last + 1)
+
+
+def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequence[float],
+                      kernel: str | None = None) -> array:
+    """``sum_k D_k(u_i, v_j)`` of the given tiles on a grid: ``array('d')``, row-major in ``i``.
+
+    Each tile adds its field at the grid vertices inside its closed rectangle;
+    a vertex on the border of several tiles of one level takes that level's
+    field once (they agree there). ``us`` and ``vs`` are sorted normalised
+    parameters.
+    """
+    n_j = len(vs)
+    total = array("d", bytes(8 * len(us) * n_j))
+    by_level: dict[int, list[DetailTile]] = {}
+    for tile in tiles:
+        if not isinstance(tile, DetailTile):
+            raise ValueError(f"tiles must be DetailTile objects, got {type(tile).__name__}")
+        by_level.setdefault(tile.level, []).append(tile)
+    for level in sorted(by_level):
+        done = bytearray(len(total))
+        seen: set[tuple[int, int]] = set()
+        for tile in sorted(by_level[level], key=lambda t: (t.i, t.j)):
+            if (tile.i, tile.j) in seen:
+                raise ValueError(f"tile {level}/{tile.i}_{tile.j} is given twice")
+            seen.add((tile.i, tile.j))
+            u0, v0, u1, v1 = tile.uv_rect
+            rows, cols = _index_range(us, u0, u1), _index_range(vs, v0, v1)
+            if not rows or not cols:
+                continue
+            values = tile.evaluate_grid([us[r] for r in rows], [vs[c] for c in cols], kernel)
+            width = len(cols)
+            for a, r in enumerate(rows):
+                base = r * n_j
+                for b, c in enumerate(cols):
+                    k = base + c
+                    if not done[k]:
+                        done[k] = 1
+                        total[k] += values[a * width + b]
+    return total
+
+
+def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, nv: int,
+                      tiles: Iterable[DetailTile] = (), kernel: str | None = None,
+                      textures: Iterable[TextureImage] = ()) -> Mesh:
+    """Triangle mesh of the refined surface ``X = S + sum D_k n`` over ``uv_rect``.
+
+    Parameters
+    ----------
+    surface : NurbsSurface
+        The base patch (its own frame; map the mesh with :func:`transform_mesh`).
+    uv_rect : (u0, v0, u1, v1)
+        Region in the *normalised* domain ``[0, 1]^2`` (``0`` and ``1`` are the
+        ends of the surface's knot range).
+    nu, nv : int
+        Vertices per side of the uniform grid over ``uv_rect`` (vertex
+        ``k = i nv + j`` at ``u_i = u0 + i (u1 - u0) / (nu - 1)``).
+    tiles : iterable of DetailTile
+        Applied where each contains a vertex (see :func:`displacement_grid`).
+    textures : iterable of TextureImage
+        When given, ``colors`` holds at each vertex the bilinear sample of the
+        finest texture tile containing it (black where none does).
+
+    Returns
+    -------
+    Mesh
+        ``uvs`` are the normalised ``(u, v)`` (so a texture tile maps by its own
+        rectangle). Without tiles, normals are the base's analytic normals, as
+        :func:`client_py.tessellate_grid` gives; with tiles, the normals of the
+        displaced grid by central differences, computed over one extra ring of
+        vertices beyond ``uv_rect`` (inside the domain), so that two regions
+        sharing a border get the same normals on it; on the domain's outer
+        border the differences are one-sided. Trimmed-out cells are left out
+        as by ``tessellate_grid``.
+    """
+    if not isinstance(surface, NurbsSurface):
+        raise ValueError(f"surface must be a NurbsSurface, got {type(surface).__name__}")
+    u0, v0, u1, v1 = _check_rect(uv_rect)
+    nu, nv = _check_count("nu", nu), _check_count("nv", nv)
+    tiles = list(tiles)
+    us, vs = _samples(u0, u1, nu), _samples(v0, v1, nv)
+    # one ring beyond the region (where the domain goes on) for central differences
+    du, dv = (u1 - u0) / (nu - 1), (v1 - v0) / (nv - 1)
+    ring = bool(tiles)
+    r0 = 1 if ring and u0 - du >= 0.0 else 0
+    c0 = 1 if ring and v0 - dv >= 0.0 else 0
+    ext_u = ([u0 - du] if r0 else []) + us + ([u1 + du] if ring and u1 + du <= 1.0 else [])
+    ext_v = ([v0 - dv] if c0 else []) + vs + ([v1 + dv] if ring and v1 + dv <= 1.0 else [])
+    (a0, a1), (b0, b1) = surface.domain
+    su = [a0 + (a1 - a0) * t for t in ext_u]
+    sv = [b0 + (b1 - b0) * t for t in ext_v]
+    backend = _kernel.backend(kernel)
+    positions, normals, degenerate = backend.evaluate_grid(surface, su, sv, "d" if ring else "f")
+    n_cols = len(ext_v)
+    for k in degenerate:
+        normals[3 * k : 3 * k + 3] = array(normals.typecode,
+                                           surface.normal(su[k // n_cols], sv[k % n_cols]))
+    if ring:
+        shift = displacement_grid(tiles, ext_u, ext_v, kernel)
+        positions, normals = backend.displace_grid(positions, normals, shift, len(ext_u), n_cols,
+                                                   (r0, r0 + nu, c0, c0 + nv))
+    uvs = array("f", bytes(8 * nu * nv))
+    for i, u in enumerate(us):
+        uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
+    uvs[1::2] = array("f", vs) * nu
+    trim = surface.trim
+    if trim is None:
+        indices = grid_indices(nu, nv)
+    else:
+        indices = grid_indices(nu, nv, lambda i, j: trim.covers(
+            0.5 * (us[i] + us[i + 1]), 0.5 * (vs[j] + vs[j + 1])))
+    mesh = Mesh(positions, normals, uvs, indices)
+    textures = list(textures)
+    if textures:
+        mesh.colors = vertex_colours(uvs, textures)
+    return mesh
+
+
+def vertex_colours(uvs: Sequence[float], textures: Iterable[TextureImage]) -> array:
+    """RGB per vertex (``array('B')``) from normalised ``uvs``: the finest texture tile
+    containing each vertex, sampled bilinearly; ``0, 0, 0`` where none does."""
+    finest_first = sorted(textures, key=lambda t: -t.level)
+    by_level: dict[int, dict[tuple[int, int], TextureImage]] = {}
+    for t in finest_first:
+        if not isinstance(t, TextureImage):
+            raise ValueError(f"textures must be TextureImage objects, got {type(t).__name__}")
+        by_level.setdefault(t.level, {})[(t.i, t.j)] = t
+    out = array("B", bytes(3 * (len(uvs) // 2)))
+    for k in range(len(uvs) // 2):
+        u, v = uvs[2 * k], uvs[2 * k + 1]
+        for level, images in by_level.items():
+            n = 1 << level
+            image = images.get((min(int(u * n), n - 1), min(int(v * n), n - 1)))
+            if image is not None:
+                out[3 * k : 3 * k + 3] = array("B", image.sample(u, v))
+                break
+    return out
+
+
+def transform_mesh(mesh: Mesh, matrix: Sequence[Sequence[float]]) -> Mesh:
+    """``mesh`` under the affine map ``x -> A x + b`` (``matrix``: 3x4 or 4x4 rows).
+
+    Normals map by the inverse transpose of ``A`` and are renormalised; with
+    ``det A < 0`` the triangles' winding is reversed so they stay
+    counter-clockwise about their normals.
+    """
+    m = [[float(x) for x in row] for row in matrix]
+    if len(m) not in (3, 4) or any(len(r) != 4 for r in m[:3]):
+        raise ValueError("matrix must be 3x4 or 4x4 (rows of [a, b, c, t])")
+    (a, b, c, tx), (d, e, f, ty), (g, h, k, tz) = m[:3]
+    # cofactor matrix = det(A) * inverse transpose: normals up to a scale
+    co = ((e * k - f * h, f * g - d * k, d * h - e * g),
+          (c * h - b * k, a * k - c * g, b * g - a * h),
+          (b * f - c * e, c * d - a * f, a * e - b * d))
+    det = a * co[0][0] + b * co[0][1] + c * co[0][2]
+    if det == 0.0:
+        raise ValueError("matrix is singular: it flattens the mesh")
+    sign = 1.0 if det > 0 else -1.0
+    p, n = mesh.positions, mesh.normals
+    pos, nrm = array("f"), array("f")
+    moved, turned = [], []
+    for q in range(0, len(p), 3):
+        x, y, z = p[q], p[q + 1], p[q + 2]
+        moved += (a * x + b * y + c * z + tx, d * x + e * y + f * z + ty,
+                  g * x + h * y + k * z + tz)
+        nx, ny, nz = n[q], n[q + 1], n[q + 2]
+        mx = sign * (co[0][0] * nx + co[0][1] * ny + co[0][2] * nz)
+        my = sign * (co[1][0] * nx + co[1][1] * ny + co[1][2] * nz)
+        mz = sign * (co[2][0] * nx + co[2][1] * ny + co[2][2] * nz)
+        length = math.sqrt(mx * mx + my * my + mz * mz) or 1.0
+        turned += (mx / length, my / length, mz / length)
+    pos.fromlist(moved)
+    nrm.fromlist(turned)
+    indices = mesh.indices
+    if det < 0:
+        indices = array("I", indices)
+        indices[1::3], indices[2::3] = mesh.indices[2::3], mesh.indices[1::3]
+    return Mesh(pos, nrm, array("f", mesh.uvs), indices,
+                None if mesh.colors is None else array("B", mesh.colors))

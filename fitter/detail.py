@@ -1,0 +1,217 @@
+"""The detail pyramid: what the base patch leaves of the scan, as displacement along its normal.
+
+Every covered scan point ``P`` has a foot point ``(u, v)`` on the base ``S``
+(``fitter.error.deviations``) and splits into a *normal* deviation ``s =
+(P - S(u, v)) . n(u, v)`` and a tangential remainder ``t`` (zero when the foot
+point is an exact orthogonal projection; not zero at the domain's border). The
+refined surface ``X = S + D n`` with ``D = sum_k D_k`` reproduces ``P`` when
+``D(u, v) = s``; its distance to ``P`` at the foot point is
+``e = sqrt((s - D)^2 + t^2)``, an upper bound of the true distance from ``P`` to
+the refined surface, and the figure reported here (RMS, max, per-tile
+``geometric_error``).
+
+Level ``k`` is a uniform B-spline field of degree ``p`` with ``m 2^k`` spans per
+side (``client_py.layers.level_knots``), fitted by regularised sparse least
+squares to what levels ``0..k-1`` left:
+
+    min_c  sum_points (A c - r)^2 + mu (lambda_r |c|^2 + lambda_s (|L_u c|^2 + |L_v c|^2))
+
+with ``A`` the collocation matrix (``(p+1)^2`` non-zeros per row), ``L_u, L_v``
+second differences of the coefficient grid (a thin-plate term that keeps the
+field smooth where points are sparse), a small ridge that takes it to zero
+where there are none, and ``mu = trace(A^T A) / n_coefficients``. Coefficients
+are quantised with a step proportional to the level's remaining RMS
+(``step_factor``), and the residual is recomputed from the *quantised* field,
+so every reported error is the error of the bytes on disk. The level is cut
+into ``2^k x 2^k`` tiles (``client_py.layers.DetailTile``): tile ``(i, j)``
+keeps the ``(m + p)^2`` coefficients whose support meets its rectangle; a tile
+whose coefficients all quantise to zero is not written. With a periodic map
+(cylinder) the coefficient columns at ``u = 0`` and ``u = 1`` are one unknown,
+so the field, like the base, closes without a crack.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from client_py import layers
+from client_py._numpy_basis import basis_arrays
+from client_py.format import MAX_TILE_VALUE, write_detail_tile
+
+from .nurbs import PatchModel
+
+DEGREE = 2
+SPANS = 16  # spans per tile side: (16 + 2)^2 = 324 coefficients a tile
+STEP_FACTOR = 2.0  # quantisation step / the level's remaining RMS (docs/benchmarks.md)
+RIDGE = 1e-4
+SMOOTHING = 1e-3
+MIN_POINTS_PER_CELL = 4.0  # auto depth: finest level keeps this many points per knot cell
+MAX_AUTO_LEVELS = 6
+
+
+@dataclass
+class DetailSamples:
+    """Foot points ``u, v (N,)``, normal deviations ``s (N,)`` and squared tangential
+    remainders ``t2 (N,)`` of the scan points a pyramid is fitted to."""
+
+    u: np.ndarray
+    v: np.ndarray
+    s: np.ndarray
+    t2: np.ndarray
+
+    def error(self, displacement: np.ndarray) -> np.ndarray:
+        """``e = sqrt((s - D)^2 + t^2)`` per point."""
+        return np.sqrt((self.s - displacement) ** 2 + self.t2)
+
+
+@dataclass
+class DetailLevel:
+    """One fitted level: its tiles (written bytes) and the error after it."""
+
+    level: int
+    step: float
+    tiles: list[tuple[layers.DetailTile, bytes, float]]  # tile, file bytes, geometric_error
+    rms: float
+    max: float
+    coefficients: int
+
+    @property
+    def bytes_total(self) -> int:
+        return sum(len(data) for _, data, _ in self.tiles)
+
+
+@dataclass
+class DetailPyramid:
+    degree: int
+    spans: int
+    levels: list[DetailLevel] = field(default_factory=list)
+    base_rms: float = 0.0
+    base_max: float = 0.0
+
+
+def detail_samples(model: PatchModel, points: np.ndarray, u: np.ndarray,
+                   v: np.ndarray) -> DetailSamples:
+    """Split ``points (N, 3)`` (patch frame) at their foot points ``u, v`` on ``model``
+    into normal deviations and tangential remainders (see the module docstring)."""
+    S, Su, Sv = model.evaluate(u, v, derivatives=True)
+    n = np.cross(Su, Sv)
+    length = np.linalg.norm(n, axis=1)
+    ok = length > 1e-12 * max(float(length.max(initial=0.0)), 1e-300)
+    n = n / np.where(ok, length, 1.0)[:, None]
+    r = points - S
+    rr = np.einsum("ij,ij->i", r, r)
+    s = np.where(ok, np.einsum("ij,ij->i", r, n), np.sqrt(rr))  # a pole: all of it normal
+    return DetailSamples(np.asarray(u, float), np.asarray(v, float), s,
+                         np.maximum(rr - s * s, 0.0))
+
+
+def auto_levels(n_points: int, spans: int = SPANS) -> int:
+    """Levels ``0..L-1`` with at least ``MIN_POINTS_PER_CELL`` points per knot cell."""
+    levels = 0
+    while levels < MAX_AUTO_LEVELS and n_points / (spans << levels) ** 2 >= MIN_POINTS_PER_CELL:
+        levels += 1
+    return levels
+
+
+def _collocation(degree: int, knots: np.ndarray, n: int, u: np.ndarray, v: np.ndarray,
+                 periodic_u: bool) -> sp.csr_matrix:
+    su, Nu, _ = basis_arrays(degree, knots, n, u)
+    sv, Nv, _ = basis_arrays(degree, knots, n, v)
+    a = su[:, None] - degree + np.arange(degree + 1)
+    if periodic_u:
+        a = np.where(a == n - 1, 0, a)  # D(0, v) = D(1, v): one column of unknowns
+    b = sv[:, None] - degree + np.arange(degree + 1)
+    cols = (a[:, :, None] * n + b[:, None, :]).reshape(len(u), -1)
+    vals = (Nu[:, :, None] * Nv[:, None, :]).reshape(len(u), -1)
+    k = cols.shape[1]
+    return sp.csr_matrix((vals.ravel(), cols.ravel(), np.arange(0, len(u) * k + 1, k)),
+                         shape=(len(u), n * n))
+
+
+def _second_differences(n: int) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    d2 = sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n))
+    eye = sp.identity(n)
+    return sp.kron(d2, eye).tocsr(), sp.kron(eye, d2).tocsr()
+
+
+def fit_level(samples: DetailSamples, residual: np.ndarray, level: int, degree: int = DEGREE,
+              spans: int = SPANS, periodic_u: bool = False) -> np.ndarray:
+    """Unquantised coefficients ``(n, n)``, ``n = spans 2^level + degree``, of the level's
+    field fitted to ``residual (N,)`` at the samples' ``(u, v)`` (see module docstring)."""
+    n = (spans << level) + degree
+    knots = np.array(layers.level_knots(degree, spans, level))
+    A = _collocation(degree, knots, n, samples.u, samples.v, periodic_u)
+    AtA = (A.T @ A).tocsr()
+    mu = AtA.diagonal().sum() / (n * n)
+    Lu, Lv = _second_differences(n)
+    M = AtA + mu * (RIDGE * sp.identity(n * n) + SMOOTHING * (Lu.T @ Lu + Lv.T @ Lv))
+    c = spla.spsolve(M.tocsc(), A.T @ residual).reshape(n, n)
+    if periodic_u:
+        c[n - 1] = c[0]
+    return c
+
+
+def evaluate_level(coefficients: np.ndarray, level: int, degree: int, spans: int,
+                   u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``D_k(u, v)`` of a coefficient grid ``(n, n)`` at scattered parameters."""
+    n = coefficients.shape[0]
+    knots = np.array(layers.level_knots(degree, spans, level))
+    return _collocation(degree, knots, n, u, v, False) @ coefficients.ravel()
+
+
+def _tile_index(t: np.ndarray, level: int) -> np.ndarray:
+    count = 1 << level
+    return np.minimum((t * count).astype(np.int64), count - 1)
+
+
+def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans: int = SPANS,
+                step_factor: float = STEP_FACTOR, periodic_u: bool = False,
+                progress=None) -> DetailPyramid:
+    """Fit levels ``0..levels-1`` coarse to fine; each fits what the coarser ones left.
+
+    Returns the tiles to write (with their bytes and ``geometric_error``: max
+    ``e`` of the points inside the tile's rectangle after levels ``0..k``) and
+    per level the RMS and max of ``e`` over all samples.
+    """
+    if not (isinstance(levels, int) and 0 <= levels <= layers.MAX_LEVEL):
+        raise ValueError(f"levels must be an integer in 0..{layers.MAX_LEVEL}, got {levels!r}")
+    if not step_factor > 0:
+        raise ValueError(f"step_factor must be positive, got {step_factor!r}")
+    pyramid = DetailPyramid(degree, spans)
+    residual = samples.s.copy()
+    e = samples.error(np.zeros_like(residual))
+    pyramid.base_rms, pyramid.base_max = float(np.sqrt(np.mean(e**2))), float(e.max())
+    for k in range(levels):
+        c = fit_level(samples, residual, k, degree, spans, periodic_u)
+        fitted = residual - evaluate_level(c, k, degree, spans, samples.u, samples.v)
+        rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
+        step = step_factor * rms_fit
+        q = np.rint(c / step).astype(np.int64)
+        if np.abs(q).max(initial=0) > MAX_TILE_VALUE:  # never for a real scan; stay valid
+            step = float(np.abs(c).max()) / MAX_TILE_VALUE
+            q = np.rint(c / step).astype(np.int64)
+        residual = residual - evaluate_level(q * step, k, degree, spans, samples.u, samples.v)
+        e = samples.error(samples.s - residual)
+        count = 1 << k
+        cell = _tile_index(samples.u, k) * count + _tile_index(samples.v, k)
+        worst = np.zeros(count * count)
+        np.maximum.at(worst, cell, e)
+        tiles = []
+        size = spans + degree
+        for i in range(count):
+            for j in range(count):
+                block = q[i * spans : i * spans + size, j * spans : j * spans + size]
+                if not block.any():
+                    continue
+                tile = layers.DetailTile(k, i, j, degree, spans, step,
+                                         tuple(int(x) for x in block.ravel()))
+                tiles.append((tile, write_detail_tile(tile), float(worst[i * count + j])))
+        pyramid.levels.append(DetailLevel(k, step, tiles, float(np.sqrt(np.mean(e**2))),
+                                          float(e.max()), int(np.count_nonzero(q))))
+        if progress is not None:
+            progress((k + 1) / levels)
+    return pyramid
