@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from client_py import TrimMask, read_patch, write_patch
 
@@ -243,10 +244,14 @@ def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | Non
     ValueError
         Invalid options.
     """
-    options = options or FitOptions()
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit_scan(scan, Path(out_dir), options or FitOptions(), progress)
+
+
+def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
+              progress: Progress | None) -> Bundle:
     options.grid = tuple(options.grid)
     options.validate()
-    out_dir = Path(out_dir)
     stages = _Stages(progress)
 
     stages.start("load")
