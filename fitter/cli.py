@@ -1,4 +1,4 @@
-"""The ``tessera`` command line: ``fit``, ``tessellate`` and ``serve``.
+"""The ``tessera`` command line: ``fit``, ``tessellate``, ``serve``, ``fit-collection``, ``admin``.
 
 Each subcommand is a ``_cmd_*`` function taking the parsed arguments and
 returning an exit status; errors the user can fix (bad files, bad options)
@@ -53,6 +53,16 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
     print(f"{out}: {mesh.vertex_count} vertices, {mesh.triangle_count} triangles, "
           f"{len(data)} bytes")
     return 0
+
+
+def _positive_int_or_one(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -154,11 +164,87 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     snapshot = app.extensions["tessera_snapshot"]
     if snapshot is not None:
         snapshot.start_background_build()  # the viewer's fast start, made once with node
+    runner = _start_job_runner(app, args.fit_workers)
     count = len(app.extensions["tessera_collection"].bundles())
+    server = "waitress" if args.production else "the development server"
     print(f"serving {count} object(s) from {collection} at http://{args.host}:{args.port}/ "
-          "(Ctrl-C to stop)")
-    run_simple(args.host, args.port, app, threaded=True)
+          f"with {server}{'; admin at /admin/' if runner is not None else ''} (Ctrl-C to stop)",
+          flush=True)
+    try:
+        if args.production:
+            import waitress
+
+            waitress.serve(app, host=args.host, port=args.port, threads=args.threads,
+                           ident="tessera", _quiet=True)
+        else:
+            run_simple(args.host, args.port, app, threaded=True)
+    finally:
+        if runner is not None:
+            runner.stop()
     return 0
+
+
+def _start_job_runner(app, workers: int | None):  # noqa: ANN001, ANN202 - Flask app, runner
+    """The admin's fit-job supervisor, when the admin area is on (see fitter.jobs)."""
+    from .jobs import JobRunner
+
+    admin = app.extensions.get("tessera_admin")
+    if admin is None or not admin.enabled:
+        return None
+    count = workers or int(app.config.get("TESSERA_JOB_WORKERS") or 0) or None
+    return JobRunner(admin.collection, workers=count).start()
+
+
+def _cmd_admin_set_token(args: argparse.Namespace) -> int:
+    import getpass
+    import secrets
+
+    from .catalog import Catalog, adopt_bundles
+    from .server.admin import TOKEN_SETTING, check_token_strength, hash_token
+
+    collection = Path(args.collection)
+    if not collection.is_dir():
+        raise UserError(f"{collection}: not a directory (give the collection folder)")
+    if (collection / "manifest.json").is_file():
+        raise UserError(f"{collection} is a single bundle; the admin area manages a "
+                        "collection folder of bundles")
+    if args.generate:
+        token = secrets.token_urlsafe(32)
+    elif sys.stdin.isatty():
+        token = getpass.getpass("new admin token: ")
+        if getpass.getpass("again: ") != token:
+            raise UserError("the two entries differ; nothing changed")
+    else:
+        token = sys.stdin.readline().strip()
+    try:
+        check_token_strength(token)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    with Catalog(collection, create=True) as catalog:
+        if catalog.created:
+            adopt_bundles(catalog, publish=True)  # what was public stays public
+        catalog.set_setting(TOKEN_SETTING, hash_token(token))
+    if args.generate:
+        print(token)
+        print("(the new admin token; only its hash is stored: keep it safe)", file=sys.stderr)
+    else:
+        print(f"admin token set for {collection} (stored hashed)", file=sys.stderr)
+    return 0
+
+
+def _cmd_fit_collection(args: argparse.Namespace) -> int:
+    from .collection_fit import fit_collection, format_summary
+    from .pipeline import FitOptions
+
+    options = FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
+                         max_error=args.max_error, projection=args.projection)
+    try:
+        results = fit_collection(args.scans, args.output, options, scheduler=args.scheduler,
+                                 workers=args.workers, progress=not args.quiet)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    print(format_summary(results))
+    return 1 if any(r.state == "failed" for r in results) else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -223,7 +309,58 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1",
                        help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
     serve.add_argument("--port", type=_port, default=8000, help="port (default 8000)")
+    serve.add_argument("--production", action="store_true",
+                       help="serve with waitress, a production WSGI server, instead of "
+                       "werkzeug's development server")
+    serve.add_argument("--threads", type=_positive_int, default=8,
+                       help="request threads with --production (default 8)")
+    serve.add_argument("--fit-workers", type=_positive_int_or_one, default=None,
+                       help="admin fit jobs run at once (default TESSERA_JOB_WORKERS, "
+                       "else one per core)")
     serve.set_defaults(run=_cmd_serve)
+
+    admin = sub.add_parser("admin", help="administer a collection's admin area",
+                           description="Administer the admin area of a collection folder.")
+    admin_sub = admin.add_subparsers(dest="admin_command", required=True, metavar="ACTION")
+    set_token = admin_sub.add_parser(
+        "set-token", help="set the admin secret (stored hashed in the collection's catalog)",
+        description="Set the secret of the admin area of COLLECTION: read from the terminal "
+        "(asked twice), from standard input when piped, or generated with --generate and "
+        "printed once. Only a werkzeug password hash is stored, in "
+        "COLLECTION/.tessera/catalog.sqlite (made when missing). TESSERA_ADMIN_TOKEN, when "
+        "set, takes precedence.")
+    set_token.add_argument("collection", help="the collection folder")
+    set_token.add_argument("--generate", action="store_true",
+                           help="make a random token and print it")
+    set_token.set_defaults(run=_cmd_admin_set_token)
+
+    batch = sub.add_parser(
+        "fit-collection",
+        help="fit many scans in parallel on Dask (a LocalCluster or a cluster's scheduler)",
+        description="Fit every SCAN into COLLECTION/<scan name>/ in parallel with Dask "
+        "distributed: a LocalCluster of --workers processes by default, or the cluster of "
+        "--scheduler. Scans whose bundle is up to date (same input SHA-256 and options) are "
+        "skipped; a failed scan does not stop the others; a summary table follows. Exit "
+        "status 1 when a scan failed.")
+    batch.add_argument("scans", nargs="+", metavar="SCAN", help="scan files")
+    batch.add_argument("-o", "--output", required=True, help="the collection folder")
+    batch.add_argument("--scheduler", default=None,
+                       help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
+    batch.add_argument("--workers", type=_positive_int_or_one, default=None,
+                       help="LocalCluster worker processes (default: one per core)")
+    batch.add_argument("--grid", type=_grid, default=(40, 40),
+                       help="control points per side, NxM (default 40x40)")
+    batch.add_argument("--degree", type=int, default=2, help="B-spline degree (default 2)")
+    batch.add_argument("--method", choices=("tessera", "paper", "linear"), default="tessera",
+                       help="fit method (see `tessera fit --help`)")
+    batch.add_argument("--max-error", type=_positive_float, default=None,
+                       help="grow each grid until the RMS deviation is at most this")
+    batch.add_argument("--bits", type=int, default=None,
+                       help="quantisation bits (default: automatic, as `tessera fit`)")
+    batch.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
+                       default="auto", help="map to the parameter domain (default auto)")
+    batch.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    batch.set_defaults(run=_cmd_fit_collection)
     return parser
 
 

@@ -14,10 +14,16 @@ one blueprint:
 ``bundles``    ``/bundles/<id>/<file>``: the immutable bundle files
 ``runtime``    ``/web/``, ``/vendor/pyodide/``, ``/vendor/three/``,
                ``/vendor/3dhop/``, ``/client_py/sources.json``
+``admin``      ``/admin/``: uploads, fit jobs, catalog, publishing (off
+               without an admin token; see :mod:`fitter.server.admin`)
 =============  ==============================================================
 
-The server does no fitting and writes nothing: a collection is a directory of
-bundle directories (each the output of ``tessera fit``), read as they are.
+The public side does no fitting and writes nothing: a collection is a
+directory of bundle directories (each the output of ``tessera fit``), read as
+they are. The admin area writes only into the collection's ``.tessera/``
+folder and, through its fit workers, new bundle directories. When the
+collection has a catalog (``.tessera/catalog.sqlite``), the public side shows
+only the objects published there; without one, every bundle is public.
 """
 
 from __future__ import annotations
@@ -60,6 +66,13 @@ DEFAULTS: dict[str, tuple[Any, str]] = {
     "TESSERA_GZIP": (True, "gzip compressible responses when the client accepts it"),
     "TESSERA_BUNDLE_MAX_AGE": (365 * 24 * 3600, "Cache-Control max-age of bundle files (s)"),
     "TESSERA_RUNTIME_MAX_AGE": (24 * 3600, "Cache-Control max-age of Pyodide and three.js (s)"),
+    # the admin area (fitter/server/admin, docs/admin.md); off without a token
+    "TESSERA_ADMIN_TOKEN": ("", "the admin secret (else the hash from `tessera admin set-token`)"),
+    "TESSERA_ADMIN_SECURE_COOKIE": (False, "send the admin session cookie over HTTPS only"),
+    "TESSERA_UPLOAD_MAX_BYTES": (4 << 30, "largest upload accepted (bytes; 413 above)"),
+    "TESSERA_UPLOAD_MAX_EXPANDED_BYTES": (16 << 30, "largest decompressed .gz / .zip (bytes)"),
+    "TESSERA_UPLOAD_MAX_RATIO": (200.0, "largest decompressed/compressed ratio of an upload"),
+    "TESSERA_JOB_WORKERS": (0, "fits run at once by `tessera serve` (0: one per core)"),
 }
 
 
@@ -110,7 +123,7 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
         When ``TESSERA_COLLECTION`` is unset or not a directory, or a runtime
         directory (web/, pyodide, three) is missing.
     """
-    from . import api, bundles, gallery, objects, runtime
+    from . import admin, api, bundles, gallery, objects, runtime
     from .collection import Collection
     from .snapshot import SnapshotBuilder
 
@@ -138,18 +151,21 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
 
     for module in (gallery, objects, api, bundles, runtime):
         app.register_blueprint(module.bp)
+    # the admin area; on a managed collection (with a catalog) it also narrows the public
+    # site to the published objects (a plain folder of bundles is served whole, as before)
+    admin.init_app(app)
 
     @app.errorhandler(404)
     def not_found(error: HTTPException) -> ResponseReturnValue:
         message = getattr(error, "description", "not found")
-        if request.path.startswith("/api/"):
+        if request.path.startswith(("/api/", "/admin/api/")):
             return jsonify({"error": message}), 404
         return render_template("404.html", message=message), 404
 
     @app.errorhandler(400)
     def bad_request(error: HTTPException) -> ResponseReturnValue:
         message = getattr(error, "description", "bad request")
-        if request.path.startswith("/api/"):
+        if request.path.startswith(("/api/", "/admin/api/")):
             return jsonify({"error": message}), 400
         return render_template("404.html", message=message, status=400), 400
 

@@ -1,0 +1,517 @@
+"""The catalog of a managed collection: objects, uploads and fit jobs in SQLite.
+
+A collection directory becomes *managed* when the admin area first runs on it:
+``<collection>/.tessera/catalog.sqlite`` is created next to the bundles (the
+leading dot keeps it out of the object ids, see
+:data:`fitter.server.collection.ID_PATTERN`), with the uploads, the staging
+area of running fits and the trash beside it::
+
+    <collection>/
+        <object-id>/            bundles, as `tessera fit` writes them
+        .tessera/catalog.sqlite objects, uploads, jobs, settings (this module)
+        .tessera/uploads/<n>/   every accepted upload, kept (never deleted by a fit)
+        .tessera/staging/job-<n>/  a running fit's output before its atomic rename
+        .tessera/trash/<id>.<time>/  deleted bundles, restorable
+
+The database runs in WAL mode (readers never wait for the job workers'
+progress writes) and its schema is versioned with SQLite's ``user_version``:
+:data:`MIGRATIONS` is an append-only list, and opening a catalog applies the
+ones it has not seen, each in one transaction. A catalog written by a newer
+Tessera (a higher version than this code knows) is refused, never modified.
+
+Every process and thread opens its own :class:`Catalog` (a ``sqlite3``
+connection is not shared across threads); writes are short ``BEGIN
+IMMEDIATE`` transactions with a busy timeout, so the web process and the
+worker processes can write concurrently.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import secrets
+import sqlite3
+import threading
+import time
+import unicodedata
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+STATE_DIR = ".tessera"
+CATALOG_FILE = "catalog.sqlite"
+JOB_STATES = ("queued", "running", "done", "failed", "interrupted", "cancelled")
+#: jobs ``retry`` may re-queue
+RETRYABLE = ("failed", "interrupted", "cancelled")
+
+#: Append-only: entry ``k`` upgrades a catalog from version ``k`` to ``k + 1``.
+MIGRATIONS: list[list[str]] = [
+    [  # 1: the first schema
+        """CREATE TABLE settings (key TEXT PRIMARY KEY, value TEXT NOT NULL)""",
+        """CREATE TABLE objects (
+            id TEXT PRIMARY KEY,
+            title TEXT NOT NULL,
+            description TEXT NOT NULL DEFAULT '',
+            provenance TEXT NOT NULL DEFAULT '',
+            licence TEXT NOT NULL DEFAULT '',
+            units TEXT NOT NULL DEFAULT '',
+            published INTEGER NOT NULL DEFAULT 0 CHECK (published IN (0, 1)),
+            bundle_path TEXT,
+            input_sha256 TEXT,
+            origin TEXT NOT NULL DEFAULT 'upload',
+            created REAL NOT NULL,
+            updated REAL NOT NULL,
+            trash_path TEXT
+        )""",
+        """CREATE TABLE uploads (
+            id INTEGER PRIMARY KEY AUTOINCREMENT,
+            object_id TEXT NOT NULL REFERENCES objects(id),
+            original_name TEXT NOT NULL,
+            stored_path TEXT NOT NULL,
+            bytes INTEGER NOT NULL,
+            sha256 TEXT NOT NULL,
+            format TEXT NOT NULL,
+            created REAL NOT NULL
+        )""",
+        """CREATE TABLE jobs (
+            id INTEGER PRIMARY KEY AUTOINCREMENT,
+            object_id TEXT NOT NULL REFERENCES objects(id),
+            upload_id INTEGER NOT NULL REFERENCES uploads(id),
+            state TEXT NOT NULL CHECK (state IN ('queued', 'running', 'done', 'failed',
+                                                 'interrupted', 'cancelled')),
+            stage TEXT NOT NULL DEFAULT '',
+            progress REAL NOT NULL DEFAULT 0,
+            error TEXT,
+            options TEXT NOT NULL,
+            attempts INTEGER NOT NULL DEFAULT 0,
+            cancel_requested INTEGER NOT NULL DEFAULT 0,
+            worker_pid INTEGER,
+            created REAL NOT NULL,
+            started REAL,
+            finished REAL
+        )""",
+    ],
+    [  # 2: the job runner looks up queued jobs and an object's jobs
+        """CREATE INDEX jobs_state ON jobs (state, id)""",
+        """CREATE INDEX jobs_object ON jobs (object_id)""",
+    ],
+]
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+class CatalogError(RuntimeError):
+    """A catalog this code cannot use (newer schema, not a Tessera catalog)."""
+
+
+def state_dir(collection: str | os.PathLike) -> Path:
+    """``<collection>/.tessera``: the catalog, uploads, staging and trash."""
+    return Path(collection).resolve() / STATE_DIR
+
+
+def catalog_path(collection: str | os.PathLike) -> Path:
+    return state_dir(collection) / CATALOG_FILE
+
+
+def catalog_exists(collection: str | os.PathLike) -> bool:
+    """Whether ``collection`` is managed (has a catalog)."""
+    return catalog_path(collection).is_file()
+
+
+def slugify(text: str, limit: int = 40) -> str:
+    """Lower-case ASCII letters, digits and ``-`` from ``text`` (``"object"`` when none)."""
+    ascii_text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode()
+    slug = re.sub(r"[^a-z0-9]+", "-", ascii_text.lower()).strip("-")[:limit].strip("-")
+    return slug or "object"
+
+
+def new_object_id(title: str) -> str:
+    """A fresh id: the title's slug and 6 random hex digits (always a valid object id)."""
+    return f"{slugify(title)}-{secrets.token_hex(3)}"
+
+
+@dataclass(frozen=True)
+class Job:
+    """One row of ``jobs`` (see :data:`JOB_STATES`)."""
+
+    id: int
+    object_id: str
+    upload_id: int
+    state: str
+    stage: str
+    progress: float
+    error: str | None
+    options: dict[str, Any]
+    attempts: int
+    cancel_requested: bool
+    worker_pid: int | None
+    created: float
+    started: float | None
+    finished: float | None
+
+    def public(self) -> dict[str, Any]:
+        """The JSON the admin API returns for a job."""
+        return {"id": self.id, "state": self.state, "stage": self.stage,
+                "progress": round(self.progress, 4), "error": self.error,
+                "object": self.object_id, "upload": self.upload_id, "options": self.options,
+                "attempts": self.attempts, "created": self.created, "started": self.started,
+                "finished": self.finished}
+
+
+def _job(row: sqlite3.Row) -> Job:
+    return Job(id=row["id"], object_id=row["object_id"], upload_id=row["upload_id"],
+               state=row["state"], stage=row["stage"], progress=row["progress"],
+               error=row["error"], options=json.loads(row["options"]),
+               attempts=row["attempts"], cancel_requested=bool(row["cancel_requested"]),
+               worker_pid=row["worker_pid"], created=row["created"], started=row["started"],
+               finished=row["finished"])
+
+
+class Catalog:
+    """A connection to ``<collection>/.tessera/catalog.sqlite``.
+
+    Parameters
+    ----------
+    collection : path
+        The collection directory.
+    create : bool
+        Create the catalog (and ``.tessera/``) when missing; otherwise a missing
+        catalog is a ``FileNotFoundError``.
+
+    Raises
+    ------
+    CatalogError
+        The file's schema version is newer than :data:`SCHEMA_VERSION`, or it is
+        not an SQLite database.
+    """
+
+    def __init__(self, collection: str | os.PathLike, create: bool = False) -> None:
+        self.collection = Path(collection).resolve()
+        self.dir = state_dir(self.collection)
+        self.path = self.dir / CATALOG_FILE
+        self.created = not self.path.is_file()
+        if self.created:
+            if not create:
+                raise FileNotFoundError(f"{self.path}: no catalog (the collection is not "
+                                        "managed; start the admin area to create one)")
+            self.dir.mkdir(mode=0o700, parents=True, exist_ok=True)
+        # autocommit mode: transactions are explicit (BEGIN IMMEDIATE below)
+        self.conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None,
+                                    check_same_thread=False)
+        self.conn.row_factory = sqlite3.Row
+        try:
+            self.conn.execute("PRAGMA journal_mode=WAL")
+            self.conn.execute("PRAGMA synchronous=NORMAL")
+            self.conn.execute("PRAGMA foreign_keys=ON")
+            self.migrate()
+        except sqlite3.DatabaseError as exc:
+            self.conn.close()
+            raise CatalogError(f"{self.path}: not a usable catalog: {exc}") from None
+
+    def close(self) -> None:
+        self.conn.close()
+
+    def __enter__(self) -> Catalog:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ schema
+    @property
+    def version(self) -> int:
+        return int(self.conn.execute("PRAGMA user_version").fetchone()[0])
+
+    def migrate(self) -> None:
+        """Apply the migrations this catalog has not seen, each in its own transaction."""
+        version = self.version
+        if version > SCHEMA_VERSION:
+            raise CatalogError(f"{self.path}: schema version {version} is newer than this "
+                               f"Tessera's {SCHEMA_VERSION}; upgrade Tessera to open it")
+        for index in range(version, SCHEMA_VERSION):
+            with self.transaction():
+                if self.version != index:  # another process migrated meanwhile
+                    continue
+                for statement in MIGRATIONS[index]:
+                    self.conn.execute(statement)
+                self.conn.execute(f"PRAGMA user_version = {index + 1}")
+
+    @contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """``BEGIN IMMEDIATE`` ... ``COMMIT`` (``ROLLBACK`` on an exception)."""
+        self.conn.execute("BEGIN IMMEDIATE")
+        try:
+            yield self.conn
+        except BaseException:
+            self.conn.execute("ROLLBACK")
+            raise
+        self.conn.execute("COMMIT")
+
+    # ---------------------------------------------------------------- settings
+    def get_setting(self, key: str) -> str | None:
+        row = self.conn.execute("SELECT value FROM settings WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    def set_setting(self, key: str, value: str) -> None:
+        with self.transaction() as conn:
+            conn.execute("INSERT INTO settings (key, value) VALUES (?, ?) "
+                         "ON CONFLICT (key) DO UPDATE SET value = excluded.value", (key, value))
+
+    def secret_key(self) -> str:
+        """The session-signing key of this collection, made once at random."""
+        key = self.get_setting("secret_key")
+        if key is None:
+            with self.transaction() as conn:
+                conn.execute("INSERT OR IGNORE INTO settings (key, value) VALUES (?, ?)",
+                             ("secret_key", secrets.token_hex(32)))
+            key = self.get_setting("secret_key")
+        return str(key)
+
+    # ----------------------------------------------------------------- objects
+    def add_object(self, object_id: str, title: str, *, published: bool = False,
+                   bundle_path: str | None = None, units: str = "",
+                   input_sha256: str | None = None, origin: str = "upload",
+                   conn: sqlite3.Connection | None = None) -> None:
+        now = time.time()
+        (conn or self.conn).execute(
+            "INSERT INTO objects (id, title, published, bundle_path, units, input_sha256, "
+            "origin, created, updated) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (object_id, title, int(published), bundle_path, units, input_sha256, origin, now,
+             now))
+
+    def get_object(self, object_id: str) -> dict[str, Any] | None:
+        row = self.conn.execute("SELECT * FROM objects WHERE id = ?", (object_id,)).fetchone()
+        return None if row is None else dict(row)
+
+    def objects(self, trashed: bool = False) -> list[dict[str, Any]]:
+        """Every object (the trashed ones instead with ``trashed``), newest first."""
+        where = "trash_path IS NOT NULL" if trashed else "trash_path IS NULL"
+        rows = self.conn.execute(f"SELECT * FROM objects WHERE {where} "
+                                 "ORDER BY created DESC, id").fetchall()
+        return [dict(r) for r in rows]
+
+    def published(self) -> dict[str, dict[str, Any]]:
+        """``{id: row}`` of the objects the public site shows (published, fitted, not trashed)."""
+        rows = self.conn.execute("SELECT * FROM objects WHERE published = 1 AND trash_path IS "
+                                 "NULL AND bundle_path IS NOT NULL").fetchall()
+        return {r["id"]: dict(r) for r in rows}
+
+    #: the metadata an admin may edit, with the longest text accepted
+    EDITABLE = {"title": 200, "description": 10_000, "provenance": 2_000, "licence": 500,
+                "units": 20}
+
+    def update_object(self, object_id: str, **fields: Any) -> None:
+        """Set editable metadata (:data:`EDITABLE`) and/or ``published``.
+
+        Raises
+        ------
+        ValueError
+            Unknown field, text too long, empty title, or publishing an object
+            that has no bundle yet.
+        KeyError
+            No such object.
+        """
+        updates: dict[str, Any] = {}
+        for name, value in fields.items():
+            if name == "published":
+                updates[name] = int(bool(value))
+                continue
+            if name not in self.EDITABLE:
+                raise ValueError(f"{name!r} is not editable; editable fields: "
+                                 f"{', '.join(self.EDITABLE)}, published")
+            if not isinstance(value, str):
+                raise ValueError(f"{name} must be text, got {type(value).__name__}")
+            value = value.strip()
+            if len(value) > self.EDITABLE[name]:
+                raise ValueError(f"{name} is {len(value)} characters long; at most "
+                                 f"{self.EDITABLE[name]} are accepted")
+            if name == "title" and not value:
+                raise ValueError("title must not be empty")
+            updates[name] = value
+        with self.transaction() as conn:
+            row = conn.execute("SELECT bundle_path, trash_path FROM objects WHERE id = ?",
+                               (object_id,)).fetchone()
+            if row is None:
+                raise KeyError(object_id)
+            if updates.get("published") and (row["bundle_path"] is None or row["trash_path"]):
+                raise ValueError(f"object {object_id!r} has no bundle to publish yet "
+                                 "(its fit has not finished, or it is in the trash)")
+            if updates:
+                sets = ", ".join(f"{k} = ?" for k in updates)
+                conn.execute(f"UPDATE objects SET {sets}, updated = ? WHERE id = ?",
+                             (*updates.values(), time.time(), object_id))
+
+    def set_trash(self, object_id: str, trash_path: str | None) -> None:
+        """Mark an object trashed (unpublishing it) or, with None, restored."""
+        with self.transaction() as conn:
+            conn.execute("UPDATE objects SET trash_path = ?, published = CASE WHEN ? IS NULL "
+                         "THEN published ELSE 0 END, updated = ? WHERE id = ?",
+                         (trash_path, trash_path, time.time(), object_id))
+
+    def set_bundle(self, object_id: str, bundle_path: str, units: str,
+                   input_sha256: str | None) -> None:
+        with self.transaction() as conn:
+            conn.execute("UPDATE objects SET bundle_path = ?, units = CASE WHEN units = '' "
+                         "THEN ? ELSE units END, input_sha256 = ?, updated = ? WHERE id = ?",
+                         (bundle_path, units, input_sha256, time.time(), object_id))
+
+    # ----------------------------------------------------------------- uploads
+    def add_upload(self, conn: sqlite3.Connection, object_id: str, original_name: str,
+                   stored_path: str, nbytes: int, sha256: str, fmt: str) -> int:
+        cur = conn.execute(
+            "INSERT INTO uploads (object_id, original_name, stored_path, bytes, sha256, format, "
+            "created) VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (object_id, original_name, stored_path, nbytes, sha256, fmt, time.time()))
+        return int(cur.lastrowid)
+
+    def get_upload(self, upload_id: int) -> dict[str, Any] | None:
+        row = self.conn.execute("SELECT * FROM uploads WHERE id = ?", (upload_id,)).fetchone()
+        return None if row is None else dict(row)
+
+    # -------------------------------------------------------------------- jobs
+    def add_job(self, conn: sqlite3.Connection, object_id: str, upload_id: int,
+                options: dict[str, Any]) -> int:
+        cur = conn.execute(
+            "INSERT INTO jobs (object_id, upload_id, state, options, created) "
+            "VALUES (?, ?, 'queued', ?, ?)",
+            (object_id, upload_id, json.dumps(options, sort_keys=True), time.time()))
+        return int(cur.lastrowid)
+
+    def get_job(self, job_id: int) -> Job | None:
+        row = self.conn.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        return None if row is None else _job(row)
+
+    def jobs(self, limit: int = 200) -> list[Job]:
+        rows = self.conn.execute("SELECT * FROM jobs ORDER BY id DESC LIMIT ?",
+                                 (limit,)).fetchall()
+        return [_job(r) for r in rows]
+
+    def jobs_of(self, object_id: str) -> list[Job]:
+        rows = self.conn.execute("SELECT * FROM jobs WHERE object_id = ? ORDER BY id DESC",
+                                 (object_id,)).fetchall()
+        return [_job(r) for r in rows]
+
+    def claim_next_job(self, worker_pid: int | None = None) -> Job | None:
+        """Atomically move the oldest queued job to ``running`` and return it (None if none)."""
+        with self.transaction() as conn:
+            row = conn.execute("SELECT id FROM jobs WHERE state = 'queued' AND "
+                               "cancel_requested = 0 ORDER BY id LIMIT 1").fetchone()
+            if row is None:
+                return None
+            conn.execute("UPDATE jobs SET state = 'running', stage = 'starting', progress = 0, "
+                         "error = NULL, started = ?, finished = NULL, worker_pid = ?, "
+                         "attempts = attempts + 1 WHERE id = ?",
+                         (time.time(), worker_pid, row["id"]))
+        return self.get_job(row["id"])
+
+    def set_worker(self, job_id: int, pid: int) -> None:
+        with self.transaction() as conn:
+            conn.execute("UPDATE jobs SET worker_pid = ? WHERE id = ?", (pid, job_id))
+
+    def report_progress(self, job_id: int, stage: str, progress: float) -> None:
+        with self.transaction() as conn:
+            conn.execute("UPDATE jobs SET stage = ?, progress = ? WHERE id = ? AND "
+                         "state = 'running'", (stage, min(max(progress, 0.0), 1.0), job_id))
+
+    def finish_job(self, job_id: int, state: str, error: str | None = None,
+                   only_if: tuple[str, ...] = ("running",)) -> bool:
+        """Move a job to a final ``state`` when it is in one of ``only_if``; True if it moved."""
+        if state not in JOB_STATES:
+            raise ValueError(f"state must be one of {', '.join(JOB_STATES)}, got {state!r}")
+        marks = ",".join("?" * len(only_if))
+        progress = "1.0" if state == "done" else "progress"
+        with self.transaction() as conn:
+            cur = conn.execute(
+                f"UPDATE jobs SET state = ?, error = ?, finished = ?, worker_pid = NULL, "
+                f"progress = {progress}, stage = CASE WHEN ? = 'done' THEN 'done' ELSE stage END "
+                f"WHERE id = ? AND state IN ({marks})",
+                (state, error, time.time(), state, job_id, *only_if))
+            return cur.rowcount == 1
+
+    def request_cancel(self, job_id: int) -> Job | None:
+        """Cancel a queued job at once; flag a running one for its runner to stop."""
+        with self.transaction() as conn:
+            conn.execute("UPDATE jobs SET state = 'cancelled', finished = ?, "
+                         "error = 'cancelled before it started' "
+                         "WHERE id = ? AND state = 'queued'", (time.time(), job_id))
+            conn.execute("UPDATE jobs SET cancel_requested = 1 WHERE id = ? AND "
+                         "state = 'running'", (job_id,))
+        return self.get_job(job_id)
+
+    def retry_job(self, job_id: int) -> Job | None:
+        """Re-queue a ``failed``, ``interrupted`` or ``cancelled`` job (same id, same upload).
+
+        Raises
+        ------
+        ValueError
+            When the job is in another state.
+        """
+        with self.transaction() as conn:
+            row = conn.execute("SELECT state FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                return None
+            if row["state"] not in RETRYABLE:
+                raise ValueError(f"job {job_id} is {row['state']}; only "
+                                 f"{', '.join(RETRYABLE)} jobs can be retried")
+            conn.execute("UPDATE jobs SET state = 'queued', stage = '', progress = 0, "
+                         "error = NULL, cancel_requested = 0, finished = NULL, started = NULL, "
+                         "worker_pid = NULL WHERE id = ?", (job_id,))
+        return self.get_job(job_id)
+
+    def running_jobs(self) -> list[Job]:
+        rows = self.conn.execute("SELECT * FROM jobs WHERE state = 'running'").fetchall()
+        return [_job(r) for r in rows]
+
+    def interrupt_running(self, reason: str) -> list[int]:
+        """Mark every ``running`` job ``interrupted`` (a runner starting after a crash)."""
+        with self.transaction() as conn:
+            ids = [r[0] for r in conn.execute("SELECT id FROM jobs WHERE state = 'running'")]
+            conn.execute("UPDATE jobs SET state = 'interrupted', error = ?, finished = ?, "
+                         "worker_pid = NULL WHERE state = 'running'", (reason, time.time()))
+        return ids
+
+
+def adopt_bundles(catalog: Catalog, publish: bool) -> list[str]:
+    """Add the collection's bundle directories the catalog does not know as objects.
+
+    Bundles written by hand (``tessera fit``) or by ``tessera fit-collection``
+    join the catalog this way; ``publish`` says whether they are public at once
+    (the rule, documented in docs/admin.md: True only when the catalog is first
+    created, so that managing an already public collection hides nothing).
+    Returns the ids added.
+    """
+    from .server.collection import Collection
+
+    known = {r[0] for r in catalog.conn.execute("SELECT id FROM objects")}
+    collection = Collection(catalog.collection)
+    if collection.root == catalog.collection and (collection.root / "manifest.json").is_file():
+        return []  # a single bundle served as its own collection: nothing to manage
+    added = []
+    for bundle in collection.bundles():
+        if bundle.id in known:
+            continue
+        provenance = bundle.manifest.get("provenance", {})
+        with catalog.transaction() as conn:
+            catalog.add_object(bundle.id, bundle.title, published=publish,
+                               bundle_path=bundle.id, units=str(bundle.manifest.get("units", "")),
+                               input_sha256=provenance.get("sha256"), origin="adopted",
+                               conn=conn)
+        added.append(bundle.id)
+    return added
+
+
+class ThreadCatalogs:
+    """One :class:`Catalog` per thread for a web process (``sqlite3`` connections are not
+    meant to be shared between threads)."""
+
+    def __init__(self, collection: str | os.PathLike) -> None:
+        self.collection = Path(collection).resolve()
+        self._local = threading.local()
+
+    def get(self) -> Catalog:
+        catalog = getattr(self._local, "catalog", None)
+        if catalog is None:
+            catalog = self._local.catalog = Catalog(self.collection)
+        return catalog

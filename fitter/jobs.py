@@ -1,0 +1,345 @@
+"""Fit jobs of the admin area: a supervisor and one worker process per running fit.
+
+``tessera serve`` starts a :class:`JobRunner`: a supervisor thread in the server
+process that takes ``queued`` jobs from the catalog (``fitter.catalog``) and
+runs each in its own worker process, at most ``workers`` at a time (default one
+per core), so the web process never computes a fit and never stalls behind one.
+Each worker calls :func:`fitter.pipeline.fit_scan` with a progress callback
+that writes the stage and the overall fraction into the catalog (the same
+callback interface that drives the CLI's bars), throttled to a few writes a
+second; the admin page polls them.
+
+Crash safety
+------------
+* A fit writes into ``.tessera/staging/job-<n>/`` (``fit_scan`` itself writes a
+  temporary folder, fsyncs and renames); the finished bundle is then renamed
+  into the collection, the collection folder fsynced, and only then is the job
+  ``done``. A reader sees no bundle or a whole one, never half of one.
+* Cancel: the supervisor kills the worker process (SIGTERM, then SIGKILL) and
+  deletes its staging folder: no partial bundle is left.
+* A worker killed from outside (``kill -9``) is noticed by the supervisor: the
+  job becomes ``interrupted`` and its staging folder is removed.
+* If the server itself dies, every worker notices that its pipe from the
+  supervisor is closed and exits at once; the next runner to start marks jobs
+  left ``running`` as ``interrupted`` and clears the staging area. The upload is
+  kept in every case; ``retry`` re-queues the job on it.
+
+Only one runner works on a collection at a time (an ``flock`` on
+``.tessera/runner.lock``); a second server on the same collection serves but
+leaves the jobs to the first.
+
+Workers are started by multiprocessing's ``forkserver`` method, with
+``fitter.pipeline`` preloaded into the fork server: a job starts in
+milliseconds, and never inherits the web server's threads or sockets (a plain
+``fork`` of a threaded server can deadlock on a lock held by another thread).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import multiprocessing
+import os
+import shutil
+import threading
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from .catalog import Catalog, state_dir
+
+log = logging.getLogger(__name__)
+
+#: share of the overall progress of each stage of ``fit_scan`` (the tessera method; the
+#: others skip features/refine, and the bar then jumps, which is honest)
+STAGE_WEIGHTS = {"load": 0.08, "project": 0.04, "features": 0.08, "sections": 0.04,
+                 "linear": 0.06, "refine": 0.45, "encode": 0.02, "error": 0.15, "report": 0.08}
+STAGE_ORDER = list(STAGE_WEIGHTS)
+PROGRESS_INTERVAL = 0.25  # seconds between progress writes within one stage
+EXIT_ORPHANED = 70
+
+
+def staging_dir(collection: Path, job_id: int) -> Path:
+    return state_dir(collection) / "staging" / f"job-{job_id}"
+
+
+def fit_options(options: dict[str, Any]) -> Any:
+    """``FitOptions`` from a job's stored options (validated)."""
+    from .pipeline import FitOptions
+
+    values = dict(options)
+    if "grid" in values:
+        values["grid"] = tuple(values["grid"])
+    result = FitOptions(**values)
+    result.grid = tuple(result.grid)
+    result.validate()
+    return result
+
+
+class _ProgressWriter:
+    """``fit_scan``'s progress callback: overall fraction from stage weights, into the catalog."""
+
+    def __init__(self, catalog: Catalog, job_id: int) -> None:
+        self.catalog, self.job_id = catalog, job_id
+        self.stage = ""
+        self.best = 0.0
+        self.last_write = 0.0
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        index = STAGE_ORDER.index(stage) if stage in STAGE_ORDER else None
+        if index is not None:
+            done = sum(STAGE_WEIGHTS[s] for s in STAGE_ORDER[:index])
+            overall = done + STAGE_WEIGHTS[stage] * min(max(fraction, 0.0), 1.0)
+            # with max_error the grid grows and stages repeat: the bar never goes back
+            self.best = max(self.best, min(overall, 0.99))
+        now = time.monotonic()
+        if stage != self.stage or now - self.last_write >= PROGRESS_INTERVAL:
+            self.stage, self.last_write = stage, now
+            self.catalog.report_progress(self.job_id, stage, self.best)
+
+
+def _watch_supervisor(pipe: Connection) -> None:
+    """Exit the worker when the supervisor's end of ``pipe`` closes (the server died)."""
+    try:
+        pipe.recv()
+    except (EOFError, OSError):
+        pass
+    os._exit(EXIT_ORPHANED)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def publish_bundle(staged: Path, destination: Path) -> None:
+    """Rename the complete bundle ``staged`` to ``destination`` (replacing an old one),
+    then fsync the collection folder so the rename survives a power cut."""
+    if destination.exists():
+        old = staged.parent / "replaced"
+        os.rename(destination, old)
+        os.rename(staged, destination)
+        shutil.rmtree(old)
+    else:
+        os.rename(staged, destination)
+    _fsync_dir(destination.parent)
+
+
+def run_job(collection: str, job_id: int, supervisor: Connection | None = None) -> None:
+    """Worker process body: fit one job's upload and publish the bundle into the collection.
+
+    Errors of the input (``ScanError``, bad options) end the job ``failed`` with
+    their message; any other exception is recorded the same way with its type,
+    because a job must never stay ``running`` without a worker.
+    """
+    if supervisor is not None:
+        threading.Thread(target=_watch_supervisor, args=(supervisor,), daemon=True).start()
+    from .io import ScanError
+    from .pipeline import fit_scan
+
+    root = Path(collection)
+    catalog = Catalog(root)
+    job = catalog.get_job(job_id)
+    if job is None or job.state != "running":
+        return
+    staging = staging_dir(root, job_id)
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        upload = catalog.get_upload(job.upload_id)
+        if upload is None:
+            raise ValueError(f"upload {job.upload_id} of job {job_id} is not in the catalog")
+        scan_path = state_dir(root) / upload["stored_path"]
+        options = fit_options(job.options)
+        staging.mkdir(parents=True)
+        bundle = fit_scan(scan_path, staging / job.object_id, options,
+                          _ProgressWriter(catalog, job_id))
+        catalog.report_progress(job_id, "publish", 0.995)
+        publish_bundle(bundle.path, root / job.object_id)
+        provenance = bundle.manifest.get("provenance", {})
+        catalog.set_bundle(job.object_id, job.object_id, str(bundle.manifest.get("units", "")),
+                           provenance.get("sha256"))
+        catalog.finish_job(job_id, "done")
+    except (ScanError, ValueError, OSError) as exc:
+        catalog.finish_job(job_id, "failed", str(exc))
+    except Exception as exc:  # noqa: BLE001 - the job boundary: record it, never leave it running
+        log.exception("job %d failed", job_id)
+        catalog.finish_job(job_id, "failed", f"internal error ({type(exc).__name__}): {exc}")
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+        catalog.close()
+
+
+def _forkserver_context() -> multiprocessing.context.BaseContext:
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["fitter.pipeline", "fitter.jobs"])
+    return ctx
+
+
+@dataclass
+class _Running:
+    process: multiprocessing.process.BaseProcess
+    pipe: Connection
+    cancelling: bool = False
+
+
+class JobRunner:
+    """The supervisor of a collection's fit jobs (see the module docstring).
+
+    Parameters
+    ----------
+    collection : path
+        A managed collection (its catalog must exist).
+    workers : int, optional
+        Fits running at once; default ``os.cpu_count()``.
+    poll_interval : float
+        Seconds between looks at the catalog.
+    """
+
+    def __init__(self, collection: str | os.PathLike, workers: int | None = None,
+                 poll_interval: float = 0.2) -> None:
+        self.collection = Path(collection).resolve()
+        self.workers = workers or os.cpu_count() or 1
+        if self.workers < 1:
+            raise ValueError(f"workers must be at least 1, got {self.workers}")
+        self.poll_interval = poll_interval
+        self._running: dict[int, _Running] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock_file: Any = None
+        self.active = False
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> JobRunner:
+        """Take the collection's runner lock, recover after a crash, start supervising.
+
+        When another runner holds the lock this one stays inactive (``active`` False).
+        """
+        lock_path = state_dir(self.collection) / "runner.lock"
+        self._lock_file = open(lock_path, "a+")  # noqa: SIM115 - held for the runner's life
+        try:
+            fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.warning("another job runner works on %s; this server leaves jobs to it",
+                        self.collection)
+            self._lock_file.close()
+            self._lock_file = None
+            return self
+        self.active = True
+        self.recover()
+        self._ctx = _forkserver_context()
+        self._thread = threading.Thread(target=self._loop, name="tessera-job-runner",
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def recover(self) -> list[int]:
+        """Jobs left ``running`` by a dead runner become ``interrupted``; staging is cleared."""
+        with Catalog(self.collection) as catalog:
+            ids = catalog.interrupt_running("interrupted: the server or its worker stopped "
+                                            "during the fit; the upload is kept, retry to fit "
+                                            "it again")
+        shutil.rmtree(state_dir(self.collection) / "staging", ignore_errors=True)
+        if ids:
+            log.warning("jobs %s were running when the last server stopped: now interrupted",
+                        ", ".join(map(str, ids)))
+        return ids
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop supervising; running fits are killed and their jobs become ``interrupted``."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        with Catalog(self.collection) as catalog:
+            for job_id, running in list(self._running.items()):
+                self._kill(running.process)
+                running.pipe.close()
+                catalog.finish_job(job_id, "interrupted", "interrupted: the server was stopped "
+                                   "during the fit; retry to fit it again")
+                shutil.rmtree(staging_dir(self.collection, job_id), ignore_errors=True)
+        self._running.clear()
+        if self._lock_file is not None:
+            self._lock_file.close()
+            self._lock_file = None
+        self.active = False
+
+    def __enter__(self) -> JobRunner:
+        return self.start()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()
+
+    # ---------------------------------------------------------------- supervising
+    @staticmethod
+    def _kill(process: multiprocessing.process.BaseProcess) -> None:
+        if process.is_alive():
+            process.terminate()
+            process.join(2.0)
+        if process.is_alive():
+            process.kill()
+        process.join(5.0)
+
+    def _loop(self) -> None:
+        catalog = Catalog(self.collection)
+        try:
+            while not self._stop.is_set():
+                try:
+                    self._step(catalog)
+                except Exception:  # noqa: BLE001 - keep supervising; the next step retries
+                    log.exception("job runner step failed")
+                self._stop.wait(self.poll_interval)
+        finally:
+            catalog.close()
+
+    def _step(self, catalog: Catalog) -> None:
+        # 1. fits that ended: a worker that died without recording an end was killed
+        for job_id, running in list(self._running.items()):
+            if running.process.is_alive():
+                continue
+            running.process.join()
+            running.pipe.close()
+            del self._running[job_id]
+            code = running.process.exitcode
+            if running.cancelling:
+                catalog.finish_job(job_id, "cancelled", "cancelled while running")
+            elif catalog.finish_job(job_id, "interrupted",
+                                    f"interrupted: the worker process ended unexpectedly "
+                                    f"({_exit_text(code)}); the upload is kept, retry to fit "
+                                    "it again"):
+                log.warning("job %d: worker ended with %s", job_id, _exit_text(code))
+            shutil.rmtree(staging_dir(self.collection, job_id), ignore_errors=True)
+        # 2. cancel requests for running fits: stop the process itself
+        for job in catalog.running_jobs():
+            running = self._running.get(job.id)
+            if job.cancel_requested and running is not None and not running.cancelling:
+                running.cancelling = True
+                self._kill(running.process)
+        # 3. start queued jobs while there is a free worker
+        while len(self._running) < self.workers and not self._stop.is_set():
+            job = catalog.claim_next_job()
+            if job is None:
+                break
+            reader, writer = self._ctx.Pipe(duplex=False)
+            process = self._ctx.Process(target=run_job, name=f"tessera-fit-{job.id}",
+                                        args=(str(self.collection), job.id, reader),
+                                        daemon=True)
+            process.start()
+            reader.close()  # only the worker holds the read end; ours would mask EOF
+            catalog.set_worker(job.id, process.pid)
+            self._running[job.id] = _Running(process, writer)
+
+    def busy(self) -> int:
+        """Fits running now."""
+        return len(self._running)
+
+
+def _exit_text(code: int | None) -> str:
+    if code is None:
+        return "still running"
+    if code < 0:
+        return f"killed by signal {-code}"
+    return f"exit status {code}"

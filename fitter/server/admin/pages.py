@@ -1,0 +1,213 @@
+"""The admin pages: login, object list, upload form, jobs with live progress, metadata edit,
+publish / unpublish, trash and restore. Every change is a POST form with a CSRF token; the
+job page polls ``/admin/api/jobs/<id>`` with the session (web/src/admin-job.js)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+from urllib.parse import urlsplit
+
+from flask import (
+    abort,
+    flash,
+    redirect,
+    render_template,
+    request,
+    session,
+    url_for,
+)
+from flask.typing import ResponseReturnValue
+
+from ...catalog import adopt_bundles
+from ...pipeline import METHODS, FitOptions
+from ...uploads import UploadError
+from . import bp, csrf_ok, csrf_token, logged_in, state
+from .service import ConflictError, accept_upload, object_json, restore_object, trash_object
+
+
+def _safe_next(target: str | None) -> str:
+    """A redirect target inside the admin area (never another host: no open redirect)."""
+    default = url_for("admin.objects")
+    if not target:
+        return default
+    parts = urlsplit(target)
+    if parts.scheme or parts.netloc or not parts.path.startswith(url_for("admin.objects")):
+        return default
+    return target
+
+
+@bp.route("/login", methods=["GET", "POST"])
+def login() -> ResponseReturnValue:
+    """The only admin page open without the secret (see ``PUBLIC_ENDPOINTS``)."""
+    if request.method == "GET":
+        if logged_in():
+            return redirect(_safe_next(request.args.get("next")))
+        return render_template("admin_login.html", next=request.args.get("next", ""))
+    if not csrf_ok(request.form.get("csrf_token")):
+        return render_template("admin_login.html", error="The form expired; try again.",
+                               next=request.form.get("next", "")), 400
+    if not state().check(request.form.get("token", "")):
+        return render_template("admin_login.html", error="Wrong admin token.",
+                               next=request.form.get("next", "")), 401
+    session.clear()
+    session["admin"] = state().fingerprint
+    csrf_token()  # a fresh CSRF token for the logged-in session
+    return redirect(_safe_next(request.form.get("next")))
+
+
+@bp.post("/logout")
+def logout() -> ResponseReturnValue:
+    session.clear()
+    return redirect(url_for("admin.login"))
+
+
+@bp.get("/")
+def objects() -> ResponseReturnValue:
+    catalog = state().catalog()
+    rows = [object_json(catalog, row) for row in catalog.objects()]
+    return render_template("admin_objects.html", objects=rows)
+
+
+@bp.post("/rescan")
+def rescan() -> ResponseReturnValue:
+    added = adopt_bundles(state().catalog(), publish=False)
+    flash(f"{len(added)} new bundle(s) found and added unpublished: {', '.join(added)}"
+          if added else "No new bundles in the collection folder.")
+    return redirect(url_for("admin.objects"))
+
+
+def _upload_defaults() -> dict[str, Any]:
+    defaults = FitOptions()
+    return {"grid": f"{defaults.grid[0]}x{defaults.grid[1]}", "degree": defaults.degree,
+            "method": defaults.method, "methods": METHODS, "bits": defaults.bits,
+            "projection": defaults.projection,
+            "max_bytes": state().limits.max_bytes}
+
+
+@bp.route("/upload", methods=["GET", "POST"])
+def upload() -> ResponseReturnValue:
+    if request.method == "GET":
+        return render_template("admin_upload.html", defaults=_upload_defaults())
+    try:
+        job_id, _ = accept_upload(state().catalog(), request.environ, state().limits,
+                                  csrf_check=lambda form: csrf_ok(form.get("csrf_token")))
+    except UploadError as exc:
+        return render_template("admin_upload.html", defaults=_upload_defaults(),
+                               error=str(exc)), exc.status
+    return redirect(url_for("admin.job", job_id=job_id))
+
+
+@bp.get("/jobs")
+def jobs() -> ResponseReturnValue:
+    return render_template("admin_jobs.html", jobs=[j.public() for j in state().catalog().jobs()])
+
+
+@bp.get("/jobs/<int:job_id>")
+def job(job_id: int) -> ResponseReturnValue:
+    found = state().catalog().get_job(job_id)
+    if found is None:
+        abort(404, description=f"no job {job_id}")
+    config = {"job_url": url_for("admin.api_job", job_id=job_id),
+              "object_url": url_for("admin.edit_object", object_id=found.object_id)}
+    return render_template("admin_job.html", job=found.public(), config=config)
+
+
+@bp.post("/jobs/<int:job_id>/cancel")
+def cancel_job(job_id: int) -> ResponseReturnValue:
+    if state().catalog().request_cancel(job_id) is None:
+        abort(404, description=f"no job {job_id}")
+    return redirect(url_for("admin.job", job_id=job_id))
+
+
+@bp.post("/jobs/<int:job_id>/retry")
+def retry_job(job_id: int) -> ResponseReturnValue:
+    try:
+        if state().catalog().retry_job(job_id) is None:
+            abort(404, description=f"no job {job_id}")
+    except ValueError as exc:
+        flash(str(exc))
+    return redirect(url_for("admin.job", job_id=job_id))
+
+
+def _object_or_404(object_id: str) -> dict[str, Any]:
+    catalog = state().catalog()
+    row = catalog.get_object(object_id)
+    if row is None:
+        abort(404, description=f"no object {object_id!r} in the catalog")
+    return object_json(catalog, row)
+
+
+@bp.route("/objects/<object_id>", methods=["GET", "POST"])
+def edit_object(object_id: str) -> ResponseReturnValue:
+    obj = _object_or_404(object_id)
+    error = None
+    if request.method == "POST":
+        fields = {k: request.form.get(k, "") for k in ("title", "description", "provenance",
+                                                       "licence", "units")}
+        try:
+            state().catalog().update_object(object_id, **fields)
+        except ValueError as exc:
+            error = str(exc)
+        else:
+            flash("Saved.")
+            return redirect(url_for("admin.edit_object", object_id=object_id))
+    jobs = [j.public() for j in state().catalog().jobs_of(object_id)]
+    viewer_url = url_for("objects.viewer", object_id=object_id) if obj["published"] else None
+    return render_template("admin_object.html", obj=obj, jobs=jobs, error=error,
+                           viewer_url=viewer_url), (400 if error else 200)
+
+
+@bp.post("/objects/<object_id>/publish")
+def publish_object(object_id: str) -> ResponseReturnValue:
+    return _set_published(object_id, True)
+
+
+@bp.post("/objects/<object_id>/unpublish")
+def unpublish_object(object_id: str) -> ResponseReturnValue:
+    return _set_published(object_id, False)
+
+
+def _set_published(object_id: str, published: bool) -> ResponseReturnValue:
+    _object_or_404(object_id)
+    try:
+        state().catalog().update_object(object_id, published=published)
+    except ValueError as exc:
+        flash(str(exc))
+    return redirect(_safe_next(request.form.get("next")) if request.form.get("next")
+                    else url_for("admin.edit_object", object_id=object_id))
+
+
+@bp.post("/objects/<object_id>/delete")
+def delete_object(object_id: str) -> ResponseReturnValue:
+    _object_or_404(object_id)
+    try:
+        trash_object(state().catalog(), object_id)
+        flash(f"{object_id} moved to the trash (restorable).")
+    except ConflictError as exc:
+        flash(str(exc))
+    return redirect(url_for("admin.objects"))
+
+
+@bp.post("/objects/<object_id>/restore")
+def restore(object_id: str) -> ResponseReturnValue:
+    _object_or_404(object_id)
+    try:
+        restore_object(state().catalog(), object_id)
+        flash(f"{object_id} restored (unpublished).")
+    except ConflictError as exc:
+        flash(str(exc))
+    return redirect(url_for("admin.trash"))
+
+
+@bp.get("/trash")
+def trash() -> ResponseReturnValue:
+    catalog = state().catalog()
+    return render_template("admin_trash.html",
+                           objects=[object_json(catalog, r) for r in catalog.objects(True)])
+
+
+@bp.app_template_filter("admin_when")
+def _when(timestamp: float | None) -> str:
+    return time.strftime("%Y-%m-%d %H:%M", time.localtime(timestamp)) if timestamp else "—"
+
