@@ -57,7 +57,7 @@ from .sections import section_matrix, section_shape
 BUNDLE_FORMAT_VERSION = 1
 METHODS = ("tessera", "paper", "linear")
 MIN_POINTS = 64
-FIT_SAMPLE = 60_000  # scan points the tessera refinement fits (feature-adaptive sample)
+FIT_SAMPLE = 60_000  # default of FitOptions.samples
 FEATURE_SAMPLE = 150_000  # points whose local PCA drives the sampling density
 CORRECTION_ROUNDS = 3
 # Thin-plate weight of the tessera fits (relative, see fitter.fit._regularised_solve): 1e-4
@@ -81,7 +81,9 @@ class FitOptions:
     bits that keep the fit's RMS within 0.5 % (``fitter.compact``);
     max_error : target RMS in scan units (grows the grid); max_grid : cap for
     that growth; projection : ``auto`` or one of ``plane``, ``cylinder``,
-    ``sphere``; title : the object's title.
+    ``sphere``; title : the object's title; feature_strength : how much denser
+    the tessera method samples where local PCA finds features (0: uniform);
+    samples : scan points the tessera refinement fits (that sample); seed : of it.
     """
 
     grid: tuple[int, int] = (40, 40)
@@ -94,6 +96,7 @@ class FitOptions:
     title: str | None = None
     feature_strength: float = 4.0
     seed: int = 0
+    samples: int = FIT_SAMPLE
 
     def validate(self) -> None:
         grid = tuple(self.grid)
@@ -121,6 +124,9 @@ class FitOptions:
                              f"got {self.projection!r}")
         if not (np.isfinite(self.feature_strength) and 0 <= self.feature_strength <= 100):
             raise ValueError(f"feature_strength must be in 0..100, got {self.feature_strength}")
+        if (isinstance(self.samples, bool) or not isinstance(self.samples, int)
+                or not 1000 <= self.samples <= 10_000_000):
+            raise ValueError(f"samples must be an integer in 1000..10000000, got {self.samples!r}")
 
 
 @dataclass
@@ -290,7 +296,7 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
         probe = covered_idx if n_cov <= FEATURE_SAMPLE else np.sort(
             rng.choice(covered_idx, FEATURE_SAMPLE, replace=False))
         weights = feature_weights(surface_variation(points[probe]), options.feature_strength)
-        sample = probe[adaptive_sample(weights, min(FIT_SAMPLE, len(probe)), options.seed)]
+        sample = probe[adaptive_sample(weights, min(options.samples, len(probe)), options.seed)]
     else:
         sample = covered_idx
 
