@@ -8,20 +8,34 @@ import time (numpy, when importable, accelerates grid evaluation behind
 """
 
 from .basis import uniform_clamped_knots
-from .format import PatchFormatError, read_patch, write_patch
+from .bundle import tessellate_bundle
+from .format import (
+    PatchFormatError,
+    read_detail_tile,
+    read_patch,
+    write_detail_tile,
+    write_patch,
+)
+from .layers import DetailTile, TextureImage, tessellate_region
 from .ply import write_ply
 from .surface import NurbsSurface
 from .tessellate import Mesh, tessellate_grid
 from .trim import TrimMask
 
 __all__ = [
+    "DetailTile",
     "Mesh",
     "NurbsSurface",
     "PatchFormatError",
+    "TextureImage",
     "TrimMask",
+    "read_detail_tile",
     "read_patch",
+    "tessellate_bundle",
     "tessellate_grid",
+    "tessellate_region",
     "uniform_clamped_knots",
+    "write_detail_tile",
     "write_patch",
     "write_ply",
 ]

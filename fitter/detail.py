@@ -215,3 +215,63 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         if progress is not None:
             progress((k + 1) / levels)
     return pyramid
+
+
+# ------------------------------------------------------------------ the bundle's tile tree
+def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.ndarray,
+               periodic_u: bool, levels: int | None = None, progress=None,
+               step_factor: float = STEP_FACTOR) -> DetailPyramid:
+    """The pipeline's detail stage: samples of the covered points at their foot points
+    ``dev.u, dev.v`` on the decoded base ``model``, then :func:`fit_pyramid`
+    (``levels=None``: :func:`auto_levels`)."""
+    samples = detail_samples(model, points_local[covered], dev.u[covered], dev.v[covered])
+    if levels is None:
+        levels = auto_levels(int(covered.sum()))
+    return fit_pyramid(samples, levels, periodic_u=periodic_u, progress=progress,
+                       step_factor=step_factor)
+
+
+def _rounded(x: float) -> float:
+    return float(f"{x:.6g}")
+
+
+def write_layers(root, pyramid: DetailPyramid, texture_tiles: list) -> tuple[dict, dict]:
+    """Write ``detail/K/I_J.tsd`` and ``texture/K/I_J.<ext>`` under ``root``; return the
+    manifest's ``tiles`` tree and ``{file: bytes}`` (schema: docs/format.md, "Tiles")."""
+    from pathlib import Path
+
+    root = Path(root)
+    files: dict[str, int] = {}
+    nodes, summary = [], []
+    for lev in pyramid.levels:
+        for tile, data, worst in lev.tiles:
+            name = f"detail/{tile.level}/{tile.i}_{tile.j}.tsd"
+            (root / name).parent.mkdir(parents=True, exist_ok=True)
+            (root / name).write_bytes(data)
+            files[name] = len(data)
+            nodes.append({"level": tile.level, "i": tile.i, "j": tile.j,
+                          "uv": list(tile.uv_rect), "file": name, "bytes": len(data),
+                          "geometric_error": _rounded(worst)})
+        summary.append({"level": lev.level, "tiles": len(lev.tiles), "rms": _rounded(lev.rms),
+                        "max": _rounded(lev.max), "bytes_total": lev.bytes_total,
+                        "step": _rounded(lev.step), "coefficients": lev.coefficients})
+    tree: dict = {"version": 1, "detail": {
+        "format": "tsd", "degree": pyramid.degree, "spans_per_tile": pyramid.spans,
+        "base": {"rms": _rounded(pyramid.base_rms), "max": _rounded(pyramid.base_max)},
+        "levels": summary, "nodes": nodes}, "texture": None}
+    if texture_tiles:
+        t_nodes, t_levels = [], {}
+        for t in texture_tiles:
+            name = f"texture/{t.level}/{t.i}_{t.j}.{t.ext}"
+            (root / name).parent.mkdir(parents=True, exist_ok=True)
+            (root / name).write_bytes(t.data)
+            files[name] = len(t.data)
+            t_nodes.append({"level": t.level, "i": t.i, "j": t.j,
+                            "uv": list(layers.tile_rect(t.level, t.i, t.j)), "file": name,
+                            "bytes": len(t.data)})
+            entry = t_levels.setdefault(t.level, {"level": t.level, "tiles": 0, "bytes_total": 0})
+            entry["tiles"] += 1
+            entry["bytes_total"] += len(t.data)
+        tree["texture"] = {"format": texture_tiles[0].ext, "size": texture_tiles[0].size,
+                           "levels": [t_levels[k] for k in sorted(t_levels)], "nodes": t_nodes}
+    return tree, files

@@ -1,0 +1,273 @@
+"""client_py.layers and the .tsd tile format: the detail field against scipy's BSpline, seams,
+tiles acting only inside their rectangles, both kernels, texture sampling, corrupt tiles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from nurbs_cases import random_surface
+from scipy.interpolate import BSpline
+
+from client_py import (
+    DetailTile,
+    NurbsSurface,
+    PatchFormatError,
+    TextureImage,
+    read_detail_tile,
+    tessellate_grid,
+    tessellate_region,
+    write_detail_tile,
+)
+from client_py.layers import displacement_grid, level_knots, transform_mesh
+
+FUZZ = settings(max_examples=100, deadline=2000, derandomize=True, database=None,
+                suppress_health_check=[HealthCheck.too_slow])
+
+
+def global_field(level: int, degree: int, spans: int, seed: int = 0) -> np.ndarray:
+    n = (spans << level) + degree
+    return np.random.default_rng(seed).integers(-400, 400, (n, n))
+
+
+def tile_of(q: np.ndarray, level: int, i: int, j: int, degree: int, spans: int,
+            step: float = 0.01) -> DetailTile:
+    size = spans + degree
+    block = q[i * spans : i * spans + size, j * spans : j * spans + size]
+    return DetailTile(level, i, j, degree, spans, step, tuple(int(x) for x in block.ravel()))
+
+
+def scipy_field(q: np.ndarray, level: int, degree: int, spans: int, step: float,
+                u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The independent reference: scipy B-spline design matrices of the global knots."""
+    t = np.array(level_knots(degree, spans, level))
+    Bu = BSpline.design_matrix(u, t, degree).toarray()
+    Bv = BSpline.design_matrix(v, t, degree).toarray()
+    return np.einsum("ma,ab,mb->m", Bu, q * step, Bv)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_tile_field_matches_scipy(degree):
+    level, spans = 2, 5
+    q = global_field(level, degree, spans, degree)
+    tile = tile_of(q, level, 1, 2, degree, spans)
+    u0, v0, u1, v1 = tile.uv_rect
+    assert (u0, v0, u1, v1) == (0.25, 0.5, 0.5, 0.75)
+    rng = np.random.default_rng(1)
+    u = np.concatenate([rng.uniform(u0, u1, 40), [u0, u1, u0]])
+    v = np.concatenate([rng.uniform(v0, v1, 40), [v0, v1, v1]])
+    expected = scipy_field(q, level, degree, spans, 0.01, u, v)
+    got = [tile.evaluate(a, b) for a, b in zip(u, v, strict=True)]
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+    us, vs = np.sort(u[:12]), np.sort(v[:9])
+    for kernel in ("python", "numpy"):
+        grid = np.array(tile.evaluate_grid(us.tolist(), vs.tolist(), kernel)).reshape(12, 9)
+        UU, VV = np.meshgrid(us, vs, indexing="ij")
+        ref = scipy_field(q, level, degree, spans, 0.01, UU.ravel(), VV.ravel()).reshape(12, 9)
+        np.testing.assert_allclose(grid, ref, rtol=0, atol=1e-12)
+
+
+def test_evaluate_outside_the_rectangle_is_refused():
+    tile = tile_of(global_field(1, 2, 4), 1, 0, 1, 2, 4)
+    with pytest.raises(ValueError, match="outside tile 1/0_1"):
+        tile.evaluate(0.6, 0.7)
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_neighbouring_tiles_agree_on_their_border(degree):
+    level, spans = 3, 4
+    q = global_field(level, degree, spans, 7)
+    left, right = tile_of(q, level, 2, 5, degree, spans), tile_of(q, level, 3, 5, degree, spans)
+    below = tile_of(q, level, 2, 4, degree, spans)
+    border = 3 / 8
+    for v in np.linspace(5 / 8, 6 / 8, 17):
+        assert left.evaluate(border, v) == pytest.approx(right.evaluate(border, v), abs=1e-13)
+    for u in np.linspace(2 / 8, 3 / 8, 17):
+        assert left.evaluate(u, 5 / 8) == pytest.approx(below.evaluate(u, 5 / 8), abs=1e-13)
+
+
+def test_round_trip_and_size():
+    tile = tile_of(global_field(2, 2, 16), 2, 3, 1, 2, 16, step=2.5e-4)
+    data = write_detail_tile(tile)
+    assert read_detail_tile(data) == tile
+    assert data[:4] == b"TSDT"
+    assert write_detail_tile(tile) == data  # deterministic
+    smooth = DetailTile(0, 0, 0, 2, 16, 1.0, tuple(range(18 * 18)))  # a ramp: predicted
+    assert read_detail_tile(write_detail_tile(smooth)) == smooth
+    assert len(write_detail_tile(smooth)) < 80
+
+
+def surface_and_tiles():
+    """A gently curved rational patch over the unit square and the four tiles of level 1."""
+    rough = random_surface(np.random.default_rng(3), 2, 2, 6, 5)
+    a, b = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 5), indexing="ij")
+    P = np.stack([a, b, 0.1 * np.sin(3 * a) * np.cos(2 * b)], axis=-1)
+    s = NurbsSurface((2, 2), rough.knots, P, rough.weights)
+    q = global_field(1, 2, 4, 11)
+    tiles = [tile_of(q, 1, i, j, 2, 4, step=2e-5) for i in range(2) for j in range(2)]
+    return s, q, tiles
+
+
+def test_region_positions_are_base_plus_displacement_along_the_normal():
+    s, q, tiles = surface_and_tiles()
+    nu, nv = 9, 7
+    mesh = tessellate_region(s, (0.25, 0.0, 0.75, 1.0), nu, nv, tiles, kernel="python")
+    us, vs = np.linspace(0.25, 0.75, nu), np.linspace(0.0, 1.0, nv)
+    UU, VV = np.meshgrid(us, vs, indexing="ij")
+    D = scipy_field(q, 1, 2, 4, 2e-5, UU.ravel(), VV.ravel())
+    base = np.array([s.evaluate(a, b) for a, b in zip(UU.ravel(), VV.ravel(), strict=True)])
+    n = np.array([s.normal(a, b) for a, b in zip(UU.ravel(), VV.ravel(), strict=True)])
+    pos = np.array(mesh.positions).reshape(-1, 3)
+    np.testing.assert_allclose(pos, base + D[:, None] * n, atol=1e-5)
+    np.testing.assert_allclose(np.array(mesh.uvs).reshape(-1, 2),
+                               np.column_stack([UU.ravel(), VV.ravel()]), atol=1e-7)
+    nrm = np.array(mesh.normals).reshape(-1, 3)
+    np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-6)
+    assert np.all(np.einsum("ij,ij->i", nrm, n) > 0.5)  # same side as the base
+
+
+def test_a_tile_changes_geometry_only_inside_its_rectangle():
+    s, q, tiles = surface_and_tiles()
+    one = tiles[1]  # (0, 1): u in [0, 0.5], v in [0.5, 1]
+    plain = tessellate_grid(s, 21, 21, kernel="numpy")
+    mesh = tessellate_region(s, (0, 0, 1, 1), 21, 21, [one], kernel="numpy")
+    moved = np.linalg.norm(np.array(mesh.positions).reshape(-1, 3)
+                           - np.array(plain.positions).reshape(-1, 3), axis=1)
+    uv = np.array(mesh.uvs).reshape(-1, 2)
+    inside = (uv[:, 0] <= 0.5 + 1e-7) & (uv[:, 1] >= 0.5 - 1e-7)
+    assert np.all(moved[~inside] == 0.0)
+    assert np.count_nonzero(moved[inside] > 1e-6) > 0.8 * inside.sum()
+
+
+def test_border_vertices_take_a_level_once():
+    s, q, tiles = surface_and_tiles()
+    us = [0.0, 0.25, 0.5, 0.75, 1.0]
+    D = np.array(displacement_grid(tiles, us, us)).reshape(5, 5)
+    UU, VV = np.meshgrid(us, us, indexing="ij")
+    np.testing.assert_allclose(D.ravel(), scipy_field(q, 1, 2, 4, 2e-5, UU.ravel(), VV.ravel()),
+                               atol=1e-12)
+
+
+def test_kernels_agree():
+    s, _, tiles = surface_and_tiles()
+    a = tessellate_region(s, (0.1, 0.2, 0.9, 0.7), 33, 25, tiles, kernel="python")
+    b = tessellate_region(s, (0.1, 0.2, 0.9, 0.7), 33, 25, tiles, kernel="numpy")
+    np.testing.assert_allclose(np.array(a.positions), np.array(b.positions), atol=1e-6)
+    np.testing.assert_allclose(np.array(a.normals), np.array(b.normals), atol=1e-6)
+    assert a.indices == b.indices
+
+
+def test_regions_sharing_a_border_share_its_vertices_and_normals():
+    s, _, tiles = surface_and_tiles()
+    left = tessellate_region(s, (0.0, 0.0, 0.5, 1.0), 11, 21, tiles)
+    right = tessellate_region(s, (0.5, 0.0, 1.0, 1.0), 11, 21, tiles)
+    pl = np.array(left.positions).reshape(11, 21, 3)[-1]
+    pr = np.array(right.positions).reshape(11, 21, 3)[0]
+    np.testing.assert_allclose(pl, pr, atol=1e-6)
+    nl = np.array(left.normals).reshape(11, 21, 3)[-1]
+    nr = np.array(right.normals).reshape(11, 21, 3)[0]
+    np.testing.assert_allclose(nl, nr, atol=1e-5)
+
+
+def test_without_tiles_a_region_is_the_grid_tessellation():
+    s, _, _ = surface_and_tiles()
+    a = tessellate_region(s, (0, 0, 1, 1), 17, 13)
+    b = tessellate_grid(s, 17, 13)
+    assert a.positions == b.positions and a.normals == b.normals and a.indices == b.indices
+
+
+def test_texture_sampling_and_vertex_colours():
+    rgb = bytes([10, 20, 30, 200, 100, 0, 0, 0, 255, 40, 40, 40])  # 2 x 2, row 0 on top
+    image = TextureImage(1, 1, 0, 2, 2, rgb)  # u in [0.5, 1], v in [0, 0.5]
+    assert image.sample(0.625, 0.375) == (10, 20, 30)  # top-left texel centre
+    assert image.sample(0.875, 0.375) == (200, 100, 0)
+    assert image.sample(0.625, 0.125) == (0, 0, 255)  # bottom row
+    mid = image.sample(0.75, 0.25)
+    assert mid == tuple(int(sum(rgb[c::3]) / 4 + 0.5) for c in range(3))
+    s, _, _ = surface_and_tiles()
+    mesh = tessellate_region(s, (0.5, 0.0, 1.0, 0.5), 3, 3, textures=[image])
+    assert tuple(mesh.colors[0:3]) == (0, 0, 255)  # (u, v) = (0.5, 0): bottom-left
+    with pytest.raises(ValueError, match="rgb has 3 bytes"):
+        TextureImage(0, 0, 0, 1, 2, b"abc")
+
+
+def test_transform_mesh_matches_numpy():
+    s, _, tiles = surface_and_tiles()
+    mesh = tessellate_region(s, (0, 0, 1, 1), 6, 6, tiles)
+    m = np.array([[0.0, -2.0, 0.0, 5.0], [2.0, 0.0, 0.0, -1.0], [0.0, 0.0, -2.0, 3.0],
+                  [0, 0, 0, 1]])
+    out = transform_mesh(mesh, m)
+    p = np.array(mesh.positions).reshape(-1, 3)
+    np.testing.assert_allclose(np.array(out.positions).reshape(-1, 3), p @ m[:3, :3].T + m[:3, 3],
+                               atol=1e-4)
+    n = np.array(mesh.normals).reshape(-1, 3) @ np.linalg.inv(m[:3, :3])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    np.testing.assert_allclose(np.array(out.normals).reshape(-1, 3), n, atol=1e-6)
+    assert out.indices[1::3] == mesh.indices[2::3]  # det < 0: winding reversed
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(level=16), "level must be"), (dict(i=4), "i must be"), (dict(degree=4), "degree"),
+    (dict(spans=0), "spans"), (dict(step=0.0), "step"), (dict(values=(1, 2)), "values"),
+])
+def test_tile_values_are_checked(bad, match):
+    args = dict(level=2, i=1, j=1, degree=1, spans=2, step=0.5, values=(0,) * 9) | bad
+    with pytest.raises(ValueError, match=match):
+        DetailTile(**args)
+
+
+# ------------------------------------------------------------------ corrupt tiles
+def tile_file() -> bytes:
+    return write_detail_tile(tile_of(global_field(1, 2, 6, 5), 1, 1, 0, 2, 6))
+
+
+def test_rejects_with_offsets():
+    data = tile_file()
+    with pytest.raises(PatchFormatError, match="not a Tessera detail tile"):
+        read_detail_tile(b"TSPF" + data[4:])
+    with pytest.raises(PatchFormatError, match="truncated"):
+        read_detail_tile(data[:-1])
+    with pytest.raises(PatchFormatError, match="trailing"):
+        read_detail_tile(data + b"\0")
+    broken = bytearray(data)
+    broken[40] ^= 1
+    with pytest.raises(PatchFormatError, match="CRC32") as info:
+        read_detail_tile(bytes(broken))
+    assert info.value.offset == len(data) - 4
+
+
+@FUZZ
+@given(st.data())
+def test_truncations_and_bit_flips_raise_format_errors_only(data):
+    blob = bytearray(tile_file())
+    if data.draw(st.booleans()):
+        blob = blob[: data.draw(st.integers(0, len(blob) - 1))]
+    else:
+        for bit in data.draw(st.lists(st.integers(0, 8 * len(blob) - 1), min_size=1,
+                                      max_size=6, unique=True)):
+            blob[bit // 8] ^= 1 << (bit % 8)
+    with pytest.raises(PatchFormatError):
+        read_detail_tile(bytes(blob))
+
+
+@FUZZ
+@given(st.binary(max_size=300))
+def test_random_bytes_raise_format_errors_only(blob):
+    with pytest.raises(PatchFormatError):
+        read_detail_tile(b"TSDT" + blob)
+
+
+@FUZZ
+@given(st.binary(min_size=30, max_size=30), st.binary(max_size=200))
+def test_random_headers_with_valid_crc_raise_format_errors_only(header, payload):
+    import struct
+    import zlib
+
+    body = b"TSDT" + header[:26] + struct.pack("<I", len(payload)) + payload
+    blob = body + struct.pack("<I", zlib.crc32(body))
+    try:
+        tile = read_detail_tile(blob)
+    except PatchFormatError:
+        return
+    assert isinstance(tile, DetailTile)  # a valid header by chance decodes to a valid tile
