@@ -38,7 +38,13 @@ def _patch_path(path: Path) -> Path:
 
 
 def _cmd_tessellate(args: argparse.Namespace) -> int:
-    path = _patch_path(Path(args.input))
+    bundle = Path(args.input)
+    if bundle.is_dir() and (bundle / "manifest.json").is_file():
+        return _tessellate_bundle(args, bundle)
+    if args.level is not None or args.texture:
+        raise UserError(f"{bundle}: --level and --texture need a bundle directory "
+                        "(with manifest.json)")
+    path = _patch_path(bundle)
     try:
         surface = read_patch(path.read_bytes())
     except PatchFormatError as exc:
@@ -62,6 +68,78 @@ def _positive_int_or_one(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
+    """A bundle at ``--level``: base + detail tiles, per-vertex colours from the texture
+    tiles, or (``--texture``) texture uvs and the level's texture as one PNG beside the PLY."""
+    import json
+
+    from PIL import Image
+
+    from client_py import TextureImage, tessellate_bundle
+    from client_py.bundle import texture_nodes
+
+    try:
+        manifest = json.loads((bundle / "manifest.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{bundle / 'manifest.json'}: not a readable manifest: {exc}") from None
+    nodes = texture_nodes(manifest, args.level)
+    images = []
+    for node in nodes:
+        with Image.open(bundle / node["file"]) as im:
+            rgb = im.convert("RGB")
+            images.append(TextureImage(node["level"], node["i"], node["j"], rgb.width,
+                                       rgb.height, rgb.tobytes()))
+    try:
+        mesh = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(), args.level,
+                                 args.resolution, textures=() if args.texture else images)
+    except PatchFormatError as exc:
+        raise UserError(f"{bundle}: {exc}") from None
+    except ValueError as exc:
+        raise UserError(f"{bundle}: {exc}") from None
+    out = Path(args.output)
+    texture_file = None
+    if args.texture:
+        if not images:
+            raise UserError(f"{bundle}: --texture: the bundle has no texture tiles")
+        side = images[0].width << images[0].level
+        atlas = Image.new("RGB", (side, side))
+        for im in images:  # row 0 at the top = v = 1 (docs/format.md, texture tiles)
+            tile = Image.frombytes("RGB", (im.width, im.height), im.rgb)
+            atlas.paste(tile, (im.i * im.width, side - (im.j + 1) * im.height))
+        texture_file = f"{out.stem}_texture.png"
+        atlas.save(out.with_name(texture_file))
+    level = args.level if args.level is not None else \
+        len(manifest.get("tiles", {}).get("detail", {}).get("levels", [])) - 1
+    comments = [f"source {bundle.name}", f"detail level {level}"]
+    if manifest.get("units"):
+        comments.append(f"units {manifest['units']}")
+    data = write_ply(mesh, binary=not args.ascii, texture_file=texture_file, comments=comments)
+    out.write_bytes(data)
+    print(f"{out}: level {level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
+          f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))
+    return 0
+
+
+def _level(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < -1:
+        raise argparse.ArgumentTypeError(f"must be -1 (the base alone) or more, got {value}")
+    return value
+
+
+def _detail_levels(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 0 <= value <= 8:
+        raise argparse.ArgumentTypeError(f"must be 0 to 8, got {value}")
     return value
 
 
@@ -94,7 +172,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     from .pipeline import FitOptions, fit_scan
 
     options = FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
-                         max_error=args.max_error, projection=args.projection, title=args.title)
+                         max_error=args.max_error, projection=args.projection, title=args.title,
+                         detail_levels=args.detail_levels, texture=args.texture)
     bars: dict[str, tqdm] = {}
 
     def progress(stage: str, fraction: float) -> None:
@@ -130,12 +209,28 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         ("mean |d|", f"{s['mean']:.4g} {units}"),
         ("P95 / P99", f"{s['p95']:.4g} / {s['p99']:.4g} {units}"),
         ("max", f"{s['max']:.4g} {units} ({100 * s['max_relative']:.3f}% of the diagonal)"),
+        *_layer_rows(m),
         ("time", f"{sum(m['timings'].values()):.2f} s"),
     ]
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:>{width}}  {value}")
     return 0
+
+
+def _layer_rows(m: dict) -> list[tuple[str, str]]:
+    tiles = m.get("tiles") or {}
+    rows = []
+    for lev in (tiles.get("detail") or {}).get("levels", []):
+        rows.append((f"level {lev['level']}", f"RMS {lev['rms']:.4g}, max {lev['max']:.4g} "
+                     f"{m['units']}: {lev['tiles']} tiles, {lev['bytes_total']:,} bytes"))
+    texture = tiles.get("texture")
+    if texture:
+        count = sum(x["tiles"] for x in texture["levels"])
+        size = sum(x["bytes_total"] for x in texture["levels"])
+        rows.append(("texture", f"{len(texture['levels'])} levels, {count} tiles, "
+                     f"{size:,} bytes"))
+    return rows
 
 
 def _port(text: str) -> int:
@@ -279,6 +374,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
                      default="auto", help="map to the parameter domain (default auto)")
     fit.add_argument("--title", default=None, help="object title (default: the file name)")
+    fit.add_argument("--detail-levels", type=_detail_levels, default=None,
+                     help="levels of the detail pyramid, 0 to 8 (default: as many as the "
+                     "point density supports)")
+    fit.add_argument("--texture", action=argparse.BooleanOptionalAction, default=True,
+                     help="write the texture pyramid when the scan has colour (default yes)")
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     fit.set_defaults(run=_cmd_fit)
 
@@ -293,6 +393,12 @@ def build_parser() -> argparse.ArgumentParser:
     tess.add_argument("-o", "--output", required=True, help="output .ply path")
     tess.add_argument("--resolution", type=_positive_int, default=256,
                       help="vertices per side of the parameter grid (default 256)")
+    tess.add_argument("--level", type=_level, default=None,
+                      help="with a bundle: apply the detail tiles of levels 0..LEVEL "
+                      "(-1: the base alone; default: the finest)")
+    tess.add_argument("--texture", action="store_true",
+                      help="with a bundle that has texture tiles: write texture_u/v and the "
+                      "level's texture as OUTPUT_texture.png instead of vertex colours")
     tess.add_argument("--ascii", action="store_true",
                       help="write ASCII PLY instead of binary little-endian")
     tess.set_defaults(run=_cmd_tessellate)
