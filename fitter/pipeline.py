@@ -15,6 +15,9 @@ Stages (each timed, each reported to ``progress(stage, fraction)``):
    quantised patch a visitor downloads;
 7. error — foot-point deviation of every scan point, statistics, ``error.png``,
    ``error.ply``;
+7b. detail, texture — the residual pyramid along the base normal and the colour
+   pyramid in ``(u, v)`` (``fitter.detail``, ``fitter.texture``): ``detail/K/I_J.tsd``,
+   ``texture/K/I_J.webp`` and the manifest's ``tiles`` tree;
 8. bundle — ``manifest.json``; the bundle directory appears by an atomic
    rename once complete.
 
@@ -40,6 +43,7 @@ from client_py import TrimMask, read_patch, write_patch
 
 from . import io as scan_io
 from .compact import choose_bits, settle_hidden
+from .detail import fit_detail, write_layers
 from .error import deviations, error_grid, error_stats, write_error_ply, write_error_png
 from .features import adaptive_sample, feature_weights, surface_variation
 from .fit import (
@@ -53,6 +57,7 @@ from .io.scan import Scan, ScanError
 from .nurbs import PatchModel
 from .parameterize import KINDS, Coverage, choose_projection, trim_cells
 from .sections import section_matrix, section_shape
+from .texture import fit_texture
 
 BUNDLE_FORMAT_VERSION = 1
 METHODS = ("tessera", "paper", "linear")
@@ -97,6 +102,8 @@ class FitOptions:
     feature_strength: float = 4.0
     seed: int = 0
     samples: int = FIT_SAMPLE
+    detail_levels: int | None = None  # detail pyramid depth; None: as the point density allows
+    texture: bool = True  # texture pyramid when the scan has colour
 
     def validate(self) -> None:
         grid = tuple(self.grid)
@@ -127,6 +134,11 @@ class FitOptions:
         if (isinstance(self.samples, bool) or not isinstance(self.samples, int)
                 or not 1000 <= self.samples <= 10_000_000):
             raise ValueError(f"samples must be an integer in 1000..10000000, got {self.samples!r}")
+        if self.detail_levels is not None and (
+                isinstance(self.detail_levels, bool) or not isinstance(self.detail_levels, int)
+                or not 0 <= self.detail_levels <= 8):
+            raise ValueError(f"detail_levels must be an integer in 0..8, got "
+                             f"{self.detail_levels!r}")
 
 
 @dataclass
@@ -324,17 +336,27 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
         if options.max_error is None or stats["rms"] <= options.max_error:
             break
 
+    stages.start("detail")  # residual pyramid and colour pyramid (fitter.detail, .texture)
+    pyramid = fit_detail(best.model, local, best.dev, cov.covered, proj.periodic_u,
+                         options.detail_levels, stages.report)
+    stages.start("texture")
+    textures = fit_texture(scan, best.dev, cov.covered, proj.periodic_u,
+                           len(pyramid.levels), options.texture)
+
     stages.start("report")
     parent = out_dir.resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=parent))
     try:
         (tmp / "base.tsp").write_bytes(best.data)
+        tiles, tile_files = write_layers(tmp, pyramid, textures)
         write_error_ply(tmp / "error.ply", points, best.dev.d)
         title = options.title or Path(name).name
         write_error_png(tmp / "error.png", best.dev, local, scan.units,
                         f"{title}: RMS {best.stats['rms']:.4g} {scan.units}, "
-                        f"max {best.stats['max']:.4g} {scan.units}")
+                        f"max {best.stats['max']:.4g} {scan.units}"
+                        + "".join(f"; level {lev.level}: RMS {lev.rms:.3g}"
+                                  for lev in pyramid.levels[-2:]))
         uncovered = ~cov.covered
         manifest = {
             "format": "tessera-bundle",
@@ -362,6 +384,7 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
             "stats": best.stats,
             "stats_all_points": error_stats(best.dev.d, diagonal, scan.units),
             "fit": best.history,
+            "tiles": tiles,
             "timings": {},
             "error_grid": error_grid(type(best.dev)(best.dev.d[cov.covered],
                                                     best.dev.u[cov.covered],
@@ -369,13 +392,17 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
         }
         for f in ("base.tsp", "error.png", "error.ply"):
             manifest["files"][f] = (tmp / f).stat().st_size
+        manifest["files"].update(tile_files)
         stages.stop()
         manifest["timings"] = dict(stages.timings)
         with open(tmp / "manifest.json", "w") as fh:
             json.dump(manifest, fh, indent=1, sort_keys=True)
-        for f in tmp.iterdir():
-            with open(f, "rb") as fh:
-                os.fsync(fh.fileno())
+        for f in sorted(tmp.rglob("*")):
+            if f.is_file():
+                with open(f, "rb") as fh:
+                    os.fsync(fh.fileno())
+        for d in sorted(x for x in tmp.rglob("*") if x.is_dir()):
+            d.chmod(0o755)
         tmp.chmod(0o755)  # mkdtemp made it private; a bundle is published content
         if out_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=parent))
