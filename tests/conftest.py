@@ -69,3 +69,37 @@ def browser_type_launch_args(browser_type_launch_args: dict) -> dict:
     launch = chromium_launch_args()
     del launch["headless"]  # pytest-playwright's --headed decides
     return {**browser_type_launch_args, **launch}
+
+
+# ------------------------------------------------------------- admin area and batch fits (issue 7)
+#: the admin secret the admin tests use (long enough for check_token_strength)
+ADMIN_TOKEN = "test-admin-token-0123456789"
+
+
+@pytest.fixture(scope="session")
+def relief_ply(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The generated relief (20,000 points, synthetic) as a binary PLY file, as a scanner
+    would write it."""
+    from fitter.demo import write_scan_ply
+    from fitter.examples import relief_scan
+
+    path = tmp_path_factory.mktemp("scans") / "relief.ply"
+    write_scan_ply(path, relief_scan(20_000))
+    return path
+
+
+@pytest.fixture()
+def admin_app_factory(tmp_path: Path):
+    """``make(**config) -> app``: an app with the admin area on (token :data:`ADMIN_TOKEN`)
+    over a fresh empty collection folder ``tmp_path / 'collection'``."""
+    from fitter.server import create_app
+
+    def make(collection: Path | None = None, **config):
+        root = collection or tmp_path / "collection"
+        root.mkdir(exist_ok=True)
+        settings = {"TESSERA_COLLECTION": str(root), "TESSERA_ADMIN_TOKEN": ADMIN_TOKEN,
+                    "TESSERA_PYODIDE_SNAPSHOT": False, "TESTING": True}
+        settings.update(config)
+        return create_app(settings)
+
+    return make
