@@ -189,7 +189,9 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         c = fit_level(samples, residual, k, degree, spans, periodic_u)
         fitted = residual - evaluate_level(c, k, degree, spans, samples.u, samples.v)
         rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
-        step = step_factor * rms_fit
+        # an exactly explained residual still needs a positive step (and zero explains zero)
+        floor = 1e-9 * max(float(np.abs(c).max(initial=0.0)), float(np.abs(residual).max()))
+        step = step_factor * max(rms_fit, floor) or 1.0
         q = np.rint(c / step).astype(np.int64)
         if np.abs(q).max(initial=0) > MAX_TILE_VALUE:  # never for a real scan; stay valid
             step = float(np.abs(c).max()) / MAX_TILE_VALUE

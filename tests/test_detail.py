@@ -1,0 +1,157 @@
+"""fitter.detail: the level fit against a dense solve, errors falling level by level, the
+written tiles (read back by client_py) reproducing the reported errors, and the CLI --level."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.interpolate import BSpline
+
+from client_py import read_detail_tile
+from client_py.layers import displacement_grid, level_knots
+from fitter import detail
+from fitter.cli import main
+
+
+def field_samples(n: int = 6000, noise: float = 0.0, seed: int = 0) -> detail.DetailSamples:
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(0, 1, n), rng.uniform(0, 1, n)
+    s = (0.5 * np.sin(9 * u) * np.cos(7 * v) + 0.2 * np.exp(-((u - 0.3) ** 2 + (v - 0.6) ** 2)
+         / 0.002) + rng.normal(0, noise, n))
+    return detail.DetailSamples(u, v, s, np.zeros(n))
+
+
+def test_fit_level_matches_a_dense_least_squares_solve():
+    smp = field_samples(1500)
+    level, degree, spans = 1, 2, 3
+    got = detail.fit_level(smp, smp.s, level, degree, spans)
+    t = np.array(level_knots(degree, spans, level))
+    Bu = BSpline.design_matrix(smp.u, t, degree).toarray()
+    Bv = BSpline.design_matrix(smp.v, t, degree).toarray()
+    A = np.einsum("ma,mb->mab", Bu, Bv).reshape(len(smp.u), -1)
+    n = Bu.shape[1]
+    mu = np.einsum("ma,ma->", A, A) / (n * n)
+    D2 = np.diff(np.eye(n), 2, axis=0)
+    Lu, Lv = np.kron(D2, np.eye(n)), np.kron(np.eye(n), D2)
+    stacked = np.vstack([A, np.sqrt(mu * detail.RIDGE) * np.eye(n * n),
+                         np.sqrt(mu * detail.SMOOTHING) * Lu, np.sqrt(mu * detail.SMOOTHING) * Lv])
+    rhs = np.concatenate([smp.s, np.zeros(n * n + 2 * Lu.shape[0])])
+    expected = np.linalg.lstsq(stacked, rhs, rcond=None)[0].reshape(n, n)
+    np.testing.assert_allclose(got, expected, atol=1e-8 * np.abs(expected).max())
+
+
+def test_rms_falls_level_by_level_and_tiles_reproduce_the_reported_errors():
+    smp = field_samples(5000, noise=0.002)
+    pyramid = detail.fit_pyramid(smp, 3, spans=4)
+    rms = [pyramid.base_rms] + [lev.rms for lev in pyramid.levels]
+    assert all(b < a for a, b in zip(rms, rms[1:], strict=False)), rms
+    assert rms[-1] < 0.05 * rms[0]
+    # the tiles as bytes, read back and evaluated by client_py, give the reported errors
+    for lev in pyramid.levels:
+        e = np.abs(_residual_after(pyramid, lev.level, smp))  # t = 0 here
+        assert float(np.sqrt(np.mean(e**2))) == pytest.approx(lev.rms, rel=1e-9)
+        assert float(e.max()) == pytest.approx(lev.max, rel=1e-9)
+        for tile, _, worst in lev.tiles:
+            u0, v0, u1, v1 = tile.uv_rect
+            inside = ((smp.u >= u0) & ((smp.u < u1) | (u1 == 1.0))
+                      & (smp.v >= v0) & ((smp.v < v1) | (v1 == 1.0)))
+            assert worst == pytest.approx(e[inside].max(), rel=1e-9)
+
+
+def _one_per_level(tiles, u, v):
+    chosen = {}
+    for t in tiles:
+        if t.contains(u, v) and t.level not in chosen:
+            chosen[t.level] = t
+    return chosen.values()
+
+
+def _residual_after(pyramid, level, smp):
+    tiles = [read_detail_tile(d) for lev in pyramid.levels[: level + 1] for _, d, _ in lev.tiles]
+    D = np.array([sum(t.evaluate(a, b) for t in _one_per_level(tiles, a, b))
+                  for a, b in zip(smp.u, smp.v, strict=True)])
+    return smp.s - D
+
+
+def test_nothing_to_explain_writes_no_tiles():
+    smp = field_samples(3000)
+    smp.s[:] = 0.0
+    pyramid = detail.fit_pyramid(smp, 3, spans=4)
+    assert all(not lev.tiles for lev in pyramid.levels)
+
+
+def test_periodic_field_closes_at_the_seam():
+    smp = field_samples(8000)
+    smp.s += 0.3 * np.cos(2 * np.pi * smp.u)
+    pyramid = detail.fit_pyramid(smp, 2, spans=4, periodic_u=True)
+    tiles = [read_detail_tile(d) for lev in pyramid.levels for _, d, _ in lev.tiles]
+    vs = list(np.linspace(0, 1, 23))
+    left = np.array(displacement_grid(tiles, [0.0], vs))
+    right = np.array(displacement_grid(tiles, [1.0], vs))
+    np.testing.assert_allclose(left, right, atol=1e-12)
+    assert np.abs(left).max() > 0.1
+
+
+@pytest.fixture(scope="module")
+def relief_bundle(tmp_path_factory):
+    from fitter.examples import relief_scan
+    from fitter.pipeline import FitOptions, fit_scan
+
+    out = tmp_path_factory.mktemp("detail") / "relief"
+    return fit_scan(relief_scan(12_000), out, FitOptions(grid=(12, 12), detail_levels=3))
+
+
+def test_bundle_tiles_and_manifest(relief_bundle):
+    m = relief_bundle.manifest
+    tree = m["tiles"]["detail"]
+    rms = [tree["base"]["rms"]] + [lev["rms"] for lev in tree["levels"]]
+    assert all(b < a for a, b in zip(rms, rms[1:], strict=False)), rms
+    assert tree["base"]["rms"] == pytest.approx(m["stats"]["rms"], rel=0.05)
+    for node in tree["nodes"]:
+        data = (relief_bundle.path / node["file"]).read_bytes()
+        assert m["files"][node["file"]] == node["bytes"] == len(data)
+        tile = read_detail_tile(data)
+        assert (tile.level, tile.i, tile.j) == (node["level"], node["i"], node["j"])
+        assert list(tile.uv_rect) == node["uv"]
+        assert node["geometric_error"] <= m["stats"]["max"] * 1.5
+
+
+def test_cli_level_applies_the_tiles(relief_bundle, tmp_path, capsys):
+    import trimesh
+
+    from client_py import read_patch, tessellate_grid
+
+    base, fine = tmp_path / "base.ply", tmp_path / "fine.ply"
+    assert main(["tessellate", str(relief_bundle.path), "--level", "-1", "--resolution", "33",
+                 "-o", str(base)]) == 0
+    assert main(["tessellate", str(relief_bundle.path), "--resolution", "33",
+                 "-o", str(fine)]) == 0
+    a = trimesh.load(base, process=False)
+    b = trimesh.load(fine, process=False)
+    surface = read_patch((relief_bundle.path / "base.tsp").read_bytes()).to_scan_frame()
+    plain = np.array(tessellate_grid(surface, 33, 33).positions).reshape(-1, 3)
+    np.testing.assert_allclose(a.vertices, plain, atol=1e-3)
+    moved = np.linalg.norm(b.vertices - a.vertices, axis=1)
+    assert moved.max() > 0.05 and len(b.vertices) == 33 * 33
+    assert "level 2" in capsys.readouterr().out
+    assert main(["tessellate", str(relief_bundle.path), "--level", "7", "-o",
+                 str(fine)]) == 2
+    assert "level must be an integer in -1..2" in capsys.readouterr().err
+    manifest = json.loads((relief_bundle.path / "manifest.json").read_text())
+    assert manifest["options"]["detail_levels"] == 3
+
+
+@pytest.mark.realdata
+def test_real_scan_rms_falls_with_levels(shared_data, tmp_path):
+    from fitter.io import load_scan
+    from fitter.pipeline import FitOptions, fit_scan
+
+    scan = load_scan(shared_data / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz")
+    m = fit_scan(scan, tmp_path / "b", FitOptions(grid=(16, 16), detail_levels=3,
+                                                  texture=False)).manifest
+    tree = m["tiles"]["detail"]
+    rms = [tree["base"]["rms"]] + [lev["rms"] for lev in tree["levels"]]
+    assert all(b < a for a, b in zip(rms, rms[1:], strict=False)), rms
+    assert rms[-1] < 0.5 * rms[0]
