@@ -35,6 +35,7 @@ demo: setup
 	$(BIN)/python -m fitter.demo
 
 bench: setup chromium
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[test,bench]'
 	$(BIN)/python -m bench
 
 clean:
