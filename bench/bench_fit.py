@@ -1,22 +1,42 @@
-"""Fit benchmark (issue 4): RMS, patch bytes and wall time of the three methods, 40x40 degree 2.
+"""Fit benchmark (issue 4): RMS, patch bytes and time of Tessera's methods beside splipy and
+scipy, feature-adaptive sampling on real data, and a 10^7-point fit.
 
-Data: the Happy Buddha range scan 0 and the Bali mask from ``../shared/data``
-(skipped when absent) and the generated example relief. For each: the paper's
-linear fit (the baseline of the RMS target), the paper's method as published,
-and Tessera's default; RMS is the foot-point deviation of every covered scan
-point from the *decoded* ``base.tsp``. Then a generated 10^7-point height field
-fitted in a subprocess, for wall time and peak resident memory.
+Data: the Happy Buddha range scan 0 (with its ``.conf`` pose) and the Bali mask
+from ``../shared/data`` (skipped when absent), and the generated example relief.
+40x40 control points, degree 2, for every fit.
+
+1. Methods, same run: Tessera's ``linear`` (the paper's initial solution: the
+   baseline of the RMS target), ``paper`` (as published) and ``tessera`` (the
+   default), and two independent least-squares spline fits on the same
+   uniform clamped 40x40 degree-2 grid, heights over the scan's PCA plane:
+   scipy's ``LSQBivariateSpline`` (FITPACK, scattered points) and splipy's
+   ``surface_factory.least_square_fit`` on the section matrix where it is full
+   (splipy fits grids only; with holes, splipy's basis matrices and a sparse
+   LSQR on the scattered points). RMS is the foot-point deviation of every
+   covered scan point (the points Tessera's map covers) from the surface; for
+   Tessera, from the *decoded* ``base.tsp``.
+2. Feature-adaptive sampling: the tessera fit from a 20,000-point sample,
+   uniform (``feature_strength=0``) against feature-adaptive (the default), with
+   the error in the feature regions (the top decile of local-PCA surface
+   variation among covered points) and elsewhere.
+3. A generated 10^7-point height field through ``fit_scan`` from a binary PLY,
+   in a subprocess: wall time, CPU time and peak resident memory.
+
 Writes ``bench/results/fit.json``.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import resource
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from bench import print_table, write_results
 
@@ -26,6 +46,9 @@ SCANS = {
     "happy-buddha scan 0": DATA / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz",
     "bali-mask": DATA / "bali-mask" / "mask.obj",
 }
+GRID = (40, 40)
+DEGREE = 2
+FEATURE_SAMPLES = 20_000
 
 BIG_SCRIPT = """
 import json, resource, sys, time
@@ -39,67 +62,227 @@ x = rng.uniform(-100, 100, n); y = rng.uniform(-70, 70, n)
 pts = np.column_stack([x, y, relief_height(x, y) + rng.normal(0, 0.05, n)])
 write_scan_ply(out + "/big.ply", pts)
 del pts, x, y
-start = time.perf_counter()
-bundle = fit_scan(out + "/big.ply", out + "/bundle", FitOptions())
-wall = time.perf_counter() - start
+start, cpu = time.perf_counter(), time.process_time()
+bundle = fit_scan(out + "/big.ply", out + "/bundle", FitOptions(detail_levels=0, texture=False))
+wall, cpu = time.perf_counter() - start, time.process_time() - cpu
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(json.dumps({"points": n, "wall_s": wall, "peak_mb": peak,
+print(json.dumps({"points": n, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
                   "rms": bundle.manifest["stats"]["rms"],
                   "bytes": bundle.manifest["files"]["base.tsp"],
                   "timings": bundle.manifest["timings"]}))
 """
 
 
-def _fit_row(name: str, scan, method: str, out: Path) -> dict:
-    from fitter.pipeline import FitOptions, fit_scan
+def _cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 
-    start = time.perf_counter()
-    bundle = fit_scan(scan, out / f"{name}-{method}".replace(" ", "_"), FitOptions(method=method))
-    wall = time.perf_counter() - start
+
+def _options(**kw):
+    """Base-patch options: the detail and texture layers (issue 6) are not timed here."""
+    from fitter.pipeline import FitOptions
+
+    fields = FitOptions.__dataclass_fields__
+    extra = {k: v for k, v in (("detail_levels", 0), ("texture", False)) if k in fields}
+    return FitOptions(grid=GRID, degree=DEGREE, **extra, **kw)
+
+
+def _tessera_row(name: str, scan, method: str, out: Path) -> dict:
+    from fitter.pipeline import fit_scan
+
+    start, cpu = time.perf_counter(), _cpu()
+    bundle = fit_scan(scan, out / f"{name}-{method}".replace(" ", "_"), _options(method=method))
+    wall, cpu = time.perf_counter() - start, _cpu() - cpu
     m = bundle.manifest
     return {"data": name, "method": method, "points": m["provenance"]["points"],
             "projection": m["projection"]["kind"], "coverage": m["projection"]["coverage"],
             "rms": m["stats"]["rms"], "max": m["stats"]["max"], "p99": m["stats"]["p99"],
-            "bytes": m["files"]["base.tsp"], "wall_s": wall}
+            "bytes": m["files"]["base.tsp"], "bits": m["base"]["bits"], "wall_s": wall,
+            "cpu_s": cpu}
+
+
+def _height_model(knots_u: np.ndarray, knots_v: np.ndarray, heights: np.ndarray, proj):
+    """The height field ``h(u, v)`` over the plane map as a ``PatchModel``: ``x, y`` are
+    linear in ``u, v``, hence exact with control points at the Greville abscissae."""
+    from fitter.nurbs import PatchModel
+
+    def greville(t: np.ndarray, n: int) -> np.ndarray:
+        return np.array([t[i + 1:i + DEGREE + 1].mean() for i in range(n)])
+
+    n_u, n_v = heights.shape
+    gu, gv = greville(knots_u, n_u), greville(knots_v, n_v)
+    GU, GV = np.meshgrid(gu, gv, indexing="ij")
+    Q = proj.from_uvh(GU.ravel(), GV.ravel(), heights.ravel()).reshape(n_u, n_v, 3)
+    return PatchModel((DEGREE, DEGREE), (knots_u, knots_v), Q, np.ones((n_u, n_v)))
+
+
+def _library_rows(name: str, scan) -> list[dict]:
+    """scipy's and splipy's least-squares fits of the height over the PCA plane, measured
+    on the points Tessera's chosen map covers."""
+    import splipy
+    import splipy.surface_factory
+    from scipy.interpolate import LSQBivariateSpline
+    from scipy.sparse.linalg import lsqr
+
+    from fitter.error import deviations
+    from fitter.nurbs import PatchModel
+    from fitter.parameterize import choose_projection
+    from fitter.sections import section_matrix, section_shape
+
+    points = scan.points
+    covered = choose_projection(points, None, "auto").covered
+    plane = choose_projection(points, None, "plane").projection
+    u, v, h = plane.to_uvh(points)
+    local = plane.local(points)
+    knots = np.concatenate([[0.0] * DEGREE, np.linspace(0, 1, GRID[0] - DEGREE + 1),
+                            [1.0] * DEGREE])
+    interior = knots[DEGREE + 1:-DEGREE - 1]
+    rows = []
+
+    def row(library: str, model, seconds: float, cpu: float) -> dict:
+        dev = deviations(model, local[covered], u[covered], v[covered])
+        a = np.abs(dev.d)
+        return {"data": name, "method": library, "points": len(points), "projection": "plane",
+                "coverage": float(covered.mean()), "rms": float(np.sqrt(np.mean(a**2))),
+                "max": float(a.max()), "p99": float(np.percentile(a, 99)), "bytes": None,
+                "bits": None, "wall_s": seconds, "cpu_s": cpu}
+
+    start, cpu = time.perf_counter(), _cpu()
+    spline = LSQBivariateSpline(u, v, h, interior, interior, bbox=[0, 1, 0, 1],
+                                kx=DEGREE, ky=DEGREE)
+    tx, ty, c = spline.tck
+    heights = np.asarray(c).reshape(len(tx) - DEGREE - 1, len(ty) - DEGREE - 1)
+    wall, cpu = time.perf_counter() - start, _cpu() - cpu
+    rows.append(row("scipy LSQBivariateSpline", _height_model(tx, ty, heights, plane),
+                    wall, cpu))
+
+    start, cpu = time.perf_counter(), _cpu()
+    basis = splipy.BSplineBasis(order=DEGREE + 1, knots=knots)
+    sm = section_matrix(plane, u, v, h, section_shape(len(points), GRID))
+    if sm.full:
+        surface = splipy.surface_factory.least_square_fit(
+            sm.points, [basis, basis], [sm.u, sm.v])
+        model = PatchModel((DEGREE, DEGREE), (knots, knots),
+                           np.asarray(surface.controlpoints, dtype=float), np.ones(GRID))
+        label = "splipy least_square_fit (section matrix)"
+    else:
+        A = _collocation(np.asarray(basis.evaluate(u)), np.asarray(basis.evaluate(v)))
+        heights = lsqr(A, h, atol=1e-12, btol=1e-12, iter_lim=20_000)[0].reshape(GRID)
+        model = _height_model(knots, knots, heights, plane)
+        label = f"splipy basis + LSQR (scattered; grid has {int((~sm.valid).sum())} holes)"
+    wall, cpu = time.perf_counter() - start, _cpu() - cpu
+    rows.append(row(label, model, wall, cpu))
+    return rows
+
+
+def _collocation(Bu: np.ndarray, Bv: np.ndarray):
+    """Sparse ``A (m, n_u n_v)`` with ``A_k,(a n_v + b) = N_a(u_k) N_b(v_k)`` from the dense
+    one-direction basis matrices (``DEGREE + 1`` non-zeros per row)."""
+    import scipy.sparse as sp
+
+    m, n_v = Bv.shape
+    k = DEGREE + 1
+    ia = np.sort(np.argsort(-Bu, axis=1)[:, :k], axis=1)
+    ib = np.sort(np.argsort(-Bv, axis=1)[:, :k], axis=1)
+    r = np.arange(m)[:, None]
+    data = Bu[r, ia][:, :, None] * Bv[r, ib][:, None, :]
+    cols = ia[:, :, None] * n_v + ib[:, None, :]
+    return sp.csr_matrix((data.ravel(), cols.ravel(), np.arange(0, m * k * k + 1, k * k)),
+                         shape=(m, Bu.shape[1] * n_v))
+
+
+def _feature_rows(name: str, scan, out: Path) -> list[dict]:
+    """The tessera fit from ``FEATURE_SAMPLES`` points, uniform against feature-adaptive."""
+    from client_py import read_patch
+    from fitter.error import deviations
+    from fitter.features import surface_variation
+    from fitter.nurbs import PatchModel
+    from fitter.parameterize import choose_projection
+    from fitter.pipeline import fit_scan
+
+    points = scan.points
+    cov = choose_projection(points, None, "auto")
+    covered = cov.covered
+    variation = surface_variation(points)
+    feature = covered & (variation >= np.quantile(variation[covered], 0.9))
+    rest = covered & ~feature
+    proj = cov.projection
+    u, v, _ = proj.to_uvh(points)
+    rows = []
+    for label, strength in (("uniform", 0.0), ("feature-adaptive", None)):
+        kw = {"samples": FEATURE_SAMPLES}
+        if strength is not None:
+            kw["feature_strength"] = strength
+        opts = _options(**kw)
+        bundle = fit_scan(scan, out / f"features-{label}", opts)
+        model = PatchModel.from_surface(read_patch((bundle.path / "base.tsp").read_bytes()))
+        d = np.abs(deviations(model, proj.local(points), u, v, proj.periodic_u).d)
+        rows.append({"data": name, "sampling": label, "strength": opts.feature_strength,
+                     "samples": FEATURE_SAMPLES, "feature_points": int(feature.sum()),
+                     "feature_rms": float(np.sqrt(np.mean(d[feature] ** 2))),
+                     "feature_p99": float(np.percentile(d[feature], 99)),
+                     "feature_max": float(d[feature].max()),
+                     "rest_rms": float(np.sqrt(np.mean(d[rest] ** 2))),
+                     "rms": float(np.sqrt(np.mean(d[covered] ** 2)))})
+    return rows
+
+
+def _big(points: int) -> dict | None:
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = subprocess.run([sys.executable, "-c", BIG_SCRIPT, str(points), tmp],
+                              capture_output=True, text=True, cwd=ROOT,
+                              env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    if proc.returncode != 0:
+        print(f"{points}-point fit failed:", proc.stderr[-2000:])
+        return None
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def run(big_points: int = 10_000_000) -> dict:
     from fitter.examples import relief_scan
     from fitter.io import load_scan
+    from fitter.io.scan import Scan
 
-    rows = []
+    inputs = {"generated relief 80k": Scan.from_array(relief_scan())}
+    for name, path in SCANS.items():
+        if path.exists():
+            inputs[name] = load_scan(path)
+        else:
+            print(f"skipping {name}: {path} is absent")
+    rows, features = [], []
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        inputs = {"generated relief 80k": relief_scan()}
-        for name, path in SCANS.items():
-            if path.exists():
-                inputs[name] = load_scan(path)
-            else:
-                print(f"skipping {name}: {path} is absent")
         for name, scan in inputs.items():
             for method in ("linear", "paper", "tessera"):
-                rows.append(_fit_row(name, scan, method, out))
-        big = None
-        if big_points:
-            proc = subprocess.run([sys.executable, "-c", BIG_SCRIPT, str(big_points), tmp],
-                                  capture_output=True, text=True, cwd=ROOT)
-            if proc.returncode == 0:
-                big = json.loads(proc.stdout.strip().splitlines()[-1])
-            else:
-                print("10^7-point fit failed:", proc.stderr[-2000:])
+                rows.append(_tessera_row(name, scan, method, out))
+            rows += _library_rows(name, scan)
+            if name in SCANS:
+                features += _feature_rows(name, scan, out)
     linear = {r["data"]: r["rms"] for r in rows if r["method"] == "linear"}
     for r in rows:
         r["rms_vs_linear"] = r["rms"] / linear[r["data"]]
-    print_table("fit, 40x40 degree 2 (RMS of covered scan points vs decoded base.tsp)",
+    print_table(f"fit, {GRID[0]}x{GRID[1]} degree {DEGREE}: RMS of the covered scan points "
+                "(Tessera: from the decoded base.tsp)",
                 ["data", "method", "points", "map", "cover", "RMS", "RMS/linear", "max",
-                 "bytes", "wall s"],
+                 "bytes", "bits", "wall s", "CPU s"],
                 [[r["data"], r["method"], r["points"], r["projection"], f"{r['coverage']:.3f}",
-                  f"{r['rms']:.4g}", f"{r['rms_vs_linear']:.3f}", f"{r['max']:.4g}", r["bytes"],
-                  f"{r['wall_s']:.2f}"] for r in rows])
+                  f"{r['rms']:.4g}", f"{r['rms_vs_linear']:.3f}", f"{r['max']:.4g}",
+                  r["bytes"] or "-", r["bits"] or "-", f"{r['wall_s']:.2f}",
+                  f"{r['cpu_s']:.2f}"] for r in rows])
+    if features:
+        print_table(f"feature-adaptive sampling, {FEATURE_SAMPLES} samples (features: top "
+                    "decile of surface variation)",
+                    ["data", "sampling", "feature RMS", "feature P99", "feature max",
+                     "rest RMS", "all RMS"],
+                    [[r["data"], r["sampling"], f"{r['feature_rms']:.4g}",
+                      f"{r['feature_p99']:.4g}", f"{r['feature_max']:.4g}",
+                      f"{r['rest_rms']:.4g}", f"{r['rms']:.4g}"] for r in features])
+    big = _big(big_points) if big_points else None
     if big:
-        print_table("generated height field", ["points", "wall s", "peak MB", "RMS", "bytes"],
-                    [[big["points"], f"{big['wall_s']:.1f}", f"{big['peak_mb']:.0f}",
-                      f"{big['rms']:.4g}", big["bytes"]]])
-    result = {"rows": rows, "big": big}
+        print_table("generated height field, fit_scan from a binary PLY",
+                    ["points", "wall s", "CPU s", "peak MB", "RMS", "bytes"],
+                    [[big["points"], f"{big['wall_s']:.1f}", f"{big['cpu_s']:.1f}",
+                      f"{big['peak_mb']:.0f}", f"{big['rms']:.4g}", big["bytes"]]])
+    result = {"rows": rows, "features": features, "big": big}
     write_results("fit", result)
     return result

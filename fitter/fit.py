@@ -29,6 +29,8 @@ residuals become orthogonal distances.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import solveh_banded
@@ -85,20 +87,41 @@ def second_differences(shape: tuple[int, int]) -> sp.csr_matrix:
 
 
 # ------------------------------------------------------------------ linear solves
-def _regularised_solve(A: sp.csr_matrix, targets: np.ndarray, T: sp.csr_matrix,
+@functools.lru_cache(maxsize=8)
+def _thin_plate_normal(shape: tuple[int, int], periodic_u: bool) -> tuple[sp.csc_matrix, float]:
+    """``(L T)^T (L T)`` and its trace, the same for every solve on one control grid."""
+    LT = second_differences(shape) @ seam_closure(shape, periodic_u)
+    LtL = (LT.T @ LT).tocsc()
+    return LtL, float(LtL.diagonal().sum())
+
+
+def _regularised_solve(A: sp.csr_matrix, targets: np.ndarray, periodic_u: bool,
                        smoothing: float, shape: tuple[int, int]) -> np.ndarray:
     """``Q = T q`` minimising ``||A T q - targets||^2 + lam ||L T q||^2`` (normal equations;
-    ``lam = smoothing * tr(AtA) / tr(LtL)`` so the option is scale-free)."""
-    AT = (A @ T).tocsr()
+    ``lam = smoothing * tr(AtA) / tr(LtL)`` so the option is scale-free).
+
+    Without a seam the normal matrix is banded (about ``2 n_v + 2`` wide) and
+    symmetric positive definite once data or smoothing pin every control point:
+    banded Cholesky, with a sparse LU for the singular case (control points no
+    datum reaches and no smoothing ties) and for the seam's wrap-around coupling.
+    """
+    T = seam_closure(shape, periodic_u) if periodic_u else None
+    AT = (A @ T).tocsr() if periodic_u else A
     AtA = (AT.T @ AT).tocsc()
     rhs = AT.T @ targets
     if smoothing > 0:
-        LT = second_differences(shape) @ T
-        LtL = (LT.T @ LT).tocsc()
-        lam = smoothing * AtA.diagonal().sum() / max(LtL.diagonal().sum(), 1e-300)
-        AtA = AtA + lam * LtL
-    q = spsolve(AtA, rhs)
-    return np.asarray(T @ q.reshape(AtA.shape[0], -1))
+        LtL, trace = _thin_plate_normal(shape, periodic_u)
+        AtA = AtA + (smoothing * AtA.diagonal().sum() / max(trace, 1e-300)) * LtL
+    q = None
+    if not periodic_u:
+        try:
+            q = _solve_banded_spd(AtA, np.zeros(AtA.shape[0]), rhs)
+        except np.linalg.LinAlgError:
+            q = None
+    if q is None:
+        q = spsolve(AtA.tocsc(), rhs)
+    q = np.asarray(q).reshape(AtA.shape[0], -1)
+    return np.asarray(T @ q) if periodic_u else q
 
 
 def fit_section_matrix(model: PatchModel, u: np.ndarray, v: np.ndarray, points: np.ndarray,
@@ -113,7 +136,6 @@ def fit_section_matrix(model: PatchModel, u: np.ndarray, v: np.ndarray, points: 
     out = model.copy()
     out.W = np.ones(model.shape)
     shape = model.shape
-    T = seam_closure(shape, periodic_u)
     if valid.all() and smoothing == 0:
         Bu = _direction_matrix(model, u, axis=0)
         Bv = _direction_matrix(model, v, axis=1)
@@ -126,7 +148,7 @@ def fit_section_matrix(model: PatchModel, u: np.ndarray, v: np.ndarray, points: 
     keep = valid.ravel()
     rows = model.basis_rows(UU.ravel()[keep], VV.ravel()[keep])
     A = rows.matrix(model.n_ctrl)
-    Q = _regularised_solve(A, points.reshape(-1, 3)[keep], T, smoothing, shape)
+    Q = _regularised_solve(A, points.reshape(-1, 3)[keep], periodic_u, smoothing, shape)
     out.Q = Q.reshape(shape[0], shape[1], 3)
     return out
 
@@ -153,8 +175,7 @@ def fit_points_linear(model: PatchModel, u: np.ndarray, v: np.ndarray, points: n
     w = model.W.ravel()[rows.index]
     rational = rows.value * w / np.einsum("mk,mk->m", rows.value, w)[:, None]
     A = BasisRows(rows.index, rational, rows.du, rows.dv).matrix(model.n_ctrl)
-    T = seam_closure(model.shape, periodic_u)
-    Q = _regularised_solve(A, points, T, smoothing, model.shape)
+    Q = _regularised_solve(A, points, periodic_u, smoothing, model.shape)
     out = model.copy()
     out.Q = Q.reshape(model.Q.shape)
     return out
@@ -245,17 +266,17 @@ def _solve_banded_spd(H: sp.csr_matrix, damping: np.ndarray, rhs: np.ndarray) ->
 
 # ------------------------------------------------------------------ parameter correction
 def project_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.ndarray,
-                   periodic_u: bool = False, iterations: int = 4, tol: float = 1e-6
+                   periodic_u: bool = False, iterations: int = 4, tol: float = 1e-4
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Foot points: ``(u, v)`` minimising ``||S(u, v) - points||`` from the given start.
 
     Gauss-Newton steps ``[S_u S_v]^+ (P - S)`` clamped to the domain (wrapped
     in ``u`` for periodic maps), each step halved until the distance does not
-    grow: robust on curved patches where a full step overshoots. A point whose
-    step is below ``tol`` in both parameters (1e-6 of the domain: the distance
-    it would still gain is second order in that, nanometres on a metre-sized
-    patch) or cannot be improved is done; later iterations evaluate only the
-    points still moving.
+    grow: robust on curved patches where a full step overshoots. A point is
+    done when its residual is within ``tol`` radians of the surface normal (the
+    step's displacement ``|du S_u + dv S_v|`` is below ``tol |P - S|``; the
+    distance still to gain is of order ``tol^2 |P - S|``) or when no halved step
+    improves it; later iterations evaluate only the points still moving.
     """
     u = np.array(u, dtype=float)
     v = np.array(v, dtype=float)
@@ -278,8 +299,13 @@ def project_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.n
         lo_u, hi_u = (-np.inf, np.inf) if periodic_u else (-u[active], 1.0 - u[active])
         du = np.clip(du, lo_u, hi_u)
         dv = np.clip(dv, -v[active], 1.0 - v[active])
-        moving = (np.abs(du) > tol) | (np.abs(dv) > tol)
+        # the step moves the surface point by |du S_u + dv S_v|, the residual's tangential part:
+        # against |r| that is the sine of its angle to the normal, the foot-point condition
+        shift = du[:, None] * Su[active] + dv[:, None] * Sv[active]
+        moving = np.einsum("ij,ij->i", shift, shift) > tol**2 * dist[active]
         active, du, dv = active[moving], du[moving], dv[moving]
+        if len(active) == 0:
+            break
         step = np.ones(len(active))
         todo = np.ones(len(active), dtype=bool)
         for _half in range(4):
@@ -301,6 +327,4 @@ def project_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.n
             if not todo.any():
                 break
         active = active[~todo]  # a point no halved step improved has reached its minimum
-        if len(active) == 0:
-            break
     return u, v
