@@ -134,10 +134,31 @@ def write_error_ply(path: Path, points_scan: np.ndarray, d: np.ndarray) -> None:
         fh.write(data.tobytes())
 
 
+def _depth_view(points: np.ndarray, d: np.ndarray, width: int = 480
+                ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The deviation of the nearest point per pixel, seen along the patch frame's third axis
+    (the largest ``z`` wins, a z-buffer), at about two points per covered pixel; ``NaN``
+    where no point falls. Returns the image ``(rows, cols)`` and its ``(x0, x1, y0, y1)``."""
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    span = np.maximum(hi - lo, 1e-300)
+    aspect = span[1] / span[0]
+    cols = int(np.clip(np.sqrt(len(d) / 2.0 / max(aspect, 1e-3)), 16, width))
+    rows = int(np.clip(round(cols * aspect), 16, 2 * width))
+    ix = np.minimum(((points[:, 0] - lo[0]) / span[0] * cols).astype(np.int64), cols - 1)
+    iy = np.minimum(((points[:, 1] - lo[1]) / span[1] * rows).astype(np.int64), rows - 1)
+    order = np.argsort(points[:, 2], kind="stable")[::-1]  # nearest first
+    pixel = iy[order] * cols + ix[order]
+    pixel, first = np.unique(pixel, return_index=True)  # the nearest point of each pixel
+    view = np.full(rows * cols, np.nan)
+    view[pixel] = d[order[first]]
+    return view.reshape(rows, cols), (lo[0], hi[0], lo[1], hi[1])
+
+
 def write_error_png(path: Path, dev: Deviations, points_local: np.ndarray, units: str,
                     title: str) -> None:
     """Two panels: mean signed deviation over the ``(u, v)`` domain, and the scan seen
-    along the patch frame's third axis, points coloured by deviation; one colour bar."""
+    along the patch frame's third axis, each pixel coloured by the deviation of its
+    nearest point (:func:`_depth_view`); one colour bar."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -159,11 +180,8 @@ def write_error_png(path: Path, dev: Deviations, points_local: np.ndarray, units
     axes[0].set_xlabel("u")
     axes[0].set_ylabel("v")
     axes[0].set_title("deviation over the parameter domain")
-    order = np.argsort(points_local[:, 2])  # painter's order: far points first
-    step = max(1, len(order) // 400_000)
-    shown = order[::step]
-    image = axes[1].scatter(points_local[shown, 0], points_local[shown, 1], c=dev.d[shown],
-                            s=0.3, linewidths=0, rasterized=True, **kw)
+    view, extent = _depth_view(points_local, dev.d)
+    image = axes[1].imshow(view, origin="lower", extent=extent, interpolation="nearest", **kw)
     axes[1].set_aspect("equal")
     axes[1].set_axis_off()
     axes[1].set_title("deviation on the scan")
