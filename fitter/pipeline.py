@@ -378,7 +378,10 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
                                if uncovered.any() else None)},
             "provenance": {"input": name, "bytes": scan.source.get("bytes"),
                            "sha256": scan.source.get("sha256"), "points": int(len(points)),
-                           "format": scan.source.get("format")},
+                           "format": scan.source.get("format"),
+                           # a .conf registration: each file it read, with its own digest
+                           **({"files": scan.source["files"]} if "files" in scan.source
+                              else {})},
             "options": {k: (list(x) if isinstance(x, tuple) else x)
                         for k, x in asdict(options).items()},
             "stats": best.stats,
