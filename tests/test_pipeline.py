@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import numpy as np
@@ -133,11 +134,40 @@ def test_bad_scans_give_one_clear_error(tmp_path, points, message):
         (FitOptions(max_error=-1.0), "max_error"),
         (FitOptions(projection="torus"), "projection"),
         (FitOptions(degree=0), "degree"),
+        (FitOptions(samples=10), "samples"),
     ],
 )
 def test_bad_options_give_one_clear_error(tmp_path, options, message):
     with pytest.raises(ValueError, match=message):
         fit_scan(relief_scan(1000), tmp_path / "x", options)
+
+
+def test_automatic_bits_cost_at_most_a_percent_of_rms(tmp_path):
+    """The default quantisation picks fewer bits than 16 and keeps the RMS (measured on the
+    decoded patch) within 1 % of the 16-bit patch's, for fewer bytes."""
+    scan = relief_scan(20000)
+    auto = fit_scan(scan, tmp_path / "auto", FitOptions(grid=(20, 20))).manifest
+    fixed = fit_scan(scan, tmp_path / "fixed", FitOptions(grid=(20, 20), bits=16)).manifest
+    assert 8 <= auto["base"]["bits"] < 16 == fixed["base"]["bits"]
+    assert auto["stats"]["rms"] <= 1.01 * fixed["stats"]["rms"]
+    assert auto["files"]["base.tsp"] < fixed["files"]["base.tsp"]
+
+
+def test_conf_provenance_lists_every_file_with_its_digest(tmp_path):
+    points = relief_scan(6000)
+    lines = []
+    for i, part in enumerate((points[::2], points[1::2])):
+        np.savetxt(tmp_path / f"part{i}.xyz", part, fmt="%.9g")
+        lines.append(f"bmesh part{i}.xyz 0 0 0 0 0 0 1")
+    (tmp_path / "all.conf").write_text("\n".join(lines) + "\n")
+    manifest = fit_scan(tmp_path / "all.conf", tmp_path / "b", FitOptions(grid=(12, 12))).manifest
+    files = {f["name"]: f for f in manifest["provenance"]["files"]}
+    assert set(files) == {"all.conf", "part0.xyz", "part1.xyz"}
+    for name, entry in files.items():
+        data = (tmp_path / name).read_bytes()
+        assert entry["sha256"] == hashlib.sha256(data).hexdigest()
+        assert entry["bytes"] == len(data)
+    assert manifest["provenance"]["points"] == len(points)
 
 
 def test_cli_reports_bad_input_without_traceback(tmp_path, capsys):
