@@ -8,6 +8,7 @@ print one line on stderr and exit with status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -258,19 +259,20 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     snapshot = app.extensions["tessera_snapshot"]
     if snapshot is not None:
-        snapshot.start_background_build()  # the viewer's fast start, made once with node
+        if args.production:
+            snapshot.ensure()  # before gunicorn forks: no build thread in the arbiter
+        else:
+            snapshot.start_background_build()  # the viewer's fast start, made once with node
     runner = _start_job_runner(app, args.fit_workers)
     count = len(app.extensions["tessera_collection"].bundles())
-    server = "waitress" if args.production else "the development server"
+    server = (f"gunicorn ({args.processes or os.cpu_count()} processes x {args.threads} "
+              "threads)" if args.production else "the development server")
     print(f"serving {count} object(s) from {collection} at http://{args.host}:{args.port}/ "
           f"with {server}{'; admin at /admin/' if runner is not None else ''} (Ctrl-C to stop)",
           flush=True)
     try:
         if args.production:
-            import waitress
-
-            waitress.serve(app, host=args.host, port=args.port, threads=args.threads,
-                           ident="tessera", _quiet=True)
+            _serve_gunicorn(app, args)
         else:
             run_simple(args.host, args.port, app, threaded=True)
     finally:
@@ -279,15 +281,37 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _serve_gunicorn(app, args: argparse.Namespace) -> None:  # noqa: ANN001 - a Flask app
+    """Serve ``app`` with gunicorn: pre-forked processes (one per core by default), each with
+    ``--threads`` request threads, so serving uses every core (one Python process is held to
+    one core by the GIL)."""
+    from gunicorn.app.base import BaseApplication
+
+    class Application(BaseApplication):
+        def load_config(self) -> None:
+            settings = {"bind": f"{args.host}:{args.port}",
+                        "workers": args.processes or os.cpu_count() or 1,
+                        "worker_class": "gthread", "threads": args.threads,
+                        "accesslog": None, "errorlog": "-", "loglevel": "warning",
+                        "proc_name": "tessera-serve"}
+            for key, value in settings.items():
+                self.cfg.set(key, value)
+
+        def load(self):  # noqa: ANN202 - the WSGI app
+            return app
+
+    Application().run()
+
+
 def _start_job_runner(app, workers: int | None):  # noqa: ANN001, ANN202 - Flask app, runner
-    """The admin's fit-job supervisor, when the admin area is on (see fitter.jobs)."""
-    from .jobs import JobRunner
+    """The admin's fit-job supervisor in its own process, when the admin area is on."""
+    from .jobs import RunnerProcess
 
     admin = app.extensions.get("tessera_admin")
     if admin is None or not admin.enabled:
         return None
     count = workers or int(app.config.get("TESSERA_JOB_WORKERS") or 0) or None
-    return JobRunner(admin.collection, workers=count).start()
+    return RunnerProcess(admin.collection, workers=count).start()
 
 
 def _cmd_admin_set_token(args: argparse.Namespace) -> int:
@@ -416,10 +440,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
     serve.add_argument("--port", type=_port, default=8000, help="port (default 8000)")
     serve.add_argument("--production", action="store_true",
-                       help="serve with waitress, a production WSGI server, instead of "
-                       "werkzeug's development server")
-    serve.add_argument("--threads", type=_positive_int, default=8,
-                       help="request threads with --production (default 8)")
+                       help="serve with gunicorn, a production WSGI server (pre-forked "
+                       "processes), instead of werkzeug's development server")
+    serve.add_argument("--processes", type=_positive_int_or_one, default=None,
+                       help="request processes with --production (default: one per core)")
+    serve.add_argument("--threads", type=_positive_int_or_one, default=4,
+                       help="request threads per process with --production (default 4)")
     serve.add_argument("--fit-workers", type=_positive_int_or_one, default=None,
                        help="admin fit jobs run at once (default TESSERA_JOB_WORKERS, "
                        "else one per core)")

@@ -1,9 +1,10 @@
 """Fit jobs of the admin area: a supervisor and one worker process per running fit.
 
-``tessera serve`` starts a :class:`JobRunner`: a supervisor thread in the server
-process that takes ``queued`` jobs from the catalog (``fitter.catalog``) and
-runs each in its own worker process, at most ``workers`` at a time (default one
-per core), so the web process never computes a fit and never stalls behind one.
+``tessera serve`` starts a :class:`JobRunner` in a process of its own
+(:class:`RunnerProcess`): a supervisor that takes ``queued`` jobs from the
+catalog (``fitter.catalog``) and runs each in its own worker process, at most
+``workers`` at a time (default one per core), so the web process never computes
+a fit and never stalls behind one.
 Each worker calls :func:`fitter.pipeline.fit_scan` with a progress callback
 that writes the stage and the overall fraction into the catalog (the same
 callback interface that drives the CLI's bars), throttled to a few writes a
@@ -335,6 +336,56 @@ class JobRunner:
     def busy(self) -> int:
         """Fits running now."""
         return len(self._running)
+
+
+def _runner_process_main(collection: str, workers: int | None, parent: Connection) -> None:
+    """Body of :class:`RunnerProcess`: supervise until the parent closes its pipe end."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    logging.basicConfig(level=logging.WARNING, format="tessera jobs: %(message)s")
+    runner = JobRunner(collection, workers).start()
+    try:
+        parent.recv()
+    except (EOFError, OSError):
+        pass  # the server stopped, or died: its end of the pipe is closed either way
+    runner.stop()
+
+
+class RunnerProcess:
+    """A :class:`JobRunner` in a process of its own, for ``tessera serve``.
+
+    The supervisor must not live in a process that forks (gunicorn's arbiter forks
+    its request workers at any time, and a fork copies only the forking thread,
+    perhaps with another thread's lock held), so ``tessera serve`` starts it here,
+    by ``spawn``. It stops when :meth:`stop` is called or when the server dies
+    (its pipe closes): running fits are then killed and marked ``interrupted``.
+    """
+
+    def __init__(self, collection: str | os.PathLike, workers: int | None = None) -> None:
+        self.collection = str(Path(collection).resolve())
+        self.workers = workers
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._pipe: Connection | None = None
+
+    def start(self) -> RunnerProcess:
+        ctx = multiprocessing.get_context("spawn")
+        reader, self._pipe = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_runner_process_main, name="tessera-jobs",
+                                    args=(self.collection, self.workers, reader), daemon=False)
+        self._process.start()
+        reader.close()
+        return self
+
+    def stop(self, timeout: float = 20.0) -> None:
+        if self._pipe is not None:
+            self._pipe.close()  # EOF for the runner: it stops its fits and exits
+            self._pipe = None
+        if self._process is not None:
+            self._process.join(timeout)
+            if self._process.is_alive():
+                self._process.kill()
+            self._process = None
 
 
 def _exit_text(code: int | None) -> str:
