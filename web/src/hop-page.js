@@ -7,33 +7,16 @@
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
+import { $, startPage } from "./page.js";
 
 const RESOLUTION = 192; // 36,864 vertices: one 3DHOP chunk (its limit is 65,535 per chunk)
-const config = JSON.parse(document.getElementById("tessera-config").textContent);
-const $ = (id) => document.getElementById(id);
-const stats = { vertices: 0, triangles: 0, tessellate_ms: null, pyodide_load_ms: null,
-  first_frame_ms: null, bytes_downloaded: 0, kernel: null, ply_bytes: 0 };
-window.tessera = { config, stats };
-
-const STAGES = {
+const { config, stats, showStage, showError } = startPage({
   runtime: "Starting the Python runtime (Pyodide)…",
   client_py: "Installing client_py…",
   patch: "Reading the NURBS patch…",
   ply: "Writing the PLY mesh…",
   hop: "Handing the mesh to 3DHOP…",
-};
-
-function showStage(stage) {
-  $("loading-text").textContent = STAGES[stage] || stage;
-  document.body.dataset.stage = stage;
-}
-
-function showError(message) {
-  document.body.dataset.error = message;
-  $("loading").hidden = true;
-  $("error").hidden = false;
-  $("error-text").textContent = message;
-}
+}, { ply_bytes: 0 });
 
 // 3DHOP's toolbar (init.js) calls this global.
 window.actionsToolbar = (action) => {

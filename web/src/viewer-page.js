@@ -7,36 +7,19 @@
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
+import { $, startPage } from "./page.js";
 
 const COARSE = 24; // first mesh: ~1k vertices, drawn within milliseconds of the patch
 const MIN_RES = 48;
 const MAX_RES = 384;
 
-const config = JSON.parse(document.getElementById("tessera-config").textContent);
-const $ = (id) => document.getElementById(id);
-const stats = { vertices: 0, triangles: 0, tessellate_ms: null, pyodide_load_ms: null,
-  first_frame_ms: null, bytes_downloaded: 0, kernel: null, resolution: null, meshes: 0 };
-window.tessera = { config, stats };
-
-const STAGES = {
+const { config, stats, showStage, showError } = startPage({
   manifest: "Reading the object's description…",
   runtime: "Starting the Python runtime (Pyodide)…",
   client_py: "Installing client_py…",
   patch: "Reading the NURBS patch…",
   tessellation: "Tessellating…",
-};
-
-function showStage(stage) {
-  $("loading-text").textContent = STAGES[stage] || stage;
-  document.body.dataset.stage = stage;
-}
-
-function showError(message) {
-  document.body.dataset.error = message;
-  $("loading").hidden = true;
-  $("error").hidden = false;
-  $("error-text").textContent = message;
-}
+}, { resolution: null, meshes: 0 });
 
 function formatBytes(n) {
   if (n < 1024) return `${n} B`;
