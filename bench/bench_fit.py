@@ -52,18 +52,21 @@ FEATURE_SAMPLES = 20_000
 
 BIG_SCRIPT = """
 import json, resource, sys, time
+from pathlib import Path
 import numpy as np
 from fitter.demo import write_scan_ply
 from fitter.examples import relief_height
 from fitter.pipeline import FitOptions, fit_scan
-n = int(sys.argv[1]); out = sys.argv[2]
+n = int(sys.argv[1]); out = Path(sys.argv[2])
 rng = np.random.default_rng(0)
 x = rng.uniform(-100, 100, n); y = rng.uniform(-70, 70, n)
 pts = np.column_stack([x, y, relief_height(x, y) + rng.normal(0, 0.05, n)])
-write_scan_ply(out + "/big.ply", pts)
+write_scan_ply(out / "big.ply", pts)
 del pts, x, y
 start, cpu = time.perf_counter(), time.process_time()
-bundle = fit_scan(out + "/big.ply", out + "/bundle", FitOptions(detail_levels=0, texture=False))
+extra = {k: v for k, v in (("detail_levels", 0), ("texture", False))
+         if k in FitOptions.__dataclass_fields__}
+bundle = fit_scan(out / "big.ply", out / "bundle", FitOptions(**extra))
 wall, cpu = time.perf_counter() - start, time.process_time() - cpu
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"points": n, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
