@@ -61,14 +61,15 @@ def _point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray,
     q = a + ab * v[:, None] + ac * w[:, None]  # interior
     def seg(x, y, t):
         return x + (y - x) * np.clip(t, 0, 1)[:, None]
-    def proj(x, y):
+    def proj(x, y, pts):
         d = y - x
-        return np.einsum("ij,ij->i", p - x, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
+        return np.einsum("ij,ij->i", pts - x, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
     outside = (va <= 0) | (vb <= 0) | (vc <= 0) | ~(np.abs(denom) > 1e-300)
     if outside.any():  # on an edge or a vertex: the nearest of the three edges
         o = outside
-        cand = [seg(a[o], b[o], proj(a[o], b[o])), seg(a[o], c[o], proj(a[o], c[o])),
-                seg(b[o], c[o], proj(b[o], c[o]))]
+        po = p[o]
+        cand = [seg(a[o], b[o], proj(a[o], b[o], po)), seg(a[o], c[o], proj(a[o], c[o], po)),
+                seg(b[o], c[o], proj(b[o], c[o], po))]
         dist = np.stack([np.linalg.norm(p[o] - x, axis=1) for x in cand])
         q[o] = np.choose(dist.argmin(axis=0)[:, None], cand)
     return np.linalg.norm(p - q, axis=1)
