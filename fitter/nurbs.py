@@ -95,10 +95,11 @@ class PatchModel:
         rows = (su[:, None] - p + np.arange(p + 1))[:, :, None] * n_v
         cols = (sv[:, None] - q + np.arange(q + 1))[:, None, :]
         m = len(su)
-        index = (rows + cols).reshape(m, -1)
-        value = (Nu[:, :, None] * Nv[:, None, :]).reshape(m, -1)
-        du = (dNu[:, :, None] * Nv[:, None, :]).reshape(m, -1)
-        dv = (Nu[:, :, None] * dNv[:, None, :]).reshape(m, -1)
+        k = (p + 1) * (q + 1)
+        index = (rows + cols).reshape(m, k)
+        value = (Nu[:, :, None] * Nv[:, None, :]).reshape(m, k)
+        du = (dNu[:, :, None] * Nv[:, None, :]).reshape(m, k)
+        dv = (Nu[:, :, None] * dNv[:, None, :]).reshape(m, k)
         return BasisRows(index, value, du, dv)
 
     def evaluate(self, u: np.ndarray, v: np.ndarray, derivatives: bool = False):

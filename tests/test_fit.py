@@ -185,3 +185,12 @@ def test_round_trip_through_client_surface():
         bad = model.copy()
         bad.W[0, 0] = -1.0
         bad.to_surface()
+
+
+def test_empty_inputs_evaluate_and_project_to_nothing():
+    model = _random_bspline()
+    empty = np.zeros(0)
+    assert model.evaluate(empty, empty).shape == (0, 3)
+    assert all(a.shape == (0, 3) for a in model.evaluate(empty, empty, derivatives=True))
+    u, v = project_points(model, np.zeros((0, 3)), empty, empty)
+    assert u.shape == v.shape == (0,)
