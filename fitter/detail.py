@@ -226,9 +226,13 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
     """The pipeline's detail stage: samples of the covered points at their foot points
     ``dev.u, dev.v`` on the decoded base ``model``, then :func:`fit_pyramid`
     (``levels=None``: :func:`auto_levels`)."""
-    samples = detail_samples(model, points_local[covered], dev.u[covered], dev.v[covered])
     if levels is None:
         levels = auto_levels(int(covered.sum()))
+    if levels == 0:  # no pyramid: the base error is the foot-point deviation itself
+        d = np.abs(dev.d[covered])
+        return DetailPyramid(DEGREE, SPANS, base_rms=float(np.sqrt(np.mean(d**2))),
+                             base_max=float(d.max(initial=0.0)))
+    samples = detail_samples(model, points_local[covered], dev.u[covered], dev.v[covered])
     return fit_pyramid(samples, levels, periodic_u=periodic_u, progress=progress,
                        step_factor=step_factor)
 

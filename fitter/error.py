@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .fit import project_points
+from .fit import foot_points
 from .nurbs import PatchModel
 
 SEED_GRID = 192  # tessellation used to seed foot-point searches
@@ -55,8 +55,7 @@ def deviations(model: PatchModel, points: np.ndarray, u0: np.ndarray, v0: np.nda
                        < np.einsum("ij,ij->i", own - p, own - p))
         u = np.where(seed_better, su, u0[s:s + chunk])
         v = np.where(seed_better, sv, v0[s:s + chunk])
-        u, v = project_points(model, p, u, v, periodic_u, iterations=6)
-        S, Su, Sv = model.evaluate(u, v, derivatives=True)
+        u, v, S, Su, Sv = foot_points(model, p, u, v, periodic_u, iterations=6)
         n = np.cross(Su, Sv)
         r = p - S
         dist = np.linalg.norm(r, axis=1)

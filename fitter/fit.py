@@ -268,7 +268,16 @@ def _solve_banded_spd(H: sp.csr_matrix, damping: np.ndarray, rhs: np.ndarray) ->
 def project_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.ndarray,
                    periodic_u: bool = False, iterations: int = 4, tol: float = 1e-4
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Foot points: ``(u, v)`` minimising ``||S(u, v) - points||`` from the given start.
+    """Foot points ``(u, v)`` of ``points`` on ``model`` from the given start (see
+    :func:`foot_points`, which also returns the surface and its tangents there)."""
+    return foot_points(model, points, u, v, periodic_u, iterations, tol)[:2]
+
+
+def foot_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.ndarray,
+                periodic_u: bool = False, iterations: int = 4, tol: float = 1e-4
+                ) -> tuple[np.ndarray, ...]:
+    """Foot points: ``(u, v)`` minimising ``||S(u, v) - points||`` from the given start,
+    with ``S, S_u, S_v`` there (each ``(m, 3)``).
 
     Gauss-Newton steps ``[S_u S_v]^+ (P - S)`` clamped to the domain (wrapped
     in ``u`` for periodic maps), each step halved until the distance does not
@@ -327,4 +336,4 @@ def project_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.n
             if not todo.any():
                 break
         active = active[~todo]  # a point no halved step improved has reached its minimum
-    return u, v
+    return u, v, S, Su, Sv

@@ -103,7 +103,13 @@ class PatchModel:
         return BasisRows(index, value, du, dv)
 
     def evaluate(self, u: np.ndarray, v: np.ndarray, derivatives: bool = False):
-        """Points ``S (m, 3)`` and, with ``derivatives``, ``S_u, S_v (m, 3)`` (A4.4)."""
+        """Points ``S (m, 3)`` and, with ``derivatives``, ``S_u, S_v (m, 3)`` (A4.4).
+
+        Tensor-product contraction: the ``(p + 1) x (q + 1)`` homogeneous control
+        points ``(w Q, w)`` of each point's knot cell are gathered once, contracted
+        with ``N(v)`` (and ``N'(v)``), then with ``N(u)`` (and ``N'(u)``). A
+        non-rational patch skips the weight channel.
+        """
         u = np.asarray(u, dtype=float).ravel()
         v = np.asarray(v, dtype=float).ravel()
         if len(u) > CHUNK:
@@ -112,15 +118,23 @@ class PatchModel:
             if not derivatives:
                 return np.concatenate(parts)
             return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
-        rows = self.basis_rows(u, v)
-        w = self.W.ravel()[rows.index]  # (m, k)
-        hq = self.Q.reshape(-1, 3)[rows.index] * w[:, :, None]  # homogeneous w Q, (m, k, 3)
-        den = np.einsum("mk,mk->m", rows.value, w)
-        S = np.einsum("mk,mkc->mc", rows.value, hq) / den[:, None]
+        (p, q), (n_u, n_v) = self.degree, self.shape
+        su, Nu, dNu = basis_arrays(p, self.knots[0], n_u, u)
+        sv, Nv, dNv = basis_arrays(q, self.knots[1], n_v, v)
+        rational = not np.all(self.W == 1.0)
+        net = (np.concatenate([self.Q * self.W[..., None], self.W[..., None]], axis=-1)
+               if rational else self.Q)
+        rows = (su[:, None] - p + np.arange(p + 1))[:, :, None] * n_v
+        cols = (sv[:, None] - q + np.arange(q + 1))[:, None, :]
+        cell = np.take(net.reshape(n_u * n_v, -1), rows + cols, axis=0)  # (m, p+1, q+1, 3|4)
+        along_v = np.einsum("mb,mabc->mac", Nv, cell)
+        C = np.einsum("ma,mac->mc", Nu, along_v)
         if not derivatives:
-            return S
-        den_u = np.einsum("mk,mk->m", rows.du, w)
-        den_v = np.einsum("mk,mk->m", rows.dv, w)
-        Su = (np.einsum("mk,mkc->mc", rows.du, hq) - den_u[:, None] * S) / den[:, None]
-        Sv = (np.einsum("mk,mkc->mc", rows.dv, hq) - den_v[:, None] * S) / den[:, None]
-        return S, Su, Sv
+            return C[:, :3] / C[:, 3:] if rational else C
+        Cu = np.einsum("ma,mac->mc", dNu, along_v)
+        Cv = np.einsum("ma,mac->mc", Nu, np.einsum("mb,mabc->mac", dNv, cell))
+        if not rational:
+            return C, Cu, Cv
+        w = C[:, 3:]
+        S = C[:, :3] / w
+        return S, (Cu[:, :3] - Cu[:, 3:] * S) / w, (Cv[:, :3] - Cv[:, 3:] * S) / w

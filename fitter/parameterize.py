@@ -28,6 +28,7 @@ import numpy as np
 from scipy import ndimage
 
 KINDS = ("plane", "cylinder", "sphere")
+CHOICE_SAMPLE = 500_000  # points on which the candidate maps compete
 PLANE_PREFERENCE = 0.03
 FRONT_TOLERANCE_CELLS = 3.0  # outer-layer slack, in bin sizes: keeps slopes up to ~70 degrees
 
@@ -216,15 +217,23 @@ def choose_projection(points: np.ndarray, normals: np.ndarray | None = None,
     """
     if kind not in KINDS + ("auto",):
         raise ValueError(f"projection must be one of auto, {', '.join(KINDS)}; got {kind!r}")
-    options = [c for c in candidate_projections(points) if kind in ("auto", c.kind)]
-    results = [coverage(c, points, normals) for c in options]
+    # the candidates compete on an even subsample of a large scan; the winner's ranges
+    # and coverage are then taken over every point
+    step = max(1, len(points) // CHOICE_SAMPLE)
+    probe = points[::step]
+    probe_normals = None if normals is None else normals[::step]
+    options = [c for c in candidate_projections(probe) if kind in ("auto", c.kind)]
+    results = [coverage(c, probe, probe_normals) for c in options]
     best = max(results, key=lambda r: r.fraction)
     planes = [r for r in results if r.projection.kind == "plane"]
     if kind == "auto" and planes:
         best_plane = max(planes, key=lambda r: r.fraction)
         if best_plane.fraction >= best.fraction - PLANE_PREFERENCE:
             best = best_plane
-    return best
+    if step == 1:
+        return best
+    _set_ranges(best.projection, points)
+    return coverage(best.projection, points, normals)
 
 
 def trim_cells(mask: np.ndarray, periodic_u: bool) -> np.ndarray:
