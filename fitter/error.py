@@ -14,6 +14,8 @@ domain and over a render of the object, with a colour bar in scan units) and
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,24 +39,30 @@ class Deviations:
 
 
 def deviations(model: PatchModel, points: np.ndarray, u0: np.ndarray, v0: np.ndarray,
-               periodic_u: bool = False, chunk: int = 1 << 20) -> Deviations:
-    """Signed foot-point distance of every point ``(N, 3)`` (patch frame) to ``model``."""
+               periodic_u: bool = False, chunk: int = 1 << 17,
+               threads: int | None = None) -> Deviations:
+    """Signed foot-point distance of every point ``(N, 3)`` (patch frame) to ``model``.
+
+    Chunks of ``chunk`` points run on ``threads`` threads (default: one per
+    core): the work is numpy on whole arrays, which releases the GIL.
+    """
     g = np.linspace(0.0, 1.0, SEED_GRID)
     GU, GV = np.meshgrid(g, g, indexing="ij")
-    seeds = model.evaluate(GU.ravel(), GV.ravel())
+    GU, GV = GU.ravel(), GV.ravel()
+    seeds = model.evaluate(GU, GV)
     tree = cKDTree(seeds)
     d = np.empty(len(points))
     us = np.empty(len(points))
     vs = np.empty(len(points))
-    for s in range(0, len(points), chunk):
+
+    def one_chunk(s: int) -> None:
         p = points[s:s + chunk]
-        _, nearest = tree.query(p, workers=-1)
-        su, sv = GU.ravel()[nearest], GV.ravel()[nearest]
+        _, nearest = tree.query(p)
         own = model.evaluate(u0[s:s + chunk], v0[s:s + chunk])
         seed_better = (np.einsum("ij,ij->i", seeds[nearest] - p, seeds[nearest] - p)
                        < np.einsum("ij,ij->i", own - p, own - p))
-        u = np.where(seed_better, su, u0[s:s + chunk])
-        v = np.where(seed_better, sv, v0[s:s + chunk])
+        u = np.where(seed_better, GU[nearest], u0[s:s + chunk])
+        v = np.where(seed_better, GV[nearest], v0[s:s + chunk])
         u, v, S, Su, Sv = foot_points(model, p, u, v, periodic_u, iterations=6)
         n = np.cross(Su, Sv)
         r = p - S
@@ -62,6 +70,15 @@ def deviations(model: PatchModel, points: np.ndarray, u0: np.ndarray, v0: np.nda
         side = np.sign(np.einsum("ij,ij->i", r, n))
         d[s:s + chunk] = np.where(side < 0, -dist, dist)
         us[s:s + chunk], vs[s:s + chunk] = u, v
+
+    starts = range(0, len(points), chunk)
+    workers = min(threads or os.cpu_count() or 1, len(starts))
+    if workers <= 1:
+        for s in starts:
+            one_chunk(s)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(one_chunk, starts))  # list(): re-raise a chunk's error here
     return Deviations(d, us, vs)
 
 
