@@ -62,7 +62,8 @@ def test_viewer_reaches_ready_with_plausible_stats(viewer, web_collection):
     assert stats["tessellate_ms"] > 0
     expected = sum((web_collection / "relief" / f).stat().st_size
                    for f in ("manifest.json", "base.tsp"))
-    assert stats["bytes_downloaded"] == expected
+    # plus the detail tiles the view asked for (tests/test_browser_tiles.py checks which)
+    assert stats["bytes_downloaded"] == expected + stats["tile_bytes"]
     assert viewer.errors == []
     assert viewer.locator("#loading").is_hidden()
 

@@ -53,6 +53,24 @@ export class MeshWorkerClient {
     return this._request({ type: "ply", resolution, colors }, colors ? [colors.buffer] : []);
   }
 
+  /** Hand a detail tile's bytes (a bundle's `.tsd` file `name`) to the worker, which decodes
+   *  and keeps it: resolves with {name, level, i, j}; a bad file rejects with its reason. */
+  addTile(name, bytes) {
+    const copy = bytes.slice(); // the caller keeps its bytes (the copy is transferred)
+    return this._request({ type: "tile", name, bytes: copy }, [copy.buffer]);
+  }
+
+  /** Forget tiles the worker holds (names as given to addTile). */
+  dropTiles(names) {
+    return this._request({ type: "drop", names });
+  }
+
+  /** Mesh of quadtree node (level, i, j) with the named tiles applied, grid x grid vertices
+   *  plus skirts, in the scan frame: {positions, normals, uvs, indices, tessellate_ms}. */
+  region(level, i, j, grid, names) {
+    return this._request({ type: "region", level, i, j, grid, names });
+  }
+
   terminate() {
     this.worker.terminate();
     this._failAll("the mesh worker was stopped");

@@ -6,6 +6,11 @@
 //   worker -> {type: "ready", pyodide_load_ms, kernel, patch: {...}}           (init done)
 //   page -> {type: "tessellate", resolution}  -> {type: "mesh", positions, normals, uvs, indices, ...}
 //   page -> {type: "ply", resolution, colors?} -> {type: "ply", bytes}          (client_py.write_ply)
+//   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (read_detail_tile, kept)
+//   page -> {type: "drop", names}        -> {type: "dropped", names}            (forget tiles)
+//   page -> {type: "region", level, i, j, grid, names}
+//        -> {type: "region", positions, normals, uvs, indices, tessellate_ms}  (tessellate_region
+//           over node (level, i, j) with the named tiles, a skirt on its inner borders, scan frame)
 //   worker -> {type: "error", stage, message}   for any failure, with the reason
 // Mesh arrays are copied once out of the WebAssembly heap (PyBuffer views die with the
 // Python object) and then *transferred*, not copied again, to the page.
@@ -19,16 +24,21 @@ if ${JSON.stringify(PY_ROOT)} not in sys.path:
     sys.path.insert(0, ${JSON.stringify(PY_ROOT)})
 from array import array
 from dataclasses import replace
-from client_py import read_patch, tessellate_grid, write_ply
+from client_py import read_detail_tile, read_patch, tessellate_grid, tessellate_region, write_ply
 from client_py import _kernel
+from client_py.layers import tile_rect, transform_mesh
 
 _surface = None
+_patch = None  # the patch in its own frame: detail displaces along *its* normal
+_tiles = {}  # bundle file name -> DetailTile, the detail tiles the page has handed over
 _source = None
 _last = (None, None)  # (resolution, mesh): "Download PLY" reuses the mesh on screen
 
 def tessera_load(js_bytes, source):
-    global _surface, _source, _last
+    global _surface, _patch, _source, _last
     surface = read_patch(js_bytes.to_bytes())
+    _patch = surface
+    _tiles.clear()
     (u0, u1), (v0, v1) = surface.domain
     info = {
         "degree": list(surface.degree), "shape": list(surface.shape),
@@ -58,6 +68,80 @@ def tessera_ply(resolution, js_colors):
                 f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
     data = write_ply(mesh, binary=True, comments=comments)
     return data, mesh.vertex_count, (time.perf_counter() - t0) * 1000.0
+
+def tessera_add_tile(name, js_bytes):
+    tile = read_detail_tile(js_bytes.to_bytes())
+    _tiles[name] = tile
+    return [tile.level, tile.i, tile.j]
+
+def tessera_drop_tiles(names):
+    for name in names:
+        _tiles.pop(name, None)
+
+def _skirt(mesh, rect, n, tiles):
+    """Append skirts to a region mesh (in the patch frame) along its borders inside the domain.
+
+    At each border vertex the skirt spans the heights h in [min_l P_l, max_l P_l] over the
+    partial sums P_l = sum_{k <= l} D_k, l = -1 .. level (P_-1 = 0: the base), so whatever
+    coarser level a neighbour shows there, the strip S + h n closes the crack between the two.
+    Borders on the domain's outer edge get none (nothing to meet); trimmed-out cells neither.
+    """
+    u0, v0, u1, v1 = rect
+    us = [u0 + (u1 - u0) * a / (n - 1) for a in range(n)]
+    vs = [v0 + (v1 - v0) * b / (n - 1) for b in range(n)]
+    (a0, a1), (b0, b1) = _patch.domain
+    backend = _kernel.backend()
+    tiles = sorted(tiles, key=lambda t: t.level)
+    trim = _patch.trim
+    half_u, half_v = 0.5 * (u1 - u0) / (n - 1), 0.5 * (v1 - v0) / (n - 1)
+    # (side's u list, v list, grid index of its s-th vertex, inward cell centre of segment s)
+    sides = []
+    if u0 > 0.0:
+        sides.append(([u0], vs, lambda s: s, lambda s: (u0 + half_u, vs[s] + half_v)))
+    if u1 < 1.0:
+        sides.append(([u1], vs, lambda s: (n - 1) * n + s, lambda s: (u1 - half_u, vs[s] + half_v)))
+    if v0 > 0.0:
+        sides.append((us, [v0], lambda s: s * n, lambda s: (us[s] + half_u, v0 + half_v)))
+    if v1 < 1.0:
+        sides.append((us, [v1], lambda s: s * n + n - 1, lambda s: (us[s] + half_u, v1 - half_v)))
+    pos, nrm, uv, idx = mesh.positions, mesh.normals, mesh.uvs, mesh.indices
+    for su, sv, vertex, inward in sides:
+        points, normals, _ = backend.evaluate_grid(
+            _patch, [a0 + (a1 - a0) * u for u in su], [b0 + (b1 - b0) * v for v in sv], "d")
+        fields = [t.evaluate_grid(su, sv) for t in tiles]
+        first = len(pos) // 3
+        for s in range(n):
+            partial = lo = hi = 0.0
+            for f in fields:
+                partial += f[s]
+                lo, hi = min(lo, partial), max(hi, partial)
+            p, q = points[3 * s : 3 * s + 3], normals[3 * s : 3 * s + 3]
+            pos.extend(array("f", (p[0] + lo * q[0], p[1] + lo * q[1], p[2] + lo * q[2],
+                                   p[0] + hi * q[0], p[1] + hi * q[1], p[2] + hi * q[2])))
+            k = vertex(s)
+            nrm.extend(nrm[3 * k : 3 * k + 3] * 2)
+            uv.extend(uv[2 * k : 2 * k + 2] * 2)
+        for s in range(n - 1):
+            if trim is not None and not trim.covers(*inward(s)):
+                continue
+            a, b = first + 2 * s, first + 2 * s + 2
+            idx.extend(array("I", (a, b, b + 1, a, b + 1, a + 1)))
+    return mesh
+
+def tessera_region(level, i, j, grid, names):
+    t0 = time.perf_counter()
+    tiles = [_tiles[name] for name in names]
+    for tile in tiles:
+        if tile.level > level or tile.i != i >> (level - tile.level) \
+                or tile.j != j >> (level - tile.level):
+            raise ValueError(f"tile {tile.level}/{tile.i}_{tile.j} does not cover region "
+                             f"{level}/{i}_{j}")
+    rect = tile_rect(level, i, j)
+    mesh = _skirt(tessellate_region(_patch, rect, grid, grid, tiles), rect, grid, tiles)
+    matrix = _patch.metadata.get("transform")
+    if matrix is not None:
+        mesh = transform_mesh(mesh, matrix)
+    return mesh, (time.perf_counter() - t0) * 1000.0
 `;
 
 let pyodide = null;
@@ -134,6 +218,9 @@ async function init({ pyodideUrl, pyodideSnapshotUrl, clientPyUrl, patchUrl }) {
       load: pyodide.globals.get("tessera_load"),
       tessellate: pyodide.globals.get("tessera_tessellate"),
       ply: pyodide.globals.get("tessera_ply"),
+      addTile: pyodide.globals.get("tessera_add_tile"),
+      dropTiles: pyodide.globals.get("tessera_drop_tiles"),
+      region: pyodide.globals.get("tessera_region"),
     };
     const kernel = pyodide.runPython("_kernel.KERNEL_NAME");
 
@@ -152,8 +239,8 @@ async function init({ pyodideUrl, pyodideSnapshotUrl, clientPyUrl, patchUrl }) {
   }
 }
 
-function tessellate({ id, resolution }) {
-  const result = glue.tessellate(resolution);
+/** Post a (Mesh, ms) result of the glue as transferable typed arrays, with `fields` added. */
+function postMesh(result, fields) {
   try {
     const [mesh, ms] = result;
     const positions = copyBuffer(mesh.positions);
@@ -161,10 +248,40 @@ function tessellate({ id, resolution }) {
     const uvs = copyBuffer(mesh.uvs);
     const indices = copyBuffer(mesh.indices);
     mesh.destroy();
-    post({ type: "mesh", id, resolution, positions, normals, uvs, indices, tessellate_ms: ms },
+    post({ ...fields, positions, normals, uvs, indices, tessellate_ms: ms },
          [positions.buffer, normals.buffer, uvs.buffer, indices.buffer]);
   } finally {
     result.destroy();
+  }
+}
+
+function tessellate({ id, resolution }) {
+  postMesh(glue.tessellate(resolution), { type: "mesh", id, resolution });
+}
+
+function tile({ id, name, bytes }) {
+  const proxy = glue.addTile(name, bytes);
+  const node = proxy.toJs();
+  proxy.destroy();
+  post({ type: "tile", id, name, level: node[0], i: node[1], j: node[2] });
+}
+
+function drop({ id, names }) {
+  const list = pyodide.toPy(names);
+  try {
+    glue.dropTiles(list);
+  } finally {
+    list.destroy();
+  }
+  post({ type: "dropped", id, names });
+}
+
+function region({ id, level, i, j, grid, names }) {
+  const list = pyodide.toPy(names);
+  try {
+    postMesh(glue.region(level, i, j, grid, list), { type: "region", id, level, i, j });
+  } finally {
+    list.destroy();
   }
 }
 
@@ -179,7 +296,7 @@ function ply({ id, resolution, colors }) {
   }
 }
 
-const handlers = { init, tessellate, ply };
+const handlers = { init, tessellate, ply, tile, drop, region };
 
 self.onmessage = (event) => {
   const request = event.data;

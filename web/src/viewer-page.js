@@ -3,7 +3,15 @@
 // Testing contract: document.body.dataset.ready === "1" once the first mesh is drawn;
 // document.body.dataset.error holds the message on failure; window.tessera.stats =
 // {vertices, triangles, tessellate_ms, pyodide_load_ms, first_frame_ms, bytes_downloaded,
-//  kernel, resolution, ...}. All URLs come from the server's JSON config block.
+//  kernel, resolution, tiles_loaded, tile_bytes, tile_tessellate_ms, regions, ...}
+// (vertices/triangles: the base mesh; tile stats: web/src/tile-layer.js). Detail tiles load on
+// zoom (web/src/tile-tree.js); window.tessera.zoomTo(u, v, distance) frames the surface point
+// at normalised (u, v) from `distance` scan units along its normal and resolves once the
+// tiles for that view are on screen; window.tessera.tilesIdle() resolves when no tile update
+// is due; window.tessera.view() gives the camera's projection and view matrices (column-major)
+// and window.tessera.regionMeshes() the regions on screen ({level, i, j, grid, positions, uvs}
+// of their grid vertices, skirts left out), for tests. A tile that fails to load sets document.body.dataset.tileError (the base stays).
+// All URLs come from the server's JSON config block.
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
@@ -19,7 +27,7 @@ const { config, stats, showStage, showError } = startPage({
   client_py: "Installing client_py…",
   patch: "Reading the NURBS patch…",
   tessellation: "Tessellating…",
-}, { resolution: null, meshes: 0 });
+}, { resolution: null, meshes: 0, tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0, regions: 0 });
 
 function formatBytes(n) {
   if (n < 1024) return `${n} B`;
@@ -72,6 +80,14 @@ function describe(manifest, ready) {
   }
 }
 
+function showTileFacts() {
+  if (stats.tile_updates === undefined) return;
+  setFact("fact-detail", stats.regions
+    ? `${stats.regions} regions, ${stats.tiles_loaded} tiles (${formatBytes(stats.tile_bytes)} fetched), ` +
+      `${stats.tile_tessellate_ms.toFixed(0)} ms`
+    : `base only (${stats.tile_bytes ? formatBytes(stats.tile_bytes) + " of tiles fetched" : "zoom in for detail"})`);
+}
+
 function showMeshFacts() {
   setFact("fact-mesh", `${stats.vertices.toLocaleString("en")} vertices, ` +
     `${stats.triangles.toLocaleString("en")} triangles`);
@@ -88,7 +104,10 @@ async function main() {
   readyPromise.catch(() => {}); // awaited below; this only keeps an early failure "handled"
   const manifestPromise = loadManifest();
   manifestPromise.catch(() => {});
+  const tileModule = import("./tile-layer.js");
+  tileModule.catch(() => {});
   const { Viewer } = await import("./viewer.js");
+  const { REGION_GRID } = await tileModule;
   const viewer = new Viewer($("view"));
   const panel = document.querySelector(".panel");
   // Keep the object clear of the information panel: beside it on wide screens, above it on
@@ -106,6 +125,36 @@ async function main() {
   let current = 0;
   let currentUvs = null;
   let pending = null;
+  let tiles = null; // TileLayer once the manifest and the first mesh are in
+  let resolveTiles;
+  const tilesReady = new Promise((resolve) => { resolveTiles = resolve; });
+  window.tessera.tilesIdle = async () => {
+    await tilesReady;
+    if (tiles) await tiles.idle();
+    return { ...stats };
+  };
+  window.tessera.view = () => ({
+    projection: Array.from(viewer.camera.projectionMatrix.elements),
+    view: Array.from(viewer.camera.matrixWorldInverse.elements),
+  });
+  window.tessera.regionMeshes = () => [...(tiles ? tiles.regions : new Map())].map(([id, mesh]) => {
+    const [level, i, j] = id.split("/").map(Number);
+    const grid = REGION_GRID;
+    const st = mesh.geometry.getAttribute("uv").array;
+    const uvs = [];
+    for (let k = 0; k < grid * grid; k++) uvs.push(st[2 * k + 1], st[2 * k]);
+    return { level, i, j, grid, uvs,
+             positions: Array.from(mesh.geometry.getAttribute("position").array.subarray(0, 3 * grid * grid)) };
+  });
+  window.tessera.zoomTo = async (u, v, distance) => {
+    await tilesReady;
+    viewer.lookAtSurface(u, v, distance, currentUvs, domain);
+    if (tiles) {
+      await tiles.update();
+      await tiles.idle();
+    }
+    return { ...stats };
+  };
 
   async function showResolution(resolution) {
     const t0 = performance.now();
@@ -120,11 +169,16 @@ async function main() {
     stats.round_trip_ms = performance.now() - t0;
     stats.meshes += 1;
     showMeshFacts();
+    if (tiles) {
+      tiles.setBase(mesh, domain);
+      tiles.schedule(0);
+    }
     return { ...stats };
   }
   window.tessera.tessellate = (resolution) => showResolution(resolution);
 
   // Zooming in asks for a finer grid, zooming out for a coarser one (after the gesture ends).
+  viewer.controls.addEventListener("change", () => tiles && tiles.schedule());
   viewer.controls.addEventListener("end", () => {
     if (config.resolution || !domain) return;
     const wanted = viewResolution(viewer);
@@ -150,6 +204,30 @@ async function main() {
   stats.coarse_resolution = current;
   document.body.dataset.ready = "1";
   $("loading").hidden = true;
+
+  const { TileLayer } = await tileModule;
+  try {
+    tiles = new TileLayer({
+      viewer, worker, manifest, manifestUrl: config.manifest_url, stats,
+      onError: (message) => {
+        console.error(message);
+        document.body.dataset.tileError = message;
+        setFact("fact-detail", message);
+      },
+      onChange: showTileFacts,
+    });
+  } catch (error) { // a malformed tile tree: the base alone, said so
+    document.body.dataset.tileError = error.message;
+    setFact("fact-detail", error.message);
+  }
+  if (tiles && tiles.enabled) {
+    showTileFacts();
+    tiles.setBase({ positions: viewer.mesh.geometry.getAttribute("position").array, uvs: currentUvs }, domain);
+    tiles.schedule(0);
+  } else if (tiles) {
+    setFact("fact-detail", "none in this bundle");
+  }
+  resolveTiles();
 
   if (manifest.error_grid) {
     try {

@@ -1,5 +1,11 @@
 // Viewer: the three.js scene that shows a tessellated patch — orbit, zoom, pan, fit-to-view,
-// an error-map overlay; rendering on demand (only when the view or the mesh changes).
+// an error-map overlay, detail regions superimposed on the base; rendering on demand (only
+// when the view or the meshes change).
+//
+// Detail regions (web/src/tile-layer.js) are meshes over quadtree rectangles of the patch's
+// normalised (u, v) domain. Where a region is shown the base mesh is cut away exactly by a
+// fragment discard against a small mask texture over (u, v) (one texel per finest-level
+// cell), so base and regions never overlap; the regions' skirts close the seams.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
@@ -64,6 +70,26 @@ export class Viewer {
     });
     this.mesh = null;
     this.errorTexture = null;
+    this.overlay = false;
+    this.baseTexture = null; // a level-0 texture tile over the whole domain, or null
+    // Detail regions: key -> THREE.Mesh, drawn instead of the base inside their rectangles.
+    this.regions = new Map();
+    this.regionGroup = new THREE.Group();
+    this.scene.add(this.regionGroup);
+    this.regionMaterial = this.material.clone();
+    this.mask = null; // {texture: DataTexture, cells}: 1 where a region replaces the base
+    this.maskUniforms = { tesseraMask: { value: null }, tesseraMaskOn: { value: 0 } };
+    this.material.onBeforeCompile = (shader) => {
+      Object.assign(shader.uniforms, this.maskUniforms);
+      shader.vertexShader = shader.vertexShader
+        .replace("#include <common>", "#include <common>\nvarying vec2 vTesseraUv;")
+        .replace("#include <begin_vertex>", "#include <begin_vertex>\nvTesseraUv = uv;");
+      shader.fragmentShader = shader.fragmentShader
+        .replace("#include <common>", "#include <common>\nvarying vec2 vTesseraUv;\n" +
+                 "uniform sampler2D tesseraMask;\nuniform float tesseraMaskOn;")
+        .replace("void main() {", "void main() {\n" +
+                 "  if (tesseraMaskOn > 0.5 && texture2D(tesseraMask, vTesseraUv).r > 0.5) discard;");
+    };
     this.controls = new OrbitControls(this.camera, canvas);
     this.controls.addEventListener("change", () => this.render());
     this.onRender = null;
@@ -111,6 +137,13 @@ export class Viewer {
       st[k + 1] = (data.uvs[k] - u0) / (u1 - u0);
     }
     geometry.setAttribute("uv", new THREE.BufferAttribute(st, 2));
+    // uv1: normalised (u, v), addressing a level-0 texture tile (docs/format.md, "Texture tiles")
+    const uv1 = new Float32Array(data.uvs.length);
+    for (let k = 0; k < uv1.length; k += 2) {
+      uv1[k] = st[k + 1];
+      uv1[k + 1] = st[k];
+    }
+    geometry.setAttribute("uv1", new THREE.BufferAttribute(uv1, 2));
     geometry.setIndex(new THREE.BufferAttribute(data.indices, 1));
     geometry.computeBoundingSphere();
     const first = this.mesh === null;
@@ -151,6 +184,36 @@ export class Viewer {
     this.render();
   }
 
+  /**
+   * Look at the base surface's point at normalised (u, v) from `distance` scan units along its
+   * normal (on the side the camera is on). `uvs` are the base mesh's patch parameters
+   * (domain = [u0, u1, v0, v1]): the nearest vertex stands for the point.
+   */
+  lookAtSurface(u, v, distance, uvs, domain) {
+    if (!this.mesh) return;
+    if (!(u >= 0 && u <= 1 && v >= 0 && v <= 1 && distance > 0)) {
+      throw new Error(`zoomTo(u, v, distance) needs 0 <= u, v <= 1 and distance > 0, got ${u}, ${v}, ${distance}`);
+    }
+    const [u0, u1, v0, v1] = domain;
+    let best = 0, bestD = Infinity;
+    for (let k = 0; k < uvs.length / 2; k++) {
+      const du = (uvs[2 * k] - u0) / (u1 - u0) - u, dv = (uvs[2 * k + 1] - v0) / (v1 - v0) - v;
+      if (du * du + dv * dv < bestD) {
+        bestD = du * du + dv * dv;
+        best = k;
+      }
+    }
+    const point = new THREE.Vector3().fromBufferAttribute(this.mesh.geometry.getAttribute("position"), best);
+    const normal = new THREE.Vector3().fromBufferAttribute(this.mesh.geometry.getAttribute("normal"), best);
+    if (normal.dot(this.camera.position.clone().sub(point)) < 0) normal.negate();
+    this.camera.position.copy(point).addScaledVector(normal, distance);
+    this.camera.near = Math.min(this.camera.near, distance / 10);
+    this.camera.updateProjectionMatrix();
+    this.controls.target.copy(point);
+    this.controls.update();
+    this.render();
+  }
+
   /** Width/height of the canvas area not covered by the panel. */
   visibleAspect() {
     const width = this.canvas.clientWidth || 1;
@@ -179,20 +242,121 @@ export class Viewer {
    * @param {{rgba: Uint8Array, cols: number, rows: number} | null} image
    */
   setErrorOverlay(image) {
-    if (image) {
-      if (!this.errorTexture) {
-        this.errorTexture = new THREE.DataTexture(image.rgba, image.cols, image.rows, THREE.RGBAFormat);
-        this.errorTexture.colorSpace = THREE.SRGBColorSpace;
-        this.errorTexture.magFilter = THREE.NearestFilter;
-        this.errorTexture.needsUpdate = true;
-      }
-      this.material.map = this.errorTexture;
-      this.material.color.set(0xffffff);
-    } else {
-      this.material.map = null;
-      this.material.color.set(STONE);
+    if (image && !this.errorTexture) {
+      this.errorTexture = new THREE.DataTexture(image.rgba, image.cols, image.rows, THREE.RGBAFormat);
+      this.errorTexture.colorSpace = THREE.SRGBColorSpace;
+      this.errorTexture.magFilter = THREE.NearestFilter;
+      this.errorTexture.needsUpdate = true;
     }
-    this.material.needsUpdate = true;
+    this.overlay = Boolean(image);
+    this._applyMaps();
     this.render();
+  }
+
+  /** Show a texture over the whole domain on the base mesh (a level-0 texture tile; its
+   *  texture.channel must be 1), or none. */
+  setBaseTexture(texture) {
+    this.baseTexture = texture;
+    this._applyMaps();
+    this.render();
+  }
+
+  /** Each material's map: the error map (uv channel 0) when the overlay is on, else its
+   *  texture tile (channel 1) if any, else the plain stone colour. */
+  _applyMaps() {
+    const assign = (material, texture) => {
+      const map = this.overlay ? this.errorTexture : texture;
+      if (material.map !== map) {
+        material.map = map;
+        material.needsUpdate = true;
+      }
+      material.color.set(map ? 0xffffff : STONE);
+    };
+    assign(this.material, this.baseTexture);
+    assign(this.regionMaterial, null);
+    for (const mesh of this.regions.values()) {
+      if (mesh.material !== this.regionMaterial) assign(mesh.material, mesh.userData.texture);
+    }
+  }
+
+  /**
+   * A region mesh from the worker (not yet shown): normalised uvs, optionally textured by a
+   * tile over `textureRect` = [u0, v0, u1, v1] (its texture.channel must be 1).
+   * @param {{positions: Float32Array, normals: Float32Array, uvs: Float32Array, indices: Uint32Array}} data
+   */
+  makeRegionMesh(data, texture = null, textureRect = null) {
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute("position", new THREE.BufferAttribute(data.positions, 3));
+    geometry.setAttribute("normal", new THREE.BufferAttribute(data.normals, 3));
+    const st = new Float32Array(data.uvs.length); // (v, u): the error map's orientation
+    for (let k = 0; k < st.length; k += 2) {
+      st[k] = data.uvs[k + 1];
+      st[k + 1] = data.uvs[k];
+    }
+    geometry.setAttribute("uv", new THREE.BufferAttribute(st, 2));
+    let material = this.regionMaterial;
+    if (texture) {
+      const [u0, v0, u1, v1] = textureRect;
+      const local = new Float32Array(data.uvs.length);
+      for (let k = 0; k < local.length; k += 2) {
+        local[k] = (data.uvs[k] - u0) / (u1 - u0);
+        local[k + 1] = (data.uvs[k + 1] - v0) / (v1 - v0);
+      }
+      geometry.setAttribute("uv1", new THREE.BufferAttribute(local, 2));
+      material = this.regionMaterial.clone();
+    }
+    geometry.setIndex(new THREE.BufferAttribute(data.indices, 1));
+    geometry.computeBoundingSphere();
+    const mesh = new THREE.Mesh(geometry, material);
+    mesh.userData.texture = texture;
+    return mesh;
+  }
+
+  /**
+   * Show exactly the regions of `wanted` (key -> mesh from makeRegionMesh, or one already
+   * shown) in one frame: new ones added, the others removed and disposed, the base's mask
+   * redrawn. `mask` is {cells, rects}: the mask's cells per side (2^finest level) and the
+   * [u0, v0, u1, v1] rectangles the regions cover.
+   */
+  setRegions(wanted, mask) {
+    for (const [key, mesh] of this.regions) {
+      if (wanted.get(key) === mesh) continue;
+      this.regionGroup.remove(mesh);
+      mesh.geometry.dispose();
+      if (mesh.material !== this.regionMaterial) mesh.material.dispose();
+      this.regions.delete(key);
+    }
+    for (const [key, mesh] of wanted) {
+      if (this.regions.get(key) === mesh) continue;
+      this.regions.set(key, mesh);
+      this.regionGroup.add(mesh);
+    }
+    this._applyMaps();
+    this._drawMask(mask);
+    this.render();
+  }
+
+  _drawMask({ cells, rects }) {
+    if (!this.mask || this.mask.cells !== cells) {
+      if (this.mask) this.mask.texture.dispose();
+      const texture = new THREE.DataTexture(new Uint8Array(cells * cells * 4), cells, cells,
+                                            THREE.RGBAFormat);
+      texture.magFilter = THREE.NearestFilter;
+      texture.minFilter = THREE.NearestFilter;
+      this.mask = { texture, cells };
+      this.maskUniforms.tesseraMask.value = texture;
+    }
+    const data = this.mask.texture.image.data;
+    data.fill(0);
+    // texel (column = v cell, row = u cell): the base's uv attribute is (v, u)
+    for (const [u0, v0, u1, v1] of rects) {
+      for (let r = Math.round(u0 * cells); r < Math.round(u1 * cells); r++) {
+        for (let c = Math.round(v0 * cells); c < Math.round(v1 * cells); c++) {
+          data.fill(255, 4 * (r * cells + c), 4 * (r * cells + c) + 4);
+        }
+      }
+    }
+    this.mask.texture.needsUpdate = true;
+    this.maskUniforms.tesseraMaskOn.value = rects.length > 0 ? 1 : 0;
   }
 }

@@ -1,0 +1,193 @@
+"""Detail tiles on zoom in real headless Chromium (issue 6, the viewer half).
+
+A bundle fitted from the generated relief with four detail levels is served; the viewer shows
+the base with at most coarse tiles at the fitted view; zooming into one spot (through the
+documented hook ``window.tessera.zoomTo``) fetches that spot's finest tiles, and only tiles
+the camera sees (checked by projecting each fetched tile's rectangle, evaluated on the base
+patch in Python, through the page's own camera matrices); the regions drawn there lie closer
+to the exact relief (``fitter.examples.relief_height``) than the base does.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from fitter.examples import relief_height
+
+pytestmark = pytest.mark.browser
+
+LEVELS = 4
+READY = "document.body.dataset.ready === '1' || !!document.body.dataset.error"
+TILE_URL = re.compile(r"/detail/(\d+)/(\d+)_(\d+)\.tsd$")
+
+
+@pytest.fixture(scope="module")
+def detail_collection(tmp_path_factory: pytest.TempPathFactory):
+    """One bundle: the relief (40,000 points) with a 20x20 base and 4 detail levels."""
+    from fitter.examples import relief_scan
+    from fitter.pipeline import FitOptions, fit_scan
+
+    root = tmp_path_factory.mktemp("detail-collection")
+    fit_scan(relief_scan(40_000), root / "relief-detail",
+             FitOptions(grid=(20, 20), detail_levels=LEVELS, title="Relief with detail"))
+    return root
+
+
+@pytest.fixture(scope="module")
+def detail_server(detail_collection):
+    from fitter.server import create_app
+    from fitter.server.live import LiveServer
+
+    app = create_app({"TESSERA_COLLECTION": str(detail_collection), "TESTING": True})
+    if app.extensions["tessera_snapshot"] is not None:
+        app.extensions["tessera_snapshot"].ensure()
+    with LiveServer(app) as live:
+        yield live
+
+
+def _scan_frame_surface(bundle):
+    from client_py import read_patch
+
+    return read_patch((bundle / "base.tsp").read_bytes()).to_scan_frame()
+
+
+def _relief_deviation(points: np.ndarray) -> np.ndarray:
+    """Vertical distance of scan-frame points to the exact relief (the example's tilt undone)."""
+    a, b = np.deg2rad(20.0), np.deg2rad(-35.0)
+    rot_x = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    rot_z = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
+    local = (points - np.array([250.0, -40.0, 1200.0])) @ (rot_z @ rot_x)
+    return local[:, 2] - relief_height(local[:, 0], local[:, 1])
+
+
+def _rect_points(surface, rect) -> np.ndarray:
+    """9 x 9 points of the base patch (scan frame) over a normalised ``rect``."""
+    (a0, a1), (b0, b1) = surface.domain
+    u0, v0, u1, v1 = rect
+    return np.array([surface.evaluate(a0 + (a1 - a0) * u, b0 + (b1 - b0) * v)
+                     for u in np.linspace(u0, u1, 9) for v in np.linspace(v0, v1, 9)])
+
+
+def _rect_in_view(surface, rect, view) -> bool:
+    """Whether any point of the base patch over ``rect`` projects into the viewport."""
+    pts = _rect_points(surface, rect)
+    m = (np.array(view["projection"]).reshape(4, 4).T @ np.array(view["view"]).reshape(4, 4).T)
+    clip = np.c_[pts, np.ones(len(pts))] @ m.T
+    ndc = clip[:, :3] / clip[:, 3:4]
+    inside = (clip[:, 3] > 0) & (np.abs(ndc[:, 0]) <= 1.05) & (np.abs(ndc[:, 1]) <= 1.05)
+    return bool(inside.any())
+
+
+def _projected_px(surface, rect, error: float, view, height_px: int) -> float:
+    """``error`` (scan units) in pixels at the nearest point of the patch over ``rect``:
+    ``error * f / d`` with ``f = P[1][1] H / 2`` the focal length in pixels."""
+    pts = _rect_points(surface, rect)
+    camera = np.linalg.inv(np.array(view["view"]).reshape(4, 4).T)[:3, 3]
+    focal = np.array(view["projection"]).reshape(4, 4).T[1, 1] * height_px / 2
+    return error * focal / np.linalg.norm(pts - camera, axis=1).min()
+
+
+def _shown_error(manifest: dict, nodes: dict, level: int, i: int, j: int) -> float:
+    """geometric_error of node (level, i, j), or its nearest present ancestor's, or base.max."""
+    for k in range(level, -1, -1):
+        node = nodes.get((k, i >> (level - k), j >> (level - k)))
+        if node:
+            return node["geometric_error"]
+    return manifest["tiles"]["detail"]["base"]["max"]
+
+
+def test_zoom_fetches_only_the_tiles_in_view_and_refines_the_mesh(browser, detail_server,
+                                                                  detail_collection):
+    bundle = detail_collection / "relief-detail"
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    nodes = {(n["level"], n["i"], n["j"]): n for n in manifest["tiles"]["detail"]["nodes"]}
+    finest = max(k for k, _, _ in nodes)
+    assert finest == LEVELS - 1
+
+    context = browser.new_context(viewport={"width": 800, "height": 600})
+    page = context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda exc: problems.append(str(exc)))
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    fetched: list[tuple[int, int, int]] = []
+
+    def on_request(request):
+        match = TILE_URL.search(request.url)
+        if match:
+            fetched.append(tuple(int(g) for g in match.groups()))
+
+    page.on("request", on_request)
+    try:
+        page.goto(f"{detail_server.url}/objects/relief-detail/?resolution=64")
+        page.wait_for_function(READY, timeout=60_000)
+        assert page.evaluate("document.body.dataset.error") is None
+        before = page.evaluate("window.tessera.tilesIdle()")
+        view = page.evaluate("window.tessera.view()")
+        surface = _scan_frame_surface(bundle)
+        # the fitted view: coarse tiles, and finer ones only where the coarser projected error
+        # is above the 2 px threshold (1 px here: the page measures to a padded box)
+        assert all(key in nodes for key in fetched)
+        assert len(set(fetched)) == len(fetched)  # each once
+        for level, i, j in fetched:
+            if level > 0:
+                parent = (level - 1, i // 2, j // 2)
+                error = _shown_error(manifest, nodes, *parent)
+                rect = nodes[(level, i, j)]["uv"]
+                assert _projected_px(surface, rect, error, view, 600) > 1.0, (level, i, j)
+        assert 0 < sum(k[0] == finest for k in fetched) < sum(k[0] == finest for k in nodes) / 2
+        assert before["tile_bytes"] == sum(nodes[k]["bytes"] for k in fetched)
+        first = set(fetched)
+
+        # a spot whose finest tile was not needed at the fitted view, with little error left
+        candidates = [k for k in nodes if k[0] == finest and k not in first
+                      and nodes[k]["geometric_error"] < 0.3]
+        level, i, j = candidates[len(candidates) // 2]
+        n = 2**level
+        u, v = (i + 0.5) / n, (j + 0.5) / n
+        fetched.clear()
+        after = page.evaluate(f"window.tessera.zoomTo({u}, {v}, 40)")
+        view = page.evaluate("window.tessera.view()")
+        regions = page.evaluate("window.tessera.regionMeshes()")
+
+        assert (level, i, j) in fetched  # the spot's finest tile came
+        assert len(set(fetched)) == len(fetched)  # each once
+        for key in fetched:  # ... and only tiles the camera sees
+            assert _rect_in_view(surface, nodes[key]["uv"], view), f"tile {key} is out of view"
+        hidden = [k for k in nodes if k not in first and k not in fetched
+                  and _rect_in_view(surface, nodes[k]["uv"], view)]
+        assert len(fetched) > 0 and len(hidden) < len(nodes)
+        assert after["tiles_loaded"] > 0 and after["regions"] == len(regions) > 0
+        assert after["tile_bytes"] == before["tile_bytes"] + sum(nodes[k]["bytes"] for k in fetched)
+        assert after["tile_tessellate_ms"] > 0
+
+        # the region at the spot is the refined surface: closer to the exact relief than the base
+        spot = next(r for r in regions if r["level"] == level and (r["i"], r["j"]) == (i, j))
+        positions = np.array(spot["positions"]).reshape(-1, 3)
+        uvs = np.array(spot["uvs"]).reshape(-1, 2)
+        (a0, a1), (b0, b1) = surface.domain
+        base = np.array([surface.evaluate(a0 + (a1 - a0) * s, b0 + (b1 - b0) * t) for s, t in uvs])
+        assert np.abs(positions - base).max() > 0.01  # detail moved the vertices
+        refined_rms = np.sqrt(np.mean(_relief_deviation(positions) ** 2))
+        base_rms = np.sqrt(np.mean(_relief_deviation(base) ** 2))
+        assert refined_rms < 0.8 * base_rms, (refined_rms, base_rms)
+
+        zoomed = len(fetched)
+        # back to the whole object: the fine regions go, their tiles are unloaded
+        page.click("#fit-view")
+        back = page.evaluate("window.tessera.tilesIdle()")
+        assert back["regions"] == before["regions"]
+        assert back["tiles_loaded"] == before["tiles_loaded"]
+        assert "Detail" in page.locator(".facts").inner_text()
+        assert page.evaluate("document.body.dataset.error") is None
+        assert page.evaluate("document.body.dataset.tileError") is None
+        assert problems == []
+        print(f"\nfit view: {len(first)} tiles, {before['tile_bytes']} B, "
+              f"{before['tile_tessellate_ms']:.0f} ms; zoom: {zoomed} tiles, "
+              f"{after['tile_bytes'] - before['tile_bytes']} B, {after['regions']} regions, "
+              f"{after['tile_tessellate_ms']:.0f} ms; rms {base_rms:.3f} -> {refined_rms:.3f}")
+    finally:
+        context.close()
