@@ -267,30 +267,39 @@ def _finite_float(text: str) -> float:
     return value
 
 
-def read_header(data: bytes) -> dict:
-    """Check the framing (magic, version, sizes, CRC32) and return the header fields."""
+def _unframe(data: object, magic: bytes, what: str, header: struct.Struct, version: int,
+             size_field: int) -> tuple[bytes, tuple]:
+    """Check a container's framing — bytes, magic, header length, version (field 1), total
+    length from the payload size (field ``size_field``), CRC32 — and return the bytes and
+    the header fields."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise PatchFormatError(0, f"expected bytes, got {type(data).__name__}")
     data = bytes(data)
-    if len(data) < 4 or data[:4] != MAGIC:
-        raise PatchFormatError(0, f"magic is {data[:4]!r}, not {MAGIC!r}: not a Tessera patch")
-    if len(data) < HEADER_SIZE + CRC_SIZE:
-        raise PatchFormatError(
-            len(data), f"truncated: {len(data)} bytes, the header alone needs {HEADER_SIZE + 4}"
-        )
-    magic, version, flags, p, q, n_u, n_v, bits, reserved, size, raw_size = HEADER.unpack_from(
-        data
-    )
-    if version != VERSION:
-        raise PatchFormatError(4, f"format version {version} is not supported (this reader: 1)")
-    expected = HEADER_SIZE + size + CRC_SIZE
-    if len(data) < expected:
-        raise PatchFormatError(len(data), f"truncated: {len(data)} bytes of {expected}")
-    if len(data) > expected:
-        raise PatchFormatError(expected, f"{len(data) - expected} unexpected trailing bytes")
-    (crc,) = struct.unpack_from("<I", data, HEADER_SIZE + size)
-    if zlib.crc32(data[: HEADER_SIZE + size]) != crc:
-        raise PatchFormatError(HEADER_SIZE + size, "CRC32 mismatch: the file is corrupted")
+    if len(data) < 4 or data[:4] != magic:
+        raise PatchFormatError(0, f"magic is {data[:4]!r}, not {magic!r}: not a Tessera {what}")
+    if len(data) < header.size + CRC_SIZE:
+        raise PatchFormatError(len(data), f"truncated: {len(data)} bytes, the header alone "
+                               f"needs {header.size + CRC_SIZE}")
+    fields = header.unpack_from(data)
+    if fields[1] != version:
+        raise PatchFormatError(4, f"{what} format version {fields[1]} is not supported "
+                               f"(this reader: {version})")
+    end = header.size + fields[size_field]
+    if len(data) < end + CRC_SIZE:
+        raise PatchFormatError(len(data), f"truncated: {len(data)} bytes of {end + CRC_SIZE}")
+    if len(data) > end + CRC_SIZE:
+        raise PatchFormatError(end + CRC_SIZE,
+                               f"{len(data) - end - CRC_SIZE} unexpected trailing bytes")
+    (crc,) = struct.unpack_from("<I", data, end)
+    if zlib.crc32(data[:end]) != crc:
+        raise PatchFormatError(end, "CRC32 mismatch: the file is corrupted")
+    return data, fields
+
+
+def read_header(data: bytes) -> dict:
+    """Check the framing (magic, version, sizes, CRC32) and return the header fields."""
+    data, fields = _unframe(data, MAGIC, "patch", HEADER, VERSION, 9)
+    magic, version, flags, p, q, n_u, n_v, bits, reserved, size, raw_size = fields
     if flags & ~KNOWN_FLAGS:
         raise PatchFormatError(6, f"unknown flags 0x{flags:04x}")
     for offset, name, degree in ((8, "p", p), (9, "q", q)):
@@ -458,28 +467,9 @@ def read_detail_tile(data: bytes) -> DetailTile:
         For anything but a valid tile (truncation, corruption, a foreign file),
         with the byte offset and the reason; never anything else.
     """
-    if not isinstance(data, bytes | bytearray | memoryview):
-        raise PatchFormatError(0, f"expected bytes, got {type(data).__name__}")
-    data = bytes(data)
-    if len(data) < 4 or data[:4] != TILE_MAGIC:
-        raise PatchFormatError(0, f"magic is {data[:4]!r}, not {TILE_MAGIC!r}: "
-                               "not a Tessera detail tile")
-    if len(data) < TILE_HEADER_SIZE + CRC_SIZE:
-        raise PatchFormatError(len(data), f"truncated: {len(data)} bytes, the header alone "
-                               f"needs {TILE_HEADER_SIZE + CRC_SIZE}")
+    data, fields = _unframe(data, TILE_MAGIC, "detail tile", TILE_HEADER, TILE_VERSION, 11)
     (_, version, flags, level, degree, planes, reserved, spans, i, j, step, size,
-     raw_size) = TILE_HEADER.unpack_from(data)
-    if version != TILE_VERSION:
-        raise PatchFormatError(4, f"tile format version {version} is not supported "
-                               f"(this reader: {TILE_VERSION})")
-    expected = TILE_HEADER_SIZE + size + CRC_SIZE
-    if len(data) < expected:
-        raise PatchFormatError(len(data), f"truncated: {len(data)} bytes of {expected}")
-    if len(data) > expected:
-        raise PatchFormatError(expected, f"{len(data) - expected} unexpected trailing bytes")
-    (crc,) = struct.unpack_from("<I", data, TILE_HEADER_SIZE + size)
-    if zlib.crc32(data[: TILE_HEADER_SIZE + size]) != crc:
-        raise PatchFormatError(TILE_HEADER_SIZE + size, "CRC32 mismatch: the file is corrupted")
+     raw_size) = fields
     if flags & ~TILE_FLAG_PREDICTED:
         raise PatchFormatError(6, f"unknown flags 0x{flags:04x}")
     if level > MAX_TILE_LEVEL:

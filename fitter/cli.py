@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from client_py import PatchFormatError, read_patch, tessellate_grid, write_ply
@@ -19,14 +20,27 @@ class UserError(Exception):
     """A problem with the user's input or options, reported without a traceback."""
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"must be at least 2, got {value}")
-    return value
+def _integer(lo: int, hi: int | None = None, what: str = "an integer",
+             lo_meaning: str = "") -> Callable[[str], int]:
+    """An argparse type: an integer in ``lo..hi`` (no upper bound when ``hi`` is None)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if hi is None and value < lo:
+            raise argparse.ArgumentTypeError(f"must be {lo}{lo_meaning} or more, got {value}")
+        if hi is not None and not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be {lo} to {hi}, got {value}")
+        return value
+    return parse
+
+
+_resolution = _integer(2)
+_count = _integer(1)
+_level = _integer(-1, lo_meaning=" (the base alone)")
+_detail_levels = _integer(0, 8)
+_port = _integer(0, 65535, "a port number")
 
 
 def _patch_path(path: Path) -> Path:
@@ -60,16 +74,6 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
     print(f"{out}: {mesh.vertex_count} vertices, {mesh.triangle_count} triangles, "
           f"{len(data)} bytes")
     return 0
-
-
-def _positive_int_or_one(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
 
 
 def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
@@ -122,26 +126,6 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     print(f"{out}: level {level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
           f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))
     return 0
-
-
-def _level(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < -1:
-        raise argparse.ArgumentTypeError(f"must be -1 (the base alone) or more, got {value}")
-    return value
-
-
-def _detail_levels(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if not 0 <= value <= 8:
-        raise argparse.ArgumentTypeError(f"must be 0 to 8, got {value}")
-    return value
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -232,16 +216,6 @@ def _layer_rows(m: dict) -> list[tuple[str, str]]:
         rows.append(("texture", f"{len(texture['levels'])} levels, {count} tiles, "
                      f"{size:,} bytes"))
     return rows
-
-
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"must be 0 to 65535, got {value}")
-    return value
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -415,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tess.add_argument("input", help="a .tsp patch file or a bundle directory (uses base.tsp)")
     tess.add_argument("-o", "--output", required=True, help="output .ply path")
-    tess.add_argument("--resolution", type=_positive_int, default=256,
+    tess.add_argument("--resolution", type=_resolution, default=256,
                       help="vertices per side of the parameter grid (default 256)")
     tess.add_argument("--level", type=_level, default=None,
                       help="with a bundle: apply the detail tiles of levels 0..LEVEL "
@@ -442,11 +416,11 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--production", action="store_true",
                        help="serve with gunicorn, a production WSGI server (pre-forked "
                        "processes), instead of werkzeug's development server")
-    serve.add_argument("--processes", type=_positive_int_or_one, default=None,
+    serve.add_argument("--processes", type=_count, default=None,
                        help="request processes with --production (default: one per core)")
-    serve.add_argument("--threads", type=_positive_int_or_one, default=4,
+    serve.add_argument("--threads", type=_count, default=4,
                        help="request threads per process with --production (default 4)")
-    serve.add_argument("--fit-workers", type=_positive_int_or_one, default=None,
+    serve.add_argument("--fit-workers", type=_count, default=None,
                        help="admin fit jobs run at once (default TESSERA_JOB_WORKERS, "
                        "else one per core)")
     serve.set_defaults(run=_cmd_serve)
@@ -478,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("-o", "--output", required=True, help="the collection folder")
     batch.add_argument("--scheduler", default=None,
                        help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
-    batch.add_argument("--workers", type=_positive_int_or_one, default=None,
+    batch.add_argument("--workers", type=_count, default=None,
                        help="LocalCluster worker processes (default: one per core)")
     batch.add_argument("--grid", type=_grid, default=(40, 40),
                        help="control points per side, NxM (default 40x40)")
