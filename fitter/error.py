@@ -127,9 +127,10 @@ def write_error_ply(path: Path, points_scan: np.ndarray, d: np.ndarray) -> None:
     +-P99), with the deviation as float ``quality``."""
     import matplotlib
 
-    cmap = matplotlib.colormaps["coolwarm"]
+    lut = (matplotlib.colormaps["coolwarm"](np.linspace(0.0, 1.0, 256))[:, :3] * 255).round()
     limit = _colour_limit(d)
-    rgb = (cmap(np.clip(0.5 + 0.5 * d / limit, 0.0, 1.0))[:, :3] * 255).round().astype(np.uint8)
+    rgb = lut.astype(np.uint8)[np.rint(np.clip(0.5 + 0.5 * d / limit, 0.0, 1.0) * 255)
+                               .astype(np.intp)]
     record = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
                        ("green", "u1"), ("blue", "u1"), ("quality", "<f4")])
     data = np.empty(len(d), dtype=record)
@@ -162,11 +163,12 @@ def _depth_view(points: np.ndarray, d: np.ndarray, width: int = 480
     rows = int(np.clip(round(cols * aspect), 16, 2 * width))
     ix = np.minimum(((points[:, 0] - lo[0]) / span[0] * cols).astype(np.int64), cols - 1)
     iy = np.minimum(((points[:, 1] - lo[1]) / span[1] * rows).astype(np.int64), rows - 1)
-    order = np.argsort(points[:, 2], kind="stable")[::-1]  # nearest first
-    pixel = iy[order] * cols + ix[order]
-    pixel, first = np.unique(pixel, return_index=True)  # the nearest point of each pixel
+    pixel = iy * cols + ix
+    nearest = np.full(rows * cols, -np.inf)
+    np.maximum.at(nearest, pixel, points[:, 2])
+    front = np.flatnonzero(points[:, 2] == nearest[pixel])  # ties: the last point listed
     view = np.full(rows * cols, np.nan)
-    view[pixel] = d[order[first]]
+    view[pixel[front]] = d[front]
     return view.reshape(rows, cols), (lo[0], hi[0], lo[1], hi[1])
 
 
