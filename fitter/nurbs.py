@@ -33,8 +33,8 @@ class BasisRows:
 
     index: np.ndarray
     value: np.ndarray
-    du: np.ndarray
-    dv: np.ndarray
+    du: np.ndarray | None
+    dv: np.ndarray | None
 
     def matrix(self, n_ctrl: int, which: str = "value") -> sp.csr_matrix:
         """The sparse ``(m, n_u n_v)`` matrix of ``value``, ``du`` or ``dv``."""
@@ -87,17 +87,19 @@ class PatchModel:
     def n_ctrl(self) -> int:
         return self.Q.shape[0] * self.Q.shape[1]
 
-    def basis_rows(self, u: np.ndarray, v: np.ndarray) -> BasisRows:
-        """Collocation entries at parameters ``u, v`` (each ``(m,)``, inside the domain)."""
+    def basis_rows(self, u: np.ndarray, v: np.ndarray, derivatives: bool = True) -> BasisRows:
+        """Collocation entries at parameters ``u, v`` (each ``(m,)``, inside the domain);
+        ``du``/``dv`` are ``None`` unless ``derivatives``."""
         (p, q), (n_u, n_v) = self.degree, self.shape
         su, Nu, dNu = basis_arrays(p, self.knots[0], n_u, u)
         sv, Nv, dNv = basis_arrays(q, self.knots[1], n_v, v)
         rows = (su[:, None] - p + np.arange(p + 1))[:, :, None] * n_v
         cols = (sv[:, None] - q + np.arange(q + 1))[:, None, :]
-        m = len(su)
-        k = (p + 1) * (q + 1)
+        m, k = len(su), (p + 1) * (q + 1)
         index = (rows + cols).reshape(m, k)
         value = (Nu[:, :, None] * Nv[:, None, :]).reshape(m, k)
+        if not derivatives:
+            return BasisRows(index, value, None, None)
         du = (dNu[:, :, None] * Nv[:, None, :]).reshape(m, k)
         dv = (Nu[:, :, None] * dNv[:, None, :]).reshape(m, k)
         return BasisRows(index, value, du, dv)
@@ -105,10 +107,10 @@ class PatchModel:
     def evaluate(self, u: np.ndarray, v: np.ndarray, derivatives: bool = False):
         """Points ``S (m, 3)`` and, with ``derivatives``, ``S_u, S_v (m, 3)`` (A4.4).
 
-        Tensor-product contraction: the ``(p + 1) x (q + 1)`` homogeneous control
-        points ``(w Q, w)`` of each point's knot cell are gathered once, contracted
-        with ``N(v)`` (and ``N'(v)``), then with ``N(u)`` (and ``N'(u)``). A
-        non-rational patch skips the weight channel.
+        Per coordinate of the homogeneous net ``(w Q, w)`` (just ``Q`` when all
+        weights are 1): gather the ``(p + 1)(q + 1)`` values of each point's knot
+        cell and take row dot products with the tensor basis ``N_a(u) N_b(v)``
+        (and its ``u``, ``v`` derivatives) — 2-D row products, the fast kind.
         """
         u = np.asarray(u, dtype=float).ravel()
         v = np.asarray(v, dtype=float).ravel()
@@ -118,23 +120,22 @@ class PatchModel:
             if not derivatives:
                 return np.concatenate(parts)
             return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
-        (p, q), (n_u, n_v) = self.degree, self.shape
-        su, Nu, dNu = basis_arrays(p, self.knots[0], n_u, u)
-        sv, Nv, dNv = basis_arrays(q, self.knots[1], n_v, v)
+        rows = self.basis_rows(u, v, derivatives)
         rational = not np.all(self.W == 1.0)
-        net = (np.concatenate([self.Q * self.W[..., None], self.W[..., None]], axis=-1)
-               if rational else self.Q)
-        rows = (su[:, None] - p + np.arange(p + 1))[:, :, None] * n_v
-        cols = (sv[:, None] - q + np.arange(q + 1))[:, None, :]
-        cell = np.take(net.reshape(n_u * n_v, -1), rows + cols, axis=0)  # (m, p+1, q+1, 3|4)
-        along_v = np.einsum("mb,mabc->mac", Nv, cell)
-        C = np.einsum("ma,mac->mc", Nu, along_v)
-        if not derivatives:
-            return C[:, :3] / C[:, 3:] if rational else C
-        Cu = np.einsum("ma,mac->mc", dNu, along_v)
-        Cv = np.einsum("ma,mac->mc", Nu, np.einsum("mb,mabc->mac", dNv, cell))
+        channels = ([*(self.Q[..., c] * self.W for c in range(3)), self.W] if rational
+                    else [self.Q[..., c] for c in range(3)])
+        bases = (rows.value, rows.du, rows.dv) if derivatives else (rows.value,)
+        out = [np.empty((len(u), len(channels))) for _ in bases]
+        for c, channel in enumerate(channels):
+            values = np.take(channel.ravel(), rows.index)
+            for o, basis in zip(out, bases, strict=True):
+                o[:, c] = np.einsum("mk,mk->m", basis, values)
         if not rational:
-            return C, Cu, Cv
+            return tuple(out) if derivatives else out[0]
+        C = out[0]
         w = C[:, 3:]
         S = C[:, :3] / w
+        if not derivatives:
+            return S
+        Cu, Cv = out[1], out[2]
         return S, (Cu[:, :3] - Cu[:, 3:] * S) / w, (Cv[:, :3] - Cv[:, 3:] * S) / w
