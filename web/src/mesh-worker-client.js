@@ -66,9 +66,10 @@ export class MeshWorkerClient {
   }
 
   /** Mesh of quadtree node (level, i, j) with the named tiles applied, grid x grid vertices
-   *  plus skirts, in the scan frame: {positions, normals, uvs, indices, tessellate_ms}. */
-  region(level, i, j, grid, names) {
-    return this._request({ type: "region", level, i, j, grid, names });
+   *  plus skirts hanging `skirtDepth` (scan units) below the lowest coarser level, in the scan
+   *  frame: {positions, normals, uvs, indices, tessellate_ms}. */
+  region(level, i, j, grid, names, skirtDepth) {
+    return this._request({ type: "region", level, i, j, grid, names, skirtDepth });
   }
 
   terminate() {

@@ -8,9 +8,9 @@
 //   page -> {type: "ply", resolution, colors?} -> {type: "ply", bytes}          (client_py.write_ply)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (read_detail_tile, kept)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (forget tiles)
-//   page -> {type: "region", level, i, j, grid, names}
+//   page -> {type: "region", level, i, j, grid, names, skirtDepth}
 //        -> {type: "region", positions, normals, uvs, indices, tessellate_ms}  (tessellate_region
-//           over node (level, i, j) with the named tiles, a skirt on its inner borders, scan frame)
+//           over node (level, i, j) with the named tiles, skirts on its inner borders, scan frame)
 //   worker -> {type: "error", stage, message}   for any failure, with the reason
 // Mesh arrays are copied once out of the WebAssembly heap (PyBuffer views die with the
 // Python object) and then *transferred*, not copied again, to the page.
@@ -78,13 +78,16 @@ def tessera_drop_tiles(names):
     for name in names:
         _tiles.pop(name, None)
 
-def _skirt(mesh, rect, n, tiles):
-    """Append skirts to a region mesh (in the patch frame) along its borders inside the domain.
+def _skirt(mesh, rect, n, tiles, depth):
+    """Hang skirts (in the patch frame) from a region's borders inside the domain.
 
-    At each border vertex the skirt spans the heights h in [min_l P_l, max_l P_l] over the
-    partial sums P_l = sum_{k <= l} D_k, l = -1 .. level (P_-1 = 0: the base), so whatever
-    coarser level a neighbour shows there, the strip S + h n closes the crack between the two.
-    Borders on the domain's outer edge get none (nothing to meet); trimmed-out cells neither.
+    A wall under each border, from the region's own edge S + P_k n down to
+    S + (min_l P_l - depth) n, with P_l = sum_{k' <= l} D_k' the partial sums of levels
+    l = -1 .. k (P_-1 = 0: the base). A coarser neighbour shows some P_l there (tiles of one
+    level agree on their borders), a finer one lies within about 2 x the region's remaining
+    error (depth) of P_k; whichever edge is higher, its wall hangs past the other, so no
+    crack shows from the front. The walls never rise above the edge they hang from (no fins).
+    Borders on the domain's outer edge get none (nothing to meet), trimmed-out cells neither.
     """
     u0, v0, u1, v1 = rect
     us = [u0 + (u1 - u0) * a / (n - 1) for a in range(n)]
@@ -111,10 +114,11 @@ def _skirt(mesh, rect, n, tiles):
         fields = [t.evaluate_grid(su, sv) for t in tiles]
         first = len(pos) // 3
         for s in range(n):
-            partial = lo = hi = 0.0
+            partial = lo = 0.0
             for f in fields:
                 partial += f[s]
-                lo, hi = min(lo, partial), max(hi, partial)
+                lo = min(lo, partial)
+            lo, hi = lo - depth, partial
             p, q = points[3 * s : 3 * s + 3], normals[3 * s : 3 * s + 3]
             pos.extend(array("f", (p[0] + lo * q[0], p[1] + lo * q[1], p[2] + lo * q[2],
                                    p[0] + hi * q[0], p[1] + hi * q[1], p[2] + hi * q[2])))
@@ -128,7 +132,7 @@ def _skirt(mesh, rect, n, tiles):
             idx.extend(array("I", (a, b, b + 1, a, b + 1, a + 1)))
     return mesh
 
-def tessera_region(level, i, j, grid, names):
+def tessera_region(level, i, j, grid, names, skirt_depth):
     t0 = time.perf_counter()
     tiles = [_tiles[name] for name in names]
     for tile in tiles:
@@ -137,7 +141,8 @@ def tessera_region(level, i, j, grid, names):
             raise ValueError(f"tile {tile.level}/{tile.i}_{tile.j} does not cover region "
                              f"{level}/{i}_{j}")
     rect = tile_rect(level, i, j)
-    mesh = _skirt(tessellate_region(_patch, rect, grid, grid, tiles), rect, grid, tiles)
+    mesh = _skirt(tessellate_region(_patch, rect, grid, grid, tiles), rect, grid, tiles,
+                  skirt_depth)
     matrix = _patch.metadata.get("transform")
     if matrix is not None:
         mesh = transform_mesh(mesh, matrix)
@@ -276,10 +281,10 @@ function drop({ id, names }) {
   post({ type: "dropped", id, names });
 }
 
-function region({ id, level, i, j, grid, names }) {
+function region({ id, level, i, j, grid, names, skirtDepth }) {
   const list = pyodide.toPy(names);
   try {
-    postMesh(glue.region(level, i, j, grid, list), { type: "region", id, level, i, j });
+    postMesh(glue.region(level, i, j, grid, list, skirtDepth), { type: "region", id, level, i, j });
   } finally {
     list.destroy();
   }

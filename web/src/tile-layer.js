@@ -4,7 +4,8 @@
 // fetches the tiles they need and nothing else (`.tsd` bytes go to the worker, which decodes
 // and keeps them; texture images are decoded by the browser into three.js textures), has the
 // worker tessellate each new region (client_py.tessellate_region with the region's tiles,
-// plus skirts) and swaps all new regions in at once: until then the old regions and the base
+// plus skirts hanging behind its inner borders, 2 x its remaining error deep, so no crack
+// shows next to a coarser or finer neighbour) and swaps all new regions in at once: until then the old regions and the base
 // stay on screen, so no frame shows a hole. Regions and tiles no longer needed are disposed
 // (geometries, textures, the worker's decoded tiles). Tile URLs are the manifest's file names
 // resolved against the manifest's own URL (a bundle is one directory).
@@ -134,7 +135,8 @@ export class TileLayer {
       let mesh = this.regions.get(id);
       if (!mesh) {
         const data = await this.worker.region(leaf.level, leaf.i, leaf.j, REGION_GRID,
-                                              leaf.chain.map((node) => node.file));
+                                              leaf.chain.map((node) => node.file),
+                                              2 * this.tree.detailError(leaf.level, leaf.i, leaf.j));
         ms += data.tessellate_ms;
         made += 1;
         const texture = leaf.texture ? this.textures.get(leaf.texture.file) : null;
