@@ -58,12 +58,15 @@ def deviations(model: PatchModel, points: np.ndarray, u0: np.ndarray, v0: np.nda
     def one_chunk(s: int) -> None:
         p = points[s:s + chunk]
         _, nearest = tree.query(p)
-        own = model.evaluate(u0[s:s + chunk], v0[s:s + chunk])
-        seed_better = (np.einsum("ij,ij->i", seeds[nearest] - p, seeds[nearest] - p)
-                       < np.einsum("ij,ij->i", own - p, own - p))
-        u = np.where(seed_better, GU[nearest], u0[s:s + chunk])
-        v = np.where(seed_better, GV[nearest], v0[s:s + chunk])
-        u, v, S, Su, Sv = foot_points(model, p, u, v, periodic_u, iterations=6)
+        u, v = u0[s:s + chunk].copy(), v0[s:s + chunk].copy()
+        S, Su, Sv = model.evaluate(u, v, derivatives=True)
+        seeded = np.flatnonzero(np.einsum("ij,ij->i", seeds[nearest] - p, seeds[nearest] - p)
+                                < np.einsum("ij,ij->i", S - p, S - p))
+        u[seeded], v[seeded] = GU[nearest[seeded]], GV[nearest[seeded]]
+        if len(seeded):
+            S[seeded], Su[seeded], Sv[seeded] = model.evaluate(u[seeded], v[seeded], True)
+        u, v, S, Su, Sv = foot_points(model, p, u, v, periodic_u, iterations=6,
+                                      start=(S, Su, Sv))
         n = np.cross(Su, Sv)
         r = p - S
         dist = np.linalg.norm(r, axis=1)

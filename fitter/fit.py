@@ -274,10 +274,12 @@ def project_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.n
 
 
 def foot_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.ndarray,
-                periodic_u: bool = False, iterations: int = 4, tol: float = 1e-4
+                periodic_u: bool = False, iterations: int = 4, tol: float = 1e-4,
+                start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                 ) -> tuple[np.ndarray, ...]:
     """Foot points: ``(u, v)`` minimising ``||S(u, v) - points||`` from the given start,
-    with ``S, S_u, S_v`` there (each ``(m, 3)``).
+    with ``S, S_u, S_v`` there (each ``(m, 3)``). ``start`` may pass ``S, S_u, S_v`` at
+    the starting parameters when the caller has them.
 
     Gauss-Newton steps ``[S_u S_v]^+ (P - S)`` clamped to the domain (wrapped
     in ``u`` for periodic maps), each step halved until the distance does not
@@ -289,7 +291,7 @@ def foot_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.ndar
     """
     u = np.array(u, dtype=float)
     v = np.array(v, dtype=float)
-    S, Su, Sv = model.evaluate(u, v, derivatives=True)
+    S, Su, Sv = start if start is not None else model.evaluate(u, v, derivatives=True)
     r = points - S
     dist = np.einsum("ij,ij->i", r, r)
     active = np.arange(len(u))
