@@ -32,9 +32,29 @@ def detail_collection(tmp_path_factory: pytest.TempPathFactory):
     from fitter.pipeline import FitOptions, fit_scan
 
     root = tmp_path_factory.mktemp("detail-collection")
-    fit_scan(relief_scan(40_000), root / "relief-detail",
+    points = relief_scan(40_000)
+    fit_scan(points, root / "relief-detail",
              FitOptions(grid=(20, 20), detail_levels=LEVELS, title="Relief with detail"))
+    fit_scan(_coloured(points), root / "relief-colour",
+             FitOptions(grid=(20, 20), detail_levels=2, title="Relief with colour"))
     return root
+
+
+def _local(points: np.ndarray) -> np.ndarray:
+    """Scan-frame points in the relief's own frame (the example's tilt undone)."""
+    a, b = np.deg2rad(20.0), np.deg2rad(-35.0)
+    rot_x = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    rot_z = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
+    return (points - np.array([250.0, -40.0, 1200.0])) @ (rot_z @ rot_x)
+
+
+def _coloured(points: np.ndarray):
+    """The relief painted with red and blue stripes 12 mm wide across x: a point-coloured scan."""
+    from fitter.io.scan import Scan
+
+    stripes = (np.floor(_local(points)[:, 0] / 12) % 2).astype(bool)
+    colours = np.where(stripes[:, None], [[200, 60, 40]], [[40, 80, 200]]).astype(np.uint8)
+    return Scan(points=points, colors=colours)
 
 
 @pytest.fixture(scope="module")
@@ -56,11 +76,8 @@ def _scan_frame_surface(bundle):
 
 
 def _relief_deviation(points: np.ndarray) -> np.ndarray:
-    """Vertical distance of scan-frame points to the exact relief (the example's tilt undone)."""
-    a, b = np.deg2rad(20.0), np.deg2rad(-35.0)
-    rot_x = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    rot_z = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
-    local = (points - np.array([250.0, -40.0, 1200.0])) @ (rot_z @ rot_x)
+    """Vertical distance of scan-frame points to the exact relief."""
+    local = _local(points)
     return local[:, 2] - relief_height(local[:, 0], local[:, 1])
 
 
@@ -189,5 +206,40 @@ def test_zoom_fetches_only_the_tiles_in_view_and_refines_the_mesh(browser, detai
               f"{before['tile_tessellate_ms']:.0f} ms; zoom: {zoomed} tiles, "
               f"{after['tile_bytes'] - before['tile_bytes']} B, {after['regions']} regions, "
               f"{after['tile_tessellate_ms']:.0f} ms; rms {base_rms:.3f} -> {refined_rms:.3f}")
+    finally:
+        context.close()
+
+
+def test_texture_tiles_colour_the_object(browser, detail_server, detail_collection):
+    """A point-coloured scan's texture tiles are fetched and drawn: the stripes show."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    manifest = json.loads((detail_collection / "relief-colour" / "manifest.json").read_text())
+    assert manifest["tiles"]["texture"]["nodes"]
+    context = browser.new_context(viewport={"width": 800, "height": 600})
+    page = context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda exc: problems.append(str(exc)))
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    textures: list[str] = []
+    page.on("request", lambda r: textures.append(r.url) if "/texture/" in r.url else None)
+    try:
+        page.goto(f"{detail_server.url}/objects/relief-colour/?resolution=64")
+        page.wait_for_function(READY, timeout=60_000)
+        stats = page.evaluate("window.tessera.tilesIdle()")
+        assert textures and stats["tiles_loaded"] > 0
+        files = {n["file"] for n in manifest["tiles"]["texture"]["nodes"]}
+        assert all(url.split("/relief-colour/", 1)[1] in files for url in textures)
+        url = page.eval_on_selector("#view", "c => c.toDataURL('image/png')")
+        rgb = np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1])))
+                         .convert("RGB")).astype(int)
+        red = (rgb[..., 0] > rgb[..., 2] + 60).mean()
+        blue = (rgb[..., 2] > rgb[..., 0] + 60).mean()
+        assert red > 0.05 and blue > 0.05, (red, blue)  # both stripe colours on screen
+        assert page.evaluate("document.body.dataset.tileError") is None
+        assert problems == []
     finally:
         context.close()
