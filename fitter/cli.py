@@ -154,11 +154,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .io import ScanError
-    from .pipeline import FitOptions, fit_scan
+    from .pipeline import fit_scan
 
-    options = FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
-                         max_error=args.max_error, projection=args.projection, title=args.title,
-                         detail_levels=args.detail_levels, texture=args.texture)
+    options = _fit_options(args, title=args.title)
     bars: dict[str, tqdm] = {}
 
     def progress(stage: str, fraction: float) -> None:
@@ -327,10 +325,8 @@ def _cmd_admin_set_token(args: argparse.Namespace) -> int:
 
 def _cmd_fit_collection(args: argparse.Namespace) -> int:
     from .collection_fit import fit_collection, format_summary
-    from .pipeline import FitOptions
 
-    options = FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
-                         max_error=args.max_error, projection=args.projection)
+    options = _fit_options(args)
     try:
         results = fit_collection(args.scans, args.output, options, scheduler=args.scheduler,
                                  workers=args.workers, progress=not args.quiet)
@@ -338,6 +334,39 @@ def _cmd_fit_collection(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     print(format_summary(results))
     return 1 if any(r.state == "failed" for r in results) else 0
+
+
+def _add_fit_options(parser: argparse.ArgumentParser) -> None:
+    """The options of one fit (``FitOptions``), shared by ``fit`` and ``fit-collection``."""
+    parser.add_argument("--grid", type=_grid, default=(40, 40),
+                        help="control points per side, NxM (default 40x40)")
+    parser.add_argument("--degree", type=int, default=2, help="B-spline degree (default 2)")
+    parser.add_argument("--method", choices=("tessera", "paper", "linear"), default="tessera",
+                        help="tessera (default): parameter correction on the scan itself and "
+                        "weights; paper: the published method as a baseline; linear: the "
+                        "paper's initial linear fit alone")
+    parser.add_argument("--max-error", type=_positive_float, default=None,
+                        help="grow the control grid until the RMS deviation (scan units) is "
+                        "at most this")
+    parser.add_argument("--bits", type=int, default=None,
+                        help="quantisation bits per control-point axis, 8..24 (default: the "
+                        "fewest that keep the RMS within 0.5%%)")
+    parser.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
+                        default="auto", help="map to the parameter domain (default auto)")
+    parser.add_argument("--detail-levels", type=_detail_levels, default=None,
+                        help="levels of the detail pyramid, 0 to 8 (default: as many as the "
+                        "point density supports)")
+    parser.add_argument("--texture", action=argparse.BooleanOptionalAction, default=True,
+                        help="write the texture pyramid when the scan has colour (default yes)")
+
+
+def _fit_options(args: argparse.Namespace, **extra):
+    """``FitOptions`` from the options :func:`_add_fit_options` added."""
+    from .pipeline import FitOptions
+
+    return FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
+                      max_error=args.max_error, projection=args.projection,
+                      detail_levels=args.detail_levels, texture=args.texture, **extra)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -356,27 +385,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("scan", help="the scan file")
     fit.add_argument("-o", "--output", required=True, help="bundle directory to write")
-    fit.add_argument("--grid", type=_grid, default=(40, 40),
-                     help="control points per side, NxM (default 40x40)")
-    fit.add_argument("--degree", type=int, default=2, help="B-spline degree (default 2)")
-    fit.add_argument("--method", choices=("tessera", "paper", "linear"), default="tessera",
-                     help="tessera (default): parameter correction on the scan itself and "
-                     "weights; paper: the published method as a baseline; linear: the "
-                     "paper's initial linear fit alone")
-    fit.add_argument("--max-error", type=_positive_float, default=None,
-                     help="grow the control grid until the RMS deviation (scan units) is at "
-                     "most this")
-    fit.add_argument("--bits", type=int, default=None,
-                     help="quantisation bits per control-point axis, 8..24 (default: the "
-                          "fewest that keep the RMS within 0.5%%)")
-    fit.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
-                     default="auto", help="map to the parameter domain (default auto)")
+    _add_fit_options(fit)
     fit.add_argument("--title", default=None, help="object title (default: the file name)")
-    fit.add_argument("--detail-levels", type=_detail_levels, default=None,
-                     help="levels of the detail pyramid, 0 to 8 (default: as many as the "
-                     "point density supports)")
-    fit.add_argument("--texture", action=argparse.BooleanOptionalAction, default=True,
-                     help="write the texture pyramid when the scan has colour (default yes)")
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     fit.set_defaults(run=_cmd_fit)
 
@@ -454,17 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
     batch.add_argument("--workers", type=_count, default=None,
                        help="LocalCluster worker processes (default: one per core)")
-    batch.add_argument("--grid", type=_grid, default=(40, 40),
-                       help="control points per side, NxM (default 40x40)")
-    batch.add_argument("--degree", type=int, default=2, help="B-spline degree (default 2)")
-    batch.add_argument("--method", choices=("tessera", "paper", "linear"), default="tessera",
-                       help="fit method (see `tessera fit --help`)")
-    batch.add_argument("--max-error", type=_positive_float, default=None,
-                       help="grow each grid until the RMS deviation is at most this")
-    batch.add_argument("--bits", type=int, default=None,
-                       help="quantisation bits (default: automatic, as `tessera fit`)")
-    batch.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
-                       default="auto", help="map to the parameter domain (default auto)")
+    _add_fit_options(batch)
     batch.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     batch.set_defaults(run=_cmd_fit_collection)
     return parser

@@ -123,25 +123,23 @@ def api_edit_object(object_id: str) -> ResponseReturnValue:
     return object_json(catalog, catalog.get_object(object_id))
 
 
-@bp.delete("/api/objects/<object_id>")
-def api_delete_object(object_id: str) -> ResponseReturnValue:
+def _move(object_id: str, move) -> ResponseReturnValue:
+    """Trash or restore an object (``move(catalog, id)``); its JSON, or 404/409."""
     catalog = state().catalog()
     try:
-        trash_object(catalog, object_id)
+        move(catalog, object_id)
     except KeyError:
         return api_error(f"no object {object_id!r}", 404)
     except ConflictError as exc:
         return api_error(str(exc), 409)
     return object_json(catalog, catalog.get_object(object_id))
+
+
+@bp.delete("/api/objects/<object_id>")
+def api_delete_object(object_id: str) -> ResponseReturnValue:
+    return _move(object_id, trash_object)
 
 
 @bp.post("/api/objects/<object_id>/restore")
 def api_restore_object(object_id: str) -> ResponseReturnValue:
-    catalog = state().catalog()
-    try:
-        restore_object(catalog, object_id)
-    except KeyError:
-        return api_error(f"no object {object_id!r}", 404)
-    except ConflictError as exc:
-        return api_error(str(exc), 409)
-    return object_json(catalog, catalog.get_object(object_id))
+    return _move(object_id, restore_object)

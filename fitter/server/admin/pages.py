@@ -178,26 +178,25 @@ def _set_published(object_id: str, published: bool) -> ResponseReturnValue:
                     else url_for("admin.edit_object", object_id=object_id))
 
 
-@bp.post("/objects/<object_id>/delete")
-def delete_object(object_id: str) -> ResponseReturnValue:
+def _move(object_id: str, move, done: str, back: str) -> ResponseReturnValue:
+    """Trash or restore an object (``move(catalog, id)``), flash the outcome, go ``back``."""
     _object_or_404(object_id)
     try:
-        trash_object(state().catalog(), object_id)
-        flash(f"{object_id} moved to the trash (restorable).")
+        move(state().catalog(), object_id)
+        flash(f"{object_id} {done}")
     except ConflictError as exc:
         flash(str(exc))
-    return redirect(url_for("admin.objects"))
+    return redirect(url_for(back))
+
+
+@bp.post("/objects/<object_id>/delete")
+def delete_object(object_id: str) -> ResponseReturnValue:
+    return _move(object_id, trash_object, "moved to the trash (restorable).", "admin.objects")
 
 
 @bp.post("/objects/<object_id>/restore")
 def restore(object_id: str) -> ResponseReturnValue:
-    _object_or_404(object_id)
-    try:
-        restore_object(state().catalog(), object_id)
-        flash(f"{object_id} restored (unpublished).")
-    except ConflictError as exc:
-        flash(str(exc))
-    return redirect(url_for("admin.trash"))
+    return _move(object_id, restore_object, "restored (unpublished).", "admin.trash")
 
 
 @bp.get("/trash")
