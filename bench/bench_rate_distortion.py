@@ -40,6 +40,8 @@ SCANS = {
     "laurana-bust": DATA / "laurana-bust" / "laurana.ply",
 }
 GRIDS = (12, 20, 32)
+LEVELS = {12: 5, 20: 5, 32: 6}  # detail levels 0..L-1 per base grid (level 5: the 512 KB end)
+STEP_FACTORS = (1.0, 2.0, 4.0)  # detail quantisation step / the level's remaining RMS
 BUDGETS_KB = (8, 16, 32, 64, 128, 256, 512)
 DRACO_BITS = (10, 11, 12, 14)
 
@@ -138,25 +140,59 @@ def draco_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) ->
 
 
 def tessera_points(scan, out: Path) -> list[dict]:
+    """A point per (base grid, quantisation step factor, level): the bundle ``fit_scan``
+    writes (step factor ``STEP_FACTOR``), and the same base with the detail pyramid refitted
+    at the other ``STEP_FACTORS`` (coarser or finer quantisation of every level)."""
+    from client_py import read_patch
+    from fitter.detail import STEP_FACTOR, fit_detail
+    from fitter.error import deviations
+    from fitter.nurbs import PatchModel
+    from fitter.parameterize import choose_projection
     from fitter.pipeline import FitOptions, fit_scan
 
+    normals = _unit_normals(scan)
+    cov = choose_projection(scan.points, normals, "auto")
+    proj = cov.projection
+    local = proj.local(scan.points)
+    u, v, _ = proj.to_uvh(scan.points)
     rows = []
     for grid in GRIDS:
         start = time.perf_counter()
-        m = fit_scan(scan, out / f"g{grid}", FitOptions(grid=(grid, grid), texture=False,
-                                                         detail_levels=5)).manifest
+        bundle = fit_scan(scan, out / f"g{grid}", FitOptions(grid=(grid, grid), texture=False,
+                                                              detail_levels=LEVELS[grid]))
+        m = bundle.manifest
         wall = time.perf_counter() - start
         detail = m["tiles"]["detail"]
-        total = m["files"]["base.tsp"]
-        rows.append({"method": "tessera", "grid": grid, "level": -1, "bytes": total,
-                     "rms": detail["base"]["rms"], "max": detail["base"]["max"],
+        base = m["files"]["base.tsp"]
+        rows.append({"method": "tessera", "grid": grid, "step": None, "level": -1,
+                     "bytes": base, "rms": detail["base"]["rms"], "max": detail["base"]["max"],
                      "fit_s": wall})
-        for lev in detail["levels"]:
-            total += lev["bytes_total"]
-            rows.append({"method": "tessera", "grid": grid, "level": lev["level"],
-                         "bytes": total, "rms": lev["rms"], "max": lev["max"],
-                         "tiles": lev["tiles"], "fit_s": wall})
+        levels = {STEP_FACTOR: [(lev["level"], lev["bytes_total"], lev["rms"], lev["max"],
+                                 lev["tiles"]) for lev in detail["levels"]]}
+        model = PatchModel.from_surface(read_patch((bundle.path / "base.tsp").read_bytes()))
+        dev = deviations(model, local, u, v, proj.periodic_u)
+        for factor in STEP_FACTORS:
+            if factor != STEP_FACTOR:
+                pyramid = fit_detail(model, local, dev, cov.covered, proj.periodic_u, LEVELS[grid],
+                                     step_factor=factor)
+                levels[factor] = [(lev.level, lev.bytes_total, lev.rms, lev.max,
+                                   len(lev.tiles)) for lev in pyramid.levels]
+        for factor, per_level in levels.items():
+            total = base
+            for level, size, rms, worst, tiles in per_level:
+                total += size
+                rows.append({"method": "tessera", "grid": grid, "step": factor,
+                             "level": level, "bytes": total, "rms": rms, "max": worst,
+                             "tiles": tiles, "fit_s": wall})
     return rows
+
+
+def _unit_normals(scan) -> np.ndarray | None:
+    """The scan's normals, unit length, as ``fit_scan`` uses them to choose the map."""
+    if scan.normals is None:
+        return None
+    length = np.linalg.norm(scan.normals, axis=1, keepdims=True)
+    return scan.normals / length if np.all(length > 0) else None
 
 
 def frontier(rows: list[dict], budget: int) -> dict | None:
@@ -184,12 +220,7 @@ def run() -> dict | None:
             start = time.perf_counter()
             scan = load_scan(path)
             ours = tessera_points(scan, Path(tmp) / name.replace(" ", "_"))
-            normals = None  # as fit_scan chooses the map: with unit normals when the scan has them
-            if scan.normals is not None:
-                length = np.linalg.norm(scan.normals, axis=1, keepdims=True)
-                if np.all(length > 0):
-                    normals = scan.normals / length
-            cov = choose_projection(scan.points, normals, "auto")
+            cov = choose_projection(scan.points, _unit_normals(scan), "auto")
             u, v, _ = cov.projection.to_uvh(scan.points)
             vertices, faces = _covered_mesh(scan, cov, u, v)
             theirs = draco_points(scan.points[cov.covered], vertices, faces)
@@ -200,7 +231,9 @@ def run() -> dict | None:
                 table.append([name, kb,
                               "-" if a is None else f"{a['rms']:.3g}",
                               "-" if a is None else f"{a['max']:.3g}",
-                              "-" if a is None else f"g{a['grid']} L{a['level']} {a['bytes']}",
+                              "-" if a is None else (f"g{a['grid']} L{a['level']}"
+                                                     + (f" s{a['step']:g}" if a["step"] else "")
+                                                     + f" {a['bytes']}"),
                               "-" if b is None else f"{b['rms']:.3g}",
                               "-" if b is None else f"{b['max']:.3g}",
                               "-" if b is None else f"{b['faces']}f {b['bits']}b {b['bytes']}",
@@ -216,7 +249,9 @@ def run() -> dict | None:
                 ["data", "KB", "tessera RMS", "max", "config, bytes", "draco RMS", "max",
                  "config, bytes", "lower RMS"], table)
     _plot(results)
-    record = {"budgets_kb": list(BUDGETS_KB), "grids": list(GRIDS), "data": results}
+    record = {"budgets_kb": list(BUDGETS_KB), "grids": list(GRIDS),
+              "step_factors": list(STEP_FACTORS), "levels": {str(g): n for g, n in LEVELS.items()},
+              "data": results}
     write_results("rate_distortion", record)
     return record
 
