@@ -1,6 +1,9 @@
 """Make a fitted patch cheap to store without changing what a visitor sees.
 
-Two steps between the fit and ``base.tsp``:
+Three steps between the fit and ``base.tsp``:
+
+0. **Stray cells.** :func:`drawn_cells` leaves out of the trim mask the cells
+   where the surface strays from every scan point (overshoot at cliffs and poles).
 
 1. **Hidden control points.** On a trimmed patch, a control point whose support
    (the ``(p + 1) x (q + 1)`` knot spans it scales) meets no drawn cell cannot
@@ -23,18 +26,20 @@ import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage
 from scipy.sparse.linalg import spsolve
+from scipy.spatial import cKDTree
 
 from client_py import NurbsSurface, read_patch, write_patch
 
 from .nurbs import PatchModel
 
+STRAY_FACTOR = 8.0  # how many fit RMS (plus 2 point spacings) a drawn surface may stray
 QUANTISATION_SHARE = 0.1  # quantisation RMS / fit RMS: the fit's RMS grows by <= 0.5 %
 BITS_RANGE = (8, 16)
 DRAWN_MARGIN = 1 / 32  # of the domain: tessellation triangles reach this far past a kept cell
 
 
 def visible_control_points(model: PatchModel, cells: np.ndarray,
-                           periodic_u: bool = False) -> np.ndarray:
+                           periodic_u: bool = False, poles: bool = False) -> np.ndarray:
     """``(n_u, n_v)`` booleans: control points whose support meets a drawn cell.
 
     ``cells (rows, cols)`` is the trim mask (true where drawn), dilated by
@@ -42,7 +47,8 @@ def visible_control_points(model: PatchModel, cells: np.ndarray,
     whose centre is in a drawn cell. Knots are uniform clamped: control point
     ``a`` scales the spans ``a - p .. a`` of the ``n - p`` equal spans. In a
     periodic ``u`` direction the seam closure ties ``Q_0, Q_1`` to
-    ``Q_{n-2}, Q_{n-1}``; the four rows count as visible together.
+    ``Q_{n-2}, Q_{n-1}``; the four rows count as visible together. With
+    ``poles`` the first and last columns are one point each, visible together.
     """
     (p, q), (n_u, n_v) = model.degree, model.shape
     rows, cols = cells.shape
@@ -60,6 +66,9 @@ def visible_control_points(model: PatchModel, cells: np.ndarray,
     if periodic_u:
         tied = visible[[0, 1, n_u - 2, n_u - 1]].any(axis=0)
         visible[[0, 1, n_u - 2, n_u - 1]] |= tied
+    if poles:
+        for col in (0, n_v - 1):
+            visible[:, col] = visible[:, col].any()
     return visible
 
 
@@ -112,15 +121,43 @@ def harmonic_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 
 def settle_hidden(model: PatchModel, cells: np.ndarray | None,
-                  periodic_u: bool = False) -> PatchModel:
+                  periodic_u: bool = False, poles: bool = False) -> PatchModel:
     """``model`` with its hidden control points and log-weights harmonically filled."""
     if cells is None:
         return model
-    visible = visible_control_points(model, cells, periodic_u)
+    visible = visible_control_points(model, cells, periodic_u, poles)
     out = model.copy()
     out.Q = harmonic_fill(model.Q, visible)
     if not np.all(model.W == 1.0):
         out.W = np.exp(harmonic_fill(np.log(model.W), visible))
+    return out
+
+
+def drawn_cells(model: PatchModel, cells: np.ndarray, points: np.ndarray,
+                fit_rms: float) -> np.ndarray:
+    """``cells (rows, cols)`` without the cells where the patch strays from the scan.
+
+    Where the scan's height over the domain jumps (a mask's rim seen from its
+    centre, a sphere map's poles) the B-spline overshoots between the points
+    that pin it, and a tessellation would draw the spikes. A covered cell is
+    dropped when the surface at its centre or at one of its corners lies
+    farther from every scan point (``points``, patch frame; at most 10^6 of
+    them) than ``STRAY_FACTOR * fit_rms`` plus twice the scan's median point
+    spacing (a perfect fit still passes between the points).
+    """
+    rows, cols = cells.shape
+    r, c = np.nonzero(cells)
+    step = max(1, len(points) // 1_000_000)
+    tree = cKDTree(points[::step])
+    spacing = float(np.median(tree.query(points[::step][:: max(1, len(points) // step // 20_000)],
+                                         k=2)[0][:, 1]))
+    corners = ((0.5, 0.5), (0.0, 0.0), (0.0, 1.0), (1.0, 0.0), (1.0, 1.0))
+    u = np.concatenate([(r + a) / rows for a, _ in corners])
+    v = np.concatenate([(c + b) / cols for _, b in corners])
+    distance, _ = tree.query(model.evaluate(u, v))
+    far = (distance.reshape(len(corners), -1) > STRAY_FACTOR * fit_rms + 2 * spacing).any(axis=0)
+    out = cells.copy()
+    out[r[far], c[far]] = False
     return out
 
 

@@ -44,16 +44,32 @@ DEFAULT_SMOOTHING = 1e-6
 
 
 # ------------------------------------------------------------------ structure matrices
-def seam_closure(shape: tuple[int, int], periodic_u: bool) -> sp.csr_matrix:
+def seam_closure(shape: tuple[int, int], periodic_u: bool,
+                 poles: bool = False) -> sp.csr_matrix:
     """``T (n_u n_v, n_free)``: all control points from the free ones.
 
     Periodic in ``u``: rows ``n_u - 1`` and ``n_u - 2`` of the net are
-    ``Q_0`` and ``2 Q_0 - Q_1`` (C1 closure); otherwise ``T = I``.
+    ``Q_0`` and ``2 Q_0 - Q_1`` (C1 closure). ``poles`` (a sphere map, whose
+    ``v = 0`` and ``v = 1`` edges are single points in space): each of the first
+    and last columns of the net is one shared free point, so the patch closes
+    at its poles as a NURBS sphere does instead of fanning out where few scan
+    points reach. Otherwise ``T = I``.
     """
     n_u, n_v = shape
-    if not periodic_u:
+    if not periodic_u and not poles:
         return sp.identity(n_u * n_v, format="csr")
-    return sp.kron(seam_closure_u(n_u), sp.identity(n_v), format="csr")
+    Tu = seam_closure_u(n_u) if periodic_u else sp.identity(n_u, format="csr")
+    if not poles:
+        return sp.kron(Tu, sp.identity(n_v), format="csr")
+    if n_v < 4:
+        raise ValueError(f"a map with poles needs at least 4 control points in v, got {n_v}")
+    interior = sp.eye(n_v, n_v - 2, k=-1, format="csr")  # columns 1 .. n_v - 2
+    first = np.zeros(n_v)
+    first[0] = 1.0
+    last = first[::-1].copy()
+    ones = np.ones((n_u, 1))
+    return sp.hstack([sp.kron(Tu, interior), sp.csr_matrix(np.kron(ones, first[:, None])),
+                      sp.csr_matrix(np.kron(ones, last[:, None]))], format="csr")
 
 
 def seam_closure_u(n_u: int) -> sp.csr_matrix:
@@ -88,15 +104,17 @@ def second_differences(shape: tuple[int, int]) -> sp.csr_matrix:
 
 # ------------------------------------------------------------------ linear solves
 @functools.lru_cache(maxsize=8)
-def _thin_plate_normal(shape: tuple[int, int], periodic_u: bool) -> tuple[sp.csc_matrix, float]:
+def _thin_plate_normal(shape: tuple[int, int], periodic_u: bool,
+                       poles: bool = False) -> tuple[sp.csc_matrix, float]:
     """``(L T)^T (L T)`` and its trace, the same for every solve on one control grid."""
-    LT = second_differences(shape) @ seam_closure(shape, periodic_u)
+    LT = second_differences(shape) @ seam_closure(shape, periodic_u, poles)
     LtL = (LT.T @ LT).tocsc()
     return LtL, float(LtL.diagonal().sum())
 
 
 def _regularised_solve(A: sp.csr_matrix, targets: np.ndarray, periodic_u: bool,
-                       smoothing: float, shape: tuple[int, int]) -> np.ndarray:
+                       smoothing: float, shape: tuple[int, int],
+                       poles: bool = False) -> np.ndarray:
     """``Q = T q`` minimising ``||A T q - targets||^2 + lam ||L T q||^2`` (normal equations;
     ``lam = smoothing * tr(AtA) / tr(LtL)`` so the option is scale-free).
 
@@ -105,15 +123,16 @@ def _regularised_solve(A: sp.csr_matrix, targets: np.ndarray, periodic_u: bool,
     banded Cholesky, with a sparse LU for the singular case (control points no
     datum reaches and no smoothing ties) and for the seam's wrap-around coupling.
     """
-    T = seam_closure(shape, periodic_u) if periodic_u else None
-    AT = (A @ T).tocsr() if periodic_u else A
+    tied = periodic_u or poles
+    T = seam_closure(shape, periodic_u, poles) if tied else None
+    AT = (A @ T).tocsr() if tied else A
     AtA = (AT.T @ AT).tocsc()
     rhs = AT.T @ targets
     if smoothing > 0:
-        LtL, trace = _thin_plate_normal(shape, periodic_u)
+        LtL, trace = _thin_plate_normal(shape, periodic_u, poles)
         AtA = AtA + (smoothing * AtA.diagonal().sum() / max(trace, 1e-300)) * LtL
     q = None
-    if not periodic_u:
+    if not tied:
         try:
             q = _solve_banded_spd(AtA, np.zeros(AtA.shape[0]), rhs)
         except np.linalg.LinAlgError:
@@ -121,12 +140,12 @@ def _regularised_solve(A: sp.csr_matrix, targets: np.ndarray, periodic_u: bool,
     if q is None:
         q = spsolve(AtA.tocsc(), rhs)
     q = np.asarray(q).reshape(AtA.shape[0], -1)
-    return np.asarray(T @ q) if periodic_u else q
+    return np.asarray(T @ q) if tied else q
 
 
 def fit_section_matrix(model: PatchModel, u: np.ndarray, v: np.ndarray, points: np.ndarray,
                        valid: np.ndarray, periodic_u: bool = False,
-                       smoothing: float = DEFAULT_SMOOTHING) -> PatchModel:
+                       smoothing: float = DEFAULT_SMOOTHING, poles: bool = False) -> PatchModel:
     """Linear least-squares B-spline fit (weights 1) to a section matrix.
 
     ``points (m0 + 1, m1 + 1, 3)`` at the node parameters ``u (m0 + 1,)`` and
@@ -136,7 +155,7 @@ def fit_section_matrix(model: PatchModel, u: np.ndarray, v: np.ndarray, points: 
     out = model.copy()
     out.W = np.ones(model.shape)
     shape = model.shape
-    if valid.all() and smoothing == 0:
+    if valid.all() and smoothing == 0 and not poles:
         Bu = _direction_matrix(model, u, axis=0)
         Bv = _direction_matrix(model, v, axis=1)
         Tu = seam_closure_u(shape[0]).toarray() if periodic_u else np.eye(shape[0])
@@ -148,7 +167,8 @@ def fit_section_matrix(model: PatchModel, u: np.ndarray, v: np.ndarray, points: 
     keep = valid.ravel()
     rows = model.basis_rows(UU.ravel()[keep], VV.ravel()[keep])
     A = rows.matrix(model.n_ctrl)
-    Q = _regularised_solve(A, points.reshape(-1, 3)[keep], periodic_u, smoothing, shape)
+    Q = _regularised_solve(A, points.reshape(-1, 3)[keep], periodic_u, smoothing, shape,
+                           poles)
     out.Q = Q.reshape(shape[0], shape[1], 3)
     return out
 
@@ -164,18 +184,19 @@ def _direction_matrix(model: PatchModel, t: np.ndarray, axis: int) -> np.ndarray
 
 def fit_points_linear(model: PatchModel, u: np.ndarray, v: np.ndarray, points: np.ndarray,
                       periodic_u: bool = False, smoothing: float = DEFAULT_SMOOTHING,
-                      rows: BasisRows | None = None) -> PatchModel:
+                      rows: BasisRows | None = None, poles: bool = False) -> PatchModel:
     """Control points for scattered ``points (m, 3)`` at ``(u, v)``, weights held fixed.
 
     With ``W`` fixed the NURBS is linear in ``Q`` through the rational basis
     ``R_l = w_l N_l / sum_j w_j N_j``, so this is one sparse least-squares solve.
-    ``rows`` may pass ``model.basis_rows(u, v)`` when it is already at hand.
+    ``rows`` may pass ``model.basis_rows(u, v)`` when it is already at hand;
+    ``periodic_u`` and ``poles`` tie control points as :func:`seam_closure` says.
     """
     rows = model.basis_rows(u, v) if rows is None else rows
     w = model.W.ravel()[rows.index]
     rational = rows.value * w / np.einsum("mk,mk->m", rows.value, w)[:, None]
     A = BasisRows(rows.index, rational, rows.du, rows.dv).matrix(model.n_ctrl)
-    Q = _regularised_solve(A, points, periodic_u, smoothing, model.shape)
+    Q = _regularised_solve(A, points, periodic_u, smoothing, model.shape, poles)
     out = model.copy()
     out.Q = Q.reshape(model.Q.shape)
     return out

@@ -42,7 +42,7 @@ from threadpoolctl import threadpool_limits
 from client_py import TrimMask, read_patch, write_patch
 
 from . import io as scan_io
-from .compact import choose_bits, settle_hidden
+from .compact import choose_bits, drawn_cells, settle_hidden
 from .detail import fit_detail, write_layers
 from .error import deviations, error_grid, error_stats, write_error_ply, write_error_png
 from .features import adaptive_sample, feature_weights, surface_variation
@@ -212,6 +212,7 @@ def _fit_one(grid: tuple[int, int], options: FitOptions, cov: Coverage, local: n
              trim: TrimMask | None, metadata: dict, stages: _Stages) -> tuple[PatchModel, dict]:
     proj = cov.projection
     periodic = proj.periodic_u
+    poles = proj.kind == "sphere"  # the v = 0 and v = 1 edges are points: close them
     covered = cov.covered
     deg = (options.degree, options.degree)
     model = PatchModel.uniform(grid, deg)
@@ -223,7 +224,8 @@ def _fit_one(grid: tuple[int, int], options: FitOptions, cov: Coverage, local: n
         smoothing = TESSERA_SMOOTHING
     else:  # as published: no smoothing unless the section matrix has holes to bridge
         smoothing = 0.0 if sm.full else DEFAULT_SMOOTHING
-    model = fit_section_matrix(model, sm.u, sm.v, sm.points, sm.valid, periodic, smoothing)
+    model = fit_section_matrix(model, sm.u, sm.v, sm.points, sm.valid, periodic, smoothing,
+                               poles=poles)
     history: dict = {"section_matrix": list(sm.points.shape[:2]),
                      "section_holes": int((~sm.valid).sum())}
     if options.method == "linear":
@@ -241,7 +243,7 @@ def _fit_one(grid: tuple[int, int], options: FitOptions, cov: Coverage, local: n
     su, sv = u[sample], v[sample]
     for k in range(CORRECTION_ROUNDS):
         su, sv = project_points(model, pts, su, sv, periodic, iterations=2)
-        model = fit_points_linear(model, su, sv, pts, periodic, smoothing)
+        model = fit_points_linear(model, su, sv, pts, periodic, smoothing, poles=poles)
         stages.report((k + 1) / (CORRECTION_ROUNDS + 1))
     if not periodic:  # weights change the seam's derivatives: periodic patches stay B-splines
         su, sv = project_points(model, pts, su, sv, periodic)
@@ -319,12 +321,17 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
         model, history = _fit_one(grid, options, cov, local, u, v, h, sample, trim, metadata,
                                   stages)
         stages.start("encode")
-        model = settle_hidden(model, None if trim is None else cells, proj.periodic_u)
+        probe = covered_idx[:: max(1, len(covered_idx) // BITS_PROBE)]
+        dev = deviations(model, local[probe], u[probe], v[probe], proj.periodic_u)
+        fit_rms = float(np.sqrt(np.mean(dev.d**2)))
+        drawn = drawn_cells(model, cells, local, fit_rms)
+        trim = None if drawn.all() else TrimMask(drawn)
+        model = settle_hidden(model, None if trim is None else drawn, proj.periodic_u,
+                              poles=proj.kind == "sphere")
         surface = model.to_surface(trim, metadata)
+        history["stray_cells"] = int(cells.sum() - drawn.sum())
         if options.bits is None:
-            probe = covered_idx[:: max(1, len(covered_idx) // BITS_PROBE)]
-            dev = deviations(model, local[probe], u[probe], v[probe], proj.periodic_u)
-            bits, data = choose_bits(surface, dev.u, dev.v, float(np.sqrt(np.mean(dev.d**2))))
+            bits, data = choose_bits(surface, dev.u, dev.v, fit_rms)
         else:
             bits, data = options.bits, write_patch(surface, bits=options.bits)
         history["bits"] = bits

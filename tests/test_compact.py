@@ -114,3 +114,25 @@ def test_choose_bits_is_the_fewest_within_tolerance(fit_rms):
     assert data == write_patch(surface, bits=bits)
     assert moved_rms(bits) <= 0.1 * fit_rms
     assert bits == 8 or moved_rms(bits - 1) > 0.1 * fit_rms
+
+
+def test_drawn_cells_drop_where_the_surface_strays_from_the_scan():
+    """A flat patch with one control point pulled 5 units up, against a scan of the flat
+    plane: the cells under that control point's support go, the rest stay."""
+    from fitter.compact import drawn_cells
+
+    model = PatchModel.uniform((12, 12), (2, 2))
+    g = np.linspace(0, 1, 12)
+    model.Q[..., 0], model.Q[..., 1] = np.meshgrid(g * 10, g * 10, indexing="ij")
+    model.Q[6, 6, 2] = 5.0
+    t = np.linspace(0, 10, 301)
+    X, Y = np.meshgrid(t, t, indexing="ij")
+    scan = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    cells = np.ones((40, 40), bool)
+    kept = drawn_cells(model, cells, scan, fit_rms=0.01)
+    r, c = np.nonzero(~kept)
+    # control point 6 of 12 (degree 2, 10 spans) scales the spans 4..6: domain [0.4, 0.7)
+    assert len(r) > 0
+    assert r.min() >= 0.4 * 40 - 1 and (r.max() + 1) <= 0.7 * 40 + 1
+    assert c.min() >= 0.4 * 40 - 1 and (c.max() + 1) <= 0.7 * 40 + 1
+    assert kept[:10].all() and kept[:, :10].all() and kept[30:].all()
