@@ -194,3 +194,23 @@ def test_empty_inputs_evaluate_and_project_to_nothing():
     assert all(a.shape == (0, 3) for a in model.evaluate(empty, empty, derivatives=True))
     u, v = project_points(model, np.zeros((0, 3)), empty, empty)
     assert u.shape == v.shape == (0,)
+
+
+def test_pole_closure_ties_each_pole_column_to_one_point():
+    """Sphere maps: every control point of the v = 0 column is one point, as is every one of
+    the v = 1 column, and the u seam closure still holds, for any free parameters."""
+    shape = (9, 7)
+    T = seam_closure(shape, True, poles=True)
+    assert T.shape == (9 * 7, (9 - 2) * (7 - 2) + 2)
+    Q = (T @ np.random.default_rng(4).normal(size=(T.shape[1], 3))).reshape(9, 7, 3)
+    assert np.allclose(Q[:, 0], Q[0, 0]) and np.allclose(Q[:, -1], Q[0, -1])
+    np.testing.assert_allclose(Q[-1], Q[0])
+    np.testing.assert_allclose(Q[-2], 2 * Q[0] - Q[1])
+    # a fit with the closure keeps it
+    rng = np.random.default_rng(5)
+    u, v = rng.uniform(0, 1, (2, 4000))
+    pts = np.column_stack([np.cos(2 * np.pi * u) * np.sin(np.pi * v),
+                           np.sin(2 * np.pi * u) * np.sin(np.pi * v), np.cos(np.pi * v)])
+    model = fit_points_linear(PatchModel.uniform(shape, (2, 2)), u, v, pts, True, poles=True)
+    assert np.allclose(model.Q[:, 0], model.Q[0, 0]) and np.allclose(model.Q[:, -1], model.Q[0, -1])
+    assert np.abs(model.evaluate(u, v) - pts).max() < 0.1
