@@ -42,6 +42,32 @@ function principalAxis(positions, centre, facing) {
   return a.multiplyScalar(Math.cos(angle)).addScaledVector(b, Math.sin(angle)).normalize();
 }
 
+/** The vertices the triangles use (a trimmed patch's grid keeps the others, off the object):
+ *  their positions and normals, compacted, and their bounding sphere (centre of their box). */
+function drawnVertices(positions, normals, indices) {
+  const used = new Uint8Array(positions.length / 3);
+  for (let k = 0; k < indices.length; k++) used[indices[k]] = 1;
+  let count = 0;
+  for (let k = 0; k < used.length; k++) count += used[k];
+  const pos = new Float32Array(3 * count), nrm = new Float32Array(3 * count);
+  for (let k = 0, j = 0; k < used.length; k++) {
+    if (!used[k]) continue;
+    for (let c = 0; c < 3; c++) {
+      pos[j + c] = positions[3 * k + c];
+      nrm[j + c] = normals[3 * k + c];
+    }
+    j += 3;
+  }
+  const box = new THREE.Box3().setFromArray(pos);
+  const centre = box.getCenter(new THREE.Vector3());
+  let r2 = 0;
+  for (let k = 0; k < pos.length; k += 3) {
+    const dx = pos[k] - centre.x, dy = pos[k + 1] - centre.y, dz = pos[k + 2] - centre.z;
+    r2 = Math.max(r2, dx * dx + dy * dy + dz * dz);
+  }
+  return { positions: pos, normals: nrm, sphere: new THREE.Sphere(centre, Math.sqrt(r2)) };
+}
+
 export class Viewer {
   /** @param {HTMLCanvasElement} canvas */
   constructor(canvas) {
@@ -145,7 +171,8 @@ export class Viewer {
     }
     geometry.setAttribute("uv1", new THREE.BufferAttribute(uv1, 2));
     geometry.setIndex(new THREE.BufferAttribute(data.indices, 1));
-    geometry.computeBoundingSphere();
+    this.drawn = drawnVertices(data.positions, data.normals, data.indices);
+    geometry.boundingSphere = this.drawn.sphere;
     const first = this.mesh === null;
     if (first) {
       this.mesh = new THREE.Mesh(geometry, this.material);
@@ -162,10 +189,9 @@ export class Viewer {
    *  its longest extent horizontal, centred in the part of the canvas the panel leaves free. */
   fitView() {
     if (!this.mesh) return;
-    const geometry = this.mesh.geometry;
-    const sphere = geometry.boundingSphere;
-    const facing = meanNormal(geometry.getAttribute("normal").array);
-    const right = principalAxis(geometry.getAttribute("position").array, sphere.center, facing);
+    const sphere = this.drawn.sphere;
+    const facing = meanNormal(this.drawn.normals);
+    const right = principalAxis(this.drawn.positions, sphere.center, facing);
     let up = new THREE.Vector3().crossVectors(facing, right).normalize();
     // Look from a little above the front, so the relief reads as relief and not as a photo.
     const tilt = THREE.MathUtils.degToRad(20);
