@@ -64,9 +64,7 @@ pts = np.column_stack([x, y, relief_height(x, y) + rng.normal(0, 0.05, n)])
 write_scan_ply(out / "big.ply", pts)
 del pts, x, y
 start, cpu = time.perf_counter(), time.process_time()
-extra = {k: v for k, v in (("detail_levels", 0), ("texture", False))
-         if k in FitOptions.__dataclass_fields__}
-bundle = fit_scan(out / "big.ply", out / "bundle", FitOptions(**extra))
+bundle = fit_scan(out / "big.ply", out / "bundle", FitOptions(detail_levels=0, texture=False))
 wall, cpu = time.perf_counter() - start, time.process_time() - cpu
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"points": n, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
@@ -85,9 +83,7 @@ def _options(**kw):
     """Base-patch options: the detail and texture layers (issue 6) are not timed here."""
     from fitter.pipeline import FitOptions
 
-    fields = FitOptions.__dataclass_fields__
-    extra = {k: v for k, v in (("detail_levels", 0), ("texture", False)) if k in fields}
-    return FitOptions(grid=GRID, degree=DEGREE, **extra, **kw)
+    return FitOptions(grid=GRID, degree=DEGREE, detail_levels=0, texture=False, **kw)
 
 
 def _tessera_row(name: str, scan, method: str, out: Path) -> dict:

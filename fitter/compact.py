@@ -147,10 +147,10 @@ def drawn_cells(model: PatchModel, cells: np.ndarray, points: np.ndarray,
     """
     rows, cols = cells.shape
     r, c = np.nonzero(cells)
-    step = max(1, len(points) // 1_000_000)
-    tree = cKDTree(points[::step])
-    spacing = float(np.median(tree.query(points[::step][:: max(1, len(points) // step // 20_000)],
-                                         k=2)[0][:, 1]))
+    sample = points[:: max(1, len(points) // 1_000_000)]
+    tree = cKDTree(sample)
+    probe = sample[:: max(1, len(sample) // 20_000)]
+    spacing = float(np.median(tree.query(probe, k=2)[0][:, 1]))  # nearest other point
     corners = ((0.5, 0.5), (0.0, 0.0), (0.0, 1.0), (1.0, 0.0), (1.0, 1.0))
     u = np.concatenate([(r + a) / rows for a, _ in corners])
     v = np.concatenate([(c + b) / cols for _, b in corners])
