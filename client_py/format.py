@@ -114,6 +114,19 @@ def _decode_planes(data: bytes, count: int, planes: int) -> list[int]:
     return [z >> 1 if not z & 1 else -((z + 1) >> 1) for z in zig]
 
 
+def _pack_bits(cells: bytes) -> bytes:
+    """0/1 bytes packed eight to a byte, cell ``k`` in bit ``k mod 8`` of byte ``k // 8``."""
+    packed = bytearray((len(cells) + 7) // 8)
+    for k, cell in enumerate(cells):
+        if cell:
+            packed[k >> 3] |= 1 << (k & 7)
+    return bytes(packed)
+
+
+def _unpack_bits(packed: bytes, count: int) -> bytes:
+    return bytes((packed[k >> 3] >> (k & 7)) & 1 for k in range(count))
+
+
 def _quantise(values: Sequence[float], lo: float, hi: float, bits: int) -> list[int]:
     top = (1 << bits) - 1
     if hi <= lo:
@@ -192,12 +205,7 @@ def write_patch(surface: NurbsSurface, bits: int = 16, metadata: dict | None = N
     if surface.trim is not None:
         flags |= FLAG_TRIM
         trim = surface.trim
-        cells = trim.flat
-        packed = bytearray((len(cells) + 7) // 8)
-        for k, cell in enumerate(cells):
-            if cell:
-                packed[k >> 3] |= 1 << (k & 7)
-        parts.append(struct.pack("<HH", trim.rows, trim.cols) + bytes(packed))
+        parts.append(struct.pack("<HH", trim.rows, trim.cols) + _pack_bits(trim.flat))
     parts.append(struct.pack("<I", len(meta_bytes)) + meta_bytes)
 
     raw = b"".join(parts)
@@ -362,8 +370,7 @@ def read_patch(data: bytes) -> NurbsSurface:
             raise PatchFormatError(cur.pos - 4, f"trim mask of {rows}x{cols} cells; "
                                    f"1..{TRIM_MAX_SIDE} per side accepted", "payload")
         packed = cur.take((rows * cols + 7) // 8, "trim mask bits")
-        cells = bytes((packed[k >> 3] >> (k & 7)) & 1 for k in range(rows * cols))
-        trim = TrimMask.from_flat(rows, cols, cells)
+        trim = TrimMask.from_flat(rows, cols, _unpack_bits(packed, rows * cols))
     (meta_len,) = cur.unpack("<I", "metadata length")
     meta_at = cur.pos
     if meta_len > MAX_METADATA:
@@ -393,20 +400,24 @@ def read_patch(data: bytes) -> NurbsSurface:
 # ------------------------------------------------------------------ detail tiles (.tsd)
 TILE_MAGIC = b"TSDT"
 TILE_VERSION = 1
-# magic version flags level degree planes reserved spans i j step payload_size raw_size
+# magic version flags level degree planes drawn_side spans i j step payload_size raw_size
 TILE_HEADER = struct.Struct("<4sHHBBBBHHHdII")
 TILE_HEADER_SIZE = TILE_HEADER.size  # 34
 TILE_FLAG_PREDICTED = 1  # values coded as parallelogram residuals (else as themselves)
+TILE_FLAG_DRAWN = 2  # a drawn-cells mask of drawn_side^2 bits follows the values
+TILE_FLAGS = TILE_FLAG_PREDICTED | TILE_FLAG_DRAWN
+MAX_DRAWN_SIDE = 255
 MAX_TILE_VALUE = (1 << 28) - 1  # |q|: residuals then fit 4 byte planes
 
 
-def _compressed_values(values: Sequence[int], size: int, predicted: bool) -> tuple[bytes, bytes]:
+def _compressed_values(values: Sequence[int], size: int, predicted: bool,
+                       mask: bytes) -> tuple[int, bytes, bytes]:
     coded = _parallelogram_residuals(values, size, size) if predicted else list(values)
     zig = max((2 * r if r >= 0 else -2 * r - 1) for r in coded)
     planes = max(1, (zig.bit_length() + 7) // 8)
-    raw = _encode_planes(coded, planes)
+    raw = _encode_planes(coded, planes) + mask
     deflate = zlib.compressobj(9, zlib.DEFLATED, -15, 9)  # raw DEFLATE: the CRC32 guards it
-    return raw, deflate.compress(raw) + deflate.flush()
+    return planes, raw, deflate.compress(raw) + deflate.flush()
 
 
 def write_detail_tile(tile: DetailTile) -> bytes:
@@ -414,22 +425,30 @@ def write_detail_tile(tile: DetailTile) -> bytes:
 
     The integers ``q_ab`` are stored as they are or as parallelogram-prediction
     residuals, whichever compresses smaller (detail fields are close to noise,
-    where prediction does not pay), zig-zag coded in byte planes as in ``.tsp``.
-    The same tile always gives the same bytes.
+    where prediction does not pay), zig-zag coded in byte planes as in ``.tsp``;
+    a square ``drawn`` mask follows as packed bits. The same tile always gives
+    the same bytes.
     """
     if not isinstance(tile, DetailTile):
         raise ValueError(f"tile must be a DetailTile, got {type(tile).__name__}")
     if any(abs(q) > MAX_TILE_VALUE for q in tile.values):
         raise ValueError(f"tile values must lie within +-{MAX_TILE_VALUE}: raise the step")
+    side, mask, flags = 0, b"", 0
+    if tile.drawn is not None:
+        side = tile.drawn.rows
+        if tile.drawn.cols != side or not 1 <= side <= MAX_DRAWN_SIDE:
+            raise ValueError(f"a tile's drawn mask must be square with 1..{MAX_DRAWN_SIDE} "
+                             f"cells per side, got {tile.drawn.rows}x{tile.drawn.cols}")
+        mask, flags = _pack_bits(tile.drawn.flat), TILE_FLAG_DRAWN
     best = None
     for predicted in (False, True):
-        raw, payload = _compressed_values(tile.values, tile.size, predicted)
-        if best is None or len(payload) < len(best[2]):
-            best = (predicted, raw, payload)
-    predicted, raw, payload = best
-    planes = len(raw) // tile.size**2
-    header = TILE_HEADER.pack(TILE_MAGIC, TILE_VERSION, TILE_FLAG_PREDICTED if predicted else 0,
-                              tile.level, tile.degree, planes, 0, tile.spans, tile.i, tile.j,
+        coded = _compressed_values(tile.values, tile.size, predicted, mask)
+        if best is None or len(coded[2]) < len(best[1][2]):
+            best = (predicted, coded)
+    predicted, (planes, raw, payload) = best
+    header = TILE_HEADER.pack(TILE_MAGIC, TILE_VERSION,
+                              flags | (TILE_FLAG_PREDICTED if predicted else 0),
+                              tile.level, tile.degree, planes, side, tile.spans, tile.i, tile.j,
                               float(tile.step), len(payload), len(raw))
     body = header + payload
     return body + struct.pack("<I", zlib.crc32(body))
@@ -468,9 +487,9 @@ def read_detail_tile(data: bytes) -> DetailTile:
         with the byte offset and the reason; never anything else.
     """
     data, fields = _unframe(data, TILE_MAGIC, "detail tile", TILE_HEADER, TILE_VERSION, 11)
-    (_, version, flags, level, degree, planes, reserved, spans, i, j, step, size,
+    (_, version, flags, level, degree, planes, side, spans, i, j, step, size,
      raw_size) = fields
-    if flags & ~TILE_FLAG_PREDICTED:
+    if flags & ~TILE_FLAGS:
         raise PatchFormatError(6, f"unknown flags 0x{flags:04x}")
     if level > MAX_TILE_LEVEL:
         raise PatchFormatError(8, f"level {level} outside 0..{MAX_TILE_LEVEL}")
@@ -478,8 +497,9 @@ def read_detail_tile(data: bytes) -> DetailTile:
         raise PatchFormatError(9, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
     if not 1 <= planes <= 4:
         raise PatchFormatError(10, f"{planes} byte planes; 1..4 accepted")
-    if reserved:
-        raise PatchFormatError(11, f"reserved byte is {reserved}, must be 0")
+    if bool(side) != bool(flags & TILE_FLAG_DRAWN):
+        raise PatchFormatError(11, f"drawn mask side {side} with flags 0x{flags:04x}: "
+                               "non-zero exactly when flag 0x2 is set")
     if not 1 <= spans <= MAX_TILE_SPANS:
         raise PatchFormatError(12, f"spans = {spans} outside 1..{MAX_TILE_SPANS}")
     for offset, name, index in ((14, "i", i), (16, "j", j)):
@@ -489,13 +509,18 @@ def read_detail_tile(data: bytes) -> DetailTile:
     if not (math.isfinite(step) and step > 0):
         raise PatchFormatError(18, f"quantisation step {step} is not a positive finite number")
     count = (spans + degree) ** 2
-    if raw_size != planes * count:
+    mask_size = (side * side + 7) // 8
+    if raw_size != planes * count + mask_size:
         raise PatchFormatError(30, f"payload size {raw_size}: {planes} planes of {count} "
-                               f"coefficients are {planes * count} bytes")
+                               f"coefficients and a {side}x{side} mask are "
+                               f"{planes * count + mask_size} bytes")
     raw = _inflate(data, TILE_HEADER_SIZE, size, raw_size, 30, -15)
     coded = _decode_planes(raw, count, planes)
+    drawn = None
+    if side:
+        drawn = TrimMask.from_flat(side, side, _unpack_bits(raw[planes * count:], side * side))
     n = spans + degree
     values = _undo_parallelogram(coded, n, n) if flags & TILE_FLAG_PREDICTED else coded
     if any(abs(q) > MAX_TILE_VALUE for q in values):
         raise PatchFormatError(TILE_HEADER_SIZE, f"decoded values beyond +-{MAX_TILE_VALUE}")
-    return DetailTile(level, i, j, degree, spans, step, tuple(values))
+    return DetailTile(level, i, j, degree, spans, step, tuple(values), drawn)

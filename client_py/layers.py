@@ -32,6 +32,7 @@ from . import _kernel
 from .basis import basis_functions, find_span
 from .surface import NurbsSurface
 from .tessellate import Mesh, _check_count, _samples, grid_indices
+from .trim import TrimMask
 
 MAX_LEVEL = 15
 MAX_DETAIL_DEGREE = 3
@@ -90,6 +91,12 @@ class DetailTile:
         Quantisation step (scan units of the patch frame), ``> 0``.
     values : tuple of int
         ``size^2`` quantised coefficients.
+    drawn : TrimMask, optional
+        Cells of ``uv_rect`` (row ``r`` along ``u``) that the refined surface
+        draws from this level on although the base's trim leaves them out: where
+        the base strayed from the scan but the displacement brought it back
+        (``fitter.detail``). A tessellation applying the tile draws a cell whose
+        centre the base trim *or* this mask covers.
     """
 
     level: int
@@ -99,6 +106,7 @@ class DetailTile:
     spans: int
     step: float
     values: tuple[int, ...]
+    drawn: TrimMask | None = None
     _knots: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -113,6 +121,8 @@ class DetailTile:
             raise ValueError(f"values must be {self.size}^2 = {self.size**2} integers, "
                              f"got {len(values)} items")
         object.__setattr__(self, "values", values)
+        if self.drawn is not None and not isinstance(self.drawn, TrimMask):
+            raise ValueError(f"drawn must be a TrimMask or None, got {type(self.drawn).__name__}")
         knots = level_knots(self.degree, self.spans, self.level)
         n = self.size + self.degree + 1  # a tile's slice of its level's knot vector
         object.__setattr__(self, "_knots", (tuple(knots[self.i * self.spans:][:n]),
@@ -142,6 +152,13 @@ class DetailTile:
         """Whether ``(u, v)`` lies in the closed rectangle ``uv_rect``."""
         u0, v0, u1, v1 = self.uv_rect
         return u0 <= u <= u1 and v0 <= v <= v1
+
+    def draws(self, u: float, v: float) -> bool:
+        """Whether the tile's ``drawn`` mask covers ``(u, v)`` (false outside ``uv_rect``)."""
+        if self.drawn is None or not self.contains(u, v):
+            return False
+        u0, v0, u1, v1 = self.uv_rect
+        return self.drawn.covers((u - u0) / (u1 - u0), (v - v0) / (v1 - v0))
 
     def evaluate(self, u: float, v: float) -> float:
         """``D(u, v)`` at one point of ``uv_rect`` (A2.1, A2.2); ``ValueError`` outside it."""
@@ -280,6 +297,25 @@ def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequ
     return total
 
 
+def _redrawn_cells(tiles: Sequence[DetailTile]):
+    """``covers(u, v)``: whether a tile's ``drawn`` mask covers ``(u, v)``; tiles are looked
+    up by their node, so the cost per call is one dictionary probe per level."""
+    by_level: dict[int, dict[tuple[int, int], DetailTile]] = {}
+    for tile in tiles:
+        if tile.drawn is not None:
+            by_level.setdefault(tile.level, {})[tile.i, tile.j] = tile
+    levels = [(1 << level, nodes) for level, nodes in by_level.items()]
+
+    def covers(u: float, v: float) -> bool:
+        for count, nodes in levels:
+            tile = nodes.get((min(int(u * count), count - 1), min(int(v * count), count - 1)))
+            if tile is not None and tile.draws(u, v):
+                return True
+        return False
+
+    return covers
+
+
 def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, nv: int,
                       tiles: Iterable[DetailTile] = (), kernel: str | None = None,
                       textures: Iterable[TextureImage] = ()) -> Mesh:
@@ -310,8 +346,9 @@ def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, 
         displaced grid by central differences, computed over one extra ring of
         vertices beyond ``uv_rect`` (inside the domain), so that two regions
         sharing a border get the same normals on it; on the domain's outer
-        border the differences are one-sided. Trimmed-out cells are left out
-        as by ``tessellate_grid``.
+        border the differences are one-sided. Cells are left out as by
+        ``tessellate_grid`` where the base's trim leaves out their centre,
+        unless a given tile's ``drawn`` mask covers it.
     """
     if not isinstance(surface, NurbsSurface):
         raise ValueError(f"surface must be a NurbsSurface, got {type(surface).__name__}")
@@ -347,8 +384,13 @@ def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, 
     if trim is None:
         indices = grid_indices(nu, nv)
     else:
-        indices = grid_indices(nu, nv, lambda i, j: trim.covers(
-            0.5 * (us[i] + us[i + 1]), 0.5 * (vs[j] + vs[j + 1])))
+        redrawn = _redrawn_cells(tiles)
+
+        def drawn(i: int, j: int) -> bool:
+            u, v = 0.5 * (us[i] + us[i + 1]), 0.5 * (vs[j] + vs[j + 1])
+            return trim.covers(u, v) or redrawn(u, v)
+
+        indices = grid_indices(nu, nv, drawn)
     mesh = Mesh(positions, normals, uvs, indices)
     textures = list(textures)
     if textures:

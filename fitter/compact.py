@@ -133,6 +133,35 @@ def settle_hidden(model: PatchModel, cells: np.ndarray | None,
     return out
 
 
+class ScanNeighbourhood:
+    """Nearest-point queries against a scan: a KD-tree of (at most 10^6 of) its points
+    ``(N, 3)`` (patch frame) and their median spacing (nearest other point)."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        sample = points[:: max(1, len(points) // 1_000_000)]
+        self.tree = cKDTree(sample)
+        probe = sample[:: max(1, len(sample) // 20_000)]
+        self.spacing = float(np.median(self.tree.query(probe, k=2)[0][:, 1]))
+
+    def stray(self, surface, r: np.ndarray, c: np.ndarray, shape: tuple[int, int],
+              fit_rms: float) -> np.ndarray:
+        """Which cells ``(r, c)`` of a ``shape`` grid over the unit domain stray: where
+        ``surface(u, v) -> (m, 3)`` at the cell's centre or one of its corners lies
+        farther from every scan point than ``STRAY_FACTOR * fit_rms`` plus twice the
+        spacing (a perfect fit still passes between the points)."""
+        rows, cols = shape
+        if len(r) == 0:
+            return np.zeros(0, bool)
+        u = np.concatenate([(r + a) / rows for a, _ in CELL_PROBES])
+        v = np.concatenate([(c + b) / cols for _, b in CELL_PROBES])
+        distance, _ = self.tree.query(surface(u, v))
+        limit = STRAY_FACTOR * fit_rms + 2 * self.spacing
+        return (distance.reshape(len(CELL_PROBES), -1) > limit).any(axis=0)
+
+
+CELL_PROBES = ((0.5, 0.5), (0.0, 0.0), (0.0, 1.0), (1.0, 0.0), (1.0, 1.0))
+
+
 def drawn_cells(model: PatchModel, cells: np.ndarray, points: np.ndarray,
                 fit_rms: float) -> np.ndarray:
     """``cells (rows, cols)`` without the cells where the patch strays from the scan.
@@ -140,22 +169,10 @@ def drawn_cells(model: PatchModel, cells: np.ndarray, points: np.ndarray,
     Where the scan's height over the domain jumps (a mask's rim seen from its
     centre, a sphere map's poles) the B-spline overshoots between the points
     that pin it, and a tessellation would draw the spikes. A covered cell is
-    dropped when the surface at its centre or at one of its corners lies
-    farther from every scan point (``points``, patch frame; at most 10^6 of
-    them) than ``STRAY_FACTOR * fit_rms`` plus twice the scan's median point
-    spacing (a perfect fit still passes between the points).
+    dropped when it strays from ``points`` (:meth:`ScanNeighbourhood.stray`).
     """
-    rows, cols = cells.shape
     r, c = np.nonzero(cells)
-    sample = points[:: max(1, len(points) // 1_000_000)]
-    tree = cKDTree(sample)
-    probe = sample[:: max(1, len(sample) // 20_000)]
-    spacing = float(np.median(tree.query(probe, k=2)[0][:, 1]))  # nearest other point
-    corners = ((0.5, 0.5), (0.0, 0.0), (0.0, 1.0), (1.0, 0.0), (1.0, 1.0))
-    u = np.concatenate([(r + a) / rows for a, _ in corners])
-    v = np.concatenate([(c + b) / cols for _, b in corners])
-    distance, _ = tree.query(model.evaluate(u, v))
-    far = (distance.reshape(len(corners), -1) > STRAY_FACTOR * fit_rms + 2 * spacing).any(axis=0)
+    far = ScanNeighbourhood(points).stray(model.evaluate, r, c, cells.shape, fit_rms)
     out = cells.copy()
     out[r[far], c[far]] = False
     return out

@@ -28,6 +28,14 @@ keeps the ``(m + p)^2`` coefficients whose support meets its rectangle; a tile
 whose coefficients all quantise to zero is not written. With a periodic map
 (cylinder) the coefficient columns at ``u = 0`` and ``u = 1`` are one unknown,
 so the field, like the base, closes without a crack.
+
+*Redrawn cells.* The base's trim leaves out the cells where the base strays
+from the scan (``fitter.compact.drawn_cells``), and scan points whose foot
+points fall there would stay unrepresented at every level. From the level whose
+grid (``DRAWN_SIDE`` cells per tile side) is at least as fine as the trim, a
+tile carries a ``drawn`` mask (:class:`Redraw`): the cells near the scan's foot
+points, not drawn by the base, where the surface refined up to that level does
+not stray (``ScanNeighbourhood.stray`` with that level's RMS).
 """
 
 from __future__ import annotations
@@ -41,8 +49,11 @@ import scipy.sparse.linalg as spla
 from client_py import layers
 from client_py._numpy_basis import basis_arrays
 from client_py.format import MAX_TILE_VALUE, write_detail_tile
+from client_py.trim import TrimMask
 
+from .compact import ScanNeighbourhood
 from .nurbs import PatchModel
+from .parameterize import trim_cells
 
 DEGREE = 2
 SPANS = 16  # spans per tile side: (16 + 2)^2 = 324 coefficients a tile
@@ -51,6 +62,7 @@ RIDGE = 1e-4
 SMOOTHING = 1e-3
 MIN_POINTS_PER_CELL = 4.0  # auto depth: finest level keeps this many points per knot cell
 MAX_AUTO_LEVELS = 6
+DRAWN_SIDE = 2 * SPANS  # cells per side of a tile's drawn mask
 
 
 @dataclass
@@ -107,6 +119,61 @@ def detail_samples(model: PatchModel, points: np.ndarray, u: np.ndarray,
     s = np.where(ok, np.einsum("ij,ij->i", r, n), np.sqrt(rr))  # a pole: all of it normal
     return DetailSamples(np.asarray(u, float), np.asarray(v, float), s,
                          np.maximum(rr - s * s, 0.0))
+
+
+@dataclass
+class Redraw:
+    """Cells the base's trim leaves out that a detail level may draw again.
+
+    ``model`` is the base, ``drawn (R, C)`` its trim (true where drawn),
+    ``candidates (R, C)`` the left-out cells near foot points of covered scan
+    points, ``near`` the scan (patch frame) and ``periodic_u`` the map's seam.
+    """
+
+    model: PatchModel
+    drawn: np.ndarray
+    candidates: np.ndarray
+    near: ScanNeighbourhood
+    periodic_u: bool = False
+
+    @classmethod
+    def from_foot_points(cls, model: PatchModel, drawn: np.ndarray, points: np.ndarray,
+                         u: np.ndarray, v: np.ndarray, periodic_u: bool) -> Redraw:
+        """Candidates: the trim cells holding a foot point ``(u, v)`` of ``points (N, 3)``,
+        with one-cell gaps closed (``fitter.parameterize.trim_cells``), not drawn."""
+        rows, cols = drawn.shape
+        feet = np.zeros_like(drawn)
+        feet[np.minimum((u * rows).astype(np.int64), rows - 1),
+             np.minimum((v * cols).astype(np.int64), cols - 1)] = True
+        return cls(model, drawn, trim_cells(feet, periodic_u) & ~drawn,
+                   ScanNeighbourhood(points), periodic_u)
+
+    def cells(self, level: int, fields: list[np.ndarray], degree: int, spans: int,
+              rms: float) -> np.ndarray | None:
+        """``(DRAWN_SIDE 2^level)^2`` booleans: candidate cells where the surface refined by
+        ``fields`` (coefficients of levels ``0..level``) does not stray; ``None`` while the
+        grid is coarser than the trim."""
+        size = DRAWN_SIDE << level
+        rows, cols = self.drawn.shape
+        if size < max(rows, cols):
+            return None
+        centre = (np.arange(size) + 0.5) / size
+        fine = self.candidates[np.ix_((centre * rows).astype(np.int64),
+                                      (centre * cols).astype(np.int64))]
+        r, c = np.nonzero(fine)
+
+        def refined(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+            S, Su, Sv = self.model.evaluate(u, v, derivatives=True)
+            n = np.cross(Su, Sv)
+            length = np.linalg.norm(n, axis=1, keepdims=True)
+            n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+            d = sum(evaluate_level(f, k, degree, spans, u, v) for k, f in enumerate(fields))
+            return S + d[:, None] * n
+
+        far = self.near.stray(refined, r, c, (size, size), rms)
+        out = np.zeros((size, size), bool)
+        out[r[~far], c[~far]] = True
+        return out
 
 
 def auto_levels(n_points: int, spans: int = SPANS) -> int:
@@ -170,12 +237,13 @@ def _tile_index(t: np.ndarray, level: int) -> np.ndarray:
 
 def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans: int = SPANS,
                 step_factor: float = STEP_FACTOR, periodic_u: bool = False,
-                progress=None) -> DetailPyramid:
+                progress=None, redraw: Redraw | None = None) -> DetailPyramid:
     """Fit levels ``0..levels-1`` coarse to fine; each fits what the coarser ones left.
 
     Returns the tiles to write (with their bytes and ``geometric_error``: max
     ``e`` of the points inside the tile's rectangle after levels ``0..k``) and
-    per level the RMS and max of ``e`` over all samples.
+    per level the RMS and max of ``e`` over all samples. With ``redraw`` the
+    tiles carry drawn masks (module docstring).
     """
     if not (isinstance(levels, int) and 0 <= levels <= layers.MAX_LEVEL):
         raise ValueError(f"levels must be an integer in 0..{layers.MAX_LEVEL}, got {levels!r}")
@@ -185,6 +253,7 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
     residual = samples.s.copy()
     e = samples.error(np.zeros_like(residual))
     pyramid.base_rms, pyramid.base_max = float(np.sqrt(np.mean(e**2))), float(e.max())
+    fields: list[np.ndarray] = []
     for k in range(levels):
         c = fit_level(samples, residual, k, degree, spans, periodic_u)
         fitted = residual - evaluate_level(c, k, degree, spans, samples.u, samples.v)
@@ -196,8 +265,11 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         if np.abs(q).max(initial=0) > MAX_TILE_VALUE:  # never for a real scan; stay valid
             step = float(np.abs(c).max()) / MAX_TILE_VALUE
             q = np.rint(c / step).astype(np.int64)
-        residual = residual - evaluate_level(q * step, k, degree, spans, samples.u, samples.v)
+        fields.append(q * step)
+        residual = residual - evaluate_level(fields[-1], k, degree, spans, samples.u, samples.v)
         e = samples.error(samples.s - residual)
+        rms = float(np.sqrt(np.mean(e**2)))
+        drawn = None if redraw is None else redraw.cells(k, fields, degree, spans, rms)
         count = 1 << k
         cell = _tile_index(samples.u, k) * count + _tile_index(samples.v, k)
         worst = np.zeros(count * count)
@@ -207,13 +279,18 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         for i in range(count):
             for j in range(count):
                 block = q[i * spans : i * spans + size, j * spans : j * spans + size]
-                if not block.any():
+                mask = None
+                if drawn is not None:
+                    mask = drawn[i * DRAWN_SIDE : (i + 1) * DRAWN_SIDE,
+                                 j * DRAWN_SIDE : (j + 1) * DRAWN_SIDE]
+                    mask = TrimMask(mask) if mask.any() else None
+                if not block.any() and mask is None:
                     continue
                 tile = layers.DetailTile(k, i, j, degree, spans, step,
-                                         tuple(int(x) for x in block.ravel()))
+                                         tuple(int(x) for x in block.ravel()), mask)
                 tiles.append((tile, write_detail_tile(tile), float(worst[i * count + j])))
-        pyramid.levels.append(DetailLevel(k, step, tiles, float(np.sqrt(np.mean(e**2))),
-                                          float(e.max()), int(np.count_nonzero(q))))
+        pyramid.levels.append(DetailLevel(k, step, tiles, rms, float(e.max()),
+                                          int(np.count_nonzero(q))))
         if progress is not None:
             progress((k + 1) / levels)
     return pyramid
@@ -222,10 +299,11 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
 # ------------------------------------------------------------------ the bundle's tile tree
 def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.ndarray,
                periodic_u: bool, levels: int | None = None, progress=None,
-               step_factor: float = STEP_FACTOR) -> DetailPyramid:
+               step_factor: float = STEP_FACTOR, trim: TrimMask | None = None) -> DetailPyramid:
     """The pipeline's detail stage: samples of the covered points at their foot points
     ``dev.u, dev.v`` on the decoded base ``model``, then :func:`fit_pyramid`
-    (``levels=None``: :func:`auto_levels`)."""
+    (``levels=None``: :func:`auto_levels`); ``trim`` is the base's trim mask, which
+    the tiles' drawn masks complete (:class:`Redraw`)."""
     if levels is None:
         levels = auto_levels(int(covered.sum()))
     if levels == 0:  # no pyramid: the base error is the foot-point deviation itself
@@ -233,8 +311,13 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
         return DetailPyramid(DEGREE, SPANS, base_rms=float(np.sqrt(np.mean(d**2))),
                              base_max=float(d.max(initial=0.0)))
     samples = detail_samples(model, points_local[covered], dev.u[covered], dev.v[covered])
+    redraw = None
+    if trim is not None:
+        drawn = np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool)
+        redraw = Redraw.from_foot_points(model, drawn, points_local[covered], samples.u,
+                                         samples.v, periodic_u)
     return fit_pyramid(samples, levels, periodic_u=periodic_u, progress=progress,
-                       step_factor=step_factor)
+                       step_factor=step_factor, redraw=redraw)
 
 
 def _rounded(x: float) -> float:

@@ -345,7 +345,7 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
 
     stages.start("detail")  # residual pyramid and colour pyramid (fitter.detail, .texture)
     pyramid = fit_detail(best.model, local, best.dev, cov.covered, proj.periodic_u,
-                         options.detail_levels, stages.report)
+                         options.detail_levels, stages.report, trim=read_patch(best.data).trim)
     stages.start("texture")
     textures = fit_texture(scan, best.dev, cov.covered, proj.periodic_u,
                            len(pyramid.levels), options.texture)

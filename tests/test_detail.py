@@ -155,3 +155,73 @@ def test_real_scan_rms_falls_with_levels(shared_data, tmp_path):
     rms = [tree["base"]["rms"]] + [lev["rms"] for lev in tree["levels"]]
     assert all(b < a for a, b in zip(rms, rms[1:], strict=False)), rms
     assert rms[-1] < 0.5 * rms[0]
+
+
+# ------------------------------------------------------------------ redrawn cells
+def plane_model():
+    """The plane ``z = 0`` over the unit square as a degree-2 patch."""
+    from client_py import NurbsSurface
+    from client_py.basis import uniform_clamped_knots
+    from fitter.nurbs import PatchModel
+
+    greville = [0.0, 0.25, 0.75, 1.0]  # control points there: S(u, v) = (u, v, 0)
+    a, b = np.meshgrid(greville, greville, indexing="ij")
+    knots = uniform_clamped_knots(4, 2)
+    return PatchModel.from_surface(NurbsSurface((2, 2), (knots, knots),
+                                                np.stack([a, b, 0 * a], axis=-1)))
+
+
+def test_stray_flags_cells_far_from_every_scan_point():
+    from fitter.compact import ScanNeighbourhood
+
+    g = np.linspace(0, 1, 81)
+    P = np.array([(x, y, 0.0) for x in g for y in g if x <= 0.5])  # scan: the half u <= 0.5
+    near = ScanNeighbourhood(P)
+    assert near.spacing == pytest.approx(1 / 80)
+    r, c = np.nonzero(np.ones((10, 10), bool))
+    plane = lambda u, v: np.column_stack([u, v, 0 * u])  # noqa: E731
+    far = near.stray(plane, r, c, (10, 10), fit_rms=0.0)
+    # a cell strays when a corner lies beyond 2 spacings (0.025) of the scan: u > 0.525
+    np.testing.assert_array_equal(far, r + 1 > 5.25)
+    lifted = near.stray(lambda u, v: plane(u, v) + [0, 0, 0.03], r, c, (10, 10), 0.0)
+    assert lifted.all()  # 0.03 above the scan: every cell strays
+    assert not near.stray(lambda u, v: plane(u, v) + [0, 0, 0.03], r[r < 5], c[r < 5],
+                          (10, 10), fit_rms=0.01).any()  # within 8 RMS + 2 spacings
+
+
+def test_tiles_redraw_left_out_cells_where_the_scan_is():
+    """A trim leaving out a block of a plane: the level-0 tile's drawn mask brings back the
+    part of the block with scan points on the plane, not the part without points."""
+    model = plane_model()
+    drawn = np.ones((16, 16), bool)
+    drawn[4:10, 4:10] = False  # the base's trim leaves out rows 4..9, cols 4..9
+    g = (np.arange(160) + 0.5) / 160
+    U, V = (x.ravel() for x in np.meshgrid(g, g, indexing="ij"))
+    keep = ~((U >= 4 / 16) & (U < 10 / 16) & (V >= 7 / 16) & (V < 10 / 16))  # hole: cols 7..9
+    U, V = U[keep], V[keep]
+    points = np.column_stack([U, V, 0 * U])
+    redraw = detail.Redraw.from_foot_points(model, drawn, points, U, V, False)
+    smp = detail.DetailSamples(U, V, np.zeros(len(U)), np.zeros(len(U)))
+    pyramid = detail.fit_pyramid(smp, 1, redraw=redraw)
+    (tile, data, _), = pyramid.levels[0].tiles  # nothing to explain: kept for its mask
+    assert not any(tile.values)
+    got = np.frombuffer(read_detail_tile(data).drawn.flat, np.uint8).reshape(32, 32)
+    expected = np.zeros((16, 16), np.uint8)
+    expected[4:10, 4:7] = 1  # left out, with scan points (the hole's cells have none)
+    np.testing.assert_array_equal(got, np.kron(expected, np.ones((2, 2), np.uint8)))
+
+
+def test_no_mask_while_the_level_is_coarser_than_the_trim():
+    model = plane_model()
+    drawn = np.ones((64, 64), bool)
+    drawn[10:20, 10:20] = False
+    g = (np.arange(200) + 0.5) / 200
+    U, V = (x.ravel() for x in np.meshgrid(g, g, indexing="ij"))
+    redraw = detail.Redraw.from_foot_points(model, drawn, np.column_stack([U, V, 0 * U]),
+                                            U, V, False)
+    smp = detail.DetailSamples(U, V, 0.01 * np.sin(20 * U), np.zeros(len(U)))
+    pyramid = detail.fit_pyramid(smp, 2, spans=4, redraw=redraw)
+    # DRAWN_SIDE (32) cells per tile: level 0 is coarser than the trim, level 1 matches it
+    assert all(t.drawn is None for t, _, _ in pyramid.levels[0].tiles)
+    masks = [t.drawn for t, _, _ in pyramid.levels[1].tiles if t.drawn is not None]
+    assert len(masks) == 1 and sum(masks[0].flat) == 10 * 10  # the block, in tile (0, 0)

@@ -3,6 +3,8 @@ tiles acting only inside their rectangles, both kernels, texture sampling, corru
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -21,6 +23,7 @@ from client_py import (
     write_detail_tile,
 )
 from client_py.layers import displacement_grid, level_knots, transform_mesh
+from client_py.trim import TrimMask
 
 FUZZ = settings(max_examples=100, deadline=2000, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow])
@@ -219,7 +222,53 @@ def test_tile_values_are_checked(bad, match):
 
 # ------------------------------------------------------------------ corrupt tiles
 def tile_file() -> bytes:
-    return write_detail_tile(tile_of(global_field(1, 2, 6, 5), 1, 1, 0, 2, 6))
+    """A tile with a drawn mask, so that the fuzz tests reach the mask's checks too."""
+    tile = tile_of(global_field(1, 2, 6, 5), 1, 1, 0, 2, 6)
+    mask = TrimMask((np.arange(49).reshape(7, 7) % 3 == 0).tolist())
+    return write_detail_tile(dataclasses.replace(tile, drawn=mask))
+
+
+def test_drawn_mask_round_trips_and_its_side_must_match_the_flag():
+    import struct
+    import zlib
+
+    data = tile_file()
+    tile = read_detail_tile(data)
+    assert tile.drawn.rows == tile.drawn.cols == 7
+    assert list(tile.drawn.flat) == [int(k % 3 == 0) for k in range(49)]
+    for flags, side in ((0, 7), (2, 0)):  # flag 0x2 without a side, a side without the flag
+        body = bytearray(data[:-4])
+        body[6:8] = struct.pack("<H", flags | (data[6] & 1))
+        body[11] = side
+        with pytest.raises(PatchFormatError, match="drawn mask side") as info:
+            read_detail_tile(bytes(body) + struct.pack("<I", zlib.crc32(body)))
+        assert info.value.offset == 11
+    with pytest.raises(ValueError, match="square"):
+        write_detail_tile(dataclasses.replace(tile, drawn=TrimMask([[1, 0]])))
+
+
+def test_drawn_masks_bring_back_cells_the_base_trim_leaves_out():
+    """Cells drawn = base trim covers the cell's centre, or a given tile's mask does."""
+    s, q, tiles = surface_and_tiles()
+    trim = np.ones((8, 8), bool)
+    trim[2:6, 1:7] = False
+    base = NurbsSurface((2, 2), s.knots, s.control_points, s.weights, trim=TrimMask(trim))
+    mask = np.zeros((4, 4), bool)
+    mask[1:3, 2:4] = True  # tile (0, 1): u in [0, 0.5], v in [0.5, 1]; cells of 1/8
+    redraw = dataclasses.replace(tiles[1], drawn=TrimMask(mask))
+    others = [t for t in tiles if t is not tiles[1]]
+    n = 33
+    centre = (np.arange(n - 1) + 0.5) / (n - 1)
+    U, V = np.meshgrid(centre, centre, indexing="ij")
+    in_tile = (U <= 0.5) & (V >= 0.5)
+    by_mask = in_tile & mask[np.minimum((U * 8).astype(int), 3),
+                             np.minimum(((V - 0.5) * 8).astype(int), 3)]
+    expected = trim[(U * 8).astype(int), (V * 8).astype(int)] | by_mask
+    for kernel in ("python", "numpy"):
+        mesh = tessellate_region(base, (0, 0, 1, 1), n, n, [*others, redraw], kernel=kernel)
+        assert len(mesh.indices) == 6 * expected.sum()
+        plain = tessellate_region(base, (0, 0, 1, 1), n, n, tiles, kernel=kernel)
+        assert len(plain.indices) == 6 * trim[(U * 8).astype(int), (V * 8).astype(int)].sum()
 
 
 def test_rejects_with_offsets():
