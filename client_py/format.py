@@ -25,6 +25,7 @@ from .basis import is_uniform_clamped
 from .layers import MAX_DETAIL_DEGREE, DetailTile
 from .layers import MAX_LEVEL as MAX_TILE_LEVEL
 from .layers import MAX_SPANS as MAX_TILE_SPANS
+from .rangecoder import HALF, RangeDecodeError, RangeDecoder, RangeEncoder
 from .surface import NurbsSurface
 from .trim import MAX_SIDE as TRIM_MAX_SIDE
 from .trim import TrimMask
@@ -276,10 +277,10 @@ def _finite_float(text: str) -> float:
 
 
 def _unframe(data: object, magic: bytes, what: str, header: struct.Struct, version: int,
-             size_field: int) -> tuple[bytes, tuple]:
+             size_field: int | None) -> tuple[bytes, tuple]:
     """Check a container's framing — bytes, magic, header length, version (field 1), total
-    length from the payload size (field ``size_field``), CRC32 — and return the bytes and
-    the header fields."""
+    length from the payload size (field ``size_field``; ``None``: the payload runs to the
+    CRC), CRC32 — and return the bytes and the header fields."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise PatchFormatError(0, f"expected bytes, got {type(data).__name__}")
     data = bytes(data)
@@ -292,7 +293,7 @@ def _unframe(data: object, magic: bytes, what: str, header: struct.Struct, versi
     if fields[1] != version:
         raise PatchFormatError(4, f"{what} format version {fields[1]} is not supported "
                                f"(this reader: {version})")
-    end = header.size + fields[size_field]
+    end = len(data) - CRC_SIZE if size_field is None else header.size + fields[size_field]
     if len(data) < end + CRC_SIZE:
         raise PatchFormatError(len(data), f"truncated: {len(data)} bytes of {end + CRC_SIZE}")
     if len(data) > end + CRC_SIZE:
@@ -397,71 +398,13 @@ def read_patch(data: bytes) -> NurbsSurface:
         raise PatchFormatError(HEADER_SIZE, f"decoded surface is invalid: {exc}") from None
 
 
-# ------------------------------------------------------------------ detail tiles (.tsd)
-TILE_MAGIC = b"TSDT"
-TILE_VERSION = 1
-# magic version flags level degree planes drawn_side spans i j step payload_size raw_size
-TILE_HEADER = struct.Struct("<4sHHBBBBHHHdII")
-TILE_HEADER_SIZE = TILE_HEADER.size  # 34
-TILE_FLAG_PREDICTED = 1  # values coded as parallelogram residuals (else as themselves)
-TILE_FLAG_DRAWN = 2  # a drawn-cells mask of drawn_side^2 bits follows the values
-TILE_FLAGS = TILE_FLAG_PREDICTED | TILE_FLAG_DRAWN
-MAX_DRAWN_SIDE = 255
-MAX_TILE_VALUE = (1 << 28) - 1  # |q|: residuals then fit 4 byte planes
-
-
-def _compressed_values(values: Sequence[int], size: int, predicted: bool,
-                       mask: bytes) -> tuple[int, bytes, bytes]:
-    coded = _parallelogram_residuals(values, size, size) if predicted else list(values)
-    zig = max((2 * r if r >= 0 else -2 * r - 1) for r in coded)
-    planes = max(1, (zig.bit_length() + 7) // 8)
-    raw = _encode_planes(coded, planes) + mask
-    deflate = zlib.compressobj(9, zlib.DEFLATED, -15, 9)  # raw DEFLATE: the CRC32 guards it
-    return planes, raw, deflate.compress(raw) + deflate.flush()
-
-
-def write_detail_tile(tile: DetailTile) -> bytes:
-    """Encode a :class:`~client_py.layers.DetailTile` as a ``.tsd`` v1 file (docs/format.md).
-
-    The integers ``q_ab`` are stored as they are or as parallelogram-prediction
-    residuals, whichever compresses smaller (detail fields are close to noise,
-    where prediction does not pay), zig-zag coded in byte planes as in ``.tsp``;
-    a square ``drawn`` mask follows as packed bits. The same tile always gives
-    the same bytes.
-    """
-    if not isinstance(tile, DetailTile):
-        raise ValueError(f"tile must be a DetailTile, got {type(tile).__name__}")
-    if any(abs(q) > MAX_TILE_VALUE for q in tile.values):
-        raise ValueError(f"tile values must lie within +-{MAX_TILE_VALUE}: raise the step")
-    side, mask, flags = 0, b"", 0
-    if tile.drawn is not None:
-        side = tile.drawn.rows
-        if tile.drawn.cols != side or not 1 <= side <= MAX_DRAWN_SIDE:
-            raise ValueError(f"a tile's drawn mask must be square with 1..{MAX_DRAWN_SIDE} "
-                             f"cells per side, got {tile.drawn.rows}x{tile.drawn.cols}")
-        mask, flags = _pack_bits(tile.drawn.flat), TILE_FLAG_DRAWN
-    best = None
-    for predicted in (False, True):
-        coded = _compressed_values(tile.values, tile.size, predicted, mask)
-        if best is None or len(coded[2]) < len(best[1][2]):
-            best = (predicted, coded)
-    predicted, (planes, raw, payload) = best
-    header = TILE_HEADER.pack(TILE_MAGIC, TILE_VERSION,
-                              flags | (TILE_FLAG_PREDICTED if predicted else 0),
-                              tile.level, tile.degree, planes, side, tile.spans, tile.i, tile.j,
-                              float(tile.step), len(payload), len(raw))
-    body = header + payload
-    return body + struct.pack("<I", zlib.crc32(body))
-
-
-def _inflate(data: bytes, start: int, size: int, raw_size: int, size_at: int,
-             wbits: int = 15) -> bytes:
-    """The zlib stream (``wbits = 15``; raw DEFLATE: ``-15``) ``data[start : start + size]``,
+def _inflate(data: bytes, start: int, size: int, raw_size: int, size_at: int) -> bytes:
+    """The zlib stream ``data[start : start + size]``,
     inflated to exactly ``raw_size`` bytes (at most ``raw_size + 1`` are ever inflated);
     ``size_at`` is where the header holds ``raw_size``, the offset a wrong size is reported at."""
     blob = data[start : start + size]
     try:
-        inflater = zlib.decompressobj(wbits)
+        inflater = zlib.decompressobj()
         raw = inflater.decompress(blob, raw_size + 1)
     except zlib.error as exc:
         raise PatchFormatError(start, f"payload does not decompress: {exc}") from None
@@ -477,8 +420,140 @@ def _inflate(data: bytes, start: int, size: int, raw_size: int, size_at: int,
     return raw
 
 
+
+# ------------------------------------------------------------------ detail tiles (.tsd)
+TILE_MAGIC = b"TSDT"
+TILE_VERSION = 2
+# magic version flags level degree spans drawn_side i j step (then coded bytes, CRC32)
+TILE_HEADER = struct.Struct("<4sBBBBBBHHf")
+TILE_HEADER_SIZE = TILE_HEADER.size  # 18
+TILE_FLAG_DRAWN = 1  # a drawn mask of drawn_side^2 cells follows the values
+MAX_DRAWN_SIDE = 255
+MAX_TILE_VALUE = (1 << 28) - 1
+UNARY_BINS = 6  # |q| = 1..UNARY_BINS in unary, larger through an Exp-Golomb escape
+ESCAPE_BITS = 28  # an escape's Exp-Golomb prefix: |q| <= MAX_TILE_VALUE needs fewer
+
+
+class _TileModel:
+    """The adaptive contexts of one tile's values (docs/format.md, "Tile values").
+
+    Neighbours are the coefficient before ``q_ab`` in its row (``q_a,b-1``) and
+    the one above (``q_a-1,b``); missing ones count as 0.
+    """
+
+    def __init__(self) -> None:
+        self.zero = [HALF] * 3  # by the number of non-zero neighbours
+        self.sign = [HALF]
+        self.unary = [HALF] * (2 * UNARY_BINS)  # by bin, and neighbour magnitudes > 2
+        self.prefix = [HALF] * ESCAPE_BITS
+        self.suffix = [HALF] * ESCAPE_BITS
+        self.mask = [HALF] * 4  # drawn cells: by the cell above and the one before
+
+    @staticmethod
+    def contexts(values: Sequence[int], k: int, size: int) -> tuple[int, int]:
+        left = values[k - 1] if k % size else 0
+        up = values[k - size] if k >= size else 0
+        return (left != 0) + (up != 0), UNARY_BINS * (abs(left) + abs(up) > 2)
+
+
+def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
+                        model: _TileModel) -> None:
+    for k, q in enumerate(values):
+        zero_ctx, unary_ctx = model.contexts(values, k, size)
+        enc.bit(model.zero, zero_ctx, q != 0)
+        if not q:
+            continue
+        enc.bit(model.sign, 0, q < 0)
+        m = abs(q)
+        for b in range(1, UNARY_BINS + 1):  # bit b-1: is |q| > b?
+            enc.bit(model.unary, unary_ctx + b - 1, m > b)
+            if m <= b:
+                break
+        else:  # Exp-Golomb order 0 of x = |q| - UNARY_BINS - 1
+            x = m - UNARY_BINS
+            n = x.bit_length() - 1
+            for t in range(n):
+                enc.bit(model.prefix, t, 1)
+            enc.bit(model.prefix, n, 0)
+            for t in range(n - 1, -1, -1):
+                enc.bit(model.suffix, t, (x >> t) & 1)
+
+
+def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
+                        model: _TileModel) -> list[int]:
+    values: list[int] = []
+    for k in range(count):
+        zero_ctx, unary_ctx = model.contexts(values, k, size)
+        if not dec.bit(model.zero, zero_ctx):
+            values.append(0)
+            continue
+        negative = dec.bit(model.sign, 0)
+        m = 1
+        while m <= UNARY_BINS and dec.bit(model.unary, unary_ctx + m - 1):
+            m += 1
+        if m > UNARY_BINS:
+            n = 0
+            while dec.bit(model.prefix, n):
+                n += 1
+                if n >= ESCAPE_BITS:
+                    raise PatchFormatError(TILE_HEADER_SIZE, f"value {k}: escape longer "
+                                           f"than {ESCAPE_BITS} bits")
+            x = 1
+            for t in range(n - 1, -1, -1):
+                x = (x << 1) | dec.bit(model.suffix, t)
+            m = x + UNARY_BINS
+        values.append(-m if negative else m)
+    return values
+
+
+def _code_mask(coder: RangeEncoder | RangeDecoder, model: _TileModel, side: int,
+               cells: bytes | None = None) -> bytes:
+    """Encode ``cells`` (``side^2`` 0/1 bytes, row-major) or, with ``cells=None``, decode."""
+    out = bytearray(side * side)
+    for k in range(side * side):
+        ctx = 2 * (out[k - side] if k >= side else 0) + (out[k - 1] if k % side else 0)
+        if cells is None:
+            out[k] = coder.bit(model.mask, ctx)
+        else:
+            out[k] = cells[k]
+            coder.bit(model.mask, ctx, cells[k])
+    return bytes(out)
+
+
+def write_detail_tile(tile: DetailTile) -> bytes:
+    """Encode a :class:`~client_py.layers.DetailTile` as a ``.tsd`` v2 file (docs/format.md).
+
+    The integers ``q_ab`` and the cells of the ``drawn`` mask are coded with an
+    adaptive binary range coder (``client_py.rangecoder``): per value a zero
+    flag (context: non-zero neighbours), a sign and ``|q|`` in unary up to
+    ``UNARY_BINS`` (context: the neighbours' magnitude), then an Exp-Golomb
+    escape; per mask cell one bit (context: the cells above and before). The
+    same tile always gives the same bytes.
+    """
+    if not isinstance(tile, DetailTile):
+        raise ValueError(f"tile must be a DetailTile, got {type(tile).__name__}")
+    if any(abs(q) > MAX_TILE_VALUE for q in tile.values):
+        raise ValueError(f"tile values must lie within +-{MAX_TILE_VALUE}: raise the step")
+    if tile.spans > MAX_TILE_SPANS:
+        raise ValueError(f"spans = {tile.spans}: a .tsd tile holds at most {MAX_TILE_SPANS}")
+    side, flags = 0, 0
+    if tile.drawn is not None:
+        side = tile.drawn.rows
+        if tile.drawn.cols != side or not 1 <= side <= MAX_DRAWN_SIDE:
+            raise ValueError(f"a tile's drawn mask must be square with 1..{MAX_DRAWN_SIDE} "
+                             f"cells per side, got {tile.drawn.rows}x{tile.drawn.cols}")
+        flags = TILE_FLAG_DRAWN
+    enc, model = RangeEncoder(), _TileModel()
+    _encode_tile_values(enc, tile.values, tile.size, model)
+    if side:
+        _code_mask(enc, model, side, tile.drawn.flat)
+    body = TILE_HEADER.pack(TILE_MAGIC, TILE_VERSION, flags, tile.level, tile.degree,
+                            tile.spans, side, tile.i, tile.j, tile.step) + enc.finish()
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
 def read_detail_tile(data: bytes) -> DetailTile:
-    """Decode a ``.tsd`` v1 detail tile.
+    """Decode a ``.tsd`` v2 detail tile.
 
     Raises
     ------
@@ -486,41 +561,32 @@ def read_detail_tile(data: bytes) -> DetailTile:
         For anything but a valid tile (truncation, corruption, a foreign file),
         with the byte offset and the reason; never anything else.
     """
-    data, fields = _unframe(data, TILE_MAGIC, "detail tile", TILE_HEADER, TILE_VERSION, 11)
-    (_, version, flags, level, degree, planes, side, spans, i, j, step, size,
-     raw_size) = fields
-    if flags & ~TILE_FLAGS:
-        raise PatchFormatError(6, f"unknown flags 0x{flags:04x}")
+    data, fields = _unframe(data, TILE_MAGIC, "detail tile", TILE_HEADER, TILE_VERSION, None)
+    _, _, flags, level, degree, spans, side, i, j, step = fields
+    if flags & ~TILE_FLAG_DRAWN:
+        raise PatchFormatError(5, f"unknown flags 0x{flags:02x}")
     if level > MAX_TILE_LEVEL:
-        raise PatchFormatError(8, f"level {level} outside 0..{MAX_TILE_LEVEL}")
+        raise PatchFormatError(6, f"level {level} outside 0..{MAX_TILE_LEVEL}")
     if not 1 <= degree <= MAX_DETAIL_DEGREE:
-        raise PatchFormatError(9, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
-    if not 1 <= planes <= 4:
-        raise PatchFormatError(10, f"{planes} byte planes; 1..4 accepted")
+        raise PatchFormatError(7, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
+    if not 1 <= spans:
+        raise PatchFormatError(8, "spans = 0; 1..255 accepted")
     if bool(side) != bool(flags & TILE_FLAG_DRAWN):
-        raise PatchFormatError(11, f"drawn mask side {side} with flags 0x{flags:04x}: "
-                               "non-zero exactly when flag 0x2 is set")
-    if not 1 <= spans <= MAX_TILE_SPANS:
-        raise PatchFormatError(12, f"spans = {spans} outside 1..{MAX_TILE_SPANS}")
-    for offset, name, index in ((14, "i", i), (16, "j", j)):
+        raise PatchFormatError(9, f"drawn mask side {side} with flags 0x{flags:02x}: "
+                               "non-zero exactly when flag 0x1 is set")
+    for offset, name, index in ((10, "i", i), (12, "j", j)):
         if index >= 1 << level:
             raise PatchFormatError(offset, f"{name} = {index} outside 0..{(1 << level) - 1} "
                                    f"at level {level}")
     if not (math.isfinite(step) and step > 0):
-        raise PatchFormatError(18, f"quantisation step {step} is not a positive finite number")
-    count = (spans + degree) ** 2
-    mask_size = (side * side + 7) // 8
-    if raw_size != planes * count + mask_size:
-        raise PatchFormatError(30, f"payload size {raw_size}: {planes} planes of {count} "
-                               f"coefficients and a {side}x{side} mask are "
-                               f"{planes * count + mask_size} bytes")
-    raw = _inflate(data, TILE_HEADER_SIZE, size, raw_size, 30, -15)
-    coded = _decode_planes(raw, count, planes)
-    drawn = None
-    if side:
-        drawn = TrimMask.from_flat(side, side, _unpack_bits(raw[planes * count:], side * side))
-    n = spans + degree
-    values = _undo_parallelogram(coded, n, n) if flags & TILE_FLAG_PREDICTED else coded
+        raise PatchFormatError(14, f"quantisation step {step} is not a positive finite number")
+    dec = RangeDecoder(data[TILE_HEADER_SIZE : len(data) - CRC_SIZE])
+    model = _TileModel()
+    try:
+        values = _decode_tile_values(dec, (spans + degree) ** 2, spans + degree, model)
+        drawn = TrimMask.from_flat(side, side, _code_mask(dec, model, side)) if side else None
+    except RangeDecodeError as exc:
+        raise PatchFormatError(len(data) - CRC_SIZE, f"coded values end early: {exc}") from None
     if any(abs(q) > MAX_TILE_VALUE for q in values):
         raise PatchFormatError(TILE_HEADER_SIZE, f"decoded values beyond +-{MAX_TILE_VALUE}")
     return DetailTile(level, i, j, degree, spans, step, tuple(values), drawn)

@@ -24,6 +24,7 @@ through ``client_py._kernel``), no I/O: the bytes come from
 from __future__ import annotations
 
 import math
+import struct
 from array import array
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -36,9 +37,17 @@ from .trim import TrimMask
 
 MAX_LEVEL = 15
 MAX_DETAIL_DEGREE = 3
-MAX_SPANS = 256  # spans per tile side
+MAX_SPANS = 255  # spans per tile side (.tsd stores a byte)
 
 UVRect = tuple[float, float, float, float]
+
+
+def single(x: float) -> float:
+    """``x`` rounded to the nearest IEEE single-precision value (``.tsd`` stores steps so)."""
+    try:
+        return struct.unpack("<f", struct.pack("<f", x))[0]
+    except OverflowError:
+        return math.inf
 
 
 def level_knots(degree: int, spans_per_tile: int, level: int) -> list[float]:
@@ -86,9 +95,10 @@ class DetailTile:
     degree : int
         ``p`` in ``1..3``.
     spans : int
-        Knot spans per tile side ``m`` in ``1..256``.
+        Knot spans per tile side ``m`` in ``1..255``.
     step : float
-        Quantisation step (scan units of the patch frame), ``> 0``.
+        Quantisation step (scan units of the patch frame), ``> 0``; rounded to
+        the nearest single-precision float (:func:`single`), as ``.tsd`` stores it.
     values : tuple of int
         ``size^2`` quantised coefficients.
     drawn : TrimMask, optional
@@ -116,6 +126,9 @@ class DetailTile:
         if not (isinstance(self.step, float | int) and math.isfinite(self.step)
                 and self.step > 0):
             raise ValueError(f"step must be a positive finite number, got {self.step!r}")
+        object.__setattr__(self, "step", single(self.step))
+        if not (math.isfinite(self.step) and self.step > 0):
+            raise ValueError(f"step {self.step!r} is beyond single precision")
         values = tuple(self.values)
         if len(values) != self.size**2 or not all(isinstance(q, int) for q in values):
             raise ValueError(f"values must be {self.size}^2 = {self.size**2} integers, "

@@ -260,10 +260,10 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
         # an exactly explained residual still needs a positive step (and zero explains zero)
         floor = 1e-9 * max(float(np.abs(c).max(initial=0.0)), float(np.abs(residual).max()))
-        step = step_factor * max(rms_fit, floor) or 1.0
+        step = layers.single(step_factor * max(rms_fit, floor) or 1.0)  # as .tsd stores it
         q = np.rint(c / step).astype(np.int64)
         if np.abs(q).max(initial=0) > MAX_TILE_VALUE:  # never for a real scan; stay valid
-            step = float(np.abs(c).max()) / MAX_TILE_VALUE
+            step = layers.single(float(np.abs(c).max()) / MAX_TILE_VALUE * (1 + 1e-6))
             q = np.rint(c / step).astype(np.int64)
         fields.append(q * step)
         residual = residual - evaluate_level(fields[-1], k, degree, spans, samples.u, samples.v)

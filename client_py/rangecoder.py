@@ -1,0 +1,111 @@
+"""Adaptive binary range coding: the entropy coder of ``.tsd`` detail tiles.
+
+The binary range coder of LZMA (I. Pavlov, LZMA SDK, ``lzma-specification``):
+a bit is coded against an adaptive probability ``p / 2^11`` that it is 0; the
+interval ``[low, low + range)`` shrinks to the bit's share, ``bound = (range >>
+11) p``, and is renormalised a byte at a time once ``range < 2^24``, with a
+carry cache so that output bytes never need patching. Probabilities adapt by
+``p += (2^11 - p) >> SHIFT`` after a 0 and ``p -= p >> SHIFT`` after a 1, a
+shift of 4 (faster than LZMA's 5) because a tile codes only a few hundred
+symbols. Pure Python, standard library only: it runs in Pyodide.
+
+A caller's model is a ``list`` of probabilities (its contexts), each entry
+starting at ``HALF``; encoder and decoder must make the same calls in the same
+order with the same models.
+"""
+
+from __future__ import annotations
+
+PROB_BITS = 11
+HALF = 1 << (PROB_BITS - 1)
+SHIFT = 4
+TOP = 1 << 24
+MASK32 = 0xFFFFFFFF
+
+
+class RangeDecodeError(ValueError):
+    """The coded bytes end before the decoder has all its symbols."""
+
+
+class RangeEncoder:
+    """Collects coded bytes; call :meth:`finish` once, after the last bit."""
+
+    def __init__(self) -> None:
+        self.low = 0
+        self.range = MASK32
+        self._cache = 0
+        self._pending = 1  # bytes waiting for a possible carry: the cache and 0xFF run
+        self.out = bytearray()
+
+    def _shift_low(self) -> None:
+        low = self.low
+        if low < 0xFF000000 or low > MASK32:
+            carry = low >> 32
+            byte = self._cache
+            while self._pending:
+                self.out.append((byte + carry) & 0xFF)
+                byte = 0xFF
+                self._pending -= 1
+            self._cache = (low >> 24) & 0xFF
+        self._pending += 1
+        self.low = (low & 0x00FFFFFF) << 8
+
+    def bit(self, model: list[int], context: int, bit: int) -> None:
+        """Code ``bit`` (0 or 1) with the adaptive probability ``model[context]``."""
+        p = model[context]
+        bound = (self.range >> PROB_BITS) * p
+        if bit:
+            self.low += bound
+            self.range -= bound
+            model[context] = p - (p >> SHIFT)
+        else:
+            self.range = bound
+            model[context] = p + (((1 << PROB_BITS) - p) >> SHIFT)
+        while self.range < TOP:
+            self.range <<= 8
+            self._shift_low()
+
+    def finish(self) -> bytes:
+        """Flush the interval and return every coded byte (the first is always 0 and
+        is left out; :class:`RangeDecoder` puts it back)."""
+        for _ in range(5):
+            self._shift_low()
+        return bytes(self.out[1:])
+
+
+class RangeDecoder:
+    """Decodes the bytes of :meth:`RangeEncoder.finish`; reading past their end raises
+    :class:`RangeDecodeError` (``pos`` is then the number of bytes it needed)."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+        self.pos = 0
+        self.range = MASK32
+        self.code = 0
+        for _ in range(4):
+            self.code = (self.code << 8) | self._byte()
+
+    def _byte(self) -> int:
+        if self.pos >= len(self.data):
+            raise RangeDecodeError(f"coded data ends after {len(self.data)} bytes")
+        b = self.data[self.pos]
+        self.pos += 1
+        return b
+
+    def bit(self, model: list[int], context: int) -> int:
+        """The next bit, decoded with ``model[context]`` (updated as the encoder did)."""
+        p = model[context]
+        bound = (self.range >> PROB_BITS) * p
+        if self.code < bound:
+            self.range = bound
+            model[context] = p + (((1 << PROB_BITS) - p) >> SHIFT)
+            bit = 0
+        else:
+            self.code -= bound
+            self.range -= bound
+            model[context] = p - (p >> SHIFT)
+            bit = 1
+        while self.range < TOP:
+            self.range <<= 8
+            self.code = ((self.code << 8) | self._byte()) & MASK32
+        return bit
