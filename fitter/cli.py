@@ -40,6 +40,7 @@ _resolution = _integer(2)
 _count = _integer(1)
 _level = _integer(-1, lo_meaning=" (the base alone)")
 _detail_levels = _integer(0, 8)
+_detail_spans = _integer(4, 64)
 _port = _integer(0, 65535, "a port number")
 
 
@@ -356,6 +357,9 @@ def _add_fit_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detail-levels", type=_detail_levels, default=None,
                         help="levels of the detail pyramid, 0 to 8 (default: as many as the "
                         "point density supports)")
+    parser.add_argument("--detail-spans", type=_detail_spans, default=16,
+                        help="knot spans per detail tile side, 4 to 64 (default 16; level k "
+                        "has this times 2^k spans across the object)")
     parser.add_argument("--texture", action=argparse.BooleanOptionalAction, default=True,
                         help="write the texture pyramid when the scan has colour (default yes)")
 
@@ -366,7 +370,8 @@ def _fit_options(args: argparse.Namespace, **extra):
 
     return FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
                       max_error=args.max_error, projection=args.projection,
-                      detail_levels=args.detail_levels, texture=args.texture, **extra)
+                      detail_levels=args.detail_levels, detail_spans=args.detail_spans,
+                      texture=args.texture, **extra)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -62,7 +62,7 @@ RIDGE = 1e-4
 SMOOTHING = 1e-3
 MIN_POINTS_PER_CELL = 4.0  # auto depth: finest level keeps this many points per knot cell
 MAX_AUTO_LEVELS = 6
-DRAWN_SIDE = 2 * SPANS  # cells per side of a tile's drawn mask
+DRAWN_SIDE = 32  # cells per side of a tile's drawn mask (any spans)
 
 
 @dataclass
@@ -299,16 +299,17 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
 # ------------------------------------------------------------------ the bundle's tile tree
 def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.ndarray,
                periodic_u: bool, levels: int | None = None, progress=None,
-               step_factor: float = STEP_FACTOR, trim: TrimMask | None = None) -> DetailPyramid:
+               step_factor: float = STEP_FACTOR, trim: TrimMask | None = None,
+               spans: int = SPANS) -> DetailPyramid:
     """The pipeline's detail stage: samples of the covered points at their foot points
     ``dev.u, dev.v`` on the decoded base ``model``, then :func:`fit_pyramid`
-    (``levels=None``: :func:`auto_levels`); ``trim`` is the base's trim mask, which
-    the tiles' drawn masks complete (:class:`Redraw`)."""
+    (``levels=None``: :func:`auto_levels`) with ``spans`` per tile side; ``trim`` is
+    the base's trim mask, which the tiles' drawn masks complete (:class:`Redraw`)."""
     if levels is None:
-        levels = auto_levels(int(covered.sum()))
+        levels = auto_levels(int(covered.sum()), spans)
     if levels == 0:  # no pyramid: the base error is the foot-point deviation itself
         d = np.abs(dev.d[covered])
-        return DetailPyramid(DEGREE, SPANS, base_rms=float(np.sqrt(np.mean(d**2))),
+        return DetailPyramid(DEGREE, spans, base_rms=float(np.sqrt(np.mean(d**2))),
                              base_max=float(d.max(initial=0.0)))
     samples = detail_samples(model, points_local[covered], dev.u[covered], dev.v[covered])
     redraw = None
@@ -316,7 +317,7 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
         drawn = np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool)
         redraw = Redraw.from_foot_points(model, drawn, points_local[covered], samples.u,
                                          samples.v, periodic_u)
-    return fit_pyramid(samples, levels, periodic_u=periodic_u, progress=progress,
+    return fit_pyramid(samples, levels, spans=spans, periodic_u=periodic_u, progress=progress,
                        step_factor=step_factor, redraw=redraw)
 
 

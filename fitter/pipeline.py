@@ -43,6 +43,7 @@ from client_py import TrimMask, read_patch, write_patch
 
 from . import io as scan_io
 from .compact import choose_bits, drawn_cells, settle_hidden
+from .detail import SPANS as DETAIL_SPANS
 from .detail import fit_detail, write_layers
 from .error import deviations, error_grid, error_stats, write_error_ply, write_error_png
 from .features import adaptive_sample, feature_weights, surface_variation
@@ -89,6 +90,9 @@ class FitOptions:
     ``sphere``; title : the object's title; feature_strength : how much denser
     the tessera method samples where local PCA finds features (0: uniform);
     samples : scan points the tessera refinement fits (that sample); seed : of it.
+    detail_levels : depth of the detail pyramid (``None``: as the point density
+    allows); detail_spans : knot spans per detail tile side (level ``k`` has
+    ``detail_spans 2^k`` per side of the domain); texture : the colour pyramid.
     """
 
     grid: tuple[int, int] = (40, 40)
@@ -102,7 +106,8 @@ class FitOptions:
     feature_strength: float = 4.0
     seed: int = 0
     samples: int = FIT_SAMPLE
-    detail_levels: int | None = None  # detail pyramid depth; None: as the point density allows
+    detail_levels: int | None = None
+    detail_spans: int = DETAIL_SPANS
     texture: bool = True  # texture pyramid when the scan has colour
 
     def validate(self) -> None:
@@ -139,6 +144,10 @@ class FitOptions:
                 or not 0 <= self.detail_levels <= 8):
             raise ValueError(f"detail_levels must be an integer in 0..8, got "
                              f"{self.detail_levels!r}")
+        if (isinstance(self.detail_spans, bool) or not isinstance(self.detail_spans, int)
+                or not 4 <= self.detail_spans <= 64):
+            raise ValueError(f"detail_spans must be an integer in 4..64, got "
+                             f"{self.detail_spans!r}")
 
 
 @dataclass
@@ -345,7 +354,8 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
 
     stages.start("detail")  # residual pyramid and colour pyramid (fitter.detail, .texture)
     pyramid = fit_detail(best.model, local, best.dev, cov.covered, proj.periodic_u,
-                         options.detail_levels, stages.report, trim=read_patch(best.data).trim)
+                         options.detail_levels, stages.report, trim=read_patch(best.data).trim,
+                         spans=options.detail_spans)
     stages.start("texture")
     textures = fit_texture(scan, best.dev, cov.covered, proj.periodic_u,
                            len(pyramid.levels), options.texture)
