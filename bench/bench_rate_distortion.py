@@ -268,7 +268,8 @@ def tessera_points(scan, cov, out: Path, submit: Callable[[str, int, int], Futur
         for factor in STEP_FACTORS:
             if factor != STEP_FACTOR:
                 pyramid = fit_detail(model, local, dev, cov.covered, proj.periodic_u, LEVELS[grid],
-                                     step_factor=factor, trim=surface.trim)  # as fit_scan
+                                     step_factor=factor, trim=surface.trim,
+                                     spans=spans)  # as fit_scan
                 levels[factor] = (_write_bundle(bundle.path, m, pyramid,
                                                 out / f"g{grid}_s{factor:g}"),
                                   [(lev.level, lev.bytes_total, lev.rms, lev.max,
