@@ -67,6 +67,10 @@ class PatchFormatError(ValueError):
         where = f"byte {offset}" if section == "file" else f"payload byte {offset}"
         super().__init__(f"invalid Tessera patch at {where}: {reason}")
 
+    def __reduce__(self) -> tuple:
+        """Pickle by the constructor's arguments (a worker process's error reaches its pool)."""
+        return type(self), (self.offset, self.reason, self.section)
+
 
 # ------------------------------------------------------------------ residual coding
 def _plane_count(bits: int) -> int:

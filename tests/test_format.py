@@ -320,3 +320,11 @@ def test_corrupt_payload_with_valid_crc(data):
             raw[at:at] = data.draw(st.binary(min_size=1, max_size=16))
     result = read_or_format_error(reframe(bytes(raw)))
     assert result is None or isinstance(result, NurbsSurface)
+
+
+def test_format_error_pickles():
+    import pickle
+
+    err = pickle.loads(pickle.dumps(PatchFormatError(12, "bad thing", "payload")))
+    assert (err.offset, err.reason, err.section) == (12, "bad thing", "payload")
+    assert str(err) == "invalid Tessera patch at payload byte 12: bad thing"
