@@ -243,3 +243,132 @@ def test_texture_tiles_colour_the_object(browser, detail_server, detail_collecti
         assert problems == []
     finally:
         context.close()
+
+
+def _ply_arrays(path) -> tuple[str, np.ndarray, np.ndarray]:
+    """A PLY's header text, vertices (N, 3) and triangles (M, 3), as trimesh's loader reads them
+    (``fix_texture=False``: no re-indexing, unused vertices kept)."""
+    import trimesh
+
+    header = path.read_bytes().split(b"end_header", 1)[0].decode("ascii")
+    with open(path, "rb") as handle:
+        loaded = trimesh.exchange.ply.load_ply(handle, fix_texture=False)
+    return header, np.asarray(loaded["vertices"]), np.asarray(loaded["faces"])
+
+
+def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, detail_server,
+                                                                     detail_collection, tmp_path):
+    """Download PLY at the finest level: every tile of levels 0..L is fetched once (those the
+    tile layer already fetched not again) and the file is client_py.tessellate_bundle at level
+    L in CPython on the same grid; "base" still gives the mesh on screen; a tile that cannot
+    be fetched is named in the error."""
+    from collections import Counter
+
+    from client_py.bundle import tessellate_bundle
+
+    bundle = detail_collection / "relief-detail"
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    detail = manifest["tiles"]["detail"]
+    nodes = {(n["level"], n["i"], n["j"]): n for n in detail["nodes"]}
+    level = len(detail["levels"]) - 1
+    assert level == LEVELS - 1
+    resolution = min(1025, 2 * detail["spans_per_tile"] * 2**level + 1)  # 257 here
+
+    context = browser.new_context(accept_downloads=True, viewport={"width": 800, "height": 600})
+    page = context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda exc: problems.append(str(exc)))
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    fetched: list[tuple[int, int, int]] = []
+
+    def on_request(request):
+        match = TILE_URL.search(request.url)
+        if match:
+            fetched.append(tuple(int(g) for g in match.groups()))
+
+    page.on("request", on_request)
+    try:
+        page.goto(f"{detail_server.url}/objects/relief-detail/?resolution=64")
+        page.wait_for_function(READY, timeout=60_000)
+        assert page.evaluate("document.body.dataset.error") is None
+        before = page.evaluate("window.tessera.tilesIdle()")
+        by_layer = set(fetched)
+        assert 0 < len(by_layer) < len(nodes)
+
+        # the choice: base (default) and one entry per level, with its bytes, RMS and grid
+        choice = page.locator("#ply-level")
+        assert choice.is_visible() and choice.is_enabled()
+        assert choice.input_value() == "-1"
+        labels = choice.locator("option").all_inner_texts()
+        assert len(labels) == 1 + LEVELS and labels[0].startswith("base")
+        for k, (label, entry) in enumerate(zip(labels[1:], detail["levels"], strict=True)):
+            assert label.startswith(f"level {k} ") and f"{entry['rms']:.3f}" in label, label
+        assert f"{resolution}² grid" in labels[-1]
+
+        choice.select_option(str(level))
+        with page.expect_download(timeout=60_000) as info:
+            page.click("#download-ply")
+        download = info.value
+        assert download.suggested_filename == f"relief-detail_level{level}.ply"
+        path = tmp_path / "level.ply"
+        download.save_as(path)
+        page.wait_for_function("!document.body.dataset.plyBusy")
+        stats = page.evaluate("window.tessera.stats")
+
+        # every detail tile of levels 0..L came, each once: the export fetched only the rest
+        wanted = {key for key in nodes if key[0] <= level}
+        assert set(fetched) == wanted
+        assert max(Counter(fetched).values()) == 1
+        assert stats["ply_tiles_fetched"] == len(wanted - by_layer)
+        assert stats["ply_fetch_bytes"] == sum(nodes[k]["bytes"] for k in wanted - by_layer)
+        assert stats["ply_level"] == level and stats["ply_resolution"] == resolution
+        assert stats["ply_bytes"] == path.stat().st_size
+
+        # the file is the bundle at level L (CPython's client_py, same grid)
+        header, vertices, faces = _ply_arrays(path)
+        assert f"comment detail level {level}:" in header
+        assert f"{resolution}x{resolution} grid" in header
+        reference = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(),
+                                      level=level, resolution=resolution)
+        expected = np.frombuffer(reference.positions, np.float32).reshape(-1, 3)
+        assert vertices.shape == expected.shape == (resolution * resolution, 3)
+        tolerance = 4 * np.finfo(np.float32).eps * np.abs(expected).max()
+        assert np.abs(vertices - expected).max() <= tolerance
+        assert np.array_equal(faces.ravel(), np.frombuffer(reference.indices, np.uint32))
+        # ... and not the base: the detail moved the vertices
+        base = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(),
+                                 level=-1, resolution=resolution)
+        assert np.abs(vertices - np.frombuffer(base.positions, np.float32).reshape(-1, 3)
+                      ).max() > 0.1
+
+        # "base": the mesh on screen, as before
+        choice.select_option("-1")
+        with page.expect_download(timeout=60_000) as info:
+            page.click("#download-ply")
+        path = tmp_path / "base.ply"
+        info.value.save_as(path)
+        assert info.value.suggested_filename == "relief-detail.ply"
+        header, vertices, _ = _ply_arrays(path)
+        assert "detail level" not in header
+        assert len(vertices) == before["vertices"] == 64 * 64
+        assert page.evaluate("window.tessera.stats.ply_level") == -1
+        assert page.is_enabled("#download-ply") and choice.is_enabled()
+        assert problems == []
+        print(f"\nlevel {level} PLY, {resolution}x{resolution}: {stats['ply_tiles_fetched']} tiles "
+              f"fetched ({stats['ply_fetch_bytes']} B), {stats['ply_ms']:.0f} ms in Python, "
+              f"{stats['ply_total_ms']:.0f} ms in all, {stats['ply_bytes']} B")
+
+        # a tile that cannot be fetched fails the export with its name and HTTP status
+        lost = min(k for k in wanted - by_layer if k[0] == level)
+        lost_file = nodes[lost]["file"]
+        page.route(f"**/{lost_file}", lambda route: route.fulfill(status=404, body="gone"))
+        choice.select_option(str(level))
+        page.click("#download-ply")
+        page.wait_for_function("!!document.body.dataset.error", timeout=30_000)
+        message = page.evaluate("document.body.dataset.error")
+        assert lost_file in message and "HTTP 404" in message, message
+        assert page.locator("#error").is_visible()
+        page.wait_for_function("!document.body.dataset.plyBusy")
+        assert page.is_enabled("#download-ply")
+    finally:
+        context.close()

@@ -13,6 +13,9 @@ export class MeshWorkerClient {
     this.onStage = onStage;
     this.nextId = 1;
     this.pending = new Map();
+    // Detail tiles the worker will hold once it has handled every request posted so far
+    // (updated when a "tile"/"drop" request is posted: the worker runs requests in order).
+    this.held = new Set();
     this.worker = new Worker(workerUrl, { type: "module", name: "tessera-mesh-worker" });
     this.worker.onmessage = (event) => this._receive(event.data);
     this.worker.onerror = (event) => {
@@ -53,15 +56,40 @@ export class MeshWorkerClient {
     return this._request({ type: "ply", resolution, colors }, colors ? [colors.buffer] : []);
   }
 
+  /** PLY of the whole patch at detail level `level` (>= 0) on a resolution x resolution grid,
+   *  with the detail tiles `names` (every tile of levels 0..level): those the worker holds
+   *  (see holds()) are used as they are, the others must be in `fresh` (a Map name -> bytes,
+   *  transferred). Resolves with {bytes, vertices, write_ms}. Tiles the worker does not hold
+   *  at the moment of the call and `fresh` lacks reject at once (the caller fetches them). */
+  plyLevel(level, resolution, names, fresh = new Map()) {
+    const missing = names.filter((name) => !this.held.has(name) && !fresh.has(name));
+    if (missing.length) {
+      return Promise.reject(new Error(`detail tiles not fetched: ${missing.join(", ")}`));
+    }
+    const sent = [...fresh].map(([name, bytes]) => ({ name, bytes }));
+    return this._request({ type: "ply", level, resolution, names, fresh: sent },
+                         sent.map((tile) => tile.bytes.buffer));
+  }
+
+  /** Whether the worker will hold detail tile `name` when it reaches the next request. */
+  holds(name) {
+    return this.held.has(name);
+  }
+
   /** Hand a detail tile's bytes (a bundle's `.tsd` file `name`) to the worker, which decodes
    *  and keeps it: resolves with {name, level, i, j}; a bad file rejects with its reason. */
   addTile(name, bytes) {
     const copy = bytes.slice(); // the caller keeps its bytes (the copy is transferred)
-    return this._request({ type: "tile", name, bytes: copy }, [copy.buffer]);
+    this.held.add(name);
+    return this._request({ type: "tile", name, bytes: copy }, [copy.buffer]).catch((error) => {
+      this.held.delete(name); // not decoded: not kept
+      throw error;
+    });
   }
 
   /** Forget tiles the worker holds (names as given to addTile). */
   dropTiles(names) {
+    for (const name of names) this.held.delete(name);
     return this._request({ type: "drop", names });
   }
 

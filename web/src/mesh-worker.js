@@ -6,6 +6,10 @@
 //   worker -> {type: "ready", pyodide_load_ms, kernel, patch: {...}}           (init done)
 //   page -> {type: "tessellate", resolution}  -> {type: "mesh", positions, normals, uvs, indices, ...}
 //   page -> {type: "ply", resolution, colors?} -> {type: "ply", bytes}          (client_py.write_ply)
+//   page -> {type: "ply", resolution, level, names, fresh?: [{name, bytes}]}
+//        -> {type: "ply", bytes, vertices, write_ms}  (level >= 0: the whole domain at detail
+//           level `level`, tessellate_region over (0, 0, 1, 1) with the named tiles, scan frame;
+//           each name is a tile the worker holds or one of `fresh`, decoded for this request only)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (read_detail_tile, kept)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (forget tiles)
 //   page -> {type: "region", level, i, j, grid, names, skirtDepth}
@@ -65,6 +69,37 @@ def tessera_ply(resolution, js_colors):
     if js_colors is not None:
         mesh = replace(mesh, colors=array("B", js_colors.to_bytes()))
     comments = [f"source {_source}", f"units {_surface.metadata.get('units', 'unknown')}",
+                f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
+    data = write_ply(mesh, binary=True, comments=comments)
+    return data, mesh.vertex_count, (time.perf_counter() - t0) * 1000.0
+
+def tessera_ply_level(level, resolution, names, fresh_names, fresh_bytes):
+    """PLY of the whole domain at detail level 'level': the base patch plus the named
+    detail tiles (those of levels 0..level; held ones, or fresh ones sent with the request,
+    which are decoded here and not kept), on a resolution x resolution grid, in the scan
+    frame: what 'tessera tessellate OUTDIR --level L' writes (client_py.tessellate_bundle).
+    (No backquotes in here: this Python lives in a JavaScript template literal.)"""
+    t0 = time.perf_counter()
+    fresh = {}
+    for name, data in zip(fresh_names, fresh_bytes, strict=True):
+        try:
+            fresh[name] = read_detail_tile(data.to_bytes())
+        except ValueError as exc:
+            raise ValueError(f"detail tile {name}: {exc}") from None
+    tiles = []
+    for name in names:
+        tile = fresh[name] if name in fresh else _tiles.get(name)
+        if tile is None:
+            raise ValueError(f"detail tile {name} was neither handed over nor sent")
+        if tile.level > level:
+            raise ValueError(f"detail tile {name} is of level {tile.level}, finer than {level}")
+        tiles.append(tile)
+    mesh = tessellate_region(_patch, (0.0, 0.0, 1.0, 1.0), resolution, resolution, tiles)
+    matrix = _patch.metadata.get("transform")
+    if matrix is not None:
+        mesh = transform_mesh(mesh, matrix)
+    comments = [f"source {_source}", f"units {_surface.metadata.get('units', 'unknown')}",
+                f"detail level {level}: base patch + {len(tiles)} detail tiles of levels 0..{level}",
                 f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
     data = write_ply(mesh, binary=True, comments=comments)
     return data, mesh.vertex_count, (time.perf_counter() - t0) * 1000.0
@@ -223,6 +258,7 @@ async function init({ pyodideUrl, pyodideSnapshotUrl, clientPyUrl, patchUrl }) {
       load: pyodide.globals.get("tessera_load"),
       tessellate: pyodide.globals.get("tessera_tessellate"),
       ply: pyodide.globals.get("tessera_ply"),
+      plyLevel: pyodide.globals.get("tessera_ply_level"),
       addTile: pyodide.globals.get("tessera_add_tile"),
       dropTiles: pyodide.globals.get("tessera_drop_tiles"),
       region: pyodide.globals.get("tessera_region"),
@@ -290,12 +326,17 @@ function region({ id, level, i, j, grid, names, skirtDepth }) {
   }
 }
 
-function ply({ id, resolution, colors }) {
-  const result = glue.ply(resolution, colors || undefined); // undefined -> None (null is JsNull)
+function ply({ id, resolution, colors, level, names, fresh }) {
+  const atLevel = Number.isInteger(level) && level >= 0;
+  const result = atLevel
+    ? glue.plyLevel(level, resolution, names, (fresh || []).map((t) => t.name),
+                    (fresh || []).map((t) => t.bytes))
+    : glue.ply(resolution, colors || undefined); // undefined -> None (null is JsNull)
   try {
     const [data, vertices, ms] = result;
     const bytes = copyBuffer(data);
-    post({ type: "ply", id, resolution, bytes, vertices, write_ms: ms }, [bytes.buffer]);
+    post({ type: "ply", id, resolution, level: atLevel ? level : -1, bytes, vertices, write_ms: ms },
+         [bytes.buffer]);
   } finally {
     result.destroy();
   }

@@ -11,6 +11,14 @@
 // is due; window.tessera.view() gives the camera's projection and view matrices (column-major)
 // and window.tessera.regionMeshes() the regions on screen ({level, i, j, grid, positions, uvs}
 // of their grid vertices, skirts left out), for tests. A tile that fails to load sets document.body.dataset.tileError (the base stays).
+// "Download PLY" writes the level chosen next to it (#ply-level): "base", the mesh on screen
+// (with the error map's colours when it is shown), or detail level L: every detail tile of
+// levels 0..L is fetched (those the worker already holds are not) and the worker tessellates
+// the whole patch with them on an R x R grid, R = min(1025, 2 spans_per_tile 2^L + 1) (two
+// vertices per knot span of the level's tiles), as `tessera tessellate OUTDIR --level L`.
+// Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
+// ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
+// ply_fetch_bytes; document.body.dataset.plyBusy is "1" while a PLY is being made.
 // All URLs come from the server's JSON config block.
 
 import { ErrorMap } from "./error-map.js";
@@ -20,6 +28,8 @@ import { $, startPage } from "./page.js";
 const COARSE = 24; // first mesh: ~1k vertices, drawn within milliseconds of the patch
 const MIN_RES = 48;
 const MAX_RES = 384;
+const PLY_MAX_RES = 1025; // a level-L PLY's grid is capped here (1M vertices)
+const FETCH_PARALLEL = 6; // tile fetches in flight at once for a PLY
 
 const { config, stats, showStage, showError } = startPage({
   manifest: "Reading the object's description…",
@@ -27,7 +37,9 @@ const { config, stats, showStage, showError } = startPage({
   client_py: "Installing client_py…",
   patch: "Reading the NURBS patch…",
   tessellation: "Tessellating…",
-}, { resolution: null, meshes: 0, tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0, regions: 0 });
+  ply: "Making the PLY…",
+}, { resolution: null, meshes: 0, tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0, regions: 0,
+     ply_level: null, ply_bytes: 0 });
 
 function formatBytes(n) {
   if (n < 1024) return `${n} B`;
@@ -50,6 +62,69 @@ function setFact(id, text) {
 function viewResolution(viewer) {
   const pixels = viewer.projectedDiameter() / 3;
   return Math.min(MAX_RES, Math.max(MIN_RES, Math.round(pixels / 16) * 16));
+}
+
+/** The PLY levels a manifest offers: one {level, rms, names, bytes, resolution} per entry of
+ *  tiles.detail.levels, with the files and total bytes of its tiles and those of the coarser
+ *  levels (all applied at that level) and its grid R = min(1025, 2 spans_per_tile 2^L + 1);
+ *  [] for a bundle without detail tiles. */
+function plyLevels(manifest) {
+  const detail = manifest.tiles && manifest.tiles.detail;
+  if (!detail || !Array.isArray(detail.levels) || !detail.levels.length) return [];
+  const spans = detail.spans_per_tile;
+  if (!Number.isInteger(spans) || spans < 1) {
+    throw new Error(`manifest tiles.detail.spans_per_tile is not a positive integer: ${JSON.stringify(spans)}`);
+  }
+  const nodes = Array.isArray(detail.nodes) ? detail.nodes : [];
+  return detail.levels.map((entry) => {
+    if (!Number.isInteger(entry.level) || entry.level < 0) {
+      throw new Error(`manifest tiles.detail.levels entry ${JSON.stringify(entry)} has no valid level`);
+    }
+    const used = nodes.filter((node) => node.level <= entry.level);
+    return {
+      level: entry.level, rms: entry.rms, names: used.map((node) => node.file),
+      bytes: used.reduce((sum, node) => sum + (node.bytes || 0), 0),
+      resolution: Math.min(PLY_MAX_RES, 2 * spans * 2 ** entry.level + 1),
+    };
+  });
+}
+
+/** Run `task(item)` over `items`, at most `limit` at a time; rejects with the first failure
+ *  (no new task starts after it). */
+async function forEachLimited(items, limit, task) {
+  let next = 0;
+  let failed = false;
+  const run = async () => {
+    while (!failed && next < items.length) {
+      const item = items[next++];
+      try {
+        await task(item);
+      } catch (error) {
+        failed = true;
+        throw error;
+      }
+    }
+  };
+  await Promise.all(Array.from({ length: Math.min(limit, items.length) }, run));
+}
+
+/** Offer `bytes` as a download named `name`. */
+function saveFile(bytes, name) {
+  const url = URL.createObjectURL(new Blob([bytes], { type: "application/octet-stream" }));
+  const link = document.createElement("a");
+  link.href = url;
+  link.download = name;
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 10000);
+}
+
+/** Progress of a PLY export in the page's status panel (the loading panel, shown again). */
+function showPlyProgress(text) {
+  document.body.dataset.stage = "ply";
+  $("loading-text").textContent = text;
+  $("loading").hidden = false;
 }
 
 async function loadManifest() {
@@ -246,27 +321,109 @@ async function main() {
     $("legend").hidden = !on;
   });
   $("fit-view").addEventListener("click", () => viewer.fitView());
+
+  // The PLY's level of detail: "base" (the mesh on screen) or a detail level of the bundle.
+  const select = $("ply-level");
+  let levels = [];
+  try {
+    levels = plyLevels(manifest);
+  } catch (error) {
+    select.title = error.message; // stays hidden: the base PLY alone
+    console.warn(error.message);
+  }
+  const units = manifest.units || ready.patch.units || "unknown";
+  for (const choice of levels) {
+    const option = document.createElement("option");
+    option.value = String(choice.level);
+    option.textContent = `level ${choice.level} · ${formatBytes(choice.bytes)} · ` +
+      `RMS ${formatLength(choice.rms, units)} · ${choice.resolution}² grid`;
+    select.append(option);
+  }
+  if (levels.length) {
+    const spans = manifest.tiles.detail.spans_per_tile;
+    select.title = "Level of detail of the PLY. base: the mesh on screen (with the error map's " +
+      "colours when it is shown). level L: the base with every detail tile of levels 0..L " +
+      "(their total size is shown; tiles already loaded are not fetched again), the RMS " +
+      "distance to the scan at that level, tessellated over the whole object on an R × R " +
+      `grid, R = min(${PLY_MAX_RES}, 2 × ${spans} spans per tile × 2^L + 1): two vertices ` +
+      "per knot span of the level's tiles.";
+    select.hidden = false;
+    select.disabled = false;
+  }
+
+  /** The PLY at detail level choice.level: fetch the tiles the worker lacks, then tessellate. */
+  async function levelPly(choice) {
+    const t0 = performance.now();
+    const fresh = new Map(); // name -> bytes fetched for this PLY
+    let fetched = 0;
+    const total = choice.names.length;
+    const lacking = () => choice.names.filter((name) => !fresh.has(name) && !worker.holds(name));
+    const progress = () => showPlyProgress(`Fetching the detail tiles of levels 0–${choice.level}: ` +
+      `${total - lacking().length} of ${total} (${formatBytes(fetched)} fetched)…`);
+    const baseUrl = new URL(config.manifest_url, window.location.href);
+    progress();
+    // the tile layer may drop a tile meanwhile (the camera moved): fetch until none lacks
+    for (let missing = lacking(); missing.length; missing = lacking()) {
+      await forEachLimited(missing, FETCH_PARALLEL, async (name) => {
+        const url = new URL(name, baseUrl).href;
+        let response;
+        try {
+          response = await fetch(url);
+        } catch (error) {
+          throw new Error(`cannot fetch ${name} (${url}): ${error.message}`);
+        }
+        if (!response.ok) throw new Error(`cannot fetch ${name} (${url}): HTTP ${response.status}`);
+        const bytes = new Uint8Array(await response.arrayBuffer());
+        fresh.set(name, bytes);
+        fetched += bytes.length;
+        stats.bytes_downloaded += bytes.length;
+        progress();
+      });
+    }
+    stats.ply_tiles_fetched = fresh.size;
+    stats.ply_fetch_bytes = fetched;
+    showPlyProgress(`Tessellating level ${choice.level} on a ${choice.resolution} × ` +
+                    `${choice.resolution} grid with ${total} detail tiles…`);
+    // posted at once after the check above: the worker holds what it lacked not
+    const ply = await worker.plyLevel(choice.level, choice.resolution, choice.names, fresh);
+    stats.ply_total_ms = performance.now() - t0;
+    return ply;
+  }
+
   $("download-ply").disabled = false;
   $("download-ply").addEventListener("click", async () => {
     const button = $("download-ply");
+    const level = Number(select.value);
     button.disabled = true;
+    select.disabled = true;
+    document.body.dataset.plyBusy = "1";
     try {
-      const overlay = $("toggle-error").getAttribute("aria-pressed") === "true";
-      let colors = null;
-      if (overlay && errorMap) colors = errorMap.vertexColors(currentUvs, domain);
-      const ply = await worker.ply(current, colors);
-      const url = URL.createObjectURL(new Blob([ply.bytes], { type: "application/octet-stream" }));
-      const link = document.createElement("a");
-      link.href = url;
-      link.download = config.ply_name;
-      document.body.append(link);
-      link.click();
-      link.remove();
-      setTimeout(() => URL.revokeObjectURL(url), 10000);
+      let ply;
+      let name = config.ply_name;
+      if (level < 0) {
+        const t0 = performance.now();
+        const overlay = $("toggle-error").getAttribute("aria-pressed") === "true";
+        let colors = null;
+        if (overlay && errorMap) colors = errorMap.vertexColors(currentUvs, domain);
+        ply = await worker.ply(current, colors);
+        stats.ply_total_ms = performance.now() - t0;
+        stats.ply_tiles_fetched = 0;
+        stats.ply_fetch_bytes = 0;
+      } else {
+        const choice = levels.find((c) => c.level === level);
+        ply = await levelPly(choice);
+        name = `${config.ply_name.replace(/\.ply$/i, "")}_level${level}.ply`;
+      }
+      Object.assign(stats, { ply_level: level, ply_bytes: ply.bytes.length, ply_vertices: ply.vertices,
+                             ply_resolution: ply.resolution, ply_ms: ply.write_ms });
+      saveFile(ply.bytes, name);
     } catch (error) {
-      showError(`Download PLY failed: ${error.message}`);
+      showError(`Download PLY${level >= 0 ? ` (level ${level})` : ""} failed: ${error.message}`);
     } finally {
+      if (document.body.dataset.stage === "ply") $("loading").hidden = true;
+      delete document.body.dataset.plyBusy;
       button.disabled = false;
+      select.disabled = !levels.length;
     }
   });
 
