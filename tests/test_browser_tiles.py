@@ -303,8 +303,15 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
         assert len(labels) == 1 + LEVELS and labels[0].startswith("base")
         for k, (label, entry) in enumerate(zip(labels[1:], detail["levels"], strict=True)):
             assert label.startswith(f"level {k} ") and f"{entry['rms']:.3f}" in label, label
-        assert f"{resolution}² grid" in labels[-1]
+        title = choice.locator("option").last.get_attribute("title")
+        assert f"{resolution} × {resolution} grid" in title, title
 
+        page.evaluate("""() => {  // every text the status line shows, in order
+            window.plyStatus = [];
+            new MutationObserver(() => window.plyStatus.push(
+                document.getElementById("ply-status").textContent))
+              .observe(document.getElementById("ply-status"), {childList: true});
+        }""")
         choice.select_option(str(level))
         with page.expect_download(timeout=60_000) as info:
             page.click("#download-ply")
@@ -314,6 +321,10 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
         download.save_as(path)
         page.wait_for_function("!document.body.dataset.plyBusy")
         stats = page.evaluate("window.tessera.stats")
+        shown = page.evaluate("window.plyStatus")
+        assert any(t.startswith(f"Fetching the detail tiles of levels 0–{level}: ") for t in shown)
+        assert any(t.startswith(f"Tessellating level {level} on a {resolution} × ") for t in shown)
+        assert shown[-1].startswith(f"relief-detail_level{level}.ply: ")
 
         # every detail tile of levels 0..L came, each once: the export fetched only the rest
         wanted = {key for key in nodes if key[0] <= level}
@@ -353,6 +364,7 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
         assert len(vertices) == before["vertices"] == 64 * 64
         assert page.evaluate("window.tessera.stats.ply_level") == -1
         assert page.is_enabled("#download-ply") and choice.is_enabled()
+        assert page.locator("#ply-status").inner_text().startswith("relief-detail.ply: ")
         assert problems == []
         print(f"\nlevel {level} PLY, {resolution}x{resolution}: {stats['ply_tiles_fetched']} tiles "
               f"fetched ({stats['ply_fetch_bytes']} B), {stats['ply_ms']:.0f} ms in Python, "

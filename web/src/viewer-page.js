@@ -18,7 +18,8 @@
 // vertices per knot span of the level's tiles), as `tessera tessellate OUTDIR --level L`.
 // Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
 // ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
-// ply_fetch_bytes; document.body.dataset.plyBusy is "1" while a PLY is being made.
+// ply_fetch_bytes; document.body.dataset.plyBusy is "1" while a PLY is being made, and
+// #ply-status (under the buttons) says what is being done, then the file written.
 // All URLs come from the server's JSON config block.
 
 import { ErrorMap } from "./error-map.js";
@@ -120,11 +121,12 @@ function saveFile(bytes, name) {
   setTimeout(() => URL.revokeObjectURL(url), 10000);
 }
 
-/** Progress of a PLY export in the page's status panel (the loading panel, shown again). */
-function showPlyProgress(text) {
-  document.body.dataset.stage = "ply";
-  $("loading-text").textContent = text;
-  $("loading").hidden = false;
+/** Progress and outcome of a PLY export, in the panel's status line under its buttons (the
+ *  loading panel's grey text would sit on the object). */
+function showPlyStatus(text) {
+  const line = $("ply-status");
+  line.textContent = text;
+  line.hidden = !text;
 }
 
 async function loadManifest() {
@@ -336,7 +338,10 @@ async function main() {
     const option = document.createElement("option");
     option.value = String(choice.level);
     option.textContent = `level ${choice.level} · ${formatBytes(choice.bytes)} · ` +
-      `RMS ${formatLength(choice.rms, units)} · ${choice.resolution}² grid`;
+      `RMS ${formatLength(choice.rms, units)}`;
+    option.title = `base + ${choice.names.length} detail tiles of levels 0–${choice.level} ` +
+      `(${formatBytes(choice.bytes)}), tessellated on a ${choice.resolution} × ` +
+      `${choice.resolution} grid`;
     select.append(option);
   }
   if (levels.length) {
@@ -358,7 +363,7 @@ async function main() {
     let fetched = 0;
     const total = choice.names.length;
     const lacking = () => choice.names.filter((name) => !fresh.has(name) && !worker.holds(name));
-    const progress = () => showPlyProgress(`Fetching the detail tiles of levels 0–${choice.level}: ` +
+    const progress = () => showPlyStatus(`Fetching the detail tiles of levels 0–${choice.level}: ` +
       `${total - lacking().length} of ${total} (${formatBytes(fetched)} fetched)…`);
     const baseUrl = new URL(config.manifest_url, window.location.href);
     progress();
@@ -382,9 +387,9 @@ async function main() {
     }
     stats.ply_tiles_fetched = fresh.size;
     stats.ply_fetch_bytes = fetched;
-    showPlyProgress(`Tessellating level ${choice.level} on a ${choice.resolution} × ` +
-                    `${choice.resolution} grid with ${total} detail tiles…`);
-    // posted at once after the check above: the worker holds what it lacked not
+    showPlyStatus(`Tessellating level ${choice.level} on a ${choice.resolution} × ` +
+                  `${choice.resolution} grid with ${total} detail tiles…`);
+    // posted with no await since the last check: the worker will hold every name not in `fresh`
     const ply = await worker.plyLevel(choice.level, choice.resolution, choice.names, fresh);
     stats.ply_total_ms = performance.now() - t0;
     return ply;
@@ -397,6 +402,8 @@ async function main() {
     button.disabled = true;
     select.disabled = true;
     document.body.dataset.plyBusy = "1";
+    document.body.dataset.stage = "ply";
+    showPlyStatus(level < 0 ? "Writing the PLY…" : "");
     try {
       let ply;
       let name = config.ply_name;
@@ -417,10 +424,13 @@ async function main() {
       Object.assign(stats, { ply_level: level, ply_bytes: ply.bytes.length, ply_vertices: ply.vertices,
                              ply_resolution: ply.resolution, ply_ms: ply.write_ms });
       saveFile(ply.bytes, name);
+      showPlyStatus(`${name}: ${formatBytes(ply.bytes.length)}, ` +
+        `${ply.vertices.toLocaleString("en")} vertices (${ply.resolution}² grid), ` +
+        `${(stats.ply_total_ms / 1000).toFixed(1)} s`);
     } catch (error) {
+      showPlyStatus("");
       showError(`Download PLY${level >= 0 ? ` (level ${level})` : ""} failed: ${error.message}`);
     } finally {
-      if (document.body.dataset.stage === "ply") $("loading").hidden = true;
       delete document.body.dataset.plyBusy;
       button.disabled = false;
       select.disabled = !levels.length;
