@@ -47,8 +47,17 @@ def _blend(bands, starts, rows, axis: int) -> np.ndarray:
     return out
 
 
+ROWS_PER_BLOCK = 32  # grid rows evaluated together: a block's temporaries stay in cache
+
+
 def evaluate_grid(surface, us: Sequence[float], vs: Sequence[float], typecode: str = "f"):
-    """Same contract as :func:`client_py._kernel_python.evaluate_grid`."""
+    """Same contract as :func:`client_py._kernel_python.evaluate_grid`.
+
+    The blend along ``v`` is done once for all control rows; the blend along
+    ``u`` and the normals run over blocks of :data:`ROWS_PER_BLOCK` grid rows,
+    so that the dozen ``(C, rows, J)`` temporaries of a block stay in cache
+    (at 1025^2 whole-grid temporaries would be 34 MB each).
+    """
     (p, q), (n_u, n_v) = surface.degree, surface.shape
     U, V = surface.knots
     su, Nu, dNu = _basis_bands(p, U, n_u, us)
@@ -60,28 +69,38 @@ def evaluate_grid(surface, us: Sequence[float], vs: Sequence[float], typecode: s
         P = np.concatenate([P * w, w])
     T = _blend(Nv, sv, P, 2)  # blend along v: (C, n_u, J)
     Tv = _blend(dNv, sv, P, 2)
-    S = _blend(Nu, su, T, 1)  # then along u: (C, I, J)
-    Su = _blend(dNu, su, T, 1)
-    Sv = _blend(Nu, su, Tv, 1)
-    tol = normal_tolerance(surface)
-    if len(P) == 4:
-        pos = S[:3] / S[3]
-        # tangents without the common positive factor 1/w (removed by normalisation)
-        Su = Su[:3] - Su[3] * pos
-        Sv = Sv[:3] - Sv[3] * pos
-        tol = tol * S[3] * S[3]
-    else:
-        pos = S
-    (ax, ay, az), (bx, by, bz) = Su, Sv
-    n = np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
-    length = np.sqrt(np.einsum("cij,cij->ij", n, n))
-    ok = length > tol
-    n /= np.where(ok, length, np.inf)
-    degenerate = np.flatnonzero(~ok).tolist()
+    tol0 = normal_tolerance(surface)
     dtype = np.float32 if typecode == "f" else np.float64
-    positions = array(typecode, np.moveaxis(pos, 0, -1).astype(dtype).tobytes())
-    normals = array(typecode, np.moveaxis(n, 0, -1).astype(dtype).tobytes())
-    return positions, normals, degenerate
+    n_i, n_j = len(us), len(vs)
+    positions = np.empty((n_i, n_j, 3), dtype=dtype)
+    normals = np.empty((n_i, n_j, 3), dtype=dtype)
+    degenerate = []
+    for i0 in range(0, n_i, ROWS_PER_BLOCK):
+        rows = slice(i0, i0 + ROWS_PER_BLOCK)
+        starts, bands, dbands = su[rows], Nu[:, rows], dNu[:, rows]
+        S = _blend(bands, starts, T, 1)  # then along u: (C, rows, J)
+        Su = _blend(dbands, starts, T, 1)
+        Sv = _blend(bands, starts, Tv, 1)
+        tol = tol0
+        if len(P) == 4:
+            pos = S[:3] / S[3]
+            # tangents without the common positive factor 1/w (removed by normalisation)
+            Su = Su[:3] - Su[3] * pos
+            Sv = Sv[:3] - Sv[3] * pos
+            tol = tol * S[3] * S[3]
+        else:
+            pos = S
+        (ax, ay, az), (bx, by, bz) = Su, Sv
+        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        length = np.sqrt(nx * nx + ny * ny + nz * nz)
+        ok = length > tol
+        length = np.where(ok, length, np.inf)
+        for c, (value, normal) in enumerate(zip(pos, (nx, ny, nz), strict=True)):
+            positions[rows, :, c] = value
+            normals[rows, :, c] = normal / length
+        degenerate += (np.flatnonzero(~ok) + i0 * n_j).tolist()
+    return (array(typecode, positions.tobytes()), array(typecode, normals.tobytes()),
+            degenerate)
 
 
 def field_grid(degree: int, knots_u, knots_v, n_u: int, n_v: int, coefficients,
@@ -96,19 +115,83 @@ def field_grid(degree: int, knots_u, knots_v, n_u: int, n_v: int, coefficients,
 
 def displace_grid(positions, normals, displacement, n_rows: int, n_cols: int,
                   window: tuple[int, int, int, int]) -> tuple[array, array]:
-    """Same contract as :func:`client_py._kernel_python.displace_grid`."""
+    """Same contract as :func:`client_py._kernel_python.displace_grid`.
+
+    The clamped neighbours ``X_{min(i + 1, R - 1), j}`` etc. are slices of ``X``
+    padded by one repeated vertex on every side (no gathers), taken over blocks
+    of :data:`ROWS_PER_BLOCK` rows; the arithmetic is the pure-Python kernel's,
+    term for term, so the results are the same.
+    """
     S = np.frombuffer(positions, dtype=float).reshape(n_rows, n_cols, 3)
     n = np.frombuffer(normals, dtype=float).reshape(n_rows, n_cols, 3)
-    X = S + np.frombuffer(displacement, dtype=float).reshape(n_rows, n_cols, 1) * n
+    D = np.frombuffer(displacement, dtype=float).reshape(n_rows, n_cols)
     r0, r1, c0, c1 = window
-    rows, cols = np.arange(r0, r1), np.arange(c0, c1)
-    up, down = np.minimum(rows + 1, n_rows - 1), np.maximum(rows - 1, 0)
-    right, left = np.minimum(cols + 1, n_cols - 1), np.maximum(cols - 1, 0)
-    a = X[up][:, cols] - X[down][:, cols]
-    b = X[rows][:, right] - X[rows][:, left]
-    (ax, ay, az), (bx, by, bz) = np.moveaxis(a, -1, 0), np.moveaxis(b, -1, 0)
-    m = np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
-    length = np.sqrt(np.einsum("ijc,ijc->ij", m, m))[..., None]
-    m = np.where(length > 0.0, m / np.where(length > 0.0, length, 1.0), n[r0:r1, c0:c1])
-    return (array("f", X[r0:r1, c0:c1].astype(np.float32).tobytes()),
-            array("f", m.astype(np.float32).tobytes()))
+    # component planes (3, rows, cols), padded: P[:, i + 1, j + 1] = X[i, j], edges repeated
+    P = np.pad(np.moveaxis(S, -1, 0) + D * np.moveaxis(n, -1, 0), ((0, 0), (1, 1), (1, 1)),
+               mode="edge")
+    out_pos = np.empty((r1 - r0, c1 - c0, 3), dtype=np.float32)
+    out_nrm = np.empty((r1 - r0, c1 - c0, 3), dtype=np.float32)
+    for i0 in range(r0, r1, ROWS_PER_BLOCK):
+        i1 = min(i0 + ROWS_PER_BLOCK, r1)
+        ax, ay, az = P[:, i0 + 2 : i1 + 2, c0 + 1 : c1 + 1] - P[:, i0 : i1, c0 + 1 : c1 + 1]
+        bx, by, bz = P[:, i0 + 1 : i1 + 1, c0 + 2 : c1 + 2] - P[:, i0 + 1 : i1 + 1, c0 : c1]
+        mx, my, mz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        length = np.sqrt(mx * mx + my * my + mz * mz)
+        ok = length > 0.0
+        length = np.where(ok, length, 1.0)
+        base = n[i0:i1, c0:c1]
+        block = slice(i0 - r0, i1 - r0)
+        for c, m in enumerate((mx, my, mz)):
+            out_pos[block, :, c] = P[c, i0 + 1 : i1 + 1, c0 + 1 : c1 + 1]
+            out_nrm[block, :, c] = np.where(ok, m / length, base[..., c])
+    return array("f", out_pos.tobytes()), array("f", out_nrm.tobytes())
+
+
+def add_level(total: array, n_cols: int, blocks) -> None:
+    """Same contract as :func:`client_py._kernel_python.add_level` (in place on ``total``)."""
+    T = np.frombuffer(total, dtype=float).reshape(-1, n_cols)  # a writable view
+    done = np.zeros(T.shape, dtype=bool)
+    for r0, r1, c0, c1, values in blocks:
+        block, seen = T[r0:r1, c0:c1], done[r0:r1, c0:c1]
+        V = np.frombuffer(values, dtype=float).reshape(block.shape)
+        np.add(block, V, out=block, where=~seen)
+        seen[...] = True
+
+
+def cell_indices(nu: int, nv: int, covers=None) -> array:
+    """Same contract as :func:`client_py._kernel_python.cell_indices`: the drawn-cell flags
+    as one boolean ``(nu - 1, nv - 1)`` array (each cover ORs its gathered mask
+    ``cells[rows][:, cols]`` into its block), the drawn cells' triangles from their
+    row-major indices."""
+    if covers is None:
+        i, j = np.divmod(np.arange((nu - 1) * (nv - 1), dtype=np.uint32), np.uint32(nv - 1))
+    else:
+        drawn = np.zeros((nu - 1, nv - 1), dtype=bool)
+        for i0, j0, rows, cols, cells, width in covers:
+            mask = np.frombuffer(cells, dtype=np.uint8).reshape(-1, width) != 0
+            rows, cols = np.asarray(rows, dtype=np.intp), np.asarray(cols, dtype=np.intp)
+            drawn[i0 : i0 + len(rows), j0 : j0 + len(cols)] |= mask[np.ix_(rows, cols)]
+        i, j = np.nonzero(drawn)
+    k = (i * nv + j).astype(np.uint32)
+    corners = np.array([0, nv, 1, 1, nv, nv + 1], dtype=np.uint32)
+    return array("I", (k[:, None] + corners).tobytes())
+
+
+def map_vectors(values: array, matrix, offset=None, normalise: bool = False) -> array:
+    """Same contract as :func:`client_py._kernel_python.map_vectors`, the same operations
+    in the same order on whole columns (so the same float32 results)."""
+    if normalise and offset is not None:
+        raise ValueError("map_vectors normalises directions, which take no offset")
+    x, y, z = np.frombuffer(values, dtype=values.typecode).reshape(-1, 3).T.astype(float)
+    out = np.empty((len(x), 3), dtype=np.float32)
+    cols = [a * x + b * y + c * z for a, b, c in matrix]
+    if offset is not None:
+        cols = [col + t for col, t in zip(cols, offset, strict=True)]
+    if normalise:
+        mx, my, mz = cols
+        length = np.sqrt(mx * mx + my * my + mz * mz)
+        length[length == 0.0] = 1.0
+        cols = [col / length for col in cols]
+    for r, col in enumerate(cols):
+        out[:, r] = col
+    return array("f", out.tobytes())

@@ -24,12 +24,14 @@ earlier term-by-term list passes: see ``docs/benchmarks.md``.
 from __future__ import annotations
 
 import math
+import re
 import struct
 from array import array
 from collections.abc import Callable, Sequence
-from functools import cache
+from functools import cache, lru_cache
+from operator import add
 
-from .basis import basis_table
+from .basis import basis_functions, basis_table, find_span
 from .surface import normal_tolerance
 
 
@@ -214,6 +216,20 @@ def evaluate_grid(surface, us: Sequence[float], vs: Sequence[float], typecode: s
 
 
 # ------------------------------------------------------------------ detail layers
+@lru_cache(maxsize=256)
+def _value_table(degree: int, knots: tuple[float, ...], n_ctrl: int,
+                 params: tuple[float, ...]) -> tuple[list[int], list[list[float]]]:
+    """Spans and basis values (A2.1, A2.2; no derivatives) at ``params``.
+
+    Cached: the tiles of one tile row share their ``u`` knots and parameters,
+    those of one tile column their ``v`` ones, so a region's tiles of a level
+    need one table per row and per column of tiles, not two per tile.
+    """
+    spans = [find_span(degree, knots, n_ctrl, t) for t in params]
+    return spans, [basis_functions(degree, knots, s, t) for s, t in zip(spans, params,
+                                                                          strict=True)]
+
+
 def field_grid(degree: int, knots_u: Sequence[float], knots_v: Sequence[float], n_u: int,
                n_v: int, coefficients: Sequence[float], us: Sequence[float],
                vs: Sequence[float]) -> array:
@@ -226,8 +242,8 @@ def field_grid(degree: int, knots_u: Sequence[float], knots_v: Sequence[float], 
     separable scheme as :func:`evaluate_grid` (blend along ``v``, then ``u``).
     """
     p = degree
-    spans_u, Nu, _ = basis_table(p, knots_u, n_u, us)
-    spans_v, Nv, _ = basis_table(p, knots_v, n_v, vs)
+    spans_u, Nu = _value_table(p, tuple(knots_u), n_u, tuple(us))
+    spans_v, Nv = _value_table(p, tuple(knots_v), n_v, tuple(vs))
     gather = [[span - p + k for span in spans_v] for k in range(p + 1)]
     coeffs = [[row[k] for row in Nv] for k in range(p + 1)]
     blend = _blend(p + 1)
@@ -255,29 +271,181 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
     normalised, one-sided on the grid's outer rows/columns (which is why the
     caller evaluates one ring beyond its region where the domain allows); where
     that vanishes (a pole) the base normal is kept.
+
+    Per grid row, the rows above and below and the row shifted left and right
+    (clamped at its ends) are sliced once per component and zipped, so the
+    loop over the row's vertices does arithmetic only.
     """
-    count = n_rows * n_cols
-    xs = [positions[3 * k] + displacement[k] * normals[3 * k] for k in range(count)]
-    ys = [positions[3 * k + 1] + displacement[k] * normals[3 * k + 1] for k in range(count)]
-    zs = [positions[3 * k + 2] + displacement[k] * normals[3 * k + 2] for k in range(count)]
+    comps = [[p + d * n for p, d, n in zip(positions[c::3], displacement, normals[c::3],
+                                            strict=True)] for c in range(3)]
     r0, r1, c0, c1 = window
+    sqrt = math.sqrt
     pos: list[float] = []
     nrm: list[float] = []
     for i in range(r0, r1):
-        up, down = min(i + 1, n_rows - 1) * n_cols, max(i - 1, 0) * n_cols
-        row = i * n_cols
-        for j in range(c0, c1):
-            k = row + j
-            jp, jm = min(j + 1, n_cols - 1), max(j - 1, 0)
-            ax, ay, az = xs[up + j] - xs[down + j], ys[up + j] - ys[down + j], \
-                zs[up + j] - zs[down + j]
-            bx, by, bz = xs[row + jp] - xs[row + jm], ys[row + jp] - ys[row + jm], \
-                zs[row + jp] - zs[row + jm]
+        up, down, row = min(i + 1, n_rows - 1) * n_cols, max(i - 1, 0) * n_cols, i * n_cols
+        lists = []
+        for xs in comps:
+            line = xs[row : row + n_cols]
+            right, left = line[1:] + line[-1:], line[:1] + line[:-1]
+            lists += (line[c0:c1], xs[up + c0 : up + c1], xs[down + c0 : down + c1],
+                      right[c0:c1], left[c0:c1])
+        bad = []
+        for x, ux, dx, rx, lx, y, uy, dy, ry, ly, z, uz, dz, rz, lz in zip(*lists, strict=True):
+            ax, ay, az = ux - dx, uy - dy, uz - dz
+            bx, by, bz = rx - lx, ry - ly, rz - lz
             nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-            length = math.sqrt(nx * nx + ny * ny + nz * nz)
-            pos += (xs[k], ys[k], zs[k])
+            length = sqrt(nx * nx + ny * ny + nz * nz)
+            pos += (x, y, z)
             if length > 0.0:
                 nrm += (nx / length, ny / length, nz / length)
             else:
-                nrm += (normals[3 * k], normals[3 * k + 1], normals[3 * k + 2])
+                bad.append(len(nrm))
+                nrm += (0.0, 0.0, 0.0)
+        for at in bad:  # a pole: keep the base normal (vertex at // 3 of the window)
+            k = 3 * (row + c0 + (at // 3) % (c1 - c0))
+            nrm[at : at + 3] = normals[k : k + 3]
     return array("f", pos), array("f", nrm)
+
+
+_FREE = re.compile(b"\0+")  # a run of vertices no earlier block of the level took
+
+
+def add_level(total: array, n_cols: int, blocks: Sequence[tuple]) -> None:
+    """Add one detail level's tile fields to ``total`` in place, each vertex once.
+
+    ``total`` is ``array('d')``, row-major with ``n_cols`` columns; ``blocks``
+    are ``(r0, r1, c0, c1, values)``: ``values`` (``array('d')``, row-major,
+    ``(r1 - r0) (c1 - c0)`` of them) belong to the vertices of rows ``r0 <= i
+    < r1`` and columns ``c0 <= j < c1``. A vertex that several blocks cover (a
+    tile border) takes the value of the first block in ``blocks`` that covers it.
+
+    Whole runs of vertices that no earlier block touched are added as slices
+    (``map(add, ...)``, no per-vertex Python): the row itself, or, where an
+    earlier block took some of its vertices (a tile's border row or column),
+    the runs between them (a regular expression over the ``done`` bytes).
+    """
+    done = bytearray(len(total))
+    for r0, r1, c0, c1, values in blocks:
+        width = c1 - c0
+        ones = b"\1" * width
+        for a in range(r1 - r0):
+            start = (r0 + a) * n_cols + c0
+            end = start + width
+            row = values[a * width : (a + 1) * width]
+            if done.find(1, start, end) < 0:
+                total[start:end] = array("d", map(add, total[start:end], row))
+                done[start:end] = ones
+                continue
+            for free in _FREE.finditer(done, start, end):
+                s, e = free.span()
+                total[s:e] = array("d", map(add, total[s:e], row[s - start : e - start]))
+                done[s:e] = ones[: e - s]
+
+
+def _full_grid(nu: int, nv: int) -> array:
+    """The triangles of every cell of an ``nu x nv`` vertex grid: see :func:`cell_indices`.
+
+    Whole columns by strided copies (C speed, no per-index Python work):
+    ``left[r c1 + j]`` and ``right[...]`` are vertices ``(r, j)`` and
+    ``(r, j + 1)`` of every vertex row ``r``, ``c1 = nv - 1`` cells per row; then
+    cell ``k``'s corners are left/right of its row and of the next.
+    """
+    c1, cells = nv - 1, (nu - 1) * (nv - 1)
+    every = array("I", range(nu * nv))
+    left, right = array("I", bytes(4 * nu * c1)), array("I", bytes(4 * nu * c1))
+    for j in range(c1):
+        left[j::c1] = every[j::nv]
+        right[j::c1] = every[j + 1 :: nv]
+    indices = array("I", bytes(24 * cells))
+    indices[0::6] = left[:cells]  # k
+    indices[1::6] = indices[4::6] = left[c1:]  # k + nv
+    indices[2::6] = indices[3::6] = right[:cells]  # k + 1
+    indices[5::6] = right[c1:]  # k + nv + 1
+    return indices
+
+
+_RUNS = re.compile(b"[^\0]+")  # a run of drawn cells: non-zero flag bytes
+
+
+def cell_indices(nu: int, nv: int, covers: Sequence[tuple] | None = None) -> array:
+    """Triangles of the drawn cells of an ``nu x nv`` vertex grid (vertex ``k = i nv + j``).
+
+    Cell ``(i, j)`` gives ``(k, k + nv, k + 1, k + 1, k + nv, k + nv + 1)``;
+    cells in row-major order. With ``covers`` ``None`` every cell is drawn;
+    else cell ``(i, j)`` is drawn when any cover ``(i0, j0, rows, cols, cells,
+    width)`` has it inside its block (``i0 <= i < i0 + len(rows)``, ``j0 <= j <
+    j0 + len(cols)``) and ``cells[rows[i - i0] width + cols[j - j0]]`` is non-zero:
+    a mask (``bytes``, ``width`` columns) sampled at one mask row per cell row
+    and one mask column per cell column (the mask cell holding the cell's centre).
+
+    A cell row's drawn flags are one integer per (cover, mask row), a byte per
+    cell, ORed over the covers of the row (``int.from_bytes``: C speed); the
+    runs of drawn cells (a regular expression over the bytes) are copied from
+    the full grid's triangles as whole slices. Rows with the same covers and
+    mask rows share their runs.
+    """
+    full = _full_grid(nu, nv)
+    if covers is None:
+        return full
+    c1 = nv - 1
+    by_row: list[list[tuple[int, int]]] = [[] for _ in range(nu - 1)]
+    for c, (i0, _, rows, _, _, _) in enumerate(covers):
+        for i, r in enumerate(rows, i0):
+            by_row[i].append((c, r))
+    bits_of: dict[tuple[int, int], int] = {}
+    runs_of: dict[tuple, list[tuple[int, int]]] = {}
+    source = memoryview(full).cast("B")
+    indices = array("I")
+    for i, row_covers in enumerate(by_row):
+        key = tuple(row_covers)
+        runs = runs_of.get(key)
+        if runs is None:
+            bits = 0
+            for c, r in key:
+                b = bits_of.get((c, r))
+                if b is None:
+                    _, j0, _, cols, cells, width = covers[c]
+                    get = cells[r * width : (r + 1) * width].__getitem__
+                    b = int.from_bytes(bytes(map(get, cols)), "little") << (8 * j0)
+                    bits_of[c, r] = b
+                bits |= b
+            flags = bits.to_bytes(c1, "little")
+            runs = runs_of[key] = [m.span() for m in _RUNS.finditer(flags)]
+        base = 24 * i * c1
+        for j0, j1 in runs:
+            indices.frombytes(source[base + 24 * j0 : base + 24 * j1])
+    return indices
+
+
+def map_vectors(values: array, matrix: Sequence[Sequence[float]],
+                offset: Sequence[float] | None = None, normalise: bool = False) -> array:
+    """``M x + t`` for each 3-vector ``x`` of ``values`` (flat ``x, y, z, ...``): ``array('f')``.
+
+    Each component is ``m_r0 x + m_r1 y + m_r2 z (+ t_r)``, summed in that
+    order in float64; with ``normalise`` the result is divided by its length
+    (left as is where that is zero). ``offset`` ``None`` adds nothing (not even
+    ``0.0``, which would turn ``-0.0`` into ``0.0``).
+    """
+    if normalise and offset is not None:
+        raise ValueError("map_vectors normalises directions, which take no offset")
+    if len(values) % 3:
+        raise ValueError(f"values hold 3-vectors: {len(values)} is not a multiple of 3")
+    (a, b, c), (d, e, f), (g, h, k) = matrix
+    sqrt = math.sqrt
+    it = iter(values)
+    out: list[float] = []
+    if normalise:
+        for x, y, z in zip(it, it, it, strict=False):
+            mx, my, mz = a * x + b * y + c * z, d * x + e * y + f * z, g * x + h * y + k * z
+            length = sqrt(mx * mx + my * my + mz * mz) or 1.0
+            out += (mx / length, my / length, mz / length)
+    elif offset is not None:
+        tx, ty, tz = offset
+        for x, y, z in zip(it, it, it, strict=False):
+            out += (a * x + b * y + c * z + tx, d * x + e * y + f * z + ty,
+                    g * x + h * y + k * z + tz)
+    else:
+        for x, y, z in zip(it, it, it, strict=False):
+            out += (a * x + b * y + c * z, d * x + e * y + f * z, g * x + h * y + k * z)
+    return array("f", out)

@@ -26,13 +26,14 @@ from __future__ import annotations
 import math
 import struct
 from array import array
+from bisect import bisect_left, bisect_right
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 from . import _kernel
 from .basis import basis_functions, find_span
 from .surface import NurbsSurface
-from .tessellate import Mesh, _check_count, _samples, grid_indices
+from .tessellate import Mesh, _check_count, _samples, grid_indices, mask_indices
 from .trim import TrimMask
 
 MAX_LEVEL = 15
@@ -264,22 +265,18 @@ def _check_rect(uv_rect: object) -> UVRect:
     return u0, v0, u1, v1
 
 
-def _index_range(samples: Sequence[float], lo: float, hi: float) -> range:
-    """Indices of the sorted ``samples`` inside the closed interval ``[lo, hi]``."""
-    first = next((k for k, t in enumerate(samples) if t >= lo), len(samples))
-    last = next((k for k in range(len(samples) - 1, -1, -1) if samples[k] <= hi), -1)
-    return range(first, last + 1)
-
-
 def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequence[float],
                       kernel: str | None = None) -> array:
     """``sum_k D_k(u_i, v_j)`` of the given tiles on a grid: ``array('d')``, row-major in ``i``.
 
-    Each tile adds its field at the grid vertices inside its closed rectangle;
+    Each tile adds its field at the grid vertices inside its closed rectangle
+    (found by bisection: ``us`` and ``vs`` are sorted normalised parameters);
     a vertex on the border of several tiles of one level takes that level's
-    field once (they agree there). ``us`` and ``vs`` are sorted normalised
-    parameters.
+    field once, from the first of them in ``(i, j)`` order (they agree there).
+    The kernel adds each level's tile fields as whole blocks
+    (``add_level``); the levels are summed in increasing order.
     """
+    us, vs = [float(u) for u in us], [float(v) for v in vs]
     n_j = len(vs)
     total = array("d", bytes(8 * len(us) * n_j))
     by_level: dict[int, list[DetailTile]] = {}
@@ -287,45 +284,70 @@ def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequ
         if not isinstance(tile, DetailTile):
             raise ValueError(f"tiles must be DetailTile objects, got {type(tile).__name__}")
         by_level.setdefault(tile.level, []).append(tile)
+    backend = _kernel.backend(kernel)
     for level in sorted(by_level):
-        done = bytearray(len(total))
+        blocks = []
         seen: set[tuple[int, int]] = set()
         for tile in sorted(by_level[level], key=lambda t: (t.i, t.j)):
             if (tile.i, tile.j) in seen:
                 raise ValueError(f"tile {level}/{tile.i}_{tile.j} is given twice")
             seen.add((tile.i, tile.j))
             u0, v0, u1, v1 = tile.uv_rect
-            rows, cols = _index_range(us, u0, u1), _index_range(vs, v0, v1)
-            if not rows or not cols:
-                continue
-            values = tile.evaluate_grid([us[r] for r in rows], [vs[c] for c in cols], kernel)
-            width = len(cols)
-            for a, r in enumerate(rows):
-                base = r * n_j
-                for b, c in enumerate(cols):
-                    k = base + c
-                    if not done[k]:
-                        done[k] = 1
-                        total[k] += values[a * width + b]
+            r0, r1 = bisect_left(us, u0), bisect_right(us, u1)
+            c0, c1 = bisect_left(vs, v0), bisect_right(vs, v1)
+            if r0 < r1 and c0 < c1:
+                values = tile.evaluate_grid(us[r0:r1], vs[c0:c1], kernel)
+                blocks.append((r0, r1, c0, c1, values))
+        backend.add_level(total, n_j, blocks)
     return total
 
 
-def _redrawn_cells(tiles: Sequence[DetailTile]):
-    """``covers(u, v)``: whether a tile's ``drawn`` mask covers ``(u, v)``; tiles are looked
-    up by their node, so the cost per call is one dictionary probe per level."""
+def _tile_blocks(centres: Sequence[float], count: int) -> dict[int, tuple[int, int]]:
+    """``{t: (first, end)}``: the run of sorted ``centres`` that node ``t`` of a level with
+    ``count`` nodes per side holds, as the node lookup picks it (``min(int(x count),
+    count - 1)``) and the closed rectangle contains it (both monotone: one run per node)."""
+    blocks: dict[int, tuple[int, int]] = {}
+    last = count - 1
+    for k, x in enumerate(centres):
+        t = min(int(x * count), last)
+        if t / count <= x <= (t + 1) / count:
+            first = blocks.get(t, (k, k))[0]
+            blocks[t] = (first, k + 1)
+    return blocks
+
+
+def drawn_covers(trim: TrimMask, tiles: Sequence[DetailTile], us: Sequence[float],
+                 vs: Sequence[float]) -> list[tuple]:
+    """Which cells of the grid ``us x vs`` a tessellation draws, as kernel *covers*.
+
+    Cell ``(i, j)`` has its centre at ``u = (u_i + u_{i+1}) / 2``, ``v`` likewise
+    (normalised domain); it is drawn where ``trim`` covers the centre, or where
+    the ``drawn`` mask of a given tile holding it (looked up by its node
+    ``min(int(u 2^L), 2^L - 1)`` per level ``L``, inside its closed rectangle)
+    covers it, at ``((u - u0) / (u1 - u0), (v - v0) / (v1 - v0))``. The
+    covers (see :func:`client_py._kernel_python.cell_indices`) are the base
+    trim over all cells and one per tile with a mask over the cells it holds:
+    mask rows and columns per cell row and column, no per-cell work.
+    """
+    cu = [0.5 * (a + b) for a, b in zip(us, us[1:], strict=False)]
+    cv = [0.5 * (a + b) for a, b in zip(vs, vs[1:], strict=False)]
+    covers = [(0, 0, mask_indices(cu, trim.rows), mask_indices(cv, trim.cols), trim.flat,
+               trim.cols)]
     by_level: dict[int, dict[tuple[int, int], DetailTile]] = {}
     for tile in tiles:
         if tile.drawn is not None:
             by_level.setdefault(tile.level, {})[tile.i, tile.j] = tile
-    levels = [(1 << level, nodes) for level, nodes in by_level.items()]
-
-    def covers(u: float, v: float) -> bool:
-        for count, nodes in levels:
-            tile = nodes.get((min(int(u * count), count - 1), min(int(v * count), count - 1)))
-            if tile is not None and tile.draws(u, v):
-                return True
-        return False
-
+    for level, nodes in sorted(by_level.items()):
+        row_blocks, col_blocks = _tile_blocks(cu, 1 << level), _tile_blocks(cv, 1 << level)
+        for (ti, tj), tile in sorted(nodes.items()):
+            if ti not in row_blocks or tj not in col_blocks:
+                continue
+            (i0, i1), (j0, j1) = row_blocks[ti], col_blocks[tj]
+            u0, v0, u1, v1 = tile.uv_rect
+            mask = tile.drawn
+            rows = mask_indices([(u - u0) / (u1 - u0) for u in cu[i0:i1]], mask.rows)
+            cols = mask_indices([(v - v0) / (v1 - v0) for v in cv[j0:j1]], mask.cols)
+            covers.append((i0, j0, rows, cols, mask.flat, mask.cols))
     return covers
 
 
@@ -393,17 +415,10 @@ def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, 
     for i, u in enumerate(us):
         uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
     uvs[1::2] = array("f", vs) * nu
-    trim = surface.trim
-    if trim is None:
-        indices = grid_indices(nu, nv)
+    if surface.trim is None:
+        indices = grid_indices(nu, nv, kernel=kernel)
     else:
-        redrawn = _redrawn_cells(tiles)
-
-        def drawn(i: int, j: int) -> bool:
-            u, v = 0.5 * (us[i] + us[i + 1]), 0.5 * (vs[j] + vs[j + 1])
-            return trim.covers(u, v) or redrawn(u, v)
-
-        indices = grid_indices(nu, nv, drawn)
+        indices = backend.cell_indices(nu, nv, drawn_covers(surface.trim, tiles, us, vs))
     mesh = Mesh(positions, normals, uvs, indices)
     textures = list(textures)
     if textures:
@@ -432,12 +447,15 @@ def vertex_colours(uvs: Sequence[float], textures: Iterable[TextureImage]) -> ar
     return out
 
 
-def transform_mesh(mesh: Mesh, matrix: Sequence[Sequence[float]]) -> Mesh:
+def transform_mesh(mesh: Mesh, matrix: Sequence[Sequence[float]],
+                   kernel: str | None = None) -> Mesh:
     """``mesh`` under the affine map ``x -> A x + b`` (``matrix``: 3x4 or 4x4 rows).
 
-    Normals map by the inverse transpose of ``A`` and are renormalised; with
+    Normals map by the inverse transpose of ``A`` (as the cofactor matrix
+    ``det(A) A^-T``, times the sign of ``det A``) and are renormalised; with
     ``det A < 0`` the triangles' winding is reversed so they stay
-    counter-clockwise about their normals.
+    counter-clockwise about their normals. The per-vertex work is the kernel's
+    ``map_vectors`` (whole columns with numpy).
     """
     m = [[float(x) for x in row] for row in matrix]
     if len(m) not in (3, 4) or any(len(r) != 4 for r in m[:3]):
@@ -451,21 +469,10 @@ def transform_mesh(mesh: Mesh, matrix: Sequence[Sequence[float]]) -> Mesh:
     if det == 0.0:
         raise ValueError("matrix is singular: it flattens the mesh")
     sign = 1.0 if det > 0 else -1.0
-    p, n = mesh.positions, mesh.normals
-    pos, nrm = array("f"), array("f")
-    moved, turned = [], []
-    for q in range(0, len(p), 3):
-        x, y, z = p[q], p[q + 1], p[q + 2]
-        moved += (a * x + b * y + c * z + tx, d * x + e * y + f * z + ty,
-                  g * x + h * y + k * z + tz)
-        nx, ny, nz = n[q], n[q + 1], n[q + 2]
-        mx = sign * (co[0][0] * nx + co[0][1] * ny + co[0][2] * nz)
-        my = sign * (co[1][0] * nx + co[1][1] * ny + co[1][2] * nz)
-        mz = sign * (co[2][0] * nx + co[2][1] * ny + co[2][2] * nz)
-        length = math.sqrt(mx * mx + my * my + mz * mz) or 1.0
-        turned += (mx / length, my / length, mz / length)
-    pos.fromlist(moved)
-    nrm.fromlist(turned)
+    backend = _kernel.backend(kernel)
+    pos = backend.map_vectors(mesh.positions, ((a, b, c), (d, e, f), (g, h, k)), (tx, ty, tz))
+    nrm = backend.map_vectors(mesh.normals, [[sign * x for x in row] for row in co],
+                              normalise=True)
     indices = mesh.indices
     if det < 0:
         indices = array("I", indices)

@@ -7,6 +7,7 @@ them to JavaScript as ``Float32Array``/``Uint32Array`` without a copy.
 from __future__ import annotations
 
 from array import array
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from . import _kernel
@@ -60,30 +61,18 @@ def _check_count(name: str, count: object) -> int:
     return count
 
 
-def grid_indices(nu: int, nv: int, keep_cell=None) -> array:
+def grid_indices(nu: int, nv: int, keep_cell=None, kernel: str | None = None) -> array:
     """Triangles of an ``nu x nv`` vertex grid (vertex ``k = i * nv + j``).
 
     Cell ``(i, j)`` gives ``(k, k + nv, k + 1)`` and ``(k + 1, k + nv, k + nv + 1)``:
     both turn counter-clockwise about ``S_u x S_v``. ``keep_cell(i, j)`` may
-    leave cells out (trimming).
+    leave cells out (trimming; called once per cell: a mask is far faster as a
+    cover of :func:`client_py._kernel_python.cell_indices`, see
+    :func:`trimmed_grid_indices`).
     """
-    indices = array("I")
     if keep_cell is None:
-        # Whole columns by strided copies (C speed, no per-index Python work): left[r * c1 + j]
-        # and right[...] are vertices (r, j) and (r, j + 1) of every vertex row r, c1 = nv - 1
-        # cells per row; then cell k's corners are left/right of its row and of the next.
-        c1, cells = nv - 1, (nu - 1) * (nv - 1)
-        every = array("I", range(nu * nv))
-        left, right = array("I", bytes(4 * nu * c1)), array("I", bytes(4 * nu * c1))
-        for j in range(c1):
-            left[j::c1] = every[j::nv]
-            right[j::c1] = every[j + 1 :: nv]
-        indices = array("I", bytes(24 * cells))
-        indices[0::6] = left[:cells]  # k
-        indices[1::6] = indices[4::6] = left[c1:]  # k + nv
-        indices[2::6] = indices[3::6] = right[:cells]  # k + 1
-        indices[5::6] = right[c1:]  # k + nv + 1
-        return indices
+        return _kernel.backend(kernel).cell_indices(nu, nv)
+    indices = array("I")
     for i in range(nu - 1):
         for j in range(nv - 1):
             if keep_cell(i, j):
@@ -92,38 +81,26 @@ def grid_indices(nu: int, nv: int, keep_cell=None) -> array:
     return indices
 
 
-def trimmed_grid_indices(nu: int, nv: int, trim: TrimMask) -> array:
+def mask_indices(centres: Sequence[float], count: int) -> list[int]:
+    """The cell of a ``count``-cell mask side holding each normalised coordinate in ``centres``:
+    ``min(int(t count), count - 1)`` (and ``>= 0``), as :meth:`TrimMask.covers` picks it."""
+    last = count - 1
+    return [max(min(int(t * count), last), 0) for t in centres]
+
+
+def trimmed_grid_indices(nu: int, nv: int, trim: TrimMask, kernel: str | None = None) -> array:
     """:func:`grid_indices` without the cells whose centre ``trim`` does not cover.
 
     The same cells as ``grid_indices(nu, nv, keep)`` with ``keep(i, j) =
-    trim.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))``, found per run:
-    a grid row's kept cells form runs (between the mask's column boundaries)
-    whose triangles are copied from the full grid as whole array slices.
+    trim.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))``: the mask row of
+    each cell row and the mask column of each cell column, then the kernel's
+    ``cell_indices`` (whole runs of cells in pure Python, one boolean array
+    with numpy).
     """
-    full = grid_indices(nu, nv)
-    c1 = nv - 1
-    mask_cols = [min(int((j + 0.5) / c1 * trim.cols), trim.cols - 1) for j in range(c1)]
-    runs_by_mask_row: dict[int, list[tuple[int, int]]] = {}
-    indices = array("I")
-    for i in range(nu - 1):
-        r = min(int((i + 0.5) / (nu - 1) * trim.rows), trim.rows - 1)
-        runs = runs_by_mask_row.get(r)
-        if runs is None:
-            row = trim.flat[r * trim.cols : (r + 1) * trim.cols]
-            runs, start = [], None
-            for j, c in enumerate(mask_cols):
-                if row[c] and start is None:
-                    start = j
-                elif not row[c] and start is not None:
-                    runs.append((start, j))
-                    start = None
-            if start is not None:
-                runs.append((start, c1))
-            runs_by_mask_row[r] = runs
-        base = 6 * i * c1
-        for j0, j1 in runs:
-            indices.extend(full[base + 6 * j0 : base + 6 * j1])  # array to array: a copy
-    return indices
+    rows = mask_indices([(i + 0.5) / (nu - 1) for i in range(nu - 1)], trim.rows)
+    cols = mask_indices([(j + 0.5) / (nv - 1) for j in range(nv - 1)], trim.cols)
+    return _kernel.backend(kernel).cell_indices(nu, nv, [(0, 0, rows, cols, trim.flat,
+                                                          trim.cols)])
 
 
 def tessellate_grid(
@@ -154,7 +131,7 @@ def tessellate_grid(
         uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
     uvs[1::2] = array("f", vs) * nu
     if surface.trim is None:
-        indices = grid_indices(nu, nv)
+        indices = grid_indices(nu, nv, kernel=kernel)
     else:
-        indices = trimmed_grid_indices(nu, nv, surface.trim)
+        indices = trimmed_grid_indices(nu, nv, surface.trim, kernel)
     return Mesh(positions, normals, uvs, indices)
