@@ -8,8 +8,10 @@ visitor's browser draws.
 
 * **Tessera**: ``fit_scan`` at several base grids with the detail pyramid
   (no texture), and the same base with the pyramid refitted at the other
-  quantisation ``STEP_FACTORS`` (written with ``write_layers`` into a copy of
-  the bundle). A point per (grid, step factor, level L): bytes of ``base.tsp``
+  ``DETAIL_SPANS`` (detail resolution) and quantisation ``STEP_FACTORS``
+  (written with ``write_layers`` into a copy of the bundle): the choices an
+  admin has (``--detail-spans``; the step factor is the fitter's constant). A
+  point per (grid, spans, step factor, level L): bytes of ``base.tsp``
   plus every ``detail/K/*.tsd`` with ``K <= L`` as stored, against the RMS and
   max distance to ``client_py.bundle.tessellate_bundle(..., level=L)`` (the
   base's trim mask and every tile's own mask applied, as the viewer does),
@@ -67,8 +69,9 @@ SCANS = {
     "bali-mask": DATA / "bali-mask" / "mask.obj",
     "laurana-bust": DATA / "laurana-bust" / "laurana.ply",
 }
-GRIDS = (12, 20, 32)
-LEVELS = {12: 5, 20: 5, 32: 6}  # detail levels 0..L-1 per base grid (level 5: the 512 KB end)
+GRIDS = (20, 32)  # base grids (12 x 12 was never on the frontier in session 2)
+DETAIL_SPANS = (16, 24)  # knot spans per detail tile side: level k resolves spans 2^k
+LEVELS = {16: 6, 24: 5}  # detail levels 0..L-1 per spans (past 512 KB at the finest)
 STEP_FACTORS = (1.0, 2.0, 4.0)  # detail quantisation step / the level's remaining RMS
 BUDGETS_KB = (8, 16, 32, 64, 128, 256, 512)
 DRACO_BITS = (10, 11, 12, 14)
@@ -234,7 +237,7 @@ def tessera_points(scan, cov, out: Path, submit: Callable[[str, int, int], Futur
     are the fitter's foot-point figures.
     """
     from client_py import read_patch
-    from fitter.detail import STEP_FACTOR, fit_detail
+    from fitter.detail import SPANS, STEP_FACTOR, fit_detail
     from fitter.error import deviations
     from fitter.nurbs import PatchModel
     from fitter.pipeline import FitOptions, fit_scan
@@ -243,7 +246,7 @@ def tessera_points(scan, cov, out: Path, submit: Callable[[str, int, int], Futur
     for grid in GRIDS:
         start = time.perf_counter()
         bundle = fit_scan(scan, out / f"g{grid}", FitOptions(grid=(grid, grid), texture=False,
-                                                              detail_levels=LEVELS[grid]))
+                                                              detail_levels=LEVELS[SPANS]))
         fitted[grid] = (bundle, time.perf_counter() - start)
     proj = cov.projection
     local = proj.local(scan.points)
@@ -252,36 +255,38 @@ def tessera_points(scan, cov, out: Path, submit: Callable[[str, int, int], Futur
     for grid, (bundle, wall) in fitted.items():
         m = bundle.manifest
         detail = m["tiles"]["detail"]
-        spans = detail["spans_per_tile"]
         base = m["files"]["base.tsp"]
-        resolution = mesh_resolution(grid, spans, -1)
-        rows.append(({"method": "tessera", "grid": grid, "step": None, "level": -1,
-                      "bytes": base, "rms_e": detail["base"]["rms"],
+        resolution = mesh_resolution(grid, SPANS, -1)
+        rows.append(({"method": "tessera", "grid": grid, "spans": None, "step": None,
+                      "level": -1, "bytes": base, "rms_e": detail["base"]["rms"],
                       "max_e": detail["base"]["max"], "fit_s": wall},
                      submit(str(bundle.path), -1, resolution)))
-        levels = {STEP_FACTOR: (bundle.path,
-                                [(lev["level"], lev["bytes_total"], lev["rms"], lev["max"],
-                                  lev["tiles"]) for lev in detail["levels"]])}
+        levels = {(SPANS, STEP_FACTOR): (bundle.path,
+                                         [(lev["level"], lev["bytes_total"], lev["rms"],
+                                           lev["max"], lev["tiles"])
+                                          for lev in detail["levels"]])}
         surface = read_patch((bundle.path / "base.tsp").read_bytes())
         model = PatchModel.from_surface(surface)
         dev = deviations(model, local, u, v, proj.periodic_u)
-        for factor in STEP_FACTORS:
-            if factor != STEP_FACTOR:
-                pyramid = fit_detail(model, local, dev, cov.covered, proj.periodic_u, LEVELS[grid],
-                                     step_factor=factor, trim=surface.trim,
-                                     spans=spans)  # as fit_scan
-                levels[factor] = (_write_bundle(bundle.path, m, pyramid,
-                                                out / f"g{grid}_s{factor:g}"),
-                                  [(lev.level, lev.bytes_total, lev.rms, lev.max,
-                                    len(lev.tiles)) for lev in pyramid.levels])
-            path, per_level = levels[factor]
-            total = base
-            for level, size, rms, worst, tiles in per_level:
-                total += size
-                rows.append(({"method": "tessera", "grid": grid, "step": factor,
-                              "level": level, "bytes": total, "rms_e": rms, "max_e": worst,
-                              "tiles": tiles, "fit_s": wall},
-                             submit(str(path), level, mesh_resolution(grid, spans, level))))
+        for spans in DETAIL_SPANS:
+            for factor in STEP_FACTORS:
+                if (spans, factor) not in levels:
+                    pyramid = fit_detail(model, local, dev, cov.covered, proj.periodic_u,
+                                         LEVELS[spans], step_factor=factor, trim=surface.trim,
+                                         spans=spans)  # as fit_scan
+                    levels[spans, factor] = (
+                        _write_bundle(bundle.path, m, pyramid,
+                                      out / f"g{grid}_m{spans}_s{factor:g}"),
+                        [(lev.level, lev.bytes_total, lev.rms, lev.max, len(lev.tiles))
+                         for lev in pyramid.levels])
+                path, per_level = levels[spans, factor]
+                total = base
+                for level, size, rms, worst, tiles in per_level:
+                    total += size
+                    rows.append(({"method": "tessera", "grid": grid, "spans": spans,
+                                  "step": factor, "level": level, "bytes": total,
+                                  "rms_e": rms, "max_e": worst, "tiles": tiles, "fit_s": wall},
+                                 submit(str(path), level, mesh_resolution(grid, spans, level))))
     return rows
 
 
@@ -307,6 +312,13 @@ def _unit_normals(scan) -> np.ndarray | None:
     return scan.normals / length if np.all(length > 0) else None
 
 
+def config(row: dict) -> str:
+    """``gN mM sF LL``: base grid, spans per detail tile, step factor, finest level."""
+    if row["level"] < 0:
+        return f"g{row['grid']} base"
+    return f"g{row['grid']} m{row['spans']} s{row['step']:g} L{row['level']}"
+
+
 def frontier(rows: list[dict], budget: int) -> dict | None:
     fit = [r for r in rows if r["bytes"] <= budget]
     return min(fit, key=lambda r: r["rms"]) if fit else None
@@ -330,7 +342,7 @@ def run() -> dict | None:
         print("skipping: DracoPy and fast-simplification are needed "
               "(pip install -e '.[bench]')")
         return None
-    from fitter.detail import STEP_FACTOR
+    from fitter.detail import SPANS, STEP_FACTOR
     from fitter.io import load_scan
     from fitter.parameterize import choose_projection
 
@@ -353,7 +365,7 @@ def run() -> dict | None:
             theirs = draco_points(points, vertices, faces)
             ours = [row | job.result() for row, job in pending]
             for r in ours:
-                if r["step"] in (None, STEP_FACTOR):
+                if r["step"] in (None, STEP_FACTOR) and r["spans"] in (None, SPANS):
                     versus.append([name, r["grid"], r["level"], r["resolution"],
                                    f"{r['rms']:.4g}", f"{r['rms_e']:.4g}",
                                    f"{r['max']:.4g}", f"{r['max_e']:.4g}"])
@@ -364,9 +376,7 @@ def run() -> dict | None:
                 table.append([name, kb,
                               "-" if a is None else f"{a['rms']:.3g}",
                               "-" if a is None else f"{a['max']:.3g}",
-                              "-" if a is None else (f"g{a['grid']} L{a['level']}"
-                                                     + (f" s{a['step']:g}" if a["step"] else "")
-                                                     + f" {a['bytes']}"),
+                              "-" if a is None else f"{config(a)} {a['bytes']}",
                               "-" if b is None else f"{b['rms']:.3g}",
                               "-" if b is None else f"{b['max']:.3g}",
                               "-" if b is None else f"{b['faces']}f {b['bits']}b {b['bytes']}",
@@ -385,7 +395,8 @@ def run() -> dict | None:
                 ["data", "KB", "tessera RMS", "max", "config, bytes", "draco RMS", "max",
                  "config, bytes", "lower RMS"], table)
     record = {"budgets_kb": list(BUDGETS_KB), "grids": list(GRIDS),
-              "step_factors": list(STEP_FACTORS), "levels": {str(g): n for g, n in LEVELS.items()},
+              "detail_spans": list(DETAIL_SPANS), "step_factors": list(STEP_FACTORS),
+              "levels": {str(m): n for m, n in LEVELS.items()},
               "max_resolution": MAX_RESOLUTION,
               "tessera_distance": "point-to-triangle distance to tessellate_bundle "
                                   "(rms_e, max_e: the fitter's foot-point bound)",
