@@ -117,15 +117,10 @@ def _shown_error(manifest: dict, nodes: dict, level: int, i: int, j: int) -> flo
     return manifest["tiles"]["detail"]["base"]["max"]
 
 
-def test_zoom_fetches_only_the_tiles_in_view_and_refines_the_mesh(browser, detail_server,
-                                                                  detail_collection):
-    bundle = detail_collection / "relief-detail"
-    manifest = json.loads((bundle / "manifest.json").read_text())
-    nodes = {(n["level"], n["i"], n["j"]): n for n in manifest["tiles"]["detail"]["nodes"]}
-    finest = max(k for k, _, _ in nodes)
-    assert finest == LEVELS - 1
-
-    context = browser.new_context(viewport={"width": 800, "height": 600})
+def _open_detail_viewer(browser, server, **options):
+    """A new page on the relief-detail viewer, ready: ``(context, page, problems, fetched)``
+    with the page's errors and the ``(level, i, j)`` of every detail tile it requests."""
+    context = browser.new_context(viewport={"width": 800, "height": 600}, **options)
     page = context.new_page()
     problems: list[str] = []
     page.on("pageerror", lambda exc: problems.append(str(exc)))
@@ -138,10 +133,22 @@ def test_zoom_fetches_only_the_tiles_in_view_and_refines_the_mesh(browser, detai
             fetched.append(tuple(int(g) for g in match.groups()))
 
     page.on("request", on_request)
+    page.goto(f"{server.url}/objects/relief-detail/?resolution=64")
+    page.wait_for_function(READY, timeout=60_000)
+    assert page.evaluate("document.body.dataset.error") is None
+    return context, page, problems, fetched
+
+
+def test_zoom_fetches_only_the_tiles_in_view_and_refines_the_mesh(browser, detail_server,
+                                                                  detail_collection):
+    bundle = detail_collection / "relief-detail"
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    nodes = {(n["level"], n["i"], n["j"]): n for n in manifest["tiles"]["detail"]["nodes"]}
+    finest = max(k for k, _, _ in nodes)
+    assert finest == LEVELS - 1
+
+    context, page, problems, fetched = _open_detail_viewer(browser, detail_server)
     try:
-        page.goto(f"{detail_server.url}/objects/relief-detail/?resolution=64")
-        page.wait_for_function(READY, timeout=60_000)
-        assert page.evaluate("document.body.dataset.error") is None
         before = page.evaluate("window.tessera.tilesIdle()")
         view = page.evaluate("window.tessera.view()")
         surface = _scan_frame_surface(bundle)
@@ -274,23 +281,9 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
     assert level == LEVELS - 1
     resolution = min(1025, 2 * detail["spans_per_tile"] * 2**level + 1)  # 257 here
 
-    context = browser.new_context(accept_downloads=True, viewport={"width": 800, "height": 600})
-    page = context.new_page()
-    problems: list[str] = []
-    page.on("pageerror", lambda exc: problems.append(str(exc)))
-    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
-    fetched: list[tuple[int, int, int]] = []
-
-    def on_request(request):
-        match = TILE_URL.search(request.url)
-        if match:
-            fetched.append(tuple(int(g) for g in match.groups()))
-
-    page.on("request", on_request)
+    context, page, problems, fetched = _open_detail_viewer(browser, detail_server,
+                                                           accept_downloads=True)
     try:
-        page.goto(f"{detail_server.url}/objects/relief-detail/?resolution=64")
-        page.wait_for_function(READY, timeout=60_000)
-        assert page.evaluate("document.body.dataset.error") is None
         before = page.evaluate("window.tessera.tilesIdle()")
         by_layer = set(fetched)
         assert 0 < len(by_layer) < len(nodes)

@@ -19,6 +19,8 @@
 // Mesh arrays are copied once out of the WebAssembly heap (PyBuffer views die with the
 // Python object) and then *transferred*, not copied again, to the page.
 
+import { fetchBytes } from "./fetch-bytes.js";
+
 const PY_ROOT = "/home/pyodide/tessera";
 
 // Python side of the worker: thin wrappers over client_py, holding the loaded surface.
@@ -214,16 +216,6 @@ function copyBuffer(proxy) {
   }
 }
 
-async function fetchBytes(url, what) {
-  let response;
-  try {
-    response = await fetch(url);
-  } catch (error) {
-    throw new Error(`cannot fetch ${what} (${url}): ${error.message}`);
-  }
-  if (!response.ok) throw new Error(`cannot fetch ${what} (${url}): HTTP ${response.status}`);
-  return new Uint8Array(await response.arrayBuffer());
-}
 
 async function init({ pyodideUrl, pyodideSnapshotUrl, clientPyUrl, patchUrl }) {
   let stage = "runtime";

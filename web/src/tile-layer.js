@@ -16,6 +16,7 @@
 // tile_updates (updates done), tiles_busy (an update is running or due).
 
 import * as THREE from "three";
+import { fetchBytes } from "./fetch-bytes.js";
 import { TileTree } from "./tile-tree.js";
 
 export const REGION_GRID = 33; // vertices per region side: 2 per span of a 16-span tile
@@ -171,10 +172,7 @@ export class TileLayer {
   }
 
   async _fetch(name) {
-    const url = new URL(name, this.baseUrl).href;
-    const response = await fetch(url);
-    if (!response.ok) throw new Error(`cannot fetch ${name} (${url}): HTTP ${response.status}`);
-    const bytes = new Uint8Array(await response.arrayBuffer());
+    const bytes = await fetchBytes(new URL(name, this.baseUrl).href, name);
     this.stats.tile_bytes += bytes.length;
     this.stats.bytes_downloaded += bytes.length;
     this.stats.tiles_fetched += 1;

@@ -23,6 +23,7 @@
 // All URLs come from the server's JSON config block.
 
 import { ErrorMap } from "./error-map.js";
+import { fetchBytes } from "./fetch-bytes.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
 import { $, startPage } from "./page.js";
 
@@ -370,15 +371,7 @@ async function main() {
     // the tile layer may drop a tile meanwhile (the camera moved): fetch until none lacks
     for (let missing = lacking(); missing.length; missing = lacking()) {
       await forEachLimited(missing, FETCH_PARALLEL, async (name) => {
-        const url = new URL(name, baseUrl).href;
-        let response;
-        try {
-          response = await fetch(url);
-        } catch (error) {
-          throw new Error(`cannot fetch ${name} (${url}): ${error.message}`);
-        }
-        if (!response.ok) throw new Error(`cannot fetch ${name} (${url}): HTTP ${response.status}`);
-        const bytes = new Uint8Array(await response.arrayBuffer());
+        const bytes = await fetchBytes(new URL(name, baseUrl).href, name);
         fresh.set(name, bytes);
         fetched += bytes.length;
         stats.bytes_downloaded += bytes.length;
