@@ -148,14 +148,17 @@ def displace_grid(positions, normals, displacement, n_rows: int, n_cols: int,
 
 
 def add_level(total: array, n_cols: int, blocks) -> None:
-    """Same contract as :func:`client_py._kernel_python.add_level` (in place on ``total``)."""
+    """Same contract and scheme as :func:`client_py._kernel_python.add_level` (in place on
+    ``total``): the level's field assembled from the blocks in reverse order, then added
+    over the rows they span."""
+    if not blocks:
+        return
     T = np.frombuffer(total, dtype=float).reshape(-1, n_cols)  # a writable view
-    done = np.zeros(T.shape, dtype=bool)
-    for r0, r1, c0, c1, values in blocks:
-        block, seen = T[r0:r1, c0:c1], done[r0:r1, c0:c1]
-        V = np.frombuffer(values, dtype=float).reshape(block.shape)
-        np.add(block, V, out=block, where=~seen)
-        seen[...] = True
+    level = np.zeros(T.shape)
+    for r0, r1, c0, c1, values in reversed(blocks):
+        level[r0:r1, c0:c1] = np.frombuffer(values, dtype=float).reshape(r1 - r0, c1 - c0)
+    lo, hi = min(block[0] for block in blocks), max(block[1] for block in blocks)
+    T[lo:hi] += level[lo:hi]
 
 
 def cell_indices(nu: int, nv: int, covers=None) -> array:

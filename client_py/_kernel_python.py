@@ -66,6 +66,17 @@ def _blend(n_terms: int) -> Callable[[Sequence, Sequence], list[float]]:
     return _compile(_blend_source(n_terms), "blend")
 
 
+@cache
+def _combine(n_terms: int) -> Callable[[Sequence[float], Sequence], list[float]]:
+    """``[sum_k coeffs[k] * rows[k][e] for e]``: lists combined with scalar coefficients."""
+    ks = range(n_terms)
+    return _compile(
+        "def combine(coeffs, rows):\n"
+        f"    {', '.join(f'c{k}' for k in ks)}, = coeffs\n"
+        f"    return [{_terms('c', 'x', n_terms)} for {', '.join(f'x{k}' for k in ks)} "
+        f"in zip(*rows)]\n", "combine")
+
+
 def _row_source(p: int, rational: bool) -> str:
     """Source of ``evaluate_row``: points and normals of one grid row ``u = u_i``.
 
@@ -251,11 +262,10 @@ def field_grid(degree: int, knots_u: Sequence[float], knots_v: Sequence[float], 
     for a in range(min(spans_u) - p, max(spans_u) + 1):
         get = coefficients[a * n_v : (a + 1) * n_v].__getitem__
         rows[a] = blend(coeffs, [list(map(get, index)) for index in gather])
+    combine = _combine(p + 1)
     out = array("d")
-    n_j = len(vs)
     for span, nu_i in zip(spans_u, Nu, strict=True):
-        window = [rows[span - p + k] for k in range(p + 1)]
-        out.extend(blend([[c] * n_j for c in nu_i], window))
+        out.extend(combine(nu_i, [rows[span - p + k] for k in range(p + 1)]))
     return out
 
 
@@ -274,13 +284,13 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
 
     Per grid row, the rows above and below and the row shifted left and right
     (clamped at its ends) are sliced once per component and zipped, so the
-    loop over the row's vertices does arithmetic only.
+    loop over the row's vertices does arithmetic only; the positions are
+    copied a component at a time.
     """
     comps = [[p + d * n for p, d, n in zip(positions[c::3], displacement, normals[c::3],
                                             strict=True)] for c in range(3)]
     r0, r1, c0, c1 = window
     sqrt = math.sqrt
-    pos: list[float] = []
     nrm: list[float] = []
     for i in range(r0, r1):
         up, down, row = min(i + 1, n_rows - 1) * n_cols, max(i - 1, 0) * n_cols, i * n_cols
@@ -288,15 +298,14 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
         for xs in comps:
             line = xs[row : row + n_cols]
             right, left = line[1:] + line[-1:], line[:1] + line[:-1]
-            lists += (line[c0:c1], xs[up + c0 : up + c1], xs[down + c0 : down + c1],
-                      right[c0:c1], left[c0:c1])
+            lists += (xs[up + c0 : up + c1], xs[down + c0 : down + c1], right[c0:c1],
+                      left[c0:c1])
         bad = []
-        for x, ux, dx, rx, lx, y, uy, dy, ry, ly, z, uz, dz, rz, lz in zip(*lists, strict=True):
+        for ux, dx, rx, lx, uy, dy, ry, ly, uz, dz, rz, lz in zip(*lists, strict=True):
             ax, ay, az = ux - dx, uy - dy, uz - dz
             bx, by, bz = rx - lx, ry - ly, rz - lz
             nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
             length = sqrt(nx * nx + ny * ny + nz * nz)
-            pos += (x, y, z)
             if length > 0.0:
                 nrm += (nx / length, ny / length, nz / length)
             else:
@@ -305,10 +314,12 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
         for at in bad:  # a pole: keep the base normal (vertex at // 3 of the window)
             k = 3 * (row + c0 + (at // 3) % (c1 - c0))
             nrm[at : at + 3] = normals[k : k + 3]
-    return array("f", pos), array("f", nrm)
-
-
-_FREE = re.compile(b"\0+")  # a run of vertices no earlier block of the level took
+    # the window's positions, a component at a time: strided copies of whole rows
+    pos = array("f", bytes(12 * (r1 - r0) * (c1 - c0)))
+    for c, xs in enumerate(comps):
+        pos[c::3] = array("f", [x for i in range(r0, r1)
+                                for x in xs[i * n_cols + c0 : i * n_cols + c1]])
+    return pos, array("f", nrm)
 
 
 def add_level(total: array, n_cols: int, blocks: Sequence[tuple]) -> None:
@@ -320,27 +331,24 @@ def add_level(total: array, n_cols: int, blocks: Sequence[tuple]) -> None:
     < r1`` and columns ``c0 <= j < c1``. A vertex that several blocks cover (a
     tile border) takes the value of the first block in ``blocks`` that covers it.
 
-    Whole runs of vertices that no earlier block touched are added as slices
-    (``map(add, ...)``, no per-vertex Python): the row itself, or, where an
-    earlier block took some of its vertices (a tile's border row or column),
-    the runs between them (a regular expression over the ``done`` bytes).
+    The level's field is assembled first, block rows copied as whole slices
+    (C speed) in reverse order, so that the first block covering a vertex is
+    the one written last; then it is added to ``total`` with one ``map(add,
+    ...)`` over the rows the blocks span. Vertices that no block covers get
+    ``+ 0.0``, which changes nothing: ``total`` starts at ``+0.0`` and sums
+    from it are never ``-0.0``.
     """
-    done = bytearray(len(total))
-    for r0, r1, c0, c1, values in blocks:
+    if not blocks:
+        return
+    level = array("d", bytes(8 * len(total)))
+    for r0, r1, c0, c1, values in reversed(blocks):
         width = c1 - c0
-        ones = b"\1" * width
         for a in range(r1 - r0):
             start = (r0 + a) * n_cols + c0
-            end = start + width
-            row = values[a * width : (a + 1) * width]
-            if done.find(1, start, end) < 0:
-                total[start:end] = array("d", map(add, total[start:end], row))
-                done[start:end] = ones
-                continue
-            for free in _FREE.finditer(done, start, end):
-                s, e = free.span()
-                total[s:e] = array("d", map(add, total[s:e], row[s - start : e - start]))
-                done[s:e] = ones[: e - s]
+            level[start : start + width] = values[a * width : (a + 1) * width]
+    lo = min(block[0] for block in blocks) * n_cols
+    hi = max(block[1] for block in blocks) * n_cols
+    total[lo:hi] = array("d", map(add, total[lo:hi], level[lo:hi]))
 
 
 def _full_grid(nu: int, nv: int) -> array:

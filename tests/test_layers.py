@@ -332,3 +332,188 @@ def test_random_headers_with_valid_crc_raise_format_errors_only(header, payload)
     except PatchFormatError:
         return
     assert isinstance(tile, DetailTile)  # a valid header by chance decodes to a valid tile
+
+
+# ------------------------------------------------------------------ kernels on whole grids
+def masked_surface_and_tiles(seed: int = 5):
+    """A trimmed patch and tiles of levels 1..3 (some absent, some without a drawn mask),
+    drawn masks of different sides."""
+    s, _, _ = surface_and_tiles()
+    rng = np.random.default_rng(seed)
+    trim = rng.random((13, 11)) < 0.5
+    base = NurbsSurface((2, 2), s.knots, s.control_points, s.weights, trim=TrimMask(trim))
+    tiles = []
+    for level, spans in ((1, 4), (2, 3), (3, 2)):
+        q = global_field(level, 2, spans, seed + level)
+        for i in range(1 << level):
+            for j in range(1 << level):
+                if rng.random() < 0.25:
+                    continue  # absent: a zero field, no drawn cells
+                tile = tile_of(q, level, i, j, 2, spans, step=2**-12)
+                if rng.random() < 0.7:
+                    side = int(rng.integers(1, 9))
+                    tile = dataclasses.replace(tile, drawn=TrimMask(rng.random((side, side))
+                                                                    < 0.4))
+                tiles.append(tile)
+    return base, trim, tiles
+
+
+def reference_drawn(trim: np.ndarray, tiles, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    """The definition, cell by cell with numpy: the centre covered by the base trim, or by
+    the drawn mask of a tile whose closed rectangle contains it; a centre on the border of
+    two tiles of a level belongs to the one ``min(floor(u 2^L), 2^L - 1)`` names (the
+    tile above the border), as for the base trim's cells."""
+    cu, cv = 0.5 * (us[:-1] + us[1:]), 0.5 * (vs[:-1] + vs[1:])
+    U, V = np.meshgrid(cu, cv, indexing="ij")
+    rows, cols = trim.shape
+    drawn = trim[np.minimum((U * rows).astype(int), rows - 1),
+                 np.minimum((V * cols).astype(int), cols - 1)].copy()
+    for t in tiles:
+        if t.drawn is None:
+            continue
+        u0, v0, u1, v1 = t.uv_rect
+        n = 1 << t.level
+        named = ((np.minimum(np.floor(U * n), n - 1) == t.i)
+                 & (np.minimum(np.floor(V * n), n - 1) == t.j))
+        inside = named & (U >= u0) & (U <= u1) & (V >= v0) & (V <= v1)
+        mask = np.frombuffer(t.drawn.flat, np.uint8).reshape(t.drawn.rows, t.drawn.cols)
+        r = np.clip(((U - u0) / (u1 - u0) * t.drawn.rows).astype(int), 0, t.drawn.rows - 1)
+        c = np.clip(((V - v0) / (v1 - v0) * t.drawn.cols).astype(int), 0, t.drawn.cols - 1)
+        drawn |= inside & (mask[r, c] != 0)
+    return drawn
+
+
+@pytest.mark.parametrize("rect, nu, nv", [((0, 0, 1, 1), 57, 45), ((0.1, 0.3, 0.77, 0.9), 41, 37),
+                                          ((0.26, 0.51, 0.49, 0.74), 19, 23)])
+def test_drawn_cells_are_the_base_trim_or_a_tile_mask_in_both_kernels(rect, nu, nv):
+    base, trim, tiles = masked_surface_and_tiles()
+    us = np.array([rect[0] + k * (rect[2] - rect[0]) / (nu - 1) for k in range(nu - 1)]
+                  + [rect[2]])
+    vs = np.array([rect[1] + k * (rect[3] - rect[1]) / (nv - 1) for k in range(nv - 1)]
+                  + [rect[3]])
+    expected = reference_drawn(trim, tiles, us, vs)
+    assert 0 < expected.sum() < expected.size
+    # the tiles' masks add cells the base trim leaves out
+    assert expected.sum() > reference_drawn(trim, [], us, vs).sum()
+    meshes = {k: tessellate_region(base, rect, nu, nv, tiles, kernel=k)
+              for k in ("python", "numpy")}
+    assert meshes["python"].indices == meshes["numpy"].indices
+    idx = np.frombuffer(meshes["python"].indices, np.uint32).reshape(-1, 6).astype(np.int64)
+    k = idx[:, 0]
+    corners = np.stack([k, k + nv, k + 1, k + 1, k + nv, k + nv + 1], axis=1)
+    assert np.array_equal(idx, corners)
+    got = np.zeros((nu - 1, nv - 1), bool)
+    got[k // nv, k % nv] = True
+    assert np.array_equal(got, expected)
+    assert np.all(np.diff(k) > 0)  # row-major, each cell once
+
+
+def test_displacement_grid_kernels_agree_exactly_and_match_scipy():
+    """Levels 1..3 with tiles missing: the sum of each level's scipy field where the level
+    has the tile, on a grid with vertices on tile borders and between them."""
+    _, _, tiles = masked_surface_and_tiles(9)
+    us = np.unique(np.concatenate([np.linspace(0, 1, 17), [0.3, 0.61, 0.999]]))
+    vs = np.unique(np.concatenate([np.linspace(0.25, 0.75, 9), [0.0, 0.07, 1.0]]))
+    got = {k: displacement_grid(tiles, us.tolist(), vs.tolist(), k) for k in ("python", "numpy")}
+    assert got["python"].tobytes() == got["numpy"].tobytes()
+    U, V = np.meshgrid(us, vs, indexing="ij")
+    expected = np.zeros(U.shape)
+    for level, spans in ((1, 4), (2, 3), (3, 2)):
+        have = {(t.i, t.j): t for t in tiles if t.level == level}
+        q = np.zeros(((spans << level) + 2,) * 2)
+        for (i, j), t in have.items():
+            q[i * spans : i * spans + t.size, j * spans : j * spans + t.size] = \
+                np.array(t.values).reshape(t.size, t.size)
+        field = scipy_field(q, level, 2, spans, 2**-12, U.ravel(), V.ravel()).reshape(U.shape)
+        n = 1 << level
+        applies = np.zeros(U.shape, bool)
+        for i, j in have:  # a vertex takes a level where a given tile's closed rectangle holds it
+            applies |= (U >= i / n) & (U <= (i + 1) / n) & (V >= j / n) & (V <= (j + 1) / n)
+        expected += np.where(applies, field, 0.0)
+    np.testing.assert_allclose(np.array(got["python"]).reshape(U.shape), expected, rtol=0,
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_transform_mesh_kernels_agree_exactly_and_match_numpy(flip):
+    from array import array
+
+    s, _, tiles = surface_and_tiles()
+    mesh = tessellate_region(s, (0, 0, 1, 1), 9, 7, tiles)
+    mesh.normals[0:3] = array("f", [0.0, 0.0, 0.0])  # a zero normal stays zero
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(3, 3))
+    if (np.linalg.det(A) < 0) != flip:
+        A[0] *= -1
+    m = np.hstack([A, rng.normal(size=(3, 1))])
+    out = {k: transform_mesh(mesh, m, kernel=k) for k in ("python", "numpy")}
+    for name in ("positions", "normals", "uvs", "indices"):
+        assert getattr(out["python"], name) == getattr(out["numpy"], name), name
+    p = np.array(mesh.positions, dtype=float).reshape(-1, 3)
+    np.testing.assert_allclose(np.array(out["numpy"].positions).reshape(-1, 3),
+                               p @ A.T + m[:, 3], rtol=1e-6, atol=1e-6)
+    n = np.array(mesh.normals, dtype=float).reshape(-1, 3) @ np.linalg.inv(A)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n = n / np.where(length > 0, length, 1.0)
+    np.testing.assert_allclose(np.array(out["numpy"].normals).reshape(-1, 3), n, atol=1e-6)
+    assert out["numpy"].normals[0:3].tolist() == [0.0, 0.0, 0.0]
+    reversed_ = out["numpy"].indices[1::3] == mesh.indices[2::3]
+    assert reversed_ == flip
+
+
+def test_displace_grid_kernels_agree_exactly_and_keep_the_base_normal_at_a_pole():
+    """X = S + D n and normals by clamped central differences, against a numpy reference;
+    a row collapsed to one point (a pole) keeps the base normal."""
+    from array import array
+
+    from client_py._kernel import backend
+
+    rng = np.random.default_rng(8)
+    rows, cols = 7, 6
+    S = rng.normal(size=(rows, cols, 3))
+    S[0] = S[0, 0]  # row 0 is one point: no tangent along it
+    n = rng.normal(size=(rows, cols, 3))
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    D = rng.normal(size=(rows, cols)) * 0.1
+    D[0] = 0.0
+    window = (0, rows, 1, cols)
+    args = (array("d", S.ravel()), array("d", n.ravel()), array("d", D.ravel()), rows, cols,
+            window)
+    a, b = backend("python").displace_grid(*args), backend("numpy").displace_grid(*args)
+    assert a[0] == b[0] and a[1] == b[1]
+    X = S + D[..., None] * n
+    i, j = np.arange(rows)[:, None], np.arange(1, cols)[None, :]
+    du = X[np.minimum(i + 1, rows - 1), j] - X[np.maximum(i - 1, 0), j]
+    dv = X[i, np.minimum(j + 1, cols - 1)] - X[i, np.maximum(j - 1, 0)]
+    m = np.cross(du, dv)
+    length = np.linalg.norm(m, axis=2, keepdims=True)
+    assert np.all(length[0] == 0) and np.all(length[1:] > 0)
+    m = np.where(length > 0, m / np.where(length > 0, length, 1.0), n[:, 1:])
+    np.testing.assert_allclose(np.array(a[0]).reshape(rows, cols - 1, 3), X[:, 1:], atol=1e-6)
+    np.testing.assert_allclose(np.array(a[1]).reshape(rows, cols - 1, 3), m, atol=1e-6)
+
+
+def test_add_level_takes_each_vertex_from_the_first_block_covering_it():
+    """Overlapping blocks of different values: both kernels add, at each vertex, the value
+    of the first block that covers it (a numpy loop over the blocks as the reference)."""
+    from array import array
+
+    from client_py._kernel import backend
+
+    rng = np.random.default_rng(4)
+    rows, cols = 9, 11
+    start = rng.normal(size=(rows, cols))
+    blocks, expected, done = [], start.copy(), np.zeros((rows, cols), bool)
+    for _ in range(6):
+        r0, c0 = int(rng.integers(0, rows - 1)), int(rng.integers(0, cols - 1))
+        r1, c1 = int(rng.integers(r0 + 1, rows + 1)), int(rng.integers(c0 + 1, cols + 1))
+        values = rng.normal(size=(r1 - r0, c1 - c0))
+        blocks.append((r0, r1, c0, c1, array("d", values.ravel())))
+        fresh = ~done[r0:r1, c0:c1]
+        expected[r0:r1, c0:c1][fresh] += values[fresh]
+        done[r0:r1, c0:c1] = True
+    assert done.sum() < done.size  # some vertices no block covers
+    for kernel in ("python", "numpy"):
+        total = array("d", start.ravel())
+        backend(kernel).add_level(total, cols, blocks)
+        assert np.array_equal(np.array(total).reshape(rows, cols), expected), kernel

@@ -219,3 +219,41 @@ def test_trimmed_indices_are_the_covered_cells(rows, cols, nu, nv):
     def keep(i, j):
         return mask.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))
     assert trimmed_grid_indices(nu, nv, mask) == grid_indices(nu, nv, keep)
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_cell_indices_of_overlapping_covers_are_their_union(kernel):
+    """Covers (mask rows and columns per cell row and column, over blocks of cells) drawn
+    as their union, row-major, against a cell-by-cell numpy reference."""
+    rng = np.random.default_rng(12)
+    nu, nv = 23, 31
+    covers, expected = [], np.zeros((nu - 1, nv - 1), bool)
+    for _ in range(5):
+        i0, j0 = int(rng.integers(0, nu - 2)), int(rng.integers(0, nv - 2))
+        i1, j1 = int(rng.integers(i0 + 1, nu)), int(rng.integers(j0 + 1, nv))
+        height, width = (int(x) for x in rng.integers(1, 7, 2))
+        mask = rng.random((height, width)) < 0.5
+        rows = rng.integers(0, height, i1 - i0).tolist()
+        cols = rng.integers(0, width, j1 - j0).tolist()
+        covers.append((i0, j0, rows, cols, mask.astype(np.uint8).tobytes(), width))
+        expected[i0:i1, j0:j1] |= mask[np.ix_(rows, cols)]
+    got = np.array(backend(kernel).cell_indices(nu, nv, covers)).reshape(-1, 6)
+    k = got[:, 0].astype(np.int64)
+    assert np.array_equal(got, np.stack([k, k + nv, k + 1, k + 1, k + nv, k + nv + 1], 1))
+    assert np.all(np.diff(k) > 0)
+    drawn = np.zeros_like(expected)
+    drawn[k // nv, k % nv] = True
+    assert np.array_equal(drawn, expected) and 0 < expected.sum() < expected.size
+    assert backend(kernel).cell_indices(nu, nv) == grid_indices(nu, nv, lambda i, j: True)
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_trimmed_indices_in_both_kernels(kernel):
+    rng = np.random.default_rng(3)
+    mask = TrimMask(rng.random((9, 14)) < 0.5)
+    nu, nv = 40, 27
+
+    def keep(i, j):
+        return mask.covers((i + 0.5) / (nu - 1), (j + 0.5) / (nv - 1))
+
+    assert trimmed_grid_indices(nu, nv, mask, kernel) == grid_indices(nu, nv, keep)
