@@ -9,6 +9,12 @@ multiply-adds of gathered rows (:func:`_blend`) instead of a dense ``matmul``:
 ``O(p)`` rather than ``O(n_u)`` work per point, the same summation order as the
 pure-Python kernel, and no BLAS threads, which on a small busy machine cost
 more than they save. The basis tables come vectorised from ``_numpy_basis``.
+
+The other operations (tile fields and their sums, displacement, drawn cells,
+affine maps) follow ``_kernel_python``'s contracts with the same arithmetic,
+operation for operation (no ``matmul``, ``einsum`` or reordered sums), so
+both kernels give the same bits; large grids go in blocks of
+:data:`ROWS_PER_BLOCK` rows so that temporaries stay in cache.
 """
 
 from __future__ import annotations

@@ -19,6 +19,14 @@ generated once per ``(p, rational)`` from the template in
 :func:`_row_source` (``functools.cache``); step (2) likewise uses a generated
 ``q + 1``-term comprehension (:func:`_blend_source`). Measured against the
 earlier term-by-term list passes: see ``docs/benchmarks.md``.
+
+The other whole-grid operations of a tessellation live here too, each with a
+numpy twin of the same name and contract in ``_kernel_numpy`` that gives the
+same bits: :func:`field_grid` (a detail tile's field), :func:`add_level`
+(summing a level's tiles), :func:`displace_grid` (``S + D n`` and its
+normals), :func:`cell_indices` (the triangles of the drawn cells) and
+:func:`map_vectors` (an affine map of positions or normals). They work on
+whole rows (slices, ``map``, ``int.from_bytes``) rather than per vertex.
 """
 
 from __future__ import annotations
