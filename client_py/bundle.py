@@ -86,5 +86,5 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
                              kernel, textures)
     matrix = surface.metadata.get("transform")
     if scan_frame and matrix is not None:
-        mesh = transform_mesh(mesh, matrix)
+        mesh = transform_mesh(mesh, matrix, kernel)
     return mesh

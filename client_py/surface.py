@@ -271,7 +271,9 @@ class NurbsSurface:
         exists, extrapolated to ``h = 0`` as ``2 n(h) - n(2h)`` (Richardson),
         which removes the error linear in ``h``.
         """
-        tol = normal_tolerance(self)
+        tol = self.__dict__.get("_normal_tolerance")
+        if tol is None:  # computed once per surface: a pole row asks for many normals
+            tol = self._normal_tolerance = normal_tolerance(self)
         n = unit_normal(*self.derivatives(u, v)[1:], tol)
         if n is not None:
             return n
