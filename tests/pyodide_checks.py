@@ -19,11 +19,15 @@ import hashlib
 import math
 
 from client_py import (
+    DetailTile,
     NurbsSurface,
     PatchFormatError,
     TrimMask,
+    read_detail_tile,
     read_patch,
     tessellate_grid,
+    tessellate_region,
+    write_detail_tile,
     write_patch,
     write_ply,
 )
@@ -57,6 +61,46 @@ def _check(checks: dict, name: str, func) -> None:
 def _require(condition: bool, message: str) -> None:
     if not condition:
         raise AssertionError(message)
+
+
+def _lcg_values(count: int, seed: int, spread: int) -> list[int]:
+    """Deterministic pseudo-random integers in ``-spread..spread`` (no ``random`` module
+    state to share between interpreters), mostly small as detail coefficients are."""
+    out, x = [], seed
+    for _ in range(count):
+        x = (1103515245 * x + 12345) % 2**31
+        out.append((x % (2 * spread + 1) - spread) // (1 + (x >> 20) % 4))
+    return out
+
+
+def _detail_checks(checks: dict, digests: dict) -> None:
+    """Detail tiles (range-coded .tsd) and region tessellation give CPython's bytes."""
+    mask = TrimMask([[(r * 7 + c * 3) % 5 != 0 for c in range(8)] for r in range(8)])
+    tiles = [DetailTile(1, i, j, 2, 6, 0.015625, tuple(_lcg_values(64, 11 * i + j + 1, 40)),
+                        mask if (i, j) == (1, 0) else None) for i in range(2) for j in range(2)]
+    blobs = [write_detail_tile(t) for t in tiles]
+    for k, data in enumerate(blobs):
+        digests[f"tile{k}.tsd"] = _sha(data)
+
+    def tile_round_trip():
+        for tile, data in zip(tiles, blobs, strict=True):
+            _require(read_detail_tile(data) == tile, f"tile {tile.i}_{tile.j} changed")
+            for cut in range(0, len(data), 5):
+                try:
+                    read_detail_tile(data[:cut])
+                except PatchFormatError:
+                    continue
+                raise AssertionError(f"tile truncated to {cut} bytes was accepted")
+
+    _check(checks, "detail tiles round trip; truncations raise PatchFormatError",
+           tile_round_trip)
+    U = [0, 0, 0, 0.5, 1, 1, 1]
+    grid = [[[i / 3, j / 3, 0.1 * ((i * j) % 3)] for j in range(4)] for i in range(4)]
+    trim = TrimMask([[not (2 <= r <= 4 and 1 <= c <= 5) for c in range(8)] for r in range(8)])
+    base = NurbsSurface((2, 2), (U, U), grid, trim=trim)
+    mesh = tessellate_region(base, (0.25, 0.0, 1.0, 0.75), 23, 19, tiles, kernel="python")
+    for name in ("positions", "normals", "uvs", "indices"):
+        digests[f"region.{name}"] = _sha(memoryview(getattr(mesh, name)).cast("B"))
 
 
 def run(spec: dict) -> dict:
@@ -154,6 +198,7 @@ def run(spec: dict) -> dict:
                 raise AssertionError(f"{kwargs} was accepted")
 
     _check(checks, "invalid input raises ValueError naming it", rejects_bad_input)
+    _detail_checks(checks, digests)
     return {"kernel": KERNEL_NAME, "checks": checks, "digests": digests}
 
 

@@ -82,7 +82,7 @@ def test_client_py_imports_in_pyodide_without_numpy(in_pyodide):
 
 def test_checks_pass_in_pyodide(in_pyodide):
     checks = in_pyodide["result"]["checks"]
-    assert len(checks) == 3 * 4 + 2
+    assert len(checks) == 3 * 4 + 3  # 4 per case, the circle, bad input, detail tiles
     failed = {name: err for name, err in checks.items() if err is not None}
     assert not failed
 
