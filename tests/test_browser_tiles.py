@@ -10,11 +10,15 @@ to the exact relief (``fitter.examples.relief_height``) than the base does.
 
 from __future__ import annotations
 
+import base64
+import io
 import json
 import re
+import shutil
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from fitter.examples import relief_height
 
@@ -37,7 +41,44 @@ def detail_collection(tmp_path_factory: pytest.TempPathFactory):
              FitOptions(grid=(20, 20), detail_levels=LEVELS, title="Relief with detail"))
     fit_scan(_coloured(points), root / "relief-colour",
              FitOptions(grid=(20, 20), detail_levels=2, title="Relief with colour"))
+    shutil.copytree(root / "relief-colour", root / "relief-texture")
+    _add_texture_level(root / "relief-texture")
     return root
+
+
+#: the level-1 texture tile _add_texture_level leaves out (as the fitter leaves out a tile with
+#: no colour samples of its own)
+MISSING_TEXTURE = (1, 1, 1)
+
+
+def _add_texture_level(bundle) -> None:
+    """Give a bundle (one texture level, 0) a texture level 1 of three tiles, lossless WebP
+    256 x 256 gradients (red along x, green along y, blue per tile), tile 1/1_1 left out."""
+    from PIL import Image
+
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    texture = manifest["tiles"]["texture"]
+    assert [entry["level"] for entry in texture["levels"]] == [0]
+    size = texture["size"]
+    ramp = np.linspace(0, 255, size).round().astype(np.uint8)
+    nodes = []
+    for i, j in ((0, 0), (1, 0), (0, 1)):
+        rgb = np.empty((size, size, 3), np.uint8)
+        rgb[..., 0] = ramp[None, :]
+        rgb[..., 1] = ramp[:, None]
+        rgb[..., 2] = 60 + 70 * (i + 2 * j)
+        name = f"texture/1/{i}_{j}.webp"
+        (bundle / "texture" / "1").mkdir(exist_ok=True)
+        Image.fromarray(rgb).save(bundle / name, "WEBP", lossless=True)
+        nbytes = (bundle / name).stat().st_size
+        nodes.append({"level": 1, "i": i, "j": j, "uv": [i / 2, j / 2, (i + 1) / 2, (j + 1) / 2],
+                      "file": name, "bytes": nbytes})
+        manifest["files"][name] = nbytes
+    texture["nodes"] += nodes
+    texture["levels"].append({"level": 1, "tiles": len(nodes),
+                              "bytes_total": sum(n["bytes"] for n in nodes)})
+    manifest["title"] = "Relief with two texture levels"
+    (bundle / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
 
 def _local(points: np.ndarray) -> np.ndarray:
@@ -117,9 +158,10 @@ def _shown_error(manifest: dict, nodes: dict, level: int, i: int, j: int) -> flo
     return manifest["tiles"]["detail"]["base"]["max"]
 
 
-def _open_detail_viewer(browser, server, **options):
-    """A new page on the relief-detail viewer, ready: ``(context, page, problems, fetched)``
-    with the page's errors and the ``(level, i, j)`` of every detail tile it requests."""
+def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **options):
+    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready:
+    ``(context, page, problems, fetched)`` with the page's errors and the ``(level, i, j)`` of
+    every detail tile it requests."""
     context = browser.new_context(viewport={"width": 800, "height": 600}, **options)
     page = context.new_page()
     problems: list[str] = []
@@ -133,7 +175,7 @@ def _open_detail_viewer(browser, server, **options):
             fetched.append(tuple(int(g) for g in match.groups()))
 
     page.on("request", on_request)
-    page.goto(f"{server.url}/objects/relief-detail/?resolution=64")
+    page.goto(f"{server.url}/objects/{object_id}/?resolution=64")
     page.wait_for_function(READY, timeout=60_000)
     assert page.evaluate("document.body.dataset.error") is None
     return context, page, problems, fetched
@@ -255,12 +297,48 @@ def test_texture_tiles_colour_the_object(browser, detail_server, detail_collecti
 def _ply_arrays(path) -> tuple[str, np.ndarray, np.ndarray]:
     """A PLY's header text, vertices (N, 3) and triangles (M, 3), as trimesh's loader reads them
     (``fix_texture=False``: no re-indexing, unused vertices kept)."""
+    header, loaded = _load_ply(path)
+    return header, np.asarray(loaded["vertices"]), np.asarray(loaded["faces"])
+
+
+def _load_ply(path) -> tuple[str, dict]:
+    """A PLY's header text and trimesh's raw loader output (vertices, faces, vertex_colors)."""
     import trimesh
 
     header = path.read_bytes().split(b"end_header", 1)[0].decode("ascii")
     with open(path, "rb") as handle:
-        loaded = trimesh.exchange.ply.load_ply(handle, fix_texture=False)
-    return header, np.asarray(loaded["vertices"]), np.asarray(loaded["faces"])
+        return header, trimesh.exchange.ply.load_ply(handle, fix_texture=False)
+
+
+def _pillow_textures(bundle, manifest: dict, level: int) -> list:
+    """Every texture tile of levels 0..level, decoded by Pillow (not by the browser) into
+    client_py TextureImage objects."""
+    from PIL import Image
+
+    from client_py import TextureImage
+
+    images = []
+    for node in manifest["tiles"]["texture"]["nodes"]:
+        if node["level"] <= level:
+            with Image.open(bundle / node["file"]) as im:
+                rgb = im.convert("RGB")
+                images.append(TextureImage(node["level"], node["i"], node["j"], rgb.width,
+                                           rgb.height, rgb.tobytes()))
+    return images
+
+
+def _level_reference(bundle, level: int, resolution: int):
+    """The bundle at ``level`` by CPython's client_py (tessellate_bundle, colours from every
+    texture tile of levels <= level decoded by Pillow): ``(positions, indices, colours)``."""
+    from client_py.bundle import tessellate_bundle
+
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    mesh = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(), level=level,
+                             resolution=resolution,
+                             textures=_pillow_textures(bundle, manifest, level))
+    return (np.frombuffer(mesh.positions, np.float32).reshape(-1, 3),
+            np.frombuffer(mesh.indices, np.uint32),
+            np.frombuffer(mesh.colors, np.uint8).reshape(-1, 3))
 
 
 def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, detail_server,
@@ -375,5 +453,191 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
         assert page.locator("#error").is_visible()
         page.wait_for_function("!document.body.dataset.plyBusy")
         assert page.is_enabled("#download-ply")
+    finally:
+        context.close()
+
+
+def test_download_ply_at_a_level_carries_the_texture_colours(browser, detail_server,
+                                                              detail_collection, tmp_path):
+    """A bundle with texture tiles: the level-L PLY has per-vertex colours, sampled from the
+    texture tiles the browser fetched and decoded, equal (within WebP decoder differences) to
+    client_py.tessellate_bundle with every texture tile of levels <= L decoded by Pillow; where
+    the finest texture level lacks a tile, the level-0 tile colours the vertices (not black)."""
+    bundle = detail_collection / "relief-texture"
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    detail = manifest["tiles"]["detail"]
+    level = len(detail["levels"]) - 1
+    assert level == 1
+    resolution = 2 * detail["spans_per_tile"] * 2**level + 1  # 65
+
+    context, page, problems, fetched = _open_detail_viewer(browser, detail_server,
+                                                           "relief-texture", accept_downloads=True)
+    textures: list[str] = []
+    page.on("request", lambda r: textures.append(r.url.split("/relief-texture/", 1)[1])
+            if "/texture/" in r.url else None)
+    try:
+        page.evaluate("window.tessera.tilesIdle()")
+        textures.clear()  # the tile layer's own texture requests
+        label = page.locator(f"#ply-level option[value='{level}']").inner_text()
+        assert label.endswith("· colour"), label
+        page.select_option("#ply-level", str(level))
+        with page.expect_download(timeout=60_000) as info:
+            page.click("#download-ply")
+        path = tmp_path / "texture.ply"
+        info.value.save_as(path)
+        page.wait_for_function("!document.body.dataset.plyBusy")
+        stats = page.evaluate("window.tessera.stats")
+
+        # the texture tiles asked for: the three of level 1 and, for the missing one's
+        # quadrant, level 0's
+        expected_files = {"texture/0/0_0.webp", "texture/1/0_0.webp", "texture/1/1_0.webp",
+                          "texture/1/0_1.webp"}
+        assert set(textures) == expected_files and len(textures) == 4
+        assert stats["ply_textures"] == 4
+        assert stats["ply_texture_bytes"] == sum((bundle / f).stat().st_size
+                                                 for f in expected_files)
+
+        header, loaded = _load_ply(path)
+        assert "property uchar red" in header
+        assert "comment vertex colours sampled from 4 texture tiles of levels 0, 1" in header
+        vertices = np.asarray(loaded["vertices"])
+        colours = np.asarray(loaded["vertex_colors"])[:, :3].astype(int)
+        positions, indices, expected = _level_reference(bundle, level, resolution)
+        assert vertices.shape == positions.shape == (resolution**2, 3)
+        assert np.abs(vertices - positions).max() <= 4 * np.finfo(np.float32).eps * \
+            np.abs(positions).max()
+        assert np.array_equal(np.asarray(loaded["faces"]).ravel(), indices)
+        difference = np.abs(colours - expected.astype(int))
+        assert difference.max() <= 2, difference.max()
+
+        # independent of client_py's sampler: vertices inside a lossless level-1 tile carry its
+        # gradient (red along u, green down the rows = up v, blue of the tile), and those in
+        # the missing tile's quadrant level 0's red or blue stripes
+        u, v = np.meshgrid(np.linspace(0, 1, resolution), np.linspace(0, 1, resolution),
+                           indexing="ij")
+        u, v = u.ravel(), v.ravel()
+        inner = (u > 0.01) & (u < 0.49) & (v > 0.01) & (v < 0.49)  # inside tile 1/0_0
+        x, y = u[inner] * 2 * 256 - 0.5, (1 - 2 * v[inner]) * 256 - 0.5
+        ramp = np.linspace(0, 255, 256)
+        assert np.abs(colours[inner, 0] - np.interp(x, np.arange(256), ramp)).max() <= 1.5
+        assert np.abs(colours[inner, 1] - np.interp(y, np.arange(256), ramp)).max() <= 1.5
+        assert (colours[inner, 2] == 60).all()
+        _, mi, mj = MISSING_TEXTURE
+        quadrant = (u > 0.5 * mi + 0.01) & (v > 0.5 * mj + 0.01)
+        stripe = colours[quadrant]
+        red = (stripe[:, 0] > stripe[:, 2] + 60).mean()
+        blue = (stripe[:, 2] > stripe[:, 0] + 60).mean()
+        assert red > 0.2 and blue > 0.2 and red + blue > 0.8, (red, blue)
+        assert problems == []
+        print(f"\ntextured level {level} PLY, {resolution}x{resolution}: {stats['ply_textures']} "
+              f"texture tiles ({stats['ply_texture_bytes']} B), {stats['ply_ms']:.0f} ms in "
+              f"Python, {stats['ply_total_ms']:.0f} ms in all; colour difference max "
+              f"{difference.max()}, mean {difference.mean():.3f}")
+    finally:
+        context.close()
+
+
+def _hop_available(page, server) -> None:
+    if page.request.get(f"{server.url}/vendor/3dhop/js/presenter.js").status != 200:
+        pytest.skip("3DHOP is not configured (../shared/vendor/3dhop-4.3 absent)")
+
+
+def test_3dhop_page_at_a_detail_level(browser, detail_server, detail_collection, tmp_path):
+    """?level=L on the 3DHOP page: every detail tile of levels 0..L and the texture tile are
+    fetched, 3DHOP loads the level-L PLY (grid min(1025, 2 spans 2^L + 1)^2, the vertices and
+    colours of client_py.tessellate_bundle at L) and shows the coloured stripes; a level the
+    bundle lacks, a malformed one and ?colors=error with a level are named errors."""
+    bundle = detail_collection / "relief-colour"
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    detail = manifest["tiles"]["detail"]
+    level = len(detail["levels"]) - 1
+    resolution = 2 * detail["spans_per_tile"] * 2**level + 1
+
+    context = browser.new_context(viewport={"width": 900, "height": 640})
+    page = context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda exc: problems.append(str(exc)))
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    requested: list[str] = []
+    page.on("request", lambda r: requested.append(r.url.split("/relief-colour/", 1)[1])
+            if "/bundles/relief-colour/" in r.url else None)
+    page.add_init_script("""  // every text the loading panel shows, in order
+        window.loadingTexts = [];
+        new MutationObserver(() => {
+            const text = document.getElementById("loading-text")?.textContent;
+            if (text && window.loadingTexts.at(-1) !== text) window.loadingTexts.push(text);
+        }).observe(document, {subtree: true, childList: true, characterData: true});""")
+    try:
+        _hop_available(page, detail_server)
+        page.goto(f"{detail_server.url}/objects/relief-colour/3dhop?level={level}")
+        page.wait_for_function(READY, timeout=60_000)
+        assert page.evaluate("document.body.dataset.error") is None
+        assert page.evaluate("window.presenter._isSceneReady()") is True
+        stats = page.evaluate("window.tessera.stats")
+        assert stats["level"] == level and stats["resolution"] == resolution
+        assert stats["vertices"] == resolution**2
+
+        # the files: every detail tile of levels 0..L once, and the texture tile
+        wanted = {n["file"] for n in detail["nodes"] if n["level"] <= level}
+        textures = {n["file"] for n in manifest["tiles"]["texture"]["nodes"]}
+        assert {f for f in requested if f.startswith("detail/")} == wanted
+        assert {f for f in requested if f.startswith("texture/")} == textures
+        assert len(requested) == len(set(requested))
+        assert stats["ply_tiles_fetched"] == len(wanted)
+        shown = page.evaluate("window.loadingTexts")
+        assert any(t.startswith(f"Fetching the detail tiles of levels 0–{level}: ") and
+                   "texture tiles: " in t for t in shown), shown
+        assert f"Tessellating level {level} on a {resolution} × {resolution} grid with " \
+               f"{len(wanted)} detail tiles and 1 texture tile…" in shown, shown
+        assert f"Handing the mesh to 3DHOP ({resolution**2:,} vertices)…" in shown, shown
+
+        # the PLY 3DHOP was given is the bundle at level L, coloured
+        data = base64.b64decode(page.evaluate("""async () => {  // base64: a list is slow
+            const blob = await (await fetch(window.tessera.plyUrl)).blob();
+            const url = await new Promise((resolve) => {
+                const reader = new FileReader();
+                reader.onload = () => resolve(reader.result);
+                reader.readAsDataURL(blob);
+            });
+            return url.slice(url.indexOf(",") + 1);
+        }"""))
+        assert len(data) == stats["ply_bytes"]
+        path = tmp_path / "hop-level.ply"
+        path.write_bytes(data)
+        header, loaded = _load_ply(path)
+        assert f"element vertex {resolution**2}" in header and "property uchar red" in header
+        assert f"comment detail level {level}:" in header
+        positions, _, colours = _level_reference(bundle, level, resolution)
+        vertices = np.asarray(loaded["vertices"])
+        assert np.abs(vertices - positions).max() <= 4 * np.finfo(np.float32).eps * \
+            np.abs(positions).max()
+        assert np.abs(np.asarray(loaded["vertex_colors"])[:, :3].astype(int)
+                      - colours.astype(int)).max() <= 2
+
+        # the level choice shows L; 3DHOP draws the vertex colours: both stripes show
+        assert page.locator("#hop-level").input_value() == str(level)
+        assert page.locator("#hop-level option").count() == 1 + len(detail["levels"])
+        assert page.is_disabled("#hop-colors")
+        shot = np.asarray(Image.open(io.BytesIO(page.locator("#draw-canvas").screenshot()))
+                          .convert("RGB")).astype(int)
+        red = (shot[..., 0] > shot[..., 2] + 60).mean()
+        blue = (shot[..., 2] > shot[..., 0] + 60).mean()
+        assert red > 0.03 and blue > 0.03, (red, blue)
+        assert problems == []
+        print(f"\n3DHOP level {level}: {stats['vertices']} vertices, {stats['ply_bytes']} B, "
+              f"{stats['tessellate_ms']:.0f} ms in Python, {stats['ply_total_ms']:.0f} ms "
+              f"fetch + PLY, first frame at {stats['first_frame_ms']:.0f} ms")
+
+        # named errors, before any mesh is made
+        for query, text in ((f"level={level + 5}", f"has no detail level {level + 5} "
+                             f"(its levels are 0–{level})"),
+                            ("level=fine", "?level=fine is not a level of detail"),
+                            (f"level={level}&colors=error", "cannot be combined with a detail "
+                             f"level (?level={level})")):
+            page.goto(f"{detail_server.url}/objects/relief-colour/3dhop?{query}")
+            page.wait_for_function(READY, timeout=30_000)
+            message = page.evaluate("document.body.dataset.error")
+            assert message and text in message, (query, message)
+            assert page.locator("#error").is_visible()
     finally:
         context.close()

@@ -4,19 +4,30 @@
 // Loaded state: 3DHOP's presenter reports its scene ready (presenter._isSceneReady(), set
 // when every mesh of the scene has been parsed and uploaded); the page then sets
 // document.body.dataset.ready = "1" after the next frame, as the viewer page does.
+//
+// Level of detail (?level=L, the #hop-level choice; default "base"): the base patch alone on a
+// 192 x 192 grid (with the error map's colours under ?colors=error), or the bundle at detail
+// level L as the viewer's "Download PLY" makes it (page.js levelPly): every detail tile of
+// levels 0..L fetched, the whole patch tessellated with them on min(1025, 2 spans 2^L + 1)^2
+// vertices, with per-vertex colours from the texture tiles when the bundle has some. The
+// loading panel says what is being fetched and made. Stats (window.tessera.stats) beyond
+// page.js's: level (-1 base), resolution, ply_bytes, and at a level the ply_* of levelPly.
+// window.tessera.plyUrl is the PLY 3DHOP was given.
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, startPage } from "./page.js";
+import { $, levelOption, levelPly, loadManifest, plyLevels, startPage } from "./page.js";
 
 const RESOLUTION = 192; // 36,864 vertices: one 3DHOP chunk (its limit is 65,535 per chunk)
+const FRAME_RESOLUTION = 64; // base grid the framing is computed from at a detail level
 const { config, stats, showStage, showError } = startPage({
+  manifest: "Reading the object's description…",
   runtime: "Starting the Python runtime (Pyodide)…",
   client_py: "Installing client_py…",
   patch: "Reading the NURBS patch…",
   ply: "Writing the PLY mesh…",
   hop: "Handing the mesh to 3DHOP…",
-}, { ply_bytes: 0 });
+}, { ply_bytes: 0, level: -1, resolution: null });
 
 // 3DHOP's toolbar (init.js) calls this global.
 window.actionsToolbar = (action) => {
@@ -76,52 +87,127 @@ function waitForScene(presenter, timeoutMs) {
   });
 }
 
+/** The level asked for by ?level= ("base", "-1" or absent: -1, the base), or an Error. */
+function requestedLevel() {
+  const raw = new URLSearchParams(location.search).get("level");
+  if (raw === null || raw === "" || raw === "base" || raw === "-1") return -1;
+  if (!/^\d+$/.test(raw)) {
+    throw new Error(`?level=${raw} is not a level of detail: use base or a level number (0, 1, …)`);
+  }
+  return Number(raw);
+}
+
+/** This page's URL with the query parameter `name` set to `value` (deleted when null). */
+function withParam(name, value) {
+  const url = new URL(location.href);
+  if (value === null) url.searchParams.delete(name); else url.searchParams.set(name, value);
+  return url;
+}
+
 async function main() {
   if (typeof Presenter === "undefined") throw new Error("3DHOP's scripts did not load (check TESSERA_3DHOP_DIR / TESSERA_3DHOP_URL)");
+  const level = requestedLevel();
+  const useColors = new URLSearchParams(location.search).get("colors") === "error";
+  if (useColors && level >= 0) {
+    throw new Error(`error colours (?colors=error) show the base's distance to the scan: they ` +
+                    `cannot be combined with a detail level (?level=${level})`);
+  }
+  stats.level = level;
   window.init3dhop();
   const presenter = new Presenter("draw-canvas");
   window.presenter = presenter;
 
-  const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
-  const ready = await worker.init({
+  const worker = new MeshWorkerClient(config.worker_url, { onStage: (stage) => showStage(stage) });
+  const readyPromise = worker.init({
     pyodideUrl: config.pyodide_url, pyodideSnapshotUrl: config.pyodide_snapshot_url,
     clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
   }, config.pyodide_timeout_s);
+  readyPromise.catch(() => {}); // awaited below; this only keeps an early failure "handled"
+  const manifest = await loadManifest(config.manifest_url, stats);
+
+  // The level choice: base, and one entry per detail level of the bundle.
+  const select = $("hop-level");
+  let levels = [];
+  let levelsError = null;
+  try {
+    levels = plyLevels(manifest);
+  } catch (error) {
+    levelsError = error;
+  }
+  const units = manifest.units || "unknown";
+  for (const choice of levels) select.append(levelOption(choice, units));
+  select.value = String(level);
+  select.disabled = !levels.length;
+  select.title = levelsError ? levelsError.message : levels.length
+    ? "Level of detail shown: the base patch alone, or the base with every detail tile of " +
+      "levels 0..L (their size, and the RMS distance to the scan at that level, are shown)" +
+      (manifest.tiles.texture ? ", coloured from the object's texture tiles" : "")
+    : "this bundle has no detail tiles: the base patch alone";
+  select.addEventListener("change", () => {
+    const url = withParam("level", select.value === "-1" ? null : select.value);
+    url.searchParams.delete("colors");
+    location.assign(url);
+  });
+  const choice = level >= 0 ? levels.find((c) => c.level === level) : null;
+  if (level >= 0 && !choice) {
+    if (levelsError) throw new Error(`cannot show level ${level}: ${levelsError.message}`);
+    throw new Error(levels.length
+      ? `this bundle has no detail level ${level} (its levels are 0–${levels.length - 1})`
+      : `this bundle has no detail tiles: ?level=${level} cannot be shown (only the base)`);
+  }
+
+  const colorsBox = $("hop-colors");
+  colorsBox.checked = useColors;
+  if (level >= 0) {
+    colorsBox.disabled = true;
+    colorsBox.parentElement.title = "The error map is the base's distance to the scan: " +
+      "choose the base level to see it";
+  }
+  colorsBox.addEventListener("change", () => {
+    const url = withParam("colors", colorsBox.checked ? "error" : null);
+    url.searchParams.delete("level");
+    location.assign(url);
+  });
+
+  const ready = await readyPromise;
   stats.pyodide_load_ms = ready.pyodide_load_ms;
   stats.kernel = ready.kernel;
   stats.bytes_downloaded += ready.patch_bytes;
 
-  let errorMap = null;
-  const useColors = new URLSearchParams(location.search).get("colors") === "error";
-  $("hop-colors").checked = useColors;
-  $("hop-colors").addEventListener("change", () => {
-    const url = new URL(location.href);
-    if ($("hop-colors").checked) url.searchParams.set("colors", "error"); else url.searchParams.delete("colors");
-    location.assign(url);
-  });
-  const resolution = config.resolution || RESOLUTION;
-  showStage("ply");
-  const mesh = await worker.tessellate(resolution);
-  stats.tessellate_ms = mesh.tessellate_ms;
   let colors = null;
-  if (useColors) {
-    const response = await fetch(config.manifest_url);
-    if (!response.ok) throw new Error(`cannot fetch the manifest: HTTP ${response.status}`);
-    const manifest = await response.json();
-    if (!manifest.error_grid) throw new Error("this bundle has no error data to colour the mesh with");
-    errorMap = new ErrorMap(manifest.error_grid, manifest.units || "");
-    colors = errorMap.vertexColors(mesh.uvs, ready.patch.domain);
+  let ply;
+  let frame; // the base mesh the view is framed on
+  if (!choice) {
+    const resolution = config.resolution || RESOLUTION;
+    showStage("ply");
+    frame = await worker.tessellate(resolution);
+    stats.tessellate_ms = frame.tessellate_ms;
+    if (useColors) {
+      if (!manifest.error_grid) throw new Error("this bundle has no error data to colour the mesh with");
+      const errorMap = new ErrorMap(manifest.error_grid, manifest.units || "");
+      colors = errorMap.vertexColors(frame.uvs, ready.patch.domain);
+    }
+    ply = await worker.ply(resolution, colors);
+    stats.resolution = resolution;
+  } else {
+    showStage("ply");
+    frame = await worker.tessellate(FRAME_RESOLUTION);
+    ply = await levelPly(worker, choice, {
+      manifestUrl: config.manifest_url, stats, onProgress: (text) => showStage("ply", text) });
+    stats.tessellate_ms = ply.write_ms;
+    stats.resolution = ply.resolution;
+    stats.ply_level = level;
+    colors = choice.textures.length ? true : null;
   }
-  const ply = await worker.ply(resolution, colors);
   stats.vertices = ply.vertices;
-  stats.triangles = mesh.indices.length / 3;
+  stats.triangles = ply.triangles;
   stats.ply_bytes = ply.bytes.length;
   const url = URL.createObjectURL(new Blob([ply.bytes], { type: "application/octet-stream" }));
   window.tessera.plyUrl = url;
 
-  showStage("hop");
+  showStage("hop", `Handing the mesh to 3DHOP (${ply.vertices.toLocaleString("en")} vertices)…`);
   presenter.setScene({
-    meshes: { tessera: { url, mType: "ply", transform: { matrix: facingMatrix(mesh.positions, mesh.normals) } } },
+    meshes: { tessera: { url, mType: "ply", transform: { matrix: facingMatrix(frame.positions, frame.normals) } } },
     // A stone-like solid colour, or -2,-2,-2 meaning "the vertex colours" when the mesh has
     // them (client_py writes texture_u/v only with a texture, which 3DHOP would sample).
     modelInstances: { object: { mesh: "tessera", useSolidColor: true,
@@ -133,7 +219,8 @@ async function main() {
     },
     space: { cameraFOV: 40.0 },
   });
-  await waitForScene(presenter, 20000);
+  // 3DHOP parses the PLY on the main thread: allow for a million-vertex level
+  await waitForScene(presenter, 20000 + ply.vertices / 20);
   presenter.repaint();
   await new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve)));
   stats.first_frame_ms = performance.now();

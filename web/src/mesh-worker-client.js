@@ -59,16 +59,23 @@ export class MeshWorkerClient {
   /** PLY of the whole patch at detail level `level` (>= 0) on a resolution x resolution grid,
    *  with the detail tiles `names` (every tile of levels 0..level): those the worker holds
    *  (see holds()) are used as they are, the others must be in `fresh` (a Map name -> bytes,
-   *  transferred). Resolves with {bytes, vertices, write_ms}. Tiles the worker does not hold
-   *  at the moment of the call and `fresh` lacks reject at once (the caller fetches them). */
-  plyLevel(level, resolution, names, fresh = new Map()) {
+   *  transferred). `textures`: decoded texture tiles {level, i, j, width, height, rgb} (rgb a
+   *  Uint8Array of rows top to bottom, transferred; see page.js decodeTextureRgb) to sample
+   *  per-vertex colours from (client_py TextureImage objects in the worker); none: no colours.
+   *  Resolves with {bytes, vertices, triangles, resolution, write_ms}. Tiles the worker does
+   *  not hold at the moment of the call and `fresh` lacks reject at once (the caller fetches
+   *  them). */
+  plyLevel(level, resolution, names, fresh = new Map(), textures = []) {
     const missing = names.filter((name) => !this.held.has(name) && !fresh.has(name));
     if (missing.length) {
       return Promise.reject(new Error(`detail tiles not fetched: ${missing.join(", ")}`));
     }
     const sent = [...fresh].map(([name, bytes]) => ({ name, bytes }));
-    return this._request({ type: "ply", level, resolution, names, fresh: sent },
-                         sent.map((tile) => tile.bytes.buffer));
+    const images = textures.map(({ level: k, i, j, width, height, rgb }) =>
+      ({ level: k, i, j, width, height, rgb }));
+    return this._request({ type: "ply", level, resolution, names, fresh: sent, textures: images },
+                         [...sent.map((tile) => tile.bytes.buffer),
+                          ...images.map((image) => image.rgb.buffer)]);
   }
 
   /** Whether the worker will hold detail tile `name` when it reaches the next request. */

@@ -5,11 +5,15 @@
 //   worker -> {type: "stage", stage: "runtime" | "client_py" | "patch", ...}   (progress)
 //   worker -> {type: "ready", pyodide_load_ms, kernel, patch: {...}}           (init done)
 //   page -> {type: "tessellate", resolution}  -> {type: "mesh", positions, normals, uvs, indices, ...}
-//   page -> {type: "ply", resolution, colors?} -> {type: "ply", bytes}          (client_py.write_ply)
-//   page -> {type: "ply", resolution, level, names, fresh?: [{name, bytes}]}
-//        -> {type: "ply", bytes, vertices, write_ms}  (level >= 0: the whole domain at detail
-//           level `level`, tessellate_region over (0, 0, 1, 1) with the named tiles, scan frame;
-//           each name is a tile the worker holds or one of `fresh`, decoded for this request only)
+//   page -> {type: "ply", resolution, colors?} -> {type: "ply", bytes, vertices, triangles}
+//                                                  (client_py.write_ply of the base mesh)
+//   page -> {type: "ply", resolution, level, names, fresh?: [{name, bytes}],
+//            textures?: [{level, i, j, width, height, rgb}]}
+//        -> {type: "ply", bytes, vertices, triangles, write_ms}  (level >= 0: the whole domain
+//           at detail level `level`, tessellate_region over (0, 0, 1, 1) with the named tiles,
+//           scan frame; each name is a tile the worker holds or one of `fresh`, decoded for this
+//           request only; vertex colours sampled from the texture tiles when some are sent:
+//           client_py.layers.TextureImage of the RGB bytes, rows top to bottom)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (read_detail_tile, kept)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (forget tiles)
 //   page -> {type: "region", level, i, j, grid, names, skirtDepth}
@@ -32,7 +36,7 @@ from array import array
 from dataclasses import replace
 from client_py import read_detail_tile, read_patch, tessellate_grid, tessellate_region, write_ply
 from client_py import _kernel
-from client_py.layers import tile_rect, transform_mesh
+from client_py.layers import TextureImage, tile_rect, transform_mesh
 
 _surface = None
 _patch = None  # the patch in its own frame: detail displaces along *its* normal
@@ -73,13 +77,16 @@ def tessera_ply(resolution, js_colors):
     comments = [f"source {_source}", f"units {_surface.metadata.get('units', 'unknown')}",
                 f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
     data = write_ply(mesh, binary=True, comments=comments)
-    return data, mesh.vertex_count, (time.perf_counter() - t0) * 1000.0
+    return data, mesh.vertex_count, mesh.triangle_count, (time.perf_counter() - t0) * 1000.0
 
-def tessera_ply_level(level, resolution, names, fresh_names, fresh_bytes):
+def tessera_ply_level(level, resolution, names, fresh_names, fresh_bytes, texture_nodes,
+                      texture_rgb):
     """PLY of the whole domain at detail level 'level': the base patch plus the named
     detail tiles (those of levels 0..level; held ones, or fresh ones sent with the request,
     which are decoded here and not kept), on a resolution x resolution grid, in the scan
-    frame: what 'tessera tessellate OUTDIR --level L' writes (client_py.tessellate_bundle).
+    frame, with per-vertex colours sampled from the texture tiles given as
+    [level, i, j, width, height] and their RGB bytes (rows top to bottom): what
+    'tessera tessellate OUTDIR --level L' writes (client_py.tessellate_bundle).
     (No backquotes in here: this Python lives in a JavaScript template literal.)"""
     t0 = time.perf_counter()
     fresh = {}
@@ -96,15 +103,27 @@ def tessera_ply_level(level, resolution, names, fresh_names, fresh_bytes):
         if tile.level > level:
             raise ValueError(f"detail tile {name} is of level {tile.level}, finer than {level}")
         tiles.append(tile)
-    mesh = tessellate_region(_patch, (0.0, 0.0, 1.0, 1.0), resolution, resolution, tiles)
+    textures = []
+    for node, rgb in zip(texture_nodes, texture_rgb, strict=True):
+        k, i, j, width, height = node
+        try:
+            textures.append(TextureImage(k, i, j, width, height, rgb.to_bytes()))
+        except ValueError as exc:
+            raise ValueError(f"texture tile {k}/{i}_{j}: {exc}") from None
+    mesh = tessellate_region(_patch, (0.0, 0.0, 1.0, 1.0), resolution, resolution, tiles,
+                             textures=textures)
     matrix = _patch.metadata.get("transform")
     if matrix is not None:
         mesh = transform_mesh(mesh, matrix)
     comments = [f"source {_source}", f"units {_surface.metadata.get('units', 'unknown')}",
                 f"detail level {level}: base patch + {len(tiles)} detail tiles of levels 0..{level}",
                 f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
+    if textures:
+        levels = sorted({t.level for t in textures})
+        comments.append(f"vertex colours sampled from {len(textures)} texture tiles of levels "
+                        + ", ".join(str(k) for k in levels))
     data = write_ply(mesh, binary=True, comments=comments)
-    return data, mesh.vertex_count, (time.perf_counter() - t0) * 1000.0
+    return data, mesh.vertex_count, mesh.triangle_count, (time.perf_counter() - t0) * 1000.0
 
 def tessera_add_tile(name, js_bytes):
     tile = read_detail_tile(js_bytes.to_bytes())
@@ -318,17 +337,20 @@ function region({ id, level, i, j, grid, names, skirtDepth }) {
   }
 }
 
-function ply({ id, resolution, colors, level, names, fresh }) {
+function ply({ id, resolution, colors, level, names, fresh, textures }) {
   const atLevel = Number.isInteger(level) && level >= 0;
+  const images = textures || [];
   const result = atLevel
     ? glue.plyLevel(level, resolution, names, (fresh || []).map((t) => t.name),
-                    (fresh || []).map((t) => t.bytes))
+                    (fresh || []).map((t) => t.bytes),
+                    images.map((t) => [t.level, t.i, t.j, t.width, t.height]),
+                    images.map((t) => t.rgb))
     : glue.ply(resolution, colors || undefined); // undefined -> None (null is JsNull)
   try {
-    const [data, vertices, ms] = result;
+    const [data, vertices, triangles, ms] = result;
     const bytes = copyBuffer(data);
-    post({ type: "ply", id, resolution, level: atLevel ? level : -1, bytes, vertices, write_ms: ms },
-         [bytes.buffer]);
+    post({ type: "ply", id, resolution, level: atLevel ? level : -1, bytes, vertices, triangles,
+           write_ms: ms }, [bytes.buffer]);
   } finally {
     result.destroy();
   }

@@ -1,8 +1,17 @@
 // What every object page shares: the server's JSON config block, the stats object of the
-// testing contract (window.tessera.stats), and the loading and error panels
-// (templates/_status.html). On failure the message goes to document.body.dataset.error.
+// testing contract (window.tessera.stats), the loading and error panels
+// (templates/_status.html; on failure the message goes to document.body.dataset.error), the
+// manifest, and the bundle at a detail level as a PLY (the viewer's "Download PLY" and the
+// 3DHOP page's ?level=L): which detail and texture tiles a level needs (plyLevels), their
+// fetching, the texture tiles decoded to RGB bytes (decodeTextureRgb) and the worker's
+// tessellation with them (levelPly).
+
+import { fetchBytes } from "./fetch-bytes.js";
 
 export const $ = (id) => document.getElementById(id);
+
+export const PLY_MAX_RES = 1025; // a level-L PLY's grid is capped here (1M vertices)
+const FETCH_PARALLEL = 6; // tile fetches in flight at once for a PLY
 
 export function startPage(stages, extraStats = {}) {
   const config = JSON.parse($("tessera-config").textContent);
@@ -10,8 +19,9 @@ export function startPage(stages, extraStats = {}) {
     first_frame_ms: null, bytes_downloaded: 0, kernel: null, ...extraStats };
   window.tessera = { config, stats };
 
-  function showStage(stage) {
-    $("loading-text").textContent = stages[stage] || stage;
+  /** Show `stage`'s text in the loading panel, or `text` when given (progress within it). */
+  function showStage(stage, text) {
+    $("loading-text").textContent = typeof text === "string" ? text : stages[stage] || stage;
     document.body.dataset.stage = stage;
   }
 
@@ -23,4 +33,223 @@ export function startPage(stages, extraStats = {}) {
   }
 
   return { config, stats, showStage, showError };
+}
+
+/** "1 texture tile", "4 texture tiles". */
+export function plural(n, word) {
+  return `${n.toLocaleString("en")} ${word}${n === 1 ? "" : "s"}`;
+}
+
+export function formatBytes(n) {
+  if (n < 1024) return `${n} B`;
+  if (n < 1024 * 1024) return `${(n / 1024).toFixed(1)} KB`;
+  return `${(n / 1024 / 1024).toFixed(1)} MB`;
+}
+
+export function formatLength(value, units) {
+  if (value === undefined || value === null || !Number.isFinite(value)) return "—";
+  const digits = Math.abs(value) >= 10 ? 1 : Math.abs(value) >= 1 ? 2 : 3;
+  return `${value.toFixed(digits)} ${units === "unknown" ? "" : units}`.trim();
+}
+
+/** The bundle's manifest.json, parsed; its size is added to stats.bytes_downloaded. */
+export async function loadManifest(url, stats) {
+  let response;
+  try {
+    response = await fetch(url);
+  } catch (error) {
+    throw new Error(`cannot fetch the manifest (${url}): ${error.message}`);
+  }
+  if (!response.ok) throw new Error(`cannot fetch the manifest (${url}): HTTP ${response.status}`);
+  const text = await response.text();
+  stats.bytes_downloaded += text.length;
+  try {
+    return JSON.parse(text);
+  } catch (error) {
+    throw new Error(`the manifest is not valid JSON: ${error.message}`);
+  }
+}
+
+/** The texture tiles a PLY at detail level `level` samples its vertex colours from: the
+ *  manifest's texture nodes (tiles.texture.nodes) that client_py.layers.vertex_colours picks
+ *  for some vertex when given every texture tile of levels 0..T, T = min(level, the finest
+ *  texture level): for each node of level T, the deepest present node among it and its
+ *  ancestors (a quadtree node the fitter left out, having no colour samples of its own, falls
+ *  back to its nearest coarser tile, not to black). Where level T is complete this is level
+ *  T's tiles alone, as `tessera tessellate OUTDIR --level L` (client_py.bundle.texture_nodes)
+ *  samples. [] for a bundle without texture. Walks only the branches holding tiles. */
+export function textureNodes(manifest, level) {
+  const texture = manifest.tiles && manifest.tiles.texture;
+  const nodes = (texture && Array.isArray(texture.nodes)) ? texture.nodes : [];
+  if (!nodes.length || level < 0) return [];
+  for (const node of nodes) {
+    if (![node.level, node.i, node.j].every(Number.isInteger) || node.level < 0 ||
+        typeof node.file !== "string") {
+      throw new Error(`manifest tiles.texture node ${JSON.stringify(node)} is not a valid node`);
+    }
+  }
+  const top = Math.min(level, Math.max(...nodes.map((node) => node.level)));
+  const key = (k, i, j) => `${k}/${i}/${j}`;
+  const present = new Map();
+  const branches = new Set(); // nodes with a present node of levels <= top at or below them
+  for (const node of nodes) {
+    if (node.level > top) continue;
+    present.set(key(node.level, node.i, node.j), node);
+    for (let k = node.level; k >= 0; k--) {
+      branches.add(key(k, node.i >> (node.level - k), node.j >> (node.level - k)));
+    }
+  }
+  const used = new Set();
+  const children = (k, i, j) => [[0, 0], [1, 0], [0, 1], [1, 1]].map(
+    ([di, dj]) => [k + 1, 2 * i + di, 2 * j + dj]);
+  const visit = (k, i, j, fallback) => {
+    const best = present.get(key(k, i, j)) || fallback;
+    for (const child of k < top ? children(k, i, j) : [null]) {
+      if (child && branches.has(key(...child))) visit(...child, best);
+      else if (best) used.add(best); // the level-`top` nodes in here fall back to `best`
+    }
+  };
+  visit(0, 0, 0, null);
+  return [...used].sort((a, b) => a.level - b.level || a.i - b.i || a.j - b.j);
+}
+
+/** The PLY levels a manifest offers: one {level, rms, names, bytes, textures, textureBytes,
+ *  resolution} per entry of tiles.detail.levels, with the files and total bytes of its detail
+ *  tiles and those of the coarser levels (all applied at that level), the texture nodes its
+ *  vertex colours come from (textureNodes) and its grid R = min(1025, 2 spans_per_tile 2^L + 1)
+ *  (two vertices per knot span of the level's tiles); [] for a bundle without detail tiles. */
+export function plyLevels(manifest) {
+  const detail = manifest.tiles && manifest.tiles.detail;
+  if (!detail || !Array.isArray(detail.levels) || !detail.levels.length) return [];
+  const spans = detail.spans_per_tile;
+  if (!Number.isInteger(spans) || spans < 1) {
+    throw new Error(`manifest tiles.detail.spans_per_tile is not a positive integer: ${JSON.stringify(spans)}`);
+  }
+  const nodes = Array.isArray(detail.nodes) ? detail.nodes : [];
+  return detail.levels.map((entry) => {
+    if (!Number.isInteger(entry.level) || entry.level < 0) {
+      throw new Error(`manifest tiles.detail.levels entry ${JSON.stringify(entry)} has no valid level`);
+    }
+    const used = nodes.filter((node) => node.level <= entry.level);
+    const textures = textureNodes(manifest, entry.level);
+    return {
+      level: entry.level, rms: entry.rms, names: used.map((node) => node.file),
+      bytes: used.reduce((sum, node) => sum + (node.bytes || 0), 0),
+      textures, textureBytes: textures.reduce((sum, node) => sum + (node.bytes || 0), 0),
+      resolution: Math.min(PLY_MAX_RES, 2 * spans * 2 ** entry.level + 1),
+    };
+  });
+}
+
+/** An <option> for a level choice of plyLevels: its label gives the bytes to fetch (detail
+ *  and texture tiles) and the RMS at that level, its title the files and the grid. */
+export function levelOption(choice, units) {
+  const option = document.createElement("option");
+  option.value = String(choice.level);
+  option.textContent = `level ${choice.level} · ${formatBytes(choice.bytes + choice.textureBytes)} · ` +
+    `RMS ${formatLength(choice.rms, units)}` + (choice.textures.length ? " · colour" : "");
+  option.title = `base + ${plural(choice.names.length, "detail tile")} of levels ` +
+    `0–${choice.level} (${formatBytes(choice.bytes)})` +
+    (choice.textures.length ? `, vertex colours from ${plural(choice.textures.length, "texture tile")} ` +
+      `(${formatBytes(choice.textureBytes)})` : "") +
+    `, tessellated on a ${choice.resolution} × ${choice.resolution} grid`;
+  return option;
+}
+
+/** Run `task(item)` over `items`, at most `limit` at a time; rejects with the first failure
+ *  (no new task starts after it). */
+export async function forEachLimited(items, limit, task) {
+  let next = 0;
+  let failed = false;
+  const run = async () => {
+    while (!failed && next < items.length) {
+      const item = items[next++];
+      try {
+        await task(item);
+      } catch (error) {
+        failed = true;
+        throw error;
+      }
+    }
+  };
+  await Promise.all(Array.from({ length: Math.min(limit, items.length) }, run));
+}
+
+/** A texture tile's image (WebP or PNG bytes) decoded to 8-bit RGB as client_py's TextureImage
+ *  holds it: {level, i, j, width, height, rgb: Uint8Array of 3 width height bytes}, rows top
+ *  (y = 0, v = v1) to bottom, as stored (docs/format.md, "Texture tiles"; no flip, no colour
+ *  management: the file's bytes are the colours). `node` is its manifest node. */
+export async function decodeTextureRgb(bytes, node) {
+  let bitmap;
+  try {
+    bitmap = await createImageBitmap(new Blob([bytes]), {
+      colorSpaceConversion: "none", premultiplyAlpha: "none" });
+  } catch (error) {
+    throw new Error(`texture tile ${node.file} is not a decodable image: ${error.message}`);
+  }
+  const { width, height } = bitmap;
+  const canvas = new OffscreenCanvas(width, height);
+  const context = canvas.getContext("2d", { willReadFrequently: true });
+  context.drawImage(bitmap, 0, 0);
+  bitmap.close();
+  const rgba = context.getImageData(0, 0, width, height).data;
+  const rgb = new Uint8Array(3 * width * height);
+  for (let k = 0, m = 0; m < rgb.length; k += 4, m += 3) {
+    rgb[m] = rgba[k];
+    rgb[m + 1] = rgba[k + 1];
+    rgb[m + 2] = rgba[k + 2];
+  }
+  return { level: node.level, i: node.i, j: node.j, width, height, rgb };
+}
+
+/**
+ * The PLY of the bundle at detail level choice.level (an entry of plyLevels): the detail
+ * tiles the worker does not hold are fetched, the texture tiles fetched and decoded to RGB,
+ * then the worker tessellates the whole patch with them (MeshWorkerClient.plyLevel).
+ * Resolves with the worker's reply {bytes, vertices, triangles, resolution, write_ms}.
+ * Sets stats.ply_tiles_fetched, ply_fetch_bytes (detail tiles), ply_textures,
+ * ply_texture_bytes, ply_total_ms and adds what it fetched to bytes_downloaded;
+ * onProgress(text) is told what is being done. A tile that cannot be fetched or decoded
+ * rejects with its name and the reason.
+ */
+export async function levelPly(worker, choice, { manifestUrl, stats, onProgress = () => {} }) {
+  const t0 = performance.now();
+  const baseUrl = new URL(manifestUrl, window.location.href);
+  const fresh = new Map(); // name -> bytes fetched for this PLY
+  const images = [];
+  let fetched = 0;
+  let textureBytes = 0;
+  const total = choice.names.length;
+  const lacking = () => choice.names.filter((name) => !fresh.has(name) && !worker.holds(name));
+  const progress = () => onProgress(`Fetching the detail tiles of levels 0–${choice.level}: ` +
+    `${total - lacking().length} of ${total}` +
+    (choice.textures.length ? `, texture tiles: ${images.length} of ${choice.textures.length}` : "") +
+    ` (${formatBytes(fetched + textureBytes)} fetched)…`);
+  const fetchTiles = (names) => forEachLimited(names, FETCH_PARALLEL, async (name) => {
+    const bytes = await fetchBytes(new URL(name, baseUrl).href, `detail tile ${name}`);
+    fresh.set(name, bytes);
+    fetched += bytes.length;
+    stats.bytes_downloaded += bytes.length;
+    progress();
+  });
+  const fetchTextures = () => forEachLimited(choice.textures, FETCH_PARALLEL, async (node) => {
+    const bytes = await fetchBytes(new URL(node.file, baseUrl).href, `texture tile ${node.file}`);
+    textureBytes += bytes.length;
+    stats.bytes_downloaded += bytes.length;
+    images.push(await decodeTextureRgb(bytes, node));
+    progress();
+  });
+  progress();
+  await Promise.all([fetchTiles(lacking()), fetchTextures()]);
+  // the viewer's tile layer may drop a tile meanwhile (the camera moved): fetch until none lacks
+  for (let missing = lacking(); missing.length; missing = lacking()) await fetchTiles(missing);
+  Object.assign(stats, { ply_tiles_fetched: fresh.size, ply_fetch_bytes: fetched,
+                         ply_textures: images.length, ply_texture_bytes: textureBytes });
+  onProgress(`Tessellating level ${choice.level} on a ${choice.resolution} × ` +
+             `${choice.resolution} grid with ${plural(total, "detail tile")}` +
+             (images.length ? ` and ${plural(images.length, "texture tile")}…` : "…"));
+  // no await since the last check: the worker will hold every name not in `fresh`
+  const ply = await worker.plyLevel(choice.level, choice.resolution, choice.names, fresh, images);
+  stats.ply_total_ms = performance.now() - t0;
+  return ply;
 }

@@ -15,23 +15,26 @@
 // (with the error map's colours when it is shown), or detail level L: every detail tile of
 // levels 0..L is fetched (those the worker already holds are not) and the worker tessellates
 // the whole patch with them on an R x R grid, R = min(1025, 2 spans_per_tile 2^L + 1) (two
-// vertices per knot span of the level's tiles), as `tessera tessellate OUTDIR --level L`.
+// vertices per knot span of the level's tiles), as `tessera tessellate OUTDIR --level L`;
+// a bundle with texture tiles gives the vertices colours sampled from them (decoded here,
+// sampled by client_py in the worker; page.js levelPly and textureNodes).
 // Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
 // ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
-// ply_fetch_bytes; document.body.dataset.plyBusy is "1" while a PLY is being made, and
+// ply_fetch_bytes (detail tiles), ply_textures, ply_texture_bytes (texture tiles fetched);
+// document.body.dataset.plyBusy is "1" while a PLY is being made, and
 // #ply-status (under the buttons) says what is being done, then the file written.
 // All URLs come from the server's JSON config block.
 
 import { ErrorMap } from "./error-map.js";
-import { fetchBytes } from "./fetch-bytes.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, startPage } from "./page.js";
+import {
+  $, formatBytes, formatLength, levelOption, levelPly, loadManifest, PLY_MAX_RES, plyLevels,
+  startPage,
+} from "./page.js";
 
 const COARSE = 24; // first mesh: ~1k vertices, drawn within milliseconds of the patch
 const MIN_RES = 48;
 const MAX_RES = 384;
-const PLY_MAX_RES = 1025; // a level-L PLY's grid is capped here (1M vertices)
-const FETCH_PARALLEL = 6; // tile fetches in flight at once for a PLY
 
 const { config, stats, showStage, showError } = startPage({
   manifest: "Reading the object's description…",
@@ -43,18 +46,6 @@ const { config, stats, showStage, showError } = startPage({
 }, { resolution: null, meshes: 0, tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0, regions: 0,
      ply_level: null, ply_bytes: 0 });
 
-function formatBytes(n) {
-  if (n < 1024) return `${n} B`;
-  if (n < 1024 * 1024) return `${(n / 1024).toFixed(1)} KB`;
-  return `${(n / 1024 / 1024).toFixed(1)} MB`;
-}
-
-function formatLength(value, units) {
-  if (value === undefined || value === null || !Number.isFinite(value)) return "—";
-  const digits = Math.abs(value) >= 10 ? 1 : Math.abs(value) >= 1 ? 2 : 3;
-  return `${value.toFixed(digits)} ${units === "unknown" ? "" : units}`.trim();
-}
-
 function setFact(id, text) {
   const el = $(id);
   if (el) el.textContent = text;
@@ -64,50 +55,6 @@ function setFact(id, text) {
 function viewResolution(viewer) {
   const pixels = viewer.projectedDiameter() / 3;
   return Math.min(MAX_RES, Math.max(MIN_RES, Math.round(pixels / 16) * 16));
-}
-
-/** The PLY levels a manifest offers: one {level, rms, names, bytes, resolution} per entry of
- *  tiles.detail.levels, with the files and total bytes of its tiles and those of the coarser
- *  levels (all applied at that level) and its grid R = min(1025, 2 spans_per_tile 2^L + 1);
- *  [] for a bundle without detail tiles. */
-function plyLevels(manifest) {
-  const detail = manifest.tiles && manifest.tiles.detail;
-  if (!detail || !Array.isArray(detail.levels) || !detail.levels.length) return [];
-  const spans = detail.spans_per_tile;
-  if (!Number.isInteger(spans) || spans < 1) {
-    throw new Error(`manifest tiles.detail.spans_per_tile is not a positive integer: ${JSON.stringify(spans)}`);
-  }
-  const nodes = Array.isArray(detail.nodes) ? detail.nodes : [];
-  return detail.levels.map((entry) => {
-    if (!Number.isInteger(entry.level) || entry.level < 0) {
-      throw new Error(`manifest tiles.detail.levels entry ${JSON.stringify(entry)} has no valid level`);
-    }
-    const used = nodes.filter((node) => node.level <= entry.level);
-    return {
-      level: entry.level, rms: entry.rms, names: used.map((node) => node.file),
-      bytes: used.reduce((sum, node) => sum + (node.bytes || 0), 0),
-      resolution: Math.min(PLY_MAX_RES, 2 * spans * 2 ** entry.level + 1),
-    };
-  });
-}
-
-/** Run `task(item)` over `items`, at most `limit` at a time; rejects with the first failure
- *  (no new task starts after it). */
-async function forEachLimited(items, limit, task) {
-  let next = 0;
-  let failed = false;
-  const run = async () => {
-    while (!failed && next < items.length) {
-      const item = items[next++];
-      try {
-        await task(item);
-      } catch (error) {
-        failed = true;
-        throw error;
-      }
-    }
-  };
-  await Promise.all(Array.from({ length: Math.min(limit, items.length) }, run));
 }
 
 /** Offer `bytes` as a download named `name`. */
@@ -128,18 +75,6 @@ function showPlyStatus(text) {
   const line = $("ply-status");
   line.textContent = text;
   line.hidden = !text;
-}
-
-async function loadManifest() {
-  const response = await fetch(config.manifest_url);
-  if (!response.ok) throw new Error(`cannot fetch the manifest (${config.manifest_url}): HTTP ${response.status}`);
-  const text = await response.text();
-  stats.bytes_downloaded += text.length;
-  try {
-    return JSON.parse(text);
-  } catch (error) {
-    throw new Error(`the manifest is not valid JSON: ${error.message}`);
-  }
 }
 
 function describe(manifest, ready) {
@@ -180,7 +115,7 @@ async function main() {
     clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
   }, config.pyodide_timeout_s);
   readyPromise.catch(() => {}); // awaited below; this only keeps an early failure "handled"
-  const manifestPromise = loadManifest();
+  const manifestPromise = loadManifest(config.manifest_url, stats);
   manifestPromise.catch(() => {});
   const tileModule = import("./tile-layer.js");
   tileModule.catch(() => {});
@@ -335,16 +270,7 @@ async function main() {
     console.warn(error.message);
   }
   const units = manifest.units || ready.patch.units || "unknown";
-  for (const choice of levels) {
-    const option = document.createElement("option");
-    option.value = String(choice.level);
-    option.textContent = `level ${choice.level} · ${formatBytes(choice.bytes)} · ` +
-      `RMS ${formatLength(choice.rms, units)}`;
-    option.title = `base + ${choice.names.length} detail tiles of levels 0–${choice.level} ` +
-      `(${formatBytes(choice.bytes)}), tessellated on a ${choice.resolution} × ` +
-      `${choice.resolution} grid`;
-    select.append(option);
-  }
+  for (const choice of levels) select.append(levelOption(choice, units));
   if (levels.length) {
     const spans = manifest.tiles.detail.spans_per_tile;
     select.title = "Level of detail of the PLY. base: the mesh on screen (with the error map's " +
@@ -352,40 +278,10 @@ async function main() {
       "(their total size is shown; tiles already loaded are not fetched again), the RMS " +
       "distance to the scan at that level, tessellated over the whole object on an R × R " +
       `grid, R = min(${PLY_MAX_RES}, 2 × ${spans} spans per tile × 2^L + 1): two vertices ` +
-      "per knot span of the level's tiles.";
+      "per knot span of the level's tiles" + (manifest.tiles.texture
+        ? "; with the object's colours sampled from its texture tiles (size included)." : ".");
     select.hidden = false;
     select.disabled = false;
-  }
-
-  /** The PLY at detail level choice.level: fetch the tiles the worker lacks, then tessellate. */
-  async function levelPly(choice) {
-    const t0 = performance.now();
-    const fresh = new Map(); // name -> bytes fetched for this PLY
-    let fetched = 0;
-    const total = choice.names.length;
-    const lacking = () => choice.names.filter((name) => !fresh.has(name) && !worker.holds(name));
-    const progress = () => showPlyStatus(`Fetching the detail tiles of levels 0–${choice.level}: ` +
-      `${total - lacking().length} of ${total} (${formatBytes(fetched)} fetched)…`);
-    const baseUrl = new URL(config.manifest_url, window.location.href);
-    progress();
-    // the tile layer may drop a tile meanwhile (the camera moved): fetch until none lacks
-    for (let missing = lacking(); missing.length; missing = lacking()) {
-      await forEachLimited(missing, FETCH_PARALLEL, async (name) => {
-        const bytes = await fetchBytes(new URL(name, baseUrl).href, name);
-        fresh.set(name, bytes);
-        fetched += bytes.length;
-        stats.bytes_downloaded += bytes.length;
-        progress();
-      });
-    }
-    stats.ply_tiles_fetched = fresh.size;
-    stats.ply_fetch_bytes = fetched;
-    showPlyStatus(`Tessellating level ${choice.level} on a ${choice.resolution} × ` +
-                  `${choice.resolution} grid with ${total} detail tiles…`);
-    // posted with no await since the last check: the worker will hold every name not in `fresh`
-    const ply = await worker.plyLevel(choice.level, choice.resolution, choice.names, fresh);
-    stats.ply_total_ms = performance.now() - t0;
-    return ply;
   }
 
   $("download-ply").disabled = false;
@@ -407,11 +303,12 @@ async function main() {
         if (overlay && errorMap) colors = errorMap.vertexColors(currentUvs, domain);
         ply = await worker.ply(current, colors);
         stats.ply_total_ms = performance.now() - t0;
-        stats.ply_tiles_fetched = 0;
-        stats.ply_fetch_bytes = 0;
+        Object.assign(stats, { ply_tiles_fetched: 0, ply_fetch_bytes: 0, ply_textures: 0,
+                               ply_texture_bytes: 0 });
       } else {
         const choice = levels.find((c) => c.level === level);
-        ply = await levelPly(choice);
+        ply = await levelPly(worker, choice, { manifestUrl: config.manifest_url, stats,
+                                               onProgress: showPlyStatus });
         name = `${config.ply_name.replace(/\.ply$/i, "")}_level${level}.ply`;
       }
       Object.assign(stats, { ply_level: level, ply_bytes: ply.bytes.length, ply_vertices: ply.vertices,
