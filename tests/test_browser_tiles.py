@@ -384,6 +384,8 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
               .observe(document.getElementById("ply-status"), {childList: true});
         }""")
         choice.select_option(str(level))
+        hop = page.locator(".actions a", has_text="Open in 3DHOP")
+        assert hop.get_attribute("href").endswith(f"/objects/relief-detail/3dhop?level={level}")
         with page.expect_download(timeout=60_000) as info:
             page.click("#download-ply")
         download = info.value
@@ -425,6 +427,7 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
 
         # "base": the mesh on screen, as before
         choice.select_option("-1")
+        assert hop.get_attribute("href").endswith("/objects/relief-detail/3dhop")
         with page.expect_download(timeout=60_000) as info:
             page.click("#download-ply")
         path = tmp_path / "base.ply"

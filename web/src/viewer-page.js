@@ -22,7 +22,8 @@
 // ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
 // ply_fetch_bytes (detail tiles), ply_textures, ply_texture_bytes (texture tiles fetched);
 // document.body.dataset.plyBusy is "1" while a PLY is being made, and
-// #ply-status (under the buttons) says what is being done, then the file written.
+// #ply-status (under the buttons) says what is being done, then the file written. "Open in
+// 3DHOP" follows the level chosen (its ?level=L).
 // All URLs come from the server's JSON config block.
 
 import { ErrorMap } from "./error-map.js";
@@ -282,6 +283,16 @@ async function main() {
         ? "; with the object's colours sampled from its texture tiles (size included)." : ".");
     select.hidden = false;
     select.disabled = false;
+    // "Open in 3DHOP" shows the level chosen here (the 3DHOP page's ?level=L)
+    const hopLink = config.hop_url &&
+      [...document.querySelectorAll(".actions a")].find((a) => a.getAttribute("href") === config.hop_url);
+    if (hopLink) {
+      select.addEventListener("change", () => {
+        const url = new URL(config.hop_url, window.location.href);
+        if (Number(select.value) >= 0) url.searchParams.set("level", select.value);
+        hopLink.href = url.href;
+      });
+    }
   }
 
   $("download-ply").disabled = false;
