@@ -42,7 +42,12 @@ def detail_nodes(manifest: dict, level: int | None = None) -> list[dict]:
 
 def texture_nodes(manifest: dict, level: int | None = None) -> list[dict]:
     """Manifest nodes of the finest texture level at or below ``level`` (default: the
-    finest), ``[]`` when the bundle has no texture."""
+    finest), with the coarser tiles that stand in where that level has none (the fitter
+    leaves out tiles without colour samples); ``[]`` when the bundle has no texture.
+
+    A coarser node is kept where its rectangle is not covered by finer kept tiles;
+    :func:`client_py.layers.vertex_colours` samples the finest tile holding each vertex.
+    """
     texture = (manifest.get("tiles") or {}).get("texture") or {}
     nodes = texture.get("nodes") or []
     if not nodes:
@@ -50,7 +55,16 @@ def texture_nodes(manifest: dict, level: int | None = None) -> list[dict]:
     top = max(n["level"] for n in nodes)
     if level is not None:
         top = min(top, max(level, 0))
-    return [n for n in nodes if n["level"] == top]
+    have = {(n["level"], n["i"], n["j"]) for n in nodes}
+
+    def covered(k: int, i: int, j: int) -> bool:
+        """Whether kept tiles finer than level ``k`` cover node (k, i, j)'s rectangle."""
+        return all((k + 1, 2 * i + a, 2 * j + b) in have
+                   or (k + 1 < top and covered(k + 1, 2 * i + a, 2 * j + b))
+                   for a in (0, 1) for b in (0, 1))
+
+    return [n for n in nodes if n["level"] == top
+            or (n["level"] < top and not covered(n["level"], n["i"], n["j"]))]
 
 
 def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int | None = None,

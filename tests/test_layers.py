@@ -517,3 +517,21 @@ def test_add_level_takes_each_vertex_from_the_first_block_covering_it():
         total = array("d", start.ravel())
         backend(kernel).add_level(total, cols, blocks)
         assert np.array_equal(np.array(total).reshape(rows, cols), expected), kernel
+
+
+def test_texture_nodes_keep_coarser_tiles_where_the_finest_level_has_none():
+    from client_py.bundle import texture_nodes
+
+    def node(k, i, j):
+        return {"level": k, "i": i, "j": j, "file": f"texture/{k}/{i}_{j}.webp"}
+
+    nodes = ([node(0, 0, 0)] + [node(1, i, j) for i in (0, 1) for j in (0, 1)]
+             + [node(2, i, j) for i in range(4) for j in range(4) if (i, j) != (3, 3)])
+    manifest = {"tiles": {"texture": {"nodes": nodes}}}
+    picked = {(n["level"], n["i"], n["j"]) for n in texture_nodes(manifest)}
+    # level 2 lacks (3, 3): its parent (1, 1, 1) stands in; (0, 0, 0) is then covered
+    assert picked == {(2, i, j) for i in range(4) for j in range(4) if (i, j) != (3, 3)} | {
+        (1, 1, 1)}
+    assert {(n["level"], n["i"], n["j"]) for n in texture_nodes(manifest, 1)} == {
+        (1, i, j) for i in (0, 1) for j in (0, 1)}
+    assert texture_nodes({"tiles": {"texture": None}}) == []
