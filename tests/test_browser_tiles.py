@@ -158,15 +158,22 @@ def _shown_error(manifest: dict, nodes: dict, level: int, i: int, j: int) -> flo
     return manifest["tiles"]["detail"]["base"]["max"]
 
 
-def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **options):
-    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready:
-    ``(context, page, problems, fetched)`` with the page's errors and the ``(level, i, j)`` of
-    every detail tile it requests."""
-    context = browser.new_context(viewport={"width": 800, "height": 600}, **options)
+def _watched_page(browser, **options):
+    """A new context and page, and the list its page errors and console errors go to."""
+    context = browser.new_context(**options)
     page = context.new_page()
     problems: list[str] = []
     page.on("pageerror", lambda exc: problems.append(str(exc)))
     page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    return context, page, problems
+
+
+def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **options):
+    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready:
+    ``(context, page, problems, fetched)`` with the page's errors and the ``(level, i, j)`` of
+    every detail tile it requests."""
+    context, page, problems = _watched_page(browser, viewport={"width": 800, "height": 600},
+                                            **options)
     fetched: list[tuple[int, int, int]] = []
 
     def on_request(request):
@@ -268,11 +275,7 @@ def test_texture_tiles_colour_the_object(browser, detail_server, detail_collecti
 
     manifest = json.loads((detail_collection / "relief-colour" / "manifest.json").read_text())
     assert manifest["tiles"]["texture"]["nodes"]
-    context = browser.new_context(viewport={"width": 800, "height": 600})
-    page = context.new_page()
-    problems: list[str] = []
-    page.on("pageerror", lambda exc: problems.append(str(exc)))
-    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    context, page, problems = _watched_page(browser, viewport={"width": 800, "height": 600})
     textures: list[str] = []
     page.on("request", lambda r: textures.append(r.url) if "/texture/" in r.url else None)
     try:
@@ -556,11 +559,7 @@ def test_3dhop_page_at_a_detail_level(browser, detail_server, detail_collection,
     level = len(detail["levels"]) - 1
     resolution = 2 * detail["spans_per_tile"] * 2**level + 1
 
-    context = browser.new_context(viewport={"width": 900, "height": 640})
-    page = context.new_page()
-    problems: list[str] = []
-    page.on("pageerror", lambda exc: problems.append(str(exc)))
-    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    context, page, problems = _watched_page(browser, viewport={"width": 900, "height": 640})
     requested: list[str] = []
     page.on("request", lambda r: requested.append(r.url.split("/relief-colour/", 1)[1])
             if "/bundles/relief-colour/" in r.url else None)
