@@ -54,15 +54,9 @@ export function formatLength(value, units) {
 
 /** The bundle's manifest.json, parsed; its size is added to stats.bytes_downloaded. */
 export async function loadManifest(url, stats) {
-  let response;
-  try {
-    response = await fetch(url);
-  } catch (error) {
-    throw new Error(`cannot fetch the manifest (${url}): ${error.message}`);
-  }
-  if (!response.ok) throw new Error(`cannot fetch the manifest (${url}): HTTP ${response.status}`);
-  const text = await response.text();
-  stats.bytes_downloaded += text.length;
+  const bytes = await fetchBytes(url, "the manifest");
+  stats.bytes_downloaded += bytes.length;
+  const text = new TextDecoder().decode(bytes);
   try {
     return JSON.parse(text);
   } catch (error) {
