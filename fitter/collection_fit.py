@@ -80,14 +80,20 @@ def options_record(options: FitOptions) -> dict[str, Any]:
 
 
 def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
-    """Whether ``bundle`` was fitted from this input (same SHA-256) with these options."""
+    """Whether ``bundle`` was fitted from this input (same SHA-256) with these options, and
+    its detail tiles (if any) are in the ``.tsd`` version this code reads."""
+    from client_py.format import TILE_VERSION
+
     try:
         manifest = json.loads((bundle / "manifest.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return False
-    return (isinstance(manifest, dict)
-            and manifest.get("provenance", {}).get("sha256") == sha256
-            and manifest.get("options") == options_record(options))
+    if not isinstance(manifest, dict):
+        return False
+    detail = (manifest.get("tiles") or {}).get("detail") or {}
+    return (manifest.get("provenance", {}).get("sha256") == sha256
+            and manifest.get("options") == options_record(options)
+            and (not detail.get("nodes") or detail.get("format_version") == TILE_VERSION))
 
 
 def fit_one(scan: str, out_dir: str, options: dict[str, Any]) -> dict[str, Any]:

@@ -48,7 +48,7 @@ import scipy.sparse.linalg as spla
 
 from client_py import layers
 from client_py._numpy_basis import basis_arrays
-from client_py.format import MAX_TILE_VALUE, write_detail_tile
+from client_py.format import MAX_TILE_VALUE, TILE_VERSION, write_detail_tile
 from client_py.trim import TrimMask
 
 from .compact import ScanNeighbourhood
@@ -346,7 +346,7 @@ def write_layers(root, pyramid: DetailPyramid, texture_tiles: list) -> tuple[dic
                         "max": _rounded(lev.max), "bytes_total": lev.bytes_total,
                         "step": _rounded(lev.step), "coefficients": lev.coefficients})
     tree: dict = {"version": 1, "detail": {
-        "format": "tsd", "degree": pyramid.degree, "spans_per_tile": pyramid.spans,
+        "format": "tsd", "format_version": TILE_VERSION, "degree": pyramid.degree, "spans_per_tile": pyramid.spans,
         "base": {"rms": _rounded(pyramid.base_rms), "max": _rounded(pyramid.base_max)},
         "levels": summary, "nodes": nodes}, "texture": None}
     if texture_tiles:

@@ -70,6 +70,13 @@ def test_two_dask_workers_give_the_bundles_of_fitting_one_by_one_and_a_rerun_fit
     assert not is_up_to_date(out / "relief-0", _sha(scans[0]),
                              FitOptions(grid=(13, 13), method="linear"))
     assert is_up_to_date(out / "relief-0", _sha(scans[0]), options)
+    # detail tiles of an older .tsd version make it stale too (this code cannot read them)
+    manifest_path = out / "relief-0" / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    assert manifest["tiles"]["detail"]["nodes"]
+    manifest["tiles"]["detail"]["format_version"] = 1
+    manifest_path.write_text(json.dumps(manifest))
+    assert not is_up_to_date(out / "relief-0", _sha(scans[0]), options)
 
 
 def _sha(path: Path) -> str:
