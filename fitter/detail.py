@@ -346,7 +346,8 @@ def write_layers(root, pyramid: DetailPyramid, texture_tiles: list) -> tuple[dic
                         "max": _rounded(lev.max), "bytes_total": lev.bytes_total,
                         "step": _rounded(lev.step), "coefficients": lev.coefficients})
     tree: dict = {"version": 1, "detail": {
-        "format": "tsd", "format_version": TILE_VERSION, "degree": pyramid.degree, "spans_per_tile": pyramid.spans,
+        "format": "tsd", "format_version": TILE_VERSION, "degree": pyramid.degree,
+        "spans_per_tile": pyramid.spans,
         "base": {"rms": _rounded(pyramid.base_rms), "max": _rounded(pyramid.base_max)},
         "levels": summary, "nodes": nodes}, "texture": None}
     if texture_tiles:
