@@ -11,7 +11,7 @@ pure-Python kernel, and no BLAS threads, which on a small busy machine cost
 more than they save. The basis tables come vectorised from ``_numpy_basis``.
 
 The other operations (tile fields and their sums, displacement, drawn cells,
-affine maps) follow ``_kernel_python``'s contracts with the same arithmetic,
+affine maps, texture sampling) follow ``_kernel_python``'s contracts with the same arithmetic,
 operation for operation (no ``matmul``, ``einsum`` or reordered sums), so
 both kernels give the same bits; large grids go in blocks of
 :data:`ROWS_PER_BLOCK` rows so that temporaries stay in cache.
@@ -204,3 +204,41 @@ def map_vectors(values: array, matrix, offset=None, normalise: bool = False) -> 
     for r, col in enumerate(cols):
         out[:, r] = col
     return array("f", out.tobytes())
+
+
+def _texel_axis(params, lo: float, hi: float, size: int, flip: bool):
+    """Same as :func:`client_py._kernel_python._texel_axis` on a whole float64 array:
+    ``(t0, t1, 1 - f, f)`` as arrays."""
+    t = ((hi - params) if flip else (params - lo)) / (hi - lo) * size - 0.5
+    t = np.minimum(np.maximum(t, 0.0), size - 1.0)
+    t0 = np.minimum(t.astype(np.intp), size - 2) if size > 1 else np.zeros(len(t), np.intp)
+    f = t - t0
+    return t0, np.minimum(t0 + 1, size - 1), 1 - f, f
+
+
+TEXELS_PER_BLOCK = 1 << 16  # values blended together: a chunk's temporaries stay small
+
+
+def sample_texture(us, vs, blocks) -> array:
+    """Same contract as :func:`client_py._kernel_python.sample_texture`, the same float64
+    operations in the same order on arrays: per block the texels and weights of its
+    rows and columns, then, a chunk of grid rows at a time, the horizontal blends
+    ``p(y, x0) (1 - fx) + p(y, x1) fx`` of the image rows the columns read as one
+    ``(rows read, grid rows, 3)`` array, and the vertical blend of the two of them
+    each column picks."""
+    us, vs = np.asarray(us, dtype=float), np.asarray(vs, dtype=float)
+    out = np.zeros((len(vs), len(us), 3), dtype=np.uint8)  # column-major: filled by columns
+    for r0, r1, c0, c1, (width, height, rgb, (u0, v0, u1, v1)) in blocks:
+        image = np.frombuffer(rgb, dtype=np.uint8).reshape(height, width, 3)
+        y0, y1, gy, fy = _texel_axis(vs[c0:c1], v0, v1, height, flip=True)
+        read, ranks = np.unique(np.concatenate([y0, y1]), return_inverse=True)
+        k0, k1 = ranks[: len(y0)], ranks[len(y0) :]
+        rows = image[read]  # (rows read, width, 3)
+        gy, fy = gy[:, None, None], fy[:, None, None]
+        x0, x1, gx, fx = _texel_axis(us[r0:r1], u0, u1, width, flip=False)
+        step = max(1, TEXELS_PER_BLOCK // (3 * len(read)))
+        for a in range(0, r1 - r0, step):
+            b = min(a + step, r1 - r0)
+            h = rows[:, x0[a:b]] * gx[None, a:b, None] + rows[:, x1[a:b]] * fx[None, a:b, None]
+            out[c0:c1, r0 + a : r0 + b] = (h[k0] * gy + h[k1] * fy + 0.5).astype(np.uint8)
+    return array("B", out.transpose(1, 0, 2).tobytes())

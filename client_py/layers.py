@@ -422,21 +422,59 @@ def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, 
     mesh = Mesh(positions, normals, uvs, indices)
     textures = list(textures)
     if textures:
-        mesh.colors = vertex_colours(uvs, textures)
+        mesh.colors = vertex_colours(uvs, textures, kernel, nv)
     return mesh
 
 
-def vertex_colours(uvs: Sequence[float], textures: Iterable[TextureImage]) -> array:
+def vertex_colours(uvs: Sequence[float], textures: Iterable[TextureImage],
+                   kernel: str | None = None, columns: int | None = None) -> array:
     """RGB per vertex (``array('B')``) from normalised ``uvs``: the finest texture tile
-    containing each vertex, sampled bilinearly; ``0, 0, 0`` where none does."""
+    containing each vertex, sampled bilinearly; ``0, 0, 0`` where none does.
+
+    Parameters
+    ----------
+    uvs : sequence of float
+        ``u, v`` per vertex (``2 N`` numbers).
+    textures : iterable of TextureImage
+        At each level, vertex ``(u, v)`` is in node ``(min(int(u 2^L), 2^L - 1),
+        min(int(v 2^L), 2^L - 1))``; the finest level whose node is given samples
+        it (:meth:`TextureImage.sample`). Of two images of one node the last given
+        is used.
+    kernel : {'python', 'numpy'}, optional
+        The kernel that samples grids (default the selected one).
+    columns : int, optional
+        Vertices per row when ``uvs`` are a grid (vertex ``k = i columns + j`` at
+        ``(u_i, v_j)``), as :func:`tessellate_region` lays them out; without it,
+        the length of the first run of equal ``u`` is tried.
+
+    Notes
+    -----
+    On a grid (checked) the node of a vertex is the pair of its row's and its
+    column's nodes, so the vertices fall into blocks of whole row runs times
+    column runs with one tile each (:func:`_texture_blocks`), and the kernel's
+    ``sample_texture`` samples each block at once: per row the image column
+    offsets and weights, per column the image row ones, then the same float64
+    operations as :meth:`TextureImage.sample` (same bytes). Other layouts are
+    sampled vertex by vertex.
+    """
     finest_first = sorted(textures, key=lambda t: -t.level)
     by_level: dict[int, dict[tuple[int, int], TextureImage]] = {}
     for t in finest_first:
         if not isinstance(t, TextureImage):
             raise ValueError(f"textures must be TextureImage objects, got {type(t).__name__}")
         by_level.setdefault(t.level, {})[(t.i, t.j)] = t
-    out = array("B", bytes(3 * (len(uvs) // 2)))
-    for k in range(len(uvs) // 2):
+    n_vertices = len(uvs) // 2
+    if not by_level or not n_vertices:
+        return array("B", bytes(3 * n_vertices))
+    if not (isinstance(uvs, array) and uvs.typecode in "fd"):
+        uvs = array("d", uvs)
+    grid = _uv_grid(uvs[: 2 * n_vertices], columns)
+    if grid is not None:
+        us, vs = grid
+        blocks = _texture_blocks(by_level, us, vs)
+        return _kernel.backend(kernel).sample_texture(us, vs, blocks)
+    out = array("B", bytes(3 * n_vertices))
+    for k in range(n_vertices):
         u, v = uvs[2 * k], uvs[2 * k + 1]
         for level, images in by_level.items():
             n = 1 << level
@@ -445,6 +483,74 @@ def vertex_colours(uvs: Sequence[float], textures: Iterable[TextureImage]) -> ar
                 out[3 * k : 3 * k + 3] = array("B", image.sample(u, v))
                 break
     return out
+
+
+def _uv_grid(uvs: array, columns: int | None) -> tuple[list[float], list[float]] | None:
+    """``(us, vs)`` when ``uvs`` are the grid ``us x vs`` with ``columns`` vertices per row
+    (``None``: the first run of equal ``u``), else ``None``. The arrays are compared bit
+    for bit as whole byte strings."""
+    u_col, v_col = uvs[0::2], uvs[1::2]
+    n = len(u_col)
+    if columns is None:
+        first, columns = u_col[0], 1
+        while columns < n and u_col[columns] == first:
+            columns += 1
+    if not isinstance(columns, int) or columns < 1 or n % columns:
+        return None
+    rows = n // columns
+    vs = v_col[:columns]
+    if v_col.tobytes() != (vs * rows).tobytes():  # bit for bit (memcmp)
+        return None
+    us = u_col[::columns]
+    expected = array(u_col.typecode, bytes(u_col.itemsize * n))
+    for j in range(columns):
+        expected[j::columns] = us
+    if u_col.tobytes() != expected.tobytes():
+        return None
+    return us.tolist(), vs.tolist()
+
+
+def _texture_blocks(by_level: dict[int, dict[tuple[int, int], TextureImage]],
+                    us: Sequence[float], vs: Sequence[float]) -> list[tuple]:
+    """Kernel blocks ``(r0, r1, c0, c1, (width, height, rgb, uv_rect))`` of the grid
+    ``us x vs``: rows ``r0 <= i < r1`` and columns ``c0 <= j < c1`` that one image
+    colours, the finest of ``by_level`` (finest level first) whose node holds them.
+
+    Rows are cut into runs of equal nodes at every level (``min(int(u 2^L), 2^L -
+    1)``, the lookup of :func:`vertex_colours`), columns likewise; a row run times
+    a column run has one node per level, hence one image (or none); neighbouring
+    column runs of one image are merged.
+    """
+    sides = [1 << level for level in by_level]
+    tables = list(by_level.values())
+
+    def runs(xs: Sequence[float]) -> list[tuple[int, int, tuple[int, ...]]]:
+        out: list[tuple[int, int, tuple[int, ...]]] = []
+        for k, x in enumerate(xs):
+            key = tuple([min(int(x * n), n - 1) for n in sides])
+            if out and out[-1][2] == key:
+                out[-1] = (out[-1][0], k + 1, key)
+            else:
+                out.append((k, k + 1, key))
+        return out
+
+    col_runs = runs(vs)
+    blocks = []
+    for r0, r1, row_key in runs(us):
+        merged: list[list] = []
+        for c0, c1, col_key in col_runs:
+            image = None
+            for images, a, b in zip(tables, row_key, col_key, strict=True):
+                image = images.get((a, b))
+                if image is not None:
+                    break
+            if merged and merged[-1][2] is image and merged[-1][1] == c0:
+                merged[-1][1] = c1
+            elif image is not None:
+                merged.append([c0, c1, image])
+        blocks += [(r0, r1, c0, c1, (t.width, t.height, t.rgb, t.uv_rect))
+                   for c0, c1, t in merged]
+    return blocks
 
 
 def transform_mesh(mesh: Mesh, matrix: Sequence[Sequence[float]],

@@ -535,3 +535,126 @@ def test_texture_nodes_keep_coarser_tiles_where_the_finest_level_has_none():
     assert {(n["level"], n["i"], n["j"]) for n in texture_nodes(manifest, 1)} == {
         (1, i, j) for i in (0, 1) for j in (0, 1)}
     assert texture_nodes({"tiles": {"texture": None}}) == []
+
+
+# ------------------------------------------------------------------ vertex colours on grids
+def reference_sample(t: TextureImage, u: float, v: float) -> tuple[int, int, int]:
+    """TextureImage.sample as it was when the kernels' sample_texture was written (the
+    contract they must keep bit for bit), copied here as an independent reference."""
+    n = 1 << t.level
+    u0, v0, u1, v1 = t.i / n, t.j / n, (t.i + 1) / n, (t.j + 1) / n
+    x = (u - u0) / (u1 - u0) * t.width - 0.5
+    y = (v1 - v) / (v1 - v0) * t.height - 0.5
+    x = min(max(x, 0.0), t.width - 1.0)
+    y = min(max(y, 0.0), t.height - 1.0)
+    x0, y0 = min(int(x), t.width - 2) if t.width > 1 else 0, \
+        min(int(y), t.height - 2) if t.height > 1 else 0
+    fx, fy = x - x0, y - y0
+    x1, y1 = min(x0 + 1, t.width - 1), min(y0 + 1, t.height - 1)
+    rgb, w = t.rgb, t.width
+    out = []
+    for c in range(3):
+        top = rgb[3 * (y0 * w + x0) + c] * (1 - fx) + rgb[3 * (y0 * w + x1) + c] * fx
+        bottom = rgb[3 * (y1 * w + x0) + c] * (1 - fx) + rgb[3 * (y1 * w + x1) + c] * fx
+        out.append(int(top * (1 - fy) + bottom * fy + 0.5))
+    return out[0], out[1], out[2]
+
+
+def reference_colours(uvs, textures) -> bytes:
+    """The per-vertex loop vertex_colours was before its kernel path (copied as the
+    reference): the finest level whose node holds the vertex, last image of a node."""
+    by_level: dict = {}
+    for t in sorted(textures, key=lambda t: -t.level):
+        by_level.setdefault(t.level, {})[(t.i, t.j)] = t
+    out = bytearray(3 * (len(uvs) // 2))
+    for k in range(len(uvs) // 2):
+        u, v = uvs[2 * k], uvs[2 * k + 1]
+        for level, images in by_level.items():
+            n = 1 << level
+            image = images.get((min(int(u * n), n - 1), min(int(v * n), n - 1)))
+            if image is not None:
+                out[3 * k : 3 * k + 3] = bytes(reference_sample(image, u, v))
+                break
+    return bytes(out)
+
+
+def random_textures(rng: np.random.Generator, levels=(0, 1, 2, 3), keep: float = 0.7,
+                    sizes=(1, 2, 3, 5, 16)) -> list[TextureImage]:
+    """Random images (random sizes, 1x1 and 2x2 among them) over a random subset of the
+    nodes of the given levels, plus a second image for one node (the last one counts)."""
+    out = []
+    for level in levels:
+        for i in range(1 << level):
+            for j in range(1 << level):
+                if rng.random() < keep:
+                    w, h = (int(x) for x in rng.choice(sizes, 2))
+                    out.append(TextureImage(level, i, j, w, h, rng.bytes(3 * w * h)))
+    out.append(dataclasses.replace(out[0], rgb=rng.bytes(len(out[0].rgb))))
+    return out
+
+
+def grid_uvs(rect, nu: int, nv: int):
+    """uvs laid out as tessellate_region stores them (float32, vertex k = i nv + j)."""
+    from array import array
+
+    us, vs = np.linspace(rect[0], rect[2], nu), np.linspace(rect[1], rect[3], nv)
+    uu, vv = np.meshgrid(us, vs, indexing="ij")
+    return array("f", np.column_stack([uu.ravel(), vv.ravel()]).astype(np.float32).tobytes())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_grid_vertex_colours_are_the_per_vertex_reference_bit_for_bit(seed, monkeypatch):
+    """Random tiles of levels 0-3 with nodes missing, 1x1/2x2/odd images; grids whose
+    vertices fall on tile borders (2^k + 1 over the unit square, regions ending on
+    borders) and grids that do not; both kernels give the reference's bytes, on the
+    grid path (TextureImage.sample, the per-vertex path, is made to fail)."""
+    from client_py.layers import vertex_colours
+
+    rng = np.random.default_rng(seed)
+    textures = random_textures(rng)
+    cases = [((0, 0, 1, 1), 17, 33), ((0, 0, 1, 1), 9, 9), ((0.25, 0.5, 0.75, 1.0), 13, 5),
+             ((0.1, 0.03, 0.97, 0.6), 23, 31), ((0.5, 0.5, 1.0, 1.0), 1, 7),
+             ((0.0, 0.3, 0.126, 0.4), 6, 1), ((0.3, 0.3, 0.3 + 1e-6, 0.9), 4, 3)]
+    expected = {}
+    for rect, nu, nv in cases:
+        uvs = grid_uvs(rect, nu, nv)
+        expected[rect, nu, nv] = reference_colours(uvs, textures)
+    assert any(any(e) for e in expected.values())  # colours, not only black
+    assert any(0 in e for e in expected.values())
+    monkeypatch.setattr(TextureImage, "sample", None)  # the grid path must not need it
+    for rect, nu, nv in cases:
+        uvs = grid_uvs(rect, nu, nv)
+        for kernel in ("python", "numpy"):
+            for columns in (None, nv):
+                got = vertex_colours(uvs, textures, kernel=kernel, columns=columns)
+                assert got.typecode == "B"
+                assert got.tobytes() == expected[rect, nu, nv], (rect, nu, nv, kernel, columns)
+
+
+def test_vertex_colours_off_the_grid_and_through_tessellate_region():
+    """Scattered uvs (outside [0, 1] too, where the node lookup clamps or finds none), a
+    wrong ``columns`` and lists fall back to the per-vertex path; tessellate_region's
+    colours are the reference at its uvs in both kernels."""
+    from client_py.layers import vertex_colours
+
+    rng = np.random.default_rng(7)
+    textures = random_textures(rng, levels=(1, 2, 4), keep=0.6)
+    uv = rng.uniform(-0.3, 1.3, (400, 2))
+    uv[:40] = rng.integers(0, 17, (40, 2)) / 16  # exactly on tile borders
+    uvs = uv.ravel().tolist()
+    want = reference_colours(uvs, textures)
+    for kernel in ("python", "numpy"):
+        assert vertex_colours(uvs, textures, kernel=kernel).tobytes() == want
+        assert vertex_colours(uvs + [0.5], textures, kernel=kernel).tobytes() == want
+    grid = grid_uvs((0, 0, 1, 1), 9, 12)
+    want = reference_colours(grid, textures)
+    assert vertex_colours(grid, textures, columns=7).tobytes() == want  # not a 7-column grid
+    assert vertex_colours(grid.tolist(), textures, columns=12).tobytes() == want
+    assert vertex_colours(grid, []).tobytes() == bytes(3 * 9 * 12)
+    s, _, tiles = surface_and_tiles()
+    with pytest.raises(ValueError, match="must be TextureImage objects, got DetailTile"):
+        vertex_colours(grid, [*textures, tiles[0]])
+    for kernel in ("python", "numpy"):
+        mesh = tessellate_region(s, (0.125, 0.25, 1.0, 0.875), 21, 15, tiles, kernel=kernel,
+                                 textures=textures)
+        assert mesh.colors.tobytes() == reference_colours(mesh.uvs, textures), kernel
