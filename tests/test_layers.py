@@ -538,31 +538,10 @@ def test_texture_nodes_keep_coarser_tiles_where_the_finest_level_has_none():
 
 
 # ------------------------------------------------------------------ vertex colours on grids
-def reference_sample(t: TextureImage, u: float, v: float) -> tuple[int, int, int]:
-    """TextureImage.sample as it was when the kernels' sample_texture was written (the
-    contract they must keep bit for bit), copied here as an independent reference."""
-    n = 1 << t.level
-    u0, v0, u1, v1 = t.i / n, t.j / n, (t.i + 1) / n, (t.j + 1) / n
-    x = (u - u0) / (u1 - u0) * t.width - 0.5
-    y = (v1 - v) / (v1 - v0) * t.height - 0.5
-    x = min(max(x, 0.0), t.width - 1.0)
-    y = min(max(y, 0.0), t.height - 1.0)
-    x0, y0 = min(int(x), t.width - 2) if t.width > 1 else 0, \
-        min(int(y), t.height - 2) if t.height > 1 else 0
-    fx, fy = x - x0, y - y0
-    x1, y1 = min(x0 + 1, t.width - 1), min(y0 + 1, t.height - 1)
-    rgb, w = t.rgb, t.width
-    out = []
-    for c in range(3):
-        top = rgb[3 * (y0 * w + x0) + c] * (1 - fx) + rgb[3 * (y0 * w + x1) + c] * fx
-        bottom = rgb[3 * (y1 * w + x0) + c] * (1 - fx) + rgb[3 * (y1 * w + x1) + c] * fx
-        out.append(int(top * (1 - fy) + bottom * fy + 0.5))
-    return out[0], out[1], out[2]
-
-
 def reference_colours(uvs, textures) -> bytes:
-    """The per-vertex loop vertex_colours was before its kernel path (copied as the
-    reference): the finest level whose node holds the vertex, last image of a node."""
+    """The per-vertex loop vertex_colours was before its kernel path: the finest level whose
+    node holds the vertex, last image of a node, sampled by ``TextureImage.sample`` (the
+    scalar contract the kernels' block sampling must keep bit for bit)."""
     by_level: dict = {}
     for t in sorted(textures, key=lambda t: -t.level):
         by_level.setdefault(t.level, {})[(t.i, t.j)] = t
@@ -573,7 +552,7 @@ def reference_colours(uvs, textures) -> bytes:
             n = 1 << level
             image = images.get((min(int(u * n), n - 1), min(int(v * n), n - 1)))
             if image is not None:
-                out[3 * k : 3 * k + 3] = bytes(reference_sample(image, u, v))
+                out[3 * k : 3 * k + 3] = bytes(image.sample(u, v))  # the scalar sampler
                 break
     return bytes(out)
 
