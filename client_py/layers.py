@@ -33,7 +33,15 @@ from dataclasses import dataclass, field
 from . import _kernel
 from .basis import basis_functions, find_span
 from .surface import NurbsSurface
-from .tessellate import Mesh, _check_count, _samples, grid_indices, mask_indices
+from .tessellate import (
+    Mesh,
+    _check_count,
+    _samples,
+    grid_indices,
+    grid_uvs,
+    mask_indices,
+    pole_normals,
+)
 from .trim import TrimMask
 
 MAX_LEVEL = 15
@@ -403,18 +411,12 @@ def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, 
     sv = [b0 + (b1 - b0) * t for t in ext_v]
     backend = _kernel.backend(kernel)
     positions, normals, degenerate = backend.evaluate_grid(surface, su, sv, "d" if ring else "f")
-    n_cols = len(ext_v)
-    for k in degenerate:
-        normals[3 * k : 3 * k + 3] = array(normals.typecode,
-                                           surface.normal(su[k // n_cols], sv[k % n_cols]))
+    pole_normals(surface, normals, su, sv, degenerate)
     if ring:
         shift = displacement_grid(tiles, ext_u, ext_v, kernel)
-        positions, normals = backend.displace_grid(positions, normals, shift, len(ext_u), n_cols,
-                                                   (r0, r0 + nu, c0, c0 + nv))
-    uvs = array("f", bytes(8 * nu * nv))
-    for i, u in enumerate(us):
-        uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
-    uvs[1::2] = array("f", vs) * nu
+        positions, normals = backend.displace_grid(positions, normals, shift, len(ext_u),
+                                                   len(ext_v), (r0, r0 + nu, c0, c0 + nv))
+    uvs = grid_uvs(us, vs)
     if surface.trim is None:
         indices = grid_indices(nu, nv, kernel=kernel)
     else:

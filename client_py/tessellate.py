@@ -7,7 +7,7 @@ them to JavaScript as ``Float32Array``/``Uint32Array`` without a copy.
 from __future__ import annotations
 
 from array import array
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 from . import _kernel
@@ -103,6 +103,26 @@ def trimmed_grid_indices(nu: int, nv: int, trim: TrimMask, kernel: str | None = 
                                                           trim.cols)])
 
 
+def pole_normals(surface: NurbsSurface, normals: array, us: Sequence[float],
+                 vs: Sequence[float], degenerate: Iterable[int]) -> None:
+    """Replace the normals of the ``degenerate`` vertices of the grid ``us x vs`` (surface
+    parameters, row-major in ``u``) with ``surface.normal``'s limit normal there."""
+    n_cols = len(vs)
+    for k in degenerate:
+        normals[3 * k : 3 * k + 3] = array(normals.typecode,
+                                           surface.normal(us[k // n_cols], vs[k % n_cols]))
+
+
+def grid_uvs(us: Sequence[float], vs: Sequence[float]) -> array:
+    """``array('f')`` of ``(u_i, v_j)`` pairs, row-major in ``i``."""
+    nu, nv = len(us), len(vs)
+    uvs = array("f", bytes(8 * nu * nv))
+    for i, u in enumerate(us):
+        uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
+    uvs[1::2] = array("f", vs) * nu
+    return uvs
+
+
 def tessellate_grid(
     surface: NurbsSurface, nu: int, nv: int, kernel: str | None = None
 ) -> Mesh:
@@ -124,12 +144,8 @@ def tessellate_grid(
     (u0, u1), (v0, v1) = surface.domain
     us, vs = _samples(u0, u1, nu), _samples(v0, v1, nv)
     positions, normals, degenerate = _kernel.backend(kernel).evaluate_grid(surface, us, vs)
-    for k in degenerate:
-        normals[3 * k : 3 * k + 3] = array("f", surface.normal(us[k // nv], vs[k % nv]))
-    uvs = array("f", bytes(8 * nu * nv))
-    for i, u in enumerate(us):
-        uvs[2 * i * nv : 2 * (i + 1) * nv : 2] = array("f", [u]) * nv
-    uvs[1::2] = array("f", vs) * nu
+    pole_normals(surface, normals, us, vs, degenerate)
+    uvs = grid_uvs(us, vs)
     if surface.trim is None:
         indices = grid_indices(nu, nv, kernel=kernel)
     else:
