@@ -175,13 +175,6 @@ class DetailTile:
         u0, v0, u1, v1 = self.uv_rect
         return u0 <= u <= u1 and v0 <= v <= v1
 
-    def draws(self, u: float, v: float) -> bool:
-        """Whether the tile's ``drawn`` mask covers ``(u, v)`` (false outside ``uv_rect``)."""
-        if self.drawn is None or not self.contains(u, v):
-            return False
-        u0, v0, u1, v1 = self.uv_rect
-        return self.drawn.covers((u - u0) / (u1 - u0), (v - v0) / (v1 - v0))
-
     def evaluate(self, u: float, v: float) -> float:
         """``D(u, v)`` at one point of ``uv_rect`` (A2.1, A2.2); ``ValueError`` outside it."""
         u, v = float(u), float(v)
