@@ -193,13 +193,8 @@ def bundle_mesh_error(points: np.ndarray, bundle: str, level: int, resolution: i
 
 def _bundle_mesh_error(points: np.ndarray, bundle: str, level: int, resolution: int) -> dict:
     """RMS and max distance of ``points (n, 3)`` (scan frame) to the bundle directory's
-    ``tessellate_bundle(level=level, resolution=resolution)`` in the scan's frame.
-
-    The patch's ``transform`` is applied here with numpy (``scan_frame=False``):
-    the same affine map as ``client_py.layers.transform_mesh``, without its
-    per-vertex Python loop.
-    """
-    from client_py import read_patch
+    ``tessellate_bundle(level=level, resolution=resolution)`` in the scan's frame (the
+    float32 vertices a visitor's PLY holds)."""
     from client_py.bundle import tessellate_bundle
 
     root = Path(bundle)
@@ -209,15 +204,9 @@ def _bundle_mesh_error(points: np.ndarray, bundle: str, level: int, resolution: 
         return (root / name).read_bytes()
 
     start = time.perf_counter()
-    mesh = tessellate_bundle(manifest, read, level=level, resolution=resolution,
-                             kernel="numpy", scan_frame=False)
+    mesh = tessellate_bundle(manifest, read, level=level, resolution=resolution, kernel="numpy")
     vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
     faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
-    matrix = read_patch(read(manifest.get("base", {}).get("file", "base.tsp"))).metadata.get(
-        "transform")
-    if matrix is not None:
-        m = np.asarray(matrix, dtype=float)[:3]
-        vertices = vertices @ m[:, :3].T + m[:, 3]
     d = mesh_distance(points, vertices, faces)
     return {"rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max()),
             "resolution": resolution, "triangles": int(len(faces)),
