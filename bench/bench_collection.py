@@ -3,7 +3,7 @@ workers.
 
 Eight generated reliefs (seeds 0-7, 40,000 points each, synthetic), saved as binary PLY,
 are fitted with Tessera's default method on a 24x24 grid by
-:func:`fitter.collection_fit.fit_collection` on a ``LocalCluster`` of 1, then 2
+:func:`fitter.collection.batch.fit_collection` on a ``LocalCluster`` of 1, then 2
 single-threaded worker processes, into a fresh collection each time. The wall time of
 the fits is measured with the cluster already running (its start-up is reported apart);
 the speed-up is 1-worker time / 2-worker time. Each fit pins BLAS to one thread (the
@@ -27,10 +27,10 @@ GRID = (24, 24)
 def run() -> dict:
     from distributed import Client, LocalCluster
 
-    from fitter.collection_fit import fit_collection
+    from fitter.collection.batch import fit_collection
     from fitter.demo import write_scan_ply
-    from fitter.examples import relief_scan
-    from fitter.pipeline import FitOptions
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.pipeline import FitOptions
 
     rows, records = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -45,7 +45,7 @@ def run() -> dict:
                               dashboard_address=None) as cluster, Client(cluster) as client:
                 startup = time.perf_counter() - start
                 # a warm-up task imports the fitter on every worker (not part of the fits)
-                client.run(lambda: __import__("fitter.pipeline"))
+                client.run(lambda: __import__("fitter.fitting.pipeline"))
                 start = time.perf_counter()
                 results = fit_collection(scans, Path(tmp) / f"out-{workers}",
                                          FitOptions(grid=GRID), client=client, progress=False)

@@ -55,8 +55,8 @@ import json, resource, sys, time
 from pathlib import Path
 import numpy as np
 from fitter.demo import write_scan_ply
-from fitter.examples import relief_height
-from fitter.pipeline import FitOptions, fit_scan
+from fitter.fitting.examples import relief_height
+from fitter.fitting.pipeline import FitOptions, fit_scan
 n = int(sys.argv[1]); out = Path(sys.argv[2])
 rng = np.random.default_rng(0)
 x = rng.uniform(-100, 100, n); y = rng.uniform(-70, 70, n)
@@ -81,13 +81,13 @@ def _cpu() -> float:
 
 def _options(**kw):
     """Base-patch options: the detail and texture layers (issue 6) are not timed here."""
-    from fitter.pipeline import FitOptions
+    from fitter.fitting.pipeline import FitOptions
 
     return FitOptions(grid=GRID, degree=DEGREE, detail_levels=0, texture=False, **kw)
 
 
 def _tessera_row(name: str, scan, method: str, out: Path) -> dict:
-    from fitter.pipeline import fit_scan
+    from fitter.fitting.pipeline import fit_scan
 
     start, cpu = time.perf_counter(), _cpu()
     bundle = fit_scan(scan, out / f"{name}-{method}".replace(" ", "_"), _options(method=method))
@@ -103,7 +103,7 @@ def _tessera_row(name: str, scan, method: str, out: Path) -> dict:
 def _height_model(knots_u: np.ndarray, knots_v: np.ndarray, heights: np.ndarray, proj):
     """The height field ``h(u, v)`` over the plane map as a ``PatchModel``: ``x, y`` are
     linear in ``u, v``, hence exact with control points at the Greville abscissae."""
-    from fitter.nurbs import PatchModel
+    from fitter.fitting.nurbs import PatchModel
 
     def greville(t: np.ndarray, n: int) -> np.ndarray:
         return np.array([t[i + 1:i + DEGREE + 1].mean() for i in range(n)])
@@ -124,10 +124,10 @@ def _library_rows(name: str, scan) -> list[dict]:
     from scipy.sparse import identity
     from scipy.sparse.linalg import spsolve
 
-    from fitter.error import deviations
-    from fitter.nurbs import PatchModel
-    from fitter.parameterize import choose_projection
-    from fitter.sections import section_matrix, section_shape
+    from fitter.fitting.error import deviations
+    from fitter.fitting.nurbs import PatchModel
+    from fitter.fitting.parameterize import choose_projection
+    from fitter.fitting.sections import section_matrix, section_shape
 
     points = scan.points
     covered = choose_projection(points, None, "auto").covered
@@ -198,11 +198,11 @@ def _collocation(Bu: np.ndarray, Bv: np.ndarray):
 def _feature_rows(name: str, scan, out: Path) -> list[dict]:
     """The tessera fit from ``FEATURE_SAMPLES`` points, uniform against feature-adaptive."""
     from client_py import read_patch
-    from fitter.error import deviations
-    from fitter.features import surface_variation
-    from fitter.nurbs import PatchModel
-    from fitter.parameterize import choose_projection
-    from fitter.pipeline import fit_scan
+    from fitter.fitting.error import deviations
+    from fitter.fitting.features import surface_variation
+    from fitter.fitting.nurbs import PatchModel
+    from fitter.fitting.parameterize import choose_projection
+    from fitter.fitting.pipeline import fit_scan
 
     points = scan.points
     cov = choose_projection(points, None, "auto")
@@ -243,9 +243,9 @@ def _big(points: int) -> dict | None:
 
 
 def run(big_points: int = 10_000_000) -> dict:
-    from fitter.examples import relief_scan
-    from fitter.io import load_scan
-    from fitter.io.scan import Scan
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.io import load_scan
+    from fitter.fitting.io.scan import Scan
 
     inputs = {"generated relief 80k": Scan.from_array(relief_scan())}
     for name, path in SCANS.items():

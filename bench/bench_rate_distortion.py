@@ -23,7 +23,7 @@ visitor's browser draws.
   a span (g20: 0.128 vs 0.125 mm, g32: 0.062 vs 0.059) and by 4 % at level 5
   against 4 (0.0184 vs 0.0177); 2 a span would overstate level 5 by 27 %.
   The bias counts against Tessera. The rows keep ``rms_e`` and ``max_e``, the
-  fitter's figure (``fitter.detail``: the distance to the refined surface at
+  fitter's figure (``fitter.fitting.detail``: the distance to the refined surface at
   the point's foot point, an upper bound of its true distance that knows
   neither the trim masks nor the tessellation), for reference.
 * **Draco**: the scan's own mesh (a point cloud is meshed by Delaunay
@@ -226,10 +226,10 @@ def tessera_points(scan, cov, out: Path, submit: Callable[[str, int, int], Futur
     are the fitter's foot-point figures.
     """
     from client_py import read_patch
-    from fitter.detail import SPANS, STEP_FACTOR, fit_detail
-    from fitter.error import deviations
-    from fitter.nurbs import PatchModel
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.detail import SPANS, STEP_FACTOR, fit_detail
+    from fitter.fitting.error import deviations
+    from fitter.fitting.nurbs import PatchModel
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     fitted = {}
     for grid in GRIDS:
@@ -282,7 +282,7 @@ def tessera_points(scan, cov, out: Path, submit: Callable[[str, int, int], Futur
 def _write_bundle(source: Path, manifest: dict, pyramid, out: Path) -> Path:
     """A bundle directory ``out`` with ``source``'s base and ``pyramid``'s detail tiles
     (``manifest`` with its ``tiles`` tree and tile files replaced)."""
-    from fitter.detail import write_layers
+    from fitter.fitting.detail import write_layers
 
     out.mkdir(parents=True)
     shutil.copyfile(source / "base.tsp", out / "base.tsp")
@@ -331,9 +331,9 @@ def run() -> dict | None:
         print("skipping: DracoPy and fast-simplification are needed "
               "(pip install -e '.[bench]')")
         return None
-    from fitter.detail import SPANS, STEP_FACTOR
-    from fitter.io import load_scan
-    from fitter.parameterize import choose_projection
+    from fitter.fitting.detail import SPANS, STEP_FACTOR
+    from fitter.fitting.io import load_scan
+    from fitter.fitting.parameterize import choose_projection
 
     results, table, versus = {}, [], []
     workers = min(2, os.cpu_count() or 1)

@@ -43,13 +43,13 @@ def _free_port() -> int:
 
 
 def _make_collection(root: Path) -> str:
-    from fitter.catalog import Catalog
-    from fitter.examples import relief_scan
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.collection.catalog import Catalog
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     fit_scan(relief_scan(20_000), root / "relief", FitOptions(grid=(20, 20), title="Relief"))
     with Catalog(root, create=True) as catalog:
-        from fitter.catalog import adopt_bundles
+        from fitter.collection.catalog import adopt_bundles
 
         adopt_bundles(catalog, publish=True)
     return "relief"

@@ -4,7 +4,7 @@ Runs ``client_py.tessellate_grid`` with the pure-Python kernel and the numpy
 kernel in CPython, and the pure-Python kernel in Pyodide under node (the
 browser's path: Pyodide from web/node_modules, no numpy), on a rational and a
 non-rational patch, and on the rational one with a trim mask. The patch is the
-example relief (``fitter.examples``: rosette, groove, step on a convex face,
+example relief (``fitter.fitting.examples``: rosette, groove, step on a convex face,
 200 x 140 mm) sampled as a height field at the Greville abscissae, with smooth
 weights ``1 + 0.2 sin cos``. Writes ``bench/results/tessellate.json``.
 """
@@ -58,7 +58,7 @@ def relief_patch(rational: bool, trimmed: bool = False) -> NurbsSurface:
     ``trimmed``: with a 100 x 100 trim mask covering an ellipse inscribed in the
     domain (78.5 % of it), like the coverage mask of a fitted scan.
     """
-    from fitter.examples import relief_height  # numpy: CPython only
+    from fitter.fitting.examples import relief_height  # numpy: CPython only
 
     knots_x = uniform_clamped_knots(CTRL, DEGREE, -100.0, 100.0)
     knots_y = uniform_clamped_knots(CTRL, DEGREE, -70.0, 70.0)
@@ -135,7 +135,7 @@ def run() -> dict:
     record = {
         "task": f"tessellate_grid of a {CTRL}x{CTRL} degree-{DEGREE} patch to {GRID}x{GRID} "
                 "vertices with normals",
-        "patch": "example relief (fitter.examples.relief_height) as a height field at the "
+        "patch": "example relief (fitter.fitting.examples.relief_height) as a height field at the "
                  "Greville abscissae; rational: weights 1 + 0.2 sin(3x/100) cos(2y/70)",
         "grid": [GRID, GRID], "control_points": [CTRL, CTRL], "degree": [DEGREE, DEGREE],
         "repeat": REPEAT, "results": results,

@@ -1,7 +1,7 @@
 """Web viewer benchmark: cold page load to first frame in headless Chromium, and Tessera's
 in-browser tessellation (client_py under Pyodide, in the worker) against three.js.
 
-A 40 x 40 bundle is fitted from the generated relief scan (``fitter.examples.relief_scan``,
+A 40 x 40 bundle is fitted from the generated relief scan (``fitter.fitting.examples.relief_scan``,
 80,000 points) and served by the Flask app on 127.0.0.1. For each grid (128² and 256²
 vertices) the viewer page is loaded cold ``COLD_RUNS`` times (a fresh browser context each
 time: empty HTTP and code caches) and its ``window.tessera.stats`` read: ``pyodide_load_ms``
@@ -23,11 +23,12 @@ faster). Writes ``bench/results/web.json``.
 from __future__ import annotations
 
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-from bench import print_table, write_results
+from bench import ROOT, print_table, write_results
 
 GRIDS = (128, 256)
 COLD_RUNS = 3
@@ -71,8 +72,8 @@ def _surface_json(patch: Path) -> dict:
 
 
 def _fit_bundle(root: Path) -> Path:
-    from fitter.examples import relief_scan
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     bundle = root / "relief40"
     fit_scan(relief_scan(80_000), bundle,
@@ -132,7 +133,8 @@ def _measure(browser, base: str, bundle: Path, surface: dict, warm_too: bool):
 
 
 def run() -> dict | None:
-    from fitter.server.live import CHROMIUM_PATH, LiveServer, chromium_launch_args
+    sys.path.insert(0, str(ROOT / "tests"))  # the tests' live-server helper (not shipped)
+    from live import CHROMIUM_PATH, LiveServer, chromium_launch_args
 
     if not Path(CHROMIUM_PATH).exists():
         print(f"skipped: {CHROMIUM_PATH} is missing (make chromium)")

@@ -114,7 +114,7 @@ class DetailTile:
         Cells of ``uv_rect`` (row ``r`` along ``u``) that the refined surface
         draws from this level on although the base's trim leaves them out: where
         the base strayed from the scan but the displacement brought it back
-        (``fitter.detail``). A tessellation applying the tile draws a cell whose
+        (``fitter.fitting.detail``). A tessellation applying the tile draws a cell whose
         centre the base trim *or* this mask covers.
     """
 

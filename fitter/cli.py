@@ -154,8 +154,8 @@ def _positive_float(text: str) -> float:
 def _cmd_fit(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from .io import ScanError
-    from .pipeline import fit_scan
+    from .fitting.io import ScanError
+    from .fitting.pipeline import fit_scan
 
     options = _fit_options(args, title=args.title)
     bars: dict[str, tqdm] = {}
@@ -278,7 +278,7 @@ def _serve_gunicorn(app, args: argparse.Namespace) -> None:  # noqa: ANN001 - a 
 
 def _start_job_runner(app, workers: int | None):  # noqa: ANN001, ANN202 - Flask app, runner
     """The admin's fit-job supervisor in its own process, when the admin area is on."""
-    from .jobs import RunnerProcess
+    from .collection.jobs import RunnerProcess
 
     admin = app.extensions.get("tessera_admin")
     if admin is None or not admin.enabled:
@@ -291,8 +291,8 @@ def _cmd_admin_set_token(args: argparse.Namespace) -> int:
     import getpass
     import secrets
 
-    from .catalog import Catalog, adopt_bundles
-    from .server.admin import TOKEN_SETTING, check_token_strength, hash_token
+    from .collection.catalog import Catalog, adopt_bundles
+    from .collection.tokens import TOKEN_SETTING, check_token_strength, hash_token
 
     collection = Path(args.collection)
     if not collection.is_dir():
@@ -325,7 +325,7 @@ def _cmd_admin_set_token(args: argparse.Namespace) -> int:
 
 
 def _cmd_fit_collection(args: argparse.Namespace) -> int:
-    from .collection_fit import fit_collection, format_summary
+    from .collection.batch import fit_collection, format_summary
 
     options = _fit_options(args)
     try:
@@ -366,7 +366,7 @@ def _add_fit_options(parser: argparse.ArgumentParser) -> None:
 
 def _fit_options(args: argparse.Namespace, **extra):
     """``FitOptions`` from the options :func:`_add_fit_options` added."""
-    from .pipeline import FitOptions
+    from .fitting.pipeline import FitOptions
 
     return FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
                       max_error=args.max_error, projection=args.projection,

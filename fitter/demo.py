@@ -1,6 +1,6 @@
 """``make demo``: fit the built-in example and serve the viewer.
 
-Generates the synthetic example relief scan (``fitter.examples.relief_scan``,
+Generates the synthetic example relief scan (``fitter.fitting.examples.relief_scan``,
 labelled as generated in its title), writes it as a PLY file like a scanner's,
 fits it with ``tessera fit`` defaults into ``demo-out/collection/``, prints the
 fit summary and serves the collection at the printed URL.
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .examples import relief_scan
+from .fitting.examples import relief_scan
 
 
 def write_scan_ply(path: Path, points: np.ndarray) -> None:

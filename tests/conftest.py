@@ -26,8 +26,8 @@ def web_collection(tmp_path_factory: pytest.TempPathFactory) -> Path:
     grid), and ``corrupt``, the same with one byte of ``base.tsp`` flipped."""
     import shutil
 
-    from fitter.examples import relief_scan
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     root = tmp_path_factory.mktemp("collection")
     fit_scan(relief_scan(20_000), root / "relief",
@@ -53,7 +53,7 @@ def web_app(web_collection: Path):
 @pytest.fixture(scope="session")
 def live_server(web_app):
     """The app on 127.0.0.1 and an OS-chosen port, in a background thread."""
-    from fitter.server.live import LiveServer
+    from live import LiveServer
 
     with LiveServer(web_app) as live:
         yield live
@@ -62,7 +62,7 @@ def live_server(web_app):
 @pytest.fixture(scope="session")
 def browser_type_launch_args(browser_type_launch_args: dict) -> dict:
     """pytest-playwright launches Debian's Chromium (never a downloaded build)."""
-    from fitter.server.live import CHROMIUM_PATH, chromium_launch_args
+    from live import CHROMIUM_PATH, chromium_launch_args
 
     if not Path(CHROMIUM_PATH).exists():
         pytest.skip(f"{CHROMIUM_PATH} is missing: `make chromium` installs Debian's chromium")
@@ -81,7 +81,7 @@ def relief_ply(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The generated relief (20,000 points, synthetic) as a binary PLY file, as a scanner
     would write it."""
     from fitter.demo import write_scan_ply
-    from fitter.examples import relief_scan
+    from fitter.fitting.examples import relief_scan
 
     path = tmp_path_factory.mktemp("scans") / "relief.ply"
     write_scan_ply(path, relief_scan(20_000))

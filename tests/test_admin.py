@@ -19,12 +19,12 @@ import pytest
 from conftest import ADMIN_TOKEN
 from werkzeug.routing import IntegerConverter
 
-from fitter.catalog import MIGRATIONS, SCHEMA_VERSION, Catalog, CatalogError
 from fitter.cli import main
+from fitter.collection.catalog import MIGRATIONS, SCHEMA_VERSION, Catalog, CatalogError
+from fitter.collection.jobs import JobRunner, fit_options
+from fitter.collection.uploads import UploadError, UploadLimits, safe_member_path, sniff_format
 from fitter.demo import write_scan_ply
-from fitter.jobs import JobRunner, fit_options
-from fitter.pipeline import fit_scan
-from fitter.uploads import UploadError, UploadLimits, safe_member_path, sniff_format
+from fitter.fitting.pipeline import fit_scan
 
 BEARER = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 FAST = {"grid": "12x12", "method": "linear"}  # a fit of a second or so
@@ -358,7 +358,7 @@ def test_gzip_and_zip_uploads_are_accepted(client, runner, relief_ply):
 # ------------------------------------------------------------------------ jobs
 def test_cancel_stops_the_running_fit_and_leaves_no_bundle(admin_app, client, runner,
                                                            tmp_path):
-    from fitter.examples import relief_scan
+    from fitter.fitting.examples import relief_scan
 
     big = _ply_bytes(relief_scan(150_000), tmp_path)
     job_id = upload(client, big, grid="40x40", method="tessera").get_json()["job"]
@@ -420,7 +420,7 @@ def test_delete_moves_to_the_trash_and_restore_brings_it_back(admin_app, client,
 
 def test_a_managed_collection_keeps_its_public_bundles_and_hides_new_ones(
         tmp_path, admin_app_factory, relief_ply):
-    from fitter.pipeline import FitOptions
+    from fitter.fitting.pipeline import FitOptions
 
     collection = tmp_path / "collection"
     options = FitOptions(grid=(12, 12), method="linear")

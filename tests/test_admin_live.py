@@ -21,7 +21,7 @@ import pytest
 from conftest import ADMIN_TOKEN
 
 from fitter.demo import write_scan_ply
-from fitter.examples import relief_scan
+from fitter.fitting.examples import relief_scan
 
 BEARER = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 
@@ -158,8 +158,9 @@ def test_kill_9_of_the_server_mid_fit_then_restart_and_retry(tmp_path):
 # --------------------------------------------------------------------------- browser
 @pytest.fixture()
 def admin_live(admin_app_factory, tmp_path):
-    from fitter.jobs import JobRunner
-    from fitter.server.live import LiveServer
+    from live import LiveServer
+
+    from fitter.collection.jobs import JobRunner
 
     app = admin_app_factory(TESSERA_PYODIDE_SNAPSHOT=True, TESSERA_CACHE_DIR=str(
         Path(__file__).resolve().parents[1] / "build" / "cache"))

@@ -20,7 +20,7 @@ import trimesh
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from fitter.examples import relief_scan
+from fitter.fitting.examples import relief_scan
 
 pytestmark = pytest.mark.browser
 

@@ -5,7 +5,7 @@ the base with at most coarse tiles at the fitted view; zooming into one spot (th
 documented hook ``window.tessera.zoomTo``) fetches that spot's finest tiles, and only tiles
 the camera sees (checked by projecting each fetched tile's rectangle, evaluated on the base
 patch in Python, through the page's own camera matrices); the regions drawn there lie closer
-to the exact relief (``fitter.examples.relief_height``) than the base does.
+to the exact relief (``fitter.fitting.examples.relief_height``) than the base does.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fitter.examples import relief_height
+from fitter.fitting.examples import relief_height
 
 pytestmark = pytest.mark.browser
 
@@ -32,8 +32,8 @@ TILE_URL = re.compile(r"/detail/(\d+)/(\d+)_(\d+)\.tsd$")
 @pytest.fixture(scope="module")
 def detail_collection(tmp_path_factory: pytest.TempPathFactory):
     """One bundle: the relief (40,000 points) with a 20x20 base and 4 detail levels."""
-    from fitter.examples import relief_scan
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     root = tmp_path_factory.mktemp("detail-collection")
     points = relief_scan(40_000)
@@ -91,7 +91,7 @@ def _local(points: np.ndarray) -> np.ndarray:
 
 def _coloured(points: np.ndarray):
     """The relief painted with red and blue stripes 12 mm wide across x: a point-coloured scan."""
-    from fitter.io.scan import Scan
+    from fitter.fitting.io.scan import Scan
 
     stripes = (np.floor(_local(points)[:, 0] / 12) % 2).astype(bool)
     colours = np.where(stripes[:, None], [[200, 60, 40]], [[40, 80, 200]]).astype(np.uint8)
@@ -100,8 +100,9 @@ def _coloured(points: np.ndarray):
 
 @pytest.fixture(scope="module")
 def detail_server(detail_collection):
+    from live import LiveServer
+
     from fitter.server import create_app
-    from fitter.server.live import LiveServer
 
     app = create_app({"TESSERA_COLLECTION": str(detail_collection), "TESTING": True})
     if app.extensions["tessera_snapshot"] is not None:

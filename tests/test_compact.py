@@ -1,4 +1,4 @@
-"""fitter.compact: hidden control points and automatic quantisation bits."""
+"""fitter.fitting.compact: hidden control points and automatic quantisation bits."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import pytest
 from scipy.interpolate import BSpline
 
 from client_py import TrimMask, read_patch, write_patch
-from fitter.compact import (
+from fitter.fitting.compact import (
     DRAWN_MARGIN,
     choose_bits,
     harmonic_fill,
     settle_hidden,
     visible_control_points,
 )
-from fitter.nurbs import PatchModel
+from fitter.fitting.nurbs import PatchModel
 
 
 def disc_cells(rows: int = 64, cols: int = 64, radius: float = 0.3) -> np.ndarray:
@@ -119,7 +119,7 @@ def test_choose_bits_is_the_fewest_within_tolerance(fit_rms):
 def test_drawn_cells_drop_where_the_surface_strays_from_the_scan():
     """A flat patch with one control point pulled 5 units up, against a scan of the flat
     plane: the cells under that control point's support go, the rest stay."""
-    from fitter.compact import drawn_cells
+    from fitter.fitting.compact import drawn_cells
 
     model = PatchModel.uniform((12, 12), (2, 2))
     g = np.linspace(0, 1, 12)

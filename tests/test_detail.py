@@ -1,4 +1,4 @@
-"""fitter.detail: the level fit against a dense solve, errors falling level by level, the
+"""fitter.fitting.detail: the level fit against a dense solve, errors falling level by level, the
 written tiles (read back by client_py) reproducing the reported errors, and the CLI --level."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from scipy.interpolate import BSpline
 
 from client_py import read_detail_tile
 from client_py.layers import displacement_grid, level_knots
-from fitter import detail
 from fitter.cli import main
+from fitter.fitting import detail
 
 
 def field_samples(n: int = 6000, noise: float = 0.0, seed: int = 0) -> detail.DetailSamples:
@@ -97,8 +97,8 @@ def test_periodic_field_closes_at_the_seam():
 
 @pytest.fixture(scope="module")
 def relief_bundle(tmp_path_factory):
-    from fitter.examples import relief_scan
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     out = tmp_path_factory.mktemp("detail") / "relief"
     return fit_scan(relief_scan(12_000), out, FitOptions(grid=(12, 12), detail_levels=3))
@@ -146,8 +146,8 @@ def test_cli_level_applies_the_tiles(relief_bundle, tmp_path, capsys):
 
 @pytest.mark.realdata
 def test_real_scan_rms_falls_with_levels(shared_data, tmp_path):
-    from fitter.io import load_scan
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.io import load_scan
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     scan = load_scan(shared_data / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz")
     m = fit_scan(scan, tmp_path / "b", FitOptions(grid=(16, 16), detail_levels=3,
@@ -168,9 +168,9 @@ def test_drawn_masks_bring_back_scan_points_the_base_trim_cut_away(shared_data, 
     from client_py import read_patch
     from client_py.bundle import detail_nodes
     from client_py.layers import tessellate_region
-    from fitter.io import load_scan
-    from fitter.parameterize import choose_projection
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.io import load_scan
+    from fitter.fitting.parameterize import choose_projection
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     scan = load_scan(shared_data / "bali-mask" / "mask.obj")
     root = tmp_path / "b"
@@ -192,8 +192,8 @@ def test_drawn_masks_bring_back_scan_points_the_base_trim_cut_away(shared_data, 
 
 
 def test_detail_spans_option(tmp_path):
-    from fitter.examples import relief_scan
-    from fitter.pipeline import FitOptions, fit_scan
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.pipeline import FitOptions, fit_scan
 
     for bad in (3, 65, True, 16.0):
         with pytest.raises(ValueError, match="detail_spans must be an integer in 4..64"):
@@ -211,7 +211,7 @@ def plane_model():
     """The plane ``z = 0`` over the unit square as a degree-2 patch."""
     from client_py import NurbsSurface
     from client_py.basis import uniform_clamped_knots
-    from fitter.nurbs import PatchModel
+    from fitter.fitting.nurbs import PatchModel
 
     greville = [0.0, 0.25, 0.75, 1.0]  # control points there: S(u, v) = (u, v, 0)
     a, b = np.meshgrid(greville, greville, indexing="ij")
@@ -221,7 +221,7 @@ def plane_model():
 
 
 def test_stray_flags_cells_far_from_every_scan_point():
-    from fitter.compact import ScanNeighbourhood
+    from fitter.fitting.compact import ScanNeighbourhood
 
     g = np.linspace(0, 1, 81)
     P = np.array([(x, y, 0.0) for x in g for y in g if x <= 0.5])  # scan: the half u <= 0.5

@@ -1,4 +1,4 @@
-"""fitter.error's reports: the z-buffered scan view and the coloured error PLY."""
+"""fitter.fitting.error's reports: the z-buffered scan view and the coloured error PLY."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import matplotlib
 import numpy as np
 import trimesh
 
-from fitter.error import _depth_view, write_error_ply
+from fitter.fitting.error import _depth_view, write_error_ply
 
 
 def test_depth_view_shows_the_nearest_point_of_each_pixel():

@@ -7,8 +7,8 @@ import pytest
 import scipy.sparse as sp
 
 from client_py import NurbsSurface, uniform_clamped_knots
-from fitter.features import adaptive_sample, feature_weights, surface_variation
-from fitter.fit import (
+from fitter.fitting.features import adaptive_sample, feature_weights, surface_variation
+from fitter.fitting.fit import (
     _regularised_solve,
     fit_points_linear,
     fit_section_matrix,
@@ -17,7 +17,7 @@ from fitter.fit import (
     seam_closure,
     second_differences,
 )
-from fitter.nurbs import PatchModel
+from fitter.fitting.nurbs import PatchModel
 
 
 def _random_bspline(shape=(7, 6), degree=(2, 3), seed=1) -> PatchModel:

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from fitter.cli import main
-from fitter.collection_fit import bundle_name, fit_collection, is_up_to_date
+from fitter.collection.batch import bundle_name, fit_collection, is_up_to_date
 from fitter.demo import write_scan_ply
-from fitter.examples import relief_scan
-from fitter.pipeline import FitOptions, fit_scan
+from fitter.fitting.examples import relief_scan
+from fitter.fitting.pipeline import FitOptions, fit_scan
 
 OPTIONS = dict(grid=(12, 12), method="linear")
 

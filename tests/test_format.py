@@ -112,12 +112,12 @@ def test_header_layout_matches_the_spec():
 
 @cache
 def relief_patch() -> NurbsSurface:
-    """A realistic smooth-but-detailed patch: the example relief (fitter.examples: rosette,
+    """A realistic smooth-but-detailed patch: the example relief (fitter.fitting.examples: rosette,
     groove, sharp step, convex face; 200 x 140 mm) as a 40 x 40 degree-2 height field,
     least-squares fitted to 12,000 scattered points with 0.05 mm noise (control x, y at
     the Greville abscissae, z fitted), with smooth weights 1 + 0.2 sin cos plus 1e-3 noise,
     as a nonlinear refinement leaves them."""
-    from fitter.examples import relief_height
+    from fitter.fitting.examples import relief_height
 
     n, p, count = 40, 2, 12_000
     rng = np.random.default_rng(0)

@@ -1,4 +1,5 @@
-"""Tests of fitter.io: every format round-tripped from files written here, real scans, bad input.
+"""Tests of fitter.fitting.io: every format round-tripped from files written here, real
+scans, bad input.
 
 References are independent of the readers under test: files are written with
 numpy/struct/plain text (or trimesh's exporters), digests with hashlib, the
@@ -15,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import fitter.io.ply as ply_module
-from fitter.io import SUPPORTED_EXTENSIONS, Scan, ScanError, load_scan, voxel_thin_indices
-from fitter.io.conf import quaternion_matrix
+import fitter.fitting.io.ply as ply_module
+from fitter.fitting.io import SUPPORTED_EXTENSIONS, Scan, ScanError, load_scan, voxel_thin_indices
+from fitter.fitting.io.conf import quaternion_matrix
 
 RNG = np.random.default_rng(7)
 

@@ -13,9 +13,9 @@ from scipy.spatial import cKDTree
 from client_py import read_patch, tessellate_grid
 from fitter.cli import main as tessera
 from fitter.demo import write_scan_ply
-from fitter.examples import relief_scan
-from fitter.io import ScanError, load_scan
-from fitter.pipeline import FitOptions, fit_scan
+from fitter.fitting.examples import relief_scan
+from fitter.fitting.io import ScanError, load_scan
+from fitter.fitting.pipeline import FitOptions, fit_scan
 
 
 @pytest.fixture(scope="module")

@@ -14,8 +14,8 @@ import pytest
 from PIL import Image
 
 from fitter.cli import build_parser, main
+from fitter.collection.bundles import Collection
 from fitter.server import DEFAULTS, PROJECT_ROOT, create_app, load_settings
-from fitter.server.collection import Collection
 
 PYODIDE = PROJECT_ROOT / "web" / "node_modules" / "pyodide"
 HOP_DIR = Path(DEFAULTS["TESSERA_3DHOP_DIR"][0]) if DEFAULTS["TESSERA_3DHOP_DIR"][0] else None

@@ -1,5 +1,5 @@
-"""fitter.texture: push-pull hole filling, triangle rasterisation in (u, v), tiles that decode
-to the scan's colours, and a coloured scan's bundle with texture nodes."""
+"""fitter.fitting.texture: push-pull hole filling, triangle rasterisation in (u, v), tiles that
+decode to the scan's colours, and a coloured scan's bundle with texture nodes."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import io
 import numpy as np
 from PIL import Image
 
-from fitter import texture
-from fitter.io.scan import Scan
+from fitter.fitting import texture
+from fitter.fitting.io.scan import Scan
 
 
 def test_push_pull_keeps_covered_texels_and_fills_holes_from_neighbours():

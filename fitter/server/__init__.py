@@ -123,8 +123,8 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
         When ``TESSERA_COLLECTION`` is unset or not a directory, or a runtime
         directory (web/, pyodide, three) is missing.
     """
+    from ..collection.bundles import Collection
     from . import admin, api, bundles, gallery, objects, runtime
-    from .collection import Collection
     from .snapshot import SnapshotBuilder
 
     settings = load_settings(config)

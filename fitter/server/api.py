@@ -13,7 +13,7 @@ from typing import Any
 from flask import Blueprint, abort, current_app, jsonify, url_for
 from flask.typing import ResponseReturnValue
 
-from .collection import Bundle, BundleError
+from ..collection.bundles import Bundle, BundleError
 
 bp = Blueprint("api", __name__, url_prefix="/api")
 

@@ -19,8 +19,8 @@ from flask.typing import ResponseReturnValue
 from client_py import PatchFormatError
 from client_py.tessellate import MAX_GRID
 
+from ..collection.bundles import Bundle
 from .api import get_bundle_or_404, object_summary
-from .collection import Bundle
 from .thumbnail import render_thumbnail
 
 bp = Blueprint("objects", __name__, url_prefix="/objects")

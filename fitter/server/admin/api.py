@@ -22,8 +22,8 @@ import time
 from flask import request, url_for
 from flask.typing import ResponseReturnValue
 
-from ...uploads import UploadError
-from . import api_error, bp, state
+from ...collection.uploads import UploadError
+from .auth import api_error, bp, state
 from .service import ConflictError, accept_upload, object_json, restore_object, trash_object
 
 CANCEL_WAIT = 5.0  # seconds a cancel request waits to report the job stopped

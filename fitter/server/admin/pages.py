@@ -19,10 +19,10 @@ from flask import (
 )
 from flask.typing import ResponseReturnValue
 
-from ...catalog import adopt_bundles
-from ...pipeline import METHODS, FitOptions
-from ...uploads import UploadError
-from . import bp, csrf_ok, csrf_token, logged_in, state
+from ...collection.catalog import adopt_bundles
+from ...collection.uploads import UploadError
+from ...fitting.pipeline import METHODS, FitOptions
+from .auth import bp, csrf_ok, csrf_token, logged_in, state
 from .service import ConflictError, accept_upload, object_json, restore_object, trash_object
 
 

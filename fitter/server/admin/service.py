@@ -14,9 +14,9 @@ from typing import Any
 
 from werkzeug.datastructures import MultiDict
 
-from ...catalog import Catalog, new_object_id, state_dir
-from ...jobs import fit_options
-from ...uploads import UploadError, UploadLimits, prepare_scan, receive_upload
+from ...collection.catalog import Catalog, new_object_id, state_dir
+from ...collection.jobs import fit_options
+from ...collection.uploads import UploadError, UploadLimits, prepare_scan, receive_upload
 
 #: form fields of an upload besides the file: the object's title and the fit options
 OPTION_FIELDS = {"grid", "degree", "method", "bits", "max_error", "max_grid", "projection"}

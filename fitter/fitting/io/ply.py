@@ -19,7 +19,7 @@ so the reader knows before touching the body which path fits:
 * **ASCII triangle mesh** (``vertex`` then an all-triangle ``face`` list, e.g.
   the zippered bunny): vertex and face lines both through ``loadtxt``.
 * **everything else** (binary meshes, polygons, vertex elements with list
-  properties): trimesh's PLY loader on the bytes read once (``fitter.io.mesh``).
+  properties): trimesh's PLY loader on the bytes read once (``fitter.fitting.io.mesh``).
 
 Recognised vertex properties: ``x y z`` (required), normals ``nx ny nz``, colours
 ``red green blue`` (or ``r g b``, ``diffuse_red ...``; uchar as is, floats taken

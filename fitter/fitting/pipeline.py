@@ -2,11 +2,11 @@
 
 Stages (each timed, each reported to ``progress(stage, fraction)``):
 
-1. load — ``fitter.io.load_scan`` (or an in-memory array);
+1. load — ``fitter.fitting.io.load_scan`` (or an in-memory array);
 2. project — choose the map to ``[0, 1]^2`` and the covered points
-   (``fitter.parameterize``); the rest are reported, not dropped;
-3. sections — the paper's section matrix (``fitter.sections``);
-4. linear — the initial B-spline, weights 1, uniform clamped knots (``fitter.fit``);
+   (``fitter.fitting.parameterize``); the rest are reported, not dropped;
+3. sections — the paper's section matrix (``fitter.fitting.sections``);
+4. linear — the initial B-spline, weights 1, uniform clamped knots (``fitter.fitting.fit``);
 5. refine — ``paper``: Levenberg-Marquardt over ``Q`` and ``W`` on the section
    matrix (eq. 5); ``tessera``: rounds of parameter correction (foot points of
    a feature-adaptive sample of the scan itself) and linear re-fits, then the
@@ -16,8 +16,8 @@ Stages (each timed, each reported to ``progress(stage, fraction)``):
 7. error — foot-point deviation of every scan point, statistics, ``error.png``,
    ``error.ply``;
 7b. detail, texture — the residual pyramid along the base normal and the colour
-   pyramid in ``(u, v)`` (``fitter.detail``, ``fitter.texture``): ``detail/K/I_J.tsd``,
-   ``texture/K/I_J.webp`` and the manifest's ``tiles`` tree;
+   pyramid in ``(u, v)`` (``fitter.fitting.detail``, ``fitter.fitting.texture``):
+   ``detail/K/I_J.tsd``, ``texture/K/I_J.webp`` and the manifest's ``tiles`` tree;
 8. bundle — ``manifest.json``; the bundle directory appears by an atomic
    rename once complete.
 
@@ -66,7 +66,7 @@ MIN_POINTS = 64
 FIT_SAMPLE = 60_000  # default of FitOptions.samples
 FEATURE_SAMPLE = 150_000  # points whose local PCA drives the sampling density
 CORRECTION_ROUNDS = 3
-# Thin-plate weight of the tessera fits (relative, see fitter.fit._regularised_solve): 1e-4
+# Thin-plate weight of the tessera fits (relative, see fitter.fitting.fit._regularised_solve): 1e-4
 # tames control points that data barely supports at the rim (their range had grown to 10-50x
 # the object's on the Buddha, mask and Nefertiti at 1e-6, costing bits) while changing the RMS
 # by under 0.5 % on every scan of ../shared/data and the generated relief.
@@ -84,7 +84,7 @@ class FitOptions:
     method : ``tessera`` (default, the best we have), ``paper`` (as published) or
     ``linear`` (the paper's initial linear solution alone, a baseline);
     bits : quantisation of the patch file, or ``None`` (default) for the fewest
-    bits that keep the fit's RMS within 0.5 % (``fitter.compact``);
+    bits that keep the fit's RMS within 0.5 % (``fitter.fitting.compact``);
     max_error : target RMS in scan units (grows the grid); max_grid : cap for
     that growth; projection : ``auto`` or one of ``plane``, ``cylinder``,
     ``sphere``; title : the object's title; feature_strength : how much denser
@@ -352,7 +352,7 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
         if options.max_error is None or stats["rms"] <= options.max_error:
             break
 
-    stages.start("detail")  # residual pyramid and colour pyramid (fitter.detail, .texture)
+    stages.start("detail")  # residual pyramid and colour pyramid (fitter.fitting.detail, .texture)
     pyramid = fit_detail(best.model, local, best.dev, cov.covered, proj.periodic_u,
                          options.detail_levels, stages.report, trim=read_patch(best.data).trim,
                          spans=options.detail_spans)

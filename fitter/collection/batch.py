@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from .pipeline import FitOptions
+from ..fitting.pipeline import FitOptions
 
 STATES = ("done", "skipped", "failed")
 
@@ -98,8 +98,8 @@ def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
 
 def fit_one(scan: str, out_dir: str, options: dict[str, Any]) -> dict[str, Any]:
     """The Dask task: fit one scan; a bad input is a ``failed`` result, not an exception."""
-    from .io import ScanError
-    from .pipeline import fit_scan
+    from ..fitting.io import ScanError
+    from ..fitting.pipeline import fit_scan
 
     values = dict(options)
     values["grid"] = tuple(values["grid"])

@@ -16,7 +16,7 @@ bytes are:
 * a gzip stream (``.gz``) is decompressed once, to a counter, with an absolute
   size limit and a compression-ratio limit (a decompression bomb stops within
   one chunk of the limit); its content is sniffed from the decompressed head
-  and the file is kept compressed (``fitter.io`` reads ``.gz`` itself);
+  and the file is kept compressed (``fitter.fitting.io`` reads ``.gz`` itself);
 * a zip archive has every member checked before anything is written (absolute
   names, ``..`` components, drive letters, symbolic links, member count,
   declared sizes and ratios), then is extracted with the sizes counted again
@@ -47,7 +47,7 @@ from werkzeug.datastructures import MultiDict
 from werkzeug.exceptions import RequestEntityTooLarge
 from werkzeug.formparser import parse_form_data
 
-from .io import SUPPORTED_EXTENSIONS
+from ..fitting.io import SUPPORTED_EXTENSIONS
 
 CHUNK = 1 << 20
 SNIFF_BYTES = 1 << 16
@@ -92,7 +92,7 @@ class ReceivedFile:
 
 @dataclass
 class PreparedScan:
-    """An accepted upload: the file ``fitter.io.load_scan`` will read."""
+    """An accepted upload: the file ``fitter.fitting.io.load_scan`` will read."""
 
     scan_path: Path
     format: str
@@ -205,7 +205,7 @@ def _text_lines(head: bytes) -> list[bytes] | None:
 
 def sniff_format(head: bytes, total_size: int | None = None, name_hint: str = "") -> str | None:
     """The scan format of a file from its first bytes: an extension of
-    :data:`fitter.io.SUPPORTED_EXTENSIONS` (without ``.conf``), or None.
+    :data:`fitter.fitting.io.SUPPORTED_EXTENSIONS` (without ``.conf``), or None.
 
     ``total_size`` lets a binary STL be recognised by its triangle count
     (``84 + 50 n`` bytes); ``name_hint`` (the client's file name) only chooses

@@ -3,7 +3,7 @@
 A collection directory becomes *managed* when the admin area first runs on it:
 ``<collection>/.tessera/catalog.sqlite`` is created next to the bundles (the
 leading dot keeps it out of the object ids, see
-:data:`fitter.server.collection.ID_PATTERN`), with the uploads, the staging
+:data:`fitter.collection.bundles.ID_PATTERN`), with the uploads, the staging
 area of running fits and the trash beside it::
 
     <collection>/
@@ -40,6 +40,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from .bundles import Bundle, Collection
 
 STATE_DIR = ".tessera"
 CATALOG_FILE = "catalog.sqlite"
@@ -482,8 +484,6 @@ def adopt_bundles(catalog: Catalog, publish: bool) -> list[str]:
     created, so that managing an already public collection hides nothing).
     Returns the ids added.
     """
-    from .server.collection import Collection
-
     known = {r[0] for r in catalog.conn.execute("SELECT id FROM objects")}
     collection = Collection(catalog.collection)
     if collection.root == catalog.collection and (collection.root / "manifest.json").is_file():
@@ -515,3 +515,27 @@ class ThreadCatalogs:
         if catalog is None:
             catalog = self._local.catalog = Catalog(self.collection)
         return catalog
+
+
+class PublishedCollection(Collection):
+    """A managed collection as the public sees it: published objects only, catalog titles."""
+
+    def __init__(self, root: Path, catalogs: ThreadCatalogs) -> None:
+        super().__init__(root)
+        self.catalogs = catalogs
+
+    def _overlay(self, bundle: Bundle, row: dict[str, Any]) -> Bundle:
+        manifest = dict(bundle.manifest)
+        manifest["title"] = row["title"]
+        return Bundle(bundle.id, bundle.path, manifest)
+
+    def bundles(self) -> list[Bundle]:
+        published = self.catalogs.get().published()
+        return [self._overlay(b, published[b.id]) for b in super().bundles()
+                if b.id in published]
+
+    def get(self, object_id: str) -> Bundle:
+        row = self.catalogs.get().get_object(object_id)
+        if row is None or not row["published"] or row["trash_path"] or not row["bundle_path"]:
+            raise KeyError(object_id)
+        return self._overlay(super().get(object_id), row)

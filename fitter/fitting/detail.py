@@ -1,7 +1,7 @@
 """The detail pyramid: what the base patch leaves of the scan, as displacement along its normal.
 
 Every covered scan point ``P`` has a foot point ``(u, v)`` on the base ``S``
-(``fitter.error.deviations``) and splits into a *normal* deviation ``s =
+(``fitter.fitting.error.deviations``) and splits into a *normal* deviation ``s =
 (P - S(u, v)) . n(u, v)`` and a tangential remainder ``t`` (zero when the foot
 point is an exact orthogonal projection; not zero at the domain's border). The
 refined surface ``X = S + D n`` with ``D = sum_k D_k`` reproduces ``P`` when
@@ -30,7 +30,7 @@ whose coefficients all quantise to zero is not written. With a periodic map
 so the field, like the base, closes without a crack.
 
 *Redrawn cells.* The base's trim leaves out the cells where the base strays
-from the scan (``fitter.compact.drawn_cells``), and scan points whose foot
+from the scan (``fitter.fitting.compact.drawn_cells``), and scan points whose foot
 points fall there would stay unrepresented at every level. From the level whose
 grid (``DRAWN_SIDE`` cells per tile side) is at least as fine as the trim, a
 tile carries a ``drawn`` mask (:class:`Redraw`): the cells near the scan's foot
@@ -140,7 +140,7 @@ class Redraw:
     def from_foot_points(cls, model: PatchModel, drawn: np.ndarray, points: np.ndarray,
                          u: np.ndarray, v: np.ndarray, periodic_u: bool) -> Redraw:
         """Candidates: the trim cells holding a foot point ``(u, v)`` of ``points (N, 3)``,
-        with one-cell gaps closed (``fitter.parameterize.trim_cells``), not drawn."""
+        with one-cell gaps closed (``fitter.fitting.parameterize.trim_cells``), not drawn."""
         rows, cols = drawn.shape
         feet = np.zeros_like(drawn)
         feet[np.minimum((u * rows).astype(np.int64), rows - 1),

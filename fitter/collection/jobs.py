@@ -2,10 +2,10 @@
 
 ``tessera serve`` starts a :class:`JobRunner` in a process of its own
 (:class:`RunnerProcess`): a supervisor that takes ``queued`` jobs from the
-catalog (``fitter.catalog``) and runs each in its own worker process, at most
+catalog (``fitter.collection.catalog``) and runs each in its own worker process, at most
 ``workers`` at a time (default one per core), so the web process never computes
 a fit and never stalls behind one.
-Each worker calls :func:`fitter.pipeline.fit_scan` with a progress callback
+Each worker calls :func:`fitter.fitting.pipeline.fit_scan` with a progress callback
 that writes the stage and the overall fraction into the catalog (the same
 callback interface that drives the CLI's bars), throttled to a few writes a
 second; the admin page polls them.
@@ -30,7 +30,7 @@ Only one runner works on a collection at a time (an ``flock`` on
 leaves the jobs to the first.
 
 Workers are started by multiprocessing's ``forkserver`` method, with
-``fitter.pipeline`` preloaded into the fork server: a job starts in
+``fitter.fitting.pipeline`` preloaded into the fork server: a job starts in
 milliseconds, and never inherits the web server's threads or sockets (a plain
 ``fork`` of a threaded server can deadlock on a lock held by another thread).
 """
@@ -68,7 +68,7 @@ def staging_dir(collection: Path, job_id: int) -> Path:
 
 def fit_options(options: dict[str, Any]) -> Any:
     """``FitOptions`` from a job's stored options (validated)."""
-    from .pipeline import FitOptions
+    from ..fitting.pipeline import FitOptions
 
     values = dict(options)
     if "grid" in values:
@@ -140,8 +140,8 @@ def run_job(collection: str, job_id: int, supervisor: Connection | None = None) 
     """
     if supervisor is not None:
         threading.Thread(target=_watch_supervisor, args=(supervisor,), daemon=True).start()
-    from .io import ScanError
-    from .pipeline import fit_scan
+    from ..fitting.io import ScanError
+    from ..fitting.pipeline import fit_scan
 
     root = Path(collection)
     catalog = Catalog(root)
@@ -177,7 +177,7 @@ def run_job(collection: str, job_id: int, supervisor: Connection | None = None) 
 
 def _forkserver_context() -> multiprocessing.context.BaseContext:
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["fitter.pipeline", "fitter.jobs"])
+    ctx.set_forkserver_preload(["fitter.fitting.pipeline", "fitter.collection.jobs"])
     return ctx
 
 

@@ -5,7 +5,7 @@ texel of the patch domain takes the scan texture's colour at the texture
 coordinate interpolated from the triangle it falls in), per-vertex colours of
 a mesh (``laurana-bust``: interpolated over the triangles) or of a point cloud
 (each point splatted into its texel). Triangles are rasterised in the domain
-at the foot points ``(u, v)`` of their vertices (``fitter.error.deviations``),
+at the foot points ``(u, v)`` of their vertices (``fitter.fitting.error.deviations``),
 only those with three covered vertices (the front the patch represents) and,
 on a periodic map, not across the seam. Texels no triangle or point reaches
 are filled by push-pull (Gortler et al., *The Lumigraph*, SIGGRAPH 1996: a

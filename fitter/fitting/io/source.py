@@ -6,7 +6,7 @@ and gzip (when the name ends in ``.gz``) decompresses on top of it. After the
 reader is done, ``finish()`` hashes whatever the reader did not consume, so the
 digest always covers the whole stored file (the compressed bytes for ``.gz``)
 without a second read. The memory-mapped PLY path hashes the map instead
-(see ``fitter.io.ply``).
+(see ``fitter.fitting.io.ply``).
 """
 
 from __future__ import annotations

@@ -2,24 +2,24 @@
 
 ``load_scan(path)`` picks the loader by the file name's extension (``.gz``
 stripped first and decompressed on the fly), returns a validated ``Scan``
-(``fitter.io.scan``) and raises ``ScanError`` (a ``ValueError``) with the file
+(``fitter.fitting.io.scan``) and raises ``ScanError`` (a ``ValueError``) with the file
 name and the problem for every bad input. One module per format, as in
 trimesh's ``exchange/``:
 
 ==============================  ===========================================================
 extension                       loader
 ==============================  ===========================================================
-``.ply``                        ``fitter.io.ply`` (memory-mapped binary point clouds,
+``.ply``                        ``fitter.fitting.io.ply`` (memory-mapped binary point clouds,
                                 ``loadtxt`` for ASCII clouds, trimesh for meshes)
-``.obj .stl .off .gltf .glb``   ``fitter.io.mesh`` (trimesh; OBJ/glTF textures kept)
-``.xyz .pts .asc``              ``fitter.io.text``
-``.conf``                       ``fitter.io.conf`` (Stanford range-scan registration)
+``.obj .stl .off .gltf .glb``   ``fitter.fitting.io.mesh`` (trimesh; OBJ/glTF textures kept)
+``.xyz .pts .asc``              ``fitter.fitting.io.text``
+``.conf``                       ``fitter.fitting.io.conf`` (Stanford range-scan registration)
 ==============================  ===========================================================
 
 Every input is read once; its SHA-256 is computed on that read (streamed in
 chunks, or over the memory map) and stored with its size in ``scan.source``
 for the bundle's provenance. ``thin=h`` keeps one point per voxel of edge
-``h`` (``fitter.io.thin``).
+``h`` (``fitter.fitting.io.thin``).
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def load_scan(path: str | os.PathLike, thin: float | None = None) -> Scan:
         A ``.ply``, ``.obj``, ``.stl``, ``.off``, ``.gltf``, ``.glb``, ``.xyz``,
         ``.pts``, ``.asc`` or ``.conf`` file, each optionally gzip-compressed
         (``NAME.EXT.gz``). A ``.conf`` registers all the scans it lists into one
-        cloud (``fitter.io.conf``).
+        cloud (``fitter.fitting.io.conf``).
     thin : float, optional
         Voxel edge ``h`` in scan units: keep one point per occupied voxel (the one
         nearest the voxel's centroid). None keeps every point.

@@ -1,7 +1,7 @@
 """The geometric error between the scan and the fitted patch (the paper's Fig. 5 and 9).
 
 Every scan point's deviation is its signed foot-point distance: the distance to
-the closest point of the patch (found by :func:`fitter.fit.project_points`
+the closest point of the patch (found by :func:`fitter.fitting.fit.project_points`
 from the better of two starts: the point's own projection parameters and the
 nearest vertex of a dense tessellation), positive on the side the patch normal
 points to. Statistics: RMS, mean absolute, max (the one-sided Hausdorff
