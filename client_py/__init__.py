@@ -9,8 +9,8 @@ import time (numpy, when importable, accelerates grid evaluation behind
 
 from .basis import uniform_clamped_knots
 from .bundle import tessellate_bundle
+from .errors import PatchFormatError, TesseraError
 from .format import (
-    PatchFormatError,
     read_detail_tile,
     read_patch,
     write_detail_tile,
@@ -27,6 +27,7 @@ __all__ = [
     "Mesh",
     "NurbsSurface",
     "PatchFormatError",
+    "TesseraError",
     "TextureImage",
     "TrimMask",
     "read_detail_tile",

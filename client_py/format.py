@@ -22,6 +22,7 @@ import zlib
 from collections.abc import Sequence
 
 from .basis import is_uniform_clamped
+from .errors import PatchFormatError
 from .layers import MAX_DETAIL_DEGREE, DetailTile
 from .layers import MAX_LEVEL as MAX_TILE_LEVEL
 from .layers import MAX_SPANS as MAX_TILE_SPANS
@@ -46,30 +47,6 @@ MIN_BITS, MAX_BITS = 2, 30
 MAX_DEGREE = 15
 MAX_METADATA = 1 << 20
 MAX_CONTROL_POINTS = 1 << 24  # as NurbsSurface accepts; bounds the payload a header announces
-
-
-class PatchFormatError(ValueError):
-    """A byte sequence is not a valid Tessera patch.
-
-    Attributes
-    ----------
-    offset : int
-        Byte offset of the problem: in the file, or in the decompressed payload
-        when ``section`` is ``'payload'``.
-    reason : str
-        What is wrong there.
-    """
-
-    def __init__(self, offset: int, reason: str, section: str = "file") -> None:
-        self.offset = offset
-        self.reason = reason
-        self.section = section
-        where = f"byte {offset}" if section == "file" else f"payload byte {offset}"
-        super().__init__(f"invalid Tessera patch at {where}: {reason}")
-
-    def __reduce__(self) -> tuple:
-        """Pickle by the constructor's arguments (a worker process's error reaches its pool)."""
-        return type(self), (self.offset, self.reason, self.section)
 
 
 # ------------------------------------------------------------------ residual coding
@@ -584,9 +561,9 @@ def read_detail_tile(data: bytes) -> DetailTile:
                                    f"at level {level}")
     if not (math.isfinite(step) and step > 0):
         raise PatchFormatError(14, f"quantisation step {step} is not a positive finite number")
-    dec = RangeDecoder(data[TILE_HEADER_SIZE : len(data) - CRC_SIZE])
     model = _TileModel()
-    try:
+    try:  # the decoder reads its first bytes when it is made: inside the try too
+        dec = RangeDecoder(data[TILE_HEADER_SIZE : len(data) - CRC_SIZE])
         values = _decode_tile_values(dec, (spans + degree) ** 2, spans + degree, model)
         drawn = TrimMask.from_flat(side, side, _code_mask(dec, model, side)) if side else None
     except RangeDecodeError as exc:

@@ -16,6 +16,8 @@ order with the same models.
 
 from __future__ import annotations
 
+from .errors import TesseraError
+
 PROB_BITS = 11
 HALF = 1 << (PROB_BITS - 1)
 SHIFT = 4
@@ -23,7 +25,7 @@ TOP = 1 << 24
 MASK32 = 0xFFFFFFFF
 
 
-class RangeDecodeError(ValueError):
+class RangeDecodeError(TesseraError, ValueError):
     """The coded bytes end before the decoder has all its symbols."""
 
 

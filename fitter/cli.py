@@ -14,9 +14,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from client_py import PatchFormatError, read_patch, tessellate_grid, write_ply
+from client_py.errors import TesseraError
 
 
-class UserError(Exception):
+class UserError(TesseraError):
     """A problem with the user's input or options, reported without a traceback."""
 
 

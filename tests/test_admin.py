@@ -408,7 +408,7 @@ def test_delete_moves_to_the_trash_and_restore_brings_it_back(admin_app, client,
     assert [o["id"] for o in trashed] == [object_id]
     again = client.patch(f"/admin/api/objects/{object_id}", headers=BEARER,
                          json={"published": True})
-    assert again.status_code == 400 and "trash" in again.get_json()["error"]
+    assert again.status_code == 409 and "trash" in again.get_json()["error"]
     assert client.post(f"/admin/api/objects/{object_id}/restore",
                        headers=BEARER).status_code == 200
     assert (collection / object_id / "base.tsp").read_bytes() == patch

@@ -18,13 +18,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from client_py.errors import TesseraError
+
 log = logging.getLogger(__name__)
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}$")
 MANIFEST = "manifest.json"
 
 
-class BundleError(ValueError):
+class BundleError(TesseraError, ValueError):
     """A bundle directory whose manifest is missing or not a Tessera bundle manifest."""
 
 

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from client_py.errors import TesseraError
+
 from .bundles import Bundle, Collection
 
 STATE_DIR = ".tessera"
@@ -104,8 +106,16 @@ MIGRATIONS: list[list[str]] = [
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
-class CatalogError(RuntimeError):
+class CatalogError(TesseraError, RuntimeError):
     """A catalog this code cannot use (newer schema, not a Tessera catalog)."""
+
+
+class FieldError(TesseraError, ValueError):
+    """An object field that cannot take the value given (unknown, not text, too long)."""
+
+
+class ConflictError(TesseraError):
+    """An action that the object's or job's current state does not allow (HTTP 409)."""
 
 
 def state_dir(collection: str | os.PathLike) -> Path:
@@ -309,9 +319,10 @@ class Catalog:
 
         Raises
         ------
-        ValueError
-            Unknown field, text too long, empty title, or publishing an object
-            that has no bundle yet.
+        FieldError
+            Unknown field, a value that is not text, text too long, empty title.
+        ConflictError
+            Publishing an object that has no bundle yet (or is in the trash).
         KeyError
             No such object.
         """
@@ -321,16 +332,16 @@ class Catalog:
                 updates[name] = int(bool(value))
                 continue
             if name not in self.EDITABLE:
-                raise ValueError(f"{name!r} is not editable; editable fields: "
+                raise FieldError(f"{name!r} is not editable; editable fields: "
                                  f"{', '.join(self.EDITABLE)}, published")
             if not isinstance(value, str):
-                raise ValueError(f"{name} must be text, got {type(value).__name__}")
+                raise FieldError(f"{name} must be text, got {type(value).__name__}")
             value = value.strip()
             if len(value) > self.EDITABLE[name]:
-                raise ValueError(f"{name} is {len(value)} characters long; at most "
+                raise FieldError(f"{name} is {len(value)} characters long; at most "
                                  f"{self.EDITABLE[name]} are accepted")
             if name == "title" and not value:
-                raise ValueError("title must not be empty")
+                raise FieldError("title must not be empty")
             updates[name] = value
         with self.transaction() as conn:
             row = conn.execute("SELECT bundle_path, trash_path FROM objects WHERE id = ?",
@@ -338,7 +349,7 @@ class Catalog:
             if row is None:
                 raise KeyError(object_id)
             if updates.get("published") and (row["bundle_path"] is None or row["trash_path"]):
-                raise ValueError(f"object {object_id!r} has no bundle to publish yet "
+                raise ConflictError(f"object {object_id!r} has no bundle to publish yet "
                                  "(its fit has not finished, or it is in the trash)")
             if updates:
                 sets = ", ".join(f"{k} = ?" for k in updates)
@@ -447,7 +458,7 @@ class Catalog:
 
         Raises
         ------
-        ValueError
+        ConflictError
             When the job is in another state.
         """
         with self.transaction() as conn:
@@ -455,7 +466,7 @@ class Catalog:
             if row is None:
                 return None
             if row["state"] not in RETRYABLE:
-                raise ValueError(f"job {job_id} is {row['state']}; only "
+                raise ConflictError(f"job {job_id} is {row['state']}; only "
                                  f"{', '.join(RETRYABLE)} jobs can be retried")
             conn.execute("UPDATE jobs SET state = 'queued', stage = '', progress = 0, "
                          "error = NULL, cancel_requested = 0, finished = NULL, started = NULL, "

@@ -1,13 +1,8 @@
-"""Receiving a scan upload: streamed to disk, identified by its content, archives checked.
+"""Checking a received scan upload: identified by its content, archives checked.
 
-The admin's ``POST /admin/api/uploads`` hands the raw WSGI request to
-:func:`receive_upload`, which parses the multipart body with werkzeug's
-streaming parser and a stream factory of its own: the file part is written in
-the parser's chunks straight into the upload's folder (never held whole in
-memory, never in a system temp folder), SHA-256 and size computed on the way,
-and the size limit enforced on the bytes actually received (so a body without
-``Content-Length`` is capped too). :func:`prepare_scan` then decides what the
-bytes are:
+The server streams the multipart body to disk (``fitter.server.admin.upload_stream``)
+and hands the file over as a :class:`ReceivedFile`. :func:`prepare_scan` then
+decides what the bytes are:
 
 * the format is sniffed from the content (:func:`sniff_format`: PLY, OBJ, STL,
   OFF, glTF/GLB, XYZ/PTS/ASC text clouds); the client's file name is kept as
@@ -31,8 +26,6 @@ and a message that says what is wrong.
 from __future__ import annotations
 
 import gzip
-import hashlib
-import io
 import os
 import re
 import shutil
@@ -41,11 +34,8 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import IO, Any
 
-from werkzeug.datastructures import MultiDict
-from werkzeug.exceptions import RequestEntityTooLarge
-from werkzeug.formparser import parse_form_data
+from client_py.errors import TesseraError
 
 from ..fitting.io import SUPPORTED_EXTENSIONS
 
@@ -55,7 +45,7 @@ SNIFF_BYTES = 1 << 16
 STORED_NAME = re.compile(r"^scan\.[a-z0-9]+(\.gz)?$|^upload\.zip$")
 
 
-class UploadError(ValueError):
+class UploadError(TesseraError, ValueError):
     """An upload refused: ``status`` is the HTTP status to answer (400 or 413)."""
 
     def __init__(self, message: str, status: int = 400) -> None:
@@ -100,87 +90,13 @@ class PreparedScan:
     notes: list[str] = field(default_factory=list)
 
 
-class _HashingFile(io.FileIO):
-    """A file that hashes and counts what is written, refusing more than ``limit`` bytes."""
-
-    def __init__(self, path: Path, limit: int) -> None:
-        super().__init__(path, "w+")
-        self.limit = limit
-        self.hasher = hashlib.sha256()
-        self.count = 0
-
-    def write(self, data: Any) -> int:
-        view = memoryview(data)
-        if self.count + len(view) > self.limit:
-            raise RequestEntityTooLarge(f"the upload is larger than the limit of "
-                                        f"{_size(self.limit)}")
-        n = super().write(view)
-        self.hasher.update(view[:n])
-        self.count += n
-        return n
-
-
-def _size(nbytes: float) -> str:
+def format_size(nbytes: float) -> str:
+    """``nbytes`` for a message: ``"512 bytes"``, ``"3.5 MiB"``."""
     for unit in ("bytes", "KiB", "MiB", "GiB"):
         if nbytes < 1024 or unit == "GiB":
             return f"{nbytes:.0f} {unit}" if unit == "bytes" else f"{nbytes:.1f} {unit}"
         nbytes /= 1024
     return f"{nbytes} bytes"
-
-
-def receive_upload(environ: dict[str, Any], directory: Path, limits: UploadLimits,
-                   field_name: str = "scan") -> tuple[MultiDict, ReceivedFile]:
-    """Parse a ``multipart/form-data`` request, streaming its file into ``directory``.
-
-    Returns the form fields and the received file (``directory/incoming.part``).
-
-    Raises
-    ------
-    UploadError
-        413 over ``limits.max_bytes``; 400 when not multipart, when the file
-        field is missing or empty, or when other file fields are sent.
-    """
-    content_type = environ.get("CONTENT_TYPE", "")
-    if not content_type.startswith("multipart/form-data"):
-        raise UploadError(f"send the scan as multipart/form-data with a file field "
-                          f"{field_name!r}, not {content_type or 'no content type'}")
-    directory.mkdir(parents=True, exist_ok=True)
-    streams: list[_HashingFile] = []
-
-    def stream_factory(total_content_length: int | None, content_type: str | None,
-                       filename: str | None, content_length: int | None = None) -> IO[bytes]:
-        part = _HashingFile(directory / f"incoming-{len(streams)}.part", limits.max_bytes)
-        streams.append(part)
-        return part  # type: ignore[return-value]
-
-    try:
-        _, form, files = parse_form_data(environ, stream_factory=stream_factory,
-                                         max_form_memory_size=1 << 20,
-                                         max_content_length=limits.max_bytes, silent=False,
-                                         max_form_parts=100)
-    except RequestEntityTooLarge:
-        raise UploadError(f"the upload is larger than the limit of {_size(limits.max_bytes)} "
-                          "(TESSERA_UPLOAD_MAX_BYTES)", status=413) from None
-    except ValueError as exc:
-        raise UploadError(f"malformed multipart body: {exc}") from None
-    finally:
-        for part in streams:
-            part.close()
-    extra = [k for k in files if k != field_name]
-    if extra:
-        raise UploadError(f"unexpected file field(s) {', '.join(sorted(extra))}: send one "
-                          f"file, in the field {field_name!r}")
-    storage = files.get(field_name)
-    if storage is None:
-        raise UploadError(f"no file in the field {field_name!r}")
-    index = next(i for i, s in enumerate(streams) if s is storage.stream)
-    part = streams[index]
-    path = directory / "incoming.part"
-    os.replace(part.name, path)
-    original = storage.filename or ""
-    if part.count == 0:
-        raise UploadError(f"the uploaded file {original!r} is empty (0 bytes)")
-    return form, ReceivedFile(path, original, part.count, part.hasher.hexdigest())
 
 
 # ----------------------------------------------------------------------------- sniffing
@@ -276,9 +192,10 @@ def check_gzip(path: Path, limits: UploadLimits) -> bytes:
                 total += len(chunk)
                 if total > limit:
                     raise UploadError(
-                        f"the gzip stream expands beyond {_size(limit)} from "
-                        f"{_size(compressed)} (limits: ratio {limits.max_ratio:g}, "
-                        f"{_size(limits.max_expanded_bytes)}): refused as a decompression bomb")
+                        f"the gzip stream expands beyond {format_size(limit)} from "
+                        f"{format_size(compressed)} (limits: ratio {limits.max_ratio:g}, "
+                        f"{format_size(limits.max_expanded_bytes)}): refused as a "
+                        "decompression bomb")
     except (gzip.BadGzipFile, EOFError, zlib.error) as exc:
         raise UploadError(f"the gzip stream is corrupt or truncated: {exc}") from None
     if total == 0:
@@ -349,14 +266,14 @@ def extract_zip(path: Path, target: Path, limits: UploadLimits) -> Path:
                 continue
             if info.file_size > limits.max_ratio * max(info.compress_size, 1):
                 raise UploadError(
-                    f"zip member {info.filename!r} declares {_size(info.file_size)} from "
-                    f"{_size(info.compress_size)} (ratio over {limits.max_ratio:g}): refused "
+                    f"zip member {info.filename!r} declares {format_size(info.file_size)} from "
+                    f"{format_size(info.compress_size)} (ratio over {limits.max_ratio:g}): refused "
                     "as a decompression bomb")
             declared += info.file_size
             members.append((info, rel))
         if declared > limits.max_expanded_bytes:
-            raise UploadError(f"the zip's members total {_size(declared)}, over the limit of "
-                              f"{_size(limits.max_expanded_bytes)}: refused as a "
+            raise UploadError(f"the zip's members total {format_size(declared)}, over the limit of "
+                              f"{format_size(limits.max_expanded_bytes)}: refused as a "
                               "decompression bomb")
         seen = {str(rel).lower() for _, rel in members}
         if len(seen) != len(members):

@@ -14,8 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from client_py.errors import TesseraError
 
-class ScanError(ValueError):
+
+class ScanError(TesseraError, ValueError):
     """A scan file that cannot be read: missing, empty, corrupt, unsupported or non-finite.
 
     The message names the file and says what is wrong (and, where it helps,

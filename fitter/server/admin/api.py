@@ -22,9 +22,11 @@ import time
 from flask import request, url_for
 from flask.typing import ResponseReturnValue
 
+from ...collection.catalog import ConflictError, FieldError
+from ...collection.trash import restore_object, trash_object
 from ...collection.uploads import UploadError
 from .auth import api_error, bp, state
-from .service import ConflictError, accept_upload, object_json, restore_object, trash_object
+from .service import accept_upload, object_json
 
 CANCEL_WAIT = 5.0  # seconds a cancel request waits to report the job stopped
 
@@ -82,7 +84,7 @@ def api_cancel(job_id: int) -> ResponseReturnValue:
 def api_retry(job_id: int) -> ResponseReturnValue:
     try:
         job = state().catalog().retry_job(job_id)
-    except ValueError as exc:
+    except ConflictError as exc:
         return api_error(str(exc), 409)
     if job is None:
         return api_error(f"no job {job_id}", 404)
@@ -118,8 +120,10 @@ def api_edit_object(object_id: str) -> ResponseReturnValue:
         catalog.update_object(object_id, **data)
     except KeyError:
         return api_error(f"no object {object_id!r}", 404)
-    except ValueError as exc:
+    except FieldError as exc:
         return api_error(str(exc), 400)
+    except ConflictError as exc:
+        return api_error(str(exc), 409)
     return object_json(catalog, catalog.get_object(object_id))
 
 

@@ -19,11 +19,12 @@ from flask import (
 )
 from flask.typing import ResponseReturnValue
 
-from ...collection.catalog import adopt_bundles
+from ...collection.catalog import ConflictError, FieldError, adopt_bundles
+from ...collection.trash import restore_object, trash_object
 from ...collection.uploads import UploadError
 from ...fitting.pipeline import METHODS, FitOptions
 from .auth import bp, csrf_ok, csrf_token, logged_in, state
-from .service import ConflictError, accept_upload, object_json, restore_object, trash_object
+from .service import accept_upload, object_json
 
 
 def _safe_next(target: str | None) -> str:
@@ -125,7 +126,7 @@ def retry_job(job_id: int) -> ResponseReturnValue:
     try:
         if state().catalog().retry_job(job_id) is None:
             abort(404, description=f"no job {job_id}")
-    except ValueError as exc:
+    except ConflictError as exc:
         flash(str(exc))
     return redirect(url_for("admin.job", job_id=job_id))
 
@@ -147,7 +148,7 @@ def edit_object(object_id: str) -> ResponseReturnValue:
                                                        "licence", "units")}
         try:
             state().catalog().update_object(object_id, **fields)
-        except ValueError as exc:
+        except FieldError as exc:
             error = str(exc)
         else:
             flash("Saved.")
@@ -172,7 +173,7 @@ def _set_published(object_id: str, published: bool) -> ResponseReturnValue:
     _object_or_404(object_id)
     try:
         state().catalog().update_object(object_id, published=published)
-    except ValueError as exc:
+    except ConflictError as exc:
         flash(str(exc))
     return redirect(_safe_next(request.form.get("next")) if request.form.get("next")
                     else url_for("admin.edit_object", object_id=object_id))

@@ -16,15 +16,12 @@ from werkzeug.datastructures import MultiDict
 
 from ...collection.catalog import Catalog, new_object_id, state_dir
 from ...collection.jobs import fit_options
-from ...collection.uploads import UploadError, UploadLimits, prepare_scan, receive_upload
+from ...collection.uploads import UploadError, UploadLimits, prepare_scan
+from .upload_stream import receive_upload
 
 #: form fields of an upload besides the file: the object's title and the fit options
 OPTION_FIELDS = {"grid", "degree", "method", "bits", "max_error", "max_grid", "projection"}
 UPLOAD_FIELDS = OPTION_FIELDS | {"title", "csrf_token"}
-
-
-class ConflictError(ValueError):
-    """An action that the object's or job's current state does not allow (HTTP 409)."""
 
 
 def _int_field(name: str, text: str) -> int:
@@ -115,48 +112,6 @@ def accept_upload(catalog: Catalog, environ: dict[str, Any], limits: UploadLimit
                                           if prepared.compression else ""))
         job_id = catalog.add_job(conn, object_id, upload_id, options)
     return job_id, object_id
-
-
-def _busy_job(catalog: Catalog, object_id: str) -> None:
-    for job in catalog.jobs_of(object_id):
-        if job.state in ("queued", "running"):
-            raise ConflictError(f"object {object_id!r} has job {job.id} {job.state}; cancel "
-                                "it first")
-
-
-def trash_object(catalog: Catalog, object_id: str) -> str:
-    """Move the object's bundle to ``.tessera/trash/`` and unpublish it; the trash path."""
-    row = catalog.get_object(object_id)
-    if row is None:
-        raise KeyError(object_id)
-    if row["trash_path"]:
-        raise ConflictError(f"object {object_id!r} is already in the trash")
-    _busy_job(catalog, object_id)
-    trash = state_dir(catalog.collection) / "trash"
-    target = trash / f"{object_id}.{time.strftime('%Y%m%d-%H%M%S')}.{secrets.token_hex(2)}"
-    target.mkdir(parents=True)
-    bundle = catalog.collection / object_id
-    if bundle.is_dir():
-        os.rename(bundle, target / "bundle")
-    catalog.set_trash(object_id, target.relative_to(state_dir(catalog.collection)).as_posix())
-    return str(target)
-
-
-def restore_object(catalog: Catalog, object_id: str) -> None:
-    """Bring a trashed object's bundle back into the collection (unpublished)."""
-    row = catalog.get_object(object_id)
-    if row is None:
-        raise KeyError(object_id)
-    if not row["trash_path"]:
-        raise ConflictError(f"object {object_id!r} is not in the trash")
-    source = state_dir(catalog.collection) / row["trash_path"]
-    destination = catalog.collection / object_id
-    if (source / "bundle").is_dir():
-        if destination.exists():
-            raise ConflictError(f"{destination} exists; move it away before restoring")
-        os.rename(source / "bundle", destination)
-    shutil.rmtree(source, ignore_errors=True)
-    catalog.set_trash(object_id, None)
 
 
 def object_json(catalog: Catalog, row: dict[str, Any]) -> dict[str, Any]:
