@@ -29,6 +29,7 @@ lint: setup
 
 test: setup chromium
 	$(BIN)/ruff check .
+	cd web && node --test test/
 	$(BIN)/python -m pytest
 
 demo: setup

@@ -14,12 +14,12 @@
 // (bytes of tile files fetched, cumulative), tile_tessellate_ms (Python time of the regions
 // the last update tessellated), regions (regions shown), tiles_fetched (cumulative),
 // tile_updates (updates done), tiles_busy (an update is running or due).
+//
+// Each region is tessellated on the tree's regionGrid (R = 2 spans_per_tile + 1, tile-tree.js).
 
 import * as THREE from "three";
 import { fetchBytes } from "./fetch-bytes.js";
 import { TileTree } from "./tile-tree.js";
-
-export const REGION_GRID = 33; // vertices per region side: 2 per span of a 16-span tile
 
 export class TileLayer {
   /**
@@ -48,6 +48,11 @@ export class TileLayer {
 
   get enabled() {
     return !this.tree.empty && !this.failed;
+  }
+
+  /** Vertices per side of every region's grid (TileTree.regionGrid), null without tiles. */
+  get regionGrid() {
+    return this.tree.regionGrid;
   }
 
   /** New base mesh on screen: recompute the nodes' bounding boxes from it. */
@@ -135,7 +140,7 @@ export class TileLayer {
     for (const [id, leaf] of wanted) {
       let mesh = this.regions.get(id);
       if (!mesh) {
-        const data = await this.worker.region(leaf.level, leaf.i, leaf.j, REGION_GRID,
+        const data = await this.worker.region(leaf.level, leaf.i, leaf.j, this.regionGrid,
                                               leaf.chain.map((node) => node.file),
                                               2 * this.tree.detailError(leaf.level, leaf.i, leaf.j));
         ms += data.tessellate_ms;

@@ -22,12 +22,32 @@
 // base covers them until they come into view). Bounding boxes come from the base mesh on
 // screen (the vertices whose (u, v) fall within one grid step of each finest cell), padded by
 // the base's max deviation (detail.base.max: how far the detail may move the surface).
+//
+// Region grid: a region is tessellated on an R x R grid, R = 2 m + 1 with m the manifest's
+// tiles.detail.spans_per_tile (two vertices per knot span of the region's finest tile: 33 for
+// the default 16 spans, 129 for `--detail-spans 64`), read here, once, with the tile tree.
 
 import * as THREE from "three";
 
 export const DETAIL_PX = 2;
 export const TEXEL_PX = 1.5;
 export const MAX_REGIONS = 48;
+export const MAX_SPANS_PER_TILE = 255; // a .tsd stores its spans per tile in a byte (docs/format.md)
+
+/**
+ * Vertices per side of a region's grid, R = 2 m + 1 for m knot spans per detail tile side.
+ * @param {unknown} spansPerTile  manifest tiles.detail.spans_per_tile
+ * @returns {number} R (33 for m = 16)
+ * @throws {Error} when m is not an integer in 1..MAX_SPANS_PER_TILE
+ */
+export function regionGridSize(spansPerTile) {
+  if (!Number.isInteger(spansPerTile) || spansPerTile < 1 || spansPerTile > MAX_SPANS_PER_TILE) {
+    throw new Error("manifest tiles.detail.spans_per_tile must be an integer in " +
+                    `1..${MAX_SPANS_PER_TILE} (knot spans per detail tile side), got ` +
+                    `${JSON.stringify(spansPerTile) ?? String(spansPerTile)}`);
+  }
+  return 2 * spansPerTile + 1;
+}
 
 const key = (level, i, j) => `${level}/${i}/${j}`;
 
@@ -36,6 +56,8 @@ export class TileTree {
    * @param {object|null} tiles  manifest.tiles (may be null or lack detail/texture)
    * @param {number[][]|null} transform  manifest.transform: the 4x4 row-major map from the
    *   patch's frame (centred, PCA-aligned: tight boxes) to the scan's; null for the identity
+   * @throws {Error} for a node with an invalid index or no file, or, when any node is present,
+   *   a tiles.detail.spans_per_tile that is not an integer in 1..MAX_SPANS_PER_TILE
    */
   constructor(tiles, transform = null) {
     // boxes are kept in the patch frame, where they fit the surface closely
@@ -71,6 +93,8 @@ export class TileTree {
         }
       }
     }
+    // vertices per region side; a tree with no node shows no region and needs none
+    this.regionGrid = this.empty ? null : regionGridSize(detail ? detail.spans_per_tile : undefined);
     this.boxes = null; // per level k in 0..maxLevel: Float64Array of 4^k boxes (6 numbers)
   }
 

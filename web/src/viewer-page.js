@@ -121,7 +121,6 @@ async function main() {
   const tileModule = import("./tile-layer.js");
   tileModule.catch(() => {});
   const { Viewer } = await import("./viewer.js");
-  const { REGION_GRID } = await tileModule;
   const viewer = new Viewer($("view"));
   const panel = document.querySelector(".panel");
   // Keep the object clear of the information panel: beside it on wide screens, above it on
@@ -153,7 +152,7 @@ async function main() {
   });
   window.tessera.regionMeshes = () => [...(tiles ? tiles.regions : new Map())].map(([id, mesh]) => {
     const [level, i, j] = id.split("/").map(Number);
-    const grid = REGION_GRID;
+    const grid = tiles.regionGrid;
     const st = mesh.geometry.getAttribute("uv").array;
     const uvs = [];
     for (let k = 0; k < grid * grid; k++) uvs.push(st[2 * k + 1], st[2 * k]);
