@@ -26,16 +26,14 @@
 // 3DHOP" follows the level chosen (its ?level=L).
 // All URLs come from the server's JSON config block.
 
-import { ErrorMap } from "./error-map.js";
+import { BaseMesh, COARSE_RESOLUTION } from "./base-mesh.js";
+import { ErrorMapControl } from "./error-map-control.js";
+import { FactsPanel } from "./facts-panel.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
 import {
   $, formatBytes, formatLength, levelOption, levelPly, loadManifest, PLY_MAX_RES, plyLevels,
   startPage,
 } from "./page.js";
-
-const COARSE = 24; // first mesh: ~1k vertices, drawn within milliseconds of the patch
-const MIN_RES = 48;
-const MAX_RES = 384;
 
 const { config, stats, showStage, showError } = startPage({
   manifest: "Reading the object's description…",
@@ -46,17 +44,6 @@ const { config, stats, showStage, showError } = startPage({
   ply: "Making the PLY…",
 }, { resolution: null, meshes: 0, tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0, regions: 0,
      ply_level: null, ply_bytes: 0 });
-
-function setFact(id, text) {
-  const el = $(id);
-  if (el) el.textContent = text;
-}
-
-/** Grid size that puts a vertex every ~3 device pixels across the object on screen. */
-function viewResolution(viewer) {
-  const pixels = viewer.projectedDiameter() / 3;
-  return Math.min(MAX_RES, Math.max(MIN_RES, Math.round(pixels / 16) * 16));
-}
 
 /** Offer `bytes` as a download named `name`. */
 function saveFile(bytes, name) {
@@ -78,53 +65,29 @@ function showPlyStatus(text) {
   line.hidden = !text;
 }
 
-function describe(manifest, ready) {
-  const units = manifest.units || ready.patch.units || "unknown";
-  const s = manifest.stats || {};
-  setFact("fact-units", units);
-  setFact("fact-bundle", formatBytes(stats.bytes_downloaded));
-  setFact("fact-patch", formatBytes(ready.patch_bytes));
-  setFact("fact-grid", `${ready.patch.shape.join(" × ")} control points, degree ${ready.patch.degree.join(", ")}` +
-    (ready.patch.rational ? ", rational" : ""));
-  setFact("fact-rms", formatLength(s.rms, units));
-  setFact("fact-max", formatLength(s.max, units));
-  if (manifest.provenance && manifest.provenance.points) {
-    setFact("fact-source", `${manifest.provenance.points.toLocaleString("en")} scan points` +
-      (manifest.provenance.bytes ? `, ${formatBytes(manifest.provenance.bytes)}` : ""));
-  }
+/** `promise`, marked handled now: it is awaited later, and an early failure must not be
+ *  reported as unhandled before then (it still rejects where it is awaited). */
+function awaitedLater(promise) {
+  promise.catch(() => {});
+  return promise;
 }
 
-function showTileFacts() {
-  if (stats.tile_updates === undefined) return;
-  setFact("fact-detail", stats.regions
-    ? `${stats.regions} regions, ${stats.tiles_loaded} tiles (${formatBytes(stats.tile_bytes)} fetched), ` +
-      `${stats.tile_tessellate_ms.toFixed(0)} ms`
-    : `base only (${stats.tile_bytes ? formatBytes(stats.tile_bytes) + " of tiles fetched" : "zoom in for detail"})`);
-}
+const nextFrame = () => new Promise((resolve) => requestAnimationFrame(resolve));
 
-function showMeshFacts() {
-  setFact("fact-mesh", `${stats.vertices.toLocaleString("en")} vertices, ` +
-    `${stats.triangles.toLocaleString("en")} triangles`);
-  setFact("fact-time", `${stats.tessellate_ms.toFixed(0)} ms in Python (${stats.kernel} kernel)`);
-}
-
-async function main() {
-  // Start the worker (Pyodide: seconds) before three.js is even fetched: they load in parallel.
+/** The mesh worker, starting Pyodide, client_py and the base patch; `ready` resolves with
+ *  its init reply {patch, patch_bytes, pyodide_load_ms, stages, kernel}. */
+function startWorker() {
   const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
-  const readyPromise = worker.init({
+  const ready = worker.init({
     pyodideUrl: config.pyodide_url, pyodideSnapshotUrl: config.pyodide_snapshot_url,
     clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
   }, config.pyodide_timeout_s);
-  readyPromise.catch(() => {}); // awaited below; this only keeps an early failure "handled"
-  const manifestPromise = loadManifest(config.manifest_url, stats);
-  manifestPromise.catch(() => {});
-  const tileModule = import("./tile-layer.js");
-  tileModule.catch(() => {});
-  const { Viewer } = await import("./viewer.js");
-  const viewer = new Viewer($("view"));
-  const panel = document.querySelector(".panel");
-  // Keep the object clear of the information panel: beside it on wide screens, above it on
-  // narrow ones (style.css moves the panel to the bottom below 700 px).
+  return { worker, ready: awaitedLater(ready) };
+}
+
+/** Keep the object clear of the information panel: beside it on wide screens, above it on
+ *  narrow ones (style.css moves the panel to the bottom below 700 px). */
+function keepClearOfPanel(viewer, panel) {
   const insets = () => {
     const box = panel.getBoundingClientRect();
     if (window.innerWidth > 900) return { left: box.right };
@@ -133,131 +96,153 @@ async function main() {
   };
   viewer.setInsets(insets());
   window.addEventListener("resize", () => viewer.setInsets(insets()));
-  let domain = null;
-  let errorMap = null;
-  let current = 0;
-  let currentUvs = null;
-  let pending = null;
-  let tiles = null; // TileLayer once the manifest and the first mesh are in
-  let resolveTiles;
-  const tilesReady = new Promise((resolve) => { resolveTiles = resolve; });
+}
+
+/** The worker's init reply in the stats of the testing contract. */
+function recordWorkerStats(ready) {
+  stats.pyodide_load_ms = ready.pyodide_load_ms;
+  stats.worker_stages = ready.stages;
+  stats.kernel = ready.kernel;
+  stats.bytes_downloaded += ready.patch_bytes;
+}
+
+/** The first mesh, coarse, on screen, then the page is ready (document.body.dataset.ready);
+ *  resolves with the grid to refine to. */
+async function showFirstMesh(base) {
+  showStage("tessellation");
+  const target = base.targetResolution();
+  await base.show(Math.min(COARSE_RESOLUTION, target));
+  await nextFrame();
+  stats.first_frame_ms = performance.now();
+  stats.coarse_resolution = base.resolution;
+  document.body.dataset.ready = "1";
+  $("loading").hidden = true;
+  return target;
+}
+
+/** The base at the grid `target`, then document.body.dataset.refined. */
+async function refineBase(base, target) {
+  if (target !== base.resolution) await base.show(target);
+  await nextFrame();
+  stats.refined_ms = performance.now();
+  document.body.dataset.refined = "1";
+}
+
+/**
+ * The detail tiles over the base on screen: a TileLayer, refining as the camera moves. A
+ * malformed tile tree (TileLayer's constructor throws) leaves the base alone and gives null;
+ * that reason, or a tile failing later, goes to document.body.dataset.tileError and the
+ * Detail fact.
+ */
+function startTiles(TileLayer, { viewer, worker, manifest, base, facts }) {
+  const fail = (message) => {
+    document.body.dataset.tileError = message;
+    facts.set("fact-detail", message);
+  };
+  let tiles;
+  try {
+    tiles = new TileLayer({
+      viewer, worker, manifest, manifestUrl: config.manifest_url, stats,
+      onError: (message) => {
+        console.error(message);
+        fail(message);
+      },
+      onChange: () => facts.showTiles(stats),
+    });
+  } catch (error) {
+    fail(error.message);
+    return null;
+  }
+  if (!tiles.enabled) {
+    facts.set("fact-detail", "none in this bundle");
+    return tiles;
+  }
+  facts.showTiles(stats);
+  tiles.setBase({ positions: viewer.mesh.geometry.getAttribute("position").array, uvs: base.uvs },
+                base.domain);
+  tiles.schedule(0);
+  return tiles;
+}
+
+/**
+ * The testing contract's functions on window.tessera (see the top of this file). `tiles()`
+ * gives the TileLayer (null before it starts, or without one); `tilesStarted` resolves once
+ * that is settled.
+ */
+function exposeTestHooks({ viewer, base, tiles, tilesStarted }) {
+  window.tessera.tessellate = (resolution) => base.show(resolution);
   window.tessera.tilesIdle = async () => {
-    await tilesReady;
-    if (tiles) await tiles.idle();
+    await tilesStarted;
+    if (tiles()) await tiles().idle();
     return { ...stats };
   };
   window.tessera.view = () => ({
     projection: Array.from(viewer.camera.projectionMatrix.elements),
     view: Array.from(viewer.camera.matrixWorldInverse.elements),
   });
-  window.tessera.regionMeshes = () => [...(tiles ? tiles.regions : new Map())].map(([id, mesh]) => {
-    const [level, i, j] = id.split("/").map(Number);
-    const grid = tiles.regionGrid;
-    const st = mesh.geometry.getAttribute("uv").array;
-    const uvs = [];
-    for (let k = 0; k < grid * grid; k++) uvs.push(st[2 * k + 1], st[2 * k]);
-    return { level, i, j, grid, uvs,
-             positions: Array.from(mesh.geometry.getAttribute("position").array.subarray(0, 3 * grid * grid)) };
-  });
+  window.tessera.regionMeshes = () => {
+    const layer = tiles();
+    if (!layer) return [];
+    const grid = layer.regionGrid;
+    return [...layer.regions].map(([id, mesh]) => {
+      const [level, i, j] = id.split("/").map(Number);
+      const st = mesh.geometry.getAttribute("uv").array;
+      const uvs = [];
+      for (let k = 0; k < grid * grid; k++) uvs.push(st[2 * k + 1], st[2 * k]);
+      return { level, i, j, grid, uvs,
+               positions: Array.from(mesh.geometry.getAttribute("position").array.subarray(0, 3 * grid * grid)) };
+    });
+  };
   window.tessera.zoomTo = async (u, v, distance) => {
-    await tilesReady;
-    viewer.lookAtSurface(u, v, distance, currentUvs, domain);
-    if (tiles) {
-      await tiles.update();
-      await tiles.idle();
+    await tilesStarted;
+    viewer.lookAtSurface(u, v, distance, base.uvs, base.domain);
+    const layer = tiles();
+    if (layer) {
+      await layer.update();
+      await layer.idle();
     }
     return { ...stats };
   };
+}
 
-  async function showResolution(resolution) {
-    const t0 = performance.now();
-    const mesh = await worker.tessellate(resolution);
-    viewer.setMesh(mesh, domain);
-    current = resolution;
-    currentUvs = mesh.uvs; // same vertex order as the worker's PLY of this grid
-    stats.resolution = resolution;
-    stats.vertices = mesh.positions.length / 3;
-    stats.triangles = mesh.indices.length / 3;
-    stats.tessellate_ms = mesh.tessellate_ms;
-    stats.round_trip_ms = performance.now() - t0;
-    stats.meshes += 1;
-    showMeshFacts();
-    if (tiles) {
-      tiles.setBase(mesh, domain);
-      tiles.schedule(0);
-    }
-    return { ...stats };
-  }
-  window.tessera.tessellate = (resolution) => showResolution(resolution);
-
-  // Zooming in asks for a finer grid, zooming out for a coarser one (after the gesture ends).
-  viewer.controls.addEventListener("change", () => tiles && tiles.schedule());
-  viewer.controls.addEventListener("end", () => {
-    if (config.resolution || !domain) return;
-    const wanted = viewResolution(viewer);
-    if (wanted === current || Math.abs(Math.log(wanted / current)) < Math.log(1.4)) return;
-    clearTimeout(pending);
-    pending = setTimeout(() => showResolution(wanted).catch((e) => showError(e.message)), 150);
+async function main() {
+  // Start the worker (Pyodide: seconds) before three.js is even fetched: they load in parallel.
+  const { worker, ready: readyPromise } = startWorker();
+  const manifestPromise = awaitedLater(loadManifest(config.manifest_url, stats));
+  const tileModule = awaitedLater(import("./tile-layer.js"));
+  const { Viewer } = await import("./viewer.js");
+  const viewer = new Viewer($("view"));
+  keepClearOfPanel(viewer, document.querySelector(".panel"));
+  const facts = new FactsPanel();
+  let tiles = null; // TileLayer once the manifest and the first mesh are in
+  let settleTiles;
+  const tilesStarted = new Promise((resolve) => { settleTiles = resolve; });
+  const base = new BaseMesh({
+    viewer, worker, stats, fixedResolution: config.resolution || null,
+    onShown: (mesh) => {
+      facts.showMesh(stats);
+      if (tiles) {
+        tiles.setBase(mesh, base.domain);
+        tiles.schedule(0);
+      }
+    },
   });
+  exposeTestHooks({ viewer, base, tiles: () => tiles, tilesStarted });
+  // the camera moved: new regions; a zoom gesture ended: maybe a finer or coarser base grid
+  viewer.controls.addEventListener("change", () => tiles && tiles.schedule());
+  base.followZoom(showError);
 
   const ready = await readyPromise;
   const manifest = await manifestPromise;
-  stats.pyodide_load_ms = ready.pyodide_load_ms;
-  stats.worker_stages = ready.stages;
-  stats.kernel = ready.kernel;
-  stats.bytes_downloaded += ready.patch_bytes;
-  domain = ready.patch.domain;
-  describe(manifest, ready);
-
-  showStage("tessellation");
-  const target = config.resolution || viewResolution(viewer);
-  await showResolution(Math.min(COARSE, target));
-  await new Promise((resolve) => requestAnimationFrame(resolve));
-  stats.first_frame_ms = performance.now();
-  stats.coarse_resolution = current;
-  document.body.dataset.ready = "1";
-  $("loading").hidden = true;
+  recordWorkerStats(ready);
+  base.domain = ready.patch.domain;
+  facts.describe(manifest, ready, stats);
+  const target = await showFirstMesh(base);
 
   const { TileLayer } = await tileModule;
-  try {
-    tiles = new TileLayer({
-      viewer, worker, manifest, manifestUrl: config.manifest_url, stats,
-      onError: (message) => {
-        console.error(message);
-        document.body.dataset.tileError = message;
-        setFact("fact-detail", message);
-      },
-      onChange: showTileFacts,
-    });
-  } catch (error) { // a malformed tile tree: the base alone, said so
-    document.body.dataset.tileError = error.message;
-    setFact("fact-detail", error.message);
-  }
-  if (tiles && tiles.enabled) {
-    showTileFacts();
-    tiles.setBase({ positions: viewer.mesh.geometry.getAttribute("position").array, uvs: currentUvs }, domain);
-    tiles.schedule(0);
-  } else if (tiles) {
-    setFact("fact-detail", "none in this bundle");
-  }
-  resolveTiles();
-
-  if (manifest.error_grid) {
-    try {
-      errorMap = new ErrorMap(manifest.error_grid, manifest.units || "");
-      $("legend-bar").style.background = errorMap.cssGradient();
-      $("legend-max").textContent = formatLength(errorMap.max, manifest.units || "");
-      $("toggle-error").disabled = false;
-    } catch (error) {
-      $("toggle-error").title = error.message;
-    }
-  }
-  $("toggle-error").addEventListener("click", () => {
-    const on = $("toggle-error").getAttribute("aria-pressed") !== "true";
-    $("toggle-error").setAttribute("aria-pressed", String(on));
-    viewer.setErrorOverlay(on ? { rgba: errorMap.rgba(), cols: errorMap.cols, rows: errorMap.rows } : null);
-    $("legend").hidden = !on;
-  });
+  tiles = startTiles(TileLayer, { viewer, worker, manifest, base, facts });
+  settleTiles();
+  const errorMap = new ErrorMapControl(manifest, viewer);
   $("fit-view").addEventListener("click", () => viewer.fitView());
 
   // The PLY's level of detail: "base" (the mesh on screen) or a detail level of the bundle.
@@ -308,10 +293,8 @@ async function main() {
       let name = config.ply_name;
       if (level < 0) {
         const t0 = performance.now();
-        const overlay = $("toggle-error").getAttribute("aria-pressed") === "true";
-        let colors = null;
-        if (overlay && errorMap) colors = errorMap.vertexColors(currentUvs, domain);
-        ply = await worker.ply(current, colors);
+        const colors = errorMap.vertexColors(base.uvs, base.domain);
+        ply = await worker.ply(base.resolution, colors);
         stats.ply_total_ms = performance.now() - t0;
         Object.assign(stats, { ply_tiles_fetched: 0, ply_fetch_bytes: 0, ply_textures: 0,
                                ply_texture_bytes: 0 });
@@ -337,10 +320,7 @@ async function main() {
     }
   });
 
-  if (target !== current) await showResolution(target);
-  await new Promise((resolve) => requestAnimationFrame(resolve));
-  stats.refined_ms = performance.now();
-  document.body.dataset.refined = "1";
+  await refineBase(base, target);
 }
 
 main().catch((error) => {

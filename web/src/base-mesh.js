@@ -1,0 +1,74 @@
+// BaseMesh: the base patch on screen as a mesh the worker tessellates on a square grid, its
+// resolution following the view: a vertex every ~3 device pixels across the object, within
+// MIN_RESOLUTION..MAX_RESOLUTION, re-tessellated once a zoom gesture ends when the wanted
+// grid differs from the shown one by more than 1.4 x (unless the page fixes it, ?resolution=N).
+// The first mesh is coarse (COARSE_RESOLUTION: ~1k vertices, drawn within milliseconds).
+// Stats: resolution, vertices, triangles, tessellate_ms (Python), round_trip_ms, meshes.
+
+export const COARSE_RESOLUTION = 24;
+export const MIN_RESOLUTION = 48;
+export const MAX_RESOLUTION = 384;
+const RETESSELLATE_RATIO = 1.4;
+const ZOOM_SETTLE_MS = 150;
+
+export class BaseMesh {
+  /**
+   * @param {{viewer: import("./viewer.js").Viewer,
+   *          worker: import("./mesh-worker-client.js").MeshWorkerClient, stats: object,
+   *          fixedResolution?: number|null, onShown?: (mesh: object) => void}} options
+   *   fixedResolution: the page's ?resolution=N (no following the view); onShown: called with
+   *   the worker's mesh once it is on screen
+   */
+  constructor({ viewer, worker, stats, fixedResolution = null, onShown = () => {} }) {
+    this.viewer = viewer;
+    this.worker = worker;
+    this.stats = stats;
+    this.fixedResolution = fixedResolution;
+    this.onShown = onShown;
+    this.domain = null; // [u0, u1, v0, v1] of the patch, once the worker has read it
+    this.resolution = 0; // grid of the mesh on screen (0: none yet)
+    this.uvs = null; // its (u, v) per vertex, the order of the worker's PLY of this grid
+    this.pending = null;
+  }
+
+  /** The grid the view wants: a vertex every ~3 device pixels across the object on screen. */
+  viewResolution() {
+    const pixels = this.viewer.projectedDiameter() / 3;
+    return Math.min(MAX_RESOLUTION, Math.max(MIN_RESOLUTION, Math.round(pixels / 16) * 16));
+  }
+
+  /** The grid to show once loaded: the fixed one, or the view's. */
+  targetResolution() {
+    return this.fixedResolution || this.viewResolution();
+  }
+
+  /** Tessellate on a `resolution` x `resolution` grid and show it; resolves with a copy of
+   *  the stats. */
+  async show(resolution) {
+    const t0 = performance.now();
+    const mesh = await this.worker.tessellate(resolution);
+    this.viewer.setMesh(mesh, this.domain);
+    this.resolution = resolution;
+    this.uvs = mesh.uvs;
+    Object.assign(this.stats, {
+      resolution, vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3,
+      tessellate_ms: mesh.tessellate_ms, round_trip_ms: performance.now() - t0,
+      meshes: this.stats.meshes + 1,
+    });
+    this.onShown(mesh);
+    return { ...this.stats };
+  }
+
+  /** After each zoom gesture, re-tessellate when the view wants a grid far enough from the
+   *  one shown; a failure goes to `onError(message)`. */
+  followZoom(onError) {
+    this.viewer.controls.addEventListener("end", () => {
+      if (this.fixedResolution || !this.domain) return;
+      const wanted = this.viewResolution();
+      if (Math.abs(Math.log(wanted / this.resolution)) < Math.log(RETESSELLATE_RATIO)) return;
+      clearTimeout(this.pending);
+      this.pending = setTimeout(() => this.show(wanted).catch((error) => onError(error.message)),
+                                ZOOM_SETTLE_MS);
+    });
+  }
+}

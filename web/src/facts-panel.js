@@ -1,0 +1,53 @@
+// FactsPanel: the viewer's information panel (the #fact-* entries of templates/viewer.html):
+// what the bundle is (units, sizes, surface, fit error, source), the base mesh on screen
+// and the detail tiles shown. It only writes text; the numbers come from the manifest, the
+// worker's reply and window.tessera.stats.
+
+import { $, formatBytes, formatLength } from "./page.js";
+
+export class FactsPanel {
+  /** Write `text` into the fact `id` (absent from the page: nothing to do). */
+  set(id, text) {
+    const element = $(id);
+    if (element) element.textContent = text;
+  }
+
+  /**
+   * The bundle's facts.
+   * @param {object} manifest  the bundle's manifest.json, parsed
+   * @param {{patch: {units?: string, shape: number[], degree: number[], rational: boolean},
+   *          patch_bytes: number}} ready  the worker's init reply
+   * @param {{bytes_downloaded: number}} stats
+   */
+  describe(manifest, ready, stats) {
+    const units = manifest.units || ready.patch.units || "unknown";
+    const fit = manifest.stats || {};
+    this.set("fact-units", units);
+    this.set("fact-bundle", formatBytes(stats.bytes_downloaded));
+    this.set("fact-patch", formatBytes(ready.patch_bytes));
+    this.set("fact-grid", `${ready.patch.shape.join(" × ")} control points, degree ` +
+      `${ready.patch.degree.join(", ")}` + (ready.patch.rational ? ", rational" : ""));
+    this.set("fact-rms", formatLength(fit.rms, units));
+    this.set("fact-max", formatLength(fit.max, units));
+    if (manifest.provenance && manifest.provenance.points) {
+      this.set("fact-source", `${manifest.provenance.points.toLocaleString("en")} scan points` +
+        (manifest.provenance.bytes ? `, ${formatBytes(manifest.provenance.bytes)}` : ""));
+    }
+  }
+
+  /** The base mesh on screen: its size and the worker's time for it. */
+  showMesh(stats) {
+    this.set("fact-mesh", `${stats.vertices.toLocaleString("en")} vertices, ` +
+      `${stats.triangles.toLocaleString("en")} triangles`);
+    this.set("fact-time", `${stats.tessellate_ms.toFixed(0)} ms in Python (${stats.kernel} kernel)`);
+  }
+
+  /** The detail regions shown and the tiles behind them (nothing before the first update). */
+  showTiles(stats) {
+    if (stats.tile_updates === undefined) return;
+    this.set("fact-detail", stats.regions
+      ? `${stats.regions} regions, ${stats.tiles_loaded} tiles (${formatBytes(stats.tile_bytes)} fetched), ` +
+        `${stats.tile_tessellate_ms.toFixed(0)} ms`
+      : `base only (${stats.tile_bytes ? formatBytes(stats.tile_bytes) + " of tiles fetched" : "zoom in for detail"})`);
+  }
+}
