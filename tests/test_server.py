@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import client_py
 from fitter.cli import build_parser, main
 from fitter.collection.bundles import Collection
-from fitter.server import DEFAULTS, PROJECT_ROOT, create_app, load_settings
+from fitter.server import DEFAULTS, SOURCE_CHECKOUT, WEB_ROOT, create_app, load_settings
 
-PYODIDE = PROJECT_ROOT / "web" / "node_modules" / "pyodide"
 HOP_DIR = Path(DEFAULTS["TESSERA_3DHOP_DIR"][0]) if DEFAULTS["TESSERA_3DHOP_DIR"][0] else None
 
 
@@ -228,7 +228,7 @@ def test_three_and_web_modules_are_javascript(client):
 def test_client_py_sources_are_the_package_files(client):
     response = client.get("/client_py/sources.json")
     sources = response.get_json()
-    package = PROJECT_ROOT / "client_py"
+    package = Path(client_py.__file__).parent  # the package the server imported
     on_disk = {p.name for p in package.glob("*.py")}
     assert set(sources["files"]) >= on_disk
     assert sources["files"]["format.py"] == (package / "format.py").read_text(encoding="utf-8")
@@ -257,6 +257,39 @@ def test_pages_load_pyodide_plainly_without_a_snapshot(web_collection):
                       "TESSERA_PYODIDE_SNAPSHOT": False})
     html = app.test_client().get("/objects/relief/").get_data(as_text=True)
     assert '"pyodide_snapshot_url": null' in html
+
+
+def test_the_snapshot_cache_is_the_instance_folder_unless_set(web_collection, tmp_path,
+                                                                monkeypatch):
+    monkeypatch.delenv("TESSERA_CACHE_DIR", raising=False)
+    app = create_app({"TESSERA_COLLECTION": str(web_collection)})
+    # a checkout's instance folder is instance/ at its root (Flask's rule for a package
+    # that is not installed); tests/ sits at that root too
+    checkout = Path(__file__).resolve().parent.parent
+    assert Path(app.instance_path) == checkout / "instance"
+    assert app.config["TESSERA_CACHE_DIR"] == str(checkout / "instance" / "cache")
+    assert app.extensions["tessera_snapshot"].cache_dir == checkout / "instance" / "cache"
+    chosen = create_app({"TESSERA_COLLECTION": str(web_collection),
+                         "TESSERA_CACHE_DIR": str(tmp_path / "snapshots")})
+    assert chosen.extensions["tessera_snapshot"].path.parent == tmp_path / "snapshots"
+
+
+def test_an_unwritable_snapshot_cache_is_a_logged_failure(web_collection, tmp_path):
+    (tmp_path / "a-file").write_text("not a folder")
+    app = create_app({"TESSERA_COLLECTION": str(web_collection), "TESSERA_NODE": "node",
+                      "TESSERA_CACHE_DIR": str(tmp_path / "a-file" / "cache")})
+    builder = app.extensions["tessera_snapshot"]
+    assert builder.ensure() is None
+    assert builder.failure.startswith(f"cannot write in the cache folder {tmp_path}")
+    html = app.test_client().get("/objects/relief/").get_data(as_text=True)
+    assert '"pyodide_snapshot_url": null' in html
+
+
+def test_a_checkout_serves_its_own_web_folder():
+    checkout = Path(__file__).resolve().parent.parent
+    assert SOURCE_CHECKOUT == checkout and WEB_ROOT == checkout / "web"
+    assert DEFAULTS["TESSERA_WEB_DIR"][0] == str(checkout / "web")
+    assert DEFAULTS["TESSERA_PYODIDE_DIR"][0] == str(checkout / "web" / "node_modules" / "pyodide")
 
 
 @pytest.mark.skipif(HOP_DIR is None, reason="3DHOP 4.3 is not in ../shared/vendor/3dhop-4.3")

@@ -24,6 +24,12 @@ they are. The admin area writes only into the collection's ``.tessera/``
 folder and, through its fit workers, new bundle directories. When the
 collection has a catalog (``.tessera/catalog.sqlite``), the public side shows
 only the objects published there; without one, every bundle is public.
+
+The viewer's templates, modules and runtime (Pyodide, three.js) are read from
+:data:`WEB_ROOT`: the checkout's ``web/`` (after ``npm ci`` there) when running
+from a source tree or an editable install, else the copy an installed wheel
+carries. What the server writes for itself (the Pyodide snapshot) goes to the
+Flask instance folder unless ``TESSERA_CACHE_DIR`` says otherwise.
 """
 
 from __future__ import annotations
@@ -37,11 +43,25 @@ from flask import Flask, jsonify, render_template, request
 from flask.typing import ResponseReturnValue
 from werkzeug.exceptions import HTTPException
 
-PROJECT_ROOT = Path(__file__).resolve().parents[2]
+_PACKAGED_WEB = Path(__file__).resolve().parent / "web"
+
+#: The source checkout this package runs from (an editable install, or the tree on
+#: ``sys.path``); None when it is installed from a wheel, which carries its own copy of web/.
+SOURCE_CHECKOUT: Path | None = (None if _PACKAGED_WEB.is_dir()
+                                else Path(__file__).resolve().parents[2])
+
+#: The viewer's files: the checkout's ``web/``, or in a wheel ``fitter/server/web/`` — the same
+#: layout holding only what the server sends or runs (templates, ``src/``, the snapshot script,
+#: the Pyodide, three.js and ws files; see ``build_web.py`` at the checkout's root).
+WEB_ROOT = _PACKAGED_WEB if SOURCE_CHECKOUT is None else SOURCE_CHECKOUT / "web"
 
 
 def _default_3dhop_dir() -> str:
-    vendored = PROJECT_ROOT.parent / "shared" / "vendor" / "3dhop-4.3"
+    """``../shared/vendor/3dhop-4.3`` beside a source checkout when present; else none (GPL,
+    used by path: a wheel never carries it, nor guesses where it might be)."""
+    if SOURCE_CHECKOUT is None:
+        return ""
+    vendored = SOURCE_CHECKOUT.parent / "shared" / "vendor" / "3dhop-4.3"
     return str(vendored) if vendored.is_dir() else ""
 
 
@@ -49,18 +69,19 @@ def _default_3dhop_dir() -> str:
 #: the same name overrides the default; ``create_app(config)`` overrides both.
 DEFAULTS: dict[str, tuple[Any, str]] = {
     "TESSERA_COLLECTION": ("", "directory of bundle directories to serve (required)"),
-    "TESSERA_WEB_DIR": (str(PROJECT_ROOT / "web"), "the viewer's static files (web/)"),
-    "TESSERA_PYODIDE_DIR": (str(PROJECT_ROOT / "web" / "node_modules" / "pyodide"),
+    "TESSERA_WEB_DIR": (str(WEB_ROOT), "the viewer's static files and templates (web/)"),
+    "TESSERA_PYODIDE_DIR": (str(WEB_ROOT / "node_modules" / "pyodide"),
                             "the npm pyodide package (loadPyodide's indexURL)"),
-    "TESSERA_THREE_DIR": (str(PROJECT_ROOT / "web" / "node_modules" / "three"),
-                          "the npm three package"),
+    "TESSERA_THREE_DIR": (str(WEB_ROOT / "node_modules" / "three"), "the npm three package"),
     "TESSERA_3DHOP_DIR": (_default_3dhop_dir(),
-                          "a local copy of 3DHOP 4.3's minimal/ folder, served at /vendor/3dhop/"),
+                          "a local copy of 3DHOP 4.3's minimal/ folder, served at /vendor/3dhop/ "
+                          "(default: ../shared/vendor/3dhop-4.3 beside a source checkout)"),
     "TESSERA_3DHOP_URL": ("", "base URL of a 3DHOP installation elsewhere (instead of a dir)"),
     "TESSERA_PYODIDE_TIMEOUT": (45.0, "seconds the page waits for Pyodide before an error"),
     "TESSERA_PYODIDE_SNAPSHOT": (True, "start Pyodide from a memory snapshot made with node "
                                        "(about 1 s instead of several; +6 MB gzip download)"),
-    "TESSERA_CACHE_DIR": (str(PROJECT_ROOT / "build" / "cache"), "where snapshots are kept"),
+    "TESSERA_CACHE_DIR": ("", "where Pyodide snapshots are kept (empty: cache/ in the Flask "
+                              "instance folder, app.instance_path)"),
     "TESSERA_NODE": ("", "the node executable for snapshots (default: node on PATH)"),
     "TESSERA_RESOLUTION": (0, "fixed tessellation grid per side; 0 follows the view"),
     "TESSERA_GZIP": (True, "gzip compressible responses when the client accepts it"),
@@ -141,12 +162,16 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
     web_dir = Path(settings["TESSERA_WEB_DIR"])
     app = Flask(__name__, template_folder=str(web_dir / "templates"), static_folder=None)
     app.config.update(settings)
+    # the instance folder: writable wherever the package is installed (a wheel's own folder
+    # may not be), and outside the checkout's tracked files
+    cache_dir = Path(str(settings["TESSERA_CACHE_DIR"]) or Path(app.instance_path) / "cache")
+    app.config["TESSERA_CACHE_DIR"] = str(cache_dir)
     app.extensions["tessera_collection"] = Collection(collection_dir)
     app.extensions["tessera_client_py"] = sources = runtime.client_py_sources()
     app.extensions["tessera_snapshot"] = None
     if settings["TESSERA_PYODIDE_SNAPSHOT"]:
         app.extensions["tessera_snapshot"] = SnapshotBuilder(
-            Path(settings["TESSERA_PYODIDE_DIR"]), sources, Path(settings["TESSERA_CACHE_DIR"]),
+            Path(settings["TESSERA_PYODIDE_DIR"]), sources, cache_dir,
             node=settings["TESSERA_NODE"] or None)
 
     for module in (gallery, objects, api, bundles, runtime):
@@ -172,4 +197,4 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
     return app
 
 
-__all__ = ["DEFAULTS", "create_app", "load_settings"]
+__all__ = ["DEFAULTS", "SOURCE_CHECKOUT", "WEB_ROOT", "create_app", "load_settings"]

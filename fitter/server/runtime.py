@@ -31,7 +31,8 @@ from .files import send_from, send_path
 
 bp = Blueprint("runtime", __name__)
 
-# Runtime subtrees a page may load; everything else in node_modules stays private.
+# Runtime subtrees a page may load; everything else in node_modules stays private. A wheel
+# carries only the modules the viewer imports from them (build_web.WEB_FILES).
 THREE_PUBLIC = ("build/", "examples/jsm/")
 
 

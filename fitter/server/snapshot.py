@@ -25,9 +25,11 @@ import subprocess
 import threading
 from pathlib import Path
 
+from . import WEB_ROOT
+
 log = logging.getLogger(__name__)
 
-SCRIPT = Path(__file__).resolve().parents[2] / "web" / "tools" / "make-pyodide-snapshot.mjs"
+SCRIPT = WEB_ROOT / "tools" / "make-pyodide-snapshot.mjs"
 BUILD_TIMEOUT_S = 180
 
 
@@ -41,7 +43,8 @@ class SnapshotBuilder:
     sources : dict
         ``client_py``'s sources document (``runtime.client_py_sources()``).
     cache_dir : Path
-        Where snapshots are kept.
+        Where snapshots are kept (made when the first one is built; ``create_app`` gives
+        ``cache/`` in the Flask instance folder unless ``TESSERA_CACHE_DIR`` is set).
     node : str, optional
         The node executable (default: ``node`` on ``PATH``).
     """
@@ -95,11 +98,14 @@ class SnapshotBuilder:
             return self.path
 
     def _build(self) -> str | None:
-        self.cache_dir.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")
         sources = self.path.with_suffix(".sources.json")
-        sources.write_text(json.dumps(self.sources))
         try:
+            self.cache_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # e.g. an instance folder this server may not write
+            return f"cannot write in the cache folder {self.cache_dir}: {exc}"
+        try:
+            sources.write_text(json.dumps(self.sources))
             subprocess.run([self.node, str(SCRIPT), str(self.pyodide_dir), str(sources), str(tmp)],
                            check=True, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
             data = tmp.read_bytes()
