@@ -2,13 +2,14 @@
 
 Runs unchanged in Pyodide and CPython: only the standard library is imported at
 import time (numpy, when importable, accelerates grid evaluation behind
-``client_py._kernel``); no I/O: bytes in, bytes and arrays out.
+``client_py._kernel``); no I/O: bytes in, bytes and arrays out. The browser's
+mesh worker drives it through :class:`client_py.session.WorkerSession`.
 
 >>> from client_py import NurbsSurface, tessellate_grid, write_patch, read_patch, write_ply
 """
 
 from .basis import uniform_clamped_knots
-from .bundle import tessellate_bundle
+from .bundle import LevelPlan, plan_level, plan_levels, tessellate_bundle, write_level_ply
 from .errors import PatchFormatError, TesseraError
 from .format import (
     read_detail_tile,
@@ -18,18 +19,23 @@ from .format import (
 )
 from .layers import DetailTile, TextureImage, tessellate_region
 from .ply import write_ply
+from .skirts import hang_skirts
 from .surface import NurbsSurface
 from .tessellate import Mesh, tessellate_grid
 from .trim import TrimMask
 
 __all__ = [
     "DetailTile",
+    "LevelPlan",
     "Mesh",
     "NurbsSurface",
     "PatchFormatError",
     "TesseraError",
     "TextureImage",
     "TrimMask",
+    "hang_skirts",
+    "plan_level",
+    "plan_levels",
     "read_detail_tile",
     "read_patch",
     "tessellate_bundle",
@@ -37,6 +43,7 @@ __all__ = [
     "tessellate_region",
     "uniform_clamped_knots",
     "write_detail_tile",
+    "write_level_ply",
     "write_patch",
     "write_ply",
 ]

@@ -1,26 +1,51 @@
-"""A whole bundle at one level of detail: its base patch with every detail tile up to a level.
+"""A whole bundle at one level of detail: what level ``L`` needs, its mesh and its PLY.
 
 The bundle's ``manifest.json`` lists the tiles (``manifest["tiles"]``, see
-docs/format.md, "Tiles"); this module picks the files a level needs and
-tessellates the whole domain with them, for the PLY export (``tessera
-tessellate OUTDIR --level L``) and for anyone who wants "level L everywhere".
-No I/O of its own: the caller passes ``read(name) -> bytes`` (a file reader, a
-``fetch``, a dict's ``__getitem__``), and decoded texture images.
+docs/format.md, "Tiles"). :func:`plan_level` is the one rule for "level ``L``
+everywhere": the detail tile files (levels ``0..L``), the texture tiles its
+vertex colours come from and the grid it is tessellated on;
+:func:`plan_levels` lists the levels a viewer offers for download.
+:func:`write_level_ply` makes that PLY from the decoded patch, tiles and
+texture images, for ``tessera tessellate BUNDLE --level L`` and for the
+browser's worker session (:mod:`client_py.session`) alike, so both write the
+same bytes. No I/O of its own: the caller passes ``read(name) -> bytes`` (a
+file reader, a ``fetch``, a dict's ``__getitem__``), or the decoded objects.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 
 from .format import read_detail_tile, read_patch
-from .layers import TextureImage, tessellate_region, transform_mesh
+from .layers import DetailTile, TextureImage, tessellate_region, transform_mesh
+from .ply import write_ply
+from .surface import NurbsSurface
 from .tessellate import Mesh
+
+PLY_MAX_RESOLUTION = 1025  # a level-L PLY's grid is capped here (about a million vertices)
+BASE_RESOLUTION = 256  # the grid of the base alone (level -1), as ``tessera tessellate`` makes it
+
+
+def _detail(manifest: dict) -> dict:
+    return (manifest.get("tiles") or {}).get("detail") or {}
+
+
+def _nodes(manifest: dict, kind: str) -> list[dict]:
+    """``manifest["tiles"][kind]["nodes"]``, each checked to name a quadtree node and a file."""
+    nodes = ((manifest.get("tiles") or {}).get(kind) or {}).get("nodes") or []
+    for node in nodes:
+        fields = [node.get(key) if isinstance(node, dict) else None for key in ("level", "i", "j")]
+        if not all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in fields) \
+                or not isinstance(node.get("file"), str):
+            raise ValueError(f"manifest tiles.{kind} node {node!r} is not a node: it needs "
+                             "integer level, i, j >= 0 and a file name")
+    return nodes
 
 
 def detail_levels(manifest: dict) -> int:
     """Number of detail levels the bundle was fitted with (0 for a bundle without tiles)."""
-    detail = (manifest.get("tiles") or {}).get("detail") or {}
-    return len(detail.get("levels") or [])
+    return len(_detail(manifest).get("levels") or [])
 
 
 def _check_level(manifest: dict, level: int | None) -> int:
@@ -36,8 +61,7 @@ def _check_level(manifest: dict, level: int | None) -> int:
 def detail_nodes(manifest: dict, level: int | None = None) -> list[dict]:
     """Manifest nodes of the detail tiles of levels ``0..level`` (default: all)."""
     level = _check_level(manifest, level)
-    detail = (manifest.get("tiles") or {}).get("detail") or {}
-    return [n for n in detail.get("nodes") or [] if n["level"] <= level]
+    return [n for n in _nodes(manifest, "detail") if n["level"] <= level]
 
 
 def texture_nodes(manifest: dict, level: int | None = None) -> list[dict]:
@@ -48,8 +72,7 @@ def texture_nodes(manifest: dict, level: int | None = None) -> list[dict]:
     A coarser node is kept where its rectangle is not covered by finer kept tiles;
     :func:`client_py.layers.vertex_colours` samples the finest tile holding each vertex.
     """
-    texture = (manifest.get("tiles") or {}).get("texture") or {}
-    nodes = texture.get("nodes") or []
+    nodes = _nodes(manifest, "texture")
     if not nodes:
         return []
     top = max(n["level"] for n in nodes)
@@ -65,6 +88,126 @@ def texture_nodes(manifest: dict, level: int | None = None) -> list[dict]:
 
     return [n for n in nodes if n["level"] == top
             or (n["level"] < top and not covered(n["level"], n["i"], n["j"]))]
+
+
+def level_resolution(spans_per_tile: int, level: int) -> int:
+    """Grid of a level-``L`` PLY: ``R = min(1025, 2 m 2^L + 1)`` vertices per side.
+
+    ``m 2^L`` is the number of knot spans of level ``L``'s field across the
+    domain (``m`` = spans per tile), so ``R`` puts two vertices per span of the
+    finest tiles applied, up to :data:`PLY_MAX_RESOLUTION`.
+    """
+    if isinstance(spans_per_tile, bool) or not isinstance(spans_per_tile, int) \
+            or spans_per_tile < 1:
+        raise ValueError(f"spans_per_tile must be a positive integer, got {spans_per_tile!r}")
+    if isinstance(level, bool) or not isinstance(level, int) or level < 0:
+        raise ValueError(f"level must be an integer >= 0, got {level!r}")
+    return min(PLY_MAX_RESOLUTION, 2 * spans_per_tile * 2**level + 1)
+
+
+@dataclass(frozen=True)
+class LevelPlan:
+    """What the bundle at detail level ``level`` needs (see :func:`plan_level`).
+
+    Attributes
+    ----------
+    level : int
+        ``-1`` (the base alone) .. the finest detail level.
+    rms : float or None
+        RMS deviation of the scan at that level (``tiles.detail.levels[L].rms``;
+        the base's ``tiles.detail.base.rms`` at ``-1``), in the bundle's units.
+    detail_files : tuple of str
+        The detail tiles of levels ``0..level``, in manifest order.
+    detail_bytes : int
+        Their total size.
+    texture_nodes : tuple of dict
+        Manifest nodes of the texture tiles the vertex colours are sampled from
+        (:func:`texture_nodes`); empty without texture.
+    texture_bytes : int
+        Their total size.
+    resolution : int
+        Vertices per side of the grid over the whole domain
+        (:func:`level_resolution`; :data:`BASE_RESOLUTION` at ``-1``).
+    """
+
+    level: int
+    rms: float | None
+    detail_files: tuple[str, ...]
+    detail_bytes: int
+    texture_nodes: tuple[dict, ...]
+    texture_bytes: int
+    resolution: int
+
+    def to_dict(self) -> dict:
+        """The plan as JSON-ready plain values (lists for the tuples), for the browser."""
+        return {"level": self.level, "rms": self.rms, "detail_files": list(self.detail_files),
+                "detail_bytes": self.detail_bytes,
+                "texture_nodes": [dict(n) for n in self.texture_nodes],
+                "texture_bytes": self.texture_bytes, "resolution": self.resolution}
+
+
+def plan_level(manifest: dict, level: int | None = None) -> LevelPlan:
+    """The files and grid of the bundle at detail level ``level`` (default: the finest).
+
+    Parameters
+    ----------
+    manifest : dict
+        The parsed ``manifest.json``.
+    level : int, optional
+        ``-1`` the base alone, else ``0..detail_levels(manifest) - 1``.
+
+    Returns
+    -------
+    LevelPlan
+        Detail tiles of levels ``0..L`` (:func:`detail_nodes`), texture nodes
+        (:func:`texture_nodes`) and the grid ``R = min(1025, 2 m 2^L + 1)``,
+        ``m = tiles.detail.spans_per_tile``.
+
+    Raises
+    ------
+    ValueError
+        A level the bundle does not have, or a malformed ``tiles`` entry.
+    """
+    level = _check_level(manifest, level)
+    detail = _detail(manifest)
+    nodes = detail_nodes(manifest, level)
+    textures = texture_nodes(manifest, level)
+    if level < 0:
+        resolution = BASE_RESOLUTION
+        rms = (detail.get("base") or {}).get("rms")
+    else:
+        spans = detail.get("spans_per_tile")
+        if isinstance(spans, bool) or not isinstance(spans, int) or spans < 1:
+            raise ValueError("manifest tiles.detail.spans_per_tile must be a positive integer, "
+                             f"got {spans!r}")
+        resolution = level_resolution(spans, level)
+        entry = detail["levels"][level]
+        if not isinstance(entry, dict) or entry.get("level") != level:
+            raise ValueError(f"manifest tiles.detail.levels[{level}] must describe level "
+                             f"{level}, got {entry!r}")
+        rms = entry.get("rms")
+    return LevelPlan(level, rms, tuple(n["file"] for n in nodes),
+                     sum(n.get("bytes") or 0 for n in nodes), tuple(textures),
+                     sum(n.get("bytes") or 0 for n in textures), resolution)
+
+
+def plan_levels(manifest: dict) -> list[LevelPlan]:
+    """The levels a bundle offers as a PLY: :func:`plan_level` of each detail level
+    ``0..L`` (``[]`` for a bundle without detail tiles; the base is the viewer's own mesh)."""
+    return [plan_level(manifest, level) for level in range(detail_levels(manifest))]
+
+
+def _level_mesh(surface: NurbsSurface, tiles: Sequence[DetailTile], resolution: int,
+                textures: Iterable[TextureImage], kernel: str | None,
+                scan_frame: bool = True) -> Mesh:
+    """The whole domain on a resolution^2 grid with ``tiles`` applied, coloured from
+    ``textures``, mapped to the scan frame by the patch's ``transform``."""
+    mesh = tessellate_region(surface, (0.0, 0.0, 1.0, 1.0), resolution, resolution, tiles,
+                             kernel, textures)
+    matrix = surface.metadata.get("transform")
+    if scan_frame and matrix is not None:
+        mesh = transform_mesh(mesh, matrix, kernel)
+    return mesh
 
 
 def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int | None = None,
@@ -96,9 +239,70 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
     """
     surface = read_patch(read(manifest.get("base", {}).get("file", "base.tsp")))
     tiles = [read_detail_tile(read(node["file"])) for node in detail_nodes(manifest, level)]
-    mesh = tessellate_region(surface, (0.0, 0.0, 1.0, 1.0), resolution, resolution, tiles,
-                             kernel, textures)
-    matrix = surface.metadata.get("transform")
-    if scan_frame and matrix is not None:
-        mesh = transform_mesh(mesh, matrix, kernel)
-    return mesh
+    return _level_mesh(surface, tiles, resolution, textures, kernel, scan_frame)
+
+
+def write_level_ply(surface: NurbsSurface, tiles: Iterable[DetailTile], level: int,
+                    resolution: int, source: str, textures: Iterable[TextureImage] = (),
+                    binary: bool = True, texture_file: str | None = None,
+                    kernel: str | None = None) -> tuple[bytes, Mesh]:
+    """The PLY of the bundle at detail level ``level``: ``X = S + sum_{k <= L} D_k n``
+    over the whole domain on a ``resolution x resolution`` grid, in the scan frame.
+
+    Parameters
+    ----------
+    surface : NurbsSurface
+        The base patch in its own frame (as ``read_patch`` gives it; its
+        ``transform`` maps the mesh to the scan).
+    tiles : iterable of DetailTile
+        The detail tiles of levels ``0..level`` (:attr:`LevelPlan.detail_files`).
+    level : int
+        The level, ``-1`` for the base alone; a finer tile is refused.
+    resolution : int
+        Vertices per side (:attr:`LevelPlan.resolution`).
+    source : str
+        Named in the header (``comment source SOURCE``).
+    textures : iterable of TextureImage
+        Vertex colours are sampled from them (:attr:`LevelPlan.texture_nodes`,
+        decoded, in plan order); none: no colours.
+    binary : bool
+        Binary little-endian (default) or ASCII PLY.
+    texture_file : str, optional
+        Write ``texture_u/v`` and ``comment TextureFile`` naming this image.
+    kernel : str, optional
+        ``'python'`` or ``'numpy'``; default the selected kernel.
+
+    Returns
+    -------
+    data : bytes
+        The PLY: header comments name the source, the units (the patch's
+        ``units`` metadata), the level and its tile count, the grid and the
+        texture levels sampled.
+    mesh : Mesh
+        The mesh written.
+
+    Raises
+    ------
+    ValueError
+        A tile finer than ``level``, or a bad grid.
+    """
+    tiles = list(tiles)
+    textures = list(textures)
+    if isinstance(level, bool) or not isinstance(level, int) or level < -1:
+        raise ValueError(f"level must be an integer >= -1, got {level!r}")
+    for tile in tiles:
+        if tile.level > level:
+            raise ValueError(f"detail tile {tile.level}/{tile.i}_{tile.j} is of level "
+                             f"{tile.level}, finer than level {level}")
+    mesh = _level_mesh(surface, tiles, resolution, textures, kernel)
+    comments = [f"source {source}", f"units {surface.metadata.get('units', 'unknown')}",
+                f"detail level {level}: " + (
+                    f"base patch + {len(tiles)} detail tiles of levels 0..{level}" if level >= 0
+                    else "the base patch alone"),
+                f"tessellated by client_py on a {resolution}x{resolution} grid"]
+    if textures:
+        levels = sorted({t.level for t in textures})
+        comments.append(f"vertex colours sampled from {len(textures)} texture tiles of levels "
+                        + ", ".join(str(k) for k in levels))
+    data = write_ply(mesh, binary=binary, texture_file=texture_file, comments=comments)
+    return data, mesh

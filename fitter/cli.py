@@ -13,7 +13,15 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from client_py import PatchFormatError, read_patch, tessellate_grid, write_ply
+from client_py import (
+    PatchFormatError,
+    TextureImage,
+    read_detail_tile,
+    read_patch,
+    tessellate_grid,
+    write_ply,
+)
+from client_py.bundle import BASE_RESOLUTION, PLY_MAX_RESOLUTION, plan_level, write_level_ply
 from client_py.errors import TesseraError
 
 
@@ -66,7 +74,8 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
         surface = read_patch(path.read_bytes())
     except PatchFormatError as exc:
         raise UserError(f"{path}: {exc}") from None
-    mesh = tessellate_grid(surface.to_scan_frame(), args.resolution, args.resolution)
+    resolution = BASE_RESOLUTION if args.resolution is None else args.resolution
+    mesh = tessellate_grid(surface.to_scan_frame(), resolution, resolution)
     comments = [f"source {path.name}"]
     if "units" in surface.metadata:
         comments.append(f"units {surface.metadata['units']}")
@@ -79,33 +88,31 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
 
 
 def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
-    """A bundle at ``--level``: base + detail tiles, per-vertex colours from the texture
-    tiles, or (``--texture``) texture uvs and the level's texture as one PNG beside the PLY."""
+    """A bundle at ``--level``, as the viewer's "Download PLY" writes it: the files and grid
+    of ``client_py.bundle.plan_level`` (``--resolution`` overrides the grid), written by
+    ``client_py.bundle.write_level_ply`` with per-vertex colours from the texture tiles, or
+    (``--texture``) texture uvs and the level's texture as one PNG beside the PLY."""
     import json
 
     from PIL import Image
-
-    from client_py import TextureImage, tessellate_bundle
-    from client_py.bundle import texture_nodes
 
     try:
         manifest = json.loads((bundle / "manifest.json").read_text())
     except (OSError, ValueError) as exc:
         raise UserError(f"{bundle / 'manifest.json'}: not a readable manifest: {exc}") from None
-    nodes = texture_nodes(manifest, args.level)
+    try:
+        plan = plan_level(manifest, args.level)
+        surface = read_patch((bundle / manifest.get("base", {}).get("file", "base.tsp"))
+                             .read_bytes())
+        tiles = [read_detail_tile((bundle / name).read_bytes()) for name in plan.detail_files]
+    except (OSError, ValueError) as exc:  # PatchFormatError is a ValueError
+        raise UserError(f"{bundle}: {exc}") from None
     images = []
-    for node in nodes:
+    for node in plan.texture_nodes:
         with Image.open(bundle / node["file"]) as im:
             rgb = im.convert("RGB")
             images.append(TextureImage(node["level"], node["i"], node["j"], rgb.width,
                                        rgb.height, rgb.tobytes()))
-    try:
-        mesh = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(), args.level,
-                                 args.resolution, textures=() if args.texture else images)
-    except PatchFormatError as exc:
-        raise UserError(f"{bundle}: {exc}") from None
-    except ValueError as exc:
-        raise UserError(f"{bundle}: {exc}") from None
     out = Path(args.output)
     texture_file = None
     if args.texture:
@@ -118,14 +125,12 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
             atlas.paste(tile, (im.i * im.width, side - (im.j + 1) * im.height))
         texture_file = f"{out.stem}_texture.png"
         atlas.save(out.with_name(texture_file))
-    level = args.level if args.level is not None else \
-        len(manifest.get("tiles", {}).get("detail", {}).get("levels", [])) - 1
-    comments = [f"source {bundle.name}", f"detail level {level}"]
-    if manifest.get("units"):
-        comments.append(f"units {manifest['units']}")
-    data = write_ply(mesh, binary=not args.ascii, texture_file=texture_file, comments=comments)
+    resolution = plan.resolution if args.resolution is None else args.resolution
+    data, mesh = write_level_ply(surface, tiles, plan.level, resolution, bundle.name,
+                                 () if args.texture else images, binary=not args.ascii,
+                                 texture_file=texture_file)
     out.write_bytes(data)
-    print(f"{out}: level {level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
+    print(f"{out}: level {plan.level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
           f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))
     return 0
 
@@ -405,8 +410,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tess.add_argument("input", help="a .tsp patch file or a bundle directory (uses base.tsp)")
     tess.add_argument("-o", "--output", required=True, help="output .ply path")
-    tess.add_argument("--resolution", type=_resolution, default=256,
-                      help="vertices per side of the parameter grid (default 256)")
+    tess.add_argument("--resolution", type=_resolution, default=None,
+                      help=f"vertices per side of the parameter grid (default "
+                      f"{BASE_RESOLUTION}; a bundle at a detail level L: "
+                      f"min({PLY_MAX_RESOLUTION}, 2 spans_per_tile 2^L + 1), as the viewer's "
+                      "Download PLY)")
     tess.add_argument("--level", type=_level, default=None,
                       help="with a bundle: apply the detail tiles of levels 0..LEVEL "
                       "(-1: the base alone; default: the finest)")

@@ -10,28 +10,37 @@ JSON by ``tests/test_pyodide.py``) and reads back ``RESULT``:
 
 The digests (tessellated arrays, PLY and .tsp bytes, all from the pure-Python
 kernel) are compared with the same script's digests in CPython: the browser
-must produce the very same bytes.
+must produce the very same bytes. The worker's session (``client_py.session``)
+is driven here as mesh-worker.js drives it: patch, manifest, tiles, a region
+with skirts, the level plan and a level PLY.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 
 from client_py import (
     DetailTile,
     NurbsSurface,
     PatchFormatError,
+    TextureImage,
     TrimMask,
+    hang_skirts,
+    plan_level,
     read_detail_tile,
     read_patch,
     tessellate_grid,
     tessellate_region,
     write_detail_tile,
+    write_level_ply,
     write_patch,
     write_ply,
 )
 from client_py._kernel import KERNEL_NAME
+from client_py.layers import tile_rect, transform_mesh
+from client_py.session import WorkerSession
 
 
 def _surface(spec: dict) -> NurbsSurface:
@@ -101,6 +110,88 @@ def _detail_checks(checks: dict, digests: dict) -> None:
     mesh = tessellate_region(base, (0.25, 0.0, 1.0, 0.75), 23, 19, tiles, kernel="python")
     for name in ("positions", "normals", "uvs", "indices"):
         digests[f"region.{name}"] = _sha(memoryview(getattr(mesh, name)).cast("B"))
+
+
+def _session_checks(checks: dict, digests: dict) -> None:
+    """The worker's session, driven as mesh-worker.js drives it, on a bundle made here."""
+    U = [0, 0, 0, 0.5, 1, 1, 1]
+    grid = [[[i / 3, j / 3, 0.1 * ((i * j) % 3)] for j in range(4)] for i in range(4)]
+    trim = TrimMask([[not (r >= 5 and c >= 4) for c in range(8)] for r in range(8)])
+    transform = [[0, -2, 0, 250], [2, 0, 0, -40], [0, 0, 2, 1200], [0, 0, 0, 1]]
+    base = NurbsSurface((2, 2), (U, U), grid, trim=trim,
+                        metadata={"units": "mm", "transform": transform})
+    spans, files, nodes = 3, {}, []
+    for level in range(2):
+        for i in range(1 << level):
+            for j in range(1 << level):
+                tile = DetailTile(level, i, j, 2, spans, 2.0**-7,
+                                  tuple(_lcg_values(25, 5 + 7 * level + 3 * i + j, 30)))
+                name = f"detail/{level}/{i}_{j}.tsd"
+                files[name] = write_detail_tile(tile)
+                nodes.append({"level": level, "i": i, "j": j, "file": name,
+                              "bytes": len(files[name])})
+    textures = [{"level": k, "i": i, "j": j, "width": 4, "height": 4,
+                 "rgb": bytes((17 * m + 40 * k + 9 * i + 5 * j) % 256 for m in range(48))}
+                for k, i, j in ((0, 0, 0), (1, 0, 0), (1, 1, 1))]
+    manifest = {"units": "mm", "tiles": {
+        "detail": {"spans_per_tile": spans, "levels": [{"level": 0, "rms": 0.2},
+                                                       {"level": 1, "rms": 0.1}],
+                   "nodes": nodes},
+        "texture": {"nodes": [{"level": t["level"], "i": t["i"], "j": t["j"],
+                               "file": f"texture/{t['level']}/{t['i']}_{t['j']}.webp",
+                               "bytes": 100} for t in textures]}}}
+    session = WorkerSession(kernel="python")
+    session.load_patch(write_patch(base, bits=16), "base.tsp")
+    session.read_manifest(json.dumps(manifest))
+    patch = read_patch(write_patch(base, bits=16))
+
+    def plan():
+        offered = session.level_choices()
+        _require(offered["max_resolution"] == 1025, "the grid's cap")
+        choices = offered["levels"]
+        _require([c["level"] for c in choices] == [0, 1], f"levels {choices}")
+        for c in choices:
+            want = [n["file"] for n in nodes if n["level"] <= c["level"]]
+            _require(c["detail_files"] == want, f"level {c['level']}: {c['detail_files']}")
+            _require(c["resolution"] == 2 * spans * 2 ** c["level"] + 1, "grid")
+        _require(len(choices[1]["texture_nodes"]) == 3, "texture nodes of level 1")
+
+    _check(checks, "session: the plan names the manifest's tiles and grid", plan)
+    held = ["detail/0/0_0.tsd", "detail/1/1_0.tsd"]
+    for name in held:
+        session.add_tile(name, files[name])
+    region = session.region_mesh(1, 1, 0, 7, held, 0.05)
+    for name in ("positions", "normals", "uvs", "indices"):
+        digests[f"session.region.{name}"] = _sha(memoryview(getattr(region, name)).cast("B"))
+
+    def region_is_tessellate_region_plus_skirts():
+        tiles = [read_detail_tile(files[name]) for name in held]
+        rect = tile_rect(1, 1, 0)
+        mesh = tessellate_region(patch, rect, 7, 7, tiles, "python")
+        mesh = transform_mesh(hang_skirts(mesh, patch, rect, 7, tiles, 0.05, "python"),
+                              transform, "python")
+        for name in ("positions", "normals", "uvs", "indices"):
+            _require(getattr(region, name) == getattr(mesh, name), f"region {name} differs")
+        _require(region.vertex_count == 49 + 2 * 2 * 7, "two inner sides, 2 x 7 vertices each")
+
+    _check(checks, "session: region mesh is tessellate_region + skirts, scan frame",
+           region_is_tessellate_region_plus_skirts)
+    fresh = {name: memoryview(data) for name, data in files.items() if name not in held}
+    ply = session.level_ply(1, fresh, textures[::-1])
+    digests["session.level_ply"] = _sha(ply.data)
+    session.tessellate_base(9)
+    digests["session.base_ply"] = _sha(session.base_ply(9, bytes(range(243))).data)
+
+    def level_ply_is_write_level_ply():
+        tiles = [read_detail_tile(files[n["file"]]) for n in nodes]
+        images = [TextureImage(t["level"], t["i"], t["j"], 4, 4, t["rgb"]) for t in textures]
+        data, _ = write_level_ply(patch, tiles, 1, plan_level(manifest, 1).resolution,
+                                  "base.tsp", images, kernel="python")
+        _require(ply.data == data, "the session's level PLY is not write_level_ply's")
+        _require(b"comment detail level 1: base patch + 5 detail tiles" in ply.data, "header")
+
+    _check(checks, "session: level PLY is write_level_ply of the plan",
+           level_ply_is_write_level_ply)
 
 
 def run(spec: dict) -> dict:
@@ -199,6 +290,7 @@ def run(spec: dict) -> dict:
 
     _check(checks, "invalid input raises ValueError naming it", rejects_bad_input)
     _detail_checks(checks, digests)
+    _session_checks(checks, digests)
     return {"kernel": KERNEL_NAME, "checks": checks, "digests": digests}
 
 

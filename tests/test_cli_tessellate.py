@@ -3,6 +3,8 @@ PLY in the scan's coordinates out; bad input exits with status 2 and a message."
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
@@ -112,3 +114,43 @@ def test_help_explains_every_option(capsys):
     text = capsys.readouterr().out
     for option in ("--output", "--resolution", "--ascii", "bundle directory", "base.tsp"):
         assert option in text
+
+
+@pytest.fixture
+def level_bundle(patch_file, tmp_path):
+    """A bundle directory: the patch and one level-0 detail tile of 3 spans (grid 7 x 7)."""
+    from client_py import DetailTile, write_detail_tile
+
+    bundle = tmp_path / "tiny"
+    (bundle / "detail" / "0").mkdir(parents=True)
+    (bundle / "base.tsp").write_bytes(patch_file.read_bytes())
+    values = tuple((7 * k) % 11 - 5 for k in range(25))
+    data = write_detail_tile(DetailTile(0, 0, 0, 2, 3, 2.0**-6, values))
+    (bundle / "detail/0/0_0.tsd").write_bytes(data)
+    manifest = {"tiles": {"detail": {"spans_per_tile": 3, "levels": [{"level": 0, "rms": 0.1}],
+                                     "nodes": [{"level": 0, "i": 0, "j": 0, "bytes": len(data),
+                                                "file": "detail/0/0_0.tsd"}]}}}
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    return bundle
+
+
+def test_a_bundle_level_takes_the_plan_grid_unless_told(level_bundle, tmp_path, capsys):
+    out = tmp_path / "level.ply"
+    assert main(["tessellate", str(level_bundle), "--level", "0", "-o", str(out)]) == 0
+    assert f"{out}: level 0, 49 vertices" in capsys.readouterr().out  # 2 x 3 x 2^0 + 1 = 7
+    header = out.read_bytes().split(b"end_header")[0]
+    assert b"comment source tiny\ncomment units mm\n" in header
+    assert b"comment detail level 0: base patch + 1 detail tiles of levels 0..0\n" in header
+    assert main(["tessellate", str(level_bundle), "-o", str(out), "--resolution", "5"]) == 0
+    assert f"{out}: level 0, 25 vertices" in capsys.readouterr().out
+    # the base alone: the default grid of a patch
+    assert main(["tessellate", str(level_bundle), "--level", "-1", "-o", str(out)]) == 0
+    assert f"{out}: level -1, {256 * 256} vertices" in capsys.readouterr().out
+
+
+def test_a_bundle_tile_that_is_missing_exits_2(level_bundle, tmp_path, capsys):
+    (level_bundle / "detail/0/0_0.tsd").unlink()
+    assert main(["tessellate", str(level_bundle), "-o", str(tmp_path / "o.ply")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tessera tessellate: error: ") and "0_0.tsd" in err
+    assert "Traceback" not in err

@@ -1,5 +1,6 @@
 """client_py inside Pyodide under node: it imports with the standard library alone, matches
-scipy there, and produces byte-identical meshes, PLY and .tsp files to CPython's.
+scipy there, and produces byte-identical meshes, PLY and .tsp files to CPython's (the
+worker's session, client_py.session, included).
 
 tests/pyodide_runner.mjs loads Pyodide from the npm package in web/node_modules and
 runs tests/pyodide_checks.py (a plain script: the npm package has no pytest offline)
@@ -82,7 +83,8 @@ def test_client_py_imports_in_pyodide_without_numpy(in_pyodide):
 
 def test_checks_pass_in_pyodide(in_pyodide):
     checks = in_pyodide["result"]["checks"]
-    assert len(checks) == 3 * 4 + 3  # 4 per case, the circle, bad input, detail tiles
+    # 4 per case, the circle, bad input, detail tiles, 3 of the worker's session
+    assert len(checks) == 3 * 4 + 3 + 3
     failed = {name: err for name, err in checks.items() if err is not None}
     assert not failed
 

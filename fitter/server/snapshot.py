@@ -2,7 +2,8 @@
 
 Starting Pyodide in a browser spends most of its time initialising the Python
 interpreter (several seconds on a modest machine). A memory snapshot taken after
-that initialisation, and after ``import client_py``, restores in about a second
+that initialisation, and after ``import client_py.session`` (the mesh worker's
+Python, which imports the rest of ``client_py``), restores in about a second
 (Pyodide's experimental ``_makeSnapshot`` / ``_loadSnapshot`` options). The
 snapshot is made here once, by node running ``web/tools/make-pyodide-snapshot.mjs``
 against the served Pyodide package, and cached on disk under a name derived from

@@ -7,16 +7,17 @@
 //
 // Level of detail (?level=L, the #hop-level choice; default "base"): the base patch alone on a
 // 192 x 192 grid (with the error map's colours under ?colors=error), or the bundle at detail
-// level L as the viewer's "Download PLY" makes it (page.js levelPly): every detail tile of
-// levels 0..L fetched, the whole patch tessellated with them on min(1025, 2 spans 2^L + 1)^2
-// vertices, with per-vertex colours from the texture tiles when the bundle has some. The
+// level L as the viewer's "Download PLY" makes it (page.js levelPly, on the worker's plan:
+// client_py.bundle.plan_level): every detail tile of levels 0..L fetched, the whole patch
+// tessellated with them on the level's grid, min(1025, 2 spans 2^L + 1)^2 vertices, with
+// per-vertex colours from the texture tiles when the bundle has some. The
 // loading panel says what is being fetched and made. Stats (window.tessera.stats) beyond
 // page.js's: level (-1 base), resolution, ply_bytes, and at a level the ply_* of levelPly.
 // window.tessera.plyUrl is the PLY 3DHOP was given.
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, levelOption, levelPly, loadManifest, plyLevels, startPage } from "./page.js";
+import { $, levelOption, levelPly, loadManifest, startPage } from "./page.js";
 
 const RESOLUTION = 192; // 36,864 vertices: one 3DHOP chunk (its limit is 65,535 per chunk)
 const FRAME_RESOLUTION = 64; // base grid the framing is computed from at a detail level
@@ -124,13 +125,17 @@ async function main() {
   }, config.pyodide_timeout_s);
   readyPromise.catch(() => {}); // awaited below; this only keeps an early failure "handled"
   const manifest = await loadManifest(config.manifest_url, stats);
+  const ready = await readyPromise;
+  stats.pyodide_load_ms = ready.pyodide_load_ms;
+  stats.kernel = ready.kernel;
+  stats.bytes_downloaded += ready.patch_bytes;
 
-  // The level choice: base, and one entry per detail level of the bundle.
+  // The level choice: base, and one entry per detail level of the bundle (the worker's plan).
   const select = $("hop-level");
   let levels = [];
   let levelsError = null;
   try {
-    levels = plyLevels(manifest);
+    levels = (await worker.plan(manifest)).levels;
   } catch (error) {
     levelsError = error;
   }
@@ -169,11 +174,6 @@ async function main() {
     location.assign(url);
   });
 
-  const ready = await readyPromise;
-  stats.pyodide_load_ms = ready.pyodide_load_ms;
-  stats.kernel = ready.kernel;
-  stats.bytes_downloaded += ready.patch_bytes;
-
   let colors = null;
   let ply;
   let frame; // the base mesh the view is framed on
@@ -197,7 +197,7 @@ async function main() {
     stats.tessellate_ms = ply.write_ms;
     stats.resolution = ply.resolution;
     stats.ply_level = level;
-    colors = choice.textures.length ? true : null;
+    colors = choice.texture_nodes.length ? true : null;
   }
   stats.vertices = ply.vertices;
   stats.triangles = ply.triangles;

@@ -56,24 +56,33 @@ export class MeshWorkerClient {
     return this._request({ type: "ply", resolution, colors }, colors ? [colors.buffer] : []);
   }
 
-  /** PLY of the whole patch at detail level `level` (>= 0) on a resolution x resolution grid,
-   *  with the detail tiles `names` (every tile of levels 0..level): those the worker holds
-   *  (see holds()) are used as they are, the others must be in `fresh` (a Map name -> bytes,
-   *  transferred). `textures`: decoded texture tiles {level, i, j, width, height, rgb} (rgb a
-   *  Uint8Array of rows top to bottom, transferred; see page.js decodeTextureRgb) to sample
-   *  per-vertex colours from (client_py TextureImage objects in the worker); none: no colours.
-   *  Resolves with {bytes, vertices, triangles, resolution, write_ms}. Tiles the worker does
-   *  not hold at the moment of the call and `fresh` lacks reject at once (the caller fetches
-   *  them). */
-  plyLevel(level, resolution, names, fresh = new Map(), textures = []) {
-    const missing = names.filter((name) => !this.held.has(name) && !fresh.has(name));
+  /** The PLY levels the bundle offers (the worker keeps the manifest for plyLevel): resolves
+   *  with {levels, max_resolution, spans_per_tile}, one entry of levels per detail level,
+   *  {level, rms, detail_files, detail_bytes, texture_nodes, texture_bytes, resolution}
+   *  (client_py.bundle.plan_level: the detail tiles of levels 0..L, the texture nodes its
+   *  vertex colours come from, its grid R = min(max_resolution, 2 spans_per_tile 2^L + 1));
+   *  a malformed manifest rejects with the reason. */
+  plan(manifest) {
+    return this._request({ type: "plan", manifest: JSON.stringify(manifest) });
+  }
+
+  /** PLY of the whole patch at detail level choice.level (an entry of plan().levels), on its
+   *  grid, as `tessera tessellate BUNDLE --level L` writes it: its detail_files that the
+   *  worker holds (see holds()) are used as they are, the others must be in `fresh` (a Map
+   *  name -> bytes, transferred). `textures`: its texture_nodes decoded, {level, i, j, width,
+   *  height, rgb} (rgb a Uint8Array of rows top to bottom, transferred; see page.js
+   *  decodeTextureRgb). Resolves with {bytes, vertices, triangles, resolution, write_ms}.
+   *  Tiles the worker does not hold at the moment of the call and `fresh` lacks reject at
+   *  once (the caller fetches them). */
+  plyLevel(choice, fresh = new Map(), textures = []) {
+    const missing = choice.detail_files.filter((name) => !this.held.has(name) && !fresh.has(name));
     if (missing.length) {
       return Promise.reject(new Error(`detail tiles not fetched: ${missing.join(", ")}`));
     }
     const sent = [...fresh].map(([name, bytes]) => ({ name, bytes }));
     const images = textures.map(({ level: k, i, j, width, height, rgb }) =>
       ({ level: k, i, j, width, height, rgb }));
-    return this._request({ type: "ply", level, resolution, names, fresh: sent, textures: images },
+    return this._request({ type: "ply", level: choice.level, fresh: sent, textures: images },
                          [...sent.map((tile) => tile.bytes.buffer),
                           ...images.map((image) => image.rgb.buffer)]);
   }

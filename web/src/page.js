@@ -2,7 +2,8 @@
 // testing contract (window.tessera.stats), the loading and error panels
 // (templates/_status.html; on failure the message goes to document.body.dataset.error), the
 // manifest, and the bundle at a detail level as a PLY (the viewer's "Download PLY" and the
-// 3DHOP page's ?level=L): which detail and texture tiles a level needs (plyLevels), their
+// 3DHOP page's ?level=L): the level choice (levelOption) of the worker's plan (which detail
+// and texture tiles a level needs: MeshWorkerClient.plan, client_py.bundle.plan_level), their
 // fetching, the texture tiles decoded to RGB bytes (decodeTextureRgb) and the worker's
 // tessellation with them (levelPly).
 
@@ -10,7 +11,6 @@ import { fetchBytes } from "./fetch-bytes.js";
 
 export const $ = (id) => document.getElementById(id);
 
-export const PLY_MAX_RES = 1025; // a level-L PLY's grid is capped here (1M vertices)
 const FETCH_PARALLEL = 6; // tile fetches in flight at once for a PLY
 
 export function startPage(stages, extraStats = {}) {
@@ -64,88 +64,20 @@ export async function loadManifest(url, stats) {
   }
 }
 
-/** The texture tiles a PLY at detail level `level` samples its vertex colours from: the
- *  manifest's texture nodes (tiles.texture.nodes) that client_py.layers.vertex_colours picks
- *  for some vertex when given every texture tile of levels 0..T, T = min(level, the finest
- *  texture level): for each node of level T, the deepest present node among it and its
- *  ancestors (a quadtree node the fitter left out, having no colour samples of its own, falls
- *  back to its nearest coarser tile, not to black). Where level T is complete this is level
- *  T's tiles alone, as `tessera tessellate OUTDIR --level L` (client_py.bundle.texture_nodes)
- *  samples. [] for a bundle without texture. Walks only the branches holding tiles. */
-export function textureNodes(manifest, level) {
-  const texture = manifest.tiles && manifest.tiles.texture;
-  const nodes = (texture && Array.isArray(texture.nodes)) ? texture.nodes : [];
-  if (!nodes.length || level < 0) return [];
-  for (const node of nodes) {
-    if (![node.level, node.i, node.j].every(Number.isInteger) || node.level < 0 ||
-        typeof node.file !== "string") {
-      throw new Error(`manifest tiles.texture node ${JSON.stringify(node)} is not a valid node`);
-    }
-  }
-  const top = Math.min(level, Math.max(...nodes.map((node) => node.level)));
-  const key = (k, i, j) => `${k}/${i}/${j}`;
-  const present = new Map();
-  const branches = new Set(); // nodes with a present node of levels <= top at or below them
-  for (const node of nodes) {
-    if (node.level > top) continue;
-    present.set(key(node.level, node.i, node.j), node);
-    for (let k = node.level; k >= 0; k--) {
-      branches.add(key(k, node.i >> (node.level - k), node.j >> (node.level - k)));
-    }
-  }
-  const used = new Set();
-  const children = (k, i, j) => [[0, 0], [1, 0], [0, 1], [1, 1]].map(
-    ([di, dj]) => [k + 1, 2 * i + di, 2 * j + dj]);
-  const visit = (k, i, j, fallback) => {
-    const best = present.get(key(k, i, j)) || fallback;
-    for (const child of k < top ? children(k, i, j) : [null]) {
-      if (child && branches.has(key(...child))) visit(...child, best);
-      else if (best) used.add(best); // the level-`top` nodes in here fall back to `best`
-    }
-  };
-  visit(0, 0, 0, null);
-  return [...used].sort((a, b) => a.level - b.level || a.i - b.i || a.j - b.j);
-}
-
-/** The PLY levels a manifest offers: one {level, rms, names, bytes, textures, textureBytes,
- *  resolution} per entry of tiles.detail.levels, with the files and total bytes of its detail
- *  tiles and those of the coarser levels (all applied at that level), the texture nodes its
- *  vertex colours come from (textureNodes) and its grid R = min(1025, 2 spans_per_tile 2^L + 1)
- *  (two vertices per knot span of the level's tiles); [] for a bundle without detail tiles. */
-export function plyLevels(manifest) {
-  const detail = manifest.tiles && manifest.tiles.detail;
-  if (!detail || !Array.isArray(detail.levels) || !detail.levels.length) return [];
-  const spans = detail.spans_per_tile;
-  if (!Number.isInteger(spans) || spans < 1) {
-    throw new Error(`manifest tiles.detail.spans_per_tile is not a positive integer: ${JSON.stringify(spans)}`);
-  }
-  const nodes = Array.isArray(detail.nodes) ? detail.nodes : [];
-  return detail.levels.map((entry) => {
-    if (!Number.isInteger(entry.level) || entry.level < 0) {
-      throw new Error(`manifest tiles.detail.levels entry ${JSON.stringify(entry)} has no valid level`);
-    }
-    const used = nodes.filter((node) => node.level <= entry.level);
-    const textures = textureNodes(manifest, entry.level);
-    return {
-      level: entry.level, rms: entry.rms, names: used.map((node) => node.file),
-      bytes: used.reduce((sum, node) => sum + (node.bytes || 0), 0),
-      textures, textureBytes: textures.reduce((sum, node) => sum + (node.bytes || 0), 0),
-      resolution: Math.min(PLY_MAX_RES, 2 * spans * 2 ** entry.level + 1),
-    };
-  });
-}
-
-/** An <option> for a level choice of plyLevels: its label gives the bytes to fetch (detail
- *  and texture tiles) and the RMS at that level, its title the files and the grid. */
+/** An <option> for a level choice (an entry of MeshWorkerClient.plan's levels): its label
+ *  gives the bytes to fetch (detail and texture tiles) and the RMS at that level, its title
+ *  the files and the grid. */
 export function levelOption(choice, units) {
   const option = document.createElement("option");
+  const textures = choice.texture_nodes.length;
   option.value = String(choice.level);
-  option.textContent = `level ${choice.level} · ${formatBytes(choice.bytes + choice.textureBytes)} · ` +
-    `RMS ${formatLength(choice.rms, units)}` + (choice.textures.length ? " · colour" : "");
-  option.title = `base + ${plural(choice.names.length, "detail tile")} of levels ` +
-    `0–${choice.level} (${formatBytes(choice.bytes)})` +
-    (choice.textures.length ? `, vertex colours from ${plural(choice.textures.length, "texture tile")} ` +
-      `(${formatBytes(choice.textureBytes)})` : "") +
+  option.textContent = `level ${choice.level} · ` +
+    `${formatBytes(choice.detail_bytes + choice.texture_bytes)} · ` +
+    `RMS ${formatLength(choice.rms, units)}` + (textures ? " · colour" : "");
+  option.title = `base + ${plural(choice.detail_files.length, "detail tile")} of levels ` +
+    `0–${choice.level} (${formatBytes(choice.detail_bytes)})` +
+    (textures ? `, vertex colours from ${plural(textures, "texture tile")} ` +
+      `(${formatBytes(choice.texture_bytes)})` : "") +
     `, tessellated on a ${choice.resolution} × ${choice.resolution} grid`;
   return option;
 }
@@ -197,9 +129,10 @@ export async function decodeTextureRgb(bytes, node) {
 }
 
 /**
- * The PLY of the bundle at detail level choice.level (an entry of plyLevels): the detail
- * tiles the worker does not hold are fetched, the texture tiles fetched and decoded to RGB,
- * then the worker tessellates the whole patch with them (MeshWorkerClient.plyLevel).
+ * The PLY of the bundle at detail level choice.level (an entry of MeshWorkerClient.plan's
+ * levels): the detail tiles the worker does not hold are fetched, the texture tiles fetched
+ * and decoded to RGB, then the worker tessellates the whole patch with them
+ * (MeshWorkerClient.plyLevel).
  * Resolves with the worker's reply {bytes, vertices, triangles, resolution, write_ms}.
  * Sets stats.ply_tiles_fetched, ply_fetch_bytes (detail tiles), ply_textures,
  * ply_texture_bytes, ply_total_ms and adds what it fetched to bytes_downloaded;
@@ -213,11 +146,12 @@ export async function levelPly(worker, choice, { manifestUrl, stats, onProgress 
   const images = [];
   let fetched = 0;
   let textureBytes = 0;
-  const total = choice.names.length;
-  const lacking = () => choice.names.filter((name) => !fresh.has(name) && !worker.holds(name));
+  const total = choice.detail_files.length;
+  const textures = choice.texture_nodes;
+  const lacking = () => choice.detail_files.filter((name) => !fresh.has(name) && !worker.holds(name));
   const progress = () => onProgress(`Fetching the detail tiles of levels 0–${choice.level}: ` +
     `${total - lacking().length} of ${total}` +
-    (choice.textures.length ? `, texture tiles: ${images.length} of ${choice.textures.length}` : "") +
+    (textures.length ? `, texture tiles: ${images.length} of ${textures.length}` : "") +
     ` (${formatBytes(fetched + textureBytes)} fetched)…`);
   const fetchTiles = (names) => forEachLimited(names, FETCH_PARALLEL, async (name) => {
     const bytes = await fetchBytes(new URL(name, baseUrl).href, `detail tile ${name}`);
@@ -226,7 +160,7 @@ export async function levelPly(worker, choice, { manifestUrl, stats, onProgress 
     stats.bytes_downloaded += bytes.length;
     progress();
   });
-  const fetchTextures = () => forEachLimited(choice.textures, FETCH_PARALLEL, async (node) => {
+  const fetchTextures = () => forEachLimited(textures, FETCH_PARALLEL, async (node) => {
     const bytes = await fetchBytes(new URL(node.file, baseUrl).href, `texture tile ${node.file}`);
     textureBytes += bytes.length;
     stats.bytes_downloaded += bytes.length;
@@ -243,7 +177,7 @@ export async function levelPly(worker, choice, { manifestUrl, stats, onProgress 
              `${choice.resolution} grid with ${plural(total, "detail tile")}` +
              (images.length ? ` and ${plural(images.length, "texture tile")}…` : "…"));
   // no await since the last check: the worker will hold every name not in `fresh`
-  const ply = await worker.plyLevel(choice.level, choice.resolution, choice.names, fresh, images);
+  const ply = await worker.plyLevel(choice, fresh, images);
   stats.ply_total_ms = performance.now() - t0;
   return ply;
 }

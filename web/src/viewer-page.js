@@ -17,7 +17,8 @@
 // the whole patch with them on an R x R grid, R = min(1025, 2 spans_per_tile 2^L + 1) (two
 // vertices per knot span of the level's tiles), as `tessera tessellate OUTDIR --level L`;
 // a bundle with texture tiles gives the vertices colours sampled from them (decoded here,
-// sampled by client_py in the worker; page.js levelPly and textureNodes).
+// sampled by client_py in the worker; page.js levelPly, on the worker's plan of each level:
+// client_py.bundle.plan_level).
 // Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
 // ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
 // ply_fetch_bytes (detail tiles), ply_textures, ply_texture_bytes (texture tiles fetched);
@@ -31,8 +32,7 @@ import { ErrorMapControl } from "./error-map-control.js";
 import { FactsPanel } from "./facts-panel.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
 import {
-  $, formatBytes, formatLength, levelOption, levelPly, loadManifest, PLY_MAX_RES, plyLevels,
-  startPage,
+  $, formatBytes, formatLength, levelOption, levelPly, loadManifest, startPage,
 } from "./page.js";
 
 const { config, stats, showStage, showError } = startPage({
@@ -248,8 +248,10 @@ async function main() {
   // The PLY's level of detail: "base" (the mesh on screen) or a detail level of the bundle.
   const select = $("ply-level");
   let levels = [];
+  let plan = null; // the worker's plan of the levels (MeshWorkerClient.plan)
   try {
-    levels = plyLevels(manifest);
+    plan = await worker.plan(manifest);
+    levels = plan.levels;
   } catch (error) {
     select.title = error.message; // stays hidden: the base PLY alone
     console.warn(error.message);
@@ -257,12 +259,12 @@ async function main() {
   const units = manifest.units || ready.patch.units || "unknown";
   for (const choice of levels) select.append(levelOption(choice, units));
   if (levels.length) {
-    const spans = manifest.tiles.detail.spans_per_tile;
     select.title = "Level of detail of the PLY. base: the mesh on screen (with the error map's " +
       "colours when it is shown). level L: the base with every detail tile of levels 0..L " +
       "(their total size is shown; tiles already loaded are not fetched again), the RMS " +
       "distance to the scan at that level, tessellated over the whole object on an R × R " +
-      `grid, R = min(${PLY_MAX_RES}, 2 × ${spans} spans per tile × 2^L + 1): two vertices ` +
+      `grid, R = min(${plan.max_resolution}, 2 × ${plan.spans_per_tile} spans per tile × 2^L + 1): ` +
+      "two vertices " +
       "per knot span of the level's tiles" + (manifest.tiles.texture
         ? "; with the object's colours sampled from its texture tiles (size included)." : ".");
     select.hidden = false;

@@ -1,4 +1,5 @@
-// Make a Pyodide memory snapshot with client_py already imported (run by the server, in node).
+// Make a Pyodide memory snapshot with client_py.session (the mesh worker's Python) already
+// imported (run by the server, in node).
 //
 //   node make-pyodide-snapshot.mjs PYODIDE_DIR SOURCES_JSON OUT_FILE
 //
@@ -27,11 +28,12 @@ for (const [name, text] of Object.entries(sources.files)) {
   pyodide.FS.mkdirTree(path.slice(0, path.lastIndexOf("/")));
   pyodide.FS.writeFile(path, text);
 }
-pyodide.runPython(`
-import sys
-sys.path.insert(0, ${JSON.stringify(PY_ROOT)})
-import client_py, client_py.tessellate, client_py.ply, client_py.format
-`);
+// client_py.session imports the rest of client_py: the worker's first pyimport finds it all
+// in sys.modules (mesh-worker.js adds PY_ROOT to sys.path only when it is not there).
+const sys = pyodide.pyimport("sys");
+sys.path.insert(0, PY_ROOT);
+sys.destroy();
+pyodide.pyimport("client_py.session").destroy();
 const snapshot = pyodide.makeMemorySnapshot();
 writeFileSync(outPath, snapshot);
 console.log(`${outPath}: ${snapshot.length} bytes`);

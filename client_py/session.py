@@ -1,0 +1,293 @@
+"""The browser worker's session: one loaded patch, the tiles handed over, one method per request.
+
+``web/src/mesh-worker.js`` runs Pyodide in a Web Worker and only moves messages
+and buffers: for each request of the page it calls one method of a
+:class:`WorkerSession` and sends the result back (docs of the protocol at the
+top of that file). The session holds the base patch (in its own frame, which
+the detail tiles displace along, and mapped to the scan frame, which the base
+meshes are drawn in), the detail tiles the page has handed over, the bundle's
+manifest (for :func:`client_py.bundle.plan_level`) and the last base mesh (the
+"Download PLY" of the base reuses the mesh on screen). Bytes arrive as any
+bytes-like object (Pyodide turns a ``Uint8Array`` into a ``memoryview``);
+results are :class:`~client_py.tessellate.Mesh` objects, PLY bytes and plain
+dicts and lists. Standard library only, no I/O, CPython and Pyodide alike.
+"""
+
+from __future__ import annotations
+
+import json
+from array import array
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, replace
+
+from . import _kernel
+from .bundle import PLY_MAX_RESOLUTION, plan_level, plan_levels, write_level_ply
+from .errors import PatchFormatError
+from .format import read_detail_tile, read_patch
+from .layers import DetailTile, TextureImage, tessellate_region, tile_rect, transform_mesh
+from .ply import write_ply
+from .skirts import hang_skirts
+from .surface import NurbsSurface
+from .tessellate import Mesh, tessellate_grid
+
+
+@dataclass(frozen=True)
+class PlyFile:
+    """A PLY the session wrote.
+
+    Attributes
+    ----------
+    data : bytes
+        The file.
+    vertex_count, triangle_count : int
+        Of the mesh written.
+    resolution : int
+        Vertices per side of its grid.
+    level : int
+        Detail level, ``-1`` for the base.
+    """
+
+    data: bytes
+    vertex_count: int
+    triangle_count: int
+    resolution: int
+    level: int
+
+
+class WorkerSession:
+    """The state of one viewer's mesh worker, and a method for each of its requests.
+
+    Call :meth:`load_patch` first; :meth:`read_manifest` before the level
+    methods (:meth:`level_choices`, :meth:`level_ply`).
+
+    Parameters
+    ----------
+    kernel : str, optional
+        ``'python'`` or ``'numpy'`` for every mesh; default the selected kernel
+        (:mod:`client_py._kernel`; ``'python'`` in Pyodide without numpy).
+    """
+
+    def __init__(self, kernel: str | None = None) -> None:
+        _kernel.backend(kernel)  # a bad name raises here, not at the first request
+        self._kernel = kernel
+        self._patch: NurbsSurface | None = None  # own frame: detail displaces along *its* normal
+        self._scan: NurbsSurface | None = None  # the patch in the scan frame
+        self._source = ""
+        self._tiles: dict[str, DetailTile] = {}  # bundle file name -> tile handed over
+        self._manifest: dict | None = None
+        self._last: tuple[int, Mesh] | None = None  # (resolution, base mesh) last tessellated
+
+    @property
+    def kernel(self) -> str:
+        """The grid kernel in use: ``'numpy'`` or ``'python'`` (Pyodide without numpy)."""
+        return self._kernel or _kernel.KERNEL_NAME
+
+    def _loaded(self) -> NurbsSurface:
+        if self._patch is None:
+            raise RuntimeError("no patch is loaded: call load_patch first")
+        return self._patch
+
+    def load_patch(self, data: bytes, source: str) -> dict:
+        """Decode a ``.tsp`` patch and start afresh with it (tiles and last mesh forgotten).
+
+        Parameters
+        ----------
+        data : bytes-like
+            The patch file.
+        source : str
+            Its name, written into the PLY headers (``comment source ...``).
+
+        Returns
+        -------
+        dict
+            ``degree [p, q]``, ``shape [n_u, n_v]``, ``rational``, ``domain
+            [u0, u1, v0, v1]``, ``trimmed``, ``units`` and ``bbox [[x, y, z]
+            lo, hi]`` (scan frame): what the page shows and frames the view by.
+
+        Raises
+        ------
+        PatchFormatError
+            Not a valid patch.
+        """
+        patch = read_patch(bytes(data))
+        scan = patch.to_scan_frame()
+        (u0, u1), (v0, v1) = patch.domain
+        lo, hi = scan.bounding_box()
+        self._patch, self._scan, self._source = patch, scan, str(source)
+        self._tiles.clear()
+        self._last = None
+        return {"degree": list(patch.degree), "shape": list(patch.shape),
+                "rational": patch.is_rational, "domain": [u0, u1, v0, v1],
+                "trimmed": patch.trim is not None,
+                "units": patch.metadata.get("units", "unknown"),
+                "bbox": [list(lo), list(hi)]}
+
+    def tessellate_base(self, resolution: int) -> Mesh:
+        """The base patch on a ``resolution x resolution`` grid, scan frame (kept as the
+        last mesh, which :meth:`base_ply` reuses)."""
+        self._loaded()
+        mesh = tessellate_grid(self._scan, resolution, resolution, kernel=self._kernel)
+        self._last = (resolution, mesh)
+        return mesh
+
+    def base_ply(self, resolution: int, colors: bytes | None = None) -> PlyFile:
+        """PLY of the base on a ``resolution x resolution`` grid (the last mesh when it has
+        that grid), with ``colors`` (bytes-like, RGB per vertex) when given."""
+        self._loaded()
+        if self._last is not None and self._last[0] == resolution:
+            mesh = self._last[1]
+        else:
+            mesh = tessellate_grid(self._scan, resolution, resolution, kernel=self._kernel)
+        if colors is not None:
+            rgb = array("B", bytes(colors))
+            if len(rgb) != 3 * mesh.vertex_count:
+                raise ValueError(f"colors has {len(rgb)} bytes; the {resolution}x{resolution} "
+                                 f"grid's {mesh.vertex_count} vertices need "
+                                 f"{3 * mesh.vertex_count}")
+            mesh = replace(mesh, colors=rgb)
+        comments = [f"source {self._source}",
+                    f"units {self._scan.metadata.get('units', 'unknown')}",
+                    f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
+        data = write_ply(mesh, binary=True, comments=comments)
+        return PlyFile(data, mesh.vertex_count, mesh.triangle_count, resolution, -1)
+
+    def add_tile(self, name: str, data: bytes) -> list[int]:
+        """Decode and keep the detail tile ``name`` (a bundle file name): ``[level, i, j]``."""
+        tile = _decode_tile(name, data)
+        self._tiles[str(name)] = tile
+        return [tile.level, tile.i, tile.j]
+
+    def drop_tiles(self, names: Iterable[str]) -> None:
+        """Forget tiles handed over (names not held are ignored: already dropped)."""
+        for name in names:
+            self._tiles.pop(name, None)
+
+    def holds(self, name: str) -> bool:
+        """Whether the detail tile ``name`` has been handed over and not dropped."""
+        return name in self._tiles
+
+    def region_mesh(self, level: int, i: int, j: int, grid: int, names: Iterable[str],
+                    skirt_depth: float) -> Mesh:
+        """Quadtree node ``(level, i, j)`` on a ``grid x grid`` mesh with the named tiles,
+        skirts on its inner borders (:func:`client_py.skirts.hang_skirts`), scan frame.
+
+        Raises
+        ------
+        ValueError
+            A name not handed over, or a tile that does not cover the node.
+        """
+        patch = self._loaded()
+        tiles = []
+        for name in names:
+            if name not in self._tiles:
+                raise ValueError(f"detail tile {name} was not handed over (add_tile)")
+            tile = self._tiles[name]
+            if tile.level > level or tile.i != i >> (level - tile.level) \
+                    or tile.j != j >> (level - tile.level):
+                raise ValueError(f"tile {tile.level}/{tile.i}_{tile.j} does not cover region "
+                                 f"{level}/{i}_{j}")
+            tiles.append(tile)
+        rect = tile_rect(level, i, j)
+        mesh = tessellate_region(patch, rect, grid, grid, tiles, self._kernel)
+        mesh = hang_skirts(mesh, patch, rect, grid, tiles, skirt_depth, self._kernel)
+        matrix = patch.metadata.get("transform")
+        return mesh if matrix is None else transform_mesh(mesh, matrix, self._kernel)
+
+    def read_manifest(self, text: str) -> None:
+        """Keep the bundle's ``manifest.json`` (its text) for the level methods."""
+        try:
+            manifest = json.loads(text)
+        except ValueError as exc:
+            raise ValueError(f"the manifest is not valid JSON: {exc}") from None
+        if not isinstance(manifest, dict):
+            raise ValueError(f"the manifest must be a JSON object, got {type(manifest).__name__}")
+        self._manifest = manifest
+
+    def _manifest_read(self) -> dict:
+        if self._manifest is None:
+            raise RuntimeError("no manifest: call read_manifest first")
+        return self._manifest
+
+    def level_choices(self) -> dict:
+        """The levels offered as a PLY, for the page's level choice.
+
+        Returns
+        -------
+        dict
+            ``levels``: :func:`client_py.bundle.plan_levels` as dicts
+            (:meth:`client_py.bundle.LevelPlan.to_dict`); ``max_resolution``: the
+            grid's cap :data:`client_py.bundle.PLY_MAX_RESOLUTION`;
+            ``spans_per_tile``: the manifest's (``None`` without detail tiles).
+        """
+        manifest = self._manifest_read()
+        detail = (manifest.get("tiles") or {}).get("detail") or {}
+        return {"levels": [plan.to_dict() for plan in plan_levels(manifest)],
+                "max_resolution": PLY_MAX_RESOLUTION,
+                "spans_per_tile": detail.get("spans_per_tile")}
+
+    def level_ply(self, level: int, fresh: Mapping[str, bytes] | None = None,
+                  textures: Iterable[Mapping] = ()) -> PlyFile:
+        """The PLY of the bundle at detail level ``level``, as ``tessera tessellate BUNDLE
+        --level L`` writes it (:func:`client_py.bundle.write_level_ply` on
+        :func:`client_py.bundle.plan_level`'s grid).
+
+        Parameters
+        ----------
+        level : int
+            ``-1`` .. the finest detail level.
+        fresh : mapping of str to bytes-like, optional
+            Tiles of the plan the session does not hold, by file name: decoded
+            for this PLY only (not kept).
+        textures : iterable of mapping
+            The plan's texture tiles, decoded: ``{"level", "i", "j", "width",
+            "height", "rgb"}`` with ``rgb`` the ``3 width height`` bytes, rows
+            top to bottom (:class:`client_py.layers.TextureImage`); each of
+            the plan's nodes once, in any order.
+
+        Raises
+        ------
+        ValueError
+            A tile of the plan neither held nor fresh, a fresh tile or texture
+            the plan does not name, a texture of the plan missing, a bad file.
+        """
+        patch = self._loaded()
+        plan = plan_level(self._manifest_read(), level)
+        fresh = dict(fresh or {})
+        extra = sorted(set(fresh) - set(plan.detail_files))
+        if extra:
+            raise ValueError(f"fresh tiles {', '.join(extra)} are not tiles of level {level} "
+                             f"(levels 0..{level})")
+        tiles = []
+        for name in plan.detail_files:
+            if name in fresh:
+                tiles.append(_decode_tile(name, fresh[name]))
+            elif name in self._tiles:
+                tiles.append(self._tiles[name])
+            else:
+                raise ValueError(f"detail tile {name} was neither handed over nor sent")
+        images = {}
+        for texture in textures:
+            key = (texture["level"], texture["i"], texture["j"])
+            try:
+                images[key] = TextureImage(*key, texture["width"], texture["height"],
+                                           bytes(texture["rgb"]))
+            except ValueError as exc:
+                raise ValueError(f"texture tile {key[0]}/{key[1]}_{key[2]}: {exc}") from None
+        wanted = [(n["level"], n["i"], n["j"]) for n in plan.texture_nodes]
+        if set(images) != set(wanted):
+            missing = ", ".join(f"{k}/{i}_{j}" for k, i, j in sorted(set(wanted) - set(images)))
+            extra = ", ".join(f"{k}/{i}_{j}" for k, i, j in sorted(set(images) - set(wanted)))
+            raise ValueError(f"the texture tiles sent must be those of level {level}'s plan: "
+                             f"missing [{missing}], not in the plan [{extra}]")
+        data, mesh = write_level_ply(patch, tiles, plan.level, plan.resolution, self._source,
+                                     [images[key] for key in wanted], kernel=self._kernel)
+        return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
+
+
+def _decode_tile(name: str, data: bytes) -> DetailTile:
+    """``read_detail_tile`` with the file's name in the message of a bad file."""
+    try:
+        return read_detail_tile(bytes(data))
+    except PatchFormatError as exc:
+        raise PatchFormatError(exc.offset, f"{exc.reason} (detail tile {name})",
+                               exc.section) from None

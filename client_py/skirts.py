@@ -1,0 +1,117 @@
+"""Skirts: walls hung under a detail region's inner borders, so no crack shows beside it.
+
+The viewer draws the refined surface as a patchwork of quadtree regions, each
+tessellated on its own grid with the detail tiles of its own level and the
+coarser ones (:func:`client_py.layers.tessellate_region`). Two neighbours of
+different levels do not meet exactly on their common border: each applies its
+own partial sum of the detail fields there. :func:`hang_skirts` adds, below
+each border of a region that lies inside the domain, a wall deep enough to
+hide the gap from the front.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from collections.abc import Iterable, Sequence
+
+from . import _kernel
+from .layers import DetailTile
+from .surface import NurbsSurface
+from .tessellate import Mesh, _check_count
+
+
+def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: int,
+                tiles: Iterable[DetailTile], depth: float, kernel: str | None = None) -> Mesh:
+    """Hang skirts (in the patch frame) from a region's borders inside the domain.
+
+    Under each border vertex ``S`` (the base at the border's parameter, ``n``
+    its unit normal) a wall runs from the region's own edge ``S + P_k n`` down to
+
+        S + (min_l P_l - depth) n,    P_l = sum_{k' <= l} D_k',   l = -1 .. k,
+
+    the partial sums of the region's tiles by level (``P_-1 = 0``: the base).
+    A coarser neighbour shows some ``P_l`` there (tiles of one level agree on
+    their borders), a finer one lies within about twice the region's remaining
+    error (``depth``) of ``P_k``; whichever edge is higher, its wall hangs past
+    the other, so no crack shows from the front. The walls never rise above the
+    edge they hang from (no fins). Borders on the domain's outer edge get none
+    (nothing to meet there), nor do segments whose inward grid cell the base's
+    trim leaves out.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        The region's mesh from ``tessellate_region(surface, uv_rect, n, n,
+        tiles)``, patch frame: ``n * n`` grid vertices, vertex ``k = a n + b``
+        at ``(u_a, v_b)``. Extended in place.
+    surface : NurbsSurface
+        The base patch, in its own frame.
+    uv_rect : (u0, v0, u1, v1)
+        The region in the normalised domain ``[0, 1]^2``.
+    n : int
+        Vertices per side of the region's grid.
+    tiles : iterable of DetailTile
+        The tiles applied to the region (each covers it).
+    depth : float
+        How far (patch units, ``>= 0``) below the lowest partial sum the walls reach.
+    kernel : str, optional
+        ``'python'`` or ``'numpy'``; default the selected kernel.
+
+    Returns
+    -------
+    Mesh
+        ``mesh`` with ``2 n`` vertices per skirted side appended (the wall's
+        bottom, then its top, for each border vertex; normals, uvs and colours
+        copied from the border vertex) and two triangles per kept segment.
+    """
+    u0, v0, u1, v1 = (float(x) for x in uv_rect)
+    n = _check_count("n", n)
+    depth = float(depth)
+    if not math.isfinite(depth) or depth < 0.0:
+        raise ValueError(f"depth must be a finite length >= 0, got {depth!r}")
+    if mesh.vertex_count != n * n:
+        raise ValueError(f"mesh has {mesh.vertex_count} vertices; an {n}x{n} grid has {n * n}")
+    us = [u0 + (u1 - u0) * a / (n - 1) for a in range(n)]
+    vs = [v0 + (v1 - v0) * b / (n - 1) for b in range(n)]
+    (a0, a1), (b0, b1) = surface.domain
+    backend = _kernel.backend(kernel)
+    tiles = sorted(tiles, key=lambda t: t.level)
+    trim = surface.trim
+    half_u, half_v = 0.5 * (u1 - u0) / (n - 1), 0.5 * (v1 - v0) / (n - 1)
+    # (side's u list, v list, grid index of its s-th vertex, inward cell centre of segment s)
+    sides = []
+    if u0 > 0.0:
+        sides.append(([u0], vs, lambda s: s, lambda s: (u0 + half_u, vs[s] + half_v)))
+    if u1 < 1.0:
+        sides.append(([u1], vs, lambda s: (n - 1) * n + s, lambda s: (u1 - half_u, vs[s] + half_v)))
+    if v0 > 0.0:
+        sides.append((us, [v0], lambda s: s * n, lambda s: (us[s] + half_u, v0 + half_v)))
+    if v1 < 1.0:
+        sides.append((us, [v1], lambda s: s * n + n - 1, lambda s: (us[s] + half_u, v1 - half_v)))
+    pos, nrm, uv, idx = mesh.positions, mesh.normals, mesh.uvs, mesh.indices
+    for su, sv, vertex, inward in sides:
+        points, normals, _ = backend.evaluate_grid(
+            surface, [a0 + (a1 - a0) * u for u in su], [b0 + (b1 - b0) * v for v in sv], "d")
+        fields = [t.evaluate_grid(su, sv, kernel) for t in tiles]
+        first = len(pos) // 3
+        for s in range(n):
+            partial = lowest = 0.0
+            for f in fields:
+                partial += f[s]
+                lowest = min(lowest, partial)
+            lo, hi = lowest - depth, partial
+            p, q = points[3 * s : 3 * s + 3], normals[3 * s : 3 * s + 3]
+            pos.extend(array("f", (p[0] + lo * q[0], p[1] + lo * q[1], p[2] + lo * q[2],
+                                   p[0] + hi * q[0], p[1] + hi * q[1], p[2] + hi * q[2])))
+            k = vertex(s)
+            nrm.extend(nrm[3 * k : 3 * k + 3] * 2)
+            uv.extend(uv[2 * k : 2 * k + 2] * 2)
+            if mesh.colors is not None:
+                mesh.colors.extend(mesh.colors[3 * k : 3 * k + 3] * 2)
+        for s in range(n - 1):
+            if trim is not None and not trim.covers(*inward(s)):
+                continue
+            a, b = first + 2 * s, first + 2 * s + 2
+            idx.extend(array("I", (a, b, b + 1, a, b + 1, a + 1)))
+    return mesh

@@ -1,0 +1,429 @@
+"""client_py.session (the browser worker's Python) and the one rule for a level-L PLY
+(client_py.bundle.plan_level, write_level_ply), in CPython: the plan against the manifest and
+the files on disk, the skirts against a per-vertex numpy reference, the region mesh against
+tessellate_region + hang_skirts, and the session's level PLY against ``tessera tessellate
+BUNDLE --level L``, byte for byte."""
+
+from __future__ import annotations
+
+import json
+import random
+import re
+
+import numpy as np
+import pytest
+from conftest import PROJECT_ROOT
+from nurbs_cases import random_surface
+from PIL import Image
+
+from client_py import (
+    DetailTile,
+    NurbsSurface,
+    PatchFormatError,
+    TrimMask,
+    hang_skirts,
+    plan_level,
+    plan_levels,
+    read_patch,
+    tessellate_bundle,
+    tessellate_region,
+    write_detail_tile,
+    write_patch,
+)
+from client_py.bundle import PLY_MAX_RESOLUTION, level_resolution, texture_nodes
+from client_py.layers import tile_rect, transform_mesh
+from client_py.session import WorkerSession
+from fitter.cli import main
+
+DEGREE, SPANS, LEVELS = 2, 4, 3
+ABSENT_DETAIL = {(2, 0, 3), (2, 3, 0), (2, 3, 3)}  # level-2 tiles the bundle leaves out
+ABSENT_TEXTURE = (1, 1, 1)  # the level-1 texture tile left out (level 0 stands in)
+TEXTURE_SIZE = 8
+# patch frame -> scan frame: a rotation about z, a scale and a shift
+TRANSFORM = [[0.0, -2.0, 0.0, 250.0], [2.0, 0.0, 0.0, -40.0], [0.0, 0.0, 2.0, 1200.0],
+             [0.0, 0.0, 0.0, 1.0]]
+
+
+def _base_patch() -> NurbsSurface:
+    """A gently curved rational patch over (0, 2) x (-1, 1), a corner trimmed away (mask
+    rows 3..7 x columns 5..7 of 8 x 8)."""
+    rough = random_surface(np.random.default_rng(3), 2, 2, 6, 5,
+                           domain=((0.0, 2.0), (-1.0, 1.0)))
+    a, b = np.meshgrid(np.linspace(0, 2, 6), np.linspace(-1, 1, 5), indexing="ij")
+    points = np.stack([a, b, 0.1 * np.sin(3 * a) * np.cos(2 * b)], axis=-1)
+    trim = TrimMask([[not (r >= 3 and c >= 5) for c in range(8)] for r in range(8)])
+    return NurbsSurface((2, 2), rough.knots, points.tolist(), rough.weights, trim=trim,
+                        metadata={"units": "mm", "transform": TRANSFORM})
+
+
+def _detail_tile(rng: np.random.Generator, level: int, i: int, j: int) -> DetailTile:
+    values = rng.integers(-40, 41, (SPANS + DEGREE) ** 2)
+    return DetailTile(level, i, j, DEGREE, SPANS, 2.0**-9, tuple(int(x) for x in values))
+
+
+def _texture_rgb(level: int, i: int, j: int) -> np.ndarray:
+    """A gradient per tile (red along x, green along y), blue naming the tile."""
+    ramp = np.linspace(0, 255, TEXTURE_SIZE).round().astype(np.uint8)
+    rgb = np.empty((TEXTURE_SIZE, TEXTURE_SIZE, 3), np.uint8)
+    rgb[..., 0], rgb[..., 1] = ramp[None, :], ramp[:, None]
+    rgb[..., 2] = 30 + 50 * level + 20 * (i + 2 * j)
+    return rgb
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    """A bundle written here (no fit): base, detail levels 0..2 with three level-2 tiles
+    absent, texture levels 0 and 1 with tile 1/1_1 absent; lossless PNG textures."""
+    root = tmp_path_factory.mktemp("session") / "relief-session"
+    root.mkdir()
+    (root / "base.tsp").write_bytes(write_patch(_base_patch()))
+    rng = np.random.default_rng(7)
+    nodes = []
+    for level in range(LEVELS):
+        for i in range(1 << level):
+            for j in range(1 << level):
+                if (level, i, j) in ABSENT_DETAIL:
+                    continue
+                name = f"detail/{level}/{i}_{j}.tsd"
+                (root / name).parent.mkdir(parents=True, exist_ok=True)
+                data = write_detail_tile(_detail_tile(rng, level, i, j))
+                (root / name).write_bytes(data)
+                nodes.append({"level": level, "i": i, "j": j, "uv": list(tile_rect(level, i, j)),
+                              "file": name, "bytes": len(data)})
+    textures = []
+    for level, i, j in [(0, 0, 0), (1, 0, 0), (1, 1, 0), (1, 0, 1)]:
+        name = f"texture/{level}/{i}_{j}.png"
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(_texture_rgb(level, i, j)).save(root / name)
+        textures.append({"level": level, "i": i, "j": j, "file": name,
+                         "bytes": (root / name).stat().st_size})
+    manifest = {
+        "units": "mm", "base": {"file": "base.tsp"},
+        "tiles": {"version": 1,
+                  "detail": {"format": "tsd", "format_version": 2, "degree": DEGREE,
+                             "spans_per_tile": SPANS, "base": {"rms": 0.5, "max": 2.0},
+                             "levels": [{"level": k, "rms": 0.4 / (k + 1)}
+                                        for k in range(LEVELS)],
+                             "nodes": nodes},
+                  "texture": {"format": "png", "size": TEXTURE_SIZE,
+                              "levels": [{"level": 0}, {"level": 1}], "nodes": textures}},
+    }
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    return root
+
+
+def _manifest(bundle) -> dict:
+    return json.loads((bundle / "manifest.json").read_text())
+
+
+def _session(bundle, source=None) -> WorkerSession:
+    session = WorkerSession()
+    session.load_patch((bundle / "base.tsp").read_bytes(), source or bundle.name)
+    session.read_manifest((bundle / "manifest.json").read_text())
+    return session
+
+
+def _texture_dicts(bundle, nodes) -> list[dict]:
+    """The plan's texture tiles decoded by Pillow, as the page sends them (rows top first)."""
+    out = []
+    for node in nodes:
+        with Image.open(bundle / node["file"]) as im:
+            rgb = im.convert("RGB")
+            out.append({"level": node["level"], "i": node["i"], "j": node["j"],
+                        "width": rgb.width, "height": rgb.height,
+                        "rgb": memoryview(rgb.tobytes())})  # Pyodide hands memoryviews
+    return out
+
+
+# --- the plan: one rule for what level L needs ------------------------------------------------
+
+def test_the_plan_names_the_manifest_tiles_and_the_files_on_disk(bundle):
+    manifest = _manifest(bundle)
+    on_disk = sorted(p.relative_to(bundle).as_posix() for p in bundle.glob("detail/*/*.tsd"))
+    for level in range(LEVELS):
+        plan = plan_level(manifest, level)
+        wanted = [f for f in on_disk if int(f.split("/")[1]) <= level]
+        assert sorted(plan.detail_files) == wanted
+        assert plan.detail_bytes == sum((bundle / f).stat().st_size for f in wanted)
+        assert plan.resolution == min(1025, 2 * SPANS * 2**level + 1)
+        assert plan.rms == manifest["tiles"]["detail"]["levels"][level]["rms"]
+    # texture: level 0 alone at level 0; from level 1 on, the three level-1 tiles and, for
+    # the absent one's quadrant, level 0's
+    assert [(n["level"], n["i"], n["j"]) for n in plan_level(manifest, 0).texture_nodes] == \
+        [(0, 0, 0)]
+    fine = plan_level(manifest, 2)
+    assert {(n["level"], n["i"], n["j"]) for n in fine.texture_nodes} == \
+        {(0, 0, 0), (1, 0, 0), (1, 1, 0), (1, 0, 1)}
+    assert fine.texture_bytes == sum((bundle / n["file"]).stat().st_size
+                                     for n in fine.texture_nodes)
+    base = plan_level(manifest, -1)
+    assert base.detail_files == () and base.rms == 0.5
+    assert plan_level(manifest) == fine  # default: the finest
+    assert plan_levels(manifest) == [plan_level(manifest, k) for k in range(LEVELS)]
+    assert plan_levels({"tiles": {"detail": None}}) == []
+
+
+def test_the_grid_is_capped_and_the_session_offers_every_level(bundle):
+    assert level_resolution(16, 4) == 513
+    assert level_resolution(16, 5) == PLY_MAX_RESOLUTION == 1025  # 1025 = 2 16 2^5 + 1
+    assert level_resolution(64, 4) == 1025  # not 2049
+    session = _session(bundle)
+    offered = session.level_choices()
+    assert json.loads(json.dumps(offered)) == offered  # plain values for the page
+    assert offered["max_resolution"] == 1025 and offered["spans_per_tile"] == SPANS
+    choices = offered["levels"]
+    assert choices == [p.to_dict() for p in plan_levels(_manifest(bundle))]
+    assert [c["level"] for c in choices] == list(range(LEVELS))
+    assert choices[1]["texture_nodes"] == [dict(n) for n in texture_nodes(_manifest(bundle), 1)]
+
+
+@pytest.mark.parametrize(("change", "match"), [
+    (lambda m: m, r"level must be an integer in -1\.\.2 .* got 3"),
+    (lambda m: m["tiles"]["detail"].update(spans_per_tile=0),
+     r"spans_per_tile must be a positive integer, got 0"),
+    (lambda m: m["tiles"]["detail"]["nodes"][0].pop("file"), r"tiles\.detail node .* file"),
+    (lambda m: m["tiles"]["texture"]["nodes"][0].update(level=-1),
+     r"tiles\.texture node .* integer level"),
+])
+def test_a_bad_level_or_manifest_is_refused(bundle, change, match):
+    manifest = _manifest(bundle)
+    change(manifest)
+    with pytest.raises(ValueError, match=match):
+        plan_level(manifest, 3 if match.startswith("level") else 1)
+
+
+# --- skirts ----------------------------------------------------------------------------------
+
+def _skirt_reference(surface, tiles, us, vs, depth):
+    """Per border vertex, without the kernels: base point S and unit normal n (scipy-free
+    NurbsSurface.evaluate/normal), and the partial sums P_l from DetailTile.evaluate."""
+    (a0, a1), (b0, b1) = surface.domain
+    out = []
+    for u, v in zip(us, vs, strict=True):
+        s = np.array(surface.evaluate(a0 + (a1 - a0) * u, b0 + (b1 - b0) * v))
+        n = np.array(surface.normal(a0 + (a1 - a0) * u, b0 + (b1 - b0) * v))
+        partial = np.cumsum([t.evaluate(u, v) for t in sorted(tiles, key=lambda t: t.level)])
+        top = partial[-1] if len(partial) else 0.0
+        bottom = min(0.0, partial.min() if len(partial) else 0.0) - depth
+        out.append((s, n, top, bottom))
+    return out
+
+
+def _region_tiles(level, i, j, seed=1):
+    rng = np.random.default_rng(seed)
+    return [_detail_tile(rng, k, i >> (level - k), j >> (level - k)) for k in range(level + 1)]
+
+
+@pytest.mark.parametrize(("node", "sides"), [((2, 1, 2), "u0 u1 v0 v1"), ((1, 0, 0), "u1 v1"),
+                                             ((2, 3, 1), "u0 v0 v1"), ((0, 0, 0), "")])
+def test_skirts_hang_from_inner_borders_and_never_rise_above_them(node, sides):
+    surface, n, depth = _base_patch(), 9, 0.05
+    surface = NurbsSurface(surface.degree, surface.knots, surface.control_points,
+                           surface.weights)  # no trim here: every segment has its wall
+    tiles = _region_tiles(*node)
+    rect = tile_rect(*node)
+    plain = tessellate_region(surface, rect, n, n, tiles)
+    count, triangles = plain.vertex_count, plain.triangle_count
+    mesh = hang_skirts(tessellate_region(surface, rect, n, n, tiles), surface, rect, n, tiles,
+                       depth)
+    sides = sides.split()
+    assert mesh.vertex_count == count + 2 * n * len(sides)
+    assert mesh.triangle_count == triangles + 2 * (n - 1) * len(sides)
+    assert mesh.positions[: 3 * count] == plain.positions  # the grid unchanged
+    walls = np.array(mesh.positions[3 * count :]).reshape(-1, 2, 3)  # (bottom, top) pairs
+    uvs = np.array(mesh.uvs[2 * count :]).reshape(-1, 2, 2)[:, 0]
+    # one run of n border vertices per side, each on its border line, none on the domain's edge
+    u0, v0, u1, v1 = rect
+    lines = {"u0": (0, u0), "u1": (0, u1), "v0": (1, v0), "v1": (1, v1)}
+    found = []
+    for run in uvs.reshape(-1, n, 2):
+        on = [name for name, (axis, at) in lines.items() if np.all(run[:, axis] == at)]
+        assert len(on) == 1, run
+        found += on
+    assert sorted(found) == sorted(sides)
+    assert all(lines[name][1] not in (0.0, 1.0) for name in found)
+    grid = np.array(plain.positions).reshape(-1, 3)
+    reference = _skirt_reference(surface, tiles, uvs[:, 0], uvs[:, 1], depth)
+    for (bottom, top), (s, nrm, p_top, p_bottom) in zip(walls, reference, strict=True):
+        # the top is the region's own edge S + P_k n, the bottom S + (min_l P_l - depth) n
+        scale = 4 * np.finfo(np.float32).eps * max(1.0, np.abs(s).max())
+        assert np.abs(top - (s + p_top * nrm)).max() <= scale
+        assert np.abs(bottom - (s + p_bottom * nrm)).max() <= scale
+        # never above the edge: along n the wall runs down from its top by at least depth
+        assert np.dot(top - bottom, nrm) >= depth - scale
+        assert np.min(np.abs(grid - top).max(axis=1)) <= scale  # the top is a grid vertex
+
+
+def test_no_skirt_on_the_domain_edge_and_none_over_trimmed_cells():
+    surface, n, depth = _base_patch(), 9, 0.05  # trim: rows 3..7 x columns 5..7 cut away
+    trim = np.array([[surface.trim.covers((r + 0.5) / 8, (c + 0.5) / 8) for c in range(8)]
+                     for r in range(8)])
+    node = (1, 1, 1)  # borders u0 = 0.5 and v0 = 0.5 are inner; u1 = v1 = 1 the domain's
+    tiles = _region_tiles(*node)
+    rect = tile_rect(*node)
+    plain = tessellate_region(surface, rect, n, n, tiles)
+    mesh = hang_skirts(tessellate_region(surface, rect, n, n, tiles), surface, rect, n, tiles,
+                       depth)
+    count = plain.vertex_count
+    uvs = np.array(mesh.uvs[2 * count :]).reshape(-1, 2)
+    assert len(uvs) == 2 * 2 * n  # two sides, bottom and top per border vertex
+    assert np.all((uvs[:, 0] == 0.5) | (uvs[:, 1] == 0.5))
+    # walls only where the inward cell is drawn: cell centres beside u0 = 0.5 and v0 = 0.5
+    h = 0.5 * 0.5 / (n - 1)
+    steps = 0.5 + 0.5 * np.arange(n - 1) / (n - 1)
+    kept = sum(bool(trim[int((0.5 + h) * 8), int((t + h) * 8)]) for t in steps) + \
+        sum(bool(trim[int((t + h) * 8), int((0.5 + h) * 8)]) for t in steps)
+    assert kept < 2 * (n - 1)  # the trim does take some away
+    assert mesh.triangle_count - plain.triangle_count == 2 * kept
+    new = np.array(mesh.indices[3 * plain.triangle_count :])
+    assert new.min() >= count  # the walls' triangles use the walls' vertices
+
+
+def test_skirt_arguments_are_checked():
+    surface = _base_patch()
+    mesh = tessellate_region(surface, (0, 0, 0.5, 0.5), 5, 5)
+    with pytest.raises(ValueError, match=r"depth must be a finite length >= 0, got -1\.0"):
+        hang_skirts(mesh, surface, (0, 0, 0.5, 0.5), 5, [], -1.0)
+    with pytest.raises(ValueError, match=r"mesh has 25 vertices; an 6x6 grid has 36"):
+        hang_skirts(mesh, surface, (0, 0, 0.5, 0.5), 6, [], 0.1)
+
+
+# --- the session -----------------------------------------------------------------------------
+
+def test_load_patch_gives_the_page_its_facts(bundle):
+    session = WorkerSession()
+    info = session.load_patch(memoryview((bundle / "base.tsp").read_bytes()), "base.tsp")
+    patch = read_patch((bundle / "base.tsp").read_bytes())
+    assert info["degree"] == [2, 2] and info["shape"] == [6, 5] and info["rational"] is True
+    assert info["domain"] == [0.0, 2.0, -1.0, 1.0] and info["trimmed"] is True
+    assert info["units"] == "mm"
+    lo, hi = patch.to_scan_frame().bounding_box()
+    assert info["bbox"] == [list(lo), list(hi)]
+    with pytest.raises(PatchFormatError, match="magic"):
+        session.load_patch(b"not a patch at all, not at all", "x.tsp")
+    with pytest.raises(RuntimeError, match="no patch is loaded"):
+        WorkerSession().tessellate_base(8)
+    with pytest.raises(ValueError, match="kernel must be 'python' or 'numpy'"):
+        WorkerSession("fortran")
+
+
+def test_region_mesh_is_tessellate_region_plus_skirts_in_the_scan_frame(bundle):
+    session = _session(bundle)
+    manifest = _manifest(bundle)
+    names = [n["file"] for n in manifest["tiles"]["detail"]["nodes"]
+             if (n["level"], n["i"], n["j"]) in {(0, 0, 0), (1, 0, 1), (2, 1, 2)}]
+    for name in names:
+        node = next(n for n in manifest["tiles"]["detail"]["nodes"] if n["file"] == name)
+        assert session.add_tile(name, (bundle / name).read_bytes()) == \
+            [node["level"], node["i"], node["j"]]
+    mesh = session.region_mesh(2, 1, 2, 9, names, 0.05)
+    patch = read_patch((bundle / "base.tsp").read_bytes())
+    tiles = [session._tiles[name] for name in names]
+    rect = tile_rect(2, 1, 2)
+    expected = transform_mesh(hang_skirts(tessellate_region(patch, rect, 9, 9, tiles), patch,
+                                          rect, 9, tiles, 0.05), TRANSFORM)
+    for field in ("positions", "normals", "uvs", "indices"):
+        assert getattr(mesh, field) == getattr(expected, field), field
+    grid = transform_mesh(tessellate_region(patch, rect, 9, 9, tiles), TRANSFORM)
+    assert mesh.positions[: 3 * 81] == grid.positions
+    # a tile that does not cover the region, a name never handed over
+    with pytest.raises(ValueError, match=r"tile 1/0_1 does not cover region 2/3_0"):
+        session.region_mesh(2, 3, 0, 9, names[:2], 0.05)
+    session.drop_tiles([names[0], "never/held.tsd"])
+    assert not session.holds(names[0]) and session.holds(names[1])
+    with pytest.raises(ValueError, match=rf"detail tile {names[0]} was not handed over"):
+        session.region_mesh(2, 1, 2, 9, names, 0.05)
+
+
+def test_base_ply_reuses_the_mesh_on_screen_and_checks_colours(bundle):
+    session = _session(bundle, "base.tsp")
+    mesh = session.tessellate_base(12)
+    rgb = bytes(range(256)) * 2
+    ply = session.base_ply(12, memoryview(rgb[: 3 * 144]))
+    assert (ply.vertex_count, ply.triangle_count, ply.level) == (144, mesh.triangle_count, -1)
+    assert b"comment source base.tsp\ncomment units mm\n" in ply.data
+    assert b"property uchar red" in ply.data
+    assert session.base_ply(12).data != ply.data
+    with pytest.raises(ValueError, match=r"colors has 6 bytes; the 12x12 grid's 144 vertices"):
+        session.base_ply(12, b"\x00" * 6)
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_level_ply_is_byte_identical_to_tessera_tessellate(bundle, tmp_path, level, capsys):
+    """The session (some tiles held, the rest fresh, textures in a shuffled order) writes the
+    very bytes `tessera tessellate BUNDLE --level L` writes."""
+    out = tmp_path / "cli.ply"
+    assert main(["tessellate", str(bundle), "--level", str(level), "-o", str(out)]) == 0
+    plan = plan_level(_manifest(bundle), level)
+    assert f"level {level}, {plan.resolution**2} vertices" in capsys.readouterr().out
+
+    session = _session(bundle)
+    held = plan.detail_files[::2]
+    for name in held:
+        session.add_tile(name, (bundle / name).read_bytes())
+    fresh = {name: memoryview((bundle / name).read_bytes())
+             for name in plan.detail_files if name not in held}
+    textures = _texture_dicts(bundle, plan.texture_nodes)
+    random.Random(level).shuffle(textures)
+    ply = session.level_ply(level, fresh, textures)
+    assert ply.data == out.read_bytes()
+    assert (ply.level, ply.resolution, ply.vertex_count) == (level, plan.resolution,
+                                                              plan.resolution**2)
+    for name in fresh:
+        assert not session.holds(name)  # decoded for this PLY only
+
+    header = ply.data[: ply.data.index(b"end_header")].decode()
+    count = len(plan.detail_files)
+    assert f"comment source {bundle.name}\ncomment units mm\n" in header
+    assert f"comment detail level {level}: base patch + {count} detail tiles of levels " \
+           f"0..{level}\n" in header
+    assert f"on a {plan.resolution}x{plan.resolution} grid" in header
+    levels = ", ".join(str(k) for k in sorted({n["level"] for n in plan.texture_nodes}))
+    assert f"comment vertex colours sampled from {len(plan.texture_nodes)} texture tiles of " \
+           f"levels {levels}\n" in header
+    # the vertices are the bundle at that level (tessellate_bundle), the colours its sampling
+    body = np.frombuffer(ply.data[len(header) + len("end_header\n"):][: 27 * ply.vertex_count],
+                         np.dtype([("p", "<f4", 3), ("n", "<f4", 3), ("c", "u1", 3)]))
+    reference = tessellate_bundle(_manifest(bundle), lambda name: (bundle / name).read_bytes(),
+                                  level, plan.resolution)
+    assert np.array_equal(body["p"].ravel(), np.frombuffer(reference.positions, np.float32))
+    # a vertex inside tile 1/0_0 (level >= 1) or the level-0 tile carries its tile's blue
+    assert body["c"][0, 2] == (80 if level >= 1 else 30)
+
+
+def test_level_ply_needs_every_tile_and_texture_of_its_plan(bundle):
+    session = _session(bundle)
+    plan = plan_level(_manifest(bundle), 1)
+    textures = _texture_dicts(bundle, plan.texture_nodes)
+    fresh = {name: (bundle / name).read_bytes() for name in plan.detail_files}
+    lost = plan.detail_files[-1]
+    with pytest.raises(ValueError, match=rf"detail tile {lost} was neither handed over nor sent"):
+        session.level_ply(1, {k: v for k, v in fresh.items() if k != lost}, textures)
+    extra = plan_level(_manifest(bundle), 2).detail_files[-1]
+    with pytest.raises(ValueError, match=rf"fresh tiles {extra} are not tiles of level 1"):
+        session.level_ply(1, {**fresh, extra: (bundle / extra).read_bytes()}, textures)
+    with pytest.raises(ValueError, match=r"missing \[1/0_1\], not in the plan \[\]"):
+        session.level_ply(1, fresh, [t for t in textures if (t["i"], t["j"]) != (0, 1)
+                                     or t["level"] != 1])
+    with pytest.raises(PatchFormatError, match=rf"CRC32 mismatch.* \(detail tile {lost}\)"):
+        broken = bytearray(fresh[lost])
+        broken[20] ^= 0xFF
+        session.level_ply(1, {**fresh, lost: bytes(broken)}, textures)
+    with pytest.raises(ValueError, match=r"level must be an integer in -1\.\.2"):
+        session.level_ply(5, fresh, textures)
+    with pytest.raises(RuntimeError, match="no manifest"):
+        fresh_session = WorkerSession()
+        fresh_session.load_patch((bundle / "base.tsp").read_bytes(), "base.tsp")
+        fresh_session.level_choices()
+
+
+def test_the_worker_javascript_holds_no_python():
+    """The browser's Python is client_py.session: no Python source in web/src/*.js strings."""
+    python = re.compile(r"^\s*(def |from client_py|import client_py)")
+    found = [f"{path.name}:{k}: {line.strip()}"
+             for path in sorted((PROJECT_ROOT / "web" / "src").glob("*.js"))
+             for k, line in enumerate(path.read_text().splitlines(), 1) if python.match(line)]
+    assert found == []
+    worker = (PROJECT_ROOT / "web" / "src" / "mesh-worker.js").read_text()
+    assert 'pyodide.pyimport("client_py.session")' in worker
+    assert "runPython" not in worker
