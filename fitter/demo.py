@@ -14,16 +14,18 @@ from pathlib import Path
 
 import numpy as np
 
+from client_py.ply import write_points_ply
+
 from .fitting.examples import relief_scan
 
 
 def write_scan_ply(path: Path, points: np.ndarray) -> None:
-    """A binary point-cloud PLY with a units comment, as scanner software writes."""
-    header = ("ply\nformat binary_little_endian 1.0\ncomment units mm\n"
-              "comment generated example relief (synthetic, not a real scan)\n"
-              f"element vertex {len(points)}\n"
-              "property float x\nproperty float y\nproperty float z\nend_header\n")
-    path.write_bytes(header.encode("ascii") + points.astype("<f4").tobytes())
+    """A binary point-cloud PLY of ``points (N, 3)`` (float32 ``x y z``) with a units
+    comment, as scanner software writes (by :func:`client_py.ply.write_points_ply`)."""
+    data = write_points_ply(np.ascontiguousarray(points, dtype=np.float32),
+                            comments=["units mm",
+                                      "generated example relief (synthetic, not a real scan)"])
+    Path(path).write_bytes(data)
 
 
 def main(argv: list[str] | None = None) -> int:

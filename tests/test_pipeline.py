@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -195,3 +197,121 @@ def test_real_scan_fits_better_than_the_papers_linear_fit(shared_data, tmp_path,
     used = np.unique(np.frombuffer(mesh.indices, dtype=np.uint32))
     dist, _ = cKDTree(scan.points).query(vertices[used])
     assert np.median(dist) < 0.01 * ours.manifest["stats"]["bbox_diagonal"]
+
+
+# Digests of fit_scan's output on the example relief, recorded by running the code of commit
+# 87bf666 (before fit_scan was split into named steps and the bundle writer and the PLY
+# writer were made one) on these same inputs: sha256 of base.tsp, of error.ply's body (the
+# vertex records after end_header), of every other file (name -> digest, as sorted JSON) and
+# of the manifest as sorted JSON without "timings" (they vary), "options" (FitOptions'
+# defaults are not this refactor's) and files["error.ply"] (its header gained the writer's
+# "comment written by Tessera client_py" line, 37 bytes).
+REFERENCE_FITS = {
+    "tessera": ("19667b1380e029ba3e0b93d33892cb2c629922ea90fb3a5db378500d55fde4dc",
+                "e50a54301223c6decef19ca2d9a4a15bcd759df8bcba8753fea4770e1030a6f8",
+                "95559514737729d47b308fedbf41fc6fa2bfc8ba3a99f53d126ceb9fe3da6beb",
+                "cc35a58d99ba33e490675a7aa29f63abaeb5477fc3b6fda954ebc7dffdba0c44"),
+    "linear_max_error": ("e3f3f58bf3f84ab740df6fc27372a370adaddd88bda1fc7f26e9398c2f19d151",
+                         "2c3ef34a92fc84c8b76ffe00397ff1f4dcdb0712348d1c7061cdb11fdc553354",
+                         "4bbc7a6e2e362e3e21ae996b9c273acd8b6fc9feb9e0991ad28a5a1eb7fa65a1",
+                         "61bf5f0f0b29fbfe2e4f5e5da9251994f38a04b7f0d0e277b69bbaf444b0c52d"),
+    "colour": ("46a925375b81eddbbcd74c38b8a065b9154f8e6891fb6238dca1996ff2dd2f35",
+               "5a2c0e69d370eb4f639e080430d36f5ff876ee6d224411bba1556aeca7ef277b",
+               "30cd5bffe71cd8b0f207ade8490abd7acaa987d9ecc38b0ba7e60e9af7aff862",
+               "9d86a16d2957da85a9ee6094759987d713edc335df41b5ade49a51e03bc8b523"),
+}
+
+
+def _reference_fit(case: str, out) -> tuple[object, FitOptions]:
+    from fitter.fitting.io.scan import Scan
+
+    points = relief_scan(6000, seed=1)
+    if case == "tessera":
+        options = FitOptions(grid=(12, 12))
+    elif case == "linear_max_error":
+        options = FitOptions(grid=(8, 8), method="linear", max_error=0.05, max_grid=16)
+    else:
+        options = FitOptions(grid=(10, 10), method="paper", title="T")
+        colours = np.random.default_rng(7).integers(0, 256, (len(points), 3)).astype(np.uint8)
+        points = Scan(points=points, colors=colours, units="mm",
+                      source={"name": "relief-colour"})
+    return fit_scan(points, out, options), options
+
+
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+@pytest.mark.parametrize("case", sorted(REFERENCE_FITS))
+def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
+    bundle, options = _reference_fit(case, tmp_path / "b")
+    base, error_body, other_files, manifest_digest = REFERENCE_FITS[case]
+    path = bundle.path
+    assert _sha((path / "base.tsp").read_bytes()) == base
+    ply = (path / "error.ply").read_bytes()
+    assert _sha(ply[ply.index(b"end_header\n") + len(b"end_header\n"):]) == error_body
+    files = {str(p.relative_to(path)): _sha(p.read_bytes()) for p in sorted(path.rglob("*"))
+             if p.is_file() and p.name not in ("manifest.json", "error.ply")}
+    assert _sha(json.dumps(files, sort_keys=True).encode()) == other_files
+    on_disk = json.loads((path / "manifest.json").read_text())
+    assert on_disk == json.loads(json.dumps(bundle.manifest))
+    manifest = dict(on_disk)
+    assert manifest.pop("options") == {k: (list(x) if isinstance(x, tuple) else x)
+                                       for k, x in asdict(options).items()}
+    timings = manifest.pop("timings")
+    assert set(timings) <= {"load", "project", "features", "sections", "linear", "refine",
+                            "encode", "error", "detail", "texture", "report"}
+    manifest["files"] = {k: v for k, v in manifest["files"].items() if k != "error.ply"}
+    assert _sha(json.dumps(manifest, sort_keys=True).encode()) == manifest_digest
+    assert on_disk["files"]["error.ply"] == len(ply)
+
+
+def test_a_failed_fit_leaves_the_old_bundle_and_nothing_half_written(tmp_path, monkeypatch):
+    from fitter.fitting import pipeline
+
+    points = relief_scan(3000, seed=3)
+    options = FitOptions(grid=(8, 8), method="linear")
+    old = fit_scan(points, tmp_path / "b", options)
+    old_files = {p.name: p.read_bytes() for p in old.path.iterdir() if p.is_file()}
+
+    def broken_png(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pipeline, "write_error_png", broken_png)
+    with pytest.raises(OSError, match="No space left"):
+        fit_scan(relief_scan(3000, seed=4), tmp_path / "b", options)
+    assert {p.name: p.read_bytes() for p in old.path.iterdir() if p.is_file()} == old_files
+    assert [p.name for p in tmp_path.iterdir()] == ["b"]  # no temporary folder left
+
+
+def test_a_refit_replaces_the_bundle_whole(tmp_path):
+    options = FitOptions(grid=(8, 8), method="linear")
+    fit_scan(relief_scan(3000, seed=3), tmp_path / "b", options)
+    (tmp_path / "b" / "stale.txt").write_text("from the old bundle")
+    new = fit_scan(relief_scan(3000, seed=4), tmp_path / "b", options)
+    assert not (tmp_path / "b" / "stale.txt").exists()
+    assert json.loads((tmp_path / "b" / "manifest.json").read_text())["stats"] == \
+        new.manifest["stats"]
+    assert [p.name for p in tmp_path.iterdir()] == ["b"]
+
+
+def test_the_demo_scan_reads_back_the_same_through_trimesh_and_our_reader(tmp_path):
+    points = relief_scan(2000, seed=8)
+    write_scan_ply(tmp_path / "s.ply", points)
+    cloud = trimesh.load(tmp_path / "s.ply", process=False)
+    np.testing.assert_array_equal(np.asarray(cloud.vertices), points.astype(np.float32))
+    scan = load_scan(tmp_path / "s.ply")
+    assert scan.units == "mm" and scan.faces is None
+    np.testing.assert_array_equal(scan.points, points.astype(np.float32))
+
+
+def test_docs_list_every_manifest_key(tmp_path):
+    from conftest import PROJECT_ROOT
+
+    text = (PROJECT_ROOT / "docs" / "format.md").read_text()
+    section = text[text.index("# Bundle manifest `manifest.json`"):]
+    manifest = fit_scan(relief_scan(3000), tmp_path / "b",
+                        FitOptions(grid=(8, 8), method="linear")).manifest
+    for key in manifest:
+        assert re.search(rf"(^\* |; )`{key}`", section, re.M), key
+    assert set(re.findall(r"^\* `(\w+)`", section, re.M)) <= set(manifest)

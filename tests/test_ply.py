@@ -14,6 +14,7 @@ from conftest import PROJECT_ROOT
 from nurbs_cases import random_surface
 
 from client_py import Mesh, NurbsSurface, TrimMask, tessellate_grid, write_ply
+from client_py.ply import write_points_ply
 
 PLY_JS = PROJECT_ROOT.parent / "shared" / "vendor" / "3dhop-4.3" / "js" / "ply.js"
 
@@ -181,3 +182,109 @@ def test_texture_file_must_be_one_word(name):
 def test_not_a_mesh():
     with pytest.raises(ValueError, match="mesh must be a Mesh, got str"):
         write_ply("mesh")
+
+
+# ----------------------------------------------------------------- point clouds, extra properties
+def sample_cloud(n: int = 500):
+    rng = np.random.default_rng(9)
+    positions = rng.normal(size=(n, 3)).astype(np.float32) * 100
+    colors = rng.integers(0, 256, (n, 3)).astype(np.uint8)
+    quality = rng.normal(size=n).astype(np.float32)
+    return positions, colors, quality
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_point_cloud_round_trip_through_trimesh(binary):
+    positions, colors, quality = sample_cloud()
+    data = write_points_ply(positions, colors, {"quality": quality}, binary=binary,
+                            comments=["units mm"])
+    header, _ = split_header(data)
+    fmt = "binary_little_endian" if binary else "ascii"
+    assert header == ["ply", f"format {fmt} 1.0", "comment written by Tessera client_py",
+                      "comment units mm", "element vertex 500", "property float x",
+                      "property float y", "property float z", "property uchar red",
+                      "property uchar green", "property uchar blue", "property float quality",
+                      "end_header"]
+    cloud = trimesh.load(io.BytesIO(data), file_type="ply", process=False)
+    assert np.array_equal(cloud.vertices, positions)
+    raw = cloud.metadata["_ply_raw"]["vertex"]["data"]
+    assert np.array_equal(np.column_stack([raw["red"], raw["green"], raw["blue"]]), colors)
+    assert np.array_equal(np.ravel(raw["quality"]), quality)  # trimesh's ASCII reader: (n, 1)
+
+
+def test_point_cloud_binary_layout_and_every_input_type_give_the_same_bytes():
+    positions, colors, quality = sample_cloud()
+    data = write_points_ply(positions, colors, {"quality": quality})
+    _, body = split_header(data)
+    record = np.dtype([("p", "<f4", 3), ("c", "u1", 3), ("q", "<f4")])
+    expected = np.empty(len(positions), record)
+    expected["p"], expected["c"], expected["q"] = positions, colors, quality
+    assert body == expected.tobytes()
+    same = [
+        write_points_ply(array("f", positions.ravel().tolist()), array("B", colors.ravel()),
+                         {"quality": array("f", quality.tolist())}),
+        write_points_ply(positions.astype(np.float64), colors.astype(np.int64),
+                         {"quality": quality.astype(np.float64)}),
+        write_points_ply(np.asfortranarray(positions), colors.tolist() and colors.ravel(),
+                         {"quality": quality.astype(">f4")}),
+        write_points_ply(positions.ravel().tolist(), colors.ravel().tolist(),
+                         {"quality": quality.tolist()}),
+    ]
+    for other in same:
+        assert other == data
+
+
+def test_points_without_colours_and_an_empty_cloud():
+    positions, _, _ = sample_cloud(4)
+    header, body = split_header(write_points_ply(positions))
+    assert header[-4:] == ["property float x", "property float y", "property float z",
+                           "end_header"]
+    assert body == positions.astype("<f4").tobytes()
+    header, body = split_header(write_points_ply(np.zeros((0, 3), np.float32)))
+    assert "element vertex 0" in header and body == b""
+
+
+def test_mesh_extra_properties_follow_the_3dhop_layout():
+    mesh = sample_mesh()
+    quality = np.arange(mesh.vertex_count, dtype=np.float32) / 7
+    data = write_ply(mesh, properties={"quality": quality})
+    header, body = split_header(data)
+    assert header[:-4] == expected_header(mesh, "binary_little_endian", [], uvs=False)[:-3]
+    assert header[-4:] == ["property float quality", f"element face {mesh.triangle_count}",
+                           "property list uchar int vertex_indices", "end_header"]
+    plain_header, plain_body = split_header(write_ply(mesh))
+    n = mesh.vertex_count
+    vertex = np.dtype([("v", "V27"), ("q", "<f4")])  # the 3DHOP record, then quality
+    verts = np.frombuffer(body[: n * vertex.itemsize], vertex)
+    plain = np.frombuffer(plain_body[: n * 27], "V27")
+    assert np.array_equal(verts["v"], plain) and np.array_equal(verts["q"], quality)
+    assert body[n * vertex.itemsize :] == plain_body[n * 27 :]  # the faces unchanged
+    tm = load(data)
+    assert np.array_equal(tm.metadata["_ply_raw"]["vertex"]["data"]["quality"], quality)
+
+
+@pytest.mark.parametrize(
+    ("call", "match"),
+    [
+        (lambda p, c, q: write_points_ply(p.ravel()[:-2]), "positions has 1498 values, "
+                                                           "not a multiple of 3"),
+        (lambda p, c, q: write_points_ply(p, c[:-1]), r"colors has 1497 values; 500 vertices "
+                                                      r"need 1500"),
+        (lambda p, c, q: write_points_ply(p, c.astype(np.int64) + 200), "colors must be "
+                                                                         "0..255 integer"),
+        (lambda p, c, q: write_points_ply(p, c.astype(np.float32)), "colors must be 0..255"),
+        (lambda p, c, q: write_points_ply(p, c, {"quality": q[:-1]}),
+         r"properties\['quality'\] has 499 values; 500 vertices need 500"),
+        (lambda p, c, q: write_points_ply(p, c, {"two words": q}),
+         "property name must be an ASCII identifier, got 'two words'"),
+        (lambda p, c, q: write_points_ply(p, c, {"red": q}), "'red' is already written"),
+        (lambda p, c, q: write_points_ply(p, c, [("quality", q)]),
+         "properties must map names to values, got list"),
+        (lambda p, c, q: write_points_ply(p.astype(np.float16)), "positions must hold numbers, "
+                                                                 "got buffer format 'e'"),
+        (lambda p, c, q: write_points_ply(["x"] * 3), "positions must be float32 values"),
+    ],
+)
+def test_bad_point_clouds_are_rejected(call, match):
+    with pytest.raises(ValueError, match=match):
+        call(*sample_cloud())

@@ -15,7 +15,9 @@ Crash safety
 * A fit writes into ``.tessera/staging/job-<n>/`` (``fit_scan`` itself writes a
   temporary folder, fsyncs and renames); the finished bundle is then renamed
   into the collection, the collection folder fsynced, and only then is the job
-  ``done``. A reader sees no bundle or a whole one, never half of one.
+  ``done`` (both by ``fitter.fitting.bundle``, the one bundle writer; an old
+  bundle is parked in the staging folder until the new one is in place). A
+  reader sees no bundle or a whole one, never half of one.
 * Cancel: the supervisor kills the worker process (SIGTERM, then SIGKILL) and
   deletes its staging folder: no partial bundle is left.
 * A worker killed from outside (``kill -9``) is noticed by the supervisor: the
@@ -49,6 +51,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from ..fitting.bundle import publish
 from .catalog import Catalog, state_dir
 
 log = logging.getLogger(__name__)
@@ -110,25 +113,12 @@ def _watch_supervisor(pipe: Connection) -> None:
     os._exit(EXIT_ORPHANED)
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def publish_bundle(staged: Path, destination: Path) -> None:
-    """Rename the complete bundle ``staged`` to ``destination`` (replacing an old one),
-    then fsync the collection folder so the rename survives a power cut."""
-    if destination.exists():
-        old = staged.parent / "replaced"
-        os.rename(destination, old)
-        os.rename(staged, destination)
-        shutil.rmtree(old)
-    else:
-        os.rename(staged, destination)
-    _fsync_dir(destination.parent)
+    """Rename the complete bundle ``staged`` (in a job's staging folder) to ``destination``
+    in the collection by :func:`fitter.fitting.bundle.publish`: synced, an old bundle
+    replaced, the collection folder fsynced. The old bundle waits for its removal in the
+    staging folder, which the supervisor clears if the worker dies meanwhile."""
+    publish(staged, destination, aside=staged.parent)
 
 
 def run_job(collection: str, job_id: int, supervisor: Connection | None = None) -> None:

@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from client_py.ply import write_points_ply
+
 from .fit import foot_points
 from .nurbs import PatchModel
 
@@ -126,32 +128,22 @@ def _colour_limit(d: np.ndarray) -> float:
 
 
 def write_error_ply(path: Path, points_scan: np.ndarray, d: np.ndarray) -> None:
-    """Binary PLY of the scan points coloured by signed deviation (blue - white - red at
-    +-P99), with the deviation as float ``quality``."""
+    """Binary PLY of the scan points ``(N, 3)`` coloured by signed deviation ``d (N,)``
+    (blue - white - red at +-P99), with the deviation as float ``quality`` (no faces;
+    written by :func:`client_py.ply.write_points_ply`)."""
     import matplotlib
 
     lut = (matplotlib.colormaps["coolwarm"](np.linspace(0.0, 1.0, 256))[:, :3] * 255).round()
     limit = _colour_limit(d)
     rgb = lut.astype(np.uint8)[np.rint(np.clip(0.5 + 0.5 * d / limit, 0.0, 1.0) * 255)
                                .astype(np.intp)]
-    record = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                       ("green", "u1"), ("blue", "u1"), ("quality", "<f4")])
-    data = np.empty(len(d), dtype=record)
-    data["x"], data["y"], data["z"] = points_scan.T
-    data["red"], data["green"], data["blue"] = rgb.T
-    data["quality"] = d
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        "comment Tessera error report: quality = signed deviation from the patch, scan units\n"
-        f"comment colour scale: blue -{limit:.6g} .. white 0 .. red +{limit:.6g}\n"
-        f"element vertex {len(d)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        "property float quality\nend_header\n"
-    )
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(data.tobytes())
+    data = write_points_ply(
+        np.ascontiguousarray(points_scan, dtype=np.float32), colors=rgb,
+        properties={"quality": np.ascontiguousarray(d, dtype=np.float32)},
+        comments=["Tessera error report: quality = signed deviation from the patch, "
+                  "scan units",
+                  f"colour scale: blue -{limit:.6g} .. white 0 .. red +{limit:.6g}"])
+    Path(path).write_bytes(data)
 
 
 def _depth_view(points: np.ndarray, d: np.ndarray, width: int = 480

@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -42,10 +40,18 @@ from threadpoolctl import threadpool_limits
 from client_py import TrimMask, read_patch, write_patch
 
 from . import io as scan_io
+from .bundle import write_bundle
 from .compact import choose_bits, drawn_cells, settle_hidden
 from .detail import SPANS as DETAIL_SPANS
-from .detail import fit_detail, write_layers
-from .error import deviations, error_grid, error_stats, write_error_ply, write_error_png
+from .detail import DetailPyramid, fit_detail, write_layers
+from .error import (
+    Deviations,
+    deviations,
+    error_grid,
+    error_stats,
+    write_error_ply,
+    write_error_png,
+)
 from .features import adaptive_sample, feature_weights, surface_variation
 from .fit import (
     DEFAULT_SMOOTHING,
@@ -58,7 +64,7 @@ from .io.scan import Scan, ScanError
 from .nurbs import PatchModel
 from .parameterize import KINDS, Coverage, choose_projection, trim_cells
 from .sections import section_matrix, section_shape
-from .texture import fit_texture
+from .texture import TextureTile, fit_texture
 
 BUNDLE_FORMAT_VERSION = 1
 METHODS = ("tessera", "paper", "linear")
@@ -160,13 +166,15 @@ class Bundle:
 
 @dataclass
 class FitResult:
-    """One fitted size: the quantised patch, its bytes and its error."""
+    """One fitted size: the decoded patch, its ``base.tsp`` bytes, every scan point's
+    deviation ``dev``, statistics of the covered ones, the fit's history and trim."""
 
     model: PatchModel
     data: bytes
     dev: object
     stats: dict
     history: dict = field(default_factory=dict)
+    trim: TrimMask | None = None  # the drawn cells, None when all are
 
 
 class _Stages:
@@ -216,13 +224,113 @@ def _grid_sizes(options: FitOptions) -> list[tuple[int, int]]:
     return sizes
 
 
-def _fit_one(grid: tuple[int, int], options: FitOptions, cov: Coverage, local: np.ndarray,
-             u: np.ndarray, v: np.ndarray, h: np.ndarray, sample: np.ndarray,
-             trim: TrimMask | None, metadata: dict, stages: _Stages) -> tuple[PatchModel, dict]:
-    proj = cov.projection
+@dataclass
+class ProjectedScan:
+    """A checked scan and its map to the parameter domain.
+
+    ``N`` scan points, ``M`` of them covered (on the part of the surface a single
+    patch represents).
+
+    Attributes
+    ----------
+    scan : Scan
+    name : str
+        The input's name (``scan.source["name"]``), for messages and the title.
+    diagonal : float
+        Length of the scan's bounding-box diagonal, ``> 0``.
+    coverage : Coverage
+        The projection, the covered mask ``(N,)`` and the domain's occupancy.
+    local : ndarray, shape (N, 3)
+        The points in the projection's frame.
+    u, v, h : ndarray, shape (N,)
+        Parameters and height of each point.
+    cells : ndarray of bool, shape (rows, cols)
+        The trim cells of the occupied domain (``fitter.fitting.parameterize.trim_cells``).
+    covered_index : ndarray of int, shape (M,)
+        Indices of the covered points, ascending.
+    """
+
+    scan: Scan
+    name: str
+    diagonal: float
+    coverage: Coverage
+    local: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    h: np.ndarray
+    cells: np.ndarray
+    covered_index: np.ndarray
+
+
+def _check_scan(scan: Scan) -> tuple[str, float]:
+    """The scan's name and bounding-box diagonal; a ``ScanError`` if there is nothing to fit."""
+    points = scan.points
+    name = scan.source.get("name", "scan")
+    if len(points) < MIN_POINTS:
+        raise ScanError(f"{name}: {len(points)} points; a fit needs at least {MIN_POINTS}")
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    diagonal = float(np.linalg.norm(hi - lo))
+    if not diagonal > 0:
+        raise ScanError(f"{name}: all {len(points)} points coincide; there is no surface to fit")
+    return name, diagonal
+
+
+def _unit_normals(scan: Scan) -> np.ndarray | None:
+    """The scan's normals ``(N, 3)`` scaled to length 1, or None if absent or any is zero."""
+    if scan.normals is None:
+        return None
+    normals = np.asarray(scan.normals, dtype=float)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / length if np.all(length > 0) else None
+
+
+def project_scan(scan: Scan, options: FitOptions) -> ProjectedScan:
+    """Check ``scan`` and map it to ``[0, 1]^2`` (``fitter.fitting.parameterize``).
+
+    Raises
+    ------
+    ScanError
+        Fewer than ``MIN_POINTS`` points, all points equal, or fewer than
+        ``MIN_POINTS`` covered by the chosen projection.
+    """
+    name, diagonal = _check_scan(scan)
+    coverage = choose_projection(scan.points, _unit_normals(scan), options.projection)
+    proj = coverage.projection
+    local = proj.local(scan.points)
+    u, v, h = proj.to_uvh(scan.points)
+    n_covered = int(coverage.covered.sum())
+    if n_covered < MIN_POINTS:
+        raise ScanError(f"{name}: only {n_covered} points lie on a surface a single patch can "
+                        f"represent; at least {MIN_POINTS} are needed")
+    return ProjectedScan(scan, name, diagonal, coverage, local, u, v, h,
+                         trim_cells(coverage.mask, proj.periodic_u),
+                         np.flatnonzero(coverage.covered))
+
+
+def _fit_sample(projected: ProjectedScan, options: FitOptions, stages: _Stages) -> np.ndarray:
+    """Indices of the points the refinement fits: for ``tessera`` a feature-adaptive sample
+    of the covered points (stage ``features``), else all covered points."""
+    covered_index = projected.covered_index
+    if options.method != "tessera":
+        return covered_index
+    stages.start("features")
+    rng = np.random.default_rng([options.seed, 0xFEA7])
+    probe = covered_index if len(covered_index) <= FEATURE_SAMPLE else np.sort(
+        rng.choice(covered_index, FEATURE_SAMPLE, replace=False))
+    weights = feature_weights(surface_variation(projected.scan.points[probe]),
+                              options.feature_strength)
+    return probe[adaptive_sample(weights, min(options.samples, len(probe)), options.seed)]
+
+
+def _fit_one(grid: tuple[int, int], options: FitOptions, projected: ProjectedScan,
+             sample: np.ndarray, stages: _Stages) -> tuple[PatchModel, dict]:
+    """The patch of one control grid by ``options.method`` (stages ``sections``, ``linear``,
+    ``refine``), and its history for the manifest's ``fit``."""
+    proj = projected.coverage.projection
+    local, u, v, h = projected.local, projected.u, projected.v, projected.h
     periodic = proj.periodic_u
     poles = proj.kind == "sphere"  # the v = 0 and v = 1 edges are points: close them
-    covered = cov.covered
+    covered = projected.coverage.covered
     deg = (options.degree, options.degree)
     model = PatchModel.uniform(grid, deg)
     stages.start("sections")
@@ -261,10 +369,155 @@ def _fit_one(grid: tuple[int, int], options: FitOptions, cov: Coverage, local: n
     return model, history
 
 
+def _encode_and_measure(model: PatchModel, history: dict, grid: tuple[int, int],
+                        options: FitOptions, projected: ProjectedScan,
+                        stages: _Stages) -> FitResult:
+    """Quantise ``model`` into ``base.tsp`` bytes (stage ``encode``: trim to the drawn cells,
+    settle hidden control points, choose the bits) and measure every scan point's
+    deviation from the decoded patch (stage ``error``)."""
+    proj = projected.coverage.projection
+    covered_index, local = projected.covered_index, projected.local
+    u, v = projected.u, projected.v
+    stages.start("encode")
+    probe = covered_index[:: max(1, len(covered_index) // BITS_PROBE)]
+    dev = deviations(model, local[probe], u[probe], v[probe], proj.periodic_u)
+    fit_rms = float(np.sqrt(np.mean(dev.d**2)))
+    drawn = drawn_cells(model, projected.cells, local, fit_rms)
+    trim = None if drawn.all() else TrimMask(drawn)
+    model = settle_hidden(model, None if trim is None else drawn, proj.periodic_u,
+                          poles=proj.kind == "sphere")
+    metadata = {"transform": proj.transform, "units": projected.scan.units,
+                "projection": proj.kind, "generator": "tessera fit"}
+    surface = model.to_surface(trim, metadata)
+    history["stray_cells"] = int(projected.cells.sum() - drawn.sum())
+    if options.bits is None:
+        bits, data = choose_bits(surface, dev.u, dev.v, fit_rms)
+    else:
+        bits, data = options.bits, write_patch(surface, bits=options.bits)
+    history["bits"] = bits
+    decoded = PatchModel.from_surface(read_patch(data))
+    stages.start("error")
+    dev = deviations(decoded, local, u, v, proj.periodic_u)
+    stats = error_stats(dev.d[projected.coverage.covered], projected.diagonal,
+                        projected.scan.units)
+    return FitResult(decoded, data, dev, stats, history | {"grid": list(grid)}, trim)
+
+
+def fit_base(projected: ProjectedScan, sample: np.ndarray, options: FitOptions,
+             stages: _Stages) -> FitResult:
+    """The base patch: fitted, encoded and measured for each grid of :func:`_grid_sizes`
+    until its RMS deviation (covered points, decoded patch) is at most ``options.max_error``;
+    the last one tried."""
+    for grid in _grid_sizes(options):
+        model, history = _fit_one(grid, options, projected, sample, stages)
+        best = _encode_and_measure(model, history, grid, options, projected, stages)
+        if options.max_error is None or best.stats["rms"] <= options.max_error:
+            break
+    return best
+
+
+def _fit_layers(projected: ProjectedScan, best: FitResult, options: FitOptions,
+                stages: _Stages) -> tuple[DetailPyramid, list[TextureTile]]:
+    """The residual pyramid (stage ``detail``, ``fitter.fitting.detail``) and the colour
+    pyramid (stage ``texture``, ``fitter.fitting.texture``) over the base ``best``."""
+    periodic = projected.coverage.projection.periodic_u
+    covered = projected.coverage.covered
+    stages.start("detail")
+    pyramid = fit_detail(best.model, projected.local, best.dev, covered, periodic,
+                         options.detail_levels, stages.report, trim=read_patch(best.data).trim,
+                         spans=options.detail_spans)
+    stages.start("texture")
+    textures = fit_texture(projected.scan, best.dev, covered, periodic, len(pyramid.levels),
+                           options.texture)
+    return pyramid, textures
+
+
+def _title(projected: ProjectedScan, options: FitOptions) -> str:
+    return options.title or Path(projected.name).name
+
+
+def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
+                 pyramid: DetailPyramid, textures: list[TextureTile],
+                 options: FitOptions) -> tuple[dict, dict]:
+    """Write ``base.tsp``, the tiles, ``error.ply`` and ``error.png`` into ``folder``;
+    returns the manifest's ``tiles`` tree and ``files`` (name -> bytes)."""
+    scan, units, stats = projected.scan, projected.scan.units, best.stats
+    (folder / "base.tsp").write_bytes(best.data)
+    tiles, tile_files = write_layers(folder, pyramid, textures)
+    write_error_ply(folder / "error.ply", scan.points, best.dev.d)
+    write_error_png(folder / "error.png", best.dev, projected.local, units,
+                    f"{_title(projected, options)}: RMS {stats['rms']:.4g} {units}, "
+                    f"max {stats['max']:.4g} {units}"
+                    + "".join(f"; level {lev.level}: RMS {lev.rms:.3g}"
+                              for lev in pyramid.levels[-2:]))
+    files = {name: (folder / name).stat().st_size
+             for name in ("base.tsp", "error.png", "error.ply")}
+    return tiles, files | tile_files
+
+
+def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResult,
+                   tiles: dict, files: dict, timings: dict) -> dict:
+    """The bundle's ``manifest.json`` (``docs/format.md``, "Bundle manifest").
+
+    Keys: ``format`` (``"tessera-bundle"``), ``format_version``
+    (``BUNDLE_FORMAT_VERSION``), ``title``, ``units``; ``files`` (every file but the
+    manifest -> its size in bytes); ``base`` (``file``, ``degree [p, q]``, ``grid [n_u,
+    n_v]``, ``bits``, ``rational``, ``trimmed``); ``transform`` (patch frame -> scan
+    frame, 4x4 row-major); ``projection`` (``kind``, ``requested``, ``coverage``,
+    ``uncovered_points``, ``uncovered_bbox [[x, y, z], [x, y, z]]`` or None);
+    ``provenance`` (``input``, ``bytes``, ``sha256``, ``points``, ``format``, and
+    ``files`` for a multi-file input); ``options`` (the ``FitOptions``); ``stats``
+    (deviation statistics of the covered points, ``fitter.fitting.error.error_stats``)
+    and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
+    ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``); ``tiles`` (the
+    detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
+    -> seconds); ``error_grid`` (RMS per ``(u, v)`` cell, ``error_grid``).
+    """
+    scan, cov, points = projected.scan, projected.coverage, projected.scan.points
+    proj = cov.projection
+    uncovered = ~cov.covered
+    covered_dev = Deviations(best.dev.d[cov.covered], best.dev.u[cov.covered],
+                             best.dev.v[cov.covered])
+    return {
+        "format": "tessera-bundle",
+        "format_version": BUNDLE_FORMAT_VERSION,
+        "title": _title(projected, options),
+        "units": scan.units,
+        "files": dict(files),
+        "base": {"file": "base.tsp", "degree": [options.degree] * 2,
+                 "grid": best.history["grid"], "bits": best.history["bits"],
+                 "rational": bool(not np.all(best.model.W == 1.0)),
+                 "trimmed": best.trim is not None},
+        "transform": proj.transform,
+        "projection": {"kind": proj.kind, "requested": options.projection,
+                       "coverage": round(cov.fraction, 6),
+                       "uncovered_points": int(uncovered.sum()),
+                       "uncovered_bbox": (
+                           [points[uncovered].min(axis=0).tolist(),
+                            points[uncovered].max(axis=0).tolist()]
+                           if uncovered.any() else None)},
+        "provenance": {"input": projected.name, "bytes": scan.source.get("bytes"),
+                       "sha256": scan.source.get("sha256"), "points": int(len(points)),
+                       "format": scan.source.get("format"),
+                       # a .conf registration: each file it read, with its own digest
+                       **({"files": scan.source["files"]} if "files" in scan.source
+                          else {})},
+        "options": {k: (list(x) if isinstance(x, tuple) else x)
+                    for k, x in asdict(options).items()},
+        "stats": best.stats,
+        "stats_all_points": error_stats(best.dev.d, projected.diagonal, scan.units),
+        "fit": best.history,
+        "tiles": tiles,
+        "timings": dict(timings),
+        "error_grid": error_grid(covered_dev),
+    }
+
+
 def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | None = None,
              progress: Progress | None = None) -> Bundle:
     """Fit ``scan`` (a path, a ``Scan`` or an ``(N, 3)`` array) and write the bundle
-    ``out_dir`` (``manifest.json``, ``base.tsp``, ``error.png``, ``error.ply``).
+    ``out_dir`` (``manifest.json``, ``base.tsp``, ``error.png``, ``error.ply``, tiles),
+    replacing a bundle there; it appears whole or not at all (``fitter.fitting.bundle``).
 
     Raises
     ------
@@ -282,156 +535,18 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
     options.grid = tuple(options.grid)
     options.validate()
     stages = _Stages(progress)
-
     stages.start("load")
     scan = _as_scan(scan)
-    points = scan.points
-    name = scan.source.get("name", "scan")
-    if len(points) < MIN_POINTS:
-        raise ScanError(f"{name}: {len(points)} points; a fit needs at least {MIN_POINTS}")
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    diagonal = float(np.linalg.norm(hi - lo))
-    if not diagonal > 0:
-        raise ScanError(f"{name}: all {len(points)} points coincide; there is no surface to fit")
-
     stages.start("project")
-    normals = None
-    if scan.normals is not None:
-        nrm = np.asarray(scan.normals, dtype=float)
-        length = np.linalg.norm(nrm, axis=1, keepdims=True)
-        if np.all(length > 0):
-            normals = nrm / length
-    cov = choose_projection(points, normals, options.projection)
-    proj = cov.projection
-    local = proj.local(points)
-    u, v, h = proj.to_uvh(points)
-    n_cov = int(cov.covered.sum())
-    if n_cov < MIN_POINTS:
-        raise ScanError(f"{name}: only {n_cov} points lie on a surface a single patch can "
-                        f"represent; at least {MIN_POINTS} are needed")
-    cells = trim_cells(cov.mask, proj.periodic_u)
-    trim = None if cells.all() else TrimMask(cells)
-
-    covered_idx = np.flatnonzero(cov.covered)
-    if options.method == "tessera":
-        stages.start("features")
-        rng = np.random.default_rng([options.seed, 0xFEA7])
-        probe = covered_idx if n_cov <= FEATURE_SAMPLE else np.sort(
-            rng.choice(covered_idx, FEATURE_SAMPLE, replace=False))
-        weights = feature_weights(surface_variation(points[probe]), options.feature_strength)
-        sample = probe[adaptive_sample(weights, min(options.samples, len(probe)), options.seed)]
-    else:
-        sample = covered_idx
-
-    metadata = {"transform": proj.transform, "units": scan.units,
-                "projection": proj.kind, "generator": "tessera fit"}
-    best: FitResult | None = None
-    for grid in _grid_sizes(options):
-        model, history = _fit_one(grid, options, cov, local, u, v, h, sample, trim, metadata,
-                                  stages)
-        stages.start("encode")
-        probe = covered_idx[:: max(1, len(covered_idx) // BITS_PROBE)]
-        dev = deviations(model, local[probe], u[probe], v[probe], proj.periodic_u)
-        fit_rms = float(np.sqrt(np.mean(dev.d**2)))
-        drawn = drawn_cells(model, cells, local, fit_rms)
-        trim = None if drawn.all() else TrimMask(drawn)
-        model = settle_hidden(model, None if trim is None else drawn, proj.periodic_u,
-                              poles=proj.kind == "sphere")
-        surface = model.to_surface(trim, metadata)
-        history["stray_cells"] = int(cells.sum() - drawn.sum())
-        if options.bits is None:
-            bits, data = choose_bits(surface, dev.u, dev.v, fit_rms)
-        else:
-            bits, data = options.bits, write_patch(surface, bits=options.bits)
-        history["bits"] = bits
-        decoded = PatchModel.from_surface(read_patch(data))
-        stages.start("error")
-        dev = deviations(decoded, local, u, v, proj.periodic_u)
-        stats = error_stats(dev.d[cov.covered], diagonal, scan.units)
-        best = FitResult(decoded, data, dev, stats, history | {"grid": list(grid)})
-        if options.max_error is None or stats["rms"] <= options.max_error:
-            break
-
-    stages.start("detail")  # residual pyramid and colour pyramid (fitter.fitting.detail, .texture)
-    pyramid = fit_detail(best.model, local, best.dev, cov.covered, proj.periodic_u,
-                         options.detail_levels, stages.report, trim=read_patch(best.data).trim,
-                         spans=options.detail_spans)
-    stages.start("texture")
-    textures = fit_texture(scan, best.dev, cov.covered, proj.periodic_u,
-                           len(pyramid.levels), options.texture)
-
+    projected = project_scan(scan, options)
+    sample = _fit_sample(projected, options, stages)
+    best = fit_base(projected, sample, options, stages)
+    pyramid, textures = _fit_layers(projected, best, options, stages)
     stages.start("report")
-    parent = out_dir.resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=parent))
-    try:
-        (tmp / "base.tsp").write_bytes(best.data)
-        tiles, tile_files = write_layers(tmp, pyramid, textures)
-        write_error_ply(tmp / "error.ply", points, best.dev.d)
-        title = options.title or Path(name).name
-        write_error_png(tmp / "error.png", best.dev, local, scan.units,
-                        f"{title}: RMS {best.stats['rms']:.4g} {scan.units}, "
-                        f"max {best.stats['max']:.4g} {scan.units}"
-                        + "".join(f"; level {lev.level}: RMS {lev.rms:.3g}"
-                                  for lev in pyramid.levels[-2:]))
-        uncovered = ~cov.covered
-        manifest = {
-            "format": "tessera-bundle",
-            "format_version": BUNDLE_FORMAT_VERSION,
-            "title": title,
-            "units": scan.units,
-            "files": {},
-            "base": {"file": "base.tsp", "degree": [options.degree] * 2,
-                     "grid": best.history["grid"], "bits": best.history["bits"],
-                     "rational": bool(not np.all(best.model.W == 1.0)),
-                     "trimmed": trim is not None},
-            "transform": proj.transform,
-            "projection": {"kind": proj.kind, "requested": options.projection,
-                           "coverage": round(cov.fraction, 6),
-                           "uncovered_points": int(uncovered.sum()),
-                           "uncovered_bbox": (
-                               [points[uncovered].min(axis=0).tolist(),
-                                points[uncovered].max(axis=0).tolist()]
-                               if uncovered.any() else None)},
-            "provenance": {"input": name, "bytes": scan.source.get("bytes"),
-                           "sha256": scan.source.get("sha256"), "points": int(len(points)),
-                           "format": scan.source.get("format"),
-                           # a .conf registration: each file it read, with its own digest
-                           **({"files": scan.source["files"]} if "files" in scan.source
-                              else {})},
-            "options": {k: (list(x) if isinstance(x, tuple) else x)
-                        for k, x in asdict(options).items()},
-            "stats": best.stats,
-            "stats_all_points": error_stats(best.dev.d, diagonal, scan.units),
-            "fit": best.history,
-            "tiles": tiles,
-            "timings": {},
-            "error_grid": error_grid(type(best.dev)(best.dev.d[cov.covered],
-                                                    best.dev.u[cov.covered],
-                                                    best.dev.v[cov.covered])),
-        }
-        for f in ("base.tsp", "error.png", "error.ply"):
-            manifest["files"][f] = (tmp / f).stat().st_size
-        manifest["files"].update(tile_files)
+    with write_bundle(out_dir) as folder:
+        tiles, files = _write_files(folder, projected, best, pyramid, textures, options)
         stages.stop()
-        manifest["timings"] = dict(stages.timings)
-        with open(tmp / "manifest.json", "w") as fh:
+        manifest = build_manifest(projected, options, best, tiles, files, stages.timings)
+        with open(folder / "manifest.json", "w") as fh:
             json.dump(manifest, fh, indent=1, sort_keys=True)
-        for f in sorted(tmp.rglob("*")):
-            if f.is_file():
-                with open(f, "rb") as fh:
-                    os.fsync(fh.fileno())
-        for d in sorted(x for x in tmp.rglob("*") if x.is_dir()):
-            d.chmod(0o755)
-        tmp.chmod(0o755)  # mkdtemp made it private; a bundle is published content
-        if out_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=parent))
-            os.rename(out_dir, old / "bundle")
-            os.rename(tmp, out_dir)
-            shutil.rmtree(old)
-        else:
-            os.rename(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return Bundle(out_dir, manifest)
