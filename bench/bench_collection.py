@@ -30,7 +30,7 @@ def run() -> dict:
     from fitter.collection.batch import fit_collection
     from fitter.demo import write_scan_ply
     from fitter.fitting.examples import relief_scan
-    from fitter.fitting.pipeline import FitOptions
+    from fitter.fitting.options import FitOptions
 
     rows, records = [], []
     with tempfile.TemporaryDirectory() as tmp:

@@ -56,7 +56,8 @@ from pathlib import Path
 import numpy as np
 from fitter.demo import write_scan_ply
 from fitter.fitting.examples import relief_height
-from fitter.fitting.pipeline import FitOptions, fit_scan
+from fitter.fitting.options import FitOptions
+from fitter.fitting.pipeline import fit_scan
 n = int(sys.argv[1]); out = Path(sys.argv[2])
 rng = np.random.default_rng(0)
 x = rng.uniform(-100, 100, n); y = rng.uniform(-70, 70, n)
@@ -81,7 +82,7 @@ def _cpu() -> float:
 
 def _options(**kw):
     """Base-patch options: the detail and texture layers (issue 6) are not timed here."""
-    from fitter.fitting.pipeline import FitOptions
+    from fitter.fitting.options import FitOptions
 
     return FitOptions(grid=GRID, degree=DEGREE, detail_levels=0, texture=False, **kw)
 

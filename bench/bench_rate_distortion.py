@@ -229,7 +229,8 @@ def tessera_points(scan, cov, out: Path, submit: Callable[[str, int, int], Futur
     from fitter.fitting.detail import SPANS, STEP_FACTOR, fit_detail
     from fitter.fitting.error import deviations
     from fitter.fitting.nurbs import PatchModel
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     fitted = {}
     for grid in GRIDS:

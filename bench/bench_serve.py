@@ -45,7 +45,8 @@ def _free_port() -> int:
 def _make_collection(root: Path) -> str:
     from fitter.collection.catalog import Catalog
     from fitter.fitting.examples import relief_scan
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     fit_scan(relief_scan(20_000), root / "relief", FitOptions(grid=(20, 20), title="Relief"))
     with Catalog(root, create=True) as catalog:

@@ -73,7 +73,8 @@ def _surface_json(patch: Path) -> dict:
 
 def _fit_bundle(root: Path) -> Path:
     from fitter.fitting.examples import relief_scan
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     bundle = root / "relief40"
     fit_scan(relief_scan(80_000), bundle,

@@ -24,6 +24,9 @@ from client_py import (
 from client_py.bundle import BASE_RESOLUTION, PLY_MAX_RESOLUTION, plan_level, write_level_ply
 from client_py.errors import TesseraError
 
+from .fitting.options import add_arguments as add_fit_arguments
+from .fitting.options import from_args as fit_options_from_args
+
 
 class UserError(TesseraError):
     """A problem with the user's input or options, reported without a traceback."""
@@ -48,8 +51,6 @@ def _integer(lo: int, hi: int | None = None, what: str = "an integer",
 _resolution = _integer(2)
 _count = _integer(1)
 _level = _integer(-1, lo_meaning=" (the base alone)")
-_detail_levels = _integer(0, 8)
-_detail_spans = _integer(4, 64)
 _port = _integer(0, 65535, "a port number")
 
 
@@ -133,28 +134,6 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     print(f"{out}: level {plan.level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
           f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))
     return 0
-
-
-def _grid(text: str) -> tuple[int, int]:
-    try:
-        parts = [int(x) for x in text.lower().split("x")]
-    except ValueError:
-        parts = []
-    if len(parts) == 1:
-        parts *= 2
-    if len(parts) != 2:
-        raise argparse.ArgumentTypeError(f"expected NxM such as 40x40, got {text!r}")
-    return parts[0], parts[1]
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
-    return value
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
@@ -343,41 +322,14 @@ def _cmd_fit_collection(args: argparse.Namespace) -> int:
     return 1 if any(r.state == "failed" for r in results) else 0
 
 
-def _add_fit_options(parser: argparse.ArgumentParser) -> None:
-    """The options of one fit (``FitOptions``), shared by ``fit`` and ``fit-collection``."""
-    parser.add_argument("--grid", type=_grid, default=(40, 40),
-                        help="control points per side, NxM (default 40x40)")
-    parser.add_argument("--degree", type=int, default=2, help="B-spline degree (default 2)")
-    parser.add_argument("--method", choices=("tessera", "paper", "linear"), default="tessera",
-                        help="tessera (default): parameter correction on the scan itself and "
-                        "weights; paper: the published method as a baseline; linear: the "
-                        "paper's initial linear fit alone")
-    parser.add_argument("--max-error", type=_positive_float, default=None,
-                        help="grow the control grid until the RMS deviation (scan units) is "
-                        "at most this")
-    parser.add_argument("--bits", type=int, default=None,
-                        help="quantisation bits per control-point axis, 8..24 (default: the "
-                        "fewest that keep the RMS within 0.5%%)")
-    parser.add_argument("--projection", choices=("auto", "plane", "cylinder", "sphere"),
-                        default="auto", help="map to the parameter domain (default auto)")
-    parser.add_argument("--detail-levels", type=_detail_levels, default=None,
-                        help="levels of the detail pyramid, 0 to 8 (default: as many as the "
-                        "point density supports)")
-    parser.add_argument("--detail-spans", type=_detail_spans, default=16,
-                        help="knot spans per detail tile side, 4 to 64 (default 16; level k "
-                        "has this times 2^k spans across the object)")
-    parser.add_argument("--texture", action=argparse.BooleanOptionalAction, default=True,
-                        help="write the texture pyramid when the scan has colour (default yes)")
-
-
-def _fit_options(args: argparse.Namespace, **extra):
-    """``FitOptions`` from the options :func:`_add_fit_options` added."""
-    from .fitting.pipeline import FitOptions
-
-    return FitOptions(grid=args.grid, degree=args.degree, method=args.method, bits=args.bits,
-                      max_error=args.max_error, projection=args.projection,
-                      detail_levels=args.detail_levels, detail_spans=args.detail_spans,
-                      texture=args.texture, **extra)
+def _fit_options(args: argparse.Namespace, **extra):  # noqa: ANN202 - a FitOptions
+    """``FitOptions`` from the arguments ``fitter.fitting.options.add_arguments`` added to
+    ``fit`` and ``fit-collection`` (each checked by argparse: exit status 2 and a message),
+    with ``extra``; a rule joining two options (``--grid 3x3 --degree 3``) exits 2 too."""
+    try:
+        return fit_options_from_args(args, **extra)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -396,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("scan", help="the scan file")
     fit.add_argument("-o", "--output", required=True, help="bundle directory to write")
-    _add_fit_options(fit)
+    add_fit_arguments(fit)
     fit.add_argument("--title", default=None, help="object title (default: the file name)")
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     fit.set_defaults(run=_cmd_fit)
@@ -478,7 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
     batch.add_argument("--workers", type=_count, default=None,
                        help="LocalCluster worker processes (default: one per core)")
-    _add_fit_options(batch)
+    add_fit_arguments(batch)
     batch.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     batch.set_defaults(run=_cmd_fit_collection)
     return parser

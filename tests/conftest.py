@@ -27,7 +27,8 @@ def web_collection(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import shutil
 
     from fitter.fitting.examples import relief_scan
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     root = tmp_path_factory.mktemp("collection")
     fit_scan(relief_scan(20_000), root / "relief",

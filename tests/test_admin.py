@@ -21,9 +21,10 @@ from werkzeug.routing import IntegerConverter
 
 from fitter.cli import main
 from fitter.collection.catalog import MIGRATIONS, SCHEMA_VERSION, Catalog, CatalogError
-from fitter.collection.jobs import JobRunner, fit_options
+from fitter.collection.jobs import JobRunner
 from fitter.collection.uploads import UploadError, UploadLimits, safe_member_path, sniff_format
 from fitter.demo import write_scan_ply
+from fitter.fitting.options import fit_options
 from fitter.fitting.pipeline import fit_scan
 
 BEARER = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -332,6 +333,19 @@ def test_scans_that_cannot_be_fitted_end_as_failed_jobs(client, runner, tmp_path
     assert client.get("/").status_code == 200
 
 
+def test_the_upload_page_shows_every_fit_option_of_the_table_with_its_default(client):
+    login(client)
+    page = client.get("/admin/upload").get_data(as_text=True)
+    for name in ("detail_levels", "detail_spans", "texture", "max_grid", "max_error", "grid",
+                 "degree", "method", "bits", "projection", "samples", "seed",
+                 "feature_strength"):
+        assert f'name="{name}"' in page, name
+    assert 'name="grid" value="40x40"' in page
+    assert 'name="detail_spans" value="16" min="4" max="64"' in page
+    assert re.search(r'<select name="texture">\s*<option selected>yes</option>', page)
+    assert 'name="max_grid" value="" placeholder="max(128, largest grid side)"' in page
+
+
 def test_fit_options_are_checked_at_upload(client, relief_ply):
     data = relief_ply.read_bytes()
     bad = upload(client, data, grid="40y40")
@@ -420,7 +434,7 @@ def test_delete_moves_to_the_trash_and_restore_brings_it_back(admin_app, client,
 
 def test_a_managed_collection_keeps_its_public_bundles_and_hides_new_ones(
         tmp_path, admin_app_factory, relief_ply):
-    from fitter.fitting.pipeline import FitOptions
+    from fitter.fitting.options import FitOptions
 
     collection = tmp_path / "collection"
     options = FitOptions(grid=(12, 12), method="linear")

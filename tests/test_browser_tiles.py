@@ -33,7 +33,8 @@ TILE_URL = re.compile(r"/detail/(\d+)/(\d+)_(\d+)\.tsd$")
 def detail_collection(tmp_path_factory: pytest.TempPathFactory):
     """One bundle: the relief (40,000 points) with a 20x20 base and 4 detail levels."""
     from fitter.fitting.examples import relief_scan
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     root = tmp_path_factory.mktemp("detail-collection")
     points = relief_scan(40_000)

@@ -98,7 +98,8 @@ def test_periodic_field_closes_at_the_seam():
 @pytest.fixture(scope="module")
 def relief_bundle(tmp_path_factory):
     from fitter.fitting.examples import relief_scan
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     out = tmp_path_factory.mktemp("detail") / "relief"
     return fit_scan(relief_scan(12_000), out, FitOptions(grid=(12, 12), detail_levels=3))
@@ -147,7 +148,8 @@ def test_cli_level_applies_the_tiles(relief_bundle, tmp_path, capsys):
 @pytest.mark.realdata
 def test_real_scan_rms_falls_with_levels(shared_data, tmp_path):
     from fitter.fitting.io import load_scan
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     scan = load_scan(shared_data / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz")
     m = fit_scan(scan, tmp_path / "b", FitOptions(grid=(16, 16), detail_levels=3,
@@ -169,8 +171,9 @@ def test_drawn_masks_bring_back_scan_points_the_base_trim_cut_away(shared_data, 
     from client_py.bundle import detail_nodes
     from client_py.layers import tessellate_region
     from fitter.fitting.io import load_scan
+    from fitter.fitting.options import FitOptions
     from fitter.fitting.parameterize import choose_projection
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.pipeline import fit_scan
 
     scan = load_scan(shared_data / "bali-mask" / "mask.obj")
     root = tmp_path / "b"
@@ -193,7 +196,8 @@ def test_drawn_masks_bring_back_scan_points_the_base_trim_cut_away(shared_data, 
 
 def test_detail_spans_option(tmp_path):
     from fitter.fitting.examples import relief_scan
-    from fitter.fitting.pipeline import FitOptions, fit_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
 
     for bad in (3, 65, True, 16.0):
         with pytest.raises(ValueError, match="detail_spans must be an integer in 4..64"):

@@ -14,7 +14,8 @@ from fitter.cli import main
 from fitter.collection.batch import bundle_name, fit_collection, is_up_to_date
 from fitter.demo import write_scan_ply
 from fitter.fitting.examples import relief_scan
-from fitter.fitting.pipeline import FitOptions, fit_scan
+from fitter.fitting.options import FitOptions
+from fitter.fitting.pipeline import fit_scan
 
 OPTIONS = dict(grid=(12, 12), method="linear")
 

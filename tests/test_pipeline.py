@@ -17,7 +17,8 @@ from fitter.cli import main as tessera
 from fitter.demo import write_scan_ply
 from fitter.fitting.examples import relief_scan
 from fitter.fitting.io import ScanError, load_scan
-from fitter.fitting.pipeline import FitOptions, fit_scan
+from fitter.fitting.options import FitOptions
+from fitter.fitting.pipeline import fit_scan
 
 
 @pytest.fixture(scope="module")

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from ..fitting.pipeline import FitOptions
+from ..fitting.options import FitOptions, fit_options, stored_options
 
 STATES = ("done", "skipped", "failed")
 
@@ -74,11 +74,6 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
     return hasher.hexdigest()
 
 
-def options_record(options: FitOptions) -> dict[str, Any]:
-    """The options as the manifest records them (tuples as lists)."""
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()}
-
-
 def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
     """Whether ``bundle`` was fitted from this input (same SHA-256) with these options, and
     its detail tiles (if any) are in the ``.tsd`` version this code reads."""
@@ -92,7 +87,7 @@ def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
         return False
     detail = (manifest.get("tiles") or {}).get("detail") or {}
     return (manifest.get("provenance", {}).get("sha256") == sha256
-            and manifest.get("options") == options_record(options)
+            and manifest.get("options") == stored_options(options)
             and (not detail.get("nodes") or detail.get("format_version") == TILE_VERSION))
 
 
@@ -101,12 +96,10 @@ def fit_one(scan: str, out_dir: str, options: dict[str, Any]) -> dict[str, Any]:
     from ..fitting.io import ScanError
     from ..fitting.pipeline import fit_scan
 
-    values = dict(options)
-    values["grid"] = tuple(values["grid"])
     start = time.perf_counter()
     result = ScanResult(scan=scan, bundle=out_dir, state="done")
     try:
-        bundle = fit_scan(scan, out_dir, FitOptions(**values))
+        bundle = fit_scan(scan, out_dir, fit_options(options))
     except (ScanError, ValueError, OSError) as exc:
         result.state, result.error = "failed", str(exc)
     else:
@@ -207,7 +200,7 @@ def fit_collection(scans: Sequence[str | os.PathLike], out: str | os.PathLike,
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
                                        dashboard_address=None)
                 client = Client(cluster)
-        record = options_record(options)
+        record = stored_options(options)
         try:
             futures = {client.submit(fit_one, str(scan), str(bundle), record, pure=False,
                                      key=f"fit-{bundle.name}-{os.urandom(4).hex()}"):

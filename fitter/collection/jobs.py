@@ -52,15 +52,12 @@ from pathlib import Path
 from typing import Any
 
 from ..fitting.bundle import publish
+from ..fitting.options import fit_options
+from ..fitting.stages import overall_progress
 from .catalog import Catalog, state_dir
 
 log = logging.getLogger(__name__)
 
-#: share of the overall progress of each stage of ``fit_scan`` (the tessera method; the
-#: others skip features/refine, and the bar then jumps, which is honest)
-STAGE_WEIGHTS = {"load": 0.08, "project": 0.04, "features": 0.08, "sections": 0.04,
-                 "linear": 0.06, "refine": 0.45, "encode": 0.02, "error": 0.15, "report": 0.08}
-STAGE_ORDER = list(STAGE_WEIGHTS)
 PROGRESS_INTERVAL = 0.25  # seconds between progress writes within one stage
 EXIT_ORPHANED = 70
 
@@ -69,21 +66,9 @@ def staging_dir(collection: Path, job_id: int) -> Path:
     return state_dir(collection) / "staging" / f"job-{job_id}"
 
 
-def fit_options(options: dict[str, Any]) -> Any:
-    """``FitOptions`` from a job's stored options (validated)."""
-    from ..fitting.pipeline import FitOptions
-
-    values = dict(options)
-    if "grid" in values:
-        values["grid"] = tuple(values["grid"])
-    result = FitOptions(**values)
-    result.grid = tuple(result.grid)
-    result.validate()
-    return result
-
-
 class _ProgressWriter:
-    """``fit_scan``'s progress callback: overall fraction from stage weights, into the catalog."""
+    """``fit_scan``'s progress callback: the overall fraction from the stages' weights
+    (``fitter.fitting.stages.overall_progress``), into the catalog."""
 
     def __init__(self, catalog: Catalog, job_id: int) -> None:
         self.catalog, self.job_id = catalog, job_id
@@ -92,12 +77,8 @@ class _ProgressWriter:
         self.last_write = 0.0
 
     def __call__(self, stage: str, fraction: float) -> None:
-        index = STAGE_ORDER.index(stage) if stage in STAGE_ORDER else None
-        if index is not None:
-            done = sum(STAGE_WEIGHTS[s] for s in STAGE_ORDER[:index])
-            overall = done + STAGE_WEIGHTS[stage] * min(max(fraction, 0.0), 1.0)
-            # with max_error the grid grows and stages repeat: the bar never goes back
-            self.best = max(self.best, min(overall, 0.99))
+        # with max_error the grid grows and stages repeat: the bar never goes back
+        self.best = max(self.best, min(overall_progress(stage, fraction), 0.99))
         now = time.monotonic()
         if stage != self.stage or now - self.last_write >= PROGRESS_INTERVAL:
             self.stage, self.last_write = stage, now

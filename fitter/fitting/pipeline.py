@@ -1,10 +1,13 @@
 """``fit_scan``: one scan in, one bundle out — the whole fit with progress reporting.
 
-Stages (each timed, each reported to ``progress(stage, fraction)``):
+Stages (each timed, each reported to ``progress(stage, fraction)``; their names, order and
+shares of the time are ``fitter.fitting.stages.STAGES``, the options ``fitter.fitting.options``):
 
 1. load — ``fitter.fitting.io.load_scan`` (or an in-memory array);
 2. project — choose the map to ``[0, 1]^2`` and the covered points
    (``fitter.fitting.parameterize``); the rest are reported, not dropped;
+2b. features — (``tessera`` only) local PCA and the feature-adaptive sample
+   (``fitter.fitting.features``);
 3. sections — the paper's section matrix (``fitter.fitting.sections``);
 4. linear — the initial B-spline, weights 1, uniform clamped knots (``fitter.fitting.fit``);
 5. refine — ``paper``: Levenberg-Marquardt over ``Q`` and ``W`` on the section
@@ -18,11 +21,11 @@ Stages (each timed, each reported to ``progress(stage, fraction)``):
 7b. detail, texture — the residual pyramid along the base normal and the colour
    pyramid in ``(u, v)`` (``fitter.fitting.detail``, ``fitter.fitting.texture``):
    ``detail/K/I_J.tsd``, ``texture/K/I_J.webp`` and the manifest's ``tiles`` tree;
-8. bundle — ``manifest.json``; the bundle directory appears by an atomic
+8. report — the tiles, ``manifest.json``; the bundle directory appears by an atomic
    rename once complete.
 
 With ``max_error`` the control grid grows (x1.25 per side) from ``grid`` until
-the RMS deviation is at most ``max_error`` or ``max_grid`` is reached.
+the RMS deviation is at most ``max_error`` or ``FitOptions.largest_grid`` is reached.
 """
 
 from __future__ import annotations
@@ -42,7 +45,6 @@ from client_py import TrimMask, read_patch, write_patch
 from . import io as scan_io
 from .bundle import write_bundle
 from .compact import choose_bits, drawn_cells, settle_hidden
-from .detail import SPANS as DETAIL_SPANS
 from .detail import DetailPyramid, fit_detail, write_layers
 from .error import (
     Deviations,
@@ -62,14 +64,14 @@ from .fit import (
 )
 from .io.scan import Scan, ScanError
 from .nurbs import PatchModel
-from .parameterize import KINDS, Coverage, choose_projection, trim_cells
+from .options import FitOptions
+from .parameterize import Coverage, choose_projection, trim_cells
 from .sections import section_matrix, section_shape
+from .stages import check_stage
 from .texture import TextureTile, fit_texture
 
 BUNDLE_FORMAT_VERSION = 1
-METHODS = ("tessera", "paper", "linear")
 MIN_POINTS = 64
-FIT_SAMPLE = 60_000  # default of FitOptions.samples
 FEATURE_SAMPLE = 150_000  # points whose local PCA drives the sampling density
 CORRECTION_ROUNDS = 3
 # Thin-plate weight of the tessera fits (relative, see fitter.fitting.fit._regularised_solve): 1e-4
@@ -80,80 +82,6 @@ TESSERA_SMOOTHING = 1e-4
 BITS_PROBE = 10_000  # covered points whose fit RMS sets the quantisation bits
 
 Progress = Callable[[str, float], None]
-
-
-@dataclass
-class FitOptions:
-    """Options of one fit (recorded in the manifest).
-
-    grid : control points per side ``(n_u, n_v)``; degree : ``p = q``;
-    method : ``tessera`` (default, the best we have), ``paper`` (as published) or
-    ``linear`` (the paper's initial linear solution alone, a baseline);
-    bits : quantisation of the patch file, or ``None`` (default) for the fewest
-    bits that keep the fit's RMS within 0.5 % (``fitter.fitting.compact``);
-    max_error : target RMS in scan units (grows the grid); max_grid : cap for
-    that growth; projection : ``auto`` or one of ``plane``, ``cylinder``,
-    ``sphere``; title : the object's title; feature_strength : how much denser
-    the tessera method samples where local PCA finds features (0: uniform);
-    samples : scan points the tessera refinement fits (that sample); seed : of it.
-    detail_levels : depth of the detail pyramid (``None``: as the point density
-    allows); detail_spans : knot spans per detail tile side (level ``k`` has
-    ``detail_spans 2^k`` per side of the domain); texture : the colour pyramid.
-    """
-
-    grid: tuple[int, int] = (40, 40)
-    degree: int = 2
-    method: str = "tessera"
-    bits: int | None = None
-    max_error: float | None = None
-    max_grid: int = 128
-    projection: str = "auto"
-    title: str | None = None
-    feature_strength: float = 4.0
-    seed: int = 0
-    samples: int = FIT_SAMPLE
-    detail_levels: int | None = None
-    detail_spans: int = DETAIL_SPANS
-    texture: bool = True  # texture pyramid when the scan has colour
-
-    def validate(self) -> None:
-        grid = tuple(self.grid)
-        if len(grid) != 2 or not all(isinstance(g, int) and not isinstance(g, bool)
-                                     for g in grid):
-            raise ValueError(f"grid must be two integers, got {self.grid!r}")
-        if not isinstance(self.degree, int) or not 1 <= self.degree <= 5:
-            raise ValueError(f"degree must be an integer in 1..5, got {self.degree!r}")
-        if any(g < self.degree + 1 or g > 1024 for g in grid):
-            raise ValueError(f"grid {grid[0]}x{grid[1]}: each side must be in "
-                             f"{self.degree + 1}..1024 for degree {self.degree}")
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.bits is not None and (isinstance(self.bits, bool) or not isinstance(self.bits, int)
-                                      or not 8 <= self.bits <= 24):
-            raise ValueError(f"bits must be an integer in 8..24 (or None: automatic), "
-                             f"got {self.bits!r}")
-        if self.max_error is not None and not (np.isfinite(self.max_error)
-                                               and self.max_error > 0):
-            raise ValueError(f"max_error must be a positive number, got {self.max_error!r}")
-        if not isinstance(self.max_grid, int) or not max(grid) <= self.max_grid <= 1024:
-            raise ValueError(f"max_grid must be in {max(grid)}..1024, got {self.max_grid!r}")
-        if self.projection not in ("auto",) + KINDS:
-            raise ValueError(f"projection must be auto or one of {', '.join(KINDS)}, "
-                             f"got {self.projection!r}")
-        if not (np.isfinite(self.feature_strength) and 0 <= self.feature_strength <= 100):
-            raise ValueError(f"feature_strength must be in 0..100, got {self.feature_strength}")
-        if (isinstance(self.samples, bool) or not isinstance(self.samples, int)
-                or not 1000 <= self.samples <= 10_000_000):
-            raise ValueError(f"samples must be an integer in 1000..10000000, got {self.samples!r}")
-        if self.detail_levels is not None and (
-                isinstance(self.detail_levels, bool) or not isinstance(self.detail_levels, int)
-                or not 0 <= self.detail_levels <= 8):
-            raise ValueError(f"detail_levels must be an integer in 0..8, got "
-                             f"{self.detail_levels!r}")
-        if (isinstance(self.detail_spans, bool) or not isinstance(self.detail_spans, int)
-                or not 4 <= self.detail_spans <= 64):
-            raise ValueError(f"detail_spans must be an integer in 4..64, got "
-                             f"{self.detail_spans!r}")
 
 
 @dataclass
@@ -178,7 +106,7 @@ class FitResult:
 
 
 class _Stages:
-    """Times stages and forwards progress."""
+    """Times stages and forwards progress; a stage is one of ``fitter.fitting.stages.STAGES``."""
 
     def __init__(self, progress: Progress | None) -> None:
         self.progress = progress
@@ -187,6 +115,7 @@ class _Stages:
         self._start = 0.0
 
     def start(self, name: str) -> None:
+        check_stage(name)
         self.stop()
         self._name, self._start = name, time.perf_counter()
         self.report(0.0)
@@ -217,8 +146,8 @@ def _as_scan(scan: object) -> Scan:
 def _grid_sizes(options: FitOptions) -> list[tuple[int, int]]:
     sizes = [tuple(options.grid)]
     if options.max_error is not None:
-        while max(sizes[-1]) < options.max_grid:
-            nxt = tuple(min(options.max_grid, max(g + 1, int(round(g * 1.25))))
+        while max(sizes[-1]) < options.largest_grid:
+            nxt = tuple(min(options.largest_grid, max(g + 1, int(round(g * 1.25))))
                         for g in sizes[-1])
             sizes.append(nxt)
     return sizes

@@ -22,7 +22,7 @@ from flask.typing import ResponseReturnValue
 from ...collection.catalog import ConflictError, FieldError, adopt_bundles
 from ...collection.trash import restore_object, trash_object
 from ...collection.uploads import UploadError
-from ...fitting.pipeline import METHODS, FitOptions
+from ...fitting.options import FORM_GROUPS, form_fields
 from .auth import bp, csrf_ok, csrf_token, logged_in, state
 from .service import accept_upload, object_json
 
@@ -79,10 +79,12 @@ def rescan() -> ResponseReturnValue:
 
 
 def _upload_defaults() -> dict[str, Any]:
-    defaults = FitOptions()
-    return {"grid": f"{defaults.grid[0]}x{defaults.grid[1]}", "degree": defaults.degree,
-            "method": defaults.method, "methods": METHODS, "bits": defaults.bits,
-            "projection": defaults.projection,
+    """The upload form's fit option fields by group (``fitter.fitting.options``, the table
+    the CLI reads too) and the size limit."""
+    fields = form_fields()
+    groups = [(legend, [f for f in fields if f["group"] == group])
+              for group, legend in FORM_GROUPS]
+    return {"groups": [(legend, members) for legend, members in groups if members],
             "max_bytes": state().limits.max_bytes}
 
 

@@ -4,78 +4,42 @@ objects, read fit options from a form. Views only translate these to HTTP."""
 from __future__ import annotations
 
 import os
-import re
 import secrets
 import shutil
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from werkzeug.datastructures import MultiDict
 
 from ...collection.catalog import Catalog, new_object_id, state_dir
-from ...collection.jobs import fit_options
 from ...collection.uploads import UploadError, UploadLimits, prepare_scan
+from ...fitting.options import parse_form
 from .upload_stream import receive_upload
 
-#: form fields of an upload besides the file: the object's title and the fit options
-OPTION_FIELDS = {"grid", "degree", "method", "bits", "max_error", "max_grid", "projection"}
-UPLOAD_FIELDS = OPTION_FIELDS | {"title", "csrf_token"}
-
-
-def _int_field(name: str, text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise UploadError(f"{name} must be an integer, got {text!r}") from None
+#: form fields of an upload that are not fit options (fitter.fitting.options.form_fields):
+#: the file, the object's title and the page form's CSRF token
+OTHER_FIELDS = ("scan", "title", "csrf_token")
 
 
 def parse_fit_options(form: MultiDict) -> dict[str, Any]:
     """Fit options from form fields (only those given; the rest keep FitOptions' defaults),
-    validated by ``FitOptions.validate``. Returns the full options as stored in the job.
+    read and validated by ``fitter.fitting.options.parse_form`` with the object's title.
+    Returns the full options as stored in the job.
 
     Raises
     ------
     UploadError
         An unknown field or a bad value, naming it.
     """
-    unknown = sorted(set(form) - UPLOAD_FIELDS)
-    if unknown:
-        raise UploadError(f"unknown form field(s) {', '.join(unknown)}; accepted: scan, "
-                          f"{', '.join(sorted(UPLOAD_FIELDS - {'csrf_token'}))}")
-    values: dict[str, Any] = {}
-    for name in OPTION_FIELDS:
-        text = (form.get(name) or "").strip()
-        if not text:
-            continue
-        if name == "grid":
-            match = re.fullmatch(r"(\d+)(?:\s*[xX×]\s*(\d+))?", text)
-            if match is None:
-                raise UploadError(f"grid must be N or NxM such as 40x40, got {text!r}")
-            values["grid"] = (int(match[1]), int(match[2] or match[1]))
-        elif name in ("degree", "bits", "max_grid"):
-            values[name] = _int_field(name, text)
-        elif name == "max_error":
-            try:
-                values[name] = float(text)
-            except ValueError:
-                raise UploadError(f"max_error must be a number, got {text!r}") from None
-        else:
-            values[name] = text
-    if "max_grid" not in values and "grid" in values:
-        values["max_grid"] = max(128, *values["grid"])
     title = (form.get("title") or "").strip()
     if len(title) > Catalog.EDITABLE["title"]:
         raise UploadError(f"title is {len(title)} characters long; at most "
                           f"{Catalog.EDITABLE['title']} are accepted")
-    if title:
-        values["title"] = title
     try:
-        options = fit_options(values)
-    except (TypeError, ValueError) as exc:
-        raise UploadError(f"fit options: {exc}") from None
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()}
+        return parse_form(form, OTHER_FIELDS, title=title or None)
+    except ValueError as exc:
+        raise UploadError(str(exc)) from None
 
 
 def accept_upload(catalog: Catalog, environ: dict[str, Any], limits: UploadLimits,
