@@ -11,29 +11,18 @@
 // is due; window.tessera.view() gives the camera's projection and view matrices (column-major)
 // and window.tessera.regionMeshes() the regions on screen ({level, i, j, grid, positions, uvs}
 // of their grid vertices, skirts left out), for tests. A tile that fails to load sets document.body.dataset.tileError (the base stays).
-// "Download PLY" writes the level chosen next to it (#ply-level): "base", the mesh on screen
-// (with the error map's colours when it is shown), or detail level L: every detail tile of
-// levels 0..L is fetched (those the worker already holds are not) and the worker tessellates
-// the whole patch with them on an R x R grid, R = min(1025, 2 spans_per_tile 2^L + 1) (two
-// vertices per knot span of the level's tiles), as `tessera tessellate OUTDIR --level L`;
-// a bundle with texture tiles gives the vertices colours sampled from them (decoded here,
-// sampled by client_py in the worker; page.js levelPly, on the worker's plan of each level:
-// client_py.bundle.plan_level).
-// Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
-// ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
-// ply_fetch_bytes (detail tiles), ply_textures, ply_texture_bytes (texture tiles fetched);
-// document.body.dataset.plyBusy is "1" while a PLY is being made, and
-// #ply-status (under the buttons) says what is being done, then the file written. "Open in
-// 3DHOP" follows the level chosen (its ?level=L).
+// "Download PLY" and its level choice: web/src/ply-download.js (its stats and
+// document.body.dataset.plyBusy are described there). The page's parts: BaseMesh
+// (base-mesh.js), FactsPanel (facts-panel.js), ErrorMapControl (error-map-control.js),
+// TileLayer (tile-layer.js), PlyDownload (ply-download.js).
 // All URLs come from the server's JSON config block.
 
 import { BaseMesh, COARSE_RESOLUTION } from "./base-mesh.js";
 import { ErrorMapControl } from "./error-map-control.js";
 import { FactsPanel } from "./facts-panel.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import {
-  $, formatBytes, formatLength, levelOption, levelPly, loadManifest, startPage,
-} from "./page.js";
+import { $, loadManifest, startPage } from "./page.js";
+import { PlyDownload } from "./ply-download.js";
 
 const { config, stats, showStage, showError } = startPage({
   manifest: "Reading the object's description…",
@@ -44,26 +33,6 @@ const { config, stats, showStage, showError } = startPage({
   ply: "Making the PLY…",
 }, { resolution: null, meshes: 0, tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0, regions: 0,
      ply_level: null, ply_bytes: 0 });
-
-/** Offer `bytes` as a download named `name`. */
-function saveFile(bytes, name) {
-  const url = URL.createObjectURL(new Blob([bytes], { type: "application/octet-stream" }));
-  const link = document.createElement("a");
-  link.href = url;
-  link.download = name;
-  document.body.append(link);
-  link.click();
-  link.remove();
-  setTimeout(() => URL.revokeObjectURL(url), 10000);
-}
-
-/** Progress and outcome of a PLY export, in the panel's status line under its buttons (the
- *  loading panel's grey text would sit on the object). */
-function showPlyStatus(text) {
-  const line = $("ply-status");
-  line.textContent = text;
-  line.hidden = !text;
-}
 
 /** `promise`, marked handled now: it is awaited later, and an early failure must not be
  *  reported as unhandled before then (it still rejects where it is awaited). */
@@ -205,6 +174,20 @@ function exposeTestHooks({ viewer, base, tiles, tilesStarted }) {
   };
 }
 
+/** The PLY levels of the bundle, planned by the worker from the manifest, offered by
+ *  `download`; a manifest the worker cannot plan leaves the base PLY alone, said so. */
+async function offerPly(download, worker, manifest, ready) {
+  let plan;
+  try {
+    plan = await worker.plan(manifest);
+  } catch (error) {
+    download.offerBaseOnly(error.message);
+    return;
+  }
+  download.offerLevels(plan, manifest.units || ready.patch.units || "unknown",
+                       Boolean(manifest.tiles && manifest.tiles.texture));
+}
+
 async function main() {
   // Start the worker (Pyodide: seconds) before three.js is even fetched: they load in parallel.
   const { worker, ready: readyPromise } = startWorker();
@@ -245,83 +228,8 @@ async function main() {
   const errorMap = new ErrorMapControl(manifest, viewer);
   $("fit-view").addEventListener("click", () => viewer.fitView());
 
-  // The PLY's level of detail: "base" (the mesh on screen) or a detail level of the bundle.
-  const select = $("ply-level");
-  let levels = [];
-  let plan = null; // the worker's plan of the levels (MeshWorkerClient.plan)
-  try {
-    plan = await worker.plan(manifest);
-    levels = plan.levels;
-  } catch (error) {
-    select.title = error.message; // stays hidden: the base PLY alone
-    console.warn(error.message);
-  }
-  const units = manifest.units || ready.patch.units || "unknown";
-  for (const choice of levels) select.append(levelOption(choice, units));
-  if (levels.length) {
-    select.title = "Level of detail of the PLY. base: the mesh on screen (with the error map's " +
-      "colours when it is shown). level L: the base with every detail tile of levels 0..L " +
-      "(their total size is shown; tiles already loaded are not fetched again), the RMS " +
-      "distance to the scan at that level, tessellated over the whole object on an R × R " +
-      `grid, R = min(${plan.max_resolution}, 2 × ${plan.spans_per_tile} spans per tile × 2^L + 1): ` +
-      "two vertices " +
-      "per knot span of the level's tiles" + (manifest.tiles.texture
-        ? "; with the object's colours sampled from its texture tiles (size included)." : ".");
-    select.hidden = false;
-    select.disabled = false;
-    // "Open in 3DHOP" shows the level chosen here (the 3DHOP page's ?level=L)
-    const hopLink = config.hop_url &&
-      [...document.querySelectorAll(".actions a")].find((a) => a.getAttribute("href") === config.hop_url);
-    if (hopLink) {
-      select.addEventListener("change", () => {
-        const url = new URL(config.hop_url, window.location.href);
-        if (Number(select.value) >= 0) url.searchParams.set("level", select.value);
-        hopLink.href = url.href;
-      });
-    }
-  }
-
-  $("download-ply").disabled = false;
-  $("download-ply").addEventListener("click", async () => {
-    const button = $("download-ply");
-    const level = Number(select.value);
-    button.disabled = true;
-    select.disabled = true;
-    document.body.dataset.plyBusy = "1";
-    document.body.dataset.stage = "ply";
-    showPlyStatus(level < 0 ? "Writing the PLY…" : "");
-    try {
-      let ply;
-      let name = config.ply_name;
-      if (level < 0) {
-        const t0 = performance.now();
-        const colors = errorMap.vertexColors(base.uvs, base.domain);
-        ply = await worker.ply(base.resolution, colors);
-        stats.ply_total_ms = performance.now() - t0;
-        Object.assign(stats, { ply_tiles_fetched: 0, ply_fetch_bytes: 0, ply_textures: 0,
-                               ply_texture_bytes: 0 });
-      } else {
-        const choice = levels.find((c) => c.level === level);
-        ply = await levelPly(worker, choice, { manifestUrl: config.manifest_url, stats,
-                                               onProgress: showPlyStatus });
-        name = `${config.ply_name.replace(/\.ply$/i, "")}_level${level}.ply`;
-      }
-      Object.assign(stats, { ply_level: level, ply_bytes: ply.bytes.length, ply_vertices: ply.vertices,
-                             ply_resolution: ply.resolution, ply_ms: ply.write_ms });
-      saveFile(ply.bytes, name);
-      showPlyStatus(`${name}: ${formatBytes(ply.bytes.length)}, ` +
-        `${ply.vertices.toLocaleString("en")} vertices (${ply.resolution}² grid), ` +
-        `${(stats.ply_total_ms / 1000).toFixed(1)} s`);
-    } catch (error) {
-      showPlyStatus("");
-      showError(`Download PLY${level >= 0 ? ` (level ${level})` : ""} failed: ${error.message}`);
-    } finally {
-      delete document.body.dataset.plyBusy;
-      button.disabled = false;
-      select.disabled = !levels.length;
-    }
-  });
-
+  await offerPly(new PlyDownload({ worker, base, errorMap, config, stats, onError: showError }),
+                 worker, manifest, ready);
   await refineBase(base, target);
 }
 

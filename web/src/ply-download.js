@@ -1,0 +1,151 @@
+// PlyDownload: the viewer's "Download PLY" control. It writes the level chosen next to it
+// (#ply-level): "base", the mesh on screen (with the error map's colours when it is shown), or
+// detail level L: every detail tile of levels 0..L is fetched (those the worker already holds
+// are not) and the worker tessellates the whole patch with them on an R x R grid,
+// R = min(1025, 2 spans_per_tile 2^L + 1) (two vertices per knot span of the level's tiles),
+// as `tessera tessellate OUTDIR --level L`; a bundle with texture tiles gives the vertices
+// colours sampled from them (decoded here, sampled by client_py in the worker; page.js
+// levelPly, on the worker's plan of each level: client_py.bundle.plan_level).
+// Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
+// ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
+// ply_fetch_bytes (detail tiles), ply_textures, ply_texture_bytes (texture tiles fetched);
+// document.body.dataset.plyBusy is "1" while a PLY is being made, and #ply-status (under the
+// buttons) says what is being done, then the file written. "Open in 3DHOP" follows the level
+// chosen (its ?level=L).
+
+import { $, formatBytes, levelOption, levelPly } from "./page.js";
+
+const REVOKE_AFTER_MS = 10000; // the download has started by then
+
+/** Offer `bytes` as a download named `name`. */
+function saveFile(bytes, name) {
+  const url = URL.createObjectURL(new Blob([bytes], { type: "application/octet-stream" }));
+  const link = document.createElement("a");
+  link.href = url;
+  link.download = name;
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(url), REVOKE_AFTER_MS);
+}
+
+export class PlyDownload {
+  /**
+   * @param {{worker: import("./mesh-worker-client.js").MeshWorkerClient,
+   *          base: import("./base-mesh.js").BaseMesh,
+   *          errorMap: import("./error-map-control.js").ErrorMapControl,
+   *          config: {ply_name: string, manifest_url: string, hop_url?: string},
+   *          stats: object, onError: (message: string) => void}} options
+   */
+  constructor({ worker, base, errorMap, config, stats, onError }) {
+    this.worker = worker;
+    this.base = base;
+    this.errorMap = errorMap;
+    this.config = config;
+    this.stats = stats;
+    this.onError = onError;
+    this.select = $("ply-level");
+    this.button = $("download-ply");
+    this.levels = []; // entries of the worker's plan (MeshWorkerClient.plan), one per level
+    this.button.addEventListener("click", () => this.download(Number(this.select.value)));
+  }
+
+  /** The base PLY alone: the level choice stays hidden, `reason` in its title. */
+  offerBaseOnly(reason) {
+    this.select.title = reason;
+    console.warn(reason);
+    this.button.disabled = false;
+  }
+
+  /**
+   * Offer the base and every level of `plan` (MeshWorkerClient.plan's reply).
+   * @param {{levels: object[], max_resolution: number, spans_per_tile: number}} plan
+   * @param {string} units  the bundle's length units, for the RMS of each level
+   * @param {boolean} textured  the bundle has texture tiles (a level PLY has colours)
+   */
+  offerLevels(plan, units, textured) {
+    this.levels = plan.levels;
+    const select = this.select;
+    for (const choice of this.levels) select.append(levelOption(choice, units));
+    if (this.levels.length) {
+      select.title = "Level of detail of the PLY. base: the mesh on screen (with the error map's " +
+        "colours when it is shown). level L: the base with every detail tile of levels 0..L " +
+        "(their total size is shown; tiles already loaded are not fetched again), the RMS " +
+        "distance to the scan at that level, tessellated over the whole object on an R × R " +
+        `grid, R = min(${plan.max_resolution}, 2 × ${plan.spans_per_tile} spans per tile × 2^L + 1): ` +
+        "two vertices per knot span of the level's tiles" + (textured
+          ? "; with the object's colours sampled from its texture tiles (size included)." : ".");
+      select.hidden = false;
+      select.disabled = false;
+      this._followWithHopLink();
+    }
+    this.button.disabled = false;
+  }
+
+  /** "Open in 3DHOP" shows the level chosen here (the 3DHOP page's ?level=L). */
+  _followWithHopLink() {
+    const hopUrl = this.config.hop_url;
+    const hopLink = hopUrl &&
+      [...document.querySelectorAll(".actions a")].find((a) => a.getAttribute("href") === hopUrl);
+    if (!hopLink) return;
+    this.select.addEventListener("change", () => {
+      const url = new URL(hopUrl, window.location.href);
+      if (Number(this.select.value) >= 0) url.searchParams.set("level", this.select.value);
+      hopLink.href = url.href;
+    });
+  }
+
+  /** Progress and outcome, in the panel's status line under its buttons (the loading panel's
+   *  grey text would sit on the object). */
+  _showStatus(text) {
+    const line = $("ply-status");
+    line.textContent = text;
+    line.hidden = !text;
+  }
+
+  /** Make and save the PLY of `level` (-1: the base on screen); a failure goes to onError. */
+  async download(level) {
+    this.button.disabled = true;
+    this.select.disabled = true;
+    document.body.dataset.plyBusy = "1";
+    document.body.dataset.stage = "ply";
+    this._showStatus(level < 0 ? "Writing the PLY…" : "");
+    try {
+      const { ply, name } = level < 0 ? await this._writeBase() : await this._writeLevel(level);
+      Object.assign(this.stats, { ply_level: level, ply_bytes: ply.bytes.length,
+                                  ply_vertices: ply.vertices, ply_resolution: ply.resolution,
+                                  ply_ms: ply.write_ms });
+      saveFile(ply.bytes, name);
+      this._showStatus(`${name}: ${formatBytes(ply.bytes.length)}, ` +
+        `${ply.vertices.toLocaleString("en")} vertices (${ply.resolution}² grid), ` +
+        `${(this.stats.ply_total_ms / 1000).toFixed(1)} s`);
+    } catch (error) {
+      this._showStatus("");
+      this.onError(`Download PLY${level >= 0 ? ` (level ${level})` : ""} failed: ${error.message}`);
+    } finally {
+      delete document.body.dataset.plyBusy;
+      this.button.disabled = false;
+      this.select.disabled = !this.levels.length;
+    }
+  }
+
+  /** The mesh on screen, with the error map's colours when it is shown. */
+  async _writeBase() {
+    const t0 = performance.now();
+    const colors = this.errorMap.vertexColors(this.base.uvs, this.base.domain);
+    const ply = await this.worker.ply(this.base.resolution, colors);
+    Object.assign(this.stats, { ply_total_ms: performance.now() - t0, ply_tiles_fetched: 0,
+                                ply_fetch_bytes: 0, ply_textures: 0, ply_texture_bytes: 0 });
+    return { ply, name: this.config.ply_name };
+  }
+
+  /** The whole patch at detail `level`, its tiles fetched as needed (page.js levelPly). */
+  async _writeLevel(level) {
+    const choice = this.levels.find((entry) => entry.level === level);
+    if (!choice) throw new Error(`no detail level ${level} in this bundle`);
+    const ply = await levelPly(this.worker, choice, { manifestUrl: this.config.manifest_url,
+                                                      stats: this.stats,
+                                                      onProgress: (text) => this._showStatus(text) });
+    return { ply, name: `${this.config.ply_name.replace(/\.ply$/i, "")}_level${level}.ply` };
+  }
+}
