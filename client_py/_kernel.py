@@ -12,11 +12,15 @@ module provides ``evaluate_grid``, ``field_grid``, ``add_level``,
 from __future__ import annotations
 
 import os
+from functools import cache
 
 from . import _kernel_python
 
 
-def _select():
+@cache
+def _selected():
+    """``(name, module)`` of the kernel: chosen on first use, not at import, so importing
+    ``client_py`` (for its errors, say) loads no numpy."""
     wanted = os.environ.get("TESSERA_KERNEL", "").strip().lower()
     if wanted not in ("", "python", "numpy"):
         raise ValueError(f"TESSERA_KERNEL must be 'python' or 'numpy', got {wanted!r}")
@@ -31,13 +35,17 @@ def _select():
     return "numpy", _kernel_numpy
 
 
-KERNEL_NAME, _backend = _select()
+def __getattr__(name: str):
+    """``KERNEL_NAME``: the selected kernel's name (PEP 562: read on first use)."""
+    if name == "KERNEL_NAME":
+        return _selected()[0]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def backend(name: str | None = None):
     """The kernel module named ``name`` (``'python'`` or ``'numpy'``), default the selected."""
     if name is None:
-        return _backend
+        return _selected()[1]
     if name == "python":
         return _kernel_python
     if name == "numpy":

@@ -24,6 +24,7 @@ from client_py import (
 from client_py.bundle import BASE_RESOLUTION, PLY_MAX_RESOLUTION, plan_level, write_level_ply
 from client_py.errors import TesseraError
 
+from .fitting.options import OptionError
 from .fitting.options import add_arguments as add_fit_arguments
 from .fitting.options import from_args as fit_options_from_args
 
@@ -159,7 +160,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     try:
         bundle = fit_scan(args.scan, args.output, options, progress)
-    except (ScanError, ValueError) as exc:
+    except (ScanError, OptionError) as exc:
         raise UserError(str(exc)) from None
     finally:
         for bar in bars.values():
@@ -328,7 +329,7 @@ def _fit_options(args: argparse.Namespace, **extra):  # noqa: ANN202 - a FitOpti
     with ``extra``; a rule joining two options (``--grid 3x3 --degree 3``) exits 2 too."""
     try:
         return fit_options_from_args(args, **extra)
-    except ValueError as exc:
+    except OptionError as exc:
         raise UserError(str(exc)) from None
 
 

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from ..fitting.options import FitOptions, fit_options, stored_options
+from ..fitting.options import FitOptions, OptionError, fit_options, stored_options
 
 STATES = ("done", "skipped", "failed")
 
@@ -100,7 +100,7 @@ def fit_one(scan: str, out_dir: str, options: dict[str, Any]) -> dict[str, Any]:
     result = ScanResult(scan=scan, bundle=out_dir, state="done")
     try:
         bundle = fit_scan(scan, out_dir, fit_options(options))
-    except (ScanError, ValueError, OSError) as exc:
+    except (ScanError, OptionError, OSError) as exc:
         result.state, result.error = "failed", str(exc)
     else:
         m = bundle.manifest

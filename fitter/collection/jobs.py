@@ -52,9 +52,9 @@ from pathlib import Path
 from typing import Any
 
 from ..fitting.bundle import publish
-from ..fitting.options import fit_options
+from ..fitting.options import OptionError, fit_options
 from ..fitting.stages import overall_progress
-from .catalog import Catalog, state_dir
+from .catalog import Catalog, CatalogError, state_dir
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +124,7 @@ def run_job(collection: str, job_id: int, supervisor: Connection | None = None) 
     try:
         upload = catalog.get_upload(job.upload_id)
         if upload is None:
-            raise ValueError(f"upload {job.upload_id} of job {job_id} is not in the catalog")
+            raise CatalogError(f"upload {job.upload_id} of job {job_id} is not in the catalog")
         scan_path = state_dir(root) / upload["stored_path"]
         options = fit_options(job.options)
         staging.mkdir(parents=True)
@@ -136,7 +136,7 @@ def run_job(collection: str, job_id: int, supervisor: Connection | None = None) 
         catalog.set_bundle(job.object_id, job.object_id, str(bundle.manifest.get("units", "")),
                            provenance.get("sha256"))
         catalog.finish_job(job_id, "done")
-    except (ScanError, ValueError, OSError) as exc:
+    except (ScanError, OptionError, CatalogError, OSError) as exc:
         catalog.finish_job(job_id, "failed", str(exc))
     except Exception as exc:  # noqa: BLE001 - the job boundary: record it, never leave it running
         log.exception("job %d failed", job_id)

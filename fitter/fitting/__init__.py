@@ -13,7 +13,10 @@ so ``fitter.fitting.options`` stays cheap for the server's admin form.
 ``compact``        quantisation bits, drawn cells, hidden control points
 ``detail``         the displacement pyramid; ``texture``: the colour pyramid
 ``error``          deviation of every scan point, heat maps
+``options``        THE table of fit options (``FitOptions``, CLI, admin form); no numpy
+``stages``         the fit's stages in order, with their progress weights; no numpy
 ``pipeline``       ``fit_scan``: one scan in, one bundle out
+``bundle``         the one bundle writer: temporary folder, fsync, atomic rename
 ``examples``       generated example surfaces (the demo, tests, benchmarks)
 =================  ===========================================================
 """

@@ -27,6 +27,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from client_py.errors import TesseraError
+
 METHODS = ("tessera", "paper", "linear")
 #: ``auto`` and the maps of ``fitter.fitting.parameterize.KINDS`` (tests/test_options.py
 #: checks that the two agree; that module needs numpy, this one must not)
@@ -39,6 +41,13 @@ KINDS = ("grid", "int", "float", "choice", "bool", "text")
 #: the upload form's groups of fields, in order: (group, legend)
 FORM_GROUPS = (("base", "Fit options"), ("layers", "Detail and texture"),
                ("sampling", "Sampling of the tessera method"))
+
+
+
+class OptionError(TesseraError, ValueError):
+    """A fit option with a value outside what :data:`OPTIONS` accepts (the message names the
+    option, the value and what would be accepted)."""
+
 
 _GRID_TEXT = re.compile(r"(\d+)(?:\s*[xX×]\s*(\d+))?")
 _TRUE, _FALSE = ("yes", "true", "on", "1"), ("no", "false", "off", "0")
@@ -96,16 +105,16 @@ class Option:
 
         Raises
         ------
-        ValueError
+        OptionError
             Naming the option, the value and what is accepted.
         """
         if value is None and self.none is not None:
             return
         if not self._accepts(value):
-            raise ValueError(f"{self.name} must be {self.accepted()}, got {value!r}")
+            raise OptionError(f"{self.name} must be {self.accepted()}, got {value!r}")
 
-    def _refuse_text(self, text: str) -> ValueError:
-        return ValueError(f"{self.name} must be {self.accepted(none=False)}, got {text!r}")
+    def _refuse_text(self, text: str) -> OptionError:
+        return OptionError(f"{self.name} must be {self.accepted(none=False)}, got {text!r}")
 
     def _accepts(self, value: Any) -> bool:
         if self.kind == "grid":
@@ -132,14 +141,14 @@ class Option:
 
         Raises
         ------
-        ValueError
+        OptionError
             Naming the option, the text and what is accepted.
         """
         text = text.strip()
         if self.kind == "grid":
             match = _GRID_TEXT.fullmatch(text)
             if match is None:
-                raise ValueError(f"{self.name} must be N or NxM such as 40x40, got {text!r}")
+                raise OptionError(f"{self.name} must be N or NxM such as 40x40, got {text!r}")
             value: Any = (int(match[1]), int(match[2] or match[1]))
         elif self.kind == "int":
             try:
@@ -153,7 +162,7 @@ class Option:
                 raise self._refuse_text(text) from None
         elif self.kind == "bool":
             if text.lower() not in _TRUE + _FALSE:
-                raise ValueError(f"{self.name} must be yes or no, got {text!r}")
+                raise OptionError(f"{self.name} must be yes or no, got {text!r}")
             value = text.lower() in _TRUE
         else:
             value = text
@@ -277,17 +286,17 @@ class FitOptions:
 
         Raises
         ------
-        ValueError
+        OptionError
             The first option refused, naming it, the value and what is accepted.
         """
         for option in OPTIONS:
             option.check(getattr(self, option.name))
         lowest = self.degree + 1
         if min(self.grid) < lowest:
-            raise ValueError(f"grid {self.grid[0]}x{self.grid[1]}: each side must be in "
+            raise OptionError(f"grid {self.grid[0]}x{self.grid[1]}: each side must be in "
                              f"{lowest}..{GRID_SIDE_LIMIT} for degree {self.degree}")
         if self.max_grid is not None and self.max_grid < max(self.grid):
-            raise ValueError(f"max_grid must be an integer in {max(self.grid)}.."
+            raise OptionError(f"max_grid must be an integer in {max(self.grid)}.."
                              f"{GRID_SIDE_LIMIT} (at least the grid's largest side), "
                              f"got {self.max_grid!r}")
 
@@ -303,12 +312,12 @@ def fit_options(stored: Mapping[str, Any]) -> FitOptions:
 
     Raises
     ------
-    ValueError
+    OptionError
         An unknown option or a refused value, naming it.
     """
     unknown = sorted(set(stored) - set(OPTION))
     if unknown:
-        raise ValueError(f"unknown fit option(s) {', '.join(unknown)}; accepted: "
+        raise OptionError(f"unknown fit option(s) {', '.join(unknown)}; accepted: "
                          f"{', '.join(OPTION)}")
     options = FitOptions(**stored)
     options.validate()
@@ -361,7 +370,7 @@ def from_args(args: argparse.Namespace, **extra: Any) -> FitOptions:
 
     Raises
     ------
-    ValueError
+    OptionError
         A rule joining two options refused (e.g. ``--grid 3x3 --degree 3``).
     """
     values = {o.name: getattr(args, o.name) for o in OPTIONS if o.cli is not None}
@@ -410,14 +419,14 @@ def parse_form(form: Mapping[str, str], ignore: Iterable[str] = (),
 
     Raises
     ------
-    ValueError
+    OptionError
         An unknown field, or a value refused, naming the field.
     """
     known = {o.form: o for o in OPTIONS if o.form is not None}
     ignore = set(ignore)
     unknown = sorted(set(form) - set(known) - ignore)
     if unknown:
-        raise ValueError(f"unknown form field(s) {', '.join(unknown)}; accepted: "
+        raise OptionError(f"unknown form field(s) {', '.join(unknown)}; accepted: "
                          f"{', '.join(sorted(set(known) | ignore))}")
     values = {}
     for name, option in known.items():

@@ -14,7 +14,7 @@ from werkzeug.datastructures import MultiDict
 
 from ...collection.catalog import Catalog, new_object_id, state_dir
 from ...collection.uploads import UploadError, UploadLimits, prepare_scan
-from ...fitting.options import parse_form
+from ...fitting.options import OptionError, parse_form
 from .upload_stream import receive_upload
 
 #: form fields of an upload that are not fit options (fitter.fitting.options.form_fields):
@@ -38,7 +38,7 @@ def parse_fit_options(form: MultiDict) -> dict[str, Any]:
                           f"{Catalog.EDITABLE['title']} are accepted")
     try:
         return parse_form(form, OTHER_FIELDS, title=title or None)
-    except ValueError as exc:
+    except OptionError as exc:
         raise UploadError(str(exc)) from None
 
 
