@@ -10,6 +10,9 @@ beside the code that raises them, each a subclass of :class:`TesseraError`
 ``client_py.PatchFormatError``             a bad or truncated ``.tsp``/``.tsd``
 ``client_py.rangecoder.RangeDecodeError``  coded bytes that end early (a
                                            ``PatchFormatError`` to its callers)
+``client_py.bundle.ManifestError``         a manifest client_py cannot plan from,
+                                           or a file name outside the bundle (a
+                                           ``PatchFormatError``)
 ``fitter.fitting.io.ScanError``            an unreadable or unusable scan
 ``fitter.fitting.options.OptionError``     a fit option out of its range
 ``fitter.collection.bundles.BundleError``  a bundle directory without a manifest

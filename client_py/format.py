@@ -18,8 +18,12 @@ from __future__ import annotations
 import json
 import math
 import struct
+import sys
 import zlib
+from array import array
 from collections.abc import Sequence
+from itertools import accumulate
+from operator import add
 
 from .basis import is_uniform_clamped
 from .errors import PatchFormatError
@@ -44,9 +48,37 @@ FLAG_UNIFORM_V = 8
 KNOWN_FLAGS = FLAG_RATIONAL | FLAG_TRIM | FLAG_UNIFORM_U | FLAG_UNIFORM_V
 
 MIN_BITS, MAX_BITS = 2, 30
+
+# ------------------------------------------------------------------ limits
+# What a reader accepts, checked on the header before anything is inflated or allocated,
+# so a decode's time and memory are bounded by these numbers whatever the bytes claim
+# (docs/format.md, "Limits", lists the same; tests/test_fuzz.py holds the two together).
 MAX_DEGREE = 15
+#: control points per side of a patch: the fitter's largest grid side
+#: (``fitter.fitting.options.GRID_SIDE_LIMIT``)
+MAX_GRID_SIDE = 1024
+#: control points of a patch, ``n_u n_v``: 512^2 decode in about 1 s and 150 MB of
+#: CPython (pure Python); 4096^2 would take minutes and gigabytes
+MAX_CONTROL_POINTS = 1 << 18
 MAX_METADATA = 1 << 20
-MAX_CONTROL_POINTS = 1 << 24  # as NurbsSurface accepts; bounds the payload a header announces
+#: deflate's largest expansion (258-byte matches at about 2 bits each, 1032:1): a zlib
+#: stream claiming more raw bytes per compressed byte is refused before it is inflated
+MAX_INFLATE_RATIO = 1032
+#: detail tiles: the deepest level, spans per tile side and degree are DetailTile's
+#: (``client_py.layers``, imported above as MAX_TILE_LEVEL, MAX_TILE_SPANS and
+#: MAX_DETAIL_DEGREE); the drawn mask's side is the file's
+MAX_DRAWN_SIDE = 64  # the fitter writes 32 (fitter.fitting.detail.DRAWN_SIDE)
+
+#: every limit above by the name docs/format.md gives it
+LIMITS = {
+    "degree": MAX_DEGREE, "grid side": MAX_GRID_SIDE, "control points": MAX_CONTROL_POINTS,
+    "metadata bytes": MAX_METADATA, "inflate ratio": MAX_INFLATE_RATIO,
+    "trim side": TRIM_MAX_SIDE, "tile level": MAX_TILE_LEVEL, "tile spans": MAX_TILE_SPANS,
+    "tile degree": MAX_DETAIL_DEGREE, "drawn side": MAX_DRAWN_SIDE,
+}
+
+_WORD_WIDTH = {1: 1, 2: 2, 3: 4, 4: 4}  # bytes of the array item holding ``planes`` bytes
+_WORD_CODE = {array(code).itemsize: code for code in "LIHB"}  # item size -> typecode
 
 
 # ------------------------------------------------------------------ residual coding
@@ -69,14 +101,14 @@ def _parallelogram_residuals(values: Sequence[int], n_u: int, n_v: int) -> list[
 
 
 def _undo_parallelogram(residuals: Sequence[int], n_u: int, n_v: int) -> list[int]:
-    values = [0] * (n_u * n_v)
+    """Inverse of :func:`_parallelogram_residuals`: ``q_ij = sum_{a <= i, b <= j} r_ab``,
+    a 2-D prefix sum (running sums along each row, then down the columns) that
+    ``itertools.accumulate`` and ``map`` compute at C speed."""
+    values: list[int] = []
+    above = [0] * n_v
     for i in range(n_u):
-        row, up = i * n_v, (i - 1) * n_v
-        for j in range(n_v):
-            left = values[row + j - 1] if j else 0
-            top = values[up + j] if i else 0
-            diag = values[up + j - 1] if i and j else 0
-            values[row + j] = residuals[row + j] + left + top - diag
+        above = list(map(add, above, accumulate(residuals[i * n_v : (i + 1) * n_v])))
+        values += above
     return values
 
 
@@ -88,12 +120,17 @@ def _encode_planes(residuals: Sequence[int], planes: int) -> bytes:
 
 
 def _decode_planes(data: bytes, count: int, planes: int) -> list[int]:
-    zig = list(data[:count])
-    for k in range(1, planes):
-        shift = 8 * k
-        plane = data[k * count : (k + 1) * count]
-        zig = [z | (b << shift) for z, b in zip(zig, plane, strict=True)]
-    return [z >> 1 if not z & 1 else -((z + 1) >> 1) for z in zig]
+    """Inverse of :func:`_encode_planes`: the planes interleaved back into little-endian
+    words at C speed (slice assignment, ``array.frombytes``), then un-zig-zagged."""
+    width = _WORD_WIDTH[planes]
+    words = bytearray(count * width)
+    for k in range(planes):
+        words[k::width] = data[k * count : (k + 1) * count]
+    zig = array(_WORD_CODE[width])
+    zig.frombytes(words)
+    if sys.byteorder == "big":
+        zig.byteswap()
+    return [(z >> 1) ^ -(z & 1) for z in zig]  # 2r -> r, 2r - 1 -> -r
 
 
 def _pack_bits(cells: bytes) -> bytes:
@@ -146,8 +183,10 @@ def write_patch(surface: NurbsSurface, bits: int = 16, metadata: dict | None = N
     (p, q), (n_u, n_v) = surface.degree, surface.shape
     if p > MAX_DEGREE or q > MAX_DEGREE:
         raise ValueError(f"degree {surface.degree} exceeds the format's maximum {MAX_DEGREE}")
-    if n_u > 65535 or n_v > 65535:
-        raise ValueError(f"grid {n_u}x{n_v} exceeds the format's 65535 points per side")
+    if max(n_u, n_v) > MAX_GRID_SIDE or n_u * n_v > MAX_CONTROL_POINTS:
+        raise ValueError(f"grid {n_u}x{n_v} exceeds what a reader accepts: at most "
+                         f"{MAX_GRID_SIDE} control points per side and {MAX_CONTROL_POINTS} "
+                         "in all")
     meta = dict(surface.metadata)
     meta.update(metadata or {})
     try:
@@ -231,7 +270,7 @@ def _read_grid(cur: _Cursor, n_u: int, n_v: int, bits: int, what: str) -> list[i
     data = cur.take(count * _plane_count(bits), what)
     values = _undo_parallelogram(_decode_planes(data, count, _plane_count(bits)), n_u, n_v)
     top = (1 << bits) - 1
-    if any(v < 0 or v > top for v in values):
+    if min(values) < 0 or max(values) > top:
         raise PatchFormatError(start, f"{what} decode outside 0..{top}", "payload")
     return values
 
@@ -286,6 +325,27 @@ def _unframe(data: object, magic: bytes, what: str, header: struct.Struct, versi
     return data, fields
 
 
+def payload_size_range(flags: int, degree: tuple[int, int], shape: tuple[int, int],
+                       bits: int) -> tuple[int, int]:
+    """``(least, most)`` bytes of the decompressed payload of a patch with these header fields.
+
+    ``least = 8 (4 + k_u + k_v + 6) + G n_u n_v B + 4 + 2`` (domain, stored knots ``k = n -
+    p - 1`` of a non-uniform vector, bounds, ``G`` grids of ``B``-byte residuals, the
+    metadata length and ``{}``), plus ``16`` for the log-weight bounds and ``4 + 1`` for
+    the smallest trim mask; ``most`` has the largest trim mask and metadata instead.
+    """
+    (p, q), (n_u, n_v) = degree, shape
+    stored_knots = (0 if flags & FLAG_UNIFORM_U else n_u - p - 1) \
+        + (0 if flags & FLAG_UNIFORM_V else n_v - q - 1)
+    grids = 4 if flags & FLAG_RATIONAL else 3
+    fixed = 8 * (4 + stored_knots + 6) + grids * n_u * n_v * _plane_count(bits) + 4
+    if flags & FLAG_RATIONAL:
+        fixed += 16
+    trim_least, trim_most = (4 + 1, 4 + (TRIM_MAX_SIDE**2 + 7) // 8) if flags & FLAG_TRIM \
+        else (0, 0)
+    return fixed + trim_least + 2, fixed + trim_most + MAX_METADATA
+
+
 def read_header(data: bytes) -> dict:
     """Check the framing (magic, version, sizes, CRC32) and return the header fields."""
     data, fields = _unframe(data, MAGIC, "patch", HEADER, VERSION, 9)
@@ -296,20 +356,27 @@ def read_header(data: bytes) -> dict:
         if not 1 <= degree <= MAX_DEGREE:
             raise PatchFormatError(offset, f"degree {name} = {degree} outside 1..{MAX_DEGREE}")
     for offset, name, n, degree in ((10, "n_u", n_u, p), (12, "n_v", n_v, q)):
-        if n < degree + 1:
-            raise PatchFormatError(offset, f"{name} = {n} control points < degree + 1")
+        if not degree + 1 <= n <= MAX_GRID_SIDE:
+            least = "< degree + 1" if n <= degree else f"> {MAX_GRID_SIDE} per side"
+            raise PatchFormatError(offset, f"{name} = {n} control points {least}; "
+                                   f"{degree + 1}..{MAX_GRID_SIDE} accepted")
     if n_u * n_v > MAX_CONTROL_POINTS:
         raise PatchFormatError(10, f"grid {n_u}x{n_v} exceeds {MAX_CONTROL_POINTS} control points")
     if not MIN_BITS <= bits <= MAX_BITS:
         raise PatchFormatError(14, f"bits = {bits} outside {MIN_BITS}..{MAX_BITS}")
     if reserved:
         raise PatchFormatError(15, f"reserved byte is {reserved}, must be 0")
-    # the largest payload these header fields allow bounds the decompression
-    grids = 4 if flags & FLAG_RATIONAL else 3
-    bound = (8 * (4 + 6 + 2 + n_u + n_v) + grids * n_u * n_v * _plane_count(bits)
-             + 4 + TRIM_MAX_SIDE**2 // 8 + 4 + MAX_METADATA)
-    if raw_size > bound:
-        raise PatchFormatError(20, f"payload size {raw_size} exceeds the {bound} the grid allows")
+    # the payload these header fields need and the largest they allow bound the inflation
+    least, most = payload_size_range(flags, (p, q), (n_u, n_v), bits)
+    if raw_size > most:
+        raise PatchFormatError(20, f"payload size {raw_size} exceeds the {most} the grid allows")
+    if raw_size > MAX_INFLATE_RATIO * size:
+        raise PatchFormatError(20, f"payload size {raw_size} exceeds the "
+                               f"{MAX_INFLATE_RATIO * size} bytes a {size}-byte zlib stream "
+                               f"can inflate to ({MAX_INFLATE_RATIO}:1)")
+    if raw_size < least:
+        raise PatchFormatError(20, f"payload size {raw_size} is below the {least} bytes "
+                               f"a {n_u}x{n_v} grid needs")
     return {"flags": flags, "degree": (p, q), "shape": (n_u, n_v), "bits": bits,
             "payload_size": size, "raw_size": raw_size, "data": data}
 
@@ -369,10 +436,8 @@ def read_patch(data: bytes) -> NurbsSurface:
     if cur.pos != len(raw):
         raise PatchFormatError(cur.pos, f"{len(raw) - cur.pos} bytes left after metadata",
                                "payload")
-    points = [
-        [[axes[0][k], axes[1][k], axes[2][k]] for k in range(i * n_v, (i + 1) * n_v)]
-        for i in range(n_u)
-    ]
+    xyz = list(zip(*axes, strict=True))
+    points = [xyz[i * n_v : (i + 1) * n_v] for i in range(n_u)]
     try:
         return NurbsSurface((p, q), (U, V), points, weights, trim=trim, metadata=metadata)
     except ValueError as exc:
@@ -409,7 +474,6 @@ TILE_VERSION = 2
 TILE_HEADER = struct.Struct("<4sBBBBBBHHf")
 TILE_HEADER_SIZE = TILE_HEADER.size  # 18
 TILE_FLAG_DRAWN = 1  # a drawn mask of drawn_side^2 cells follows the values
-MAX_DRAWN_SIDE = 255
 MAX_TILE_VALUE = (1 << 28) - 1
 UNARY_BINS = 6  # |q| = 1..UNARY_BINS in unary, larger through an Exp-Golomb escape
 ESCAPE_BITS = 28  # an escape's Exp-Golomb prefix: |q| <= MAX_TILE_VALUE needs fewer
@@ -550,8 +614,10 @@ def read_detail_tile(data: bytes) -> DetailTile:
         raise PatchFormatError(6, f"level {level} outside 0..{MAX_TILE_LEVEL}")
     if not 1 <= degree <= MAX_DETAIL_DEGREE:
         raise PatchFormatError(7, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
-    if not 1 <= spans:
-        raise PatchFormatError(8, "spans = 0; 1..255 accepted")
+    if not 1 <= spans <= MAX_TILE_SPANS:
+        raise PatchFormatError(8, f"spans = {spans} outside 1..{MAX_TILE_SPANS}")
+    if side > MAX_DRAWN_SIDE:
+        raise PatchFormatError(9, f"drawn mask side {side} outside 1..{MAX_DRAWN_SIDE}")
     if bool(side) != bool(flags & TILE_FLAG_DRAWN):
         raise PatchFormatError(9, f"drawn mask side {side} with flags 0x{flags:02x}: "
                                "non-zero exactly when flag 0x1 is set")

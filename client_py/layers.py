@@ -44,9 +44,14 @@ from .tessellate import (
 )
 from .trim import TrimMask
 
-MAX_LEVEL = 15
+#: deepest detail level: the fitter writes at most 8 levels, 0..7
+#: (``fitter.fitting.options``: ``detail_levels <= 8``); a level's knot vector has
+#: ``m 2^k + 2p + 1`` knots, so the level bounds what a tile can make a reader allocate
+MAX_LEVEL = 7
 MAX_DETAIL_DEGREE = 3
-MAX_SPANS = 255  # spans per tile side (.tsd stores a byte)
+#: spans per tile side: the fitter's largest (``detail_spans <= 64``); a tile holds
+#: ``(m + p)^2`` values, so this bounds a tile's decoding
+MAX_SPANS = 64
 
 UVRect = tuple[float, float, float, float]
 
@@ -68,6 +73,19 @@ def level_knots(degree: int, spans_per_tile: int, level: int) -> list[float]:
     """
     spans = spans_per_tile << level
     return [0.0] * degree + [s / spans for s in range(spans + 1)] + [1.0] * degree
+
+
+def tile_knots(degree: int, spans_per_tile: int, level: int, index: int) -> tuple[float, ...]:
+    """Tile ``index``'s slice of :func:`level_knots`: knots ``index m .. index m + m + 2p``
+    (``m + 2p + 1`` of them), the same floats, computed without the whole vector.
+
+    Knot ``k`` of the level is ``0`` for ``k < p``, ``(k - p) / S`` up to ``k = p + S``
+    and ``1`` beyond (``S = m 2^level``).
+    """
+    spans = spans_per_tile << level
+    first = index * spans_per_tile
+    return tuple(0.0 if k < degree else 1.0 if k > degree + spans else (k - degree) / spans
+                 for k in range(first, first + spans_per_tile + 2 * degree + 1))
 
 
 def tile_rect(level: int, i: int, j: int) -> UVRect:
@@ -145,10 +163,9 @@ class DetailTile:
         object.__setattr__(self, "values", values)
         if self.drawn is not None and not isinstance(self.drawn, TrimMask):
             raise ValueError(f"drawn must be a TrimMask or None, got {type(self.drawn).__name__}")
-        knots = level_knots(self.degree, self.spans, self.level)
-        n = self.size + self.degree + 1  # a tile's slice of its level's knot vector
-        object.__setattr__(self, "_knots", (tuple(knots[self.i * self.spans:][:n]),
-                                            tuple(knots[self.j * self.spans:][:n])))
+        object.__setattr__(self, "_knots",
+                           (tile_knots(self.degree, self.spans, self.level, self.i),
+                            tile_knots(self.degree, self.spans, self.level, self.j)))
 
     @property
     def size(self) -> int:

@@ -21,7 +21,14 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 
 from . import _kernel
-from .bundle import PLY_MAX_RESOLUTION, plan_level, plan_levels, write_level_ply
+from .bundle import (
+    PLY_MAX_RESOLUTION,
+    ManifestError,
+    detail_spans,
+    plan_level,
+    plan_levels,
+    write_level_ply,
+)
 from .errors import PatchFormatError
 from .format import read_detail_tile, read_patch
 from .layers import DetailTile, TextureImage, tessellate_region, tile_rect, transform_mesh
@@ -194,13 +201,29 @@ class WorkerSession:
         return mesh if matrix is None else transform_mesh(mesh, matrix, self._kernel)
 
     def read_manifest(self, text: str) -> None:
-        """Keep the bundle's ``manifest.json`` (its text) for the level methods."""
+        """Keep the bundle's ``manifest.json`` (its text) for the level methods.
+
+        The parts they use are checked here, once (:func:`client_py.bundle.plan_levels`).
+
+        Raises
+        ------
+        ManifestError
+            Not JSON (or nested too deep to parse), not an object, or tiles that
+            :func:`client_py.bundle.plan_level` refuses: a ``PatchFormatError``.
+        ValueError
+            ``text`` is not a string or bytes.
+        """
+        if not isinstance(text, str | bytes | bytearray):
+            raise ValueError(f"text must be the manifest's JSON text, got {type(text).__name__}")
         try:
             manifest = json.loads(text)
-        except ValueError as exc:
-            raise ValueError(f"the manifest is not valid JSON: {exc}") from None
+        except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError
+            reason = "nested too deep" if isinstance(exc, RecursionError) else str(exc)
+            raise ManifestError("manifest.json", f"is not valid JSON: {reason}") from None
         if not isinstance(manifest, dict):
-            raise ValueError(f"the manifest must be a JSON object, got {type(manifest).__name__}")
+            raise ManifestError("manifest.json", "must be a JSON object, got "
+                                f"{type(manifest).__name__}")
+        plan_levels(manifest)  # a manifest the level methods cannot plan from fails here
         self._manifest = manifest
 
     def _manifest_read(self) -> dict:
@@ -220,10 +243,9 @@ class WorkerSession:
             ``spans_per_tile``: the manifest's (``None`` without detail tiles).
         """
         manifest = self._manifest_read()
-        detail = (manifest.get("tiles") or {}).get("detail") or {}
         return {"levels": [plan.to_dict() for plan in plan_levels(manifest)],
                 "max_resolution": PLY_MAX_RESOLUTION,
-                "spans_per_tile": detail.get("spans_per_tile")}
+                "spans_per_tile": detail_spans(manifest)}
 
     def level_ply(self, level: int, fresh: Mapping[str, bytes] | None = None,
                   textures: Iterable[Mapping] = ()) -> PlyFile:

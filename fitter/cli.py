@@ -21,7 +21,13 @@ from client_py import (
     tessellate_grid,
     write_ply,
 )
-from client_py.bundle import BASE_RESOLUTION, PLY_MAX_RESOLUTION, plan_level, write_level_ply
+from client_py.bundle import (
+    BASE_RESOLUTION,
+    PLY_MAX_RESOLUTION,
+    base_file,
+    plan_level,
+    write_level_ply,
+)
 from client_py.errors import TesseraError
 
 from .fitting.options import OptionError
@@ -100,21 +106,26 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
 
     try:
         manifest = json.loads((bundle / "manifest.json").read_text())
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
         raise UserError(f"{bundle / 'manifest.json'}: not a readable manifest: {exc}") from None
-    try:
+    try:  # file names come confined to the bundle (client_py.bundle.check_file_name)
         plan = plan_level(manifest, args.level)
-        surface = read_patch((bundle / manifest.get("base", {}).get("file", "base.tsp"))
-                             .read_bytes())
+        surface = read_patch((bundle / base_file(manifest)).read_bytes())
         tiles = [read_detail_tile((bundle / name).read_bytes()) for name in plan.detail_files]
-    except (OSError, ValueError) as exc:  # PatchFormatError is a ValueError
+    except PatchFormatError as exc:  # a bad file or manifest (ManifestError)
+        raise UserError(f"{bundle}: {exc}") from None
+    except (OSError, ValueError) as exc:  # a missing file; a --level the bundle lacks
         raise UserError(f"{bundle}: {exc}") from None
     images = []
     for node in plan.texture_nodes:
-        with Image.open(bundle / node["file"]) as im:
-            rgb = im.convert("RGB")
-            images.append(TextureImage(node["level"], node["i"], node["j"], rgb.width,
-                                       rgb.height, rgb.tobytes()))
+        try:
+            with Image.open(bundle / node["file"]) as im:
+                rgb = im.convert("RGB")
+                images.append(TextureImage(node["level"], node["i"], node["j"], rgb.width,
+                                           rgb.height, rgb.tobytes()))
+        except (OSError, ValueError) as exc:  # PIL.UnidentifiedImageError is an OSError
+            raise UserError(f"{bundle / node['file']}: not a usable texture tile: {exc}") \
+                from None
     out = Path(args.output)
     texture_file = None
     if args.texture:

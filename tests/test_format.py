@@ -193,6 +193,8 @@ def flip(data: bytes, offset: int) -> bytes:
 def corrupt_cases():
     data = small_file()
     raw = payload_of(data)
+    meta_len = len(small_patch_meta())
+    meta_at = len(raw) - meta_len - 4
     return [
         ("abc", 0, "expected bytes, got str"),
         (b"PK\x03\x04" + data[4:], 0, "not a Tessera patch"),
@@ -205,7 +207,8 @@ def corrupt_cases():
         (reframe(raw, flags=0x40), 6, "unknown flags 0x0040"),
         (reframe(raw, p=0), 8, "degree p = 0 outside 1..15"),
         (reframe(raw, n_v=1), 12, "n_v = 1 control points < degree"),
-        (reframe(raw, n_u=65535, n_v=65535), 10, "exceeds 16777216 control points"),
+        (reframe(raw, n_u=65535, n_v=65535), 10, "n_u = 65535 control points > 1024 per side"),
+        (reframe(raw, n_u=1024, n_v=257), 10, "grid 1024x257 exceeds 262144 control points"),
         (reframe(raw, bits=31), 14, "bits = 31 outside 2..30"),
         (reframe(raw, reserved=7), 15, "reserved byte is 7"),
         (reframe(raw, raw=10**9), 20, "exceeds the"),
@@ -216,7 +219,9 @@ def corrupt_cases():
          None, "ends early"),
         (reframe(raw, blob=zlib.compress(raw) + b"xx", size=len(zlib.compress(raw)) + 2),
          None, "2 bytes after the compressed payload"),
-        (reframe(raw[:40]), None, "needs 24 bytes, 8 remain"),
+        (reframe(raw[:40]), 20, "payload size 40 is below the 491 bytes a 6x5 grid needs"),
+        (reframe(raw[:meta_at] + struct.pack("<I", meta_len + 16) + raw[meta_at + 4 :]),
+         None, f"metadata needs {meta_len + 16} bytes, {meta_len} remain"),
         (reframe(raw + b"\0\0"), None, "2 bytes left after metadata"),
         (reframe(raw[:32] + struct.pack("<d", math.nan) + raw[40:]), 32, "knots U holds a non-"),
         (reframe(raw[:32] + struct.pack("<3d", 1.5, 0.5, 1.0) + raw[56:]), HEADER_SIZE,

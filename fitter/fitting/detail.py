@@ -245,8 +245,9 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
     per level the RMS and max of ``e`` over all samples. With ``redraw`` the
     tiles carry drawn masks (module docstring).
     """
-    if not (isinstance(levels, int) and 0 <= levels <= layers.MAX_LEVEL):
-        raise ValueError(f"levels must be an integer in 0..{layers.MAX_LEVEL}, got {levels!r}")
+    if not (isinstance(levels, int) and 0 <= levels <= layers.MAX_LEVEL + 1):  # 0..MAX_LEVEL
+        raise ValueError(f"levels must be an integer in 0..{layers.MAX_LEVEL + 1}, "
+                         f"got {levels!r}")
     if not step_factor > 0:
         raise ValueError(f"step_factor must be positive, got {step_factor!r}")
     pyramid = DetailPyramid(degree, spans)
