@@ -33,6 +33,9 @@ METHODS = ("tessera", "paper", "linear")
 #: ``auto`` and the maps of ``fitter.fitting.parameterize.KINDS`` (tests/test_options.py
 #: checks that the two agree; that module needs numpy, this one must not)
 PROJECTIONS = ("auto", "plane", "cylinder", "sphere")
+#: ``auto`` and the axes of ``fitter.fitting.orient.AXES`` (tests/test_orient.py checks that
+#: the two agree)
+UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 GRID_SIDE_LIMIT = 1024
 DEFAULT_MAX_GRID = 128  # max_grid = None: the grid grows to max(128, its largest side)
 FIT_SAMPLE = 60_000  # default of samples
@@ -209,6 +212,10 @@ OPTIONS: tuple[Option, ...] = (
            cli="--max-grid", form="max_grid"),
     Option("projection", "choice", "auto", "Projection", "map to the parameter domain",
            choices=PROJECTIONS, cli="--projection", form="projection"),
+    Option("up", "choice", "auto", "Up direction",
+           "the object's up axis in scan coordinates for the first view and the thumbnail "
+           "(auto: the format's axis, else a flat base, else +y)", choices=UP_AXES,
+           cli="--up", form="up"),
     Option("title", "text", None, "Title", "the object's title", none="the scan's file name"),
     Option("feature_strength", "float", 4.0, "Feature strength",
            "how much denser the tessera method samples where local PCA finds features "
@@ -246,7 +253,8 @@ class FitOptions:
     patch file, or ``None`` for the fewest bits that keep the fit's RMS within 0.5 %
     (``fitter.fitting.compact``); max_error : target RMS in scan units (grows the grid);
     max_grid : cap for that growth (``None``: :attr:`largest_grid`); projection : ``auto``
-    or a map; title : the object's title; feature_strength : how much denser the tessera
+    or a map; up : the object's up axis (``auto``: found by ``fitter.fitting.orient``);
+    title : the object's title; feature_strength : how much denser the tessera
     method samples where local PCA finds features (0: uniform); seed, samples : of the
     scan points the tessera refinement fits; detail_levels : depth of the detail pyramid
     (``None``: as the point density allows); detail_spans : knot spans per detail tile
@@ -261,6 +269,7 @@ class FitOptions:
     max_error: float | None = _DEFAULT["max_error"]
     max_grid: int | None = _DEFAULT["max_grid"]
     projection: str = _DEFAULT["projection"]
+    up: str = _DEFAULT["up"]
     title: str | None = _DEFAULT["title"]
     feature_strength: float = _DEFAULT["feature_strength"]
     seed: int = _DEFAULT["seed"]

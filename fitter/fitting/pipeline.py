@@ -65,6 +65,7 @@ from .fit import (
 from .io.scan import Scan, ScanError
 from .nurbs import PatchModel
 from .options import FitOptions
+from .orient import find_view
 from .parameterize import Coverage, choose_projection, trim_cells
 from .sections import section_matrix, section_shape
 from .stages import check_stage
@@ -400,7 +401,9 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
     ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
-    -> seconds); ``error_grid`` (RMS per ``(u, v)`` cell, ``error_grid``).
+    -> seconds); ``error_grid`` (RMS per ``(u, v)`` cell, ``error_grid``); ``view`` (the
+    object's ``up`` and ``front`` in scan coordinates and the rules that chose them,
+    ``fitter.fitting.orient.find_view``).
     """
     scan, cov, points = projected.scan, projected.coverage, projected.scan.points
     proj = cov.projection
@@ -439,6 +442,7 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
         "tiles": tiles,
         "timings": dict(timings),
         "error_grid": error_grid(covered_dev),
+        "view": find_view(scan, options.up).to_manifest(),
     }
 
 
