@@ -230,3 +230,57 @@ def test_api_objects_from_the_browser(page, live_server):
     relief = next(o for o in objects if o["id"] == "relief")
     page.goto(live_server.url + relief["viewer_url"] + f"?resolution={RESOLUTION}")
     assert page.title().startswith("Carved relief")
+
+
+# ------------------------------------------------ the first view and the turntable (issue 14)
+def _camera(page) -> dict:
+    return {k: np.array(v) for k, v in page.evaluate("window.tessera.camera()").items()}
+
+
+def _direction(camera: dict) -> np.ndarray:
+    offset = camera["position"] - camera["target"]
+    return offset / np.linalg.norm(offset)
+
+
+def test_first_view_is_upright_and_from_the_front(viewer, web_collection):
+    """After load the camera's up is the manifest's up and it looks from the front, 10 degrees
+    above the horizon (web/src/camera-view.js TILT_DEG)."""
+    view = json.loads((web_collection / "relief" / "manifest.json").read_text())["view"]
+    viewer.click("#fit-view")
+    camera = _camera(viewer)
+    np.testing.assert_allclose(camera["up"], view["up"], atol=1e-6)
+    up, front = np.array(view["up"]), np.array(view["front"])
+    tilt = np.radians(10)
+    np.testing.assert_allclose(_direction(camera), np.cos(tilt) * front + np.sin(tilt) * up,
+                               atol=1e-5)
+
+
+def test_orbiting_keeps_up_and_front_and_reset_restore_the_first_view(viewer, web_collection):
+    view = json.loads((web_collection / "relief" / "manifest.json").read_text())["view"]
+    viewer.click("#fit-view")
+    first = _camera(viewer)
+    box = viewer.locator("#view").bounding_box()
+    x, y = box["x"] + box["width"] * 0.6, box["y"] + box["height"] * 0.5
+    viewer.mouse.move(x, y)
+    viewer.mouse.down()
+    viewer.mouse.move(x + 180, y + 60, steps=8)
+    viewer.mouse.up()
+    turned = _camera(viewer)
+    assert np.degrees(np.arccos(np.clip(_direction(turned) @ _direction(first), -1, 1))) > 20
+    np.testing.assert_allclose(turned["up"], view["up"], atol=1e-6)  # a turntable: up stays
+    # a drag far upwards stops at the polar limit instead of turning over the pole
+    viewer.mouse.move(x, y)
+    viewer.mouse.down()
+    viewer.mouse.move(x, y + 2000, steps=10)
+    viewer.mouse.up()
+    polar = np.arccos(np.clip(_direction(_camera(viewer)) @ np.array(view["up"]), -1, 1))
+    assert 0.1 < polar < np.pi - 0.1
+    viewer.mouse.wheel(0, -600)  # zoom in
+    viewer.wait_for_timeout(200)
+    viewer.click("#front-view")
+    front = _camera(viewer)
+    np.testing.assert_allclose(_direction(front), _direction(first), atol=1e-5)
+    viewer.click("#fit-view")
+    reset = _camera(viewer)
+    for key in ("position", "target", "up"):
+        np.testing.assert_allclose(reset[key], first[key], rtol=1e-5, atol=1e-6)

@@ -149,6 +149,10 @@ function exposeTestHooks({ viewer, base, tiles, tilesStarted }) {
     projection: Array.from(viewer.camera.projectionMatrix.elements),
     view: Array.from(viewer.camera.matrixWorldInverse.elements),
   });
+  window.tessera.camera = () => ({
+    up: viewer.camera.up.toArray(), position: viewer.camera.position.toArray(),
+    target: viewer.controls.target.toArray(),
+  });
   window.tessera.regionMeshes = () => {
     const layer = tiles();
     if (!layer) return [];
@@ -220,6 +224,7 @@ async function main() {
   recordWorkerStats(ready);
   base.domain = ready.patch.domain;
   facts.describe(manifest, ready, stats);
+  viewer.setObjectView(manifest.view || null); // older bundles have none: the fallback framing
   const target = await showFirstMesh(base);
 
   const { TileLayer } = await tileModule;
@@ -227,6 +232,7 @@ async function main() {
   settleTiles();
   const errorMap = new ErrorMapControl(manifest, viewer);
   $("fit-view").addEventListener("click", () => viewer.fitView());
+  $("front-view").addEventListener("click", () => viewer.showFront());
 
   await offerPly(new PlyDownload({ worker, base, errorMap, config, stats, onError: showError }),
                  worker, manifest, ready);

@@ -1,5 +1,6 @@
-// Viewer: the three.js scene that shows a tessellated patch — orbit, zoom, pan, fit-to-view,
-// an error-map overlay, detail regions superimposed on the base; rendering on demand (only
+// Viewer: the three.js scene that shows a tessellated patch — a turntable orbit about the
+// object's up (the manifest's `view`, web/src/camera-view.js), zoom, pan, front and reset
+// views, an error-map overlay, detail regions superimposed on the base; rendering on demand (only
 // when the view or the meshes change).
 //
 // Detail regions (web/src/tile-layer.js) are meshes over quadtree rectangles of the patch's
@@ -9,6 +10,8 @@
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+
+import { frontView, MAX_POLAR, MIN_POLAR } from "./camera-view.js";
 
 const STONE = 0xd9cfbf;
 export const BACKGROUND = 0x23262b;
@@ -118,6 +121,7 @@ export class Viewer {
     };
     this.controls = new OrbitControls(this.camera, canvas);
     this.controls.addEventListener("change", () => this.render());
+    this.objectView = null; // {up, front} in scan coordinates, or null: the fallback framing
     this.onRender = null;
     this.insets = { left: 0, bottom: 0 };
     this._resizeObserver = new ResizeObserver(() => this.resize());
@@ -185,10 +189,74 @@ export class Viewer {
     this.render();
   }
 
-  /** Frame the object, seen from the side its normals face on average (a relief's front),
-   *  its longest extent horizontal, centred in the part of the canvas the panel leaves free. */
+  /**
+   * The object's up and front (the manifest's `view`: unit 3-vectors in scan coordinates, the
+   * frame of the meshes). The camera's up becomes the object's up and the controls turn about
+   * it like a turntable, never over the poles. Call before the first mesh; null keeps the
+   * fallback framing (bundles without `view`).
+   * @param {{up: number[], front: number[]} | null} view
+   */
+  setObjectView(view) {
+    this.objectView = view ? { up: [...view.up], front: [...view.front] } : null;
+    const up = view ? new THREE.Vector3(...view.up).normalize() : new THREE.Vector3(0, 1, 0);
+    this.camera.up.copy(up);
+    // OrbitControls measures its polar angle from the up it read at construction (_quat,
+    // _quatInverse); a new up must reach them, or the orbit would turn about the old axis.
+    this.controls._quat.setFromUnitVectors(up, new THREE.Vector3(0, 1, 0));
+    this.controls._quatInverse.copy(this.controls._quat).invert();
+    this.controls.minPolarAngle = view ? MIN_POLAR : 0;
+    this.controls.maxPolarAngle = view ? MAX_POLAR : Math.PI;
+    if (this.mesh) this.fitView();
+  }
+
+  /** The first view: with an object view, its front from a little above with its up as
+   *  screen-up (web/src/camera-view.js); without, the fallback framing. Centred in the part
+   *  of the canvas the panel leaves free. */
   fitView() {
     if (!this.mesh) return;
+    if (!this.objectView) {
+      this._fallbackView();
+      return;
+    }
+    const sphere = this.drawn.sphere;
+    const pose = frontView({
+      center: sphere.center.toArray(), radius: sphere.radius, up: this.objectView.up,
+      front: this.objectView.front, fovDeg: this.camera.fov, aspect: this.visibleAspect(),
+    });
+    this._applyPose(pose, pose.distance);
+  }
+
+  /** Turn to the front, keeping the current distance to the object's centre. */
+  showFront() {
+    if (!this.mesh) return;
+    if (!this.objectView) {
+      this._fallbackView();
+      return;
+    }
+    const sphere = this.drawn.sphere;
+    const pose = frontView({
+      center: sphere.center.toArray(), radius: sphere.radius, up: this.objectView.up,
+      front: this.objectView.front, fovDeg: this.camera.fov, aspect: this.visibleAspect(),
+    });
+    this._applyPose(pose, this.camera.position.distanceTo(this.controls.target));
+  }
+
+  _applyPose(pose, distance) {
+    const target = new THREE.Vector3(...pose.target);
+    const look = new THREE.Vector3(...pose.position).sub(target).normalize();
+    this.camera.up.set(...pose.up);
+    this.camera.position.copy(target).addScaledVector(look, distance);
+    this.camera.near = Math.min(pose.near, distance / 100);
+    this.camera.far = Math.max(pose.far, distance * 100);
+    this.camera.updateProjectionMatrix();
+    this.controls.target.copy(target);
+    this.controls.update();
+    this.render();
+  }
+
+  /** Bundles without `view`: the object seen from the side its normals face on average (a
+   *  relief's front), its longest extent horizontal. */
+  _fallbackView() {
     const sphere = this.drawn.sphere;
     const facing = meanNormal(this.drawn.normals);
     const right = principalAxis(this.drawn.positions, sphere.center, facing);
