@@ -15,6 +15,19 @@ fetched by trimesh through ``_HashingResolver``, which records each file's size
 and SHA-256 in ``source["files"]``, and a missing one in ``source["warnings"]``.
 STL stores three vertices per triangle; exact duplicates are merged (first
 occurrence order) so the points are the surface's vertices, not a triple copy.
+
+Text formats (OBJ and its MTL, OFF, ASCII STL) are read as UTF-8 and, when they
+are not UTF-8, as Latin-1: their keywords and numbers are ASCII, so only names and
+comments can hold other bytes, and Latin-1 maps every byte to a character. The
+text goes to trimesh re-encoded as UTF-8 (trimesh would otherwise guess the
+encoding with ``charset_normalizer``, which is not a dependency: one fewer
+package, and no guess). A cp1252 name comes out as its Latin-1 reading, which
+differs only in bytes 0x80-0x9F; the source's warnings say so.
+
+Every failure is a ``ScanError`` naming the file and the problem: glTF/GLB layout
+is checked first by ``fitter.fitting.io.gltf``; what trimesh's loaders raise on
+corrupt content (listed in ``TRIMESH_ERRORS``, read from trimesh's source) is
+reported with its reason.
 """
 
 from __future__ import annotations
@@ -26,21 +39,51 @@ from typing import Any
 
 import numpy as np
 
+from .gltf import check_gltf
 from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source
 from .source import GZIP_ERRORS, HashedInput, file_record
 
-#: what trimesh's loaders raise on corrupt input (caught and reported as ScanError)
+#: what trimesh's loaders raise on corrupt input (caught and reported as ScanError):
+#: numpy and parsing errors throughout; ``AssertionError`` from the glTF reader's layout
+#: asserts (``exchange/gltf``: a view longer than its buffer's actual data); ``NameError``
+#: from the OFF reader's header check (``exchange/off.py``); ``OSError`` from the resolver
+#: (a companion file missing or unreadable)
 TRIMESH_ERRORS = (ValueError, IndexError, KeyError, TypeError, AttributeError, struct.error,
-                  UnicodeDecodeError, OverflowError, NotImplementedError, *GZIP_ERRORS)
+                  UnicodeDecodeError, OverflowError, NotImplementedError, AssertionError,
+                  NameError, OSError, *GZIP_ERRORS)
+#: what turning trimesh's output (lists or arrays of any shape) into ours raises
+ARRAY_ERRORS = (ValueError, TypeError, IndexError, KeyError, AttributeError,
+                np.linalg.LinAlgError)
+#: formats trimesh reads as text (STL only when it is ASCII: ``_check_stl``)
+TEXT_FORMATS = ("obj", "off", "stl")
+#: companion files that are text (re-encoded like the main file)
+TEXT_COMPANIONS = (".mtl",)
 
 
-def _hashing_resolver(path: Path, records: list[dict], missing: list[str]) -> Any:
+def text_as_utf8(data: bytes) -> tuple[bytes, bool]:
+    """``(data as UTF-8, whether it was re-read as Latin-1)``: UTF-8 text unchanged,
+    anything else decoded as Latin-1 and re-encoded (see the module docstring)."""
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1").encode("utf-8"), True
+    return data, False
+
+
+def _hashing_resolver(path: Path, records: list[dict], missing: list[str],
+                      warnings: list[str]) -> Any:
     from trimesh.resolvers import FilePathResolver
 
+    folder = path.resolve().parent
+
     class _HashingResolver(FilePathResolver):
-        """A trimesh resolver that records every companion file it hands out."""
+        """A trimesh resolver that records every companion file it hands out, confined
+        to the scan's folder (trimesh < 5 would follow ``../`` and absolute names)."""
 
         def get(self, name: str) -> bytes:
+            if not (folder / name.strip()).resolve().is_relative_to(folder):
+                missing.append(name)
+                raise ValueError(f"companion file {name!r} is outside the scan's folder")
             try:
                 data = super().get(name)
             except (OSError, ValueError):
@@ -48,6 +91,10 @@ def _hashing_resolver(path: Path, records: list[dict], missing: list[str]) -> An
                 raise
             if not any(r["name"] == name for r in records):
                 records.append(file_record(name, data, role="companion"))
+            if name.lower().endswith(TEXT_COMPANIONS):
+                data, recoded = text_as_utf8(data)
+                if recoded:
+                    warnings.append(f"companion file {name!r} is not UTF-8: read as Latin-1")
             return data
 
     return _HashingResolver(str(path))
@@ -68,27 +115,40 @@ def load_mesh(path: Path, gzipped: bool, file_type: str) -> Scan:
 def scan_from_trimesh(path: Path, file_type: str, data: bytes, record: dict, gzipped: bool,
                       units: str = "unknown", extra_source: dict | None = None) -> Scan:
     """Parse ``data`` (the whole decompressed file) with trimesh's loader for ``file_type``."""
+    name = path.name
+    if file_type == "stl":  # checks of our own first: a bad file is refused before the import
+        _check_stl(data, name)
+    if file_type in ("gltf", "glb"):
+        check_gltf(data, file_type, name)
     from trimesh.exchange.load import mesh_loaders
 
-    name = path.name
     records: list[dict] = [record]
     missing: list[str] = []
-    resolver = _hashing_resolver(path, records, missing)
-    if file_type == "stl":
-        _check_stl(data, name)
+    warnings: list[str] = []
+    resolver = _hashing_resolver(path, records, missing, warnings)
+    if file_type in TEXT_FORMATS and not _is_binary_stl(data):
+        data, recoded = text_as_utf8(data)
+        if recoded:
+            warnings.append(f"{name} is not UTF-8: read as Latin-1")
     loader = mesh_loaders[file_type]
     try:
         kwargs = loader(file_obj=io.BytesIO(data), file_type=file_type, resolver=resolver)
     except TRIMESH_ERRORS as exc:
-        raise ScanError(f"{name}: unreadable {file_type.upper()} content "
-                        f"({type(exc).__name__}: {exc})") from None
-    parts = _flatten(kwargs)
+        raise ScanError(_loader_failure(name, file_type, exc, missing)) from None
     source = new_source(name, str(path), file_type, "gzip" if gzipped else None, "trimesh")
     source.update(bytes=record["bytes"], sha256=record["sha256"], files=records,
                   hash_method="sha256 of each file as stored, computed on the single read",
                   **(extra_source or {}))
+    source["warnings"] += warnings
     source["warnings"] += [f"companion file {m!r} not found" for m in dict.fromkeys(missing)]
-    arrays = _combine(parts, source["warnings"], name)
+    try:
+        arrays = _combine(_flatten(kwargs), source["warnings"], name)
+    except ScanError:
+        raise
+    except ARRAY_ERRORS as exc:  # e.g. ragged vertex rows from a cut-short ASCII PLY
+        raise ScanError(f"{name}: unusable {file_type.upper()} content: the geometry read "
+                        f"does not form arrays of points and triangles ({type(exc).__name__}: "
+                        f"{exc})") from None
     if file_type == "stl" and arrays["faces"] is not None:
         arrays["points"], arrays["faces"] = _merge_duplicates(arrays["points"], arrays["faces"])
     return make_scan(name, arrays["points"], normals=arrays["normals"], colors=arrays["colors"],
@@ -96,12 +156,29 @@ def scan_from_trimesh(path: Path, file_type: str, data: bytes, record: dict, gzi
                      units=units, source=source)
 
 
+def _loader_failure(name: str, file_type: str, exc: Exception, missing: list[str]) -> str:
+    """The message of a trimesh loader's failure: what is wrong, in our words where we can."""
+    kind = file_type.upper()
+    if missing and missing[-1] in str(exc):
+        return (f"{name}: cannot read its companion file {missing[-1]!r} (missing, unreadable "
+                f"or outside the scan's folder: {exc})")
+    if isinstance(exc, AssertionError):  # the glTF reader's asserts, after check_gltf
+        return (f"{name}: inconsistent {kind} layout: a bufferView or accessor reaches past "
+                "the data its buffer actually holds (shorter than its byteLength)")
+    detail = str(exc) or "no detail given"
+    return f"{name}: unreadable {kind} content ({type(exc).__name__}: {detail:.300})"
+
+
+def _is_binary_stl(data: bytes) -> bool:
+    """84 + 50 n bytes for the n triangles its header states."""
+    return len(data) >= 84 and len(data) == 84 + 50 * struct.unpack("<I", data[80:84])[0]
+
+
 def _check_stl(data: bytes, name: str) -> None:
     """A binary STL is 84 + 50 n bytes for the n its header states; else it must be ASCII."""
-    if len(data) >= 84:
-        n = struct.unpack("<I", data[80:84])[0]
-        if len(data) == 84 + 50 * n:
-            return
+    if _is_binary_stl(data):
+        return
+    n = struct.unpack("<I", data[80:84])[0] if len(data) >= 84 else 0
     if data[:5].lower() == b"solid" and b"facet" in data[:4096].lower():
         return
     stated = f"its header states {n} triangles = {84 + 50 * n} bytes, " if len(data) >= 84 else ""

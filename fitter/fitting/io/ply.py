@@ -21,6 +21,14 @@ so the reader knows before touching the body which path fits:
 * **everything else** (binary meshes, polygons, vertex elements with list
   properties): trimesh's PLY loader on the bytes read once (``fitter.fitting.io.mesh``).
 
+Before any of these allocates, the counts the header claims are checked
+against the bytes the file can hold after the header (``check_claimed_counts``):
+an ASCII record takes at least ``MIN_ASCII_PROPERTY_BYTES`` per property (a digit
+and a separator), a binary one its record size (a list property at least its
+count field), so a 300-byte file claiming 10^12 vertices is refused at once
+instead of allocating 21.8 TiB. For ``.ply.gz`` the bound is the compressed size
+times ``DEFLATE_MAX_RATIO``; the readers then allocate only as data arrives.
+
 Recognised vertex properties: ``x y z`` (required), normals ``nx ny nz``, colours
 ``red green blue`` (or ``r g b``, ``diffuse_red ...``; uchar as is, floats taken
 as 0..1). Others (``confidence``, ``intensity``, ``alpha``...) are listed in
@@ -32,6 +40,8 @@ from __future__ import annotations
 
 import hashlib
 import io
+import itertools
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +54,11 @@ from .source import CHUNK_BYTES, GZIP_ERRORS, HashedInput, file_record, read_exa
 CHUNK_VERTICES = 1 << 20
 #: a header longer than this is not a PLY header
 MAX_HEADER_BYTES = 1 << 20
+#: fewest bytes one property of an ASCII record takes: a digit and a separator (``"0 "``)
+MIN_ASCII_PROPERTY_BYTES = 2
+#: deflate's largest expansion (RFC 1951: a 258-byte match in at most 2 bits, ~1032:1), so
+#: a ``.gz`` of ``c`` bytes decompresses to at most ``DEFLATE_MAX_RATIO * c`` bytes
+DEFLATE_MAX_RATIO = 1032
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -56,6 +71,8 @@ NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
 COLOR_NAMES = (("red", "green", "blue"), ("r", "g", "b"),
                ("diffuse_red", "diffuse_green", "diffuse_blue"))
 FACE_ELEMENTS = ("face", "tristrips")
+#: how messages name the records of common elements
+ELEMENT_NOUNS = {"vertex": "vertices", "face": "faces"}
 
 
 @dataclass
@@ -76,6 +93,19 @@ class PlyElement:
     @property
     def is_scalar(self) -> bool:
         return all(p.list_count_type is None for p in self.properties)
+
+    def min_record_bytes(self, binary: bool) -> int:
+        """Fewest bytes one record of this element can take in the file.
+
+        ASCII: ``MIN_ASCII_PROPERTY_BYTES`` per property (a list property at least
+        its count); binary: the scalar types' sizes plus each list's count field
+        (an empty list). An element without properties counts 1 byte (a line), so
+        that its claimed count is bounded too.
+        """
+        if not binary:
+            return max(1, MIN_ASCII_PROPERTY_BYTES * len(self.properties))
+        sizes = [np.dtype(p.list_count_type or p.type).itemsize for p in self.properties]
+        return max(1, sum(sizes))
 
 
 @dataclass
@@ -163,6 +193,59 @@ def parse_header(stream: io.BufferedIOBase, name: str) -> PlyHeader:
     if fmt is None:
         raise ScanError(f"{name}: PLY header has no 'format' line")
     return PlyHeader(fmt, elements, comments, bytes(raw), ignored)
+
+
+def check_claimed_counts(header: PlyHeader, available: int, name: str,
+                         where: str = "") -> None:
+    """Refuse a header whose element counts cannot fit in ``available`` body bytes.
+
+    With ``b_e`` the fewest bytes of one record of element ``e``
+    (:meth:`PlyElement.min_record_bytes`) and ``n_e`` its claimed count, the body
+    needs at least ``sum_e n_e b_e <= available`` bytes; this is checked element by
+    element, before anything is allocated from the counts.
+
+    Parameters
+    ----------
+    header : PlyHeader
+        The parsed header.
+    available : int
+        Upper bound on the bytes that follow the header.
+    name : str
+        File name for the message.
+    where : str
+        How ``available`` was found, for the message (e.g. the gzip bound).
+
+    Raises
+    ------
+    ScanError
+        Naming the element, its claimed count, the bytes that needs and how many
+        records of it the file can hold.
+    """
+    binary = header.byte_order is not None
+    remaining = available
+    for element in header.elements:
+        per_record = element.min_record_bytes(binary)
+        need = element.count * per_record
+        if need > remaining:
+            kind = "binary" if binary else "ASCII"
+            noun = ELEMENT_NOUNS.get(element.name, f"{element.name!r} elements")
+            room = remaining // per_record
+            raise ScanError(
+                f"{name}: truncated {kind} PLY: the header promises {element.count} {noun} "
+                f"but the file holds only {room} at most: {remaining} bytes are left for them "
+                f"after the header{where}, and one takes at least {per_record} bytes "
+                f"({room} whole {noun})")
+        remaining -= need
+
+
+def _body_bytes_bound(path: Path, gzipped: bool, header: PlyHeader) -> tuple[int, str]:
+    """Upper bound on the bytes after the header, and how it was found (for messages)."""
+    size = path.stat().st_size
+    if not gzipped:
+        return max(0, size - len(header.raw)), ""
+    return (size * DEFLATE_MAX_RATIO,
+            f" (a {size}-byte gzip file decompresses to at most {DEFLATE_MAX_RATIO} times "
+            f"its size)")
 
 
 def _parse_property(words: list[str], name: str, lineno: int, text: str) -> PlyProperty:
@@ -253,6 +336,8 @@ def load_ply(path: Path, gzipped: bool) -> Scan:
     with HashedInput(path, gzipped) as inp:
         try:
             header = parse_header(inp.stream, name)
+            available, where = _body_bytes_bound(path, gzipped, header)
+            check_claimed_counts(header, available, name, where)
             units = units_from_comments(header.comments)
             if _is_point_cloud(header) and header.byte_order and not gzipped:
                 inp.close()
@@ -310,13 +395,8 @@ def _load_memmap(path: Path, header: PlyHeader, units: str) -> Scan:
     layout = _VertexLayout.of(element, name)
     dtype = header.vertex_dtype()
     start = len(header.raw)
-    need = element.count * dtype.itemsize
+    need = element.count * dtype.itemsize  # the file holds it: check_claimed_counts
     size = path.stat().st_size
-    if size - start < need:
-        have = size - start
-        raise ScanError(f"{name}: truncated binary PLY: the header promises {element.count} "
-                        f"vertices ({need} bytes of {dtype.itemsize} each) but only {have} "
-                        f"bytes follow the header ({have // dtype.itemsize} whole vertices)")
     hasher = hashlib.sha256()
     mapped = np.memmap(path, dtype=np.uint8, mode="r")
     try:
@@ -380,8 +460,12 @@ def _read_ascii(stream: io.BufferedIOBase, header: PlyHeader, layout: _VertexLay
         return arrays
     text = io.TextIOWrapper(stream, encoding="ascii", newline=None)
     try:
-        values = np.loadtxt(text, dtype=np.float64, comments=None, ndmin=2,
-                            max_rows=element.count)
+        # islice, not max_rows: loadtxt preallocates max_rows rows, and a gzip body's
+        # claimed count is bounded only loosely; this way memory follows the lines read
+        with warnings.catch_warnings():  # no lines at all: reported below as truncated
+            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+            values = np.loadtxt(itertools.islice(text, element.count), dtype=np.float64,
+                                comments=None, ndmin=2)
     except (ValueError, UnicodeDecodeError) as exc:
         raise ScanError(f"{name}: unreadable ASCII PLY vertex data: {exc}") from None
     finally:
