@@ -259,6 +259,8 @@ def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
     manifest = dict(on_disk)
     assert manifest.pop("options") == {k: (list(x) if isinstance(x, tuple) else x)
                                        for k, x in asdict(options).items()}
+    view = manifest.pop("view")  # added after the reference (issue 14): tests/test_orient.py
+    assert set(view) == {"up", "front", "up_source", "front_source"}
     timings = manifest.pop("timings")
     assert set(timings) <= {"load", "project", "features", "sections", "linear", "refine",
                             "encode", "error", "detail", "texture", "report"}
