@@ -23,7 +23,7 @@ from ...collection.catalog import ConflictError, FieldError, adopt_bundles
 from ...collection.trash import restore_object, trash_object
 from ...collection.uploads import UploadError
 from ...fitting.options import FORM_GROUPS, form_fields
-from .auth import bp, csrf_ok, csrf_token, logged_in, state
+from .auth import bp, client_address, csrf_ok, csrf_token, logged_in, state
 from .service import accept_upload, object_json
 
 
@@ -48,9 +48,15 @@ def login() -> ResponseReturnValue:
     if not csrf_ok(request.form.get("csrf_token")):
         return render_template("admin_login.html", error="The form expired; try again.",
                                next=request.form.get("next", "")), 400
-    if not state().check(request.form.get("token", "")):
-        return render_template("admin_login.html", error="Wrong admin token.",
-                               next=request.form.get("next", "")), 401
+    result = state().check(request.form.get("token", ""), client_address())
+    if not result.ok:
+        error = "Wrong admin token." if result.status == 401 else (
+            f"Too many wrong tokens from this address: try again in {result.retry_after} s."
+            if result.status == 429 else
+            f"The server is busy checking other logins: try again in {result.retry_after} s.")
+        headers = {"Retry-After": str(result.retry_after)} if result.retry_after else {}
+        return render_template("admin_login.html", error=error,
+                               next=request.form.get("next", "")), result.status, headers
     session.clear()
     session["admin"] = state().fingerprint
     csrf_token()  # a fresh CSRF token for the logged-in session
@@ -59,6 +65,9 @@ def login() -> ResponseReturnValue:
 
 @bp.post("/logout")
 def logout() -> ResponseReturnValue:
+    """End the admin's sessions: the session version in the catalog moves on, so this
+    cookie, a copy of it, and every other admin session cookie are void at once."""
+    state().end_sessions()
     session.clear()
     return redirect(url_for("admin.login"))
 
@@ -149,7 +158,7 @@ def edit_object(object_id: str) -> ResponseReturnValue:
         fields = {k: request.form.get(k, "") for k in ("title", "description", "provenance",
                                                        "licence", "units")}
         try:
-            state().catalog().update_object(object_id, **fields)
+            state().catalog().update_object(object_id, fields)
         except FieldError as exc:
             error = str(exc)
         else:
@@ -174,7 +183,7 @@ def unpublish_object(object_id: str) -> ResponseReturnValue:
 def _set_published(object_id: str, published: bool) -> ResponseReturnValue:
     _object_or_404(object_id)
     try:
-        state().catalog().update_object(object_id, published=published)
+        state().catalog().update_object(object_id, {"published": published})
     except ConflictError as exc:
         flash(str(exc))
     return redirect(_safe_next(request.form.get("next")) if request.form.get("next")
