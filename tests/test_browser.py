@@ -284,3 +284,34 @@ def test_orbiting_keeps_up_and_front_and_reset_restore_the_first_view(viewer, we
     reset = _camera(viewer)
     for key in ("position", "target", "up"):
         np.testing.assert_allclose(reset[key], first[key], rtol=1e-5, atol=1e-6)
+
+
+def test_a_bundle_without_view_keeps_the_old_framing(browser, live_server, web_collection):
+    """Bundles written before the manifest's ``view``: the page still starts (framed by the mean
+    normal, as before), and Reset view comes back to that first view."""
+    import shutil
+
+    old = web_collection / "relief-before-view"
+    shutil.copytree(web_collection / "relief", old)
+    try:
+        manifest = json.loads((old / "manifest.json").read_text())
+        del manifest["view"]
+        (old / "manifest.json").write_text(json.dumps(manifest))
+        page = browser.new_page(viewport={"width": 1000, "height": 700})
+        page.goto(f"{live_server.url}/objects/relief-before-view/?resolution={RESOLUTION}")
+        page.wait_for_function(READY, timeout=60_000)
+        assert page.evaluate("document.body.dataset.error || ''") == ""
+        first = _camera(page)
+        box = page.locator("#view").bounding_box()
+        page.mouse.move(box["x"] + 500, box["y"] + 300)
+        page.mouse.down()
+        page.mouse.move(box["x"] + 700, box["y"] + 350, steps=6)
+        page.mouse.up()
+        assert not np.allclose(_camera(page)["position"], first["position"])
+        page.click("#fit-view")
+        reset = _camera(page)
+        for key in ("position", "target", "up"):
+            np.testing.assert_allclose(reset[key], first[key], rtol=1e-5, atol=1e-6)
+        page.close()
+    finally:
+        shutil.rmtree(old)

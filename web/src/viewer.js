@@ -179,6 +179,9 @@ export class Viewer {
     geometry.boundingSphere = this.drawn.sphere;
     const first = this.mesh === null;
     if (first) {
+      // the first mesh frames every later first view (Reset): a refined mesh's slightly
+      // different bounds must not move it
+      this.framing = this.drawn;
       this.mesh = new THREE.Mesh(geometry, this.material);
       this.scene.add(this.mesh);
       this.fitView();
@@ -218,7 +221,7 @@ export class Viewer {
       this._fallbackView();
       return;
     }
-    const sphere = this.drawn.sphere;
+    const sphere = this.framing.sphere;
     const pose = frontView({
       center: sphere.center.toArray(), radius: sphere.radius, up: this.objectView.up,
       front: this.objectView.front, fovDeg: this.camera.fov, aspect: this.visibleAspect(),
@@ -233,7 +236,7 @@ export class Viewer {
       this._fallbackView();
       return;
     }
-    const sphere = this.drawn.sphere;
+    const sphere = this.framing.sphere;
     const pose = frontView({
       center: sphere.center.toArray(), radius: sphere.radius, up: this.objectView.up,
       front: this.objectView.front, fovDeg: this.camera.fov, aspect: this.visibleAspect(),
@@ -257,9 +260,9 @@ export class Viewer {
   /** Bundles without `view`: the object seen from the side its normals face on average (a
    *  relief's front), its longest extent horizontal. */
   _fallbackView() {
-    const sphere = this.drawn.sphere;
-    const facing = meanNormal(this.drawn.normals);
-    const right = principalAxis(this.drawn.positions, sphere.center, facing);
+    const sphere = this.framing.sphere;
+    const facing = meanNormal(this.framing.normals);
+    const right = principalAxis(this.framing.positions, sphere.center, facing);
     let up = new THREE.Vector3().crossVectors(facing, right).normalize();
     // Look from a little above the front, so the relief reads as relief and not as a photo.
     const tilt = THREE.MathUtils.degToRad(20);
