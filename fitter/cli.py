@@ -170,7 +170,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             bar.close()
 
     try:
-        bundle = fit_scan(args.scan, args.output, options, progress)
+        bundle = fit_scan(args.scan, args.output, options, progress,
+                          limits=_input_limits(args), memory_budget=args.memory_budget)
     except (ScanError, OptionError) as exc:
         raise UserError(str(exc)) from None
     finally:
@@ -348,6 +349,69 @@ def _fit_options(args: argparse.Namespace, **extra):  # noqa: ANN202 - a FitOpti
         raise UserError(str(exc)) from None
 
 
+def _byte_count(text: str) -> int:
+    """An argparse type: bytes as ``N``, ``NK``, ``NM`` or ``NG`` (binary units), ``>= 1``."""
+    units = {"k": 1 << 10, "m": 1 << 20, "g": 1 << 30}
+    scale = units.get(text.strip()[-1:].lower(), 1)
+    digits = text.strip()[:-1] if scale > 1 else text.strip()
+    try:
+        value = int(float(digits) * scale)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of bytes such as 2G, 512M or "
+                                         f"1000000, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1 byte, got {text!r}")
+    return value
+
+
+def _ratio(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value >= 1:  # also NaN
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return value
+
+
+#: the fit command's input limits: (flag, InputLimits field, argparse type, help)
+INPUT_LIMIT_FLAGS = (
+    ("--max-points", "max_points", _integer(1), "most points the scan (a .conf: all its "
+     "scans) may hold, counted before they are allocated"),
+    ("--max-expanded-bytes", "max_expanded_bytes", _byte_count, "most bytes its gzip "
+     "streams may decompress to, all files together (e.g. 8G)"),
+    ("--max-ratio", "max_ratio", _ratio, "largest decompressed/compressed ratio of a gzip "
+     "stream"),
+    ("--max-files", "max_files", _integer(1), "most scan files a .conf may name"),
+)
+
+
+def _add_input_limit_arguments(parser: argparse.ArgumentParser) -> None:
+    """The fit command's input limits (``fitter.fitting.io.limits.InputLimits``, whose
+    defaults the help shows) and its memory budget (``fitter.fitting.memory``)."""
+    from .fitting.io.limits import InputLimits
+    from .fitting.memory import DEFAULT_MEMORY_BUDGET
+
+    group = parser.add_argument_group(
+        "input limits", "refuse inputs past these before they are read into memory "
+        "(docs/method.md, 'Input limits and the memory budget')")
+    defaults = InputLimits()
+    for flag, field, kind, text in INPUT_LIMIT_FLAGS:
+        group.add_argument(flag, dest=field, type=kind, default=None,
+                           help=f"{text} (default {getattr(defaults, field):,})")
+    group.add_argument("--memory-budget", type=_byte_count, default=DEFAULT_MEMORY_BUDGET,
+                       help="bytes the fit's largest solve may take; options needing more "
+                       f"are refused (default {DEFAULT_MEMORY_BUDGET >> 30}G)")
+
+
+def _input_limits(args: argparse.Namespace):  # noqa: ANN202 - an InputLimits
+    from .fitting.io.limits import InputLimits
+
+    given = {field: getattr(args, field) for _, field, _, _ in INPUT_LIMIT_FLAGS
+             if getattr(args, field) is not None}
+    return InputLimits(**given)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tessera",
@@ -367,6 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_fit_arguments(fit)
     fit.add_argument("--title", default=None, help="object title (default: the file name)")
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _add_input_limit_arguments(fit)
     fit.set_defaults(run=_cmd_fit)
 
     tess = sub.add_parser(

@@ -10,14 +10,24 @@ decides what the bytes are:
   no part of a client's name ever reaches the file system;
 * a gzip stream (``.gz``) is decompressed once, to a counter, with an absolute
   size limit and a compression-ratio limit (a decompression bomb stops within
-  one chunk of the limit); its content is sniffed from the decompressed head
+  one chunk of the limit: the same counter, ``fitter.fitting.io.source.BoundedReader``,
+  as every scan read); its content is sniffed from the decompressed head
   and the file is kept compressed (``fitter.fitting.io`` reads ``.gz`` itself);
 * a zip archive has every member checked before anything is written (absolute
   names, ``..`` components, drive letters, symbolic links, member count,
   declared sizes and ratios), then is extracted with the sizes counted again
   on the real bytes (declared sizes can lie); it must hold exactly one scan
   (or one Stanford ``.conf`` with its range scans), OBJ materials and textures
-  beside it.
+  beside it; a ``.conf`` has every line checked as the fit will read it
+  (``fitter.fitting.io.conf.check_registration``: each named file inside the
+  ``.conf``'s folder, named once, at most ``max_files``) and every ``.gz`` it names
+  decompressed to the counter, with all of them counting towards one
+  ``max_expanded_bytes``.
+
+The limits are :class:`UploadLimits`: the fitting library's one
+``fitter.fitting.io.limits.InputLimits`` (decompressed bytes, ratio, points, files per
+registration), spelled with the server's ``TESSERA_UPLOAD_*`` settings, plus the request
+size and the zip's member count.
 
 Every refusal is an :class:`UploadError` carrying the HTTP status (400 or 413)
 and a message that says what is wrong.
@@ -38,6 +48,15 @@ from pathlib import Path, PurePosixPath
 from client_py.errors import TesseraError
 
 from ..fitting.io import SUPPORTED_EXTENSIONS
+from ..fitting.io.conf import check_registration, read_conf
+from ..fitting.io.limits import InputBudget, InputLimits
+from ..fitting.io.scan import ScanError
+from ..fitting.io.source import (
+    GZIP_READ_BYTES,
+    BoundedReader,
+    HashingReader,
+    declared_gzip_size,
+)
 
 CHUNK = 1 << 20
 SNIFF_BYTES = 1 << 16
@@ -54,19 +73,20 @@ class UploadError(TesseraError, ValueError):
 
 
 @dataclass(frozen=True)
-class UploadLimits:
-    """Limits of one upload.
+class UploadLimits(InputLimits):
+    """Limits of one upload: the scan read's ``InputLimits`` (whose refusals name the
+    ``TESSERA_UPLOAD_*`` settings) and two of the upload itself.
 
     max_bytes : the request body (default 4 GiB); max_expanded_bytes : the
-    decompressed size of a ``.gz`` or of all a zip's members (default 16 GiB);
-    max_ratio : decompressed / compressed size (default 200, far above real
-    scans: binary PLY compresses 2-4x, ASCII clouds 5-10x); max_members : zip
-    members (default 1000).
+    decompressed size of a ``.gz``, of all a zip's members, or of all the ``.gz`` a
+    ``.conf`` names (default 16 GiB); max_ratio : decompressed / compressed size
+    (default 200, far above real scans: binary PLY compresses 2-4x, ASCII clouds 5-10x);
+    max_points, max_files : as ``InputLimits``; max_members : zip members (default 1000).
     """
 
-    max_bytes: int = 4 << 30
     max_expanded_bytes: int = 16 << 30
-    max_ratio: float = 200.0
+    context: str = "upload"
+    max_bytes: int = 4 << 30
     max_members: int = 1000
 
 
@@ -168,8 +188,13 @@ def _not_a_scan(name: str, head: bytes) -> UploadError:
 
 
 # --------------------------------------------------------------------------- gzip
-def check_gzip(path: Path, limits: UploadLimits) -> bytes:
+def check_gzip(path: Path, limits: UploadLimits, budget: InputBudget | None = None,
+               name: str | None = None) -> bytes:
     """Decompress ``path`` to nowhere within the limits; return the first decompressed bytes.
+
+    ``budget`` (default: a fresh one of ``limits``) is shared by the several ``.gz`` files
+    of one ``.conf``, so that their decompressed bytes count together; ``name`` is the
+    file's name in the messages (default: its stored name).
 
     Raises
     ------
@@ -177,30 +202,49 @@ def check_gzip(path: Path, limits: UploadLimits) -> bytes:
         Corrupt gzip, or output over ``limits.max_expanded_bytes`` or over
         ``limits.max_ratio`` times the compressed size.
     """
-    compressed = path.stat().st_size
-    limit = min(limits.max_expanded_bytes, int(limits.max_ratio * compressed))
+    budget = budget if budget is not None else InputBudget(limits)
     head = bytearray()
-    total = 0
+    buffer = bytearray(CHUNK)
     try:
-        with gzip.open(path, "rb") as stream:
-            while True:
-                chunk = stream.read(CHUNK)
-                if not chunk:
-                    break
+        with open(path, "rb") as raw:
+            source = HashingReader(raw, GZIP_READ_BYTES)
+            bounded = BoundedReader(gzip.GzipFile(fileobj=source, mode="rb"), source,
+                                    name or path.name, path.stat().st_size, budget,
+                                    declared_gzip_size(path))
+            while n := bounded.readinto(buffer):
                 if len(head) < SNIFF_BYTES:
-                    head += chunk[:SNIFF_BYTES - len(head)]
-                total += len(chunk)
-                if total > limit:
-                    raise UploadError(
-                        f"the gzip stream expands beyond {format_size(limit)} from "
-                        f"{format_size(compressed)} (limits: ratio {limits.max_ratio:g}, "
-                        f"{format_size(limits.max_expanded_bytes)}): refused as a "
-                        "decompression bomb")
+                    head += buffer[:min(n, SNIFF_BYTES - len(head))]
+            total = bounded.nbytes
+    except ScanError as exc:
+        raise UploadError(f"refused as a decompression bomb: {exc}") from None
     except (gzip.BadGzipFile, EOFError, zlib.error) as exc:
         raise UploadError(f"the gzip stream is corrupt or truncated: {exc}") from None
     if total == 0:
         raise UploadError("the gzip stream decompresses to 0 bytes (an empty file)")
     return bytes(head)
+
+
+def check_conf(conf: Path, root: Path, limits: UploadLimits) -> None:
+    """Check an uploaded ``.conf`` as the fit will read it: every line parsed, every named
+    file inside the ``.conf``'s folder (within ``root``, the extracted upload), named
+    once, at most ``limits.max_files`` of them, and every ``.gz`` among them decompressed
+    to the counter with one shared ``max_expanded_bytes``.
+
+    Raises
+    ------
+    UploadError
+        Naming the ``.conf`` (relative to ``root``), the line's file and what is wrong.
+    """
+    budget = InputBudget(limits)
+    shown = conf.relative_to(root).as_posix()
+    try:
+        entries, _, _ = read_conf(conf, conf.suffix.lower() == ".gz", budget)
+        listed = check_registration(conf, entries, budget)
+    except ScanError as exc:  # its message starts with the .conf's name: show its path
+        raise UploadError(f"{shown}{str(exc).removeprefix(conf.name)}") from None
+    for file in listed:
+        if file.suffix.lower() == ".gz":
+            check_gzip(file, limits, budget)
 
 
 # ---------------------------------------------------------------------------- zip
@@ -321,7 +365,7 @@ def prepare_scan(received: ReceivedFile, limits: UploadLimits) -> PreparedScan:
         head = fh.read(SNIFF_BYTES)
     name = received.original_name
     if head.startswith(b"\x1f\x8b"):
-        inner = check_gzip(received.path, limits)
+        inner = check_gzip(received.path, limits, name=name or "the upload")
         fmt = sniff_format(inner, None, name)
         if fmt is None:
             raise _not_a_scan(name, inner)
@@ -343,7 +387,9 @@ def prepare_scan(received: ReceivedFile, limits: UploadLimits) -> PreparedScan:
         if suffix == ".gz":
             inner_head = check_gzip(scan, limits)
             suffix = Path(scan.stem).suffix.lower()
-        if suffix != ".conf":
+        if suffix == ".conf":
+            check_conf(scan, extracted, limits)
+        else:
             size = scan.stat().st_size if scan.suffix.lower() != ".gz" else None
             fmt = sniff_format(inner_head, size, scan.name)
             if fmt is None:

@@ -45,7 +45,9 @@ from client_py import TrimMask, read_patch, write_patch
 from . import io as scan_io
 from .bundle import write_bundle
 from .compact import choose_bits, drawn_cells, settle_hidden
-from .detail import DetailPyramid, fit_detail, write_layers
+from .degenerate import check_patch, check_scan_shape
+from .detail import DEGREE as DETAIL_DEGREE
+from .detail import DetailPyramid, auto_levels, fit_detail, write_layers
 from .error import (
     Deviations,
     deviations,
@@ -62,7 +64,9 @@ from .fit import (
     project_points,
     refine_nurbs,
 )
+from .io.limits import InputLimits
 from .io.scan import Scan, ScanError
+from .memory import DEFAULT_MEMORY_BUDGET, MemoryPlan, plan_memory
 from .nurbs import PatchModel
 from .options import FitOptions
 from .orient import find_view
@@ -133,11 +137,11 @@ class _Stages:
             self._name = None
 
 
-def _as_scan(scan: object) -> Scan:
+def _as_scan(scan: object, limits: InputLimits | None = None) -> Scan:
     if isinstance(scan, Scan):
         return scan
     if isinstance(scan, str | os.PathLike):
-        return scan_io.load_scan(Path(scan))
+        return scan_io.load_scan(Path(scan), limits=limits)
     if isinstance(scan, np.ndarray):
         return Scan.from_array(scan)
     raise ScanError(f"scan must be a file path, a Scan or an (N, 3) array, got "
@@ -192,8 +196,9 @@ class ProjectedScan:
     covered_index: np.ndarray
 
 
-def _check_scan(scan: Scan) -> tuple[str, float]:
-    """The scan's name and bounding-box diagonal; a ``ScanError`` if there is nothing to fit."""
+def _check_scan(scan: Scan, projection: str = "auto") -> tuple[str, float]:
+    """The scan's name and bounding-box diagonal; a ``ScanError`` if there is nothing to fit
+    (too few points, or a degenerate cloud: ``fitter.fitting.degenerate.check_scan_shape``)."""
     points = scan.points
     name = scan.source.get("name", "scan")
     if len(points) < MIN_POINTS:
@@ -202,6 +207,7 @@ def _check_scan(scan: Scan) -> tuple[str, float]:
     diagonal = float(np.linalg.norm(hi - lo))
     if not diagonal > 0:
         raise ScanError(f"{name}: all {len(points)} points coincide; there is no surface to fit")
+    check_scan_shape(points, name, projection, MIN_POINTS)
     return name, diagonal
 
 
@@ -220,10 +226,12 @@ def project_scan(scan: Scan, options: FitOptions) -> ProjectedScan:
     Raises
     ------
     ScanError
-        Fewer than ``MIN_POINTS`` points, all points equal, or fewer than
-        ``MIN_POINTS`` covered by the chosen projection.
+        Fewer than ``MIN_POINTS`` points, all points equal, fewer than ``MIN_POINTS``
+        distinct points, collinear points, a plane for a map that needs 3D extent
+        (``fitter.fitting.degenerate``), or fewer than ``MIN_POINTS`` covered by the
+        chosen projection.
     """
-    name, diagonal = _check_scan(scan)
+    name, diagonal = _check_scan(scan, options.projection)
     coverage = choose_projection(scan.points, _unit_normals(scan), options.projection)
     proj = coverage.projection
     local = proj.local(scan.points)
@@ -346,15 +354,35 @@ def fit_base(projected: ProjectedScan, sample: np.ndarray, options: FitOptions,
     return best
 
 
+def plan_fit_memory(projected: ProjectedScan, options: FitOptions,
+                    budget: int = DEFAULT_MEMORY_BUDGET) -> MemoryPlan:
+    """The fit's two largest solves checked against ``budget`` bytes before either is built
+    (``fitter.fitting.memory.plan_memory``): the base on its largest grid, and the detail
+    levels (``options.detail_levels``, or the automatic depth capped to fit).
+
+    Raises
+    ------
+    OptionError
+        ``grid``/``max_grid`` or ``detail_levels``/``detail_spans`` over the budget.
+    """
+    largest = _grid_sizes(options)[-1]
+    n_covered = len(projected.covered_index)
+    rows = (min(options.samples, n_covered) if options.method == "tessera"
+            else int(np.prod(section_shape(n_covered, largest))))
+    return plan_memory(largest, options.degree, rows, options.detail_levels,
+                       auto_levels(n_covered, options.detail_spans), options.detail_spans,
+                       DETAIL_DEGREE, budget)
+
+
 def _fit_layers(projected: ProjectedScan, best: FitResult, options: FitOptions,
-                stages: _Stages) -> tuple[DetailPyramid, list[TextureTile]]:
-    """The residual pyramid (stage ``detail``, ``fitter.fitting.detail``) and the colour
-    pyramid (stage ``texture``, ``fitter.fitting.texture``) over the base ``best``."""
+                plan: MemoryPlan, stages: _Stages) -> tuple[DetailPyramid, list[TextureTile]]:
+    """The residual pyramid (stage ``detail``, ``fitter.fitting.detail``, ``plan``'s levels)
+    and the colour pyramid (stage ``texture``, ``fitter.fitting.texture``) over ``best``."""
     periodic = projected.coverage.projection.periodic_u
     covered = projected.coverage.covered
     stages.start("detail")
     pyramid = fit_detail(best.model, projected.local, best.dev, covered, periodic,
-                         options.detail_levels, stages.report, trim=read_patch(best.data).trim,
+                         plan.detail_levels, stages.report, trim=read_patch(best.data).trim,
                          spans=options.detail_spans)
     stages.start("texture")
     textures = fit_texture(projected.scan, best.dev, covered, periodic, len(pyramid.levels),
@@ -386,7 +414,8 @@ def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
 
 
 def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResult,
-                   tiles: dict, files: dict, timings: dict) -> dict:
+                   tiles: dict, files: dict, timings: dict,
+                   plan: MemoryPlan | None = None) -> dict:
     """The bundle's ``manifest.json`` (``docs/format.md``, "Bundle manifest").
 
     Keys: ``format`` (``"tessera-bundle"``), ``format_version``
@@ -401,7 +430,10 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
     ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
-    -> seconds); ``error_grid`` (RMS per ``(u, v)`` cell, ``error_grid``); ``view`` (the
+    -> seconds); ``error_grid`` (RMS per ``(u, v)`` cell, ``error_grid``); ``memory``, only
+    when the memory budget capped the automatic detail depth
+    (``fitter.fitting.memory.MemoryPlan``: the budget, the estimates of the two largest
+    solves, the detail levels kept and the depth they would have had); ``view`` (the
     object's ``up`` and ``front`` in scan coordinates and the rules that chose them,
     ``fitter.fitting.orient.find_view``).
     """
@@ -442,44 +474,57 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
         "tiles": tiles,
         "timings": dict(timings),
         "error_grid": error_grid(covered_dev),
+        # only when the budget changed the plan, so that an unchanged fit's manifest is too
+        **({"memory": plan.manifest()}
+           if plan is not None and plan.detail_levels_uncapped is not None else {}),
         "view": find_view(scan, options.up).to_manifest(),
     }
 
 
 def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | None = None,
-             progress: Progress | None = None) -> Bundle:
+             progress: Progress | None = None, *, limits: InputLimits | None = None,
+             memory_budget: int = DEFAULT_MEMORY_BUDGET) -> Bundle:
     """Fit ``scan`` (a path, a ``Scan`` or an ``(N, 3)`` array) and write the bundle
     ``out_dir`` (``manifest.json``, ``base.tsp``, ``error.png``, ``error.ply``, tiles),
     replacing a bundle there; it appears whole or not at all (``fitter.fitting.bundle``).
 
+    ``limits`` bounds the read of a path (``fitter.fitting.io.limits``, default
+    ``InputLimits()``); ``memory_budget`` (bytes) the fit's largest solves
+    (``fitter.fitting.memory``).
+
     Raises
     ------
     ScanError
-        Unreadable, empty or non-finite scans, or too few points to fit.
-    ValueError
-        Invalid options.
+        Unreadable, empty or non-finite scans, an input over ``limits``, too few points
+        to fit, a degenerate scan or patch (``fitter.fitting.degenerate``).
+    OptionError
+        Invalid options, or options whose solves exceed ``memory_budget``.
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit_scan(scan, Path(out_dir), options or FitOptions(), progress)
+        return _fit_scan(scan, Path(out_dir), options or FitOptions(), progress, limits,
+                         memory_budget)
 
 
-def _fit_scan(scan: object, out_dir: Path, options: FitOptions,
-              progress: Progress | None) -> Bundle:
+def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progress | None,
+              limits: InputLimits | None, memory_budget: int) -> Bundle:
     options.grid = tuple(options.grid)
     options.validate()
     stages = _Stages(progress)
     stages.start("load")
-    scan = _as_scan(scan)
+    scan = _as_scan(scan, limits)
     stages.start("project")
     projected = project_scan(scan, options)
+    plan = plan_fit_memory(projected, options, memory_budget)  # before any large solve
     sample = _fit_sample(projected, options, stages)
     best = fit_base(projected, sample, options, stages)
-    pyramid, textures = _fit_layers(projected, best, options, stages)
+    check_patch(best.model, projected.name, projected.diagonal)
+    pyramid, textures = _fit_layers(projected, best, options, plan, stages)
     stages.start("report")
     with write_bundle(out_dir) as folder:
         tiles, files = _write_files(folder, projected, best, pyramid, textures, options)
         stages.stop()
-        manifest = build_manifest(projected, options, best, tiles, files, stages.timings)
+        manifest = build_manifest(projected, options, best, tiles, files, stages.timings,
+                                  plan)
         with open(folder / "manifest.json", "w") as fh:
             json.dump(manifest, fh, indent=1, sort_keys=True)
     return Bundle(out_dir, manifest)

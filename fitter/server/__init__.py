@@ -93,6 +93,9 @@ DEFAULTS: dict[str, tuple[Any, str]] = {
     "TESSERA_UPLOAD_MAX_BYTES": (4 << 30, "largest upload accepted (bytes; 413 above)"),
     "TESSERA_UPLOAD_MAX_EXPANDED_BYTES": (16 << 30, "largest decompressed .gz / .zip (bytes)"),
     "TESSERA_UPLOAD_MAX_RATIO": (200.0, "largest decompressed/compressed ratio of an upload"),
+    "TESSERA_UPLOAD_MAX_POINTS": (20_000_000, "most points an uploaded scan (a .conf: all its "
+                                              "scans) may hold, counted before they are read"),
+    "TESSERA_UPLOAD_MAX_FILES": (1000, "most scan files an uploaded .conf may name"),
     "TESSERA_JOB_WORKERS": (0, "fits run at once by `tessera serve` (0: one per core)"),
 }
 

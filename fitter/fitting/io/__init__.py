@@ -20,6 +20,12 @@ Every input is read once; its SHA-256 is computed on that read (streamed in
 chunks, or over the memory map) and stored with its size in ``scan.source``
 for the bundle's provenance. ``thin=h`` keeps one point per voxel of edge
 ``h`` (``fitter.fitting.io.thin``).
+
+Every read is bounded by one ``InputLimits`` (``fitter.fitting.io.limits``: decompressed
+bytes, compression ratio, points, files per registration, paths confined to the
+``.conf``'s folder), the same for the command line and the admin uploads. Each loader
+takes ``(path, gzipped, budget)``: the ``InputBudget`` of the whole read, which a
+``.conf`` shares with every scan it names.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from functools import partial
 from pathlib import Path
 
 from .conf import load_conf
+from .limits import InputBudget, InputLimits
 from .mesh import load_mesh
 from .ply import load_ply
 from .scan import Scan, ScanError
@@ -37,16 +44,16 @@ from .source import check_path
 from .text import load_text
 from .thin import check_voxel_size, thin_scan, voxel_thin_indices
 
-__all__ = ["LOADERS", "SUPPORTED_EXTENSIONS", "Scan", "ScanError", "load_scan", "thin_scan",
-           "voxel_thin_indices"]
+__all__ = ["LOADERS", "SUPPORTED_EXTENSIONS", "InputBudget", "InputLimits", "Scan", "ScanError",
+           "load_scan", "thin_scan", "voxel_thin_indices"]
 
 
-def _load_conf(path: Path, gzipped: bool) -> Scan:
-    return load_conf(path, gzipped, lambda p: _load(p, allow_conf=False))
+def _load_conf(path: Path, gzipped: bool, budget: InputBudget) -> Scan:
+    return load_conf(path, gzipped, budget, lambda p: _load(p, budget, allow_conf=False))
 
 
-#: extension (lower case, without ``.gz``) -> loader(path, gzipped) -> Scan
-LOADERS: dict[str, Callable[[Path, bool], Scan]] = {
+#: extension (lower case, without ``.gz``) -> loader(path, gzipped, budget) -> Scan
+LOADERS: dict[str, Callable[[Path, bool, InputBudget], Scan]] = {
     ".ply": load_ply,
     ".obj": partial(load_mesh, file_type="obj"),
     ".stl": partial(load_mesh, file_type="stl"),
@@ -69,7 +76,7 @@ def _split_extension(path: Path) -> tuple[str, bool]:
     return (suffixes[-1] if suffixes else ""), gzipped
 
 
-def _load(path: Path, allow_conf: bool = True) -> Scan:
+def _load(path: Path, budget: InputBudget, allow_conf: bool = True) -> Scan:
     ext, gzipped = _split_extension(path)
     loader = LOADERS.get(ext)
     if loader is None or (ext == ".conf" and not allow_conf):
@@ -77,10 +84,16 @@ def _load(path: Path, allow_conf: bool = True) -> Scan:
         raise ScanError(f"{path}: unsupported file type {shown!r}; supported: "
                         f"{', '.join(SUPPORTED_EXTENSIONS)} (each also as .gz)")
     check_path(path)
-    return loader(path, gzipped)
+    before = budget.points
+    scan = loader(path, gzipped, budget)
+    uncounted = scan.n_points - (budget.points - before)
+    if uncounted > 0:  # a reader that cannot count before it allocates (trimesh)
+        budget.take_points(path.name, uncounted)
+    return scan
 
 
-def load_scan(path: str | os.PathLike, thin: float | None = None) -> Scan:
+def load_scan(path: str | os.PathLike, thin: float | None = None,
+              limits: InputLimits | None = None) -> Scan:
     """Load a scan file into a ``Scan``.
 
     Parameters
@@ -93,6 +106,8 @@ def load_scan(path: str | os.PathLike, thin: float | None = None) -> Scan:
     thin : float, optional
         Voxel edge ``h`` in scan units: keep one point per occupied voxel (the one
         nearest the voxel's centroid). None keeps every point.
+    limits : InputLimits, optional
+        What the read accepts (``fitter.fitting.io.limits``); default ``InputLimits()``.
 
     Returns
     -------
@@ -105,9 +120,11 @@ def load_scan(path: str | os.PathLike, thin: float | None = None) -> Scan:
     ------
     ScanError
         Missing, empty, unreadable, truncated or corrupt file; unsupported
-        extension; no points; non-finite coordinates; a bad ``thin``.
+        extension; no points; non-finite coordinates; a bad ``thin``; a limit of
+        ``limits`` passed (naming the file, the limit and how to raise it); a ``.conf``
+        naming a file outside its folder or the same file twice.
     """
     if thin is not None:
         check_voxel_size(thin)  # reject a bad argument before reading a large file
-    scan = _load(Path(path))
+    scan = _load(Path(path), InputBudget(limits))
     return scan if thin is None else thin_scan(scan, thin)

@@ -25,14 +25,23 @@ for ``R^T (p + t)``; ``tests/test_io.py`` checks it. The ``camera`` line is the
 viewer's camera and does not move the data. ``mesh`` lines name scanalyze's
 own raw scans (e.g. Cyberware ``_cybcyl`` cylinders, no PLY), which are not
 read; each is reported in ``source["warnings"]``.
+
+The listed names are input too (``fitter.fitting.io.limits``): each must lie inside the
+``.conf``'s folder (no absolute name, no ``..``, no link leading out), may be named once,
+and there may be at most ``max_files`` of them; all the scans share the read's one
+``InputBudget``, so their points and decompressed bytes count together. These checks
+run on every line before the first scan is read (:func:`check_registration`, which the
+upload checks call as well).
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
+from .limits import InputBudget, confined_path
 from .scan import Scan, ScanError, make_scan, new_source
 from .source import HashedInput
 
@@ -87,7 +96,7 @@ def parse_conf(text: str, name: str) -> tuple[list[tuple[str, np.ndarray, np.nda
 
 
 def _resolve(directory: Path, scan_name: str, conf_name: str) -> Path:
-    path = directory / scan_name
+    path = confined_path(directory, scan_name, conf_name)
     for candidate in (path, path.with_name(path.name + ".gz")):
         if candidate.is_file():
             return candidate
@@ -95,24 +104,59 @@ def _resolve(directory: Path, scan_name: str, conf_name: str) -> Path:
                     f"{path.name}.gz exists")
 
 
-def load_conf(path: Path, gzipped: bool, load_one) -> Scan:  # noqa: ANN001 - the loader
-    """Load every ``bmesh`` scan of a ``.conf`` with ``load_one(path)`` and register them."""
-    name = path.name
-    with HashedInput(path, gzipped) as inp:
+def check_registration(path: Path, entries: list[tuple[str, np.ndarray, np.ndarray]],
+                       budget: InputBudget) -> list[Path]:
+    """The file of each ``bmesh`` entry of the ``.conf`` at ``path``, each confined to its
+    folder and counted by ``budget.take_file``.
+
+    Raises
+    ------
+    ScanError
+        No entries, a name outside the folder, a file that does not exist, a file named
+        twice, more than ``max_files`` files.
+    """
+    if not entries:
+        raise ScanError(f"{path.name}: the file lists no scans (no 'bmesh NAME tx ty tz qi qj "
+                        "qk qr' lines)")
+    files = []
+    for scan_name, _, _ in entries:
+        file = _resolve(path.parent, scan_name, path.name)
+        budget.take_file(path.name, Path(os.path.realpath(file)))
+        files.append(file)
+    return files
+
+
+def read_conf(path: Path, gzipped: bool, budget: InputBudget
+              ) -> tuple[list[tuple[str, np.ndarray, np.ndarray]], list[str], dict]:
+    """``(entries, skipped mesh names, the file's record)`` of the ``.conf`` at ``path``
+    (see :func:`parse_conf`), read within ``budget``."""
+    with HashedInput(path, gzipped, budget) as inp:
         data = inp.stream.read()
         record = inp.finish()
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
-        raise ScanError(f"{name}: not a text .conf file") from None
-    entries, skipped = parse_conf(text, name)
-    if not entries:
-        raise ScanError(f"{name}: the file lists no scans (no 'bmesh NAME tx ty tz qi qj qk qr' "
-                        "lines)")
+        raise ScanError(f"{path.name}: not a text .conf file") from None
+    listed = sum(line.lstrip().startswith("bmesh") for line in text.splitlines())
+    if listed > budget.limits.max_files:  # counted before any line is parsed
+        raise budget.limits.refusal(path.name, f"names {listed:,} scan files", "max_files",
+                                    f"{budget.limits.max_files:,}")
+    entries, skipped = parse_conf(text, path.name)
+    return entries, skipped, record
+
+
+def load_conf(path: Path, gzipped: bool, budget: InputBudget,
+              load_one) -> Scan:  # noqa: ANN001 - the loader
+    """Load every ``bmesh`` scan of a ``.conf`` with ``load_one(path)`` (which shares
+    ``budget``) and register them; every listed name is checked first
+    (:func:`check_registration`)."""
+    name = path.name
+    entries, skipped, record = read_conf(path, gzipped, budget)
+    listed = check_registration(path, entries, budget)
     points, normals, colors, faces, files, scans, units = [], [], [], [], [record], [], set()
     offset = 0
-    for scan_name, t, q in entries:
-        scan = load_one(_resolve(path.parent, scan_name, name))
+    for (scan_name, t, q), file in zip(entries, listed, strict=True):
+        scan = load_one(file)
         rot = quaternion_matrix(q)
         points.append(scan.points @ rot + t)  # rows: (R^T p)^T = p^T R
         normals.append(None if scan.normals is None else scan.normals @ rot)

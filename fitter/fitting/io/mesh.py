@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from .gltf import check_gltf
+from .limits import InputBudget
 from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source
 from .source import GZIP_ERRORS, HashedInput, file_record
 
@@ -100,9 +101,11 @@ def _hashing_resolver(path: Path, records: list[dict], missing: list[str],
     return _HashingResolver(str(path))
 
 
-def load_mesh(path: Path, gzipped: bool, file_type: str) -> Scan:
-    """Read an OBJ, STL, OFF, glTF or GLB file (optionally ``.gz``) through trimesh."""
-    with HashedInput(path, gzipped) as inp:
+def load_mesh(path: Path, gzipped: bool, budget: InputBudget | None = None, *,
+              file_type: str) -> Scan:
+    """Read an OBJ, STL, OFF, glTF or GLB file (optionally ``.gz``) through trimesh;
+    ``budget`` (``fitter.fitting.io.limits``) bounds the gzip stream."""
+    with HashedInput(path, gzipped, budget) as inp:
         try:
             data = inp.stream.read()
         except GZIP_ERRORS as exc:

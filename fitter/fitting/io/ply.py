@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .limits import InputBudget
 from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source, units_from_comments
 from .source import CHUNK_BYTES, GZIP_ERRORS, HashedInput, file_record, read_exactly
 
@@ -330,14 +331,18 @@ def _is_ascii_triangle_mesh(header: PlyHeader) -> bool:
             and els[1].properties[0].list_count_type is not None)
 
 
-def load_ply(path: Path, gzipped: bool) -> Scan:
-    """Read a ``.ply`` or ``.ply.gz`` file (see the module docstring for the paths taken)."""
+def load_ply(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Scan:
+    """Read a ``.ply`` or ``.ply.gz`` file (see the module docstring for the paths taken);
+    ``budget`` (``fitter.fitting.io.limits``) bounds the gzip stream and the vertex count."""
     name = path.name
-    with HashedInput(path, gzipped) as inp:
+    with HashedInput(path, gzipped, budget) as inp:
         try:
             header = parse_header(inp.stream, name)
             available, where = _body_bytes_bound(path, gzipped, header)
             check_claimed_counts(header, available, name, where)
+            if budget is not None:  # the declared vertices, before any is allocated
+                budget.take_points(name, sum(e.count for e in header.elements
+                                             if e.name == "vertex"))
             units = units_from_comments(header.comments)
             if _is_point_cloud(header) and header.byte_order and not gzipped:
                 inp.close()

@@ -4,8 +4,10 @@ One row per point, values separated by whitespace or by commas (decided on the
 first data row), ``x y z`` first. The preamble may hold blank lines, comments
 (``#`` or ``//``, where CloudCompare writes its column names, e.g.
 ``//X,Y,Z,R,G,B``), a header row of column names, and for PTS the point count.
-The body goes through ``numpy.loadtxt`` (C parser) straight from the hashed
-stream.
+The body goes through ``numpy.loadtxt`` (C parser) from the hashed stream in blocks of
+``BLOCK_ROWS`` rows, each block's points counted against the read's ``max_points``
+(``fitter.fitting.io.limits``) as it is parsed, so a cloud over the limit is refused
+holding at most one block beyond it.
 
 Extra columns are interpreted by name when a header names them (``nx ny nz`` /
 ``normal_x``..., ``r g b`` / ``red``..., ``intensity``/``i``), otherwise by the
@@ -30,11 +32,13 @@ zero); a table that fits no layout keeps ``x y z`` and lists the rest as
 from __future__ import annotations
 
 import io
+import itertools
 import warnings
 from pathlib import Path
 
 import numpy as np
 
+from .limits import InputBudget
 from .scan import Scan, ScanError, make_scan, new_source, units_from_comments
 from .source import GZIP_ERRORS, HashedInput
 
@@ -51,6 +55,7 @@ NAME_ALIASES = {
     "i": "intensity", "intensity": "intensity", "scalar_intensity": "intensity",
 }
 COMMENT_PREFIXES = ("#", "//")
+BLOCK_ROWS = 1 << 17  # rows parsed at a time (about 3 MB of text for x y z)
 
 
 def _tokens(line: str, delimiter: str | None) -> list[str]:
@@ -93,13 +98,16 @@ def guess_columns(values: np.ndarray) -> list[str]:
     return ["x", "y", "z"] + ["extra"] * (ncols - 3)
 
 
-def load_text(path: Path, gzipped: bool, fmt: str) -> Scan:
-    """Read an ``.xyz``, ``.pts`` or ``.asc`` text point cloud (see the module docstring)."""
+def load_text(path: Path, gzipped: bool, budget: InputBudget | None = None, *,
+              fmt: str) -> Scan:
+    """Read an ``.xyz``, ``.pts`` or ``.asc`` text point cloud (see the module docstring);
+    ``budget`` (default: the default ``InputLimits``) bounds the gzip stream and the rows."""
     name = path.name
-    with HashedInput(path, gzipped) as inp:
+    budget = budget if budget is not None else InputBudget()
+    with HashedInput(path, gzipped, budget) as inp:
         text = io.TextIOWrapper(inp.stream, encoding="utf-8", newline=None)
         try:
-            values, header, comments, declared = _read_table(text, name, fmt)
+            values, header, comments, declared = _read_table(text, name, fmt, budget)
         except UnicodeDecodeError as exc:
             raise ScanError(f"{name}: not a text point cloud (byte {exc.start} of a chunk is "
                             "not UTF-8 text)") from None
@@ -139,9 +147,16 @@ def load_text(path: Path, gzipped: bool, fmt: str) -> Scan:
                      colors=colors, units=units_from_comments(comments), source=source)
 
 
-def _read_table(text: io.TextIOWrapper, name: str,
-                fmt: str) -> tuple[np.ndarray, list[str] | None, list[str], int | None]:
-    """``(values (N, C), header names or None, comments, PTS count or None)``."""
+def _comments_of(block: list[str]) -> str | list[str]:
+    """The comment prefixes to give ``loadtxt`` for ``block``: ``"#"`` alone (its C parser,
+    several times faster) unless a line holds a ``/``, which no number does."""
+    return list(COMMENT_PREFIXES) if any("/" in line for line in block) else "#"
+
+
+def _read_table(text: io.TextIOWrapper, name: str, fmt: str, budget: InputBudget
+                ) -> tuple[np.ndarray, list[str] | None, list[str], int | None]:
+    """``(values (N, C), header names or None, comments, PTS count or None)``; every row
+    counted against ``budget`` as its block is parsed."""
     comments: list[str] = []
     header: list[str] | None = None
     declared: int | None = None
@@ -166,6 +181,8 @@ def _read_table(text: io.TextIOWrapper, name: str,
         tokens = _tokens(stripped, delimiter)
         if fmt == "pts" and declared is None and len(tokens) == 1 and tokens[0].isdigit():
             declared = int(tokens[0])
+            if declared > budget.limits.max_points:  # refused before reading a row
+                budget.take_points(name, declared)
             continue
         if all(_is_number(t) for t in tokens):
             break
@@ -177,15 +194,22 @@ def _read_table(text: io.TextIOWrapper, name: str,
         raise ScanError(f"{name}: line {lineno}: a point needs at least x y z, got "
                         f"{len(tokens)} value(s): {stripped[:60]!r}")
     first = np.array([float(t) for t in tokens], dtype=np.float64)
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*input contained no data.*")
-            rest = np.loadtxt(text, dtype=np.float64, delimiter=delimiter,
-                              comments=list(COMMENT_PREFIXES), ndmin=2)
-    except ValueError as exc:
-        raise ScanError(f"{name}: unreadable point rows after line {lineno}: {exc}") from None
-    if rest.size and rest.shape[1] != first.size:
-        raise ScanError(f"{name}: line {lineno} has {first.size} values but the rows after it "
-                        f"have {rest.shape[1]}")
-    values = np.vstack([first[None, :], rest.reshape(-1, first.size)])
+    budget.take_points(name, 1)
+    blocks = [first[None, :]]
+    while block := list(itertools.islice(text, BLOCK_ROWS)):
+        try:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*input contained no data.*")
+                rows = np.loadtxt(block, dtype=np.float64, delimiter=delimiter,
+                                  comments=_comments_of(block), ndmin=2)
+        except ValueError as exc:
+            raise ScanError(f"{name}: unreadable point rows after line {lineno}: "
+                            f"{exc}") from None
+        if rows.size and rows.shape[1] != first.size:
+            raise ScanError(f"{name}: line {lineno} has {first.size} values but the rows "
+                            f"after it have {rows.shape[1]}")
+        budget.take_points(name, rows.shape[0])  # at most one block past the limit
+        blocks.append(rows.reshape(-1, first.size))
+        lineno += len(block)
+    values = np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
     return values, header, comments, declared

@@ -67,7 +67,9 @@ def init_app(app: Flask) -> None:
         collection_dir, token_hash, catalogs,
         UploadLimits(max_bytes=int(app.config["TESSERA_UPLOAD_MAX_BYTES"]),
                      max_expanded_bytes=int(app.config["TESSERA_UPLOAD_MAX_EXPANDED_BYTES"]),
-                     max_ratio=float(app.config["TESSERA_UPLOAD_MAX_RATIO"])),
+                     max_ratio=float(app.config["TESSERA_UPLOAD_MAX_RATIO"]),
+                     max_points=int(app.config["TESSERA_UPLOAD_MAX_POINTS"]),
+                     max_files=int(app.config["TESSERA_UPLOAD_MAX_FILES"])),
         token_from_environment=bool(plain_token))
     app.register_blueprint(bp)
     app.wsgi_app = CheapRefusals(app, app.extensions["tessera_admin"])
