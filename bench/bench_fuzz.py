@@ -8,8 +8,11 @@ the property tests in ``tests/test_fuzz.py`` use). Each input goes through its d
 and ``WorkerSession.read_manifest`` for a manifest. Counted: inputs accepted, refused with
 ``PatchFormatError`` and those that raised anything else (outside the contract: must be 0),
 the worst time of one input, and the worst peak memory of one input (``tracemalloc``, on
-the 1 % slowest-looking inputs and a fixed sample, since tracing slows every call).
-Target: 0 outside the contract, no input over 0.5 s or 256 MB.
+every input over 50 ms and one in 50, since tracing slows every call). An input's time is
+its CPU time (``time.process_time``: the shared 2-core machine's other load does not count)
+and its wall time, the best of 3 runs for an input over 50 ms (one run of a loaded
+machine's scheduler can stall any call). Target: 0 outside the contract, no input over
+0.5 s or 256 MB.
 ``TESSERA_FUZZ_COUNT`` overrides the count per kind (default 100 000).
 Writes bench/results/fuzz.json.
 """
@@ -29,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the
 
 COUNT = int(os.environ.get("TESSERA_FUZZ_COUNT", "100000"))
 TRACE_EVERY = 50  # one input in 50 is rerun under tracemalloc, and every slow one
+SLOW = 0.05  # seconds: an input this slow is rerun (its time: the best of 3) and traced
 
 
 def _kinds():
@@ -79,15 +83,21 @@ def fuzz(kind: str, make, count: int, seed: int = 15) -> dict:
     rnd = random.Random(seed)
     counts = {"ok": 0, "refused": 0, "outside": 0}
     outside: dict[str, int] = {}
-    worst_s, worst_at, worst_mb = 0.0, -1, 0.0
+    worst_s, worst_cpu, worst_at, worst_mb = 0.0, 0.0, -1, 0.0
     for k in range(count):
         calls = make(rnd)
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         outcome = _run_one(calls)
-        elapsed = time.perf_counter() - start
+        elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu
+        if elapsed > SLOW:
+            for _ in range(2):
+                start = time.perf_counter()
+                _run_one(calls)
+                elapsed = min(elapsed, time.perf_counter() - start)
+        worst_cpu = max(worst_cpu, cpu)
         if elapsed > worst_s:
             worst_s, worst_at = elapsed, k
-        if k % TRACE_EVERY == 0 or elapsed > 0.05:
+        if k % TRACE_EVERY == 0 or elapsed > SLOW:
             tracemalloc.start()
             _run_one(calls)
             worst_mb = max(worst_mb, tracemalloc.get_traced_memory()[1] / 1e6)
@@ -98,7 +108,8 @@ def fuzz(kind: str, make, count: int, seed: int = 15) -> dict:
             counts["outside"] += 1
             outside[outcome] = outside.get(outcome, 0) + 1
     return {"kind": kind, "inputs": count, **counts, "worst_s": round(worst_s, 4),
-            "worst_input": worst_at, "worst_peak_mb": round(worst_mb, 2),
+            "worst_cpu_s": round(worst_cpu, 4), "worst_input": worst_at,
+            "worst_peak_mb": round(worst_mb, 3),
             "outside_examples": dict(sorted(outside.items(), key=lambda x: -x[1])[:10])}
 
 
@@ -110,15 +121,17 @@ def run() -> dict:
         result["seconds"] = round(time.perf_counter() - start, 1)
         results.append(result)
         rows.append([kind, result["inputs"], result["ok"], result["refused"], result["outside"],
-                     f"{result['worst_s'] * 1000:.1f}", f"{result['worst_peak_mb']:.1f}",
+                     f"{result['worst_s'] * 1000:.1f}", f"{result['worst_cpu_s'] * 1000:.1f}",
+                     f"{result['worst_peak_mb']:.2f}",
                      result["seconds"]])
     print_table("client_py decoders under fuzzing (target: 0 outside, < 500 ms, < 256 MB)",
                 ["input", "count", "decoded", "PatchFormatError", "outside contract",
-                 "worst ms", "worst peak MB", "total s"], rows)
+                 "worst ms", "worst CPU ms", "worst peak MB", "total s"], rows)
     for r in results:
         for name, n in r["outside_examples"].items():
             print(f"  {r['kind']}: {n} x {name}")
     record = {"count_per_kind": COUNT, "results": results,
-              "targets": {"outside": 0, "worst_s": 0.5, "worst_peak_mb": 256}}
+              "targets": {"outside": 0, "worst_s": 0.5, "worst_peak_mb": 256},
+              "load_at_end": os.getloadavg()}
     write_results("fuzz", record)
     return record
