@@ -7,8 +7,11 @@ from __future__ import annotations
 import gzip
 import io
 import json
+import os
+import re
 from pathlib import Path
 
+import brotli
 import numpy as np
 import pytest
 from PIL import Image
@@ -94,10 +97,11 @@ def test_viewer_page_passes_its_urls_and_import_map(client):
     html = client.get("/objects/relief/?resolution=64").get_data(as_text=True)
     config = json.loads(html.split('id="tessera-config">', 1)[1].split("</script>", 1)[0])
     assert config["patch_url"] == "/bundles/relief/base.tsp"
-    assert config["pyodide_url"] == "/vendor/pyodide/"
+    assert re.fullmatch(r"/vendor/pyodide/v/[\w.]+/", config["pyodide_url"])
     assert config["resolution"] == 64
     import_map = json.loads(html.split('type="importmap">', 1)[1].split("</script>", 1)[0])
-    assert import_map["imports"]["three"] == "/vendor/three/build/three.module.js"
+    assert re.fullmatch(r"/vendor/three/v/[\w.]+/build/three.module.js",
+                        import_map["imports"]["three"])
     for url in (config["worker_url"], config["client_py_url"], import_map["imports"]["three"]):
         assert url.startswith("/")
 
@@ -262,7 +266,7 @@ def test_pages_load_pyodide_plainly_without_a_snapshot(web_collection):
 def test_the_snapshot_cache_is_the_instance_folder_unless_set(web_collection, tmp_path,
                                                                 monkeypatch):
     monkeypatch.delenv("TESSERA_CACHE_DIR", raising=False)
-    app = create_app({"TESSERA_COLLECTION": str(web_collection)})
+    app = create_app({"TESSERA_COLLECTION": str(web_collection), "TESSERA_PYODIDE_SNAPSHOT": True})
     # a checkout's instance folder is instance/ at its root (Flask's rule for a package
     # that is not installed); tests/ sits at that root too
     checkout = Path(__file__).resolve().parent.parent
@@ -270,6 +274,7 @@ def test_the_snapshot_cache_is_the_instance_folder_unless_set(web_collection, tm
     assert app.config["TESSERA_CACHE_DIR"] == str(checkout / "instance" / "cache")
     assert app.extensions["tessera_snapshot"].cache_dir == checkout / "instance" / "cache"
     chosen = create_app({"TESSERA_COLLECTION": str(web_collection),
+                         "TESSERA_PYODIDE_SNAPSHOT": True,
                          "TESSERA_CACHE_DIR": str(tmp_path / "snapshots")})
     assert chosen.extensions["tessera_snapshot"].path.parent == tmp_path / "snapshots"
 
@@ -277,6 +282,7 @@ def test_the_snapshot_cache_is_the_instance_folder_unless_set(web_collection, tm
 def test_an_unwritable_snapshot_cache_is_a_logged_failure(web_collection, tmp_path):
     (tmp_path / "a-file").write_text("not a folder")
     app = create_app({"TESSERA_COLLECTION": str(web_collection), "TESSERA_NODE": "node",
+                      "TESSERA_PYODIDE_SNAPSHOT": True,
                       "TESSERA_CACHE_DIR": str(tmp_path / "a-file" / "cache")})
     builder = app.extensions["tessera_snapshot"]
     assert builder.ensure() is None
@@ -328,3 +334,117 @@ def test_serve_command_parses_and_validates(tmp_path):
 def test_serve_command_reports_a_missing_collection(tmp_path, capsys):
     assert main(["serve", str(tmp_path / "nowhere")]) == 2
     assert "not a directory" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------ honest and small first visits
+def _page_config(client, path="/objects/relief/"):
+    html = client.get(path).get_data(as_text=True)
+    return json.loads(html.split('id="tessera-config">', 1)[1].split("</script>", 1)[0]), html
+
+
+def test_runtime_urls_carry_versions_and_are_immutable(client):
+    config, html = _page_config(client)
+    import_map = json.loads(html.split('type="importmap">', 1)[1].split("</script>", 1)[0])
+    for url in (f"{config['pyodide_url']}pyodide.mjs", config["worker_url"],
+                config["client_py_url"], config["pyodide_stdlib_url"],
+                import_map["imports"]["three"]):
+        response = client.get(url, headers={"Accept-Encoding": "gzip"})
+        assert response.status_code == 200, url
+        cache = response.headers["Cache-Control"]
+        assert "immutable" in cache and "max-age=31536000" in cache, (url, cache)
+    # the same files without a version, or under a version that is not the current one, are
+    # revalidated: never kept as if they could not change
+    for url in ("/web/src/viewer.js", config["worker_url"].replace("/v/", "/v/0", 1),
+                "/client_py/sources.json"):
+        cache = client.get(url).headers["Cache-Control"]
+        assert "immutable" not in cache and "no-cache" in cache, (url, cache)
+    assert client.get("/client_py/0123/sources.json").status_code == 404
+
+
+def test_an_edited_module_gets_a_new_url(client, web_app):
+    from fitter.server.runtime import web_version
+
+    before = web_version(web_app.config["TESSERA_WEB_DIR"])
+    module = Path(web_app.config["TESSERA_WEB_DIR"]) / "src" / "fetch-bytes.js"
+    stat = module.stat()
+    try:
+        os.utime(module, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
+        assert web_version(web_app.config["TESSERA_WEB_DIR"]) != before
+    finally:
+        os.utime(module, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+
+
+@pytest.mark.parametrize(("accept", "encoding"), [
+    ("gzip, deflate, br, zstd", "br"), ("gzip, deflate", "gzip"), ("br;q=0, gzip", "gzip"),
+    ("identity", None), ("", None)])
+def test_compressed_forms_follow_accept_encoding(client, web_app, accept, encoding):
+    from fitter.server.files import compressed_cache
+
+    url = "/vendor/pyodide/pyodide.asm.mjs"
+    client.get(url, headers={"Accept-Encoding": "br"})
+    with web_app.app_context():
+        compressed_cache().wait()  # brotli is made in the background, once
+    response = client.get(url, headers={"Accept-Encoding": accept})
+    original = (Path(web_app.config["TESSERA_PYODIDE_DIR"]) / "pyodide.asm.mjs").read_bytes()
+    assert response.headers.get("Content-Encoding") == encoding
+    assert response.headers["Vary"] == "Accept-Encoding"
+    body = {"br": brotli.decompress, "gzip": gzip.decompress, None: bytes}[encoding](response.data)
+    assert body == original
+    if encoding:
+        assert len(response.data) < 0.4 * len(original)
+        again = client.get(url, headers={"Accept-Encoding": accept,
+                                         "If-None-Match": response.headers["ETag"].strip('"')})
+        assert again.status_code == 304
+
+
+def test_compressed_copies_live_in_the_cache_folder(client, web_app):
+    from fitter.server.files import compressed_cache
+
+    client.get("/vendor/pyodide/pyodide.mjs", headers={"Accept-Encoding": "gzip"})
+    with web_app.app_context():
+        cache = compressed_cache()
+        path = Path(web_app.config["TESSERA_PYODIDE_DIR"]).resolve() / "pyodide.mjs"
+        copy = cache.copy_path(path, path.stat(), "gzip")
+    assert copy.parent == Path(web_app.config["TESSERA_CACHE_DIR"]) / "compressed"
+    assert gzip.decompress(copy.read_bytes()) == path.read_bytes()
+
+
+def test_client_py_sources_are_compressed(client):
+    config, _ = _page_config(client)
+    response = client.get(config["client_py_url"], headers={"Accept-Encoding": "gzip"})
+    assert response.headers["Content-Encoding"] == "gzip"
+    sources = json.loads(gzip.decompress(response.data))
+    assert sources["sha256"] in config["client_py_url"]
+
+
+def test_trimmed_stdlib_holds_what_client_py_and_pyodide_import(client, web_app):
+    import zipfile
+
+    config, _ = _page_config(client)
+    data = client.get(config["pyodide_stdlib_url"]).data
+    full = Path(web_app.config["TESSERA_PYODIDE_DIR"]) / "python_stdlib.zip"
+    with zipfile.ZipFile(io.BytesIO(data)) as trimmed, zipfile.ZipFile(full) as original:
+        names = set(trimmed.namelist())
+        for name in ("json/__init__.py", "traceback.py", "codeop.py", "_pyodide/docstring.py",
+                     "pyodide/ffi/__init__.py", "encodings/utf_8.py", "encodings/latin_1.py"):
+            assert name in names, name
+            assert trimmed.read(name) == original.read(name)
+        for name in ("sqlite3/__init__.py", "xmlrpc/__init__.py", "encodings/cp1252.py"):
+            assert name not in names
+    assert len(data) < 0.75 * full.stat().st_size
+    assert config["runtime_bytes"]["python_stdlib.zip"] == len(data)
+    assert config["pyodide_lock"]["packages"] == {}
+    assert config["pyodide_lock"]["info"]["abi_version"]
+
+
+def test_imports_are_found_in_source_this_python_cannot_parse():
+    from fitter.server.stdlib import imported_names
+
+    source = ("import a.b as c, d\nfrom . import (x,  # a comment, with (a, b)\n  y)\n"
+              "from .q import z as w, v\n"
+              "try:\n    pass\nexcept A, B:\n    pass\n")
+    assert imported_names(source, "pkg.mod", is_package=False) == {
+        "a", "a.b", "d", "pkg", "pkg.x", "pkg.y", "pkg.q", "pkg.q.z", "pkg.q.v"}
+    assert imported_names("from .. import k\n", "pkg.sub", is_package=True) == {"pkg", "pkg.k"}
+    assert imported_names("from .events import *\n", "asyncio", is_package=True) == {
+        "asyncio", "asyncio.events"}

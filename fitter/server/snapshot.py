@@ -8,8 +8,11 @@ Python, which imports the rest of ``client_py``), restores in about a second
 snapshot is made here once, by node running ``web/tools/make-pyodide-snapshot.mjs``
 against the served Pyodide package, and cached on disk under a name derived from
 the Pyodide version, the ``client_py`` sources and the script, so it can never be
-served stale and can be cached by browsers forever. A gzip copy is written next to
-it (31 MB of memory compress to about 6 MB).
+served stale and can be cached by browsers forever. It is sent compressed like every
+runtime file (:mod:`.files`): 31 MB of memory are 6.1 MB in gzip, 4.3 MB in brotli. That
+is most of a first visit, so the snapshot is off unless ``TESSERA_PYODIDE_SNAPSHOT`` is set
+(see docs/benchmarks.md, "First visit"); a worker restoring it fetches no standard library
+(the script drops the archive from ``sys.path`` after importing ``client_py.session``).
 
 When node is missing or the build fails the server logs why and the pages load
 Pyodide the ordinary way (``pyodide_snapshot_url`` is null in their config).
@@ -17,7 +20,6 @@ Pyodide the ordinary way (``pyodide_snapshot_url`` is null in their config).
 
 from __future__ import annotations
 
-import gzip
 import hashlib
 import json
 import logging
@@ -109,11 +111,7 @@ class SnapshotBuilder:
             sources.write_text(json.dumps(self.sources))
             subprocess.run([self.node, str(SCRIPT), str(self.pyodide_dir), str(sources), str(tmp)],
                            check=True, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-            data = tmp.read_bytes()
-            gz = self.path.with_suffix(".bin.gz.tmp")
-            gz.write_bytes(gzip.compress(data, compresslevel=6, mtime=0))
             tmp.replace(self.path)
-            gz.replace(Path(f"{self.path}.gz"))  # after the .bin: the sibling must be newer
         except subprocess.CalledProcessError as exc:
             return f"make-pyodide-snapshot.mjs failed: {exc.stderr.strip()[-500:]}"
         except (OSError, subprocess.SubprocessError) as exc:

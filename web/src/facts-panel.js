@@ -1,7 +1,8 @@
 // FactsPanel: the viewer's information panel (the #fact-* entries of templates/viewer.html):
-// what the bundle is (units, sizes, surface, fit error, source), the base mesh on screen
-// and the detail tiles shown. It only writes text; the numbers come from the manifest, the
-// worker's reply and window.tessera.stats.
+// what the bundle is (units, sizes, surface, fit error, source), the base mesh on screen,
+// the detail tiles shown, and the bytes: what this visit transferred and what the object
+// costs (showTransfer, from a TransferTally's summary). It only writes text; the numbers come
+// from the manifest, the worker's reply, window.tessera.stats and the Resource Timing API.
 
 import { $, formatBytes, formatLength } from "./page.js";
 
@@ -33,6 +34,20 @@ export class FactsPanel {
       this.set("fact-source", `${manifest.provenance.points.toLocaleString("en")} scan points` +
         (manifest.provenance.bytes ? `, ${formatBytes(manifest.provenance.bytes)}` : ""));
     }
+  }
+
+  /**
+   * The bytes of this visit and of the object (TransferTally.summary()): "This visit" is what
+   * came over the network (runtime, object), "Object" what the object's files weigh as served
+   * (manifest, patch, the tiles shown), whether they came from the network or the cache.
+   * @param {{runtime: number, object: number, total: number, objectCost: number,
+   *          requests: number, cached: number}} summary
+   */
+  showTransfer(summary) {
+    this.set("fact-visit", `${formatBytes(summary.total)} transferred ` +
+      `(runtime ${formatBytes(summary.runtime)}, object ${formatBytes(summary.object)})` +
+      (summary.cached ? `; ${summary.cached} of ${summary.requests} files from the cache` : ""));
+    this.set("fact-bundle", formatBytes(summary.objectCost));
   }
 
   /** The base mesh on screen: its size and the worker's time for it. */

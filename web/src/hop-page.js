@@ -17,7 +17,7 @@
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, levelOption, levelPly, loadManifest, startPage } from "./page.js";
+import { $, levelOption, levelPly, loadManifest, startPage, workerInit } from "./page.js";
 
 const RESOLUTION = 192; // 36,864 vertices: one 3DHOP chunk (its limit is 65,535 per chunk)
 const FRAME_RESOLUTION = 64; // base grid the framing is computed from at a detail level
@@ -29,6 +29,10 @@ const { config, stats, showStage, showError } = startPage({
   ply: "Writing the PLY mesh…",
   hop: "Handing the mesh to 3DHOP…",
 }, { ply_bytes: 0, level: -1, resolution: null });
+
+// Dragging on the 3D view selects no text (a listener, not an inline attribute: the page's
+// Content-Security-Policy runs no inline handlers).
+$("3dhop").addEventListener("mousedown", (event) => event.preventDefault());
 
 // 3DHOP's toolbar (init.js) calls this global.
 window.actionsToolbar = (action) => {
@@ -119,10 +123,7 @@ async function main() {
   window.presenter = presenter;
 
   const worker = new MeshWorkerClient(config.worker_url, { onStage: (stage) => showStage(stage) });
-  const readyPromise = worker.init({
-    pyodideUrl: config.pyodide_url, pyodideSnapshotUrl: config.pyodide_snapshot_url,
-    clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
-  }, config.pyodide_timeout_s);
+  const readyPromise = worker.init(workerInit(config), config.pyodide_timeout_s);
   readyPromise.catch(() => {}); // awaited below; this only keeps an early failure "handled"
   const manifest = await loadManifest(config.manifest_url, stats);
   const ready = await readyPromise;

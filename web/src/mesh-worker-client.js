@@ -7,10 +7,13 @@
 export class MeshWorkerClient {
   /**
    * @param {string} workerUrl  URL of mesh-worker.js (from the server's page config)
-   * @param {{onStage?: (stage: string, detail: object) => void}} [options]
+   * @param {{onStage?: (stage: string, detail: object) => void,
+   *          onProgress?: (loaded: number, total: number) => void}} [options]
+   *   onProgress: runtime bytes fetched so far by the worker of the total it expects
    */
-  constructor(workerUrl, { onStage = () => {} } = {}) {
+  constructor(workerUrl, { onStage = () => {}, onProgress = () => {} } = {}) {
     this.onStage = onStage;
+    this.onProgress = onProgress;
     this.nextId = 1;
     this.pending = new Map();
     // Detail tiles the worker will hold once it has handled every request posted so far
@@ -44,6 +47,12 @@ export class MeshWorkerClient {
       });
       this.worker.postMessage({ type: "init", ...urls });
     });
+  }
+
+  /** The worker's fetches so far, [{name, transferSize, encodedBodySize, decodedBodySize}]
+   *  (its own Resource Timing entries: the page's timeline does not hold them). */
+  async resources() {
+    return (await this._request({ type: "resources" })).resources;
   }
 
   /** Tessellate on a resolution x resolution grid: {positions, normals, uvs, indices, tessellate_ms}. */
@@ -130,6 +139,10 @@ export class MeshWorkerClient {
   }
 
   _receive(message) {
+    if (message.type === "progress") {
+      this.onProgress(message.loaded, message.total);
+      return;
+    }
     if (message.type === "stage") {
       if (message.stage !== "runtime") this.pending.get(0)?.runtimeLoaded?.();
       this.onStage(message.stage, message);

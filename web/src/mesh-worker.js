@@ -5,10 +5,14 @@
 // (the Python, linted and tested like the rest of client_py) and sends the result back.
 //
 // Protocol (every request carries an `id`; every reply echoes it):
-//   page -> {type: "init", pyodideUrl, pyodideSnapshotUrl?, clientPyUrl, patchUrl}
+//   page -> {type: "init", pyodideUrl, pyodideSnapshotUrl?, pyodideStdlibUrl?, pyodideLock?,
+//            runtimeBytes?, clientPyUrl, patchUrl}
 //   worker -> {type: "stage", stage: "runtime" | "client_py" | "patch", ...}   (progress)
-//   worker -> {type: "ready", pyodide_load_ms, kernel, patch: {...}}           (init done;
-//           patch: WorkerSession.load_patch's facts)
+//   worker -> {type: "progress", loaded, total}  bytes of the runtime fetched so far (body
+//           bytes as decoded) of runtimeBytes' total, at most every 100 ms
+//   worker -> {type: "ready", pyodide_load_ms, kernel, patch: {...}, resources}  (init done;
+//           patch: WorkerSession.load_patch's facts; resources: resourceEntries())
+//   page -> {type: "resources"} -> {type: "resources", resources}  (the worker's fetches so far)
 //   page -> {type: "tessellate", resolution}  -> {type: "mesh", positions, normals, uvs, indices, ...}
 //           (WorkerSession.tessellate_base)
 //   page -> {type: "ply", resolution, colors?} -> {type: "ply", bytes, vertices, triangles}
@@ -35,6 +39,11 @@
 import { fetchBytes } from "./fetch-bytes.js";
 
 const PY_ROOT = "/home/pyodide/tessera";
+// An empty zip archive (its end-of-central-directory record alone): what Pyodide mounts as
+// the standard library when a snapshot is restored (the snapshot imported all client_py
+// needs and took the archive off sys.path: web/tools/make-pyodide-snapshot.mjs).
+const EMPTY_ZIP = "data:application/zip;base64,UEsFBgAAAAAAAAAAAAAAAAAAAAAAAA==";
+const PROGRESS_EVERY_MS = 100;
 
 let pyodide = null;
 let session = null; // client_py.session.WorkerSession, once the patch is loaded
@@ -85,17 +94,67 @@ function toPlain(proxy) {
   }
 }
 
-async function init({ pyodideUrl, pyodideSnapshotUrl, clientPyUrl, patchUrl }) {
+/** This worker's fetches as the Resource Timing API saw them: [{name, transferSize,
+ *  encodedBodySize, decodedBodySize}] (transferSize 0: from the browser's cache). The page
+ *  cannot see them: each global has its own performance timeline. */
+function resourceEntries() {
+  return performance.getEntriesByType("resource").map((entry) => ({
+    name: entry.name, transferSize: entry.transferSize, encodedBodySize: entry.encodedBodySize,
+    decodedBodySize: entry.decodedBodySize }));
+}
+
+/** Count the body bytes of every fetch this worker makes (Pyodide's own included) against
+ *  `total`, posting {type: "progress"} as they arrive. The response keeps its status and
+ *  headers (streaming WebAssembly compilation needs its Content-Type). */
+function countFetchedBytes(total) {
+  const realFetch = self.fetch.bind(self);
+  let loaded = 0;
+  let lastPost = 0;
+  const report = (force) => {
+    const now = performance.now();
+    if (force || now - lastPost >= PROGRESS_EVERY_MS) {
+      lastPost = now;
+      post({ type: "progress", loaded, total });
+    }
+  };
+  self.fetch = async (input, options) => {
+    const response = await realFetch(input, options);
+    if (!response.body || String(response.url).startsWith("data:")) return response;
+    const counter = new TransformStream({
+      transform(chunk, controller) {
+        loaded += chunk.byteLength;
+        report(false);
+        controller.enqueue(chunk);
+      },
+      flush() { report(true); },
+    });
+    return new Response(response.body.pipeThrough(counter), {
+      status: response.status, statusText: response.statusText, headers: response.headers });
+  };
+}
+
+async function init({ pyodideUrl, pyodideSnapshotUrl, pyodideStdlibUrl, pyodideLock, runtimeBytes,
+                      clientPyUrl, patchUrl }) {
   let stage = "runtime";
   try {
     post({ type: "stage", stage });
     const t0 = performance.now();
+    if (runtimeBytes) {
+      const wanted = ["pyodide.asm.wasm", "sources.json",
+                      pyodideSnapshotUrl ? "snapshot" : "python_stdlib.zip"];
+      countFetchedBytes(wanted.reduce((sum, name) => sum + (runtimeBytes[name] || 0), 0));
+    }
     const { loadPyodide } = await import(`${pyodideUrl}pyodide.mjs`);
     const tImported = performance.now();
     const options = { indexURL: pyodideUrl };
+    // the lock file's info alone: the worker loads no packages (pyodide-lock.json is 119 KB)
+    if (pyodideLock) options.lockFileContents = pyodideLock;
     if (pyodideSnapshotUrl) {
       // Interpreter memory with client_py imported, made by the server (fitter/server/snapshot.py).
       options._loadSnapshot = fetchBytes(pyodideSnapshotUrl, "the Pyodide snapshot");
+      options.stdLibURL = EMPTY_ZIP;
+    } else if (pyodideStdlibUrl) {
+      options.stdLibURL = pyodideStdlibUrl; // trimmed to what client_py can import
     }
     pyodide = await loadPyodide(options);
     const pyodideLoadMs = performance.now() - t0;
@@ -129,7 +188,7 @@ async function init({ pyodideUrl, pyodideSnapshotUrl, clientPyUrl, patchUrl }) {
     session = created;
     stages.patch_ms = performance.now() - tPatch;
     post({ type: "ready", pyodide_load_ms: pyodideLoadMs, kernel, patch, patch_bytes: bytes.length,
-           client_py_version: sources.version, stages });
+           client_py_version: sources.version, stages, resources: resourceEntries() });
   } catch (error) {
     post({ type: "error", stage, message: reason(error) });
   }
@@ -201,7 +260,11 @@ function region({ id, level, i, j, grid, names, skirtDepth }) {
   postMesh(mesh, performance.now() - t0, { type: "region", id, level, i, j });
 }
 
-const handlers = { init, tessellate, plan, ply, tile, drop, region };
+function resources({ id }) {
+  post({ type: "resources", id, resources: resourceEntries() });
+}
+
+const handlers = { init, tessellate, plan, ply, tile, drop, region, resources };
 
 self.onmessage = (event) => {
   const request = event.data;
@@ -212,7 +275,7 @@ self.onmessage = (event) => {
       post({ type: "error", id: request.id, stage: "request", message: `unknown request ${request.type}` });
       return;
     }
-    if (request.type !== "init" && !session) {
+    if (request.type !== "init" && request.type !== "resources" && !session) {
       post({ type: "error", id: request.id, stage: request.type, message: "the patch is not loaded" });
       return;
     }

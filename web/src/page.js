@@ -25,6 +25,16 @@ export function startPage(stages, extraStats = {}) {
     document.body.dataset.stage = stage;
   }
 
+  /** `loaded` of `total` bytes of the runtime fetched: the current stage's text with the
+   *  percentage (document.body.dataset.loadPercent too, for tests). */
+  function showProgress(loaded, total) {
+    const stage = document.body.dataset.stage || "runtime";
+    const percent = loadPercent(loaded, total);
+    if (percent === null) return;
+    document.body.dataset.loadPercent = String(percent);
+    $("loading-text").textContent = withPercent(stages[stage] || stage, percent);
+  }
+
   function showError(message) {
     document.body.dataset.error = message;
     $("loading").hidden = true;
@@ -32,7 +42,30 @@ export function startPage(stages, extraStats = {}) {
     $("error-text").textContent = message;
   }
 
-  return { config, stats, showStage, showError };
+  return { config, stats, showStage, showProgress, showError };
+}
+
+/** Whole percent of `loaded` bytes of `total` (at most 100), or null without a total. */
+export function loadPercent(loaded, total) {
+  if (!(total > 0) || !Number.isFinite(loaded)) return null;
+  return Math.min(100, Math.max(0, Math.floor((100 * loaded) / total)));
+}
+
+/** A stage's text with its percentage: "Starting the Python runtime (Pyodide)… 42 %". */
+export function withPercent(text, percent) {
+  return `${text} ${percent} %`;
+}
+
+/** The mesh worker's init request from the page's config (MeshWorkerClient.init): the
+ *  runtime's URLs (the trimmed standard library, the lock file's info, the snapshot when the
+ *  server has one), the bytes it will fetch (for the percentage) and the patch. */
+export function workerInit(config) {
+  return {
+    pyodideUrl: config.pyodide_url, pyodideSnapshotUrl: config.pyodide_snapshot_url,
+    pyodideStdlibUrl: config.pyodide_stdlib_url, pyodideLock: config.pyodide_lock,
+    runtimeBytes: config.runtime_bytes, clientPyUrl: config.client_py_url,
+    patchUrl: config.patch_url,
+  };
 }
 
 /** "1 texture tile", "4 texture tiles". */

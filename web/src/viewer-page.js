@@ -21,10 +21,11 @@ import { BaseMesh, COARSE_RESOLUTION } from "./base-mesh.js";
 import { ErrorMapControl } from "./error-map-control.js";
 import { FactsPanel } from "./facts-panel.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, loadManifest, startPage } from "./page.js";
+import { $, loadManifest, startPage, workerInit } from "./page.js";
 import { PlyDownload } from "./ply-download.js";
+import { TransferTally } from "./transfer-tally.js";
 
-const { config, stats, showStage, showError } = startPage({
+const { config, stats, showStage, showProgress, showError } = startPage({
   manifest: "Reading the object's description…",
   runtime: "Starting the Python runtime (Pyodide)…",
   client_py: "Installing client_py…",
@@ -46,11 +47,9 @@ const nextFrame = () => new Promise((resolve) => requestAnimationFrame(resolve))
 /** The mesh worker, starting Pyodide, client_py and the base patch; `ready` resolves with
  *  its init reply {patch, patch_bytes, pyodide_load_ms, stages, kernel}. */
 function startWorker() {
-  const worker = new MeshWorkerClient(config.worker_url, { onStage: showStage });
-  const ready = worker.init({
-    pyodideUrl: config.pyodide_url, pyodideSnapshotUrl: config.pyodide_snapshot_url,
-    clientPyUrl: config.client_py_url, patchUrl: config.patch_url,
-  }, config.pyodide_timeout_s);
+  const worker = new MeshWorkerClient(config.worker_url,
+                                      { onStage: showStage, onProgress: showProgress });
+  const ready = worker.init(workerInit(config), config.pyodide_timeout_s);
   return { worker, ready: awaitedLater(ready) };
 }
 
@@ -73,6 +72,16 @@ function recordWorkerStats(ready) {
   stats.worker_stages = ready.stages;
   stats.kernel = ready.kernel;
   stats.bytes_downloaded += ready.patch_bytes;
+}
+
+/** What this visit transferred, shown in the panel and kept as stats.transfer: the worker's
+ *  fetches (its init reply's `resources`, added once) and the page's, read again at each call
+ *  (tiles keep arriving). */
+function showTransfers(tally, facts) {
+  tally.add("page", [...performance.getEntriesByType("navigation"),
+                     ...performance.getEntriesByType("resource")]);
+  stats.transfer = tally.summary();
+  facts.showTransfer(stats.transfer);
 }
 
 /** The first mesh, coarse, on screen, then the page is ready (document.body.dataset.ready);
@@ -103,7 +112,7 @@ async function refineBase(base, target) {
  * that reason, or a tile failing later, goes to document.body.dataset.tileError and the
  * Detail fact.
  */
-function startTiles(TileLayer, { viewer, worker, manifest, base, facts }) {
+function startTiles(TileLayer, { viewer, worker, manifest, base, facts, transfers }) {
   const fail = (message) => {
     document.body.dataset.tileError = message;
     facts.set("fact-detail", message);
@@ -116,7 +125,10 @@ function startTiles(TileLayer, { viewer, worker, manifest, base, facts }) {
         console.error(message);
         fail(message);
       },
-      onChange: () => facts.showTiles(stats),
+      onChange: () => {
+        facts.showTiles(stats);
+        showTransfers(transfers, facts);
+      },
     });
   } catch (error) {
     fail(error.message);
@@ -193,6 +205,7 @@ async function offerPly(download, worker, manifest, ready) {
 }
 
 async function main() {
+  performance.setResourceTimingBufferSize(5000); // every tile of a long visit (default: 250)
   // Start the worker (Pyodide: seconds) before three.js is even fetched: they load in parallel.
   const { worker, ready: readyPromise } = startWorker();
   const manifestPromise = awaitedLater(loadManifest(config.manifest_url, stats));
@@ -225,10 +238,13 @@ async function main() {
   base.domain = ready.patch.domain;
   facts.describe(manifest, ready, stats);
   viewer.setObjectView(manifest.view || null); // older bundles have none: the fallback framing
+  const transfers = new TransferTally(config.manifest_url, window.location.href);
+  transfers.add("worker", ready.resources || []);
   const target = await showFirstMesh(base);
+  showTransfers(transfers, facts);
 
   const { TileLayer } = await tileModule;
-  tiles = startTiles(TileLayer, { viewer, worker, manifest, base, facts });
+  tiles = startTiles(TileLayer, { viewer, worker, manifest, base, facts, transfers });
   settleTiles();
   const errorMap = new ErrorMapControl(manifest, viewer);
   $("fit-view").addEventListener("click", () => viewer.fitView());
@@ -237,6 +253,7 @@ async function main() {
   await offerPly(new PlyDownload({ worker, base, errorMap, config, stats, onError: showError }),
                  worker, manifest, ready);
   await refineBase(base, target);
+  showTransfers(transfers, facts);
 }
 
 main().catch((error) => {

@@ -34,6 +34,16 @@ const sys = pyodide.pyimport("sys");
 sys.path.insert(0, PY_ROOT);
 sys.destroy();
 pyodide.pyimport("client_py.session").destroy();
+// The worker restoring this snapshot does not fetch python_stdlib.zip (mesh-worker.js hands
+// Pyodide an empty archive): every module client_py needs is imported above, and an import
+// of anything else fails at once with ModuleNotFoundError instead of reading a missing zip.
+pyodide.runPython(`
+import sys
+for _entry in [p for p in sys.path if p.endswith(".zip")]:
+    sys.path.remove(_entry)
+    sys.path_importer_cache.pop(_entry, None)
+del _entry
+`);
 const snapshot = pyodide.makeMemorySnapshot();
 writeFileSync(outPath, snapshot);
 console.log(`${outPath}: ${snapshot.length} bytes`);
