@@ -28,6 +28,8 @@ import json
 import struct
 from typing import Any
 
+from client_py.errors import TesseraError
+
 from .scan import ScanError
 
 GLB_MAGIC = b"glTF"
@@ -69,7 +71,7 @@ def check_gltf(data: bytes, file_type: str, name: str) -> None:
         raise ScanError(f"{name}: unreadable {file_type.upper()} content: {problem}") from None
 
 
-class _Problem(Exception):
+class _Problem(TesseraError):
     """What is wrong with the file (private: :func:`check_gltf` reports it as ScanError)."""
 
 
