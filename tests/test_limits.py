@@ -316,8 +316,12 @@ def test_detail_levels_over_the_budget_are_refused_before_any_solve(tmp_path):
 
 
 def test_grid_over_the_budget_is_refused(tmp_path):
-    with pytest.raises(OptionError, match=r"grid 1024x1024 .* over the memory budget of "
+    with pytest.raises(OptionError, match=r"grid 512x512 .* over the memory budget of "
                        r"2.00 GiB; a grid of at most \d+x\d+ fits"):
+        fit_scan(relief(5000), tmp_path / "b", FitOptions(grid=(512, 512)))
+    # the form's 1024x1024 holds more control points than a patch may (client_py.format)
+    with pytest.raises(OptionError, match=r"grid 1024x1024 has 1048576 control points; a "
+                       r"patch holds at most 262144"):
         fit_scan(relief(5000), tmp_path / "b", FitOptions(grid=(1024, 1024)))
     with pytest.raises(OptionError, match=r"grid 200x200 .*max_grid"):
         fit_scan(relief(5000), tmp_path / "b",

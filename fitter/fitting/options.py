@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from client_py.errors import TesseraError
+from client_py.format import MAX_CONTROL_POINTS, MAX_GRID_SIDE
 
 METHODS = ("tessera", "paper", "linear")
 #: ``auto`` and the maps of ``fitter.fitting.parameterize.KINDS`` (tests/test_options.py
@@ -36,7 +37,7 @@ PROJECTIONS = ("auto", "plane", "cylinder", "sphere")
 #: ``auto`` and the axes of ``fitter.fitting.orient.AXES`` (tests/test_orient.py checks that
 #: the two agree)
 UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
-GRID_SIDE_LIMIT = 1024
+GRID_SIDE_LIMIT = MAX_GRID_SIDE  # what a .tsp holds (client_py.format.LIMITS), per side
 DEFAULT_MAX_GRID = 128  # max_grid = None: the grid grows to max(128, its largest side)
 FIT_SAMPLE = 60_000  # default of samples
 DETAIL_SPANS = 16  # default of detail_spans (= fitter.fitting.detail.SPANS, checked by a test)
@@ -304,6 +305,10 @@ class FitOptions:
         if min(self.grid) < lowest:
             raise OptionError(f"grid {self.grid[0]}x{self.grid[1]}: each side must be in "
                              f"{lowest}..{GRID_SIDE_LIMIT} for degree {self.degree}")
+        if self.grid[0] * self.grid[1] > MAX_CONTROL_POINTS:
+            raise OptionError(f"grid {self.grid[0]}x{self.grid[1]} has "
+                              f"{self.grid[0] * self.grid[1]} control points; a patch holds at "
+                              f"most {MAX_CONTROL_POINTS} (client_py.format.LIMITS)")
         if self.max_grid is not None and self.max_grid < max(self.grid):
             raise OptionError(f"max_grid must be an integer in {max(self.grid)}.."
                              f"{GRID_SIDE_LIMIT} (at least the grid's largest side), "

@@ -41,6 +41,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from client_py import TrimMask, read_patch, write_patch
+from client_py.format import MAX_CONTROL_POINTS
 
 from . import io as scan_io
 from .bundle import write_bundle
@@ -149,11 +150,15 @@ def _as_scan(scan: object, limits: InputLimits | None = None) -> Scan:
 
 
 def _grid_sizes(options: FitOptions) -> list[tuple[int, int]]:
+    """The grids a fit tries: ``grid``, then (with ``max_error``) x1.25 per side up to
+    ``largest_grid`` per side and ``client_py.format.MAX_CONTROL_POINTS`` in all."""
     sizes = [tuple(options.grid)]
     if options.max_error is not None:
         while max(sizes[-1]) < options.largest_grid:
             nxt = tuple(min(options.largest_grid, max(g + 1, int(round(g * 1.25))))
                         for g in sizes[-1])
+            if nxt[0] * nxt[1] > MAX_CONTROL_POINTS:
+                break
             sizes.append(nxt)
     return sizes
 
