@@ -282,7 +282,8 @@ def _start_job_runner(app, workers: int | None):  # noqa: ANN001, ANN202 - Flask
     if admin is None or not admin.enabled:
         return None
     count = workers or int(app.config.get("TESSERA_JOB_WORKERS") or 0) or None
-    return RunnerProcess(admin.collection, workers=count).start()
+    # the jobs read uploads with the server's TESSERA_UPLOAD_* limits (admin.limits)
+    return RunnerProcess(admin.collection, workers=count, limits=admin.limits).start()
 
 
 def _cmd_admin_set_token(args: argparse.Namespace) -> int:

@@ -49,12 +49,15 @@ import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..fitting.bundle import publish
 from ..fitting.options import OptionError, fit_options
 from ..fitting.stages import overall_progress
 from .catalog import Catalog, CatalogError, state_dir
+
+if TYPE_CHECKING:  # the readers load numpy: only the fit's worker process imports them
+    from ..fitting.io.limits import InputLimits
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +105,12 @@ def publish_bundle(staged: Path, destination: Path) -> None:
     publish(staged, destination, aside=staged.parent)
 
 
-def run_job(collection: str, job_id: int, supervisor: Connection | None = None) -> None:
+def run_job(collection: str, job_id: int, supervisor: Connection | None = None,
+            limits: InputLimits | None = None) -> None:
     """Worker process body: fit one job's upload and publish the bundle into the collection.
+
+    ``limits`` bounds the read of the upload (the server's ``TESSERA_UPLOAD_*`` settings,
+    :class:`fitter.collection.uploads.UploadLimits`; default ``InputLimits()``).
 
     Errors of the input (``ScanError``, bad options) end the job ``failed`` with
     their message; any other exception is recorded the same way with its type,
@@ -129,7 +136,7 @@ def run_job(collection: str, job_id: int, supervisor: Connection | None = None) 
         options = fit_options(job.options)
         staging.mkdir(parents=True)
         bundle = fit_scan(scan_path, staging / job.object_id, options,
-                          _ProgressWriter(catalog, job_id))
+                          _ProgressWriter(catalog, job_id), limits=limits)
         catalog.report_progress(job_id, "publish", 0.995)
         publish_bundle(bundle.path, root / job.object_id)
         provenance = bundle.manifest.get("provenance", {})
@@ -170,11 +177,15 @@ class JobRunner:
         Fits running at once; default ``os.cpu_count()``.
     poll_interval : float
         Seconds between looks at the catalog.
+    limits : InputLimits, optional
+        What a job's read of its upload accepts (``tessera serve`` passes the server's
+        ``TESSERA_UPLOAD_*`` limits); default ``InputLimits()``.
     """
 
     def __init__(self, collection: str | os.PathLike, workers: int | None = None,
-                 poll_interval: float = 0.2) -> None:
+                 poll_interval: float = 0.2, limits: InputLimits | None = None) -> None:
         self.collection = Path(collection).resolve()
+        self.limits = limits
         self.workers = workers or os.cpu_count() or 1
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
@@ -297,7 +308,7 @@ class JobRunner:
                 break
             reader, writer = self._ctx.Pipe(duplex=False)
             process = self._ctx.Process(target=run_job, name=f"tessera-fit-{job.id}",
-                                        args=(str(self.collection), job.id, reader),
+                                        args=(str(self.collection), job.id, reader, self.limits),
                                         daemon=True)
             process.start()
             reader.close()  # only the worker holds the read end; ours would mask EOF
@@ -309,13 +320,14 @@ class JobRunner:
         return len(self._running)
 
 
-def _runner_process_main(collection: str, workers: int | None, parent: Connection) -> None:
+def _runner_process_main(collection: str, workers: int | None, parent: Connection,
+                         limits: InputLimits | None = None) -> None:
     """Body of :class:`RunnerProcess`: supervise until the parent closes its pipe end."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     logging.basicConfig(level=logging.WARNING, format="tessera jobs: %(message)s")
-    runner = JobRunner(collection, workers).start()
+    runner = JobRunner(collection, workers, limits=limits).start()
     try:
         parent.recv()
     except (EOFError, OSError):
@@ -333,9 +345,11 @@ class RunnerProcess:
     (its pipe closes): running fits are then killed and marked ``interrupted``.
     """
 
-    def __init__(self, collection: str | os.PathLike, workers: int | None = None) -> None:
+    def __init__(self, collection: str | os.PathLike, workers: int | None = None,
+                 limits: InputLimits | None = None) -> None:
         self.collection = str(Path(collection).resolve())
         self.workers = workers
+        self.limits = limits
         self._process: multiprocessing.process.BaseProcess | None = None
         self._pipe: Connection | None = None
 
@@ -343,7 +357,8 @@ class RunnerProcess:
         ctx = multiprocessing.get_context("spawn")
         reader, self._pipe = ctx.Pipe(duplex=False)
         self._process = ctx.Process(target=_runner_process_main, name="tessera-jobs",
-                                    args=(self.collection, self.workers, reader), daemon=False)
+                                    args=(self.collection, self.workers, reader, self.limits),
+                                    daemon=False)
         self._process.start()
         reader.close()
         return self
