@@ -522,3 +522,77 @@ def test_zip_member_names_are_checked():
         with pytest.raises(UploadError):
             safe_member_path(name)
     assert UploadLimits().max_bytes == 4 << 30
+
+
+# ------------------------------------------------------------------------ errors in kind (H2)
+@pytest.fixture()
+def adopted(tmp_path, admin_app_factory, web_collection):
+    """An admin app over a collection holding a copy of relief (adopted and published)."""
+    import shutil
+
+    collection = tmp_path / "collection"
+    shutil.copytree(web_collection / "relief", collection / "relief",
+                    ignore=shutil.ignore_patterns("error.ply", "error.png"))
+    return admin_app_factory(collection, PROPAGATE_EXCEPTIONS=False)
+
+
+@pytest.mark.parametrize("fields, named", [
+    ({"object_id": "x"}, "'object_id'"),
+    ({"self": 1}, "'self'"),
+    ({"fields": {}, "title": "t"}, "'fields'"),
+    ({"colour": "red", "size": 3}, "'colour', 'size'"),
+])
+def test_patch_with_a_key_named_like_a_parameter_is_a_400_naming_it(adopted, fields, named):
+    response = adopted.test_client().patch("/admin/api/objects/relief", headers=BEARER,
+                                           json=fields)
+    assert response.status_code == 400 and response.is_json
+    assert f"not editable: {named}" in response.get_json()["error"]
+
+
+def test_patch_published_must_be_a_boolean(adopted):
+    client = adopted.test_client()
+    response = client.patch("/admin/api/objects/relief", headers=BEARER,
+                            json={"published": "yes"})
+    assert response.status_code == 400
+    assert "published must be true or false, got 'yes'" in response.get_json()["error"]
+    assert client.patch("/admin/api/objects/relief", headers=BEARER,
+                        json={"published": False}).get_json()["published"] is False
+
+
+def test_catalog_update_object_takes_its_fields_as_a_mapping(adopted):
+    from fitter.collection.catalog import FieldError
+
+    with Catalog(Path(adopted.config["TESSERA_COLLECTION"])) as catalog:
+        catalog.update_object("relief", {"title": "Relief", "published": True})
+        assert catalog.get_object("relief")["title"] == "Relief"
+        with pytest.raises(FieldError, match="not editable: 'object_id'"):
+            catalog.update_object("relief", {"object_id": "other"})
+
+
+def test_an_admin_error_is_json_under_the_api_and_a_page_elsewhere(adopted):
+    def boom():
+        raise RuntimeError("a bug")
+
+    adopted.view_functions["admin.api_jobs"] = boom
+    adopted.view_functions["admin.jobs"] = boom
+    client = adopted.test_client()
+    api = client.get("/admin/api/jobs", headers=BEARER)
+    assert api.status_code == 500 and api.is_json and "failed" in api.get_json()["error"]
+    login(client)
+    page = client.get("/admin/jobs")
+    assert page.status_code == 500 and page.mimetype == "text/html"
+    assert "Something went wrong" in page.get_data(as_text=True)
+    wrong_method = client.put("/admin/api/jobs", headers=BEARER)
+    assert wrong_method.status_code == 405 and wrong_method.is_json
+
+
+def test_admin_responses_are_no_store_and_never_framed(adopted):
+    client = adopted.test_client()
+    for response in (client.get("/admin/login"), client.get("/admin/api/jobs", headers=BEARER),
+                     client.get("/admin/api/jobs")):
+        assert "no-store" in response.headers["Cache-Control"]
+        assert response.headers["X-Frame-Options"] == "DENY"
+        assert "frame-ancestors 'none'" in response.headers["Content-Security-Policy"]
+        assert response.headers["X-Content-Type-Options"] == "nosniff"
+    public = client.get("/objects/relief/")
+    assert public.status_code == 200 and "X-Frame-Options" not in public.headers

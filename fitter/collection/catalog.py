@@ -35,7 +35,7 @@ import sqlite3
 import threading
 import time
 import unicodedata
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -330,26 +330,34 @@ class Catalog:
     EDITABLE = {"title": 200, "description": 10_000, "provenance": 2_000, "licence": 500,
                 "units": 20}
 
-    def update_object(self, object_id: str, **fields: Any) -> None:
-        """Set editable metadata (:data:`EDITABLE`) and/or ``published``.
+    def update_object(self, object_id: str, fields: Mapping[str, Any]) -> None:
+        """Set editable metadata (:data:`EDITABLE`) and/or ``published`` from ``fields``.
+
+        ``fields`` is a mapping (not keyword arguments: any key, ``object_id`` or ``self``
+        included, is a field name to check, never a parameter of this method).
 
         Raises
         ------
         FieldError
-            Unknown field, a value that is not text, text too long, empty title.
+            Unknown fields (all of them named), a value that is not text, text too long, an
+            empty title, a ``published`` that is not a boolean.
         ConflictError
             Publishing an object that has no bundle yet (or is in the trash).
         KeyError
             No such object.
         """
+        unknown = [str(name) for name in fields if name not in self.EDITABLE
+                   and name != "published"]
+        if unknown:
+            raise FieldError(f"not editable: {', '.join(repr(n[:80]) for n in unknown[:20])}; "
+                             f"editable fields: {', '.join(self.EDITABLE)}, published")
         updates: dict[str, Any] = {}
         for name, value in fields.items():
             if name == "published":
-                updates[name] = int(bool(value))
+                if not isinstance(value, bool):
+                    raise FieldError(f"published must be true or false, got {value!r:.80}")
+                updates[name] = int(value)
                 continue
-            if name not in self.EDITABLE:
-                raise FieldError(f"{name!r} is not editable; editable fields: "
-                                 f"{', '.join(self.EDITABLE)}, published")
             if not isinstance(value, str):
                 raise FieldError(f"{name} must be text, got {type(value).__name__}")
             value = value.strip()

@@ -18,6 +18,10 @@ one blueprint:
                without an admin token; see :mod:`fitter.server.admin`)
 =============  ==============================================================
 
+Every response carries the security headers of :mod:`fitter.server.headers`. Errors are
+answered in kind: JSON (``{"error": message}``) under ``/api/`` and ``/admin/api/``, a page
+elsewhere — 400, 404 and 500 alike (a 500's traceback goes to the log, never to the client).
+
 The public side does no fitting and writes nothing: a collection is a
 directory of bundle directories (each the output of ``tessera fit``), read as
 they are. The admin area writes only into the collection's ``.tessera/``
@@ -149,7 +153,7 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
         directory (web/, pyodide, three) is missing.
     """
     from ..collection.bundles import Collection
-    from . import admin, api, bundles, gallery, objects, runtime
+    from . import admin, api, bundles, gallery, headers, objects, runtime
     from .snapshot import SnapshotBuilder
 
     settings = load_settings(config)
@@ -183,6 +187,7 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
     # the admin area; on a managed collection (with a catalog) it also narrows the public
     # site to the published objects (a plain folder of bundles is served whole, as before)
     admin.init_app(app)
+    headers.init_app(app)
 
     @app.errorhandler(404)
     def not_found(error: HTTPException) -> ResponseReturnValue:
@@ -197,6 +202,27 @@ def create_app(config: Mapping[str, Any] | None = None) -> Flask:
         if request.path.startswith(("/api/", "/admin/api/")):
             return jsonify({"error": message}), 400
         return render_template("404.html", message=message, status=400), 400
+
+    @app.errorhandler(500)
+    def server_error(error: HTTPException) -> ResponseReturnValue:
+        # Flask has logged the traceback (app.log_exception) before calling this
+        message = ("the server failed to answer this request; the error is in its log "
+                   "(please report it)")
+        if request.path.startswith(("/api/", "/admin/api/")):
+            return jsonify({"error": message}), 500
+        return render_template("500.html", message=message), 500
+
+    @app.errorhandler(HTTPException)
+    def other_http_error(error: HTTPException) -> ResponseReturnValue:
+        """Any other HTTP error (405, 413 ...): JSON under the APIs, werkzeug's page elsewhere."""
+        if error.code is None or not request.path.startswith(("/api/", "/admin/api/")):
+            return error
+        response = jsonify({"error": error.description})
+        response.status_code = error.code
+        for name, value in error.get_headers():
+            if name.lower() != "content-type":
+                response.headers[name] = value  # e.g. a 405's Allow
+        return response
 
     return app
 

@@ -4,6 +4,11 @@
 "bundle_url", "bytes", "stats", ...}``; ``GET /api/objects/<id>`` one of them.
 URLs are relative to the server root (they start with ``/``, or with the
 application's mount point when it is mounted under a prefix).
+
+Only readable bundles are listed (what "readable" means is
+:func:`fitter.collection.bundles.parse_manifest`, the one check every route shares); a
+broken one is left out and logged, and its own URLs answer 404 with the reason. Sizes and
+``files`` count the bundle's regular files only (symbolic links are never followed).
 """
 
 from __future__ import annotations
@@ -20,9 +25,8 @@ bp = Blueprint("api", __name__, url_prefix="/api")
 
 def object_summary(bundle: Bundle) -> dict[str, Any]:
     """The public description of one object (used by the API and the gallery)."""
-    manifest = bundle.manifest
     sizes = bundle.file_sizes()
-    base = manifest.get("base", {})
+    base = bundle.base
     return {
         "id": bundle.id,
         "title": bundle.title,
@@ -37,11 +41,11 @@ def object_summary(bundle: Bundle) -> dict[str, Any]:
         # what a visitor's viewer downloads: the manifest and the base patch
         "view_bytes": sizes.get("manifest.json", 0) + sizes.get(bundle.base_file, 0),
         "files": sizes,
-        "units": manifest.get("units", "unknown"),
+        "units": bundle.units,
         "grid": base.get("grid"),
         "degree": base.get("degree"),
-        "stats": manifest.get("stats", {}),
-        "provenance": manifest.get("provenance", {}),
+        "stats": bundle.stats,
+        "provenance": bundle.provenance,
     }
 
 

@@ -3,7 +3,9 @@
 ``/objects/<id>/`` is the three.js viewer (the mesh is tessellated in the
 visitor's browser by ``client_py`` under Pyodide, in a Web Worker);
 ``/objects/<id>/3dhop`` shows the same client-made mesh in 3DHOP;
-``/objects/<id>/thumbnail.png`` is a small server-side rendering for the gallery.
+``/objects/<id>/thumbnail.png`` is a small server-side rendering for the gallery, cached
+per version of the base file (failures too: a bad patch is a quick 404 after the first try;
+see :mod:`fitter.server.thumbnail`).
 
 Every URL the pages need is computed here and handed to them in a JSON block:
 the front end never builds or hard-codes a URL.
@@ -16,15 +18,19 @@ from typing import Any
 from flask import Blueprint, Response, abort, current_app, render_template, request, url_for
 from flask.typing import ResponseReturnValue
 
-from client_py import PatchFormatError
 from client_py.tessellate import MAX_GRID
 
 from ..collection.bundles import Bundle
 from .api import get_bundle_or_404, object_summary
 from .runtime import runtime_config
-from .thumbnail import render_thumbnail
+from .thumbnail import ThumbnailCache, thumbnail_of
 
 bp = Blueprint("objects", __name__, url_prefix="/objects")
+
+
+@bp.record_once
+def _make_thumbnail_cache(setup: Any) -> None:
+    setup.app.extensions["tessera_thumbnails"] = ThumbnailCache()
 
 MAX_PAGE_RESOLUTION = 1024  # a visitor's browser: 1 M vertices is plenty
 
@@ -117,16 +123,17 @@ def hop(object_id: str) -> ResponseReturnValue:
 @bp.get("/<object_id>/thumbnail.png")
 def thumbnail(object_id: str) -> ResponseReturnValue:
     bundle = get_bundle_or_404(object_id)
-    path = bundle.path / bundle.base_file
+    name = bundle.base_file  # a name inside the bundle (parse_manifest checked it)
     try:
-        stat = path.stat()
+        stat = (bundle.path / name).stat()
     except OSError:
-        abort(404, description=f"object {object_id!r} has no {bundle.base_file}")
-    try:
-        png = render_thumbnail(str(path), stat.st_mtime_ns, stat.st_size)
-    except PatchFormatError as exc:
-        abort(404, description=f"object {object_id!r}: {exc}")
-    response = Response(png, mimetype="image/png")
+        abort(404, description=f"object {object_id!r} has no {name}")
+    version = (str(bundle.path), name, stat.st_mtime_ns, stat.st_size, stat.st_ino)
+    made = current_app.extensions["tessera_thumbnails"].get(version,
+                                                            lambda: thumbnail_of(bundle))
+    if made.png is None:
+        abort(404, description=f"object {object_id!r} has no thumbnail: {made.error}")
+    response = Response(made.png, mimetype="image/png")
     response.set_etag(f"{stat.st_mtime_ns:x}-{stat.st_size:x}-thumb")
     response.cache_control.public = True
     response.cache_control.max_age = 3600

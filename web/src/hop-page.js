@@ -30,6 +30,10 @@ const { config, stats, showStage, showError } = startPage({
   hop: "Handing the mesh to 3DHOP…",
 }, { ply_bytes: 0, level: -1, resolution: null });
 
+// Dragging on the 3D view selects no text (a listener, not an inline attribute: the page's
+// Content-Security-Policy runs no inline handlers).
+$("3dhop").addEventListener("mousedown", (event) => event.preventDefault());
+
 // 3DHOP's toolbar (init.js) calls this global.
 window.actionsToolbar = (action) => {
   const presenter = window.presenter;

@@ -158,7 +158,7 @@ def edit_object(object_id: str) -> ResponseReturnValue:
         fields = {k: request.form.get(k, "") for k in ("title", "description", "provenance",
                                                        "licence", "units")}
         try:
-            state().catalog().update_object(object_id, **fields)
+            state().catalog().update_object(object_id, fields)
         except FieldError as exc:
             error = str(exc)
         else:
@@ -183,7 +183,7 @@ def unpublish_object(object_id: str) -> ResponseReturnValue:
 def _set_published(object_id: str, published: bool) -> ResponseReturnValue:
     _object_or_404(object_id)
     try:
-        state().catalog().update_object(object_id, published=published)
+        state().catalog().update_object(object_id, {"published": published})
     except ConflictError as exc:
         flash(str(exc))
     return redirect(_safe_next(request.form.get("next")) if request.form.get("next")
