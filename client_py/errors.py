@@ -15,7 +15,8 @@ beside the code that raises them, each a subclass of :class:`TesseraError`
                                            ``PatchFormatError``)
 ``fitter.fitting.io.ScanError``            an unreadable or unusable scan
 ``fitter.fitting.options.OptionError``     a fit option out of its range
-``fitter.collection.bundles.BundleError``  a bundle directory without a manifest
+``fitter.collection.bundles.BundleError``  a bundle the server cannot serve: no or a
+                                           malformed manifest, an unreadable file
 ``fitter.collection.catalog.CatalogError`` a catalog this code cannot use
 ``fitter.collection.catalog.ConflictError``  an action the current state forbids
 ``fitter.collection.catalog.FieldError``   an object field with a bad value
