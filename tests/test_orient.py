@@ -138,3 +138,57 @@ def test_a_real_fit_records_the_busts_up(shared_data, tmp_path):
     assert angle_deg(view["up"], REAL_UP["laurana-bust/laurana.ply"]) < 15
     assert view["up_source"] == "base plane"
     assert angle_deg(view["front"], (0, 0, 1)) < 30  # her face, seen in the renders
+
+
+def test_a_relief_askew_in_its_frame_stands_with_its_edges_level():
+    from fitter.fitting.examples import relief_scan
+
+    points = relief_scan(6000)
+    view = orient.find_view(Scan.from_array(points))
+    assert view.up_source == "convention (relief)"
+    axes = orient.flat_frame(points)
+    assert min(angle_deg(view.up, axes[0]), angle_deg(view.up, axes[1])) < 1e-6
+    assert angle_deg(view.front, axes[2]) < 1e-6 or angle_deg(view.front, -axes[2]) < 1e-6
+
+
+# ------------------------------------------------------------- the gallery's thumbnail
+def _thumbnail(tmp_path, scan: Scan, **options):
+    import io
+
+    from PIL import Image
+
+    from fitter.server.thumbnail import render_thumbnail
+
+    bundle = fit_scan(scan, tmp_path / "b", FitOptions(grid=(10, 10), method="linear",
+                                                       detail_levels=0, **options))
+    png = render_thumbnail((bundle.path / "base.tsp").read_bytes(), bundle.manifest["view"])
+    return np.asarray(Image.open(io.BytesIO(png))).astype(float) / 255  # (H, W, RGBA)
+
+
+def test_the_thumbnail_shows_the_front_with_up_on_top(tmp_path):
+    """A cone standing on its base along +z: seen from the front with up on top, its silhouette
+    is a triangle, widest at the bottom; forced upside down it is widest at the top."""
+    upright = _thumbnail(tmp_path / "a", cone_on_base(2, 1.0))[..., 3]
+    rows = np.flatnonzero(upright.sum(axis=1) > 0)
+    width = upright.sum(axis=1)
+    top, bottom = rows[: len(rows) // 4], rows[-len(rows) // 4:]
+    assert width[bottom].mean() > 2.5 * width[top].mean()
+    flipped = _thumbnail(tmp_path / "b", cone_on_base(2, 1.0), up="-z")[..., 3]
+    width = flipped.sum(axis=1)
+    rows = np.flatnonzero(width > 0)
+    assert width[rows[: len(rows) // 4]].mean() > 2.5 * width[rows[-len(rows) // 4:]].mean()
+
+
+def test_the_thumbnail_has_no_pinholes_inside_the_object(tmp_path):
+    """Supersampled and box-filtered, the far side never shows through the near one: inside the
+    silhouette (eroded by 3 px) every pixel is fully covered, and no pixel is much darker than
+    its 3 x 3 neighbourhood's median (the old cards' dotted moire)."""
+    from scipy import ndimage
+
+    card = _thumbnail(tmp_path, cone_on_base(2, 1.0))
+    alpha, grey = card[..., 3], card[..., :3].mean(axis=2)
+    inside = ndimage.binary_erosion(alpha > 0.5, iterations=3)
+    assert inside.sum() > 5000
+    assert alpha[inside].min() > 0.99
+    dark = grey < ndimage.median_filter(grey, size=3) - 0.05
+    assert dark[inside].mean() < 0.002

@@ -20,7 +20,10 @@ Up, the first rule that applies:
    relief, a range scan: the mean unit normal has length above ``ONE_SIDED``) has no base:
    its rim plane is its back;
 4. ``convention`` — else +Y, the graphics convention the formats without an up axis
-   (OBJ, PLY, STL) follow in practice (Stanford's scanner frames, the glTF exporters).
+   (OBJ, PLY, STL) follow in practice (Stanford's scanner frames, the glTF exporters);
+   for a flat scan (a relief or block face: its least principal extent under ``FLAT``
+   times its largest) +Y turned to the nearer of its two in-plane principal axes, so a
+   relief lying askew in its frame shows with its edges level (``convention (relief)``).
 
 Front (perpendicular to up), the first rule that applies:
 
@@ -32,7 +35,8 @@ Front (perpendicular to up), the first rule that applies:
    more area per projected area than the back of a head, since for a closed surface the
    projected areas of the two sides are equal, ``sum n dA = 0``);
 3. ``convention`` — point clouds without normals: +Z made perpendicular to up (Stanford
-   range images are seen from +Z, the scanner looking down -Z).
+   range images are seen from +Z, the scanner looking down -Z); for a flat scan, its
+   plane's normal on the +Z side.
 """
 
 from __future__ import annotations
@@ -59,6 +63,7 @@ BASE_ANGLE_DEG = 10.0  # hull facets within this angle of an axis cap that end
 BASE_MIN_SHARE = 0.2  # the cap's area / the bounding box's footprint across the axis
 BASE_MIN_HEIGHT = 0.9  # the object's extent along the axis / sqrt(footprint)
 BASE_SLAB = 0.02  # points within this fraction of the extent from an end stand on it
+FLAT = 0.2  # least / largest principal extent below this: a flat scan (a relief, depth < width / 5)
 ONE_SIDED = 0.35  # |mean unit normal| above this: a one-sided scan (mask, relief, range scan)
 
 
@@ -165,6 +170,20 @@ def base_end(points: np.ndarray, seed: int = 0) -> tuple[str, dict] | None:
     return best
 
 
+def flat_frame(points: np.ndarray) -> np.ndarray | None:
+    """The principal axes ``(3, 3)`` (rows, by decreasing extent) of a flat scan: its least
+    extent (max - min along the axis) under ``FLAT`` times its largest; None otherwise."""
+    centred = points - points.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred[:: max(1, len(points) // HULL_SAMPLE)],
+                               full_matrices=False)
+    extent = np.ptp(centred @ axes.T, axis=0)
+    return axes if extent[2] < FLAT * extent[0] else None
+
+
+def _signed_towards(axis: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    return axis if axis @ reference >= 0 else -axis
+
+
 def find_up(scan: Scan, requested: str = "auto",
             surface: Surface | None = None) -> tuple[np.ndarray, str]:
     """The unit up direction ``(3,)`` and the rule that chose it (module docstring).
@@ -185,7 +204,12 @@ def find_up(scan: Scan, requested: str = "auto",
         found = base_end(scan.points)
         if found is not None:
             return -np.array(AXES[found[0]]), "base plane"
-    return np.array(AXES[CONVENTION_UP]), "convention"
+    convention = np.array(AXES[CONVENTION_UP])
+    axes = flat_frame(scan.points)
+    if axes is not None:
+        nearer = max(axes[:2], key=lambda axis: abs(axis @ convention))
+        return _signed_towards(nearer, convention), "convention (relief)"
+    return convention, "convention"
 
 
 def _horizontal(direction: np.ndarray, up: np.ndarray) -> np.ndarray | None:
@@ -219,6 +243,10 @@ def find_view(scan: Scan, up: str = "auto") -> View:
     if front is None and surface is not None:
         front = detail_front(surface, up_vector)
         front_source = "surface detail"
+    axes = flat_frame(scan.points) if front is None else None
+    if axes is not None:
+        front = _horizontal(_signed_towards(axes[2], np.array(AXES[CONVENTION_FRONT])),
+                            up_vector)
     if front is None:
         front = _horizontal(np.array(AXES[CONVENTION_FRONT]), up_vector)
         if front is None:  # up is +-z: the convention's front is along up
