@@ -20,7 +20,6 @@ import os
 import shutil
 import statistics
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -29,7 +28,7 @@ import urllib.request
 from pathlib import Path
 
 from bench import print_table, write_results
-from bench.bench_serve import TOKEN, _free_port, _make_collection, _wrk
+from bench.bench_serve import TOKEN, _make_collection, _wrk, production_server
 
 DURATION = 4.0  # seconds of public load, each phase
 ROUNDS = 3
@@ -133,38 +132,20 @@ def run() -> dict | None:
         script.write_text(ATTACK_SCRIPT)
         fixed_script = Path(tmp) / "fixed.lua"
         fixed_script.write_text(FIXED_SCRIPT)
-        port = _free_port()
-        env = {**os.environ, "TESSERA_ADMIN_TOKEN": TOKEN, "TESSERA_PYODIDE_SNAPSHOT": "false"}
-        log = open(Path(tmp) / "serve.log", "wb")  # noqa: SIM115 - closed below
-        server = subprocess.Popen([sys.executable, "-m", "fitter.cli", "serve", str(root),
-                                   "--production", "--port", str(port), "--processes", "2",
-                                   "--threads", "4"],
-                                  env=env, stdout=log, stderr=subprocess.STDOUT)
-        base = f"http://127.0.0.1:{port}"
-        public = f"{base}/bundles/{object_id}/base.tsp"
-        try:
-            deadline = time.monotonic() + 30
-            while True:
-                try:
-                    urllib.request.urlopen(base + "/api/objects", timeout=2).read()
-                    break
-                except OSError:
-                    if server.poll() is not None or time.monotonic() > deadline:
-                        raise RuntimeError("tessera serve --production did not start: "
-                                           + (Path(tmp) / "serve.log").read_text()) from None
-                    time.sleep(0.2)
+        with production_server(root, Path(tmp) / "serve.log") as (base, pid):
+            public = f"{base}/bundles/{object_id}/base.tsp"
             _wrk(public, 2.0)  # warm-up
             load_before = _load_average()
             # the onset: each process spends its FREE_FAILURES scrypt checks, then backs off
-            onset, first_attack = _attacked(public, base, script, DURATION, server.pid)
+            onset, first_attack = _attacked(public, base, script, DURATION, pid)
             attacks = [first_attack]
             alone, attacked, fixed, fixed_attacks = [], [], [], []
             for _ in range(ROUNDS):  # alternated: other work on the machine varies
-                alone.append(_alone(public, DURATION, server.pid))
-                result, attack = _attacked(public, base, script, DURATION, server.pid)
+                alone.append(_alone(public, DURATION, pid))
+                result, attack = _attacked(public, base, script, DURATION, pid)
                 attacked.append(result)
                 attacks.append(attack)
-                result, attack = _attacked(public, base, fixed_script, DURATION, server.pid)
+                result, attack = _attacked(public, base, fixed_script, DURATION, pid)
                 fixed.append(result)
                 fixed_attacks.append(attack)
             load_after = _load_average()
@@ -177,14 +158,6 @@ def run() -> dict | None:
                 after = {"status": exc.code, "retry_after": exc.headers.get("Retry-After")}
             except (TimeoutError, urllib.error.URLError) as exc:
                 after = {"status": None, "error": str(exc)}
-        finally:
-            server.terminate()
-            try:
-                server.wait(10)
-            except subprocess.TimeoutExpired:  # workers stuck in hashes (before the limiter)
-                server.kill()
-                server.wait(10)
-            log.close()
     unloaded = statistics.median(r["rate"] for r in alone)
     loaded = statistics.median(r["rate"] for r in attacked)
     share = loaded / unloaded

@@ -26,6 +26,8 @@ import sys
 import tempfile
 import time
 import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from bench import print_table, write_results
@@ -116,14 +118,14 @@ def _python_load(url: str, duration: float) -> dict:
             "p50_ms": None, "p99_ms": None}
 
 
-def run() -> dict:
-    tool = "wrk" if shutil.which("wrk") else "python"
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp) / "collection"
-        object_id = _make_collection(root)
-        port = _free_port()
-        env = {**os.environ, "TESSERA_ADMIN_TOKEN": TOKEN, "TESSERA_PYODIDE_SNAPSHOT": "false"}
-        log = open(Path(tmp) / "serve.log", "wb")  # noqa: SIM115 - closed below
+@contextmanager
+def production_server(root: Path, log_path: Path) -> Iterator[tuple[str, int]]:
+    """``tessera serve --production`` (gunicorn, 2 processes x 4 threads) on ``root`` with
+    the admin token set, until the block ends: ``(base URL, server pid)``, once
+    ``/api/objects`` answers. The server's output goes to ``log_path``."""
+    port = _free_port()
+    env = {**os.environ, "TESSERA_ADMIN_TOKEN": TOKEN, "TESSERA_PYODIDE_SNAPSHOT": "false"}
+    with open(log_path, "wb") as log:
         server = subprocess.Popen([sys.executable, "-m", "fitter.cli", "serve", str(root),
                                    "--production", "--port", str(port), "--processes", "2",
                                    "--threads", "4"],
@@ -138,8 +140,24 @@ def run() -> dict:
                 except OSError:
                     if server.poll() is not None or time.monotonic() > deadline:
                         raise RuntimeError("tessera serve --production did not start: "
-                                           + (Path(tmp) / "serve.log").read_text()) from None
+                                           + log_path.read_text()) from None
                     time.sleep(0.2)
+            yield base, server.pid
+        finally:
+            server.terminate()
+            try:
+                server.wait(10)
+            except subprocess.TimeoutExpired:  # workers stuck in a request: do not wait on
+                server.kill()
+                server.wait(10)
+
+
+def run() -> dict:
+    tool = "wrk" if shutil.which("wrk") else "python"
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "collection"
+        object_id = _make_collection(root)
+        with production_server(root, Path(tmp) / "serve.log") as (base, _):
             paths = [f"/bundles/{object_id}/base.tsp", "/web/src/viewer.js",
                      "/web/src/mesh-worker.js", "/web/src/style.css"]
             rows, records = [], []
@@ -153,10 +171,6 @@ def run() -> dict:
                              "" if result["p50_ms"] is None else round(result["p50_ms"], 2),
                              "" if result["p99_ms"] is None else round(result["p99_ms"], 2),
                              "yes" if ok else "NO"))
-        finally:
-            server.terminate()
-            server.wait(10)
-            log.close()
     print_table(f"tessera serve --production (gunicorn, 2 processes x 4 threads), {tool}, "
                 f"{CONNECTIONS} connections, {DURATION:g} s per URL; target >= {TARGET:g} req/s, "
                 "0 errors",

@@ -221,11 +221,7 @@ export class Viewer {
       this._fallbackView();
       return;
     }
-    const sphere = this.framing.sphere;
-    const pose = frontView({
-      center: sphere.center.toArray(), radius: sphere.radius, up: this.objectView.up,
-      front: this.objectView.front, fovDeg: this.camera.fov, aspect: this.visibleAspect(),
-    });
+    const pose = this._frontPose();
     this._applyPose(pose, pose.distance);
   }
 
@@ -236,12 +232,16 @@ export class Viewer {
       this._fallbackView();
       return;
     }
+    this._applyPose(this._frontPose(), this.camera.position.distanceTo(this.controls.target));
+  }
+
+  /** The object view's front pose for the first mesh's bounds (camera-view.js frontView). */
+  _frontPose() {
     const sphere = this.framing.sphere;
-    const pose = frontView({
+    return frontView({
       center: sphere.center.toArray(), radius: sphere.radius, up: this.objectView.up,
       front: this.objectView.front, fovDeg: this.camera.fov, aspect: this.visibleAspect(),
     });
-    this._applyPose(pose, this.camera.position.distanceTo(this.controls.target));
   }
 
   _applyPose(pose, distance) {
