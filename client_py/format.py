@@ -286,14 +286,29 @@ def _read_knots(cur: _Cursor, uniform: bool, degree: int, n_ctrl: int, lo: float
 
 
 def _reject_constant(name: str) -> float:
-    raise ValueError(f"{name} is not JSON (write_patch never writes it)")
+    raise ValueError(f"{name} is not JSON (numbers must be finite)")
 
 
 def _finite_float(text: str) -> float:
     value = float(text)
     if not math.isfinite(value):
-        raise ValueError(f"number {text} overflows a double")
+        raise ValueError(f"number {text[:40]} overflows a double (numbers must be finite)")
     return value
+
+
+def loads_finite_json(text: str):  # noqa: ANN201 - any JSON value
+    """``json.loads(text)`` that refuses what strict JSON has not: ``NaN``, ``Infinity`` and
+    numbers that overflow a double (``1e999``), with a ``ValueError`` naming them. Used for
+    the patch metadata here and for bundle manifests by the server.
+
+    Raises
+    ------
+    ValueError
+        Not JSON (``json.JSONDecodeError``), or a non-finite number.
+    RecursionError
+        Nesting deeper than the interpreter's recursion limit.
+    """
+    return json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float)
 
 
 def _unframe(data: object, magic: bytes, what: str, header: struct.Struct, version: int,
@@ -425,8 +440,7 @@ def read_patch(data: bytes) -> NurbsSurface:
     if meta_len > MAX_METADATA:
         raise PatchFormatError(meta_at - 4, f"metadata length {meta_len} exceeds 1 MiB", "payload")
     try:
-        metadata = json.loads(cur.take(meta_len, "metadata").decode("utf-8"),
-                              parse_constant=_reject_constant, parse_float=_finite_float)
+        metadata = loads_finite_json(cur.take(meta_len, "metadata").decode("utf-8"))
     except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, ...
         if isinstance(exc, PatchFormatError):
             raise

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import re
 import stat
@@ -35,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from client_py.errors import TesseraError
+from client_py.format import loads_finite_json
 
 log = logging.getLogger(__name__)
 
@@ -78,17 +78,6 @@ def confined_name(name: object, what: str) -> str:
 
 def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
-
-
-def _reject_constant(name: str) -> float:
-    raise ValueError(f"{name} is not JSON (numbers must be finite)")
-
-
-def _finite_float(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value):
-        raise ValueError(f"number {text[:40]} is out of range (numbers must be finite)")
-    return value
 
 
 def _check_fields(data: dict[str, Any]) -> None:
@@ -177,8 +166,7 @@ def parse_manifest(path: Path) -> dict[str, Any]:
         raise BundleError(f"{where}: no manifest.json (not a Tessera bundle)")
     raw, _ = _read_regular(path, path.parent, MAX_MANIFEST_BYTES, where)
     try:
-        data = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant,
-                          parse_float=_finite_float)
+        data = loads_finite_json(raw.decode("utf-8"))
     except UnicodeDecodeError as exc:
         raise BundleError(f"{where}: unreadable manifest: not UTF-8 text "
                           f"(byte {exc.start})") from None
