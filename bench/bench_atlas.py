@@ -1,0 +1,201 @@
+"""Whole objects: every scan point against the mesh a visitor is drawn, at every level.
+
+For each object of ``../shared/data`` (a closed bust, statues, a mask, a range scan and a
+registration of 15 range scans), fit with the DEFAULT options (as ``tessera fit SCAN OUT``
+does), then for every level the bundle offers (the base alone, then each detail level):
+
+* the bytes a visitor downloads to see it: the manifest as served (gzip) + the base + the
+  detail tiles of levels ``0..L`` (:func:`client_py.bundle.plan_level`);
+* the distance of ALL scan points to the drawn mesh (``client_py``'s tessellation of that
+  level in the scan frame, at the resolution ``tessera tessellate --level L`` uses):
+  RMS, max, and the share within 0.5 % of the bounding-box diagonal;
+* dense samples of the drawn mesh against the scan: the largest distance (fins, spikes,
+  walls, skirts), as a share of the diagonal;
+* the welded mesh's open border, against the scan's own;
+* beside it, quadric decimation + Draco of the scan mesh at the nearest byte count at or
+  under Tessera's (``bench.bench_rate_distortion.draco_points``), scored the same way.
+
+It writes ``bench/results/atlas.json`` and, per object, a picture of the scan and the
+finest drawn level from six directions (``bench/results/atlas/<object>.png``) with the
+silhouette IoU of each view. ``TESSERA_ATLAS_OBJECTS=bunny,lucy`` picks objects.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench import RESULTS, print_table, write_results
+from bench.scoring import (
+    boundary_length,
+    diagonal,
+    point_errors,
+    render_views,
+    reverse_errors,
+    save_picture,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT.parent / "shared" / "data"
+OBJECTS = {
+    "bunny": DATA / "stanford-bunny" / "bun_zipper.ply.gz",
+    "nefertiti": DATA / "nefertiti" / "nefertiti-lowres.obj",
+    "lucy": DATA / "stanford-lucy" / "lucy.ply",
+    "laurana": DATA / "laurana-bust" / "laurana.ply",
+    "happy-buddha 15 scans": DATA / "happy-buddha-rangescans" / "happyStandRight.conf",
+    "buddha scan 0": DATA / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz",
+    "bali-mask": DATA / "bali-mask" / "mask.obj",
+}
+PICTURES = RESULTS / "atlas"
+
+
+def _objects() -> dict[str, Path]:
+    wanted = [n.strip() for n in os.environ.get("TESSERA_ATLAS_OBJECTS", "").split(",")
+              if n.strip()]
+    unknown = [n for n in wanted if n not in OBJECTS]
+    if unknown:
+        raise ValueError(f"TESSERA_ATLAS_OBJECTS: unknown object(s) {', '.join(unknown)}; "
+                         f"known: {', '.join(OBJECTS)}")
+    chosen = {n: OBJECTS[n] for n in wanted} if wanted else dict(OBJECTS)
+    return {n: p for n, p in chosen.items() if p.exists()}
+
+
+def served_manifest_bytes(bundle: Path) -> int:
+    """The manifest as a server sends it: gzip level 6 of the file's bytes."""
+    return len(gzip.compress((bundle / "manifest.json").read_bytes(), 6))
+
+
+def drawn_levels(bundle: Path) -> list[dict]:
+    """Every level a visitor can see (``-1`` the base alone, then each detail level): its
+    drawn mesh in the scan frame and the bytes downloaded to see it."""
+    from client_py.bundle import base_file, plan_level, plan_levels, tessellate_bundle
+
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    base_bytes = (bundle / base_file(manifest)).stat().st_size
+    manifest_bytes = served_manifest_bytes(bundle)
+    plans = [plan_level(manifest, -1)] + plan_levels(manifest)
+    out = []
+    for plan in plans:
+        mesh = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(),
+                                 level=plan.level, resolution=plan.resolution, kernel="numpy")
+        vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
+        faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
+        out.append({"level": plan.level, "bytes": manifest_bytes + base_bytes
+                    + plan.detail_bytes, "vertices": vertices, "faces": faces,
+                    "resolution": plan.resolution})
+    return out
+
+
+def _view(bundle: Path) -> tuple[np.ndarray, np.ndarray]:
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    view = manifest.get("view") or {}
+    up = np.asarray(view.get("up", (0.0, 1.0, 0.0)), dtype=float)
+    front = np.asarray(view.get("front", (0.0, 0.0, 1.0)), dtype=float)
+    return front, up
+
+
+def _scan_mesh(scan) -> tuple[np.ndarray, np.ndarray | None]:
+    faces = None if scan.faces is None else np.asarray(scan.faces, dtype=np.int64)
+    return np.asarray(scan.points, dtype=float), faces
+
+
+def score_object(name: str, path: Path, work: Path) -> dict:
+    """Fit ``path`` with the default options and score every level it offers."""
+    from fitter.fitting.io import load_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
+
+    scan = load_scan(path)
+    points, scan_faces = _scan_mesh(scan)
+    diag = diagonal(points)
+    bundle = work / name.replace(" ", "-")
+    start = time.perf_counter()
+    fit_scan(scan, bundle, FitOptions())
+    fit_s = time.perf_counter() - start
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    tolerance = 1e-6 * diag
+    scan_border = (boundary_length(points, scan_faces, tolerance)
+                   if scan_faces is not None else None)
+    rows = []
+    levels = drawn_levels(bundle)
+    for level in levels:
+        err = point_errors(points, level["vertices"], level["faces"], diag)
+        back = reverse_errors(level["vertices"], level["faces"], points, scan_faces, diag)
+        border = boundary_length(level["vertices"], level["faces"], tolerance)
+        rows.append({"level": level["level"], "bytes": level["bytes"],
+                     "resolution": level["resolution"], "triangles": len(level["faces"]),
+                     "all_points": err, "mesh_to_scan": back, "border": border})
+    finest = levels[-1]
+    iou = None
+    if scan_faces is not None:
+        picture, iou = render_views({"scan": (points, scan_faces),
+                                     "tessera": (finest["vertices"], finest["faces"])},
+                                    *_view(bundle))
+        PICTURES.mkdir(parents=True, exist_ok=True)
+        save_picture(picture, PICTURES / f"{bundle.name}.png", ["scan", "tessera (finest)"])
+    draco = _draco_rows(points, scan_faces, diag, [r["bytes"] for r in rows])
+    return {"object": name, "points": int(len(points)), "diagonal": diag,
+            "scan_faces": None if scan_faces is None else int(len(scan_faces)),
+            "scan_border": scan_border, "fit_s": fit_s,
+            "format_version": manifest.get("format_version"),
+            "patches": (manifest.get("base") or {}).get("patches", 1),
+            "levels": rows, "silhouette_iou": iou, "draco": draco}
+
+
+def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
+                budgets: list[int]) -> list[dict]:
+    """Quadric decimation + Draco of the scan mesh: for each budget, the lowest RMS (all
+    points) of the encodings at or under it. ``[]`` for a cloud or without the libraries."""
+    if faces is None:
+        return []
+    try:
+        from bench.bench_rate_distortion import draco_points
+    except ImportError:
+        return []
+    try:
+        encodings = draco_points(points, points, faces)
+    except ImportError:
+        return []
+    out = []
+    for budget in budgets:
+        fits = [e for e in encodings if e["bytes"] <= budget]
+        best = min(fits, key=lambda e: e["rms"]) if fits else None
+        out.append({"budget": budget, "best": best,
+                    "rms_relative": None if best is None else best["rms"] / diag})
+    return out
+
+
+def run() -> dict | None:
+    objects = _objects()
+    if not objects:
+        print(f"atlas: no scans under {DATA}; skipped")
+        return None
+    results = []
+    with tempfile.TemporaryDirectory(prefix="tessera-atlas-") as tmp:
+        for name, path in objects.items():
+            print(f"atlas: {name} ...", flush=True)
+            results.append(score_object(name, path, Path(tmp)))
+    table = []
+    for r in results:
+        for level, draco in zip(r["levels"], r["draco"] or [None] * len(r["levels"]),
+                                strict=True):
+            best = None if draco is None else draco["best"]
+            table.append([r["object"], r["patches"], level["level"], level["bytes"],
+                          f"{100 * level['all_points']['within_0.5%']:.1f}",
+                          f"{level['all_points']['rms']:.3g}",
+                          "-" if best is None else f"{best['rms']:.3g}",
+                          f"{100 * level['mesh_to_scan']['max_relative']:.2f}",
+                          level["border"]["border_edges"],
+                          "-" if r["scan_border"] is None else r["scan_border"]["border_edges"]])
+    print_table("atlas: ALL scan points vs the drawn mesh, per level (default fit)",
+                ["object", "patches", "level", "bytes", "% within 0.5%", "RMS all",
+                 "Draco RMS", "max mesh->scan %diag", "border edges", "scan border"], table)
+    record = {"objects": results}
+    write_results("atlas", record)
+    return record

@@ -1,0 +1,197 @@
+"""Scoring a drawn mesh against its scan: every scan point, both directions, and pictures.
+
+The figures the atlas benchmark (and the rate-distortion one) report, all computed on the
+mesh a visitor's browser draws (``client_py``'s level-L tessellation in the scan frame):
+
+* :func:`point_errors`: the distance of EVERY scan point to the drawn mesh (no covered
+  subset: a point the bundle does not draw is an error), as RMS, mean, p99, max and the
+  share within a fraction of the bounding-box diagonal;
+* :func:`reverse_errors`: dense area-weighted samples of the drawn mesh against the scan
+  (the scan's triangles, or its nearest points for a cloud): fins, spikes and skirts that
+  hang off the object show here and nowhere else;
+* :func:`boundary_length`: the welded mesh's open border (edges used by one triangle);
+* :func:`render_views`: the drawn mesh and the scan rendered from the same orthographic
+  cameras (z-buffered splats of dense surface samples, Lambert shaded), and the silhouette
+  IoU of each pair, so a broken shape is seen as well as measured.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from bench.bench_rate_distortion import mesh_distance
+
+
+def diagonal(points: np.ndarray) -> float:
+    """Length of the axis-aligned bounding box's diagonal of ``points (n, 3)``."""
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def _summary(d: np.ndarray, diag: float) -> dict:
+    return {"rms": float(np.sqrt(np.mean(d ** 2))), "mean": float(d.mean()),
+            "p99": float(np.percentile(d, 99)), "max": float(d.max()),
+            "within_0.5%": float(np.mean(d <= 0.005 * diag)),
+            "within_1%": float(np.mean(d <= 0.01 * diag)),
+            "max_relative": float(d.max() / diag), "rms_relative": float(
+                np.sqrt(np.mean(d ** 2)) / diag)}
+
+
+def point_errors(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                 diag: float) -> dict:
+    """Distance of every ``points (n, 3)`` to the mesh ``(vertices (m, 3), faces (f, 3))``."""
+    return _summary(mesh_distance(points, vertices, faces), diag)
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int,
+                    seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points spread over the triangles by area, and their triangles' unit normals.
+
+    Uniform barycentric samples ``a + r1 (b - a) + r2 (c - a)`` with ``(r1, r2)`` folded
+    into the triangle (Turk, *Generating random points in triangles*, Graphics Gems 1990).
+    """
+    rng = np.random.default_rng(seed)
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    pick = rng.choice(len(faces), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    fold = r1 + r2 > 1
+    r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
+    t = tri[pick]
+    points = t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
+    normals = cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
+    return points, normals
+
+
+def reverse_errors(vertices: np.ndarray, faces: np.ndarray, scan_points: np.ndarray,
+                   scan_faces: np.ndarray | None, diag: float, count: int = 200_000) -> dict:
+    """Distance of ``count`` samples of the drawn mesh to the scan's surface (its triangles,
+    or its nearest point for a cloud), summarised like :func:`point_errors`, plus the
+    share of the drawn area farther than 1 % of the diagonal (``far_1%``)."""
+    samples, _ = surface_samples(vertices, faces, count)
+    if scan_faces is not None and len(scan_faces):
+        d = mesh_distance(samples, scan_points, scan_faces)
+    else:
+        d, _ = cKDTree(scan_points).query(samples)
+    out = _summary(d, diag)
+    out["far_1%"] = float(np.mean(d > 0.01 * diag))
+    return out
+
+
+def weld(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> np.ndarray:
+    """``faces`` with vertices closer than ``tolerance`` (on a grid of that size) merged."""
+    keys = np.round(vertices / tolerance).astype(np.int64)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    return inverse.reshape(-1)[faces]
+
+
+def boundary_length(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> dict:
+    """Open border of the mesh welded at ``tolerance``: edges used by exactly one triangle,
+    their count and total length, and the count of non-manifold edges (> 2 triangles)."""
+    welded = weld(vertices, faces, tolerance)
+    welded = welded[(welded[:, 0] != welded[:, 1]) & (welded[:, 1] != welded[:, 2])
+                    & (welded[:, 0] != welded[:, 2])]
+    edges = np.sort(np.concatenate([welded[:, [0, 1]], welded[:, [1, 2]], welded[:, [2, 0]]]),
+                    axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    border = unique[counts == 1]
+    # positions of the welded vertices: any member of each class will do at this tolerance
+    first = np.zeros(welded.max() + 1, dtype=np.int64)
+    first[weld(vertices, faces, tolerance).reshape(-1)] = faces.reshape(-1)
+    ends = vertices[first[border]]
+    return {"border_edges": int(len(border)),
+            "border_length": float(np.linalg.norm(ends[:, 0] - ends[:, 1], axis=1).sum()),
+            "nonmanifold_edges": int(np.sum(counts > 2))}
+
+
+# ------------------------------------------------------------------------------ pictures
+def _camera(direction: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Rows: screen right, screen up, towards the viewer (``-direction``)."""
+    back = -direction / np.linalg.norm(direction)
+    up = up - back * (up @ back)
+    if np.linalg.norm(up) < 1e-9:
+        up = np.array([1.0, 0, 0]) - back * back[0]
+    up /= np.linalg.norm(up)
+    return np.stack([np.cross(up, back), up, back])
+
+
+def _splat(points: np.ndarray, normals: np.ndarray, frame: np.ndarray, centre: np.ndarray,
+           half: float, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Z-buffer of points seen along ``-frame[2]``: shading image and coverage mask."""
+    local = (points - centre) @ frame.T
+    px = ((local[:, 0] / half + 1) * 0.5 * size).astype(np.int64)
+    py = ((1 - local[:, 1] / half) * 0.5 * size).astype(np.int64)
+    inside = (px >= 0) & (px < size) & (py >= 0) & (py < size)
+    px, py, depth = px[inside], py[inside], local[inside, 2]
+    shade = np.abs(normals[inside] @ frame[2])
+    pixel = py * size + px
+    order = np.lexsort((-depth, pixel))  # nearest (largest depth towards viewer) first
+    pixel, shade = pixel[order], shade[order]
+    first = np.ones(len(pixel), dtype=bool)
+    first[1:] = pixel[1:] != pixel[:-1]
+    image = np.zeros(size * size)
+    mask = np.zeros(size * size, dtype=bool)
+    image[pixel[first]] = 0.15 + 0.85 * shade[first]
+    mask[pixel[first]] = True
+    return image.reshape(size, size), mask.reshape(size, size)
+
+
+VIEWS = ("front", "back", "left", "right", "top", "bottom")
+
+
+def view_directions(front: np.ndarray, up: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The six viewing directions (and screen-up) about a ``front``/``up`` frame."""
+    side = np.cross(up, front)
+    return {"front": (-front, up), "back": (front, up), "left": (-side, up),
+            "right": (side, up), "top": (-up, -front), "bottom": (up, front)}
+
+
+def render_views(meshes: dict[str, tuple[np.ndarray, np.ndarray]], front: np.ndarray,
+                 up: np.ndarray, size: int = 256, samples: int = 600_000
+                 ) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
+    """Render each named mesh from the six views with one shared camera per view.
+
+    Returns the picture (rows: meshes, columns: views; grey levels in [0, 1]) and, per view,
+    the silhouette IoU of every mesh against the first one (the scan).
+    """
+    sampled = {name: surface_samples(v, f, samples, seed=1) for name, (v, f) in meshes.items()}
+    reference = next(iter(sampled.values()))[0]
+    centre = 0.5 * (reference.max(axis=0) + reference.min(axis=0))
+    half = 0.55 * diagonal(reference)
+    rows, iou = [], {}
+    masks: dict[str, dict[str, np.ndarray]] = {}
+    for name, (points, normals) in sampled.items():
+        row = []
+        for view, (direction, screen_up) in view_directions(front, up).items():
+            image, mask = _splat(points, normals, _camera(direction, screen_up), centre, half,
+                                 size)
+            masks.setdefault(view, {})[name] = mask
+            row.append(image)
+        rows.append(np.concatenate(row, axis=1))
+    first = next(iter(meshes))
+    for view, by_name in masks.items():
+        ref = _closed(by_name[first])
+        iou[view] = {name: float((_closed(m) & ref).sum() / max((_closed(m) | ref).sum(), 1))
+                     for name, m in by_name.items() if name != first}
+    return np.concatenate(rows, axis=0), iou
+
+
+def _closed(mask: np.ndarray) -> np.ndarray:
+    """The mask with single-pixel gaps between splats filled (a 3x3 closing)."""
+    from scipy.ndimage import binary_closing
+
+    return binary_closing(mask, structure=np.ones((3, 3), dtype=bool), border_value=0)
+
+
+def save_picture(image: np.ndarray, path, labels: list[str] | None = None) -> None:
+    """Write a grey picture as PNG (with the row labels drawn at the left, when given)."""
+    from PIL import Image, ImageDraw
+
+    picture = Image.fromarray((np.clip(image, 0, 1) * 255).astype(np.uint8), "L").convert("RGB")
+    if labels:
+        draw = ImageDraw.Draw(picture)
+        rows = image.shape[0] // len(labels)
+        for k, label in enumerate(labels):
+            draw.text((4, k * rows + 4), label, fill=(255, 80, 60))
+    picture.save(path)
