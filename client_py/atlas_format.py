@@ -1,0 +1,399 @@
+"""Read and write atlas files (``.tsa``, version 1): an :class:`~client_py.atlas.AtlasSurface`
+in bytes, in the manner of the ``.tsp`` patch (``client_py.format``, whose pieces it reuses).
+
+The layout is specified in ``docs/format.md`` ("Atlas patch file ``.tsa``"). In short: a
+28-byte header (magic ``TSPA``, version, flags, degree ``d``, spans ``s``, quantisation
+bits, ``V`` vertices, ``F`` quads, payload sizes), a zlib-compressed payload (the quads'
+vertex indices, the global bounds of the control points, every control point *once*
+quantised over those bounds and coded as the residual from a prediction made from
+integers decoded before it, the log-weights coded the same way, metadata JSON) and a
+CRC32 of all that precedes it.
+
+Prediction (all in integers, so reader and writer agree bit for bit): a layout vertex
+from the vertex before it; an edge's interior point ``t`` (``1..n-2``, ``m = n - 1``) from
+the linear interpolation of the edge's end vertices, ``((m - t) q_lo + t q_hi) / m``; a
+patch's interior point ``(i, j)`` from the discrete bilinearly blended Coons patch of its
+four border rows (Coons 1967; The NURBS Book §10.6, eq. 10.25),
+
+``C_ij = (1-s) P_0j + s P_mj + (1-t) P_i0 + t P_im - [(1-s)(1-t) P_00 + s(1-t) P_m0
++ (1-s)t P_0m + st P_mm]``, ``s = i/m``, ``t = j/m``,
+
+rounded half up and clamped to ``0..2^bits - 1``. Residuals are zig-zag coded in byte
+planes (as ``.tsp``), then deflated at level 9.
+
+Any file that is not a valid atlas raises :class:`~client_py.errors.PatchFormatError`
+with the byte offset and the reason, with the checks in header order; every size is
+checked on the header before anything is inflated, so time and memory are bounded by
+:data:`ATLAS_LIMITS` whatever the bytes claim.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import sys
+import zlib
+from array import array
+from collections.abc import Sequence
+from itertools import accumulate
+from operator import add, sub
+
+from .atlas import (
+    MAX_ATLAS_DEGREE,
+    MAX_ATLAS_QUADS,
+    MAX_ATLAS_SPANS,
+    MAX_ATLAS_VERTICES,
+    SIDES,
+    AtlasSurface,
+    EdgeTable,
+    atlas_edges,
+)
+from .errors import PatchFormatError
+from .format import (
+    _WORD_CODE,
+    CRC_SIZE,
+    MAX_BITS,
+    MAX_CONTROL_POINTS,
+    MAX_INFLATE_RATIO,
+    MAX_METADATA,
+    MIN_BITS,
+    _Cursor,
+    _decode_planes,
+    _dequantise,
+    _encode_planes,
+    _inflate,
+    _plane_count,
+    _quantise,
+    _unframe,
+    loads_finite_json,
+)
+
+MAGIC = b"TSPA"
+VERSION = 1
+# magic version flags degree spans bits reserved V F payload_size raw_size
+HEADER = struct.Struct("<4sHHBBBBIIII")
+HEADER_SIZE = HEADER.size  # 28
+FLAG_RATIONAL = 1
+KNOWN_FLAGS = FLAG_RATIONAL
+
+#: what a reader accepts (docs/format.md, "Atlas limits"): the layout's limits are the
+#: data model's (client_py.atlas); the control points are the ``.tsp`` limit, which bounds
+#: the decoded grids (2^18 points decode in about a second of pure Python)
+ATLAS_LIMITS = {
+    "degree": MAX_ATLAS_DEGREE, "spans": MAX_ATLAS_SPANS, "vertices": MAX_ATLAS_VERTICES,
+    "quads": MAX_ATLAS_QUADS, "control points": MAX_CONTROL_POINTS,
+    "metadata bytes": MAX_METADATA, "inflate ratio": MAX_INFLATE_RATIO,
+}
+
+
+def index_width(n_vertices: int) -> int:
+    """Bytes per stored vertex index: 2 (u16) for ``V <= 65536``, else 4 (u32)."""
+    return 2 if n_vertices <= 1 << 16 else 4
+
+
+def _control_point_range(n_vertices: int, n_quads: int, side: int) -> tuple[int, int]:
+    """``(least, most)`` control points of a layout: ``V + E (n-2) + F (n-2)^2`` with
+    ``2F <= E <= 4F`` (each quad has 4 sides, each edge at most 2 quads)."""
+    inner = side - 2
+    base = n_vertices + n_quads * inner * inner
+    return base + 2 * n_quads * inner, base + 4 * n_quads * inner
+
+
+def payload_size_range(flags: int, degree: int, spans: int, bits: int, n_vertices: int,
+                       n_quads: int) -> tuple[int, int]:
+    """``(least, most)`` bytes of the decompressed payload of an atlas with these header fields.
+
+    ``4 F w + 48 + G N B + (16 if rational) + 4 + L`` with ``w`` the index width, ``G = 4``
+    when rational else 3, ``B`` bytes per residual, ``N`` the control points (between
+    :func:`_control_point_range`'s bounds) and ``L`` the metadata (2 bytes ``{}`` .. 2^20).
+    """
+    least_points, most_points = _control_point_range(n_vertices, n_quads, spans + degree)
+    grids = 4 if flags & FLAG_RATIONAL else 3
+    fixed = 4 * n_quads * index_width(n_vertices) + 48 + 4 + (16 if flags & FLAG_RATIONAL else 0)
+    planes = _plane_count(bits)
+    return (fixed + grids * least_points * planes + 2,
+            fixed + grids * most_points * planes + MAX_METADATA)
+
+
+# ------------------------------------------------------------------ prediction
+def _border_indices(quads: Sequence[Sequence[int]], table: EdgeTable, side: int,
+                    n_vertices: int) -> list[tuple[list[int], ...]]:
+    """Per patch, the global indices of its four border rows (``SIDES`` order: ``v = 0``,
+    ``u = 1``, ``v = 1``, ``u = 0``), each ``n`` long along increasing ``u`` or ``v``; the
+    edge points read reversed where the side runs from the edge's ``hi`` to its ``lo``."""
+    inner = side - 2
+    out = []
+    for quad, sides in zip(quads, table.sides, strict=True):
+        rows = []
+        for (s, t), (e, reverse) in zip(SIDES, sides, strict=True):
+            run = list(range(n_vertices + e * inner, n_vertices + (e + 1) * inner))
+            if reverse:
+                run.reverse()
+            rows.append([quad[s], *run, quad[t]])
+        out.append(tuple(rows))
+    return out
+
+
+def _coons_terms(side: int) -> list[tuple[tuple[int, int, int], ...]]:
+    """For each interior ``(i, j)`` (``i``-major), the integer Coons weights times ``m^2``
+    as ``(weight, border row, position)`` triples (module docstring; ``m = n - 1``)."""
+    m = side - 1
+    terms = []
+    for i in range(1, m):
+        for j in range(1, m):
+            terms.append((
+                (m * (m - i), 3, j), (m * i, 1, j), (m * (m - j), 0, i), (m * j, 2, i),
+                (-(m - i) * (m - j), 0, 0), (-i * (m - j), 0, m),
+                (-(m - i) * j, 2, 0), (-i * j, 2, m),
+            ))
+    return terms
+
+
+class _Predictor:
+    """The predictions of one atlas layout (module docstring), for any integer axis."""
+
+    def __init__(self, quads: Sequence[Sequence[int]], table: EdgeTable, side: int,
+                 n_vertices: int, bits: int) -> None:
+        self.n_vertices, self.side, self.top = n_vertices, side, (1 << bits) - 1
+        self.edges = table.edges
+        self.borders = _border_indices(quads, table, side, n_vertices)
+        self.terms = _coons_terms(side)
+        self.n_edge_points = len(table.edges) * (side - 2)
+
+    def edge_points(self, q: Sequence[int]) -> list[int]:
+        """Predicted edge points from the vertices ``q[:V]``: ``round(((m-t) a + t b) / m)``."""
+        m = self.side - 1
+        weights = [(m - t, t) for t in range(1, m)]
+        return [(2 * (wa * q[a] + wb * q[b]) + m) // (2 * m)
+                for a, b in self.edges for wa, wb in weights]
+
+    def face_points(self, q: Sequence[int]) -> list[int]:
+        """Predicted face points from the vertices and edge points ``q[:V + E (n-2)]``."""
+        m2, top = (self.side - 1) ** 2, self.top
+        out: list[int] = []
+        for rows in self.borders:
+            values = [[q[k] for k in row] for row in rows]
+            for terms in self.terms:
+                num = sum(w * values[r][k] for w, r, k in terms)
+                out.append(min(top, max(0, (2 * num + m2) // (2 * m2))))
+        return out
+
+    def residuals(self, q: Sequence[int]) -> list[int]:
+        """``q`` (every control point of one axis, global order) minus its prediction."""
+        n_v, n_e = self.n_vertices, self.n_vertices + self.n_edge_points
+        res = [q[0], *map(sub, q[1:n_v], q[: n_v - 1])]
+        res += map(sub, q[n_v:n_e], self.edge_points(q))
+        res += map(sub, q[n_e:], self.face_points(q))
+        return res
+
+    def undo(self, residuals: Sequence[int]) -> list[int]:
+        """Inverse of :meth:`residuals`: vertices by a running sum, then edges, then faces."""
+        n_v, n_e = self.n_vertices, self.n_vertices + self.n_edge_points
+        q = list(accumulate(residuals[:n_v]))
+        q += map(add, residuals[n_v:n_e], self.edge_points(q))
+        q += map(add, residuals[n_e:], self.face_points(q))
+        return q
+
+
+def _all_points(atlas: AtlasSurface) -> list[tuple[float, float, float]]:
+    return [*atlas.vertices, *atlas.edge_points, *atlas.face_points]
+
+
+# ------------------------------------------------------------------ writing
+def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = None) -> bytes:
+    """Encode ``atlas`` as a ``.tsa`` v1 file (docs/format.md).
+
+    Parameters
+    ----------
+    atlas : AtlasSurface
+    bits : int
+        Quantisation of each coordinate over the global bounds of all control points
+        (``2..30``): a shared point is one value, so neighbours keep one border curve;
+        the error is at most half a step, ``(hi - lo) / (2 (2^bits - 1))`` per axis.
+    metadata : dict, optional
+        JSON-serialisable object (strict JSON: finite numbers), at most 1 MiB.
+
+    Returns
+    -------
+    bytes
+        The same atlas and options always give the same bytes.
+    """
+    if not isinstance(atlas, AtlasSurface):
+        raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
+    if isinstance(bits, bool) or not isinstance(bits, int) or not MIN_BITS <= bits <= MAX_BITS:
+        raise ValueError(f"bits must be an integer in {MIN_BITS}..{MAX_BITS}, got {bits!r}")
+    if atlas.control_point_count > MAX_CONTROL_POINTS:
+        raise ValueError(f"the atlas has {atlas.control_point_count} control points; a reader "
+                         f"accepts at most {MAX_CONTROL_POINTS}")
+    if metadata is not None and not isinstance(metadata, dict):
+        raise ValueError(f"metadata must be a dict, got {type(metadata).__name__}")
+    try:
+        meta_bytes = json.dumps(metadata or {}, sort_keys=True, separators=(",", ":"),
+                                allow_nan=False).encode()
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"metadata must be JSON-serialisable: {exc}") from None
+    if len(meta_bytes) > MAX_METADATA:
+        raise ValueError(f"metadata is {len(meta_bytes)} bytes of JSON; at most 1 MiB fits")
+
+    n_vertices, quads = len(atlas.vertices), atlas.quads
+    width = index_width(n_vertices)
+    flat = array(_WORD_CODE[width], [k for quad in quads for k in quad])
+    if sys.byteorder == "big":
+        flat.byteswap()
+    parts = [flat.tobytes()]
+
+    points = _all_points(atlas)
+    axes = [[p[a] for p in points] for a in range(3)]
+    lows, highs = [min(a) for a in axes], [max(a) for a in axes]
+    parts.append(struct.pack("<6d", *lows, *highs))
+    predictor = _Predictor(quads, atlas.edges, atlas.side, n_vertices, bits)
+    planes = _plane_count(bits)
+    for axis, lo, hi in zip(axes, lows, highs, strict=True):
+        parts.append(_encode_planes(predictor.residuals(_quantise(axis, lo, hi, bits)), planes))
+    flags = 0
+    if atlas.weights is not None:
+        flags |= FLAG_RATIONAL
+        logs = [math.log(w) for w in atlas.weights]
+        lo, hi = min(logs), max(logs)
+        parts.append(struct.pack("<2d", lo, hi))
+        parts.append(_encode_planes(predictor.residuals(_quantise(logs, lo, hi, bits)), planes))
+    parts.append(struct.pack("<I", len(meta_bytes)) + meta_bytes)
+
+    raw = b"".join(parts)
+    payload = zlib.compress(raw, 9)
+    header = HEADER.pack(MAGIC, VERSION, flags, atlas.degree, atlas.spans, bits, 0,
+                         n_vertices, len(quads), len(payload), len(raw))
+    body = header + payload
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+# ------------------------------------------------------------------ reading
+def read_atlas_header(data: bytes) -> dict:
+    """Check the framing (magic, version, sizes, CRC32) and the header fields, in order.
+
+    Returns
+    -------
+    dict
+        ``flags``, ``degree``, ``spans``, ``bits``, ``vertices``, ``quads``,
+        ``payload_size``, ``raw_size`` and the file's ``data``.
+    """
+    data, fields = _unframe(data, MAGIC, "atlas", HEADER, VERSION, 9)
+    _, _, flags, degree, spans, bits, reserved, n_vertices, n_quads, size, raw_size = fields
+    if flags & ~KNOWN_FLAGS:
+        raise PatchFormatError(6, f"unknown flags 0x{flags:04x}")
+    if not 1 <= degree <= MAX_ATLAS_DEGREE:
+        raise PatchFormatError(8, f"degree {degree} outside 1..{MAX_ATLAS_DEGREE}")
+    if not 1 <= spans <= MAX_ATLAS_SPANS:
+        raise PatchFormatError(9, f"spans = {spans} outside 1..{MAX_ATLAS_SPANS}")
+    if not MIN_BITS <= bits <= MAX_BITS:
+        raise PatchFormatError(10, f"bits = {bits} outside {MIN_BITS}..{MAX_BITS}")
+    if reserved:
+        raise PatchFormatError(11, f"reserved byte is {reserved}, must be 0")
+    if not 4 <= n_vertices <= MAX_ATLAS_VERTICES:
+        raise PatchFormatError(12, f"{n_vertices} vertices; 4..{MAX_ATLAS_VERTICES} accepted")
+    if not 1 <= n_quads <= MAX_ATLAS_QUADS:
+        raise PatchFormatError(16, f"{n_quads} quads; 1..{MAX_ATLAS_QUADS} accepted")
+    least_points, _ = _control_point_range(n_vertices, n_quads, spans + degree)
+    if least_points > MAX_CONTROL_POINTS:
+        raise PatchFormatError(12, f"{n_vertices} vertices and {n_quads} quads of side "
+                               f"{spans + degree} need at least {least_points} control "
+                               f"points; at most {MAX_CONTROL_POINTS} accepted")
+    least, most = payload_size_range(flags, degree, spans, bits, n_vertices, n_quads)
+    if raw_size > most:
+        raise PatchFormatError(24, f"payload size {raw_size} exceeds the {most} the layout "
+                               "allows")
+    if raw_size > MAX_INFLATE_RATIO * size:
+        raise PatchFormatError(24, f"payload size {raw_size} exceeds the "
+                               f"{MAX_INFLATE_RATIO * size} bytes a {size}-byte zlib stream "
+                               f"can inflate to ({MAX_INFLATE_RATIO}:1)")
+    if raw_size < least:
+        raise PatchFormatError(24, f"payload size {raw_size} is below the {least} bytes "
+                               "the layout needs")
+    return {"flags": flags, "degree": degree, "spans": spans, "bits": bits,
+            "vertices": n_vertices, "quads": n_quads, "payload_size": size,
+            "raw_size": raw_size, "data": data}
+
+
+def _read_axis(cur: _Cursor, predictor: _Predictor, count: int, bits: int,
+               what: str) -> list[int]:
+    start, planes = cur.pos, _plane_count(bits)
+    values = predictor.undo(_decode_planes(cur.take(count * planes, what), count, planes))
+    if min(values) < 0 or max(values) > predictor.top:
+        raise PatchFormatError(start, f"{what} decode outside 0..{predictor.top}", "payload")
+    return values
+
+
+def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
+    """Decode a ``.tsa`` v1 file into ``(AtlasSurface, metadata)``.
+
+    Raises
+    ------
+    PatchFormatError
+        For anything but a valid atlas (truncation, corruption, a foreign file), with the
+        byte offset and the reason; never anything else.
+    """
+    head = read_atlas_header(data)
+    flags, bits, degree, spans = head["flags"], head["bits"], head["degree"], head["spans"]
+    n_vertices, n_quads = head["vertices"], head["quads"]
+    raw = _inflate(head["data"], HEADER_SIZE, head["payload_size"], head["raw_size"], 24)
+
+    cur = _Cursor(raw)
+    width = index_width(n_vertices)
+    flat = array(_WORD_CODE[width])
+    flat.frombytes(cur.take(4 * n_quads * width, "quads"))
+    if sys.byteorder == "big":
+        flat.byteswap()
+    if max(flat) >= n_vertices:
+        raise PatchFormatError(0, f"a quad refers to vertex {max(flat)} of {n_vertices}",
+                               "payload")
+    quads = [tuple(flat[4 * f : 4 * f + 4]) for f in range(n_quads)]
+    try:
+        table = atlas_edges(quads)
+    except ValueError as exc:
+        raise PatchFormatError(0, f"the quads are no valid layout: {exc}", "payload") from None
+    side = spans + degree
+    inner = side - 2
+    count = n_vertices + len(table.edges) * inner + n_quads * inner * inner
+    if count > MAX_CONTROL_POINTS:  # E lies in 2F..4F, so this only refines the header check
+        raise PatchFormatError(0, f"the layout has {count} control points; at most "
+                               f"{MAX_CONTROL_POINTS} accepted", "payload")
+    bounds = cur.finite("<6d", "control point bounds")
+    predictor = _Predictor(quads, table, side, n_vertices, bits)
+    axes = [_dequantise(_read_axis(cur, predictor, count, bits, f"control points axis {name}"),
+                        bounds[a], bounds[a + 3], bits) for a, name in enumerate("xyz")]
+    weights = None
+    if flags & FLAG_RATIONAL:
+        lo, hi = cur.finite("<2d", "log-weight bounds")
+        if max(abs(lo), abs(hi)) > 700:
+            raise PatchFormatError(cur.pos - 16, "log-weights beyond +-700 overflow", "payload")
+        weights = [math.exp(x) for x in _dequantise(
+            _read_axis(cur, predictor, count, bits, "weights"), lo, hi, bits)]
+    (meta_len,) = cur.unpack("<I", "metadata length")
+    meta_at = cur.pos
+    if meta_len > MAX_METADATA:
+        raise PatchFormatError(meta_at - 4, f"metadata length {meta_len} exceeds 1 MiB", "payload")
+    try:
+        metadata = loads_finite_json(cur.take(meta_len, "metadata").decode("utf-8"))
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, ...
+        if isinstance(exc, PatchFormatError):
+            raise
+        raise PatchFormatError(meta_at, f"metadata is not UTF-8 JSON: {exc}", "payload") from None
+    if not isinstance(metadata, dict):
+        raise PatchFormatError(meta_at, "metadata JSON is not an object", "payload")
+    if cur.pos != len(raw):
+        raise PatchFormatError(cur.pos, f"{len(raw) - cur.pos} bytes left after metadata",
+                               "payload")
+    points = list(zip(*axes, strict=True))
+    n_edge = n_vertices + len(table.edges) * inner
+    try:
+        atlas = AtlasSurface(degree, spans, points[:n_vertices], quads,
+                             points[n_vertices:n_edge], points[n_edge:], weights)
+    except ValueError as exc:
+        raise PatchFormatError(HEADER_SIZE, f"decoded atlas is invalid: {exc}") from None
+    return atlas, metadata
+
+
+__all__ = ["ATLAS_LIMITS", "HEADER", "HEADER_SIZE", "MAGIC", "VERSION", "CRC_SIZE",
+           "index_width", "payload_size_range", "read_atlas", "read_atlas_header",
+           "write_atlas"]
