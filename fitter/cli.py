@@ -423,7 +423,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit = sub.add_parser(
         "fit",
         help="fit a scan with a NURBS patch and write a bundle",
-        description="Fit a scan (PLY, OBJ, STL, OFF, GLB/glTF, XYZ/PTS/ASC, .gz, Stanford .conf) "
+        description="Fit a scan (PLY, OBJ, STL, OFF, GLB/glTF, XYZ/PTS/ASC, .gz, Stanford .conf, "
+        "E57, LAS/LAZ) "
         "with one NURBS patch following Curkovic, Vucina et al., and write OUTDIR: "
         "manifest.json, base.tsp, error.png, error.ply.",
     )

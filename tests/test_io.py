@@ -448,10 +448,12 @@ def test_empty_file(tmp_path, name):
 
 
 def test_unsupported_extension(tmp_path):
-    (tmp_path / "scan.e57").write_bytes(b"x")
-    with pytest.raises(ScanError, match=r"unsupported file type '\.e57'; supported: \.ply"):
-        load_scan(tmp_path / "scan.e57")
+    # .ptx (Leica's gridded text export) is not read; .e57 was the example until it was
+    (tmp_path / "scan.ptx").write_bytes(b"x")
+    with pytest.raises(ScanError, match=r"unsupported file type '\.ptx'; supported: \.ply"):
+        load_scan(tmp_path / "scan.ptx")
     assert ".xyz" in SUPPORTED_EXTENSIONS and ".conf" in SUPPORTED_EXTENSIONS
+    assert {".e57", ".las", ".laz"} <= set(SUPPORTED_EXTENSIONS)
 
 
 def test_zero_points(tmp_path):

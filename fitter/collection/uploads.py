@@ -5,7 +5,8 @@ and hands the file over as a :class:`ReceivedFile`. :func:`prepare_scan` then
 decides what the bytes are:
 
 * the format is sniffed from the content (:func:`sniff_format`: PLY, OBJ, STL,
-  OFF, glTF/GLB, XYZ/PTS/ASC text clouds); the client's file name is kept as
+  OFF, glTF/GLB, XYZ/PTS/ASC text clouds, E57 by its ``ASTM-E57`` signature, LAS/LAZ by
+  ``LASF`` and the LASzip bit of the point format); the client's file name is kept as
   metadata only, and the stored file gets a generated name (``scan.ply``), so
   no part of a client's name ever reaches the file system;
 * a gzip stream (``.gz``) is decompressed once, to a counter, with an absolute
@@ -47,7 +48,7 @@ from pathlib import Path, PurePosixPath
 
 from client_py.errors import TesseraError
 
-from ..fitting.io import SUPPORTED_EXTENSIONS
+from ..fitting.io import NOT_GZIPPED, SUPPORTED_EXTENSIONS
 from ..fitting.io.conf import check_registration, read_conf
 from ..fitting.io.limits import InputBudget, InputLimits
 from ..fitting.io.scan import ScanError
@@ -149,6 +150,12 @@ def sniff_format(head: bytes, total_size: int | None = None, name_hint: str = ""
     """
     if head.startswith((b"ply\n", b"ply\r\n")):
         return ".ply"
+    if head.startswith(b"ASTM-E57"):  # the E57 file header's signature (ASTM E2807)
+        return ".e57"
+    if head.startswith(b"LASF"):
+        # the point data format byte (offset 104): LASzip sets bit 7 (and not bit 6)
+        compressed = len(head) > 104 and (head[104] & 0xC0) == 0x80
+        return ".laz" if compressed else ".las"
     if head.startswith(b"glTF"):
         return ".glb"
     if (total_size is not None and total_size >= 84
@@ -182,9 +189,19 @@ def _describe(head: bytes) -> str:
 
 
 def _not_a_scan(name: str, head: bytes) -> UploadError:
-    kinds = "PLY, OBJ, STL, OFF, glTF/GLB, XYZ/PTS/ASC, each optionally .gz, or a .zip of one"
+    kinds = ("PLY, OBJ, STL, OFF, glTF/GLB, XYZ/PTS/ASC, each optionally .gz, E57, LAS/LAZ, "
+             "or a .zip of one")
     return UploadError(f"{name or 'the upload'}: the content is not a scan format Tessera "
                        f"reads ({kinds}); it starts with {_describe(head)}")
+
+
+def _refuse_gzipped(fmt: str, name: str) -> None:
+    """Refuse a gzip stream of a format whose reader needs the file itself (E57, LAS/LAZ:
+    ``fitter.fitting.io.NOT_GZIPPED``)."""
+    if fmt in NOT_GZIPPED:
+        raise UploadError(f"{name}: a gzip-compressed {fmt} is not read (its reader needs the "
+                          "file itself, with random access); upload it uncompressed"
+                          + (" or as LAZ" if fmt == ".las" else ""))
 
 
 # --------------------------------------------------------------------------- gzip
@@ -369,6 +386,7 @@ def prepare_scan(received: ReceivedFile, limits: UploadLimits) -> PreparedScan:
         fmt = sniff_format(inner, None, name)
         if fmt is None:
             raise _not_a_scan(name, inner)
+        _refuse_gzipped(fmt, name or "the upload")
         stored = directory / f"scan{fmt}.gz"
         os.replace(received.path, stored)
         return PreparedScan(stored, fmt.lstrip("."), "gzip")
@@ -387,6 +405,7 @@ def prepare_scan(received: ReceivedFile, limits: UploadLimits) -> PreparedScan:
         if suffix == ".gz":
             inner_head = check_gzip(scan, limits)
             suffix = Path(scan.stem).suffix.lower()
+            _refuse_gzipped(suffix, f"{name}:{scan.relative_to(extracted)}")
         if suffix == ".conf":
             check_conf(scan, extracted, limits)
         else:

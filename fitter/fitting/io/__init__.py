@@ -14,12 +14,15 @@ extension                       loader
 ``.obj .stl .off .gltf .glb``   ``fitter.fitting.io.mesh`` (trimesh; OBJ/glTF textures kept)
 ``.xyz .pts .asc``              ``fitter.fitting.io.text``
 ``.conf``                       ``fitter.fitting.io.conf`` (Stanford range-scan registration)
+``.e57``                        ``fitter.fitting.io.e57`` (pye57: every scan, poses applied)
+``.las .laz``                   ``fitter.fitting.io.las`` (laspy, LAZ through lazrs)
 ==============================  ===========================================================
 
 Every input is read once; its SHA-256 is computed on that read (streamed in
 chunks, or over the memory map) and stored with its size in ``scan.source``
-for the bundle's provenance. ``thin=h`` keeps one point per voxel of edge
-``h`` (``fitter.fitting.io.thin``).
+for the bundle's provenance. E57 and LAS/LAZ are the exception: their libraries
+read the file by path, so it is hashed in a second streamed pass. ``thin=h`` keeps one
+point per voxel of edge ``h`` (``fitter.fitting.io.thin``).
 
 Every read is bounded by one ``InputLimits`` (``fitter.fitting.io.limits``: decompressed
 bytes, compression ratio, points, files per registration, paths confined to the
@@ -36,6 +39,8 @@ from functools import partial
 from pathlib import Path
 
 from .conf import load_conf
+from .e57 import load_e57
+from .las import load_las
 from .limits import InputBudget, InputLimits
 from .mesh import load_mesh
 from .ply import load_ply
@@ -64,7 +69,12 @@ LOADERS: dict[str, Callable[[Path, bool, InputBudget], Scan]] = {
     ".pts": partial(load_text, fmt="pts"),
     ".asc": partial(load_text, fmt="asc"),
     ".conf": _load_conf,
+    ".e57": load_e57,
+    ".las": load_las,
+    ".laz": load_las,
 }
+#: formats read by path by their library (random access), never through gzip
+NOT_GZIPPED = (".e57", ".las", ".laz")
 SUPPORTED_EXTENSIONS = tuple(LOADERS)
 
 
@@ -82,7 +92,8 @@ def _load(path: Path, budget: InputBudget, allow_conf: bool = True) -> Scan:
     if loader is None or (ext == ".conf" and not allow_conf):
         shown = ext + (".gz" if gzipped else "") or "(none)"
         raise ScanError(f"{path}: unsupported file type {shown!r}; supported: "
-                        f"{', '.join(SUPPORTED_EXTENSIONS)} (each also as .gz)")
+                        f"{', '.join(SUPPORTED_EXTENSIONS)} (each but "
+                        f"{', '.join(NOT_GZIPPED)} also as .gz)")
     check_path(path)
     before = budget.points
     scan = loader(path, gzipped, budget)
@@ -101,8 +112,9 @@ def load_scan(path: str | os.PathLike, thin: float | None = None,
     path : str or PathLike
         A ``.ply``, ``.obj``, ``.stl``, ``.off``, ``.gltf``, ``.glb``, ``.xyz``,
         ``.pts``, ``.asc`` or ``.conf`` file, each optionally gzip-compressed
-        (``NAME.EXT.gz``). A ``.conf`` registers all the scans it lists into one
-        cloud (``fitter.fitting.io.conf``).
+        (``NAME.EXT.gz``), or an ``.e57``, ``.las`` or ``.laz`` file. A ``.conf``
+        registers all the scans it lists into one cloud (``fitter.fitting.io.conf``), an
+        ``.e57`` all its scans by their poses (``fitter.fitting.io.e57``).
     thin : float, optional
         Voxel edge ``h`` in scan units: keep one point per occupied voxel (the one
         nearest the voxel's centroid). None keeps every point.

@@ -1,0 +1,312 @@
+"""ASTM E57 scans through ``pye57`` (libE57Format): every scan of the file in one frame.
+
+An E57 file (ASTM E2807-11, "Standard Specification for 3D Imaging Data Exchange")
+holds any number of scans under ``/data3D``; each has a point prototype (which fields
+every point carries), a compressed vector of points and a ``pose``, the rigid-body
+transform from the scan's own frame to the file's frame:
+
+    p_file = R(q) p_scan + t,   q = (w, x, y, z) a unit quaternion,
+
+with ``R(q)`` the rotation of column vectors (``fitter.fitting.io.conf.quaternion_matrix``,
+given ``(x, y, z, w)``). A scan without a pose is already in the file's frame. Points are
+cartesian (``cartesianX/Y/Z``) or spherical (``sphericalRange``, ``sphericalAzimuth``,
+``sphericalElevation``, radians), converted by ``pye57.utils.convert_spherical_to_cartesian``:
+
+    x = r cos(el) cos(az),   y = r cos(el) sin(az),   z = r sin(el).
+
+A point whose ``cartesianInvalidState`` / ``sphericalInvalidState`` is non-zero (1: only a
+direction, 2: no measurement) is dropped. Lengths are metres by the standard, so
+``units = "m"``.
+
+Colour (``colorRed/Green/Blue``, any integer or float range) becomes ``Scan.colors``
+(uint8), mapped from the scan's ``colorLimits`` (or the prototype's bounds) onto 0..255;
+when only some scans have colour, none is kept and ``source["warnings"]`` says so.
+``Scan`` has no intensity channel: each scan's intensity range is recorded in
+``source["scans"]`` and the intensity itself is not kept. ``source["scans"]`` lists every
+scan with its name, guid, the points its header claims, the points kept, the invalid
+points dropped, its coordinate system and pose.
+
+Bounded reading: the point counts the headers claim are counted against the read's
+``InputLimits`` before any point is read; the points are read scan by scan through
+libE57Format's compressed-vector reader in blocks of ``BLOCK_POINTS`` into arrays of the
+claimed size, shrunk in place to the points kept. libE57Format reads the file itself (by
+path, with random access), so the SHA-256 of the stored file is taken in a separate
+streamed pass (``fitter.fitting.io.source.HashedInput``), and a gzip-compressed E57 is
+refused: decompress it first.
+
+Every failure is a ``ScanError`` naming the file: the signature (``ASTM-E57``) and the
+file length the header states are checked here first, for a clear message on a file that
+is not E57 or is truncated; what libE57Format raises (``libe57.E57Exception``) is
+reported with its reason.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .conf import quaternion_matrix
+from .limits import InputBudget
+from .scan import Scan, ScanError, make_scan, new_source
+from .source import HashedInput
+
+#: the first bytes of every E57 file (ASTM E2807, file header ``fileSignature``)
+E57_SIGNATURE = b"ASTM-E57"
+#: the file header: signature, major and minor version (uint32), physical length, XML
+#: offset, XML length, page size (uint64), little-endian
+_HEADER = struct.Struct("<8sIIQQQQ")
+#: points read from a scan at a time (about 60 MB of buffers with every field)
+BLOCK_POINTS = 1 << 20
+CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
+SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+COLOURS = ("colorRed", "colorGreen", "colorBlue")
+#: characters of the file's ``coordinateMetadata`` (a CRS description) kept in the source
+MAX_METADATA_CHARS = 2000
+
+
+def check_e57_header(path: Path, size: int) -> tuple[int, int]:
+    """``(major, minor)`` version of the E57 file at ``path`` of ``size`` bytes.
+
+    Raises
+    ------
+    ScanError
+        The file does not start with ``ASTM-E57``, is shorter than its header, or is
+        shorter (truncated) or longer than the physical length its header states.
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(_HEADER.size)
+    if not head.startswith(E57_SIGNATURE):
+        shown = head[:16]
+        printable = all(32 <= b < 127 or b in (9, 10, 13) for b in shown)
+        raise ScanError(f"{path.name}: not an E57 file: it starts with "
+                        f"{shown.decode('ascii') if printable else shown.hex(' ')!r}, an "
+                        f"E57 file starts with {E57_SIGNATURE.decode()!r}")
+    if len(head) < _HEADER.size:
+        raise ScanError(f"{path.name}: truncated E57 file: {size} bytes, shorter than the "
+                        f"{_HEADER.size}-byte file header")
+    _, major, minor, physical, _, _, _ = _HEADER.unpack(head)
+    if physical != size:
+        what = "truncated E57 file" if size < physical else "E57 file with trailing bytes"
+        raise ScanError(f"{path.name}: {what}: the header states {physical:,} bytes, the "
+                        f"file has {size:,}")
+    return major, minor
+
+
+def _e57_error(name: str, exc: Exception, doing: str) -> ScanError:
+    """A ``ScanError`` for what libE57Format raised, with its first line (its reason)."""
+    reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    return ScanError(f"{name}: corrupt E57 file: {doing}: {reason}")
+
+
+def _text(node: Any, key: str) -> str | None:
+    return node[key].value() if node.isDefined(key) else None
+
+
+def _node_bounds(prototype: Any, field: str) -> tuple[float, float] | None:
+    """``(minimum, maximum)`` a prototype field declares (scaled for a scaled integer)."""
+    from pye57.utils import get_node
+
+    node = get_node(prototype, field)
+    for low, high in (("scaledMinimum", "scaledMaximum"), ("minimum", "maximum")):
+        if hasattr(node, low) and hasattr(node, high):
+            return float(getattr(node, low)()), float(getattr(node, high)())
+    return None
+
+
+def colour_limits(header: Any, prototype: Any) -> tuple[float, float]:
+    """``(low, high)`` of the red channel: ``colorLimits`` when the scan states them, else
+    the prototype's bounds, else 0..255 (the three channels share one range in every
+    writer we know; the red one is read)."""
+    if header.node.isDefined("colorLimits"):
+        limits = header.node["colorLimits"]
+        if limits.isDefined("colorRedMinimum") and limits.isDefined("colorRedMaximum"):
+            return (float(limits["colorRedMinimum"].value()),
+                    float(limits["colorRedMaximum"].value()))
+    return _node_bounds(prototype, "colorRed") or (0.0, 255.0)
+
+
+def colours_to_uint8(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """``rint(255 (c - low) / (high - low))`` clipped to 0..255, as uint8; ``(M, 3)``."""
+    if not high > low:
+        return np.clip(np.rint(values), 0, 255).astype(np.uint8)
+    return np.clip(np.rint((values - low) * (255.0 / (high - low))), 0, 255).astype(np.uint8)
+
+
+class _ScanPlan:
+    """What one ``/data3D`` scan holds, read from its header before any point."""
+
+    def __init__(self, e57: Any, index: int, name: str) -> None:
+        from pye57 import libe57
+
+        self.header = e57.get_header(index)
+        self.prototype = libe57.StructureNode(self.header.points.prototype())
+        fields = set(self.header.point_fields)
+        self.index = index
+        self.name = _text(self.header.node, "name") or f"scan {index}"
+        self.guid = _text(self.header.node, "guid")
+        self.claimed = int(self.header.point_count)
+        if set(CARTESIAN) <= fields:
+            self.coordinates, self.xyz, invalid = "cartesian", CARTESIAN, "cartesianInvalidState"
+        elif set(SPHERICAL) <= fields:
+            self.coordinates, self.xyz, invalid = "spherical", SPHERICAL, "sphericalInvalidState"
+        else:
+            raise ScanError(f"{name}: scan {index} ({self.name!r}) has neither cartesianX/Y/Z "
+                            f"nor sphericalRange/Azimuth/Elevation; its fields are "
+                            f"{sorted(fields)}")
+        self.invalid = invalid if invalid in fields else None
+        self.has_colour = set(COLOURS) <= fields
+        self.has_intensity = "intensity" in fields
+        self.rotation_wxyz = [float(v) for v in self.header.rotation]
+        self.translation = [float(v) for v in self.header.translation]
+        self.posed = bool(self.header.has_pose())
+
+
+def _buffers(e57: Any, plan: _ScanPlan, colour: bool) -> tuple[dict, Any]:
+    """Block buffers (``BLOCK_POINTS`` each) of the fields to read; converted and scaled by
+    libE57Format into float64 (the state into int8)."""
+    from pye57 import libe57
+
+    capacity = min(BLOCK_POINTS, max(plan.claimed, 1))
+    names = list(plan.xyz) + (["intensity"] if plan.has_intensity else [])
+    names += list(COLOURS) if colour else []
+    arrays = {n: np.empty(capacity, np.float64) for n in names}
+    if plan.invalid:
+        arrays[plan.invalid] = np.empty(capacity, np.int8)
+    buffers = libe57.VectorSourceDestBuffer()
+    for field, array in arrays.items():
+        buffers.append(libe57.SourceDestBuffer(e57.image_file, field, array, capacity,
+                                               True, True))
+    return arrays, buffers
+
+
+def _read_scan(e57: Any, plan: _ScanPlan, colour: bool, points: np.ndarray,
+               colours: np.ndarray | None, start: int, name: str) -> tuple[int, dict]:
+    """Read ``plan``'s points into ``points[start:]`` (and ``colours``), dropping invalid
+    points and applying the pose; ``(points kept, the scan's source record)``."""
+    from pye57 import libe57
+    from pye57.utils import convert_spherical_to_cartesian
+
+    arrays, buffers = _buffers(e57, plan, colour)
+    rotation = quaternion_matrix([*plan.rotation_wxyz[1:], plan.rotation_wxyz[0]])
+    translation = np.asarray(plan.translation, np.float64)
+    low, high = colour_limits(plan.header, plan.prototype) if colour else (0.0, 255.0)
+    read = kept = 0
+    lo_i, hi_i = np.inf, -np.inf
+    try:
+        reader = plan.header.points.reader(buffers)
+        try:
+            while n := reader.read():
+                if read + n > plan.claimed:
+                    raise ScanError(f"{name}: scan {plan.index} ({plan.name!r}) holds more "
+                                    f"points than the {plan.claimed:,} its header claims")
+                read += n
+                keep = slice(None) if plan.invalid is None else arrays[plan.invalid][:n] == 0
+                block = np.column_stack([arrays[f][:n][keep] for f in plan.xyz])
+                if plan.coordinates == "spherical":
+                    block = convert_spherical_to_cartesian(block)
+                if plan.posed:
+                    block = block @ rotation.T + translation
+                m = block.shape[0]
+                points[start + kept:start + kept + m] = block
+                if colour:
+                    rgb = np.column_stack([arrays[f][:n][keep] for f in COLOURS])
+                    colours[start + kept:start + kept + m] = colours_to_uint8(rgb, low, high)
+                if plan.has_intensity and m:
+                    values = arrays["intensity"][:n][keep]
+                    lo_i, hi_i = min(lo_i, float(values.min())), max(hi_i, float(values.max()))
+                kept += m
+        finally:
+            reader.close()
+    except libe57.E57Exception as exc:
+        raise _e57_error(name, exc, f"reading the points of scan {plan.index} "
+                         f"({plan.name!r})") from None
+    if read < plan.claimed:
+        raise ScanError(f"{name}: scan {plan.index} ({plan.name!r}): its header claims "
+                        f"{plan.claimed:,} points, the file holds {read:,}")
+    record = {"name": plan.name, "guid": plan.guid, "points_claimed": plan.claimed,
+              "points": kept, "invalid_dropped": read - kept, "coordinates": plan.coordinates,
+              "pose": ({"rotation_wxyz": plan.rotation_wxyz, "translation": plan.translation}
+                       if plan.posed else None),
+              "colour": plan.has_colour,
+              "intensity": [lo_i, hi_i] if plan.has_intensity and kept else None}
+    return kept, record
+
+
+def load_e57(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Scan:
+    """Read every scan of an ``.e57`` file into one cloud (see the module docstring);
+    ``budget`` (default: the default ``InputLimits``) bounds the points the headers claim.
+
+    Raises
+    ------
+    ScanError
+        Not an E57 file, truncated or corrupt, gzip-compressed, no scans or no valid
+        points, a scan with no coordinates, more points claimed than ``max_points``.
+    """
+    import pye57
+    from pye57 import libe57
+
+    name = path.name
+    budget = budget if budget is not None else InputBudget()
+    if gzipped:
+        raise ScanError(f"{name}: a gzip-compressed E57 file is not read (libE57Format "
+                        "reads the file in place, with random access); decompress it first")
+    size = path.stat().st_size
+    version = check_e57_header(path, size)
+    try:
+        e57 = pye57.E57(str(path))
+    except libe57.E57Exception as exc:
+        raise _e57_error(name, exc, "opening the file") from None
+    try:
+        try:
+            plans = [_ScanPlan(e57, i, name) for i in range(e57.scan_count)]
+            images = len(e57.root["images2D"]) if e57.root.isDefined("images2D") else 0
+            metadata = _text(e57.root, "coordinateMetadata") or ""
+        except libe57.E57Exception as exc:
+            raise _e57_error(name, exc, "reading the scan headers") from None
+        if not plans:
+            raise ScanError(f"{name}: the file contains no points (its data3D lists no scans)")
+        claimed = sum(p.claimed for p in plans)
+        if claimed == 0:
+            raise ScanError(f"{name}: the file contains no points (its {len(plans)} scan(s) "
+                            "hold 0 points)")
+        budget.take_points(name, claimed)  # refused before a point is read
+        colour = all(p.has_colour for p in plans)
+        points = np.empty((claimed, 3), np.float64)
+        colours = np.empty((claimed, 3), np.uint8) if colour else None
+        kept, scans = 0, []
+        for plan in plans:
+            count, record = _read_scan(e57, plan, colour, points, colours, kept, name)
+            kept += count
+            scans.append(record)
+    finally:
+        e57.close()
+    if kept == 0:
+        raise ScanError(f"{name}: the file contains no points: all {claimed:,} points of its "
+                        f"{len(plans)} scan(s) are marked invalid")
+    if kept < claimed:  # shrink in place (realloc): memory follows the points kept
+        points.resize((kept, 3), refcheck=False)
+        if colours is not None:
+            colours.resize((kept, 3), refcheck=False)
+    with HashedInput(path, False, budget) as inp:
+        file = inp.finish()
+    source = new_source(name, str(path), "e57", None, "pye57")
+    source.update(bytes=file["bytes"], sha256=file["sha256"], files=[file], scans=scans,
+                  e57_version=f"{version[0]}.{version[1]}",
+                  registration="p_file = R(q) p_scan + t, q = (w, x, y, z) (E57 pose)",
+                  hash_method="sha256 of the stored file, streamed in a separate pass "
+                              "(libE57Format reads the file itself)")
+    if metadata:
+        source["coordinate_metadata"] = metadata[:MAX_METADATA_CHARS]
+    if any(p.has_colour for p in plans) and not colour:
+        with_colour = sum(p.has_colour for p in plans)
+        source["warnings"].append(f"colour not kept: only {with_colour} of the {len(plans)} "
+                                  "scans have colour")
+    if any(p.has_intensity for p in plans):
+        source["warnings"].append("intensity read but not kept (Scan has no intensity "
+                                  "channel); each scan's range is in 'scans'")
+    if images:
+        source["warnings"].append(f"{images} 2D image(s) (images2D) not used")
+    return make_scan(name, points, colors=colours, units="m", source=source)
