@@ -1,0 +1,561 @@
+"""One welded, watertight triangle mesh of an atlas (``client_py.atlas``), with detail.
+
+Patch ``f`` is sampled on the uniform grid ``u_i = i / (r_f - 1)``, ``v_j = j / (r_f - 1)``
+(``r_f >= 2`` samples per side). The mesh is welded by construction, not by merging
+nearby points: every layout corner is one vertex, every layout edge ``e`` has its
+``R_e - 2`` interior vertices once, in the edge's ``lo -> hi`` order (``atlas_edges``: a
+patch whose side runs ``hi -> lo`` reads them reversed), and every patch its
+``(r_f - 2)^2`` interior vertices. Vertex order: corners (the layout vertices in use, by
+index), then edges, then patches. Triangles turn counter-clockwise about ``C_u x C_v``:
+in a consistently oriented layout, every interior edge is used once in each direction.
+
+Evaluation is separable and shares its tables: every patch has the same clamped uniform
+knot vector, so the spans and the basis values and derivatives ``N_a(t_k)``, ``N'_a(t_k)``
+(The NURBS Book A2.1, A2.3) are computed once per ``(d, s, r)``; each patch then blends
+its control rows along ``v`` and the rows along ``u`` in homogeneous coordinates
+(``client_py._kernel_python``'s generated row evaluator; with numpy, all patches of one
+resolution at once as ``B P^w B^T``).
+
+Mixed resolutions: an edge is *evaluated* at its coarser side's resolution ``r_c`` and
+carries ``R_e = r_fine`` vertices; those between two evaluated ones lie on the straight
+segment joining them (the coarse side's piecewise-linear border), so the finer patch's
+border vertices sit on the coarse side's triangles (no crack, no T-gap) and the coarse
+side's border cells are split into fans through them (every mesh edge in exactly two
+triangles). Resolutions of neighbours must be ``2^k c + 1`` for one ``c``.
+
+Normals. Without detail, the analytic unit normal ``C_u x C_v / |C_u x C_v|`` (the exact
+surface's, free with the derivatives); with detail, the normal of the displaced grid by
+central differences within the patch (one-sided on its border), as
+``client_py.layers.tessellate_region`` does for a single patch. On a border vertex
+either is the normalised sum of the unit normals of the patches that sample it: the
+welded vertex has ONE normal, so shading is smooth across patch borders.
+
+Detail: ``X = C_f + D_f n_f`` with ``D_f`` the sum of patch ``f``'s tiles
+(``client_py.layers.displacement_grid`` over its own ``[0, 1]^2``) and ``n_f`` its unit
+normal; a border vertex that several patches sample takes the mean of their
+displacements along the normalised mean of their unit normals, so the mesh stays welded
+and watertight at every level.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from array import array
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+from . import _kernel, _kernel_python
+from .atlas import AtlasSurface
+from .basis import basis_table
+from .layers import DetailTile, displacement_grid
+from .ply import write_ply
+from .surface import NORMAL_TOLERANCE
+from .tessellate import MAX_GRID, Mesh, _samples, grid_indices
+
+#: vertices of one atlas mesh: 2^24 (16.7 M) float32 positions and normals, 400 MB of
+#: pure-Python floats while it is built
+MAX_ATLAS_MESH_VERTICES = 1 << 24
+
+
+@dataclass
+class AtlasMesh(Mesh):
+    """A :class:`~client_py.tessellate.Mesh` of an atlas with the patch of every vertex.
+
+    Attributes
+    ----------
+    patches : array('I'), ``n_vertices``
+        The patch whose ``(u, v)`` the vertex's ``uvs`` are: its own for a patch's interior
+        vertex, the first patch (in index order) that samples it for a border vertex.
+    """
+
+    patches: array = field(default_factory=lambda: array("I"))
+
+
+# ------------------------------------------------------------------ arguments
+def _check_resolutions(atlas: AtlasSurface, resolution: object) -> list[int]:
+    count = len(atlas.quads)
+    if isinstance(resolution, int) and not isinstance(resolution, bool):
+        values = [resolution] * count
+    elif isinstance(resolution, Sequence) and not isinstance(resolution, str | bytes):
+        values = list(resolution)
+        if len(values) != count:
+            raise ValueError(f"resolution has {len(values)} values; the atlas has {count} "
+                             "patches (give one int, or one per patch)")
+    else:
+        raise ValueError(f"resolution must be an int or a sequence of ints, got {resolution!r}")
+    for f, r in enumerate(values):
+        if isinstance(r, bool) or not isinstance(r, int) or not 2 <= r <= MAX_GRID:
+            raise ValueError(f"resolution of patch {f} = {r!r}; an int in 2..{MAX_GRID} "
+                             "samples per side is needed")
+    total = sum(r * r for r in values)
+    if total > MAX_ATLAS_MESH_VERTICES:
+        raise ValueError(f"resolution gives about {total} vertices; at most "
+                         f"{MAX_ATLAS_MESH_VERTICES} are accepted")
+    return values
+
+
+def _check_detail(atlas: AtlasSurface, detail: object) -> dict[int, list[DetailTile]]:
+    if detail is None:
+        return {}
+    if not isinstance(detail, Mapping):
+        raise ValueError(f"detail must be a mapping of patch index to DetailTile lists, "
+                         f"got {type(detail).__name__}")
+    out = {}
+    for f, tiles in detail.items():
+        if isinstance(f, bool) or not isinstance(f, int) or not 0 <= f < len(atlas.quads):
+            raise ValueError(f"detail key {f!r} is no patch index in 0..{len(atlas.quads) - 1}")
+        tiles = list(tiles)
+        for tile in tiles:
+            if not isinstance(tile, DetailTile):
+                raise ValueError(f"detail[{f}] holds a {type(tile).__name__}, not a DetailTile")
+        if tiles:
+            out[f] = tiles
+    return out
+
+
+def _edge_resolutions(atlas: AtlasSurface, res: list[int]) -> tuple[list[int], list[int]]:
+    """``(R_e, r_c)`` per edge: vertices along it (the finer side) and its evaluated
+    resolution (the coarser); ``ValueError`` where ``(R_e - 1) / (r - 1)`` is no power of 2."""
+    fine, coarse = [], []
+    for e, pairs in enumerate(atlas.edges.faces):
+        rs = [res[f] for f, _ in pairs]
+        hi, lo = max(rs), min(rs)
+        ratio, rest = divmod(hi - 1, lo - 1)
+        if rest or ratio & (ratio - 1):
+            f, g = (f for f, _ in pairs)
+            raise ValueError(f"patches {f} and {g} share edge {atlas.edges.edges[e]} with "
+                             f"resolutions {res[f]} and {res[g]}: neighbours need "
+                             "2^k c + 1 samples for one c (r - 1 a power-of-2 multiple of "
+                             "the other's)")
+        fine.append(hi)
+        coarse.append(lo)
+    return fine, coarse
+
+
+# ------------------------------------------------------------------ evaluation
+@lru_cache(maxsize=32)
+def _tables(degree: int, spans: int, r: int) -> tuple[list[float], list[int], list, list]:
+    """Parameters ``t_k = k / (r - 1)`` and their spans, basis values and derivatives (A2.1,
+    A2.3), once per ``(d, s, r)`` for every patch of that resolution."""
+    n = spans + degree
+    knots = [0.0] * degree + [i / spans for i in range(spans + 1)] + [1.0] * degree
+    params = _samples(0.0, 1.0, r)
+    spans_t, values, derivs = basis_table(degree, knots, n, params)
+    return params, spans_t, values, derivs
+
+
+def _homogeneous(atlas: AtlasSurface) -> list[list[float]]:
+    """``(w x, w y, w z[, w])`` of every control point, component-major (global order)."""
+    points = [*atlas.vertices, *atlas.edge_points, *atlas.face_points]
+    comps = [[p[c] for p in points] for c in range(3)]
+    if atlas.weights is None:
+        return comps
+    w = atlas.weights
+    return [[a * b for a, b in zip(w, comp, strict=True)] for comp in comps] + [list(w)]
+
+
+def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: list[int],
+                     r: int, tol: float) -> dict[int, tuple[list, list, list]]:
+    """``{f: (positions, unit normals, degenerate)}`` of the ``r x r`` grid of each patch:
+    ``3 r^2`` floats each, row-major in ``i`` (``u``); ``degenerate`` lists the vertices
+    whose ``|C_u x C_v|`` is at most ``tol`` (normal left ``0, 0, 0``)."""
+    d, n = atlas.degree, atlas.side
+    _, spans_t, N, dN = _tables(d, atlas.spans, r)
+    rational = atlas.weights is not None
+    evaluate_row = _kernel_python._row_evaluator(d, rational)
+    blend_rows = _kernel_python._blend_rows_along_v
+    windows = [(span - d, span + 1) for span in spans_t]
+    out = {}
+    for f in patches:
+        flat = [k for row in atlas.patch_indices(f) for k in row]
+        blended = [blend_rows(list(map(comp.__getitem__, flat)), n, n, d, spans_t, N, dN)
+                   for comp in comps]
+        pos: list[float] = []
+        nrm: list[float] = []
+        bad: list[int] = []
+        for i, ((lo, hi), nu_i, dnu_i) in enumerate(zip(windows, N, dN, strict=True)):
+            rows = [row for vals, _ in blended for row in vals[lo:hi]]
+            drows = [row for _, dvals in blended for row in dvals[lo:hi]]
+            start = len(bad)
+            evaluate_row(nu_i, dnu_i, rows, drows, tol, pos, nrm, bad)
+            bad[start:] = [i * r + j for j in bad[start:]]
+        out[f] = (pos, nrm, bad)
+    return out
+
+
+def _evaluate_numpy(atlas: AtlasSurface, comps: list[list[float]], patches: list[int],
+                    r: int, tol: float) -> dict[int, tuple[list, list, list]]:
+    """:func:`_evaluate_python`'s contract, all patches at once: ``S^w = B P^w B^T`` with
+    the dense ``(r, n)`` basis matrices ``B``, ``B'`` (``n = s + d`` is small)."""
+    import numpy as np
+
+    d, n = atlas.degree, atlas.side
+    _, spans_t, N, dN = _tables(d, atlas.spans, r)
+    B, dB = np.zeros((r, n)), np.zeros((r, n))
+    for k, span in enumerate(spans_t):
+        B[k, span - d : span + 1] = N[k]
+        dB[k, span - d : span + 1] = dN[k]
+    H = np.asarray(comps, dtype=float).T  # (control points, C)
+    index = np.asarray([atlas.patch_indices(f) for f in patches], dtype=np.intp)
+    P = H[index]  # (F, n, n, C), P[f, a, b] = P^w_ab
+    rows = np.einsum("jb,fabc->fajc", B, P)
+    drows = np.einsum("jb,fabc->fajc", dB, P)
+    A = np.einsum("ia,fajc->fijc", B, rows)
+    Au = np.einsum("ia,fajc->fijc", dB, rows)
+    Av = np.einsum("ia,fajc->fijc", B, drows)
+    if atlas.weights is None:
+        S, Su, Sv = A, Au, Av
+        small = tol
+    else:
+        w = A[..., 3:]
+        S = A[..., :3] / w
+        Su = Au[..., :3] - Au[..., 3:] * S  # (A_u - w_u S) / w: the 1/w the unit normal drops
+        Sv = Av[..., :3] - Av[..., 3:] * S
+        small = tol * w[..., 0] ** 2
+    cross = np.cross(Su, Sv)
+    length = np.sqrt((cross**2).sum(axis=-1))
+    ok = length > small
+    unit = np.where(ok[..., None], cross / np.where(ok, length, 1.0)[..., None], 0.0)
+    out = {}
+    for k, f in enumerate(patches):
+        out[f] = (S[k].reshape(-1).tolist(), unit[k].reshape(-1).tolist(),
+                  np.flatnonzero(~ok[k].reshape(-1)).tolist())
+    return out
+
+
+def _normal_tolerance(comps: list[list[float]]) -> float:
+    """``NORMAL_TOLERANCE d^2`` with ``d`` the diagonal plus the largest coordinate of all
+    the control points: ``client_py.surface.normal_tolerance``'s rule on ``[0, 1]^2``, over
+    the whole atlas (a patch's own box would only lower it)."""
+    xyz = comps[:3] if len(comps) == 3 else [[a / w for a, w in zip(c, comps[3], strict=True)]
+                                             for c in comps[:3]]
+    lows, highs = [min(c) for c in xyz], [max(c) for c in xyz]
+    diagonal = math.sqrt(sum((b - a) ** 2 for a, b in zip(lows, highs, strict=True)))
+    d = diagonal + max(abs(c) for c in lows + highs)
+    return NORMAL_TOLERANCE * d * d
+
+
+# ------------------------------------------------------------------ the welded mesh
+class _Layout:
+    """Vertex numbering of the welded mesh: corners, edges, patches (module docstring)."""
+
+    def __init__(self, atlas: AtlasSurface, res: list[int]) -> None:
+        self.atlas, self.res = atlas, res
+        self.table = atlas.edges
+        self.fine, self.coarse = _edge_resolutions(atlas, res)
+        used = sorted({k for quad in atlas.quads for k in quad})
+        self.corner = {v: i for i, v in enumerate(used)}
+        self.used = used
+        count = len(used)
+        self.edge_base = []
+        for fine in self.fine:
+            self.edge_base.append(count)
+            count += fine - 2
+        self.border_count = count
+        self.face_base = []
+        for r in res:
+            self.face_base.append(count)
+            count += (r - 2) ** 2
+        self.count = count
+
+    def edge_node(self, e: int, K: int) -> int:
+        """Vertex ``K`` (``0..R_e - 1``, from ``lo``) of edge ``e``."""
+        lo, hi = self.table.edges[e]
+        if K == 0:
+            return self.corner[lo]
+        if K == self.fine[e] - 1:
+            return self.corner[hi]
+        return self.edge_base[e] + K - 1
+
+    def side_nodes(self, f: int, k: int) -> tuple[list[int], list[bool]]:
+        """The vertex of each sample ``t = 0..r_f - 1`` of side ``k`` of patch ``f``, and
+        whether it is *evaluated* (at the edge's coarser resolution) or lies between two
+        evaluated vertices (a finer neighbour's)."""
+        e, reverse = self.table.sides[f][k]
+        fine = self.fine[e]
+        step, step_c = (fine - 1) // (self.res[f] - 1), (fine - 1) // (self.coarse[e] - 1)
+        Ks = range(0, fine, step)
+        if reverse:
+            Ks = Ks[::-1]
+        return [self.edge_node(e, K) for K in Ks], [K % step_c == 0 for K in Ks]
+
+    def between(self, f: int, k: int, t0: int, t1: int) -> list[int]:
+        """The edge vertices strictly between samples ``t0`` and ``t1`` of side ``k`` of
+        patch ``f``, in the order from ``t0`` to ``t1``."""
+        e, reverse = self.table.sides[f][k]
+        fine = self.fine[e]
+        step = (fine - 1) // (self.res[f] - 1)
+        K0, K1 = t0 * step, t1 * step
+        if reverse:
+            K0, K1 = fine - 1 - K0, fine - 1 - K1
+        way = 1 if K1 > K0 else -1
+        return [self.edge_node(e, K) for K in range(K0 + way, K1, way)]
+
+    def patch_vertices(self, f: int) -> tuple[list[int], list[tuple[int, int, bool]]]:
+        """``(ids, border)``: the global vertex of each sample ``(i, j)`` of patch ``f`` at
+        ``i r + j``, and its border samples ``(slot, vertex, evaluated)``, each corner once."""
+        r = self.res[f]
+        ids = [0] * (r * r)
+        base, inner = self.face_base[f], r - 2
+        for i in range(1, r - 1):
+            ids[i * r + 1 : i * r + r - 1] = range(base + (i - 1) * inner,
+                                                   base + i * inner)
+        border = []
+        for k, slots in enumerate(_side_slots(r)):
+            nodes, evaluated = self.side_nodes(f, k)
+            for t, (slot, node, flag) in enumerate(zip(slots, nodes, evaluated, strict=True)):
+                ids[slot] = node
+                if k in (0, 2) or 0 < t < r - 1:  # sides 0 and 2 hold the four corners
+                    border.append((slot, node, flag))
+        return ids, border
+
+
+@lru_cache(maxsize=64)
+def _side_slots(r: int) -> tuple[tuple[int, ...], ...]:
+    """Grid slots ``i r + j`` of sample ``t`` along each side (``SIDES`` order)."""
+    last = r - 1
+    return (tuple(t * r for t in range(r)), tuple(last * r + t for t in range(r)),
+            tuple(t * r + last for t in range(r)), tuple(t for t in range(r)))
+
+
+def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
+    length = math.sqrt(x * x + y * y + z * z)
+    if length == 0.0:
+        return (0.0, 0.0, 0.0)
+    return (x / length, y / length, z / length)
+
+
+def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
+                     detail: Mapping[int, Sequence[DetailTile]] | None = None,
+                     kernel: str | None = None) -> AtlasMesh:
+    """One welded, watertight mesh of ``atlas`` (module docstring for the rules).
+
+    Parameters
+    ----------
+    atlas : AtlasSurface
+    resolution : int or sequence of int
+        ``r >= 2`` samples per patch side, for all patches or one per patch; neighbours'
+        ``r - 1`` must differ by a power of 2 (``2^k c + 1``).
+    detail : mapping of int to sequence of DetailTile, optional
+        Patch ``f`` -> its detail tiles over its own ``[0, 1]^2``.
+    kernel : {'python', 'numpy'}, optional
+        Force an evaluation kernel; default the one ``client_py._kernel`` selects.
+
+    Returns
+    -------
+    AtlasMesh
+        ``V_used + sum_e (R_e - 2) + sum_f (r_f - 2)^2`` vertices (and one more per cell of
+        a 2-sample patch bordered by finer neighbours on opposite sides) and
+        ``2 sum_f (r_f - 1)^2`` triangles plus the fans at resolution changes.
+    """
+    if not isinstance(atlas, AtlasSurface):
+        raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
+    res = _check_resolutions(atlas, resolution)
+    tiles = _check_detail(atlas, detail)
+    backend = _kernel.backend(kernel)
+    layout = _Layout(atlas, res)
+    comps = _homogeneous(atlas)
+    tol = _normal_tolerance(comps)
+    evaluate = _evaluate_python if backend is _kernel_python else _evaluate_numpy
+    by_res: dict[int, list[int]] = {}
+    for f, r in enumerate(res):
+        by_res.setdefault(r, []).append(f)
+    grids: dict[int, tuple[list, list, list]] = {}
+    for r, patches in sorted(by_res.items()):
+        grids.update(evaluate(atlas, comps, patches, r, tol))
+    surfaces: dict[int, object] = {}
+
+    def surface(f):
+        if f not in surfaces:
+            surfaces[f] = atlas.patch_surface(f)
+        return surfaces[f]
+
+    count = layout.count
+    positions = array("d", bytes(24 * count))
+    normals = array("d", bytes(24 * count))
+    uvs = array("d", bytes(16 * count))
+    owners = array("I", bytes(4 * count))
+    n_border = layout.border_count
+    base_at: list = [None] * n_border  # base point of a border vertex (first sampler)
+    shift = [0.0] * n_border  # sum of the samplers' displacements
+    direction = [0.0] * (3 * n_border)  # sum of their unit base normals
+    samplers = [0] * n_border
+    shading = [0.0] * (3 * n_border)  # sum of the unit normals of the drawn surface
+
+    ids, borders = {}, {}
+    for f in range(len(res)):
+        ids[f], borders[f] = layout.patch_vertices(f)
+    for f, r in enumerate(res):
+        params = _tables(atlas.degree, atlas.spans, r)[0]
+        pos, nrm, bad = grids[f]
+        for k in bad:  # a pole: the limit normal from inside the patch
+            nrm[3 * k : 3 * k + 3] = surface(f).normal(params[k // r], params[k % r])
+        disp = None
+        if f in tiles:
+            disp = displacement_grid(tiles[f], params, params, kernel)
+        # interior vertices: contiguous rows of the patch's block
+        base, inner = layout.face_base[f], r - 2
+        for i in range(1, r - 1):
+            lo, hi = i * r + 1, i * r + r - 1
+            at = base + (i - 1) * inner
+            row_pos = pos[3 * lo : 3 * hi]
+            if disp is not None:
+                row_nrm = nrm[3 * lo : 3 * hi]
+                d3 = [x for x in disp[lo:hi] for _ in range(3)]
+                row_pos = [p + d * n for p, d, n in zip(row_pos, d3, row_nrm, strict=True)]
+            positions[3 * at : 3 * (at + inner)] = array("d", row_pos)
+            normals[3 * at : 3 * (at + inner)] = array("d", nrm[3 * lo : 3 * hi])
+            uvs[2 * at : 2 * (at + inner) : 2] = array("d", [params[i]] * inner)
+            uvs[2 * at + 1 : 2 * (at + inner) : 2] = array("d", params[1 : r - 1])
+            owners[at : at + inner] = array("I", [f]) * inner
+        # border samples: accumulate on the welded vertices
+        for slot, node, evaluated in borders[f]:
+            nx, ny, nz = nrm[3 * slot : 3 * slot + 3]
+            shading[3 * node] += nx
+            shading[3 * node + 1] += ny
+            shading[3 * node + 2] += nz
+            if base_at[node] is None:
+                # the base point of an in-between vertex is its segment's (below)
+                base_at[node] = tuple(pos[3 * slot : 3 * slot + 3]) if evaluated else ()
+                owners[node] = f
+                uvs[2 * node], uvs[2 * node + 1] = params[slot // r], params[slot % r]
+            if evaluated:
+                samplers[node] += 1
+                if disp is not None:
+                    shift[node] += disp[slot]
+                direction[3 * node] += nx
+                direction[3 * node + 1] += ny
+                direction[3 * node + 2] += nz
+
+    # welded border positions: evaluated vertices, then the in-between ones on their segment
+    for node in range(n_border):
+        point = base_at[node]
+        if point:
+            if shift[node]:
+                n = _unit(*direction[3 * node : 3 * node + 3])
+                d = shift[node] / samplers[node]
+                point = (point[0] + d * n[0], point[1] + d * n[1], point[2] + d * n[2])
+            positions[3 * node : 3 * node + 3] = array("d", point)
+    for e, (fine, coarse) in enumerate(zip(layout.fine, layout.coarse, strict=True)):
+        step = (fine - 1) // (coarse - 1)
+        if step == 1:
+            continue
+        for K in range(1, fine - 1):
+            if K % step:
+                K0 = K - K % step
+                a, b = layout.edge_node(e, K0), layout.edge_node(e, K0 + step)
+                s = (K - K0) / step
+                node = layout.edge_node(e, K)
+                positions[3 * node : 3 * node + 3] = array("d", [
+                    (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
+
+    if tiles:
+        # normals of the drawn (displaced, welded) surface by differences within each patch
+        backend_displace = backend.displace_grid
+        shading = [0.0] * (3 * n_border)
+        for f, r in enumerate(res):
+            local = ids[f]
+            grid = array("d", bytes(24 * r * r))
+            for c in range(3):
+                grid[c::3] = array("d", [positions[3 * g + c] for g in local])
+            base_normals = array("d", grids[f][1])
+            _, drawn = backend_displace(grid, base_normals, array("d", bytes(8 * r * r)), r, r,
+                                        (0, r, 0, r))
+            drawn = array("d", drawn)
+            for slot, g in enumerate(local):
+                if g >= n_border:
+                    normals[3 * g : 3 * g + 3] = drawn[3 * slot : 3 * slot + 3]
+            for slot, g, _ in borders[f]:
+                for c in range(3):
+                    shading[3 * g + c] += drawn[3 * slot + c]
+    for node in range(n_border):
+        normals[3 * node : 3 * node + 3] = array("d", _unit(*shading[3 * node : 3 * node + 3]))
+
+    extra_positions: list[float] = []
+    extra_normals: list[float] = []
+    extra_uvs: list[float] = []
+    extra_owners: list[int] = []
+    indices = array("I")
+    for f, r in enumerate(res):
+        local = ids[f]
+        finer = [layout.fine[layout.table.sides[f][k][0]] > r for k in range(4)]
+        if not any(finer):
+            indices.extend(map(local.__getitem__, grid_indices(r, r, kernel=kernel)))
+            continue
+
+        def centre(f, r, i, j):
+            u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
+            point, n = surface(f).evaluate(u, v), surface(f).normal(u, v)
+            if f in tiles:
+                d = displacement_grid(tiles[f], [u], [v], kernel)[0]
+                point = tuple(p + d * c for p, c in zip(point, n, strict=True))
+            extra_positions.extend(point)
+            extra_normals.extend(n)
+            extra_uvs.extend((u, v))
+            extra_owners.append(f)
+            return count + len(extra_owners) - 1
+
+        indices.extend(_patch_triangles(layout, f, r, local, finer, centre))
+    if extra_owners:
+        positions.extend(extra_positions)
+        normals.extend(extra_normals)
+        uvs.extend(extra_uvs)
+        owners.extend(extra_owners)
+    total = count + len(extra_owners)
+    pack = struct.Struct(f"={3 * total}f").pack
+    try:
+        out_positions = array("f", pack(*positions))
+    except OverflowError:  # beyond float32: store inf, as fromlist() and numpy would
+        out_positions = array("f", positions.tolist())
+    return AtlasMesh(out_positions, array("f", pack(*normals)),
+                     array("f", struct.pack(f"={2 * total}f", *uvs)), indices,
+                     patches=owners)
+
+
+def _patch_triangles(layout: _Layout, f: int, r: int, local: list[int], finer: list[bool],
+                     centre) -> list[int]:
+    """Triangles of a patch with finer neighbours on the sides ``finer[k]``: whole cells
+    as two triangles, border cells as a fan through the neighbour's extra vertices from a
+    corner whose own two sides have none (or from the cell's centre, a new vertex, when no
+    corner has: a 2-sample patch between finer neighbours)."""
+    out: list[int] = []
+    last = r - 2
+    for i in range(r - 1):
+        for j in range(r - 1):
+            a, b = local[i * r + j], local[(i + 1) * r + j]
+            c, d = local[(i + 1) * r + j + 1], local[i * r + j + 1]
+            # CCW in (u, v): a(i, j) -> b(i+1, j) -> c(i+1, j+1) -> d(i, j+1)
+            ab = layout.between(f, 0, i, i + 1) if j == 0 and finer[0] else []
+            bc = layout.between(f, 1, j, j + 1) if i == last and finer[1] else []
+            cd = layout.between(f, 2, i + 1, i) if j == last and finer[2] else []
+            da = layout.between(f, 3, j + 1, j) if i == 0 and finer[3] else []
+            if not (ab or bc or cd or da):
+                out += (a, b, d, d, b, c)
+                continue
+            loop = [a, *ab, b, *bc, c, *cd, d, *da]
+            at = {a: 0, b: 1 + len(ab), c: 2 + len(ab) + len(bc),
+                  d: 3 + len(ab) + len(bc) + len(cd)}
+            for corner, clean in ((c, not (bc or cd)), (d, not (cd or da)),
+                                  (b, not (ab or bc)), (a, not (da or ab))):
+                if clean:
+                    start = at[corner]
+                    ring = loop[start:] + loop[:start]
+                    for m in range(1, len(ring) - 1):
+                        out += (corner, ring[m], ring[m + 1])
+                    break
+            else:
+                z = centre(f, r, i, j)
+                for m in range(len(loop)):
+                    out += (z, loop[m], loop[(m + 1) % len(loop)])
+    return out
+
+
+def atlas_ply(atlas: AtlasSurface, resolution: int | Sequence[int],
+              detail: Mapping[int, Sequence[DetailTile]] | None = None, binary: bool = True,
+              comments: list[str] | None = None, kernel: str | None = None) -> bytes:
+    """:func:`tessellate_atlas`'s mesh as one 3DHOP-ready PLY (``client_py.ply.write_ply``):
+    float32 ``x, y, z, nx, ny, nz`` per vertex and the triangles."""
+    return write_ply(tessellate_atlas(atlas, resolution, detail, kernel), binary,
+                     comments=comments)

@@ -1,0 +1,263 @@
+"""tessellate_atlas: one welded, watertight, consistently oriented mesh of an atlas, for
+uniform and mixed resolutions, with and without detail tiles; positions on the reference
+evaluator (``patch_surface(f).evaluate``), the two kernels in agreement, one normal per
+border vertex, and a PLY that a peer reader (trimesh) reads back."""
+
+from __future__ import annotations
+
+import io
+import math
+import random
+from collections import Counter
+
+import numpy as np
+import pytest
+from atlas_cases import sphere_atlas
+from test_atlas import random_cube_atlas
+
+from client_py import Mesh
+from client_py.atlas_mesh import AtlasMesh, atlas_ply, tessellate_atlas
+from client_py.layers import DetailTile
+
+MIXED = [3, 5, 9, 3, 5, 2]  # the cube's six patches: 2, 4 and 8 segments a side
+
+
+def edge_uses(mesh: Mesh) -> tuple[Counter, Counter]:
+    """Triangles per undirected edge, and per directed edge."""
+    undirected, directed = Counter(), Counter()
+    tris = np.asarray(mesh.indices, dtype=np.int64).reshape(-1, 3)
+    for a, b, c in tris.tolist():
+        for p, q in ((a, b), (b, c), (c, a)):
+            undirected[min(p, q), max(p, q)] += 1
+            directed[p, q] += 1
+    return undirected, directed
+
+
+def assert_closed_and_oriented(mesh: Mesh) -> None:
+    undirected, directed = edge_uses(mesh)
+    assert all(n == 2 for n in undirected.values()), \
+        Counter(n for n in undirected.values() if n != 2)
+    assert all(n == 1 for n in directed.values())  # each used once in each direction
+    assert len(set(mesh.indices)) == mesh.vertex_count  # no stray vertex
+    # a closed surface: V - E + F = 2 (the cube layout is a sphere)
+    assert mesh.vertex_count - len(undirected) + mesh.triangle_count == 2
+
+
+def random_tiles(seed: int, levels: int = 2, amplitude: float = 0.05) -> list[DetailTile]:
+    rnd = random.Random(seed)
+    tiles = []
+    for level in range(levels):
+        for i in range(1 << level):
+            for j in range(1 << level):
+                size = 4 + 2
+                tiles.append(DetailTile(level, i, j, 2, 4, amplitude / 100,
+                                        tuple(rnd.randint(-100, 100) for _ in range(size**2))))
+    return tiles
+
+
+def random_detail(atlas, seed: int = 3) -> dict[int, list[DetailTile]]:
+    return {f: random_tiles(seed + f) for f in range(len(atlas.quads))}
+
+
+@pytest.mark.parametrize("resolution", [2, 3, 9, MIXED, [17, 9, 5, 3, 2, 3]])
+@pytest.mark.parametrize("with_detail", [False, True])
+def test_the_cube_mesh_is_closed_and_consistently_oriented(resolution, with_detail):
+    atlas = random_cube_atlas(3, 2)
+    detail = random_detail(atlas) if with_detail else None
+    mesh = tessellate_atlas(atlas, resolution, detail, kernel="python")
+    assert isinstance(mesh, AtlasMesh) and isinstance(mesh, Mesh)
+    assert_closed_and_oriented(mesh)
+    assert len(mesh.patches) == mesh.vertex_count
+    assert len(mesh.normals) == len(mesh.positions) == 3 * mesh.vertex_count
+
+
+def test_vertex_count_is_corners_edges_and_interiors_once():
+    atlas = random_cube_atlas(3, 2)
+    r = 9
+    mesh = tessellate_atlas(atlas, r)
+    assert mesh.vertex_count == 8 + 12 * (r - 2) + 6 * (r - 2) ** 2
+    assert mesh.triangle_count == 6 * 2 * (r - 1) ** 2
+
+
+@pytest.mark.parametrize("make", [lambda: random_cube_atlas(3, 2), lambda: random_cube_atlas(2, 3),
+                                  lambda: random_cube_atlas(1, 1), lambda: sphere_atlas(2)])
+def test_positions_are_the_reference_evaluators(make):
+    """Every vertex, for every patch that samples it, is patch_surface(f).evaluate(u, v)."""
+    atlas = make()
+    r = 7
+    mesh = tessellate_atlas(atlas, r, kernel="python")
+    exact = _positions_in_double(atlas, r, "python")
+    for f in range(len(atlas.quads)):
+        surface = atlas.patch_surface(f)
+        for (i, j), k in _patch_vertex_ids(mesh, atlas, f, r).items():
+            point = surface.evaluate(i / (r - 1), j / (r - 1))
+            assert max(abs(a - b) for a, b in zip(point, exact[k], strict=True)) < 1e-9
+            assert max(abs(a - b) for a, b in zip(point, mesh.positions[3 * k : 3 * k + 3],
+                                                  strict=True)) < 1e-6  # float32
+
+
+def _positions_in_double(atlas, r, kernel):
+    """Each vertex's float64 position from the first patch sampling it (the module's
+    evaluator and numbering; the mesh itself is float32)."""
+    from client_py import atlas_mesh
+
+    captured = {}
+    comps = atlas_mesh._homogeneous(atlas)
+    tol = atlas_mesh._normal_tolerance(comps)
+    evaluate = atlas_mesh._evaluate_python if kernel == "python" else atlas_mesh._evaluate_numpy
+    grids = evaluate(atlas, comps, list(range(len(atlas.quads))), r, tol)
+    layout = atlas_mesh._Layout(atlas, [r] * len(atlas.quads))
+    for f, (pos, _, _) in grids.items():
+        ids, _ = layout.patch_vertices(f)
+        for slot, k in enumerate(ids):
+            captured.setdefault(k, tuple(pos[3 * slot : 3 * slot + 3]))
+    return captured
+
+
+def _patch_vertex_ids(mesh, atlas, f, r):
+    from client_py import atlas_mesh
+
+    layout = atlas_mesh._Layout(atlas, [r] * len(atlas.quads))
+    ids, _ = layout.patch_vertices(f)
+    return {(slot // r, slot % r): k for slot, k in enumerate(ids)}
+
+
+def test_border_vertices_are_one_vertex_for_both_patches_with_the_same_point():
+    """The neighbours' own evaluations of a shared border sample agree (one curve), and the
+    welded vertex is it: the edge's lo->hi order read reversed by the other side."""
+    atlas = random_cube_atlas(3, 2, seed=5)
+    r = 6
+    mesh = tessellate_atlas(atlas, r)
+    seen: dict[int, list] = {}
+    for f in range(6):
+        surface = atlas.patch_surface(f)
+        for (i, j), k in _patch_vertex_ids(mesh, atlas, f, r).items():
+            if i in (0, r - 1) or j in (0, r - 1):
+                seen.setdefault(k, []).append(surface.evaluate(i / (r - 1), j / (r - 1)))
+    assert len(seen) == 8 + 12 * (r - 2)
+    for k, points in seen.items():
+        assert len(points) == (3 if k < 8 else 2)
+        for point in points[1:]:
+            assert max(abs(a - b) for a, b in zip(point, points[0], strict=True)) < 1e-12
+
+
+@pytest.mark.parametrize("resolution", [9, MIXED])
+@pytest.mark.parametrize("with_detail", [False, True])
+def test_python_and_numpy_kernels_agree(resolution, with_detail):
+    pytest.importorskip("numpy")
+    atlas = random_cube_atlas(3, 2)
+    detail = random_detail(atlas) if with_detail else None
+    a = tessellate_atlas(atlas, resolution, detail, kernel="python")
+    b = tessellate_atlas(atlas, resolution, detail, kernel="numpy")
+    assert a.indices == b.indices and a.patches == b.patches
+    for name in ("positions", "normals", "uvs"):
+        diff = np.abs(np.asarray(getattr(a, name)) - np.asarray(getattr(b, name)))
+        assert diff.max() < 1e-6, name
+
+
+def test_normals_are_unit_outward_and_one_per_border_vertex():
+    """On the sphere atlas the welded normals are the sphere's (outward, C_u x C_v), and the
+    mesh holds one normal per vertex: a border vertex has no second copy to disagree."""
+    atlas = sphere_atlas(2)
+    mesh = tessellate_atlas(atlas, 9)
+    P = np.asarray(mesh.positions).reshape(-1, 3)
+    N = np.asarray(mesh.normals).reshape(-1, 3)
+    assert np.allclose(np.linalg.norm(N, axis=1), 1.0, atol=1e-6)
+    radial = P / np.linalg.norm(P, axis=1)[:, None]
+    assert (np.sum(N * radial, axis=1) > 0.95).all()
+    # positions are unique: no border vertex was emitted twice
+    assert len({tuple(p) for p in P.round(7).tolist()}) == len(P)
+
+
+def test_border_normal_is_the_mean_of_the_patches_normals():
+    atlas = random_cube_atlas(3, 2, seed=2)
+    r = 5
+    mesh = tessellate_atlas(atlas, r)
+    table = atlas.edges
+    for e, ((f, k), (g, m)) in enumerate(table.faces):
+        lo, _ = table.edges[e]
+        k_id = _patch_vertex_ids(mesh, atlas, f, r)
+        # sample t = 2 (the middle) of side k of f
+        ij = ((2, 0), (r - 1, 2), (2, r - 1), (0, 2))[k]
+        vertex = k_id[ij]
+        u, v = ij[0] / (r - 1), ij[1] / (r - 1)
+        nf = np.array(atlas.patch_surface(f).normal(u, v))
+        ij_g = ((2, 0), (r - 1, 2), (2, r - 1), (0, 2))[m]  # the middle is the middle
+        ng = np.array(atlas.patch_surface(g).normal(ij_g[0] / (r - 1), ij_g[1] / (r - 1)))
+        assert _patch_vertex_ids(mesh, atlas, g, r)[ij_g] == vertex
+        mean = (nf + ng) / np.linalg.norm(nf + ng)
+        assert np.allclose(mesh.normals[3 * vertex : 3 * vertex + 3], mean, atol=1e-6)
+
+
+def test_detail_moves_border_vertices_by_the_mean_displacement():
+    """A tile on one patch only: a shared border vertex moves by half its displacement
+    along the mean normal; an interior vertex by the whole of it."""
+    atlas = random_cube_atlas(3, 2, seed=4)
+    r = 5
+    tile = DetailTile(0, 0, 0, 1, 1, 0.5, (2, 2, 2, 2))  # D = 1 everywhere
+    base = tessellate_atlas(atlas, r)
+    moved = tessellate_atlas(atlas, r, {0: [tile]})
+    ids = _patch_vertex_ids(base, atlas, 0, r)
+    P0 = np.asarray(base.positions).reshape(-1, 3)
+    P1 = np.asarray(moved.positions).reshape(-1, 3)
+    s0 = atlas.patch_surface(0)
+    inner = ids[(2, 2)]
+    assert np.allclose(P1[inner] - P0[inner], s0.normal(0.5, 0.5), atol=1e-6)
+    edge = ids[(2, 0)]  # side 0 of patch 0: shared with one neighbour
+    (e, _) = atlas.edges.sides[0][0]
+    (g, m) = next(pair for pair in atlas.edges.faces[e] if pair[0] != 0)
+    ij_g = ((2, 0), (r - 1, 2), (2, r - 1), (0, 2))[m]
+    ng = np.array(atlas.patch_surface(g).normal(ij_g[0] / (r - 1), ij_g[1] / (r - 1)))
+    mean = np.array(s0.normal(0.5, 0.0)) + ng
+    mean /= np.linalg.norm(mean)
+    assert np.allclose(P1[edge] - P0[edge], 0.5 * mean, atol=1e-6)
+
+
+def test_mixed_resolution_border_vertices_lie_on_the_coarse_segment():
+    atlas = sphere_atlas(1)
+    mesh = tessellate_atlas(atlas, MIXED)
+    P = np.asarray(mesh.positions, dtype=float).reshape(-1, 3)
+    # every vertex is on a triangle of positive area: no T-gap leaves a sliver unfilled
+    tris = np.asarray(mesh.indices).reshape(-1, 3)
+    area = 0.5 * np.linalg.norm(np.cross(P[tris[:, 1]] - P[tris[:, 0]],
+                                         P[tris[:, 2]] - P[tris[:, 0]]), axis=1)
+    assert area.min() > 0
+    # the surface encloses the sphere's volume nearly (closed: the divergence theorem)
+    volume = np.einsum("ij,ij->i", P[tris[:, 0]], np.cross(P[tris[:, 1]], P[tris[:, 2]])).sum() / 6
+    assert 0.6 * 4 / 3 * math.pi < volume < 4 / 3 * math.pi
+
+
+def test_bad_arguments_are_named():
+    atlas = random_cube_atlas()
+    with pytest.raises(ValueError, match="atlas must be an AtlasSurface"):
+        tessellate_atlas({}, 3)
+    with pytest.raises(ValueError, match="resolution of patch 0 = 1; an int in 2..8192"):
+        tessellate_atlas(atlas, 1)
+    with pytest.raises(ValueError, match="resolution has 2 values; the atlas has 6 patches"):
+        tessellate_atlas(atlas, [3, 3])
+    with pytest.raises(ValueError, match="resolution must be an int or a sequence"):
+        tessellate_atlas(atlas, 3.0)
+    with pytest.raises(ValueError, match="neighbours need 2\\^k c \\+ 1 samples"):
+        tessellate_atlas(atlas, [3, 4, 3, 3, 3, 3])
+    with pytest.raises(ValueError, match="at most 16777216 are accepted"):
+        tessellate_atlas(atlas, 8000)
+    with pytest.raises(ValueError, match="detail key 6 is no patch index"):
+        tessellate_atlas(atlas, 3, {6: []})
+    with pytest.raises(ValueError, match="detail\\[0\\] holds a int, not a DetailTile"):
+        tessellate_atlas(atlas, 3, {0: [1]})
+    with pytest.raises(ValueError, match="kernel must be 'python' or 'numpy'"):
+        tessellate_atlas(atlas, 3, kernel="gpu")
+
+
+def test_atlas_ply_is_read_by_trimesh_as_one_closed_mesh():
+    trimesh = pytest.importorskip("trimesh")
+    atlas = sphere_atlas(2)
+    data = atlas_ply(atlas, MIXED * 4, comments=["atlas test"])
+    header = data[: data.index(b"end_header")].decode()
+    for line in ("property float x", "property float nx", "property float nz"):
+        assert line in header
+    mesh = trimesh.load(io.BytesIO(data), file_type="ply", process=False)
+    ours = tessellate_atlas(atlas, MIXED * 4)
+    assert len(mesh.vertices) == ours.vertex_count and len(mesh.faces) == ours.triangle_count
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume > 0  # outward: counter-clockwise seen from outside
