@@ -154,7 +154,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     from .fitting.io import ScanError
     from .fitting.pipeline import fit_scan
 
-    options = _fit_options(args, title=args.title)
+    options = _fit_options(args)
     bars: dict[str, tqdm] = {}
 
     def progress(stage: str, fraction: float) -> None:
@@ -431,7 +431,6 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("scan", help="the scan file")
     fit.add_argument("-o", "--output", required=True, help="bundle directory to write")
     add_fit_arguments(fit)
-    fit.add_argument("--title", default=None, help="object title (default: the file name)")
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     _add_input_limit_arguments(fit)
     fit.set_defaults(run=_cmd_fit)
@@ -513,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
     batch.add_argument("--workers", type=_count, default=None,
                        help="LocalCluster worker processes (default: one per core)")
-    add_fit_arguments(batch)
+    add_fit_arguments(batch, collection=True)
     batch.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     batch.set_defaults(run=_cmd_fit_collection)
     return parser

@@ -34,6 +34,7 @@ from fitter.server.admin.service import parse_fit_options
 DOCUMENTED_DEFAULTS = {
     "grid": (40, 40), "degree": 2, "method": "tessera", "bits": None, "max_error": None,
     "max_grid": None, "projection": "auto", "up": "auto", "title": None,
+    "description": None, "units": None,
     "feature_strength": 4.0, "seed": 0,
     "samples": 60_000, "detail_levels": None, "detail_spans": 16, "texture": True,
 }
@@ -64,10 +65,13 @@ def test_cli_python_and_form_defaults_are_the_same_for_every_option():
     assert python == DOCUMENTED_DEFAULTS
     for command in ("fit", "fit-collection"):
         assert stored_options(_cli_options(command=command)) == stored_options(FitOptions())
-    # every option but the per-object title is on the command line and in the form
+    # every option is on `tessera fit` and in the form; fit-collection leaves out the
+    # per-object ones (a title and a description of one object)
+    fit_dests = set(vars(build_parser().parse_args(["fit", "s", "-o", "o"])))
     parser_dests = set(vars(build_parser().parse_args(["fit-collection", "s", "-o", "o"])))
     spelled = {o.name for o in OPTIONS if o.cli} | {o.name for o in OPTIONS if o.form}
-    assert spelled == set(DOCUMENTED_DEFAULTS) - {"title"} and spelled <= parser_dests
+    assert spelled == set(DOCUMENTED_DEFAULTS) and spelled <= fit_dests
+    assert spelled - parser_dests == {"title", "description"}
     assert parse_form({}) == stored_options(FitOptions())
     # the page's fields as rendered (defaults as text, empty for None) read back as defaults
     shown = {f["name"]: f["value"] for f in form_fields()}
@@ -113,6 +117,8 @@ BAD = [
     ("detail_spans", "3", 3),
     ("detail_spans", "65", 65),
     ("texture", "maybe", "maybe"),
+    ("title", "t" * 201, "t" * 201),
+    ("units", "u" * 21, "u" * 21),
 ]
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import json
 import re
@@ -44,8 +45,10 @@ def test_bundle_contents_and_manifest(relief_bundle):
     stats = manifest["stats"]
     assert 0 < stats["rms"] <= stats["p99"] <= stats["max"]
     assert stats["rms"] < 0.003 * stats["bbox_diagonal"]
-    grid = manifest["error_grid"]
-    assert len(grid["values"]) == grid["rows"] * grid["cols"]
+    # error_raster (it replaced error_grid): one byte per cell, its max the panel's max
+    raster = manifest["error_raster"]
+    assert len(base64.b64decode(raster["data"])) == raster["rows"] * raster["cols"]
+    assert raster["max"] == stats["max"]
     error_ply = trimesh.load(bundle / "error.ply", process=False)
     assert len(error_ply.vertices) == 20_000
 
@@ -206,20 +209,22 @@ def test_real_scan_fits_better_than_the_papers_linear_fit(shared_data, tmp_path,
 # vertex records after end_header), of every other file (name -> digest, as sorted JSON) and
 # of the manifest as sorted JSON without "timings" (they vary), "options" (FitOptions'
 # defaults are not this refactor's) and files["error.ply"] (its header gained the writer's
-# "comment written by Tessera client_py" line, 37 bytes).
+# "comment written by Tessera client_py" line, 37 bytes). The manifest digests are of the
+# manifest without "error_grid" too (replaced by "error_raster", issue 14): computed by
+# commit dea167f's code, whose manifests with error_grid had the 87bf666 digests.
 REFERENCE_FITS = {
     "tessera": ("19667b1380e029ba3e0b93d33892cb2c629922ea90fb3a5db378500d55fde4dc",
                 "e50a54301223c6decef19ca2d9a4a15bcd759df8bcba8753fea4770e1030a6f8",
                 "95559514737729d47b308fedbf41fc6fa2bfc8ba3a99f53d126ceb9fe3da6beb",
-                "cc35a58d99ba33e490675a7aa29f63abaeb5477fc3b6fda954ebc7dffdba0c44"),
+                "a58e6a82b1748b52e82de7c731b43f3f7a1169fa857da83b9c5e62980964e8db"),
     "linear_max_error": ("e3f3f58bf3f84ab740df6fc27372a370adaddd88bda1fc7f26e9398c2f19d151",
                          "2c3ef34a92fc84c8b76ffe00397ff1f4dcdb0712348d1c7061cdb11fdc553354",
                          "4bbc7a6e2e362e3e21ae996b9c273acd8b6fc9feb9e0991ad28a5a1eb7fa65a1",
-                         "61bf5f0f0b29fbfe2e4f5e5da9251994f38a04b7f0d0e277b69bbaf444b0c52d"),
+                         "db6dfd386f0cf01ca72d0f1a8f284d2b12a8412d6988dd6ce2e33aaecdaad314"),
     "colour": ("46a925375b81eddbbcd74c38b8a065b9154f8e6891fb6238dca1996ff2dd2f35",
                "5a2c0e69d370eb4f639e080430d36f5ff876ee6d224411bba1556aeca7ef277b",
                "30cd5bffe71cd8b0f207ade8490abd7acaa987d9ecc38b0ba7e60e9af7aff862",
-               "9d86a16d2957da85a9ee6094759987d713edc335df41b5ade49a51e03bc8b523"),
+               "50a5027cee63433f33c5c50a8f7250c2358f5d3a76bd772cd03f6cae4704fb9b"),
 }
 
 
@@ -261,6 +266,11 @@ def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
                                        for k, x in asdict(options).items()}
     view = manifest.pop("view")  # added after the reference (issue 14): tests/test_orient.py
     assert set(view) == {"up", "front", "up_source", "front_source"}
+    assert manifest.pop("description") == ""  # added after the reference (issue 14)
+    # error_raster replaced error_grid (issue 14: 5.5 KB of base64 at most instead of 13 KB
+    # of decimals), so the manifest's digest below is the one without either
+    raster = manifest.pop("error_raster")  # checked in tests/test_metadata.py
+    assert raster["max"] == manifest["stats"]["max"]
     timings = manifest.pop("timings")
     assert set(timings) <= {"load", "project", "features", "sections", "linear", "refine",
                             "encode", "error", "detail", "texture", "report"}

@@ -14,6 +14,7 @@ domain and over a render of the object, with a colour bar in scan units) and
 
 from __future__ import annotations
 
+import base64
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -28,7 +29,9 @@ from .fit import foot_points
 from .nurbs import PatchModel
 
 SEED_GRID = 192  # tessellation used to seed foot-point searches
-ERROR_GRID = 32  # cells per side of the manifest's uv error map
+RASTER_SIDE = (8, 64)  # least and most cells per side of the manifest's error raster
+RASTER_POINTS_PER_CELL = 4  # about this many covered points per cell, within RASTER_SIDE
+RASTER_EMPTY = 255  # the raster's code of a cell without a scan point
 
 
 @dataclass
@@ -109,17 +112,33 @@ def error_stats(d: np.ndarray, bbox_diagonal: float, units: str) -> dict:
     return stats
 
 
-def error_grid(dev: Deviations, cells: int = ERROR_GRID) -> dict:
-    """RMS deviation per ``(u, v)`` cell (row = ``u``), ``None`` where no point falls."""
-    iu = np.minimum((dev.u * cells).astype(np.int64), cells - 1)
-    iv = np.minimum((dev.v * cells).astype(np.int64), cells - 1)
-    cell = iu * cells + iv
-    count = np.bincount(cell, minlength=cells * cells)
-    sq = np.bincount(cell, weights=dev.d**2, minlength=cells * cells)
-    rms = np.sqrt(sq / np.maximum(count, 1))
-    values = [float(round(x, 9)) if c else None for x, c in zip(rms, count, strict=True)]
-    return {"rows": cells, "cols": cells, "max": float(rms.max()) if len(rms) else 0.0,
-            "values": values}
+def error_raster(dev: Deviations, max_deviation: float) -> dict:
+    """The manifest's ``error_raster``: the largest ``|d|`` of the covered points in each of
+    ``rows x cols`` cells of the ``(u, v)`` domain (row ``i`` = ``u`` in ``[i/rows,
+    (i+1)/rows)``, row-major), quantised to one byte of ``max_deviation``.
+
+    ``code = round(254 |d|_cell / max_deviation)`` in ``0..254``, ``255`` for a cell no
+    covered point falls in (a hole of the scan, or a part of the patch the scan does not
+    cover); ``data`` is the ``rows cols`` codes in base64. ``max_deviation`` is the
+    statistics' ``max`` (``error_stats``), so the cell holding the worst point decodes to
+    exactly that value and a viewer's colour scale ends where its panel's ``max`` does.
+    ``rows = cols = clip(floor(sqrt(N / 4)), 8, 64)`` for ``N`` covered points: at most 4 KiB
+    (5.5 KB of base64, less than a 32 x 32 grid of decimal numbers) and about four points per
+    cell, so a cell's value is a measurement, not an interpolation. A viewer interpolates the
+    cell values bilinearly at its vertices (``web/src/error-map.js``).
+    """
+    n = len(dev.d)
+    side = int(np.clip(int(np.sqrt(n / RASTER_POINTS_PER_CELL)), *RASTER_SIDE))
+    iu = np.clip((dev.u * side).astype(np.int64), 0, side - 1)
+    iv = np.clip((dev.v * side).astype(np.int64), 0, side - 1)
+    cell = iu * side + iv
+    largest = np.full(side * side, -1.0)
+    np.maximum.at(largest, cell, np.abs(dev.d))
+    scale = 254.0 / max_deviation if max_deviation > 0 else 0.0
+    codes = np.where(largest >= 0, np.rint(np.clip(largest, 0, None) * scale), RASTER_EMPTY)
+    return {"rows": side, "cols": side, "statistic": "max |d|", "max": float(max_deviation),
+            "encoding": "uint8 base64; code k < 255: k / 254 max; 255: no scan point",
+            "data": base64.b64encode(codes.astype(np.uint8).tobytes()).decode("ascii")}
 
 
 def _colour_limit(d: np.ndarray) -> float:

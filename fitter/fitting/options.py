@@ -43,7 +43,7 @@ FIT_SAMPLE = 60_000  # default of samples
 DETAIL_SPANS = 16  # default of detail_spans (= fitter.fitting.detail.SPANS, checked by a test)
 KINDS = ("grid", "int", "float", "choice", "bool", "text")
 #: the upload form's groups of fields, in order: (group, legend)
-FORM_GROUPS = (("base", "Fit options"), ("layers", "Detail and texture"),
+FORM_GROUPS = (("object", "Object"), ("base", "Fit options"), ("layers", "Detail and texture"),
                ("sampling", "Sampling of the tessera method"))
 
 
@@ -68,7 +68,11 @@ class Option:
     none : what ``None`` means when ``None`` is accepted (``None``: not accepted);
     label, help : the form's label and the help of both entry points;
     cli : the command-line flag (``None``: not on the command line);
-    form : the form field (``None``: not in the form); group : the form's group.
+    form : the form field (``None``: not in the form); group : the form's group;
+    per_object : an option of one object (its title, its description): on ``tessera fit``
+    and in the upload form, not on ``tessera fit-collection``, whose options every object
+    shares; multiline : a ``text`` the form edits in a text area (else one line, no control
+    characters). The ``maximum`` of a ``text`` is its longest length in characters.
     """
 
     name: str
@@ -84,6 +88,8 @@ class Option:
     cli: str | None = None
     form: str | None = None
     group: str = "base"
+    per_object: bool = False
+    multiline: bool = False
 
     def accepted(self, none: bool = True) -> str:
         """What values are accepted, as the refusal messages say it (with what ``None``
@@ -101,7 +107,8 @@ class Option:
         elif self.kind == "bool":
             text = "True or False"
         else:
-            text = "a string"
+            text = (f"text of at most {self.maximum} characters"
+                    + ("" if self.multiline else " on one line"))
         return text if self.none is None or not none else f"{text} (or None: {self.none})"
 
     def check(self, value: Any) -> None:
@@ -136,7 +143,8 @@ class Option:
             return isinstance(value, str) and value in self.choices
         if self.kind == "bool":
             return isinstance(value, bool)
-        return isinstance(value, str)
+        return (isinstance(value, str) and len(value) <= self.maximum
+                and (self.multiline or not any(ord(c) < 32 or ord(c) == 127 for c in value)))
 
     def parse(self, text: str) -> Any:
         """The value of ``text`` as typed on the command line or in the form, checked.
@@ -217,7 +225,17 @@ OPTIONS: tuple[Option, ...] = (
            "the object's up axis in scan coordinates for the first view and the thumbnail "
            "(auto: the format's axis, else a flat base, else +y)", choices=UP_AXES,
            cli="--up", form="up"),
-    Option("title", "text", None, "Title", "the object's title", none="the scan's file name"),
+    Option("title", "text", None, "Title", "the object's title", maximum=200,
+           none="the scan's file name", cli="--title", form="title", group="object",
+           per_object=True),
+    Option("description", "text", None, "Description",
+           "what the object is, shown in the viewer's panel", maximum=10_000, none="none",
+           cli="--description", form="description", group="object", per_object=True,
+           multiline=True),
+    Option("units", "text", None, "Units",
+           "the scan's length unit, e.g. mm or m", maximum=20,
+           none="what the file says (PLY, OBJ or XYZ header comments, glTF: m), else unknown",
+           cli="--units", form="units", group="object"),
     Option("feature_strength", "float", 4.0, "Feature strength",
            "how much denser the tessera method samples where local PCA finds features "
            "(0: uniform)", minimum=0, maximum=100, cli="--feature-strength",
@@ -255,7 +273,9 @@ class FitOptions:
     (``fitter.fitting.compact``); max_error : target RMS in scan units (grows the grid);
     max_grid : cap for that growth (``None``: :attr:`largest_grid`); projection : ``auto``
     or a map; up : the object's up axis (``auto``: found by ``fitter.fitting.orient``);
-    title : the object's title; feature_strength : how much denser the tessera
+    title : the object's title; description : what it is; units : the scan's length unit
+    (``None``: what the file says, ``fitter.fitting.io``; it labels every length the bundle
+    records); feature_strength : how much denser the tessera
     method samples where local PCA finds features (0: uniform); seed, samples : of the
     scan points the tessera refinement fits; detail_levels : depth of the detail pyramid
     (``None``: as the point density allows); detail_spans : knot spans per detail tile
@@ -272,6 +292,8 @@ class FitOptions:
     projection: str = _DEFAULT["projection"]
     up: str = _DEFAULT["up"]
     title: str | None = _DEFAULT["title"]
+    description: str | None = _DEFAULT["description"]
+    units: str | None = _DEFAULT["units"]
     feature_strength: float = _DEFAULT["feature_strength"]
     seed: int = _DEFAULT["seed"]
     samples: int = _DEFAULT["samples"]
@@ -360,12 +382,14 @@ def _argument_type(option: Option):  # noqa: ANN202 - an argparse type function
     return parse
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_arguments(parser: argparse.ArgumentParser, collection: bool = False) -> None:
     """Add every option of :data:`OPTIONS` that has a command-line spelling to ``parser``
     (``--grid 40x40``, ``--max-error 0.1``, ``--texture``/``--no-texture`` ...), each with
-    the table's default and its checks (argparse exits with status 2 and the message)."""
+    the table's default and its checks (argparse exits with status 2 and the message);
+    with ``collection`` (``tessera fit-collection``), not the per-object ones (``--title``,
+    ``--description``)."""
     for option in OPTIONS:
-        if option.cli is None:
+        if option.cli is None or (collection and option.per_object):
             continue
         if option.kind == "bool":
             parser.add_argument(option.cli, dest=option.name, default=option.default,
@@ -379,15 +403,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def from_args(args: argparse.Namespace, **extra: Any) -> FitOptions:
-    """Validated ``FitOptions`` from the arguments :func:`add_arguments` added, plus
-    ``extra`` options (e.g. ``title``).
+    """Validated ``FitOptions`` from the arguments :func:`add_arguments` added (those it left
+    out take their defaults), plus ``extra`` options.
 
     Raises
     ------
     OptionError
         A rule joining two options refused (e.g. ``--grid 3x3 --degree 3``).
     """
-    values = {o.name: getattr(args, o.name) for o in OPTIONS if o.cli is not None}
+    values = {o.name: getattr(args, o.name) for o in OPTIONS
+              if o.cli is not None and hasattr(args, o.name)}
     options = FitOptions(**values, **extra)
     options.validate()
     return options
@@ -396,9 +421,10 @@ def from_args(args: argparse.Namespace, **extra: Any) -> FitOptions:
 # --------------------------------------------------------------------- the upload form
 def form_fields() -> list[dict[str, Any]]:
     """The upload form's fields, in table order, for the template: ``name``, ``label``,
-    ``help``, ``group`` (of :data:`FORM_GROUPS`), ``input`` (``text``, ``number`` or
-    ``select``), ``value`` (the default as text, ``""`` for ``None``), ``placeholder``
-    (what an empty field means), ``choices``, ``min``, ``max``, ``step``, ``pattern``."""
+    ``help``, ``group`` (of :data:`FORM_GROUPS`), ``input`` (``text``, ``textarea``,
+    ``number`` or ``select``), ``value`` (the default as text, ``""`` for ``None``),
+    ``placeholder`` (what an empty field means), ``choices``, ``min``, ``max``, ``step``,
+    ``pattern``, ``maxlength`` (of a text)."""
     fields = []
     for option in OPTIONS:
         if option.form is None:
@@ -407,7 +433,7 @@ def form_fields() -> list[dict[str, Any]]:
             "name": option.form, "label": option.label, "help": option.help,
             "group": option.group, "value": option.text(option.default),
             "placeholder": option.none or "", "choices": (), "min": None, "max": None,
-            "step": None, "pattern": None, "input": "number"}
+            "step": None, "pattern": None, "maxlength": None, "input": "number"}
         if option.kind == "grid":
             entry.update(input="text", pattern=r"\d+\s*([xX×]\s*\d+)?",
                          placeholder="N or NxM, e.g. 40x40")
@@ -420,7 +446,8 @@ def form_fields() -> list[dict[str, Any]]:
         elif option.kind == "float":
             entry.update(min=option.minimum, max=option.maximum, step="any")
         else:
-            entry.update(input="text")
+            entry.update(input="textarea" if option.multiline else "text",
+                         maxlength=option.maximum)
         fields.append(entry)
     return fields
 
@@ -428,8 +455,8 @@ def form_fields() -> list[dict[str, Any]]:
 def parse_form(form: Mapping[str, str], ignore: Iterable[str] = (),
                **extra: Any) -> dict[str, Any]:
     """The stored options (:func:`stored_options`) of an upload form: the option fields
-    given (an empty field keeps the default), plus ``extra`` options (e.g. ``title``),
-    validated. Fields in ``ignore`` are the caller's (the file, the title, the CSRF token).
+    given (an empty field keeps the default), plus ``extra`` options, validated. Fields in
+    ``ignore`` are the caller's (the file, the CSRF token).
 
     Raises
     ------

@@ -34,7 +34,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +52,7 @@ from .detail import DetailPyramid, auto_levels, fit_detail, write_layers
 from .error import (
     Deviations,
     deviations,
-    error_grid,
+    error_raster,
     error_stats,
     write_error_ply,
     write_error_png,
@@ -424,7 +424,8 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     """The bundle's ``manifest.json`` (``docs/format.md``, "Bundle manifest").
 
     Keys: ``format`` (``"tessera-bundle"``), ``format_version``
-    (``BUNDLE_FORMAT_VERSION``), ``title``, ``units``; ``files`` (every file but the
+    (``BUNDLE_FORMAT_VERSION``), ``title``, ``description`` (``""`` when none), ``units``
+    (the option ``units``, else what the file says); ``files`` (every file but the
     manifest -> its size in bytes); ``base`` (``file``, ``degree [p, q]``, ``grid [n_u,
     n_v]``, ``bits``, ``rational``, ``trimmed``); ``transform`` (patch frame -> scan
     frame, 4x4 row-major); ``projection`` (``kind``, ``requested``, ``coverage``,
@@ -435,7 +436,8 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
     ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
-    -> seconds); ``error_grid`` (RMS per ``(u, v)`` cell, ``error_grid``); ``memory``, only
+    -> seconds); ``error_raster`` (max ``|d|`` per ``(u, v)`` cell, one byte each,
+    ``fitter.fitting.error.error_raster``, its ``max`` = ``stats.max``); ``memory``, only
     when the memory budget capped the automatic detail depth
     (``fitter.fitting.memory.MemoryPlan``: the budget, the estimates of the two largest
     solves, the detail levels kept and the depth they would have had); ``view`` (the
@@ -451,6 +453,7 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
         "format": "tessera-bundle",
         "format_version": BUNDLE_FORMAT_VERSION,
         "title": _title(projected, options),
+        "description": options.description or "",
         "units": scan.units,
         "files": dict(files),
         "base": {"file": "base.tsp", "degree": [options.degree] * 2,
@@ -478,7 +481,7 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
         "fit": best.history,
         "tiles": tiles,
         "timings": dict(timings),
-        "error_grid": error_grid(covered_dev),
+        "error_raster": error_raster(covered_dev, best.stats["max"]),
         # only when the budget changed the plan, so that an unchanged fit's manifest is too
         **({"memory": plan.manifest()}
            if plan is not None and plan.detail_levels_uncapped is not None else {}),
@@ -517,6 +520,8 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
     stages = _Stages(progress)
     stages.start("load")
     scan = _as_scan(scan, limits)
+    if options.units:  # the option overrides what the file says (fitter.fitting.io)
+        scan = replace(scan, units=options.units)
     stages.start("project")
     projected = project_scan(scan, options)
     plan = plan_fit_memory(projected, options, memory_budget)  # before any large solve

@@ -328,7 +328,11 @@ def load_las(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Sc
     colours, rgb_bits = None, None
     if colours16 is not None:
         rgb_bits = 8 if int(colours16.max(initial=0)) <= 255 else 16
-        colours = colours16.astype(np.uint8) if rgb_bits == 8 else colors_to_uint8(colours16)
+        colours = np.empty(colours16.shape, np.uint8)
+        for start in range(0, len(colours), BLOCK_POINTS):  # float temporaries of a block only
+            block = colours16[start:start + BLOCK_POINTS]
+            colours[start:start + BLOCK_POINTS] = (block if rgb_bits == 8
+                                                   else colors_to_uint8(block))
         del colours16
     with HashedInput(path, False, budget) as inp:
         file = inp.finish()

@@ -41,7 +41,7 @@ import numpy as np
 
 from .gltf import check_gltf
 from .limits import InputBudget
-from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source
+from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source, units_from_comments
 from .source import GZIP_ERRORS, HashedInput, file_record
 
 #: what trimesh's loaders raise on corrupt input (caught and reported as ScanError):
@@ -69,6 +69,19 @@ def text_as_utf8(data: bytes) -> tuple[bytes, bool]:
     except UnicodeDecodeError:
         return data.decode("latin-1").encode("utf-8"), True
     return data, False
+
+
+def obj_header_comments(data: bytes, limit: int = 200) -> list[str]:
+    """The ``#`` comment lines that open an OBJ file (before its first statement, at most
+    ``limit``), without the ``#``: where a ``# units mm`` line is looked for."""
+    comments = []
+    for line in data[:1 << 16].splitlines()[:limit]:
+        text = line.strip()
+        if text and not text.startswith(b"#"):
+            break
+        if text:
+            comments.append(text[1:].decode("utf-8", "replace"))
+    return comments
 
 
 def _hashing_resolver(path: Path, records: list[dict], missing: list[str],
@@ -111,7 +124,9 @@ def load_mesh(path: Path, gzipped: bool, budget: InputBudget | None = None, *,
         except GZIP_ERRORS as exc:
             raise ScanError(f"{path.name}: corrupt gzip data: {exc}") from None
         record = inp.finish()
-    units = "m" if file_type in ("gltf", "glb") else "unknown"  # glTF 2.0 spec: metres
+    units = ("m" if file_type in ("gltf", "glb")  # glTF 2.0 spec: metres
+             else units_from_comments(obj_header_comments(data)) if file_type == "obj"
+             else "unknown")
     return scan_from_trimesh(path, file_type, data, record, gzipped, units=units)
 
 

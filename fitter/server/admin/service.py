@@ -17,27 +17,24 @@ from ...collection.uploads import UploadError, UploadLimits, prepare_scan
 from ...fitting.options import OptionError, parse_form
 from .upload_stream import receive_upload
 
-#: form fields of an upload that are not fit options (fitter.fitting.options.form_fields):
-#: the file, the object's title and the page form's CSRF token
-OTHER_FIELDS = ("scan", "title", "csrf_token")
+#: form fields of an upload that are not fit options (fitter.fitting.options.form_fields,
+#: which has the object's title, description and units too): the file and the page form's
+#: CSRF token
+OTHER_FIELDS = ("scan", "csrf_token")
 
 
 def parse_fit_options(form: MultiDict) -> dict[str, Any]:
     """Fit options from form fields (only those given; the rest keep FitOptions' defaults),
-    read and validated by ``fitter.fitting.options.parse_form`` with the object's title.
-    Returns the full options as stored in the job.
+    read and validated by ``fitter.fitting.options.parse_form`` (the title, description and
+    units among them). Returns the full options as stored in the job.
 
     Raises
     ------
     UploadError
         An unknown field or a bad value, naming it.
     """
-    title = (form.get("title") or "").strip()
-    if len(title) > Catalog.EDITABLE["title"]:
-        raise UploadError(f"title is {len(title)} characters long; at most "
-                          f"{Catalog.EDITABLE['title']} are accepted")
     try:
-        return parse_form(form, OTHER_FIELDS, title=title or None)
+        return parse_form(form, OTHER_FIELDS)
     except OptionError as exc:
         raise UploadError(str(exc)) from None
 
