@@ -2,15 +2,25 @@
 the admin API.
 
 The collection of :mod:`bench.bench_serve` (one fitted relief, managed, an admin token set)
-is served by ``tessera serve --production`` (gunicorn, 2 processes x 4 threads). ``wrk``
-loads the public ``/bundles/relief/base.tsp`` (2 threads, 16 keep-alive connections, 5 s)
-twice: alone, then while a second ``wrk`` (1 thread, 32 connections) sends
-``GET /admin/api/objects`` with a fresh random 32-character Bearer token on every request
-(a Lua script), so that no cache of refused tokens helps: only the per-address limiter and
-the bounded hash pool of :mod:`fitter.server.admin.auth` do. Both generators run on the
-same loopback address as the server, on the same 2 cores. Target: under attack the public
-route keeps >= 70 % of its unloaded throughput. Needs ``wrk`` (``apt-get install -y wrk``);
-without it the benchmark is skipped with that reason. Writes bench/results/auth.json.
+is served by ``tessera serve --production`` (gunicorn, 2 processes x 4 threads, the tarpit
+worker). One ``wrk`` loads the public ``/bundles/relief/base.tsp`` (:data:`PUBLIC_THREADS`
+= 2 threads, :data:`PUBLIC_CONNECTIONS` = 16 keep-alive connections, :data:`DURATION` s);
+the attacker is a second ``wrk`` (:data:`ATTACK_THREADS` = 1 thread,
+:data:`ATTACK_CONNECTIONS` = 32 keep-alive connections) sending ``GET /admin/api/objects``
+with a wrong Bearer token: either a fresh random 32-character one on every request (a Lua
+script, so no cache of refused tokens helps: only the per-address limiter, the bounded hash
+pool and the tarpit do) or one fixed wrong token (as ``wrk -H`` would send). Both
+generators run on the same loopback address as the server, on the same 2 cores.
+
+Each of :data:`ROUNDS` rounds measures the public rate alone, beside the random-token attack
+and beside the fixed-token attack, in an order that reverses from one round to the next
+(alone, random, fixed; then fixed, random, alone; ...), so that a drift of the machine's
+speed cancels over the rounds; each attacked figure is divided by its own round's unloaded
+figure (the share, per pair), and the report gives the median of the shares and the
+medians of the rates. Before the rounds, a first attack (the onset: each process spends its
+free scrypt checks) is measured apart. Target: under attack the public route keeps >= 70 %
+of its unloaded throughput. Needs ``wrk`` (``apt-get install -y wrk``); without it the
+benchmark is skipped with that reason. Writes bench/results/auth.json.
 """
 
 from __future__ import annotations
@@ -31,7 +41,12 @@ from bench import print_table, write_results
 from bench.bench_serve import TOKEN, _make_collection, _wrk, production_server
 
 DURATION = 4.0  # seconds of public load, each phase
-ROUNDS = 3
+ROUNDS = 7
+#: the public load: wrk's threads and keep-alive connections
+PUBLIC_THREADS = 2
+PUBLIC_CONNECTIONS = 16
+#: the attack: wrk's threads and keep-alive connections
+ATTACK_THREADS = 1
 ATTACK_CONNECTIONS = 32
 TARGET_SHARE = 0.70
 
@@ -59,7 +74,8 @@ wrk.headers["Authorization"] = "Bearer not-the-admin-token-0123456789"
 
 
 def _attack(url: str, script: Path, duration: float, out: dict) -> None:
-    completed = subprocess.run(["wrk", "-t1", f"-c{ATTACK_CONNECTIONS}", f"-d{int(duration)}s",
+    completed = subprocess.run(["wrk", f"-t{ATTACK_THREADS}", f"-c{ATTACK_CONNECTIONS}",
+                                f"-d{int(duration)}s", "--timeout", "10s",
                                 "-s", str(script), url], capture_output=True, text=True,
                                check=True)
     out["stdout"] = completed.stdout
@@ -68,8 +84,12 @@ def _attack(url: str, script: Path, duration: float, out: dict) -> None:
 def _alone(public: str, duration: float, server: int) -> dict:
     """``wrk`` on ``public``, with the server's CPU seconds during it."""
     cpu = _tree_cpu_s(server)
-    result = _wrk(public, duration)
+    result = _public_load(public, duration)
     return {**result, "server_cpu_s": round(_tree_cpu_s(server) - cpu, 3)}
+
+
+def _public_load(public: str, duration: float) -> dict:
+    return _wrk(public, duration, threads=PUBLIC_THREADS, connections=PUBLIC_CONNECTIONS)
 
 
 def _attacked(public: str, base: str, script: Path, duration: float,
@@ -82,10 +102,20 @@ def _attacked(public: str, base: str, script: Path, duration: float,
     cpu = _tree_cpu_s(server)
     attacker.start()
     time.sleep(0.5)
-    result = _wrk(public, duration)
+    result = _public_load(public, duration)
     attacker.join()
     return result, {**_parse_attack(attack.get("stdout", "")),
                     "server_cpu_s": round(_tree_cpu_s(server) - cpu, 3)}
+
+
+def _attack_alone(base: str, script: Path, duration: float, server: int) -> dict:
+    """The attack with no public load: its rate and the server's CPU seconds meanwhile (what
+    the refusals and the held connections cost the server, and nothing else)."""
+    attack: dict = {}
+    cpu = _tree_cpu_s(server)
+    _attack(base + "/admin/api/objects", script, duration, attack)
+    return {**_parse_attack(attack.get("stdout", "")),
+            "server_cpu_s": round(_tree_cpu_s(server) - cpu, 3), "duration_s": duration}
 
 
 def _parse_attack(text: str) -> dict:
@@ -134,20 +164,25 @@ def run() -> dict | None:
         fixed_script.write_text(FIXED_SCRIPT)
         with production_server(root, Path(tmp) / "serve.log") as (base, pid):
             public = f"{base}/bundles/{object_id}/base.tsp"
-            _wrk(public, 2.0)  # warm-up
+            _public_load(public, 2.0)  # warm-up
             load_before = _load_average()
             # the onset: each process spends its FREE_FAILURES scrypt checks, then backs off
-            onset, first_attack = _attacked(public, base, script, DURATION, pid)
-            attacks = [first_attack]
-            alone, attacked, fixed, fixed_attacks = [], [], [], []
-            for _ in range(ROUNDS):  # alternated: other work on the machine varies
-                alone.append(_alone(public, DURATION, pid))
-                result, attack = _attacked(public, base, script, DURATION, pid)
-                attacked.append(result)
-                attacks.append(attack)
-                result, attack = _attacked(public, base, fixed_script, DURATION, pid)
-                fixed.append(result)
-                fixed_attacks.append(attack)
+            onset, onset_attack = _attacked(public, base, script, DURATION, pid)
+            rounds = []
+            for index in range(ROUNDS):  # the order reverses each round: drift cancels
+                phases = ["alone", "random", "fixed"]
+                measured: dict = {}
+                for phase in phases if index % 2 == 0 else phases[::-1]:
+                    if phase == "alone":
+                        measured["alone"] = _alone(public, DURATION, pid)
+                    else:
+                        measured[phase], measured[f"{phase}_attack"] = _attacked(
+                            public, base, script if phase == "random" else fixed_script,
+                            DURATION, pid)
+                rounds.append(measured)
+            attack_only = {phase: _attack_alone(base, script if phase == "random" else
+                                                fixed_script, DURATION, pid)
+                           for phase in ("random", "fixed")}
             load_after = _load_average()
             # the right token from the attacked address: refused until its backoff ends
             try:
@@ -158,55 +193,79 @@ def run() -> dict | None:
                 after = {"status": exc.code, "retry_after": exc.headers.get("Retry-After")}
             except (TimeoutError, urllib.error.URLError) as exc:
                 after = {"status": None, "error": str(exc)}
-    unloaded = statistics.median(r["rate"] for r in alone)
-    loaded = statistics.median(r["rate"] for r in attacked)
-    share = loaded / unloaded
-    fixed_rate = statistics.median(r["rate"] for r in fixed)
-    rows = [(f"round {k + 1}", round(a["rate"], 1), round(b["rate"], 1),
-             f"{b['rate'] / a['rate']:.0%}", round(c["rate"], 1), f"{c['rate'] / a['rate']:.0%}",
-             a["errors"] + b["errors"] + c["errors"])
-            for k, (a, b, c) in enumerate(zip(alone, attacked, fixed, strict=True))]
-    rows.append(("median", round(unloaded, 1), round(loaded, 1), f"{share:.0%}",
-                 round(fixed_rate, 1), f"{fixed_rate / unloaded:.0%}", ""))
+    return _report(rounds, onset, onset_attack, attack_only, after, load_before, load_after)
+
+
+def _report(rounds: list[dict], onset: dict, onset_attack: dict, attack_only: dict,
+            after: dict, load_before: list[float], load_after: list[float]) -> dict:
+    """Print the table and write bench/results/auth.json (see the module docstring)."""
+    alone = [r["alone"] for r in rounds]
+    unloaded = statistics.median(a["rate"] for a in alone)
+    summary: dict = {}
+    for phase in ("random", "fixed"):
+        shares = [r[phase]["rate"] / r["alone"]["rate"] for r in rounds]
+        summary[phase] = {"rps_median": round(statistics.median(r[phase]["rate"]
+                                                                for r in rounds), 1),
+                          "shares": [round(x, 3) for x in shares],
+                          "share_median": round(statistics.median(shares), 3),
+                          "share_of_medians": round(statistics.median(
+                              r[phase]["rate"] for r in rounds) / unloaded, 3),
+                          "attack_rps": [r[f"{phase}_attack"]["rate"] for r in rounds]}
+    rows = [(f"round {k + 1}", round(r["alone"]["rate"], 1), round(r["random"]["rate"], 1),
+             f"{r['random']['rate'] / r['alone']['rate']:.0%}", round(r["fixed"]["rate"], 1),
+             f"{r['fixed']['rate'] / r['alone']['rate']:.0%}",
+             r["alone"]["errors"] + r["random"]["errors"] + r["fixed"]["errors"])
+            for k, r in enumerate(rounds)]
+    rows.append(("median", round(unloaded, 1), summary["random"]["rps_median"],
+                 f"{summary['random']['share_median']:.0%}", summary["fixed"]["rps_median"],
+                 f"{summary['fixed']['share_median']:.0%}", ""))
     rows.append(("onset (first attack)", "", round(onset["rate"], 1),
                  f"{onset['rate'] / unloaded:.0%}", "", "", onset["errors"]))
-    print_table(f"public base.tsp req/s (16 connections) alone and beside {ATTACK_CONNECTIONS} "
-                f"connections of wrong tokens (gunicorn 2x4, wrk, {DURATION:g} s each); target "
-                f">= {TARGET_SHARE:.0%}",
+    print_table(f"public base.tsp req/s (wrk {PUBLIC_THREADS} threads x {PUBLIC_CONNECTIONS} "
+                f"connections) alone and beside wrk {ATTACK_THREADS} thread x "
+                f"{ATTACK_CONNECTIONS} connections of wrong tokens (gunicorn 2x4, "
+                f"{DURATION:g} s each, {len(rounds)} rounds); share = attacked / the same "
+                f"round's alone; target >= {TARGET_SHARE:.0%}",
                 ["round", "alone", "random tokens", "share", "one fixed token", "share",
                  "errors"], rows)
-    # the server's CPU per request: a public one (alone), then an attack's refusal (the
-    # attack phase's CPU less its public requests at that cost); robust to other work on
-    # the machine, which moves the req/s figures far more
+    # the server's CPU: per public request (alone), and per refused request of an attack with
+    # no public load (measured apart: beside ~4,000 public requests the ~150 refusals of a
+    # held attack are lost in the noise of the public requests' cost)
     public_ms = statistics.median(1e3 * a["server_cpu_s"] / a["requests"] for a in alone)
-
-    def refusal_ms(runs: list[dict], publics: list[dict]) -> float:
-        costs = [1e3 * (a["server_cpu_s"] - p["requests"] * public_ms / 1e3) / a["requests"]
-                 for a, p in zip(runs, publics, strict=True) if a["requests"]]
-        return statistics.median(costs)
-
-    random_ms = refusal_ms(attacks[1:], attacked)
-    fixed_ms = refusal_ms(fixed_attacks, fixed)
-    print(f"server CPU per request: public base.tsp {public_ms:.2f} ms; refused wrong token "
-          f"{random_ms:.2f} ms (random tokens, scrypt probes included), {fixed_ms:.2f} ms "
-          "(one fixed token)")
-    for name, runs in (("random", attacks), ("fixed", fixed_attacks)):
-        print(f"attack req/s, {name} tokens (refused/sent): "
-              + ", ".join(f"{a['rate']:.0f} ({a['refused']}/{a['requests']})" for a in runs))
-    data = {"server": "gunicorn (tessera serve --production --processes 2 --threads 4)",
-            "public_url": "/bundles/relief/base.tsp", "public_connections": 16,
-            "attack_connections": ATTACK_CONNECTIONS, "duration_s": DURATION,
-            "rounds": ROUNDS, "alone": alone, "attacked": attacked, "onset": onset,
-            "attacks": attacks, "fixed_token": fixed, "fixed_token_attacks": fixed_attacks,
-            "fixed_token_rps_median": round(fixed_rate, 1),
-            "fixed_token_share": round(fixed_rate / unloaded, 3),
+    refusal = {phase: {"ms_per_refusal": round(1e3 * a["server_cpu_s"] / a["requests"], 3)
+                       if a["requests"] else None,
+                       "server_cpu_share_of_a_core": round(a["server_cpu_s"] / a["duration_s"],
+                                                           3),
+                       **a}
+               for phase, a in attack_only.items()}
+    print(f"server CPU: {public_ms:.2f} ms per public base.tsp; an attack alone "
+          + "; ".join(f"({phase} tokens) {r['rate']:.0f} req/s, {r['ms_per_refusal']} ms per "
+                      f"refusal, {r['server_cpu_share_of_a_core']:.1%} of a core"
+                      for phase, r in refusal.items()))
+    for phase in ("random", "fixed"):
+        print(f"attack req/s, {phase} tokens (refused/sent): "
+              + ", ".join(f"{r[phase + '_attack']['rate']:.0f} "
+                          f"({r[phase + '_attack']['refused']}/"
+                          f"{r[phase + '_attack']['requests']})" for r in rounds))
+    print(f"onset attack: {onset_attack['rate']:.0f} req/s; load average {load_before} before, "
+          f"{load_after} after")
+    share = summary["random"]["share_median"]
+    data = {"server": "gunicorn (tessera serve --production --processes 2 --threads 4, "
+                      "tarpit worker)",
+            "public_url": "/bundles/relief/base.tsp",
+            "public_wrk": {"threads": PUBLIC_THREADS, "connections": PUBLIC_CONNECTIONS},
+            "attack_wrk": {"threads": ATTACK_THREADS, "connections": ATTACK_CONNECTIONS},
+            "duration_s": DURATION, "rounds": rounds, "onset": onset,
+            "onset_attack": onset_attack, "order": "alone, random, fixed; reversed every "
+                                                   "other round",
             "unloaded_rps_median": round(unloaded, 1),
+            "random_token": summary["random"], "fixed_token": summary["fixed"],
             "server_cpu_ms_per_public_request": round(public_ms, 3),
-            "server_cpu_ms_per_refused_random_token": round(random_ms, 3),
-            "server_cpu_ms_per_refused_fixed_token": round(fixed_ms, 3),
-            "attacked_rps_median": round(loaded, 1), "share_kept": round(share, 3),
+            "attack_alone": refusal,
+            "share_kept": share, "fixed_token_share": summary["fixed"]["share_median"],
             "onset_share": round(onset["rate"] / unloaded, 3),
-            "target_share": TARGET_SHARE, "meets_target": share >= TARGET_SHARE,
+            "target_share": TARGET_SHARE,
+            "meets_target": min(share, summary["fixed"]["share_median"]) >= TARGET_SHARE,
             "right_token_from_the_attacked_address": after,
             "load_average_before": load_before, "load_average_after": load_after}
     write_results("auth", data)

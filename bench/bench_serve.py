@@ -3,12 +3,13 @@
 A collection with one fitted object (the generated relief, 20,000 points, 20x20) is
 made a managed collection (catalog, admin token, the object published: the public side
 then checks the catalog on every bundle request, the configuration a museum runs) and
-served by ``tessera serve --production`` (gunicorn, 2 processes x 4 threads) in a
-subprocess. Each URL (the bundle's ``base.tsp`` and three of the viewer's static files)
-is loaded for a bounded time by ``wrk`` (Debian's package; 2 threads, 16 connections,
-keep-alive) when it is on PATH, otherwise by a small Python client (processes with a
-persistent ``http.client`` connection each: a weaker generator, competing for the same
-2 cores). Every response that is not 200 and every socket error counts as an error.
+served by ``tessera serve --production`` (gunicorn, 2 processes x 4 threads, the tarpit
+worker of :mod:`fitter.server.tarpit_worker`) in a subprocess. Each URL (the bundle's
+``base.tsp`` and three of the viewer's static files) is loaded for a bounded time by
+``wrk`` (Debian's package; :data:`WRK_THREADS` = 2 threads driving :data:`CONNECTIONS` = 16
+keep-alive connections) when it is on PATH, otherwise by a small Python client (processes
+with a persistent ``http.client`` connection each: a weaker generator, competing for the
+same 2 cores). Every response that is not 200 and every socket error counts as an error.
 Target: >= 1,000 requests/s per URL with zero errors. Writes bench/results/serve.json.
 """
 
@@ -33,7 +34,9 @@ from pathlib import Path
 from bench import print_table, write_results
 
 DURATION = 5.0  # seconds per URL
+#: wrk's keep-alive connections, and the threads (event loops) that drive them
 CONNECTIONS = 16
+WRK_THREADS = 2
 TARGET = 1000.0
 TOKEN = "bench-admin-token-0123456789"
 
@@ -58,9 +61,12 @@ def _make_collection(root: Path) -> str:
     return "relief"
 
 
-def _wrk(url: str, duration: float) -> dict:
-    out = subprocess.run(["wrk", "-t2", f"-c{CONNECTIONS}", f"-d{int(duration)}s", "--latency",
-                          url], capture_output=True, text=True, check=True).stdout
+def _wrk(url: str, duration: float, threads: int = WRK_THREADS,
+         connections: int = CONNECTIONS) -> dict:
+    """``wrk -t threads -c connections`` on ``url`` for ``duration`` s: requests, req/s,
+    errors (non-2xx/3xx answers and socket errors), p50 and p99 latency (ms)."""
+    out = subprocess.run(["wrk", f"-t{threads}", f"-c{connections}", f"-d{int(duration)}s",
+                          "--latency", url], capture_output=True, text=True, check=True).stdout
     rate = float(re.search(r"Requests/sec:\s+([\d.]+)", out).group(1))
     total = int(re.search(r"(\d+) requests in", out).group(1))
     non2xx = re.search(r"Non-2xx or 3xx responses:\s+(\d+)", out)
@@ -172,12 +178,13 @@ def run() -> dict:
                              "" if result["p99_ms"] is None else round(result["p99_ms"], 2),
                              "yes" if ok else "NO"))
     print_table(f"tessera serve --production (gunicorn, 2 processes x 4 threads), {tool}, "
-                f"{CONNECTIONS} connections, {DURATION:g} s per URL; target >= {TARGET:g} req/s, "
-                "0 errors",
+                f"{WRK_THREADS} threads x {CONNECTIONS} connections, {DURATION:g} s per URL; "
+                f"target >= {TARGET:g} req/s, 0 errors",
                 ["URL", "bytes", "requests", "req/s", "errors", "p50 ms", "p99 ms", "target"],
                 rows)
     data = {"server": "gunicorn (tessera serve --production --processes 2 --threads 4)",
-            "load_generator": tool, "connections": CONNECTIONS, "duration_s": DURATION,
+            "load_generator": tool, "connections": CONNECTIONS,
+            "wrk_threads": WRK_THREADS if tool == "wrk" else None, "duration_s": DURATION,
             "target_rps": TARGET, "managed_collection": True, "results": records}
     write_results("serve", data)
     return data

@@ -255,14 +255,18 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 def _serve_gunicorn(app, args: argparse.Namespace) -> None:  # noqa: ANN001 - a Flask app
     """Serve ``app`` with gunicorn: pre-forked processes (one per core by default), each with
     ``--threads`` request threads, so serving uses every core (one Python process is held to
-    one core by the GIL)."""
+    one core by the GIL). The worker is gunicorn's ``gthread`` with the admin tarpit
+    (:mod:`fitter.server.tarpit_worker`: a connection that sent a refused admin token waits
+    without a thread before its next request is read)."""
     from gunicorn.app.base import BaseApplication
+
+    from .server.tarpit_worker import WORKER_CLASS
 
     class Application(BaseApplication):
         def load_config(self) -> None:
             settings = {"bind": f"{args.host}:{args.port}",
                         "workers": args.processes or os.cpu_count() or 1,
-                        "worker_class": "gthread", "threads": args.threads,
+                        "worker_class": WORKER_CLASS, "threads": args.threads,
                         "accesslog": None, "errorlog": "-", "loglevel": "warning",
                         "proc_name": "tessera-serve"}
             for key, value in settings.items():

@@ -366,3 +366,215 @@ def test_logout_revokes_the_cookie_and_a_replayed_copy(admin_app):
     assert login(other).status_code == 302
     other.post("/admin/logout", data={"csrf_token": csrf_of(other, "/admin/")})
     assert browser.get("/admin/").status_code == 302
+
+
+# ------------------------------------------------------------------------- the tarpit
+def test_hold_connection_marks_only_a_gunicorn_socket_and_is_taken_once():
+    from fitter.server import tarpit
+
+    sock = object()
+    tarpit.hold_connection({})  # no socket (development server, test client): nothing
+    tarpit.hold_connection({tarpit.SOCKET_ENVIRON_KEY: sock}, 0.5)
+    tarpit.hold_connection({tarpit.SOCKET_ENVIRON_KEY: sock}, 0.25)  # the longer one holds
+    assert tarpit.take_hold(sock) == 0.5
+    assert tarpit.take_hold(sock) == 0.0  # taken: a later socket of the same id starts clean
+    for bad in (0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="seconds must be a positive finite number"):
+            tarpit.hold_connection({tarpit.SOCKET_ENVIRON_KEY: sock}, bad)
+
+
+class _Conn:
+    def __init__(self) -> None:
+        self.sock = object()
+
+
+def _finished(keepalive: object):
+    from concurrent import futures
+
+    done = futures.Future()
+    done.set_result(keepalive)
+    return done
+
+
+@pytest.fixture()
+def tarpit_worker(monkeypatch, tmp_path):
+    """A :class:`TarpitThreadWorker` outside gunicorn's arbiter, with gunicorn's own
+    ``finish_request`` replaced by a recorder of ``(connection, kept alive)``."""
+    import logging
+
+    from gunicorn.config import Config
+    from gunicorn.workers.gthread import ThreadWorker
+
+    from fitter.server.tarpit_worker import TarpitThreadWorker
+
+    handed: list[tuple[object, object]] = []
+    monkeypatch.setattr(ThreadWorker, "finish_request",
+                        lambda self, conn, fs: handed.append((conn, fs.result())))
+    worker = TarpitThreadWorker(0, 0, [], None, 30, Config(), logging.getLogger("test"))
+    worker.handed = handed
+    return worker
+
+
+def test_the_worker_holds_a_marked_kept_alive_connection_until_its_time(tarpit_worker,
+                                                                        monkeypatch):
+    from fitter.server import tarpit
+    from fitter.server import tarpit_worker as worker_module
+
+    worker = tarpit_worker
+    plain, marked, closing = _Conn(), _Conn(), _Conn()
+    worker.finish_request(plain, _finished(True))
+    assert worker.handed == [(plain, True)]  # not marked: back to gunicorn at once
+    for conn in (marked, closing):
+        tarpit.hold_connection({tarpit.SOCKET_ENVIRON_KEY: conn.sock}, 0.2)
+    worker.finish_request(closing, _finished(False))  # gunicorn closes it: nothing to hold
+    worker.finish_request(marked, _finished(True))
+    assert worker.handed[1:] == [(closing, False)] and len(worker.held) == 1
+    worker.release_due()
+    assert len(worker.handed) == 2  # not yet
+    time.sleep(0.25)
+    worker.release_due()
+    assert worker.handed[2:] == [(marked, True)] and not worker.held
+    # beyond MAX_HELD_CONNECTIONS a marked connection is closed instead of held
+    monkeypatch.setattr(worker_module, "MAX_HELD_CONNECTIONS", 1)
+    first, second = _Conn(), _Conn()
+    for conn in (first, second):
+        tarpit.hold_connection({tarpit.SOCKET_ENVIRON_KEY: conn.sock}, 30.0)
+        worker.finish_request(conn, _finished(True))
+    assert worker.handed[3:] == [(second, False)] and len(worker.held) == 1
+    worker.alive = False  # a stopping worker lets every held connection go at once
+    worker.release_due()
+    assert worker.handed[4:] == [(first, True)] and not worker.held
+
+
+@pytest.fixture(scope="module")
+def production_server(tmp_path_factory):
+    """``tessera serve --production`` (gunicorn, 1 process x 4 threads, the tarpit worker) on
+    an empty managed collection with :data:`ADMIN_TOKEN`: its ``(host, port)``."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    root = tmp_path_factory.mktemp("served") / "collection"
+    root.mkdir()
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    env = {**os.environ, "TESSERA_ADMIN_TOKEN": ADMIN_TOKEN, "TESSERA_PYODIDE_SNAPSHOT": "false"}
+    log = root.parent / "serve.log"
+    with open(log, "wb") as out:
+        server = subprocess.Popen([sys.executable, "-m", "fitter.cli", "serve", str(root),
+                                   "--production", "--port", str(port), "--processes", "1",
+                                   "--threads", "4"], env=env, stdout=out,
+                                  stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{port}/api/objects", timeout=2).read()
+                break
+            except OSError:
+                if server.poll() is not None or time.monotonic() > deadline:
+                    pytest.fail("tessera serve --production did not start: " + log.read_text())
+                time.sleep(0.2)
+        yield "127.0.0.1", port
+    finally:
+        server.terminate()
+        try:
+            server.wait(15)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait(10)
+
+
+def _timed_get(conn, path: str, headers: dict[str, str] | None = None) -> tuple[int, float]:
+    start = time.perf_counter()
+    conn.request("GET", path, headers=headers or {})
+    response = conn.getresponse()
+    response.read()
+    return response.status, time.perf_counter() - start
+
+
+def test_a_locked_out_client_is_held_without_slowing_other_connections(production_server):
+    import http.client
+
+    from fitter.server.tarpit import REFUSED_HOLD_S
+
+    host, port = production_server
+
+    def connect() -> http.client.HTTPConnection:
+        return http.client.HTTPConnection(host, port, timeout=30)
+
+    # a refused token's connection: answered at once, its next request read a hold later
+    attacker = connect()
+    status, first = _timed_get(attacker, OBJECTS, bearer("short"))  # impossible shape
+    assert status == 401
+    held: list[tuple[int, float]] = []
+    thread = threading.Thread(target=lambda: held.append(
+        _timed_get(attacker, OBJECTS, bearer("short"))))
+    thread.start()
+    time.sleep(0.1)
+    public = connect()
+    status, public_s = _timed_get(public, "/api/objects")  # same address, other connection
+    assert status == 200 and public_s < REFUSED_HOLD_S / 2
+    status, fresh_s = _timed_get(connect(), OBJECTS, bearer("short"))
+    assert status == 401 and fresh_s < REFUSED_HOLD_S / 2  # its first refusal is at once
+    thread.join(30)
+    assert held[0][0] == 401 and held[0][1] >= 0.9 * REFUSED_HOLD_S, held
+    # lock the address out (FREE_FAILURES real scrypt failures, each on a new connection)
+    for _ in range(FREE_FAILURES):
+        assert _timed_get(connect(), OBJECTS, bearer(wrong_token()))[0] == 401
+    locked = connect()
+    locked.request("GET", OBJECTS, headers=bearer(wrong_token()))
+    response = locked.getresponse()
+    response.read()
+    assert response.status == 429 and int(response.headers["Retry-After"]) >= 1
+    status, fresh_s = _timed_get(connect(), OBJECTS, bearer(wrong_token()))
+    assert status == 429 and fresh_s < REFUSED_HOLD_S / 2  # a new connection: at once
+    status, again = _timed_get(locked, OBJECTS, bearer(wrong_token()))
+    assert status in (401, 429) and again >= 0.9 * REFUSED_HOLD_S  # the held one waits
+    status, public_s = _timed_get(connect(), "/api/objects")  # (gunicorn's keep-alive is 2 s)
+    assert status == 200 and public_s < REFUSED_HOLD_S / 2
+
+
+def test_attacking_connections_do_not_reduce_a_public_client_s_answers(production_server):
+    """8 keep-alive connections send wrong tokens as fast as they are answered while one
+    public client counts its answers: the tarpit lets each attacker make about one request
+    per hold, and the public client keeps (noise allowing) its unloaded rate."""
+    import http.client
+
+    from fitter.server.tarpit import REFUSED_HOLD_S
+
+    host, port = production_server
+    seconds, attackers = 2.0, 8
+
+    def public_client(counts: dict[str, int]) -> None:
+        conn = http.client.HTTPConnection(host, port, timeout=30)
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            status, _ = _timed_get(conn, "/api/objects")
+            counts["ok" if status == 200 else "errors"] += 1
+
+    def attacker(stop: threading.Event, sent: list[int]) -> None:
+        conn = http.client.HTTPConnection(host, port, timeout=30)
+        while not stop.is_set():
+            sent.append(_timed_get(conn, OBJECTS, bearer(wrong_token()))[0])
+
+    alone = {"ok": 0, "errors": 0}
+    public_client(alone)
+    stop, sent = threading.Event(), []
+    threads = [threading.Thread(target=attacker, args=(stop, sent), daemon=True)
+               for _ in range(attackers)]
+    for thread in threads:
+        thread.start()
+    time.sleep(0.3)
+    attacked = {"ok": 0, "errors": 0}
+    public_client(attacked)
+    stop.set()
+    for thread in threads:
+        thread.join(30)
+    assert attacked["errors"] == 0 and alone["errors"] == 0
+    assert set(sent) <= {401, 429, 503}
+    # one request per connection at once, then one per hold (+1 for the last in flight)
+    assert len(sent) <= attackers * ((seconds + 0.3) / REFUSED_HOLD_S + 2), len(sent)
+    assert attacked["ok"] >= 0.5 * alone["ok"], (alone, attacked)

@@ -56,6 +56,16 @@ A token check is a scrypt hash (0.35-1 s of CPU), so each presented token
    so token checks never hold more than ``HASH_POOL_SIZE + HASH_QUEUE_SIZE`` of a
    process's request threads and the public routes keep the others.
 
+Every refused token (401, 429 or 503, whichever step refused it) also puts its connection
+in the tarpit (:mod:`fitter.server.tarpit`): the refusal is sent at once, then that
+connection's next request is not read for :data:`~fitter.server.tarpit.REFUSED_HOLD_S`
+seconds, without a request thread or CPU (``tessera serve --production``'s worker,
+:mod:`fitter.server.tarpit_worker`; the development server has no tarpit). A client that
+keeps its connection alive, as every load generator does, is answered at most once a second
+per connection, so 32 attacking connections make about 32 requests a second instead of a
+thousand, and the public routes keep the CPU; other connections, even from the same
+address, are not slowed.
+
 Only failed hash checks count against an address: repeating a refused token, or
 sending one of impossible shape, is no new guess and costs no hash. A right token
 clears the address's record. The limiter is per process (``tessera serve
@@ -96,6 +106,7 @@ from flask import (
     Flask,
     abort,
     current_app,
+    has_request_context,
     jsonify,
     redirect,
     request,
@@ -108,6 +119,7 @@ from werkzeug.security import check_password_hash
 from ...collection.catalog import Catalog, ThreadCatalogs
 from ...collection.tokens import SESSION_VERSION_SETTING, TOKEN_SETTING, token_shape_ok
 from ...collection.uploads import UploadLimits
+from ..tarpit import hold_connection
 
 bp = Blueprint("admin", __name__, url_prefix="/admin")
 
@@ -360,7 +372,15 @@ class AdminState:
 
     def check(self, presented: str, address: str) -> AuthResult:
         """Whether ``presented``, from client ``address``, is the secret (see the module's
-        "Failed tokens cost little" for the order of the checks)."""
+        "Failed tokens cost little" for the order of the checks). In a request, a refusal
+        puts the request's connection in the tarpit
+        (:func:`fitter.server.tarpit.hold_connection`)."""
+        result = self._check(presented, address)
+        if not result.ok and has_request_context():
+            hold_connection(request.environ)
+        return result
+
+    def _check(self, presented: str, address: str) -> AuthResult:
         known = self.precheck(presented, address)
         if known is not None:
             return known
@@ -470,7 +490,9 @@ class CheapRefusals:
     on an admin API response of that status (the security headers of
     :mod:`fitter.server.headers`), taken once from a real response. Installed by
     :func:`fitter.server.admin.init_app` as ``app.wsgi_app``; a ``ProxyFix`` wrapped
-    around the app later runs first, so ``REMOTE_ADDR`` is then the client's.
+    around the app later runs first, so ``REMOTE_ADDR`` is then the client's. Each
+    refusal puts its connection in the tarpit (:func:`fitter.server.tarpit.hold_connection`),
+    as :meth:`AdminState.check` does.
     """
 
     def __init__(self, app: Flask, admin: AdminState) -> None:
@@ -505,6 +527,7 @@ class CheapRefusals:
                 result = (self.admin.precheck(token, address)
                           if self.admin.enabled else None)  # off: Flask's 404 says so
             if result is not None and not result.ok:
+                hold_connection(environ)
                 body: dict[str, Any] = {"error": result.message}
                 headers = [("Content-Type", "application/json")]
                 if result.retry_after:
