@@ -71,8 +71,9 @@ def write_spherical_e57(path, rae, invalid, rotation, translation):
         scan.set("name", libe57.StringNode(imf, "spherical"))
         pose = libe57.StructureNode(imf)
         rot = libe57.StructureNode(imf)
-        for key, value in zip("wxyz", rotation, strict=True):
-            rot.set(key, libe57.FloatNode(imf, float(value)))
+        # children in x y z w order, unlike pye57's w x y z: the reader must go by name
+        for key in "xyzw":
+            rot.set(key, libe57.FloatNode(imf, float(rotation["wxyz".index(key)])))
         move = libe57.StructureNode(imf)
         for key, value in zip("xyz", translation, strict=True):
             move.set(key, libe57.FloatNode(imf, float(value)))
@@ -238,6 +239,13 @@ def test_e57_bad_files(tmp_path):
     with pytest.raises(ScanError, match=r"invalid\.e57: the file contains no points: all 30 "
                                         "points .* marked invalid"):
         load_scan(all_invalid)
+
+    no_rotation = tmp_path / "pose.e57"
+    write_spherical_e57(no_rotation, RNG.uniform(1, 2, (30, 3)), np.zeros(30, np.int8),
+                        [0.0, 0, 0, 0], [0.0, 0, 0])
+    with pytest.raises(ScanError, match=r"pose\.e57: scan 0 \('spherical'\) has a pose with "
+                                        "a zero or non-finite rotation"):
+        load_scan(no_rotation)
 
     corrupt = tmp_path / "corrupt.e57"  # right signature and length, the pages garbled
     body = bytearray(data)

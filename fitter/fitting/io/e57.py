@@ -16,7 +16,8 @@ cartesian (``cartesianX/Y/Z``) or spherical (``sphericalRange``, ``sphericalAzim
 
 A point whose ``cartesianInvalidState`` / ``sphericalInvalidState`` is non-zero (1: only a
 direction, 2: no measurement) is dropped. Lengths are metres by the standard, so
-``units = "m"``.
+``units = "m"``. The per-point flags ``isColorInvalid`` and ``isIntensityInvalid`` are not
+read (pye57 reads neither); such points keep the colour the file stores.
 
 Colour (``colorRed/Green/Blue``, any integer or float range) becomes ``Scan.colors``
 (uint8), mapped from the scan's ``colorLimits`` (or the prototype's bounds) onto 0..255;
@@ -148,6 +149,21 @@ def colours_to_uint8(values: np.ndarray, low: float, high: float) -> np.ndarray:
     return np.clip(np.rint((values - low) * (255.0 / (high - low))), 0, 255).astype(np.uint8)
 
 
+def read_pose(scan: Any) -> tuple[list[float], list[float]]:
+    """``([w, x, y, z], [tx, ty, tz])`` of a scan node's ``pose``, each child read by its
+    name (the standard does not fix their order); the identity where a part is absent."""
+    rotation, translation = [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+    if scan.isDefined("pose"):
+        pose = scan["pose"]
+        if pose.isDefined("rotation"):
+            node = pose["rotation"]
+            rotation = [float(node[k].value()) if node.isDefined(k) else 0.0 for k in "wxyz"]
+        if pose.isDefined("translation"):
+            node = pose["translation"]
+            translation = [float(node[k].value()) if node.isDefined(k) else 0.0 for k in "xyz"]
+    return rotation, translation
+
+
 class _ScanPlan:
     """What one ``/data3D`` scan holds, read from its header before any point."""
 
@@ -172,9 +188,13 @@ class _ScanPlan:
         self.invalid = invalid if invalid in fields else None
         self.has_colour = set(COLOURS) <= fields
         self.has_intensity = "intensity" in fields
-        self.rotation_wxyz = [float(v) for v in self.header.rotation]
-        self.translation = [float(v) for v in self.header.translation]
+        self.rotation_wxyz, self.translation = read_pose(self.header.node)
         self.posed = bool(self.header.has_pose())
+        if not (np.all(np.isfinite(self.rotation_wxyz)) and any(self.rotation_wxyz)
+                and np.all(np.isfinite(self.translation))):
+            raise ScanError(f"{name}: scan {index} ({self.name!r}) has a pose with a zero or "
+                            f"non-finite rotation quaternion or translation: rotation (w, x, "
+                            f"y, z) = {self.rotation_wxyz}, translation = {self.translation}")
 
 
 def _buffers(e57: Any, plan: _ScanPlan, colour: bool) -> tuple[dict, Any]:
