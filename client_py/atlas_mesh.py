@@ -45,6 +45,8 @@ from array import array
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
+from itertools import chain
+from operator import itemgetter
 
 from . import _kernel, _kernel_python
 from .atlas import AtlasSurface
@@ -156,32 +158,67 @@ def _homogeneous(atlas: AtlasSurface) -> list[list[float]]:
     return [[a * b for a, b in zip(w, comp, strict=True)] for comp in comps] + [list(w)]
 
 
+#: patches blended together by the pure-Python evaluator: long enough rows that the
+#: per-call overhead vanishes, short enough that its lists stay a few MB
+PATCHES_PER_BATCH = 256
+
+
 def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: list[int],
                      r: int, tol: float) -> dict[int, tuple[list, list, list]]:
     """``{f: (positions, unit normals, degenerate)}`` of the ``r x r`` grid of each patch:
     ``3 r^2`` floats each, row-major in ``i`` (``u``); ``degenerate`` lists the vertices
-    whose ``|C_u x C_v|`` is at most ``tol`` (normal left ``0, 0, 0``)."""
+    whose ``|C_u x C_v|`` is at most ``tol`` (normal left ``0, 0, 0``).
+
+    All patches share the knots and the parameters, so a batch of ``B`` patches is blended
+    as one: along ``v``, ``T_{a f}(v_j) = sum_k N_k(v_j) P^w_{f, a, span_j - d + k}`` for
+    every control row ``a`` of every patch in one generated comprehension per term list
+    (ordered ``(a, f, j)``, so that row ``a`` of all patches is one slice); along ``u``, grid
+    row ``i`` of all ``B`` patches is one call of the kernel's row evaluator
+    (``client_py._kernel_python``) over ``B r`` vertices with the shared ``N_a(u_i)``.
+    """
     d, n = atlas.degree, atlas.side
     _, spans_t, N, dN = _tables(d, atlas.spans, r)
     rational = atlas.weights is not None
     evaluate_row = _kernel_python._row_evaluator(d, rational)
-    blend_rows = _kernel_python._blend_rows_along_v
-    windows = [(span - d, span + 1) for span in spans_t]
+    blend = _kernel_python._blend(d + 1)
+    starts = [[span - d + k for span in spans_t] for k in range(d + 1)]
     out = {}
-    for f in patches:
-        flat = [k for row in atlas.patch_indices(f) for k in row]
-        blended = [blend_rows(list(map(comp.__getitem__, flat)), n, n, d, spans_t, N, dN)
-                   for comp in comps]
-        pos: list[float] = []
-        nrm: list[float] = []
-        bad: list[int] = []
-        for i, ((lo, hi), nu_i, dnu_i) in enumerate(zip(windows, N, dN, strict=True)):
-            rows = [row for vals, _ in blended for row in vals[lo:hi]]
-            drows = [row for _, dvals in blended for row in dvals[lo:hi]]
-            start = len(bad)
-            evaluate_row(nu_i, dnu_i, rows, drows, tol, pos, nrm, bad)
-            bad[start:] = [i * r + j for j in bad[start:]]
-        out[f] = (pos, nrm, bad)
+    for first in range(0, len(patches), PATCHES_PER_BATCH):
+        batch = patches[first : first + PATCHES_PER_BATCH]
+        count = len(batch)
+        grids = [atlas.patch_indices(f) for f in batch]
+        # control point (f, a, b) of the batch at (a count + f) n + b: rows a of all patches
+        flat = [k for a in range(n) for grid in grids for k in grid[a]]
+        gathers = [[row * n + s for row in range(n * count) for s in run] for run in starts]
+        coeffs = [[N[j][k] for j in range(r)] * (n * count) for k in range(d + 1)]
+        dcoeffs = [[dN[j][k] for j in range(r)] * (n * count) for k in range(d + 1)]
+        blended = []
+        for comp in comps:
+            mine = list(map(comp.__getitem__, flat))
+            window = [list(map(mine.__getitem__, gather)) for gather in gathers]
+            blended.append((blend(coeffs, window), blend(dcoeffs, window)))
+        width = count * r  # one control row of every patch, sampled at every v_j
+        pos_rows, nrm_rows, bad = [], [], []
+        for i, (span, nu_i, dnu_i) in enumerate(zip(spans_t, N, dN, strict=True)):
+            lo = span - d
+            rows = [vals[(lo + k) * width : (lo + k + 1) * width]
+                    for vals, _ in blended for k in range(d + 1)]
+            drows = [dvals[(lo + k) * width : (lo + k + 1) * width]
+                     for _, dvals in blended for k in range(d + 1)]
+            pos: list[float] = []
+            nrm: list[float] = []
+            row_bad: list[int] = []
+            evaluate_row(nu_i, dnu_i, rows, drows, tol, pos, nrm, row_bad)
+            pos_rows.append(pos)
+            nrm_rows.append(nrm)
+            bad += [(i, b) for b in row_bad]
+        for g, f in enumerate(batch):
+            lo, hi = 3 * g * r, 3 * (g + 1) * r
+            out[f] = (list(chain.from_iterable(row[lo:hi] for row in pos_rows)),
+                      list(chain.from_iterable(row[lo:hi] for row in nrm_rows)), [])
+        for i, b in bad:
+            g, j = divmod(b, r)
+            out[batch[g]][2].append(i * r + j)
     return out
 
 
@@ -274,12 +311,16 @@ class _Layout:
         whether it is *evaluated* (at the edge's coarser resolution) or lies between two
         evaluated vertices (a finer neighbour's)."""
         e, reverse = self.table.sides[f][k]
-        fine = self.fine[e]
+        fine, (lo, hi) = self.fine[e], self.table.edges[e]
         step, step_c = (fine - 1) // (self.res[f] - 1), (fine - 1) // (self.coarse[e] - 1)
-        Ks = range(0, fine, step)
+        base = self.edge_base[e] - 1  # vertex K of the edge is base + K inside it
+        nodes = [self.corner[lo], *range(base + step, base + fine - 1, step), self.corner[hi]]
+        evaluated = [True] * len(nodes) if step == step_c else \
+            [K % step_c == 0 for K in range(0, fine, step)]
         if reverse:
-            Ks = Ks[::-1]
-        return [self.edge_node(e, K) for K in Ks], [K % step_c == 0 for K in Ks]
+            nodes.reverse()
+            evaluated.reverse()
+        return nodes, evaluated
 
     def between(self, f: int, k: int, t0: int, t1: int) -> list[int]:
         """The edge vertices strictly between samples ``t0`` and ``t1`` of side ``k`` of
@@ -318,6 +359,18 @@ def _side_slots(r: int) -> tuple[tuple[int, ...], ...]:
     last = r - 1
     return (tuple(t * r for t in range(r)), tuple(last * r + t for t in range(r)),
             tuple(t * r + last for t in range(r)), tuple(t for t in range(r)))
+
+
+@lru_cache(maxsize=64)
+def _interior(r: int) -> tuple[itemgetter, itemgetter, array]:
+    """Gatherers of the ``(r - 2)^2`` interior samples of an ``r x r`` grid (row-major):
+    their ``x, y, z`` triples and their scalars, and their ``(u, v)`` block."""
+    slots = [i * r + j for i in range(1, r - 1) for j in range(1, r - 1)]
+    params = _samples(0.0, 1.0, r)
+    uv = array("d", [t for slot in slots for t in (params[slot // r], params[slot % r])])
+    # itemgetter of one index returns the item, not a 1-tuple: r = 3 has one interior sample
+    take1 = itemgetter(*slots) if len(slots) > 1 else itemgetter(slice(4, 5))
+    return itemgetter(*[3 * s + c for s in slots for c in range(3)]), take1, uv
 
 
 def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
@@ -395,21 +448,18 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         disp = None
         if f in tiles:
             disp = displacement_grid(tiles[f], params, params, kernel)
-        # interior vertices: contiguous rows of the patch's block
-        base, inner = layout.face_base[f], r - 2
-        for i in range(1, r - 1):
-            lo, hi = i * r + 1, i * r + r - 1
-            at = base + (i - 1) * inner
-            row_pos = pos[3 * lo : 3 * hi]
+        # interior vertices: one contiguous block of the patch, gathered at C speed
+        at, block = layout.face_base[f], 3 * (r - 2) ** 2
+        if block:
+            take3, take1, block_uvs = _interior(r)
+            inner_pos, inner_nrm = take3(pos), take3(nrm)
             if disp is not None:
-                row_nrm = nrm[3 * lo : 3 * hi]
-                d3 = [x for x in disp[lo:hi] for _ in range(3)]
-                row_pos = [p + d * n for p, d, n in zip(row_pos, d3, row_nrm, strict=True)]
-            positions[3 * at : 3 * (at + inner)] = array("d", row_pos)
-            normals[3 * at : 3 * (at + inner)] = array("d", nrm[3 * lo : 3 * hi])
-            uvs[2 * at : 2 * (at + inner) : 2] = array("d", [params[i]] * inner)
-            uvs[2 * at + 1 : 2 * (at + inner) : 2] = array("d", params[1 : r - 1])
-            owners[at : at + inner] = array("I", [f]) * inner
+                d3 = [x for x in take1(disp) for _ in range(3)]
+                inner_pos = [p + d * n for p, d, n in zip(inner_pos, d3, inner_nrm, strict=True)]
+            positions[3 * at : 3 * at + block] = array("d", inner_pos)
+            normals[3 * at : 3 * at + block] = array("d", inner_nrm)
+            uvs[2 * at : 2 * at + 2 * block // 3] = block_uvs
+            owners[at : at + block // 3] = array("I", [f]) * (block // 3)
         # border samples: accumulate on the welded vertices
         for slot, node, evaluated in borders[f]:
             nx, ny, nz = nrm[3 * slot : 3 * slot + 3]
