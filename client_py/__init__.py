@@ -8,6 +8,9 @@ mesh worker drives it through :class:`client_py.session.WorkerSession`.
 >>> from client_py import NurbsSurface, tessellate_grid, write_patch, read_patch, write_ply
 """
 
+from .atlas import AtlasSurface
+from .atlas_format import read_atlas, write_atlas
+from .atlas_mesh import AtlasMesh, atlas_ply, tessellate_atlas
 from .basis import uniform_clamped_knots
 from .bundle import LevelPlan, plan_level, plan_levels, tessellate_bundle, write_level_ply
 from .errors import PatchFormatError, TesseraError
@@ -25,6 +28,8 @@ from .tessellate import Mesh, tessellate_grid
 from .trim import TrimMask
 
 __all__ = [
+    "AtlasMesh",
+    "AtlasSurface",
     "DetailTile",
     "LevelPlan",
     "Mesh",
@@ -33,15 +38,19 @@ __all__ = [
     "TesseraError",
     "TextureImage",
     "TrimMask",
+    "atlas_ply",
     "hang_skirts",
     "plan_level",
     "plan_levels",
+    "read_atlas",
     "read_detail_tile",
     "read_patch",
+    "tessellate_atlas",
     "tessellate_bundle",
     "tessellate_grid",
     "tessellate_region",
     "uniform_clamped_knots",
+    "write_atlas",
     "write_detail_tile",
     "write_level_ply",
     "write_patch",

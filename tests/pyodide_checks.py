@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import time
 
 from client_py import (
     DetailTile,
@@ -39,6 +40,9 @@ from client_py import (
     write_ply,
 )
 from client_py._kernel import KERNEL_NAME
+from client_py.atlas import AtlasSurface
+from client_py.atlas_format import read_atlas, write_atlas
+from client_py.atlas_mesh import tessellate_atlas
 from client_py.layers import tile_rect, transform_mesh
 from client_py.session import WorkerSession
 
@@ -194,9 +198,75 @@ def _session_checks(checks: dict, digests: dict) -> None:
            level_ply_is_write_level_ply)
 
 
+def _atlas_checks(checks: dict, digests: dict, timings: dict, spec: dict) -> None:
+    """The atlas (``.tsa`` bytes, the welded mesh) gives CPython's bytes, is closed and
+    oriented, and lies on the reference evaluator; the pure-Python tessellation is timed."""
+    atlas = AtlasSurface(**spec["atlas"])
+    data = write_atlas(atlas, 12, {"units": "mm"})
+    digests["atlas.tsa"] = _sha(data)
+
+    def atlas_round_trip():
+        back, meta = read_atlas(data)
+        _require(meta == {"units": "mm"} and back.quads == atlas.quads, "layout changed")
+        before = [*atlas.vertices, *atlas.edge_points, *atlas.face_points]
+        after = [*back.vertices, *back.edge_points, *back.face_points]
+        for axis in range(3):
+            a, b = [p[axis] for p in before], [p[axis] for p in after]
+            err = max(abs(x - y) for x, y in zip(a, b, strict=True))
+            _require(err <= (max(a) - min(a)) / (2 * 4095) * (1 + 1e-9), f"axis {axis}: {err}")
+        digests["atlas.tsa_decoded"] = _sha(repr((after, back.weights)).encode())
+        for cut in range(0, len(data), max(1, len(data) // 97)):
+            try:
+                read_atlas(data[:cut])
+            except PatchFormatError:
+                continue
+            raise AssertionError(f"atlas truncated to {cut} bytes was accepted")
+
+    _check(checks, "atlas: .tsa round trip; truncations raise PatchFormatError",
+           atlas_round_trip)
+    meshes = {"uniform": tessellate_atlas(atlas, 5, kernel="python"),
+              "mixed": tessellate_atlas(atlas, spec["atlas_mixed"], kernel="python")}
+    for key, mesh in meshes.items():
+        for name in ("positions", "normals", "uvs", "indices", "patches"):
+            digests[f"atlas.{key}.{name}"] = _sha(memoryview(getattr(mesh, name)).cast("B"))
+
+    def closed_and_oriented():
+        for key, mesh in meshes.items():
+            directed: dict = {}
+            idx = mesh.indices
+            for t in range(0, len(idx), 3):
+                a, b, c = idx[t : t + 3]
+                for edge in ((a, b), (b, c), (c, a)):
+                    directed[edge] = directed.get(edge, 0) + 1
+            _require(all(n == 1 for n in directed.values()), f"{key}: an edge runs twice")
+            _require(all((b, a) in directed for a, b in directed), f"{key}: a boundary edge")
+
+    _check(checks, "atlas: welded meshes are closed and consistently oriented",
+           closed_and_oriented)
+
+    def on_the_reference_evaluator():
+        mesh = meshes["uniform"]
+        for k in range(0, mesh.vertex_count, 7):
+            f, (u, v) = mesh.patches[k], mesh.uvs[2 * k : 2 * k + 2]
+            point = atlas.patch_surface(f).evaluate(u, v)
+            got = mesh.positions[3 * k : 3 * k + 3]
+            err = max(abs(x - y) for x, y in zip(point, got, strict=True))
+            _require(err <= 1e-6, f"vertex {k} is {err} off its patch")
+
+    _check(checks, "atlas: vertices lie on their patch (reference evaluator)",
+           on_the_reference_evaluator)
+    if "atlas_timed" in spec:
+        timed = AtlasSurface(**spec["atlas_timed"])
+        for r in (9, 17):
+            start = time.perf_counter()
+            tessellate_atlas(timed, r, kernel="python")
+            timings[f"tessellate_atlas r={r}"] = time.perf_counter() - start
+
+
 def run(spec: dict) -> dict:
     checks: dict = {}
     digests: dict = {}
+    timings: dict = {}
     for k, case in enumerate(spec["cases"]):
         s = _surface(case["surface"])
         pts = case["params"]
@@ -291,7 +361,9 @@ def run(spec: dict) -> dict:
     _check(checks, "invalid input raises ValueError naming it", rejects_bad_input)
     _detail_checks(checks, digests)
     _session_checks(checks, digests)
-    return {"kernel": KERNEL_NAME, "checks": checks, "digests": digests}
+    if "atlas" in spec:
+        _atlas_checks(checks, digests, timings, spec)
+    return {"kernel": KERNEL_NAME, "checks": checks, "digests": digests, "timings": timings}
 
 
 if "INPUT" in globals() and INPUT is not None:  # noqa: F821 - set by pyodide_runner.mjs
