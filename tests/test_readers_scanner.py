@@ -11,6 +11,7 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
+import struct
 import uuid
 
 import laspy
@@ -369,6 +370,23 @@ def test_las_bad_files(tmp_path):
         truncated.write_bytes(laz[:cut])
         with pytest.raises(ScanError, match=r"truncated\.laz: corrupt or truncated LAZ file"):
             load_scan(truncated)
+
+    # a chunk table whose count would have lazrs allocate 64 GB (it aborted the process)
+    with laspy.open(str(tmp_path / "good.laz")) as reader:
+        start = reader.header.offset_to_point_data
+    table = struct.unpack_from("<q", laz, start)[0]
+    huge = bytearray(laz)
+    struct.pack_into("<I", huge, table + 4, 4_000_000_000)
+    (tmp_path / "chunks.laz").write_bytes(bytes(huge))
+    with pytest.raises(ScanError, match=r"chunks\.laz: corrupt LAZ file: its chunk table "
+                                        "counts 4,000,000,000 chunks, more than the 1"):
+        load_scan(tmp_path / "chunks.laz")
+    astray = bytearray(laz)
+    struct.pack_into("<q", astray, start, 1 << 40)
+    (tmp_path / "astray.laz").write_bytes(bytes(astray))
+    with pytest.raises(ScanError, match=r"astray\.laz: corrupt or truncated LAZ file: its "
+                                        "chunk table offset 1,099,511,627,776 lies outside"):
+        load_scan(tmp_path / "astray.laz")
 
     short = tmp_path / "short.las"
     short.write_bytes(las[:len(las) - 1000])

@@ -33,13 +33,15 @@ the SHA-256 of the stored file is taken in a separate streamed pass
 compressed form).
 
 Every failure is a ``ScanError`` naming the file: the ``LASF`` signature is checked here
-first; what laspy and lazrs raise on a corrupt or truncated file (``LAS_ERRORS``) is
-reported with its reason.
+first, and a LAZ file's chunk table is bounded before lazrs reads it
+(:func:`check_laz_chunk_table`); what laspy and lazrs raise on a corrupt or truncated file
+(:func:`_las_errors`) is reported with its reason.
 """
 
 from __future__ import annotations
 
 import re
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -242,6 +244,56 @@ def units_of_header(header: Any) -> tuple[str, dict | None, list[str]]:
     return "unknown", None, []
 
 
+def check_laz_chunk_table(path: Path, header: Any, size: int) -> None:
+    """Check the LASzip chunk table of a LAZ file before lazrs reads it.
+
+    LASzip (Isenburg 2013) cuts the points into chunks and stores, at an offset given by
+    the 8 bytes at the start of the point data (or, when those are -1, by the file's last
+    8 bytes), ``version`` (uint32), ``number_of_chunks`` (uint32) and the compressed
+    ``(points, bytes)`` of each chunk. lazrs allocates what these state without a bound: a
+    corrupt count made it ask for 67 GB and abort the process. So here: the offset must
+    lie in the file, ``number_of_chunks`` can be at most ``ceil(N / chunk_size)`` (``N``
+    for variable-size chunks), and the chunks' bytes must fit in the file.
+
+    Raises
+    ------
+    ScanError
+        No LASzip VLR, or a chunk table outside these bounds.
+    """
+    import lazrs
+
+    name, count, start = path.name, int(header.point_count), int(header.offset_to_point_data)
+    record = next((v.record_data for v in header.vlrs
+                   if v.user_id == "laszip encoded" and v.record_id == 22204), None)
+    if record is None:
+        raise ScanError(f"{name}: corrupt LAZ file: compressed points but no LASzip VLR")
+    laz = lazrs.LazVlr(record)
+    with open(path, "rb") as fh:
+        fh.seek(start)
+        (offset,) = struct.unpack("<q", fh.read(8).ljust(8, b"\0"))
+        if offset == -1:
+            fh.seek(max(size - 8, 0))
+            (offset,) = struct.unpack("<q", fh.read(8).ljust(8, b"\0"))
+        if not start + 8 <= offset <= size - 8:
+            raise ScanError(f"{name}: corrupt or truncated LAZ file: its chunk table offset "
+                            f"{offset:,} lies outside the file's point data ({start + 8:,}.."
+                            f"{size - 8:,})")
+        fh.seek(offset)
+        _, chunks = struct.unpack("<II", fh.read(8))
+        variable = laz.uses_variable_size_chunks()
+        most = count if variable else -(-count // max(int(laz.chunk_size()), 1))
+        if chunks > most:
+            raise ScanError(f"{name}: corrupt LAZ file: its chunk table counts {chunks:,} "
+                            f"chunks, more than the {most:,} that {count:,} points fill")
+        fh.seek(start)
+        table = lazrs.read_chunk_table(fh, laz)
+    if table is not None:
+        stored = sum(int(b) for _, b in table)
+        if stored > size - start:
+            raise ScanError(f"{name}: corrupt LAZ file: its chunks claim {stored:,} bytes, the "
+                            f"file holds {size - start:,} after the header")
+
+
 def _has_rgb(header: Any) -> bool:
     return {"red", "green", "blue"} <= set(header.point_format.dimension_names)
 
@@ -308,7 +360,9 @@ def load_las(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Sc
                 raise ScanError(f"{name}: the file contains no points (its header counts 0)")
             budget.take_points(name, count)  # refused before a point is read
             needed = int(header.offset_to_point_data) + count * header.point_format.size
-            if not compressed and size < needed:
+            if compressed:
+                check_laz_chunk_table(path, header, size)
+            elif size < needed:
                 raise ScanError(f"{name}: truncated LAS file: the header claims {count:,} "
                                 f"points of {header.point_format.size} bytes from byte "
                                 f"{header.offset_to_point_data:,} ({needed:,} bytes), the "
