@@ -158,9 +158,10 @@ def _row_evaluator(p: int, rational: bool) -> Callable:
 
 
 def _blend_rows_along_v(
-    comp: Sequence[float], n_u: int, n_v: int, q: int, spans_v, Nv, dNv
+    comp: Sequence[float], rows: int | range, n_v: int, q: int, spans_v, Nv, dNv
 ) -> tuple[list[list[float]], list[list[float]]]:
-    """``T_a(v_j)`` and ``dT_a/dv(v_j)`` for every control row ``a`` of one component.
+    """``T_a(v_j)`` and ``dT_a/dv(v_j)`` for the control rows ``a`` in ``rows`` (an int
+    ``n``: all ``n`` rows) of one component (``comp`` row-major, ``n_v`` per row).
 
     The window of row ``a`` that ``v_j`` needs starts at ``spans_v[j] - q``;
     gathering it per term (``x_k[j] = P_{a, spans_v[j] - q + k}``) turns the
@@ -172,7 +173,7 @@ def _blend_rows_along_v(
     dcoeffs = [[row[k] for row in dNv] for k in range(q + 1)]
     blend = _blend(q + 1)
     vals, dvals = [], []
-    for a in range(n_u):
+    for a in range(rows) if isinstance(rows, int) else rows:
         get = comp[a * n_v : (a + 1) * n_v].__getitem__
         window = [list(map(get, index)) for index in gather]
         vals.append(blend(coeffs, window))
@@ -205,11 +206,18 @@ def evaluate_grid(surface, us: Sequence[float], vs: Sequence[float], typecode: s
     spans_v, Nv, dNv = basis_table(q, V, n_v, vs)
     pts, wts = surface.flat_points, surface.flat_weights
     rational = wts is not None
-    # Homogeneous components P^w = (w x, w y, w z, w), each row-major over (a, b).
-    comps = [pts[0::3], pts[1::3], pts[2::3]]
+    # Only the control rows the parameters' spans select are blended along v: a region of a
+    # zoom (a small rectangle of the domain) needs a few of them, not all n_u.
+    first = min(spans_u) - p
+    rows = range(first, max(spans_u) + 1)
+    lo_pt, hi_pt = 3 * first * n_v, 3 * rows.stop * n_v
+    # Homogeneous components P^w = (w x, w y, w z, w) of those rows, row-major over (a, b)
+    # (index (a - first) n_v + b).
+    comps = [pts[lo_pt + c : hi_pt : 3] for c in range(3)]
     if rational:
-        comps = [[w * x for w, x in zip(wts, comp, strict=True)] for comp in comps] + [wts]
-    blended = [_blend_rows_along_v(comp, n_u, n_v, q, spans_v, Nv, dNv) for comp in comps]
+        w_rows = wts[first * n_v : rows.stop * n_v]
+        comps = [[w * x for w, x in zip(w_rows, comp, strict=True)] for comp in comps] + [w_rows]
+    blended = [_blend_rows_along_v(comp, len(rows), n_v, q, spans_v, Nv, dNv) for comp in comps]
 
     evaluate_row = _row_evaluator(p, rational)
     tol = normal_tolerance(surface)
@@ -219,7 +227,7 @@ def evaluate_grid(surface, us: Sequence[float], vs: Sequence[float], typecode: s
     pack = struct.Struct(f"={3 * n_j}{typecode}").pack
     degenerate: list[int] = []
     for i, (span, nu_i, dnu_i) in enumerate(zip(spans_u, Nu, dNu, strict=True)):
-        lo, hi = span - p, span + 1
+        lo, hi = span - p - first, span + 1 - first
         rows = [r for vals, _ in blended for r in vals[lo:hi]]
         drows = [r for _, dvals in blended for r in dvals[lo:hi]]
         pos: list[float] = []
@@ -348,6 +356,11 @@ def add_level(total: array, n_cols: int, blocks: Sequence[tuple]) -> None:
     from it are never ``-0.0``.
     """
     if not blocks:
+        return
+    if len(blocks) == 1 and blocks[0][2:4] == (0, n_cols):  # whole rows: no assembly
+        r0, r1, _, _, values = blocks[0]
+        lo, hi = r0 * n_cols, r1 * n_cols
+        total[lo:hi] = array("d", map(add, total[lo:hi], values))
         return
     level = array("d", bytes(8 * len(total)))
     for r0, r1, c0, c1, values in reversed(blocks):

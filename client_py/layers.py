@@ -283,26 +283,26 @@ def _check_rect(uv_rect: object) -> UVRect:
     return u0, v0, u1, v1
 
 
-def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequence[float],
-                      kernel: str | None = None) -> array:
-    """``sum_k D_k(u_i, v_j)`` of the given tiles on a grid: ``array('d')``, row-major in ``i``.
+def displacement_levels(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequence[float],
+                        kernel: str | None = None) -> list[tuple[int, array]]:
+    """``[(k, D_k(u_i, v_j)), ...]``: each given level's field on a grid, levels increasing.
 
-    Each tile adds its field at the grid vertices inside its closed rectangle
-    (found by bisection: ``us`` and ``vs`` are sorted normalised parameters);
-    a vertex on the border of several tiles of one level takes that level's
-    field once, from the first of them in ``(i, j)`` order (they agree there).
-    The kernel adds each level's tile fields as whole blocks
-    (``add_level``); the levels are summed in increasing order.
+    Each field is ``array('d')``, row-major in ``i``; a tile adds its field at
+    the grid vertices inside its closed rectangle (found by bisection: ``us``
+    and ``vs`` are sorted normalised parameters), ``+0.0`` elsewhere; a vertex on
+    the border of several tiles of one level takes that level's field once,
+    from the first of them in ``(i, j)`` order (they agree there). The kernel
+    assembles a level's tile fields as whole blocks (``add_level``).
     """
     us, vs = [float(u) for u in us], [float(v) for v in vs]
     n_j = len(vs)
-    total = array("d", bytes(8 * len(us) * n_j))
     by_level: dict[int, list[DetailTile]] = {}
     for tile in tiles:
         if not isinstance(tile, DetailTile):
             raise ValueError(f"tiles must be DetailTile objects, got {type(tile).__name__}")
         by_level.setdefault(tile.level, []).append(tile)
     backend = _kernel.backend(kernel)
+    levels = []
     for level in sorted(by_level):
         blocks = []
         seen: set[tuple[int, int]] = set()
@@ -316,7 +316,25 @@ def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequ
             if r0 < r1 and c0 < c1:
                 values = tile.evaluate_grid(us[r0:r1], vs[c0:c1], kernel)
                 blocks.append((r0, r1, c0, c1, values))
-        backend.add_level(total, n_j, blocks)
+        field = array("d", bytes(8 * len(us) * n_j))
+        backend.add_level(field, n_j, blocks)
+        levels.append((level, field))
+    return levels
+
+
+def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequence[float],
+                      kernel: str | None = None) -> array:
+    """``sum_k D_k(u_i, v_j)`` of the given tiles on a grid: ``array('d')``, row-major in ``i``.
+
+    The fields of :func:`displacement_levels` summed from ``+0.0`` in increasing
+    level order (a vertex no tile of a level holds adds ``+0.0``, which changes
+    nothing).
+    """
+    n_i, n_j = len(us), len(vs)
+    total = array("d", bytes(8 * n_i * n_j))
+    add_level = _kernel.backend(kernel).add_level
+    for _, level_field in displacement_levels(tiles, us, vs, kernel):
+        add_level(total, n_j, [(0, n_i, 0, n_j, level_field)])
     return total
 
 
@@ -369,6 +387,109 @@ def drawn_covers(trim: TrimMask, tiles: Sequence[DetailTile], us: Sequence[float
     return covers
 
 
+@dataclass(frozen=True)
+class RegionSamples:
+    """The base patch and the detail levels sampled for one region: what its mesh
+    (:func:`mesh_of_region`) and its skirts (:func:`client_py.skirts.hang_skirts`) are made of.
+
+    Attributes
+    ----------
+    uv_rect : (u0, v0, u1, v1)
+        The region, normalised domain.
+    us, vs : list of float
+        The region's grid: ``nu`` and ``nv`` normalised parameters
+        (``u_i = u0 + i (u1 - u0) / (nu - 1)``).
+    ext_u, ext_v : list of float
+        The sampled grid: ``us``/``vs`` with one more parameter on each side where
+        there are detail tiles and the domain goes on (for central differences).
+    window : (r0, r1, c0, c1)
+        Where the region's grid lies in the sampled one (rows ``r0 <= i < r1``).
+    positions, normals : array('d')
+        ``S`` and its unit normal at every sampled vertex, ``3`` values each,
+        row-major over ``(len(ext_u), len(ext_v))``, patch frame; normals at
+        poles are the limit normals (``client_py.tessellate.pole_normals``).
+    degenerate : tuple of int
+        Sampled vertices whose analytic normal vanished (the poles).
+    levels : list of (int, array('d'))
+        Per detail level given, increasing, its field on the sampled grid
+        (:func:`displacement_levels`).
+    """
+
+    uv_rect: UVRect
+    us: list[float]
+    vs: list[float]
+    ext_u: list[float]
+    ext_v: list[float]
+    window: tuple[int, int, int, int]
+    positions: array
+    normals: array
+    degenerate: tuple[int, ...]
+    levels: list[tuple[int, array]]
+
+    def vertex(self, a: int, b: int) -> int:
+        """Index in the sampled grid of the region's grid vertex ``(a, b)``."""
+        return (self.window[0] + a) * len(self.ext_v) + self.window[2] + b
+
+
+def sample_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, nv: int,
+                  tiles: Iterable[DetailTile] = (), kernel: str | None = None) -> RegionSamples:
+    """The base and each detail level of ``tiles`` on the grid of a region (plus a ring).
+
+    The base ``S`` and its unit normal come from the kernel's ``evaluate_grid``
+    (float64) over the surface parameters ``a0 + (a1 - a0) t`` of the
+    normalised ``t``; the levels from :func:`displacement_levels`. Arguments as
+    :func:`tessellate_region`.
+    """
+    if not isinstance(surface, NurbsSurface):
+        raise ValueError(f"surface must be a NurbsSurface, got {type(surface).__name__}")
+    u0, v0, u1, v1 = _check_rect(uv_rect)
+    nu, nv = _check_count("nu", nu), _check_count("nv", nv)
+    tiles = list(tiles)
+    us, vs = _samples(u0, u1, nu), _samples(v0, v1, nv)
+    # one ring beyond the region (where the domain goes on) for central differences
+    du, dv = (u1 - u0) / (nu - 1), (v1 - v0) / (nv - 1)
+    ring = bool(tiles)
+    r0 = 1 if ring and u0 - du >= 0.0 else 0
+    c0 = 1 if ring and v0 - dv >= 0.0 else 0
+    ext_u = ([u0 - du] if r0 else []) + us + ([u1 + du] if ring and u1 + du <= 1.0 else [])
+    ext_v = ([v0 - dv] if c0 else []) + vs + ([v1 + dv] if ring and v1 + dv <= 1.0 else [])
+    (a0, a1), (b0, b1) = surface.domain
+    su = [a0 + (a1 - a0) * t for t in ext_u]
+    sv = [b0 + (b1 - b0) * t for t in ext_v]
+    positions, normals, degenerate = _kernel.backend(kernel).evaluate_grid(surface, su, sv, "d")
+    pole_normals(surface, normals, su, sv, degenerate)
+    levels = displacement_levels(tiles, ext_u, ext_v, kernel) if ring else []
+    return RegionSamples((u0, v0, u1, v1), us, vs, ext_u, ext_v, (r0, r0 + nu, c0, c0 + nv),
+                         positions, normals, tuple(degenerate), levels)
+
+
+def mesh_of_region(surface: NurbsSurface, samples: RegionSamples, tiles: Sequence[DetailTile],
+                   kernel: str | None = None, textures: Iterable[TextureImage] = ()) -> Mesh:
+    """The mesh :func:`tessellate_region` returns, from the region's samples and its tiles."""
+    us, vs = samples.us, samples.vs
+    nu, nv = len(us), len(vs)
+    backend = _kernel.backend(kernel)
+    if samples.levels:
+        n_i, n_j = len(samples.ext_u), len(samples.ext_v)
+        shift = array("d", bytes(8 * n_i * n_j))
+        for _, level_field in samples.levels:
+            backend.add_level(shift, n_j, [(0, n_i, 0, n_j, level_field)])
+        positions, normals = backend.displace_grid(samples.positions, samples.normals, shift,
+                                                   n_i, n_j, samples.window)
+    else:  # no ring: the sampled grid is the region's
+        positions, normals = array("f", samples.positions), array("f", samples.normals)
+    uvs = grid_uvs(us, vs)
+    if surface.trim is None:
+        indices = grid_indices(nu, nv, kernel=kernel)
+    else:
+        indices = backend.cell_indices(nu, nv, drawn_covers(surface.trim, tiles, us, vs))
+    mesh = Mesh(positions, normals, uvs, indices)
+    textures = list(textures)
+    if textures:
+        mesh.colors = vertex_colours(uvs, textures, kernel, nv)
+    return mesh
+
+
 def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, nv: int,
                       tiles: Iterable[DetailTile] = (), kernel: str | None = None,
                       textures: Iterable[TextureImage] = ()) -> Mesh:
@@ -402,40 +523,16 @@ def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, 
         border the differences are one-sided. Cells are left out as by
         ``tessellate_grid`` where the base's trim leaves out their centre,
         unless a given tile's ``drawn`` mask covers it.
+
+    Notes
+    -----
+    :func:`sample_region` then :func:`mesh_of_region`; a caller that also hangs
+    skirts passes the same samples to :func:`client_py.skirts.hang_skirts`,
+    which then evaluates nothing again.
     """
-    if not isinstance(surface, NurbsSurface):
-        raise ValueError(f"surface must be a NurbsSurface, got {type(surface).__name__}")
-    u0, v0, u1, v1 = _check_rect(uv_rect)
-    nu, nv = _check_count("nu", nu), _check_count("nv", nv)
     tiles = list(tiles)
-    us, vs = _samples(u0, u1, nu), _samples(v0, v1, nv)
-    # one ring beyond the region (where the domain goes on) for central differences
-    du, dv = (u1 - u0) / (nu - 1), (v1 - v0) / (nv - 1)
-    ring = bool(tiles)
-    r0 = 1 if ring and u0 - du >= 0.0 else 0
-    c0 = 1 if ring and v0 - dv >= 0.0 else 0
-    ext_u = ([u0 - du] if r0 else []) + us + ([u1 + du] if ring and u1 + du <= 1.0 else [])
-    ext_v = ([v0 - dv] if c0 else []) + vs + ([v1 + dv] if ring and v1 + dv <= 1.0 else [])
-    (a0, a1), (b0, b1) = surface.domain
-    su = [a0 + (a1 - a0) * t for t in ext_u]
-    sv = [b0 + (b1 - b0) * t for t in ext_v]
-    backend = _kernel.backend(kernel)
-    positions, normals, degenerate = backend.evaluate_grid(surface, su, sv, "d" if ring else "f")
-    pole_normals(surface, normals, su, sv, degenerate)
-    if ring:
-        shift = displacement_grid(tiles, ext_u, ext_v, kernel)
-        positions, normals = backend.displace_grid(positions, normals, shift, len(ext_u),
-                                                   len(ext_v), (r0, r0 + nu, c0, c0 + nv))
-    uvs = grid_uvs(us, vs)
-    if surface.trim is None:
-        indices = grid_indices(nu, nv, kernel=kernel)
-    else:
-        indices = backend.cell_indices(nu, nv, drawn_covers(surface.trim, tiles, us, vs))
-    mesh = Mesh(positions, normals, uvs, indices)
-    textures = list(textures)
-    if textures:
-        mesh.colors = vertex_colours(uvs, textures, kernel, nv)
-    return mesh
+    samples = sample_region(surface, uv_rect, nu, nv, tiles, kernel)
+    return mesh_of_region(surface, samples, tiles, kernel, textures)
 
 
 def vertex_colours(uvs: Sequence[float], textures: Iterable[TextureImage],

@@ -15,14 +15,14 @@ import math
 from array import array
 from collections.abc import Iterable, Sequence
 
-from . import _kernel
-from .layers import DetailTile
+from .layers import DetailTile, RegionSamples, sample_region
 from .surface import NurbsSurface
 from .tessellate import Mesh, _check_count
 
 
 def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: int,
-                tiles: Iterable[DetailTile], depth: float, kernel: str | None = None) -> Mesh:
+                tiles: Iterable[DetailTile], depth: float, kernel: str | None = None,
+                samples: RegionSamples | None = None) -> Mesh:
     """Hang skirts (in the patch frame) from a region's borders inside the domain.
 
     Under each border vertex ``S`` (the base at the border's parameter, ``n``
@@ -37,7 +37,8 @@ def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: 
     the other, so no crack shows from the front. The walls never rise above the
     edge they hang from (no fins). Borders on the domain's outer edge get none
     (nothing to meet there), nor do segments whose inward grid cell the base's
-    trim leaves out.
+    trim leaves out; where the base's analytic normal vanishes (a pole) the
+    wall has no height.
 
     Parameters
     ----------
@@ -57,6 +58,11 @@ def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: 
         How far (patch units, ``>= 0``) below the lowest partial sum the walls reach.
     kernel : str, optional
         ``'python'`` or ``'numpy'``; default the selected kernel.
+    samples : RegionSamples, optional
+        The region's samples the mesh was made from
+        (:func:`client_py.layers.sample_region` with the same arguments): the base
+        and the level fields at the border vertices are read from them instead
+        of being evaluated again.
 
     Returns
     -------
@@ -72,43 +78,50 @@ def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: 
         raise ValueError(f"depth must be a finite length >= 0, got {depth!r}")
     if mesh.vertex_count != n * n:
         raise ValueError(f"mesh has {mesh.vertex_count} vertices; an {n}x{n} grid has {n * n}")
-    us = [u0 + (u1 - u0) * a / (n - 1) for a in range(n)]
-    vs = [v0 + (v1 - v0) * b / (n - 1) for b in range(n)]
-    (a0, a1), (b0, b1) = surface.domain
-    backend = _kernel.backend(kernel)
-    tiles = sorted(tiles, key=lambda t: t.level)
+    tiles = list(tiles)
+    if samples is None:
+        samples = sample_region(surface, uv_rect, n, n, tiles, kernel)
+    elif (len(samples.us), len(samples.vs)) != (n, n) or \
+            tuple(samples.uv_rect) != (u0, v0, u1, v1):
+        raise ValueError(f"samples are of a {len(samples.us)}x{len(samples.vs)} grid over "
+                         f"{samples.uv_rect}, not of the {n}x{n} grid over {tuple(uv_rect)}")
+    us, vs = samples.us, samples.vs
     trim = surface.trim
     half_u, half_v = 0.5 * (u1 - u0) / (n - 1), 0.5 * (v1 - v0) / (n - 1)
-    # (side's u list, v list, grid index of its s-th vertex, inward cell centre of segment s)
+    # (grid vertex (a, b) of the side's s-th vertex, inward cell centre of segment s)
     sides = []
     if u0 > 0.0:
-        sides.append(([u0], vs, lambda s: s, lambda s: (u0 + half_u, vs[s] + half_v)))
+        sides.append((lambda s: (0, s), lambda s: (u0 + half_u, vs[s] + half_v)))
     if u1 < 1.0:
-        sides.append(([u1], vs, lambda s: (n - 1) * n + s, lambda s: (u1 - half_u, vs[s] + half_v)))
+        sides.append((lambda s: (n - 1, s), lambda s: (u1 - half_u, vs[s] + half_v)))
     if v0 > 0.0:
-        sides.append((us, [v0], lambda s: s * n, lambda s: (us[s] + half_u, v0 + half_v)))
+        sides.append((lambda s: (s, 0), lambda s: (us[s] + half_u, v0 + half_v)))
     if v1 < 1.0:
-        sides.append((us, [v1], lambda s: s * n + n - 1, lambda s: (us[s] + half_u, v1 - half_v)))
+        sides.append((lambda s: (s, n - 1), lambda s: (us[s] + half_u, v1 - half_v)))
+    points, normals, poles = samples.positions, samples.normals, set(samples.degenerate)
+    fields = [field for _, field in samples.levels]
     pos, nrm, uv, idx = mesh.positions, mesh.normals, mesh.uvs, mesh.indices
-    for su, sv, vertex, inward in sides:
-        points, normals, _ = backend.evaluate_grid(
-            surface, [a0 + (a1 - a0) * u for u in su], [b0 + (b1 - b0) * v for v in sv], "d")
-        fields = [t.evaluate_grid(su, sv, kernel) for t in tiles]
+    for vertex, inward in sides:
         first = len(pos) // 3
+        walls = []
         for s in range(n):
+            a, b = vertex(s)
+            at = samples.vertex(a, b)
             partial = lowest = 0.0
             for f in fields:
-                partial += f[s]
+                partial += f[at]
                 lowest = min(lowest, partial)
             lo, hi = lowest - depth, partial
-            p, q = points[3 * s : 3 * s + 3], normals[3 * s : 3 * s + 3]
-            pos.extend(array("f", (p[0] + lo * q[0], p[1] + lo * q[1], p[2] + lo * q[2],
-                                   p[0] + hi * q[0], p[1] + hi * q[1], p[2] + hi * q[2])))
-            k = vertex(s)
+            p = points[3 * at : 3 * at + 3]
+            q = (0.0, 0.0, 0.0) if at in poles else normals[3 * at : 3 * at + 3]
+            walls += (p[0] + lo * q[0], p[1] + lo * q[1], p[2] + lo * q[2],
+                      p[0] + hi * q[0], p[1] + hi * q[1], p[2] + hi * q[2])
+            k = a * n + b
             nrm.extend(nrm[3 * k : 3 * k + 3] * 2)
             uv.extend(uv[2 * k : 2 * k + 2] * 2)
             if mesh.colors is not None:
                 mesh.colors.extend(mesh.colors[3 * k : 3 * k + 3] * 2)
+        pos.extend(array("f", walls))
         for s in range(n - 1):
             if trim is not None and not trim.covers(*inward(s)):
                 continue
