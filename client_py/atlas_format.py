@@ -137,7 +137,8 @@ def _border_indices(quads: Sequence[Sequence[int]], table: EdgeTable, side: int,
 
 def _coons_terms(side: int) -> list[tuple[tuple[int, int, int], ...]]:
     """For each interior ``(i, j)`` (``i``-major), the integer Coons weights times ``m^2``
-    as ``(weight, border row, position)`` triples (module docstring; ``m = n - 1``)."""
+    as ``(weight, border row, position)`` triples (module docstring; ``m = n - 1``): the
+    four border points facing ``(i, j)``, then the four corners."""
     m = side - 1
     terms = []
     for i in range(1, m):
@@ -157,9 +158,13 @@ class _Predictor:
                  n_vertices: int, bits: int) -> None:
         self.n_vertices, self.side, self.top = n_vertices, side, (1 << bits) - 1
         self.edges = table.edges
-        self.borders = _border_indices(quads, table, side, n_vertices)
-        self.terms = _coons_terms(side)
+        borders = _border_indices(quads, table, side, n_vertices)
+        # per interior (i, j): its 8 weights and, per term, the point of every patch
+        self.coons = [(tuple(w for w, _, _ in terms),
+                       [[rows[r][k] for rows in borders] for _, r, k in terms])
+                      for terms in _coons_terms(side)]
         self.n_edge_points = len(table.edges) * (side - 2)
+        self.n_quads = len(quads)
 
     def edge_points(self, q: Sequence[int]) -> list[int]:
         """Predicted edge points from the vertices ``q[:V]``: ``round(((m-t) a + t b) / m)``."""
@@ -169,14 +174,19 @@ class _Predictor:
                 for a, b in self.edges for wa, wb in weights]
 
     def face_points(self, q: Sequence[int]) -> list[int]:
-        """Predicted face points from the vertices and edge points ``q[:V + E (n-2)]``."""
+        """Predicted face points from the vertices and edge points ``q[:V + E (n-2)]``: one
+        interior position ``(i, j)`` of every patch at a time."""
         m2, top = (self.side - 1) ** 2, self.top
-        out: list[int] = []
-        for rows in self.borders:
-            values = [[q[k] for k in row] for row in rows]
-            for terms in self.terms:
-                num = sum(w * values[r][k] for w, r, k in terms)
-                out.append(min(top, max(0, (2 * num + m2) // (2 * m2))))
+        per_patch = len(self.coons)
+        out = [0] * (per_patch * self.n_quads)
+        get = q.__getitem__
+        for at, ((w0, w1, w2, w3, w4, w5, w6, w7), index) in enumerate(self.coons):
+            out[at::per_patch] = [
+                (2 * (w0 * a + w1 * b + w2 * c + w3 * d + w4 * e + w5 * f + w6 * g + w7 * h)
+                 + m2) // (2 * m2)
+                for a, b, c, d, e, f, g, h in zip(*[map(get, k) for k in index], strict=True)]
+        if out and (min(out) < 0 or max(out) > top):  # a blend beyond the box: clamp it
+            out = [top if p > top else 0 if p < 0 else p for p in out]
         return out
 
     def residuals(self, q: Sequence[int]) -> list[int]:
