@@ -314,3 +314,21 @@ def test_corrupt_payload_with_valid_crc(data):
             raw[at:at] = data.draw(st.binary(min_size=1, max_size=16))
     result = read_or_format_error(reframe(bytes(raw)))
     assert result is None or isinstance(result[0], AtlasSurface)
+
+
+def test_the_documented_header_is_the_code_s():
+    """docs/format.md's atlas section gives the header's size and the limits the reader holds."""
+    from pathlib import Path
+
+    from client_py.atlas_format import ATLAS_LIMITS
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "format.md").read_text()
+    section = text[text.index("# Atlas patch file `.tsa`") : text.index("# Tiles:")]
+    assert f"## Header ({HEADER_SIZE} bytes)" in section
+    for row, limit in (("`d`, degree", ATLAS_LIMITS["degree"]),
+                       ("`s`, spans", ATLAS_LIMITS["spans"]),
+                       ("`V`, layout vertices", ATLAS_LIMITS["vertices"]),
+                       ("`F`, quads", ATLAS_LIMITS["quads"])):
+        line = next(x for x in section.splitlines() if row in x)
+        assert f"..{limit}" in line, line
+    assert ATLAS_LIMITS["control points"] == 1 << 18 and "<= 2^18" in section
