@@ -16,6 +16,7 @@ from atlas_cases import sphere_atlas
 from test_atlas import random_cube_atlas
 
 from client_py import Mesh
+from client_py.atlas import AtlasSurface, atlas_edges
 from client_py.atlas_mesh import AtlasMesh, atlas_ply, tessellate_atlas
 from client_py.layers import DetailTile
 
@@ -261,3 +262,44 @@ def test_atlas_ply_is_read_by_trimesh_as_one_closed_mesh():
     assert len(mesh.vertices) == ours.vertex_count and len(mesh.faces) == ours.triangle_count
     assert mesh.is_watertight and mesh.is_winding_consistent
     assert mesh.volume > 0  # outward: counter-clockwise seen from outside
+
+
+def test_a_two_sample_patch_between_finer_neighbours_gets_a_centre_vertex():
+    """Patch 0 at r = 2 with all four neighbours at r = 3: no corner of its one cell is free
+    of extra border vertices, so the fan runs from its centre, C_0(1/2, 1/2)."""
+    atlas = random_cube_atlas(3, 2, seed=6)
+    for detail in (None, random_detail(atlas)):
+        mesh = tessellate_atlas(atlas, [2, 3, 3, 3, 3, 3], detail)
+        assert_closed_and_oriented(mesh)
+        uniform = 8 + 12 * 1 + 5 * 1  # corners, one sample per edge, 5 patch interiors
+        assert mesh.vertex_count == uniform + 1
+        centre = mesh.vertex_count - 1
+        assert mesh.patches[centre] == 0 and tuple(mesh.uvs[2 * centre :]) == (0.5, 0.5)
+        if detail is None:
+            point = atlas.patch_surface(0).evaluate(0.5, 0.5)
+            assert np.allclose(mesh.positions[3 * centre :], point, atol=1e-6)
+
+
+def test_an_open_layout_has_exactly_its_border_as_boundary():
+    """The cube without its top: the 4 border edges' samples are the only boundary."""
+    full = random_cube_atlas(3, 2, seed=7)
+    quads = full.quads[:1] + full.quads[2:]  # drop the z = 1 face
+    inner = full.side - 2
+    edges = full.edges.edges
+    table = atlas_edges(quads)
+    index = {edge: e for e, edge in enumerate(edges)}
+    edge_points = [p for edge in table.edges
+                   for p in full.edge_points[index[edge] * inner : (index[edge] + 1) * inner]]
+    face_points = full.face_points[: inner * inner] + full.face_points[2 * inner * inner :]
+    atlas = AtlasSurface(3, 2, full.vertices, quads, edge_points, face_points)
+    assert len(atlas.edges.border_edges) == 4
+    r = 6
+    for resolution in (r, [9, 5, 3, 5, 9]):
+        mesh = tessellate_atlas(atlas, resolution)
+        undirected, directed = edge_uses(mesh)
+        boundary = [edge for edge, n in undirected.items() if n == 1]
+        assert all(n in (1, 2) for n in undirected.values())
+        assert all(n == 1 for n in directed.values())
+        expected = sum(resolution[f] - 1 if isinstance(resolution, list) else r - 1
+                       for f, _ in (atlas.edges.faces[e][0] for e in atlas.edges.border_edges))
+        assert len(boundary) == expected
