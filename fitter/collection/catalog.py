@@ -28,6 +28,7 @@ worker processes can write concurrently.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import secrets
@@ -43,7 +44,8 @@ from typing import Any
 
 from client_py.errors import TesseraError
 
-from .bundles import Bundle, Collection
+from ..fitting.options import OPTION, UP_AXES
+from .bundles import Bundle, BundleError, Collection
 
 STATE_DIR = ".tessera"
 CATALOG_FILE = "catalog.sqlite"
@@ -102,6 +104,9 @@ MIGRATIONS: list[list[str]] = [
         """CREATE INDEX jobs_state ON jobs (state, id)""",
         """CREATE INDEX jobs_object ON jobs (object_id)""",
     ],
+    [  # 3: the admin's up and front (JSON {"up": [x, y, z], "front": [x, y, z]}; '': the fit's)
+        """ALTER TABLE objects ADD COLUMN view TEXT NOT NULL DEFAULT ''""",
+    ],
 ]
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -111,7 +116,74 @@ class CatalogError(TesseraError, RuntimeError):
 
 
 class FieldError(TesseraError, ValueError):
-    """An object field that cannot take the value given (unknown, not text, too long)."""
+    """An object field that cannot take the value given (unknown, not text, too long, a
+    direction that is not three finite numbers, a front parallel to up)."""
+
+
+#: the directions of an object's first view an admin may set (the manifest's ``view``)
+VIEW_FIELDS = ("up", "front")
+#: the least angle between front and up accepted (a smaller one leaves no front to show)
+MIN_FRONT_ANGLE_DEG = 1.0
+
+
+def parse_direction(value: Any, name: str) -> tuple[float, float, float]:
+    """A direction as the admin gives it: three finite numbers ``[x, y, z]`` (JSON), or text
+    ``"x, y, z"`` / ``"x y z"``, or an axis ``+x`` ... ``-z``; not normalised.
+
+    Raises
+    ------
+    FieldError
+        Naming ``name``, the value and what is accepted.
+    """
+    accepted = "three finite numbers [x, y, z] (or text 'x, y, z', or an axis +x ... -z)"
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text in UP_AXES[1:]:
+            axis = [0.0, 0.0, 0.0]
+            axis["xyz".index(text[1])] = 1.0 if text[0] == "+" else -1.0
+            return tuple(axis)
+        parts = text.replace(",", " ").split()
+        try:
+            value = [float(p) for p in parts]
+        except ValueError:
+            raise FieldError(f"{name} must be {accepted}, got {text[:80]!r}") from None
+    if (not isinstance(value, list | tuple) or len(value) != 3
+            or not all(isinstance(c, int | float) and not isinstance(c, bool)
+                       and math.isfinite(c) for c in value)):
+        raise FieldError(f"{name} must be {accepted}, got {value!r:.80}")
+    return tuple(float(c) for c in value)
+
+
+def admin_view(row: Mapping[str, Any]) -> dict[str, Any]:
+    """The manifest ``view`` of the admin's directions stored in the row's ``view`` column."""
+    return {**json.loads(row["view"]), "up_source": "admin", "front_source": "admin"}
+
+
+def orthonormal_view(up: tuple[float, float, float],
+                     front: tuple[float, float, float]) -> dict[str, list[float]]:
+    """``{"up", "front"}`` as unit vectors, ``front`` made perpendicular to ``up`` (its part
+    along ``up`` removed, Gram-Schmidt): ``u = up / |up|``, ``f = (front - (front.u) u) /
+    |front - (front.u) u|``; rounded to 6 decimals like ``fitter.fitting.orient.View``.
+
+    Raises
+    ------
+    FieldError
+        ``up`` or ``front`` of length zero, or ``front`` within
+        :data:`MIN_FRONT_ANGLE_DEG` of ``up`` (naming the field).
+    """
+    length = math.hypot(*up)
+    if not length > 0:
+        raise FieldError(f"up must not be zero, got {list(up)}")
+    if not math.hypot(*front) > 0:
+        raise FieldError(f"front must not be zero, got {list(front)}")
+    u = [c / length for c in up]
+    along = sum(f * c for f, c in zip(front, u, strict=True))
+    rest = [f - along * c for f, c in zip(front, u, strict=True)]
+    if math.hypot(*rest) <= math.sin(math.radians(MIN_FRONT_ANGLE_DEG)) * math.hypot(*front):
+        raise FieldError(f"front must not be parallel to up (at least {MIN_FRONT_ANGLE_DEG:g} "
+                         f"degree apart), got front {list(front)} and up {list(up)}")
+    norm = math.hypot(*rest)
+    return {"up": [round(c, 6) for c in u], "front": [round(c / norm, 6) for c in rest]}
 
 
 class ConflictError(TesseraError):
@@ -299,15 +371,15 @@ class Catalog:
 
     # ----------------------------------------------------------------- objects
     def add_object(self, object_id: str, title: str, *, published: bool = False,
-                   bundle_path: str | None = None, units: str = "",
+                   bundle_path: str | None = None, units: str = "", description: str = "",
                    input_sha256: str | None = None, origin: str = "upload",
                    conn: sqlite3.Connection | None = None) -> None:
         now = time.time()
         (conn or self.conn).execute(
-            "INSERT INTO objects (id, title, published, bundle_path, units, input_sha256, "
-            "origin, created, updated) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (object_id, title, int(published), bundle_path, units, input_sha256, origin, now,
-             now))
+            "INSERT INTO objects (id, title, description, published, bundle_path, units, "
+            "input_sha256, origin, created, updated) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (object_id, title, description, int(published), bundle_path, units, input_sha256,
+             origin, now, now))
 
     def get_object(self, object_id: str) -> dict[str, Any] | None:
         row = self.conn.execute("SELECT * FROM objects WHERE id = ?", (object_id,)).fetchone()
@@ -326,33 +398,46 @@ class Catalog:
                                  "NULL AND bundle_path IS NOT NULL").fetchall()
         return {r["id"]: dict(r) for r in rows}
 
-    #: the metadata an admin may edit, with the longest text accepted
-    EDITABLE = {"title": 200, "description": 10_000, "provenance": 2_000, "licence": 500,
-                "units": 20}
+    #: the metadata an admin may edit, with the longest text accepted (title, description
+    #: and units: the fit options' own limits, ``fitter.fitting.options.OPTIONS``)
+    EDITABLE = {"title": OPTION["title"].maximum,
+                "description": OPTION["description"].maximum, "provenance": 2_000,
+                "licence": 500, "units": OPTION["units"].maximum}
 
     def update_object(self, object_id: str, fields: Mapping[str, Any]) -> None:
-        """Set editable metadata (:data:`EDITABLE`) and/or ``published`` from ``fields``.
+        """Set editable metadata (:data:`EDITABLE`), the first view's ``up`` and ``front``
+        (:data:`VIEW_FIELDS`) and/or ``published`` from ``fields``.
 
         ``fields`` is a mapping (not keyword arguments: any key, ``object_id`` or ``self``
-        included, is a field name to check, never a parameter of this method).
+        included, is a field name to check, never a parameter of this method). ``up`` and
+        ``front`` are read by :func:`parse_direction`; one given alone is paired with the
+        other of the object's current view (:meth:`object_view`); the pair is stored made
+        orthonormal (:func:`orthonormal_view`: ``front`` loses its part along ``up``). An
+        empty or null ``up`` or ``front`` removes the admin's view: the fit's is shown again.
 
         Raises
         ------
         FieldError
             Unknown fields (all of them named), a value that is not text, text too long, an
-            empty title, a ``published`` that is not a boolean.
+            empty title, a ``published`` that is not a boolean, a direction that is not
+            three finite numbers, zero, or a ``front`` parallel to ``up``; one direction
+            given for an object whose bundle has no view to pair it with.
         ConflictError
             Publishing an object that has no bundle yet (or is in the trash).
         KeyError
             No such object.
         """
         unknown = [str(name) for name in fields if name not in self.EDITABLE
-                   and name != "published"]
+                   and name not in VIEW_FIELDS and name != "published"]
         if unknown:
             raise FieldError(f"not editable: {', '.join(repr(n[:80]) for n in unknown[:20])}; "
-                             f"editable fields: {', '.join(self.EDITABLE)}, published")
+                             f"editable fields: {', '.join(self.EDITABLE)}, "
+                             f"{', '.join(VIEW_FIELDS)}, published")
         updates: dict[str, Any] = {}
+        directions = {name: fields[name] for name in VIEW_FIELDS if name in fields}
         for name, value in fields.items():
+            if name in VIEW_FIELDS:
+                continue
             if name == "published":
                 if not isinstance(value, bool):
                     raise FieldError(f"published must be true or false, got {value!r:.80}")
@@ -366,7 +451,11 @@ class Catalog:
                                  f"{self.EDITABLE[name]} are accepted")
             if name == "title" and not value:
                 raise FieldError("title must not be empty")
+            if name in ("title", "units") and any(ord(c) < 32 for c in value):
+                raise FieldError(f"{name} must be one line of text, got {value[:80]!r}")
             updates[name] = value
+        if directions:
+            updates["view"] = self._edited_view(object_id, directions)
         with self.transaction() as conn:
             row = conn.execute("SELECT bundle_path, trash_path FROM objects WHERE id = ?",
                                (object_id,)).fetchone()
@@ -379,6 +468,39 @@ class Catalog:
                 sets = ", ".join(f"{k} = ?" for k in updates)
                 conn.execute(f"UPDATE objects SET {sets}, updated = ? WHERE id = ?",
                              (*updates.values(), time.time(), object_id))
+
+    def _edited_view(self, object_id: str, directions: Mapping[str, Any]) -> str:
+        """The ``view`` column for the directions given (see :meth:`update_object`)."""
+        if any(value is None or (isinstance(value, str) and not value.strip())
+               for value in directions.values()):
+            return ""
+        given = {name: parse_direction(value, name) for name, value in directions.items()}
+        row = self.get_object(object_id)
+        if row is None:
+            raise KeyError(object_id)
+        current = self.object_view(row) or {}
+        missing = [name for name in VIEW_FIELDS if name not in given and name not in current]
+        if missing:
+            raise FieldError(f"{missing[0]} must be given too: object {object_id!r} has no "
+                             "view of its own yet (its fit has not finished, or its bundle "
+                             "predates views)")
+        pair = {name: given.get(name) or tuple(current[name]) for name in VIEW_FIELDS}
+        return json.dumps(orthonormal_view(pair["up"], pair["front"]))
+
+    def object_view(self, row: Mapping[str, Any]) -> dict[str, Any] | None:
+        """The first view of the object ``row`` (a row of :meth:`get_object`): the admin's
+        (``up``, ``front``, with ``up_source`` and ``front_source`` ``"admin"``), else its
+        bundle manifest's ``view``, else None (no bundle, or one without a view)."""
+        if row.get("view"):
+            return admin_view(row)
+        if not row.get("bundle_path"):
+            return None
+        try:
+            bundle = Collection(self.collection).get(row["bundle_path"])
+        except (KeyError, BundleError):
+            return None
+        view = bundle.manifest.get("view")
+        return view if isinstance(view, dict) else None
 
     def set_trash(self, object_id: str, trash_path: str | None) -> None:
         """Mark an object trashed (unpublishing it) or, with None, restored."""
@@ -531,6 +653,7 @@ def adopt_bundles(catalog: Catalog, publish: bool) -> list[str]:
         with catalog.transaction() as conn:
             catalog.add_object(bundle.id, bundle.title, published=publish,
                                bundle_path=bundle.id, units=str(bundle.manifest.get("units", "")),
+                               description=str(bundle.manifest.get("description") or ""),
                                input_sha256=provenance.get("sha256"), origin="adopted",
                                conn=conn)
         added.append(bundle.id)
@@ -552,17 +675,34 @@ class ThreadCatalogs:
         return catalog
 
 
+@dataclass(frozen=True)
+class CatalogBundle(Bundle):
+    """A bundle of a managed collection with the catalog's metadata laid over its manifest
+    (:meth:`PublishedCollection.overlay`): the manifest a visitor is served (``manifest``)
+    differs from ``manifest.json`` on disk in the fields the admin edits, so the server
+    sends this one (``fitter.server.bundles``)."""
+
+
 class PublishedCollection(Collection):
-    """A managed collection as the public sees it: published objects only, catalog titles."""
+    """A managed collection as the public sees it: published objects only, with the
+    catalog's title, description, units and view (the admin's edits after the fit)."""
 
     def __init__(self, root: Path, catalogs: ThreadCatalogs) -> None:
         super().__init__(root)
         self.catalogs = catalogs
 
     def _overlay(self, bundle: Bundle, row: dict[str, Any]) -> Bundle:
+        """``bundle`` with the catalog row's ``title``, ``description``, ``units`` (when
+        set: ``""`` keeps the manifest's) and ``view`` (the admin's, when set: both ``up``
+        and ``front``, sources ``"admin"``)."""
         manifest = dict(bundle.manifest)
         manifest["title"] = row["title"]
-        return Bundle(bundle.id, bundle.path, manifest)
+        manifest["description"] = row.get("description") or ""
+        if row.get("units"):
+            manifest["units"] = row["units"]
+        if row.get("view"):
+            manifest["view"] = admin_view(row)
+        return CatalogBundle(bundle.id, bundle.path, manifest)
 
     def bundles(self) -> list[Bundle]:
         published = self.catalogs.get().published()

@@ -23,6 +23,24 @@ from ..collection.bundles import Bundle, BundleError
 bp = Blueprint("api", __name__, url_prefix="/api")
 
 
+def scan_size(provenance: dict[str, Any]) -> dict[str, Any]:
+    """What the scan behind a bundle weighs: ``{"bytes", "points", "files"}``.
+
+    ``bytes`` is the sum over every file the fit read (``provenance.files``: a ``.conf``
+    registration and each of its range scans, an OBJ and its material and texture), else
+    ``provenance.bytes`` (one file, or a bundle written before ``files``; a ``.conf``'s own
+    ``bytes`` are its text alone); ``points`` is ``provenance.points``; either None when
+    the manifest does not say.
+    """
+    files = provenance.get("files")
+    sizes = ([f.get("bytes") for f in files if isinstance(f, dict)]
+             if isinstance(files, list) else [])
+    counted = [b for b in sizes if isinstance(b, int) and not isinstance(b, bool) and b >= 0]
+    total = sum(counted) if counted else provenance.get("bytes")
+    return {"bytes": total, "points": provenance.get("points"),
+            "files": len(counted) if counted else (1 if total is not None else None)}
+
+
 def object_summary(bundle: Bundle) -> dict[str, Any]:
     """The public description of one object (used by the API and the gallery)."""
     sizes = bundle.file_sizes()
@@ -30,6 +48,7 @@ def object_summary(bundle: Bundle) -> dict[str, Any]:
     return {
         "id": bundle.id,
         "title": bundle.title,
+        "description": str(bundle.manifest.get("description") or ""),
         "viewer_url": url_for("objects.viewer", object_id=bundle.id),
         "hop_url": url_for("objects.hop", object_id=bundle.id),
         "thumbnail_url": url_for("objects.thumbnail", object_id=bundle.id),
@@ -46,6 +65,7 @@ def object_summary(bundle: Bundle) -> dict[str, Any]:
         "degree": base.get("degree"),
         "stats": bundle.stats,
         "provenance": bundle.provenance,
+        "scan": scan_size(bundle.provenance),
     }
 
 

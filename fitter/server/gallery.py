@@ -10,6 +10,17 @@ from .api import object_summary
 bp = Blueprint("gallery", __name__)
 
 
+@bp.app_template_filter("byte_size")
+def byte_size(n: int | None) -> str:
+    """``n`` bytes as the pages write them: ``B`` below 1 KiB, ``KB`` below 1 MiB, else ``MB``
+    (binary multiples, one decimal; ``formatBytes`` of web/src/page.js); ``—`` for None."""
+    if n is None:
+        return "—"
+    if n < 1024:
+        return f"{n} B"
+    return f"{n / 1024:.1f} KB" if n < 1024 * 1024 else f"{n / 1024 / 1024:.1f} MB"
+
+
 @bp.get("/")
 def index() -> ResponseReturnValue:
     """Cards with title, thumbnail, bundle size and fit error of every object."""

@@ -4,8 +4,8 @@
 visitor's browser by ``client_py`` under Pyodide, in a Web Worker);
 ``/objects/<id>/3dhop`` shows the same client-made mesh in 3DHOP;
 ``/objects/<id>/thumbnail.png`` is a small server-side rendering for the gallery, cached
-per version of the base file (failures too: a bad patch is a quick 404 after the first try;
-see :mod:`fitter.server.thumbnail`).
+per version of the base file and of the view (failures too: a bad patch is a quick 404
+after the first try; see :mod:`fitter.server.thumbnail`).
 
 Every URL the pages need is computed here and handed to them in a JSON block:
 the front end never builds or hard-codes a URL.
@@ -13,6 +13,8 @@ the front end never builds or hard-codes a URL.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from typing import Any
 
 from flask import Blueprint, Response, abort, current_app, render_template, request, url_for
@@ -128,13 +130,16 @@ def thumbnail(object_id: str) -> ResponseReturnValue:
         stat = (bundle.path / name).stat()
     except OSError:
         abort(404, description=f"object {object_id!r} has no {name}")
-    version = (str(bundle.path), name, stat.st_mtime_ns, stat.st_size, stat.st_ino)
+    # the view is part of the version: the admin may turn the object after its fit
+    view = hashlib.sha256(json.dumps(bundle.manifest.get("view"), sort_keys=True).encode())
+    version = (str(bundle.path), name, stat.st_mtime_ns, stat.st_size, stat.st_ino,
+               view.hexdigest())
     made = current_app.extensions["tessera_thumbnails"].get(version,
                                                             lambda: thumbnail_of(bundle))
     if made.png is None:
         abort(404, description=f"object {object_id!r} has no thumbnail: {made.error}")
     response = Response(made.png, mimetype="image/png")
-    response.set_etag(f"{stat.st_mtime_ns:x}-{stat.st_size:x}-thumb")
+    response.set_etag(f"{stat.st_mtime_ns:x}-{stat.st_size:x}-{view.hexdigest()[:12]}-thumb")
     response.cache_control.public = True
     response.cache_control.max_age = 3600
     return response.make_conditional(request)

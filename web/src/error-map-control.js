@@ -1,9 +1,13 @@
-// ErrorMapControl: the viewer's "Error map" button and legend over the bundle's fit-error grid
-// (manifest.error_grid, read by ErrorMap). A bundle without a grid, or with a malformed one,
-// leaves the button disabled (its title says why); pressed, it lays the grid's colours over
-// the base and shows the legend. A base PLY written while it is shown takes its colours.
+// ErrorMapControl: the viewer's "Error map" button and legend over the bundle's fit error
+// (manifest.error_raster, read by ErrorMap: the largest distance to the scan near each vertex,
+// interpolated per vertex). A bundle without one, or with a malformed one, leaves the button
+// disabled (its title says why); pressed, it lays the map's colours over the base and shows
+// the legend: the colour scale from 0 to the map's max in the bundle's units — the fitter
+// writes the statistics' max there, so the legend ends at the panel's "max" (FactsPanel, the
+// same formatLength) — and the colour of no scan point (holes, uncovered parts). A base PLY
+// written while it is shown takes its colours.
 
-import { ErrorMap } from "./error-map.js";
+import { cssColor, ErrorMap, HOLE_COLOR } from "./error-map.js";
 import { $, formatLength } from "./page.js";
 
 export class ErrorMapControl {
@@ -15,17 +19,16 @@ export class ErrorMapControl {
     this.viewer = viewer;
     this.button = $("toggle-error");
     this.errorMap = null;
-    const units = manifest.units || "";
-    if (manifest.error_grid) {
-      try {
-        this.errorMap = new ErrorMap(manifest.error_grid, units);
-      } catch (error) { // a malformed grid: no error map, said so on the button
-        this.button.title = error.message;
-      }
+    try {
+      this.errorMap = ErrorMap.fromManifest(manifest);
+    } catch (error) { // a malformed map: no error map, said so on the button
+      this.button.title = error.message;
     }
     if (this.errorMap) {
       $("legend-bar").style.background = this.errorMap.cssGradient();
-      $("legend-max").textContent = formatLength(this.errorMap.max, units);
+      $("legend-max").textContent = formatLength(this.errorMap.max, manifest.units || "unknown");
+      $("legend-what").textContent = this.errorMap.statistic;
+      $("legend-hole-swatch").style.background = cssColor(HOLE_COLOR);
       this.button.disabled = false;
     }
     this.button.addEventListener("click", () => this.toggle());
@@ -39,8 +42,7 @@ export class ErrorMapControl {
   toggle() {
     const on = !this.shown && this.errorMap !== null;
     this.button.setAttribute("aria-pressed", String(on));
-    const map = this.errorMap;
-    this.viewer.setErrorOverlay(on ? { rgba: map.rgba(), cols: map.cols, rows: map.rows } : null);
+    this.viewer.setErrorOverlay(on ? this.errorMap.rgba() : null);
     $("legend").hidden = !on;
   }
 

@@ -1,8 +1,9 @@
 // FactsPanel: the viewer's information panel (the #fact-* entries of templates/viewer.html):
-// what the bundle is (units, sizes, surface, fit error, source), the base mesh on screen,
-// the detail tiles shown, and the bytes: what this visit transferred and what the object
-// costs (showTransfer, from a TransferTally's summary). It only writes text; the numbers come
-// from the manifest, the worker's reply, window.tessera.stats and the Resource Timing API.
+// what the bundle is (units, sizes, surface, fit error; the source is the server's), the base
+// mesh on screen, the detail tiles shown, and the bytes: what this visit transferred and
+// what the object costs (showTransfer, from a TransferTally's summary). It only writes text;
+// the numbers come from the manifest, the worker's reply, window.tessera.stats and the
+// Resource Timing API.
 
 import { $, formatBytes, formatLength } from "./page.js";
 
@@ -30,10 +31,8 @@ export class FactsPanel {
       `${ready.patch.degree.join(", ")}` + (ready.patch.rational ? ", rational" : ""));
     this.set("fact-rms", formatLength(fit.rms, units));
     this.set("fact-max", formatLength(fit.max, units));
-    if (manifest.provenance && manifest.provenance.points) {
-      this.set("fact-source", `${manifest.provenance.points.toLocaleString("en")} scan points` +
-        (manifest.provenance.bytes ? `, ${formatBytes(manifest.provenance.bytes)}` : ""));
-    }
+    // fact-source (the scan's points and the bytes of every file the fit read, a .conf's
+    // range scans included) is written by the server: fitter.server.api.scan_size
   }
 
   /**

@@ -184,8 +184,8 @@ async function main() {
     frame = await worker.tessellate(resolution);
     stats.tessellate_ms = frame.tessellate_ms;
     if (useColors) {
-      if (!manifest.error_grid) throw new Error("this bundle has no error data to colour the mesh with");
-      const errorMap = new ErrorMap(manifest.error_grid, manifest.units || "");
+      const errorMap = ErrorMap.fromManifest(manifest);
+      if (!errorMap) throw new Error("this bundle has no error data to colour the mesh with");
       colors = errorMap.vertexColors(frame.uvs, ready.patch.domain);
     }
     ply = await worker.ply(resolution, colors);

@@ -10,7 +10,9 @@
 ``POST /admin/api/jobs/<id>/cancel``       stop it (a running fit's process is killed)
 ``POST /admin/api/jobs/<id>/retry``        re-queue a failed, interrupted or cancelled job
 ``GET  /admin/api/objects``                every object of the catalog (``?trash=1``: trash)
-``GET|PATCH|DELETE /admin/api/objects/<id>``  read; edit metadata / ``published``; trash
+``GET|PATCH|DELETE /admin/api/objects/<id>``  read; edit metadata (title, description,
+                                           units, ..., ``up``/``front`` ``[x, y, z]``) /
+                                           ``published``; trash
 ``POST /admin/api/objects/<id>/restore``   out of the trash
 =========================================  ===================================================
 """
@@ -104,7 +106,7 @@ def api_object(object_id: str) -> ResponseReturnValue:
     row = catalog.get_object(object_id)
     if row is None:
         return api_error(f"no object {object_id!r}", 404)
-    return object_json(catalog, row)
+    return object_json(catalog, row, with_view=True)
 
 
 @bp.patch("/api/objects/<object_id>")
@@ -122,7 +124,7 @@ def api_edit_object(object_id: str) -> ResponseReturnValue:
         return api_error(str(exc), 400)
     except ConflictError as exc:
         return api_error(str(exc), 409)
-    return object_json(catalog, catalog.get_object(object_id))
+    return object_json(catalog, catalog.get_object(object_id), with_view=True)
 
 
 def _move(object_id: str, move) -> ResponseReturnValue:

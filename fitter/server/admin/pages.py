@@ -19,7 +19,7 @@ from flask import (
 )
 from flask.typing import ResponseReturnValue
 
-from ...collection.catalog import ConflictError, FieldError, adopt_bundles
+from ...collection.catalog import VIEW_FIELDS, ConflictError, FieldError, adopt_bundles
 from ...collection.trash import restore_object, trash_object
 from ...collection.uploads import UploadError
 from ...fitting.options import FORM_GROUPS, form_fields
@@ -150,6 +150,20 @@ def _object_or_404(object_id: str) -> dict[str, Any]:
     return object_json(catalog, row)
 
 
+def _direction_text(vector: list[float] | None) -> str:
+    """A direction as the edit form shows it (``"0, 1, 0"``; ``""`` for none), which
+    ``fitter.collection.catalog.parse_direction`` reads back."""
+    return "" if vector is None else ", ".join(f"{c:.6g}" for c in vector)
+
+
+def _view_texts(object_id: str) -> dict[str, Any]:
+    """The object's first view for the form: ``up``/``front`` as text and their sources."""
+    catalog = state().catalog()
+    view = catalog.object_view(catalog.get_object(object_id) or {}) or {}
+    return {name: _direction_text(view.get(name)) for name in VIEW_FIELDS} | {
+        "source": view.get("up_source")}
+
+
 @bp.route("/objects/<object_id>", methods=["GET", "POST"])
 def edit_object(object_id: str) -> ResponseReturnValue:
     obj = _object_or_404(object_id)
@@ -157,6 +171,11 @@ def edit_object(object_id: str) -> ResponseReturnValue:
     if request.method == "POST":
         fields = {k: request.form.get(k, "") for k in ("title", "description", "provenance",
                                                        "licence", "units")}
+        shown = _view_texts(object_id)
+        # a direction is sent only when the admin changed its text: saving the title does
+        # not turn the fit's view into the admin's
+        fields |= {name: request.form[name] for name in VIEW_FIELDS
+                   if name in request.form and request.form[name].strip() != shown[name]}
         try:
             state().catalog().update_object(object_id, fields)
         except FieldError as exc:
@@ -167,7 +186,8 @@ def edit_object(object_id: str) -> ResponseReturnValue:
     jobs = [j.public() for j in state().catalog().jobs_of(object_id)]
     viewer_url = url_for("objects.viewer", object_id=object_id) if obj["published"] else None
     return render_template("admin_object.html", obj=obj, jobs=jobs, error=error,
-                           viewer_url=viewer_url), (400 if error else 200)
+                           viewer_url=viewer_url, view=_view_texts(object_id),
+                           limits=state().catalog().EDITABLE), (400 if error else 200)
 
 
 @bp.post("/objects/<object_id>/publish")

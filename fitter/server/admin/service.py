@@ -66,7 +66,8 @@ def accept_upload(catalog: Catalog, environ: dict[str, Any], limits: UploadLimit
     object_id = new_object_id(title)
     stored = prepared.scan_path.relative_to(state_dir(catalog.collection)).as_posix()
     with catalog.transaction() as conn:
-        catalog.add_object(object_id, title, conn=conn)
+        catalog.add_object(object_id, title, description=options.get("description") or "",
+                           units=options.get("units") or "", conn=conn)
         upload_id = catalog.add_upload(conn, object_id, original, stored, received.bytes,
                                        received.sha256, prepared.format
                                        + (f"+{prepared.compression}"
@@ -75,11 +76,14 @@ def accept_upload(catalog: Catalog, environ: dict[str, Any], limits: UploadLimit
     return job_id, object_id
 
 
-def object_json(catalog: Catalog, row: dict[str, Any]) -> dict[str, Any]:
-    """An object of the catalog with its latest job, as the admin API returns it."""
+def object_json(catalog: Catalog, row: dict[str, Any], with_view: bool = False) -> dict[str, Any]:
+    """An object of the catalog with its latest job, as the admin API returns it; with
+    ``with_view``, its first ``view`` too (the admin's or its bundle's, ``Catalog.object_view``:
+    one manifest read, so not for lists)."""
     jobs = catalog.jobs_of(row["id"])
     return {**{k: row[k] for k in ("id", "title", "description", "provenance", "licence",
                                    "units", "input_sha256", "origin", "created", "updated")},
             "published": bool(row["published"]), "has_bundle": bool(row["bundle_path"]),
             "trashed": bool(row["trash_path"]),
-            "job": jobs[0].public() if jobs else None}
+            "job": jobs[0].public() if jobs else None,
+            **({"view": catalog.object_view(row)} if with_view else {})}
