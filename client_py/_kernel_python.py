@@ -357,10 +357,17 @@ def add_level(total: array, n_cols: int, blocks: Sequence[tuple]) -> None:
     """
     if not blocks:
         return
-    if len(blocks) == 1 and blocks[0][2:4] == (0, n_cols):  # whole rows: no assembly
-        r0, r1, _, _, values = blocks[0]
-        lo, hi = r0 * n_cols, r1 * n_cols
-        total[lo:hi] = array("d", map(add, total[lo:hi], values))
+    if len(blocks) == 1:  # one block (a region's tile of a level): added row by row
+        r0, r1, c0, c1, values = blocks[0]
+        if (c0, c1) == (0, n_cols):  # whole rows: at once
+            lo, hi = r0 * n_cols, r1 * n_cols
+            total[lo:hi] = array("d", map(add, total[lo:hi], values))
+            return
+        width = c1 - c0
+        for a in range(r1 - r0):
+            start = (r0 + a) * n_cols + c0
+            total[start : start + width] = array(
+                "d", map(add, total[start : start + width], values[a * width : (a + 1) * width]))
         return
     level = array("d", bytes(8 * len(total)))
     for r0, r1, c0, c1, values in reversed(blocks):

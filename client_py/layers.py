@@ -662,6 +662,35 @@ def _texture_blocks(by_level: dict[int, dict[tuple[int, int], TextureImage]],
     return blocks
 
 
+def is_rigid_motion(matrix: Sequence[Sequence[float]] | None, tolerance: float = 1e-9) -> bool:
+    """Whether ``x -> A x + b`` (``matrix``: 3x4 or 4x4 rows) is a rotation and a shift:
+    ``|A^T A - I| <= tolerance`` entrywise and ``det A > 0``.
+
+    Such a map commutes with a displacement along the unit normal
+    (``A (S + D n) + b = (A S + b) + D (A n)`` and ``A n`` is the unit normal of
+    the mapped surface, with the same orientation), so a region can be made on
+    the mapped patch directly instead of mapping its mesh (:func:`transform_mesh`);
+    the two agree to rounding. ``None`` (no map) is not one.
+    """
+    if matrix is None:
+        return False
+    try:
+        a = [[float(x) for x in row[:3]] for row in list(matrix)[:3]]
+    except (TypeError, ValueError):
+        return False
+    if len(a) != 3 or any(len(row) != 3 for row in a):
+        return False
+    for r in range(3):
+        for c in range(3):
+            dot = sum(a[k][r] * a[k][c] for k in range(3))
+            if not abs(dot - (1.0 if r == c else 0.0)) <= tolerance:
+                return False
+    det = (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+           - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+           + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+    return det > 0.0
+
+
 def transform_mesh(mesh: Mesh, matrix: Sequence[Sequence[float]],
                    kernel: str | None = None) -> Mesh:
     """``mesh`` under the affine map ``x -> A x + b`` (``matrix``: 3x4 or 4x4 rows).

@@ -34,6 +34,7 @@ from .format import read_detail_tile, read_patch
 from .layers import (
     DetailTile,
     TextureImage,
+    is_rigid_motion,
     mesh_of_region,
     sample_region,
     tile_rect,
@@ -86,6 +87,7 @@ class WorkerSession:
         self._kernel = kernel
         self._patch: NurbsSurface | None = None  # own frame: detail displaces along *its* normal
         self._scan: NurbsSurface | None = None  # the patch in the scan frame
+        self._rigid = False  # the map to the scan frame is a rotation and a shift
         self._source = ""
         self._tiles: dict[str, DetailTile] = {}  # bundle file name -> tile handed over
         self._manifest: dict | None = None
@@ -128,6 +130,7 @@ class WorkerSession:
         (u0, u1), (v0, v1) = patch.domain
         lo, hi = scan.bounding_box()
         self._patch, self._scan, self._source = patch, scan, str(source)
+        self._rigid = is_rigid_motion(patch.metadata.get("transform"))
         self._tiles.clear()
         self._last = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
@@ -183,7 +186,10 @@ class WorkerSession:
     def region_mesh(self, level: int, i: int, j: int, grid: int, names: Iterable[str],
                     skirt_depth: float) -> Mesh:
         """Quadtree node ``(level, i, j)`` on a ``grid x grid`` mesh with the named tiles,
-        skirts on its inner borders (:func:`client_py.skirts.hang_skirts`), scan frame.
+        skirts on its inner borders (:func:`client_py.skirts.hang_skirts`), scan frame:
+        ``transform_mesh(hang_skirts(tessellate_region(patch, ...), ...), transform)``, made
+        on the scan-frame patch when the transform is a rigid motion
+        (:func:`client_py.layers.is_rigid_motion`: equal to rounding, float32).
 
         Raises
         ------
@@ -202,12 +208,19 @@ class WorkerSession:
                                  f"{level}/{i}_{j}")
             tiles.append(tile)
         rect = tile_rect(level, i, j)
+        # A rigid map to the scan frame (the fitter's: a rotation and a shift) commutes with
+        # the displacement along the unit normal: the region is made on the scan-frame patch
+        # directly (no pass over its vertices to map them; the same mesh to rounding). Any
+        # other map is applied to the patch-frame mesh.
+        surface = self._scan if self._rigid else patch
         # the base and the level fields sampled once, for the region's grid and its skirts
-        samples = sample_region(patch, rect, grid, grid, tiles, self._kernel)
-        mesh = mesh_of_region(patch, samples, tiles, self._kernel)
-        mesh = hang_skirts(mesh, patch, rect, grid, tiles, skirt_depth, self._kernel, samples)
+        samples = sample_region(surface, rect, grid, grid, tiles, self._kernel)
+        mesh = mesh_of_region(surface, samples, tiles, self._kernel)
+        mesh = hang_skirts(mesh, surface, rect, grid, tiles, skirt_depth, self._kernel, samples)
         matrix = patch.metadata.get("transform")
-        return mesh if matrix is None else transform_mesh(mesh, matrix, self._kernel)
+        if matrix is None or self._rigid:
+            return mesh
+        return transform_mesh(mesh, matrix, self._kernel)
 
     def read_manifest(self, text: str) -> None:
         """Keep the bundle's ``manifest.json`` (its text) for the level methods.

@@ -427,3 +427,105 @@ def test_the_worker_javascript_holds_no_python():
     worker = (PROJECT_ROOT / "web" / "src" / "mesh-worker.js").read_text()
     assert 'pyodide.pyimport("client_py.session")' in worker
     assert "runPython" not in worker
+
+
+# --- the fast region path (issue 14) ---------------------------------------------------------
+
+#: a rigid map to the scan frame, as the fitter writes: a rotation (about an oblique axis) and
+#: a shift far from the origin
+RIGID = [[0.818328576, 0.537805074, -0.202741324, 249.841619],
+         [-0.574725941, 0.762419829, -0.297331628, -40.6558272],
+         [-0.00533245283, 0.359835666, 0.933000460, 1201.01985],
+         [0.0, 0.0, 0.0, 1.0]]
+
+
+def _orthonormal(matrix):
+    """``matrix`` with its 3x3 part made orthonormal to float64 precision (its polar part)."""
+    a = np.array(matrix, dtype=float)
+    u, _, vt = np.linalg.svd(a[:3, :3])
+    a[:3, :3] = u @ vt
+    return a.tolist()
+
+
+def _random_tiles(rng, node, spans=SPANS):
+    """Random tiles for every level of the chain of ``node`` (the region's own included)."""
+    level, i, j = node
+    return [DetailTile(k, i >> (level - k), j >> (level - k), DEGREE, spans, 2.0**-7,
+                       tuple(int(x) for x in rng.integers(-60, 61, (spans + DEGREE) ** 2)))
+            for k in range(level + 1)]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_region_mesh_on_the_scan_frame_patch_equals_the_reference(seed):
+    """With a rigid transform the session makes the region on the scan-frame patch: the same
+    mesh as mapping the patch-frame one (the reference path), to float32 rounding, and the
+    grid vertices are ``S + sum D_k n`` evaluated point by point (NurbsSurface.evaluate and
+    .normal, DetailTile.evaluate: none of the grid kernels)."""
+    from client_py.layers import is_rigid_motion
+
+    rng = np.random.default_rng(seed)
+    rigid = _orthonormal(RIGID)
+    assert is_rigid_motion(rigid) and not is_rigid_motion(TRANSFORM)
+    base = _base_patch()
+    patch = NurbsSurface(base.degree, base.knots, base.control_points, base.weights,
+                         trim=base.trim, metadata={"units": "mm", "transform": rigid})
+    session = WorkerSession("python")
+    session.load_patch(write_patch(patch), "base.tsp")
+    patch = read_patch(write_patch(patch))  # as the session holds it (quantised)
+    level = 2
+    node = (level, int(rng.integers(0, 4)), int(rng.integers(0, 4)))
+    tiles = _random_tiles(rng, node)
+    names = []
+    for tile in tiles:
+        name = f"detail/{tile.level}/{tile.i}_{tile.j}.tsd"
+        session.add_tile(name, write_detail_tile(tile))
+        names.append(name)
+    tiles = [session._tiles[name] for name in names]
+    n, depth = 9, 0.05
+    mesh = session.region_mesh(*node, n, names, depth)
+    rect = tile_rect(*node)
+    reference = transform_mesh(hang_skirts(tessellate_region(patch, rect, n, n, tiles), patch,
+                                           rect, n, tiles, depth), rigid)
+    assert mesh.vertex_count == reference.vertex_count
+    assert mesh.indices == reference.indices and mesh.uvs == reference.uvs
+    positions = np.array(mesh.positions).reshape(-1, 3)
+    expected = np.array(reference.positions).reshape(-1, 3)
+    scale = np.abs(expected).max()
+    assert np.abs(positions - expected).max() <= 1e-6 * scale
+    normals = np.array(mesh.normals).reshape(-1, 3)
+    assert np.abs(normals - np.array(reference.normals).reshape(-1, 3)).max() <= 1e-6
+    # the grid vertices, point by point, in the scan frame
+    (a0, a1), (b0, b1) = patch.domain
+    a = np.array(rigid)
+    for k, (s, t) in enumerate(np.array(mesh.uvs[: 2 * n * n]).reshape(-1, 2)):
+        s, t = float(np.float32(s)), float(np.float32(t))
+        u0, v0, u1, v1 = rect
+        s = min(max(s, u0), u1)
+        t = min(max(t, v0), v1)
+        u, v = a0 + (a1 - a0) * s, b0 + (b1 - b0) * t
+        shift = sum(tile.evaluate(s, t) for tile in tiles)
+        point = np.array(patch.evaluate(u, v)) + shift * np.array(patch.normal(u, v))
+        point = a[:3, :3] @ point + a[:3, 3]
+        assert np.abs(positions[k] - point).max() <= 1e-5 * scale, k
+
+
+def test_skirts_from_the_samples_equal_skirts_evaluated_again():
+    """hang_skirts given the region's samples (as the session passes them) makes the same
+    walls, bit for bit, as evaluating the base and the tiles along the borders afresh."""
+    from client_py.layers import mesh_of_region, sample_region
+
+    rng = np.random.default_rng(5)
+    surface = _base_patch()
+    for node in [(2, 1, 2), (1, 0, 1), (2, 3, 0)]:
+        tiles = _random_tiles(rng, node)
+        rect = tile_rect(*node)
+        samples = sample_region(surface, rect, 9, 9, tiles)
+        fast = hang_skirts(mesh_of_region(surface, samples, tiles), surface, rect, 9, tiles,
+                           0.05, samples=samples)
+        slow = hang_skirts(tessellate_region(surface, rect, 9, 9, tiles), surface, rect, 9,
+                           tiles, 0.05)
+        for field in ("positions", "normals", "uvs", "indices"):
+            assert getattr(fast, field) == getattr(slow, field), (node, field)
+    with pytest.raises(ValueError, match=r"samples are of a 9x9 grid over .* not of the 5x5"):
+        hang_skirts(tessellate_region(surface, rect, 5, 5, tiles), surface, rect, 5, tiles,
+                    0.05, samples=samples)
