@@ -5,6 +5,15 @@ docs/format.md, "Tiles"). :func:`plan_level` is the one rule for "level ``L``
 everywhere": the detail tile files (levels ``0..L``), the texture tiles its
 vertex colours come from and the grid it is tessellated on;
 :func:`plan_levels` lists the levels a viewer offers for download.
+
+Two manifest versions are read by the same functions, dispatched on
+``format_version`` (:func:`manifest_version`; another version is a
+:class:`ManifestError` naming it): version 1, one patch ``base.tsp`` with its
+quadtree of ``.tsd`` tiles; version 2, an *atlas* (``client_py.atlas``) ``base.tsa``
+whose detail tiles travel in packs ``detail/K/G.tsdp``, one per level ``K`` and group
+``G`` of neighbouring patches (``client_py.atlas_detail``; docs/format.md, "Bundle
+manifest, version 2"). Level ``L`` of an atlas is every pack of levels ``0..L`` on
+:func:`atlas_resolution` samples per patch side, the one rule of its grid.
 :func:`write_level_ply` makes that PLY from the decoded patch, tiles and
 texture images, for ``tessera tessellate BUNDLE --level L`` and for the
 browser's worker session (:mod:`client_py.session`) alike, so both write the
@@ -16,9 +25,13 @@ from __future__ import annotations
 
 import math
 import reprlib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
+from .atlas import MAX_ATLAS_QUADS, AtlasSurface
+from .atlas_detail import pack_name, read_pack
+from .atlas_format import read_atlas
+from .atlas_mesh import tessellate_atlas
 from .errors import PatchFormatError
 from .format import read_detail_tile, read_patch
 from .layers import (
@@ -35,10 +48,15 @@ from .tessellate import Mesh
 
 PLY_MAX_RESOLUTION = 1025  # a level-L PLY's grid is capped here (about a million vertices)
 BASE_RESOLUTION = 256  # the grid of the base alone (level -1), as ``tessera tessellate`` makes it
-BASE_FILE = "base.tsp"  # the one name a manifest's ``base.file`` may give
+BASE_FILE = "base.tsp"  # the one name a version-1 manifest's ``base.file`` may give
+ATLAS_BASE_FILE = "base.tsa"  # the one name a version-2 (atlas) manifest's ``base.file`` may give
+MANIFEST_VERSIONS = (1, 2)  # 1: one patch; 2: an atlas
+#: samples per patch side of an atlas level: ``min(129, 2 m 2^k + 1)`` (atlas_resolution)
+ATLAS_MAX_RESOLUTION = 129
 TEXTURE_EXTENSIONS = ("webp", "png")
 _NAMING = ("relative POSIX paths inside the bundle, as the fitter writes them: base.tsp, "
-           "detail/K/I_J.tsd, texture/K/I_J.webp or .png")
+           "detail/K/I_J.tsd, texture/K/I_J.webp or .png; in an atlas base.tsa and "
+           "detail/K/G.tsdp")
 
 
 class ManifestError(PatchFormatError):
@@ -101,8 +119,9 @@ def _optional_number(value: object, where: str) -> float | int | None:
 def check_file_name(name: object, where: str) -> str:
     """``name`` if it names a file inside the bundle; else :class:`ManifestError`.
 
-    Accepted: ``base.tsp``, ``detail/K/I_J.tsd`` and ``texture/K/I_J.webp|png``
-    (decimal ``K, I, J`` without leading zeros) — so no absolute path, no ``..``,
+    Accepted: ``base.tsp``, ``detail/K/I_J.tsd`` and ``texture/K/I_J.webp|png``; of an
+    atlas, ``base.tsa`` and ``detail/K/G.tsdp`` (decimal ``K, I, J, G`` without leading
+    zeros) — so no absolute path, no ``..``,
     no backslash or NUL, and a reader that joins the name to the bundle's folder or
     URL stays inside it.
     """
@@ -115,7 +134,8 @@ def check_file_name(name: object, where: str) -> str:
         problem = "climbs out of the bundle ('..')"
     elif "\\" in name or "\0" in name:
         problem = "holds a backslash or NUL"
-    elif name == BASE_FILE or _tile_name_parts(name) is not None:
+    elif name in (BASE_FILE, ATLAS_BASE_FILE) or _tile_name_parts(name) is not None \
+            or pack_name_parts(name) is not None:
         return name
     else:
         problem = "is not a bundle file name"
@@ -138,6 +158,40 @@ def _tile_name_parts(name: str) -> tuple[str, int, int, int, str] | None:
     return parts[0], int(parts[1]), int(i), int(j), ext
 
 
+def _decimal(text: str) -> bool:
+    return text.isdigit() and text.isascii() and (text == "0" or text[0] != "0")
+
+
+def pack_name_parts(name: str) -> tuple[int, int] | None:
+    """``(K, G)`` of a pack name ``detail/K/G.tsdp`` (``client_py.atlas_detail.pack_name``),
+    or ``None``."""
+    parts = name.split("/")
+    if len(parts) != 3 or parts[0] != "detail" or not parts[2].endswith(".tsdp"):
+        return None
+    level, group = parts[1], parts[2][: -len(".tsdp")]
+    if not (_decimal(level) and _decimal(group)):
+        return None
+    return int(level), int(group)
+
+
+def manifest_version(manifest: dict) -> int:
+    """``manifest["format_version"]``: 1 (one patch; also when absent) or 2 (an atlas).
+
+    Raises
+    ------
+    ManifestError
+        Not a JSON object, or a version this reader does not know (named in the message).
+    """
+    if not isinstance(manifest, dict):
+        raise ManifestError("manifest", f"must be a JSON object, got {_shown(manifest)}")
+    version = manifest.get("format_version", 1)
+    if not _is_int(version) or version not in MANIFEST_VERSIONS:
+        raise ManifestError("format_version", f"{_shown(version)} is not a version this "
+                            f"reader knows: {', '.join(map(str, MANIFEST_VERSIONS))} (1: one "
+                            "patch, 2: an atlas)")
+    return version
+
+
 def _tiles(manifest: dict) -> dict:
     if not isinstance(manifest, dict):
         raise ManifestError("manifest", f"must be a JSON object, got {_shown(manifest)}")
@@ -149,13 +203,13 @@ def _detail(manifest: dict) -> dict:
 
 
 def base_file(manifest: dict) -> str:
-    """The base patch's file name: ``manifest["base"]["file"]``, default ``base.tsp``;
-    any other name is refused (:class:`ManifestError`)."""
-    if not isinstance(manifest, dict):
-        raise ManifestError("manifest", f"must be a JSON object, got {_shown(manifest)}")
-    name = _mapping(manifest.get("base"), "base").get("file", BASE_FILE)
-    if check_file_name(name, "base.file") != BASE_FILE:
-        raise ManifestError("base.file", f"{name!r} is not {BASE_FILE!r}, the base's one name")
+    """The base's file name: ``manifest["base"]["file"]``, default ``base.tsp`` (version 1)
+    or ``base.tsa`` (version 2, an atlas); any other name is refused (:class:`ManifestError`)."""
+    expected = ATLAS_BASE_FILE if manifest_version(manifest) == 2 else BASE_FILE
+    name = _mapping(manifest.get("base"), "base").get("file", expected)
+    if check_file_name(name, "base.file") != expected:
+        raise ManifestError("base.file", f"{name!r} is not {expected!r}, the base's one name "
+                            f"in a version-{manifest_version(manifest)} manifest")
     return name
 
 
@@ -281,6 +335,193 @@ def level_resolution(spans_per_tile: int, level: int) -> int:
     return min(PLY_MAX_RESOLUTION, 2 * spans_per_tile * 2**level + 1)
 
 
+# ------------------------------------------------------------------ version 2: an atlas
+@dataclass(frozen=True)
+class AtlasGroup:
+    """A group of neighbouring atlas patches: ``first .. first + count - 1``, the unit of
+    the viewer's refinement (one pack per level), with its bounding sphere (scan frame)."""
+
+    first: int
+    count: int
+    center: tuple[float, float, float]
+    radius: float
+
+
+@dataclass(frozen=True)
+class AtlasTiles:
+    """The checked ``base`` and ``tiles`` of a version-2 manifest (:func:`atlas_tiles`).
+
+    Attributes
+    ----------
+    patches : int
+        ``F``, the atlas's patch count (``base.patches``).
+    base_resolution : int
+        Samples per patch side of the base alone (``base.resolution``).
+    spans_per_tile : int or None
+        ``m``; ``None`` without detail.
+    levels : tuple of dict
+        ``tiles.detail.levels``, entry ``k`` of level ``k``.
+    groups : tuple of AtlasGroup
+        Contiguous, in patch order, covering ``0..F - 1`` exactly.
+    packs : dict
+        ``(level, group) -> {"bytes": n, "geometric_error": e}`` of every pack.
+    """
+
+    patches: int
+    base_resolution: int
+    spans_per_tile: int | None
+    levels: tuple[dict, ...]
+    groups: tuple[AtlasGroup, ...]
+    packs: dict[tuple[int, int], dict]
+
+    def resolution(self, level: int) -> int:
+        """Samples per patch side at ``level``: ``base.resolution`` at ``-1``, else
+        ``R_k = min(129, 2 m 2^k + 1)`` (two vertices per span of the finest tiles)."""
+        if level < 0:
+            return self.base_resolution
+        return min(ATLAS_MAX_RESOLUTION, 2 * self.spans_per_tile * 2**level + 1)
+
+
+def _stitchable(a: int, b: int) -> bool:
+    """Whether neighbours of ``a`` and ``b`` samples per side can be welded
+    (``client_py.atlas_mesh``: ``(r_hi - 1) / (r_lo - 1)`` a power of 2)."""
+    ratio, rest = divmod(max(a, b) - 1, min(a, b) - 1)
+    return not rest and not ratio & (ratio - 1)
+
+
+def _finite(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def atlas_tiles(manifest: dict) -> AtlasTiles:
+    """Check a version-2 manifest's ``base`` and ``tiles`` and return them (docs/format.md,
+    "Bundle manifest, version 2 (atlas)", for the rules).
+
+    The lists are bounded before they are walked (groups: at most ``base.patches``; packs:
+    at most ``levels x groups``), so a hostile manifest costs at most a pass over its own
+    entries.
+
+    Raises
+    ------
+    ManifestError
+        Not a version-2 manifest, or any entry missing, of the wrong type or out of range.
+    """
+    if manifest_version(manifest) != 2:
+        raise ManifestError("format_version", "must be 2 for an atlas, got "
+                            f"{_shown(manifest.get('format_version', 1))}")
+    base = _mapping(manifest.get("base"), "base", optional=False)
+    base_file(manifest)
+    if base.get("kind") != "atlas":
+        raise ManifestError("base.kind", f"must be 'atlas' in a version-2 manifest, got "
+                            f"{_shown(base.get('kind'))}")
+    patches = base.get("patches")
+    if not (_is_int(patches) and 1 <= patches <= MAX_ATLAS_QUADS):
+        raise ManifestError("base.patches", f"must be an integer in 1..{MAX_ATLAS_QUADS}, "
+                            f"got {_shown(patches)}")
+    base_res = base.get("resolution")
+    if not (_is_int(base_res) and 2 <= base_res <= ATLAS_MAX_RESOLUTION):
+        raise ManifestError("base.resolution", f"must be an integer in 2.."
+                            f"{ATLAS_MAX_RESOLUTION} (samples per patch side), got "
+                            f"{_shown(base_res)}")
+    tiles = _tiles(manifest)
+    if tiles.get("texture") is not None:
+        raise ManifestError("tiles.texture", "must be null in a version-2 manifest (an atlas "
+                            f"has no texture tiles yet), got {_shown(tiles['texture'])}")
+    detail = _detail(manifest)
+    if not detail:
+        return AtlasTiles(patches, base_res, None, (), (), {})
+    spans = detail_spans(manifest)
+    levels = tuple(_levels(manifest))
+    spec = AtlasTiles(patches, base_res, spans, levels, (), {})
+    for k, entry in enumerate(levels):
+        where = f"tiles.detail.levels[{k}]"
+        if not isinstance(entry, dict) or entry.get("level") != k:
+            raise ManifestError(where, f"must describe level {k}, got {_shown(entry)}")
+        for key in ("rms", "max"):
+            _optional_number(entry.get(key), f"{where}.{key}")
+        stated = entry.get("resolution")
+        if stated is not None and stated != spec.resolution(k):
+            raise ManifestError(f"{where}.resolution", f"is {_shown(stated)}; level {k} is "
+                                f"tessellated at min({ATLAS_MAX_RESOLUTION}, 2 m 2^k + 1) = "
+                                f"{spec.resolution(k)} samples per patch side (m = {spans})")
+        if not _stitchable(base_res, spec.resolution(k)):
+            raise ManifestError(f"{where}", f"has {spec.resolution(k)} samples per patch side "
+                                f"and base.resolution {base_res}: neighbours of the two "
+                                "cannot be welded ((r - 1) of one must be a power-of-2 "
+                                "multiple of the other's)")
+    for key in ("rms", "max"):
+        _optional_number(_mapping(detail.get("base"), "tiles.detail.base").get(key),
+                         f"tiles.detail.base.{key}")
+    raw_groups = detail.get("groups")
+    if not isinstance(raw_groups, list) or not 1 <= len(raw_groups) <= patches:
+        raise ManifestError("tiles.detail.groups", f"must be a list of 1..{patches} groups "
+                            f"(base.patches), got {_shown(raw_groups)}")
+    groups, first = [], 0
+    for g, entry in enumerate(raw_groups):
+        where = f"tiles.detail.groups[{g}]"
+        entry = _mapping(entry, where, optional=False)
+        count, center, radius = entry.get("count"), entry.get("center"), entry.get("radius")
+        if entry.get("first") != first or not (_is_int(count) and 1 <= count <= patches - first):
+            raise ManifestError(where, f"must hold patches first = {first} (where the previous "
+                                f"group ended) .. at most {patches - 1}, got first "
+                                f"{_shown(entry.get('first'))}, count {_shown(count)}")
+        if not (isinstance(center, list) and len(center) == 3 and all(map(_finite, center))):
+            raise ManifestError(f"{where}.center", f"must be 3 finite numbers, got "
+                                f"{_shown(center)}")
+        if not (_finite(radius) and radius >= 0):
+            raise ManifestError(f"{where}.radius", f"must be a finite number >= 0, got "
+                                f"{_shown(radius)}")
+        groups.append(AtlasGroup(first, count, tuple(float(c) for c in center), float(radius)))
+        first += count
+    if first != patches:
+        raise ManifestError("tiles.detail.groups", f"cover patches 0..{first - 1}; every "
+                            f"patch 0..{patches - 1} must be in one group")
+    raw_packs = detail.get("packs")
+    if not isinstance(raw_packs, list) or len(raw_packs) > len(levels) * len(groups):
+        raise ManifestError("tiles.detail.packs", f"must be a list of at most "
+                            f"{len(levels) * len(groups)} packs (one per level and group), "
+                            f"got {_shown(raw_packs)}")
+    packs: dict[tuple[int, int], dict] = {}
+    for p, entry in enumerate(raw_packs):
+        where = f"tiles.detail.packs[{p}]"
+        entry = _mapping(entry, where, optional=False)
+        level, group = entry.get("level"), entry.get("group")
+        if not (_is_int(level) and 0 <= level < len(levels)
+                and _is_int(group) and 0 <= group < len(groups)):
+            raise ManifestError(where, f"needs an integer level in 0..{len(levels) - 1} and "
+                                f"group in 0..{len(groups) - 1}, got {_shown(entry)}")
+        if (level, group) in packs:
+            raise ManifestError(where, f"repeats the pack of level {level}, group {group}")
+        size, error = entry.get("bytes"), entry.get("geometric_error")
+        if not (_is_int(size) and size >= 0):
+            raise ManifestError(f"{where}.bytes", f"must be a byte count >= 0, got "
+                                f"{_shown(size)}")
+        if error is not None and not (_finite(error) and error >= 0):
+            raise ManifestError(f"{where}.geometric_error", "must be a finite number >= 0 or "
+                                f"null, got {_shown(error)}")
+        packs[level, group] = {"bytes": size, "geometric_error": error}
+    return AtlasTiles(patches, base_res, spans, levels, tuple(groups), packs)
+
+
+def atlas_resolution(manifest: dict, level: int) -> int:
+    """Samples per patch side of an atlas bundle at ``level`` (the one rule).
+
+    ``-1`` (the base alone): ``base.resolution``; detail level ``k``:
+    ``R_k = min(129, 2 m 2^k + 1)``, ``m = tiles.detail.spans_per_tile``: two vertices per
+    knot span of the finest tiles applied (as :func:`level_resolution` for one patch, capped
+    at :data:`ATLAS_MAX_RESOLUTION` per patch since an atlas has many).
+
+    Raises
+    ------
+    ManifestError
+        Not a valid version-2 manifest (:func:`atlas_tiles`).
+    ValueError
+        A level the bundle does not have.
+    """
+    spec = atlas_tiles(manifest)
+    return spec.resolution(_check_level(manifest, level))
+
+
 @dataclass(frozen=True)
 class LevelPlan:
     """What the bundle at detail level ``level`` needs (see :func:`plan_level`).
@@ -345,8 +586,16 @@ def plan_level(manifest: dict, level: int | None = None) -> LevelPlan:
         A level the bundle does not have.
     ManifestError
         A malformed ``tiles`` entry or a file name outside the bundle (a
-        ``PatchFormatError``).
+        ``PatchFormatError``), or an unknown ``format_version``.
+
+    Notes
+    -----
+    Of an atlas (version 2): ``detail_files`` are the packs of levels ``0..L``
+    (``detail/K/G.tsdp``, by level then group), no texture, and ``resolution`` the samples
+    per patch side (:func:`atlas_resolution`).
     """
+    if manifest_version(manifest) == 2:
+        return _plan_atlas_level(manifest, level)
     level = _check_level(manifest, level)
     detail = _detail(manifest)
     nodes = detail_nodes(manifest, level)
@@ -365,6 +614,20 @@ def plan_level(manifest: dict, level: int | None = None) -> LevelPlan:
     return LevelPlan(level, rms, tuple(n["file"] for n in nodes),
                      sum(n.get("bytes") or 0 for n in nodes), tuple(textures),
                      sum(n.get("bytes") or 0 for n in textures), resolution)
+
+
+def _plan_atlas_level(manifest: dict, level: int | None) -> LevelPlan:
+    spec = atlas_tiles(manifest)
+    level = _check_level(manifest, level)
+    if level < 0:
+        rms = _optional_number(_mapping(_detail(manifest).get("base"), "tiles.detail.base")
+                               .get("rms"), "tiles.detail.base.rms")
+    else:
+        rms = _optional_number(spec.levels[level].get("rms"), f"tiles.detail.levels[{level}].rms")
+    keys = sorted(key for key in spec.packs if key[0] <= level)
+    return LevelPlan(level, rms, tuple(pack_name(k, g) for k, g in keys),
+                     sum(spec.packs[key]["bytes"] for key in keys), (), 0,
+                     spec.resolution(level))
 
 
 def plan_levels(manifest: dict) -> list[LevelPlan]:
@@ -386,8 +649,48 @@ def _level_mesh(surface: NurbsSurface, tiles: Sequence[DetailTile], resolution: 
     return mesh
 
 
+def atlas_level_detail(manifest: dict, read: Callable[[str], bytes],
+                       level: int | None = None) -> dict[int, list[DetailTile]]:
+    """The detail tiles of an atlas bundle at ``level``: every pack of levels ``0..level``
+    read and decoded, as ``{patch: [tiles]}`` for ``client_py.atlas_mesh.tessellate_atlas``.
+
+    Raises
+    ------
+    PatchFormatError
+        A bad pack, one of another level than its name's, one holding a patch outside its
+        group, or a bad manifest (:class:`ManifestError`).
+    """
+    spec = atlas_tiles(manifest)
+    detail: dict[int, list[DetailTile]] = {}
+    for name in plan_level(manifest, level).detail_files:
+        level_k, group = pack_name_parts(name)
+        try:
+            found, tiles = read_pack(read(name))
+        except PatchFormatError as exc:
+            raise PatchFormatError(exc.offset, f"{exc.reason} (detail pack {name})",
+                                   exc.section) from None
+        add_pack_tiles(detail, spec, name, level_k, group, found, tiles)
+    return detail
+
+
+def add_pack_tiles(detail: dict[int, list[DetailTile]], spec: AtlasTiles, name: str,
+                   level: int, group: int, found: int,
+                   tiles: Mapping[int, Sequence[DetailTile]]) -> None:
+    """Add a decoded pack's ``tiles`` to ``detail`` after checking it is pack ``name``:
+    of ``level`` (``found`` is its header's) and holding only patches of ``group``."""
+    if found != level:
+        raise PatchFormatError(5, f"{name} holds level {found}, not the manifest's {level}")
+    first = spec.groups[group].first
+    last = first + spec.groups[group].count - 1
+    for patch, patch_tiles in tiles.items():
+        if not first <= patch <= last:
+            raise PatchFormatError(8, f"{name} holds patch {patch}, outside group {group}'s "
+                                   f"patches {first}..{last}")
+        detail.setdefault(patch, []).extend(patch_tiles)
+
+
 def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int | None = None,
-                      resolution: int = 256, kernel: str | None = None,
+                      resolution: int | None = None, kernel: str | None = None,
                       textures: Sequence[TextureImage] = (), scan_frame: bool = True) -> Mesh:
     """The bundle's surface with every detail tile of levels ``0..level`` applied.
 
@@ -397,16 +700,25 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
         The parsed ``manifest.json``.
     read : callable
         ``read(name)`` returns the bytes of the bundle file ``name``
-        (``"base.tsp"``, ``"detail/2/1_3.tsd"``).
+        (``"base.tsp"``, ``"detail/2/1_3.tsd"``; of an atlas ``"base.tsa"``,
+        ``"detail/2/5.tsdp"``).
     level : int, optional
         Finest detail level applied; ``-1`` the base alone; default the finest.
-    resolution : int
-        Vertices per side of the grid over the whole domain.
+    resolution : int, optional
+        Vertices per side of the grid over the whole domain (of each patch, for an
+        atlas); default the level's, :attr:`LevelPlan.resolution`.
     textures : sequence of TextureImage
         Decoded texture tiles (e.g. those of :func:`texture_nodes`); vertex
-        colours are sampled from them.
+        colours are sampled from them (one patch only).
     scan_frame : bool
-        Map the mesh into the scan's coordinates by the patch's ``transform``.
+        Map the mesh into the scan's coordinates by the patch's ``transform`` (an atlas is
+        in the scan frame already).
+
+    Returns
+    -------
+    Mesh
+        Of an atlas, one welded watertight
+        :class:`~client_py.atlas_mesh.AtlasMesh` (``tessellate_atlas``).
 
     Raises
     ------
@@ -415,6 +727,14 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
     PatchFormatError
         A bad file, or a bad manifest (:class:`ManifestError`).
     """
+    if resolution is None:
+        resolution = plan_level(manifest, level).resolution
+    if manifest_version(manifest) == 2:
+        atlas_tiles(manifest)  # the manifest is checked before any file is read
+        atlas, _ = read_atlas(read(base_file(manifest)))
+        check_atlas_base(atlas, manifest)
+        detail = atlas_level_detail(manifest, read, level)
+        return tessellate_atlas(atlas, resolution, detail, kernel)
     surface = read_patch(read(base_file(manifest)))
     tiles = []
     for node in detail_nodes(manifest, level):
@@ -426,20 +746,33 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
     return _level_mesh(surface, tiles, resolution, textures, kernel, scan_frame)
 
 
-def write_level_ply(surface: NurbsSurface, tiles: Iterable[DetailTile], level: int,
-                    resolution: int, source: str, textures: Iterable[TextureImage] = (),
-                    binary: bool = True, texture_file: str | None = None,
-                    kernel: str | None = None) -> tuple[bytes, Mesh]:
+def check_atlas_base(atlas: AtlasSurface, manifest: dict) -> None:
+    """Refuse a ``base.tsa`` whose patch count is not the manifest's ``base.patches`` (the
+    groups and packs index its patches): :class:`ManifestError`."""
+    patches = manifest["base"]["patches"]
+    if len(atlas.quads) != patches:
+        raise ManifestError("base.patches", f"is {patches} but {ATLAS_BASE_FILE} holds "
+                            f"{len(atlas.quads)} patches")
+
+
+def write_level_ply(surface: NurbsSurface | AtlasSurface,
+                    tiles: Iterable[DetailTile] | Mapping[int, Sequence[DetailTile]],
+                    level: int, resolution: int | Sequence[int], source: str,
+                    textures: Iterable[TextureImage] = (), binary: bool = True,
+                    texture_file: str | None = None, kernel: str | None = None,
+                    units: str | None = None) -> tuple[bytes, Mesh]:
     """The PLY of the bundle at detail level ``level``: ``X = S + sum_{k <= L} D_k n``
     over the whole domain on a ``resolution x resolution`` grid, in the scan frame.
 
     Parameters
     ----------
-    surface : NurbsSurface
+    surface : NurbsSurface or AtlasSurface
         The base patch in its own frame (as ``read_patch`` gives it; its
-        ``transform`` maps the mesh to the scan).
-    tiles : iterable of DetailTile
-        The detail tiles of levels ``0..level`` (:attr:`LevelPlan.detail_files`).
+        ``transform`` maps the mesh to the scan); or an atlas (``read_atlas``, in the
+        scan frame): then one welded mesh (``client_py.atlas_mesh.tessellate_atlas``).
+    tiles : iterable of DetailTile, or mapping of int to sequence of DetailTile
+        The detail tiles of levels ``0..level`` (:attr:`LevelPlan.detail_files`); of an
+        atlas, ``{patch: tiles}`` (:func:`atlas_level_detail`).
     level : int
         The level, ``-1`` for the base alone; a finer tile is refused.
     resolution : int
@@ -455,6 +788,9 @@ def write_level_ply(surface: NurbsSurface, tiles: Iterable[DetailTile], level: i
         Write ``texture_u/v`` and ``comment TextureFile`` naming this image.
     kernel : str, optional
         ``'python'`` or ``'numpy'``; default the selected kernel.
+    units : str, optional
+        Named in the header; default the patch's ``units`` metadata (an atlas: the
+        metadata ``read_atlas`` returns, which the caller passes here).
 
     Returns
     -------
@@ -470,16 +806,20 @@ def write_level_ply(surface: NurbsSurface, tiles: Iterable[DetailTile], level: i
     ValueError
         A tile finer than ``level``, or a bad grid.
     """
-    tiles = list(tiles)
-    textures = list(textures)
     if isinstance(level, bool) or not isinstance(level, int) or level < -1:
         raise ValueError(f"level must be an integer >= -1, got {level!r}")
+    if isinstance(surface, AtlasSurface):
+        return _write_atlas_ply(surface, tiles, level, resolution, source, binary, kernel,
+                                units)
+    tiles = list(tiles)
+    textures = list(textures)
     for tile in tiles:
         if tile.level > level:
             raise ValueError(f"detail tile {tile.level}/{tile.i}_{tile.j} is of level "
                              f"{tile.level}, finer than level {level}")
     mesh = _level_mesh(surface, tiles, resolution, textures, kernel)
-    comments = [f"source {source}", f"units {surface.metadata.get('units', 'unknown')}",
+    units = surface.metadata.get("units", "unknown") if units is None else units
+    comments = [f"source {source}", f"units {units}",
                 f"detail level {level}: " + (
                     f"base patch + {len(tiles)} detail tiles of levels 0..{level}" if level >= 0
                     else "the base patch alone"),
@@ -490,3 +830,29 @@ def write_level_ply(surface: NurbsSurface, tiles: Iterable[DetailTile], level: i
                         + ", ".join(str(k) for k in levels))
     data = write_ply(mesh, binary=binary, texture_file=texture_file, comments=comments)
     return data, mesh
+
+
+def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTile]],
+                     level: int, resolution: int | Sequence[int], source: str, binary: bool,
+                     kernel: str | None, units: str | None) -> tuple[bytes, Mesh]:
+    """:func:`write_level_ply` of an atlas: one welded mesh, ``detail`` = ``{patch: tiles}``."""
+    if not isinstance(detail, Mapping):
+        raise ValueError("tiles of an atlas must be a mapping of patch index to DetailTile "
+                         f"lists, got {type(detail).__name__}")
+    count = 0
+    for patch, patch_tiles in detail.items():
+        for tile in patch_tiles:
+            count += 1
+            if tile.level > level:
+                raise ValueError(f"patch {patch}: detail tile {tile.level}/{tile.i}_{tile.j} "
+                                 f"is of level {tile.level}, finer than level {level}")
+    mesh = tessellate_atlas(atlas, resolution, detail, kernel)
+    grid = (f"{resolution}x{resolution} grid per patch" if isinstance(resolution, int)
+            else f"{min(resolution)}..{max(resolution)} samples per patch side")
+    comments = [f"source {source}", f"units {units or 'unknown'}",
+                f"detail level {level}: " + (
+                    f"atlas of {len(atlas.quads)} patches + {count} detail tiles of levels "
+                    f"0..{level}" if level >= 0 else
+                    f"the atlas of {len(atlas.quads)} patches alone"),
+                f"tessellated by client_py, one welded mesh, {grid}"]
+    return write_ply(mesh, binary=binary, comments=comments), mesh

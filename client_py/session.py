@@ -11,20 +11,34 @@ manifest (for :func:`client_py.bundle.plan_level`) and the last base mesh (the
 bytes-like object (Pyodide turns a ``Uint8Array`` into a ``memoryview``);
 results are :class:`~client_py.tessellate.Mesh` objects, PLY bytes and plain
 dicts and lists. Standard library only, no I/O, CPython and Pyodide alike.
+
+An atlas bundle (manifest version 2) is loaded by :meth:`WorkerSession.load_atlas`
+instead; its detail arrives as packs (:meth:`WorkerSession.add_pack`) and the viewer
+refines it by group: :meth:`WorkerSession.atlas_mesh` draws the whole atlas as one
+welded mesh with each group at its own level (``web/src/atlas-layer.js`` chooses them).
 """
 
 from __future__ import annotations
 
 import json
 from array import array
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 from . import _kernel
+from .atlas import AtlasSurface
+from .atlas_detail import pack_name, read_pack
+from .atlas_format import read_atlas
+from .atlas_mesh import tessellate_atlas
 from .bundle import (
     PLY_MAX_RESOLUTION,
+    AtlasTiles,
     ManifestError,
+    add_pack_tiles,
+    atlas_tiles,
+    check_atlas_base,
     detail_spans,
+    pack_name_parts,
     plan_level,
     plan_levels,
     write_level_ply,
@@ -92,6 +106,9 @@ class WorkerSession:
         self._tiles: dict[str, DetailTile] = {}  # bundle file name -> tile handed over
         self._manifest: dict | None = None
         self._last: tuple[int, Mesh] | None = None  # (resolution, base mesh) last tessellated
+        self._atlas: AtlasSurface | None = None  # an atlas bundle's base (load_atlas), scan frame
+        self._atlas_units = "unknown"
+        self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
 
     @property
     def kernel(self) -> str:
@@ -131,6 +148,8 @@ class WorkerSession:
         lo, hi = scan.bounding_box()
         self._patch, self._scan, self._source = patch, scan, str(source)
         self._rigid = is_rigid_motion(patch.metadata.get("transform"))
+        self._atlas = None
+        self._packs.clear()
         self._tiles.clear()
         self._last = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
@@ -293,7 +312,17 @@ class WorkerSession:
         ValueError
             A tile of the plan neither held nor fresh, a fresh tile or texture
             the plan does not name, a texture of the plan missing, a bad file.
+
+        Notes
+        -----
+        With an atlas loaded (:meth:`load_atlas`), ``fresh`` names packs
+        (``detail/K/G.tsdp``) and the PLY is one welded mesh of every patch; an atlas has
+        no texture tiles.
         """
+        if self._atlas is not None:
+            if list(textures):
+                raise ValueError("an atlas bundle has no texture tiles; none may be sent")
+            return self._atlas_level_ply(level, dict(fresh or {}))
         patch = self._loaded()
         plan = plan_level(self._manifest_read(), level)
         fresh = dict(fresh or {})
@@ -327,6 +356,186 @@ class WorkerSession:
                                      [images[key] for key in wanted], kernel=self._kernel)
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
 
+    # ------------------------------------------------------------------ an atlas bundle
+    def load_atlas(self, data: bytes, source: str) -> dict:
+        """Decode an atlas ``base.tsa`` (manifest version 2) and start afresh with it (a
+        patch, tiles and packs held before are forgotten).
+
+        Returns
+        -------
+        dict
+            ``kind 'atlas'``, ``patches``, ``degree``, ``spans``, ``vertices``, ``rational``,
+            ``units`` and ``bbox [[x, y, z] lo, hi]`` of the control points (scan frame;
+            the surface lies in their convex hull, The NURBS Book §4.4).
+
+        Raises
+        ------
+        PatchFormatError
+            Not a valid atlas.
+        """
+        atlas, metadata = read_atlas(bytes(data))
+        points = [*atlas.vertices, *atlas.edge_points, *atlas.face_points]
+        lo = [min(p[c] for p in points) for c in range(3)]
+        hi = [max(p[c] for p in points) for c in range(3)]
+        self._patch = self._scan = None
+        self._tiles.clear()
+        self._last = None
+        self._atlas, self._source = atlas, str(source)
+        self._atlas_units = str(metadata.get("units", "unknown"))
+        self._packs.clear()
+        return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
+                "spans": atlas.spans, "vertices": len(atlas.vertices),
+                "rational": atlas.weights is not None, "units": self._atlas_units,
+                "bbox": [lo, hi]}
+
+    def _atlas_loaded(self) -> tuple[AtlasSurface, AtlasTiles]:
+        atlas = self._atlas
+        if atlas is None:
+            raise RuntimeError("no atlas is loaded: call load_atlas first")
+        spec = atlas_tiles(self._manifest_read())
+        check_atlas_base(atlas, self._manifest_read())
+        return atlas, spec
+
+    def atlas_refinement(self) -> dict:
+        """What the viewer refines an atlas by, from the manifest (:meth:`read_manifest`).
+
+        Returns
+        -------
+        dict
+            ``groups``: per group ``first``, ``count``, ``center``, ``radius`` and, per
+            detail level ``k``, ``packs[k]`` (the pack's file name or ``None``: the group
+            has no tiles there), ``bytes[k]`` and ``errors[k]`` (its ``geometric_error``:
+            the largest distance of the group's scan points after levels ``0..k``);
+            ``base_error``: ``tiles.detail.base.max`` (the base's error, for every group);
+            ``resolutions``: samples per patch side drawn with levels ``-1, 0, .., L``
+            (:meth:`atlas_mesh`'s rule); ``levels``: ``L + 1``.
+        """
+        _, spec = self._atlas_loaded()
+        detail = self._manifest_read()["tiles"].get("detail") or {}
+        groups = []
+        for g, group in enumerate(spec.groups):
+            keys = [(k, g) if (k, g) in spec.packs else None for k in range(len(spec.levels))]
+            groups.append({"first": group.first, "count": group.count,
+                           "center": list(group.center), "radius": group.radius,
+                           "packs": [key and pack_name(*key) for key in keys],
+                           "bytes": [key and spec.packs[key]["bytes"] for key in keys],
+                           "errors": [key and spec.packs[key]["geometric_error"]
+                                      for key in keys]})
+        return {"groups": groups, "base_error": (detail.get("base") or {}).get("max"),
+                "levels": len(spec.levels),
+                "resolutions": [_drawn_resolution(spec, k)
+                                for k in range(-1, len(spec.levels))]}
+
+    def add_pack(self, name: str, data: bytes) -> dict:
+        """Decode and keep the detail pack ``name`` (``detail/K/G.tsdp``, one the manifest
+        lists): ``{"level", "group", "tiles"}``.
+
+        Raises
+        ------
+        ValueError
+            A name the manifest does not list.
+        PatchFormatError
+            A bad pack, or one holding another level or patches outside its group.
+        """
+        _, spec = self._atlas_loaded()
+        name = str(name)
+        parts = pack_name_parts(name)
+        if parts is None or parts not in spec.packs:
+            raise ValueError(f"{name!r} is not a pack the manifest lists (detail/K/G.tsdp)")
+        level, group = parts
+        try:
+            found, tiles = read_pack(bytes(data))
+        except PatchFormatError as exc:
+            raise PatchFormatError(exc.offset, f"{exc.reason} (detail pack {name})",
+                                   exc.section) from None
+        held: dict[int, list[DetailTile]] = {}
+        add_pack_tiles(held, spec, name, level, group, found, tiles)
+        self._packs[name] = (level, group, held)
+        return {"level": level, "group": group, "tiles": sum(map(len, held.values()))}
+
+    def drop_packs(self, names: Iterable[str]) -> None:
+        """Forget packs handed over (names not held are ignored: already dropped)."""
+        for name in names:
+            self._packs.pop(name, None)
+
+    def holds_pack(self, name: str) -> bool:
+        """Whether the pack ``name`` has been handed over and not dropped."""
+        return name in self._packs
+
+    def atlas_mesh(self, levels: Sequence[int]) -> Mesh:
+        """The whole atlas as one welded mesh, group ``g`` refined to ``levels[g]``.
+
+        Patches of a group at level ``k`` get the held packs of levels ``0..k`` of that
+        group and :func:`_drawn_resolution` ``(k)`` samples per side, the others the base's;
+        neighbours of different levels are stitched by ``tessellate_atlas``'s mixed
+        resolutions (the manifest's resolutions are checked to be stitchable), so the mesh
+        stays watertight whatever the choice.
+
+        Parameters
+        ----------
+        levels : sequence of int
+            One per group, ``-1`` (the base) .. ``L``.
+
+        Raises
+        ------
+        ValueError
+            Not one level per group, a level out of range, or a pack of a wanted level not
+            handed over (:meth:`add_pack`).
+        """
+        atlas, spec = self._atlas_loaded()
+        levels = list(levels)
+        if len(levels) != len(spec.groups):
+            raise ValueError(f"levels has {len(levels)} values; the atlas has "
+                             f"{len(spec.groups)} groups")
+        detail: dict[int, dict[int, list[DetailTile]]] = {}
+        for level, group, held in self._packs.values():
+            if level <= levels[group]:
+                for patch, tiles in held.items():
+                    detail.setdefault(patch, []).extend(tiles)
+        resolution = [spec.base_resolution] * spec.patches
+        for g, (group, level) in enumerate(zip(spec.groups, levels, strict=True)):
+            if isinstance(level, bool) or not isinstance(level, int) \
+                    or not -1 <= level < len(spec.levels):
+                raise ValueError(f"levels[{g}] = {level!r}; an int in -1..{len(spec.levels) - 1}"
+                                 " is needed")
+            for k in range(level + 1):
+                if (k, g) in spec.packs and pack_name(k, g) not in self._packs:
+                    raise ValueError(f"group {g} at level {level} needs pack {pack_name(k, g)}, "
+                                     "which was not handed over (add_pack)")
+            r = _drawn_resolution(spec, level)
+            resolution[group.first : group.first + group.count] = [r] * group.count
+        mesh = tessellate_atlas(atlas, resolution, detail, self._kernel)
+        self._last = (-2, mesh)  # not a base grid: base_ply never reuses it
+        return mesh
+
+    def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes]) -> PlyFile:
+        """:meth:`level_ply` of an atlas: the packs of levels ``0..level``, held or fresh."""
+        atlas, spec = self._atlas_loaded()
+        plan = plan_level(self._manifest_read(), level)
+        extra = sorted(set(fresh) - set(plan.detail_files))
+        if extra:
+            raise ValueError(f"fresh packs {', '.join(extra)} are not packs of level {level} "
+                             f"(levels 0..{level})")
+        detail: dict[int, list[DetailTile]] = {}
+        for name in plan.detail_files:
+            if name in fresh:
+                level_k, group = pack_name_parts(name)
+                try:
+                    found, tiles = read_pack(bytes(fresh[name]))
+                except PatchFormatError as exc:
+                    raise PatchFormatError(exc.offset, f"{exc.reason} (detail pack {name})",
+                                           exc.section) from None
+                add_pack_tiles(detail, spec, name, level_k, group, found, tiles)
+            elif name in self._packs:
+                for patch, tiles in self._packs[name][2].items():
+                    detail.setdefault(patch, []).extend(tiles)
+            else:
+                raise ValueError(f"detail pack {name} was neither handed over nor sent")
+        data, mesh = write_level_ply(atlas, detail, plan.level, plan.resolution, self._source,
+                                     kernel=self._kernel, units=self._manifest_read().get(
+                                         "units") or self._atlas_units)
+        return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
+
 
 def _decode_tile(name: str, data: bytes) -> DetailTile:
     """``read_detail_tile`` with the file's name in the message of a bad file."""
@@ -335,3 +544,10 @@ def _decode_tile(name: str, data: bytes) -> DetailTile:
     except PatchFormatError as exc:
         raise PatchFormatError(exc.offset, f"{exc.reason} (detail tile {name})",
                                exc.section) from None
+
+
+def _drawn_resolution(spec: AtlasTiles, level: int) -> int:
+    """Samples per patch side the viewer draws a group at ``level`` with: the level's
+    (:func:`client_py.bundle.atlas_resolution`), never fewer than the base's, so refining a
+    group never coarsens it."""
+    return max(spec.base_resolution, spec.resolution(level))

@@ -108,6 +108,14 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
         manifest = json.loads((bundle / "manifest.json").read_text())
     except (OSError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
         raise UserError(f"{bundle / 'manifest.json'}: not a readable manifest: {exc}") from None
+    from client_py.bundle import manifest_version
+
+    try:
+        atlas = manifest_version(manifest) == 2
+    except PatchFormatError as exc:  # ManifestError: a version this reader does not know
+        raise UserError(f"{bundle}: {exc}") from None
+    if atlas:
+        return _tessellate_atlas_bundle(args, bundle, manifest)
     try:  # file names come confined to the bundle (client_py.bundle.check_file_name)
         plan = plan_level(manifest, args.level)
         surface = read_patch((bundle / base_file(manifest)).read_bytes())
@@ -145,6 +153,40 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     out.write_bytes(data)
     print(f"{out}: level {plan.level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
           f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))
+    return 0
+
+
+def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: dict) -> int:
+    """An atlas bundle (manifest version 2) at ``--level``: ``base.tsa`` and the packs of
+    levels ``0..L`` (``client_py.bundle.plan_level``), one welded PLY written by
+    ``client_py.bundle.write_level_ply`` on the level's samples per patch side
+    (``--resolution`` overrides them), as the viewer's "Download PLY" writes it."""
+    from client_py.atlas_format import read_atlas
+    from client_py.bundle import atlas_level_detail, check_atlas_base
+
+    if args.texture:
+        raise UserError(f"{bundle}: --texture: an atlas bundle has no texture tiles")
+
+    def read(name: str) -> bytes:
+        return (bundle / name).read_bytes()
+
+    try:  # file names come confined to the bundle (client_py.bundle.check_file_name)
+        plan = plan_level(manifest, args.level)
+        atlas, metadata = read_atlas(read(base_file(manifest)))
+        check_atlas_base(atlas, manifest)
+        detail = atlas_level_detail(manifest, read, plan.level)
+        resolution = plan.resolution if args.resolution is None else args.resolution
+        data, mesh = write_level_ply(atlas, detail, plan.level, resolution, bundle.name,
+                                     binary=not args.ascii, units=manifest.get("units")
+                                     or metadata.get("units"))
+    except PatchFormatError as exc:  # a bad file or manifest (ManifestError)
+        raise UserError(f"{bundle}: {exc}") from None
+    except (OSError, ValueError) as exc:  # a missing file; a --level the bundle lacks
+        raise UserError(f"{bundle}: {exc}") from None
+    out = Path(args.output)
+    out.write_bytes(data)
+    print(f"{out}: level {plan.level}, {len(atlas.quads)} patches, {mesh.vertex_count} "
+          f"vertices, {mesh.triangle_count} triangles, {len(data)} bytes")
     return 0
 
 

@@ -12,7 +12,9 @@ What the server reads of a manifest is checked here, once, by :func:`parse_manif
 :data:`MAX_MANIFEST_BYTES`, no ``NaN``/``Infinity``), ``format``/``format_version``,
 and the fields the gallery, the API and the pages show — ``title``, ``units``,
 ``base.file`` (a name confined to the bundle, see :func:`confined_name`), ``base.grid``,
-``base.degree``, ``stats``, ``provenance`` and ``files``. A bundle that fails is left out
+``base.degree``, ``stats``, ``provenance`` and ``files``; of an atlas (``format_version`` 2)
+its ``base`` and ``tiles`` by ``client_py.bundle.atlas_tiles`` instead of ``base.grid`` and
+``base.degree``. A bundle that fails is left out
 of :meth:`Collection.bundles` and logged once per version of its manifest; asking for it
 by id raises :class:`BundleError` with the reason.
 
@@ -33,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from client_py.bundle import ManifestError, atlas_tiles
 from client_py.errors import TesseraError
 from client_py.format import loads_finite_json
 
@@ -89,7 +92,12 @@ def _check_fields(data: dict[str, Any]) -> None:
     if not isinstance(base, dict):
         raise ValueError(f"'base' must be an object with a 'file' name, got {base!r}")
     confined_name(base.get("file", "base.tsp"), "base.file")
-    for key, least in (("grid", 1), ("degree", 1)):
+    if data.get("format_version") == 2:
+        try:  # an atlas: its base and tiles, by the reader the browser and the CLI use
+            atlas_tiles(data)
+        except ManifestError as exc:
+            raise ValueError(f"format_version 2 (atlas): {exc}") from None
+    for key, least in (() if data.get("format_version") == 2 else (("grid", 1), ("degree", 1))):
         value = base.get(key)
         if value is None:
             continue
@@ -153,7 +161,7 @@ def _read_regular(path: Path, inside: Path, max_bytes: int,
 
 
 def parse_manifest(path: Path) -> dict[str, Any]:
-    """The manifest at ``path``, checked to be a ``tessera-bundle`` manifest of version 1 whose
+    """The manifest at ``path``, checked to be a ``tessera-bundle`` manifest of version 1 or 2 whose
     fields the server reads are well formed (see the module docstring).
 
     Raises
@@ -179,9 +187,9 @@ def parse_manifest(path: Path) -> dict[str, Any]:
         raise BundleError(f"{where}: unreadable manifest: nested too deeply") from None
     if not isinstance(data, dict) or data.get("format") != "tessera-bundle":
         raise BundleError(f"{where}: 'format' must be 'tessera-bundle'")
-    if data.get("format_version") != 1:
+    if data.get("format_version") not in (1, 2):
         raise BundleError(f"{where}: format_version {repr(data.get('format_version'))[:40]}; "
-                          "this server reads version 1")
+                          "this server reads versions 1 (one patch) and 2 (an atlas)")
     try:
         _check_fields(data)
     except ValueError as exc:

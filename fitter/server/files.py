@@ -51,6 +51,8 @@ MIME_TYPES = {
     ".zip": "application/zip",
     ".tsp": "application/octet-stream",
     ".tsd": "application/octet-stream",
+    ".tsa": "application/octet-stream",  # an atlas base (zlib inside: not compressed again)
+    ".tsdp": "application/octet-stream",  # a pack of range-coded detail tiles (idem)
     ".ply": "application/octet-stream",
     ".png": "image/png",
     ".jpg": "image/jpeg",

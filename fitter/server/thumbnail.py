@@ -1,5 +1,8 @@
 """Gallery thumbnails: the base patch rendered on the server, small and shaded, and cached.
 
+An atlas bundle (manifest version 2, ``base.tsa``) is drawn the same way from its welded
+mesh (:func:`render_atlas_thumbnail`), the splats sized by the mesh's edges.
+
 The patch is tessellated by ``client_py`` (the same evaluator as the browser) and viewed
 orthographically from the front the viewer starts at: along the manifest's ``view.front``
 with ``view.up`` up (``fitter.fitting.orient``; a bundle without ``view``: along the
@@ -25,6 +28,7 @@ concurrent requests for the same version wait for one render instead of repeatin
 from __future__ import annotations
 
 import io
+import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
@@ -34,6 +38,9 @@ import numpy as np
 from PIL import Image
 
 from client_py import PatchFormatError, read_patch, tessellate_grid
+from client_py.atlas_format import read_atlas
+from client_py.atlas_mesh import tessellate_atlas
+from client_py.bundle import ATLAS_MAX_RESOLUTION
 from client_py.format import read_header
 
 from ..collection.bundles import Bundle, BundleError
@@ -108,10 +115,25 @@ def _splat_radius(sx: np.ndarray, sy: np.ndarray) -> np.ndarray:
     return np.clip(np.ceil(gap.ravel() / 2), 1, MAX_SPLAT).astype(int)
 
 
+def _edge_splat_radius(px: np.ndarray, py: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Half-width of each vertex's splat for a mesh that is no grid (an atlas): half its
+    longest incident edge on screen, rounded up, in ``1..MAX_SPLAT``; ``triangles`` of shape
+    ``(T, 3)`` index ``px``, ``py``."""
+    ends = np.concatenate([triangles[:, [a, b]] for a, b in ((0, 1), (1, 2), (2, 0))])
+    length = np.hypot(*(np.subtract(*c[ends].T) for c in (px, py)))
+    order = np.argsort(length, kind="stable")
+    gap = np.zeros(len(px))
+    for side in (0, 1):  # repeated indices: the last write, the longest edge, wins
+        gap[ends[order, side]] = length[order]
+    return np.clip(np.ceil(gap / 2), 1, MAX_SPLAT).astype(int)
+
+
 def _shade(positions: np.ndarray, normals: np.ndarray, drawn: np.ndarray, grid: int,
-           view: dict | None = None) -> Image.Image:
+           view: dict | None = None, triangles: np.ndarray | None = None) -> Image.Image:
     """The card: the ``grid x grid`` tessellation's ``positions`` and ``normals`` of shape
     ``(grid^2, 3)``, of which the vertices ``drawn`` (indices) are splatted as described above.
+    With ``triangles`` (``(T, 3)`` indices into ``positions``: a mesh that is no grid, of
+    which every vertex is drawn) the splats are sized by the triangles' edges instead.
 
     Raises
     ------
@@ -131,11 +153,14 @@ def _shade(positions: np.ndarray, normals: np.ndarray, drawn: np.ndarray, grid: 
     span = max((x.max() - x.min()) / (width * 0.9), (y.max() - y.min()) / (height * 0.9), 1e-12)
     px = np.rint((x - 0.5 * (x.max() + x.min())) / span + width / 2).astype(int)
     py = np.rint(height / 2 - (y - 0.5 * (y.max() + y.min())) / span).astype(int)
-    # the splat sizes come from the whole grid (neighbours of drawn vertices may be trimmed)
-    full_x = np.zeros(grid * grid)
-    full_y = np.zeros(grid * grid)
-    full_x[drawn], full_y[drawn] = px, py
-    radius = _splat_radius(full_x.reshape(grid, grid), full_y.reshape(grid, grid))[drawn]
+    if triangles is not None:
+        radius = _edge_splat_radius(px, py, triangles)
+    else:
+        # the splat sizes come from the whole grid (neighbours of drawn vertices may be trimmed)
+        full_x = np.zeros(grid * grid)
+        full_y = np.zeros(grid * grid)
+        full_x[drawn], full_y[drawn] = px, py
+        radius = _splat_radius(full_x.reshape(grid, grid), full_y.reshape(grid, grid))[drawn]
     # A raking key light from the upper left (how reliefs are photographed) and a soft fill.
     key = -0.6 * e1 + 0.6 * e2 + 0.53 * e3
     key /= np.linalg.norm(key)
@@ -192,6 +217,31 @@ def render_thumbnail(patch: bytes, view: dict | None = None) -> bytes:
     return out.getvalue()
 
 
+def render_atlas_thumbnail(data: bytes, view: dict | None = None) -> bytes:
+    """PNG bytes of an atlas bundle's ``base.tsa`` (manifest version 2), seen from ``view``:
+    the atlas tessellated by ``client_py.atlas_mesh.tessellate_atlas`` at the same samples
+    per patch side for all, about ``GRID^2`` vertices in all as for a patch (at least 2 a
+    side, at most ``client_py.bundle.ATLAS_MAX_RESOLUTION``), splatted like a patch's grid.
+
+    Raises
+    ------
+    client_py.PatchFormatError
+        When the bytes are not a valid atlas (sizes bounded by its header before decoding).
+    ValueError
+        When the surface is degenerate or ``view`` invalid (see :func:`_shade`).
+    """
+    atlas, _ = read_atlas(data)
+    per_side = int(math.sqrt(GRID * GRID / len(atlas.quads)))
+    mesh = tessellate_atlas(atlas, min(ATLAS_MAX_RESOLUTION, max(2, per_side)))
+    positions = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
+    normals = np.frombuffer(mesh.normals, dtype=np.float32).reshape(-1, 3).astype(float)
+    triangles = np.frombuffer(mesh.indices, dtype=np.uint32).reshape(-1, 3).astype(np.int64)
+    image = _shade(positions, normals, np.arange(len(positions)), 0, view, triangles)
+    out = io.BytesIO()
+    image.save(out, format="PNG", optimize=True)
+    return out.getvalue()
+
+
 @dataclass(frozen=True)
 class Thumbnail:
     """The outcome of one thumbnail: ``png`` bytes, or ``error`` saying why there are none."""
@@ -209,7 +259,9 @@ def thumbnail_of(bundle: Bundle) -> Thumbnail:
     too large a file, a degenerate surface: each a message naming the file, never its bytes)."""
     try:
         patch, _ = bundle.read_file(bundle.base_file, MAX_PATCH_BYTES)
-        return Thumbnail(render_thumbnail(patch, bundle.manifest.get("view")))
+        render = render_atlas_thumbnail if bundle.base_file.endswith(".tsa") \
+            else render_thumbnail
+        return Thumbnail(render(patch, bundle.manifest.get("view")))
     except BundleError as exc:
         return Thumbnail(None, str(exc))
     except PatchFormatError as exc:

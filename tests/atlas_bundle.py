@@ -1,0 +1,97 @@
+"""Version-2 (atlas) bundles for tests, made without the fitter.
+
+:func:`write_atlas_bundle` writes a bundle folder per docs/format.md, "Bundle manifest,
+version 2 (atlas)": ``base.tsa`` of a sphere atlas on a subdivided cube
+(``tests/atlas_cases.sphere_atlas``: closed, ``6 k^2`` patches), one pack per level and
+group of random detail tiles (every tile of every patch at every level, small
+displacements so the mesh stays a closed surface), and the manifest. Groups are the six
+cube faces (``k^2`` contiguous patches each), their bounding spheres measured on the
+atlas's own tessellation; a pack's ``geometric_error`` shrinks with the level.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+from pathlib import Path
+
+from atlas_cases import sphere_atlas
+
+from client_py.atlas_detail import pack_name, write_pack
+from client_py.atlas_format import write_atlas
+from client_py.atlas_mesh import tessellate_atlas
+from client_py.layers import DetailTile
+
+DEGREE, SPANS_PER_TILE = 2, 2
+
+
+def random_tile(level: int, i: int, j: int, rnd: random.Random, amplitude: float) -> DetailTile:
+    """A tile of ``(SPANS_PER_TILE + DEGREE)^2`` random coefficients of at most
+    ``amplitude`` (scan units)."""
+    size = SPANS_PER_TILE + DEGREE
+    step = amplitude / 8
+    return DetailTile(level, i, j, DEGREE, SPANS_PER_TILE, step,
+                      tuple(rnd.randint(-8, 8) for _ in range(size * size)))
+
+
+def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolution: int = 5,
+                       seed: int = 0, title: str = "Atlas sphere") -> dict:
+    """Write an atlas bundle of ``6 k^2`` patches and ``levels`` detail levels into
+    ``folder``; returns its manifest."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rnd = random.Random(seed)
+    atlas = sphere_atlas(k, noise=0.02, seed=seed)
+    base = write_atlas(atlas, bits=12, metadata={"units": "mm"})
+    (folder / "base.tsa").write_bytes(base)
+    files = {"base.tsa": len(base)}
+    per_face = k * k
+    mesh = tessellate_atlas(atlas, 5)
+    groups = []
+    for g in range(6):
+        first = g * per_face
+        points = [tuple(mesh.positions[3 * v : 3 * v + 3]) for v in range(mesh.vertex_count)
+                  if first <= mesh.patches[v] < first + per_face]
+        centre = [sum(p[c] for p in points) / len(points) for c in range(3)]
+        radius = max(math.dist(centre, p) for p in points)
+        groups.append({"first": first, "count": per_face, "center": centre, "radius": radius})
+    packs, level_entries = [], []
+    for level in range(levels):
+        amplitude = 0.02 / 2**level
+        total = 0
+        for g in range(6):
+            tiles = {f: [random_tile(level, i, j, rnd, amplitude) for i in range(1 << level)
+                         for j in range(1 << level)]
+                     for f in range(g * per_face, (g + 1) * per_face)}
+            data = write_pack(level, tiles)
+            name = pack_name(level, g)
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_bytes(data)
+            files[name] = len(data)
+            total += len(data)
+            packs.append({"level": level, "group": g, "bytes": len(data),
+                          "geometric_error": 0.01 / 2**level})
+        level_entries.append({"level": level, "rms": 0.004 / 2**level, "max": 0.01 / 2**level,
+                              "bytes_total": total, "packs": 6,
+                              "resolution": min(129, 2 * SPANS_PER_TILE * 2**level + 1)})
+    manifest = {
+        "format": "tessera-bundle", "format_version": 2, "title": title,
+        "description": "a test atlas", "units": "mm",
+        "provenance": {"source": "tests/atlas_bundle.py", "points": 0, "bytes": 0},
+        "options": {}, "view": {"up": [0.0, 0.0, 1.0], "front": [0.0, -1.0, 0.0]},
+        "files": files,
+        "base": {"file": "base.tsa", "kind": "atlas", "degree": atlas.degree,
+                 "spans": atlas.spans, "patches": len(atlas.quads),
+                 "vertices": len(atlas.vertices), "edges": len(atlas.edges.edges),
+                 "border_edges": len(atlas.edges.border_edges), "bits": 12,
+                 "rational": False, "resolution": base_resolution},
+        "transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+        "stats": {"rms": 0.004, "max": 0.02, "units": "mm"},
+        "tiles": {"version": 2, "texture": None, "detail": {
+            "format": "tsdp", "format_version": 1, "tile_format_version": 2,
+            "degree": DEGREE, "spans_per_tile": SPANS_PER_TILE,
+            "base": {"rms": 0.008, "max": 0.03}, "levels": level_entries,
+            "groups": groups, "packs": packs}},
+    }
+    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
