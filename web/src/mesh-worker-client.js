@@ -125,6 +125,12 @@ export class MeshWorkerClient {
     return this._request({ type: "region", level, i, j, grid, names, skirtDepth });
   }
 
+  /** Meshes of several quadtree nodes, as region() makes each, in one request: `regions`
+   *  = [{level, i, j, names, skirtDepth}]; resolves with their meshes in that order. */
+  async regionBatch(grid, regions) {
+    return (await this._request({ type: "regions", grid, regions })).meshes;
+  }
+
   terminate() {
     this.worker.terminate();
     this._failAll("the mesh worker was stopped");

@@ -31,7 +31,13 @@
 //   page -> {type: "region", level, i, j, grid, names, skirtDepth}
 //        -> {type: "region", positions, normals, uvs, indices, tessellate_ms}  (region_mesh:
 //           node (level, i, j) with the named tiles, skirts on its inner borders, scan frame)
+//   page -> {type: "regions", grid, regions: [{level, i, j, names, skirtDepth}, ...]}
+//        -> {type: "regions", meshes: [{level, i, j, positions, normals, uvs, indices,
+//           tessellate_ms}, ...]}  (region_mesh for each, in order, in one reply)
 //   worker -> {type: "error", stage, message}   for any failure, with the reason
+// Requests run one at a time, in the order they came, except that a base "tessellate" waits
+// while other requests are queued: the regions of a zoom are not held up by the base's
+// re-tessellation that the same zoom asked for (and nothing else depends on it).
 // Mesh arrays are copied once out of the WebAssembly heap (PyBuffer views die with the
 // Python object) and then *transferred*, not copied again, to the page. Times (*_ms) are
 // measured here around the Python call.
@@ -47,7 +53,8 @@ const PROGRESS_EVERY_MS = 100;
 
 let pyodide = null;
 let session = null; // client_py.session.WorkerSession, once the patch is loaded
-let queue = Promise.resolve();
+const pending = []; // requests not yet started, in arrival order
+let pumping = false;
 
 function post(message, transfer = []) {
   self.postMessage(message, transfer);
@@ -194,18 +201,25 @@ async function init({ pyodideUrl, pyodideSnapshotUrl, pyodideStdlibUrl, pyodideL
   }
 }
 
-/** Post a Mesh of the session as transferable typed arrays, with `fields` added. */
-function postMesh(mesh, ms, fields) {
+/** A Mesh of the session as standalone typed arrays (the proxy is freed), with `fields`. */
+function meshArrays(mesh, ms, fields) {
   try {
     const positions = copyBuffer(mesh.positions);
     const normals = copyBuffer(mesh.normals);
     const uvs = copyBuffer(mesh.uvs);
     const indices = copyBuffer(mesh.indices);
-    post({ ...fields, positions, normals, uvs, indices, tessellate_ms: ms },
-         [positions.buffer, normals.buffer, uvs.buffer, indices.buffer]);
+    return { ...fields, positions, normals, uvs, indices, tessellate_ms: ms };
   } finally {
     mesh.destroy();
   }
+}
+
+const buffersOf = (m) => [m.positions.buffer, m.normals.buffer, m.uvs.buffer, m.indices.buffer];
+
+/** Post a Mesh of the session as transferable typed arrays, with `fields` added. */
+function postMesh(mesh, ms, fields) {
+  const message = meshArrays(mesh, ms, fields);
+  post(message, buffersOf(message));
 }
 
 /** Post a PlyFile of the session (its bytes transferred). */
@@ -260,29 +274,56 @@ function region({ id, level, i, j, grid, names, skirtDepth }) {
   postMesh(mesh, performance.now() - t0, { type: "region", id, level, i, j });
 }
 
+function regions({ id, grid, regions: wanted }) {
+  const meshes = wanted.map(({ level, i, j, names, skirtDepth }) => {
+    const t0 = performance.now();
+    const mesh = withPy(names, (list) => session.region_mesh(level, i, j, grid, list, skirtDepth));
+    return meshArrays(mesh, performance.now() - t0, { level, i, j });
+  });
+  post({ type: "regions", id, meshes }, meshes.flatMap(buffersOf));
+}
+
 function resources({ id }) {
   post({ type: "resources", id, resources: resourceEntries() });
 }
 
-const handlers = { init, tessellate, plan, ply, tile, drop, region, resources };
+const handlers = { init, tessellate, plan, ply, tile, drop, region, regions, resources };
+
+async function run(request) {
+  const handler = handlers[request.type];
+  if (!handler) {
+    post({ type: "error", id: request.id, stage: "request", message: `unknown request ${request.type}` });
+    return;
+  }
+  if (request.type !== "init" && request.type !== "resources" && !session) {
+    post({ type: "error", id: request.id, stage: request.type, message: "the patch is not loaded" });
+    return;
+  }
+  try {
+    await handler(request);
+  } catch (error) {
+    post({ type: "error", id: request.id, stage: request.type, message: reason(error) });
+  }
+}
+
+/** Run the pending requests one at a time (Python is single-threaded anyway): the oldest
+ *  that is not a base "tessellate", else the oldest. Between two requests the worker takes
+ *  in the messages that came meanwhile, so a region batch can go before a queued base. */
+async function pump() {
+  if (pumping) return;
+  pumping = true;
+  try {
+    while (pending.length) {
+      const at = Math.max(pending.findIndex((request) => request.type !== "tessellate"), 0);
+      await run(pending.splice(at, 1)[0]);
+      await new Promise((resolve) => setTimeout(resolve, 0));
+    }
+  } finally {
+    pumping = false;
+  }
+}
 
 self.onmessage = (event) => {
-  const request = event.data;
-  // Requests run one at a time, in order: Python is single-threaded anyway.
-  queue = queue.then(async () => {
-    const handler = handlers[request.type];
-    if (!handler) {
-      post({ type: "error", id: request.id, stage: "request", message: `unknown request ${request.type}` });
-      return;
-    }
-    if (request.type !== "init" && request.type !== "resources" && !session) {
-      post({ type: "error", id: request.id, stage: request.type, message: "the patch is not loaded" });
-      return;
-    }
-    try {
-      await handler(request);
-    } catch (error) {
-      post({ type: "error", id: request.id, stage: request.type, message: reason(error) });
-    }
-  });
+  pending.push(event.data);
+  pump();
 };

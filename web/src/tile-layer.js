@@ -1,25 +1,47 @@
 // TileLayer: detail and texture tiles superimposed on the base as the camera moves.
 //
 // After each camera change (debounced) it asks the TileTree for the regions the view needs,
-// fetches the tiles they need and nothing else (`.tsd` bytes go to the worker, which decodes
-// and keeps them; texture images are decoded by the browser into three.js textures), has the
-// worker tessellate each new region (client_py.tessellate_region with the region's tiles,
-// plus skirts hanging behind its inner borders, 2 x its remaining error deep, so no crack
-// shows next to a coarser or finer neighbour) and swaps all new regions in at once: until then the old regions and the base
-// stay on screen, so no frame shows a hole. Regions and tiles no longer needed are disposed
-// (geometries, textures, the worker's decoded tiles). Tile URLs are the manifest's file names
-// resolved against the manifest's own URL (a bundle is one directory).
+// fetches the tiles they need and nothing else (`.tsd` bytes go to the worker as each
+// arrives, which decodes and keeps them; texture images are decoded by the browser into
+// three.js textures), has the worker tessellate each new region (client_py.tessellate_region
+// with the region's tiles, plus skirts hanging behind its inner borders, 2 x its remaining
+// error deep, so no crack shows next to a coarser or finer neighbour) and swaps all new
+// regions in at once: until then the old regions and the base stay on screen, so no frame
+// shows a hole. Regions and tiles no longer needed are disposed (geometries, textures, the
+// worker's decoded tiles). Tile URLs are the manifest's file names resolved against the
+// manifest's own URL (a bundle is one directory).
+//
+// Fast zoom (issue 14): the new regions go to the worker in batches of REGION_BATCH, most
+// projected error first (then nearest the view's centre), two batches in flight so the worker
+// never waits for the page; when the camera moves on before they are done, no further batch
+// is sent and the update starts again for the new view (the regions made so far are kept).
+// The meshes the worker made are kept (REGION_CACHE of them, least recently used dropped), so
+// a region seen again — zooming out and back in, orbiting — is not tessellated again. An
+// update that changes nothing on screen draws nothing (a draw costs up to a second under a
+// software rasteriser), and an update resolves once its regions are drawn.
 //
 // Stats (window.tessera.stats): tiles_loaded (tiles held now, detail + texture), tile_bytes
 // (bytes of tile files fetched, cumulative), tile_tessellate_ms (Python time of the regions
-// the last update tessellated), regions (regions shown), tiles_fetched (cumulative),
-// tile_updates (updates done), tiles_busy (an update is running or due).
+// the last refinement tessellated: an update that changed the regions shown; 0 when all came
+// from the cache), tile_refine_ms (wall time of that refinement, from its start to its
+// regions drawn), regions (regions shown), regions_cached (shown from the cache in the last
+// refinement), tiles_fetched (cumulative), tile_updates (updates done), tiles_busy (an update
+// is running or due), tile_timing (the last refinement's split: select_ms, fetch_ms (tiles
+// fetched and handed to the worker), regions_ms (the worker's batches), python_ms, build_ms
+// (three.js geometries), swap_ms (swap and draw), total_ms, made, cached, stale (batches
+// not sent: the camera moved on), at (performance.now() when drawn)).
 //
 // Each region is tessellated on the tree's regionGrid (R = 2 spans_per_tile + 1, tile-tree.js).
 
 import * as THREE from "three";
 import { fetchBytes } from "./fetch-bytes.js";
 import { TileTree } from "./tile-tree.js";
+
+/** Regions per worker request: large enough that messages cost little, small enough that a
+ *  camera moving on wastes little work. */
+export const REGION_BATCH = 4;
+/** Region meshes kept after they leave the screen (a 33² region with skirts is ~60 KB). */
+export const REGION_CACHE = 96;
 
 export class TileLayer {
   /**
@@ -38,12 +60,15 @@ export class TileLayer {
     this.detailTiles = new Set(); // file names the worker holds
     this.textures = new Map(); // file name -> THREE.Texture
     this.regions = new Map(); // "k/i/j" -> THREE.Mesh shown (or ready to be)
+    this.shownKeys = new Map(); // "k/i/j" -> cache key of the mesh shown
+    this.cache = new Map(); // cache key -> the worker's mesh data, least recently used first
     this.running = null;
     this.dirty = false;
     this.failed = false;
     this.timer = null;
-    Object.assign(stats, { tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0, regions: 0,
-                           tiles_fetched: 0, tile_updates: 0, tiles_busy: false });
+    Object.assign(stats, { tiles_loaded: 0, tile_bytes: 0, tile_tessellate_ms: 0,
+                           tile_refine_ms: 0, regions: 0, regions_cached: 0, tiles_fetched: 0,
+                           tile_updates: 0, tiles_busy: false });
   }
 
   get enabled() {
@@ -105,7 +130,9 @@ export class TileLayer {
 
   async _update() {
     const viewer = this.viewer;
+    const t0 = performance.now();
     const leaves = this.tree.select(viewer.camera, viewer.renderer.domElement.height);
+    const tSelected = performance.now();
     const wanted = new Map();
     const detailNames = new Set();
     const textureNames = new Set();
@@ -113,48 +140,69 @@ export class TileLayer {
       const id = `${leaf.level}/${leaf.i}/${leaf.j}`;
       const chain = this.tree.detailChain(leaf.level, leaf.i, leaf.j);
       const texture = this.tree.textureNode(leaf.level, leaf.i, leaf.j);
-      wanted.set(id, { ...leaf, chain, texture });
-      for (const node of chain) detailNames.add(node.file);
+      const skirtDepth = 2 * this.tree.detailError(leaf.level, leaf.i, leaf.j);
+      const names = chain.map((node) => node.file);
+      const key = `${id}|${this.regionGrid}|${skirtDepth}|${names.join(",")}`;
+      wanted.set(id, { ...leaf, chain, names, skirtDepth, key, texture });
+      for (const name of names) detailNames.add(name);
       if (texture) textureNames.add(texture.file);
     }
     const baseTexture = this.tree.textureNode(0, 0, 0);
     if (baseTexture) textureNames.add(baseTexture.file);
 
-    // fetch what is missing, all at once; decode detail tiles in the worker (in order)
+    // fetch what is missing, all at once; each detail tile goes to the worker as it arrives
     const newDetail = [...detailNames].filter((name) => !this.detailTiles.has(name));
     const newTexture = [...textureNames].filter((name) => !this.textures.has(name));
-    const [detailBytes, textureImages] = await Promise.all([
-      Promise.all(newDetail.map((name) => this._fetch(name))),
-      Promise.all(newTexture.map((name) => this._fetch(name).then((bytes) => decodeTexture(bytes, name)))),
+    await Promise.all([
+      ...newDetail.map(async (name) => {
+        const bytes = await this._fetch(name);
+        await this.worker.addTile(name, bytes);
+        this.detailTiles.add(name);
+      }),
+      ...newTexture.map(async (name) => {
+        const texture = await decodeTexture(await this._fetch(name), name);
+        this.textures.set(name, texture);
+      }),
     ]);
-    for (let n = 0; n < newDetail.length; n++) {
-      await this.worker.addTile(newDetail[n], detailBytes[n]);
-      this.detailTiles.add(newDetail[n]);
-    }
-    newTexture.forEach((name, n) => this.textures.set(name, textureImages[n]));
+    const tFetched = performance.now();
 
-    // tessellate the new regions; the old ones stay on screen meanwhile
-    let ms = 0;
-    let made = 0;
+    // the regions not on screen: from the cache, or made by the worker, most needed first
+    const missing = [...wanted.values()].filter((leaf) =>
+      this.shownKeys.get(`${leaf.level}/${leaf.i}/${leaf.j}`) !== leaf.key && !this.cache.has(leaf.key));
+    const made = await this._makeRegions(prioritised(missing));
+    if (made.stale) return; // the camera moved on: update() runs again for the new view
+    const tMade = performance.now();
+
     const next = new Map();
+    const nextKeys = new Map();
+    let cached = 0;
+    let buildMs = 0;
     for (const [id, leaf] of wanted) {
       let mesh = this.regions.get(id);
-      if (!mesh) {
-        const data = await this.worker.region(leaf.level, leaf.i, leaf.j, this.regionGrid,
-                                              leaf.chain.map((node) => node.file),
-                                              2 * this.tree.detailError(leaf.level, leaf.i, leaf.j));
-        ms += data.tessellate_ms;
-        made += 1;
+      if (!mesh || this.shownKeys.get(id) !== leaf.key) {
+        const data = this._cached(leaf.key);
+        if (!made.keys.has(leaf.key)) cached += 1;
         const texture = leaf.texture ? this.textures.get(leaf.texture.file) : null;
-        mesh = viewer.makeRegionMesh(data, texture,
-                                     leaf.texture ? TileTree.rect(leaf.texture.level, leaf.texture.i, leaf.texture.j) : null);
+        const tBuild = performance.now();
+        mesh = viewer.makeRegionMesh(data, texture, leaf.texture
+          ? TileTree.rect(leaf.texture.level, leaf.texture.i, leaf.texture.j) : null);
+        buildMs += performance.now() - tBuild;
       }
       next.set(id, mesh);
+      nextKeys.set(id, leaf.key);
     }
-    const cells = 2 ** Math.max(this.tree.maxLevel, 0);
-    viewer.setBaseTexture(baseTexture ? this.textures.get(baseTexture.file) : null);
-    viewer.setRegions(next, { cells, rects: [...wanted.values()].map((l) => TileTree.rect(l.level, l.i, l.j)) });
+    const changed = next.size !== this.regions.size ||
+      [...next].some(([id, mesh]) => this.regions.get(id) !== mesh);
+    const shownTexture = baseTexture ? this.textures.get(baseTexture.file) : null;
+    if (viewer.baseTexture !== shownTexture) viewer.setBaseTexture(shownTexture);
+    if (changed) {
+      const cells = 2 ** Math.max(this.tree.maxLevel, 0);
+      viewer.setRegions(next, { cells, rects: [...wanted.values()].map((l) => TileTree.rect(l.level, l.i, l.j)) });
+    }
     this.regions = next;
+    this.shownKeys = nextKeys;
+    if (changed) await viewer.whenDrawn();
+    const tSwapped = performance.now();
 
     // unload what no region needs any more
     const stale = [...this.detailTiles].filter((name) => !detailNames.has(name));
@@ -171,9 +219,60 @@ export class TileLayer {
     const stats = this.stats;
     stats.tiles_loaded = this.detailTiles.size + this.textures.size;
     stats.regions = next.size;
-    if (made) stats.tile_tessellate_ms = ms;
+    if (changed) {
+      Object.assign(stats, {
+        tile_tessellate_ms: made.ms, tile_refine_ms: tSwapped - t0, regions_cached: cached,
+        tile_timing: { select_ms: tSelected - t0, fetch_ms: tFetched - tSelected,
+                       regions_ms: tMade - tFetched, python_ms: made.ms, build_ms: buildMs,
+                       swap_ms: tSwapped - tMade - buildMs, total_ms: tSwapped - t0,
+                       made: made.keys.size, cached, stale: 0, at: tSwapped },
+      });
+    }
     stats.tile_updates += 1;
     this.onChange();
+  }
+
+  /**
+   * Have the worker tessellate `leaves` (in this order), REGION_BATCH per request with two
+   * requests in flight; the meshes go to the cache. Stops sending when the camera has moved
+   * on (this.dirty): {stale: true}. Else {stale: false, keys (of the regions made), ms (their
+   * Python time)}.
+   */
+  async _makeRegions(leaves) {
+    const batches = [];
+    for (let k = 0; k < leaves.length; k += REGION_BATCH) batches.push(leaves.slice(k, k + REGION_BATCH));
+    const keys = new Set();
+    let ms = 0;
+    const send = (batch) => this.worker.regionBatch(this.regionGrid, batch.map((leaf) => ({
+      level: leaf.level, i: leaf.i, j: leaf.j, names: leaf.names, skirtDepth: leaf.skirtDepth })));
+    let inFlight = batches.length ? send(batches[0]) : null;
+    for (let b = 0; b < batches.length; b++) {
+      const following = b + 1 < batches.length && !this.dirty ? send(batches[b + 1]) : null;
+      const meshes = await inFlight;
+      batches[b].forEach((leaf, n) => {
+        this._remember(leaf.key, meshes[n]);
+        keys.add(leaf.key);
+        ms += meshes[n].tessellate_ms;
+      });
+      if (!following) {
+        if (b + 1 < batches.length) return { stale: true };
+        break;
+      }
+      inFlight = following;
+    }
+    return { stale: false, keys, ms };
+  }
+
+  _remember(key, data) {
+    this.cache.delete(key);
+    this.cache.set(key, data);
+    while (this.cache.size > REGION_CACHE) this.cache.delete(this.cache.keys().next().value);
+  }
+
+  _cached(key) {
+    const data = this.cache.get(key);
+    this._remember(key, data); // most recently used
+    return data;
   }
 
   async _fetch(name) {
@@ -183,6 +282,12 @@ export class TileLayer {
     this.stats.tiles_fetched += 1;
     return bytes;
   }
+}
+
+/** `leaves` most projected error first, then nearest the centre of the view (normalised device
+ *  coordinates of their boxes' centres): the order the worker makes them in. */
+function prioritised(leaves) {
+  return [...leaves].sort((a, b) => (b.sse - a.sse) || (a.centre - b.centre));
 }
 
 /** A texture tile's image as a three.js texture (uv channel 1, rows flipped at decode so

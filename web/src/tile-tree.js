@@ -229,8 +229,10 @@ export class TileTree {
 
   /**
    * The regions to show for `camera` on a drawing buffer `heightPx` tall.
-   * @returns {{level: number, i: number, j: number, sse: number}[]} the visible leaves of the
-   *   refinement at levels >= 0 (empty: the base alone suffices)
+   * @returns {{level: number, i: number, j: number, sse: number, centre: number}[]} the
+   *   visible leaves of the refinement at levels >= 0 (empty: the base alone suffices);
+   *   centre: the distance of the node's box centre from the view's centre in normalised
+   *   device coordinates (0 at the centre, 1 at the middle of an edge)
    */
   select(camera, heightPx, { detailPx = DETAIL_PX, texelPx = TEXEL_PX, maxRegions = MAX_REGIONS } = {}) {
     if (this.empty || !this.boxes) return [];
@@ -240,6 +242,10 @@ export class TileTree {
       .multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse).multiply(this.frame));
     const focal = (heightPx * camera.zoom) / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2));
     const eye = camera.position.clone().applyMatrix4(this.frameInverse);
+    // patch frame -> normalised device coordinates: how far a box's centre is from the view's
+    const toScreen = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix,
+                                                          camera.matrixWorldInverse).multiply(this.frame);
+    const centre = new THREE.Vector3();
     // a node's need for refinement: the largest ratio of projected error to its threshold
     const consider = (level, i, j) => {
       const box = this.box(level, i, j);
@@ -255,7 +261,8 @@ export class TileTree {
         const texel = (shown ? Math.max(size.x, size.y, size.z) / this.textureSize : Infinity) * scale;
         need = Math.max(need, texel / texelPx);
       }
-      return { level, i, j, sse, need };
+      box.getCenter(centre).applyMatrix4(toScreen);
+      return { level, i, j, sse, need, centre: Math.hypot(centre.x, centre.y) };
     };
     const root = consider(-1, 0, 0);
     if (!root || root.need <= 1) return [];
@@ -280,6 +287,6 @@ export class TileTree {
         else leaves.push(child);
       }
     }
-    return leaves.map(({ level, i, j, sse }) => ({ level, i, j, sse }));
+    return leaves.map(({ level, i, j, sse, centre }) => ({ level, i, j, sse, centre }));
   }
 }

@@ -123,6 +123,7 @@ export class Viewer {
     this.controls.addEventListener("change", () => this.render());
     this.objectView = null; // {up, front} in scan coordinates, or null: the fallback framing
     this.onRender = null;
+    this._frame = null; // the animation frame a draw is requested for (render), or null
     this.insets = { left: 0, bottom: 0 };
     this._resizeObserver = new ResizeObserver(() => this.resize());
     this._resizeObserver.observe(canvas);
@@ -145,9 +146,29 @@ export class Viewer {
     this.render();
   }
 
+  /** Draw the scene at the next animation frame: every change within one frame (a camera
+   *  move, a base texture, a region swap) makes one draw, not one each — under a software
+   *  rasteriser (SwiftShader) a draw of the canvas takes 0.3-1.5 s of GPU time, and queued
+   *  draws made a zoom wait seconds for its regions. */
   render() {
+    if (this._frame !== null) return;
+    this._frame = requestAnimationFrame(() => this.renderNow());
+  }
+
+  /** Draw now (and cancel a draw requested for the next frame). */
+  renderNow() {
+    if (this._frame !== null) cancelAnimationFrame(this._frame);
+    this._frame = null;
     this.renderer.render(this.scene, this.camera);
     if (this.onRender) this.onRender();
+  }
+
+  /** Resolves once the draws requested so far are on the canvas (the frame after them). */
+  whenDrawn() {
+    return new Promise((resolve) => requestAnimationFrame(() => {
+      if (this._frame !== null) this.renderNow();
+      resolve();
+    }));
   }
 
   /**

@@ -6,7 +6,7 @@
 import assert from "node:assert/strict";
 import { afterEach, beforeEach, describe, test } from "node:test";
 
-import { TileLayer } from "../src/tile-layer.js";
+import { REGION_BATCH, TileLayer } from "../src/tile-layer.js";
 import { TileTree } from "../src/tile-tree.js";
 import { camera, detailTiles, planeMesh } from "./scenes.mjs";
 
@@ -44,9 +44,13 @@ function standIns(cam) {
       this.dropped.push(...names);
       for (const name of names) this.held.delete(name);
     },
-    async region(level, i, j, grid, names, skirtDepth) {
-      this.regions.push({ level, i, j, grid, names, skirtDepth });
-      return { tessellate_ms: 2, level, i, j, grid };
+    batches: [],
+    async regionBatch(grid, regions) {
+      this.batches.push(regions.length);
+      return regions.map(({ level, i, j, names, skirtDepth }) => {
+        this.regions.push({ level, i, j, grid, names, skirtDepth });
+        return { tessellate_ms: 2, level, i, j, grid };
+      });
     },
   };
   const viewer = {
@@ -54,6 +58,8 @@ function standIns(cam) {
     makeRegionMesh(data, texture, rect) { return { data, texture, rect }; },
     setRegions(regions, mask) { this.shown = { regions, mask }; },
     setBaseTexture(texture) { this.baseTexture = texture; },
+    draws: 0,
+    async whenDrawn() { this.draws += 1; },
   };
   return { worker, viewer };
 }
@@ -155,5 +161,73 @@ describe("tile layer", () => {
     await layer.update();
     assert.equal(worker.regions.length, 0);
     assert.equal(fetched.length, 0);
+  });
+
+  test("new regions go in batches, most projected error first; a view seen again comes from the cache", async () => {
+    const errors = [0.8, 0.4, 0.2];
+    const tiles = detailTiles(errors, { spans: 16 });
+    const close = camera([20, 30, 25], [30, 40, 0]);
+    const { layer, worker, viewer, stats } = layerFor(tiles, close);
+    await layer.update();
+    const count = worker.regions.length;
+    assert.ok(count > REGION_BATCH, count);
+    assert.ok(worker.batches.every((size) => size <= REGION_BATCH), worker.batches);
+    assert.equal(worker.batches.length, Math.ceil(count / REGION_BATCH));
+    // the order the worker made them in: projected error never increases
+    const reference = new TileTree(tiles);
+    const mesh = planeMesh();
+    reference.setBounds(mesh.positions, mesh.uvs, mesh.domain, reference.baseError);
+    const sse = new Map(reference.select(close, HEIGHT).map((l) => [`${l.level}/${l.i}/${l.j}`, l.sse]));
+    const order = worker.regions.map((r) => sse.get(`${r.level}/${r.i}/${r.j}`));
+    assert.deepEqual(order, [...order].sort((a, b) => b - a));
+    assert.equal(viewer.draws, 1); // drawn once, when swapped in
+    assert.equal(stats.tile_tessellate_ms, 2 * count);
+    assert.ok(stats.tile_refine_ms >= 0 && stats.tile_timing.made === count);
+
+    // away (the base alone), then back: the regions come from the cache, no worker call
+    layer.viewer.camera = camera([50, 50, 5000], [50, 50, 0]);
+    await layer.update();
+    assert.equal(stats.regions, 0);
+    layer.viewer.camera = close;
+    await layer.update();
+    assert.equal(worker.regions.length, count);
+    assert.equal(stats.regions, count);
+    assert.equal(stats.regions_cached, count);
+    assert.equal(stats.tile_tessellate_ms, 0); // this refinement ran no Python
+    assert.equal(viewer.draws, 3);
+    // nothing changed: no draw
+    await layer.update();
+    assert.equal(viewer.draws, 3);
+  });
+
+  test("a camera that moves on stops the batches; the next update shows its view", async () => {
+    const errors = [0.8, 0.4, 0.2];
+    const tiles = detailTiles(errors, { spans: 16 });
+    const close = camera([20, 30, 25], [30, 40, 0]);
+    const { layer, worker, viewer, stats } = layerFor(tiles, close);
+    const regionBatch = worker.regionBatch.bind(worker);
+    let first = true;
+    worker.regionBatch = async (grid, regions) => {
+      if (first) { // the camera moves on while the first batch is being made
+        first = false;
+        layer.viewer.camera = camera([70, 60, 25], [70, 60, 0]);
+        layer.update(); // as schedule() would, once due: marks the running update stale
+      }
+      return regionBatch(grid, regions);
+    };
+    await layer.update();
+    await layer.idle();
+    // two batches had been sent (two in flight), no more for the old view
+    const reference = new TileTree(tiles);
+    const mesh = planeMesh();
+    reference.setBounds(mesh.positions, mesh.uvs, mesh.domain, reference.baseError);
+    const key = (r) => `${r.level}/${r.i}/${r.j}`;
+    const now = reference.select(layer.viewer.camera, HEIGHT).map(key).sort();
+    assert.deepEqual([...viewer.shown.regions.keys()].sort(), now);
+    const old = new Set(reference.select(close, HEIGHT).map(key));
+    const wasted = worker.regions.filter((r) => old.has(key(r)) && !now.includes(key(r)));
+    assert.ok(wasted.length <= 2 * REGION_BATCH, wasted.length);
+    assert.equal(stats.regions, now.length);
+    assert.equal(viewer.draws, 1); // the stale view was never swapped in
   });
 });
