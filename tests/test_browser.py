@@ -92,6 +92,19 @@ def test_viewer_error_overlay_recolours_the_object(viewer):
     assert after[changed][:, 0].mean() < after[changed][:, 2].mean()
 
 
+def test_the_error_legend_ends_at_the_panels_max_and_names_holes(viewer):
+    viewer.click("#toggle-error")
+    try:
+        viewer.wait_for_function("!document.getElementById('legend').hidden")
+        assert viewer.inner_text("#legend-max") == viewer.inner_text("#fact-max") != "—"
+        assert "no scan point" in viewer.inner_text("#legend")
+        swatch = viewer.eval_on_selector("#legend-hole-swatch",
+                                         "e => getComputedStyle(e).backgroundColor")
+        assert swatch == "rgb(150, 128, 170)"
+    finally:
+        viewer.click("#toggle-error")
+
+
 def test_download_ply_is_the_mesh_trimesh_reads(viewer, tmp_path):
     with viewer.expect_download() as info:
         viewer.click("#download-ply")
