@@ -15,6 +15,12 @@ beside the code that raises them, each a subclass of :class:`TesseraError`
                                            ``PatchFormatError``)
 ``fitter.fitting.io.ScanError``            an unreadable or unusable scan
 ``fitter.fitting.options.OptionError``     a fit option out of its range
+``fitter.fitting.atlas.SurfaceError``      a scan without a usable triangle surface
+                                           (too few points, not repairable)
+``fitter.fitting.atlas.AtlasLayoutError``  a decimated layout that is no oriented
+                                           2-manifold
+``fitter.fitting.atlas.AtlasFitError``     an atlas fit without working points or
+                                           with a singular system
 ``fitter.collection.bundles.BundleError``  a bundle the server cannot serve: no or a
                                            malformed manifest, an unreadable file
 ``fitter.collection.catalog.CatalogError`` a catalog this code cannot use

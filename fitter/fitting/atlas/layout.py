@@ -1,0 +1,198 @@
+"""The patch layout: a coarse triangle mesh of the surface, each triangle split into 3 quads.
+
+Quadric error metric decimation (Garland & Heckbert, *Surface simplification using quadric
+error metrics*, SIGGRAPH 1997; MeshLab's edge collapse through ``pymeshlab``) reduces the
+surface to ``T`` triangles, preserving its topology (no collapse that changes the genus or
+makes an edge non-manifold) and its open borders. Every triangle ``(a, b, c)`` is then cut
+into three quads at its centroid ``g`` and edge midpoints ``m_ab, m_bc, m_ca`` (the midpoint
+of a shared edge is shared): ``(a, m_ab, g, m_ca)``, ``(b, m_bc, g, m_ab)``,
+``(c, m_ca, g, m_bc)``, counter-clockwise as the triangle is. This is a pure quad layout
+of any manifold triangle mesh, ``F = 3 T`` quads, with valence-3 vertices at centroids
+(the quadrangulation Eck & Hoppe 1996 reach through their triangle pairs is coarser but
+needs a perfect matching; this split needs nothing).
+
+The initial atlas puts every patch on its bilinear quad: control point ``P[i][j]`` is the
+bilinear blend of the quad's corners at the Greville abscissae ``(ξ_i, ξ_j)``,
+``ξ_i = (t_{i+1} + … + t_{i+d}) / d`` (The NURBS Book §9.2.2, the linear precision of
+B-splines), so patch ``f`` *is* its planar quad ``B_f(u, v)`` and a point's bilinear
+``(u, v)`` is its foot point on the initial atlas.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from client_py.atlas import AtlasSurface, atlas_edges
+from client_py.errors import TesseraError
+
+from .surface import ScanSurface, _arrays, _meshset, face_pieces, manifold_problems
+
+
+class AtlasLayoutError(TesseraError, ValueError):
+    """A decimated surface that is no oriented 2-manifold, so no quad layout of it exists."""
+
+
+@dataclass(frozen=True)
+class QuadLayout:
+    """The layout: a decimated triangle mesh and its 3-quads-per-triangle split.
+
+    Attributes
+    ----------
+    triangle_vertices : ndarray, shape (Vt, 3)
+    triangles : ndarray, shape (T, 3), int64
+    vertices : ndarray, shape (Vt + Et + T, 3)
+        Layout corners: the triangle vertices, then the edge midpoints (edge order of
+        ``triangle_edges``), then the centroids.
+    quads : ndarray, shape (3 T, 4), int64
+        Quad ``3 t + k`` is corner ``k`` of triangle ``t``: ``(x, m_xy, g, m_zx)`` for
+        ``(x, y, z)`` the triangle rotated to start at its ``k``-th vertex.
+    triangle_edges : ndarray, shape (Et, 2), int64
+        Undirected triangle edges ``(lo, hi)``; edge ``e``'s midpoint is vertex ``Vt + e``.
+    """
+
+    triangle_vertices: np.ndarray
+    triangles: np.ndarray
+    vertices: np.ndarray
+    quads: np.ndarray
+    triangle_edges: np.ndarray
+
+    @property
+    def n_triangles(self) -> int:
+        """``T``."""
+        return len(self.triangles)
+
+
+def decimate(surface: ScanSurface, target_triangles: int) -> tuple[np.ndarray, np.ndarray]:
+    """The surface decimated to about ``target_triangles`` (topology and borders preserved).
+
+    Raises
+    ------
+    ValueError
+        ``target_triangles`` not an int >= 4.
+    AtlasLayoutError
+        The result is not an oriented 2-manifold (counts named).
+    """
+    if isinstance(target_triangles, bool) or not isinstance(target_triangles, int) \
+            or target_triangles < 4:
+        raise ValueError(f"target_triangles must be an int >= 4, got {target_triangles!r}")
+    if len(surface.faces) <= target_triangles:
+        return _checked(surface, surface.vertices.copy(), surface.faces.copy())
+    # MeshLab's topology check also refuses every collapse of a border edge, so a scan with
+    # holes (the bunny's base: 223 border edges) keeps its border at full resolution and the
+    # coarse mesh becomes slivers fanned to it. Collapse freely first; keep the result when
+    # it is an oriented 2-manifold with the input's pieces and Euler characteristics (its
+    # topology), else decimate again with the topology check on.
+    for preserve in (False, True):
+        ms = _meshset(surface.vertices, surface.faces)
+        ms.meshing_decimation_quadric_edge_collapse(
+            targetfacenum=target_triangles, preservetopology=preserve,
+            preserveboundary=False, boundaryweight=1.0, preservenormal=True,
+            optimalplacement=False, planarquadric=True, qualitythr=0.5, autoclean=True)
+        ms.meshing_remove_unreferenced_vertices()
+        vertices, triangles = _arrays(ms)
+        if preserve or _same_topology(surface, vertices, triangles):
+            break
+    return _checked(surface, vertices, triangles)
+
+
+def euler_characteristics(vertices: np.ndarray, triangles: np.ndarray) -> list[int]:
+    """``χ = V - E + F`` of every piece, sorted."""
+    count, labels = face_pieces(triangles, len(vertices))
+    out = []
+    for piece in range(count):
+        tri = triangles[labels == piece]
+        edges = np.unique(np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]],
+                                                  tri[:, [2, 0]]]), axis=1), axis=0)
+        out.append(int(len(np.unique(tri)) - len(edges) + len(tri)))
+    return sorted(out)
+
+
+def _same_topology(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray) -> bool:
+    problems = manifold_problems(triangles)
+    if problems["nonmanifold_edges"] or problems["misoriented_edges"]:
+        return False
+    return euler_characteristics(vertices, triangles) == euler_characteristics(
+        surface.vertices, surface.faces)
+
+
+def _checked(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    problems = manifold_problems(triangles)
+    if problems["nonmanifold_edges"] or problems["misoriented_edges"]:
+        raise AtlasLayoutError(
+            f"the surface decimated to {len(triangles)} triangles has "
+            f"{problems['nonmanifold_edges']} non-manifold and {problems['misoriented_edges']} "
+            "misoriented edges; the layout needs an oriented 2-manifold")
+    area = np.linalg.norm(np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
+                                   vertices[triangles[:, 2]] - vertices[triangles[:, 0]]), axis=1)
+    keep = area > 1e-12 * surface.diagonal ** 2
+    if not keep.all():
+        raise AtlasLayoutError(f"the decimated surface has {int(np.sum(~keep))} triangles "
+                               "without area; the layout needs every triangle to have area")
+    return vertices, triangles
+
+
+def quad_layout(vertices: np.ndarray, triangles: np.ndarray) -> QuadLayout:
+    """Split every triangle into 3 quads at its centroid and shared edge midpoints.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (Vt, 3)
+    triangles : ndarray, shape (T, 3)
+        An oriented 2-manifold (with or without border).
+
+    Returns
+    -------
+    QuadLayout
+    """
+    vertices = np.asarray(vertices, np.float64)
+    triangles = np.asarray(triangles, np.int64)
+    if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) == 0:
+        raise ValueError(f"triangles must have shape (T, 3) with T >= 1, got {triangles.shape}")
+    n_v, n_t = len(vertices), len(triangles)
+    directed = np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2)  # (T, 3, 2)
+    edges, inverse = np.unique(np.sort(directed.reshape(-1, 2), axis=1), axis=0,
+                               return_inverse=True)
+    mid = n_v + inverse.reshape(n_t, 3)  # mid[t, k]: midpoint of edge tri[k] -> tri[k+1]
+    centroid = n_v + len(edges) + np.arange(n_t)
+    quads = np.empty((n_t, 3, 4), np.int64)
+    for k in range(3):
+        quads[:, k, 0] = triangles[:, k]
+        quads[:, k, 1] = mid[:, k]
+        quads[:, k, 2] = centroid
+        quads[:, k, 3] = mid[:, (k + 2) % 3]
+    corners = np.concatenate([vertices, vertices[edges].mean(axis=1),
+                              vertices[triangles].mean(axis=1)])
+    return QuadLayout(vertices, triangles, corners, quads.reshape(-1, 4), edges)
+
+
+def greville(degree: int, spans: int) -> np.ndarray:
+    """Greville abscissae ``ξ_i = (t_{i+1} + … + t_{i+d}) / d`` of the clamped uniform knots."""
+    knots = np.r_[np.zeros(degree), np.linspace(0.0, 1.0, spans + 1), np.ones(degree)]
+    n = spans + degree
+    return np.array([knots[i + 1:i + degree + 1].mean() for i in range(n)])
+
+
+def bilinear_atlas(layout: QuadLayout, degree: int = 3, spans: int = 2) -> AtlasSurface:
+    """The atlas whose patch ``f`` is the bilinear quad of ``layout.quads[f]`` exactly.
+
+    ``P_f[i][j] = (1-ξ_i)(1-ξ_j) a + ξ_i (1-ξ_j) b + ξ_i ξ_j c + (1-ξ_i) ξ_j d``; every shared
+    point gets the same value from each patch that holds it (a bilinear quad restricted to
+    a side is the segment between its ends).
+    """
+    xi = greville(degree, spans)
+    inner = xi[1:-1]
+    table = atlas_edges(layout.quads.tolist())
+    corners = layout.vertices
+    ends = np.asarray(table.edges, np.int64).reshape(-1, 2)
+    lo, hi = corners[ends[:, 0]], corners[ends[:, 1]]
+    edge_points = (lo[:, None, :] * (1 - inner)[None, :, None]
+                   + hi[:, None, :] * inner[None, :, None]).reshape(-1, 3)
+    q = corners[layout.quads]  # (F, 4, 3)
+    s, t = inner[None, :, None, None], inner[None, None, :, None]  # i along u, j along v
+    a, b, c, d = (q[:, k][:, None, None, :] for k in range(4))
+    face = (1 - s) * (1 - t) * a + s * (1 - t) * b + s * t * c + (1 - s) * t * d
+    return AtlasSurface(degree, spans, corners.tolist(), layout.quads.tolist(),
+                        edge_points.tolist(), face.reshape(-1, 3).tolist(), None)

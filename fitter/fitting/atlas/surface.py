@@ -1,0 +1,354 @@
+"""A clean, consistently oriented triangle surface of a scan: the atlas's starting point.
+
+A mesh scan is used as it is after cleaning (MeshLab's filters through ``pymeshlab``):
+duplicate vertices merged, null and duplicate faces dropped, non-manifold edges and vertices
+split (their faces kept, never removed), faces oriented coherently per connected piece and
+each closed piece turned outward (positive signed volume). Every piece is kept; a piece
+becomes patches of its own.
+
+A point cloud (a range scan, a ``.conf`` registration) gets a surface by screened Poisson
+reconstruction (Kazhdan & Hoppe, *Screened Poisson surface reconstruction*, ToG 2013)
+through ``open3d``, on the cloud voxel-thinned to at most ``max_cloud_points``. Poisson
+closes every surface, so the result is trimmed: a triangle with a vertex farther than
+``trim_spacings`` point spacings (the median distance to the 4th nearest point) from every
+scan point is cut away, and a range
+scan stays open. Small islands that trimming leaves (reconstruction bubbles, under
+``MIN_ISLAND_SHARE`` of the faces) are dropped and counted in ``repairs``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from client_py.errors import TesseraError
+
+from ..io.scan import Scan
+from ..io.thin import voxel_thin_indices
+
+MIN_CLOUD_POINTS = 100
+MIN_ISLAND_SHARE = 0.002
+
+
+class SurfaceError(TesseraError, ValueError):
+    """A scan that gives no usable triangle surface (too few points, no area, a surface
+    that stays non-manifold or non-orientable after repair); the message says which."""
+
+
+@dataclass(frozen=True)
+class ScanSurface:
+    """A 2-manifold, consistently oriented triangle surface of a scan.
+
+    Attributes
+    ----------
+    vertices : ndarray, shape (V, 3), float64
+    faces : ndarray, shape (M, 3), int64
+        Counter-clockwise seen from outside (right-hand normal outward on closed pieces).
+    origin : {'mesh', 'poisson'}
+        The scan's own triangles, or a screened Poisson reconstruction of its points.
+    pieces : int
+        Connected pieces (all kept).
+    repairs : dict
+        What cleaning changed: counts of merged vertices, dropped faces, split non-manifold
+        elements, flipped pieces, trimmed Poisson faces, dropped islands.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    origin: str
+    pieces: int
+    repairs: dict = field(default_factory=dict)
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        """Unit normals ``(b - a) × (c - a) / |…|``, shape (M, 3)."""
+        return _unit_rows(self._cross())
+
+    @property
+    def face_areas(self) -> np.ndarray:
+        """Triangle areas, shape (M,)."""
+        return 0.5 * np.linalg.norm(self._cross(), axis=1)
+
+    @property
+    def vertex_normals(self) -> np.ndarray:
+        """Area-weighted unit vertex normals, shape (V, 3)."""
+        cross = self._cross()
+        normals = np.zeros_like(self.vertices)
+        for k in range(3):
+            np.add.at(normals, self.faces[:, k], cross)
+        return _unit_rows(normals)
+
+    @property
+    def diagonal(self) -> float:
+        """Bounding-box diagonal of the vertices."""
+        return float(np.linalg.norm(np.ptp(self.vertices, axis=0)))
+
+    def _cross(self) -> np.ndarray:
+        tri = self.vertices[self.faces]
+        return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
+def _unit_rows(a: np.ndarray) -> np.ndarray:
+    length = np.linalg.norm(a, axis=1, keepdims=True)
+    return a / np.where(length > 0, length, 1.0)
+
+
+def face_pieces(faces: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
+    """Connected pieces of a triangle mesh through shared vertices.
+
+    Returns
+    -------
+    count : int
+    labels : ndarray, shape (M,), int
+        The piece of every face.
+    """
+    m = len(faces)
+    rows = np.repeat(np.arange(m), 3)
+    graph = coo_matrix((np.ones(3 * m), (rows, faces.reshape(-1) + m)),
+                       shape=(m + n_vertices, m + n_vertices))
+    count, labels = connected_components(graph, directed=False)
+    face_labels = labels[:m]
+    _, face_labels = np.unique(face_labels, return_inverse=True)
+    return int(face_labels.max() + 1) if m else 0, face_labels
+
+
+def manifold_problems(faces: np.ndarray) -> dict:
+    """Edges used by more than two faces, and edges two faces run the same way.
+
+    Returns
+    -------
+    dict
+        ``nonmanifold_edges``: undirected edges in > 2 faces; ``misoriented_edges``: directed
+        edges used twice (two neighbours disagree on orientation); ``border_edges``: edges in
+        one face.
+    """
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    _, dcount = np.unique(directed, axis=0, return_counts=True)
+    undirected, ucount = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    return {"nonmanifold_edges": int(np.sum(ucount > 2)),
+            "misoriented_edges": int(np.sum(dcount > 1)),
+            "border_edges": int(np.sum(ucount == 1)), "edges": int(len(undirected))}
+
+
+def _signed_volumes(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray,
+                    count: int) -> np.ndarray:
+    """``(1/6) Σ a · (b × c)`` per piece (the divergence theorem; positive when outward)."""
+    tri = vertices[faces] - vertices.mean(axis=0)
+    per_face = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
+    return np.bincount(labels, weights=per_face, minlength=count)
+
+
+def _orient_outward(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
+    """Flip every closed piece whose signed volume is negative; returns faces and flips."""
+    count, labels = face_pieces(faces, len(vertices))
+    volume = _signed_volumes(vertices, faces, labels, count)
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    _, inverse, ucount = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True,
+                                   return_counts=True)
+    open_edge = ucount[inverse.reshape(-1)] == 1
+    open_piece = np.zeros(count, bool)
+    np.logical_or.at(open_piece, np.tile(labels, 3), open_edge)
+    # an open piece (a bust's cut base, a range scan) keeps the orientation of its majority
+    # of normals agreeing with the outward direction from the piece's centroid
+    flip = np.zeros(count, bool)
+    flip[~open_piece] = volume[~open_piece] < 0
+    if open_piece.any():
+        tri = vertices[faces]
+        centroid = tri.mean(axis=1)
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        sums = np.zeros((count, 3))
+        np.add.at(sums, labels, centroid * np.linalg.norm(normal, axis=1, keepdims=True))
+        area = np.bincount(labels, weights=np.linalg.norm(normal, axis=1), minlength=count)
+        piece_centre = sums / np.maximum(area, 1e-300)[:, None]
+        outward = np.einsum("ij,ij->i", normal, centroid - piece_centre[labels])
+        score = np.bincount(labels, weights=outward, minlength=count)
+        flip[open_piece] = score[open_piece] < 0
+    out = faces.copy()
+    turn = flip[labels]
+    out[turn] = out[turn][:, ::-1]
+    return out, int(flip.sum())
+
+
+def _meshset(vertices: np.ndarray, faces: np.ndarray):
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(vertices, np.float64),
+                               face_matrix=np.ascontiguousarray(faces, np.int32)))
+    return ms
+
+
+def _arrays(ms) -> tuple[np.ndarray, np.ndarray]:
+    mesh = ms.current_mesh()
+    return (np.asarray(mesh.vertex_matrix(), np.float64).copy(),
+            np.asarray(mesh.face_matrix(), np.int64).copy())
+
+
+def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
+               ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Repair a triangle mesh into an oriented 2-manifold, keeping every face that has area.
+
+    MeshLab's filters, in order: remove duplicate vertices, null faces, duplicate faces;
+    split non-manifold edges and vertices (``Split Vertices``: no face is removed); orient
+    faces coherently; remove unreferenced vertices; then each closed piece is turned outward
+    (:func:`_orient_outward`).
+
+    Raises
+    ------
+    SurfaceError
+        No face with area, or a mesh still non-manifold or non-orientable after three
+        rounds of repair (e.g. a Möbius strip), naming the counts.
+    """
+    n_vertices, n_faces = len(vertices), len(faces)
+    ms = _meshset(vertices, faces)
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_null_faces()
+    ms.meshing_remove_duplicate_faces()
+    ms.meshing_remove_unreferenced_vertices()
+    after_dedup = ms.current_mesh().face_number()
+    if after_dedup == 0:
+        raise SurfaceError(f"{name}: none of the {n_faces} faces has area")
+    problems: dict = {}
+    for _ in range(3):
+        ms.meshing_repair_non_manifold_edges(method=1)
+        ms.meshing_repair_non_manifold_vertices()
+        ms.meshing_re_orient_faces_coherently()
+        ms.meshing_remove_unreferenced_vertices()
+        v, f = _arrays(ms)
+        problems = manifold_problems(f)
+        if problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0:
+            break
+    else:
+        raise SurfaceError(
+            f"{name}: after repair {problems['nonmanifold_edges']} edges still join more than "
+            f"two faces and {problems['misoriented_edges']} edges have neighbours of opposite "
+            "orientation (a non-orientable surface); a 2-manifold, orientable mesh is needed")
+    f, flipped = _orient_outward(v, f)
+    repairs = {"vertices_merged": int(n_vertices - len(v)),
+               "faces_dropped": int(n_faces - after_dedup),
+               "faces_added_by_splits": int(len(f) - after_dedup),
+               "pieces_flipped": flipped}
+    return v, f, repairs
+
+
+def _thin_to(points: np.ndarray, target: int) -> np.ndarray:
+    """Indices of a voxel thinning to at most ``target`` points (voxel edge grown by ×√ratio)."""
+    if len(points) <= target:
+        return np.arange(len(points))
+    h = float(np.linalg.norm(np.ptp(points, axis=0))) / np.sqrt(target)
+    keep = voxel_thin_indices(points, h)
+    for _ in range(8):
+        if len(keep) <= target:
+            break
+        h *= 1.05 * np.sqrt(len(keep) / target)
+        keep = voxel_thin_indices(points, h)
+    return keep
+
+
+def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: int = 8,
+                    trim_spacings: float = 2.0, max_cloud_points: int = 200_000,
+                    name: str = "scan") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Screened Poisson surface of a cloud (Kazhdan & Hoppe 2013), trimmed to the scan.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+    normals : ndarray, shape (N, 3), or None
+        Oriented normals; estimated when None (PCA of the 20 nearest points, oriented
+        consistently over a tangent-plane graph, Hoppe et al. 1992, then outward from the
+        centroid on average).
+    depth : int
+        Octree depth (a ``2^depth`` grid over the bounding cube).
+    trim_spacings : float
+        A triangle with a vertex farther than this many median point spacings from every
+        point is removed.
+
+    Returns
+    -------
+    vertices, faces, repairs
+    """
+    import open3d as o3d
+
+    keep = _thin_to(points, max_cloud_points)
+    pts = points[keep]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    if normals is not None and np.all(np.isfinite(normals[keep])) \
+            and np.all(np.linalg.norm(normals[keep], axis=1) > 0):
+        cloud.normals = o3d.utility.Vector3dVector(_unit_rows(np.asarray(normals[keep],
+                                                                         np.float64)))
+        estimated = False
+    else:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+        cloud.orient_normals_consistent_tangent_plane(12)
+        n = np.asarray(cloud.normals)
+        if np.einsum("ij,ij->", n, pts - pts.mean(axis=0)) < 0:
+            cloud.normals = o3d.utility.Vector3dVector(-n)
+        estimated = True
+    mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        cloud, depth=depth, n_threads=1)
+    vertices = np.asarray(mesh.vertices, np.float64).copy()
+    faces = np.asarray(mesh.triangles, np.int64).copy()
+    if len(faces) == 0:
+        raise SurfaceError(f"{name}: the Poisson reconstruction of {len(pts)} points is empty")
+    tree = cKDTree(pts)
+    # the spacing: the median distance to a point's 4th nearest neighbour, the grid step of
+    # a regular range scan and robust to random sampling (whose nearest neighbour is often
+    # much closer than the gaps between points)
+    spacing = float(np.median(tree.query(pts, k=5)[0][:, 4]))
+    far = tree.query(vertices)[0] > trim_spacings * spacing
+    inside = ~far[faces].any(axis=1)
+    trimmed = int(np.sum(~inside))
+    faces = faces[inside]
+    count, labels = face_pieces(faces, len(vertices))
+    sizes = np.bincount(labels, minlength=count)
+    big = sizes >= max(4, MIN_ISLAND_SHARE * len(faces))
+    faces = faces[big[labels]]
+    if len(faces) == 0:
+        raise SurfaceError(f"{name}: nothing of the Poisson surface is within "
+                           f"{trim_spacings} point spacings of the points")
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    repairs = {"cloud_points_used": int(len(pts)), "normals_estimated": estimated,
+               "poisson_depth": depth, "median_spacing": spacing,
+               "faces_trimmed": trimmed, "islands_dropped": int(np.sum(~big)),
+               "island_faces_dropped": int(sizes[~big].sum())}
+    return vertices[used], remap[faces], repairs
+
+
+def scan_surface(scan: Scan, *, poisson_depth: int = 8, trim_spacings: float = 2.0,
+                 max_cloud_points: int = 200_000) -> ScanSurface:
+    """The scan's triangle surface: its own triangles cleaned, or a trimmed Poisson surface.
+
+    Raises
+    ------
+    ValueError
+        ``poisson_depth`` outside 4..11 or ``trim_spacings`` not > 0.
+    SurfaceError
+        Fewer than ``MIN_CLOUD_POINTS`` points in a cloud, or a mesh that cannot be repaired.
+    """
+    if isinstance(poisson_depth, bool) or not isinstance(poisson_depth, int) \
+            or not 4 <= poisson_depth <= 11:
+        raise ValueError(f"poisson_depth must be an int in 4..11, got {poisson_depth!r}")
+    if not trim_spacings > 0:
+        raise ValueError(f"trim_spacings must be > 0, got {trim_spacings!r}")
+    name = scan.source.get("name", "scan")
+    if scan.faces is not None and len(scan.faces):
+        vertices, faces, repairs = clean_mesh(scan.points, scan.faces, name)
+        origin = "mesh"
+    else:
+        if scan.n_points < MIN_CLOUD_POINTS:
+            raise SurfaceError(f"{name}: a point cloud of {scan.n_points} points; at least "
+                               f"{MIN_CLOUD_POINTS} are needed to reconstruct a surface")
+        vertices, faces, repairs = poisson_surface(
+            scan.points, scan.normals, depth=poisson_depth, trim_spacings=trim_spacings,
+            max_cloud_points=max_cloud_points, name=name)
+        vertices, faces, cleaned = clean_mesh(vertices, faces, name)
+        repairs.update(cleaned)
+        origin = "poisson"
+    count, _ = face_pieces(faces, len(vertices))
+    return ScanSurface(vertices, faces, origin, count, repairs)

@@ -1,0 +1,221 @@
+"""The atlas fit (fitter.fitting.atlas): surface, layout, shared-border solve, watertightness."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from fitter.fitting.atlas import AtlasFit, SurfaceError, fit_atlas, quad_layout, scan_surface
+from fitter.fitting.atlas.fit import (
+    control_points,
+    design_matrix,
+    evaluate_patches,
+    grid_mesh,
+    index_table,
+    regularisation_weights,
+    smoothing_matrix,
+    solve_control_points,
+    triangle_to_quad,
+)
+from fitter.fitting.atlas.layout import bilinear_atlas, decimate, euler_characteristics
+from fitter.fitting.atlas.surface import clean_mesh, manifold_problems
+from fitter.fitting.io.scan import Scan, make_scan, new_source
+from tests.test_atlas import random_cube_atlas
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def _mesh_scan(vertices, faces, name="mesh") -> Scan:
+    return make_scan(name, np.asarray(vertices, np.float64), faces=np.asarray(faces),
+                     source=new_source(name, None, "array", None, "array"))
+
+
+def _sphere_scan(subdivisions=4, centre=(0.0, 0.0, 0.0)) -> Scan:
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return _mesh_scan(m.vertices + np.asarray(centre), m.faces, "sphere")
+
+
+def _welded_border_edges(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> int:
+    """Edges used by one triangle after merging vertices on a ``tolerance`` grid."""
+    _, inverse = np.unique(np.round(vertices / tolerance).astype(np.int64), axis=0,
+                           return_inverse=True)
+    welded = inverse.reshape(-1)[faces]
+    welded = welded[(welded[:, 0] != welded[:, 1]) & (welded[:, 1] != welded[:, 2])
+                    & (welded[:, 2] != welded[:, 0])]
+    return manifold_problems(welded)["border_edges"]
+
+
+def test_evaluation_and_grid_agree_with_the_reference_evaluator():
+    rnd = random_cube_atlas(degree=3, spans=2, seed=4)
+    polynomial = type(rnd)(rnd.degree, rnd.spans, rnd.vertices, rnd.quads, rnd.edge_points,
+                           rnd.face_points, None)
+    rng = np.random.default_rng(0)
+    f = rng.integers(0, 6, 50)
+    u, v = rng.random(50), rng.random(50)
+    (c,) = evaluate_patches(index_table(polynomial), control_points(polynomial), 3, 2, f, u, v)
+    for k in range(50):
+        ref = polynomial.patch_surface(int(f[k])).evaluate(float(u[k]), float(v[k]))
+        np.testing.assert_allclose(c[k], ref, atol=1e-12)
+    for atlas in (polynomial, rnd):  # the grid also with weights
+        vertices, _ = grid_mesh(atlas, 5)
+        grid = vertices.reshape(6, 5, 5, 3)
+        for face, a, b in ((0, 1, 3), (4, 4, 0), (5, 2, 2)):
+            ref = atlas.patch_surface(face).evaluate(a / 4, b / 4)
+            np.testing.assert_allclose(grid[face, a, b], ref, atol=1e-12)
+
+
+def test_bilinear_atlas_is_its_layout_and_foot_points_are_exact():
+    m = trimesh.creation.icosphere(subdivisions=1)
+    layout = quad_layout(m.vertices, m.faces)
+    assert len(layout.quads) == 3 * len(m.faces)
+    atlas = bilinear_atlas(layout, 3, 2)
+    rng = np.random.default_rng(1)
+    t = rng.integers(0, len(m.faces), 200)
+    bary = rng.dirichlet((1.0, 1.0, 1.0), 200)
+    x = np.einsum("kj,kjc->kc", bary, m.vertices[m.faces[t]])
+    f, u, v = triangle_to_quad(x, layout.triangle_vertices, layout.triangles, t)
+    (c,) = evaluate_patches(index_table(atlas), control_points(atlas), 3, 2, f, u, v)
+    np.testing.assert_allclose(c, x, atol=1e-10)
+
+
+def test_solve_equals_a_dense_lstsq_of_the_same_system():
+    tetra = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], np.float64)
+    layout = quad_layout(tetra / np.sqrt(3), [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    atlas = bilinear_atlas(layout, 3, 1)
+    table = index_table(atlas)
+    rng = np.random.default_rng(2)
+    n = 200
+    f = rng.integers(0, len(atlas.quads), n)
+    u, v = rng.random(n), rng.random(n)
+    (x,) = evaluate_patches(table, control_points(atlas), 3, 1, f, u, v)
+    x = x / np.linalg.norm(x, axis=1, keepdims=True)  # points on the sphere
+    A = design_matrix(table, atlas.control_point_count, 3, 1, f, u, v)
+    L = smoothing_matrix(atlas, table)
+    prior = control_points(atlas)
+    got = solve_control_points(A, x, L, prior, 1e-2, 1e-2)
+    lam, mu = regularisation_weights(A, L, 1e-2, 1e-2)
+    stacked = np.vstack([A.toarray(), np.sqrt(lam) * L.toarray(),
+                         np.sqrt(mu) * np.eye(A.shape[1])])
+    rhs = np.vstack([x, np.zeros((L.shape[0], 3)), np.sqrt(mu) * prior])
+    want = np.linalg.lstsq(stacked, rhs, rcond=None)[0]
+    np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def sphere_fit() -> AtlasFit:
+    return fit_atlas(_sphere_scan(4), 60, working_count=3000, rounds=3)
+
+
+def test_a_sphere_is_recovered_far_below_the_layouts_chord_error(sphere_fit):
+    layout = sphere_fit.layout
+    chord = 1.0 - np.linalg.norm(layout.vertices, axis=1).min()  # the centroids' depth
+    assert sphere_fit.patches == 3 * sphere_fit.triangles
+    assert chord > 0.05
+    assert sphere_fit.rms < chord / 30
+    vertices, _ = grid_mesh(sphere_fit.atlas, 9)
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 1.0).max() < chord / 5
+    assert sphere_fit.bytes > 0 and set(sphere_fit.timings) >= {"surface", "solve", "correct"}
+    # signed distances: outward positive on a closed piece
+    outside = np.linalg.norm(sphere_fit.points, axis=1) > 1.0 + 1e-3
+    assert np.all(sphere_fit.distance[outside] > 0)
+
+
+def test_the_base_is_watertight_on_a_closed_input(sphere_fit):
+    vertices, faces = grid_mesh(sphere_fit.atlas, 9)
+    assert _welded_border_edges(vertices, faces, 1e-9) == 0
+
+
+def test_two_pieces_both_get_patches():
+    a, b = _sphere_scan(3), _sphere_scan(3, centre=(3.0, 0.0, 0.0))
+    scan = _mesh_scan(np.vstack([a.points, b.points]),
+                      np.vstack([a.faces, b.faces + len(a.points)]), "two")
+    surface = scan_surface(scan)
+    assert surface.pieces == 2
+    fit = fit_atlas(scan, 120, working_count=3000, rounds=2, surface=surface)
+    corners = np.asarray(fit.atlas.vertices)
+    assert (corners[:, 0] < 1.5).sum() > 10 and (corners[:, 0] > 1.5).sum() > 10
+    assert fit.rms < 0.01
+    vertices, faces = grid_mesh(fit.atlas, 5)
+    assert _welded_border_edges(vertices, faces, 1e-9) == 0
+
+
+def test_a_non_manifold_edge_is_split_and_a_moebius_strip_refused():
+    # a fin: three triangles on one edge (0, 1)
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1.0]])
+    faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    v, f, repairs = clean_mesh(vertices, faces, "fin")
+    problems = manifold_problems(f)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    assert len(f) == 3  # no face removed
+    # a Möbius strip: no consistent orientation exists
+    k = 12
+    angle = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    rows = []
+    for w in (-0.3, 0.3):
+        rows.append(np.column_stack([(1 + w * np.cos(angle / 2)) * np.cos(angle),
+                                     (1 + w * np.cos(angle / 2)) * np.sin(angle),
+                                     w * np.sin(angle / 2)]))
+    strip = np.vstack(rows)
+    quads = []
+    for i in range(k):
+        j = (i + 1) % k
+        a, b = i, k + i
+        c, d = (j, k + j) if j else (k + j, j)  # the half twist
+        quads += [[a, c, b], [b, c, d]]
+    with pytest.raises(SurfaceError, match="non-orientable|non-manifold"):
+        clean_mesh(strip, np.array(quads), "moebius")
+
+
+def test_a_point_cloud_is_reconstructed_and_fitted():
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(6000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    scan = Scan.from_array(p, normals=p.astype(np.float32), name="cloud")
+    surface = scan_surface(scan, poisson_depth=6)
+    assert surface.origin == "poisson" and surface.pieces == 1
+    assert manifold_problems(surface.faces)["border_edges"] == 0
+    fit = fit_atlas(scan, 60, working_count=3000, rounds=2, surface=surface)
+    assert fit.rms < 0.01
+
+
+def test_an_open_cloud_stays_open_after_poisson():
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(6000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    p = p[p[:, 2] > 0.2]  # a cap: Poisson closes it, the trim must open it again
+    surface = scan_surface(Scan.from_array(p, normals=p.astype(np.float32), name="cap"),
+                           poisson_depth=6)
+    assert manifold_problems(surface.faces)["border_edges"] > 0
+    assert surface.vertices[:, 2].min() > 0.2 - 0.1
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    ({"patches": "many"}, "patches must be 'auto' or an int"),
+    ({"patches": 1}, "single-patch"),
+    ({"degree": 5}, "degree must be an int in 1..3"),
+    ({"smoothing": float("nan")}, "smoothing must be"),
+])
+def test_bad_arguments_name_the_argument(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        fit_atlas(_sphere_scan(1), **kwargs)
+
+
+def test_a_tiny_cloud_is_refused():
+    with pytest.raises(SurfaceError, match="at least 100"):
+        scan_surface(Scan.from_array(np.random.default_rng(0).random((20, 3)), name="tiny"))
+
+
+@pytest.mark.skipif(not (DATA / "stanford-bunny" / "bun_zipper.ply.gz").exists(),
+                    reason="the shared scans (../shared/data) are not on this machine")
+def test_the_bunny_layout_keeps_its_topology_and_holes():
+    from fitter.fitting.io import load_scan
+
+    surface = scan_surface(load_scan(DATA / "stanford-bunny" / "bun_zipper.ply.gz"))
+    vertices, triangles = decimate(surface, 200)
+    assert abs(len(triangles) - 200) <= 10
+    assert euler_characteristics(vertices, triangles) == euler_characteristics(
+        surface.vertices, surface.faces)
+    problems = manifold_problems(triangles)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    assert problems["border_edges"] > 0  # the scan's holes stay holes
