@@ -6,14 +6,29 @@ browser's path: Pyodide from web/node_modules, no numpy), on a rational and a
 non-rational patch, and on the rational one with a trim mask. The patch is the
 example relief (``fitter.fitting.examples``: rosette, groove, step on a convex face,
 200 x 140 mm) sampled as a height field at the Greville abscissae, with smooth
-weights ``1 + 0.2 sin cos``. Writes ``bench/results/tessellate.json``.
+weights ``1 + 0.2 sin cos``.
+
+Regions (issue 14, the zoom path): a bundle fitted from the relief scan (40,000 points,
+20 x 20 base, ``REGION_LEVELS`` detail levels of 16 spans per tile) is read in Pyodide under
+node by ``client_py.session.WorkerSession`` as the browser's worker reads it, and every region
+of the finest level is made as the viewer asks for it (``region_mesh``: a 33² grid with the
+four tiles of its chain, skirts, scan frame), ``REGION_REPEAT`` times; the figure is the
+median over the regions of each one's best time, with the split into its stages (base and
+fields sampled, displaced mesh, skirts, map to the scan frame). ``CLIENT_PY_BEFORE`` (a
+directory holding another copy of client_py) times that copy too, in the same run. three.js
+(``NURBSSurface`` + ``ParametricGeometry``, npm ``three`` from web/node_modules, under the
+same node) tessellates the same 33² regions of the same base patch (scan frame), base only:
+three.js has no displacement. Writes ``bench/results/tessellate.json``.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import math
+import os
 import shutil
+import statistics
 import subprocess
 import tempfile
 from pathlib import Path
@@ -50,6 +65,223 @@ for name, spec in INPUT["surfaces"].items():
     timings[name] = {"best": min(runs), "median": statistics.median(runs), "runs": runs}
 RESULT = {"kernel": KERNEL_NAME, "timings": timings}
 """
+
+
+REGION_LEVELS = 4
+REGION_GRID = 33
+REGION_REPEAT = 5
+TARGET_REGION_MS = 15.0
+
+# Runs inside Pyodide with INPUT = {"patch": b64, "tiles": {name: b64}, "regions": [[level, i,
+# j, names, skirt depth]], "grid": R, "repeat": r}: per region its best time (ms) and, when
+# client_py has the staged path, the split of that run.
+REGION_SCRIPT = """
+import base64, time
+from client_py import layers, session as session_module
+from client_py._kernel import KERNEL_NAME
+
+session = session_module.WorkerSession()
+session.load_patch(base64.b64decode(INPUT["patch"]), "base.tsp")
+for name, data in INPUT["tiles"].items():
+    session.add_tile(name, base64.b64decode(data))
+grid, repeat = INPUT["grid"], INPUT["repeat"]
+staged = hasattr(layers, "sample_region")
+stages = {"sample": 0.0, "mesh": 0.0, "skirts": 0.0, "scan frame": 0.0}
+if staged:  # time the stages region_mesh calls, through the names it looks up
+    def timed(name, function):
+        def run(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                stages[name] += time.perf_counter() - start
+        return run
+    for attr, name in (("sample_region", "sample"), ("mesh_of_region", "mesh"),
+                       ("hang_skirts", "skirts"), ("transform_mesh", "scan frame")):
+        setattr(session_module, attr, timed(name, getattr(session_module, attr)))
+level, i, j, names, depth = INPUT["regions"][0]
+session.region_mesh(level, i, j, grid, names, depth)  # warm-up: generated kernel code
+for key in stages:
+    stages[key] = 0.0
+try:  # node's CPU time of this process (a loaded machine's waits are not the region's)
+    from js import process
+
+    def cpu_ms():
+        usage = process.cpuUsage()
+        return (usage.user + usage.system) / 1000
+except ImportError:
+    cpu_ms = None
+best, best_cpu = [], []
+for level, i, j, names, depth in INPUT["regions"]:
+    runs, cpu = [], []
+    for _ in range(repeat):
+        start, start_cpu = time.perf_counter(), cpu_ms() if cpu_ms else 0.0
+        mesh = session.region_mesh(level, i, j, grid, names, depth)
+        runs.append(1000 * (time.perf_counter() - start))
+        cpu.append(cpu_ms() - start_cpu if cpu_ms else float("nan"))
+    best.append(min(runs))
+    best_cpu.append(min(cpu))
+count = repeat * len(INPUT["regions"])
+RESULT = {"kernel": KERNEL_NAME, "best_ms": best, "best_cpu_ms": best_cpu,
+          "vertices": mesh.vertex_count,
+          "stages_ms": {k: 1000 * v / count for k, v in stages.items()} if staged else None}
+"""
+
+# Runs under node: three.js on the same regions, INPUT as {"surface", "rects", "grid", "repeat"}.
+THREE_REGION_SCRIPT = r"""
+import { readFileSync } from "node:fs";
+const three = process.argv[2];
+const THREE = await import(`${three}/build/three.module.js`);
+const { NURBSSurface } = await import(`${three}/examples/jsm/curves/NURBSSurface.js`);
+const { ParametricGeometry } =
+  await import(`${three}/examples/jsm/geometries/ParametricGeometry.js`);
+const { surface, rects, grid, repeat } = JSON.parse(readFileSync(process.argv[3], "utf8"));
+const points = surface.points.map(
+  (row) => row.map(([x, y, z, w]) => new THREE.Vector4(x, y, z, w)));
+const nurbs = new NURBSSurface(surface.degree[0], surface.degree[1], surface.knots[0],
+                               surface.knots[1], points);
+const best = [];
+let vertices = 0;
+for (let pass = 0; pass < 2; pass++) {  // the first pass warms the JIT and is not counted
+  for (const [u0, v0, u1, v1] of rects) {
+    const evaluate = (s, t, target) =>
+      nurbs.getPoint(u0 + (u1 - u0) * s, v0 + (v1 - v0) * t, target);
+    let least = Infinity;
+    for (let k = 0; k < repeat; k++) {
+      const start = performance.now();
+      const geometry = new ParametricGeometry(evaluate, grid - 1, grid - 1);
+      least = Math.min(least, performance.now() - start);
+      vertices = geometry.getAttribute("position").count;
+      geometry.dispose();
+    }
+    if (pass === 1) best.push(least);
+  }
+}
+process.stdout.write(JSON.stringify({ best_ms: best, vertices }) + "\n");
+"""
+
+
+def _region_bundle(root: Path) -> Path:
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
+
+    bundle = root / "relief-detail"
+    fit_scan(relief_scan(40_000), bundle,
+             FitOptions(grid=(20, 20), detail_levels=REGION_LEVELS, title="Relief with detail"))
+    return bundle
+
+
+def _region_input(bundle: Path) -> dict:
+    """The Pyodide script's INPUT: every finest-level region with its chain of tiles."""
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    detail = manifest["tiles"]["detail"]
+    nodes = {(n["level"], n["i"], n["j"]): n for n in detail["nodes"]}
+    finest = max(k for k, _, _ in nodes)
+    regions = []
+    for level, i, j in sorted(k for k in nodes if k[0] == finest):
+        chain = [nodes[key]["file"] for key in
+                 ((k, i >> (level - k), j >> (level - k)) for k in range(level + 1))
+                 if key in nodes]
+        depth = 2 * nodes[(level, i, j)]["geometric_error"]
+        regions.append([level, i, j, chain, depth])
+    names = {name for region in regions for name in region[3]}
+    return {"patch": base64.b64encode((bundle / "base.tsp").read_bytes()).decode(),
+            "tiles": {n: base64.b64encode((bundle / n).read_bytes()).decode() for n in names},
+            "regions": regions, "grid": REGION_GRID, "repeat": REGION_REPEAT}
+
+
+def _run_pyodide(script_text: str, data: dict, client_py_dir: str | None = None) -> dict:
+    node = shutil.which("node")
+    env = dict(os.environ)
+    if client_py_dir:
+        env["CLIENT_PY_DIR"] = client_py_dir
+    with tempfile.TemporaryDirectory() as tmp:
+        script, path = Path(tmp) / "bench.py", Path(tmp) / "input.json"
+        script.write_text(script_text)
+        path.write_text(json.dumps(data))
+        proc = subprocess.run([node, str(RUNNER), str(script), str(path)], capture_output=True,
+                              text=True, timeout=900, env=env)
+    if proc.returncode != 0:
+        raise RuntimeError(f"Pyodide benchmark failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _three_regions(surface: dict, rects: list) -> dict:
+    node = shutil.which("node")
+    with tempfile.TemporaryDirectory() as tmp:
+        script, path = Path(tmp) / "three.mjs", Path(tmp) / "input.json"
+        script.write_text(THREE_REGION_SCRIPT)
+        path.write_text(json.dumps({"surface": surface, "rects": rects, "grid": REGION_GRID,
+                                    "repeat": REGION_REPEAT}))
+        proc = subprocess.run([node, str(script), str(ROOT / "web" / "node_modules" / "three"),
+                               str(path)], capture_output=True, text=True, timeout=600)
+    if proc.returncode != 0:
+        raise RuntimeError(f"three.js region benchmark failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _scan_surface_json(patch: Path) -> dict:
+    from client_py import read_patch
+
+    s = read_patch(patch.read_bytes()).to_scan_frame()
+    weights = s.weights
+    return {"degree": list(s.degree), "knots": [list(s.knots[0]), list(s.knots[1])],
+            "points": [[[*p, weights[i][j]] for j, p in enumerate(row)]
+                       for i, row in enumerate(s.control_points)]}
+
+
+def run_regions() -> dict | None:
+    """The region part (prints its table; returns its record, writes nothing)."""
+    if shutil.which("node") is None or not (PYODIDE / "pyodide.mjs").is_file():
+        print("regions skipped: needs node and web/node_modules/pyodide (npm ci in web/)")
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        bundle = _region_bundle(Path(tmp))
+        data = _region_input(bundle)
+        surface = _scan_surface_json(bundle / "base.tsp")
+    versions = {"after": None}
+    before = os.environ.get("CLIENT_PY_BEFORE")
+    if before:
+        versions = {"before": before, **versions}
+    record: dict = {"regions": len(data["regions"]), "grid": [REGION_GRID, REGION_GRID],
+                    "levels": REGION_LEVELS, "repeat": REGION_REPEAT,
+                    "target_ms": TARGET_REGION_MS, "load_average": list(os.getloadavg())}
+    rows = []
+    for label, directory in versions.items():
+        out = _run_pyodide(REGION_SCRIPT, data, directory)
+        best = out["result"]["best_ms"]
+        record[label] = {"median_ms": statistics.median(best), "best_ms": min(best),
+                         "worst_ms": max(best),
+                         "cpu_median_ms": statistics.median(out["result"]["best_cpu_ms"]),
+                         "stages_ms": out["result"]["stages_ms"],
+                         "vertices": out["result"]["vertices"],
+                         "kernel": out["result"]["kernel"], "python": out["python"].split()[0]}
+        rows.append([f"Tessera, Pyodide ({label})", record[label]["median_ms"],
+                     record[label]["cpu_median_ms"], record[label]["best_ms"],
+                     record[label]["worst_ms"], record[label]["vertices"]])
+    rects = [[i / 2**level, j / 2**level, (i + 1) / 2**level, (j + 1) / 2**level]
+             for level, i, j, _, _ in data["regions"]]
+    three = _three_regions(surface, rects)
+    record["three"] = {"median_ms": statistics.median(three["best_ms"]),
+                       "best_ms": min(three["best_ms"]), "worst_ms": max(three["best_ms"]),
+                       "vertices": three["vertices"]}
+    rows.append(["three.js (node), base only", record["three"]["median_ms"], None,
+                 record["three"]["best_ms"], record["three"]["worst_ms"], three["vertices"]])
+    print_table(f"Region tessellation: {len(rects)} regions of level {REGION_LEVELS - 1}, "
+                f"{REGION_GRID}² each (ms per region: median of each region's best of "
+                f"{REGION_REPEAT})",
+                ["runtime", "median", "median CPU", "best", "worst", "vertices"], rows)
+    stages = record["after"]["stages_ms"]
+    if stages:
+        print("after, mean ms per region: " + ", ".join(f"{k} {v:.2f}" for k, v in stages.items()))
+    record["ratio_tessera_over_three"] = record["after"]["median_ms"] / record["three"]["median_ms"]
+    verdict = "meets" if record["after"]["median_ms"] <= TARGET_REGION_MS else "misses"
+    print(f"region in Pyodide: median {record['after']['median_ms']:.1f} ms (CPU "
+          f"{record['after']['cpu_median_ms']:.1f} ms); {verdict} the "
+          f"{TARGET_REGION_MS:.0f} ms target; Tessera / three.js = "
+          f"{record['ratio_tessera_over_three']:.2f}")
+    return record
 
 
 def relief_patch(rational: bool, trimmed: bool = False) -> NurbsSurface:
@@ -132,7 +364,9 @@ def run() -> dict:
                 ["runtime", "kernel", "patch", "best s", "median s", "Mvertex/s"], rows)
     if pyodide is not None:
         print(f"Pyodide load (loadPyodide under node): {pyodide['load_seconds']:.2f} s")
+    regions = run_regions()
     record = {
+        "regions": regions,
         "task": f"tessellate_grid of a {CTRL}x{CTRL} degree-{DEGREE} patch to {GRID}x{GRID} "
                 "vertices with normals",
         "patch": "example relief (fitter.fitting.examples.relief_height) as a height field at the "

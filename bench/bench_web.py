@@ -17,7 +17,19 @@ ways: Tessera (``tessellate_grid`` in Pyodide: positions, analytic normals, indi
 three.js (``NURBSSurface`` + ``ParametricGeometry``: positions, finite-difference normals,
 indices; npm ``three``, used by the benchmark only) on the very same surface (the bundle's
 ``base.tsp`` in scan coordinates). The headline is the ratio Tessera / three.js (< 1: Tessera
-faster). Writes ``bench/results/web.json``.
+faster).
+
+Zoom (issue 14): a second bundle, the relief (40,000 points) with a 20 x 20 base and
+``ZOOM_LEVELS`` detail levels (16 spans per tile: 33² regions), is opened at 1280 x 800 with
+the base following the view, and zoomed into ``ZOOM_SPOTS`` spots in turn, back to the fitted
+view between them: each time the hook ``window.tessera.zoomTo(u, v, ZOOM_DISTANCE)`` frames the
+spot and resolves once the tiles of that view are on screen. The figure is the time from the
+call to the last region swap (``stats.tile_timing.at``), with the tile layer's split of its last
+update (fetch + decode, regions in the worker, Python time, three.js geometry, swap and draw).
+Then ``WHEEL_STEPS`` mouse-wheel steps at the canvas centre, each timed from the wheel event to
+the last region swap once nothing has changed for ``QUIET_MS`` (the debounce and a base
+re-tessellation included). Target: median zoom-to-refined <= 1 s. ``run_zoom()`` runs this part
+alone. Writes ``bench/results/web.json``.
 """
 
 from __future__ import annotations
@@ -58,6 +70,171 @@ THREE_JS = """async ({surface, grid, runs}) => {
     return {times, vertices: geometry.getAttribute("position").count,
             triangles: geometry.index.count / 3};
 }"""
+
+
+ZOOM_LEVELS = 4
+ZOOM_SPOTS = 8
+ZOOM_DISTANCE = 40.0
+WHEEL_STEPS = 4
+WHEEL_DELTA = -600  # pixels per wheel step (OrbitControls: a zoom of about 0.95^(600/50))
+QUIET_MS = 1500
+TARGET_ZOOM_MS = 1000.0
+
+# Zoom into one spot from the fitted view: ms from the call to the last region swap.
+ZOOM_JS = """async ([u, v, distance]) => {
+    const start = performance.now();
+    const stats = await window.tessera.zoomTo(u, v, distance);
+    return {ms: stats.tile_timing.at - start, resolved_ms: performance.now() - start,
+            regions: stats.regions, timing: stats.tile_timing, tiles_loaded: stats.tiles_loaded,
+            panel: document.getElementById("fact-detail").textContent};
+}"""
+
+# One wheel step at the canvas centre; resolves once the regions and the base have been quiet
+# for `quiet` ms: ms from the event to the last region swap.
+WHEEL_JS = """async ([deltaY, quiet]) => {
+    const canvas = document.getElementById("view");
+    const box = canvas.getBoundingClientRect();
+    const stats = window.tessera.stats;
+    const start = performance.now();
+    const updates = stats.tile_updates;
+    canvas.dispatchEvent(new WheelEvent("wheel", {deltaY, clientX: box.left + box.width / 2,
+        clientY: box.top + box.height / 2, bubbles: true, cancelable: true}));
+    let last = [stats.tile_updates, stats.meshes], since = performance.now();
+    while (performance.now() - since < quiet || stats.tiles_busy) {
+      await new Promise((resolve) => setTimeout(resolve, 50));
+      const now = [stats.tile_updates, stats.meshes];
+      if (now[0] !== last[0] || now[1] !== last[1] || stats.tiles_busy) {
+        last = now;
+        since = performance.now();
+      }
+    }
+    const at = stats.tile_timing ? stats.tile_timing.at : start;
+    return {ms: at > start ? at - start : null, updates: stats.tile_updates - updates,
+            regions: stats.regions, resolution: stats.resolution, timing: stats.tile_timing};
+}"""
+
+
+def _fit_detail_bundle(root: Path) -> Path:
+    from fitter.fitting.examples import relief_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
+
+    bundle = root / "relief-detail"
+    fit_scan(relief_scan(40_000), bundle,
+             FitOptions(grid=(20, 20), detail_levels=ZOOM_LEVELS, title="Relief with detail"))
+    return bundle
+
+
+def _zoom_spots(bundle: Path) -> list[tuple[float, float]]:
+    """Centres of ``ZOOM_SPOTS`` finest-level tiles spread over the bundle (fixed choice)."""
+    import json
+
+    nodes = json.loads((bundle / "manifest.json").read_text())["tiles"]["detail"]["nodes"]
+    finest = max(n["level"] for n in nodes)
+    side = 2**finest
+    present = {(n["i"], n["j"]) for n in nodes if n["level"] == finest}
+    # a ring of spots around the centre and its diagonals, each far from the others
+    wanted = [(1, 1), (1, side - 2), (side - 2, 1), (side - 2, side - 2), (side // 2, 1),
+              (1, side // 2), (side // 2, side - 2), (side - 2, side // 2)]
+    keys = [key for key in wanted if key in present] or sorted(present)
+    return [((i + 0.5) / side, (j + 0.5) / side) for i, j in keys[:ZOOM_SPOTS]]
+
+
+def _zoom_runs(browser, base: str, bundle: Path) -> dict:
+    """Zoom-to-refined times on one page: ``ZOOM_SPOTS`` hooked zooms, ``WHEEL_STEPS`` wheels."""
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda exc: problems.append(str(exc)))
+    try:
+        page.goto(f"{base}/objects/{bundle.name}/")
+        page.wait_for_function("document.body.dataset.refined === '1' || "
+                               "!!document.body.dataset.error", timeout=120_000)
+        error = page.evaluate("document.body.dataset.error")
+        if error:
+            raise RuntimeError(f"the viewer failed: {error}")
+        page.evaluate("window.tessera.tilesIdle()")
+        spots = []
+        for u, v in _zoom_spots(bundle):
+            spots.append({"u": u, "v": v, **page.evaluate(ZOOM_JS, [u, v, ZOOM_DISTANCE])})
+            page.click("#fit-view")
+            page.evaluate("window.tessera.tilesIdle()")
+        wheels = [page.evaluate(WHEEL_JS, [WHEEL_DELTA, QUIET_MS]) for _ in range(WHEEL_STEPS)]
+        panel = page.locator("#fact-detail").inner_text()
+        if problems or page.evaluate("document.body.dataset.tileError"):
+            raise RuntimeError(f"the viewer reported problems: {problems}")
+    finally:
+        context.close()
+    ms = [s["ms"] for s in spots]
+    wheel_ms = [w["ms"] for w in wheels if w["ms"] is not None]
+    return {"spots": spots, "wheel": wheels, "panel_detail": panel,
+            "zoom_ms": {"median": statistics.median(ms), "best": min(ms), "worst": max(ms)},
+            "resolved_ms": {"median": statistics.median(s["resolved_ms"] for s in spots)},
+            "wheel_ms": {"median": statistics.median(wheel_ms) if wheel_ms else None,
+                         "best": min(wheel_ms, default=None),
+                         "worst": max(wheel_ms, default=None)},
+            "target_ms": TARGET_ZOOM_MS}
+
+
+def _print_zoom(zoom: dict) -> None:
+    rows = []
+    for s in zoom["spots"]:
+        t = s["timing"]
+        rows.append([f"({s['u']:.3f}, {s['v']:.3f})", s["ms"], s["regions"], t["made"],
+                     t.get("cached", "-"),
+                     t.get("bytes_ms"), t["fetch_ms"], t["regions_ms"], t["python_ms"],
+                     t["build_ms"], t["swap_ms"]])
+    print_table("Zoom to the refined view (ms from zoomTo to the last region swap; the last "
+                "update's split)",
+                ["spot", "zoom→refined", "regions", "made", "cached", "fetch", "fetch+decode",
+                 "regions (worker)", "Python", "geometry", "swap+draw"], rows)
+    rows = [[k, w["ms"] if w["ms"] is not None else "no new regions", w["updates"], w["regions"],
+             w["resolution"]] for k, w in enumerate(zoom["wheel"], 1)]
+    print_table("Wheel zoom at the centre (ms from the event to the last region swap)",
+                ["step", "wheel→refined", "updates", "regions", "base grid"], rows)
+    z, w = zoom["zoom_ms"], zoom["wheel_ms"]
+    verdict = "meets" if z["median"] <= TARGET_ZOOM_MS else "misses"
+    print(f"zoom to refined: median {z['median']:.0f} ms (best {z['best']:.0f}, worst "
+          f"{z['worst']:.0f}; zoomTo resolved: median {zoom['resolved_ms']['median']:.0f}); "
+          f"wheel median {w['median']}; {verdict} the "
+          f"{TARGET_ZOOM_MS:.0f} ms target; panel: {zoom['panel_detail']}")
+
+
+def _zoom_with_server(browser, root: Path) -> dict:
+    from live import LiveServer
+
+    from fitter.server import create_app
+
+    root.mkdir(parents=True, exist_ok=True)
+    bundle = _fit_detail_bundle(root)
+    # a loaded machine starts Pyodide slowly: the page's own 45 s limit is not what is measured
+    app = create_app({"TESSERA_COLLECTION": str(root), "TESSERA_PYODIDE_TIMEOUT": 300})
+    builder = app.extensions["tessera_snapshot"]
+    if builder is not None:
+        builder.ensure()
+    with LiveServer(app) as live:
+        return _zoom_runs(browser, live.url, bundle)
+
+
+def run_zoom() -> dict | None:
+    """The zoom part alone (prints its tables; writes nothing)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from live import CHROMIUM_PATH, chromium_launch_args
+
+    if not Path(CHROMIUM_PATH).exists():
+        print(f"skipped: {CHROMIUM_PATH} is missing (make chromium)")
+        return None
+    from playwright.sync_api import sync_playwright
+
+    with tempfile.TemporaryDirectory(prefix="tessera-bench-zoom-") as tmp, \
+            sync_playwright() as pw:
+        browser = pw.chromium.launch(**chromium_launch_args())
+        try:
+            zoom = _zoom_with_server(browser, Path(tmp))
+        finally:
+            browser.close()
+    _print_zoom(zoom)
+    return zoom
 
 
 def _surface_json(patch: Path) -> dict:
@@ -168,6 +345,7 @@ def run() -> dict | None:
                         cold[mode], measured = _measure(browser, live.url, bundle, surface,
                                                         warm_too=not warm)
                     warm = warm or measured
+                zoom = _zoom_with_server(browser, Path(tmp) / "zoom")
             finally:
                 browser.close()
 
@@ -196,7 +374,9 @@ def run() -> dict | None:
         f["meets_target"] = verdict == "meets"
         print(f"first frame ({mode} start): median {f['median']:.0f} ms, best {f['best']:.0f} ms;"
               f" {verdict} the {TARGET_FIRST_FRAME_MS:.0f} ms target")
+    _print_zoom(zoom)
     result = {
+        "zoom": zoom,
         "patch": {"grid": [40, 40], "degree": surface["degree"], "bytes": patch_bytes},
         "chromium": chromium_launch_args(),
         "target_first_frame_ms": TARGET_FIRST_FRAME_MS,
