@@ -184,8 +184,15 @@ def auto_levels(n_points: int, spans: int = SPANS) -> int:
     return levels
 
 
-def _collocation(degree: int, knots: np.ndarray, n: int, u: np.ndarray, v: np.ndarray,
-                 periodic_u: bool) -> sp.csr_matrix:
+def collocation_matrix(degree: int, knots: np.ndarray, n: int, u: np.ndarray, v: np.ndarray,
+                       periodic_u: bool = False, block: np.ndarray | None = None,
+                       blocks: int = 1) -> sp.csr_matrix:
+    """``A[k, a n + b] = N_a(u_k) N_b(v_k)`` (A2.2 per direction), ``(p + 1)^2`` entries a row.
+
+    With ``block (N,)`` the field of sample ``k`` is grid ``block[k]`` of ``blocks`` grids
+    stored one after the other: column ``block[k] n^2 + a n + b`` of ``blocks n^2`` (an
+    atlas's patches, each with its own ``(n, n)`` coefficients).
+    """
     su, Nu, _ = basis_arrays(degree, knots, n, u)
     sv, Nv, _ = basis_arrays(degree, knots, n, v)
     a = su[:, None] - degree + np.arange(degree + 1)
@@ -193,10 +200,13 @@ def _collocation(degree: int, knots: np.ndarray, n: int, u: np.ndarray, v: np.nd
         a = np.where(a == n - 1, 0, a)  # D(0, v) = D(1, v): one column of unknowns
     b = sv[:, None] - degree + np.arange(degree + 1)
     cols = (a[:, :, None] * n + b[:, None, :]).reshape(len(u), -1)
+    if block is not None:
+        cols = cols + (np.asarray(block, np.int64) * (n * n))[:, None]
     vals = (Nu[:, :, None] * Nv[:, None, :]).reshape(len(u), -1)
     k = cols.shape[1]
     return sp.csr_matrix((vals.ravel(), cols.ravel(), np.arange(0, len(u) * k + 1, k)),
-                         shape=(len(u), n * n))
+                         shape=(len(u), blocks * n * n))
+
 
 
 def _second_differences(n: int) -> tuple[sp.csr_matrix, sp.csr_matrix]:
@@ -205,17 +215,23 @@ def _second_differences(n: int) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     return sp.kron(d2, eye).tocsr(), sp.kron(eye, d2).tocsr()
 
 
+def regularisation(n: int) -> sp.csr_matrix:
+    """``lambda_r I + lambda_s (L_u^T L_u + L_v^T L_v)`` of an ``(n, n)`` coefficient grid: the
+    module docstring's penalty without its scale ``mu``, shape ``(n^2, n^2)``."""
+    Lu, Lv = _second_differences(n)
+    return RIDGE * sp.identity(n * n) + SMOOTHING * (Lu.T @ Lu + Lv.T @ Lv)
+
+
 def fit_level(samples: DetailSamples, residual: np.ndarray, level: int, degree: int = DEGREE,
               spans: int = SPANS, periodic_u: bool = False) -> np.ndarray:
     """Unquantised coefficients ``(n, n)``, ``n = spans 2^level + degree``, of the level's
     field fitted to ``residual (N,)`` at the samples' ``(u, v)`` (see module docstring)."""
     n = (spans << level) + degree
     knots = np.array(layers.level_knots(degree, spans, level))
-    A = _collocation(degree, knots, n, samples.u, samples.v, periodic_u)
+    A = collocation_matrix(degree, knots, n, samples.u, samples.v, periodic_u)
     AtA = (A.T @ A).tocsr()
     mu = AtA.diagonal().sum() / (n * n)
-    Lu, Lv = _second_differences(n)
-    M = AtA + mu * (RIDGE * sp.identity(n * n) + SMOOTHING * (Lu.T @ Lu + Lv.T @ Lv))
+    M = AtA + mu * regularisation(n)
     c = spla.spsolve(M.tocsc(), A.T @ residual).reshape(n, n)
     if periodic_u:
         c[n - 1] = c[0]
@@ -227,12 +243,67 @@ def evaluate_level(coefficients: np.ndarray, level: int, degree: int, spans: int
     """``D_k(u, v)`` of a coefficient grid ``(n, n)`` at scattered parameters."""
     n = coefficients.shape[0]
     knots = np.array(layers.level_knots(degree, spans, level))
-    return _collocation(degree, knots, n, u, v, False) @ coefficients.ravel()
+    return collocation_matrix(degree, knots, n, u, v, False) @ coefficients.ravel()
 
 
 def _tile_index(t: np.ndarray, level: int) -> np.ndarray:
     count = 1 << level
     return np.minimum((t * count).astype(np.int64), count - 1)
+
+
+def quantisation_step(rms_fit: float, coefficient_max: float, residual_max: float,
+                      step_factor: float = STEP_FACTOR) -> float:
+    """The level's quantisation step: ``step_factor`` times the RMS its unquantised field
+    leaves (``rms_fit``), as single precision (as ``.tsd`` stores it).
+
+    An exactly explained residual still needs a positive step (``1e-9`` of the largest
+    coefficient or residual ``|.|``; and zero explains zero: step 1); a step that would
+    quantise the largest coefficient beyond ``MAX_TILE_VALUE`` is raised to fit it (never
+    for a real scan: the tiles stay valid).
+    """
+    floor = 1e-9 * max(coefficient_max, residual_max)
+    step = layers.single(step_factor * max(rms_fit, floor) or 1.0)
+    if np.rint(coefficient_max / step) > MAX_TILE_VALUE:
+        step = layers.single(coefficient_max / MAX_TILE_VALUE * (1 + 1e-6))
+    return step
+
+
+def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
+                u: np.ndarray, v: np.ndarray, e: np.ndarray,
+                drawn: np.ndarray | None = None
+                ) -> list[tuple[layers.DetailTile, bytes, float]]:
+    """Cut a level's quantised coefficients ``q (n, n)`` into its ``2^level x 2^level`` tiles.
+
+    Tile ``(i, j)`` keeps ``q[i m : i m + m + p, j m : j m + m + p]``; its
+    ``geometric_error`` is the largest ``e (N,)`` of the samples ``(u, v) (N,)`` inside its
+    rectangle (0 without any). A tile whose values are all zero (and without a ``drawn``
+    mask, the ``(DRAWN_SIDE 2^level)^2`` cells of :meth:`Redraw.cells`) is not written.
+
+    Returns
+    -------
+    list of (DetailTile, bytes, float)
+        Each tile, its ``.tsd`` bytes and its ``geometric_error``, in ``(i, j)`` order.
+    """
+    count = 1 << level
+    cell = _tile_index(u, level) * count + _tile_index(v, level)
+    worst = np.zeros(count * count)
+    np.maximum.at(worst, cell, e)
+    tiles = []
+    size = spans + degree
+    for i in range(count):
+        for j in range(count):
+            block = q[i * spans : i * spans + size, j * spans : j * spans + size]
+            mask = None
+            if drawn is not None:
+                mask = drawn[i * DRAWN_SIDE : (i + 1) * DRAWN_SIDE,
+                             j * DRAWN_SIDE : (j + 1) * DRAWN_SIDE]
+                mask = TrimMask(mask) if mask.any() else None
+            if not block.any() and mask is None:
+                continue
+            tile = layers.DetailTile(level, i, j, degree, spans, step,
+                                     tuple(int(x) for x in block.ravel()), mask)
+            tiles.append((tile, write_detail_tile(tile), float(worst[i * count + j])))
+    return tiles
 
 
 def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans: int = SPANS,
@@ -259,37 +330,15 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         c = fit_level(samples, residual, k, degree, spans, periodic_u)
         fitted = residual - evaluate_level(c, k, degree, spans, samples.u, samples.v)
         rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
-        # an exactly explained residual still needs a positive step (and zero explains zero)
-        floor = 1e-9 * max(float(np.abs(c).max(initial=0.0)), float(np.abs(residual).max()))
-        step = layers.single(step_factor * max(rms_fit, floor) or 1.0)  # as .tsd stores it
+        step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
+                                 float(np.abs(residual).max()), step_factor)
         q = np.rint(c / step).astype(np.int64)
-        if np.abs(q).max(initial=0) > MAX_TILE_VALUE:  # never for a real scan; stay valid
-            step = layers.single(float(np.abs(c).max()) / MAX_TILE_VALUE * (1 + 1e-6))
-            q = np.rint(c / step).astype(np.int64)
         fields.append(q * step)
         residual = residual - evaluate_level(fields[-1], k, degree, spans, samples.u, samples.v)
         e = samples.error(samples.s - residual)
         rms = float(np.sqrt(np.mean(e**2)))
         drawn = None if redraw is None else redraw.cells(k, fields, degree, spans, rms)
-        count = 1 << k
-        cell = _tile_index(samples.u, k) * count + _tile_index(samples.v, k)
-        worst = np.zeros(count * count)
-        np.maximum.at(worst, cell, e)
-        tiles = []
-        size = spans + degree
-        for i in range(count):
-            for j in range(count):
-                block = q[i * spans : i * spans + size, j * spans : j * spans + size]
-                mask = None
-                if drawn is not None:
-                    mask = drawn[i * DRAWN_SIDE : (i + 1) * DRAWN_SIDE,
-                                 j * DRAWN_SIDE : (j + 1) * DRAWN_SIDE]
-                    mask = TrimMask(mask) if mask.any() else None
-                if not block.any() and mask is None:
-                    continue
-                tile = layers.DetailTile(k, i, j, degree, spans, step,
-                                         tuple(int(x) for x in block.ravel()), mask)
-                tiles.append((tile, write_detail_tile(tile), float(worst[i * count + j])))
+        tiles = level_tiles(q, step, k, degree, spans, samples.u, samples.v, e, drawn)
         pyramid.levels.append(DetailLevel(k, step, tiles, rms, float(e.max()),
                                           int(np.count_nonzero(q))))
         if progress is not None:

@@ -1,0 +1,692 @@
+"""The atlas's detail pyramid: per patch displacement tiles, one welded field across borders.
+
+The base atlas (:mod:`.fit`) leaves what its bicubic patches cannot bend to: fur, eyes,
+lips, chisel marks. As for the single patch (``fitter.fitting.detail``) and as in
+displaced subdivision surfaces (Lee, Moreton, Hoppe, SIGGRAPH 2000), the detail is a scalar
+displacement along the base's unit normal, ``X = C_f + D_f n_f``, with ``D_f = sum_k D_{f,k}``
+and level ``k`` of patch ``f`` a uniform B-spline field of degree ``p`` with ``m 2^k`` spans
+per side over the patch's own ``[0, 1]^2`` (``client_py.layers.level_knots``), cut into
+``2^k x 2^k`` tiles of ``(m + p)^2`` coefficients.
+
+Samples. The field is fitted to the scan's *surface*: for a mesh, its vertices and
+area-weighted samples of its triangles (Turk, *Generating random points in triangles*,
+Graphics Gems 1990), as many as ``SAMPLES_PER_CELL`` per knot cell of the finest level;
+for a cloud, its points. Each sample ``x`` gets a foot point ``(f, u, v)`` on the base by
+the base fit's own projection (:func:`.fit.assign_triangles`, :func:`.fit.triangle_to_quad`,
+then Newton point inversion with hops across borders, :func:`.fit.correct_parameters`), in
+chunks of ``CHUNK`` samples, and splits into its normal offset
+``s = (x - C) . n`` and squared tangential remainder ``t^2 = |x - C|^2 - s^2``
+(``fitter.fitting.detail.DetailSamples``).
+
+Levels. Level ``k`` is fitted to what levels ``0..k-1`` left, with the single patch's
+objective per patch (``fitter.fitting.detail``: collocation, ridge and thin-plate terms
+scaled by ``mu_f = tr(A_f^T A_f) / n^2``), all patches in one block-diagonal solve per batch.
+
+Welded borders. The client draws a border vertex at the mean of its patches'
+displacements (``client_py.atlas_mesh``); two independent fields would differ there and
+leave a crease. A clamped field's value on a side depends only on its border row of
+coefficients (The NURBS Book §3.4, as the base's border curves), and neighbours' level-``k``
+fields have the same knots along their common side. So, as the base shares its border
+control points, every level shares its border coefficients: after the independent solve,
+each border coefficient (corner: every patch at the layout vertex; edge row: both patches,
+read reversed where a side runs ``hi -> lo``) is set to the mean of the patches' values
+weighted by their data (the diagonal of ``A_f^T A_f`` there), and each patch's interior is
+solved again with its border ring held. With one quantisation step per level
+(``fitter.fitting.detail.quantisation_step`` of the level's RMS over all samples), the
+neighbours' tiles hold the same integers on their common border and ``D_f = D_g`` there
+exactly: the mean the client takes is each side's own value (no seam).
+
+Depth. Levels ``0..L-1`` with ``L`` the smallest count whose finest knot spacing, the
+median patch side over ``m 2^(L-1)``, reaches the scan's median edge length (mesh) or
+point spacing (cloud); capped so the finest level is drawn at two vertices per span within
+the client's ``MAX_RESOLUTION`` samples per patch side (``m 2^(L-1) <= 64``), at
+``client_py.layers.MAX_LEVEL + 1`` levels, and so its coefficients stay within
+``MAX_COEFFICIENTS`` (about 100 bytes each while fitted: the memory bound).
+
+Groups and packs. Patches are renumbered along the Morton (Z-order) curve of their centres,
+so that a contiguous range of patch indices is a compact piece of the object, and cut into
+groups whose finest-level pack stays within ``PACK_BYTES``; every level's tiles of a group
+travel in one pack (``client_py.atlas_detail``), with the pack's ``geometric_error`` (max
+sample error of the group after levels ``0..k``, as OGC 3D Tiles) and each group's bounding
+sphere (the control points' hull widened by the largest displacement).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
+
+from client_py import layers
+from client_py.atlas import AtlasSurface
+from client_py.atlas_detail import PACK_VERSION, pack_name, write_pack
+from client_py.format import TILE_VERSION
+
+from ..detail import (
+    STEP_FACTOR,
+    DetailSamples,
+    collocation_matrix,
+    level_tiles,
+    quantisation_step,
+    regularisation,
+)
+from ..io.scan import Scan
+from ..io.thin import voxel_thin_indices
+from .fit import (
+    AtlasFit,
+    control_points,
+    correct_parameters,
+    evaluate_patches,
+    index_table,
+    neighbour_table,
+)
+
+DEGREE = 2
+SPANS = 4  # spans per tile side (measured against 8 in the module's report)
+SAMPLES_PER_CELL = 2.0  # surface samples per knot cell of the finest level
+MAX_SAMPLES = 1_000_000  # ~100 bytes each while fitted; projection runs in chunks
+CHUNK = 100_000
+NEWTON_ITERATIONS = 8
+MAX_RESOLUTION = 129  # the client's samples per patch side at a detail level (R_k cap)
+MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
+PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
+BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
+
+
+def level_resolution(spans: int, level: int) -> int:
+    """``R_k = min(129, 2 m 2^k + 1)`` samples per patch side at detail level ``k``.
+
+    The manifest's rule (two vertices per span of the finest tiles applied); it belongs to
+    ``client_py.bundle`` (``atlas_resolution``) once that exists, and is used here only to
+    fill ``levels[k].resolution``.
+    """
+    return min(MAX_RESOLUTION, 2 * spans * (1 << level) + 1)
+
+
+# ------------------------------------------------------------------ patch order
+def morton_order(centres: np.ndarray, bits: int = 10) -> np.ndarray:
+    """Indices sorting ``centres (F, 3)`` along the Morton (Z-order) curve of their box.
+
+    Each coordinate is quantised to ``bits`` bits over the box and the bits interleaved
+    (x, y, z from the most significant down); consecutive indices are near in space.
+    """
+    lo, hi = centres.min(axis=0), centres.max(axis=0)
+    grid = np.floor((centres - lo) / np.maximum(hi - lo, 1e-300) * ((1 << bits) - 1))
+    grid = grid.astype(np.int64)
+    code = np.zeros(len(centres), np.int64)
+    for bit in range(bits - 1, -1, -1):
+        for axis in range(3):
+            code = (code << 1) | ((grid[:, axis] >> bit) & 1)
+    return np.argsort(code, kind="stable")
+
+
+def renumber_patches(atlas: AtlasSurface, order: np.ndarray) -> AtlasSurface:
+    """``atlas`` with patch ``order[k]`` renumbered ``k``: ``quads`` and the blocks of
+    ``face_points`` (and their weights) permuted; vertices and edges (numbered by their
+    vertices, ``client_py.atlas.atlas_edges``) unchanged, so the surface is the same."""
+    inner = (atlas.side - 2) ** 2
+    order = [int(f) for f in order]
+    if sorted(order) != list(range(len(atlas.quads))):
+        raise ValueError(f"order must be a permutation of the {len(atlas.quads)} patches")
+    quads = [atlas.quads[f] for f in order]
+    face_points = [p for f in order for p in atlas.face_points[f * inner:(f + 1) * inner]]
+    weights = None
+    if atlas.weights is not None:
+        head = len(atlas.vertices) + len(atlas.edge_points)
+        faces = atlas.weights[head:]
+        weights = atlas.weights[:head] + [w for f in order
+                                          for w in faces[f * inner:(f + 1) * inner]]
+    return AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, quads, atlas.edge_points,
+                        face_points, weights)
+
+
+# ------------------------------------------------------------------ shared coefficients
+def shared_index(atlas: AtlasSurface, n: int) -> np.ndarray:
+    """``G[f, a, b]``: the shared slot of coefficient ``(a, b)`` of patch ``f``'s ``(n, n)``
+    grid, by the atlas's own rule (``AtlasSurface.patch_indices``) for ``n`` per side:
+    layout vertices, then ``n - 2`` slots per edge from its lower vertex, then the
+    ``(n - 2)^2`` interior slots per patch. Shape ``(F, n, n)``."""
+    inner = n - 2
+    n_vertices = len(atlas.vertices)
+    n_edges = len(atlas.edges.edges)
+    grid = np.empty((len(atlas.quads), n, n), np.int64)
+    run = np.arange(inner)
+    for f, quad in enumerate(atlas.quads):
+        g = grid[f]
+        g[0, 0], g[n - 1, 0], g[n - 1, n - 1], g[0, n - 1] = quad
+        for k, (e, reverse) in enumerate(atlas.edges.sides[f]):
+            slots = n_vertices + e * inner + (run[::-1] if reverse else run)
+            if k == 0:
+                g[1:n - 1, 0] = slots
+            elif k == 1:
+                g[n - 1, 1:n - 1] = slots
+            elif k == 2:
+                g[1:n - 1, n - 1] = slots
+            else:
+                g[0, 1:n - 1] = slots
+        base = n_vertices + n_edges * inner + f * inner * inner
+        g[1:n - 1, 1:n - 1] = base + np.arange(inner * inner).reshape(inner, inner)
+    return grid
+
+
+def border_ring(n: int) -> np.ndarray:
+    """``(n, n)`` booleans: the outermost row and column on every side."""
+    ring = np.zeros((n, n), bool)
+    ring[0, :] = ring[-1, :] = ring[:, 0] = ring[:, -1] = True
+    return ring
+
+
+# ------------------------------------------------------------------ samples
+@dataclass
+class AtlasSamples:
+    """Surface samples sorted by patch: foot points and their split (module docstring).
+
+    Attributes
+    ----------
+    patch, u, v, s, t2 : ndarray, shape (N,)
+        Patch, foot point, normal offset, squared tangential remainder; sorted by ``patch``.
+    offsets : ndarray, shape (F + 1,)
+        Patch ``f``'s samples are ``offsets[f]:offsets[f + 1]``.
+    distance : ndarray, shape (N,)
+        ``|x - C|`` at the foot point.
+    """
+
+    patch: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    s: np.ndarray
+    t2: np.ndarray
+    offsets: np.ndarray
+    distance: np.ndarray
+
+    def of(self, f: int) -> DetailSamples:
+        """Patch ``f``'s samples as ``fitter.fitting.detail.DetailSamples``."""
+        lo, hi = self.offsets[f], self.offsets[f + 1]
+        return DetailSamples(self.u[lo:hi], self.v[lo:hi], self.s[lo:hi], self.t2[lo:hi])
+
+    def error(self, displacement: np.ndarray) -> np.ndarray:
+        """``e = sqrt((s - D)^2 + t^2)`` per sample."""
+        return np.sqrt((self.s - displacement) ** 2 + self.t2)
+
+
+def median_spacing(scan: Scan, fit: AtlasFit) -> float:
+    """The scan's resolution: median edge length of its surface (a mesh), or the median
+    distance of a point to its nearest neighbour (a cloud)."""
+    surface = fit.surface
+    if surface.origin == "mesh":
+        tri = surface.vertices[surface.faces]
+        edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+        return float(np.median(edges))
+    points = scan.points
+    if len(points) > 200_000:
+        points = points[np.random.default_rng(0).choice(len(points), 200_000, replace=False)]
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Points of the scan's surface to fit the detail to, and their unit normals.
+
+    A mesh: its (cleaned) vertices and ``count - V`` area-weighted samples of its
+    triangles; a cloud: its points, voxel-thinned to about ``count`` when more. A point's
+    normal is that of the surface vertex nearest to it (a mesh vertex's own; a triangle
+    sample's is its triangle's). Shapes ``(N, 3)``, ``(N, 3)``.
+    """
+    surface = fit.surface
+    if surface.origin == "mesh":
+        points, normals = surface.vertices, surface.vertex_normals
+        extra = count - len(points)
+        if extra > 0:
+            rng = np.random.default_rng(seed)
+            area = surface.face_areas
+            pick = rng.choice(len(area), size=extra, p=area / area.sum())
+            r1, r2 = rng.random(extra), rng.random(extra)
+            fold = r1 + r2 > 1
+            r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
+            tri = surface.vertices[surface.faces[pick]]
+            samples = tri[:, 0] + r1[:, None] * (tri[:, 1] - tri[:, 0]) \
+                + r2[:, None] * (tri[:, 2] - tri[:, 0])
+            points = np.concatenate([points, samples])
+            normals = np.concatenate([normals, surface.face_normals[pick]])
+        return points, normals
+    points = scan.points
+    if len(points) > count:
+        h = surface.diagonal / math.sqrt(count)
+        keep = voxel_thin_indices(points, h)
+        for _ in range(6):
+            if len(keep) <= 1.2 * count:
+                break
+            h *= math.sqrt(len(keep) / count)
+            keep = voxel_thin_indices(points, h)
+        points = points[keep]
+    _, nearest = cKDTree(surface.vertices).query(points)
+    return points, surface.vertex_normals[nearest]
+
+
+def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
+                    normals: np.ndarray, chunk: int = CHUNK, candidates: int = 8,
+                    progress: Callable[[float], None] | None = None) -> AtlasSamples:
+    """Foot points of ``points (N, 3)`` on ``atlas`` and their split, in chunks.
+
+    The first foot point is that of a nearby working point of the base fit (``fit.points``
+    with their converged ``fit.patch, u, v``): among the ``candidates`` nearest, the nearest
+    whose base normal agrees with the sample's (``n . n_x > 0.5``, so a sample on the front
+    of a thin wing does not start on its back; the nearest when none agrees). Then
+    ``NEWTON_ITERATIONS`` Gauss-Newton steps with hops (:func:`.fit.correct_parameters`).
+    ``atlas`` is ``fit.atlas`` or a :func:`renumber_patches` of it (matched by its quads).
+    """
+    old_index = {tuple(q): f for f, q in enumerate(fit.atlas.quads)}
+    new_of_old = np.empty(len(atlas.quads), np.int64)
+    for f, q in enumerate(atlas.quads):
+        new_of_old[old_index[tuple(q)]] = f
+    table, cps = index_table(atlas), control_points(atlas)
+    nb = neighbour_table(atlas)
+    d, s = atlas.degree, atlas.spans
+    seed_f = new_of_old[np.asarray(fit.patch, np.int64)]
+    seed_u, seed_v = np.asarray(fit.u, float), np.asarray(fit.v, float)
+    _, su, sv = evaluate_patches(table, cps, d, s, seed_f, seed_u, seed_v, derivatives=True)
+    seed_n = np.cross(su, sv)
+    seed_n /= np.maximum(np.linalg.norm(seed_n, axis=1, keepdims=True), 1e-300)
+    tree = cKDTree(fit.points)
+    k = min(candidates, len(fit.points))
+    parts = []
+    for start in range(0, len(points), chunk):
+        x, nx = points[start:start + chunk], normals[start:start + chunk]
+        _, near = tree.query(x, k=k)
+        near = near.reshape(len(x), k)
+        agree = np.einsum("kc,kjc->kj", nx, seed_n[near]) > 0.5
+        pick = near[np.arange(len(x)), np.where(agree.any(axis=1), np.argmax(agree, axis=1), 0)]
+        f, u, v = seed_f[pick], seed_u[pick], seed_v[pick]
+        f, u, v, dist = correct_parameters(table, cps, d, s, nb, x, nx, f, u, v,
+                                           iterations=NEWTON_ITERATIONS)
+        c, cu, cv = evaluate_patches(table, cps, d, s, f, u, v, derivatives=True)
+        normal = np.cross(cu, cv)
+        length = np.linalg.norm(normal, axis=1)
+        ok = length > 1e-12 * max(float(length.max(initial=0.0)), 1e-300)
+        normal = normal / np.where(ok, length, 1.0)[:, None]
+        r = x - c
+        rr = np.einsum("ij,ij->i", r, r)
+        off = np.where(ok, np.einsum("ij,ij->i", r, normal), np.sqrt(rr))
+        parts.append((f, u, v, off, np.maximum(rr - off * off, 0.0), dist))
+        if progress is not None:
+            progress(min(1.0, (start + chunk) / len(points)))
+    f, u, v, off, t2, dist = (np.concatenate(c) for c in zip(*parts, strict=True))
+    order = np.argsort(f, kind="stable")
+    f = f[order]
+    offsets = np.searchsorted(f, np.arange(len(atlas.quads) + 1))
+    return AtlasSamples(f, u[order], v[order], off[order], t2[order], offsets, dist[order])
+
+
+# ------------------------------------------------------------------ depth
+def patch_sides(atlas: AtlasSurface, samples: int = 9) -> np.ndarray:
+    """Mean length of each patch's four border curves (polylines of ``samples`` points),
+    shape (F,)."""
+    table, cps = index_table(atlas), control_points(atlas)
+    t = np.linspace(0.0, 1.0, samples)
+    zeros, ones = np.zeros_like(t), np.ones_like(t)
+    total = np.zeros(len(atlas.quads))
+    F = len(atlas.quads)
+    for uu, vv in ((t, zeros), (ones, t), (t, ones), (zeros, t)):
+        f = np.repeat(np.arange(F), samples)
+        (c,) = evaluate_patches(table, cps, atlas.degree, atlas.spans, f, np.tile(uu, F),
+                                np.tile(vv, F))
+        c = c.reshape(F, samples, 3)
+        total += np.linalg.norm(np.diff(c, axis=1), axis=2).sum(axis=1)
+    return total / 4
+
+
+def auto_levels(side: float, spacing: float, patches: int, spans: int = SPANS) -> int:
+    """Levels ``0..L-1``: the fewest whose finest knot spacing ``side / (m 2^(L-1))``
+    reaches ``spacing``, within the caps of the module docstring (at least 1)."""
+    levels = 1
+    while side / (spans << (levels - 1)) > spacing and levels < layers.MAX_LEVEL + 1:
+        finer = spans << levels
+        if 2 * finer + 1 > MAX_RESOLUTION or patches * (finer + DEGREE) ** 2 > MAX_COEFFICIENTS:
+            break
+        levels += 1
+    return levels
+
+
+# ------------------------------------------------------------------ one level
+def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
+                  fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
+    (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
+    ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
+
+    With ``fixed (F, n, n)`` the border ring holds those values and only the interior is
+    solved: ``M_II c_I = A_I^T r - M_IB c_B`` (the same quadratic, minimised with ``c_B``
+    given). A patch without samples gets ``mu_f = 1`` (its field is then the smoothest
+    one through its border, or zero).
+    """
+    F = len(samples.offsets) - 1
+    n = (spans << level) + DEGREE
+    knots = np.array(layers.level_knots(DEGREE, spans, level))
+    R = regularisation(n).tocsr()
+    ring = border_ring(n).reshape(-1)
+    free = np.flatnonzero(~ring) if fixed is not None else np.arange(n * n)
+    held = np.flatnonzero(ring)
+    out = np.zeros((F, n, n))
+    weight = np.zeros((F, n, n))
+    per_batch = max(1, BATCH_UNKNOWNS // (n * n))
+    for first in range(0, F, per_batch):
+        last = min(F, first + per_batch)
+        lo, hi = samples.offsets[first], samples.offsets[last]
+        count = last - first
+        A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
+                               block=samples.patch[lo:hi] - first, blocks=count)
+        AtA = (A.T @ A).tocsr()
+        diag = AtA.diagonal().reshape(count, n * n)
+        mu = diag.sum(axis=1) / (n * n)
+        mu = np.where(mu > 0, mu, 1.0)
+        M = (AtA + sp.kron(sp.diags(mu), R)).tocsr()
+        rhs = A.T @ residual[lo:hi]
+        weight[first:last] = diag.reshape(count, n, n)
+        if fixed is None:
+            out[first:last] = spla.spsolve(M.tocsc(), rhs).reshape(count, n, n)
+            continue
+        cols_free = (np.arange(count)[:, None] * n * n + free[None, :]).reshape(-1)
+        cols_held = (np.arange(count)[:, None] * n * n + held[None, :]).reshape(-1)
+        c_held = fixed[first:last].reshape(count, n * n)[:, held].reshape(-1)
+        M_free = M[cols_free][:, cols_free]
+        b = rhs[cols_free] - M[cols_free][:, cols_held] @ c_held
+        c = np.zeros(count * n * n)
+        c[cols_free] = spla.spsolve(M_free.tocsc(), b)
+        c[cols_held] = c_held
+        out[first:last] = c.reshape(count, n, n)
+    return out, weight
+
+
+def _share_borders(coefficients: np.ndarray, weight: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """Each shared border slot of ``G (F, n, n)`` set to the data-weighted mean of the
+    patches' values there (module docstring); interior values unchanged."""
+    ring = border_ring(G.shape[1])
+    slots = G[:, ring]
+    w = weight[:, ring] + 1e-12 * max(float(weight.mean()), 1e-300)
+    total = np.zeros(G.max() + 1)
+    norm = np.zeros(G.max() + 1)
+    np.add.at(total, slots, w * coefficients[:, ring])
+    np.add.at(norm, slots, w)
+    out = coefficients.copy()
+    out[:, ring] = total[slots] / norm[slots]
+    return out
+
+
+def evaluate_fields(coefficients: np.ndarray, level: int, spans: int, patch: np.ndarray,
+                    u: np.ndarray, v: np.ndarray, chunk: int = 500_000) -> np.ndarray:
+    """``D_{f,k}(u, v)`` of every patch's ``(n, n)`` grid at samples ``(patch, u, v)``."""
+    F, n, _ = coefficients.shape
+    knots = np.array(layers.level_knots(DEGREE, spans, level))
+    flat = coefficients.reshape(-1)
+    out = np.empty(len(u))
+    for lo in range(0, len(u), chunk):
+        hi = lo + chunk
+        A = collocation_matrix(DEGREE, knots, n, u[lo:hi], v[lo:hi], block=patch[lo:hi],
+                               blocks=F)
+        out[lo:hi] = A @ flat
+    return out
+
+
+def border_jump(atlas: AtlasSurface, fields: list[np.ndarray], spans: int,
+                per_span: int = 4) -> dict:
+    """``|D_f - D_g|`` of the summed levels ``fields`` (coefficients ``(F, n_k, n_k)`` of
+    levels ``0..k``) at ``per_span`` points per finest span along every shared edge:
+    RMS and max."""
+    finest = spans << (len(fields) - 1)
+    t = np.linspace(0.0, 1.0, per_span * finest + 1)
+    ends: tuple[list, list] = ([], [])  # (patch, u, v) per side of every shared edge
+    for pairs in atlas.edges.faces:
+        if len(pairs) != 2:
+            continue
+        same = atlas.edges.sides[pairs[0][0]][pairs[0][1]][1] == \
+            atlas.edges.sides[pairs[1][0]][pairs[1][1]][1]
+        for out, (f, k), par in zip(ends, pairs, (t, t if same else 1.0 - t), strict=True):
+            zero, one = np.zeros_like(par), np.ones_like(par)
+            uu, vv = ((par, zero), (one, par), (par, one), (zero, par))[k]
+            out.append((np.full(len(par), f), uu, vv))
+    if not ends[0]:
+        return {"rms": 0.0, "max": 0.0, "samples": 0}
+    pf, pu, pv = (np.concatenate(a) for a in zip(*ends[0], strict=True))
+    qf, qu, qv = (np.concatenate(a) for a in zip(*ends[1], strict=True))
+    a = sum(evaluate_fields(c, k, spans, pf, pu, pv) for k, c in enumerate(fields))
+    b = sum(evaluate_fields(c, k, spans, qf, qu, qv) for k, c in enumerate(fields))
+    jump = np.abs(a - b)
+    return {"rms": float(np.sqrt(np.mean(jump ** 2))), "max": float(jump.max()),
+            "samples": int(len(jump))}
+
+
+# ------------------------------------------------------------------ the pyramid
+@dataclass
+class AtlasDetail:
+    """The atlas's detail pyramid, ready for the bundle.
+
+    Attributes
+    ----------
+    atlas : AtlasSurface
+        The base with its patches renumbered (:func:`renumber_patches`): write THIS as
+        ``base.tsa``; the tiles' patch indices refer to it.
+    order : ndarray, shape (F,)
+        ``atlas``'s patch ``k`` is ``fit.atlas``'s patch ``order[k]``.
+    tree : dict
+        The manifest's ``tiles.detail`` (docs: the module docstring and the manifest spec).
+    files : dict of str to bytes
+        ``pack_name(k, g)`` -> the pack's bytes.
+    tiles : list of dict of int to list of DetailTile
+        ``tiles[k][f]``: patch ``f``'s level-``k`` tiles (for ``client_py.atlas_mesh``).
+    levels : list of dict
+        Per level ``level``, ``rms``, ``max`` (sample errors after levels ``0..k``),
+        ``bytes`` (its packs), ``packs``, ``resolution``, ``step``, ``border_jump``
+        (``{rms, max}`` of ``|D_f - D_g|`` on shared borders after levels ``0..k``) and
+        ``border_jump_independent`` (the same of the independent per-patch fits, before
+        the borders are shared).
+    samples : int
+    spacing : float
+        The scan's median edge length / point spacing the depth aims at.
+    patch_side : float
+        Median patch side length.
+    timings : dict
+        Seconds per step.
+    """
+
+    atlas: AtlasSurface
+    order: np.ndarray
+    tree: dict
+    files: dict
+    tiles: list
+    levels: list
+    samples: int
+    spacing: float
+    patch_side: float
+    timings: dict = field(default_factory=dict)
+
+    def detail_up_to(self, level: int) -> dict:
+        """``{patch: [tiles of levels 0..level]}`` for ``client_py.atlas_mesh``."""
+        out: dict = {}
+        for k in range(level + 1):
+            for f, tiles in self.tiles[k].items():
+                out.setdefault(f, []).extend(tiles)
+        return out
+
+
+def _rounded(x: float) -> float:
+    return float(f"{x:.6g}")
+
+
+def _check_arguments(levels: object, spans: object, step_factor: object) -> None:
+    if levels is not None and (isinstance(levels, bool) or not isinstance(levels, int)
+                               or not 0 <= levels <= layers.MAX_LEVEL + 1):
+        raise ValueError(f"levels must be None (automatic) or an int in "
+                         f"0..{layers.MAX_LEVEL + 1}, got {levels!r}")
+    if isinstance(spans, bool) or not isinstance(spans, int) or spans not in (2, 4, 8, 16):
+        raise ValueError(f"spans must be one of 2, 4, 8, 16 spans per tile side, got {spans!r}")
+    if not (isinstance(step_factor, int | float) and math.isfinite(step_factor)
+            and step_factor > 0):
+        raise ValueError(f"step_factor must be a finite number > 0, got {step_factor!r}")
+
+
+def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
+                     spans: int = SPANS, step_factor: float = STEP_FACTOR,
+                     max_samples: int = MAX_SAMPLES, pack_bytes: int = PACK_BYTES,
+                     progress: Callable[[float], None] | None = None) -> AtlasDetail:
+    """Fit the detail pyramid of ``fit``'s atlas to ``scan``'s surface (module docstring).
+
+    Parameters
+    ----------
+    fit : AtlasFit
+        The base (:func:`.fit.fit_atlas`), with its surface and layout.
+    scan : Scan
+        The scan ``fit`` was fitted to (its points for a cloud).
+    levels : int, optional
+        ``L``: levels ``0..L-1``; ``None``: :func:`auto_levels`; 0: no detail.
+    spans : int
+        ``m``, spans per tile side (2, 4, 8 or 16).
+    step_factor : float
+        Quantisation step over the level's remaining RMS (``fitter.fitting.detail``).
+    max_samples : int
+        Most surface samples (the memory bound: about 100 bytes each).
+    pack_bytes : int
+        A group's finest-level pack stays within this (a group of one patch may exceed it).
+    progress : callable(float), optional
+        The fraction done, 0..1.
+
+    Returns
+    -------
+    AtlasDetail
+    """
+    _check_arguments(levels, spans, step_factor)
+    if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1000:
+        raise ValueError(f"max_samples must be an int >= 1000, got {max_samples!r}")
+    if isinstance(pack_bytes, bool) or not isinstance(pack_bytes, int) or pack_bytes < 1000:
+        raise ValueError(f"pack_bytes must be an int >= 1000, got {pack_bytes!r}")
+    report = progress or (lambda fraction: None)
+    timings: dict = {}
+    clock = time.perf_counter()
+    base = fit.atlas
+    table0, cps0 = index_table(base), control_points(base)
+    centres = cps0[table0].reshape(len(base.quads), -1, 3).mean(axis=1)
+    order = morton_order(centres)
+    atlas = renumber_patches(base, order)
+    F = len(atlas.quads)
+    sides = patch_sides(atlas)
+    side = float(np.median(sides))
+    spacing = median_spacing(scan, fit)
+    if levels is None:
+        levels = auto_levels(side, spacing, F, spans)
+    finest_cells = F * (spans << max(levels - 1, 0)) ** 2
+    count = int(min(max_samples, max(SAMPLES_PER_CELL * finest_cells, len(scan.points))))
+    points, normals = surface_samples(scan, fit, count)
+    timings["setup"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    samples = project_samples(atlas, fit, points, normals,
+                              progress=lambda x: report(0.4 * x))
+    timings["project"] = time.perf_counter() - clock
+    residual = samples.s.copy()
+    e = samples.error(np.zeros_like(residual))
+    base_rms, base_max = float(np.sqrt(np.mean(e ** 2))), float(e.max(initial=0.0))
+    fields: list[np.ndarray] = []
+    independent: list[np.ndarray] = []
+    per_level_tiles: list[dict] = []
+    level_rows: list[dict] = []
+    worst_of_patch: list[np.ndarray] = []  # per level: max e of each patch's samples
+    clock = time.perf_counter()
+    for k in range(levels):
+        n = (spans << k) + DEGREE
+        G = shared_index(atlas, n)
+        free, weight = _solve_blocks(samples, residual, k, spans)
+        independent.append(free)
+        shared = _share_borders(free, weight, G)
+        c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared)
+        fitted = residual - evaluate_fields(c, k, spans, samples.patch, samples.u, samples.v)
+        rms_fit = float(np.sqrt(np.mean(fitted ** 2 + samples.t2)))
+        step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
+                                 float(np.abs(residual).max(initial=0.0)), step_factor)
+        q = np.rint(c / step).astype(np.int64)
+        fields.append(q * step)
+        residual = residual - evaluate_fields(fields[-1], k, spans, samples.patch, samples.u,
+                                              samples.v)
+        e = samples.error(samples.s - residual)
+        worst = np.zeros(F)
+        np.maximum.at(worst, samples.patch, e)
+        worst_of_patch.append(worst)
+        tiles: dict = {}
+        for f in range(F):
+            lo, hi = samples.offsets[f], samples.offsets[f + 1]
+            made = level_tiles(q[f], step, k, DEGREE, spans, samples.u[lo:hi],
+                               samples.v[lo:hi], e[lo:hi])
+            if made:
+                tiles[f] = made
+        per_level_tiles.append(tiles)
+        level_rows.append({"level": k, "rms": float(np.sqrt(np.mean(e ** 2))),
+                           "max": float(e.max(initial=0.0)), "step": step,
+                           "resolution": level_resolution(spans, k),
+                           "border_jump": border_jump(atlas, fields, spans),
+                           "border_jump_independent": border_jump(atlas, independent, spans)})
+        report(0.4 + 0.5 * (k + 1) / max(levels, 1))
+    timings["levels"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    groups = _groups(per_level_tiles[-1] if levels else {}, F, pack_bytes)
+    files: dict[str, bytes] = {}
+    packs = []
+    for k, tiles in enumerate(per_level_tiles):
+        total, count_k = 0, 0
+        for g, (first, size) in enumerate(groups):
+            mine = {f: [t for t, _, _ in tiles[f]] for f in range(first, first + size)
+                    if f in tiles}
+            if not mine:
+                continue
+            data = write_pack(k, mine)
+            name = pack_name(k, g)
+            files[name] = data
+            total += len(data)
+            count_k += 1
+            packs.append({"level": k, "group": g, "bytes": len(data), "geometric_error":
+                          _rounded(float(worst_of_patch[k][first:first + size].max()))})
+        level_rows[k]["bytes"] = total
+        level_rows[k]["packs"] = count_k
+    reach = sum(np.abs(c).max(axis=(1, 2)) for c in fields) if fields else np.zeros(F)
+    table, cps = index_table(atlas), control_points(atlas)
+    group_rows = []
+    for first, size in groups:
+        pts = cps[table[first:first + size]].reshape(-1, 3)
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        radius = float(np.linalg.norm(pts - centre, axis=1).max()) \
+            + float(np.max(reach[first:first + size]))
+        group_rows.append({"first": int(first), "count": int(size),
+                           "center": [_rounded(float(x)) for x in centre],
+                           "radius": _rounded(radius)})
+    tree = {"format": "tsdp", "format_version": PACK_VERSION,
+            "tile_format_version": TILE_VERSION, "degree": DEGREE, "spans_per_tile": spans,
+            "base": {"rms": _rounded(base_rms), "max": _rounded(base_max)},
+            "levels": [{"level": r["level"], "rms": _rounded(r["rms"]),
+                        "max": _rounded(r["max"]), "bytes_total": r["bytes"],
+                        "packs": r["packs"], "resolution": r["resolution"]}
+                       for r in level_rows],
+            "groups": group_rows, "packs": packs}
+    timings["packs"] = time.perf_counter() - clock
+    report(1.0)
+    tiles_only = [{f: [t for t, _, _ in made] for f, made in tiles.items()}
+                  for tiles in per_level_tiles]
+    return AtlasDetail(atlas, order, tree, files, tiles_only, level_rows, len(samples.u),
+                       spacing, side, timings)
+
+
+def _groups(finest: dict, patches: int, pack_bytes: int) -> list[tuple[int, int]]:
+    """Contiguous ``(first, count)`` ranges of patches whose finest-level tiles (with the
+    pack's 8-byte index entries, 12-byte header and CRC) stay within ``pack_bytes``."""
+    groups = []
+    first, size = 0, 16
+    for f in range(patches):
+        cost = sum(len(data) + 8 for _, data, _ in finest.get(f, []))
+        if f > first and size + cost > pack_bytes:
+            groups.append((first, f - first))
+            first, size = f, 16
+        size += cost
+    groups.append((first, patches - first))
+    return groups

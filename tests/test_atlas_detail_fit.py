@@ -1,0 +1,128 @@
+"""The atlas's detail pyramid (fitter.fitting.atlas.detail) on a bumpy sphere with a known field."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from client_py.atlas_detail import pack_name, read_pack
+from client_py.atlas_mesh import tessellate_atlas
+from fitter.fitting.atlas import detail as atlas_detail
+from fitter.fitting.atlas.fit import AtlasFit, control_points, evaluate_patches, index_table
+from fitter.fitting.atlas.surface import ScanSurface
+from fitter.fitting.io.scan import make_scan
+from tests.atlas_cases import sphere_atlas
+
+AMPLITUDE = 0.03
+
+
+def bump(unit: np.ndarray) -> np.ndarray:
+    """The known displacement of the unit sphere at unit directions ``(N, 3)``."""
+    x, y, z = unit.T
+    return AMPLITUDE * np.sin(3 * x) * np.sin(3 * y + 0.5) * np.cos(2 * z)
+
+
+def _bumpy_sphere_fit():
+    """A fake base fit: the 24-patch sphere atlas and, as the scan, the icosphere displaced
+    radially by :func:`bump`; the working points are exact points of the base."""
+    atlas = sphere_atlas(2)
+    ico = trimesh.creation.icosphere(subdivisions=5)
+    unit = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    vertices = unit * (1.0 + bump(unit))[:, None]
+    faces = np.asarray(ico.faces, np.int64)
+    scan = make_scan("bumpy", vertices, faces=faces, source={"name": "bumpy"})
+    surface = ScanSurface(vertices, faces, "mesh", 1)
+    F = len(atlas.quads)
+    t = np.linspace(0.02, 0.98, 12)
+    uu, vv = np.meshgrid(t, t, indexing="ij")
+    patch = np.repeat(np.arange(F), uu.size)
+    u, v = np.tile(uu.ravel(), F), np.tile(vv.ravel(), F)
+    (points,) = evaluate_patches(index_table(atlas), control_points(atlas), atlas.degree,
+                                 atlas.spans, patch, u, v)
+    fit = AtlasFit(atlas, None, surface, F // 3, F, points, patch, u, v, np.zeros(len(u)), 0.0,
+                   0)
+    return fit, scan
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    fit, scan = _bumpy_sphere_fit()
+    return fit, scan, atlas_detail.fit_atlas_detail(fit, scan, levels=3, pack_bytes=4000)
+
+
+def _radial_error(atlas, tiles, resolution):
+    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy")
+    x = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float)
+    r = np.linalg.norm(x, axis=1)
+    return np.sqrt(np.mean((r - 1.0 - bump(x / r[:, None])) ** 2)), mesh
+
+
+def test_detail_recovers_the_known_bump(fitted):
+    _, _, det = fitted
+    base, _ = _radial_error(det.atlas, None, 33)
+    finest, _ = _radial_error(det.atlas, det.detail_up_to(2), det.levels[2]["resolution"])
+    assert base > 0.5 * AMPLITUDE / 2  # the base is the plain sphere: the bump's size
+    assert finest < 0.1 * base, (base, finest)
+    rms = [row["rms"] for row in det.levels]
+    assert rms[-1] < 0.1 * det.tree["base"]["rms"]
+
+
+def test_borders_are_shared_exactly_and_the_welded_mesh_is_closed(fitted):
+    _, _, det = fitted
+    for row in det.levels:
+        assert row["border_jump"]["max"] <= 1e-9, row["border_jump"]
+    _, mesh = _radial_error(det.atlas, det.detail_up_to(2), det.levels[2]["resolution"])
+    tri = np.frombuffer(mesh.indices, np.uint32).reshape(-1, 3).astype(np.int64)
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)  # no boundary edge, no non-manifold edge
+
+
+def test_packs_round_trip_and_the_manifest_is_consistent(fitted):
+    _, _, det = fitted
+    tree = det.tree
+    F = len(det.atlas.quads)
+    assert [row["level"] for row in tree["levels"]] == [0, 1, 2]
+    assert [row["resolution"] for row in tree["levels"]] == [9, 17, 33]
+    covered = []
+    for g in tree["groups"]:
+        covered += range(g["first"], g["first"] + g["count"])
+        assert g["radius"] > 0
+    assert covered == list(range(F))  # contiguous ranges, every patch exactly once
+    assert len(tree["groups"]) > 1
+    assert set(det.files) == {pack_name(p["level"], p["group"]) for p in tree["packs"]}
+    for p in tree["packs"]:
+        data = det.files[pack_name(p["level"], p["group"])]
+        assert p["bytes"] == len(data)
+        level, tiles = read_pack(data)
+        g = tree["groups"][p["group"]]
+        assert level == p["level"]
+        assert set(tiles) <= set(range(g["first"], g["first"] + g["count"]))
+        for f, got in tiles.items():
+            assert got == det.tiles[level][f]
+    for row in tree["levels"]:
+        assert row["bytes_total"] == sum(p["bytes"] for p in tree["packs"]
+                                         if p["level"] == row["level"])
+
+
+def test_shared_index_is_the_atlas_rule_and_renumbering_keeps_the_surface():
+    atlas = sphere_atlas(2)
+    grid = atlas_detail.shared_index(atlas, atlas.side)
+    for f in range(len(atlas.quads)):
+        assert grid[f].tolist() == atlas.patch_indices(f)
+    order = np.random.default_rng(3).permutation(len(atlas.quads))
+    moved = atlas_detail.renumber_patches(atlas, order)
+    for k, f in enumerate(order):
+        assert moved.patch_surface(k).evaluate(0.3, 0.7) == atlas.patch_surface(int(f)).evaluate(
+            0.3, 0.7)
+
+
+def test_bad_arguments_are_named():
+    fit, scan = _bumpy_sphere_fit()
+    with pytest.raises(ValueError, match="levels must be"):
+        atlas_detail.fit_atlas_detail(fit, scan, levels=99)
+    with pytest.raises(ValueError, match="spans must be"):
+        atlas_detail.fit_atlas_detail(fit, scan, spans=5)
+    with pytest.raises(ValueError, match="step_factor"):
+        atlas_detail.fit_atlas_detail(fit, scan, step_factor=0.0)
+    with pytest.raises(ValueError, match="permutation"):
+        atlas_detail.renumber_patches(fit.atlas, np.zeros(len(fit.atlas.quads), int))
