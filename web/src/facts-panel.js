@@ -36,6 +36,35 @@ export class FactsPanel {
   }
 
   /**
+   * An atlas bundle's facts (manifest format_version 2): its patches instead of a patch's grid.
+   * @param {object} manifest
+   * @param {{patch: {kind: "atlas", patches: number, degree: number, spans: number,
+   *          rational: boolean, units?: string}, patch_bytes: number}} ready
+   * @param {{bytes_downloaded: number}} stats
+   */
+  describeAtlas(manifest, ready, stats) {
+    const units = manifest.units || ready.patch.units || "unknown";
+    const fit = manifest.stats || {};
+    const { patches, degree, spans, rational } = ready.patch;
+    this.set("fact-units", units);
+    this.set("fact-bundle", formatBytes(stats.bytes_downloaded));
+    this.set("fact-patch", formatBytes(ready.patch_bytes));
+    this.set("fact-grid", `atlas of ${patches.toLocaleString("en")} patches, degree ${degree}, ` +
+      `${spans} spans a side` + (rational ? ", rational" : ""));
+    this.set("fact-rms", formatLength(fit.rms, units));
+    this.set("fact-max", formatLength(fit.max, units));
+  }
+
+  /** The atlas's groups drawn with detail (AtlasLayer's stats). */
+  showAtlas(stats, groups) {
+    this.set("fact-detail", stats.atlas_refined_groups
+      ? `${stats.atlas_refined_groups} of ${groups} groups refined, ${stats.atlas_packs_loaded} ` +
+        `packs (${formatBytes(stats.atlas_pack_bytes)} fetched), ` +
+        `${stats.atlas_tessellate_ms.toFixed(0)} ms`
+      : `base only (${groups} groups; zoom in for detail)`);
+  }
+
+  /**
    * The bytes of this visit and of the object (TransferTally.summary()): "This visit" is what
    * came over the network (runtime, object), "Object" what the object's files weigh as served
    * (manifest, patch, the tiles shown), whether they came from the network or the cache.

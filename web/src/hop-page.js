@@ -17,7 +17,7 @@
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, levelOption, levelPly, loadManifest, startPage, workerInit } from "./page.js";
+import { $, atlasBaseChoice, levelOption, levelPly, loadManifest, startPage, workerInit } from "./page.js";
 
 const RESOLUTION = 192; // 36,864 vertices: one 3DHOP chunk (its limit is 65,535 per chunk)
 const FRAME_RESOLUTION = 64; // base grid the framing is computed from at a detail level
@@ -178,7 +178,19 @@ async function main() {
   let colors = null;
   let ply;
   let frame; // the base mesh the view is framed on
-  if (!choice) {
+  const atlas = ready.patch.kind === "atlas"; // manifest format_version 2
+  if (atlas && useColors) throw new Error("an atlas bundle has no error map to colour the mesh with");
+  if (atlas) {
+    // one welded PLY of every patch at the level (the base: the atlas alone), as "Download PLY"
+    showStage("ply");
+    const refinement = await worker.atlasRefinement();
+    frame = await worker.atlasMesh(refinement.groups.map(() => -1));
+    ply = await levelPly(worker, choice || atlasBaseChoice(refinement), {
+      manifestUrl: config.manifest_url, stats, onProgress: (text) => showStage("ply", text) });
+    stats.tessellate_ms = ply.write_ms;
+    stats.resolution = ply.resolution;
+    stats.ply_level = level;
+  } else if (!choice) {
     const resolution = config.resolution || RESOLUTION;
     showStage("ply");
     frame = await worker.tessellate(resolution);

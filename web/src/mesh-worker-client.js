@@ -19,6 +19,7 @@ export class MeshWorkerClient {
     // Detail tiles the worker will hold once it has handled every request posted so far
     // (updated when a "tile"/"drop" request is posted: the worker runs requests in order).
     this.held = new Set();
+    this.packs = new Set(); // of those, an atlas's detail packs (addPack)
     this.worker = new Worker(workerUrl, { type: "module", name: "tessera-mesh-worker" });
     this.worker.onmessage = (event) => this._receive(event.data);
     this.worker.onerror = (event) => {
@@ -129,6 +130,46 @@ export class MeshWorkerClient {
    *  = [{level, i, j, names, skirtDepth}]; resolves with their meshes in that order. */
   async regionBatch(grid, regions) {
     return (await this._request({ type: "regions", grid, regions })).meshes;
+  }
+
+  /** An atlas bundle's refinement table (after plan()): {groups: [{first, count, center,
+   *  radius, packs, bytes, errors}], base_error, levels, resolutions}
+   *  (client_py.session.WorkerSession.atlas_refinement). */
+  atlasRefinement() {
+    return this._request({ type: "atlasRefinement" });
+  }
+
+  /** Hand an atlas detail pack (`detail/K/G.tsdp` of the manifest) to the worker, which
+   *  decodes and keeps it: resolves with {name, level, group, tiles}; a bad pack rejects. */
+  addPack(name, bytes) {
+    const copy = bytes.slice();
+    this.held.add(name);
+    this.packs.add(name);
+    return this._request({ type: "pack", name, bytes: copy }, [copy.buffer]).catch((error) => {
+      this.held.delete(name);
+      this.packs.delete(name);
+      throw error;
+    });
+  }
+
+  /** The packs the worker will hold (names as given to addPack). */
+  heldPacks() {
+    return new Set(this.packs);
+  }
+
+  /** Forget packs the worker holds. */
+  dropPacks(names) {
+    for (const name of names) {
+      this.held.delete(name);
+      this.packs.delete(name);
+    }
+    return this._request({ type: "dropPacks", names });
+  }
+
+  /** The whole atlas as one welded mesh, group g at detail level levels[g] (-1: the base):
+   *  {positions, normals, uvs, indices, tessellate_ms}. */
+  atlasMesh(levels) {
+    return this._request({ type: "atlasMesh", levels });
   }
 
   terminate() {

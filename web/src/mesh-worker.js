@@ -26,6 +26,15 @@
 //           WorkerSession.level_ply, what `tessera tessellate BUNDLE --level L` writes: the
 //           plan's tiles, held ones or `fresh` ones, decoded for this request only, and its
 //           texture tiles as decoded RGB bytes, rows top to bottom)
+//   An atlas bundle (manifest format_version 2: patchUrl names base.tsa) is loaded by
+//   WorkerSession.load_atlas instead (ready.patch.kind === "atlas"); then, after "plan":
+//   page -> {type: "atlasRefinement"} -> {type: "atlasRefinement", groups, base_error, levels,
+//           resolutions}   (WorkerSession.atlas_refinement: per group its sphere, packs, errors)
+//   page -> {type: "pack", name, bytes} -> {type: "pack", name, level, group, tiles}  (add_pack)
+//   page -> {type: "dropPacks", names}  -> {type: "droppedPacks", names}          (drop_packs)
+//   page -> {type: "atlasMesh", levels} -> {type: "atlasMesh", positions, normals, uvs,
+//           indices, tessellate_ms}  (atlas_mesh: one welded mesh, group g at levels[g])
+//   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (drop_tiles)
 //   page -> {type: "region", level, i, j, grid, names, skirtDepth}
@@ -52,6 +61,7 @@ const EMPTY_ZIP = "data:application/zip;base64,UEsFBgAAAAAAAAAAAAAAAAAAAAAAAA=="
 const PROGRESS_EVERY_MS = 100;
 
 let pyodide = null;
+let atlasLoaded = false; // the session holds an atlas (base.tsa), not a patch
 let session = null; // client_py.session.WorkerSession, once the patch is loaded
 const pending = []; // requests not yet started, in arrival order
 let pumping = false;
@@ -191,7 +201,10 @@ async function init({ pyodideUrl, pyodideSnapshotUrl, pyodideStdlibUrl, pyodideL
     post({ type: "stage", stage });
     const tPatch = performance.now();
     const bytes = await fetchBytes(patchUrl, "the base patch");
-    const patch = toPlain(created.load_patch(bytes, patchUrl.split("/").pop()));
+    const source = patchUrl.split("/").pop();
+    atlasLoaded = source.endsWith(".tsa");
+    const patch = toPlain(atlasLoaded ? created.load_atlas(bytes, source)
+                                      : created.load_patch(bytes, source));
     session = created;
     stages.patch_ms = performance.now() - tPatch;
     post({ type: "ready", pyodide_load_ms: pyodideLoadMs, kernel, patch, patch_bytes: bytes.length,
@@ -247,7 +260,7 @@ function plan({ id, manifest }) {
 
 function ply({ id, resolution, colors, level, fresh, textures }) {
   const t0 = performance.now();
-  if (Number.isInteger(level) && level >= 0) {
+  if (Number.isInteger(level) && (level >= 0 || atlasLoaded)) {
     const tiles = new Map((fresh || []).map((tile) => [tile.name, tile.bytes]));
     const result = withPy(tiles, (pyTiles) => withPy(textures || [], (pyTextures) =>
       session.level_ply(level, pyTiles, pyTextures)));
@@ -281,6 +294,25 @@ function regions({ id, grid, regions: wanted }) {
     return meshArrays(mesh, performance.now() - t0, { level, i, j });
   });
   post({ type: "regions", id, meshes }, meshes.flatMap(buffersOf));
+}
+
+function atlasRefinement({ id }) {
+  post({ type: "atlasRefinement", id, ...toPlain(session.atlas_refinement()) });
+}
+
+function pack({ id, name, bytes }) {
+  post({ type: "pack", id, name, ...toPlain(session.add_pack(name, bytes)) });
+}
+
+function dropPacks({ id, names }) {
+  withPy(names, (list) => session.drop_packs(list));
+  post({ type: "droppedPacks", id, names });
+}
+
+function atlasMesh({ id, levels }) {
+  const t0 = performance.now();
+  const mesh = withPy(levels, (list) => session.atlas_mesh(list));
+  postMesh(mesh, performance.now() - t0, { type: "atlasMesh", id, levels });
 }
 
 function resources({ id }) {
@@ -327,3 +359,5 @@ self.onmessage = (event) => {
   pending.push(event.data);
   pump();
 };
+
+Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh }); // an atlas bundle's

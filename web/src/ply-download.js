@@ -47,6 +47,7 @@ export class PlyDownload {
     this.select = $("ply-level");
     this.button = $("download-ply");
     this.levels = []; // entries of the worker's plan (MeshWorkerClient.plan), one per level
+    this.atlas = false; // an atlas bundle: "base" is a level PLY too (offerAtlasLevels)
     this.button.addEventListener("click", () => this.download(Number(this.select.value)));
   }
 
@@ -82,6 +83,24 @@ export class PlyDownload {
     this.button.disabled = false;
   }
 
+  /**
+   * An atlas bundle's levels: `base` (page.js atlasBaseChoice: the welded atlas at
+   * base.resolution samples per patch side) and every level of `plan`, each one welded PLY
+   * of the whole object with the packs of levels 0..L.
+   */
+  offerAtlasLevels(plan, units, base) {
+    this.atlas = true;
+    this.offerLevels(plan, units, false);
+    this.levels = [base, ...plan.levels];
+    this.select.options[0].textContent = "base (the atlas alone)";
+    this.select.title = "Level of detail of the PLY, one welded mesh of every patch: base, the " +
+      `atlas alone (${base.resolution} samples per patch side); level L: with every detail ` +
+      "pack of levels 0..L (their size shown; packs already loaded are not fetched again), " +
+      "R = min(129, 2 × spans per tile × 2^L + 1) samples per patch side.";
+    this.select.hidden = false;
+    this.select.disabled = false;
+  }
+
   /** "Open in 3DHOP" shows the level chosen here (the 3DHOP page's ?level=L). */
   _followWithHopLink() {
     const hopUrl = this.config.hop_url;
@@ -111,13 +130,15 @@ export class PlyDownload {
     document.body.dataset.stage = "ply";
     this._showStatus(level < 0 ? "Writing the PLY…" : "");
     try {
-      const { ply, name } = level < 0 ? await this._writeBase() : await this._writeLevel(level);
+      const { ply, name } = level < 0 && !this.atlas ? await this._writeBase()
+        : await this._writeLevel(level);
       Object.assign(this.stats, { ply_level: level, ply_bytes: ply.bytes.length,
                                   ply_vertices: ply.vertices, ply_resolution: ply.resolution,
                                   ply_ms: ply.write_ms });
       saveFile(ply.bytes, name);
       this._showStatus(`${name}: ${formatBytes(ply.bytes.length)}, ` +
-        `${ply.vertices.toLocaleString("en")} vertices (${ply.resolution}² grid), ` +
+        `${ply.vertices.toLocaleString("en")} vertices (${ply.resolution}² grid` +
+        `${this.atlas ? " per patch" : ""}), ` +
         `${(this.stats.ply_total_ms / 1000).toFixed(1)} s`);
     } catch (error) {
       this._showStatus("");
@@ -146,6 +167,7 @@ export class PlyDownload {
     const ply = await levelPly(this.worker, choice, { manifestUrl: this.config.manifest_url,
                                                       stats: this.stats,
                                                       onProgress: (text) => this._showStatus(text) });
+    if (level < 0) return { ply, name: this.config.ply_name };
     return { ply, name: `${this.config.ply_name.replace(/\.ply$/i, "")}_level${level}.ply` };
   }
 }

@@ -16,12 +16,16 @@
 // (base-mesh.js), FactsPanel (facts-panel.js), ErrorMapControl (error-map-control.js),
 // TileLayer (tile-layer.js), PlyDownload (ply-download.js).
 // All URLs come from the server's JSON config block.
+// An atlas bundle (manifest format_version 2) is drawn by AtlasLayer (atlas-layer.js): one
+// welded mesh refined by group on zoom; window.tessera.atlasView(position, target) puts the
+// camera there (scan frame) and resolves with the stats once the groups it wants are shown;
+// window.tessera.atlasIdle() resolves when no atlas update is due.
 
 import { BaseMesh, COARSE_RESOLUTION } from "./base-mesh.js";
 import { ErrorMapControl } from "./error-map-control.js";
 import { FactsPanel } from "./facts-panel.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, loadManifest, startPage, workerInit } from "./page.js";
+import { $, atlasBaseChoice, loadManifest, startPage, workerInit } from "./page.js";
 import { PlyDownload } from "./ply-download.js";
 import { TransferTally } from "./transfer-tally.js";
 
@@ -204,6 +208,61 @@ async function offerPly(download, worker, manifest, ready) {
                        Boolean(manifest.tiles && manifest.tiles.texture));
 }
 
+/** An atlas bundle: the base of every group, then refinement by group as the camera moves
+ *  (AtlasLayer), "Download PLY" of every level. */
+async function showAtlas({ viewer, worker, manifest, ready, facts, transfers }) {
+  facts.describeAtlas(manifest, ready, stats);
+  viewer.setObjectView(manifest.view || null);
+  showStage("tessellation");
+  const plan = await worker.plan(manifest); // the worker keeps the manifest for what follows
+  const refinement = await worker.atlasRefinement();
+  const { AtlasLayer } = await import("./atlas-layer.js");
+  const layer = new AtlasLayer({
+    viewer, worker, refinement, manifestUrl: config.manifest_url, stats,
+    onError: (message) => {
+      console.error(message);
+      document.body.dataset.tileError = message;
+      facts.set("fact-detail", message);
+    },
+    onChange: () => {
+      facts.showMesh(stats);
+      facts.showAtlas(stats, refinement.groups.length);
+      showTransfers(transfers, facts);
+    },
+  });
+  await layer.show(refinement.groups.map(() => -1));
+  facts.showMesh(stats);
+  if (layer.enabled) facts.showAtlas(stats, refinement.groups.length);
+  else facts.set("fact-detail", "none in this bundle");
+  await nextFrame();
+  stats.first_frame_ms = performance.now();
+  stats.atlas_patches = ready.patch.patches;
+  document.body.dataset.ready = "1";
+  $("loading").hidden = true;
+  showTransfers(transfers, facts);
+  viewer.controls.addEventListener("change", () => layer.schedule());
+  $("fit-view").addEventListener("click", () => viewer.fitView());
+  $("front-view").addEventListener("click", () => viewer.showFront());
+  window.tessera.atlasIdle = async () => {
+    await layer.idle();
+    return { ...stats };
+  };
+  window.tessera.atlasView = async (position, target) => {
+    viewer.camera.position.set(...position);
+    viewer.controls.target.set(...target);
+    viewer.controls.update();
+    viewer.render();
+    await layer.update();
+    await layer.idle();
+    return { ...stats };
+  };
+  const download = new PlyDownload({ worker, base: null, errorMap: null, config, stats,
+                                     onError: showError });
+  download.offerAtlasLevels(plan, manifest.units || ready.patch.units || "unknown",
+                            atlasBaseChoice(refinement));
+  document.body.dataset.refined = "1";
+}
+
 async function main() {
   performance.setResourceTimingBufferSize(5000); // every tile of a long visit (default: 250)
   // Start the worker (Pyodide: seconds) before three.js is even fetched: they load in parallel.
@@ -235,6 +294,13 @@ async function main() {
   const ready = await readyPromise;
   const manifest = await manifestPromise;
   recordWorkerStats(ready);
+  if (ready.patch.kind === "atlas") {
+    const transfers = new TransferTally(config.manifest_url, window.location.href);
+    transfers.add("worker", ready.resources || []);
+    settleTiles();
+    await showAtlas({ viewer, worker, manifest, ready, facts, transfers });
+    return;
+  }
   base.domain = ready.patch.domain;
   facts.describe(manifest, ready, stats);
   viewer.setObjectView(manifest.view || null); // older bundles have none: the fallback framing

@@ -1,0 +1,144 @@
+"""An atlas bundle (manifest format_version 2) in headless Chromium: the viewer draws the
+welded atlas with no console error, refines the groups a close camera looks at (and only
+those), downloads one welded PLY per level that equals `tessera tessellate`'s, and the
+3DHOP page loads the same PLY. The bundle is made without the fitter (tests/atlas_bundle.py):
+a sphere of 24 patches in 6 groups, 3 detail levels."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from atlas_bundle import write_atlas_bundle
+
+pytestmark = pytest.mark.browser
+
+READY = "document.body.dataset.ready === '1' || !!document.body.dataset.error"
+
+
+@pytest.fixture(scope="module")
+def atlas_collection(tmp_path_factory):
+    root = tmp_path_factory.mktemp("atlas-collection")
+    write_atlas_bundle(root / "sphere", k=2, levels=3, base_resolution=5)
+    return root
+
+
+@pytest.fixture(scope="module")
+def atlas_server(atlas_collection):
+    from live import LiveServer
+
+    from fitter.server import create_app
+
+    app = create_app({"TESSERA_COLLECTION": str(atlas_collection), "TESTING": True})
+    if app.extensions["tessera_snapshot"] is not None:
+        app.extensions["tessera_snapshot"].ensure()
+    with LiveServer(app) as live:
+        yield live
+
+
+@pytest.fixture(scope="module")
+def atlas_page(browser, atlas_server):
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1000, "height": 700})
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(f"{atlas_server.url}/objects/sphere/")
+    page.wait_for_function(READY, timeout=90_000)
+    page.wait_for_function("document.body.dataset.refined === '1'", timeout=30_000)
+    page.errors = errors
+    yield page
+    context.close()
+
+
+def test_the_atlas_shows_welded_with_no_error(atlas_page, atlas_collection):
+    assert atlas_page.evaluate("document.body.dataset.error") is None
+    stats = atlas_page.evaluate("window.tessera.stats")
+    assert stats["atlas_patches"] == 24
+    assert stats["atlas_levels"] == [-1] * 6
+    # 24 patches at 5 samples a side, welded: 26 corners + 48 edges x 3 + 24 x 9 inside
+    assert stats["vertices"] == 26 + 48 * 3 + 24 * 9
+    assert stats["triangles"] == 24 * 2 * 16
+    expected = sum((atlas_collection / "sphere" / f).stat().st_size
+                   for f in ("manifest.json", "base.tsa"))
+    assert stats["bytes_downloaded"] == expected
+    assert "24 patches" in atlas_page.locator("#fact-grid").inner_text()
+    assert atlas_page.errors == []
+    shot = atlas_page.locator("#view").screenshot()
+    from io import BytesIO
+
+    from PIL import Image
+    rgb = np.asarray(Image.open(BytesIO(shot)).convert("RGB")).astype(int)
+    differs = np.abs(rgb - rgb[2, -3]).max(axis=2) > 30
+    assert differs.mean() > 0.05
+
+
+def test_zooming_refines_the_groups_in_view(atlas_page, atlas_collection):
+    manifest = json.loads((atlas_collection / "sphere" / "manifest.json").read_text())
+    groups = manifest["tiles"]["detail"]["groups"]
+    # close to group 0's sphere, looking at its centre from outside
+    centre = np.array(groups[0]["center"])
+    outward = centre / np.linalg.norm(centre)
+    position = (centre + 0.6 * outward).tolist()
+    stats = atlas_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)",
+                                [position, centre.tolist()])
+    levels = stats["atlas_levels"]
+    assert levels[0] == 2, levels  # the camera is inside its bounding sphere: the finest
+    assert stats["atlas_packs_loaded"] >= levels[0] + 1
+    assert stats["atlas_pack_bytes"] > 0 and stats["atlas_updates"] >= 1
+    assert stats["vertices"] > 26 + 48 * 3 + 24 * 9
+    assert "groups refined" in atlas_page.locator("#fact-detail").inner_text()
+    # looking away from the object: no group is in view, all go back to the base
+    outside = (centre + 2 * outward).tolist()  # beyond every group's sphere
+    away = (centre + 5 * outward).tolist()
+    stats = atlas_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)", [outside, away])
+    assert stats["atlas_levels"] == [-1] * 6
+    assert stats["vertices"] == 26 + 48 * 3 + 24 * 9
+    # far away: a coarser choice than close up, never finer
+    far = (centre + 30 * outward).tolist()
+    stats = atlas_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)", [far, [0, 0, 0]])
+    assert max(stats["atlas_levels"]) <= 1
+    assert atlas_page.evaluate("document.body.dataset.tileError") is None
+    assert atlas_page.errors == []
+
+
+@pytest.mark.parametrize("level", [-1, 2])
+def test_download_ply_is_the_cli_s_welded_mesh(atlas_page, atlas_collection, tmp_path, level):
+    from fitter.cli import main
+
+    atlas_page.select_option("#ply-level", str(level))
+    with atlas_page.expect_download() as info:
+        atlas_page.click("#download-ply")
+    path = tmp_path / info.value.suggested_filename
+    info.value.save_as(path)
+    atlas_page.wait_for_function("!document.body.dataset.plyBusy", timeout=60_000)
+    out = tmp_path / "cli.ply"
+    assert main(["tessellate", str(atlas_collection / "sphere"), "--level", str(level),
+                 "-o", str(out)]) == 0
+    assert path.read_bytes().replace(b"source base.tsa", b"source sphere") == out.read_bytes()
+    mesh = trimesh.load(path, process=False)
+    mesh.merge_vertices()
+    assert mesh.is_watertight
+    assert atlas_page.errors == []
+
+
+def test_the_3dhop_page_loads_the_atlas_ply(page, atlas_server):
+    if page.request.get(f"{atlas_server.url}/vendor/3dhop/js/presenter.js").status != 200:
+        pytest.skip("3DHOP is not configured (../shared/vendor/3dhop-4.3 absent)")
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(f"{atlas_server.url}/objects/sphere/3dhop?level=1")
+    page.wait_for_function(READY, timeout=90_000)
+    assert page.evaluate("document.body.dataset.error") is None
+    assert page.evaluate("window.presenter._isSceneReady()") is True
+    stats = page.evaluate("window.tessera.stats")
+    assert stats["ply_level"] == 1 and stats["resolution"] == 9
+    header = bytes(page.evaluate("""async () => {
+        const buffer = await (await fetch(window.tessera.plyUrl)).arrayBuffer();
+        return Array.from(new Uint8Array(buffer.slice(0, 400)));
+    }""")).split(b"end_header", 1)[0].decode()
+    assert f"element vertex {stats['vertices']}" in header and "one welded mesh" in header
+    assert errors == []
