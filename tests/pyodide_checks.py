@@ -261,6 +261,89 @@ def _atlas_checks(checks: dict, digests: dict, timings: dict, spec: dict) -> Non
             start = time.perf_counter()
             tessellate_atlas(timed, r, kernel="python")
             timings[f"tessellate_atlas r={r}"] = time.perf_counter() - start
+    _atlas_session_checks(checks, digests, timings, atlas, data,
+                          AtlasSurface(**spec["atlas_timed"]) if "atlas_timed" in spec else None)
+
+
+def _atlas_manifest(atlas: AtlasSurface, groups: int, spans: int, levels: int,
+                    base_resolution: int, packs: dict) -> dict:
+    """A version-2 manifest of ``atlas`` in ``groups`` equal contiguous groups (its last
+    takes the rest), ``packs`` = ``{(level, group): bytes}``."""
+    count = len(atlas.quads) // groups
+    spans_of = [(g * count, count if g < groups - 1 else len(atlas.quads) - g * count)
+                for g in range(groups)]
+    return {"format": "tessera-bundle", "format_version": 2, "units": "mm",
+            "base": {"file": "base.tsa", "kind": "atlas", "patches": len(atlas.quads),
+                     "resolution": base_resolution},
+            "tiles": {"version": 2, "texture": None, "detail": {
+                "format": "tsdp", "format_version": 1, "tile_format_version": 2,
+                "degree": 2, "spans_per_tile": spans, "base": {"rms": 0.1, "max": 0.3},
+                "levels": [{"level": k, "rms": 0.1 / 2**k} for k in range(levels)],
+                "groups": [{"first": f, "count": c, "center": [0, 0, 0], "radius": 1}
+                           for f, c in spans_of],
+                "packs": [{"level": k, "group": g, "bytes": len(b), "geometric_error": 0.1}
+                          for (k, g), b in sorted(packs.items())]}}}
+
+
+def _atlas_session_checks(checks: dict, digests: dict, timings: dict, atlas: AtlasSurface,
+                          data: bytes, timed: AtlasSurface | None) -> None:
+    """The worker's session on an atlas bundle (manifest version 2), driven as
+    mesh-worker.js drives it: base.tsa, the manifest, packs, a mesh with groups at different
+    levels (welded, closed), a level PLY; the re-tessellation the viewer asks for is timed."""
+    from client_py.atlas_detail import pack_name, write_pack
+
+    packs = {}
+    for level in range(2):
+        for g in range(len(atlas.quads)):
+            tiles = [DetailTile(level, i, j, 2, 2, 0.002,
+                                tuple(_lcg_values(16, 100 * level + 10 * g + 2 * i + j, 6)))
+                     for i in range(1 << level) for j in range(1 << level)]
+            packs[level, g] = write_pack(level, {g: tiles})
+    manifest = _atlas_manifest(atlas, len(atlas.quads), 2, 2, 5, packs)
+    session = WorkerSession(kernel="python")
+    facts = session.load_atlas(memoryview(data), "base.tsa")
+    session.read_manifest(json.dumps(manifest))
+    refinement = session.atlas_refinement()
+    for key in ((0, 0), (1, 0), (0, 3)):
+        session.add_pack(pack_name(*key), memoryview(packs[key]))
+    mixed = session.atlas_mesh([1, -1, -1, 0, -1, -1])
+    for name in ("positions", "normals", "uvs", "indices", "patches"):
+        digests[f"atlas_session.mixed.{name}"] = _sha(memoryview(getattr(mixed, name)).cast("B"))
+    fresh = {pack_name(*key): memoryview(b) for key, b in packs.items()
+             if not session.holds_pack(pack_name(*key))}
+    ply = session.level_ply(1, fresh)
+    digests["atlas_session.level_ply"] = _sha(ply.data)
+
+    def refines_welded():
+        _require(facts["kind"] == "atlas" and facts["patches"] == len(atlas.quads), "facts")
+        _require(refinement["resolutions"] == [5, 5, 9], f"{refinement['resolutions']}")
+        directed: dict = {}
+        idx = mixed.indices
+        for t in range(0, len(idx), 3):
+            a, b, c = idx[t : t + 3]
+            for edge in ((a, b), (b, c), (c, a)):
+                directed[edge] = directed.get(edge, 0) + 1
+        _require(all(n == 1 for n in directed.values()), "an edge runs twice")
+        _require(all((b, a) in directed for a, b in directed), "a boundary edge")
+        _require(ply.level == 1 and ply.resolution == 9, "level PLY")
+        try:
+            session.atlas_mesh([1, 1, -1, 0, -1, -1])
+        except ValueError as exc:
+            _require("detail/0/1.tsdp" in str(exc), str(exc))
+        else:
+            raise AssertionError("a group without its packs was drawn")
+
+    _check(checks, "atlas session: groups at different levels, welded and closed; level PLY",
+           refines_welded)
+    if timed is not None:  # the viewer's re-tessellation: 6 groups of 100 patches
+        session = WorkerSession(kernel="python")
+        session.load_atlas(write_atlas(timed, 12), "base.tsa")
+        session.read_manifest(json.dumps(_atlas_manifest(timed, 6, 4, 2, 9, {})))
+        for levels in ([-1] * 6, [0, -1, -1, -1, -1, -1], [1, 1, -1, -1, -1, -1]):
+            start = time.perf_counter()
+            mesh = session.atlas_mesh(levels)
+            timings[f"atlas_mesh {levels} ({mesh.vertex_count} vertices)"] = \
+                time.perf_counter() - start
 
 
 def run(spec: dict) -> dict:

@@ -425,3 +425,72 @@ def test_write_pack_helper_round_trips(bundle):
     level, tiles = read_pack((bundle / "detail/1/2.tsdp").read_bytes())
     assert level == 1 and list(tiles) == [2]
     assert read_pack(write_pack(level, tiles)) == (level, tiles)
+
+
+# ------------------------------------------------------------------ fit-collection, fuzz
+def test_fit_collection_checks_an_atlas_bundle_s_tile_versions(bundle, tmp_path):
+    from fitter.collection.batch import is_up_to_date, stored_options
+    from fitter.fitting.options import FitOptions
+
+    options = FitOptions()
+    manifest = _manifest(bundle)
+    manifest["provenance"]["sha256"] = "ab" * 32
+    manifest["options"] = stored_options(options)
+    folder = tmp_path / "b"
+    folder.mkdir()
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    assert is_up_to_date(folder, "ab" * 32, options)
+    for key, old in (("tile_format_version", 1), ("format_version", 0)):
+        stale = json.loads(json.dumps(manifest))
+        stale["tiles"]["detail"][key] = old
+        (folder / "manifest.json").write_text(json.dumps(stale))
+        assert not is_up_to_date(folder, "ab" * 32, options)
+
+
+def _json_values():
+    from hypothesis import strategies as st
+
+    scalars = st.none() | st.booleans() | st.integers(-3, 200) | st.floats(
+        allow_nan=False, allow_infinity=False) | st.text(max_size=12)
+    return st.recursive(scalars, lambda inner: st.lists(inner, max_size=4)
+                        | st.dictionaries(st.text(max_size=8), inner, max_size=4), max_leaves=8)
+
+
+def test_any_change_to_an_atlas_manifest_is_planned_or_a_manifest_error(bundle):
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    seed = _manifest(bundle)
+
+    def paths(value, prefix=()):
+        yield prefix
+        if isinstance(value, dict):
+            for key, item in value.items():
+                yield from paths(item, (*prefix, key))
+        elif isinstance(value, list):
+            for k, item in enumerate(value):
+                yield from paths(item, (*prefix, k))
+
+    where = [p for p in paths(seed) if p and p[0] in ("base", "tiles", "format_version")]
+
+    @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+    @given(st.lists(st.tuples(st.sampled_from(where), _json_values()), min_size=1, max_size=3))
+    def check(changes):
+        manifest = json.loads(json.dumps(seed))
+        for path, value in changes:
+            node = manifest
+            try:
+                for key in path[:-1]:
+                    node = node[key]
+                node[path[-1]] = value
+            except (KeyError, IndexError, TypeError):
+                continue  # an earlier change replaced the parent
+        try:
+            plans = plan_levels(manifest)
+            plan_level(manifest, -1)
+        except ManifestError:
+            return
+        for plan in plans:  # what was planned names only bundle files
+            assert all(check_file_name(name, "x") == name for name in plan.detail_files)
+
+    check()

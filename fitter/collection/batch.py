@@ -76,7 +76,9 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
 
 def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
     """Whether ``bundle`` was fitted from this input (same SHA-256) with these options, and
-    its detail tiles (if any) are in the ``.tsd`` version this code reads."""
+    its detail tiles (if any) are in the ``.tsd`` version this code reads (of an atlas,
+    manifest version 2: its packs' tiles, ``tile_format_version``, and the ``.tsdp`` version)."""
+    from client_py.atlas_detail import PACK_VERSION
     from client_py.format import TILE_VERSION
 
     try:
@@ -86,9 +88,13 @@ def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
     if not isinstance(manifest, dict):
         return False
     detail = (manifest.get("tiles") or {}).get("detail") or {}
+    if manifest.get("format_version") == 2:
+        tiles_current = not detail or (detail.get("tile_format_version") == TILE_VERSION
+                                       and detail.get("format_version") == PACK_VERSION)
+    else:
+        tiles_current = not detail.get("nodes") or detail.get("format_version") == TILE_VERSION
     return (manifest.get("provenance", {}).get("sha256") == sha256
-            and manifest.get("options") == stored_options(options)
-            and (not detail.get("nodes") or detail.get("format_version") == TILE_VERSION))
+            and manifest.get("options") == stored_options(options) and tiles_current)
 
 
 def fit_one(scan: str, out_dir: str, options: dict[str, Any]) -> dict[str, Any]:
