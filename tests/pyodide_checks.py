@@ -180,6 +180,39 @@ def _session_checks(checks: dict, digests: dict) -> None:
 
     _check(checks, "session: region mesh is tessellate_region + skirts, scan frame",
            region_is_tessellate_region_plus_skirts)
+
+    # a rigid transform (a quarter turn about z and a shift): the region is made on the
+    # scan-frame patch (issue 14), equal to the mapped patch-frame mesh to float32 rounding
+    rigid = [[0, -1, 0, 250], [1, 0, 0, -40], [0, 0, 1, 1200], [0, 0, 0, 1]]
+    placed = NurbsSurface((2, 2), (U, U), grid, trim=trim,
+                          metadata={"units": "mm", "transform": rigid})
+    fast = WorkerSession(kernel="python")
+    fast.load_patch(write_patch(placed, bits=16), "base.tsp")
+    for name in held:
+        fast.add_tile(name, files[name])
+    rigid_region = fast.region_mesh(1, 1, 0, 7, held, 0.05)
+    for name in ("positions", "normals", "uvs", "indices"):
+        digests[f"session.rigid_region.{name}"] = _sha(
+            memoryview(getattr(rigid_region, name)).cast("B"))
+
+    def rigid_region_is_the_mapped_mesh():
+        placed_patch = read_patch(write_patch(placed, bits=16))
+        tiles = [read_detail_tile(files[name]) for name in held]
+        rect = tile_rect(1, 1, 0)
+        mesh = tessellate_region(placed_patch, rect, 7, 7, tiles, "python")
+        mesh = transform_mesh(hang_skirts(mesh, placed_patch, rect, 7, tiles, 0.05, "python"),
+                              rigid, "python")
+        _require(rigid_region.uvs == mesh.uvs and rigid_region.indices == mesh.indices,
+                 "uvs or indices differ")
+        def worst(a, b):
+            return max(abs(x - y) for x, y in zip(a, b, strict=True))
+
+        scale = max(abs(x) for x in mesh.positions)
+        _require(worst(rigid_region.positions, mesh.positions) <= 1e-6 * scale, "positions")
+        _require(worst(rigid_region.normals, mesh.normals) <= 1e-6, "normals")
+
+    _check(checks, "session: a rigidly placed region made in the scan frame is the mapped mesh",
+           rigid_region_is_the_mapped_mesh)
     fresh = {name: memoryview(data) for name, data in files.items() if name not in held}
     ply = session.level_ply(1, fresh, textures[::-1])
     digests["session.level_ply"] = _sha(ply.data)
