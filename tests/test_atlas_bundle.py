@@ -494,3 +494,35 @@ def test_any_change_to_an_atlas_manifest_is_planned_or_a_manifest_error(bundle):
             assert all(check_file_name(name, "x") == name for name in plan.detail_files)
 
     check()
+
+
+# ------------------------------------------------------------------ a fitted atlas bundle
+def test_a_fitted_atlas_bundle_reads_everywhere(tmp_path):
+    """A real `fit_scan` atlas bundle (the lead's fitter.fitting.atlas.pipeline; skipped
+    until it is there): planned, tessellated watertight at every level, loaded by the
+    session, accepted by the server and thumbnailed."""
+    pytest.importorskip("fitter.fitting.atlas.pipeline", reason="the atlas fit is not there yet")
+    from fitter.collection.bundles import parse_manifest
+    from fitter.fitting.io.scan import make_scan, new_source
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
+    from fitter.server.thumbnail import render_atlas_thumbnail
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    vertices = sphere.vertices * (1 + 0.03 * np.sin(sphere.vertices[:, :1] / 10))
+    source = new_source("bumpy", None, "array", compression=None, reader="array")
+    scan = make_scan("bumpy", vertices, faces=np.asarray(sphere.faces), source=source)
+    folder = tmp_path / "bumpy"
+    fit_scan(scan, folder, FitOptions(patches=60))
+    manifest = parse_manifest(folder / "manifest.json")
+    assert manifest_version(manifest) == 2
+    for plan in [plan_level(manifest, -1), *plan_levels(manifest)]:
+        mesh = tessellate_bundle(manifest, _reader(folder), plan.level)
+        assert _boundary_edges(mesh.indices) == 0
+        positions = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3)
+        radius = np.linalg.norm(positions, axis=1)
+        assert np.abs(radius - 50).max() < 5  # the bumpy sphere, not fins or spikes
+    session, _ = _session(folder)
+    assert len(session.atlas_refinement()["resolutions"]) == len(plan_levels(manifest)) + 1
+    png = render_atlas_thumbnail((folder / "base.tsa").read_bytes(), manifest.get("view"))
+    assert png.startswith(b"\x89PNG")
