@@ -45,8 +45,8 @@
 //           tessellate_ms}, ...]}  (region_mesh for each, in order, in one reply)
 //   worker -> {type: "error", stage, message}   for any failure, with the reason
 // Requests run one at a time, in the order they came, except that a base "tessellate" waits
-// while other requests are queued: the regions of a zoom are not held up by the base's
-// re-tessellation that the same zoom asked for (and nothing else depends on it).
+// while other requests are queued (or arrive before it starts): the regions of a zoom are not
+// held up by the base's re-tessellation that the same zoom asked for (nothing depends on it).
 // Mesh arrays are copied once out of the WebAssembly heap (PyBuffer views die with the
 // Python object) and then *transferred*, not copied again, to the page. Times (*_ms) are
 // measured here around the Python call.
@@ -338,17 +338,28 @@ async function run(request) {
   }
 }
 
+const yieldChannel = new MessageChannel();
+
+/** Resolves after the messages that reached the worker so far have been taken in (a task
+ *  through a MessageChannel: setTimeout(0) would be clamped to 4 ms when nested). */
+function takeInMessages() {
+  return new Promise((resolve) => {
+    yieldChannel.port1.onmessage = () => resolve();
+    yieldChannel.port2.postMessage(null);
+  });
+}
+
 /** Run the pending requests one at a time (Python is single-threaded anyway): the oldest
- *  that is not a base "tessellate", else the oldest. Between two requests the worker takes
- *  in the messages that came meanwhile, so a region batch can go before a queued base. */
+ *  that is not a base "tessellate", else the oldest. Before starting a base, the worker takes
+ *  in the messages that came meanwhile, so a region batch sent since goes first. */
 async function pump() {
   if (pumping) return;
   pumping = true;
   try {
     while (pending.length) {
+      if (pending.every((request) => request.type === "tessellate")) await takeInMessages();
       const at = Math.max(pending.findIndex((request) => request.type !== "tessellate"), 0);
       await run(pending.splice(at, 1)[0]);
-      await new Promise((resolve) => setTimeout(resolve, 0));
     }
   } finally {
     pumping = false;

@@ -248,6 +248,8 @@ export class TileLayer {
     let inFlight = batches.length ? send(batches[0]) : null;
     for (let b = 0; b < batches.length; b++) {
       const following = b + 1 < batches.length && !this.dirty ? send(batches[b + 1]) : null;
+      // awaited next round, unless this batch fails first: then its failure is the one reported
+      if (following) following.catch(() => {});
       const meshes = await inFlight;
       batches[b].forEach((leaf, n) => {
         this._remember(leaf.key, meshes[n]);
