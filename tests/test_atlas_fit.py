@@ -212,10 +212,21 @@ def test_the_bunny_layout_keeps_its_topology_and_holes():
     from fitter.fitting.io import load_scan
 
     surface = scan_surface(load_scan(DATA / "stanford-bunny" / "bun_zipper.ply.gz"))
-    vertices, triangles = decimate(surface, 200)
+    vertices, triangles = decimate(surface, 20_000)  # as fit_atlas does: via 20,000
+    middle = type(surface)(vertices, triangles, surface.origin, surface.pieces)
+    vertices, triangles = decimate(middle, 200)
     assert abs(len(triangles) - 200) <= 10
     assert euler_characteristics(vertices, triangles) == euler_characteristics(
         surface.vertices, surface.faces)
     problems = manifold_problems(triangles)
     assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
     assert problems["border_edges"] > 0  # the scan's holes stay holes
+
+
+def test_auto_grows_the_layout_within_the_byte_budget():
+    fit = fit_atlas(_sphere_scan(3), "auto", byte_budget=9000, working_count=2000, rounds=1)
+    sizes = [trial["bytes"] for trial in fit.trials if "bytes" in trial]
+    assert len(sizes) >= 2 and sizes == sorted(sizes)
+    assert fit.bytes <= 9000 * 1.05  # the final fit of the chosen layout, all points
+    assert fit.patches == 3 * fit.triangles
+    assert fit.triangles in [trial["triangles"] for trial in fit.trials]

@@ -48,13 +48,15 @@ from client_py.errors import TesseraError
 
 from ..io.scan import Scan
 from ..io.thin import voxel_thin_indices
-from .layout import QuadLayout, bilinear_atlas, decimate, quad_layout
+from .layout import AtlasLayoutError, QuadLayout, bilinear_atlas, decimate, quad_layout
 from .surface import ScanSurface, scan_surface
 
 DEFAULT_BYTE_BUDGET = 24_000
 AUTO_FIRST_TRIANGLES = 48
 AUTO_MAX_TRIANGLES = 4096
-AUTO_MIN_GAIN = 0.85  # a doubling must bring the RMS below 85 % of the previous to be taken
+AUTO_MIN_GAIN = 0.95  # a doubling must bring the RMS below 95 % of the previous to be taken
+AUTO_TRIAL_POINTS = 20_000
+PREDECIMATED_TRIANGLES = 20_000
 
 
 class AtlasFitError(TesseraError, ValueError):
@@ -510,7 +512,9 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         ``int``: about that many patches (``T = round(patches / 3)`` layout triangles; the
         decimation may end a few triangles off). ``'auto'``: ``T`` doubles from
         ``AUTO_FIRST_TRIANGLES`` while the file stays within ``byte_budget`` and each
-        doubling lowers the working points' RMS below ``AUTO_MIN_GAIN`` of the previous.
+        doubling lowers the working points' RMS below ``AUTO_MIN_GAIN`` of the previous
+        (trials: ``AUTO_TRIAL_POINTS`` of the points, two rounds); the chosen layout is then
+        fitted with all working points and ``rounds``.
     degree, spans : int
         Per patch side (``n = spans + degree`` control points).
     bits : int
@@ -561,39 +565,72 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     if len(points) < 16:
         raise AtlasFitError(f"only {len(points)} working points; at least 16 are needed")
     report(0.2)
+    clock = time.perf_counter()
+    # every trial decimates from one intermediate mesh, not from the full scan (MeshLab's
+    # collapse of 10^5 faces takes seconds each time)
+    coarse = surface
+    if len(surface.faces) > PREDECIMATED_TRIANGLES:
+        vertices, triangles = decimate(surface, PREDECIMATED_TRIANGLES)
+        coarse = ScanSurface(vertices, triangles, surface.origin, surface.pieces,
+                             surface.repairs)
+    timings["predecimate"] = time.perf_counter() - clock
     if patches == "auto":
         plan = []
         t = AUTO_FIRST_TRIANGLES
-        while t <= min(AUTO_MAX_TRIANGLES, len(surface.faces)):
+        while t <= min(AUTO_MAX_TRIANGLES, len(coarse.faces)):
             plan.append(t)
             t *= 2
-        plan = plan or [max(1, len(surface.faces))]
+        plan = plan or [len(coarse.faces)]
+        # trials on a subset, two rounds; the chosen layout is fitted again with everything
+        pick = np.random.default_rng(0).permutation(len(points))[:AUTO_TRIAL_POINTS]
+        trial_points, trial_normals, trial_rounds = points[pick], normals[pick], 2
     else:
         plan = [max(1, round(int(patches) / 3))]
+        trial_points, trial_normals, trial_rounds = points, normals, rounds
     trials: list[dict] = []
     best = None
     for step, target in enumerate(plan):
         trial_timings: dict = {}
         clock = time.perf_counter()
-        tri_vertices, triangles = decimate(surface, max(4, target)) if target >= 4 else \
-            (surface.vertices, surface.faces)
+        try:
+            tri_vertices, triangles = decimate(coarse, max(4, target))
+        except AtlasLayoutError as exc:
+            # a coarse target may not decimate to a manifold (a range scan's many borders);
+            # 'auto' tries the next size, an explicit count is refused
+            if patches != "auto":
+                raise
+            trials.append({"triangles": target, "error": str(exc)})
+            continue
         layout = quad_layout(tri_vertices, triangles)
         trial_timings["layout"] = time.perf_counter() - clock
-        atlas, f, u, v, dist = fit_layout(layout, points, normals, degree=degree, spans=spans,
-                                          rounds=rounds, smoothing=smoothing, anchor=anchor,
+        atlas, f, u, v, dist = fit_layout(layout, trial_points, trial_normals, degree=degree,
+                                          spans=spans, rounds=trial_rounds,
+                                          smoothing=smoothing, anchor=anchor,
                                           timings=trial_timings)
         size = atlas_bytes(atlas, bits)
         rms = float(np.sqrt(np.mean(dist ** 2)))
         trials.append({"triangles": layout.n_triangles, "patches": len(atlas.quads),
                        "control_points": atlas.control_point_count, "bytes": size,
                        "rms": rms, "seconds": sum(trial_timings.values())})
-        report(0.2 + 0.8 * (step + 1) / len(plan))
+        report(0.2 + 0.7 * (step + 1) / len(plan))
         if patches == "auto" and best is not None and (
                 size > byte_budget or rms > AUTO_MIN_GAIN * best[0]):
             break
         best = (rms, size, layout, atlas, f, u, v, trial_timings)
         if patches == "auto" and size > byte_budget:
             break
+    if patches == "auto":
+        layout = best[2]
+        final_timings: dict = {"layout": best[7]["layout"]}
+        atlas, f, u, v, dist = fit_layout(layout, points, normals, degree=degree, spans=spans,
+                                          rounds=rounds, smoothing=smoothing, anchor=anchor,
+                                          timings=final_timings)
+        timings["trials"] = sum(trial.get("seconds", 0.0) for trial in trials)
+        best = (float(np.sqrt(np.mean(dist ** 2))), atlas_bytes(atlas, bits), layout, atlas,
+                f, u, v, final_timings)
+    if best is None:
+        raise AtlasLayoutError(f"no layout of {plan} triangles is an oriented 2-manifold: "
+                               + "; ".join(trial["error"] for trial in trials))
     rms, size, layout, atlas, f, u, v, trial_timings = best
     timings.update(trial_timings)
     table = index_table(atlas)

@@ -250,7 +250,7 @@ def _thin_to(points: np.ndarray, target: int) -> np.ndarray:
 
 
 def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: int = 8,
-                    trim_spacings: float = 2.0, max_cloud_points: int = 200_000,
+                    trim_spacings: float = 2.0, max_cloud_points: int = 100_000,
                     name: str = "scan") -> tuple[np.ndarray, np.ndarray, dict]:
     """Screened Poisson surface of a cloud (Kazhdan & Hoppe 2013), trimmed to the scan.
 
@@ -321,7 +321,7 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: in
 
 
 def scan_surface(scan: Scan, *, poisson_depth: int = 8, trim_spacings: float = 2.0,
-                 max_cloud_points: int = 200_000) -> ScanSurface:
+                 max_cloud_points: int = 100_000) -> ScanSurface:
     """The scan's triangle surface: its own triangles cleaned, or a trimmed Poisson surface.
 
     Raises
