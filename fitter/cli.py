@@ -8,6 +8,7 @@ print one line on stderr and exit with status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from collections.abc import Callable
@@ -190,6 +191,27 @@ def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: d
     return 0
 
 
+@contextlib.contextmanager
+def _fit_blocks(args: argparse.Namespace):  # noqa: ANN202 - a context of DaskBlocks or None
+    """The runner of an out-of-core fit's block passes (``fitter.fitting.stream``): a Dask
+    client of ``--scheduler``, or of a LocalCluster of ``--workers`` processes; None (this
+    process's threads) without either. The bundle is the same bytes either way."""
+    if not (args.scheduler or args.workers):
+        yield None
+        return
+    from distributed import Client, LocalCluster
+
+    from .fitting.stream import DaskBlocks
+
+    if args.scheduler:
+        with Client(args.scheduler) as client:
+            yield DaskBlocks(client)
+        return
+    with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        yield DaskBlocks(client)
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -199,21 +221,28 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     options = _fit_options(args)
     bars: dict[str, tqdm] = {}
 
-    def progress(stage: str, fraction: float) -> None:
+    def progress(stage: str, fraction: float, points: int | None = None) -> None:
         if args.quiet:
             return
         bar = bars.get(stage)
         if bar is None:
             bar = bars[stage] = tqdm(total=100, desc=f"{stage:>9}", leave=True, file=sys.stderr,
-                                     bar_format="{desc} |{bar}| {percentage:3.0f}% {elapsed}")
+                                     bar_format="{desc} |{bar}| {percentage:3.0f}% "
+                                                "{elapsed}<{remaining}{postfix}")
         bar.n = int(round(100 * fraction))
+        if points is not None:  # a streamed pass (fitter.fitting.stream): its rate
+            elapsed = bar.format_dict["elapsed"]
+            bar.set_postfix_str(f"{points / max(elapsed, 1e-9) / 1e6:.2f} M points/s",
+                                refresh=False)
         bar.refresh()
         if fraction >= 1.0:
             bar.close()
 
     try:
-        bundle = fit_scan(args.scan, args.output, options, progress,
-                          limits=_input_limits(args), memory_budget=args.memory_budget)
+        with _fit_blocks(args) as blocks:
+            bundle = fit_scan(args.scan, args.output, options, progress,
+                              limits=_input_limits(args), memory_budget=args.memory_budget,
+                              blocks=blocks)
     except (ScanError, OptionError) as exc:
         raise UserError(str(exc)) from None
     finally:
@@ -478,6 +507,15 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("-o", "--output", required=True, help="bundle directory to write")
     add_fit_arguments(fit)
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    # where the out-of-core passes run (fitter.fitting.stream); not fit options: the bundle
+    # is the same bytes, so they stay out of the manifest
+    cluster = fit.add_mutually_exclusive_group()
+    cluster.add_argument("--workers", type=_count, default=None,
+                         help="run the passes over a large scan's points (thinning, error) "
+                              "on a Dask LocalCluster of this many worker processes")
+    cluster.add_argument("--scheduler", default=None,
+                         help="run them on a running Dask scheduler, e.g. tcp://HOST:8786 "
+                              "(every worker must see the scan's path)")
     _add_input_limit_arguments(fit)
     fit.set_defaults(run=_cmd_fit)
 

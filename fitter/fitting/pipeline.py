@@ -74,6 +74,16 @@ from .orient import find_view
 from .parameterize import Coverage, choose_projection, trim_cells
 from .sections import section_matrix, section_shape
 from .stages import check_stage
+from .stream import (
+    DaskBlocks,
+    LargeScan,
+    LocalBlocks,
+    StreamedError,
+    fits_out_of_core,
+    load_working_set,
+    open_stream,
+    stream_of_scan,
+)
 from .texture import TextureTile, fit_texture
 
 BUNDLE_FORMAT_VERSION = 1
@@ -109,6 +119,9 @@ class FitResult:
     stats: dict
     history: dict = field(default_factory=dict)
     trim: TrimMask | None = None  # the drawn cells, None when all are
+    # out of core (fitter.fitting.stream): every original point's deviation; ``dev`` and the
+    # layers are then the working set's, ``stats`` every covered point's
+    full: StreamedError | None = None
 
 
 class _Stages:
@@ -126,9 +139,14 @@ class _Stages:
         self._name, self._start = name, time.perf_counter()
         self.report(0.0)
 
-    def report(self, fraction: float) -> None:
+    def report(self, fraction: float, points: int | None = None) -> None:
+        """``progress(stage, fraction)``, or ``progress(stage, fraction, points)`` (points done
+        in a streamed pass, for a rate and an ETA) when the callable takes a third argument."""
         if self.progress is not None and self._name is not None:
-            self.progress(self._name, float(fraction))
+            if points is not None and _takes_points(self.progress):
+                self.progress(self._name, float(fraction), int(points))
+            else:
+                self.progress(self._name, float(fraction))
 
     def stop(self) -> None:
         if self._name is not None:
@@ -136,6 +154,32 @@ class _Stages:
                                              + time.perf_counter() - self._start, 4)
             self.report(1.0)
             self._name = None
+
+
+def _takes_points(progress: Callable) -> bool:
+    import inspect
+
+    try:
+        inspect.signature(progress).bind("load", 0.0, 0)
+    except TypeError:
+        return False
+    return True
+
+
+def _load(scan: object, limits: InputLimits | None, blocks: LocalBlocks | DaskBlocks | None,
+          stages: _Stages) -> tuple[Scan, LargeScan | None]:
+    """The scan to fit and, for one over ``fitter.fitting.stream.STREAM_ABOVE`` points, its
+    out-of-core record (the scan is then the voxel-thinned working set): a binary PLY is
+    streamed from its memory map, any other large input loaded and then streamed."""
+    opened = open_stream(Path(scan), limits) if isinstance(scan, str | os.PathLike) else None
+    if opened is None:
+        scan = _as_scan(scan, limits)
+        if not fits_out_of_core(scan.n_points):
+            return scan, None
+        opened = stream_of_scan(scan)
+    large = load_working_set(*opened, blocks=blocks,
+                             progress=lambda f, p: stages.report(f, p))
+    return large.working, large
 
 
 def _as_scan(scan: object, limits: InputLimits | None = None) -> Scan:
@@ -447,8 +491,9 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     scan, cov, points = projected.scan, projected.coverage, projected.scan.points
     proj = cov.projection
     uncovered = ~cov.covered
-    covered_dev = Deviations(best.dev.d[cov.covered], best.dev.u[cov.covered],
-                             best.dev.v[cov.covered])
+    covered_dev = (best.full.covered_dev() if best.full is not None  # every original point
+                   else Deviations(best.dev.d[cov.covered], best.dev.u[cov.covered],
+                                   best.dev.v[cov.covered]))
     return {
         "format": "tessera-bundle",
         "format_version": BUNDLE_FORMAT_VERSION,
@@ -489,16 +534,34 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     }
 
 
+def _amend_out_of_core(manifest: dict, projected: ProjectedScan, full: StreamedError,
+                       large: LargeScan) -> None:
+    """What ``build_manifest`` took from the working set, of every original point instead:
+    ``stats_all_points``, the coverage and the uncovered points, ``provenance.points``; and
+    the working set itself (``provenance.working_set``: ``fitter.fitting.stream``)."""
+    n = large.n_points
+    manifest["stats_all_points"] = error_stats(full.dev.d, projected.diagonal,
+                                               projected.scan.units)
+    manifest["projection"].update(coverage=round(1.0 - full.uncovered_points / n, 6),
+                                  uncovered_points=full.uncovered_points,
+                                  uncovered_bbox=full.uncovered_bbox)
+    manifest["provenance"].update(points=n, working_set=large.source["thinning"])
+
+
 def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | None = None,
              progress: Progress | None = None, *, limits: InputLimits | None = None,
-             memory_budget: int = DEFAULT_MEMORY_BUDGET) -> Bundle:
+             memory_budget: int = DEFAULT_MEMORY_BUDGET,
+             blocks: LocalBlocks | DaskBlocks | None = None) -> Bundle:
     """Fit ``scan`` (a path, a ``Scan`` or an ``(N, 3)`` array) and write the bundle
     ``out_dir`` (``manifest.json``, ``base.tsp``, ``error.png``, ``error.ply``, tiles),
     replacing a bundle there; it appears whole or not at all (``fitter.fitting.bundle``).
 
     ``limits`` bounds the read of a path (``fitter.fitting.io.limits``, default
     ``InputLimits()``); ``memory_budget`` (bytes) the fit's largest solves
-    (``fitter.fitting.memory``).
+    (``fitter.fitting.memory``). A scan over ``fitter.fitting.stream.STREAM_ABOVE`` points
+    is fitted out of core (``fitter.fitting.stream``), its block passes run by ``blocks``
+    (default: threads of this process; ``DaskBlocks(client)`` for a Dask cluster; the
+    bundle is the same bytes either way).
 
     Raises
     ------
@@ -510,16 +573,17 @@ def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | Non
     """
     with threadpool_limits(limits=1, user_api="blas"):
         return _fit_scan(scan, Path(out_dir), options or FitOptions(), progress, limits,
-                         memory_budget)
+                         memory_budget, blocks)
 
 
 def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progress | None,
-              limits: InputLimits | None, memory_budget: int) -> Bundle:
+              limits: InputLimits | None, memory_budget: int,
+              blocks: LocalBlocks | DaskBlocks | None = None) -> Bundle:
     options.grid = tuple(options.grid)
     options.validate()
     stages = _Stages(progress)
     stages.start("load")
-    scan = _as_scan(scan, limits)
+    scan, large = _load(scan, limits, blocks, stages)
     if options.units:  # the option overrides what the file says (fitter.fitting.io)
         scan = replace(scan, units=options.units)
     stages.start("project")
@@ -527,6 +591,11 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
     plan = plan_fit_memory(projected, options, memory_budget)  # before any large solve
     sample = _fit_sample(projected, options, stages)
     best = fit_base(projected, sample, options, stages)
+    if large is not None:  # every original point against the chosen base
+        stages.start("error")
+        best.full = large.measure(best.data, projected.coverage.projection,
+                                  projected.coverage.covered, stages.report)
+        best.stats = error_stats(best.full.covered_dev().d, projected.diagonal, scan.units)
     check_patch(best.model, projected.name, projected.diagonal)
     pyramid, textures = _fit_layers(projected, best, options, plan, stages)
     stages.start("report")
@@ -535,6 +604,8 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
         stages.stop()
         manifest = build_manifest(projected, options, best, tiles, files, stages.timings,
                                   plan)
+        if large is not None:
+            _amend_out_of_core(manifest, projected, best.full, large)
         with open(folder / "manifest.json", "w") as fh:
             json.dump(manifest, fh, indent=1, sort_keys=True)
     return Bundle(out_dir, manifest)

@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from .limits import InputBudget
+from .points import PointStream
 from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source, units_from_comments
 from .source import CHUNK_BYTES, GZIP_ERRORS, HashedInput, file_record, read_exactly
 
@@ -518,3 +519,37 @@ def _parse_ascii_mesh(body: bytes, header: PlyHeader,
     if faces.shape != (nf, 4) or np.any(faces[:, 0] != 3):
         return None
     return arrays, faces[:, 1:]
+
+
+def open_ply_stream(path: Path, budget: InputBudget | None = None
+                    ) -> tuple[PointStream, dict, str] | None:
+    """A :class:`~fitter.fitting.io.points.PointStream` over an uncompressed binary PLY
+    point cloud (the memory-mapped path of :func:`load_ply`), its provenance record (without
+    ``sha256`` and ``bytes``: the out-of-core passes hash the file once,
+    ``fitter.fitting.stream``) and its units; ``None`` for any other PLY, which
+    :func:`load_ply` reads whole.
+
+    Raises
+    ------
+    ScanError
+        A malformed header, counts the file cannot hold, or more vertices than ``budget``.
+    """
+    name = path.name
+    with open(path, "rb") as fh:
+        header = parse_header(fh, name)
+    if not (_is_point_cloud(header) and header.byte_order):
+        return None
+    available, where = _body_bytes_bound(path, False, header)
+    check_claimed_counts(header, available, name, where)
+    element = header.elements[0]
+    if budget is not None:
+        budget.take_points(name, element.count)
+    layout = _VertexLayout.of(element, name)
+    stream = PointStream.from_ply(path, len(header.raw), header.vertex_dtype(), element.count,
+                                  layout.normals or ())
+    record = file_record(name, nbytes=path.stat().st_size, sha256=None)
+    source = _source(path, False, "ply-memmap-stream", record, header, layout)
+    source["hash_method"] = "sha256 of the stored file, read in chunks beside the bounds pass"
+    if layout.colors:
+        source["warnings"].append("colours are not kept by the out-of-core fit (no texture)")
+    return stream, source, units_from_comments(header.comments)

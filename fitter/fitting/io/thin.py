@@ -12,7 +12,7 @@ voxel keys (``O(N log N)``) and segment reductions (``reduceat``).
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from numbers import Real
 
 import numpy as np
@@ -30,6 +30,36 @@ def check_voxel_size(size: object, name: str = "thin") -> float:
         raise ScanError(f"{name} must be a positive, finite voxel size in scan units, got "
                         f"{value!r}")
     return value
+
+
+def voxel_keys(points: np.ndarray, lo: np.ndarray, size: float, dims: np.ndarray,
+               column: np.ndarray | None = None) -> np.ndarray:
+    """The voxel of each point as one int64 key (the module's one rule for it).
+
+    ``key = (i_0 d_1 + i_1) d_2 + i_2`` with ``i_k = floor((p_k - lo_k) / h)`` and
+    ``dims = (d_0, d_1, d_2)`` voxels per axis (``d_0 d_1 d_2 < 2^62``).
+
+    Parameters
+    ----------
+    points : ndarray, shape (m, 3), float64
+    lo : ndarray, shape (3,)
+        The grid's anchor ``p_min`` (the whole cloud's minimum corner).
+    size : float
+        Voxel edge ``h``.
+    dims : ndarray of int64, shape (3,)
+    column : ndarray, shape (m,), float64, optional
+        Scratch space (reused by callers that key many points).
+    """
+    n = len(points)
+    column = np.empty(n, np.float64) if column is None else column
+    keys = np.zeros(n, np.int64)
+    for k in range(3):
+        np.subtract(points[:, k], lo[k], out=column)
+        column /= size
+        np.floor(column, out=column)
+        keys *= dims[k]
+        keys += column.astype(np.int64)
+    return keys
 
 
 def voxel_thin_indices(points: np.ndarray, size: float) -> np.ndarray:
@@ -59,13 +89,7 @@ def voxel_thin_indices(points: np.ndarray, size: float) -> np.ndarray:
     # at 10^7 points each (N,) array is 80 MB.
     column = np.empty(n, np.float64)
     if float(dims[0]) * float(dims[1]) * float(dims[2]) < 2.0**62:
-        keys = np.zeros(n, np.int64)
-        for k in range(3):
-            np.subtract(pts[:, k], lo[k], out=column)
-            column /= h
-            np.floor(column, out=column)
-            keys *= dims[k]
-            keys += column.astype(np.int64)
+        keys = voxel_keys(pts, lo, h, dims, column)
     else:  # a grid too fine for one int64 key: number the occupied cells instead
         cells = np.floor((pts - lo) / h).astype(np.int64)
         keys = np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
@@ -120,3 +144,144 @@ def thin_scan(scan: Scan, size: object) -> Scan:
                                          "faces_dropped": scan.faces is not None})
     return replace(scan, points=scan.points[keep], normals=take(scan.normals),
                    colors=take(scan.colors), uv=take(scan.uv), faces=None, source=source)
+
+
+# ------------------------------------------------------------- the same rule, streamed
+# A cloud too large for memory is thinned in blocks of consecutive points: a first pass sums
+# each voxel's points (VoxelSums, merged block by block in file order, so the centroids are
+# the same sums whatever ran the blocks), a second finds each voxel's point nearest its
+# centroid (VoxelNearest, the smallest (distance^2, index): order-free). The result is the
+# rule of voxel_thin_indices; only the centroid's rounding may differ (its sum runs in file
+# order here, in sort order there), which decides nothing but exact distance ties.
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """The grid of a streamed thinning: anchor ``lo (3,)``, edge ``size``, ``dims (3,)``."""
+
+    lo: np.ndarray
+    size: float
+    dims: np.ndarray
+
+    @classmethod
+    def over(cls, lo: np.ndarray, hi: np.ndarray, size: float) -> VoxelGrid:
+        """The grid of edge ``size`` over the box ``[lo, hi]``.
+
+        Raises
+        ------
+        ValueError
+            ``size`` so small that the voxels do not fit one int64 key (``< 2^62``).
+        """
+        lo = np.asarray(lo, np.float64)
+        dims = np.floor((np.asarray(hi, np.float64) - lo) / size).astype(np.int64) + 1
+        if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
+            raise ValueError(f"size {size!r} gives {dims.tolist()} voxels, more than one int64 "
+                             "key holds; a larger voxel is needed")
+        return cls(lo, float(size), dims)
+
+    def keys(self, points: np.ndarray) -> np.ndarray:
+        """:func:`voxel_keys` of ``points (m, 3)``."""
+        return voxel_keys(points, self.lo, self.size, self.dims)
+
+
+@dataclass
+class VoxelSums:
+    """Per occupied voxel: ``keys (K,)`` ascending, coordinate sums ``sums (K, 3)`` and
+    point counts ``counts (K,)``."""
+
+    keys: np.ndarray
+    sums: np.ndarray
+    counts: np.ndarray
+
+    @classmethod
+    def empty(cls) -> VoxelSums:
+        return cls(np.empty(0, np.int64), np.empty((0, 3)), np.empty(0, np.int64))
+
+    @classmethod
+    def of(cls, points: np.ndarray, grid: VoxelGrid) -> VoxelSums:
+        """The sums of one block of points ``(m, 3)`` (in the block's order)."""
+        keys, inverse = np.unique(grid.keys(points), return_inverse=True)
+        sums = np.column_stack([np.bincount(inverse, weights=points[:, k], minlength=len(keys))
+                                for k in range(3)])
+        return cls(keys, sums, np.bincount(inverse, minlength=len(keys)).astype(np.int64))
+
+    def merged(self, later: VoxelSums) -> VoxelSums:
+        """These sums and those of a ``later`` block: ``self``'s terms first."""
+        keys, inverse = np.unique(np.concatenate([self.keys, later.keys]), return_inverse=True)
+        both = np.concatenate([self.sums, later.sums])
+        sums = np.column_stack([np.bincount(inverse, weights=both[:, k], minlength=len(keys))
+                                for k in range(3)])
+        counts = np.bincount(inverse, weights=np.concatenate([self.counts, later.counts]),
+                             minlength=len(keys)).astype(np.int64)
+        return VoxelSums(keys, sums, counts)
+
+    def centroids(self) -> np.ndarray:
+        """``c_v = sums / counts``, ``(K, 3)``."""
+        return self.sums / self.counts[:, None]
+
+
+@dataclass
+class VoxelNearest:
+    """Per voxel of a :class:`VoxelSums` (by position ``0..K-1``): the squared distance
+    ``dist2 (K,)`` of the best point found so far to the centroid, and its index ``index
+    (K,)`` (``-1`` where none yet)."""
+
+    dist2: np.ndarray
+    index: np.ndarray
+
+    @classmethod
+    def empty(cls, voxels: int) -> VoxelNearest:
+        return cls(np.full(voxels, np.inf), np.full(voxels, -1, np.int64))
+
+    @staticmethod
+    def of_block(points: np.ndarray, first: int, grid: VoxelGrid, keys: np.ndarray,
+                 centroids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The block's candidates: voxel positions, squared distances and indices of the point
+        of points ``first .. first + m - 1`` nearest each voxel's centroid (lowest index on
+        ties), for :meth:`update`."""
+        position = np.searchsorted(keys, grid.keys(points))
+        dist2 = np.zeros(len(points))
+        for k in range(3):  # |p - c|^2 summed over the coordinates in order, as above
+            column = points[:, k] - centroids[position, k]
+            column *= column
+            dist2 += column
+        index = np.arange(first, first + len(points), dtype=np.int64)
+        order = np.lexsort((index, dist2, position))
+        position, dist2, index = position[order], dist2[order], index[order]
+        head = np.flatnonzero(np.r_[True, position[1:] != position[:-1]])
+        return position[head], dist2[head], index[head]
+
+    def update(self, position: np.ndarray, dist2: np.ndarray, index: np.ndarray) -> None:
+        """Keep the smaller ``(dist2, index)`` per voxel (order-free)."""
+        better = (dist2 < self.dist2[position]) | ((dist2 == self.dist2[position])
+                                                   & (index < self.index[position]))
+        self.dist2[position[better]] = dist2[better]
+        self.index[position[better]] = index[better]
+
+    def kept(self) -> np.ndarray:
+        """The representatives' indices, ascending."""
+        return np.sort(self.index[self.index >= 0])
+
+
+def voxel_size_for(sample: np.ndarray, total: int, target: int,
+                   lo: np.ndarray, hi: np.ndarray) -> float:
+    """The voxel edge ``h`` at which a surface cloud of ``total`` points occupies about
+    ``target`` voxels, estimated on an even ``sample (s, 3)`` of it.
+
+    A surface sampled at density ``N / A`` occupies ``K(h) ~ A / h^2`` voxels with ``N h^2 /
+    A`` points each; the sample puts as many points per voxel at ``h' = h sqrt(N / s)``,
+    so ``K(h) = K_s(h') N / s``. ``h'`` is bisected (on a log scale) until the sample
+    occupies ``target s / N`` voxels, and ``h = h' sqrt(s / N)``. The estimate assumes a
+    surface; measurement noise thicker than ``h`` makes ``K`` larger (the caller checks).
+    """
+    if not (isinstance(target, int) and target >= 1):
+        raise ValueError(f"target must be a positive number of voxels, got {target!r}")
+    s = len(sample)
+    diagonal = float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
+    want = max(1.0, target * s / total)
+    small, large = diagonal * 2.0**-19, diagonal
+    for _ in range(30):
+        middle = math.sqrt(small * large)
+        occupied = len(np.unique(VoxelGrid.over(lo, hi, middle).keys(sample)))
+        small, large = (middle, large) if occupied > want else (small, middle)
+    return max(math.sqrt(small * large) * math.sqrt(s / total), diagonal * 2.0**-20)

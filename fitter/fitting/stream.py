@@ -1,0 +1,306 @@
+"""Out-of-core fitting: a scan larger than ``STREAM_ABOVE`` points is fitted on a voxel-thinned
+working set, and every one of its points is measured in a streamed pass.
+
+Peak memory then depends on the point count ``N`` only through a few bytes a point of
+output, never through a float64 copy of the cloud:
+
+1. *bounds* — one pass over the :class:`~fitter.fitting.io.points.PointStream` (a binary PLY
+   stays memory-mapped float32): the box, an even sample, and (beside it) the file's SHA-256;
+2. *thinning* — the voxel edge ``h`` at which the cloud occupies about
+   ``WORKING_SET_POINTS`` voxels (``fitter.fitting.io.thin.voxel_size_for``), then two
+   passes in blocks of ``BLOCK_POINTS``: the voxel sums, the point nearest each centroid
+   (the rule of ``fitter.fitting.io.thin.voxel_thin_indices``); the representatives are the
+   working set, a ``Scan`` every later stage fits as it would a small scan (its PCA frame,
+   map, coverage, sample, detail pyramid, ``error.png`` and ``error.ply``);
+3. *error* — once the base is chosen, the signed foot-point deviation of every original point
+   (``fitter.fitting.error.deviations``, block by block) from the decoded ``base.tsp``. A
+   point counts as covered when its voxel's representative is (one rule, the working set's
+   coverage, instead of a second outer-layer test). The pass keeps ``d``, ``u``, ``v`` as
+   float32 and a covered flag: 13 bytes a point (1.3 GB for 10^8), from which the
+   manifest's ``stats``, ``stats_all_points``, ``error_raster``/grid and the uncovered count
+   and box are computed by the same functions as for a small scan.
+
+``error.ply`` and ``error.png`` show the working set (one point per voxel: about a million,
+16 MB of PLY, enough for a picture) rather than all ``N`` points (1.6 GB of PLY for 10^8);
+their colours use the working set's scale, the statistics every point.
+
+The block passes (2 and 3) run on threads here (numpy releases the GIL) or on Dask
+(:class:`DaskBlocks`: ``tessera fit --workers N`` or ``--scheduler tcp://HOST:8786``). Their
+results do not depend on who ran them: sums are merged in block order, minima are
+order-free, per-point outputs land at their index. So the bundle is byte-identical either way.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from client_py import read_patch
+
+from .error import Deviations, deviations
+from .io.limits import InputBudget, InputLimits
+from .io.points import PointStream, file_sha256
+from .io.scan import Scan, ScanError, make_scan
+from .io.thin import VoxelGrid, VoxelNearest, VoxelSums, voxel_size_for
+from .nurbs import PatchModel
+from .parameterize import Projection
+
+#: scans with more points than this are fitted out of core
+STREAM_ABOVE = 3_000_000
+#: the working set's size the voxel edge aims at
+WORKING_SET_POINTS = 800_000
+#: the voxel sums are taken again with a larger voxel when more voxels than this are
+#: occupied (noise makes a scan thicker than a surface at a fine voxel): below 4 x 512^2
+#: points the detail pyramid keeps five levels (``fitter.fitting.detail.auto_levels``), whose
+#: finest solve takes about 0.5 GB (``fitter.fitting.memory``), not six (1.8 GB)
+WORKING_SET_MOST = 1_000_000
+#: points per block of the streamed passes (float64 temporaries of ~100 MB a block)
+BLOCK_POINTS = 1 << 21
+#: points of the even sample the voxel edge is estimated on
+VOXEL_SAMPLE = 1 << 20
+
+#: progress(fraction, points_done) of one pass
+PassProgress = Callable[[float, int], None]
+
+
+class LocalBlocks:
+    """Runs a pass's blocks on ``threads`` threads of this process, results in block order."""
+
+    def __init__(self, threads: int | None = None) -> None:
+        self.threads = max(1, threads or os.cpu_count() or 1)
+
+    def map(self, function: Callable, blocks: Sequence[tuple[int, int]],
+            *shared: object) -> Iterator:
+        with ThreadPoolExecutor(self.threads) as pool:
+            yield from pool.map(lambda block: function(*block, *shared), blocks)
+
+
+class DaskBlocks:
+    """Runs a pass's blocks as tasks of a Dask ``distributed.Client``, results in block order
+    (the shared arguments are scattered to the workers once per pass)."""
+
+    def __init__(self, client: object) -> None:
+        self.client = client
+
+    def map(self, function: Callable, blocks: Sequence[tuple[int, int]],
+            *shared: object) -> Iterator:
+        # hash=False: a second pass scattering equal data must not share (and lose) the key
+        scattered = [self.client.scatter(x, broadcast=True, hash=False) for x in shared]
+        futures = [self.client.submit(function, start, stop, *scattered, pure=False)
+                   for start, stop in blocks]
+        for future in futures:  # in order: the merges are the same as LocalBlocks'
+            yield future.result()
+            future.release()
+
+
+@dataclass
+class StreamedError:
+    """Every original point's deviation from the decoded base (float32) and its covered flag;
+    the uncovered points' count and box in scan coordinates."""
+
+    dev: Deviations
+    covered: np.ndarray
+    uncovered_points: int
+    uncovered_bbox: list | None
+
+    def covered_dev(self) -> Deviations:
+        c = self.covered
+        return Deviations(self.dev.d[c], self.dev.u[c], self.dev.v[c])
+
+
+def _sums_block(start: int, stop: int, stream: PointStream, grid: VoxelGrid) -> VoxelSums:
+    return VoxelSums.of(stream.read(start, stop)[0], grid)
+
+
+def _nearest_block(start: int, stop: int, stream: PointStream, grid: VoxelGrid,
+                   keys: np.ndarray, centroids: np.ndarray) -> tuple:
+    return VoxelNearest.of_block(stream.read(start, stop)[0], start, grid, keys, centroids)
+
+
+def _error_block(start: int, stop: int, stream: PointStream, patch: bytes,
+                 projection: Projection, grid: VoxelGrid, keys: np.ndarray,
+                 voxel_covered: np.ndarray) -> tuple:
+    """One block of the error pass: ``d, u, v`` (float32), covered flags, and the uncovered
+    points' count, minimum and maximum corner (scan coordinates)."""
+    points, _ = stream.read(start, stop)
+    model = PatchModel.from_surface(read_patch(patch))
+    u, v, _ = projection.to_uvh(points)
+    dev = deviations(model, projection.local(points), u, v, projection.periodic_u, threads=1)
+    covered = voxel_covered[np.searchsorted(keys, grid.keys(points))]
+    out = points[~covered]
+    box = (out.min(axis=0), out.max(axis=0)) if len(out) else None
+    return (dev.d.astype(np.float32), dev.u.astype(np.float32), dev.v.astype(np.float32),
+            covered, len(out), box)
+
+
+@dataclass
+class LargeScan:
+    """A scan fitted out of core: its stream, the working set and the voxel grid that made it.
+
+    Attributes
+    ----------
+    stream : PointStream
+    source : dict
+        The input's provenance (with ``thinning``: voxel edge, points before and after).
+    units : str
+    grid : VoxelGrid
+    sums : VoxelSums
+        Keys and counts of every occupied voxel (``K``).
+    representative : ndarray of int, shape (K,)
+        The working set's index of each voxel's representative.
+    working : Scan
+        The working set (float64, ``K`` points).
+    blocks : LocalBlocks or DaskBlocks
+    """
+
+    stream: PointStream
+    source: dict
+    units: str
+    grid: VoxelGrid
+    sums: VoxelSums
+    representative: np.ndarray
+    working: Scan
+    blocks: LocalBlocks | DaskBlocks
+
+    @property
+    def n_points(self) -> int:
+        return self.stream.count
+
+    def measure(self, patch: bytes, projection: Projection, covered_working: np.ndarray,
+                progress: PassProgress | None = None) -> StreamedError:
+        """The error pass (module docstring, step 3) of the decoded ``patch`` bytes over every
+        point; ``covered_working (K,)`` is the working set's coverage."""
+        n = self.n_points
+        d, u, v = (np.empty(n, np.float32) for _ in range(3))
+        covered = np.empty(n, bool)
+        voxel_covered = covered_working[self.representative]
+        lo, hi, outside = np.full(3, np.inf), np.full(3, -np.inf), 0
+        blocks = self.stream.blocks(BLOCK_POINTS)
+        results = self.blocks.map(_error_block, blocks, self.stream, patch, projection,
+                                  self.grid, self.sums.keys, voxel_covered)
+        for k, ((start, stop), (bd, bu, bv, bc, count, box)) in enumerate(
+                zip(blocks, results, strict=True)):
+            d[start:stop], u[start:stop], v[start:stop], covered[start:stop] = bd, bu, bv, bc
+            if box is not None:
+                lo, hi, outside = np.minimum(lo, box[0]), np.maximum(hi, box[1]), outside + count
+            if progress is not None:
+                progress((k + 1) / len(blocks), stop)
+        bbox = [lo.tolist(), hi.tolist()] if outside else None
+        return StreamedError(Deviations(d, u, v), covered, outside, bbox)
+
+
+def fits_out_of_core(n_points: int) -> bool:
+    """Whether a scan of ``n_points`` is fitted out of core (over ``STREAM_ABOVE``)."""
+    return n_points > STREAM_ABOVE
+
+
+def open_stream(path: Path, limits: InputLimits | None = None
+                ) -> tuple[PointStream, dict, str] | None:
+    """The stream of a scan file the out-of-core path can read without loading it (an
+    uncompressed binary PLY point cloud over ``STREAM_ABOVE`` points), else ``None``."""
+    from .io.ply import open_ply_stream
+
+    path = Path(path)
+    if path.suffix.lower() != ".ply" or not path.is_file():
+        return None  # the readers of fitter.fitting.io say what is wrong
+    opened = open_ply_stream(path, InputBudget(limits))
+    if opened is None or not fits_out_of_core(opened[0].count):
+        return None
+    return opened
+
+
+def stream_of_scan(scan: Scan) -> tuple[PointStream, dict, str]:
+    """An in-memory scan as a stream (a large scan another reader loaded whole)."""
+    return (PointStream.from_arrays(scan.source.get("name", "scan"), scan.points, scan.normals),
+            dict(scan.source), scan.units)
+
+
+def _bounds(stream: PointStream, progress: PassProgress | None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pass 1: the box ``lo, hi (3,)`` and an even sample of about ``VOXEL_SAMPLE`` points."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    step = max(1, -(-stream.count // VOXEL_SAMPLE))
+    sample = []
+    blocks = stream.blocks(BLOCK_POINTS - BLOCK_POINTS % step)
+    for k, (start, stop) in enumerate(blocks):
+        points, _ = stream.read(start, stop)
+        lo, hi = np.minimum(lo, points.min(axis=0)), np.maximum(hi, points.max(axis=0))
+        sample.append(points[::step])
+        if progress is not None:
+            progress((k + 1) / len(blocks), stop)
+    return lo, hi, np.concatenate(sample)
+
+
+def thin_stream(stream: PointStream, lo: np.ndarray, hi: np.ndarray, size: float,
+                blocks: LocalBlocks | DaskBlocks, progress: PassProgress | None = None,
+                most: int | None = None) -> tuple[VoxelGrid, VoxelSums, np.ndarray]:
+    """Passes 2a and 2b: the voxel grid of edge ``size``, its sums, and the representatives'
+    indices (ascending), by the rule of ``voxel_thin_indices``. With ``most``, the sums are
+    taken again at ``size sqrt(K / (0.9 most))`` while ``K > most`` voxels are occupied."""
+    spans = stream.blocks(BLOCK_POINTS)
+    while True:
+        grid = VoxelGrid.over(lo, hi, size)
+        sums = VoxelSums.empty()
+        for k, part in enumerate(blocks.map(_sums_block, spans, stream, grid)):
+            sums = sums.merged(part)
+            if progress is not None:
+                progress(0.5 * (k + 1) / len(spans), spans[k][1])
+        if most is None or len(sums.keys) <= most:
+            break
+        size *= float(np.sqrt(len(sums.keys) / (0.9 * most)))
+    nearest = VoxelNearest.empty(len(sums.keys))
+    for k, part in enumerate(blocks.map(_nearest_block, spans, stream, grid, sums.keys,
+                                        sums.centroids())):
+        nearest.update(*part)
+        if progress is not None:
+            progress(0.5 + 0.5 * (k + 1) / len(spans), spans[k][1])
+    return grid, sums, nearest.kept()
+
+
+def load_working_set(stream: PointStream, source: dict, units: str,
+                     blocks: LocalBlocks | DaskBlocks | None = None,
+                     progress: PassProgress | None = None) -> LargeScan:
+    """Passes 1 and 2 (module docstring): the working set of a large scan.
+
+    Raises
+    ------
+    ScanError
+        A cloud without extent (every point equal) or with non-finite coordinates.
+    """
+    blocks = blocks or LocalBlocks()
+    name = stream.name
+    started = time.perf_counter()
+    with ThreadPoolExecutor(1) as hashing:
+        digest = hashing.submit(file_sha256, stream.path) if stream.path else None
+        lo, hi, sample = _bounds(stream, None if progress is None
+                                 else lambda f, p: progress(0.2 * f, p))
+        if digest is not None:
+            source["sha256"] = source["files"][0]["sha256"] = digest.result()
+            source["bytes"] = source["files"][0]["bytes"] = stream.path.stat().st_size
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ScanError(f"{name}: non-finite coordinates (NaN or inf) in the points")
+    if not np.linalg.norm(hi - lo) > 0:
+        raise ScanError(f"{name}: all {stream.count} points coincide; there is no surface to fit")
+    grid, sums, kept = thin_stream(
+        stream, lo, hi, voxel_size_for(sample, stream.count, WORKING_SET_POINTS, lo, hi),
+        blocks, None if progress is None else lambda f, p: progress(0.2 + 0.8 * f, p),
+        WORKING_SET_MOST)
+    size = grid.size
+    points, normals = stream.take(kept)
+    # the representative of voxel i is the kept point holding index best[i]: both ascending
+    best_position = np.searchsorted(sums.keys, grid.keys(points))
+    representative = np.empty(len(sums.keys), np.int64)
+    representative[best_position] = np.arange(len(kept))
+    source = dict(source, thinning={
+        "voxel_size": size, "points_before": stream.count, "points_after": int(len(kept)),
+        "rule": "one point per voxel, the nearest to its centroid (fitter.fitting.stream)",
+        "seconds": round(time.perf_counter() - started, 3)})
+    working = make_scan(name, points, normals=normals, units=units, source=source)
+    return LargeScan(stream, source, units, grid, sums, representative, working, blocks)
+

@@ -1,0 +1,171 @@
+"""Out-of-core fitting (issue 16, ``fitter.fitting.stream``): streamed thinning against the
+in-memory rule, every point's error against a direct dense measurement, the same bundle on
+a Dask LocalCluster of 2 workers as in one process."""
+
+from __future__ import annotations
+
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fitter.fitting.stream as stream
+from client_py import read_patch
+from client_py.ply import write_points_ply
+from fitter.fitting.error import deviations, error_stats
+from fitter.fitting.examples import relief_scan
+from fitter.fitting.io import load_scan, voxel_thin_indices
+from fitter.fitting.io.ply import open_ply_stream
+from fitter.fitting.io.points import PointStream
+from fitter.fitting.io.thin import VoxelGrid, voxel_size_for
+from fitter.fitting.nurbs import PatchModel
+from fitter.fitting.options import FitOptions
+from fitter.fitting.parameterize import Projection
+from fitter.fitting.pipeline import fit_scan
+
+N_POINTS = 40_000
+OPTIONS = dict(grid=(12, 12), samples=5_000, detail_levels=1, texture=False)
+
+
+@pytest.fixture
+def small_out_of_core(monkeypatch):
+    """The out-of-core path for a 40,000-point scan: over 20,000 points, a working set of
+    about 8,000, blocks of 6,000 points (several blocks, a ragged last one)."""
+    monkeypatch.setattr(stream, "STREAM_ABOVE", 20_000)
+    monkeypatch.setattr(stream, "WORKING_SET_POINTS", 8_000)
+    monkeypatch.setattr(stream, "WORKING_SET_MOST", 32_000)
+    monkeypatch.setattr(stream, "BLOCK_POINTS", 6_000)
+    monkeypatch.setattr(stream, "VOXEL_SAMPLE", 10_000)
+
+
+def _relief_ply(path: Path, n: int = N_POINTS, normals: bool = False) -> np.ndarray:
+    points = relief_scan(n, seed=3).astype(np.float32)
+    up = {"nx": np.zeros(n, np.float32), "ny": np.zeros(n, np.float32),
+          "nz": np.ones(n, np.float32)}
+    path.write_bytes(write_points_ply(points, properties=up if normals else None))
+    return points.astype(np.float64)
+
+
+def test_ply_stream_reads_what_the_loader_reads(tmp_path):
+    points = _relief_ply(tmp_path / "cloud.ply", 5_000, normals=True)
+    opened = open_ply_stream(tmp_path / "cloud.ply")
+    assert opened is not None
+    pstream, source, _ = opened
+    assert pstream.count == 5_000 and pstream.has_normals
+    got, normals = pstream.read(1_000, 2_500)
+    np.testing.assert_array_equal(got, points[1_000:2_500])
+    np.testing.assert_array_equal(normals[:, 2], 1.0)
+    np.testing.assert_array_equal(pstream.take(np.array([0, 7, 4_999]))[0], points[[0, 7, 4_999]])
+    np.testing.assert_array_equal(load_scan(tmp_path / "cloud.ply").points, points)
+    pstream.read(0, 1)  # map it; a pickled stream leaves the map behind and reopens it
+    again = pickle.loads(pickle.dumps(pstream))
+    assert again._records is None
+    np.testing.assert_array_equal(again.read(0, 10)[0], points[:10])
+    assert source["reader"] == "ply-memmap-stream"
+
+
+def test_blocks_cover_the_points_once():
+    pstream = PointStream.from_arrays("a", np.zeros((10, 3)))
+    assert pstream.blocks(4) == [(0, 4), (4, 8), (8, 10)]
+    with pytest.raises(ValueError, match="size must be a positive number of points, got 0"):
+        pstream.blocks(0)
+
+
+def test_streamed_thinning_equals_voxel_thin_indices(monkeypatch):
+    rng = np.random.default_rng(5)
+    points = rng.uniform(0, 10, (30_000, 3)) * [1, 1, 0.1]
+    monkeypatch.setattr(stream, "BLOCK_POINTS", 7_000)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    _, sums, kept = stream.thin_stream(PointStream.from_arrays("p", points), lo, hi, 0.37,
+                                       stream.LocalBlocks(2))
+    expected = voxel_thin_indices(points, 0.37)
+    np.testing.assert_array_equal(kept, expected)
+    assert sums.counts.sum() == len(points) and len(sums.keys) == len(expected)
+
+
+def test_voxel_size_for_a_surface_hits_the_target():
+    points = relief_scan(200_000, seed=1)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    size = voxel_size_for(points[::4], len(points), 20_000, lo, hi)
+    occupied = len(voxel_thin_indices(points, size))
+    assert 14_000 < occupied < 28_000
+    with pytest.raises(ValueError, match="target must be a positive number of voxels"):
+        voxel_size_for(points[::4], len(points), 0, lo, hi)
+
+
+def test_voxel_grid_refuses_more_voxels_than_a_key_holds():
+    with pytest.raises(ValueError, match="more than one int64 key holds"):
+        VoxelGrid.over(np.zeros(3), np.full(3, 1.0), 1e-7)
+
+
+def test_every_point_is_measured_against_the_decoded_base(tmp_path, small_out_of_core):
+    points = _relief_ply(tmp_path / "cloud.ply")
+    seen = []
+    bundle = fit_scan(tmp_path / "cloud.ply", tmp_path / "b", FitOptions(**OPTIONS),
+                      lambda stage, fraction, done=None: seen.append((stage, done)))
+    m = bundle.manifest
+    working = m["provenance"]["working_set"]
+    assert m["provenance"]["points"] == N_POINTS
+    assert working["points_before"] == N_POINTS and 4_000 < working["points_after"] < 16_000
+    assert {"load", "error"} <= {stage for stage, done in seen if done is not None}
+    # an independent measurement: every point against the decoded base.tsp, in one call
+    model = PatchModel.from_surface(read_patch((bundle.path / "base.tsp").read_bytes()))
+    transform = np.array(m["transform"])
+    proj = Projection("plane", transform[:3, 3], transform[:3, :3].T.copy())
+    local = proj.local(points)
+    lo, hi = local[:, :2].min(axis=0), local[:, :2].max(axis=0)
+    proj.lo, proj.hi = lo, hi
+    u, v, _ = proj.to_uvh(points)
+    dense = error_stats(deviations(model, local, u, v).d, m["stats"]["bbox_diagonal"], "mm")
+    got = m["stats_all_points"]
+    assert got["points"] == N_POINTS
+    for key in ("rms", "mean", "max", "p95", "p99"):
+        assert got[key] == pytest.approx(dense[key], rel=1e-4), key
+    assert m["projection"]["coverage"] == 1.0 and m["stats"]["points"] == N_POINTS
+    # the error report shows the working set
+    assert (bundle.path / "error.ply").read_bytes().count(
+        f"element vertex {working['points_after']}".encode())
+
+
+def test_small_scans_keep_the_in_memory_path(tmp_path):
+    _relief_ply(tmp_path / "cloud.ply", 5_000)
+    m = fit_scan(tmp_path / "cloud.ply", tmp_path / "b", FitOptions(**OPTIONS)).manifest
+    assert "working_set" not in m["provenance"] and m["stats"]["points"] == 5_000
+
+
+def test_a_large_array_is_fitted_out_of_core(tmp_path, small_out_of_core):
+    points = relief_scan(N_POINTS, seed=3)
+    m = fit_scan(points, tmp_path / "b", FitOptions(**OPTIONS)).manifest
+    assert m["provenance"]["points"] == N_POINTS and m["stats_all_points"]["points"] == N_POINTS
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file()}
+
+
+def _without_clocks(manifest: bytes) -> dict:
+    m = json.loads(manifest)
+    m.pop("timings")
+    m["provenance"]["working_set"].pop("seconds")
+    return m
+
+
+def test_a_dask_cluster_of_two_workers_writes_the_same_bundle(tmp_path, small_out_of_core):
+    distributed = pytest.importorskip("distributed")
+    _relief_ply(tmp_path / "cloud.ply")
+    local = fit_scan(tmp_path / "cloud.ply", tmp_path / "local", FitOptions(**OPTIONS))
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        on_dask = fit_scan(tmp_path / "cloud.ply", tmp_path / "dask", FitOptions(**OPTIONS),
+                           blocks=stream.DaskBlocks(client))
+    a, b = _files(local.path), _files(on_dask.path)
+    assert a.keys() == b.keys() and len(a) > 3
+    for name in a:
+        if name != "manifest.json":
+            assert a[name] == b[name], name
+    # the manifest differs only in the clocks (stage timings, the thinning's seconds)
+    assert _without_clocks(a["manifest.json"]) == _without_clocks(b["manifest.json"])
