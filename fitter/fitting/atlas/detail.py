@@ -89,13 +89,14 @@ from .fit import (
 
 DEGREE = 2
 SPANS = 4  # spans per tile side (measured against 8 in the module's report)
-SAMPLES_PER_CELL = 2.0  # surface samples per knot cell of the finest level
+SAMPLES_PER_CELL = 6.0  # surface samples per knot cell of the finest level
 MAX_SAMPLES = 1_000_000  # ~100 bytes each while fitted; projection runs in chunks
 CHUNK = 100_000
 NEWTON_ITERATIONS = 8
 MAX_RESOLUTION = 129  # the client's samples per patch side at a detail level (R_k cap)
 MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
+MU_FLOOR = 0.25
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 
 
@@ -354,17 +355,28 @@ def auto_levels(side: float, spacing: float, patches: int, spans: int = SPANS) -
     return levels
 
 
+def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarray:
+    """The samples a displacement along the normal can explain, ``(N,)`` booleans: a
+    foot point that is an orthogonal projection (tangential remainder ``t`` within the
+    scan's ``spacing``: not clamped on an open border or stuck at a fold) and an offset
+    ``|s|`` within half the median patch ``side`` (a larger one would be a spike, not
+    detail: the base missed that part). The others still count in every error figure."""
+    return (samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= 0.5 * side)
+
+
 # ------------------------------------------------------------------ one level
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
-                  fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  fixed: np.ndarray | None = None, use: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
 
     With ``fixed (F, n, n)`` the border ring holds those values and only the interior is
     solved: ``M_II c_I = A_I^T r - M_IB c_B`` (the same quadratic, minimised with ``c_B``
-    given). A patch without samples gets ``mu_f = 1`` (its field is then the smoothest
-    one through its border, or zero).
+    given). ``use (N,)``: the samples that enter the fit (the others weigh 0). ``mu_f`` is
+    at least ``MU_FLOOR`` of the mean patch's (a patch with few or no samples gets the
+    smoothest field through its border, or zero, rather than one swinging between them).
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
@@ -375,6 +387,11 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     held = np.flatnonzero(ring)
     out = np.zeros((F, n, n))
     weight = np.zeros((F, n, n))
+    # the typical patch's data weight per coefficient: a patch with few samples is held to
+    # at least MU_FLOOR of it, so its field stays smooth instead of swinging between them
+    counts = np.diff(samples.offsets).astype(float)
+    per_sample = float(np.sum(counts)) / max(F, 1) / (n * n)
+    mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
     per_batch = max(1, BATCH_UNKNOWNS // (n * n))
     for first in range(0, F, per_batch):
         last = min(F, first + per_batch)
@@ -382,10 +399,11 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         count = last - first
         A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
                                block=samples.patch[lo:hi] - first, blocks=count)
+        if use is not None:
+            A = sp.diags(use[lo:hi].astype(float)) @ A
         AtA = (A.T @ A).tocsr()
         diag = AtA.diagonal().reshape(count, n * n)
-        mu = diag.sum(axis=1) / (n * n)
-        mu = np.where(mu > 0, mu, 1.0)
+        mu = np.maximum(diag.sum(axis=1) / (n * n), mu_floor)
         M = (AtA + sp.kron(sp.diags(mu), R)).tocsr()
         rhs = A.T @ residual[lo:hi]
         weight[first:last] = diag.reshape(count, n, n)
@@ -587,6 +605,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     samples = project_samples(atlas, fit, points, normals,
                               progress=lambda x: report(0.4 * x))
     timings["project"] = time.perf_counter() - clock
+    use = fit_samples(samples, spacing, side)
     residual = samples.s.copy()
     e = samples.error(np.zeros_like(residual))
     base_rms, base_max = float(np.sqrt(np.mean(e ** 2))), float(e.max(initial=0.0))
@@ -599,14 +618,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
-        free, weight = _solve_blocks(samples, residual, k, spans)
+        free, weight = _solve_blocks(samples, residual, k, spans, use=use)
         independent.append(free)
         shared = _share_borders(free, weight, G)
-        c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared)
+        c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared, use=use)
         fitted = residual - evaluate_fields(c, k, spans, samples.patch, samples.u, samples.v)
-        rms_fit = float(np.sqrt(np.mean(fitted ** 2 + samples.t2)))
+        rms_fit = float(np.sqrt(np.mean(fitted[use] ** 2 + samples.t2[use])))
         step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
-                                 float(np.abs(residual).max(initial=0.0)), step_factor)
+                                 float(np.abs(residual[use]).max(initial=0.0)), step_factor)
         q = np.rint(c / step).astype(np.int64)
         fields.append(q * step)
         residual = residual - evaluate_fields(fields[-1], k, spans, samples.patch, samples.u,
