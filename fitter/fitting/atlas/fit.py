@@ -49,7 +49,7 @@ from client_py.errors import TesseraError
 from ..io.scan import Scan
 from ..io.thin import voxel_thin_indices
 from .layout import AtlasLayoutError, QuadLayout, bilinear_atlas, decimate, quad_layout
-from .surface import ScanSurface, scan_surface
+from .surface import ScanSurface, SurfaceError, scan_surface
 
 DEFAULT_BYTE_BUDGET = 24_000
 AUTO_FIRST_TRIANGLES = 48
@@ -594,7 +594,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         clock = time.perf_counter()
         try:
             tri_vertices, triangles = decimate(coarse, max(4, target))
-        except AtlasLayoutError as exc:
+        except (AtlasLayoutError, SurfaceError) as exc:
             # a coarse target may not decimate to a manifold (a range scan's many borders);
             # 'auto' tries the next size, an explicit count is refused
             if patches != "auto":
