@@ -46,7 +46,7 @@ def _bumpy_sphere_fit():
 @pytest.fixture(scope="module")
 def fitted():
     fit, scan = _bumpy_sphere_fit()
-    return fit, scan, atlas_detail.fit_atlas_detail(fit, scan, levels=3, pack_bytes=4000)
+    return fit, scan, atlas_detail.fit_atlas_detail(fit, scan, levels=3, spans=4, pack_bytes=4000)
 
 
 def _radial_error(atlas, tiles, resolution):

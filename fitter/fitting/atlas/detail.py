@@ -88,7 +88,7 @@ from .fit import (
 )
 
 DEGREE = 2
-SPANS = 4  # spans per tile side (measured against 8 in the module's report)
+SPANS = 8  # spans per tile side: on the bunny, 8 reached 0.27 mm RMS in 49 KB, 4 in 112 KB
 SAMPLES_PER_CELL = 6.0  # surface samples per knot cell of the finest level
 MAX_SAMPLES = 1_000_000  # ~100 bytes each while fitted; projection runs in chunks
 CHUNK = 100_000
