@@ -291,3 +291,131 @@ def run(big_points: int = 10_000_000) -> dict:
     result = {"rows": rows, "features": features, "big": big}
     write_results("fit", result)
     return result
+
+
+# ------------------------------------------------------------ out of core (issue 16)
+GENERATE_CHUNK = 1 << 22
+LARGE_FIT_SCRIPT = """
+import json, sys, time
+from pathlib import Path
+from fitter.fitting.io.limits import InputLimits
+from fitter.fitting.options import FitOptions
+from fitter.fitting.pipeline import fit_scan
+from fitter.fitting.stream import DaskBlocks
+scan, out, workers = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
+client = None
+if workers:
+    from distributed import Client, LocalCluster
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None)
+    client = Client(cluster)
+start = time.perf_counter()
+# the default input limit (20 million points) refuses 10^8: a genuine scan, as --max-points says
+bundle = fit_scan(scan, out, FitOptions(), limits=InputLimits(max_points=10**9),
+                  blocks=DaskBlocks(client) if client else None)
+wall = time.perf_counter() - start
+m = bundle.manifest
+print(json.dumps({"wall_s": wall, "timings": m["timings"], "rms": m["stats"]["rms"],
+                  "points": m["provenance"]["points"],
+                  "working_set": m["provenance"].get("working_set"),
+                  "detail_levels": len(m["tiles"]["detail"]["levels"]),
+                  "base_bytes": m["files"]["base.tsp"]}))
+"""
+
+
+def write_large_ply(path: Path, points: int) -> None:
+    """A float32 binary PLY of ``points`` samples of the example relief (noise 0.05 mm),
+    written in chunks of ``GENERATE_CHUNK`` (each its own seeded generator), so that
+    generating 10^8 points takes one chunk of memory."""
+    from fitter.fitting.examples import relief_height
+
+    header = ("ply\nformat binary_little_endian 1.0\ncomment units mm\n"
+              "comment generated example relief (synthetic, not a real scan)\n"
+              f"element vertex {points}\nproperty float x\nproperty float y\n"
+              "property float z\nend_header\n").encode("ascii")
+    with open(path, "wb") as fh:
+        fh.write(header)
+        for k, start in enumerate(range(0, points, GENERATE_CHUNK)):
+            m = min(GENERATE_CHUNK, points - start)
+            rng = np.random.default_rng([0, k])
+            x, y = rng.uniform(-100, 100, m), rng.uniform(-70, 70, m)
+            z = relief_height(x, y) + rng.normal(0, 0.05, m)
+            fh.write(np.column_stack([x, y, z]).astype("<f4").tobytes())
+
+
+def _timed_fit(scan: Path, out: Path, workers: int = 0) -> dict | None:
+    """``fit_scan`` with default options in a subprocess under ``/usr/bin/time -v``: its
+    JSON line plus the peak resident set (MB; with workers, of the client process only)."""
+    proc = subprocess.run(["/usr/bin/time", "-v", sys.executable, "-c", LARGE_FIT_SCRIPT,
+                           str(scan), str(out), str(workers)], capture_output=True, text=True,
+                          cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    if proc.returncode != 0:
+        print(f"fit of {scan.name} failed:", proc.stderr[-3000:])
+        return None
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    for line in proc.stderr.splitlines():
+        if "Maximum resident set size" in line:
+            result["peak_mb"] = int(line.split(":")[1]) / 1024
+        if "Elapsed (wall clock)" in line:
+            result["elapsed"] = line.split(": ", 1)[1].strip()
+        for key, label in (("user_s", "User time (seconds)"), ("sys_s", "System time (seconds)")):
+            if label in line:  # CPU time: what a loaded machine's wall time hides
+                result[key] = float(line.split(":")[1])
+    result["workers"] = workers
+    return result
+
+
+def run_large(sizes: tuple[int, ...] = (10_000_000, 100_000_000),
+              cluster_points: int = 10_000_000, scratch: Path | None = None) -> dict:
+    """The out-of-core fit (``fitter.fitting.stream``) of generated float32 binary PLYs of
+    ``sizes`` points, default options, and the 2-worker LocalCluster against 1 worker on
+    ``cluster_points``; writes ``bench/results/fit_large.json``."""
+    scratch = Path(scratch or tempfile.mkdtemp(prefix="tessera-bench-large-"))
+    rows, cluster = [], []
+    with open("/proc/loadavg") as fh:
+        load_before = fh.read().split()[:3]
+    for n in sizes:
+        ply = scratch / f"relief-{n}.ply"
+        start = time.perf_counter()
+        write_large_ply(ply, n)
+        generated = time.perf_counter() - start
+        row = _timed_fit(ply, scratch / f"bundle-{n}")
+        if row:
+            row.update(generate_s=generated, ply_bytes=ply.stat().st_size)
+            rows.append(row)
+        if n == cluster_points:
+            for workers in (1, 2):
+                r = _timed_fit(ply, scratch / f"bundle-{n}-w{workers}", workers)
+                if r:
+                    cluster.append(r)
+        ply.unlink()
+    with open("/proc/loadavg") as fh:
+        load_after = fh.read().split()[:3]
+    print_table("out-of-core fit, default options, generated float32 binary PLY",
+                ["points", "wall s", "CPU s", "peak MB", "working set", "levels", "RMS",
+                 "stages"],
+                [[r["points"], f"{r['wall_s']:.1f}", f"{r['user_s'] + r['sys_s']:.0f}",
+                  f"{r['peak_mb']:.0f}",
+                  r["working_set"]["points_after"] if r["working_set"] else "-",
+                  r["detail_levels"], f"{r['rms']:.4g}",
+                  " ".join(f"{k} {v:.1f}" for k, v in r["timings"].items())] for r in rows])
+    if cluster:
+        print_table(f"{cluster_points} points on a LocalCluster",
+                    ["workers", "wall s", "client peak MB", "stages"],
+                    [[r["workers"], f"{r['wall_s']:.1f}", f"{r['peak_mb']:.0f}",
+                      " ".join(f"{k} {v:.1f}" for k, v in r["timings"].items())]
+                     for r in cluster])
+    result = {"rows": rows, "cluster": cluster, "load_before": load_before,
+              "load_after": load_after}
+    write_results("fit_large", result)
+    return result
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="the out-of-core fit benchmark (issue 16)")
+    parser.add_argument("--points", type=float, nargs="+", default=[1e7, 1e8])
+    parser.add_argument("--cluster-points", type=float, default=1e7)
+    args = parser.parse_args()
+    run_large(tuple(int(p) for p in args.points), int(args.cluster_points))
