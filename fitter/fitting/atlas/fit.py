@@ -570,9 +570,12 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     # collapse of 10^5 faces takes seconds each time)
     coarse = surface
     if len(surface.faces) > PREDECIMATED_TRIANGLES:
-        vertices, triangles = decimate(surface, PREDECIMATED_TRIANGLES)
-        coarse = ScanSurface(vertices, triangles, surface.origin, surface.pieces,
-                             surface.repairs)
+        try:
+            vertices, triangles = decimate(surface, PREDECIMATED_TRIANGLES)
+            coarse = ScanSurface(vertices, triangles, surface.origin, surface.pieces,
+                                 surface.repairs)
+        except (AtlasLayoutError, SurfaceError):
+            coarse = surface  # every trial decimates from the full surface instead
     timings["predecimate"] = time.perf_counter() - clock
     if patches == "auto":
         plan = []
@@ -601,6 +604,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
                 raise
             trials.append({"triangles": target, "error": str(exc)})
             continue
+        if best is not None and len(triangles) <= best[2].n_triangles:
+            continue  # the decimation stopped short of the target: no new size to judge
         layout = quad_layout(tri_vertices, triangles)
         trial_timings["layout"] = time.perf_counter() - clock
         atlas, f, u, v, dist = fit_layout(layout, trial_points, trial_normals, degree=degree,

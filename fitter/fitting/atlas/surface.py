@@ -213,10 +213,17 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
     if after_dedup == 0:
         raise SurfaceError(f"{name}: none of the {n_faces} faces has area")
     problems: dict = {}
+    import pymeshlab
+
     for _ in range(3):
         ms.meshing_repair_non_manifold_edges(method=1)
         ms.meshing_repair_non_manifold_vertices()
-        ms.meshing_re_orient_faces_coherently()
+        try:
+            ms.meshing_re_orient_faces_coherently()
+        except pymeshlab.PyMeshLabException:
+            # MeshLab refuses to orient while a split left a non-manifold face; the next
+            # round splits again, and the check after the loop names what remains
+            pass
         ms.meshing_remove_unreferenced_vertices()
         v, f = _arrays(ms)
         problems = manifold_problems(f)
