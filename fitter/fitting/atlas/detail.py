@@ -97,6 +97,7 @@ MAX_RESOLUTION = 129  # the client's samples per patch side at a detail level (R
 MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 MU_FLOOR = 0.25
+OFFSET_LIMIT = 0.5  # largest |s| fitted, in median patch sides
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 
 
@@ -359,9 +360,9 @@ def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarra
     """The samples a displacement along the normal can explain, ``(N,)`` booleans: a
     foot point that is an orthogonal projection (tangential remainder ``t`` within the
     scan's ``spacing``: not clamped on an open border or stuck at a fold) and an offset
-    ``|s|`` within half the median patch ``side`` (a larger one would be a spike, not
+    ``|s|`` within ``OFFSET_LIMIT`` median patch ``side``s (a larger one would be a spike, not
     detail: the base missed that part). The others still count in every error figure."""
-    return (samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= 0.5 * side)
+    return (samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= OFFSET_LIMIT * side)
 
 
 # ------------------------------------------------------------------ one level
