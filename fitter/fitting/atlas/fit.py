@@ -624,6 +624,9 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         best = (rms, size, layout, atlas, f, u, v, trial_timings)
         if patches == "auto" and size > byte_budget:
             break
+    if best is None:
+        raise AtlasLayoutError(f"no layout of {plan} triangles is an oriented 2-manifold: "
+                               + "; ".join(trial["error"] for trial in trials))
     if patches == "auto":
         layout = best[2]
         final_timings: dict = {"layout": best[7]["layout"]}
@@ -633,9 +636,6 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         timings["trials"] = sum(trial.get("seconds", 0.0) for trial in trials)
         best = (float(np.sqrt(np.mean(dist ** 2))), atlas_bytes(atlas, bits), layout, atlas,
                 f, u, v, final_timings)
-    if best is None:
-        raise AtlasLayoutError(f"no layout of {plan} triangles is an oriented 2-manifold: "
-                               + "; ".join(trial["error"] for trial in trials))
     rms, size, layout, atlas, f, u, v, trial_timings = best
     timings.update(trial_timings)
     table = index_table(atlas)
