@@ -15,7 +15,7 @@ beside the code that raises them, each a subclass of :class:`TesseraError`
                                            ``PatchFormatError``)
 ``fitter.fitting.io.ScanError``            an unreadable or unusable scan
 ``fitter.fitting.options.OptionError``     a fit option out of its range
-``fitter.fitting.atlas.SurfaceError``      a scan without a usable triangle surface
+``fitter.fitting.atlas.SurfaceError``      (a ``ScanError``) a scan without a usable surface
                                            (too few points, not repairable)
 ``fitter.fitting.atlas.AtlasLayoutError``  a decimated layout that is no oriented
                                            2-manifold

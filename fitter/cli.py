@@ -253,11 +253,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     rows = [
         ("bundle", str(bundle.path)),
         ("points", f"{m['provenance']['points']:,}"),
-        ("projection", f"{m['projection']['kind']}, covers "
-                       f"{100 * m['projection']['coverage']:.1f}% of the points"),
-        ("patch", f"{m['base']['grid'][0]}x{m['base']['grid'][1]} degree {m['base']['degree'][0]}"
-                  f"{', rational' if m['base']['rational'] else ''}: "
-                  f"{m['files']['base.tsp']:,} bytes"),
+        *_base_rows(m),
         ("RMS", f"{s['rms']:.4g} {units} ({100 * s['rms_relative']:.3f}% of the diagonal)"),
         ("mean |d|", f"{s['mean']:.4g} {units}"),
         ("P95 / P99", f"{s['p95']:.4g} / {s['p99']:.4g} {units}"),
@@ -271,12 +267,31 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _base_rows(m: dict) -> list[tuple[str, str]]:
+    """The summary's lines on the base: the single patch's map and grid, or the atlas."""
+    base = m["base"]
+    if base.get("kind") == "atlas":
+        c = m["coverage"]
+        return [("atlas", f"{base['patches']:,} patches of degree {base['degree']}, "
+                          f"{base['spans']} span(s) a side, {base['border_edges']} open border "
+                          f"edges: {m['files']['base.tsa']:,} bytes"),
+                ("coverage", f"{100 * c['within_0.5%']:.2f}% of all points within 0.5% of the "
+                             f"diagonal of the finest drawn level; {c['uncovered_points']:,} "
+                             "farther than 1%")]
+    return [("projection", f"{m['projection']['kind']}, covers "
+                           f"{100 * m['projection']['coverage']:.1f}% of the points"),
+            ("patch", f"{base['grid'][0]}x{base['grid'][1]} degree {base['degree'][0]}"
+                      f"{', rational' if base['rational'] else ''}: "
+                      f"{m['files']['base.tsp']:,} bytes")]
+
+
 def _layer_rows(m: dict) -> list[tuple[str, str]]:
     tiles = m.get("tiles") or {}
     rows = []
     for lev in (tiles.get("detail") or {}).get("levels", []):
+        count = (f"{lev['packs']} packs" if "packs" in lev else f"{lev['tiles']} tiles")
         rows.append((f"level {lev['level']}", f"RMS {lev['rms']:.4g}, max {lev['max']:.4g} "
-                     f"{m['units']}: {lev['tiles']} tiles, {lev['bytes_total']:,} bytes"))
+                     f"{m['units']}: {count}, {lev['bytes_total']:,} bytes"))
     texture = tiles.get("texture")
     if texture:
         count = sum(x["tiles"] for x in texture["levels"])

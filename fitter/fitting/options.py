@@ -27,6 +27,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from client_py.atlas import MAX_ATLAS_QUADS
 from client_py.errors import TesseraError
 from client_py.format import MAX_CONTROL_POINTS, MAX_GRID_SIDE
 
@@ -149,7 +150,8 @@ class Option:
     def parse(self, text: str) -> Any:
         """The value of ``text`` as typed on the command line or in the form, checked.
 
-        ``grid``: ``N`` or ``NxM``; ``bool``: ``yes``/``no`` (also true/false, on/off, 1/0).
+        ``grid``: ``N`` or ``NxM``; ``bool``: ``yes``/``no`` (also true/false, on/off, 1/0);
+        an ``int`` that accepts ``None``: also ``auto`` (for ``None``).
 
         Raises
         ------
@@ -162,6 +164,8 @@ class Option:
             if match is None:
                 raise OptionError(f"{self.name} must be N or NxM such as 40x40, got {text!r}")
             value: Any = (int(match[1]), int(match[2] or match[1]))
+        elif self.kind == "int" and self.none is not None and text.lower() == "auto":
+            return None  # what None means is written in ``none``
         elif self.kind == "int":
             try:
                 value = int(text)
@@ -219,6 +223,11 @@ OPTIONS: tuple[Option, ...] = (
            "largest side)", minimum=2, maximum=GRID_SIDE_LIMIT,
            none=f"max({DEFAULT_MAX_GRID}, largest grid side)",
            cli="--max-grid", form="max_grid"),
+    Option("patches", "int", None, "Patches",
+           "NURBS patches of the atlas that covers the whole object (about; 1: a single "
+           "height-field patch, bundle format 1)", minimum=1, maximum=MAX_ATLAS_QUADS,
+           none="auto: one patch for a height field, else an atlas sized for the object",
+           cli="--patches", form="patches"),
     Option("projection", "choice", "auto", "Projection", "map to the parameter domain",
            choices=PROJECTIONS, cli="--projection", form="projection"),
     Option("up", "choice", "auto", "Up direction",
@@ -271,8 +280,10 @@ class FitOptions:
     (the paper's initial linear solution alone, a baseline); bits : quantisation of the
     patch file, or ``None`` for the fewest bits that keep the fit's RMS within 0.5 %
     (``fitter.fitting.compact``); max_error : target RMS in scan units (grows the grid);
-    max_grid : cap for that growth (``None``: :attr:`largest_grid`); projection : ``auto``
-    or a map; up : the object's up axis (``auto``: found by ``fitter.fitting.orient``);
+    max_grid : cap for that growth (``None``: :attr:`largest_grid`); patches : of the atlas
+    (``None``: ``fitter.fitting.atlas.pipeline.wants_atlas`` decides; 1: one patch);
+    projection : ``auto`` or a map; up : the object's up axis (``auto``: found by
+    ``fitter.fitting.orient``);
     title : the object's title; description : what it is; units : the scan's length unit
     (``None``: what the file says, ``fitter.fitting.io``; it labels every length the bundle
     records); feature_strength : how much denser the tessera
@@ -289,6 +300,7 @@ class FitOptions:
     bits: int | None = _DEFAULT["bits"]
     max_error: float | None = _DEFAULT["max_error"]
     max_grid: int | None = _DEFAULT["max_grid"]
+    patches: int | None = _DEFAULT["patches"]
     projection: str = _DEFAULT["projection"]
     up: str = _DEFAULT["up"]
     title: str | None = _DEFAULT["title"]

@@ -44,6 +44,8 @@ from client_py import TrimMask, read_patch, write_patch
 from client_py.format import MAX_CONTROL_POINTS
 
 from . import io as scan_io
+from .atlas import AtlasFitError, AtlasLayoutError, SurfaceError
+from .atlas.pipeline import fit_atlas_bundle, wants_atlas
 from .bundle import write_bundle
 from .compact import choose_bits, drawn_cells, settle_hidden
 from .degenerate import check_patch, check_scan_shape
@@ -439,8 +441,9 @@ def _fit_layers(projected: ProjectedScan, best: FitResult, options: FitOptions,
     return pyramid, textures
 
 
-def _title(projected: ProjectedScan, options: FitOptions) -> str:
-    return options.title or Path(projected.name).name
+def object_title(scan: Scan, options: FitOptions) -> str:
+    """The option ``title``, else the scan file's name."""
+    return options.title or Path(scan.source.get("name", "scan")).name
 
 
 def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
@@ -453,7 +456,8 @@ def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
     tiles, tile_files = write_layers(folder, pyramid, textures)
     write_error_ply(folder / "error.ply", scan.points, best.dev.d)
     write_error_png(folder / "error.png", best.dev, projected.local, units,
-                    f"{_title(projected, options)}: RMS {stats['rms']:.4g} {units}, "
+                    f"{object_title(projected.scan, options)}: RMS {stats['rms']:.4g} "
+                    f"{units}, "
                     f"max {stats['max']:.4g} {units}"
                     + "".join(f"; level {lev.level}: RMS {lev.rms:.3g}"
                               for lev in pyramid.levels[-2:]))
@@ -495,11 +499,9 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
                    else Deviations(best.dev.d[cov.covered], best.dev.u[cov.covered],
                                    best.dev.v[cov.covered]))
     return {
+        **object_fields(scan, options),
         "format": "tessera-bundle",
         "format_version": BUNDLE_FORMAT_VERSION,
-        "title": _title(projected, options),
-        "description": options.description or "",
-        "units": scan.units,
         "files": dict(files),
         "base": {"file": "base.tsp", "degree": [options.degree] * 2,
                  "grid": best.history["grid"], "bits": best.history["bits"],
@@ -513,14 +515,6 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
                            [points[uncovered].min(axis=0).tolist(),
                             points[uncovered].max(axis=0).tolist()]
                            if uncovered.any() else None)},
-        "provenance": {"input": projected.name, "bytes": scan.source.get("bytes"),
-                       "sha256": scan.source.get("sha256"), "points": int(len(points)),
-                       "format": scan.source.get("format"),
-                       # a .conf registration: each file it read, with its own digest
-                       **({"files": scan.source["files"]} if "files" in scan.source
-                          else {})},
-        "options": {k: (list(x) if isinstance(x, tuple) else x)
-                    for k, x in asdict(options).items()},
         "stats": best.stats,
         "stats_all_points": error_stats(best.dev.d, projected.diagonal, scan.units),
         "fit": best.history,
@@ -530,6 +524,26 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
         # only when the budget changed the plan, so that an unchanged fit's manifest is too
         **({"memory": plan.manifest()}
            if plan is not None and plan.detail_levels_uncapped is not None else {}),
+    }
+
+
+def object_fields(scan: Scan, options: FitOptions) -> dict:
+    """The manifest's fields of the object itself, the same for one patch and an atlas:
+    ``title``, ``description`` (``""`` when none), ``units``, ``provenance``, ``options`` and
+    ``view`` (``build_manifest``'s docstring)."""
+    name = scan.source.get("name", "scan")
+    return {
+        "title": object_title(scan, options),
+        "description": options.description or "",
+        "units": scan.units,
+        "provenance": {"input": name, "bytes": scan.source.get("bytes"),
+                       "sha256": scan.source.get("sha256"), "points": int(scan.n_points),
+                       "format": scan.source.get("format"),
+                       # a .conf registration: each file it read, with its own digest
+                       **({"files": scan.source["files"]} if "files" in scan.source
+                          else {})},
+        "options": {k: (list(x) if isinstance(x, tuple) else x)
+                    for k, x in asdict(options).items()},
         "view": find_view(scan, options.up).to_manifest(),
     }
 
@@ -586,6 +600,16 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
     scan, large = _load(scan, limits, blocks, stages)
     if options.units:  # the option overrides what the file says (fitter.fitting.io)
         scan = replace(scan, units=options.units)
+    atlas_refused = None
+    if large is None and wants_atlas(scan, options.patches):
+        _check_scan(scan, options.projection)  # degenerate scans are refused alike
+        try:
+            return Bundle(out_dir, fit_atlas_bundle(scan, out_dir, options, stages,
+                                                    object_fields))
+        except (SurfaceError, AtlasLayoutError, AtlasFitError) as exc:
+            if options.patches is not None:  # asked for an atlas: say why there is none
+                raise
+            atlas_refused = str(exc)  # auto: the single patch, and the manifest says why
     stages.start("project")
     projected = project_scan(scan, options)
     plan = plan_fit_memory(projected, options, memory_budget)  # before any large solve
@@ -606,6 +630,8 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
                                   plan)
         if large is not None:
             _amend_out_of_core(manifest, projected, best.full, large)
+        if atlas_refused is not None:
+            manifest["atlas_refused"] = atlas_refused
         with open(folder / "manifest.json", "w") as fh:
             json.dump(manifest, fh, indent=1, sort_keys=True)
     return Bundle(out_dir, manifest)

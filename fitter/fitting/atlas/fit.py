@@ -44,9 +44,8 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from client_py.atlas import AtlasSurface
-from client_py.errors import TesseraError
 
-from ..io.scan import Scan
+from ..io.scan import Scan, ScanError
 from ..io.thin import voxel_thin_indices
 from .layout import AtlasLayoutError, QuadLayout, bilinear_atlas, decimate, quad_layout
 from .surface import ScanSurface, SurfaceError, scan_surface
@@ -59,7 +58,7 @@ AUTO_TRIAL_POINTS = 20_000
 PREDECIMATED_TRIANGLES = 20_000
 
 
-class AtlasFitError(TesseraError, ValueError):
+class AtlasFitError(ScanError):
     """A scan the atlas fit cannot cover (no working points, a singular system)."""
 
 

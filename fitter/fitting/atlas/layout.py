@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from client_py.atlas import AtlasSurface, atlas_edges
-from client_py.errors import TesseraError
 
+from ..io.scan import ScanError
 from .surface import (
     ScanSurface,
     _arrays,
@@ -37,7 +37,7 @@ from .surface import (
 )
 
 
-class AtlasLayoutError(TesseraError, ValueError):
+class AtlasLayoutError(ScanError):
     """A decimated surface that is no oriented 2-manifold, so no quad layout of it exists."""
 
 

@@ -25,16 +25,14 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from client_py.errors import TesseraError
-
-from ..io.scan import Scan
+from ..io.scan import Scan, ScanError
 from ..io.thin import voxel_thin_indices
 
 MIN_CLOUD_POINTS = 100
 MIN_ISLAND_SHARE = 0.002
 
 
-class SurfaceError(TesseraError, ValueError):
+class SurfaceError(ScanError):
     """A scan that gives no usable triangle surface (too few points, no area, a surface
     that stays non-manifold or non-orientable after repair); the message says which."""
 

@@ -1,0 +1,244 @@
+"""``fit_scan``'s atlas branch: a whole object as an atlas bundle (manifest format 2).
+
+The steps, each a stage of ``fitter.fitting.stages`` (the bar skips the single patch's
+``features``, ``sections`` and ``linear``):
+
+``project``  the scan's triangle surface (``atlas.surface``: its own mesh cleaned, or a
+             trimmed screened-Poisson surface of a cloud);
+``refine``   the quad layout and the base atlas (``atlas.fit.fit_atlas``: the paper's eq. 5
+             over every patch at once, with parameter correction);
+``encode``   ``base.tsa`` written (``client_py.atlas_format``) and read back: every figure
+             below is of the decoded bytes;
+``detail``   the displacement pyramid of every patch over the decoded base (``atlas.detail``),
+             its patches renumbered into groups, written as ``detail/K/G.tsdp`` packs;
+``error``    EVERY scan point against the mesh a visitor is drawn at the finest level
+             (``client_py.atlas_mesh.tessellate_atlas`` at that level's resolution with the
+             tiles of levels ``0..L``), by
+             exact point-to-triangle distances (``atlas.measure``): ``stats`` and
+             ``stats_all_points`` are the same set here, and ``coverage`` counts the points
+             farther than 1 % of the diagonal as not represented;
+``report``   ``error.ply``, ``error.png`` and ``manifest.json`` (docs/format.md, "Bundle
+             manifest, version 2") into the atomic bundle writer.
+
+:func:`wants_atlas` is ``--patches auto``'s rule: one patch (format 1) for a height field
+over its best plane, where a single patch already covers the object; an atlas for the rest.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from client_py.atlas_format import read_atlas, write_atlas
+from client_py.atlas_mesh import tessellate_atlas
+
+from ..bundle import write_bundle
+from ..error import error_stats, write_error_ply
+from ..io import Scan
+from ..options import FitOptions
+from .detail import fit_atlas_detail
+from .fit import fit_atlas
+from .measure import point_mesh_distance
+from .surface import scan_surface
+
+BUNDLE_FORMAT_VERSION = 2
+DEFAULT_BITS = 12  # quantisation of base.tsa: 1/4096 of the extent, far under the 0.5 % goal
+UNCOVERED = 0.01  # a point farther than this share of the diagonal is not represented
+HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
+HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
+
+
+def base_resolution(spans: int) -> int:
+    """Samples per patch side of the base alone: ``4 s + 1`` (four per knot span)."""
+    return 4 * spans + 1
+
+
+def _unit(rows: np.ndarray) -> np.ndarray:
+    length = np.linalg.norm(rows, axis=1)
+    return rows / np.where(length > 0, length, 1.0)[:, None]
+
+
+def wants_atlas(scan: Scan, patches: int | None) -> bool:
+    """``--patches``' rule: ``1`` a single patch, another count an atlas; ``None`` (auto) an
+    atlas unless the scan is a height field over the plane of its least variance.
+
+    A height field: of the surface's area (a mesh's triangles, else one unit per point with a
+    normal), under :data:`HEIGHT_FIELD_BACK` faces away from the plane's dominant side and
+    under :data:`HEIGHT_FIELD_EDGE_ON` is seen edge-on. A cloud without normals is a height
+    field when every point is within the plane's band of a one-valued surface: it is judged
+    by the points' unoriented local normals (``|n . axis|``) alone.
+    """
+    if patches is not None:
+        return patches != 1
+    points = np.asarray(scan.points, dtype=float)
+    centred = points - points.mean(axis=0)
+    sample = centred[:: max(1, len(centred) // 200_000)]
+    axis = np.linalg.eigh(sample.T @ sample)[1][:, 0]  # least variance
+    if scan.faces is not None and len(scan.faces):
+        tri = points[np.asarray(scan.faces)]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area = np.linalg.norm(cross, axis=1)
+        facing = _unit(cross) @ axis
+        oriented = True
+    elif scan.normals is not None:
+        facing, area, oriented = _unit(np.asarray(scan.normals, float)) @ axis, None, True
+    else:
+        facing, area, oriented = _cloud_normals(points) @ axis, None, False
+    weights = np.ones_like(facing) if area is None else area
+    total = weights.sum()
+    if total <= 0:
+        return True
+    edge_on = weights[np.abs(facing) < 0.1].sum() / total
+    if not oriented:
+        return bool(edge_on >= HEIGHT_FIELD_EDGE_ON)
+    side = 1.0 if (weights * facing).sum() >= 0 else -1.0
+    back = weights[side * facing < -0.1].sum() / total
+    return bool(back >= HEIGHT_FIELD_BACK or edge_on >= HEIGHT_FIELD_EDGE_ON)
+
+
+def _cloud_normals(points: np.ndarray, k: int = 12, count: int = 20_000) -> np.ndarray:
+    """Unoriented unit normals of up to ``count`` points: the least-variance direction of
+    each one's ``k`` nearest neighbours (local PCA)."""
+    from scipy.spatial import cKDTree
+
+    pick = points[:: max(1, len(points) // count)]
+    _, near = cKDTree(points).query(pick, k=min(k, len(points)))
+    nb = points[near] - points[near].mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0]
+
+
+def _drawn_mesh(atlas, resolution: int, detail: dict | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The welded mesh the browser draws: ``tessellate_atlas`` with ``detail`` applied."""
+    mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy")
+    vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
+    faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
+    return vertices, faces
+
+
+def write_atlas_error_png(path: Path, points: np.ndarray, d: np.ndarray, front: np.ndarray,
+                          up: np.ndarray, units: str, title: str) -> None:
+    """The scan seen from the front and from behind (the manifest's ``view``), each pixel
+    coloured by the signed distance of its nearest point to the drawn mesh; one colour bar
+    (``fitter.fitting.error``'s scale: P99 of ``|d|``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..error import _colour_limit, _depth_view
+
+    limit = _colour_limit(d)
+    right = np.cross(up, front)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), dpi=100)
+    kw = {"cmap": "coolwarm", "vmin": -limit, "vmax": limit}
+    image = None
+    for ax, sign, name in ((axes[0], 1.0, "front"), (axes[1], -1.0, "back")):
+        local = np.stack([points @ (sign * right), points @ up, points @ (sign * front)], 1)
+        view, extent = _depth_view(local, d)
+        image = ax.imshow(view, origin="lower", extent=extent, interpolation="nearest", **kw)
+        ax.set_aspect("equal")
+        ax.set_axis_off()
+        ax.set_title(f"distance to the drawn mesh, seen from the {name}")
+    bar = fig.colorbar(image, ax=axes, shrink=0.85)
+    bar.set_label(f"signed distance ({units}); colour range = P99 of |d|")
+    fig.suptitle(title)
+    fig.savefig(path, metadata={"Software": "Tessera", "CreationDate": None})
+    plt.close(fig)
+
+
+def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
+                     object_fields: Callable[[Scan, FitOptions], dict]) -> dict:
+    """Fit ``scan`` as an atlas and write the bundle ``out_dir``; returns its manifest.
+
+    ``stages`` is ``fit_scan``'s stage timer (``start(name)``, ``report(fraction)``,
+    ``stop()``, ``timings``); ``object_fields(scan, options)`` gives the manifest's fields
+    of the object itself (title, description, units, provenance, options, view), shared
+    with the single patch's manifest.
+
+    Raises
+    ------
+    ScanError
+        (``SurfaceError``, ``AtlasLayoutError``, ``AtlasFitError``) a scan no atlas can be
+        made of, with the problem named.
+    """
+    stages.start("project")
+    surface = scan_surface(scan)
+    stages.start("refine")
+    fit = fit_atlas(scan, "auto" if options.patches is None else options.patches,
+                    surface=surface, progress=stages.report,
+                    bits=options.bits or DEFAULT_BITS)
+    stages.start("encode")
+    bits = options.bits or DEFAULT_BITS
+    decoded, _ = read_atlas(write_atlas(fit.atlas, bits))
+    stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
+    detail = fit_atlas_detail(replace(fit, atlas=decoded), scan, options.detail_levels,
+                              progress=stages.report)
+    atlas = detail.atlas  # renumbered so that every group of patches is a range
+    data = write_atlas(atlas, bits, {"units": scan.units})
+    finest = len(detail.levels) - 1
+    resolution = base_resolution(atlas.spans)
+    stages.start("error")
+    points = np.asarray(scan.points, dtype=float)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    vertices, faces = _drawn_mesh(atlas, detail.levels[finest]["resolution"] if finest >= 0
+                                  else resolution, detail.detail_up_to(finest))
+    d = point_mesh_distance(points, vertices, faces, signed=True)
+    stats = error_stats(d, diagonal, scan.units)
+    far = np.abs(d) > UNCOVERED * diagonal
+    fields = object_fields(scan, options)
+    stages.start("report")
+    with write_bundle(out_dir) as folder:
+        (folder / "base.tsa").write_bytes(data)
+        for name, pack in detail.files.items():
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_bytes(pack)
+        write_error_ply(folder / "error.ply", points, d)
+        view = fields["view"]
+        write_atlas_error_png(folder / "error.png", points, d, np.asarray(view["front"]),
+                              np.asarray(view["up"]), scan.units,
+                              f"{fields['title']}: RMS {stats['rms']:.4g} {scan.units} over "
+                              f"all {len(points):,} points, max {stats['max']:.4g}")
+        files = {name: (folder / name).stat().st_size
+                 for name in ("base.tsa", "error.png", "error.ply", *detail.files)}
+        stages.stop()
+        manifest = {
+            **fields,
+            "format": "tessera-bundle",
+            "format_version": BUNDLE_FORMAT_VERSION,
+            "files": files,
+            "base": {"file": "base.tsa", "kind": "atlas", "degree": atlas.degree,
+                     "spans": atlas.spans, "patches": len(atlas.quads),
+                     "vertices": len(atlas.vertices), "edges": len(atlas.edges.edges),
+                     "border_edges": len(atlas.edges.border_edges), "bits": bits,
+                     "rational": atlas.weights is not None, "resolution": resolution},
+            "transform": np.eye(4).tolist(),
+            "stats": stats,
+            "stats_all_points": stats,
+            "coverage": {"points": int(len(points)),
+                         "within_0.5%": float(np.mean(np.abs(d) <= 0.005 * diagonal)),
+                         "uncovered_points": int(far.sum()),
+                         "uncovered_bbox": ([points[far].min(axis=0).tolist(),
+                                             points[far].max(axis=0).tolist()]
+                                            if far.any() else None)},
+            "fit": {"triangles": fit.triangles, "patches": fit.patches,
+                    "surface": surface.origin, "surface_pieces": surface.pieces,
+                    "repairs": surface.repairs, "working_points": int(len(fit.points)),
+                    "working_rms": fit.rms, "trials": fit.trials,
+                    "steps": {k: round(v, 3) for k, v in fit.timings.items()},
+                    "detail": {"samples": detail.samples, "spacing": detail.spacing,
+                               "patch_side": detail.patch_side,
+                               "border_jump": [r["border_jump"] for r in detail.levels],
+                               "steps": {k: round(v, 3) for k, v in detail.timings.items()}}},
+            "tiles": {"version": 2, "detail": detail.tree if detail.levels else None,
+                      "texture": None},
+            "timings": dict(stages.timings),
+        }
+        with open(folder / "manifest.json", "w") as fh:
+            json.dump(manifest, fh, indent=1, sort_keys=True)
+    return manifest
+
