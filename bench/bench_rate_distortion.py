@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from bench import RESULTS, print_table, write_results
+from fitter.fitting.atlas.measure import point_mesh_distance as mesh_distance
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
@@ -78,54 +79,6 @@ DRACO_BITS = (10, 11, 12, 14)
 MAX_RESOLUTION = 1537  # tessellation vertices per side: 3 per span of detail level 5
 SPAN_VERTICES = 3  # tessellation vertices per span of the finest detail level applied
 BASE_SPAN_VERTICES = 8  # ... and per span of the base
-
-
-def _point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray,
-                             c: np.ndarray) -> np.ndarray:
-    """Exact distance of points ``p (m, 3)`` to triangles ``(a, b, c)`` (each ``(m, 3)``),
-    by the closest-point regions of Ericson, *Real-Time Collision Detection*, 5.1.5."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    denom = va + vb + vc
-    safe = np.where(np.abs(denom) > 1e-300, denom, 1.0)
-    v, w = vb / safe, vc / safe
-    q = a + ab * v[:, None] + ac * w[:, None]  # interior
-    def seg(x, y, t):
-        return x + (y - x) * np.clip(t, 0, 1)[:, None]
-    def proj(x, y, pts):
-        d = y - x
-        return np.einsum("ij,ij->i", pts - x, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
-    outside = (va <= 0) | (vb <= 0) | (vc <= 0) | ~(np.abs(denom) > 1e-300)
-    if outside.any():  # on an edge or a vertex: the nearest of the three edges
-        o = outside
-        po = p[o]
-        cand = [seg(a[o], b[o], proj(a[o], b[o], po)), seg(a[o], c[o], proj(a[o], c[o], po)),
-                seg(b[o], c[o], proj(b[o], c[o], po))]
-        dist = np.stack([np.linalg.norm(p[o] - x, axis=1) for x in cand])
-        q[o] = np.choose(dist.argmin(axis=0)[:, None], cand)
-    return np.linalg.norm(p - q, axis=1)
-
-
-def mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                  k: int = 16) -> np.ndarray:
-    """Distance of each point to the mesh: exact to the best of the ``k`` triangles whose
-    centroids are nearest plus every triangle at the nearest vertex."""
-    from scipy.spatial import cKDTree
-
-    tri = vertices[faces]
-    k = min(k, len(faces))
-    _, cand = cKDTree(tri.mean(axis=1)).query(points, k=k)
-    cand = cand.reshape(len(points), -1)
-    best = np.full(len(points), np.inf)
-    for col in range(cand.shape[1]):
-        t = tri[cand[:, col]]
-        best = np.minimum(best, _point_triangle_distance(points, t[:, 0], t[:, 1], t[:, 2]))
-    return best
 
 
 def _covered_mesh(scan, cov, u, v) -> tuple[np.ndarray, np.ndarray]:

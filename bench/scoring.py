@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bench.bench_rate_distortion import mesh_distance
+from fitter.fitting.atlas.measure import point_mesh_distance as mesh_distance
 
 
 def diagonal(points: np.ndarray) -> float:
