@@ -97,7 +97,7 @@ MAX_RESOLUTION = 129  # the client's samples per patch side at a detail level (R
 MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 MU_FLOOR = 0.25
-OFFSET_LIMIT = 0.5  # largest |s| fitted, in median patch sides
+OFFSET_LIMIT = 0.1  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy)
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 
 
