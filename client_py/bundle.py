@@ -379,7 +379,14 @@ class AtlasTiles:
         ``R_k = min(129, 2 m 2^k + 1)`` (two vertices per span of the finest tiles)."""
         if level < 0:
             return self.base_resolution
-        return min(ATLAS_MAX_RESOLUTION, 2 * self.spans_per_tile * 2**level + 1)
+        return atlas_level_resolution(self.spans_per_tile, level)
+
+
+def atlas_level_resolution(spans_per_tile: int, level: int) -> int:
+    """``R_k = min(129, 2 m 2^k + 1)`` samples per patch side of an atlas at detail level
+    ``k`` (``m`` spans per tile): two vertices per span of the finest tiles applied, capped
+    at :data:`ATLAS_MAX_RESOLUTION`. The fitter writes it into ``levels[k].resolution``."""
+    return min(ATLAS_MAX_RESOLUTION, 2 * spans_per_tile * 2**level + 1)
 
 
 def _stitchable(a: int, b: int) -> bool:

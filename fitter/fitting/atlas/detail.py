@@ -39,7 +39,7 @@ exactly: the mean the client takes is each side's own value (no seam).
 Depth. Levels ``0..L-1`` with ``L`` the smallest count whose finest knot spacing, the
 median patch side over ``m 2^(L-1)``, reaches the scan's median edge length (mesh) or
 point spacing (cloud); capped so the finest level is drawn at two vertices per span within
-the client's ``MAX_RESOLUTION`` samples per patch side (``m 2^(L-1) <= 64``), at
+the client's ``ATLAS_MAX_RESOLUTION`` samples per patch side (``m 2^(L-1) <= 64``), at
 ``client_py.layers.MAX_LEVEL + 1`` levels, and so its coefficients stay within
 ``MAX_COEFFICIENTS`` (about 100 bytes each while fitted: the memory bound).
 
@@ -66,6 +66,7 @@ from scipy.spatial import cKDTree
 from client_py import layers
 from client_py.atlas import AtlasSurface
 from client_py.atlas_detail import PACK_VERSION, pack_name, write_pack
+from client_py.bundle import ATLAS_MAX_RESOLUTION, atlas_level_resolution
 from client_py.format import TILE_VERSION
 
 from ..detail import (
@@ -93,22 +94,11 @@ SAMPLES_PER_CELL = 6.0  # surface samples per knot cell of the finest level
 MAX_SAMPLES = 1_000_000  # ~100 bytes each while fitted; projection runs in chunks
 CHUNK = 100_000
 NEWTON_ITERATIONS = 8
-MAX_RESOLUTION = 129  # the client's samples per patch side at a detail level (R_k cap)
 MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 MU_FLOOR = 0.25
 OFFSET_LIMIT = 0.1  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy)
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
-
-
-def level_resolution(spans: int, level: int) -> int:
-    """``R_k = min(129, 2 m 2^k + 1)`` samples per patch side at detail level ``k``.
-
-    The manifest's rule (two vertices per span of the finest tiles applied); it belongs to
-    ``client_py.bundle`` (``atlas_resolution``) once that exists, and is used here only to
-    fill ``levels[k].resolution``.
-    """
-    return min(MAX_RESOLUTION, 2 * spans * (1 << level) + 1)
 
 
 # ------------------------------------------------------------------ patch order
@@ -350,7 +340,8 @@ def auto_levels(side: float, spacing: float, patches: int, spans: int = SPANS) -
     levels = 1
     while side / (spans << (levels - 1)) > spacing and levels < layers.MAX_LEVEL + 1:
         finer = spans << levels
-        if 2 * finer + 1 > MAX_RESOLUTION or patches * (finer + DEGREE) ** 2 > MAX_COEFFICIENTS:
+        if (2 * finer + 1 > ATLAS_MAX_RESOLUTION
+                or patches * (finer + DEGREE) ** 2 > MAX_COEFFICIENTS):
             break
         levels += 1
     return levels
@@ -645,7 +636,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         per_level_tiles.append(tiles)
         level_rows.append({"level": k, "rms": float(np.sqrt(np.mean(e ** 2))),
                            "max": float(e.max(initial=0.0)), "step": step,
-                           "resolution": level_resolution(spans, k),
+                           "resolution": atlas_level_resolution(spans, k),
                            "border_jump": border_jump(atlas, fields, spans),
                            "border_jump_independent": border_jump(atlas, independent, spans)})
         report(0.4 + 0.5 * (k + 1) / max(levels, 1))
