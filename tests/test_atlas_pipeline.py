@@ -66,4 +66,7 @@ def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):
     stats = manifest["stats_all_points"]
     assert stats["points"] == len(mesh.vertices)  # every scan point, no covered subset
     assert stats["rms_relative"] < 0.002 and manifest["coverage"]["uncovered_points"] == 0
-    assert set(manifest["files"]) == {"base.tsa", "error.png", "error.ply"}
+    packs = {f"detail/{p['level']}/{p['group']}.tsdp" for p in manifest["tiles"]["detail"]["packs"]}
+    assert set(manifest["files"]) == {"base.tsa", "error.png", "error.ply"} | packs
+    assert all((bundle.path / name).stat().st_size == size
+               for name, size in manifest["files"].items())
