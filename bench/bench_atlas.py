@@ -40,6 +40,7 @@ from bench.scoring import (
     reverse_errors,
     save_picture,
 )
+from fitter.fitting.io import ScanError
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
@@ -48,9 +49,9 @@ OBJECTS = {
     "nefertiti": DATA / "nefertiti" / "nefertiti-lowres.obj",
     "lucy": DATA / "stanford-lucy" / "lucy.ply",
     "laurana": DATA / "laurana-bust" / "laurana.ply",
-    "happy-buddha 15 scans": DATA / "happy-buddha-rangescans" / "happyStandRight.conf",
     "buddha scan 0": DATA / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz",
     "bali-mask": DATA / "bali-mask" / "mask.obj",
+    "happy-buddha 15 scans": DATA / "happy-buddha-rangescans" / "happyStandRight.conf",
 }
 PICTURES = RESULTS / "atlas"
 
@@ -180,9 +181,16 @@ def run() -> dict | None:
     with tempfile.TemporaryDirectory(prefix="tessera-atlas-") as tmp:
         for name, path in objects.items():
             print(f"atlas: {name} ...", flush=True)
-            results.append(score_object(name, path, Path(tmp)))
+            try:
+                results.append(score_object(name, path, Path(tmp)))
+            except ScanError as exc:  # reported, and the other objects still measured
+                print(f"atlas: {name}: {exc}")
+                results.append({"object": name, "error": str(exc)})
     table = []
     for r in results:
+        if "error" in r:
+            table.append([r["object"], "-", "-", "-", "-", "-", "-", "-", "-", r["error"][:60]])
+            continue
         for level, draco in zip(r["levels"], r["draco"] or [None] * len(r["levels"]),
                                 strict=True):
             best = None if draco is None else draco["best"]
