@@ -177,7 +177,8 @@ def test_drawn_masks_bring_back_scan_points_the_base_trim_cut_away(shared_data, 
 
     scan = load_scan(shared_data / "bali-mask" / "mask.obj")
     root = tmp_path / "b"
-    m = fit_scan(scan, root, FitOptions(grid=(32, 32), detail_levels=4, texture=False)).manifest
+    m = fit_scan(scan, root, FitOptions(grid=(32, 32), patches=1, detail_levels=4,
+                                        texture=False)).manifest
     surface = read_patch((root / "base.tsp").read_bytes())
     tiles = [read_detail_tile((root / n["file"]).read_bytes()) for n in detail_nodes(m)]
     assert surface.trim is not None and any(t.drawn is not None for t in tiles)

@@ -159,7 +159,7 @@ def _thumbnail(tmp_path, scan: Scan, **options):
 
     from fitter.server.thumbnail import render_thumbnail
 
-    bundle = fit_scan(scan, tmp_path / "b", FitOptions(grid=(10, 10), method="linear",
+    bundle = fit_scan(scan, tmp_path / "b", FitOptions(grid=(10, 10), method="linear", patches=1,
                                                        detail_levels=0, **options))
     png = render_thumbnail((bundle.path / "base.tsp").read_bytes(), bundle.manifest["view"])
     return np.asarray(Image.open(io.BytesIO(png))).astype(float) / 255  # (H, W, RGBA)

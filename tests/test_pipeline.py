@@ -100,7 +100,7 @@ def test_wrapped_object_uses_a_cylinder_with_a_closed_seam(tmp_path):
     theta, z = rng.uniform(-np.pi, np.pi, n), rng.uniform(0, 300, n)
     r = 80 + 6 * np.cos(3 * theta) + 10 * np.sin(z / 60)
     points = np.column_stack([r * np.cos(theta), r * np.sin(theta), z])
-    bundle = fit_scan(points, tmp_path / "cyl", FitOptions(grid=(24, 16)))
+    bundle = fit_scan(points, tmp_path / "cyl", FitOptions(grid=(24, 16), patches=1))
     manifest = bundle.manifest
     assert manifest["projection"]["kind"] == "cylinder"
     assert manifest["projection"]["coverage"] > 0.95
@@ -190,8 +190,8 @@ def test_cli_reports_bad_input_without_traceback(tmp_path, capsys):
                                       "bali-mask/mask.obj"])
 def test_real_scan_fits_better_than_the_papers_linear_fit(shared_data, tmp_path, relative):
     scan = load_scan(shared_data / relative)
-    linear = fit_scan(scan, tmp_path / "linear", FitOptions(method="linear"))
-    ours = fit_scan(scan, tmp_path / "ours", FitOptions())
+    linear = fit_scan(scan, tmp_path / "linear", FitOptions(method="linear", patches=1))
+    ours = fit_scan(scan, tmp_path / "ours", FitOptions(patches=1))
     assert ours.manifest["stats"]["rms"] <= 0.8 * linear.manifest["stats"]["rms"]
     assert ours.manifest["projection"]["coverage"] > 0.5
     # the patch is in the scan's coordinates: its vertices lie near scan points
