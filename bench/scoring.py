@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fitter.fitting.atlas.measure import point_mesh_distance as mesh_distance
+from fitter.fitting.atlas.surface import area_samples
 
 
 def diagonal(points: np.ndarray) -> float:
@@ -45,23 +46,9 @@ def point_errors(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int,
                     seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` points spread over the triangles by area, and their triangles' unit normals.
-
-    Uniform barycentric samples ``a + r1 (b - a) + r2 (c - a)`` with ``(r1, r2)`` folded
-    into the triangle (Turk, *Generating random points in triangles*, Graphics Gems 1990).
-    """
-    rng = np.random.default_rng(seed)
-    tri = vertices[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = np.linalg.norm(cross, axis=1)
-    pick = rng.choice(len(faces), size=count, p=area / area.sum())
-    r1, r2 = rng.random(count), rng.random(count)
-    fold = r1 + r2 > 1
-    r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
-    t = tri[pick]
-    points = t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
-    normals = cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
-    return points, normals
+    """``count`` area-weighted samples of the triangles and their unit normals
+    (``fitter.fitting.atlas.surface.area_samples``)."""
+    return area_samples(vertices, faces, count, np.random.default_rng(seed))
 
 
 def reverse_errors(vertices: np.ndarray, faces: np.ndarray, scan_points: np.ndarray,

@@ -65,8 +65,8 @@ from .format import (
     _inflate,
     _plane_count,
     _quantise,
+    _read_metadata,
     _unframe,
-    loads_finite_json,
 )
 
 MAGIC = b"TSPA"
@@ -379,21 +379,7 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
             raise PatchFormatError(cur.pos - 16, "log-weights beyond +-700 overflow", "payload")
         weights = [math.exp(x) for x in _dequantise(
             _read_axis(cur, predictor, count, bits, "weights"), lo, hi, bits)]
-    (meta_len,) = cur.unpack("<I", "metadata length")
-    meta_at = cur.pos
-    if meta_len > MAX_METADATA:
-        raise PatchFormatError(meta_at - 4, f"metadata length {meta_len} exceeds 1 MiB", "payload")
-    try:
-        metadata = loads_finite_json(cur.take(meta_len, "metadata").decode("utf-8"))
-    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, ...
-        if isinstance(exc, PatchFormatError):
-            raise
-        raise PatchFormatError(meta_at, f"metadata is not UTF-8 JSON: {exc}", "payload") from None
-    if not isinstance(metadata, dict):
-        raise PatchFormatError(meta_at, "metadata JSON is not an object", "payload")
-    if cur.pos != len(raw):
-        raise PatchFormatError(cur.pos, f"{len(raw) - cur.pos} bytes left after metadata",
-                               "payload")
+    metadata = _read_metadata(cur, raw)
     points = list(zip(*axes, strict=True))
     n_edge = n_vertices + len(table.edges) * inner
     try:

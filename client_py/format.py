@@ -396,6 +396,27 @@ def read_header(data: bytes) -> dict:
             "payload_size": size, "raw_size": raw_size, "data": data}
 
 
+def _read_metadata(cur: _Cursor, raw: bytes) -> dict:
+    """The payload's last section: a u32 length and that many bytes of a UTF-8 JSON object,
+    which must end the payload (the ``.tsp`` and ``.tsa`` rule)."""
+    (meta_len,) = cur.unpack("<I", "metadata length")
+    meta_at = cur.pos
+    if meta_len > MAX_METADATA:
+        raise PatchFormatError(meta_at - 4, f"metadata length {meta_len} exceeds 1 MiB", "payload")
+    try:
+        metadata = loads_finite_json(cur.take(meta_len, "metadata").decode("utf-8"))
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, ...
+        if isinstance(exc, PatchFormatError):
+            raise
+        raise PatchFormatError(meta_at, f"metadata is not UTF-8 JSON: {exc}", "payload") from None
+    if not isinstance(metadata, dict):
+        raise PatchFormatError(meta_at, "metadata JSON is not an object", "payload")
+    if cur.pos != len(raw):
+        raise PatchFormatError(cur.pos, f"{len(raw) - cur.pos} bytes left after metadata",
+                               "payload")
+    return metadata
+
+
 def read_patch(data: bytes) -> NurbsSurface:
     """Decode a v1 patch into a :class:`NurbsSurface` (with ``trim`` and ``metadata``).
 
@@ -435,21 +456,7 @@ def read_patch(data: bytes) -> NurbsSurface:
                                    f"1..{TRIM_MAX_SIDE} per side accepted", "payload")
         packed = cur.take((rows * cols + 7) // 8, "trim mask bits")
         trim = TrimMask.from_flat(rows, cols, _unpack_bits(packed, rows * cols))
-    (meta_len,) = cur.unpack("<I", "metadata length")
-    meta_at = cur.pos
-    if meta_len > MAX_METADATA:
-        raise PatchFormatError(meta_at - 4, f"metadata length {meta_len} exceeds 1 MiB", "payload")
-    try:
-        metadata = loads_finite_json(cur.take(meta_len, "metadata").decode("utf-8"))
-    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, ...
-        if isinstance(exc, PatchFormatError):
-            raise
-        raise PatchFormatError(meta_at, f"metadata is not UTF-8 JSON: {exc}", "payload") from None
-    if not isinstance(metadata, dict):
-        raise PatchFormatError(meta_at, "metadata JSON is not an object", "payload")
-    if cur.pos != len(raw):
-        raise PatchFormatError(cur.pos, f"{len(raw) - cur.pos} bytes left after metadata",
-                               "payload")
+    metadata = _read_metadata(cur, raw)
     xyz = list(zip(*axes, strict=True))
     points = [xyz[i * n_v : (i + 1) * n_v] for i in range(n_u)]
     try:

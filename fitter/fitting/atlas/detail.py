@@ -236,17 +236,9 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
         points, normals = surface.vertices, surface.vertex_normals
         extra = count - len(points)
         if extra > 0:
-            rng = np.random.default_rng(seed)
-            area = surface.face_areas
-            pick = rng.choice(len(area), size=extra, p=area / area.sum())
-            r1, r2 = rng.random(extra), rng.random(extra)
-            fold = r1 + r2 > 1
-            r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
-            tri = surface.vertices[surface.faces[pick]]
-            samples = tri[:, 0] + r1[:, None] * (tri[:, 1] - tri[:, 0]) \
-                + r2[:, None] * (tri[:, 2] - tri[:, 0])
+            samples, sample_normals = surface.sample(extra, np.random.default_rng(seed))
             points = np.concatenate([points, samples])
-            normals = np.concatenate([normals, surface.face_normals[pick]])
+            normals = np.concatenate([normals, sample_normals])
         return points, normals
     points = scan.points
     if len(points) > count:

@@ -379,18 +379,9 @@ def working_points(scan: Scan, surface: ScanSurface, count: int, seed: int = 0
     _, nearest = cKDTree(surface.vertices).query(pts)
     normals = vertex_normals[nearest]
     if surface.origin == "mesh":
-        rng = np.random.default_rng(seed)
-        area = surface.face_areas
-        m = count // 2
-        pick = rng.choice(len(area), size=m, p=area / area.sum())
-        r1, r2 = rng.random(m), rng.random(m)
-        fold = r1 + r2 > 1
-        r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
-        tri = surface.vertices[surface.faces[pick]]
-        samples = tri[:, 0] + r1[:, None] * (tri[:, 1] - tri[:, 0]) \
-            + r2[:, None] * (tri[:, 2] - tri[:, 0])
+        samples, sample_normals = surface.sample(count // 2, np.random.default_rng(seed))
         pts = np.concatenate([pts, samples])
-        normals = np.concatenate([normals, surface.face_normals[pick]])
+        normals = np.concatenate([normals, sample_normals])
     return pts, normals
 
 

@@ -66,6 +66,11 @@ class ScanSurface:
         """Unit normals ``(b - a) × (c - a) / |…|``, shape (M, 3)."""
         return _unit_rows(self._cross())
 
+    def sample(self, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """``count`` points spread over the triangles by area and their triangles' unit
+        normals (:func:`area_samples`)."""
+        return area_samples(self.vertices, self.faces, count, rng)
+
     @property
     def face_areas(self) -> np.ndarray:
         """Triangle areas, shape (M,)."""
@@ -88,6 +93,26 @@ class ScanSurface:
     def _cross(self) -> np.ndarray:
         tri = self.vertices[self.faces]
         return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
+def area_samples(vertices: np.ndarray, faces: np.ndarray, count: int,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points spread over the triangles ``faces`` of ``vertices`` by area, and
+    their triangles' unit normals, shapes ``(count, 3)``.
+
+    Uniform barycentric samples ``a + r1 (b - a) + r2 (c - a)`` with ``(r1, r2)`` folded
+    into the triangle (Turk, *Generating random points in triangles*, Graphics Gems 1990).
+    """
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    pick = rng.choice(len(faces), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    fold = r1 + r2 > 1
+    r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
+    t = tri[pick]
+    points = t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
+    return points, cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
 
 
 def _unit_rows(a: np.ndarray) -> np.ndarray:
