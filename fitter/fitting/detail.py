@@ -110,15 +110,23 @@ def detail_samples(model: PatchModel, points: np.ndarray, u: np.ndarray,
     """Split ``points (N, 3)`` (patch frame) at their foot points ``u, v`` on ``model``
     into normal deviations and tangential remainders (see the module docstring)."""
     S, Su, Sv = model.evaluate(u, v, derivatives=True)
+    s, t2 = normal_split(points, S, Su, Sv)
+    return DetailSamples(np.asarray(u, float), np.asarray(v, float), s, t2)
+
+
+def normal_split(points: np.ndarray, S: np.ndarray, Su: np.ndarray,
+                 Sv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``s = (P - S) . n`` and ``t^2 = |P - S|^2 - s^2`` of points ``P (N, 3)`` at their foot
+    points ``S`` with tangents ``Su, Sv`` (``n = Su x Sv / |Su x Sv|``; where the normal
+    vanishes, a pole, all of ``|P - S|`` is normal)."""
     n = np.cross(Su, Sv)
     length = np.linalg.norm(n, axis=1)
     ok = length > 1e-12 * max(float(length.max(initial=0.0)), 1e-300)
     n = n / np.where(ok, length, 1.0)[:, None]
     r = points - S
     rr = np.einsum("ij,ij->i", r, r)
-    s = np.where(ok, np.einsum("ij,ij->i", r, n), np.sqrt(rr))  # a pole: all of it normal
-    return DetailSamples(np.asarray(u, float), np.asarray(v, float), s,
-                         np.maximum(rr - s * s, 0.0))
+    s = np.where(ok, np.einsum("ij,ij->i", r, n), np.sqrt(rr))
+    return s, np.maximum(rr - s * s, 0.0)
 
 
 @dataclass

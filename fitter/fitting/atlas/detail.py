@@ -74,6 +74,7 @@ from ..detail import (
     DetailSamples,
     collocation_matrix,
     level_tiles,
+    normal_split,
     quantisation_step,
     regularisation,
 )
@@ -291,14 +292,8 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
         f, u, v, dist = correct_parameters(table, cps, d, s, nb, x, nx, f, u, v,
                                            iterations=NEWTON_ITERATIONS)
         c, cu, cv = evaluate_patches(table, cps, d, s, f, u, v, derivatives=True)
-        normal = np.cross(cu, cv)
-        length = np.linalg.norm(normal, axis=1)
-        ok = length > 1e-12 * max(float(length.max(initial=0.0)), 1e-300)
-        normal = normal / np.where(ok, length, 1.0)[:, None]
-        r = x - c
-        rr = np.einsum("ij,ij->i", r, r)
-        off = np.where(ok, np.einsum("ij,ij->i", r, normal), np.sqrt(rr))
-        parts.append((f, u, v, off, np.maximum(rr - off * off, 0.0), dist))
+        off, t2 = normal_split(x, c, cu, cv)
+        parts.append((f, u, v, off, t2, dist))
         if progress is not None:
             progress(min(1.0, (start + chunk) / len(points)))
     f, u, v, off, t2, dist = (np.concatenate(c) for c in zip(*parts, strict=True))
