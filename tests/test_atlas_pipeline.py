@@ -70,3 +70,17 @@ def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):
     assert set(manifest["files"]) == {"base.tsa", "error.png", "error.ply"} | packs
     assert all((bundle.path / name).stat().st_size == size
                for name, size in manifest["files"].items())
+
+
+def test_an_atlas_that_strays_from_the_surface_is_refused():
+    from atlas_cases import sphere_atlas
+
+    from fitter.fitting.atlas import AtlasFitError
+    from fitter.fitting.atlas.pipeline import check_base_follows_surface
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    mesh = trimesh.creation.icosphere(subdivisions=4)  # the unit sphere
+    surface = ScanSurface(np.asarray(mesh.vertices), np.asarray(mesh.faces), "mesh", 1)
+    assert check_base_follows_surface(sphere_atlas(3), surface) < 0.05
+    with pytest.raises(AtlasFitError, match="strays from the scan"):
+        check_base_follows_surface(sphere_atlas(3, noise=0.3), surface)

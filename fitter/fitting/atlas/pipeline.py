@@ -41,13 +41,15 @@ from ..error import error_stats, write_error_ply
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
-from .fit import fit_atlas
+from .fit import AtlasFitError, fit_atlas
 from .measure import point_mesh_distance
-from .surface import scan_surface
+from .surface import area_samples, scan_surface
 
 BUNDLE_FORMAT_VERSION = 2
 DEFAULT_BITS = 12  # quantisation of base.tsa: 1/4096 of the extent, far under the 0.5 % goal
 UNCOVERED = 0.01  # a point farther than this share of the diagonal is not represented
+STRAY_DISTANCE = 0.02  # a base point farther than this share of the diagonal has strayed
+MAX_STRAY_SHARE = 0.05  # ... and an atlas with more of its area strayed is refused
 HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
 
@@ -120,6 +122,29 @@ def _drawn_mesh(atlas, resolution: int, detail: dict | None = None
     return vertices, faces
 
 
+def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
+    """The share of the base's area farther than :data:`STRAY_DISTANCE` of the diagonal
+    from the scan's surface (dense area-weighted samples of the welded base against the
+    surface's triangles); an ``AtlasFitError`` when it is over :data:`MAX_STRAY_SHARE`.
+
+    A displacement along the normal cannot bring back a base that has folded away from the
+    scan (flaps across a thin shell with many tunnels, such as a carved mask), so such an
+    atlas is refused before its detail is fitted; ``--patches auto`` then fits one patch.
+    """
+    vertices, faces = _drawn_mesh(atlas, base_resolution(atlas.spans))
+    points, _ = area_samples(vertices, faces, samples, np.random.default_rng(0))
+    diagonal = surface.diagonal
+    d = point_mesh_distance(points, surface.vertices, surface.faces)
+    share = float(np.mean(d > STRAY_DISTANCE * diagonal))
+    if share > MAX_STRAY_SHARE:
+        raise AtlasFitError(
+            f"the atlas base strays from the scan: {100 * share:.1f}% of its area lies "
+            f"farther than {100 * STRAY_DISTANCE:g}% of the diagonal from the surface (at most "
+            f"{100 * MAX_STRAY_SHARE:g}% accepted); the surface has {surface.pieces} piece(s) "
+            "and its layout could not follow it")
+    return share
+
+
 def write_atlas_error_png(path: Path, points: np.ndarray, d: np.ndarray, front: np.ndarray,
                           up: np.ndarray, units: str, title: str) -> None:
     """The scan seen from the front and from behind (the manifest's ``view``), each pixel
@@ -175,6 +200,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     stages.start("encode")
     bits = options.bits or DEFAULT_BITS
     decoded, _ = read_atlas(write_atlas(fit.atlas, bits))
+    check_base_follows_surface(decoded, surface)
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
     detail = fit_atlas_detail(replace(fit, atlas=decoded), scan, options.detail_levels,
                               progress=stages.report)
