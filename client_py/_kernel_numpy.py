@@ -242,3 +242,43 @@ def sample_texture(us, vs, blocks) -> array:
             h = rows[:, x0[a:b]] * gx[None, a:b, None] + rows[:, x1[a:b]] * fx[None, a:b, None]
             out[c0:c1, r0 + a : r0 + b] = (h[k0] * gy + h[k1] * fy + 0.5).astype(np.uint8)
     return array("B", out.transpose(1, 0, 2).tobytes())
+
+
+def atlas_patch_grids(comps: list[list[float]], index: list[list[list[int]]], rational: bool,
+                      degree: int, n: int, spans_t: Sequence[int], N: Sequence[Sequence[float]],
+                      dN: Sequence[Sequence[float]], tol: float) -> list[tuple[list, list, list]]:
+    """Points, unit normals and degenerate-normal vertices of atlas patches on an ``r × r``
+    grid: ``S^w = B P^w B^T`` with the dense ``(r, n)`` basis matrices ``B``, ``B'`` built from
+    the shared basis table (``spans_t``, ``N``, ``dN``), ``P^w`` the homogeneous control
+    points ``comps`` (component-major) gathered by each patch's ``index`` ``(n, n)``.
+
+    Returns, per patch, ``(S flat (r² 3), n flat (r² 3), [k of vertices without a normal])``
+    (``client_py.atlas_mesh``'s evaluator contract).
+    """
+    r, d = len(spans_t), degree
+    B, dB = np.zeros((r, n)), np.zeros((r, n))
+    for k, span in enumerate(spans_t):
+        B[k, span - d : span + 1] = N[k]
+        dB[k, span - d : span + 1] = dN[k]
+    H = np.asarray(comps, dtype=float).T  # (control points, C)
+    P = H[np.asarray(index, dtype=np.intp)]  # (F, n, n, C), P[f, a, b] = P^w_ab
+    rows = np.einsum("jb,fabc->fajc", B, P)
+    drows = np.einsum("jb,fabc->fajc", dB, P)
+    A = np.einsum("ia,fajc->fijc", B, rows)
+    Au = np.einsum("ia,fajc->fijc", dB, rows)
+    Av = np.einsum("ia,fajc->fijc", B, drows)
+    if not rational:
+        S, Su, Sv = A, Au, Av
+        small = tol
+    else:
+        w = A[..., 3:]
+        S = A[..., :3] / w
+        Su = Au[..., :3] - Au[..., 3:] * S  # (A_u - w_u S) / w: the 1/w the unit normal drops
+        Sv = Av[..., :3] - Av[..., 3:] * S
+        small = tol * w[..., 0] ** 2
+    cross = np.cross(Su, Sv)
+    length = np.sqrt((cross**2).sum(axis=-1))
+    ok = length > small
+    unit = np.where(ok[..., None], cross / np.where(ok, length, 1.0)[..., None], 0.0)
+    return [(S[k].reshape(-1).tolist(), unit[k].reshape(-1).tolist(),
+             np.flatnonzero(~ok[k].reshape(-1)).tolist()) for k in range(len(index))]

@@ -44,7 +44,7 @@ import struct
 from array import array
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import lru_cache, partial
 from itertools import chain
 from operator import itemgetter
 
@@ -223,43 +223,14 @@ def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: lis
 
 
 def _evaluate_numpy(atlas: AtlasSurface, comps: list[list[float]], patches: list[int],
-                    r: int, tol: float) -> dict[int, tuple[list, list, list]]:
-    """:func:`_evaluate_python`'s contract, all patches at once: ``S^w = B P^w B^T`` with
-    the dense ``(r, n)`` basis matrices ``B``, ``B'`` (``n = s + d`` is small)."""
-    import numpy as np
-
-    d, n = atlas.degree, atlas.side
-    _, spans_t, N, dN = _tables(d, atlas.spans, r)
-    B, dB = np.zeros((r, n)), np.zeros((r, n))
-    for k, span in enumerate(spans_t):
-        B[k, span - d : span + 1] = N[k]
-        dB[k, span - d : span + 1] = dN[k]
-    H = np.asarray(comps, dtype=float).T  # (control points, C)
-    index = np.asarray([atlas.patch_indices(f) for f in patches], dtype=np.intp)
-    P = H[index]  # (F, n, n, C), P[f, a, b] = P^w_ab
-    rows = np.einsum("jb,fabc->fajc", B, P)
-    drows = np.einsum("jb,fabc->fajc", dB, P)
-    A = np.einsum("ia,fajc->fijc", B, rows)
-    Au = np.einsum("ia,fajc->fijc", dB, rows)
-    Av = np.einsum("ia,fajc->fijc", B, drows)
-    if atlas.weights is None:
-        S, Su, Sv = A, Au, Av
-        small = tol
-    else:
-        w = A[..., 3:]
-        S = A[..., :3] / w
-        Su = Au[..., :3] - Au[..., 3:] * S  # (A_u - w_u S) / w: the 1/w the unit normal drops
-        Sv = Av[..., :3] - Av[..., 3:] * S
-        small = tol * w[..., 0] ** 2
-    cross = np.cross(Su, Sv)
-    length = np.sqrt((cross**2).sum(axis=-1))
-    ok = length > small
-    unit = np.where(ok[..., None], cross / np.where(ok, length, 1.0)[..., None], 0.0)
-    out = {}
-    for k, f in enumerate(patches):
-        out[f] = (S[k].reshape(-1).tolist(), unit[k].reshape(-1).tolist(),
-                  np.flatnonzero(~ok[k].reshape(-1)).tolist())
-    return out
+                    r: int, tol: float, backend) -> dict[int, tuple[list, list, list]]:
+    """:func:`_evaluate_python`'s contract, all patches at once, by the numpy kernel
+    (``client_py._kernel_numpy.atlas_patch_grids``: ``S^w = B P^w B^T``)."""
+    _, spans_t, N, dN = _tables(atlas.degree, atlas.spans, r)
+    index = [atlas.patch_indices(f) for f in patches]
+    grids = backend.atlas_patch_grids(comps, index, atlas.weights is not None, atlas.degree,
+                                      atlas.side, spans_t, N, dN, tol)
+    return dict(zip(patches, grids, strict=True))
 
 
 def _normal_tolerance(comps: list[list[float]]) -> float:
@@ -411,7 +382,8 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
     layout = _Layout(atlas, res)
     comps = _homogeneous(atlas)
     tol = _normal_tolerance(comps)
-    evaluate = _evaluate_python if backend is _kernel_python else _evaluate_numpy
+    evaluate = (_evaluate_python if backend is _kernel_python
+                else partial(_evaluate_numpy, backend=backend))
     by_res: dict[int, list[int]] = {}
     for f, r in enumerate(res):
         by_res.setdefault(r, []).append(f)

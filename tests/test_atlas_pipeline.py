@@ -84,3 +84,13 @@ def test_an_atlas_that_strays_from_the_surface_is_refused():
     assert check_base_follows_surface(sphere_atlas(3), surface) < 0.05
     with pytest.raises(AtlasFitError, match="strays from the scan"):
         check_base_follows_surface(sphere_atlas(3, noise=0.3), surface)
+
+
+def test_thin_to_count_keeps_about_the_target():
+    from fitter.fitting.io.thin import thin_to_count
+
+    points = np.random.default_rng(1).random((50_000, 3))
+    for target, slack in ((5_000, 1.0), (5_000, 1.2), (60_000, 1.0)):
+        keep = thin_to_count(points, target, slack)
+        assert len(keep) <= slack * target and len(keep) > 0.3 * min(target, len(points))
+        assert np.all(np.diff(keep) > 0)  # ascending, no repeats: a subset in order

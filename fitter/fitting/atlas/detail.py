@@ -79,7 +79,7 @@ from ..detail import (
     regularisation,
 )
 from ..io.scan import Scan
-from ..io.thin import voxel_thin_indices
+from ..io.thin import thin_to_count
 from .fit import (
     AtlasFit,
     control_points,
@@ -243,14 +243,7 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
         return points, normals
     points = scan.points
     if len(points) > count:
-        h = surface.diagonal / math.sqrt(count)
-        keep = voxel_thin_indices(points, h)
-        for _ in range(6):
-            if len(keep) <= 1.2 * count:
-                break
-            h *= math.sqrt(len(keep) / count)
-            keep = voxel_thin_indices(points, h)
-        points = points[keep]
+        points = points[thin_to_count(points, count, slack=1.2)]
     _, nearest = cKDTree(surface.vertices).query(points)
     return points, surface.vertex_normals[nearest]
 

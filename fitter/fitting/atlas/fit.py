@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 from client_py.atlas import AtlasSurface
 
 from ..io.scan import Scan, ScanError
-from ..io.thin import voxel_thin_indices
+from ..io.thin import thin_to_count
 from .layout import AtlasLayoutError, QuadLayout, bilinear_atlas, decimate, quad_layout
 from .surface import ScanSurface, SurfaceError, scan_surface
 
@@ -367,14 +367,7 @@ def working_points(scan: Scan, surface: ScanSurface, count: int, seed: int = 0
     """
     pts = scan.points
     if len(pts) > count:
-        h = surface.diagonal / math.sqrt(count)
-        keep = voxel_thin_indices(pts, h)
-        for _ in range(6):
-            if len(keep) <= 1.2 * count:
-                break
-            h *= math.sqrt(len(keep) / count)
-            keep = voxel_thin_indices(pts, h)
-        pts = pts[keep]
+        pts = pts[thin_to_count(pts, count, slack=1.2)]
     vertex_normals = surface.vertex_normals
     _, nearest = cKDTree(surface.vertices).query(pts)
     normals = vertex_normals[nearest]

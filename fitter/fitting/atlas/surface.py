@@ -26,7 +26,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..io.scan import Scan, ScanError
-from ..io.thin import voxel_thin_indices
+from ..io.thin import thin_to_count
 
 MIN_CLOUD_POINTS = 100
 MIN_ISLAND_SHARE = 0.002
@@ -265,20 +265,6 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
     return v, f, repairs
 
 
-def _thin_to(points: np.ndarray, target: int) -> np.ndarray:
-    """Indices of a voxel thinning to at most ``target`` points (voxel edge grown by ×√ratio)."""
-    if len(points) <= target:
-        return np.arange(len(points))
-    h = float(np.linalg.norm(np.ptp(points, axis=0))) / np.sqrt(target)
-    keep = voxel_thin_indices(points, h)
-    for _ in range(8):
-        if len(keep) <= target:
-            break
-        h *= 1.05 * np.sqrt(len(keep) / target)
-        keep = voxel_thin_indices(points, h)
-    return keep
-
-
 def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: int = 8,
                     trim_spacings: float = 2.0, max_cloud_points: int = 100_000,
                     name: str = "scan") -> tuple[np.ndarray, np.ndarray, dict]:
@@ -303,7 +289,7 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: in
     """
     import open3d as o3d
 
-    keep = _thin_to(points, max_cloud_points)
+    keep = thin_to_count(points, max_cloud_points)
     pts = points[keep]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     if normals is not None and np.all(np.isfinite(normals[keep])) \

@@ -285,3 +285,20 @@ def voxel_size_for(sample: np.ndarray, total: int, target: int,
         occupied = len(np.unique(VoxelGrid.over(lo, hi, middle).keys(sample)))
         small, large = (middle, large) if occupied > want else (small, middle)
     return max(math.sqrt(small * large) * math.sqrt(s / total), diagonal * 2.0**-20)
+
+
+def thin_to_count(points: np.ndarray, target: int, slack: float = 1.0) -> np.ndarray:
+    """Indices of a voxel thinning (:func:`voxel_thin_indices`) to about ``target`` points:
+    at most ``slack * target``, the voxel edge starting at ``diagonal / sqrt(target)`` (a
+    surface of that extent, sampled ``target`` times) and grown by ``sqrt(kept / target)``
+    per try, at most 8 tries. All indices when there are no more than ``target`` points."""
+    if len(points) <= target:
+        return np.arange(len(points))
+    h = float(np.linalg.norm(np.ptp(points, axis=0))) / math.sqrt(target)
+    keep = voxel_thin_indices(points, h)
+    for _ in range(8):
+        if len(keep) <= slack * target:
+            break
+        h *= math.sqrt(len(keep) / target)
+        keep = voxel_thin_indices(points, h)
+    return keep
