@@ -67,6 +67,7 @@ from .format import (
     _quantise,
     _read_metadata,
     _unframe,
+    check_bits,
 )
 
 MAGIC = b"TSPA"
@@ -231,8 +232,7 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
     """
     if not isinstance(atlas, AtlasSurface):
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
-    if isinstance(bits, bool) or not isinstance(bits, int) or not MIN_BITS <= bits <= MAX_BITS:
-        raise ValueError(f"bits must be an integer in {MIN_BITS}..{MAX_BITS}, got {bits!r}")
+    check_bits(bits)
     if atlas.control_point_count > MAX_CONTROL_POINTS:
         raise ValueError(f"the atlas has {atlas.control_point_count} control points; a reader "
                          f"accepts at most {MAX_CONTROL_POINTS}")

@@ -160,6 +160,14 @@ def _dequantise(values: Sequence[int], lo: float, hi: float, bits: int) -> list[
 
 
 # ------------------------------------------------------------------ writing
+def check_bits(bits: object) -> int:
+    """``bits`` if it is a quantisation the patch and atlas files accept
+    (``MIN_BITS..MAX_BITS``); ``ValueError`` naming it otherwise."""
+    if isinstance(bits, bool) or not isinstance(bits, int) or not MIN_BITS <= bits <= MAX_BITS:
+        raise ValueError(f"bits must be an integer in {MIN_BITS}..{MAX_BITS}, got {bits!r}")
+    return bits
+
+
 def write_patch(surface: NurbsSurface, bits: int = 16, metadata: dict | None = None) -> bytes:
     """Encode ``surface`` as a v1 patch.
 
@@ -178,8 +186,7 @@ def write_patch(surface: NurbsSurface, bits: int = 16, metadata: dict | None = N
     """
     if not isinstance(surface, NurbsSurface):
         raise ValueError(f"surface must be a NurbsSurface, got {type(surface).__name__}")
-    if isinstance(bits, bool) or not isinstance(bits, int) or not MIN_BITS <= bits <= MAX_BITS:
-        raise ValueError(f"bits must be an integer in {MIN_BITS}..{MAX_BITS}, got {bits!r}")
+    check_bits(bits)
     (p, q), (n_u, n_v) = surface.degree, surface.shape
     if p > MAX_DEGREE or q > MAX_DEGREE:
         raise ValueError(f"degree {surface.degree} exceeds the format's maximum {MAX_DEGREE}")
