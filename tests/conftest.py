@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# The seconds a test page waits for Pyodide, for every app the suite starts (in-process or a
+# `tessera serve` child): the product's 45 s is for a visitor, and a shared 2-core machine
+# running the suite has taken over 45 s to start Pyodide under load. Tests of the timeout
+# itself set their own.
+os.environ.setdefault("TESSERA_PYODIDE_TIMEOUT", "180")
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 #: the real scans, read in place (never copied into the repo): ../shared/data from the root
