@@ -291,3 +291,39 @@ def test_a_large_chunk_is_written_in_bounded_memory(client):
         tracemalloc.stop()
     assert response.status_code == 204
     assert peak < 4 * READ_BYTES, f"{peak / 2**20:.1f} MiB held for a 48 MiB chunk"
+
+
+class _ReadOnlyBody:
+    """A request body as gunicorn passes it (``wsgi.input_terminated``): ``read`` only."""
+
+    def __init__(self, data: bytes) -> None:
+        self.source = io.BytesIO(data)
+        self.pieces: list[int] = []
+
+    def tell(self) -> int:  # for the test client's EnvironBuilder only
+        return self.source.tell()
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self.source.seek(offset, whence)
+
+    def read(self, size: int = -1) -> bytes:
+        piece = self.source.read(size)
+        self.pieces.append(len(piece))
+        return piece
+
+
+def test_a_body_without_readinto_is_read_piece_by_piece(client, relief_ply):
+    data = relief_ply.read_bytes()
+    _, _, url = create(client, len(data), sha256=hashlib.sha256(data).hexdigest())
+    headers = {**BEARER, "Upload-Offset": "0", "Content-Type": "application/offset+octet-stream"}
+    cut = _ReadOnlyBody(data[:50_000])  # the client went away after 50 kB
+    response = client.patch(url, input_stream=cut, headers=headers, environ_overrides={
+        "CONTENT_LENGTH": "150000", "wsgi.input_terminated": True})
+    assert response.status_code == 400 and "after 50000" in response.get_json()["error"]
+    body = _ReadOnlyBody(data[50_000:])
+    response = client.patch(url, input_stream=body, headers={**headers, "Upload-Offset": "50000"},
+                            environ_overrides={"CONTENT_LENGTH": str(len(data) - 50_000),
+                                               "wsgi.input_terminated": True})
+    assert response.status_code == 204, response.get_json()
+    assert max(body.pieces) <= READ_BYTES
+    assert client.post(f"{url}/fit", headers=BEARER).status_code == 202

@@ -15,9 +15,10 @@ keeps the partial files, with no Flask in it:
   length, the client's file name, the optional declared SHA-256 and the fit options given
   at creation, ``lock`` the ``flock`` that serialises writers: a second ``PATCH`` (or a
   ``fit`` or ``DELETE``) while one writes is refused at once with a 409, in any process.
-* A ``PATCH`` body is read in :data:`READ_BYTES` pieces into one reused buffer and written at
-  the offset, so the server holds at most one piece of any upload whatever its size. A body
-  cut off mid-way keeps the bytes that arrived (the offset moves by them).
+* A ``PATCH`` body is read in :data:`READ_BYTES` pieces (into one reused buffer where the
+  WSGI server's stream has ``readinto``) and written at the offset, so the server holds at
+  most one piece of any upload whatever its size. A body cut off mid-way keeps the bytes
+  that arrived (the offset moves by them).
 * The SHA-256 of the whole file is computed on the way: each process keeps the running
   hash of the uploads it last wrote (:class:`_RunningHashes`, a few hundred bytes each); a
   ``PATCH`` that reaches another process, or comes after a restart, first hashes the bytes
@@ -398,24 +399,30 @@ class PartialUploads:
         """Copy ``nbytes`` of ``body`` to ``path`` at ``offset``, updating ``hashes``, then
         fsync: ``(bytes written, None)``, or ``(bytes written before it, the exception)``
         when the body ended early or could not be read or written."""
-        buffer = bytearray(READ_BYTES)
-        view = memoryview(buffer)
+        # werkzeug's LimitedStream reads into one reused buffer; gunicorn's request body
+        # (wsgi.input_terminated: Flask passes it as it is) only has read(), one piece at a time
+        readinto = getattr(body, "readinto", None)
+        buffer = memoryview(bytearray(READ_BYTES)) if readinto is not None else None
         written = 0
         with open(path, "r+b", buffering=0) as out:
             out.seek(offset)
             try:
                 while written < nbytes:
-                    n = body.readinto(view[:min(READ_BYTES, nbytes - written)])
-                    if not n:
+                    wanted = min(READ_BYTES, nbytes - written)
+                    if buffer is not None:
+                        piece = buffer[:readinto(buffer[:wanted]) or 0]
+                    else:
+                        piece = memoryview(body.read(wanted))
+                    if not len(piece):
                         raise UploadError(f"the chunk ended after {written} of its {nbytes} "
                                           "bytes (Content-Length); they are kept, resume "
                                           f"from offset {offset + written}")
                     done = 0
-                    while done < n:  # a raw write may take part of the piece
-                        step = out.write(view[done:n])
+                    while done < len(piece):  # a raw write may take part of the piece
+                        step = out.write(piece[done:])
                         for running in hashes:
                             if running is not None:
-                                running.update(view[done:done + step])
+                                running.update(piece[done:done + step])
                         done += step
                         written += step
             except Exception as exc:  # noqa: BLE001 - returned to the caller, who re-raises
