@@ -327,3 +327,23 @@ def test_a_body_without_readinto_is_read_piece_by_piece(client, relief_ply):
     assert response.status_code == 204, response.get_json()
     assert max(body.pieces) <= READ_BYTES
     assert client.post(f"{url}/fit", headers=BEARER).status_code == 202
+
+
+def test_chunks_written_by_several_processes_still_give_the_file_s_sha256(admin_app, client,
+                                                                          relief_ply):
+    """gunicorn's workers each keep their own running hashes: a chunk that reaches another
+    process goes on without one, and the whole file is hashed once at the end."""
+    from fitter.server.admin.resumable import _RunningHashes
+
+    partials = admin_app.extensions["tessera_partial_uploads"]
+    data = relief_ply.read_bytes()
+    for declared in (hashlib.sha256(data).hexdigest(), hashlib.sha256(b"other").hexdigest()):
+        _, _, url = create(client, len(data), sha256=declared)
+        for start in range(0, len(data), 70_000):
+            partials._hashes = _RunningHashes()  # the next chunk lands in a fresh process
+            assert patch(client, url, start, data[start:start + 70_000]).status_code in (204,
+                                                                                         422)
+    # the first upload matched (and is complete), the second was refused at its last byte
+    (listed,) = client.get(BASE, headers=BEARER).get_json()["uploads"]
+    assert listed["complete"] and client.post(f"{listed['url']}/fit",
+                                              headers=BEARER).status_code == 202

@@ -20,12 +20,15 @@ keeps the partial files, with no Flask in it:
   most one piece of any upload whatever its size. A body cut off mid-way keeps the bytes
   that arrived (the offset moves by them).
 * The SHA-256 of the whole file is computed on the way: each process keeps the running
-  hash of the uploads it last wrote (:class:`_RunningHashes`, a few hundred bytes each); a
-  ``PATCH`` that reaches another process, or comes after a restart, first hashes the bytes
-  already on disk. A SHA-256 declared at creation is checked when the last byte arrives (a
-  mismatch discards the upload: 422); a ``PATCH`` may also carry ``Upload-Checksum`` (tus
-  checksum extension: ``sha1`` or ``sha256`` of that chunk, base64), and a chunk that does
-  not match is cut off again (460, the extension's status) and may be resent.
+  hash of the uploads it last wrote (:class:`_RunningHashes`, a few hundred bytes each). A
+  ``PATCH`` that reaches another process (gunicorn's workers: a browser's keep-alive
+  connection mostly stays with one) or comes after a restart continues without it, and
+  the whole file is then hashed once when its last byte is in (about 10 s for 3 GB):
+  never the prefix again at every chunk, which would make the upload quadratic. A SHA-256
+  declared at creation is checked when the last byte arrives (a mismatch discards the
+  upload: 422); a ``PATCH`` may also carry ``Upload-Checksum`` (tus checksum extension:
+  ``sha1`` or ``sha256`` of that chunk, base64), and a chunk that does not match is cut off
+  again (460, the extension's status) and may be resent.
 * Refusals: a declared size over ``TESSERA_UPLOAD_MAX_BYTES`` (413) or over the free disk
   space left after the other unfinished uploads (507); a ``PATCH`` at another offset than
   the server's (409), one that would pass the declared size (413), without
@@ -353,15 +356,17 @@ class PartialUploads:
             if offset + nbytes > upload.length:
                 raise UploadError(f"a chunk of {nbytes} bytes at offset {offset} passes the "
                                   f"declared length of {upload.length} bytes", status=413)
-            running = self._hashes.take(upload_id, current) or _hash_prefix(upload.data,
-                                                                            current)
-            before = running.copy()
+            # the running hash of the bytes so far, if this process wrote the last chunk (else
+            # the whole file is hashed once at the end: never the prefix again at every chunk)
+            running = self._hashes.take(upload_id, current) or (
+                hashlib.sha256() if current == 0 else None)
+            before = running.copy() if running is not None else None
             chunk_hash = hashlib.new(checksum[0]) if checksum else None
             written, failure = self._write(upload.data, offset, body, nbytes,
                                            (running, chunk_hash))
             if failure is not None:
                 # the client went away mid-chunk (or the disk is full): keep what arrived
-                self._hashes.put(upload_id, offset + written, running)
+                self._remember(upload_id, offset + written, running)
                 kept = f"the {written} bytes before are kept: resume from offset {offset + written}"
                 if isinstance(failure, UploadError):
                     raise failure
@@ -373,16 +378,18 @@ class PartialUploads:
                                   ) from failure
             if checksum and chunk_hash is not None and chunk_hash.digest() != checksum[1]:
                 os.truncate(upload.data, offset)
-                self._hashes.put(upload_id, offset, before)
+                self._remember(upload_id, offset, before)
                 raise UploadError(f"Upload-Checksum: the {checksum[0]} of the {written} bytes "
                                   f"received at offset {offset} is not the one sent; the "
                                   "chunk is discarded, send it again",
                                   status=CHECKSUM_MISMATCH)
             end = offset + written
             if end < upload.length:
-                self._hashes.put(upload_id, end, running)
+                self._remember(upload_id, end, running)
                 return upload
             self._hashes.forget(upload_id)
+            if running is None:
+                running = _hash_prefix(upload.data, end)
             upload.sha256 = running.hexdigest()
             if upload.declared_sha256 and upload.sha256 != upload.declared_sha256:
                 self._remove_unlocked(upload)
@@ -392,6 +399,12 @@ class PartialUploads:
                                   "deleted, start again", status=422)
             upload.save()
             return upload
+
+    def _remember(self, upload_id: str, offset: int, running: Any | None) -> None:
+        if running is None:
+            self._hashes.forget(upload_id)
+        else:
+            self._hashes.put(upload_id, offset, running)
 
     @staticmethod
     def _write(path: Path, offset: int, body: IO[bytes], nbytes: int,
