@@ -17,6 +17,7 @@ import tracemalloc
 
 import pytest
 from conftest import ADMIN_TOKEN
+from test_admin import FAST
 
 from fitter.collection.catalog import Catalog
 from fitter.collection.jobs import JobRunner
@@ -24,17 +25,12 @@ from fitter.server.admin.resumable import READ_BYTES
 
 BEARER = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 BASE = "/admin/api/uploads/resumable"
-FAST = {"grid": "12x12", "method": "linear"}
 
 
 @pytest.fixture()
-def admin_app(admin_app_factory):
-    return admin_app_factory()
-
-
-@pytest.fixture()
-def client(admin_app):
-    return admin_app.test_client()
+def client(admin_app_factory):
+    """A test client of a fresh admin app (``client.application``)."""
+    return admin_app_factory().test_client()
 
 
 def metadata(**pairs: str) -> str:
@@ -68,7 +64,8 @@ def send(client, url: str, data: bytes, chunk: int) -> None:
         assert int(response.headers["Upload-Offset"]) == min(start + chunk, len(data))
 
 
-def test_a_scan_sent_in_chunks_becomes_the_same_fit_job(admin_app, client, relief_ply):
+def test_a_scan_sent_in_chunks_becomes_the_same_fit_job(client, relief_ply):
+    admin_app = client.application
     data = relief_ply.read_bytes()
     sha = hashlib.sha256(data).hexdigest()
     status, body, url = create(client, len(data), {**FAST, "title": "Chunked relief"},
@@ -155,8 +152,8 @@ def test_offsets_sizes_and_headers_are_checked(admin_app_factory, relief_ply):
     assert client.head(f"{BASE}/..%2F..%2Fcatalog.sqlite", headers=BEARER).status_code == 404
 
 
-def test_fitting_an_unfinished_upload_is_a_409_and_bad_content_a_400(admin_app, client,
-                                                                      relief_ply):
+def test_fitting_an_unfinished_upload_is_a_409_and_bad_content_a_400(client, relief_ply):
+    admin_app = client.application
     data = relief_ply.read_bytes()
     _, _, url = create(client, len(data), filename="relief.ply")
     patch(client, url, 0, data[:5000])
@@ -245,9 +242,9 @@ class _HeldBody(io.BytesIO):
         return super().readinto(memoryview(buffer)[:self._hold(len(buffer))])
 
 
-def test_a_second_writer_is_refused_while_a_chunk_is_written(admin_app, relief_ply):
+def test_a_second_writer_is_refused_while_a_chunk_is_written(client, relief_ply):
     data = relief_ply.read_bytes()
-    client = admin_app.test_client()
+    admin_app = client.application
     _, _, url = create(client, len(data))
     held = _HeldBody(data)
     results = {}
@@ -329,13 +326,12 @@ def test_a_body_without_readinto_is_read_piece_by_piece(client, relief_ply):
     assert client.post(f"{url}/fit", headers=BEARER).status_code == 202
 
 
-def test_chunks_written_by_several_processes_still_give_the_file_s_sha256(admin_app, client,
-                                                                          relief_ply):
+def test_chunks_written_by_several_processes_still_give_the_file_s_sha256(client, relief_ply):
     """gunicorn's workers each keep their own running hashes: a chunk that reaches another
     process goes on without one, and the whole file is hashed once at the end."""
     from fitter.server.admin.resumable import _RunningHashes
 
-    partials = admin_app.extensions["tessera_partial_uploads"]
+    partials = client.application.extensions["tessera_partial_uploads"]
     data = relief_ply.read_bytes()
     for declared in (hashlib.sha256(data).hexdigest(), hashlib.sha256(b"other").hexdigest()):
         _, _, url = create(client, len(data), sha256=declared)
