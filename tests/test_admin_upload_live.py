@@ -73,7 +73,7 @@ def test_a_dropped_connection_and_a_reload_resume_the_upload(upload_live, page, 
     # the drop is retried from HEAD's offset; then the network goes: the page says so
     page.wait_for_function("Number(document.getElementById('upload-progress').dataset"
                            ".retries || 0) >= 2")
-    assert "retrying in" in page.inner_text("#upload-retry")
+    assert "; retrying in" in page.inner_text("#upload-retry")
     assert offsets[:3] == [0, CHUNK, CHUNK]  # the dropped chunk was sent again
     assert float(page.get_attribute("#upload-bar", "value") or 0) > 0
     sent_before = 2 * CHUNK

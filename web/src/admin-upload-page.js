@@ -84,7 +84,8 @@ export class UploadPage {
   }
 
   showRetry({ attempt, waitMs, reason }) {
-    this.el.retry.textContent = `${reason}; retrying in ${Math.round(waitMs / 1000)} s ` +
+    const said = reason.charAt(0).toUpperCase() + reason.slice(1);
+    this.el.retry.textContent = `${said}; retrying in ${Math.round(waitMs / 1000)} s ` +
                                 `(attempt ${attempt}).`;
     this.el.retry.hidden = false;
     this.el.progress.dataset.retries = String(attempt);
