@@ -101,6 +101,10 @@ DEFAULTS: dict[str, tuple[Any, str]] = {
     "TESSERA_UPLOAD_MAX_POINTS": (20_000_000, "most points an uploaded scan (a .conf: all its "
                                               "scans) may hold, counted before they are read"),
     "TESSERA_UPLOAD_MAX_FILES": (1000, "most scan files an uploaded .conf may name"),
+    "TESSERA_UPLOAD_CHUNK_BYTES": (8 << 20, "bytes per request of the upload page's resumable "
+                                            "upload (keep it under a proxy's body limit)"),
+    "TESSERA_UPLOAD_EXPIRE_S": (24 * 3600, "seconds an unfinished resumable upload is kept "
+                                           "after its last bytes; then it is deleted"),
     "TESSERA_JOB_WORKERS": (0, "fits run at once by `tessera serve` (0: one per core)"),
 }
 

@@ -24,11 +24,13 @@ from ...collection.catalog import (
     ThreadCatalogs,
     adopt_bundles,
     catalog_exists,
+    state_dir,
 )
 from ...collection.tokens import TOKEN_SETTING, check_token_strength, hash_token
 from ...collection.uploads import UploadLimits
 from . import api, pages  # noqa: F401 - their routes join ``bp``
 from .auth import AdminState, CheapRefusals, bp
+from .resumable import PartialUploads
 
 
 def init_app(app: Flask) -> None:
@@ -63,13 +65,19 @@ def init_app(app: Flask) -> None:
     app.config.update(SESSION_COOKIE_HTTPONLY=True, SESSION_COOKIE_SAMESITE="Strict",
                       SESSION_COOKIE_SECURE=bool(app.config.get("TESSERA_ADMIN_SECURE_COOKIE")),
                       SESSION_COOKIE_NAME="tessera_admin")
-    app.extensions["tessera_admin"] = AdminState(
-        collection_dir, token_hash, catalogs,
-        UploadLimits(max_bytes=int(app.config["TESSERA_UPLOAD_MAX_BYTES"]),
-                     max_expanded_bytes=int(app.config["TESSERA_UPLOAD_MAX_EXPANDED_BYTES"]),
-                     max_ratio=float(app.config["TESSERA_UPLOAD_MAX_RATIO"]),
-                     max_points=int(app.config["TESSERA_UPLOAD_MAX_POINTS"]),
-                     max_files=int(app.config["TESSERA_UPLOAD_MAX_FILES"])),
-        token_from_environment=bool(plain_token))
+    limits = UploadLimits(max_bytes=int(app.config["TESSERA_UPLOAD_MAX_BYTES"]),
+                          max_expanded_bytes=int(app.config["TESSERA_UPLOAD_MAX_EXPANDED_BYTES"]),
+                          max_ratio=float(app.config["TESSERA_UPLOAD_MAX_RATIO"]),
+                          max_points=int(app.config["TESSERA_UPLOAD_MAX_POINTS"]),
+                          max_files=int(app.config["TESSERA_UPLOAD_MAX_FILES"]))
+    app.extensions["tessera_admin"] = AdminState(collection_dir, token_hash, catalogs, limits,
+                                                 token_from_environment=bool(plain_token))
+    if catalogs is not None:
+        # resumable uploads (.resumable): the unfinished ones left by a stopped server stay
+        # resumable until they expire; those already expired go now
+        partials = PartialUploads(state_dir(collection_dir) / "partial", limits,
+                                  float(app.config["TESSERA_UPLOAD_EXPIRE_S"]))
+        partials.sweep()
+        app.extensions["tessera_partial_uploads"] = partials
     app.register_blueprint(bp)
     app.wsgi_app = CheapRefusals(app, app.extensions["tessera_admin"])

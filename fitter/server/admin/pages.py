@@ -10,6 +10,7 @@ from urllib.parse import urlsplit
 
 from flask import (
     abort,
+    current_app,
     flash,
     redirect,
     render_template,
@@ -89,12 +90,16 @@ def rescan() -> ResponseReturnValue:
 
 def _upload_defaults() -> dict[str, Any]:
     """The upload form's fit option fields by group (``fitter.fitting.options``, the table
-    the CLI reads too) and the size limit."""
+    the CLI reads too), the size limit, and the config of its script (web/src/
+    admin-upload-page.js: the resumable upload API, the jobs page, the chunk size)."""
     fields = form_fields()
     groups = [(legend, [f for f in fields if f["group"] == group])
               for group, legend in FORM_GROUPS]
     return {"groups": [(legend, members) for legend, members in groups if members],
-            "max_bytes": state().limits.max_bytes}
+            "max_bytes": state().limits.max_bytes,
+            "script": {"endpoint": url_for("admin.api_resumable_create"),
+                       "jobs_page": url_for("admin.jobs"),
+                       "chunk_bytes": int(current_app.config["TESSERA_UPLOAD_CHUNK_BYTES"])}}
 
 
 @bp.route("/upload", methods=["GET", "POST"])

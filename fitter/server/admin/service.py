@@ -1,5 +1,6 @@
-"""What the admin pages and the admin API both do: accept an upload, trash and restore
-objects, read fit options from a form. Views only translate these to HTTP."""
+"""What the admin pages and the admin API both do: accept an upload (in one request, or a
+finished resumable one), trash and restore objects, read fit options from a form. Views only
+translate these to HTTP."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from typing import Any
 from werkzeug.datastructures import MultiDict
 
 from ...collection.catalog import Catalog, new_object_id, state_dir
-from ...collection.uploads import UploadError, UploadLimits, prepare_scan
+from ...collection.uploads import ReceivedFile, UploadError, UploadLimits, prepare_scan
 from ...fitting.options import OptionError, parse_form
 from .upload_stream import receive_upload
 
@@ -39,6 +40,15 @@ def parse_fit_options(form: MultiDict) -> dict[str, Any]:
         raise UploadError(str(exc)) from None
 
 
+def new_upload_folder(catalog: Catalog) -> Path:
+    """A new, empty ``.tessera/uploads/<time>-<random>/`` for one upload."""
+    uploads = state_dir(catalog.collection) / "uploads"
+    uploads.mkdir(parents=True, exist_ok=True)
+    folder = uploads / f"{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(4)}"
+    folder.mkdir()
+    return folder
+
+
 def accept_upload(catalog: Catalog, environ: dict[str, Any], limits: UploadLimits,
                   csrf_check: Any = None) -> tuple[int, str]:
     """Stream an upload to disk, check it, and queue its fit: ``(job id, object id)``.
@@ -46,19 +56,34 @@ def accept_upload(catalog: Catalog, environ: dict[str, Any], limits: UploadLimit
     ``csrf_check(form) -> bool``: for the page form, checked once the body is on
     disk. On any refusal the upload's folder is removed and ``UploadError`` raised.
     """
-    uploads = state_dir(catalog.collection) / "uploads"
-    uploads.mkdir(parents=True, exist_ok=True)
-    folder = uploads / f"{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(4)}"
-    folder.mkdir()
+    folder = new_upload_folder(catalog)
     try:
         form, received = receive_upload(environ, folder, limits)
         if csrf_check is not None and not csrf_check(form):
             raise UploadError("the form's CSRF token is missing or wrong; reload the page and "
                               "try again")
         options = parse_fit_options(form)
-        prepared = prepare_scan(received, limits)
     except UploadError:
         shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return queue_fit(catalog, received, options, limits)
+
+
+def queue_fit(catalog: Catalog, received: ReceivedFile, options: dict[str, Any],
+              limits: UploadLimits) -> tuple[int, str]:
+    """Check a received file (in its own upload folder, :func:`new_upload_folder`) as a scan
+    and queue its fit with ``options``: ``(job id, object id)``. The one step after a
+    one-request upload and after a resumable one.
+
+    Raises
+    ------
+    UploadError
+        Not a scan, or a bad archive; the upload's folder is removed.
+    """
+    try:
+        prepared = prepare_scan(received, limits)
+    except UploadError:
+        shutil.rmtree(received.path.parent, ignore_errors=True)
         raise
     original = os.path.basename(received.original_name.replace("\\", "/"))[:255]
     title = options.get("title") or Path(original).name.split(".")[0] or "Untitled scan"
