@@ -1,5 +1,5 @@
 """Resumable admin uploads (tus 1.0.0 core, creation, expiration, termination, checksum;
-``fitter/server/admin/resumable.py``) through Flask's test client: a scan sent in chunks
+``fitter/collection/resumable.py``) through Flask's test client: a scan sent in chunks
 becomes the same fit job as a one-request upload; a chunk cut off mid-way resumes from the
 server's offset; wrong offsets, chunks past the declared size, sizes over the limit, checksum
 mismatches, unfinished uploads sent for a fit, expired uploads and concurrent writers each
@@ -21,7 +21,7 @@ from test_admin import FAST
 
 from fitter.collection.catalog import Catalog
 from fitter.collection.jobs import JobRunner
-from fitter.server.admin.resumable import READ_BYTES
+from fitter.collection.resumable import READ_BYTES
 
 BEARER = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 BASE = "/admin/api/uploads/resumable"
@@ -329,7 +329,7 @@ def test_a_body_without_readinto_is_read_piece_by_piece(client, relief_ply):
 def test_chunks_written_by_several_processes_still_give_the_file_s_sha256(client, relief_ply):
     """gunicorn's workers each keep their own running hashes: a chunk that reaches another
     process goes on without one, and the whole file is hashed once at the end."""
-    from fitter.server.admin.resumable import _RunningHashes
+    from fitter.collection.resumable import _RunningHashes
 
     partials = client.application.extensions["tessera_partial_uploads"]
     data = relief_ply.read_bytes()

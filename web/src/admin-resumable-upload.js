@@ -2,7 +2,7 @@
 // from the server's offset after a dropped connection or a reload, then submitted for a fit.
 //
 // The protocol is the tus resumable upload protocol 1.0.0 (https://tus.io/protocols/
-// resumable-upload; fitter/server/admin/resumable.py is the server): POST creates the
+// resumable-upload; fitter/collection/resumable.py is the server): POST creates the
 // upload with its size (`Upload-Length`) and the file's name (`Upload-Metadata`), HEAD
 // answers the server's offset, PATCH sends the bytes at `Upload-Offset`, each chunk with
 // its SHA-256 (`Upload-Checksum`, where the browser has WebCrypto); then POST `<url>/fit`.

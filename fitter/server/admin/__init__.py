@@ -26,11 +26,11 @@ from ...collection.catalog import (
     catalog_exists,
     state_dir,
 )
+from ...collection.resumable import PartialUploads
 from ...collection.tokens import TOKEN_SETTING, check_token_strength, hash_token
 from ...collection.uploads import UploadLimits
 from . import api, pages  # noqa: F401 - their routes join ``bp``
 from .auth import AdminState, CheapRefusals, bp
-from .resumable import PartialUploads
 
 
 def init_app(app: Flask) -> None:

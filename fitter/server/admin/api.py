@@ -35,10 +35,7 @@ from flask.typing import ResponseReturnValue
 from werkzeug.datastructures import MultiDict
 
 from ...collection.catalog import ConflictError, FieldError
-from ...collection.trash import restore_object, trash_object
-from ...collection.uploads import UploadError
-from .auth import api_error, bp, state
-from .resumable import (
+from ...collection.resumable import (
     OFFSET_CONTENT_TYPE,
     TUS_EXTENSIONS,
     TUS_VERSION,
@@ -48,6 +45,9 @@ from .resumable import (
     parse_chunk_checksum,
     parse_metadata,
 )
+from ...collection.trash import restore_object, trash_object
+from ...collection.uploads import UploadError
+from .auth import api_error, bp, state
 from .service import accept_upload, new_upload_folder, object_json, parse_fit_options, queue_fit
 
 CANCEL_WAIT = 5.0  # seconds a cancel request waits to report the job stopped

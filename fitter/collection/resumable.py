@@ -7,8 +7,8 @@ resumable-upload, core protocol with its *creation*, *expiration*, *termination*
 offset with ``HEAD``, and sends bytes with ``PATCH`` and ``Upload-Offset``; what the server
 has is always a prefix of the file, so a client resumes from the server's offset after any
 failure. One step of Tessera's own follows: ``POST .../fit`` turns a complete upload into the
-same fit job as ``POST /admin/api/uploads``. The HTTP side is in :mod:`.api`; this module
-keeps the partial files, with no Flask in it:
+same fit job as ``POST /admin/api/uploads``. The HTTP side is in :mod:`fitter.server.admin.api`; this module
+keeps the partial files (the collection layer: no Flask here):
 
 * ``<collection>/.tessera/partial/<id>/data.part`` holds the bytes received so far; its size
   *is* the offset (written, then fsynced, before an answer), ``upload.json`` the declared
@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from ...collection.uploads import ReceivedFile, UploadError, UploadLimits, format_size
+from .uploads import ReceivedFile, UploadError, UploadLimits, format_size
 
 TUS_VERSION = "1.0.0"
 TUS_EXTENSIONS = "creation,expiration,termination,checksum"
