@@ -294,9 +294,10 @@ def _layer_rows(m: dict) -> list[tuple[str, str]]:
                      f"{m['units']}: {count}, {lev['bytes_total']:,} bytes"))
     texture = tiles.get("texture")
     if texture:
-        count = sum(x["tiles"] for x in texture["levels"])
+        kind = "packs" if "packs" in texture else "tiles"  # an atlas's colour packs
+        count = sum(x[kind] for x in texture["levels"])
         size = sum(x["bytes_total"] for x in texture["levels"])
-        rows.append(("texture", f"{len(texture['levels'])} levels, {count} tiles, "
+        rows.append(("texture", f"{len(texture['levels'])} levels, {count} {kind}, "
                      f"{size:,} bytes"))
     return rows
 

@@ -167,7 +167,7 @@ export async function decodeTextureRgb(bytes, node) {
     rgb[m + 1] = rgba[k + 1];
     rgb[m + 2] = rgba[k + 2];
   }
-  return { level: node.level, i: node.i, j: node.j, width, height, rgb };
+  return { level: node.level, i: node.i, j: node.j, file: node.file, width, height, rgb };
 }
 
 /**
