@@ -173,14 +173,14 @@ def uv_picture(grid: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(grid.transpose(1, 0, 2)[::-1])
 
 
-def encode_image(picture: np.ndarray, fmt: str = "webp") -> bytes:
-    """``picture (H, W, 3) uint8`` (row 0 at the top) as WebP (quality
-    :data:`WEBP_QUALITY`, the slowest best method) or lossless PNG, through Pillow."""
+def encode_image(picture: np.ndarray, fmt: str = "webp", quality: int = WEBP_QUALITY) -> bytes:
+    """``picture (H, W, 3) uint8`` (row 0 at the top) as WebP (``quality``, the slowest
+    best method) or lossless PNG, through Pillow."""
     from PIL import Image
 
     buf = io.BytesIO()
     if fmt == "webp":
-        Image.fromarray(picture).save(buf, "WEBP", quality=WEBP_QUALITY, method=6)
+        Image.fromarray(picture).save(buf, "WEBP", quality=quality, method=6)
     elif fmt == "png":
         Image.fromarray(picture).save(buf, "PNG", optimize=True)
     else:

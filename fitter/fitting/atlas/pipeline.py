@@ -17,6 +17,8 @@ The steps, each a stage of ``fitter.fitting.stages`` (the bar skips the single p
              exact point-to-triangle distances (``atlas.measure``): ``stats`` and
              ``stats_all_points`` are the same set here, and ``coverage`` counts the points
              farther than 1 % of the diagonal as not represented;
+``texture``  with a coloured scan, the colour packs ``texture/C/G.webp`` (``atlas.texture``)
+             and the colour error of every scan point on the finest drawn mesh;
 ``report``   ``error.ply``, ``error.png`` and ``manifest.json`` (docs/format.md, "Bundle
              manifest, version 2") into the atomic bundle writer.
 

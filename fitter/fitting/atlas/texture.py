@@ -49,6 +49,10 @@ from .measure import closest_points_on_mesh
 TEXELS_PER_PACK = 512 * 512  # an image grows by whole groups until it passes this
 CHUNK_TEXELS = 200_000  # texels projected at once (memory ~ 1 KB each)
 FILLER = 128  # grey of the unused cells past a pack's last patch
+#: WebP quality of the colour images: cells of neighbouring images' patches sit side by side,
+#: and at the single patch's 82 the decoder's chroma upsampling and the coarser quantisation
+#: carried one cell's colour into the next (bench atlas_colour: the measured trade-off)
+COLOUR_QUALITY = 90
 
 
 @dataclass
@@ -162,6 +166,58 @@ def pack_image(cells: np.ndarray, cell: int) -> np.ndarray:
     return image
 
 
+def sample_cells(scan, atlas, tiles_of_patch: dict, side: int) -> np.ndarray:
+    """Every patch's cell of ``side`` texels from ``scan``'s colour at the foot points of
+    the drawn texel centres (:func:`drawn_texel_points`, :func:`scan_colour_at`), in chunks
+    of about :data:`CHUNK_TEXELS`: shape ``(F, side, side, 3)`` uint8, axis 1 ``u``."""
+    patches = len(atlas.quads)
+    step = max(1, CHUNK_TEXELS // (side * side))
+    cells = np.empty((patches, side, side, 3), np.uint8)
+    for start in range(0, patches, step):
+        chunk = np.arange(start, min(patches, start + step))
+        points = drawn_texel_points(atlas, tiles_of_patch, chunk, side)
+        rgb = scan_colour_at(scan, points.reshape(-1, 3))
+        cells[chunk] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8).reshape(
+            len(chunk), side, side, 3)
+    return cells
+
+
+def coarser_cells(finest: np.ndarray, levels: int) -> list[np.ndarray]:
+    """The cells of colour levels ``0..levels-1`` from the finest ``(F, T, T, 3)``: each
+    coarser level the 2x2 means of the next, rounded."""
+    cells = [finest]
+    for _ in range(levels - 1):
+        count, r = len(cells[0]), cells[0].shape[1] // 2
+        coarse = cells[0].astype(float).reshape(count, r, 2, r, 2, 3).mean(axis=(2, 4))
+        cells.insert(0, np.clip(np.rint(coarse), 0, 255).astype(np.uint8))
+    return cells
+
+
+def encode_levels(cells: list[np.ndarray], groups: list[dict], texel_zero: float,
+                  quality: int = COLOUR_QUALITY) -> tuple[dict, list, list]:
+    """The colour images of every level's ``cells`` packed by runs of ``groups``
+    (:func:`pack_runs`, :func:`pack_image`) as WebP of ``quality``: ``(files, packs,
+    levels)``, the bundle's files and the manifest's ``packs`` and ``levels`` rows
+    (``texel``: ``texel_zero`` over the level's texels per side)."""
+    files: dict[str, bytes] = {}
+    packs, rows = [], []
+    for c, level_cells in enumerate(cells):
+        cell = level_cells.shape[1]
+        total = 0
+        runs = pack_runs(groups, cell)
+        for g, count in runs:
+            first = groups[g]["first"]
+            last = groups[g + count - 1]
+            end = last["first"] + last["count"]
+            data = encode_image(pack_image(level_cells[first:end], cell), quality=quality)
+            files[colour_pack_name(c, g)] = data
+            total += len(data)
+            packs.append({"level": c, "group": g, "groups": count, "bytes": len(data)})
+        rows.append({"level": c, "cell": cell, "texel": float(f"{texel_zero / cell:.6g}"),
+                     "bytes_total": total, "packs": len(runs)})
+    return files, packs, rows
+
+
 def fit_atlas_texture(scan, detail, enabled: bool = True) -> AtlasTexture | None:
     """The colour of ``detail``'s atlas (an ``.detail.AtlasDetail``: its renumbered atlas,
     tiles and groups) from ``scan``: ``None`` without colour, without detail levels (the
@@ -174,39 +230,11 @@ def fit_atlas_texture(scan, detail, enabled: bool = True) -> AtlasTexture | None
     covered = np.ones(len(scan.points), dtype=bool)
     per_patch = colour_samples(scan, covered) / patches
     levels = texel_levels(np.sqrt(max(per_patch, 1.0)), first_cell, len(detail.levels))
-    finest = first_cell << (levels - 1)
-    tiles_of_patch = detail.detail_up_to(len(detail.levels) - 1)
-    step = max(1, CHUNK_TEXELS // (finest * finest))
-    top = np.empty((patches, finest, finest, 3), np.uint8)
-    for start in range(0, patches, step):
-        chunk = np.arange(start, min(patches, start + step))
-        points = drawn_texel_points(atlas, tiles_of_patch, chunk, finest)
-        rgb = scan_colour_at(scan, points.reshape(-1, 3))
-        top[chunk] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8).reshape(
-            len(chunk), finest, finest, 3)
-    cells = [top]
-    for _ in range(levels - 1):
-        r = cells[0].shape[1] // 2
-        coarse = cells[0].astype(float).reshape(patches, r, 2, r, 2, 3).mean(axis=(2, 4))
-        cells.insert(0, np.clip(np.rint(coarse), 0, 255).astype(np.uint8))
+    top = sample_cells(scan, atlas, detail.detail_up_to(len(detail.levels) - 1),
+                       first_cell << (levels - 1))
+    cells = coarser_cells(top, levels)
     groups = detail.tree["groups"]
-    side = float(detail.patch_side)
-    files: dict[str, bytes] = {}
-    packs, rows = [], []
-    for c, level_cells in enumerate(cells):
-        cell = first_cell << c
-        total = 0
-        runs = pack_runs(groups, cell)
-        for g, count in runs:
-            first = groups[g]["first"]
-            last = groups[g + count - 1]
-            end = last["first"] + last["count"]
-            data = encode_image(pack_image(level_cells[first:end], cell))
-            files[colour_pack_name(c, g)] = data
-            total += len(data)
-            packs.append({"level": c, "group": g, "groups": count, "bytes": len(data)})
-        rows.append({"level": c, "cell": cell, "texel": float(f"{side / cell:.6g}"),
-                     "bytes_total": total, "packs": len(runs)})
+    files, packs, rows = encode_levels(cells, groups, float(detail.patch_side))
     tree = {"format": "webp", "levels": rows, "packs": packs,
             "source": "texture" if scan.uv is not None and scan.texture is not None
             and scan.faces is not None else "vertex colours"}
