@@ -613,7 +613,14 @@ class WorkerSession:
         """The decoded colour packs of a level's plan ``nodes`` from ``textures`` sent
         (``{"file", "width", "height", "rgb"}``), held ones standing in for those not sent;
         ``ValueError`` for one the plan does not name, or one missing."""
-        sent = {str(t["file"]): (t["width"], t["height"], t["rgb"]) for t in textures}
+        sent = {}
+        for texture in textures:
+            try:
+                sent[str(texture["file"])] = (texture["width"], texture["height"],
+                                              texture["rgb"])
+            except (KeyError, TypeError):
+                raise ValueError("a colour pack sent must be {'file', 'width', 'height', "
+                                 f"'rgb'}}, got {texture!r:.80}") from None
         wanted = {n["file"] for n in nodes}
         extra = sorted(set(sent) - wanted)
         if extra:

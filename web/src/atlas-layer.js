@@ -40,7 +40,7 @@
 import * as THREE from "three";
 
 import { fetchBytes } from "./fetch-bytes.js";
-import { decodeTextureRgb } from "./page.js";
+import { decodeTextureRgb, forEachLimited } from "./page.js";
 import { DETAIL_PX, TEXEL_PX } from "./tile-tree.js";
 
 export const MAX_VERTICES = 250000;
@@ -168,18 +168,13 @@ export class AtlasLayer {
     if (!this.colour) return;
     const needed = new Set(levels.map((level, g) => this.colour.group_packs[g][level + 1]));
     const missing = [...needed].filter((name) => !this.worker.colourPacks.has(name));
-    let next = 0;
-    const fetchOne = async () => {
-      while (next < missing.length) {
-        const name = missing[next++];
-        const bytes = await fetchBytes(new URL(name, this.baseUrl).href, `colour pack ${name}`);
-        this.stats.atlas_colour_bytes += bytes.length;
-        this.stats.bytes_downloaded = (this.stats.bytes_downloaded || 0) + bytes.length;
-        await this.worker.addColourPack(name, await decodeTextureRgb(bytes, { file: name }));
-        this.stats.atlas_colour_packs_loaded += 1;
-      }
-    };
-    await Promise.all(Array.from({ length: Math.min(FETCH_PARALLEL, missing.length) }, fetchOne));
+    await forEachLimited(missing, FETCH_PARALLEL, async (name) => {
+      const bytes = await fetchBytes(new URL(name, this.baseUrl).href, `colour pack ${name}`);
+      this.stats.atlas_colour_bytes += bytes.length;
+      this.stats.bytes_downloaded = (this.stats.bytes_downloaded || 0) + bytes.length;
+      await this.worker.addColourPack(name, await decodeTextureRgb(bytes, { file: name }));
+      this.stats.atlas_colour_packs_loaded += 1;
+    });
     const unneeded = [...this.worker.colourPacks].filter((name) => !needed.has(name));
     if (unneeded.length) await this.worker.dropColourPacks(unneeded);
   }
