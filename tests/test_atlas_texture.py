@@ -155,6 +155,45 @@ def test_the_viewer_session_colours_each_group_at_its_level(coloured_sphere):
         session.add_colour_pack("texture/9/0.webp", 16, 16, bytes(768))
 
 
+def test_a_uv_textured_scan_gives_two_colour_levels_of_its_texture(coloured_sphere):
+    """The fitted atlas of the fixture, coloured from a UV texture (a planar map: the colour
+    depends on x and y alone, so front and back may share texels): the scan's texture has
+    far more samples than the cells, so the levels reach the detail levels' cap."""
+    from types import SimpleNamespace
+
+    from client_py.atlas_format import read_atlas
+    from client_py.bundle import atlas_level_detail
+    from fitter.fitting.atlas.texture import drawn_texel_points, fit_atlas_texture
+
+    scan, folder, manifest = coloured_sphere
+    side = 1024
+    t = (np.arange(side) + 0.5) / side
+    s_, t_ = np.meshgrid(t, t)  # columns s (u), rows t
+    field = np.stack([128 + 2.0 * (100 * s_ - 50), 128 + 2.0 * (100 * t_ - 50),
+                      np.full_like(s_, 128.0)], axis=-1)[::-1]  # row 0 at the top: t = 1
+    texture = Image.fromarray(np.clip(np.rint(field), 0, 255).astype(np.uint8))
+    uv = (np.asarray(scan.points)[:, :2] + 50.0) / 100.0
+    textured = make_scan("sphere", scan.points, faces=scan.faces, uv=uv, texture=texture,
+                         source=new_source("sphere", None, "array", compression=None,
+                                           reader="array"))
+    atlas, _ = read_atlas((folder / "base.tsa").read_bytes())
+    detail = manifest["tiles"]["detail"]
+    levels = len(detail["levels"])
+    tiles = atlas_level_detail(manifest, lambda n: (folder / n).read_bytes(), levels - 1)
+    fake = SimpleNamespace(atlas=atlas, levels=detail["levels"], patch_side=10.0,
+                           tree={"spans_per_tile": detail["spans_per_tile"],
+                                 "groups": detail["groups"]},
+                           detail_up_to=lambda level: tiles)
+    result = fit_atlas_texture(textured, fake)
+    assert result.tree["source"] == "texture" and len(result.cells) == levels == 2
+    top = result.cells[-1]
+    points = drawn_texel_points(atlas, tiles, np.arange(len(atlas.quads)), top.shape[1])
+    expected = np.clip(128 + 2.0 * points[..., :2], 0, 255)
+    assert np.abs(top[..., :2] - expected).mean() < 1.0  # the texture's field, bilinear
+    coarse = top.astype(float).reshape(len(top), 16, 2, 16, 2, 3).mean(axis=(2, 4))
+    assert np.abs(result.cells[0] - coarse).max() <= 0.5  # level 0: 2x2 means, rounded
+
+
 # ------------------------------------------------------------------ client rules, no fitter
 def _pack_of(level: int, first: int, count: int, cell: int) -> ColourPack:
     """A pack whose texel (x, y) of patch f's cell is (f, x, y)."""
