@@ -134,26 +134,59 @@ def atlas_vertex_colours(patches: Sequence[int], uvs: Sequence[float],
                          colour_of_patch: Mapping[int, ColourPack]) -> array:
     """RGB per vertex (``array('B')``): vertex ``k`` of patch ``patches[k]`` at ``(u, v) =
     uvs[2k : 2k + 2]`` takes the bilinear sample of that patch's cell in
-    ``colour_of_patch[patch]`` (:meth:`ColourPack.cell_image`,
-    :meth:`~client_py.layers.TextureImage.sample`); ``0, 0, 0`` for a patch with no pack.
+    ``colour_of_patch[patch]``; ``0, 0, 0`` for a patch with no pack.
 
     ``patches`` and ``uvs`` are an :class:`~client_py.atlas_mesh.AtlasMesh`'s ``patches``
-    and ``uvs``.
+    and ``uvs``. The sample is :meth:`~client_py.layers.TextureImage.sample` of the cell
+    (:meth:`ColourPack.cell_image`), the same float operations read in place from the pack
+    (tests/test_atlas_texture.py holds them equal): a pure-Python loop of a few operations
+    per vertex, for the viewer's worker without numpy.
     """
     n = len(patches)
     if len(uvs) != 2 * n:
         raise ValueError(f"uvs has {len(uvs)} values; {n} vertices need {2 * n}")
-    out = array("B", bytes(3 * n))
-    cells: dict[int, TextureImage | None] = {}
+    out = bytearray(3 * n)
+    where: dict[int, tuple | None] = {}
     for k in range(n):
         f = patches[k]
-        image = cells.get(f, False)
-        if image is False:
+        cell = where.get(f, False)
+        if cell is False:
             pack = colour_of_patch.get(f)
-            image = cells[f] = None if pack is None else pack.cell_image(f)
-        if image is not None:
-            out[3 * k : 3 * k + 3] = array("B", image.sample(uvs[2 * k], uvs[2 * k + 1]))
-    return out
+            if pack is None:
+                cell = where[f] = None
+            else:
+                x, y = cell_origin(f - pack.first, pack.count, pack.cell)
+                cell = where[f] = (pack.rgb, 3 * pack.width, 3 * x, y, pack.cell)
+        if cell is None:
+            continue
+        rgb, row, left, top, t = cell
+        x = uvs[2 * k] * t - 0.5
+        y = (1.0 - uvs[2 * k + 1]) * t - 0.5
+        last = t - 1.0
+        x = 0.0 if x < 0.0 else (last if x > last else x)
+        y = 0.0 if y < 0.0 else (last if y > last else y)
+        if t > 1:
+            x0, y0 = int(x), int(y)
+            if x0 > t - 2:
+                x0 = t - 2
+            if y0 > t - 2:
+                y0 = t - 2
+            x1, y1 = x0 + 1, y0 + 1
+        else:
+            x0 = y0 = x1 = y1 = 0
+        fx, fy = x - x0, y - y0
+        gx, gy = 1 - fx, 1 - fy
+        a = (top + y0) * row + left
+        b = (top + y1) * row + left
+        p00, p01, p10, p11 = a + 3 * x0, a + 3 * x1, b + 3 * x0, b + 3 * x1
+        m = 3 * k
+        out[m] = int((rgb[p00] * gx + rgb[p01] * fx) * gy
+                     + (rgb[p10] * gx + rgb[p11] * fx) * fy + 0.5)
+        out[m + 1] = int((rgb[p00 + 1] * gx + rgb[p01 + 1] * fx) * gy
+                         + (rgb[p10 + 1] * gx + rgb[p11 + 1] * fx) * fy + 0.5)
+        out[m + 2] = int((rgb[p00 + 2] * gx + rgb[p01 + 2] * fx) * gy
+                         + (rgb[p10 + 2] * gx + rgb[p11 + 2] * fx) * fy + 0.5)
+    return array("B", out)
 
 
 def colours_by_patch(packs: Sequence[ColourPack], patches: int) -> dict[int, ColourPack]:

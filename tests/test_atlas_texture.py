@@ -219,7 +219,20 @@ def test_a_vertex_takes_its_patch_cell_texel_in_the_texture_tiles_orientation():
     assert list(rgb) == [3, 0, 0, 3, 3, 3, 4, 1, 1]
     cell = pack.cell_image(4)
     assert cell == TextureImage(0, 0, 0, 4, 4, cell.rgb)
-    assert cell.sample(0.3, 0.6) == tuple(atlas_vertex_colours([4], [0.3, 0.6], of_patch))
+    # the in-place loop is the single patch's TextureImage.sample of the cell, bit for bit
+    rng = np.random.default_rng(2)
+    noisy = np.frombuffer(pack.rgb, np.uint8) ^ rng.integers(0, 256, len(pack.rgb),
+                                                             dtype=np.uint8)
+    pack = ColourPack(0, 0, 5, 4, 12, 8, noisy.tobytes())
+    of_patch = colours_by_patch([pack], 5)
+    patches = rng.integers(0, 5, 400).tolist()
+    uvs = np.concatenate([rng.uniform(-0.1, 1.1, (380, 2)),
+                          [[0, 0], [1, 1], [0, 1], [1, 0]] * 5]).ravel().tolist()
+    rgb = atlas_vertex_colours(patches, uvs, of_patch)
+    for k, f in enumerate(patches):
+        assert tuple(rgb[3 * k:3 * k + 3]) == pack.cell_image(f).sample(*uvs[2 * k:2 * k + 2])
+    one = ColourPack(0, 0, 1, 1, 1, 1, b"abc")  # a one-texel cell
+    assert bytes(atlas_vertex_colours([0], [0.7, 0.2], {0: one})) == b"abc"
 
 
 def test_pack_layout_round_trips_exactly_without_encoding():
