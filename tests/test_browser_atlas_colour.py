@@ -69,7 +69,7 @@ def colour_collection(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def colour_page(browser, colour_collection):
+def colour_server(colour_collection):
     from live import LiveServer
 
     from fitter.server import create_app
@@ -78,18 +78,22 @@ def colour_page(browser, colour_collection):
     if app.extensions["tessera_snapshot"] is not None:
         app.extensions["tessera_snapshot"].ensure()
     with LiveServer(app) as live:
-        context = browser.new_context(accept_downloads=True,
-                                      viewport={"width": 1000, "height": 700})
-        page = context.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda exc: errors.append(str(exc)))
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.goto(f"{live.url}/objects/sphere/")
-        page.wait_for_function(READY, timeout=90_000)
-        page.wait_for_function("document.body.dataset.refined === '1'", timeout=90_000)
-        page.errors = errors
-        yield page
-        context.close()
+        yield live
+
+
+@pytest.fixture(scope="module")
+def colour_page(browser, colour_server):
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1000, "height": 700})
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(f"{colour_server.url}/objects/sphere/")
+    page.wait_for_function(READY, timeout=90_000)
+    page.wait_for_function("document.body.dataset.refined === '1'", timeout=90_000)
+    page.errors = errors
+    yield page
+    context.close()
 
 
 def test_the_viewer_draws_the_atlas_in_its_colours(colour_page):
@@ -129,3 +133,23 @@ def test_download_ply_has_the_cli_s_colours(colour_page, colour_collection, tmp_
     colours = {tuple(c[:3]) for c in np.asarray(mesh.visual.vertex_colors)}
     assert colours <= set(GROUP_COLOURS) and len(colours) == 6
     assert colour_page.errors == []
+
+
+def test_the_3dhop_page_shows_the_atlas_with_its_colours(page, colour_server):
+    if page.request.get(f"{colour_server.url}/vendor/3dhop/js/presenter.js").status != 200:
+        pytest.skip("3DHOP is not configured (../shared/vendor/3dhop-4.3 absent)")
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(f"{colour_server.url}/objects/sphere/3dhop")  # the base: colour level 0
+    page.wait_for_function(READY, timeout=90_000)
+    assert page.evaluate("document.body.dataset.error") is None
+    assert page.evaluate("window.presenter._isSceneReady()") is True
+    header = bytes(page.evaluate("""async () => {
+        const buffer = await (await fetch(window.tessera.plyUrl)).arrayBuffer();
+        return Array.from(new Uint8Array(buffer.slice(0, 600)));
+    }""")).split(b"end_header", 1)[0].decode()
+    assert "property uchar red" in header and "colour packs of level 0" in header
+    # 3DHOP draws the vertex colours (color -2: "use the mesh's"), not its stone colour
+    assert page.evaluate("window.presenter._scene.modelInstances.object.color[0]") == -2
+    assert errors == []
