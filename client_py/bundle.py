@@ -563,8 +563,11 @@ def atlas_colour(manifest: dict) -> AtlasColour | None:
     if section.get("format") != "webp":
         raise ManifestError("tiles.texture.format", "must be 'webp' (the atlas's colour "
                             f"images), got {_shown(section.get('format'))}")
+    if not spec.levels:
+        raise ManifestError("tiles.texture", "needs tiles.detail with at least one level: "
+                            "the colour packs follow its groups and levels")
     levels = section.get("levels")
-    if not isinstance(levels, list) or not 1 <= len(levels) <= max(len(spec.levels), 0):
+    if not isinstance(levels, list) or not 1 <= len(levels) <= len(spec.levels):
         raise ManifestError("tiles.texture.levels", f"must be a list of 1..{len(spec.levels)} "
                             f"levels (at most the detail levels), got {_shown(levels)}")
     cells = []
@@ -579,6 +582,10 @@ def atlas_colour(manifest: dict) -> AtlasColour | None:
                                 f"in 1..{MAX_CELL} texels per patch side"
                                 + (f", {wanted} (twice the previous level's)" if wanted else "")
                                 + f", got {_shown(entry)}")
+        texel = entry.get("texel")
+        if texel is not None and not (_finite(texel) and texel >= 0):
+            raise ManifestError(f"{where}.texel", f"must be a finite number >= 0 or null, "
+                                f"got {_shown(texel)}")
         cells.append(cell)
     raw = section.get("packs")
     if not isinstance(raw, list) or len(raw) > len(levels) * len(spec.groups):

@@ -285,6 +285,8 @@ def test_a_manifest_colour_section_is_checked(tmp_path):
     assert atlas_colour(manifest) is None and plan_level(manifest, 1).texture_nodes == ()
     for change, message in (
             ({"format": "png"}, "must be 'webp'"),
+            ({"levels": [{"level": 0, "cell": 16, "texel": "x"}, good["levels"][1]]},
+             r"levels\[0\]\.texel must be a finite number"),
             ({"levels": [{"level": 0, "cell": 16}, {"level": 1, "cell": 16}]},
              "twice the previous"),
             ({"levels": [{"level": 0, "cell": 16}] * 3}, "at most the detail levels"),
@@ -296,6 +298,9 @@ def test_a_manifest_colour_section_is_checked(tmp_path):
         manifest["tiles"]["texture"] = {**good, **change}
         with pytest.raises(ManifestError, match=message):
             atlas_colour(manifest)
+    manifest["tiles"]["texture"], manifest["tiles"]["detail"] = good, None
+    with pytest.raises(ManifestError, match="needs tiles.detail"):
+        atlas_colour(manifest)
 
 
 def test_barycentric_coordinates_rebuild_the_point():
