@@ -116,6 +116,24 @@ def test_the_viewer_draws_the_atlas_in_its_colours(colour_page):
     assert colour_page.errors == []
 
 
+def test_zooming_in_fetches_the_finer_colour_pack_of_the_groups_in_view(colour_page,
+                                                                        colour_collection):
+    manifest = json.loads((colour_collection / "sphere" / "manifest.json").read_text())
+    centre = np.array(manifest["tiles"]["detail"]["groups"][0]["center"])
+    outward = centre / np.linalg.norm(centre)
+    stats = colour_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)",
+                                 [(centre + 0.6 * outward).tolist(), centre.tolist()])
+    assert stats["atlas_levels"][0] == 1  # group 0 at the finest level ...
+    # ... coloured from level 1's pack of groups 0-2 (texture/1/0.webp), fetched after the
+    # base's (other groups in view may need level 1's second pack too)
+    assert stats["atlas_colour_packs_loaded"] >= 2
+    shot = np.asarray(Image.open(io.BytesIO(colour_page.locator("canvas").screenshot())))
+    rgb = shot[..., :3].astype(int).reshape(-1, 3)
+    red = (rgb[:, 0] > rgb[:, 1] + 60) & (rgb[:, 0] > rgb[:, 2] + 60)
+    assert red.mean() > 0.2  # group 0 (red) fills much of the close view
+    assert colour_page.errors == []
+
+
 def test_download_ply_has_the_cli_s_colours(colour_page, colour_collection, tmp_path):
     from fitter.cli import main
 
