@@ -87,14 +87,28 @@ def test_a_coloured_closed_mesh_gets_colour_packs_listed_with_their_bytes(colour
 
 def test_colours_read_back_match_the_colours_written(coloured_sphere):
     scan, folder, manifest = coloured_sphere
-    from fitter.fitting.atlas.texture import AtlasTexture
+    from client_py.atlas_format import read_atlas
+    from client_py.bundle import atlas_level_detail
+    from fitter.fitting.atlas.texture import AtlasTexture, coarser_cells, sample_cells
+    from fitter.fitting.texture import uv_picture
 
     colour = atlas_colour(manifest)
     groups = manifest["tiles"]["detail"]["groups"]
     files = {p["file"]: (folder / p["file"]).read_bytes() for p in colour.packs}
     texture = AtlasTexture(manifest["tiles"]["texture"], files, [], groups)
+    # the cells as the fitter sampled them, again (deterministic), before WebP
+    atlas, _ = read_atlas((folder / "base.tsa").read_bytes())
+    tiles = atlas_level_detail(manifest, lambda n: (folder / n).read_bytes(),
+                               len(manifest["tiles"]["detail"]["levels"]) - 1)
+    written = coarser_cells(sample_cells(scan, atlas, tiles, colour.levels[-1]["cell"]),
+                            len(colour.levels))
     for level in range(len(colour.levels)):
         packs = decoded_packs(texture, level)
+        read = np.stack([np.frombuffer(p.cell_image(f).rgb, np.uint8) for p in packs
+                         for f in range(p.first, p.first + p.count)]).astype(float)
+        wrote = np.stack([uv_picture(cell).ravel() for cell in written[level]]).astype(float)
+        # WebP's quantisation (quality 90) on this strongly chromatic field (q82: 7.3)
+        assert np.abs(read - wrote).mean() < 4.5
         # each decoded cell against the analytic colour at its texel centres' drawn points:
         # WebP's quantisation (quality 82) and the surface's distance to the sphere apart,
         # the colours written come back
