@@ -346,3 +346,17 @@ def test_laurana_atlas_keeps_the_scan_colour(tmp_path):
 def texture_file(texture: dict) -> str:
     pack = texture["packs"][0]
     return colour_pack_name(pack["level"], pack["group"])
+
+
+def test_the_collection_leaves_out_an_atlas_with_a_malformed_colour_section(tmp_path):
+    from fitter.collection.bundles import MANIFEST, parse_manifest
+
+    manifest = write_atlas_bundle(tmp_path / "sphere", k=1, levels=2)
+    manifest["tiles"]["texture"] = {"format": "webp", "levels": [{"level": 0, "cell": 16}],
+                                    "packs": []}
+    (tmp_path / "sphere" / MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"format_version 2 \(atlas\).*every group 0\.\.5"):
+        parse_manifest(tmp_path / "sphere" / MANIFEST)
+    manifest["tiles"]["texture"]["packs"] = [{"level": 0, "group": 0, "groups": 6, "bytes": 9}]
+    (tmp_path / "sphere" / MANIFEST).write_text(json.dumps(manifest))
+    assert parse_manifest(tmp_path / "sphere" / MANIFEST)["tiles"]["texture"]["packs"]
