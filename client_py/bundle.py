@@ -32,6 +32,17 @@ from .atlas import MAX_ATLAS_QUADS, AtlasSurface
 from .atlas_detail import pack_name, read_pack
 from .atlas_format import read_atlas
 from .atlas_mesh import tessellate_atlas
+from .atlas_texture import (
+    MAX_CELL,
+    MAX_PACK_SIDE,
+    ColourPack,
+    atlas_vertex_colours,
+    colour_level,
+    colour_pack_name,
+    colour_pack_name_parts,
+    colours_by_patch,
+    pack_shape,
+)
 from .errors import PatchFormatError
 from .format import read_detail_tile, read_patch
 from .layers import (
@@ -55,8 +66,8 @@ MANIFEST_VERSIONS = (1, 2)  # 1: one patch; 2: an atlas
 ATLAS_MAX_RESOLUTION = 129
 TEXTURE_EXTENSIONS = ("webp", "png")
 _NAMING = ("relative POSIX paths inside the bundle, as the fitter writes them: base.tsp, "
-           "detail/K/I_J.tsd, texture/K/I_J.webp or .png; in an atlas base.tsa and "
-           "detail/K/G.tsdp")
+           "detail/K/I_J.tsd, texture/K/I_J.webp or .png; in an atlas base.tsa, "
+           "detail/K/G.tsdp and texture/K/G.webp")
 
 
 class ManifestError(PatchFormatError):
@@ -120,8 +131,8 @@ def check_file_name(name: object, where: str) -> str:
     """``name`` if it names a file inside the bundle; else :class:`ManifestError`.
 
     Accepted: ``base.tsp``, ``detail/K/I_J.tsd`` and ``texture/K/I_J.webp|png``; of an
-    atlas, ``base.tsa`` and ``detail/K/G.tsdp`` (decimal ``K, I, J, G`` without leading
-    zeros) — so no absolute path, no ``..``,
+    atlas, ``base.tsa``, ``detail/K/G.tsdp`` and ``texture/K/G.webp`` (decimal ``K, I, J,
+    G`` without leading zeros) — so no absolute path, no ``..``,
     no backslash or NUL, and a reader that joins the name to the bundle's folder or
     URL stays inside it.
     """
@@ -135,7 +146,7 @@ def check_file_name(name: object, where: str) -> str:
     elif "\\" in name or "\0" in name:
         problem = "holds a backslash or NUL"
     elif name in (BASE_FILE, ATLAS_BASE_FILE) or _tile_name_parts(name) is not None \
-            or pack_name_parts(name) is not None:
+            or pack_name_parts(name) is not None or colour_pack_name_parts(name) is not None:
         return name
     else:
         problem = "is not a bundle file name"
@@ -430,10 +441,6 @@ def atlas_tiles(manifest: dict) -> AtlasTiles:
         raise ManifestError("base.resolution", f"must be an integer in 2.."
                             f"{ATLAS_MAX_RESOLUTION} (samples per patch side), got "
                             f"{_shown(base_res)}")
-    tiles = _tiles(manifest)
-    if tiles.get("texture") is not None:
-        raise ManifestError("tiles.texture", "must be null in a version-2 manifest (an atlas "
-                            f"has no texture tiles yet), got {_shown(tiles['texture'])}")
     detail = _detail(manifest)
     if not detail:
         return AtlasTiles(patches, base_res, None, (), (), {})
@@ -508,6 +515,132 @@ def atlas_tiles(manifest: dict) -> AtlasTiles:
                                 f"null, got {_shown(error)}")
         packs[level, group] = {"bytes": size, "geometric_error": error}
     return AtlasTiles(patches, base_res, spans, levels, tuple(groups), packs)
+
+
+@dataclass(frozen=True)
+class AtlasColour:
+    """The checked ``tiles.texture`` of a version-2 manifest (:func:`atlas_colour`).
+
+    Attributes
+    ----------
+    levels : tuple of dict
+        ``tiles.texture.levels``, entry ``c`` of colour level ``c`` (``cell``: texels per
+        patch side).
+    packs : tuple of dict
+        Every colour pack, by level then group: ``level``, ``group`` (its first detail
+        group), ``groups``, ``first`` and ``count`` (its patches), ``cell``, ``width``,
+        ``height``, ``file`` and ``bytes``.
+    """
+
+    levels: tuple[dict, ...]
+    packs: tuple[dict, ...]
+
+    def level_packs(self, detail_level: int) -> list[dict]:
+        """The packs of the colour level drawn with detail level ``detail_level``
+        (:func:`client_py.atlas_texture.colour_level`): every patch's cell once."""
+        c = colour_level(detail_level, len(self.levels))
+        return [p for p in self.packs if p["level"] == c]
+
+
+def atlas_colour(manifest: dict) -> AtlasColour | None:
+    """Check a version-2 manifest's ``tiles.texture`` (docs/format.md, "Atlas colour") and
+    return it; ``None`` when it is absent or null (a bundle without colour).
+
+    Colour level ``c`` (``0 <= c <`` the detail levels) has ``cell = cell_0 2^c`` texels per
+    patch side; its packs hold runs of whole detail groups (``group``, ``groups``) that
+    cover every group once, in order.
+
+    Raises
+    ------
+    ManifestError
+        Any entry missing, of the wrong type or out of range.
+    """
+    spec = atlas_tiles(manifest)
+    section = _tiles(manifest).get("texture")
+    if section is None:
+        return None
+    section = _mapping(section, "tiles.texture", optional=False)
+    if section.get("format") != "webp":
+        raise ManifestError("tiles.texture.format", "must be 'webp' (the atlas's colour "
+                            f"images), got {_shown(section.get('format'))}")
+    if not spec.levels:
+        raise ManifestError("tiles.texture", "needs tiles.detail with at least one level: "
+                            "the colour packs follow its groups and levels")
+    levels = section.get("levels")
+    if not isinstance(levels, list) or not 1 <= len(levels) <= len(spec.levels):
+        raise ManifestError("tiles.texture.levels", f"must be a list of 1..{len(spec.levels)} "
+                            f"levels (at most the detail levels), got {_shown(levels)}")
+    cells = []
+    for c, entry in enumerate(levels):
+        where = f"tiles.texture.levels[{c}]"
+        entry = _mapping(entry, where, optional=False)
+        cell = entry.get("cell")
+        wanted = cells[0] << c if cells else None
+        if entry.get("level") != c or not (_is_int(cell) and 1 <= cell <= MAX_CELL) \
+                or (wanted is not None and cell != wanted):
+            raise ManifestError(where, f"must describe colour level {c} with an integer cell "
+                                f"in 1..{MAX_CELL} texels per patch side"
+                                + (f", {wanted} (twice the previous level's)" if wanted else "")
+                                + f", got {_shown(entry)}")
+        texel = entry.get("texel")
+        if texel is not None and not (_finite(texel) and texel >= 0):
+            raise ManifestError(f"{where}.texel", f"must be a finite number >= 0 or null, "
+                                f"got {_shown(texel)}")
+        cells.append(cell)
+    raw = section.get("packs")
+    if not isinstance(raw, list) or len(raw) > len(levels) * len(spec.groups):
+        raise ManifestError("tiles.texture.packs", f"must be a list of at most "
+                            f"{len(levels) * len(spec.groups)} packs, got {_shown(raw)}")
+    packs = []
+    reached = [0] * len(levels)  # the next group each level's packs must start at
+    for p, entry in enumerate(raw):
+        where = f"tiles.texture.packs[{p}]"
+        entry = _mapping(entry, where, optional=False)
+        c, group, groups = entry.get("level"), entry.get("group"), entry.get("groups")
+        if not (_is_int(c) and 0 <= c < len(levels) and _is_int(group)
+                and group == reached[c] and _is_int(groups)
+                and 1 <= groups <= len(spec.groups) - group):
+            raise ManifestError(where, f"needs a colour level in 0..{len(levels) - 1}, its "
+                                "first group where that level's previous pack ended and a "
+                                f"group count within the {len(spec.groups)} groups, got "
+                                f"{_shown(entry)}")
+        size = entry.get("bytes")
+        if not (_is_int(size) and size >= 0):
+            raise ManifestError(f"{where}.bytes", f"must be a byte count >= 0, got "
+                                f"{_shown(size)}")
+        reached[c] = group + groups
+        first = spec.groups[group].first
+        last = spec.groups[group + groups - 1]
+        count = last.first + last.count - first
+        width, height = pack_shape(count, cells[c])
+        if max(width, height) > MAX_PACK_SIDE:
+            raise ManifestError(where, f"makes a {width}x{height} image; at most "
+                                f"{MAX_PACK_SIDE} texels per side")
+        packs.append({"level": c, "group": group, "groups": groups, "first": first,
+                      "count": count, "cell": cells[c], "width": width, "height": height,
+                      "file": colour_pack_name(c, group), "bytes": size})
+    for c, end in enumerate(reached):
+        if end != len(spec.groups):
+            raise ManifestError("tiles.texture.packs", f"of colour level {c} cover groups "
+                                f"0..{end - 1}; every group 0..{len(spec.groups) - 1} must be "
+                                "in one pack")
+    return AtlasColour(tuple(levels), tuple(packs))
+
+
+def colour_packs_of(nodes: Sequence[Mapping], images: Mapping[str, tuple[int, int, bytes]]
+                    ) -> list[ColourPack]:
+    """The decoded :class:`~client_py.atlas_texture.ColourPack` of each plan node
+    (:attr:`LevelPlan.texture_nodes` of an atlas) from ``images[file] = (width, height,
+    rgb)``, checked against the node's shape (``ValueError`` naming the file)."""
+    out = []
+    for node in nodes:
+        width, height, rgb = images[node["file"]]
+        if (width, height) != (node["width"], node["height"]):
+            raise ValueError(f"{node['file']} is {width}x{height}; the manifest's pack is "
+                             f"{node['width']}x{node['height']}")
+        out.append(ColourPack(node["level"], node["first"], node["count"], node["cell"],
+                              width, height, bytes(rgb)))
+    return out
 
 
 def atlas_resolution(manifest: dict, level: int) -> int:
@@ -598,8 +731,9 @@ def plan_level(manifest: dict, level: int | None = None) -> LevelPlan:
     Notes
     -----
     Of an atlas (version 2): ``detail_files`` are the packs of levels ``0..L``
-    (``detail/K/G.tsdp``, by level then group), no texture, and ``resolution`` the samples
-    per patch side (:func:`atlas_resolution`).
+    (``detail/K/G.tsdp``, by level then group), ``texture_nodes`` the colour packs drawn
+    with level ``L`` (:meth:`AtlasColour.level_packs`; none without colour), and
+    ``resolution`` the samples per patch side (:func:`atlas_resolution`).
     """
     if manifest_version(manifest) == 2:
         return _plan_atlas_level(manifest, level)
@@ -632,9 +766,11 @@ def _plan_atlas_level(manifest: dict, level: int | None) -> LevelPlan:
     else:
         rms = _optional_number(spec.levels[level].get("rms"), f"tiles.detail.levels[{level}].rms")
     keys = sorted(key for key in spec.packs if key[0] <= level)
+    colour = atlas_colour(manifest)
+    textures = () if colour is None else tuple(colour.level_packs(level))
     return LevelPlan(level, rms, tuple(pack_name(k, g) for k, g in keys),
-                     sum(spec.packs[key]["bytes"] for key in keys), (), 0,
-                     spec.resolution(level))
+                     sum(spec.packs[key]["bytes"] for key in keys), textures,
+                     sum(n["bytes"] for n in textures), spec.resolution(level))
 
 
 def plan_levels(manifest: dict) -> list[LevelPlan]:
@@ -714,9 +850,10 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
     resolution : int, optional
         Vertices per side of the grid over the whole domain (of each patch, for an
         atlas); default the level's, :attr:`LevelPlan.resolution`.
-    textures : sequence of TextureImage
+    textures : sequence of TextureImage, or of ColourPack for an atlas
         Decoded texture tiles (e.g. those of :func:`texture_nodes`); vertex
-        colours are sampled from them (one patch only).
+        colours are sampled from them. Of an atlas, the decoded colour packs of the
+        plan's ``texture_nodes`` (:func:`colour_packs_of`).
     scan_frame : bool
         Map the mesh into the scan's coordinates by the patch's ``transform`` (an atlas is
         in the scan frame already).
@@ -741,7 +878,14 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
         atlas, _ = read_atlas(read(base_file(manifest)))
         check_atlas_base(atlas, manifest)
         detail = atlas_level_detail(manifest, read, level)
-        return tessellate_atlas(atlas, resolution, detail, kernel)
+        mesh = tessellate_atlas(atlas, resolution, detail, kernel)
+        if textures:
+            if atlas_colour(manifest) is None:
+                raise ValueError("this atlas bundle has no colour (tiles.texture is null); "
+                                 "no colour packs may be given")
+            of_patch = colours_by_patch(textures, len(atlas.quads))
+            mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, of_patch)
+        return mesh
     surface = read_patch(read(base_file(manifest)))
     tiles = []
     for node in detail_nodes(manifest, level):
@@ -817,7 +961,7 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
         raise ValueError(f"level must be an integer >= -1, got {level!r}")
     if isinstance(surface, AtlasSurface):
         return _write_atlas_ply(surface, tiles, level, resolution, source, binary, kernel,
-                                units)
+                                units, list(textures))
     tiles = list(tiles)
     textures = list(textures)
     for tile in tiles:
@@ -841,8 +985,11 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
 
 def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTile]],
                      level: int, resolution: int | Sequence[int], source: str, binary: bool,
-                     kernel: str | None, units: str | None) -> tuple[bytes, Mesh]:
-    """:func:`write_level_ply` of an atlas: one welded mesh, ``detail`` = ``{patch: tiles}``."""
+                     kernel: str | None, units: str | None,
+                     packs: Sequence[ColourPack] = ()) -> tuple[bytes, Mesh]:
+    """:func:`write_level_ply` of an atlas: one welded mesh, ``detail`` = ``{patch: tiles}``,
+    coloured per vertex from ``packs`` (the decoded colour packs of the level's plan, which
+    hold every patch's cell once) when given."""
     if not isinstance(detail, Mapping):
         raise ValueError("tiles of an atlas must be a mapping of patch index to DetailTile "
                          f"lists, got {type(detail).__name__}")
@@ -862,4 +1009,9 @@ def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTi
                     f"0..{level}" if level >= 0 else
                     f"the atlas of {len(atlas.quads)} patches alone"),
                 f"tessellated by client_py, one welded mesh, {grid}"]
+    if packs:
+        of_patch = colours_by_patch(packs, len(atlas.quads))
+        mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, of_patch)
+        comments.append(f"vertex colours sampled from {len(packs)} colour packs of level "
+                        + ", ".join(str(c) for c in sorted({p.level for p in packs})))
     return write_ply(mesh, binary=binary, comments=comments), mesh

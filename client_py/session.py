@@ -30,13 +30,16 @@ from .atlas import AtlasSurface
 from .atlas_detail import pack_name, read_pack
 from .atlas_format import read_atlas
 from .atlas_mesh import tessellate_atlas
+from .atlas_texture import ColourPack, atlas_vertex_colours, colours_for_groups
 from .bundle import (
     PLY_MAX_RESOLUTION,
     AtlasTiles,
     ManifestError,
     add_pack_tiles,
+    atlas_colour,
     atlas_tiles,
     check_atlas_base,
+    colour_packs_of,
     detail_spans,
     pack_name_parts,
     plan_level,
@@ -109,6 +112,7 @@ class WorkerSession:
         self._atlas: AtlasSurface | None = None  # an atlas bundle's base (load_atlas), scan frame
         self._atlas_units = "unknown"
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
+        self._colours: dict[str, ColourPack] = {}  # an atlas's decoded colour packs, by name
 
     @property
     def kernel(self) -> str:
@@ -316,13 +320,11 @@ class WorkerSession:
         Notes
         -----
         With an atlas loaded (:meth:`load_atlas`), ``fresh`` names packs
-        (``detail/K/G.tsdp``) and the PLY is one welded mesh of every patch; an atlas has
-        no texture tiles.
+        (``detail/K/G.tsdp``) and the PLY is one welded mesh of every patch; ``textures``
+        are the plan's colour packs decoded, ``{"file", "width", "height", "rgb"}``.
         """
         if self._atlas is not None:
-            if list(textures):
-                raise ValueError("an atlas bundle has no texture tiles; none may be sent")
-            return self._atlas_level_ply(level, dict(fresh or {}))
+            return self._atlas_level_ply(level, dict(fresh or {}), list(textures))
         patch = self._loaded()
         plan = plan_level(self._manifest_read(), level)
         fresh = dict(fresh or {})
@@ -505,13 +507,17 @@ class WorkerSession:
             r = _drawn_resolution(spec, level)
             resolution[group.first : group.first + group.count] = [r] * group.count
         mesh = tessellate_atlas(atlas, resolution, detail, self._kernel)
+        self._colour_atlas_mesh(mesh, spec, levels)
         self._last = (-2, mesh)  # not a base grid: base_ply never reuses it
         return mesh
 
-    def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes]) -> PlyFile:
-        """:meth:`level_ply` of an atlas: the packs of levels ``0..level``, held or fresh."""
+    def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes],
+                         textures: Sequence[Mapping] = ()) -> PlyFile:
+        """:meth:`level_ply` of an atlas: the packs of levels ``0..level``, held or fresh,
+        coloured from the decoded colour packs ``textures`` (those of the plan, each once)."""
         atlas, spec = self._atlas_loaded()
         plan = plan_level(self._manifest_read(), level)
+        packs = self._plan_colour_packs(plan.texture_nodes, textures)
         extra = sorted(set(fresh) - set(plan.detail_files))
         if extra:
             raise ValueError(f"fresh packs {', '.join(extra)} are not packs of level {level} "
@@ -532,9 +538,103 @@ class WorkerSession:
             else:
                 raise ValueError(f"detail pack {name} was neither handed over nor sent")
         data, mesh = write_level_ply(atlas, detail, plan.level, plan.resolution, self._source,
-                                     kernel=self._kernel, units=self._manifest_read().get(
-                                         "units") or self._atlas_units)
+                                     packs, kernel=self._kernel,
+                                     units=self._manifest_read().get("units")
+                                     or self._atlas_units)
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
+
+
+    # ------------------------------------------------------------------ an atlas's colour
+    def atlas_colour_refinement(self) -> dict | None:
+        """The atlas's colour for the viewer (``None`` without colour): ``levels`` (colour
+        levels), ``texel`` (per detail level ``-1 .. L - 1``, the world size of a texel of the
+        colour level drawn with it, median patch), ``packs`` (``file``, ``bytes``, ``level``)
+        and ``group_packs`` (per group, per detail level ``-1 .. L - 1``, the file of the
+        colour pack its mesh is coloured from: ``client_py.atlas_texture.colour_level``)."""
+        _, spec = self._atlas_loaded()
+        colour = atlas_colour(self._manifest_read())
+        if colour is None:
+            return None
+        texel, group_packs = [], [[] for _ in spec.groups]
+        for k in range(-1, len(spec.levels)):
+            packs = colour.level_packs(k)
+            texel.append(colour.levels[packs[0]["level"]].get("texel"))
+            for pack in packs:
+                for g in range(pack["group"], pack["group"] + pack["groups"]):
+                    group_packs[g].append(pack["file"])
+        return {"levels": len(colour.levels), "texel": texel, "group_packs": group_packs,
+                "packs": [{"file": p["file"], "bytes": p["bytes"], "level": p["level"]}
+                          for p in colour.packs]}
+
+    def add_colour_pack(self, name: str, width: int, height: int, rgb: bytes) -> dict:
+        """Keep the decoded colour pack ``name`` (``texture/C/G.webp``, one the manifest
+        lists; ``rgb`` its ``3 width height`` bytes, rows top to bottom): ``{"level",
+        "first", "count"}``.
+
+        Raises
+        ------
+        ValueError
+            A name the manifest does not list, or an image of another size.
+        """
+        self._atlas_loaded()
+        colour = atlas_colour(self._manifest_read())
+        nodes = [] if colour is None else [p for p in colour.packs if p["file"] == str(name)]
+        if not nodes:
+            raise ValueError(f"{name!r} is not a colour pack the manifest lists "
+                             "(texture/C/G.webp)")
+        (pack,) = colour_packs_of(nodes, {nodes[0]["file"]: (width, height, rgb)})
+        self._colours[nodes[0]["file"]] = pack
+        return {"level": pack.level, "first": pack.first, "count": pack.count}
+
+    def drop_colour_packs(self, names: Iterable[str]) -> None:
+        """Forget colour packs handed over (names not held are ignored)."""
+        for name in names:
+            self._colours.pop(name, None)
+
+    def holds_colour_pack(self, name: str) -> bool:
+        """Whether the colour pack ``name`` has been handed over and not dropped."""
+        return name in self._colours
+
+    def _colour_atlas_mesh(self, mesh: Mesh, spec: AtlasTiles, levels: Sequence[int]) -> None:
+        """Colour :meth:`atlas_mesh`'s ``mesh`` per vertex from the held colour packs, group
+        ``g`` at the colour level of ``levels[g]``, when the bundle has colour and every
+        group's pack is held (else it stays uncoloured: the packs are still on their way)."""
+        colour = atlas_colour(self._manifest_read())
+        if colour is None or not self._colours:
+            return
+        groups = [(g.first, g.count) for g in spec.groups]
+        of_patch = colours_for_groups(list(self._colours.values()), groups, levels,
+                                      len(colour.levels))
+        if len(of_patch) == spec.patches:
+            mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, of_patch)
+
+    def _plan_colour_packs(self, nodes: Sequence[Mapping],
+                           textures: Sequence[Mapping]) -> list[ColourPack]:
+        """The decoded colour packs of a level's plan ``nodes`` from ``textures`` sent
+        (``{"file", "width", "height", "rgb"}``), held ones standing in for those not sent;
+        ``ValueError`` for one the plan does not name, or one missing."""
+        sent = {}
+        for texture in textures:
+            try:
+                sent[str(texture["file"])] = (texture["width"], texture["height"],
+                                              texture["rgb"])
+            except (KeyError, TypeError):
+                raise ValueError("a colour pack sent must be {'file', 'width', 'height', "
+                                 f"'rgb'}}, got {texture!r:.80}") from None
+        wanted = {n["file"] for n in nodes}
+        extra = sorted(set(sent) - wanted)
+        if extra:
+            raise ValueError(f"colour packs {', '.join(extra)} are not in this level's plan "
+                             f"({', '.join(sorted(wanted)) or 'no colour'})")
+        out = []
+        for node in nodes:
+            if node["file"] in sent:
+                out.extend(colour_packs_of([node], sent))
+            elif node["file"] in self._colours:
+                out.append(self._colours[node["file"]])
+            else:
+                raise ValueError(f"colour pack {node['file']} was neither handed over nor sent")
+        return out
 
 
 def _decode_tile(name: str, data: bytes) -> DetailTile:

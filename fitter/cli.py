@@ -125,16 +125,12 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
         raise UserError(f"{bundle}: {exc}") from None
     except (OSError, ValueError) as exc:  # a missing file; a --level the bundle lacks
         raise UserError(f"{bundle}: {exc}") from None
-    images = []
-    for node in plan.texture_nodes:
-        try:
-            with Image.open(bundle / node["file"]) as im:
-                rgb = im.convert("RGB")
-                images.append(TextureImage(node["level"], node["i"], node["j"], rgb.width,
-                                           rgb.height, rgb.tobytes()))
-        except (OSError, ValueError) as exc:  # PIL.UnidentifiedImageError is an OSError
-            raise UserError(f"{bundle / node['file']}: not a usable texture tile: {exc}") \
-                from None
+    decoded = _decode_images(bundle, plan.texture_nodes)
+    try:
+        images = [TextureImage(node["level"], node["i"], node["j"], *decoded[node["file"]])
+                  for node in plan.texture_nodes]
+    except ValueError as exc:
+        raise UserError(f"{bundle}: not a usable texture tile: {exc}") from None
     out = Path(args.output)
     texture_file = None
     if args.texture:
@@ -157,16 +153,32 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     return 0
 
 
+def _decode_images(bundle: Path, nodes) -> dict[str, tuple[int, int, bytes]]:
+    """``{file: (width, height, rgb)}`` of the texture images ``nodes`` name, decoded by
+    Pillow (client_py decodes no images); a file that is not one is a ``UserError``."""
+    from PIL import Image
+
+    out = {}
+    for node in nodes:
+        try:
+            with Image.open(bundle / node["file"]) as im:
+                rgb = im.convert("RGB")
+                out[node["file"]] = (rgb.width, rgb.height, rgb.tobytes())
+        except (OSError, ValueError) as exc:  # PIL.UnidentifiedImageError is an OSError
+            raise UserError(f"{bundle / node['file']}: not a usable texture image: {exc}") \
+                from None
+    return out
+
+
 def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: dict) -> int:
     """An atlas bundle (manifest version 2) at ``--level``: ``base.tsa`` and the packs of
     levels ``0..L`` (``client_py.bundle.plan_level``), one welded PLY written by
     ``client_py.bundle.write_level_ply`` on the level's samples per patch side
-    (``--resolution`` overrides them), as the viewer's "Download PLY" writes it."""
+    (``--resolution`` overrides them), as the viewer's "Download PLY" writes it; with
+    colour, RGB per vertex from the level's colour packs (also with ``--texture``: an atlas
+    has no one texture image to name)."""
     from client_py.atlas_format import read_atlas
-    from client_py.bundle import atlas_level_detail, check_atlas_base
-
-    if args.texture:
-        raise UserError(f"{bundle}: --texture: an atlas bundle has no texture tiles")
+    from client_py.bundle import atlas_level_detail, check_atlas_base, colour_packs_of
 
     def read(name: str) -> bytes:
         return (bundle / name).read_bytes()
@@ -176,9 +188,12 @@ def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: d
         atlas, metadata = read_atlas(read(base_file(manifest)))
         check_atlas_base(atlas, manifest)
         detail = atlas_level_detail(manifest, read, plan.level)
+        if args.texture and not plan.texture_nodes:
+            raise UserError(f"{bundle}: --texture: the bundle has no colour")
+        packs = colour_packs_of(plan.texture_nodes, _decode_images(bundle, plan.texture_nodes))
         resolution = plan.resolution if args.resolution is None else args.resolution
         data, mesh = write_level_ply(atlas, detail, plan.level, resolution, bundle.name,
-                                     binary=not args.ascii, units=manifest.get("units")
+                                     packs, binary=not args.ascii, units=manifest.get("units")
                                      or metadata.get("units"))
     except PatchFormatError as exc:  # a bad file or manifest (ManifestError)
         raise UserError(f"{bundle}: {exc}") from None
@@ -187,7 +202,8 @@ def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: d
     out = Path(args.output)
     out.write_bytes(data)
     print(f"{out}: level {plan.level}, {len(atlas.quads)} patches, {mesh.vertex_count} "
-          f"vertices, {mesh.triangle_count} triangles, {len(data)} bytes")
+          f"vertices, {mesh.triangle_count} triangles, {len(data)} bytes"
+          + (f", vertex colours from {len(packs)} colour packs" if packs else ""))
     return 0
 
 
@@ -294,9 +310,10 @@ def _layer_rows(m: dict) -> list[tuple[str, str]]:
                      f"{m['units']}: {count}, {lev['bytes_total']:,} bytes"))
     texture = tiles.get("texture")
     if texture:
-        count = sum(x["tiles"] for x in texture["levels"])
+        kind = "packs" if "packs" in texture else "tiles"  # an atlas's colour packs
+        count = sum(x[kind] for x in texture["levels"])
         size = sum(x["bytes_total"] for x in texture["levels"])
-        rows.append(("texture", f"{len(texture['levels'])} levels, {count} tiles, "
+        rows.append(("texture", f"{len(texture['levels'])} levels, {count} {kind}, "
                      f"{size:,} bytes"))
     return rows
 
@@ -553,7 +570,8 @@ def build_parser() -> argparse.ArgumentParser:
                       "(-1: the base alone; default: the finest)")
     tess.add_argument("--texture", action="store_true",
                       help="with a bundle that has texture tiles: write texture_u/v and the "
-                      "level's texture as OUTPUT_texture.png instead of vertex colours")
+                      "level's texture as OUTPUT_texture.png instead of vertex colours (an "
+                      "atlas: RGB per vertex from its colour packs, as without it)")
     tess.add_argument("--ascii", action="store_true",
                       help="write ASCII PLY instead of binary little-endian")
     tess.set_defaults(run=_cmd_tessellate)

@@ -126,7 +126,7 @@ MALFORMED = [
     (lambda m: m["base"].update(resolution=1000), r"base\.resolution"),
     (lambda m: m["base"].update(resolution=7), "cannot be welded"),
     (lambda m: m["base"].update(file="../base.tsa"), r"base\.file .*climbs out"),
-    (lambda m: m["tiles"].update(texture={"nodes": []}), r"tiles\.texture must be null"),
+    (lambda m: m["tiles"].update(texture={"nodes": []}), r"tiles\.texture\.format must be 'webp'"),
     (lambda m: _detail(m).update(groups=[]), r"tiles\.detail\.groups must be a list of 1\.\.6"),
     (lambda m: _detail(m).update(groups="x"), r"tiles\.detail\.groups must be a list"),
     (lambda m: _detail(m)["groups"][1].update(first=3), r"groups\[1\] must hold patches first = 1"),
@@ -249,7 +249,7 @@ def test_write_level_ply_is_the_cli_s_output_and_trimesh_reads_it_watertight(bun
     r = plan_level(manifest).resolution
     assert f"{tessellate_atlas(atlas, r).vertex_count} vertices" in capsys.readouterr().out
     assert main(["tessellate", str(bundle), "--texture", "-o", str(out)]) == 2
-    assert "an atlas bundle has no texture tiles" in capsys.readouterr().err
+    assert "--texture: the bundle has no colour" in capsys.readouterr().err
     assert main(["tessellate", str(bundle), "--level", "7", "-o", str(out)]) == 2
 
 
@@ -342,8 +342,11 @@ def test_the_session_s_level_ply_is_the_cli_s(bundle, tmp_path):
     assert ply.level == 1 and ply.resolution == 9
     with pytest.raises(ValueError, match="are not packs of level 0"):
         session.level_ply(0, fresh)
-    with pytest.raises(ValueError, match="no texture tiles"):
+    with pytest.raises(ValueError, match="a colour pack sent must be"):
         session.level_ply(1, fresh, [{"level": 0}])
+    with pytest.raises(ValueError, match=r"not in this level's plan \(no colour\)"):
+        session.level_ply(1, fresh, [{"file": "texture/0/0.webp", "width": 1, "height": 1,
+                                      "rgb": b"abc"}])
     base = session.level_ply(-1)
     assert base.level == -1 and base.resolution == 5
 

@@ -13,8 +13,9 @@ What the server reads of a manifest is checked here, once, by :func:`parse_manif
 and the fields the gallery, the API and the pages show — ``title``, ``units``,
 ``base.file`` (a name confined to the bundle, see :func:`confined_name`), ``base.grid``,
 ``base.degree``, ``stats``, ``provenance`` and ``files``; of an atlas (``format_version`` 2)
-its ``base`` and ``tiles`` by ``client_py.bundle.atlas_tiles`` instead of ``base.grid`` and
-``base.degree``. A bundle that fails is left out
+its ``base`` and ``tiles`` (colour too) by ``client_py.bundle.atlas_colour``, which
+checks ``atlas_tiles`` first, instead of ``base.grid`` and ``base.degree``. A bundle that
+fails is left out
 of :meth:`Collection.bundles` and logged once per version of its manifest; asking for it
 by id raises :class:`BundleError` with the reason.
 
@@ -35,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from client_py.bundle import ManifestError, atlas_tiles
+from client_py.bundle import ManifestError, atlas_colour
 from client_py.errors import TesseraError
 from client_py.format import loads_finite_json
 
@@ -93,8 +94,8 @@ def _check_fields(data: dict[str, Any]) -> None:
         raise ValueError(f"'base' must be an object with a 'file' name, got {base!r}")
     confined_name(base.get("file", "base.tsp"), "base.file")
     if data.get("format_version") == 2:
-        try:  # an atlas: its base and tiles, by the reader the browser and the CLI use
-            atlas_tiles(data)
+        try:  # an atlas: its base, tiles and colour, by the reader the browser and CLI use
+            atlas_colour(data)  # checks atlas_tiles first
         except ManifestError as exc:
             raise ValueError(f"format_version 2 (atlas): {exc}") from None
     for key, least in (() if data.get("format_version") == 2 else (("grid", 1), ("degree", 1))):

@@ -105,7 +105,7 @@ def push_pull(colour_sum: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return np.where((weight > 0)[..., None], own, up)
 
 
-def _sample_image(image: np.ndarray, tex_uv: np.ndarray) -> np.ndarray:
+def sample_image(image: np.ndarray, tex_uv: np.ndarray) -> np.ndarray:
     """Bilinear RGB of ``image (H, W, 3)`` at texture coordinates ``(s, t)`` with ``t`` up
     (OBJ/trimesh convention: ``t = 0`` the bottom row), repeating outside ``[0, 1]``."""
     h, w = image.shape[:2]
@@ -133,22 +133,59 @@ def _usable_faces(faces: np.ndarray, covered: np.ndarray, u: np.ndarray,
 
 def texture_levels(scan, covered: np.ndarray, max_levels: int, size: int = TILE_SIZE) -> int:
     """Levels the scan's colour supports: texels per side no more than its colour samples
-    over the covered part (texture texels through the mesh's UV area, else vertices)."""
+    over the covered part (:func:`colour_samples`, :func:`texel_levels`); 0 without colour."""
+    samples = colour_samples(scan, covered)
+    if not samples:
+        return 0
+    return texel_levels(np.sqrt(max(samples, 1.0)), size, max_levels)
+
+
+def colour_samples(scan, covered: np.ndarray) -> float:
+    """The scan's colour samples over its ``covered`` points: texture texels through the
+    UV area of the triangles of three covered vertices (a textured mesh), else the covered
+    points (per-vertex colour); 0 without colour."""
     if scan.uv is not None and scan.texture is not None and scan.faces is not None:
         f = scan.faces[covered[scan.faces].all(axis=1)]
         t = scan.uv[f]
         area = 0.5 * np.abs((t[:, 1, 0] - t[:, 0, 0]) * (t[:, 2, 1] - t[:, 0, 1])
                             - (t[:, 2, 0] - t[:, 0, 0]) * (t[:, 1, 1] - t[:, 0, 1])).sum()
-        samples = area * scan.texture.size[0] * scan.texture.size[1]
-    elif scan.colors is not None:
-        samples = float(covered.sum())
-    else:
-        return 0
-    side = np.sqrt(max(samples, 1.0))
+        return float(area * scan.texture.size[0] * scan.texture.size[1])
+    if scan.colors is not None:
+        return float(covered.sum())
+    return 0.0
+
+
+def texel_levels(source_side: float, first_side: int, max_levels: int) -> int:
+    """The one depth rule of a colour pyramid whose level ``k`` has ``first_side 2^k`` texels
+    per side over a region where the scan has ``source_side^2`` colour samples: at least one
+    level, and a finer one while its texels per side stay within ``source_side`` (never
+    finer than the scan's colour), at most ``max_levels``."""
     levels = 1
-    while levels < max_levels and size * 2**levels <= side:
+    while levels < max_levels and first_side * 2**levels <= source_side:
         levels += 1
     return levels
+
+
+def uv_picture(grid: np.ndarray) -> np.ndarray:
+    """An image of ``grid (T_u, T_v, 3)`` (axis 0 ``u``, axis 1 ``v``) in the texture
+    tiles' orientation (``client_py.layers.TextureImage``): ``u`` to the right, ``v`` up,
+    so rows top-down run ``v`` falling; shape ``(T_v, T_u, 3)``."""
+    return np.ascontiguousarray(grid.transpose(1, 0, 2)[::-1])
+
+
+def encode_image(picture: np.ndarray, fmt: str = "webp", quality: int = WEBP_QUALITY) -> bytes:
+    """``picture (H, W, 3) uint8`` (row 0 at the top) as WebP (``quality``, the slowest
+    best method) or lossless PNG, through Pillow."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    if fmt == "webp":
+        Image.fromarray(picture).save(buf, "WEBP", quality=quality, method=6)
+    elif fmt == "png":
+        Image.fromarray(picture).save(buf, "PNG", optimize=True)
+    else:
+        raise ValueError(f"fmt must be 'webp' or 'png', got {fmt!r}")
+    return buf.getvalue()
 
 
 def has_colour(scan) -> bool:
@@ -162,8 +199,6 @@ def texture_pyramid(scan, u: np.ndarray, v: np.ndarray, covered: np.ndarray, lev
     """Texture tiles of levels ``0..levels-1`` from ``scan``'s colour at foot points
     ``u, v (N,)`` of its points (see the module docstring). Empty when the scan has
     no colour."""
-    from PIL import Image
-
     if levels <= 0 or not has_colour(scan):
         return []
     res = size << (levels - 1)
@@ -174,7 +209,7 @@ def texture_pyramid(scan, u: np.ndarray, v: np.ndarray, covered: np.ndarray, lev
         where = count > 0
         colour = np.zeros((res, res, 3))
         image = np.asarray(scan.texture.convert("RGB"))
-        colour[where] = _sample_image(image, tex_uv[where] / count[where][:, None])
+        colour[where] = sample_image(image, tex_uv[where] / count[where][:, None])
         total, weight = colour, where.astype(float)
     elif faces is not None and len(faces):
         total, weight = _rasterise(uv, faces, scan.colors[:, :3].astype(float), res)
@@ -195,14 +230,8 @@ def texture_pyramid(scan, u: np.ndarray, v: np.ndarray, covered: np.ndarray, lev
                 block = (slice(i * size, (i + 1) * size), slice(j * size, (j + 1) * size))
                 if not hit[block].any():
                     continue
-                # array axis 0 = u (x, to the right), axis 1 = v (up): rows top-down = v falling
-                picture = np.ascontiguousarray(img[block].transpose(1, 0, 2)[::-1])
-                buf = io.BytesIO()
-                if fmt == "webp":
-                    Image.fromarray(picture).save(buf, "WEBP", quality=WEBP_QUALITY, method=6)
-                else:
-                    Image.fromarray(picture).save(buf, "PNG", optimize=True)
-                tiles.append(TextureTile(k, i, j, buf.getvalue(), fmt, size))
+                picture = uv_picture(img[block])
+                tiles.append(TextureTile(k, i, j, encode_image(picture, fmt), fmt, size))
     return tiles
 
 

@@ -22,18 +22,35 @@
 // longer needed dropped; then WorkerSession.atlas_mesh draws the new mesh, which replaces the
 // shown one in one frame.
 //
+// Colour (a bundle with tiles.texture; WorkerSession.atlas_colour_refinement): a group drawn at
+// level k is coloured per vertex from the colour pack (texture/C/G.webp) of colour level
+// c = min(max(k, 0), C - 1), whose cells have as many texels per patch side as level c's mesh
+// has cells (client_py.atlas_texture). As the single patch's texture tiles (tile-tree.js), a
+// group is also refined while its texels look larger than TEXEL_PX on screen,
+// texel_k * f / d > TEXEL_PX (texel_k: the world size of a texel at level k, median patch),
+// and a finer colour level exists. Before each mesh, the packs the levels need are fetched,
+// decoded to RGB (page.js decodeTextureRgb) and handed to the worker (addColourPack), those
+// no longer needed dropped; the worker's mesh then carries RGB per vertex, shown through
+// three.js vertex colours (converted from sRGB to linear, as the renderer expects).
+//
 // Stats (window.tessera.stats): atlas_levels (per group), atlas_refined_groups,
 // atlas_packs_loaded, atlas_pack_bytes, atlas_tessellate_ms, atlas_updates, vertices,
-// triangles, tessellate_ms.
+// triangles, tessellate_ms, atlas_colour_packs_loaded, atlas_colour_bytes.
 
 import * as THREE from "three";
 
 import { fetchBytes } from "./fetch-bytes.js";
-import { DETAIL_PX } from "./tile-tree.js";
+import { decodeTextureRgb, forEachLimited } from "./page.js";
+import { DETAIL_PX, TEXEL_PX } from "./tile-tree.js";
 
 export const MAX_VERTICES = 250000;
 const FETCH_PARALLEL = 6;
 const SETTLE_MS = 200;
+/** sRGB byte -> linear intensity (IEC 61966-2-1), for three.js vertex colours. */
+const SRGB_TO_LINEAR = Float32Array.from({ length: 256 }, (_, k) => {
+  const c = k / 255;
+  return c <= 0.04045 ? c / 12.92 : ((c + 0.055) / 1.055) ** 2.4;
+});
 
 export class AtlasLayer {
   /**
@@ -60,9 +77,11 @@ export class AtlasLayer {
     this.timer = null;
     this.running = null; // the update in progress, or null
     this.again = false; // the camera moved during an update: run once more after it
+    this.colour = undefined; // WorkerSession.atlas_colour_refinement, read at the first show
     Object.assign(stats, { atlas_levels: [...this.shown], atlas_refined_groups: 0,
                            atlas_packs_loaded: 0, atlas_pack_bytes: 0, atlas_tessellate_ms: 0,
-                           atlas_updates: 0 });
+                           atlas_updates: 0, atlas_colour_packs_loaded: 0,
+                           atlas_colour_bytes: 0 });
   }
 
   /** Whether the bundle has detail to refine with. */
@@ -74,8 +93,10 @@ export class AtlasLayer {
    *  the worker's mesh. */
   async show(levels) {
     const t0 = performance.now();
+    await this.bringColours(levels);
     const mesh = await this.worker.atlasMesh(levels);
     this.viewer.setMesh(mesh, [0, 1, 0, 1]);
+    this.showColours(mesh.colors);
     this.shown = [...levels];
     Object.assign(this.stats, {
       vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3,
@@ -117,7 +138,8 @@ export class AtlasLayer {
       let best = -1, bestSse = DETAIL_PX;
       for (let g = 0; g < this.groups.length; g++) {
         if (distance[g] === null || levels[g] + 1 >= this.levelCount) continue;
-        const sse = this.error(g, levels[g]) * focal / distance[g];
+        const sse = Math.max(this.error(g, levels[g]),
+                             this.texelError(levels[g]) * DETAIL_PX / TEXEL_PX) * focal / distance[g];
         if (sse > bestSse && total - cost(g, levels[g]) + cost(g, levels[g] + 1) <= MAX_VERTICES) {
           best = g;
           bestSse = sse;
@@ -127,6 +149,58 @@ export class AtlasLayer {
       total += cost(best, levels[best] + 1) - cost(best, levels[best]);
       levels[best] += 1;
     }
+  }
+
+  /** The world size of a texel drawn with a group at `level` when a finer colour level would
+   *  show more (0 otherwise, or without colour): refining shows finer colour. */
+  texelError(level) {
+    const colour = this.colour;
+    if (!colour) return 0;
+    const c = Math.min(Math.max(level, 0), colour.levels - 1);
+    const next = Math.min(Math.max(level + 1, 0), colour.levels - 1);
+    return next > c ? colour.texel[level + 1] : 0;
+  }
+
+  /** Fetch, decode and hand the worker the colour packs `levels` need (WorkerSession
+   *  atlas_colour_refinement's group_packs), and drop the others it holds. */
+  async bringColours(levels) {
+    if (this.colour === undefined) this.colour = await this.worker.atlasColour();
+    if (!this.colour) return;
+    const needed = new Set(levels.map((level, g) => this.colour.group_packs[g][level + 1]));
+    const missing = [...needed].filter((name) => !this.worker.colourPacks.has(name));
+    await forEachLimited(missing, FETCH_PARALLEL, async (name) => {
+      const bytes = await fetchBytes(new URL(name, this.baseUrl).href, `colour pack ${name}`);
+      this.stats.atlas_colour_bytes += bytes.length;
+      this.stats.bytes_downloaded = (this.stats.bytes_downloaded || 0) + bytes.length;
+      await this.worker.addColourPack(name, await decodeTextureRgb(bytes, { file: name }));
+      this.stats.atlas_colour_packs_loaded += 1;
+    });
+    const unneeded = [...this.worker.colourPacks].filter((name) => !needed.has(name));
+    if (unneeded.length) await this.worker.dropColourPacks(unneeded);
+  }
+
+  /** Show the mesh's RGB per vertex (bytes, sRGB) as three.js vertex colours (linear), or
+   *  the viewer's plain material without them. */
+  showColours(colors) {
+    const material = this.viewer.material;
+    if (!colors) {
+      if (material.vertexColors) {
+        material.vertexColors = false;
+        material.color.copy(this.plainColour);
+        material.needsUpdate = true;
+      }
+      return;
+    }
+    const linear = new Float32Array(colors.length);
+    for (let k = 0; k < colors.length; k++) linear[k] = SRGB_TO_LINEAR[colors[k]];
+    this.viewer.mesh.geometry.setAttribute("color", new THREE.BufferAttribute(linear, 3));
+    if (!material.vertexColors) {
+      this.plainColour = material.color.clone();
+      material.vertexColors = true;
+      material.color.set(0xffffff);
+      material.needsUpdate = true;
+    }
+    this.viewer.render();
   }
 
   /** Update once the camera has been still for SETTLE_MS (each change re-tessellates). */

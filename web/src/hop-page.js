@@ -185,11 +185,13 @@ async function main() {
     showStage("ply");
     const refinement = await worker.atlasRefinement();
     frame = await worker.atlasMesh(refinement.groups.map(() => -1));
-    ply = await levelPly(worker, choice || atlasBaseChoice(refinement), {
+    const chosen = choice || atlasBaseChoice(refinement, levels);
+    ply = await levelPly(worker, chosen, {
       manifestUrl: config.manifest_url, stats, onProgress: (text) => showStage("ply", text) });
     stats.tessellate_ms = ply.write_ms;
     stats.resolution = ply.resolution;
     stats.ply_level = level;
+    colors = chosen.texture_nodes.length ? true : null; // RGB per vertex from its colour packs
   } else if (!choice) {
     const resolution = config.resolution || RESOLUTION;
     showStage("ply");

@@ -20,6 +20,7 @@ export class MeshWorkerClient {
     // (updated when a "tile"/"drop" request is posted: the worker runs requests in order).
     this.held = new Set();
     this.packs = new Set(); // of those, an atlas's detail packs (addPack)
+    this.colourPacks = new Set(); // an atlas's decoded colour packs the worker holds
     this.worker = new Worker(workerUrl, { type: "module", name: "tessera-mesh-worker" });
     this.worker.onmessage = (event) => this._receive(event.data);
     this.worker.onerror = (event) => {
@@ -90,8 +91,8 @@ export class MeshWorkerClient {
       return Promise.reject(new Error(`detail tiles not fetched: ${missing.join(", ")}`));
     }
     const sent = [...fresh].map(([name, bytes]) => ({ name, bytes }));
-    const images = textures.map(({ level: k, i, j, width, height, rgb }) =>
-      ({ level: k, i, j, width, height, rgb }));
+    const images = textures.map(({ level: k, i, j, file, width, height, rgb }) =>
+      ({ level: k, i, j, file, width, height, rgb }));
     return this._request({ type: "ply", level: choice.level, fresh: sent, textures: images },
                          [...sent.map((tile) => tile.bytes.buffer),
                           ...images.map((image) => image.rgb.buffer)]);
@@ -166,8 +167,32 @@ export class MeshWorkerClient {
     return this._request({ type: "dropPacks", names });
   }
 
+  /** An atlas bundle's colour (after plan()), or null without colour: {levels, texel,
+   *  group_packs, packs} (client_py.session.WorkerSession.atlas_colour_refinement). */
+  async atlasColour() {
+    return (await this._request({ type: "atlasColour" })).colour;
+  }
+
+  /** Hand a decoded colour pack (`texture/C/G.webp` of the manifest: {width, height, rgb},
+   *  rgb transferred) to the worker, which keeps it for atlasMesh's vertex colours. */
+  addColourPack(name, { width, height, rgb }) {
+    this.colourPacks.add(name);
+    return this._request({ type: "colourPack", name, width, height, rgb }, [rgb.buffer])
+      .catch((error) => {
+        this.colourPacks.delete(name);
+        throw error;
+      });
+  }
+
+  /** Forget colour packs the worker holds. */
+  dropColourPacks(names) {
+    for (const name of names) this.colourPacks.delete(name);
+    return this._request({ type: "dropColourPacks", names });
+  }
+
   /** The whole atlas as one welded mesh, group g at detail level levels[g] (-1: the base):
-   *  {positions, normals, uvs, indices, tessellate_ms}. */
+   *  {positions, normals, uvs, indices, colors, tessellate_ms} (colors: RGB per vertex when
+   *  the worker holds every group's colour pack, else null). */
   atlasMesh(levels) {
     return this._request({ type: "atlasMesh", levels });
   }

@@ -33,7 +33,12 @@
 //   page -> {type: "pack", name, bytes} -> {type: "pack", name, level, group, tiles}  (add_pack)
 //   page -> {type: "dropPacks", names}  -> {type: "droppedPacks", names}          (drop_packs)
 //   page -> {type: "atlasMesh", levels} -> {type: "atlasMesh", positions, normals, uvs,
-//           indices, tessellate_ms}  (atlas_mesh: one welded mesh, group g at levels[g])
+//           indices, colors, tessellate_ms}  (atlas_mesh: one welded mesh, group g at
+//           levels[g]; colors RGB per vertex from the colour packs held, or null)
+//   page -> {type: "atlasColour"} -> {type: "atlasColour", colour}  (atlas_colour_refinement)
+//   page -> {type: "colourPack", name, width, height, rgb} -> {type: "colourPack", name, level,
+//           first, count}  (add_colour_pack: a decoded texture/C/G.webp)
+//   page -> {type: "dropColourPacks", names} -> {type: "droppedColourPacks", names}
 //   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (drop_tiles)
@@ -221,13 +226,16 @@ function meshArrays(mesh, ms, fields) {
     const normals = copyBuffer(mesh.normals);
     const uvs = copyBuffer(mesh.uvs);
     const indices = copyBuffer(mesh.indices);
-    return { ...fields, positions, normals, uvs, indices, tessellate_ms: ms };
+    // RGB per vertex (an atlas coloured from its colour packs), else none
+    const colors = mesh.colors === null || mesh.colors === undefined ? null : copyBuffer(mesh.colors);
+    return { ...fields, positions, normals, uvs, indices, colors, tessellate_ms: ms };
   } finally {
     mesh.destroy();
   }
 }
 
-const buffersOf = (m) => [m.positions.buffer, m.normals.buffer, m.uvs.buffer, m.indices.buffer];
+const buffersOf = (m) => [m.positions.buffer, m.normals.buffer, m.uvs.buffer, m.indices.buffer,
+                          ...(m.colors ? [m.colors.buffer] : [])];
 
 /** Post a Mesh of the session as transferable typed arrays, with `fields` added. */
 function postMesh(mesh, ms, fields) {
@@ -315,6 +323,20 @@ function atlasMesh({ id, levels }) {
   postMesh(mesh, performance.now() - t0, { type: "atlasMesh", id, levels });
 }
 
+function atlasColour({ id }) {
+  const colour = session.atlas_colour_refinement(); // None (no colour) arrives as undefined
+  post({ type: "atlasColour", id, colour: colour ? toPlain(colour) : null });
+}
+
+function colourPack({ id, name, width, height, rgb }) {
+  post({ type: "colourPack", id, name, ...toPlain(session.add_colour_pack(name, width, height, rgb)) });
+}
+
+function dropColourPacks({ id, names }) {
+  withPy(names, (list) => session.drop_colour_packs(list));
+  post({ type: "droppedColourPacks", id, names });
+}
+
 function resources({ id }) {
   post({ type: "resources", id, resources: resourceEntries() });
 }
@@ -371,4 +393,5 @@ self.onmessage = (event) => {
   pump();
 };
 
-Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh }); // an atlas bundle's
+Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh, atlasColour, colourPack,
+                          dropColourPacks }); // an atlas bundle's

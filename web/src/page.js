@@ -118,10 +118,14 @@ export function levelOption(choice, units) {
 /** The base of an atlas bundle (manifest format_version 2) as a level choice (-1), like the
  *  entries of MeshWorkerClient.plan's levels: no packs, base.resolution samples per patch
  *  side (`refinement`: MeshWorkerClient.atlasRefinement's reply). Its PLY goes through
- *  levelPly like a detail level's: the worker writes the welded atlas at that resolution. */
-export function atlasBaseChoice(refinement) {
-  return { level: -1, rms: null, detail_files: [], detail_bytes: 0, texture_nodes: [],
-           texture_bytes: 0, resolution: refinement.resolutions[0] };
+ *  levelPly like a detail level's: the worker writes the welded atlas at that resolution,
+ *  coloured (with colour) from colour level 0, which level 0 of `levels` (the plan's) names
+ *  too (client_py.atlas_texture.colour_level). */
+export function atlasBaseChoice(refinement, levels = []) {
+  const textures = levels.length ? levels[0].texture_nodes : [];
+  return { level: -1, rms: null, detail_files: [], detail_bytes: 0, texture_nodes: textures,
+           texture_bytes: textures.reduce((sum, node) => sum + (node.bytes || 0), 0),
+           resolution: refinement.resolutions[0] };
 }
 
 /** Run `task(item)` over `items`, at most `limit` at a time; rejects with the first failure
@@ -167,7 +171,7 @@ export async function decodeTextureRgb(bytes, node) {
     rgb[m + 1] = rgba[k + 1];
     rgb[m + 2] = rgba[k + 2];
   }
-  return { level: node.level, i: node.i, j: node.j, width, height, rgb };
+  return { level: node.level, i: node.i, j: node.j, file: node.file, width, height, rgb };
 }
 
 /**

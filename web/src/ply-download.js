@@ -90,7 +90,7 @@ export class PlyDownload {
    */
   offerAtlasLevels(plan, units, base) {
     this.atlas = true;
-    this.offerLevels(plan, units, false);
+    this.offerLevels(plan, units, base.texture_nodes.length > 0); // coloured from colour packs
     this.levels = [base, ...plan.levels];
     this.select.options[0].textContent = "base (the atlas alone)";
     this.select.title = "Level of detail of the PLY, one welded mesh of every patch: base, the " +

@@ -259,7 +259,7 @@ async function showAtlas({ viewer, worker, manifest, ready, facts, transfers }) 
   const download = new PlyDownload({ worker, base: null, errorMap: null, config, stats,
                                      onError: showError });
   download.offerAtlasLevels(plan, manifest.units || ready.patch.units || "unknown",
-                            atlasBaseChoice(refinement));
+                            atlasBaseChoice(refinement, plan.levels));
   document.body.dataset.refined = "1";
 }
 

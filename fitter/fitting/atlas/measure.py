@@ -53,11 +53,12 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray,
     return q
 
 
-def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                        k: int = CANDIDATES, signed: bool = False) -> np.ndarray:
-    """Distance of each of ``points (N, 3)`` to the mesh ``(vertices (V, 3), faces (T, 3))``.
-
-    ``signed``: positive on the side the triangle's normal ``(b - a) × (c - a)`` points to.
+def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                           k: int = CANDIDATES
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The closest point of the mesh ``(vertices (V, 3), faces (T, 3))`` to each of
+    ``points (N, 3)``: ``(distance (N,), triangle (N,), closest (N, 3))`` (the module's
+    rule: the best of the ``k`` triangles whose centroids are nearest).
 
     Raises
     ------
@@ -68,12 +69,14 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     if len(points) == 0 or len(faces) == 0:
-        raise ValueError(f"point_mesh_distance needs points and triangles, got {len(points)} "
+        raise ValueError(f"a point-to-mesh distance needs points and triangles, got {len(points)} "
                          f"points and {len(faces)} triangles")
     tri = vertices[faces]
     tree = cKDTree(tri.mean(axis=1))
     k = min(k, len(faces))
     out = np.empty(len(points))
+    out_tri = np.empty(len(points), dtype=np.int64)
+    out_q = np.empty_like(points)
     for start in range(0, len(points), CHUNK):
         p = points[start:start + CHUNK]
         _, cand = tree.query(p, k=k)
@@ -88,10 +91,28 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
             closer = d < best
             best[closer], best_tri[closer], best_q[closer] = d[closer], cand[closer, col], \
                 q[closer]
-        dist = np.sqrt(best)
-        if signed:
-            t = tri[best_tri]
-            normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-            dist = np.where(np.einsum("ij,ij->i", p - best_q, normal) < 0, -dist, dist)
-        out[start:start + CHUNK] = dist
-    return out
+        out[start:start + CHUNK] = np.sqrt(best)
+        out_tri[start:start + CHUNK] = best_tri
+        out_q[start:start + CHUNK] = best_q
+    return out, out_tri, out_q
+
+
+def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                        k: int = CANDIDATES, signed: bool = False) -> np.ndarray:
+    """Distance of each of ``points (N, 3)`` to the mesh ``(vertices (V, 3), faces (T, 3))``
+    (:func:`closest_points_on_mesh`).
+
+    ``signed``: positive on the side the triangle's normal ``(b - a) × (c - a)`` points to.
+
+    Raises
+    ------
+    ValueError
+        An empty mesh or point set.
+    """
+    points = np.asarray(points, dtype=float)
+    dist, best_tri, best_q = closest_points_on_mesh(points, vertices, faces, k)
+    if signed:
+        t = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)[best_tri]]
+        normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        dist = np.where(np.einsum("ij,ij->i", points - best_q, normal) < 0, -dist, dist)
+    return dist

@@ -17,6 +17,8 @@ The steps, each a stage of ``fitter.fitting.stages`` (the bar skips the single p
              exact point-to-triangle distances (``atlas.measure``): ``stats`` and
              ``stats_all_points`` are the same set here, and ``coverage`` counts the points
              farther than 1 % of the diagonal as not represented;
+``texture``  with a coloured scan, the colour packs ``texture/C/G.webp`` (``atlas.texture``)
+             and the colour error of every scan point on the finest drawn mesh;
 ``report``   ``error.ply``, ``error.png`` and ``manifest.json`` (docs/format.md, "Bundle
              manifest, version 2") into the atomic bundle writer.
 
@@ -44,6 +46,7 @@ from .detail import fit_atlas_detail
 from .fit import AtlasFitError, fit_atlas
 from .measure import point_mesh_distance
 from .surface import area_samples, scan_surface
+from .texture import drawn_colour_error, fit_atlas_texture
 
 BUNDLE_FORMAT_VERSION = 2
 DEFAULT_BITS = 12  # quantisation of base.tsa: 1/4096 of the extent, far under the 0.5 % goal
@@ -176,6 +179,21 @@ def write_atlas_error_png(path: Path, points: np.ndarray, d: np.ndarray, front: 
     plt.close(fig)
 
 
+def _atlas_colour(scan: Scan, detail, options: FitOptions, stages):
+    """Stage ``texture``: the atlas's colour packs (``atlas.texture``), and in their
+    ``tree["error"]`` the colour error of every scan point against the mesh drawn at the
+    finest level, coloured from the decoded images; ``None`` without colour."""
+    stages.start("texture")
+    texture = fit_atlas_texture(scan, detail, options.texture)
+    if texture is not None:
+        finest = len(detail.levels) - 1
+        error = drawn_colour_error(scan, detail.atlas, detail.levels[finest]["resolution"],
+                                   detail.detail_up_to(finest), texture, finest)
+        texture.tree["error"] = {k: float(f"{v:.4g}") if isinstance(v, float) else v
+                                 for k, v in error.items()}
+    return texture
+
+
 def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                      object_fields: Callable[[Scan, FitOptions], dict]) -> dict:
     """Fit ``scan`` as an atlas and write the bundle ``out_dir``; returns its manifest.
@@ -216,11 +234,12 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     d = point_mesh_distance(points, vertices, faces, signed=True)
     stats = error_stats(d, diagonal, scan.units)
     far = np.abs(d) > UNCOVERED * diagonal
+    texture = _atlas_colour(scan, detail, options, stages)
     fields = object_fields(scan, options)
     stages.start("report")
     with write_bundle(out_dir) as folder:
         (folder / "base.tsa").write_bytes(data)
-        for name, pack in detail.files.items():
+        for name, pack in {**detail.files, **(texture.files if texture else {})}.items():
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             (folder / name).write_bytes(pack)
         write_error_ply(folder / "error.ply", points, d)
@@ -230,7 +249,8 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                               f"{fields['title']}: RMS {stats['rms']:.4g} {scan.units} over "
                               f"all {len(points):,} points, max {stats['max']:.4g}")
         files = {name: (folder / name).stat().st_size
-                 for name in ("base.tsa", "error.png", "error.ply", *detail.files)}
+                 for name in ("base.tsa", "error.png", "error.ply", *detail.files,
+                              *(texture.files if texture else ()))}
         stages.stop()
         manifest = {
             **fields,
@@ -261,7 +281,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                                "border_jump": [r["border_jump"] for r in detail.levels],
                                "steps": {k: round(v, 3) for k, v in detail.timings.items()}}},
             "tiles": {"version": 2, "detail": detail.tree if detail.levels else None,
-                      "texture": None},
+                      "texture": texture.tree if texture else None},
             "timings": dict(stages.timings),
         }
         with open(folder / "manifest.json", "w") as fh:

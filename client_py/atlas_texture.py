@@ -1,0 +1,245 @@
+"""Colour of an atlas: per-patch texel cells packed into images, sampled at the vertices.
+
+An atlas (``client_py.atlas``) has hundreds of patches, each with its own ``[0, 1]^2``.
+Its colour at level ``c`` gives every patch one *cell* of ``T_c x T_c`` texels over that
+square (``T_c = cell_c``, the manifest's ``tiles.texture.levels[c].cell``), in the single
+patch's texel rule (:class:`client_py.layers.TextureImage`: texel ``(x, y)``, ``y = 0`` the
+top row, is centred at ``u = (x + 1/2) / T``, ``v = 1 - (y + 1/2) / T``). One file per
+patch would cost a visitor hundreds of requests, so the cells of a run of consecutive
+patches (whole detail groups, Morton-ordered: a compact piece of the object) travel in one
+image, ``texture/C/G.webp`` (:func:`colour_pack_name`, ``G`` the pack's first detail
+group): patch ``first + s`` at cell column ``s mod columns`` and cell row
+``s div columns`` from the top (:func:`cell_origin`), ``columns = ceil(sqrt(count))``
+(:func:`pack_columns`); cells past the last patch are filler.
+
+The mesh is coloured per vertex, as a single patch's level PLY is
+(``client_py.layers.vertex_colours``): a vertex of :class:`~client_py.atlas_mesh.AtlasMesh`
+has the ``(u, v)`` of the patch that owns it (``patches``), and takes the bilinear sample of
+that patch's cell (clamped to the cell's own texels, so no neighbour's colour bleeds in),
+at the colour level of the patch's group. Per-vertex colour keeps the welded mesh welded
+(a border vertex has one colour, as it has one position), is what 3DHOP's PLY loader
+reads, and costs the viewer no texture binding per patch; level ``c``'s cells have as
+many texels per side as the level's mesh has cells per patch side, so the vertices show
+what the texels hold. (client_py decodes no images: the browser or Pillow does.)
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+from .layers import MAX_LEVEL, TextureImage
+
+#: the extension of an atlas's colour images
+COLOUR_PACK_EXTENSION = "webp"
+#: texels per side of the largest cell (a level's cells are at most this wide)
+MAX_CELL = 1024
+#: texels per side of the largest image of a pack (WebP's limit is 16383)
+MAX_PACK_SIDE = 16383
+
+
+def colour_pack_name(level: int, group: int) -> str:
+    """The bundle file of level ``level``'s colour cells starting at detail group ``group``."""
+    for name, value in (("level", level), ("group", group)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+    return f"texture/{level}/{group}.{COLOUR_PACK_EXTENSION}"
+
+
+def colour_pack_name_parts(name: str) -> tuple[int, int] | None:
+    """``(C, G)`` of a colour pack name ``texture/C/G.webp`` (:func:`colour_pack_name`),
+    or ``None``."""
+    parts = name.split("/")
+    suffix = "." + COLOUR_PACK_EXTENSION
+    if len(parts) != 3 or parts[0] != "texture" or not parts[2].endswith(suffix):
+        return None
+    numbers = (parts[1], parts[2][: -len(suffix)])
+    if not all(x.isdigit() and x.isascii() and (x == "0" or x[0] != "0") for x in numbers):
+        return None
+    return int(numbers[0]), int(numbers[1])
+
+
+def pack_columns(count: int) -> int:
+    """Cell columns of a pack of ``count`` patches: ``ceil(sqrt(count))`` (a near-square
+    image: the fewest filler cells for a square-ish layout)."""
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"count must be an integer >= 1, got {count!r}")
+    return math.isqrt(count - 1) + 1
+
+
+def pack_shape(count: int, cell: int) -> tuple[int, int]:
+    """``(width, height)`` in texels of a pack of ``count`` cells of ``cell`` texels."""
+    columns = pack_columns(count)
+    return columns * cell, -(-count // columns) * cell
+
+
+def cell_origin(slot: int, count: int, cell: int) -> tuple[int, int]:
+    """``(x, y)`` of the top-left texel of cell ``slot`` (``0..count - 1``) in its pack."""
+    columns = pack_columns(count)
+    return (slot % columns) * cell, (slot // columns) * cell
+
+
+def colour_level(detail_level: int, levels: int) -> int:
+    """The colour level drawn with a group at detail level ``detail_level`` (``-1``: the
+    base): ``min(max(detail_level, 0), levels - 1)`` — level ``c``'s cells match level
+    ``c``'s mesh, and the base shows level 0."""
+    return min(max(detail_level, 0), levels - 1)
+
+
+@dataclass(frozen=True)
+class ColourPack:
+    """A decoded colour image: the cells of patches ``first .. first + count - 1`` at
+    colour level ``level``, ``cell`` texels per side each, ``rgb`` the ``width x height``
+    image's bytes (3 per texel, rows top to bottom)."""
+
+    level: int
+    first: int
+    count: int
+    cell: int
+    width: int
+    height: int
+    rgb: bytes
+
+    def __post_init__(self) -> None:
+        for name, value, lo, hi in (("level", self.level, 0, MAX_LEVEL),
+                                    ("first", self.first, 0, 1 << 20),
+                                    ("count", self.count, 1, 1 << 20),
+                                    ("cell", self.cell, 1, MAX_CELL)):
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {value!r}")
+        expected = pack_shape(self.count, self.cell)
+        if (self.width, self.height) != expected:
+            raise ValueError(f"a colour pack of {self.count} cells of {self.cell} texels is "
+                             f"{expected[0]}x{expected[1]}, got {self.width}x{self.height}")
+        if len(self.rgb) != 3 * self.width * self.height:
+            raise ValueError(f"rgb has {len(self.rgb)} bytes; a {self.width}x{self.height} "
+                             f"RGB image needs {3 * self.width * self.height}")
+
+    def cell_image(self, patch: int) -> TextureImage:
+        """Patch ``patch``'s cell as a :class:`~client_py.layers.TextureImage` over its whole
+        ``[0, 1]^2`` (node ``0/0_0``): the single patch's sampling rule."""
+        if not self.first <= patch < self.first + self.count:
+            raise ValueError(f"patch {patch} is not in this pack's patches {self.first}.."
+                             f"{self.first + self.count - 1}")
+        x, y = cell_origin(patch - self.first, self.count, self.cell)
+        row, size = 3 * self.width, 3 * self.cell
+        rgb = b"".join(self.rgb[(y + r) * row + 3 * x:(y + r) * row + 3 * x + size]
+                       for r in range(self.cell))
+        return TextureImage(0, 0, 0, self.cell, self.cell, rgb)
+
+
+def atlas_vertex_colours(patches: Sequence[int], uvs: Sequence[float],
+                         colour_of_patch: Mapping[int, ColourPack]) -> array:
+    """RGB per vertex (``array('B')``): vertex ``k`` of patch ``patches[k]`` at ``(u, v) =
+    uvs[2k : 2k + 2]`` takes the bilinear sample of that patch's cell in
+    ``colour_of_patch[patch]``; ``0, 0, 0`` for a patch with no pack.
+
+    ``patches`` and ``uvs`` are an :class:`~client_py.atlas_mesh.AtlasMesh`'s ``patches``
+    and ``uvs``. The sample is :meth:`~client_py.layers.TextureImage.sample` of the cell
+    (:meth:`ColourPack.cell_image`), the same float operations read in place from the pack
+    (tests/test_atlas_texture.py holds them equal): a pure-Python loop of a few operations
+    per vertex, for the viewer's worker without numpy.
+    """
+    n = len(patches)
+    if len(uvs) != 2 * n:
+        raise ValueError(f"uvs has {len(uvs)} values; {n} vertices need {2 * n}")
+    out = bytearray(3 * n)
+    where: dict[int, tuple | None] = {}
+    for k in range(n):
+        f = patches[k]
+        cell = where.get(f, False)
+        if cell is False:
+            pack = colour_of_patch.get(f)
+            if pack is None:
+                cell = where[f] = None
+            else:
+                x, y = cell_origin(f - pack.first, pack.count, pack.cell)
+                cell = where[f] = (pack.rgb, 3 * pack.width, 3 * x, y, pack.cell)
+        if cell is None:
+            continue
+        rgb, row, left, top, t = cell
+        x = uvs[2 * k] * t - 0.5
+        y = (1.0 - uvs[2 * k + 1]) * t - 0.5
+        last = t - 1.0
+        x = 0.0 if x < 0.0 else (last if x > last else x)
+        y = 0.0 if y < 0.0 else (last if y > last else y)
+        if t > 1:
+            x0, y0 = int(x), int(y)
+            if x0 > t - 2:
+                x0 = t - 2
+            if y0 > t - 2:
+                y0 = t - 2
+            x1, y1 = x0 + 1, y0 + 1
+        else:
+            x0 = y0 = x1 = y1 = 0
+        fx, fy = x - x0, y - y0
+        gx, gy = 1 - fx, 1 - fy
+        a = (top + y0) * row + left
+        b = (top + y1) * row + left
+        p00, p01, p10, p11 = a + 3 * x0, a + 3 * x1, b + 3 * x0, b + 3 * x1
+        m = 3 * k
+        out[m] = int((rgb[p00] * gx + rgb[p01] * fx) * gy
+                     + (rgb[p10] * gx + rgb[p11] * fx) * fy + 0.5)
+        out[m + 1] = int((rgb[p00 + 1] * gx + rgb[p01 + 1] * fx) * gy
+                         + (rgb[p10 + 1] * gx + rgb[p11 + 1] * fx) * fy + 0.5)
+        out[m + 2] = int((rgb[p00 + 2] * gx + rgb[p01 + 2] * fx) * gy
+                         + (rgb[p10 + 2] * gx + rgb[p11 + 2] * fx) * fy + 0.5)
+    return array("B", out)
+
+
+def colours_by_patch(packs: Sequence[ColourPack], patches: int) -> dict[int, ColourPack]:
+    """``{patch: pack}`` of packs of ONE colour level (a level plan's) that hold each of
+    ``patches`` patches' cell exactly once.
+
+    Raises
+    ------
+    ValueError
+        Packs of several levels, a patch in two packs, or a patch in none.
+    """
+    out: dict[int, ColourPack] = {}
+    for pack in packs:
+        if not isinstance(pack, ColourPack):
+            raise ValueError(f"packs must be ColourPack objects, got {type(pack).__name__}")
+        if pack.level != packs[0].level:
+            raise ValueError(f"colour packs of levels {packs[0].level} and {pack.level} were "
+                             "given; a level's plan names packs of one colour level")
+        for f in range(pack.first, pack.first + pack.count):
+            if f in out:
+                raise ValueError(f"patch {f} is in two colour packs")
+            out[f] = pack
+    missing = [f for f in range(patches) if f not in out]
+    if missing:
+        raise ValueError(f"no colour pack holds patch {missing[0]} ({len(missing)} of "
+                         f"{patches} patches lack one); give the packs the plan names")
+    return out
+
+
+def colours_for_groups(packs: Sequence[ColourPack], groups: Sequence[tuple[int, int]],
+                       levels: Sequence[int], colour_levels: int) -> dict[int, ColourPack]:
+    """``{patch: pack}``: for group ``g`` (patches ``first, count`` = ``groups[g]``) drawn
+    at detail level ``levels[g]``, the pack of colour level :func:`colour_level` that holds
+    its patches; patches no given pack holds are left out (drawn black).
+
+    Raises
+    ------
+    ValueError
+        ``levels`` not one per group.
+    """
+    if len(levels) != len(groups):
+        raise ValueError(f"levels has {len(levels)} values; there are {len(groups)} groups")
+    by_level: dict[int, list[ColourPack]] = {}
+    for pack in packs:
+        if not isinstance(pack, ColourPack):
+            raise ValueError(f"packs must be ColourPack objects, got {type(pack).__name__}")
+        by_level.setdefault(pack.level, []).append(pack)
+    out: dict[int, ColourPack] = {}
+    for (first, count), level in zip(groups, levels, strict=True):
+        c = colour_level(level, colour_levels)
+        for pack in by_level.get(c, ()):
+            if pack.first <= first and first + count <= pack.first + pack.count:
+                for f in range(first, first + count):
+                    out[f] = pack
+                break
+    return out

@@ -1,0 +1,362 @@
+"""Atlas colour: per-patch cells packed into WebP images, read back as vertex colours."""
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from atlas_bundle import write_atlas_bundle
+from PIL import Image
+
+from client_py.atlas_texture import (
+    ColourPack,
+    atlas_vertex_colours,
+    cell_origin,
+    colour_pack_name,
+    colour_pack_name_parts,
+    colours_by_patch,
+    pack_columns,
+    pack_shape,
+)
+from client_py.bundle import (
+    ManifestError,
+    atlas_colour,
+    check_file_name,
+    colour_packs_of,
+    plan_level,
+    tessellate_bundle,
+)
+from client_py.layers import TextureImage
+from client_py.session import WorkerSession
+from fitter.fitting.atlas.texture import barycentric, decoded_packs
+from fitter.fitting.io.scan import make_scan, new_source
+from fitter.fitting.options import FitOptions
+from fitter.fitting.pipeline import fit_scan
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def _colour_of(points: np.ndarray) -> np.ndarray:
+    """A smooth colour field over the sphere of radius 50: RGB in 28..228."""
+    return np.clip(128 + 2.0 * points, 0, 255)
+
+
+@pytest.fixture(scope="module")
+def coloured_sphere(tmp_path_factory):
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    colours = np.rint(_colour_of(np.asarray(mesh.vertices))).astype(np.uint8)
+    source = new_source("sphere", None, "array", compression=None, reader="array")
+    scan = make_scan("sphere", np.asarray(mesh.vertices), faces=np.asarray(mesh.faces),
+                     colors=colours, source=source)
+    bundle = fit_scan(scan, tmp_path_factory.mktemp("colour") / "sphere",
+                      FitOptions(patches=60, detail_levels=2))
+    manifest = json.loads((bundle.path / "manifest.json").read_text())
+    return scan, bundle.path, manifest
+
+
+def _decode(folder: Path, nodes) -> list[ColourPack]:
+    images = {}
+    for node in nodes:
+        with Image.open(folder / node["file"]) as im:
+            rgb = im.convert("RGB")
+            images[node["file"]] = (rgb.width, rgb.height, rgb.tobytes())
+    return colour_packs_of(nodes, images)
+
+
+def test_a_coloured_closed_mesh_gets_colour_packs_listed_with_their_bytes(coloured_sphere):
+    _, folder, manifest = coloured_sphere
+    texture = manifest["tiles"]["texture"]
+    colour = atlas_colour(manifest)
+    assert texture["format"] == "webp" and texture["source"] == "vertex colours"
+    assert [lv["cell"] for lv in texture["levels"]] == [16 << c for c in range(len(colour.levels))]
+    for pack in colour.packs:
+        assert manifest["files"][pack["file"]] == pack["bytes"] == \
+            (folder / pack["file"]).stat().st_size
+        with Image.open(folder / pack["file"]) as im:
+            assert im.format == "WEBP" and im.size == (pack["width"], pack["height"])
+    for level in range(len(colour.levels)):  # every patch in one pack of every level
+        held = sorted(f for p in colour.packs if p["level"] == level
+                      for f in range(p["first"], p["first"] + p["count"]))
+        assert held == list(range(manifest["base"]["patches"]))
+    # the manifest's colour error is of every scan point against the drawn colours (WebP's
+    # loss on this strongly chromatic field dominates it: see test_pack_layout_round_trips)
+    assert texture["error"]["points"] == 2562 and texture["error"]["mean_abs"] < 5.0
+
+
+def test_colours_read_back_match_the_colours_written(coloured_sphere):
+    scan, folder, manifest = coloured_sphere
+    from client_py.atlas_format import read_atlas
+    from client_py.bundle import atlas_level_detail
+    from fitter.fitting.atlas.texture import AtlasTexture, coarser_cells, sample_cells
+    from fitter.fitting.texture import uv_picture
+
+    colour = atlas_colour(manifest)
+    groups = manifest["tiles"]["detail"]["groups"]
+    files = {p["file"]: (folder / p["file"]).read_bytes() for p in colour.packs}
+    texture = AtlasTexture(manifest["tiles"]["texture"], files, [], groups)
+    # the cells as the fitter sampled them, again (deterministic), before WebP
+    atlas, _ = read_atlas((folder / "base.tsa").read_bytes())
+    tiles = atlas_level_detail(manifest, lambda n: (folder / n).read_bytes(),
+                               len(manifest["tiles"]["detail"]["levels"]) - 1)
+    written = coarser_cells(sample_cells(scan, atlas, tiles, colour.levels[-1]["cell"]),
+                            len(colour.levels))
+    for level in range(len(colour.levels)):
+        packs = decoded_packs(texture, level)
+        read = np.stack([np.frombuffer(p.cell_image(f).rgb, np.uint8) for p in packs
+                         for f in range(p.first, p.first + p.count)]).astype(float)
+        wrote = np.stack([uv_picture(cell).ravel() for cell in written[level]]).astype(float)
+        # WebP's quantisation (quality 90) on this strongly chromatic field (q82: 7.3)
+        assert np.abs(read - wrote).mean() < 4.5
+        # each decoded cell against the analytic colour at its texel centres' drawn points:
+        # WebP's quantisation (quality 82) and the surface's distance to the sphere apart,
+        # the colours written come back
+        mesh = tessellate_bundle(manifest, lambda n: (folder / n).read_bytes(), level=level,
+                                 textures=packs, kernel="numpy")
+        positions = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3)
+        drawn = np.frombuffer(mesh.colors, np.uint8).reshape(-1, 3).astype(float)
+        expected = _colour_of(50.0 * positions / np.linalg.norm(positions, axis=1)[:, None])
+        error = np.abs(drawn - expected)
+        # a pack, cell or orientation mix-up gives 10+ (u and v swapped: 12.7)
+        assert error.mean() < 5.0, (level, error.mean())
+    assert scan.colors is not None
+
+
+def test_the_ply_of_a_coloured_atlas_has_rgb_per_vertex(coloured_sphere, tmp_path):
+    _, folder, manifest = coloured_sphere
+    from fitter.cli import main
+
+    out = tmp_path / "sphere.ply"
+    assert main(["tessellate", str(folder), "-o", str(out), "--level", "0"]) == 0
+    session = WorkerSession(kernel="numpy")
+    session.read_manifest(json.dumps(manifest))
+    session.load_atlas((folder / "base.tsa").read_bytes(), "sphere")
+    plan = plan_level(manifest, 0)
+    textures = [{"file": n["file"], "width": p.width, "height": p.height, "rgb": p.rgb}
+                for n, p in zip(plan.texture_nodes, _decode(folder, plan.texture_nodes),
+                                strict=True)]
+    fresh = {name: (folder / name).read_bytes() for name in plan.detail_files}
+    from_session = session.level_ply(0, fresh, textures)
+    assert bytes(from_session.data) == out.read_bytes()  # the CLI and the viewer agree
+    ply = trimesh.load(out, process=False)
+    rgb = np.asarray(ply.visual.vertex_colors)[:, :3].astype(float)
+    points = np.asarray(ply.vertices)
+    expected = _colour_of(50.0 * points / np.linalg.norm(points, axis=1)[:, None])
+    assert np.abs(rgb - expected).mean() < 5.0
+    assert out.read_bytes()[:800].count(b"property uchar red") == 1
+
+
+def test_the_viewer_session_colours_each_group_at_its_level(coloured_sphere):
+    _, folder, manifest = coloured_sphere
+    session = WorkerSession(kernel="numpy")
+    session.read_manifest(json.dumps(manifest))
+    session.load_atlas((folder / "base.tsa").read_bytes(), "sphere")
+    table = session.atlas_colour_refinement()
+    groups = manifest["tiles"]["detail"]["groups"]
+    assert len(table["group_packs"]) == len(groups)
+    assert all(len(row) == len(manifest["tiles"]["detail"]["levels"]) + 1
+               for row in table["group_packs"])
+    levels = [-1] * len(groups)
+    assert session.atlas_mesh(levels).colors is None  # no pack handed over yet
+    for name in {row[0] for row in table["group_packs"]}:
+        with Image.open(folder / name) as im:
+            rgb = im.convert("RGB")
+            session.add_colour_pack(name, rgb.width, rgb.height, rgb.tobytes())
+    mesh = session.atlas_mesh(levels)
+    assert mesh.colors is not None and len(mesh.colors) == 3 * mesh.vertex_count
+    with pytest.raises(ValueError, match="not a colour pack the manifest lists"):
+        session.add_colour_pack("texture/9/0.webp", 16, 16, bytes(768))
+
+
+def test_a_uv_textured_scan_gives_two_colour_levels_of_its_texture(coloured_sphere):
+    """The fitted atlas of the fixture, coloured from a UV texture (a planar map: the colour
+    depends on x and y alone, so front and back may share texels): the scan's texture has
+    far more samples than the cells, so the levels reach the detail levels' cap."""
+    from types import SimpleNamespace
+
+    from client_py.atlas_format import read_atlas
+    from client_py.bundle import atlas_level_detail
+    from fitter.fitting.atlas.texture import drawn_texel_points, fit_atlas_texture
+
+    scan, folder, manifest = coloured_sphere
+    side = 1024
+    t = (np.arange(side) + 0.5) / side
+    s_, t_ = np.meshgrid(t, t)  # columns s (u), rows t
+    field = np.stack([128 + 2.0 * (100 * s_ - 50), 128 + 2.0 * (100 * t_ - 50),
+                      np.full_like(s_, 128.0)], axis=-1)[::-1]  # row 0 at the top: t = 1
+    texture = Image.fromarray(np.clip(np.rint(field), 0, 255).astype(np.uint8))
+    uv = (np.asarray(scan.points)[:, :2] + 50.0) / 100.0
+    textured = make_scan("sphere", scan.points, faces=scan.faces, uv=uv, texture=texture,
+                         source=new_source("sphere", None, "array", compression=None,
+                                           reader="array"))
+    atlas, _ = read_atlas((folder / "base.tsa").read_bytes())
+    detail = manifest["tiles"]["detail"]
+    levels = len(detail["levels"])
+    tiles = atlas_level_detail(manifest, lambda n: (folder / n).read_bytes(), levels - 1)
+    fake = SimpleNamespace(atlas=atlas, levels=detail["levels"], patch_side=10.0,
+                           tree={"spans_per_tile": detail["spans_per_tile"],
+                                 "groups": detail["groups"]},
+                           detail_up_to=lambda level: tiles)
+    result = fit_atlas_texture(textured, fake)
+    assert result.tree["source"] == "texture" and len(result.cells) == levels == 2
+    top = result.cells[-1]
+    points = drawn_texel_points(atlas, tiles, np.arange(len(atlas.quads)), top.shape[1])
+    expected = np.clip(128 + 2.0 * points[..., :2], 0, 255)
+    assert np.abs(top[..., :2] - expected).mean() < 1.0  # the texture's field, bilinear
+    coarse = top.astype(float).reshape(len(top), 16, 2, 16, 2, 3).mean(axis=(2, 4))
+    assert np.abs(result.cells[0] - coarse).max() <= 0.5  # level 0: 2x2 means, rounded
+
+
+# ------------------------------------------------------------------ client rules, no fitter
+def _pack_of(level: int, first: int, count: int, cell: int) -> ColourPack:
+    """A pack whose texel (x, y) of patch f's cell is (f, x, y)."""
+    width, height = pack_shape(count, cell)
+    image = bytearray(3 * width * height)
+    for s in range(count):
+        x0, y0 = cell_origin(s, count, cell)
+        for y in range(cell):
+            for x in range(cell):
+                k = 3 * ((y0 + y) * width + x0 + x)
+                image[k : k + 3] = bytes((first + s, x, y))
+    return ColourPack(level, first, count, cell, width, height, bytes(image))
+
+
+def test_a_vertex_takes_its_patch_cell_texel_in_the_texture_tiles_orientation():
+    pack = _pack_of(0, 0, 5, 4)
+    assert pack_columns(5) == 3 and (pack.width, pack.height) == (12, 8)
+    of_patch = colours_by_patch([pack], 5)
+    # texel centres: x = (u T - 1/2), y = ((1 - v) T - 1/2): u right, v up, row 0 at the top
+    patches = [3, 3, 4]
+    uvs = [0.125, 0.875, 0.875, 0.125, 0.375, 0.625]
+    rgb = atlas_vertex_colours(patches, uvs, of_patch)
+    assert list(rgb) == [3, 0, 0, 3, 3, 3, 4, 1, 1]
+    cell = pack.cell_image(4)
+    assert cell == TextureImage(0, 0, 0, 4, 4, cell.rgb)
+    # the in-place loop is the single patch's TextureImage.sample of the cell, bit for bit
+    rng = np.random.default_rng(2)
+    noisy = np.frombuffer(pack.rgb, np.uint8) ^ rng.integers(0, 256, len(pack.rgb),
+                                                             dtype=np.uint8)
+    pack = ColourPack(0, 0, 5, 4, 12, 8, noisy.tobytes())
+    of_patch = colours_by_patch([pack], 5)
+    patches = rng.integers(0, 5, 400).tolist()
+    uvs = np.concatenate([rng.uniform(-0.1, 1.1, (380, 2)),
+                          [[0, 0], [1, 1], [0, 1], [1, 0]] * 5]).ravel().tolist()
+    rgb = atlas_vertex_colours(patches, uvs, of_patch)
+    for k, f in enumerate(patches):
+        assert tuple(rgb[3 * k:3 * k + 3]) == pack.cell_image(f).sample(*uvs[2 * k:2 * k + 2])
+    one = ColourPack(0, 0, 1, 1, 1, 1, b"abc")  # a one-texel cell
+    assert bytes(atlas_vertex_colours([0], [0.7, 0.2], {0: one})) == b"abc"
+
+
+def test_pack_layout_round_trips_exactly_without_encoding():
+    from fitter.fitting.atlas.texture import pack_image, pack_runs
+    from fitter.fitting.texture import uv_picture
+
+    rng = np.random.default_rng(3)
+    cells = rng.integers(0, 256, size=(7, 16, 16, 3), dtype=np.uint8)
+    image = pack_image(cells, 16)
+    pack = ColourPack(1, 10, 7, 16, image.shape[1], image.shape[0], image.tobytes())
+    for s in range(7):  # the writer's cell s is the reader's cell of patch 10 + s
+        assert pack.cell_image(10 + s).rgb == uv_picture(cells[s]).tobytes()
+    groups = [{"first": 0, "count": 600}, {"first": 600, "count": 500},
+              {"first": 1100, "count": 100}]
+    assert pack_runs(groups, 16) == [(0, 1), (1, 2)]  # groups 0 and 1 together pass 512^2
+
+
+def test_colour_packs_are_checked():
+    with pytest.raises(ValueError, match="12x8, got 8x8"):
+        ColourPack(0, 0, 5, 4, 8, 8, bytes(192))
+    pack = _pack_of(0, 0, 2, 4)
+    with pytest.raises(ValueError, match="no colour pack holds patch 2"):
+        colours_by_patch([pack], 3)
+    with pytest.raises(ValueError, match="patch 1 is in two colour packs"):
+        colours_by_patch([pack, _pack_of(0, 1, 1, 4)], 2)
+    assert colour_pack_name(2, 7) == "texture/2/7.webp"
+    assert colour_pack_name_parts("texture/2/7.webp") == (2, 7)
+    assert colour_pack_name_parts("texture/02/7.webp") is None
+    assert check_file_name("texture/2/7.webp", "x") == "texture/2/7.webp"
+
+
+def _with_colour(folder: Path, texture: dict) -> dict:
+    manifest = write_atlas_bundle(folder, k=1, levels=2)
+    manifest["tiles"]["texture"] = texture
+    return manifest
+
+
+def test_a_manifest_colour_section_is_checked(tmp_path):
+    good = {"format": "webp", "levels": [{"level": 0, "cell": 16}, {"level": 1, "cell": 32}],
+            "packs": [{"level": 0, "group": 0, "groups": 6, "bytes": 10},
+                      {"level": 1, "group": 0, "groups": 3, "bytes": 10},
+                      {"level": 1, "group": 3, "groups": 3, "bytes": 10}]}
+    manifest = _with_colour(tmp_path / "a", good)
+    colour = atlas_colour(manifest)
+    assert [p["file"] for p in colour.packs] == ["texture/0/0.webp", "texture/1/0.webp",
+                                                 "texture/1/3.webp"]
+    assert [n["file"] for n in plan_level(manifest, -1).texture_nodes] == ["texture/0/0.webp"]
+    assert plan_level(manifest, 1).texture_bytes == 20
+    manifest["tiles"]["texture"] = None  # an older v2 bundle: no colour, still planned
+    assert atlas_colour(manifest) is None and plan_level(manifest, 1).texture_nodes == ()
+    for change, message in (
+            ({"format": "png"}, "must be 'webp'"),
+            ({"levels": [{"level": 0, "cell": 16, "texel": "x"}, good["levels"][1]]},
+             r"levels\[0\]\.texel must be a finite number"),
+            ({"levels": [{"level": 0, "cell": 16}, {"level": 1, "cell": 16}]},
+             "twice the previous"),
+            ({"levels": [{"level": 0, "cell": 16}] * 3}, "at most the detail levels"),
+            ({"packs": good["packs"][:2]}, "every group 0..5 must be in one pack"),
+            ({"packs": [{**good["packs"][0], "group": 1}, *good["packs"][1:]]},
+             "previous pack ended"),
+            ({"packs": [{**good["packs"][0], "bytes": -1}, *good["packs"][1:]]},
+             "byte count")):
+        manifest["tiles"]["texture"] = {**good, **change}
+        with pytest.raises(ManifestError, match=message):
+            atlas_colour(manifest)
+    manifest["tiles"]["texture"], manifest["tiles"]["detail"] = good, None
+    with pytest.raises(ManifestError, match="needs tiles.detail"):
+        atlas_colour(manifest)
+
+
+def test_barycentric_coordinates_rebuild_the_point():
+    rng = np.random.default_rng(1)
+    a, b, c = (rng.normal(size=(50, 3)) for _ in range(3))
+    w = rng.dirichlet([1, 1, 1], size=50)
+    q = w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c
+    np.testing.assert_allclose(barycentric(q, a, b, c), w, atol=1e-9)
+
+
+@pytest.mark.realdata
+def test_laurana_atlas_keeps_the_scan_colour(tmp_path):
+    path = DATA / "laurana-bust" / "laurana.ply"
+    if not path.is_file():
+        pytest.skip(f"{path} is absent (../shared/data not mounted)")
+    from fitter.fitting.io import load_scan
+
+    bundle = fit_scan(load_scan(path), tmp_path / "laurana", FitOptions())
+    manifest = json.loads((bundle.path / "manifest.json").read_text())
+    texture = manifest["tiles"]["texture"]
+    assert manifest["format_version"] == 2 and texture is not None
+    assert texture["error"]["points"] == 25160  # every scan vertex
+    assert texture["error"]["mean_abs"] < 5.0
+    assert sum(lv["bytes_total"] for lv in texture["levels"]) < 20_000
+    with Image.open(io.BytesIO((bundle.path / texture_file(texture)).read_bytes())) as im:
+        assert im.format == "WEBP"
+
+
+def texture_file(texture: dict) -> str:
+    pack = texture["packs"][0]
+    return colour_pack_name(pack["level"], pack["group"])
+
+
+def test_the_collection_leaves_out_an_atlas_with_a_malformed_colour_section(tmp_path):
+    from fitter.collection.bundles import MANIFEST, parse_manifest
+
+    manifest = write_atlas_bundle(tmp_path / "sphere", k=1, levels=2)
+    manifest["tiles"]["texture"] = {"format": "webp", "levels": [{"level": 0, "cell": 16}],
+                                    "packs": []}
+    (tmp_path / "sphere" / MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"format_version 2 \(atlas\).*every group 0\.\.5"):
+        parse_manifest(tmp_path / "sphere" / MANIFEST)
+    manifest["tiles"]["texture"]["packs"] = [{"level": 0, "group": 0, "groups": 6, "bytes": 9}]
+    (tmp_path / "sphere" / MANIFEST).write_text(json.dumps(manifest))
+    assert parse_manifest(tmp_path / "sphere" / MANIFEST)["tiles"]["texture"]["packs"]

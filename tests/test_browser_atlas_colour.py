@@ -1,0 +1,173 @@
+"""A coloured atlas bundle in headless Chromium: the viewer fetches its colour packs and draws
+the welded atlas with vertex colours, with no console error, and "Download PLY" gives the
+same coloured PLY as `tessera tessellate`. The bundle is made without the fitter
+(tests/atlas_bundle.py's sphere of 24 patches in 6 groups) with one solid colour per group
+in colour packs of two levels (docs/format.md, "Atlas colour")."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from atlas_bundle import write_atlas_bundle
+from PIL import Image
+
+from client_py.atlas_texture import colour_pack_name, pack_shape
+
+pytestmark = pytest.mark.browser
+
+READY = "document.body.dataset.ready === '1' || !!document.body.dataset.error"
+GROUP_COLOURS = [(220, 30, 30), (30, 200, 40), (40, 60, 230), (230, 200, 20), (200, 40, 210),
+                 (20, 210, 210)]
+
+
+def add_group_colours(folder, manifest: dict, cell: int = 8) -> dict:
+    """Colour packs of two levels (level 0: one pack of every group; level 1: two packs of
+    three groups), each patch its group's colour; the manifest updated and rewritten."""
+    groups = manifest["tiles"]["detail"]["groups"]
+    levels, packs = [], []
+    for level, runs in ((0, [(0, 6)]), (1, [(0, 3), (3, 3)])):
+        side = cell << level
+        total = 0
+        for g, count in runs:
+            first = groups[g]["first"]
+            patches = sum(groups[h]["count"] for h in range(g, g + count))
+            width, height = pack_shape(patches, side)
+            image = np.full((height, width, 3), 128, np.uint8)
+            columns = width // side
+            for s in range(patches):
+                group = next(h for h in range(6) if groups[h]["first"] <= first + s
+                             < groups[h]["first"] + groups[h]["count"])
+                x, y = (s % columns) * side, (s // columns) * side
+                image[y:y + side, x:x + side] = GROUP_COLOURS[group]
+            buffer = io.BytesIO()
+            Image.fromarray(image).save(buffer, "WEBP", lossless=True)
+            name = colour_pack_name(level, g)
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_bytes(buffer.getvalue())
+            manifest["files"][name] = len(buffer.getvalue())
+            total += len(buffer.getvalue())
+            packs.append({"level": level, "group": g, "groups": count,
+                          "bytes": len(buffer.getvalue())})
+        levels.append({"level": level, "cell": side, "texel": 1.0 / side,
+                       "bytes_total": total, "packs": len(runs)})
+    manifest["tiles"]["texture"] = {"format": "webp", "source": "vertex colours",
+                                    "levels": levels, "packs": packs}
+    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+@pytest.fixture(scope="module")
+def colour_collection(tmp_path_factory):
+    root = tmp_path_factory.mktemp("atlas-colour")
+    manifest = write_atlas_bundle(root / "sphere", k=2, levels=2, base_resolution=5)
+    add_group_colours(root / "sphere", manifest)
+    return root
+
+
+@pytest.fixture(scope="module")
+def colour_server(colour_collection):
+    from live import LiveServer
+
+    from fitter.server import create_app
+
+    app = create_app({"TESSERA_COLLECTION": str(colour_collection), "TESTING": True})
+    if app.extensions["tessera_snapshot"] is not None:
+        app.extensions["tessera_snapshot"].ensure()
+    with LiveServer(app) as live:
+        yield live
+
+
+@pytest.fixture(scope="module")
+def colour_page(browser, colour_server):
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1000, "height": 700})
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(f"{colour_server.url}/objects/sphere/")
+    page.wait_for_function(READY, timeout=90_000)
+    page.wait_for_function("document.body.dataset.refined === '1'", timeout=90_000)
+    page.errors = errors
+    yield page
+    context.close()
+
+
+def test_the_viewer_draws_the_atlas_in_its_colours(colour_page):
+    assert colour_page.evaluate("document.body.dataset.error") is None
+    stats = colour_page.evaluate("window.tessera.stats")
+    assert stats["atlas_colour_packs_loaded"] == 1  # the base: level 0's one pack
+    assert stats["atlas_colour_bytes"] > 0
+    shot = np.asarray(Image.open(io.BytesIO(colour_page.locator("canvas").screenshot())))
+    rgb = shot[..., :3].astype(int).reshape(-1, 3)
+    seen = set()
+    for k, (r, g, b) in enumerate(GROUP_COLOURS):
+        # a pixel of this hue: its strong channels stand 60+ above its weak ones
+        strong = [c for c, v in enumerate((r, g, b)) if v > 150]
+        weak = [c for c, v in enumerate((r, g, b)) if v <= 150]
+        lo = rgb[:, strong].min(axis=1)
+        hi = rgb[:, weak].max(axis=1)
+        if np.count_nonzero(lo > hi + 60) > 200:
+            seen.add(k)
+    assert len(seen) >= 2, seen  # a sphere shows several faces of its cube, each a colour
+    assert colour_page.errors == []
+
+
+def test_zooming_in_fetches_the_finer_colour_pack_of_the_groups_in_view(colour_page,
+                                                                        colour_collection):
+    manifest = json.loads((colour_collection / "sphere" / "manifest.json").read_text())
+    centre = np.array(manifest["tiles"]["detail"]["groups"][0]["center"])
+    outward = centre / np.linalg.norm(centre)
+    stats = colour_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)",
+                                 [(centre + 0.6 * outward).tolist(), centre.tolist()])
+    assert stats["atlas_levels"][0] == 1  # group 0 at the finest level ...
+    # ... coloured from level 1's pack of groups 0-2 (texture/1/0.webp), fetched after the
+    # base's (other groups in view may need level 1's second pack too)
+    assert stats["atlas_colour_packs_loaded"] >= 2
+    shot = np.asarray(Image.open(io.BytesIO(colour_page.locator("canvas").screenshot())))
+    rgb = shot[..., :3].astype(int).reshape(-1, 3)
+    red = (rgb[:, 0] > rgb[:, 1] + 60) & (rgb[:, 0] > rgb[:, 2] + 60)
+    assert red.mean() > 0.2  # group 0 (red) fills much of the close view
+    assert colour_page.errors == []
+
+
+def test_download_ply_has_the_cli_s_colours(colour_page, colour_collection, tmp_path):
+    from fitter.cli import main
+
+    colour_page.select_option("#ply-level", "1")
+    with colour_page.expect_download() as info:
+        colour_page.click("#download-ply")
+    path = tmp_path / info.value.suggested_filename
+    info.value.save_as(path)
+    colour_page.wait_for_function("!document.body.dataset.plyBusy", timeout=60_000)
+    out = tmp_path / "cli.ply"
+    assert main(["tessellate", str(colour_collection / "sphere"), "--level", "1",
+                 "-o", str(out)]) == 0
+    assert path.read_bytes().replace(b"source base.tsa", b"source sphere") == out.read_bytes()
+    mesh = trimesh.load(path, process=False)
+    colours = {tuple(c[:3]) for c in np.asarray(mesh.visual.vertex_colors)}
+    assert colours <= set(GROUP_COLOURS) and len(colours) == 6
+    assert colour_page.errors == []
+
+
+def test_the_3dhop_page_shows_the_atlas_with_its_colours(page, colour_server):
+    if page.request.get(f"{colour_server.url}/vendor/3dhop/js/presenter.js").status != 200:
+        pytest.skip("3DHOP is not configured (../shared/vendor/3dhop-4.3 absent)")
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(f"{colour_server.url}/objects/sphere/3dhop")  # the base: colour level 0
+    page.wait_for_function(READY, timeout=90_000)
+    assert page.evaluate("document.body.dataset.error") is None
+    assert page.evaluate("window.presenter._isSceneReady()") is True
+    header = bytes(page.evaluate("""async () => {
+        const buffer = await (await fetch(window.tessera.plyUrl)).arrayBuffer();
+        return Array.from(new Uint8Array(buffer.slice(0, 600)));
+    }""")).split(b"end_header", 1)[0].decode()
+    assert "property uchar red" in header and "colour packs of level 0" in header
+    # 3DHOP draws the vertex colours (color -2: "use the mesh's"), not its stone colour
+    assert page.evaluate("window.presenter._scene.modelInstances.object.color[0]") == -2
+    assert errors == []
