@@ -7,8 +7,9 @@ resumable-upload, core protocol with its *creation*, *expiration*, *termination*
 offset with ``HEAD``, and sends bytes with ``PATCH`` and ``Upload-Offset``; what the server
 has is always a prefix of the file, so a client resumes from the server's offset after any
 failure. One step of Tessera's own follows: ``POST .../fit`` turns a complete upload into the
-same fit job as ``POST /admin/api/uploads``. The HTTP side is in :mod:`fitter.server.admin.api`; this module
-keeps the partial files (the collection layer: no Flask here):
+same fit job as ``POST /admin/api/uploads``. The HTTP side is in
+:mod:`fitter.server.admin.api`; this module keeps the partial files (the collection layer:
+no Flask here):
 
 * ``<collection>/.tessera/partial/<id>/data.part`` holds the bytes received so far; its size
   *is* the offset (written, then fsynced, before an answer), ``upload.json`` the declared
