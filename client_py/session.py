@@ -29,7 +29,7 @@ from . import _kernel
 from .atlas import AtlasSurface
 from .atlas_detail import pack_name, read_pack
 from .atlas_format import read_atlas
-from .atlas_mesh import tessellate_atlas
+from .atlas_mesh import AtlasPart, atlas_part, tessellate_atlas, tessellate_atlas_part
 from .bundle import (
     PLY_MAX_RESOLUTION,
     AtlasTiles,
@@ -109,6 +109,7 @@ class WorkerSession:
         self._atlas: AtlasSurface | None = None  # an atlas bundle's base (load_atlas), scan frame
         self._atlas_units = "unknown"
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
+        self._atlas_parts: dict[tuple[int, int, int], AtlasPart] = {}  # atlas_part_mesh's
 
     @property
     def kernel(self) -> str:
@@ -150,6 +151,7 @@ class WorkerSession:
         self._rigid = is_rigid_motion(patch.metadata.get("transform"))
         self._atlas = None
         self._packs.clear()
+        self._atlas_parts.clear()
         self._tiles.clear()
         self._last = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
@@ -383,6 +385,7 @@ class WorkerSession:
         self._atlas, self._source = atlas, str(source)
         self._atlas_units = str(metadata.get("units", "unknown"))
         self._packs.clear()
+        self._atlas_parts.clear()
         return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
                 "spans": atlas.spans, "vertices": len(atlas.vertices),
                 "rational": atlas.weights is not None, "units": self._atlas_units,
@@ -507,6 +510,48 @@ class WorkerSession:
         mesh = tessellate_atlas(atlas, resolution, detail, self._kernel)
         self._last = (-2, mesh)  # not a base grid: base_ply never reuses it
         return mesh
+
+    def atlas_part_mesh(self, group: int, level: int) -> Mesh:
+        """Group ``group`` of the atlas alone at ``level`` (-1: the base): the viewer's unit
+        of refinement, so that a change of level costs that group's patches only.
+
+        The patches get the held packs of levels ``0..level`` of the group and
+        :func:`_drawn_resolution` ``(level)`` samples per side; the group's seams with
+        other groups are evaluated at the base's resolution, on a frame every group shares,
+        with walls down to the base (:func:`client_py.atlas_mesh.tessellate_atlas_part`),
+        so groups drawn at any levels meet without a crack and the mesh depends on
+        ``(group, level)`` alone. The group's part (its seam frames) is made once.
+
+        Raises
+        ------
+        ValueError
+            A group or level out of range, or a pack of a wanted level not handed over.
+        """
+        atlas, spec = self._atlas_loaded()
+        if isinstance(group, bool) or not isinstance(group, int) \
+                or not 0 <= group < len(spec.groups):
+            raise ValueError(f"group {group!r}; an int in 0..{len(spec.groups) - 1} is needed")
+        if isinstance(level, bool) or not isinstance(level, int) \
+                or not -1 <= level < len(spec.levels):
+            raise ValueError(f"level {level!r}; an int in -1..{len(spec.levels) - 1} is needed")
+        detail: dict[int, list[DetailTile]] = {}
+        for k in range(level + 1):
+            name = pack_name(k, group)
+            if (k, group) not in spec.packs:
+                continue
+            if name not in self._packs:
+                raise ValueError(f"group {group} at level {level} needs pack {name}, which "
+                                 "was not handed over (add_pack)")
+            for patch, tiles in self._packs[name][2].items():
+                detail.setdefault(patch, []).extend(tiles)
+        key = (spec.groups[group].first, spec.groups[group].count, spec.base_resolution)
+        part = self._atlas_parts.get(key)
+        if part is None:
+            first, count, seam_resolution = key
+            part = self._atlas_parts[key] = atlas_part(atlas, range(first, first + count),
+                                                       seam_resolution)
+        return tessellate_atlas_part(part, _drawn_resolution(spec, level), detail,
+                                     self._kernel)
 
     def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes]) -> PlyFile:
         """:meth:`level_ply` of an atlas: the packs of levels ``0..level``, held or fresh."""

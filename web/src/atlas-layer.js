@@ -1,7 +1,6 @@
-// AtlasLayer: an atlas bundle (manifest format_version 2) on screen — one welded mesh of every
-// patch that the worker re-tessellates with each GROUP of patches at its own detail level,
-// chosen by screen-space error as in OGC 3D Tiles (docs/format.md, "Bundle manifest,
-// version 2 (atlas)").
+// AtlasLayer: an atlas bundle (manifest format_version 2) on screen — one mesh per GROUP of
+// patches, each drawn at its own detail level, chosen by screen-space error as in OGC 3D
+// Tiles (docs/format.md, "Bundle manifest, version 2 (atlas)").
 //
 // The worker's refinement table (WorkerSession.atlas_refinement, from the manifest) gives per
 // group its bounding sphere (scan frame) and, per level k, its pack (detail/K/G.tsdp, or null:
@@ -15,16 +14,24 @@
 // and a group inside the view frustum is refined one level at a time while sse > DETAIL_PX;
 // groups outside it go back to the base. Refinements are granted largest sse first within a
 // budget of MAX_VERTICES drawn vertices (a group at level k costs count * R_k^2, R_k the
-// worker's samples per patch side at that level), since the whole atlas is tessellated again
-// in pure Python for each change (client_py.atlas_mesh; about 2 s per 40 000 vertices in
-// CPython on a busy machine, more in Pyodide). The packs a choice needs are fetched (at most
+// worker's samples per patch side at that level).
+//
+// Only what changed is tessellated: a group's mesh (WorkerSession.atlas_part_mesh, one
+// request for all the groups an update needs) depends on its own level alone — its seams with
+// the other groups lie on a frame every group shares, with walls down to the base, so groups
+// at any levels meet without a crack (client_py.atlas_mesh.tessellate_atlas_part) — and the
+// meshes made are kept (least recently used dropped beyond CACHE_VERTICES), so going back to
+// a level seen before tessellates nothing. The packs a choice needs are fetched (at most
 // FETCH_PARALLEL at once), handed to the worker (MeshWorkerClient.addPack) and those no
-// longer needed dropped; then WorkerSession.atlas_mesh draws the new mesh, which replaces the
-// shown one in one frame.
+// longer needed dropped; the changed groups are swapped in in one frame. The first frame is
+// every group at the base, in one request, shown as one mesh (Viewer.setMesh: it frames the
+// view); the first refinement puts the groups in its place.
 //
 // Stats (window.tessera.stats): atlas_levels (per group), atlas_refined_groups,
-// atlas_packs_loaded, atlas_pack_bytes, atlas_tessellate_ms, atlas_updates, vertices,
-// triangles, tessellate_ms.
+// atlas_packs_loaded, atlas_pack_bytes, atlas_tessellate_ms (Python time of the groups the
+// last update tessellated), atlas_parts_made and atlas_parts_cached (that update's groups
+// tessellated and taken from the cache), atlas_refine_ms (its wall time, from the choice to
+// the swap drawn), atlas_updates, vertices, triangles, tessellate_ms.
 
 import * as THREE from "three";
 
@@ -32,6 +39,8 @@ import { fetchBytes } from "./fetch-bytes.js";
 import { DETAIL_PX } from "./tile-tree.js";
 
 export const MAX_VERTICES = 250000;
+/** Vertices of the group meshes kept off screen (about 32 bytes each with their triangles). */
+export const CACHE_VERTICES = 1000000;
 const FETCH_PARALLEL = 6;
 const SETTLE_MS = 200;
 
@@ -57,11 +66,13 @@ export class AtlasLayer {
     this.onError = onError;
     this.onChange = onChange;
     this.shown = this.groups.map(() => -1); // the level of each group on screen
+    this.cache = new Map(); // "g/level" -> the worker's mesh of that group, least recently used first
     this.timer = null;
     this.running = null; // the update in progress, or null
     this.again = false; // the camera moved during an update: run once more after it
     Object.assign(stats, { atlas_levels: [...this.shown], atlas_refined_groups: 0,
                            atlas_packs_loaded: 0, atlas_pack_bytes: 0, atlas_tessellate_ms: 0,
+                           atlas_parts_made: 0, atlas_parts_cached: 0, atlas_refine_ms: 0,
                            atlas_updates: 0 });
   }
 
@@ -70,21 +81,61 @@ export class AtlasLayer {
     return this.levelCount > 0 && this.groups.length > 0;
   }
 
-  /** The whole atlas with every group at `levels` from the worker, shown; resolves with
-   *  the worker's mesh. */
+  /** Every group at `levels` on screen: the groups whose mesh at that level is neither
+   *  shown nor kept are tessellated by the worker (one request), then the changed groups
+   *  are swapped in at once. Resolves with the stats. */
   async show(levels) {
     const t0 = performance.now();
-    const mesh = await this.worker.atlasMesh(levels);
-    this.viewer.setMesh(mesh, [0, 1, 0, 1]);
+    const wanted = levels.map((level, g) => partKey(g, level));
+    const missing = levels.map((level, g) => [g, level]).filter(([g, level]) =>
+      !this.cache.has(partKey(g, level)));
+    const meshes = missing.length ? await this.worker.atlasParts(missing) : [];
+    let pythonMs = 0;
+    for (const mesh of meshes) {
+      pythonMs += mesh.tessellate_ms;
+      this._remember(partKey(mesh.group, mesh.level), mesh);
+    }
+    const parts = wanted.map((key) => this._cached(key));
+    if (this.viewer.mesh === null) {
+      this.viewer.setMesh(mergeParts(parts), [0, 1, 0, 1]); // the first frame, framing the view
+    } else {
+      this.viewer.setAtlasParts(new Map(wanted.map((key, g) => [key, parts[g]])));
+    }
     this.shown = [...levels];
+    this._trimCache(new Set(wanted));
+    const vertices = parts.reduce((sum, part) => sum + part.positions.length / 3, 0);
+    const triangles = parts.reduce((sum, part) => sum + part.indices.length / 3, 0);
     Object.assign(this.stats, {
-      vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3,
-      tessellate_ms: mesh.tessellate_ms, atlas_tessellate_ms: mesh.tessellate_ms,
+      vertices, triangles, tessellate_ms: pythonMs, atlas_tessellate_ms: pythonMs,
+      atlas_parts_made: meshes.length, atlas_parts_cached: levels.length - meshes.length,
       round_trip_ms: performance.now() - t0, atlas_levels: [...levels],
       atlas_refined_groups: levels.filter((k) => k >= 0).length,
       meshes: (this.stats.meshes || 0) + 1,
     });
+    await this.viewer.whenDrawn();
+    this.stats.atlas_refine_ms = performance.now() - t0;
+    return { ...this.stats };
+  }
+
+  _remember(key, mesh) {
+    this.cache.delete(key);
+    this.cache.set(key, mesh);
+  }
+
+  _cached(key) {
+    const mesh = this.cache.get(key);
+    this._remember(key, mesh); // most recently used
     return mesh;
+  }
+
+  /** Drop the least recently used meshes not on screen beyond CACHE_VERTICES. */
+  _trimCache(shown) {
+    let kept = 0;
+    for (const [key, mesh] of [...this.cache].reverse()) {
+      if (shown.has(key)) continue;
+      kept += mesh.positions.length / 3;
+      if (kept > CACHE_VERTICES) this.cache.delete(key);
+    }
   }
 
   /** The error of group `g` at `level` (-1: the base's): its pack's geometric_error, or for
@@ -163,8 +214,9 @@ export class AtlasLayer {
   async _updateOnce() {
     const levels = this.wanted();
     if (levels.every((k, g) => k === this.shown[g])) return;
-    const needed = new Set();
+    const needed = new Set(); // the packs of the groups to tessellate (a kept mesh needs none)
     levels.forEach((level, g) => {
+      if (this.cache.has(partKey(g, level))) return;
       for (let k = 0; k <= level; k++) if (this.groups[g].packs[k]) needed.add(this.groups[g].packs[k]);
     });
     const missing = [...needed].filter((name) => !this.worker.holds(name));
@@ -194,4 +246,26 @@ export class AtlasLayer {
       else await new Promise((resolve) => setTimeout(resolve, 50));
     }
   }
+}
+
+const partKey = (group, level) => `${group}/${level}`;
+
+/** The group meshes as one mesh (typed arrays concatenated, indices shifted): the first
+ *  frame, which Viewer.setMesh frames the view by. */
+export function mergeParts(parts) {
+  const total = (name) => parts.reduce((sum, part) => sum + part[name].length, 0);
+  const merged = { positions: new Float32Array(total("positions")),
+                   normals: new Float32Array(total("normals")), uvs: new Float32Array(total("uvs")),
+                   indices: new Uint32Array(total("indices")) };
+  let at = { positions: 0, normals: 0, uvs: 0, indices: 0 };
+  for (const part of parts) {
+    merged.positions.set(part.positions, at.positions);
+    merged.normals.set(part.normals, at.normals);
+    merged.uvs.set(part.uvs, at.uvs);
+    const first = at.positions / 3;
+    for (let k = 0; k < part.indices.length; k++) merged.indices[at.indices + k] = part.indices[k] + first;
+    at = { positions: at.positions + part.positions.length, normals: at.normals + part.normals.length,
+           uvs: at.uvs + part.uvs.length, indices: at.indices + part.indices.length };
+  }
+  return merged;
 }

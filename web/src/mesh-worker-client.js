@@ -172,6 +172,13 @@ export class MeshWorkerClient {
     return this._request({ type: "atlasMesh", levels });
   }
 
+  /** Meshes of single groups of the atlas, `parts` = [[group, level], ...] (level -1: the
+   *  base): resolves with [{group, level, positions, normals, uvs, indices, tessellate_ms}]
+   *  in that order (WorkerSession.atlas_part_mesh: groups at any levels meet without a crack). */
+  async atlasParts(parts) {
+    return (await this._request({ type: "atlasParts", parts })).meshes;
+  }
+
   terminate() {
     this.worker.terminate();
     this._failAll("the mesh worker was stopped");

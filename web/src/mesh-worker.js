@@ -34,6 +34,10 @@
 //   page -> {type: "dropPacks", names}  -> {type: "droppedPacks", names}          (drop_packs)
 //   page -> {type: "atlasMesh", levels} -> {type: "atlasMesh", positions, normals, uvs,
 //           indices, tessellate_ms}  (atlas_mesh: one welded mesh, group g at levels[g])
+//   page -> {type: "atlasParts", parts: [[group, level], ...]}
+//        -> {type: "atlasParts", meshes: [{group, level, positions, normals, uvs, indices,
+//           tessellate_ms}, ...]}  (atlas_part_mesh for each, in order: one group alone, its
+//           seams shared with every other group's; what the viewer draws)
 //   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (drop_tiles)
@@ -309,6 +313,15 @@ function dropPacks({ id, names }) {
   post({ type: "droppedPacks", id, names });
 }
 
+function atlasParts({ id, parts }) {
+  const meshes = parts.map(([group, level]) => {
+    const t0 = performance.now();
+    return meshArrays(session.atlas_part_mesh(group, level), performance.now() - t0,
+                      { group, level });
+  });
+  post({ type: "atlasParts", id, meshes }, meshes.flatMap(buffersOf));
+}
+
 function atlasMesh({ id, levels }) {
   const t0 = performance.now();
   const mesh = withPy(levels, (list) => session.atlas_mesh(list));
@@ -371,4 +384,4 @@ self.onmessage = (event) => {
   pump();
 };
 
-Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh }); // an atlas bundle's
+Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh, atlasParts }); // an atlas bundle's
