@@ -268,6 +268,31 @@ def test_zoom_fetches_only_the_tiles_in_view_and_refines_the_mesh(browser, detai
         context.close()
 
 
+def test_a_wheel_step_draws_its_regions_before_the_finer_base(browser, detail_server):
+    """A wheel zoom asks for new regions and for a finer base grid; the refined regions come
+    first (the base's re-tessellation waits for them) and the finer base, once shown, does
+    not make the regions be chosen and swapped again."""
+    context, page, problems = _watched_page(browser, viewport={"width": 800, "height": 600})
+    try:
+        page.goto(f"{detail_server.url}/objects/relief-detail/")
+        page.wait_for_function("document.body.dataset.refined === '1' || "
+                               "!!document.body.dataset.error", timeout=60_000)
+        before = page.evaluate("window.tessera.tilesIdle()")
+        page.mouse.move(400, 300)
+        page.mouse.wheel(0, -1200)
+        page.wait_for_function(f"window.tessera.stats.resolution > {before['resolution']}",
+                               timeout=60_000)
+        after = page.evaluate("window.tessera.tilesIdle()")
+        assert after["tile_updates"] > before["tile_updates"]
+        assert after["tile_timing"]["at"] > before["base_shown_at"]  # regions swapped ...
+        assert after["tile_timing"]["at"] < after["base_shown_at"]  # ... before the base
+        page.wait_for_timeout(500)
+        assert page.evaluate("window.tessera.stats.tile_updates") == after["tile_updates"]
+        assert problems == []
+    finally:
+        context.close()
+
+
 def test_texture_tiles_colour_the_object(browser, detail_server, detail_collection):
     """A point-coloured scan's texture tiles are fetched and drawn: the stripes show."""
     import base64

@@ -3,7 +3,13 @@
 // MIN_RESOLUTION..MAX_RESOLUTION, re-tessellated once a zoom gesture ends when the wanted
 // grid differs from the shown one by more than 1.4 x (unless the page fixes it, ?resolution=N).
 // The first mesh is coarse (COARSE_RESOLUTION: ~1k vertices, drawn within milliseconds).
-// Stats: resolution, vertices, triangles, tessellate_ms (Python), round_trip_ms, meshes.
+// Following the zoom comes after the detail: the re-tessellation waits until `waitFor()`
+// (the tile layer idle: the zoom's refined regions drawn) and is dropped when a newer gesture
+// ends meanwhile, so a wheel step reaches its refined view without the base's grid in the
+// way (a 384² base is ~150k vertices of Python); onShown(mesh, {following: true}) tells the
+// page it was such a re-tessellation.
+// Stats: resolution, vertices, triangles, tessellate_ms (Python), round_trip_ms, meshes,
+// base_shown_at (performance.now() when the last base mesh was put on screen).
 
 export const COARSE_RESOLUTION = 24;
 export const MIN_RESOLUTION = 48;
@@ -19,12 +25,15 @@ export class BaseMesh {
    *   fixedResolution: the page's ?resolution=N (no following the view); onShown: called with
    *   the worker's mesh once it is on screen
    */
-  constructor({ viewer, worker, stats, fixedResolution = null, onShown = () => {} }) {
+  constructor({ viewer, worker, stats, fixedResolution = null, onShown = () => {},
+                waitFor = async () => {} }) {
     this.viewer = viewer;
     this.worker = worker;
     this.stats = stats;
     this.fixedResolution = fixedResolution;
     this.onShown = onShown;
+    this.waitFor = waitFor; // resolves when a zoom's re-tessellation may start
+    this.gesture = 0; // zoom gestures ended so far: a newer one supersedes a waiting one
     this.domain = null; // [u0, u1, v0, v1] of the patch, once the worker has read it
     this.resolution = 0; // grid of the mesh on screen (0: none yet)
     this.uvs = null; // its (u, v) per vertex, the order of the worker's PLY of this grid
@@ -44,7 +53,7 @@ export class BaseMesh {
 
   /** Tessellate on a `resolution` x `resolution` grid and show it; resolves with a copy of
    *  the stats. */
-  async show(resolution) {
+  async show(resolution, { following = false } = {}) {
     const t0 = performance.now();
     const mesh = await this.worker.tessellate(resolution);
     this.viewer.setMesh(mesh, this.domain);
@@ -53,22 +62,31 @@ export class BaseMesh {
     Object.assign(this.stats, {
       resolution, vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3,
       tessellate_ms: mesh.tessellate_ms, round_trip_ms: performance.now() - t0,
-      meshes: this.stats.meshes + 1,
+      meshes: this.stats.meshes + 1, base_shown_at: performance.now(),
     });
-    this.onShown(mesh);
+    this.onShown(mesh, { following });
     return { ...this.stats };
   }
 
   /** After each zoom gesture, re-tessellate when the view wants a grid far enough from the
-   *  one shown; a failure goes to `onError(message)`. */
+   *  one shown, once `waitFor()` resolves and unless a newer gesture ended meanwhile; a
+   *  failure goes to `onError(message)`. */
   followZoom(onError) {
     this.viewer.controls.addEventListener("end", () => {
       if (this.fixedResolution || !this.domain) return;
-      const wanted = this.viewResolution();
-      if (Math.abs(Math.log(wanted / this.resolution)) < Math.log(RETESSELLATE_RATIO)) return;
+      const gesture = ++this.gesture;
       clearTimeout(this.pending);
-      this.pending = setTimeout(() => this.show(wanted).catch((error) => onError(error.message)),
-                                ZOOM_SETTLE_MS);
+      this.pending = setTimeout(async () => {
+        try {
+          await this.waitFor();
+          const wanted = this.viewResolution(); // the view once the detail is in
+          if (gesture !== this.gesture || wanted === this.resolution ||
+              Math.abs(Math.log(wanted / this.resolution)) < Math.log(RETESSELLATE_RATIO)) return;
+          await this.show(wanted, { following: true });
+        } catch (error) {
+          onError(error.message);
+        }
+      }, ZOOM_SETTLE_MS);
     });
   }
 }

@@ -20,6 +20,8 @@ export class MeshWorkerClient {
     // (updated when a "tile"/"drop" request is posted: the worker runs requests in order).
     this.held = new Set();
     this.packs = new Set(); // of those, an atlas's detail packs (addPack)
+    // called with the worker's Resource Timing entries when it fetched something (fetchTiles)
+    this.onResources = () => {};
     this.worker = new Worker(workerUrl, { type: "module", name: "tessera-mesh-worker" });
     this.worker.onmessage = (event) => this._receive(event.data);
     this.worker.onerror = (event) => {
@@ -113,7 +115,23 @@ export class MeshWorkerClient {
     });
   }
 
-  /** Forget tiles the worker holds (names as given to addTile). */
+  /** Have the worker fetch detail tiles itself ([{name, url}]: a bundle's `.tsd` files) and
+   *  keep each decoded, off the page's thread: resolves with [{name, bytes, level, i, j}]; a
+   *  tile that cannot be fetched or decoded rejects with its reason. The worker's Resource
+   *  Timing entries then go to `onResources(entries)`. Requests sent after this one find the
+   *  tiles held. */
+  fetchTiles(tiles) {
+    for (const { name } of tiles) this.held.add(name);
+    return this._request({ type: "fetchTiles", tiles }).then((reply) => {
+      this.onResources(reply.resources);
+      return reply.tiles;
+    }, (error) => {
+      for (const { name } of tiles) this.held.delete(name);
+      throw error;
+    });
+  }
+
+  /** Forget tiles the worker holds (names as given to addTile or fetchTiles). */
   dropTiles(names) {
     for (const name of names) this.held.delete(name);
     return this._request({ type: "drop", names });

@@ -40,6 +40,10 @@
 //           seams shared with every other group's; what the viewer draws)
 //   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
+//   page -> {type: "fetchTiles", tiles: [{name, url}, ...]}
+//        -> {type: "fetchedTiles", tiles: [{name, bytes, level, i, j}, ...], resources}
+//           (the worker fetches the tiles itself, then add_tile each, kept; resources: as in
+//           "resources", the page's tally of what the visit transferred)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (drop_tiles)
 //   page -> {type: "region", level, i, j, grid, names, skirtDepth}
 //        -> {type: "region", positions, normals, uvs, indices, tessellate_ms}  (region_mesh:
@@ -280,6 +284,19 @@ function tile({ id, name, bytes }) {
   post({ type: "tile", id, name, level, i, j });
 }
 
+/** Fetch detail tiles here, off the page's thread (a draw there does not hold them up), and
+ *  keep each decoded (add_tile); the region requests the page sends behind this one find
+ *  them held. Replies with their sizes and this worker's Resource Timing entries. */
+async function fetchTiles({ id, tiles }) {
+  const fetched = await Promise.all(tiles.map(async ({ name, url }) =>
+    ({ name, bytes: await fetchBytes(url, name) })));
+  const added = fetched.map(({ name, bytes }) => {
+    const [level, i, j] = toPlain(session.add_tile(name, bytes));
+    return { name, bytes: bytes.length, level, i, j };
+  });
+  post({ type: "fetchedTiles", id, tiles: added, resources: resourceEntries() });
+}
+
 function drop({ id, names }) {
   withPy(names, (list) => session.drop_tiles(list));
   post({ type: "dropped", id, names });
@@ -332,7 +349,8 @@ function resources({ id }) {
   post({ type: "resources", id, resources: resourceEntries() });
 }
 
-const handlers = { init, tessellate, plan, ply, tile, drop, region, regions, resources };
+const handlers = { init, tessellate, plan, ply, tile, fetchTiles, drop, region, regions,
+                   resources };
 
 async function run(request) {
   const handler = handlers[request.type];

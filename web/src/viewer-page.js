@@ -278,13 +278,16 @@ async function main() {
   const tilesStarted = new Promise((resolve) => { settleTiles = resolve; });
   const base = new BaseMesh({
     viewer, worker, stats, fixedResolution: config.resolution || null,
-    onShown: (mesh) => {
+    onShown: (mesh, { following }) => {
       facts.showMesh(stats);
       if (tiles) {
         tiles.setBase(mesh, base.domain);
-        tiles.schedule(0);
+        // the coarse first base's boxes were rough: choose again; a zoom's finer base only
+        // sharpens them a little, and the regions it has are already drawn
+        if (!following) tiles.schedule(0);
       }
     },
+    waitFor: () => (tiles ? tiles.idle() : Promise.resolve()),
   });
   exposeTestHooks({ viewer, base, tiles: () => tiles, tilesStarted });
   // the camera moved: new regions; a zoom gesture ended: maybe a finer or coarser base grid
@@ -306,6 +309,7 @@ async function main() {
   viewer.setObjectView(manifest.view || null); // older bundles have none: the fallback framing
   const transfers = new TransferTally(config.manifest_url, window.location.href);
   transfers.add("worker", ready.resources || []);
+  worker.onResources = (entries) => transfers.add("worker", entries); // tiles it fetched
   const target = await showFirstMesh(base);
   showTransfers(transfers, facts);
 
