@@ -345,7 +345,7 @@ def _atlas_steps(manifest: dict) -> list[list[int]]:
     groups = len(counts)
 
     def within_budget(levels):
-        return sum(c * resolutions[k + 1] ** 2 for c, k in zip(counts, levels)) \
+        return sum(c * resolutions[k + 1] ** 2 for c, k in zip(counts, levels, strict=True)) \
             <= ATLAS_MAX_VERTICES
 
     def zoom(chosen, level):
