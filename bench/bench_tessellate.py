@@ -361,7 +361,8 @@ def _atlas_steps(manifest: dict) -> list[list[int]]:
     steps = [[-1] * groups]  # the first frame: every group at the base
     steps += [zoom(first, k) for k in range(top + 1)]
     steps += [zoom(second, top), [-1] * groups, zoom(first, top)]
-    return steps
+    # a choice equal to the one before changes nothing on screen: no refinement
+    return [levels for k, levels in enumerate(steps) if k == 0 or levels != steps[k - 1]]
 
 
 def run_atlas(bundle: str | Path | None = None) -> dict | None:

@@ -171,8 +171,8 @@ def _watched_page(browser, **options):
 
 
 def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **options):
-    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready:
-    ``(context, page, problems, fetched)`` with the page's errors and the ``(level, i, j)`` of
+    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready and
+    its base refined: ``(context, page, problems, fetched)`` with the page's errors and the ``(level, i, j)`` of
     every detail tile it requests."""
     context, page, problems = _watched_page(browser, viewport={"width": 800, "height": 600},
                                             **options)
@@ -187,6 +187,8 @@ def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **opt
     page.goto(f"{server.url}/objects/{object_id}/?resolution=64")
     page.wait_for_function(READY, timeout=60_000)
     assert page.evaluate("document.body.dataset.error") is None
+    # the base at its grid too (it waits in the worker behind the first regions)
+    page.wait_for_function("document.body.dataset.refined === '1'", timeout=60_000)
     return context, page, problems, fetched
 
 
