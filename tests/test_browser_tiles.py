@@ -171,9 +171,9 @@ def _watched_page(browser, **options):
 
 
 def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **options):
-    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready and
-    its base refined: ``(context, page, problems, fetched)`` with the page's errors and the ``(level, i, j)`` of
-    every detail tile it requests."""
+    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready
+    and its base refined: ``(context, page, problems, fetched)`` with the page's errors and
+    the ``(level, i, j)`` of every detail tile it requests."""
     context, page, problems = _watched_page(browser, viewport={"width": 800, "height": 600},
                                             **options)
     fetched: list[tuple[int, int, int]] = []
