@@ -634,7 +634,7 @@ class AtlasPart:
         Samples evaluated along every seam (the coarsest resolution any part is drawn at).
     frames : dict
         Seam edge (the part's index) -> ``(points, normals)``, ``seam_resolution`` each,
-        from the edge's lower layout vertex to its higher (:func:`_seam_frame`).
+        from the edge's lower layout vertex to its higher (:func:`atlas_seam_frames`).
     """
 
     atlas: AtlasSurface
@@ -665,9 +665,12 @@ class AtlasPartMesh(AtlasMesh):
     surface_triangles: int = 0
 
 
-def atlas_part(atlas: AtlasSurface, patches: Sequence[int], seam_resolution: int) -> AtlasPart:
-    """The patches ``patches`` of ``atlas`` as an :class:`AtlasPart` (made once per group:
-    its seam frames cost a few evaluations of the reference evaluator per seam sample).
+def atlas_part(atlas: AtlasSurface, patches: Sequence[int], seam_resolution: int,
+               frames: Mapping[int, tuple[list, list]] | None = None) -> AtlasPart:
+    """The patches ``patches`` of ``atlas`` as an :class:`AtlasPart` (made once per group).
+
+    ``frames``: :func:`atlas_seam_frames` ``(atlas, seam_resolution)``, computed once for
+    all the parts of a drawing (default: computed here).
 
     Raises
     ------
@@ -708,10 +711,11 @@ def atlas_part(atlas: AtlasSurface, patches: Sequence[int], seam_resolution: int
                         [atlas.face_points[k] for run in face_runs for k in run], weights)
     seams = tuple(e for e, full in enumerate(full_edges)
                   if len(table.faces[e]) == 1 and len(atlas.edges.faces[full]) == 2)
-    around = _patches_at_vertices(atlas)
-    surfaces: dict[int, object] = {}
-    frames = {e: _seam_frame(atlas, full_edges[e], seam_resolution, around, surfaces)
-              for e in seams}
+    if frames is None:
+        frames = atlas_seam_frames(atlas, seam_resolution)
+    frames = {e: frames[full_edges[e]] for e in seams}
+    if any(len(points) != seam_resolution for points, _ in frames.values()):
+        raise ValueError(f"the seam frames are not of {seam_resolution} samples")
     return AtlasPart(part, chosen, full_edges, seams, seam_resolution, frames)
 
 
@@ -724,41 +728,63 @@ def _patches_at_vertices(atlas: AtlasSurface) -> dict[int, list[tuple[int, int]]
     return around
 
 
-#: (u, v) of a patch's corners, in the quad's order a, b, c, d
-_CORNER_UV = ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0))
+def atlas_seam_frames(atlas: AtlasSurface, samples: int,
+                      kernel: str | None = None) -> dict[int, tuple[list, list]]:
+    """The frame of every inner edge of ``atlas`` that parts drawn apart place their seams by
+    (:func:`tessellate_atlas_part`): edge ``e`` -> ``(points, normals)`` at ``samples``
+    parameters ``t_K = K / (samples - 1)`` from its lower layout vertex to its higher.
 
+    One evaluation of every patch at ``samples`` samples per side (the grid kernel, as the
+    base mesh is drawn); the point is the lowest-numbered sampling patch's sample, the normal
+    the normalised sum, in patch order, of the unit normals of every patch sampling it (two
+    along the edge, all those at a corner; at a pole the reference evaluator's limit), as
+    :func:`tessellate_atlas` weighs a welded border vertex's. Computed once and shared, the
+    frame is the same numbers for the parts on both sides of a seam.
+    """
+    if not isinstance(atlas, AtlasSurface):
+        raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 2 <= samples <= MAX_GRID:
+        raise ValueError(f"seam samples = {samples!r}; an int in 2..{MAX_GRID} is needed")
+    backend = _kernel.backend(kernel)
+    comps = _homogeneous(atlas)
+    evaluate = (_evaluate_python if backend is _kernel_python
+                else partial(_evaluate_numpy, backend=backend))
+    r = samples
+    grids = evaluate(atlas, comps, list(range(len(atlas.quads))), r, _normal_tolerance(comps))
+    params = _tables(atlas.degree, atlas.spans, r)[0]
+    poles = {f: set(bad) for f, (_, _, bad) in grids.items() if bad}
+    sides = _side_slots(r)
+    corner_slot = (0, (r - 1) * r, r * r - 1, r - 1)  # corners a, b, c, d of the quad
+    around = _patches_at_vertices(atlas)
+    table = atlas.edges
 
-def _seam_frame(atlas: AtlasSurface, e: int, samples: int, around: dict,
-                surfaces: dict) -> tuple[list[tuple], list[tuple]]:
-    """Base points and unit normals at ``samples`` parameters ``t_K = K / (samples - 1)``
-    of the full atlas's edge ``e``, from its lower vertex to its higher: the ones every
-    part on either side places its seam vertices by, so both compute them bit for bit
-    alike. The point is that of the lowest-numbered patch sampling it
-    (``patch_surface(g).evaluate``); the normal the normalised sum, in patch order, of the
-    unit normals of every patch sampling it (two along the edge, all those at a corner),
-    as :func:`tessellate_atlas` weighs a welded border vertex's."""
-    lo, hi = atlas.edges.edges[e]
-    on_edge = sorted(atlas.edges.faces[e])
-    points, normals = [], []
-    for K in range(samples):
-        if K in (0, samples - 1):
-            at = [(f, _CORNER_UV[c]) for f, c in around[lo if K == 0 else hi]]
-        else:
-            at = []
-            for f, k in on_edge:
-                reverse = atlas.edges.sides[f][k][1]
-                t = (samples - 1 - K) / (samples - 1) if reverse else K / (samples - 1)
-                at.append((f, ((t, 0.0), (1.0, t), (t, 1.0), (0.0, t))[k]))
-        for f, _ in at:
-            if f not in surfaces:
-                surfaces[f] = atlas.patch_surface(f)
-        points.append(tuple(surfaces[at[0][0]].evaluate(*at[0][1])))
-        total = [0.0, 0.0, 0.0]
-        for f, (u, v) in at:
-            n = surfaces[f].normal(u, v)
-            total = [a + b for a, b in zip(total, n, strict=True)]
-        normals.append(_unit(*total))
-    return points, normals
+    def unit_normal(f, slot):
+        if slot in poles.get(f, ()):
+            return atlas.patch_surface(f).normal(params[slot // r], params[slot % r])
+        return grids[f][1][3 * slot : 3 * slot + 3]
+
+    frames = {}
+    for e, pairs in enumerate(table.faces):
+        if len(pairs) != 2:
+            continue
+        lo, hi = table.edges[e]
+        on_edge = sorted(pairs)
+        points, normals = [], []
+        for K in range(r):
+            if K in (0, r - 1):
+                at = [(f, corner_slot[c]) for f, c in around[lo if K == 0 else hi]]
+            else:
+                at = [(f, sides[f_k][r - 1 - K if table.sides[f][f_k][1] else K])
+                      for f, f_k in on_edge]
+            f0, slot0 = at[0]
+            points.append(tuple(grids[f0][0][3 * slot0 : 3 * slot0 + 3]))
+            x = y = z = 0.0
+            for f, slot in at:
+                nx, ny, nz = unit_normal(f, slot)
+                x, y, z = x + nx, y + ny, z + nz
+            normals.append(_unit(x, y, z))
+        frames[e] = (points, normals)
+    return frames
 
 
 def tessellate_atlas_part(part: AtlasPart, resolution: int,
@@ -772,7 +798,7 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int,
 
     * a seam is evaluated at ``part.seam_resolution`` samples ``K``, each placed at
       ``X_K = S_K + d_K n_K`` with the seam frame ``(S_K, n_K)`` that every part computes
-      alike (:func:`_seam_frame`) and ``d_K`` the mean displacement of the part's own
+      alike (:func:`atlas_seam_frames`) and ``d_K`` the mean displacement of the part's own
       patches there (0 without detail); its ``resolution - 1`` segments are laid on the
       straight chords between those, as ``tessellate_atlas`` lays a finer side on a
       coarser neighbour's;

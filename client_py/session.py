@@ -29,7 +29,13 @@ from . import _kernel
 from .atlas import AtlasSurface
 from .atlas_detail import pack_name, read_pack
 from .atlas_format import read_atlas
-from .atlas_mesh import AtlasPart, atlas_part, tessellate_atlas, tessellate_atlas_part
+from .atlas_mesh import (
+    AtlasPart,
+    atlas_part,
+    atlas_seam_frames,
+    tessellate_atlas,
+    tessellate_atlas_part,
+)
 from .bundle import (
     PLY_MAX_RESOLUTION,
     AtlasTiles,
@@ -110,6 +116,7 @@ class WorkerSession:
         self._atlas_units = "unknown"
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
         self._atlas_parts: dict[tuple[int, int, int], AtlasPart] = {}  # atlas_part_mesh's
+        self._atlas_frames: dict[int, dict] = {}  # seam resolution -> atlas_seam_frames
 
     @property
     def kernel(self) -> str:
@@ -152,6 +159,7 @@ class WorkerSession:
         self._atlas = None
         self._packs.clear()
         self._atlas_parts.clear()
+        self._atlas_frames.clear()
         self._tiles.clear()
         self._last = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
@@ -386,6 +394,7 @@ class WorkerSession:
         self._atlas_units = str(metadata.get("units", "unknown"))
         self._packs.clear()
         self._atlas_parts.clear()
+        self._atlas_frames.clear()
         return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
                 "spans": atlas.spans, "vertices": len(atlas.vertices),
                 "rational": atlas.weights is not None, "units": self._atlas_units,
@@ -548,8 +557,13 @@ class WorkerSession:
         part = self._atlas_parts.get(key)
         if part is None:
             first, count, seam_resolution = key
+            frames = self._atlas_frames.get(seam_resolution)
+            if frames is None:  # one table for every group: each seam's frame computed once
+                self._atlas_frames = {seam_resolution: atlas_seam_frames(
+                    atlas, seam_resolution, self._kernel)}
+                frames = self._atlas_frames[seam_resolution]
             part = self._atlas_parts[key] = atlas_part(atlas, range(first, first + count),
-                                                       seam_resolution)
+                                                       seam_resolution, frames)
         return tessellate_atlas_part(part, _drawn_resolution(spec, level), detail,
                                      self._kernel)
 

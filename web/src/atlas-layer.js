@@ -24,8 +24,9 @@
 // a level seen before tessellates nothing. The packs a choice needs are fetched (at most
 // FETCH_PARALLEL at once), handed to the worker (MeshWorkerClient.addPack) and those no
 // longer needed dropped; the changed groups are swapped in in one frame. The first frame is
-// every group at the base, in one request, shown as one mesh (Viewer.setMesh: it frames the
-// view); the first refinement puts the groups in its place.
+// the whole atlas at the base welded in one mesh (Viewer.setMesh: it frames the view); right
+// after it the worker makes every group's base mesh in the background, and the first
+// refinement puts the groups in its place.
 //
 // Stats (window.tessera.stats): atlas_levels (per group), atlas_refined_groups,
 // atlas_packs_loaded, atlas_pack_bytes, atlas_tessellate_ms (Python time of the groups the
@@ -67,6 +68,7 @@ export class AtlasLayer {
     this.onChange = onChange;
     this.shown = this.groups.map(() => -1); // the level of each group on screen
     this.cache = new Map(); // "g/level" -> the worker's mesh of that group, least recently used first
+    this.baseParts = null; // the request for every group's base mesh (after the first frame)
     this.timer = null;
     this.running = null; // the update in progress, or null
     this.again = false; // the camera moved during an update: run once more after it
@@ -86,6 +88,8 @@ export class AtlasLayer {
    *  are swapped in at once. Resolves with the stats. */
   async show(levels) {
     const t0 = performance.now();
+    if (this.viewer.mesh === null) return this._showFirst(levels);
+    await this.baseParts; // the base of every group, asked for after the first frame
     const wanted = levels.map((level, g) => partKey(g, level));
     const missing = levels.map((level, g) => [g, level]).filter(([g, level]) =>
       !this.cache.has(partKey(g, level)));
@@ -96,11 +100,7 @@ export class AtlasLayer {
       this._remember(partKey(mesh.group, mesh.level), mesh);
     }
     const parts = wanted.map((key) => this._cached(key));
-    if (this.viewer.mesh === null) {
-      this.viewer.setMesh(mergeParts(parts), [0, 1, 0, 1]); // the first frame, framing the view
-    } else {
-      this.viewer.setAtlasParts(new Map(wanted.map((key, g) => [key, parts[g]])));
-    }
+    this.viewer.setAtlasParts(new Map(wanted.map((key, g) => [key, parts[g]])));
     this.shown = [...levels];
     this._trimCache(new Set(wanted));
     const vertices = parts.reduce((sum, part) => sum + part.positions.length / 3, 0);
@@ -114,6 +114,30 @@ export class AtlasLayer {
     });
     await this.viewer.whenDrawn();
     this.stats.atlas_refine_ms = performance.now() - t0;
+    return { ...this.stats };
+  }
+
+  /** The first frame: the whole atlas welded at `levels` in one mesh (WorkerSession.atlas_mesh:
+   *  as fast as one group mesh per group, and Viewer.setMesh frames the view by it); then, in
+   *  the background, every group's base mesh, which the first refinement shows beside the
+   *  groups it refines. */
+  async _showFirst(levels) {
+    const t0 = performance.now();
+    const mesh = await this.worker.atlasMesh(levels);
+    this.viewer.setMesh(mesh, [0, 1, 0, 1]);
+    this.shown = [...levels];
+    Object.assign(this.stats, {
+      vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3,
+      tessellate_ms: mesh.tessellate_ms, atlas_tessellate_ms: mesh.tessellate_ms,
+      round_trip_ms: performance.now() - t0, atlas_levels: [...levels],
+      atlas_refined_groups: levels.filter((k) => k >= 0).length,
+      meshes: (this.stats.meshes || 0) + 1,
+    });
+    if (this.enabled) {
+      this.baseParts = this.worker.atlasParts(this.groups.map((_, g) => [g, -1])).then(
+        (meshes) => meshes.forEach((part) => this._remember(partKey(part.group, part.level), part)),
+        (error) => this.onError(`atlas groups: ${error.message}`));
+    }
     return { ...this.stats };
   }
 
