@@ -3,7 +3,9 @@
 // MIN_RESOLUTION..MAX_RESOLUTION, re-tessellated once a zoom gesture ends when the wanted
 // grid differs from the shown one by more than 1.4 x (unless the page fixes it, ?resolution=N).
 // The first mesh is coarse (COARSE_RESOLUTION: ~1k vertices, drawn within milliseconds).
-// Following the zoom comes after the detail: the re-tessellation waits until `waitFor()`
+// With detail regions on screen (`backdrop()`), the base is a backdrop and its grid stays at
+// most BACKDROP_RESOLUTION. Following the zoom comes after the detail: the re-tessellation
+// waits until `waitFor()`
 // (the tile layer idle: the zoom's refined regions drawn) and is dropped when a newer gesture
 // ends meanwhile, so a wheel step reaches its refined view without the base's grid in the
 // way (a 384² base is ~150k vertices of Python); onShown(mesh, {following: true}) tells the
@@ -14,6 +16,11 @@
 export const COARSE_RESOLUTION = 24;
 export const MIN_RESOLUTION = 48;
 export const MAX_RESOLUTION = 384;
+/** The grid of a base that detail regions cover (`backdrop()`): hidden under them and
+ *  outside the view, it shows only where its own error is under a pixel or two, and every
+ *  draw processes all its vertices (a 384² base: 147k, up to 2 s a draw under a software
+ *  rasteriser; 96²: 9k). */
+export const BACKDROP_RESOLUTION = 96;
 const RETESSELLATE_RATIO = 1.4;
 const ZOOM_SETTLE_MS = 150;
 
@@ -26,13 +33,14 @@ export class BaseMesh {
    *   the worker's mesh once it is on screen
    */
   constructor({ viewer, worker, stats, fixedResolution = null, onShown = () => {},
-                waitFor = async () => {} }) {
+                waitFor = async () => {}, backdrop = () => false }) {
     this.viewer = viewer;
     this.worker = worker;
     this.stats = stats;
     this.fixedResolution = fixedResolution;
     this.onShown = onShown;
     this.waitFor = waitFor; // resolves when a zoom's re-tessellation may start
+    this.backdrop = backdrop; // whether detail regions are drawn over the base now
     this.gesture = 0; // zoom gestures ended so far: a newer one supersedes a waiting one
     this.domain = null; // [u0, u1, v0, v1] of the patch, once the worker has read it
     this.resolution = 0; // grid of the mesh on screen (0: none yet)
@@ -40,10 +48,12 @@ export class BaseMesh {
     this.pending = null;
   }
 
-  /** The grid the view wants: a vertex every ~3 device pixels across the object on screen. */
+  /** The grid the view wants: a vertex every ~3 device pixels across the object on screen,
+   *  at most BACKDROP_RESOLUTION while detail regions cover the view (`backdrop()`). */
   viewResolution() {
     const pixels = this.viewer.projectedDiameter() / 3;
-    return Math.min(MAX_RESOLUTION, Math.max(MIN_RESOLUTION, Math.round(pixels / 16) * 16));
+    const top = this.backdrop() ? BACKDROP_RESOLUTION : MAX_RESOLUTION;
+    return Math.min(top, Math.max(MIN_RESOLUTION, Math.round(pixels / 16) * 16));
   }
 
   /** The grid to show once loaded: the fixed one, or the view's. */
@@ -79,7 +89,7 @@ export class BaseMesh {
       this.pending = setTimeout(async () => {
         try {
           await this.waitFor();
-          const wanted = this.viewResolution(); // the view once the detail is in
+          const wanted = this.viewResolution(); // the view (and its regions) once the detail is in
           if (gesture !== this.gesture || wanted === this.resolution ||
               Math.abs(Math.log(wanted / this.resolution)) < Math.log(RETESSELLATE_RATIO)) return;
           await this.show(wanted, { following: true });
