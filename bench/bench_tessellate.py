@@ -284,6 +284,135 @@ def run_regions() -> dict | None:
     return record
 
 
+# Atlas refinement (issue 14): an atlas bundle's groups change level as a visitor zooms;
+# per refinement, the old viewer's work (WorkerSession.atlas_mesh: the whole atlas welded
+# again) against the new one's (WorkerSession.atlas_part_mesh of the groups whose mesh at
+# their new level was not made before in the visit: AtlasLayer keeps the others). Step 1 is
+# the first frame: the welded base in both viewers; the new one then makes every group's base
+# mesh in the background (its "after" figure), which its first refinement shows. INPUT:
+# {"atlas": b64, "manifest": text, "packs": {name: b64}, "steps": [levels per group, ...]}.
+ATLAS_SCRIPT = """
+import base64, time
+from client_py import session as session_module
+from client_py._kernel import KERNEL_NAME
+
+try:  # node's CPU time of this process (a loaded machine's waits are not the work's)
+    from js import process
+
+    def cpu_ms():
+        usage = process.cpuUsage()
+        return (usage.user + usage.system) / 1000
+except ImportError:
+    def cpu_ms():
+        return time.process_time() * 1000
+
+session = session_module.WorkerSession()
+session.load_atlas(base64.b64decode(INPUT["atlas"]), "base.tsa")
+session.read_manifest(INPUT["manifest"])
+for name, data in INPUT["packs"].items():
+    session.add_pack(name, base64.b64decode(data))
+made = set()
+rows = []
+for levels in INPUT["steps"]:
+    start, start_cpu = time.perf_counter(), cpu_ms()
+    whole = session.atlas_mesh(levels)
+    before = (1000 * (time.perf_counter() - start), cpu_ms() - start_cpu)
+    wanted = [(g, k) for g, k in enumerate(levels) if (g, k) not in made]
+    start, start_cpu = time.perf_counter(), cpu_ms()
+    parts = [session.atlas_part_mesh(g, k) for g, k in wanted]
+    after = (1000 * (time.perf_counter() - start), cpu_ms() - start_cpu)
+    made.update(wanted)
+    rows.append({"levels": levels, "before_ms": before[0], "before_cpu_ms": before[1],
+                 "before_vertices": whole.vertex_count, "after_ms": after[0],
+                 "after_cpu_ms": after[1], "groups_made": len(wanted),
+                 "after_vertices_made": sum(p.vertex_count for p in parts)})
+RESULT = {"kernel": KERNEL_NAME, "rows": rows}
+"""
+
+#: the viewer's budget of drawn vertices (web/src/atlas-layer.js MAX_VERTICES)
+ATLAS_MAX_VERTICES = 250_000
+
+
+def _atlas_steps(manifest: dict) -> list[list[int]]:
+    """A visit: the first frame (every group at the base), then its refinements: zoom into
+    the first groups one level at a time (as far as the viewer's vertex budget lets each
+    group go), pan to the next groups, zoom out, zoom back in; each step the level of every
+    group."""
+    detail = manifest["tiles"]["detail"]
+    counts = [g["count"] for g in detail["groups"]]
+    resolutions = [manifest["base"]["resolution"]] + [max(manifest["base"]["resolution"],
+                                                          level["resolution"])
+                                                      for level in detail["levels"]]
+    top = len(detail["levels"]) - 1
+    groups = len(counts)
+
+    def within_budget(levels):
+        return sum(c * resolutions[k + 1] ** 2 for c, k in zip(counts, levels, strict=True)) \
+            <= ATLAS_MAX_VERTICES
+
+    def zoom(chosen, level):
+        levels = [-1] * groups
+        for g in chosen:  # as the viewer grants: one level at a time, within the budget
+            for k in range(level + 1):
+                trial = levels[:g] + [k] + levels[g + 1:]
+                if within_budget(trial):
+                    levels = trial
+        return levels
+
+    first, second = range(min(3, groups)), range(min(3, groups), min(6, groups))
+    steps = [[-1] * groups]  # the first frame: every group at the base
+    steps += [zoom(first, k) for k in range(top + 1)]
+    steps += [zoom(second, top), [-1] * groups, zoom(first, top)]
+    # a choice equal to the one before changes nothing on screen: no refinement
+    return [levels for k, levels in enumerate(steps) if k == 0 or levels != steps[k - 1]]
+
+
+def run_atlas(bundle: str | Path | None = None) -> dict | None:
+    """Per refinement of an atlas bundle in Pyodide: the whole atlas welded again (before)
+    against the changed groups alone (after); ``bundle`` or ``$TESSERA_ATLAS_BUNDLE`` (fit
+    one with ``python -m fitter.cli fit SCAN -o DIR --detail-levels 3``). Prints its table;
+    returns its record, writes nothing."""
+    bundle = bundle or os.environ.get("TESSERA_ATLAS_BUNDLE")
+    if not bundle:
+        print("atlas refinement skipped: give an atlas bundle (TESSERA_ATLAS_BUNDLE=DIR)")
+        return None
+    if shutil.which("node") is None or not (PYODIDE / "pyodide.mjs").is_file():
+        print("atlas refinement skipped: needs node and web/node_modules/pyodide")
+        return None
+    bundle = Path(bundle)
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    from client_py.atlas_detail import pack_name
+
+    packs = [pack_name(p["level"], p["group"]) for p in manifest["tiles"]["detail"]["packs"]]
+    steps = _atlas_steps(manifest)
+    data = {"atlas": base64.b64encode((bundle / "base.tsa").read_bytes()).decode(),
+            "manifest": (bundle / "manifest.json").read_text(),
+            "packs": {n: base64.b64encode((bundle / n).read_bytes()).decode() for n in packs},
+            "steps": steps}
+    out = _run_pyodide(ATLAS_SCRIPT, data)
+    rows = out["result"]["rows"]
+    print_table(f"Atlas refinement in Pyodide: {bundle.name}, {manifest['base']['patches']} "
+                f"patches in {len(manifest['tiles']['detail']['groups'])} groups (ms per "
+                "refinement; CPU time of node)",
+                ["step", "levels", "before: whole atlas", "CPU", "vertices",
+                 "after: changed groups", "CPU", "groups made", "vertices made"],
+                [[k, " ".join(str(x) for x in r["levels"]), r["before_ms"], r["before_cpu_ms"],
+                  r["before_vertices"], r["after_ms"], r["after_cpu_ms"], r["groups_made"],
+                  r["after_vertices_made"]] for k, r in enumerate(rows, 1)])
+    refinements = rows[1:]  # the first frame is no refinement
+    before = statistics.median(r["before_cpu_ms"] for r in refinements)
+    after = statistics.median(r["after_cpu_ms"] for r in refinements)
+    print(f"atlas refinement (steps 2-{len(rows)}), median CPU per refinement: before "
+          f"{before:.0f} ms, after {after:.0f} ms; step 1: the first frame (the welded base, "
+          f"both) {rows[0]['before_cpu_ms']:.0f} ms, then every group's base mesh, made in the "
+          f"background after it, {rows[0]['after_cpu_ms']:.0f} ms")
+    return {"bundle": bundle.name, "patches": manifest["base"]["patches"],
+            "groups": len(manifest["tiles"]["detail"]["groups"]), "steps": rows,
+            "kernel": out["result"]["kernel"], "load_average": list(os.getloadavg()),
+            "median_cpu_ms": {"before": before, "after": after},
+            "max_vertices": ATLAS_MAX_VERTICES}
+
+
 def relief_patch(rational: bool, trimmed: bool = False) -> NurbsSurface:
     """The example relief as a ``CTRL x CTRL`` degree-``DEGREE`` height-field patch.
 
@@ -365,8 +494,10 @@ def run() -> dict:
     if pyodide is not None:
         print(f"Pyodide load (loadPyodide under node): {pyodide['load_seconds']:.2f} s")
     regions = run_regions()
+    atlas = run_atlas()
     record = {
         "regions": regions,
+        "atlas": atlas,
         "task": f"tessellate_grid of a {CTRL}x{CTRL} degree-{DEGREE} patch to {GRID}x{GRID} "
                 "vertices with normals",
         "patch": "example relief (fitter.fitting.examples.relief_height) as a height field at the "

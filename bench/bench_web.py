@@ -237,6 +237,58 @@ def run_zoom() -> dict | None:
     return zoom
 
 
+def run_zoom_before_after(before: str | Path | None = None, rounds: int = 2) -> dict | None:
+    """The zoom part for another checkout (``before``, or ``$TESSERA_BEFORE``: a ``git
+    archive`` of the commit to compare with, its ``web/node_modules`` linked) and for this
+    one, alternately ``rounds`` times in one session (a noisy machine's load changes within
+    minutes: pairs taken back to back are compared, never runs of different hours). Each
+    checkout runs its own code (viewer, worker, client_py) under the same protocol (this
+    module's, run in a subprocess for ``before``). Prints the tables and a summary; writes
+    ``bench/results/web_zoom.json``."""
+    import json
+    import os
+    import subprocess
+
+    before = before or os.environ.get("TESSERA_BEFORE")
+    if not before:
+        print("zoom before/after skipped: give the other checkout (TESSERA_BEFORE=DIR)")
+        return None
+    before = Path(before)
+    script = ("import json, sys; sys.path.insert(0, {root!r}); import bench.bench_web as b; "
+              "json.dump(b.run_zoom(), open({out!r}, 'w'))")
+    runs: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="tessera-zoom-pair-") as tmp:
+        for k in range(rounds):
+            for label, root in (("before", before), ("after", ROOT)):
+                out = Path(tmp) / f"{label}-{k}.json"
+                load = os.getloadavg()
+                proc = subprocess.run(
+                    [sys.executable, "-c", script.format(root=str(root), out=str(out))],
+                    cwd=root, env={**os.environ, "PYTHONPATH": str(root)}, timeout=1800,
+                    capture_output=True, text=True)
+                print(proc.stdout)
+                if proc.returncode != 0:
+                    raise RuntimeError(f"the {label} zoom run failed:\n{proc.stderr[-3000:]}")
+                runs.append({"label": label, "round": k, "load_before": list(load),
+                             "load_after": list(os.getloadavg()),
+                             **json.loads(out.read_text())})
+    rows = [[r["round"] + 1, r["label"], r["zoom_ms"]["median"], r["zoom_ms"]["best"],
+             r["zoom_ms"]["worst"], r["resolved_ms"]["median"], r["wheel_ms"]["median"],
+             f"{r['load_before'][0]:.1f}-{r['load_after'][0]:.1f}"] for r in runs]
+    print_table("Zoom to the refined view, before and after in one session (ms)",
+                ["round", "code", "zoomTo median", "best", "worst", "resolved median",
+                 "wheel median", "load (1 min)"], rows)
+    summary = {label: statistics.median(r["zoom_ms"]["median"] for r in runs
+                                        if r["label"] == label) for label in ("before", "after")}
+    print(f"zoom to refined, median of the rounds' medians: before {summary['before']:.0f} ms, "
+          f"after {summary['after']:.0f} ms (target {TARGET_ZOOM_MS:.0f} ms)")
+    record = {"runs": runs, "median_of_medians_ms": summary, "target_ms": TARGET_ZOOM_MS,
+              "before": str(before)}
+    path = write_results("web_zoom", record)
+    print(f"wrote {path}")
+    return record
+
+
 def _surface_json(patch: Path) -> dict:
     from client_py import read_patch
 

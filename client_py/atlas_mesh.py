@@ -49,7 +49,7 @@ from itertools import chain
 from operator import itemgetter
 
 from . import _kernel, _kernel_python
-from .atlas import AtlasSurface
+from .atlas import SIDES, AtlasSurface, atlas_edges
 from .basis import basis_table
 from .layers import DetailTile, displacement_grid
 from .ply import write_ply
@@ -117,15 +117,25 @@ def _check_detail(atlas: AtlasSurface, detail: object) -> dict[int, list[DetailT
     return out
 
 
-def _edge_resolutions(atlas: AtlasSurface, res: list[int]) -> tuple[list[int], list[int]]:
+def _edge_resolutions(atlas: AtlasSurface, res: list[int],
+                      evaluated_at: Mapping[int, int] | None = None
+                      ) -> tuple[list[int], list[int]]:
     """``(R_e, r_c)`` per edge: vertices along it (the finer side) and its evaluated
-    resolution (the coarser); ``ValueError`` where ``(R_e - 1) / (r - 1)`` is no power of 2."""
+    resolution (the coarser, or ``evaluated_at[e]`` where that is coarser still: a seam of
+    :func:`tessellate_atlas_part`); ``ValueError`` where ``(R_e - 1) / (r - 1)`` is no power
+    of 2."""
+    evaluated_at = evaluated_at or {}
     fine, coarse = [], []
     for e, pairs in enumerate(atlas.edges.faces):
         rs = [res[f] for f, _ in pairs]
-        hi, lo = max(rs), min(rs)
+        hi = max(rs)
+        lo = min(rs + [evaluated_at.get(e, hi)])
         ratio, rest = divmod(hi - 1, lo - 1)
         if rest or ratio & (ratio - 1):
+            if len(pairs) == 1:
+                raise ValueError(f"patch {pairs[0][0]} has resolution {hi} on seam edge "
+                                 f"{atlas.edges.edges[e]}, evaluated at {lo}: r - 1 must be "
+                                 "a power-of-2 multiple of the seam's")
             f, g = (f for f, _ in pairs)
             raise ValueError(f"patches {f} and {g} share edge {atlas.edges.edges[e]} with "
                              f"resolutions {res[f]} and {res[g]}: neighbours need "
@@ -249,10 +259,11 @@ def _normal_tolerance(comps: list[list[float]]) -> float:
 class _Layout:
     """Vertex numbering of the welded mesh: corners, edges, patches (module docstring)."""
 
-    def __init__(self, atlas: AtlasSurface, res: list[int]) -> None:
+    def __init__(self, atlas: AtlasSurface, res: list[int],
+                 evaluated_at: Mapping[int, int] | None = None) -> None:
         self.atlas, self.res = atlas, res
         self.table = atlas.edges
-        self.fine, self.coarse = _edge_resolutions(atlas, res)
+        self.fine, self.coarse = _edge_resolutions(atlas, res, evaluated_at)
         used = sorted({k for quad in atlas.quads for k in quad})
         self.corner = {v: i for i, v in enumerate(used)}
         self.used = used
@@ -378,8 +389,20 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
     res = _check_resolutions(atlas, resolution)
     tiles = _check_detail(atlas, detail)
+    return _welded_mesh(atlas, res, tiles, kernel)[0]
+
+
+def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
+                 kernel: str | None, evaluated_at: Mapping[int, int] | None = None,
+                 seam_frames: Mapping[int, tuple[tuple, tuple]] | None = None
+                 ) -> tuple[AtlasMesh, _Layout]:
+    """:func:`tessellate_atlas` of checked arguments, and the layout it numbered the
+    vertices by; ``evaluated_at``: edges evaluated at a coarser resolution than their
+    patches' (``_edge_resolutions``); ``seam_frames``: evaluated border vertex -> the base
+    point and unit normal it is placed by (``S + d n``, ``d`` the mean displacement of the
+    patches here that sample it) instead of its first sampler's point and their normals."""
     backend = _kernel.backend(kernel)
-    layout = _Layout(atlas, res)
+    layout = _Layout(atlas, res, evaluated_at)
     comps = _homogeneous(atlas)
     tol = _normal_tolerance(comps)
     evaluate = (_evaluate_python if backend is _kernel_python
@@ -452,9 +475,16 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
                 direction[3 * node + 2] += nz
 
     # welded border positions: evaluated vertices, then the in-between ones on their segment
+    seam_frames = seam_frames or {}
     for node in range(n_border):
         point = base_at[node]
-        if point:
+        if node in seam_frames:  # a part's seam: the frame every part shares (base, normal)
+            point, n = seam_frames[node]
+            if shift[node]:
+                d = shift[node] / samplers[node]
+                point = (point[0] + d * n[0], point[1] + d * n[1], point[2] + d * n[2])
+            positions[3 * node : 3 * node + 3] = array("d", point)
+        elif point:
             if shift[node]:
                 n = _unit(*direction[3 * node : 3 * node + 3])
                 d = shift[node] / samplers[node]
@@ -533,7 +563,7 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         out_positions = array("f", positions.tolist())
     return AtlasMesh(out_positions, array("f", pack(*normals)),
                      array("f", struct.pack(f"={2 * total}f", *uvs)), indices,
-                     patches=owners)
+                     patches=owners), layout
 
 
 def _patch_triangles(layout: _Layout, f: int, r: int, local: list[int], finer: list[bool],
@@ -581,3 +611,300 @@ def atlas_ply(atlas: AtlasSurface, resolution: int | Sequence[int],
     float32 ``x, y, z, nx, ny, nz`` per vertex and the triangles."""
     return write_ply(tessellate_atlas(atlas, resolution, detail, kernel), binary,
                      comments=comments)
+
+
+# ------------------------------------------------------------------ parts drawn apart
+@dataclass(frozen=True)
+class AtlasPart:
+    """Some patches of an atlas (a detail group) as an atlas of their own, drawn apart.
+
+    Attributes
+    ----------
+    atlas : AtlasSurface
+        The part's patches on the full atlas's layout vertices (unused ones stay, so vertex
+        indices are the full atlas's), with their own edge numbering (``atlas_edges`` of
+        their quads) and the control points of their edges and faces.
+    patches : tuple of int
+        The full atlas's index of each patch of the part, in the part's order.
+    full_edges : tuple of int
+        The full atlas's index of each edge of the part.
+    seams : tuple of int
+        The part's edges that the full atlas shares with a patch outside the part.
+    seam_resolution : int
+        Samples evaluated along every seam (the coarsest resolution any part is drawn at).
+    frames : dict
+        Seam edge (the part's index) -> ``(points, normals)``, ``seam_resolution`` each,
+        from the edge's lower layout vertex to its higher (:func:`atlas_seam_frames`).
+    """
+
+    atlas: AtlasSurface
+    patches: tuple[int, ...]
+    full_edges: tuple[int, ...]
+    seams: tuple[int, ...]
+    seam_resolution: int
+    frames: dict
+
+
+@dataclass
+class AtlasPartMesh(AtlasMesh):
+    """:func:`tessellate_atlas_part`'s mesh: the part's welded surface, then its walls.
+
+    Attributes
+    ----------
+    patches : array('I')
+        The *full* atlas's patch of every vertex (a wall vertex: that of its top).
+    seams : dict of int to list of int
+        Full-atlas edge -> the surface vertices along it, from its lower layout vertex to
+        its higher (``R_e`` of them).
+    surface_vertices, surface_triangles : int
+        The surface comes first; the walls are the vertices and triangles after these.
+    """
+
+    seams: dict = field(default_factory=dict)
+    surface_vertices: int = 0
+    surface_triangles: int = 0
+
+
+def atlas_part(atlas: AtlasSurface, patches: Sequence[int], seam_resolution: int,
+               frames: Mapping[int, tuple[list, list]] | None = None) -> AtlasPart:
+    """The patches ``patches`` of ``atlas`` as an :class:`AtlasPart` (made once per group).
+
+    ``frames``: :func:`atlas_seam_frames` ``(atlas, seam_resolution)``, computed once for
+    all the parts of a drawing (default: computed here).
+
+    Raises
+    ------
+    ValueError
+        No patches, a repeated one or one that is no index of ``atlas``; a seam resolution
+        out of ``2..MAX_GRID``.
+    """
+    if not isinstance(atlas, AtlasSurface):
+        raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
+    if isinstance(seam_resolution, bool) or not isinstance(seam_resolution, int) \
+            or not 2 <= seam_resolution <= MAX_GRID:
+        raise ValueError(f"seam_resolution = {seam_resolution!r}; an int in 2..{MAX_GRID} "
+                         "is needed")
+    chosen = tuple(patches)
+    count = len(atlas.quads)
+    if not chosen:
+        raise ValueError("a part needs at least one patch")
+    for f in chosen:
+        if isinstance(f, bool) or not isinstance(f, int) or not 0 <= f < count:
+            raise ValueError(f"part patch {f!r} is no patch index in 0..{count - 1}")
+    if len(set(chosen)) != len(chosen):
+        raise ValueError("a part lists a patch twice")
+    quads = [atlas.quads[f] for f in chosen]
+    table = atlas_edges(quads)
+    full_index = {key: e for e, key in enumerate(atlas.edges.edges)}
+    full_edges = tuple(full_index[key] for key in table.edges)
+    inner = atlas.side - 2
+    edge_runs = [range(e * inner, (e + 1) * inner) for e in full_edges]
+    face_runs = [range(f * inner * inner, (f + 1) * inner * inner) for f in chosen]
+    weights = None
+    if atlas.weights is not None:
+        w, vertex_count = atlas.weights, len(atlas.vertices)
+        face_at = vertex_count + len(atlas.edge_points)
+        weights = (w[:vertex_count] + [w[vertex_count + k] for run in edge_runs for k in run]
+                   + [w[face_at + k] for run in face_runs for k in run])
+    part = AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, quads,
+                        [atlas.edge_points[k] for run in edge_runs for k in run],
+                        [atlas.face_points[k] for run in face_runs for k in run], weights)
+    seams = tuple(e for e, full in enumerate(full_edges)
+                  if len(table.faces[e]) == 1 and len(atlas.edges.faces[full]) == 2)
+    if frames is None:
+        frames = atlas_seam_frames(atlas, seam_resolution)
+    frames = {e: frames[full_edges[e]] for e in seams}
+    if any(len(points) != seam_resolution for points, _ in frames.values()):
+        raise ValueError(f"the seam frames are not of {seam_resolution} samples")
+    return AtlasPart(part, chosen, full_edges, seams, seam_resolution, frames)
+
+
+def _patches_at_vertices(atlas: AtlasSurface) -> dict[int, list[tuple[int, int]]]:
+    """Layout vertex -> the ``(patch, corner)`` pairs at it, patches in index order."""
+    around: dict[int, list[tuple[int, int]]] = {}
+    for f, quad in enumerate(atlas.quads):
+        for c, k in enumerate(quad):
+            around.setdefault(k, []).append((f, c))
+    return around
+
+
+def atlas_seam_frames(atlas: AtlasSurface, samples: int,
+                      kernel: str | None = None) -> dict[int, tuple[list, list]]:
+    """The frame of every inner edge of ``atlas`` that parts drawn apart place their seams by
+    (:func:`tessellate_atlas_part`): edge ``e`` -> ``(points, normals)`` at ``samples``
+    parameters ``t_K = K / (samples - 1)`` from its lower layout vertex to its higher.
+
+    One evaluation of every patch at ``samples`` samples per side (the grid kernel, as the
+    base mesh is drawn); the point is the lowest-numbered sampling patch's sample, the normal
+    the normalised sum, in patch order, of the unit normals of every patch sampling it (two
+    along the edge, all those at a corner; at a pole the reference evaluator's limit), as
+    :func:`tessellate_atlas` weighs a welded border vertex's. Computed once and shared, the
+    frame is the same numbers for the parts on both sides of a seam.
+    """
+    if not isinstance(atlas, AtlasSurface):
+        raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 2 <= samples <= MAX_GRID:
+        raise ValueError(f"seam samples = {samples!r}; an int in 2..{MAX_GRID} is needed")
+    backend = _kernel.backend(kernel)
+    comps = _homogeneous(atlas)
+    evaluate = (_evaluate_python if backend is _kernel_python
+                else partial(_evaluate_numpy, backend=backend))
+    r = samples
+    grids = evaluate(atlas, comps, list(range(len(atlas.quads))), r, _normal_tolerance(comps))
+    params = _tables(atlas.degree, atlas.spans, r)[0]
+    poles = {f: set(bad) for f, (_, _, bad) in grids.items() if bad}
+    sides = _side_slots(r)
+    corner_slot = (0, (r - 1) * r, r * r - 1, r - 1)  # corners a, b, c, d of the quad
+    around = _patches_at_vertices(atlas)
+    table = atlas.edges
+
+    def unit_normal(f, slot):
+        if slot in poles.get(f, ()):
+            return atlas.patch_surface(f).normal(params[slot // r], params[slot % r])
+        return grids[f][1][3 * slot : 3 * slot + 3]
+
+    frames = {}
+    for e, pairs in enumerate(table.faces):
+        if len(pairs) != 2:
+            continue
+        lo, hi = table.edges[e]
+        on_edge = sorted(pairs)
+        points, normals = [], []
+        for K in range(r):
+            if K in (0, r - 1):
+                at = [(f, corner_slot[c]) for f, c in around[lo if K == 0 else hi]]
+            else:
+                at = [(f, sides[f_k][r - 1 - K if table.sides[f][f_k][1] else K])
+                      for f, f_k in on_edge]
+            f0, slot0 = at[0]
+            points.append(tuple(grids[f0][0][3 * slot0 : 3 * slot0 + 3]))
+            x = y = z = 0.0
+            for f, slot in at:
+                nx, ny, nz = unit_normal(f, slot)
+                x, y, z = x + nx, y + ny, z + nz
+            normals.append(_unit(x, y, z))
+        frames[e] = (points, normals)
+    return frames
+
+
+def tessellate_atlas_part(part: AtlasPart, resolution: int,
+                          detail: Mapping[int, Sequence[DetailTile]] | None = None,
+                          kernel: str | None = None) -> AtlasPartMesh:
+    """One part of an atlas, welded within itself, that meets every other part without a
+    crack whatever their resolutions and detail.
+
+    The part is :func:`tessellate_atlas` of its own patches, all at ``resolution``, except
+    on its *seams* (edges shared with a patch outside it):
+
+    * a seam is evaluated at ``part.seam_resolution`` samples ``K``, each placed at
+      ``X_K = S_K + d_K n_K`` with the seam frame ``(S_K, n_K)`` that every part computes
+      alike (:func:`atlas_seam_frames`) and ``d_K`` the mean displacement of the part's own
+      patches there (0 without detail); its ``resolution - 1`` segments are laid on the
+      straight chords between those, as ``tessellate_atlas`` lays a finer side on a
+      coarser neighbour's;
+    * under each seam vertex hangs a wall to the base, from ``X`` to ``S`` (for a vertex
+      between samples, the same blend of the two samples' ``S``).
+
+    Two parts meeting on a seam differ there only along the shared ``n_K``: one shows
+    ``S + d_A n``, the other ``S + d_B n``, and the two walls together span every point
+    between (each from its edge to ``d = 0``: the higher covers ``[max(0, d_lo), d_hi]``,
+    the lower ``[d_lo, min(0, d_hi)]``), so no crack shows from any side; nor does a wall
+    rise above both edges (no fin). Without detail, ``d = 0``: the two parts' seam
+    vertices are the same points bit for bit and no wall is hung. A part's mesh depends on
+    its own resolution and detail alone, so a viewer redraws only the parts whose level
+    changed.
+
+    Parameters
+    ----------
+    part : AtlasPart
+        From :func:`atlas_part`.
+    resolution : int
+        Samples per patch side; ``resolution - 1`` a power-of-2 multiple of
+        ``part.seam_resolution - 1``.
+    detail : mapping of int to sequence of DetailTile, optional
+        Full-atlas patch index (a patch of the part) -> its tiles.
+    kernel : {'python', 'numpy'}, optional
+
+    Returns
+    -------
+    AtlasPartMesh
+    """
+    if not isinstance(part, AtlasPart):
+        raise ValueError(f"part must be an AtlasPart (atlas_part), got {type(part).__name__}")
+    if isinstance(resolution, bool) or not isinstance(resolution, int) \
+            or resolution < part.seam_resolution:
+        raise ValueError(f"resolution = {resolution!r}; an int >= the part's seam resolution "
+                         f"({part.seam_resolution}) is needed")
+    index = {f: k for k, f in enumerate(part.patches)}
+    local = {}
+    for f, tiles in (detail or {}).items():
+        if f not in index:
+            raise ValueError(f"detail key {f!r} is no patch of the part")
+        local[index[f]] = tiles
+    atlas = part.atlas
+    res = _check_resolutions(atlas, resolution)
+    tiles = _check_detail(atlas, local)
+    layout = _Layout(atlas, res, dict.fromkeys(part.seams, part.seam_resolution))
+    frames = {}
+    for e in part.seams:
+        step = (layout.fine[e] - 1) // (part.seam_resolution - 1)
+        points, normals = part.frames[e]
+        for K, frame in enumerate(zip(points, normals, strict=True)):
+            frames[layout.edge_node(e, K * step)] = frame
+    mesh, layout = _welded_mesh(atlas, res, tiles, kernel,
+                                dict.fromkeys(part.seams, part.seam_resolution), frames)
+    surface_vertices, surface_triangles = mesh.vertex_count, mesh.triangle_count
+    seams = {part.full_edges[e]: [layout.edge_node(e, K) for K in range(layout.fine[e])]
+             for e in part.seams}
+    if tiles:
+        _hang_seam_walls(mesh, layout, part)
+    return AtlasPartMesh(mesh.positions, mesh.normals, mesh.uvs, mesh.indices,
+                         patches=array("I", [part.patches[k] for k in mesh.patches]),
+                         seams=seams, surface_vertices=surface_vertices,
+                         surface_triangles=surface_triangles)
+
+
+def _hang_seam_walls(mesh: AtlasMesh, layout: _Layout, part: AtlasPart) -> None:
+    """Append to ``mesh`` a wall under each seam (:func:`tessellate_atlas_part`): for
+    consecutive seam vertices ``a, b`` (tops) and their base points ``A, B`` (the seam
+    frame's ``S``, blended between samples as the tops are), the quad ``a b B A`` as two
+    triangles, turned so that it folds away from the surface (its directed edge ``a b``
+    runs against the surface triangle's). The bottoms keep their top's normal, ``(u, v)``
+    and patch, so a wall seen at a grazing angle shades like the surface."""
+    positions, normals, uvs, owners = mesh.positions, mesh.normals, mesh.uvs, mesh.patches
+    bottom: dict[int, int] = {}
+    count = mesh.vertex_count
+    walls = array("I")
+    for e in part.seams:
+        fine = layout.fine[e]
+        step = (fine - 1) // (part.seam_resolution - 1)
+        points = part.frames[e][0]
+        nodes = [layout.edge_node(e, K) for K in range(fine)]
+        for K, node in enumerate(nodes):
+            if node in bottom:
+                continue
+            K0 = K - K % step
+            if K0 == K:
+                base = points[K // step]
+            else:
+                s = (K - K0) / step
+                p, q = points[K0 // step], points[K0 // step + 1]
+                base = [(1 - s) * p[c] + s * q[c] for c in range(3)]
+            positions.extend(array("f", base))
+            normals.extend(normals[3 * node : 3 * node + 3])
+            uvs.extend(uvs[2 * node : 2 * node + 2])
+            owners.append(owners[node])
+            bottom[node] = count
+            count += 1
+        # the one patch side on the seam: does its counter-clockwise loop run it lo -> hi?
+        f, k = layout.table.faces[e][0]
+        s, t = SIDES[k]
+        quad = layout.atlas.quads[f]
+        enters = quad[s] if k < 2 else quad[t]
+        forward = enters == layout.table.edges[e][0]
+        for a, b in zip(nodes, nodes[1:], strict=False):
+            if forward:  # the surface runs a -> b: the wall runs b -> a
+                a, b = b, a
+            walls.extend((a, b, bottom[b], a, bottom[b], bottom[a]))
+    mesh.indices.extend(walls)
+

@@ -29,7 +29,14 @@ from . import _kernel
 from .atlas import AtlasSurface
 from .atlas_detail import pack_name, read_pack
 from .atlas_format import read_atlas
-from .atlas_mesh import tessellate_atlas
+from .atlas_mesh import (
+    AtlasMesh,
+    AtlasPart,
+    atlas_part,
+    atlas_seam_frames,
+    tessellate_atlas,
+    tessellate_atlas_part,
+)
 from .atlas_texture import ColourPack, atlas_vertex_colours, colours_for_groups
 from .bundle import (
     PLY_MAX_RESOLUTION,
@@ -113,6 +120,8 @@ class WorkerSession:
         self._atlas_units = "unknown"
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
         self._colours: dict[str, ColourPack] = {}  # an atlas's decoded colour packs, by name
+        self._atlas_parts: dict[tuple[int, int, int], AtlasPart] = {}  # atlas_part_mesh's
+        self._atlas_frames: dict[int, dict] = {}  # seam resolution -> atlas_seam_frames
 
     @property
     def kernel(self) -> str:
@@ -154,6 +163,9 @@ class WorkerSession:
         self._rigid = is_rigid_motion(patch.metadata.get("transform"))
         self._atlas = None
         self._packs.clear()
+        self._colours.clear()
+        self._atlas_parts.clear()
+        self._atlas_frames.clear()
         self._tiles.clear()
         self._last = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
@@ -385,6 +397,9 @@ class WorkerSession:
         self._atlas, self._source = atlas, str(source)
         self._atlas_units = str(metadata.get("units", "unknown"))
         self._packs.clear()
+        self._colours.clear()
+        self._atlas_parts.clear()
+        self._atlas_frames.clear()
         return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
                 "spans": atlas.spans, "vertices": len(atlas.vertices),
                 "rational": atlas.weights is not None, "units": self._atlas_units,
@@ -507,8 +522,62 @@ class WorkerSession:
             r = _drawn_resolution(spec, level)
             resolution[group.first : group.first + group.count] = [r] * group.count
         mesh = tessellate_atlas(atlas, resolution, detail, self._kernel)
-        self._colour_atlas_mesh(mesh, spec, levels)
+        self._colour_groups(mesh, spec, range(len(spec.groups)), levels)
         self._last = (-2, mesh)  # not a base grid: base_ply never reuses it
+        return mesh
+
+    def atlas_part_mesh(self, group: int, level: int) -> Mesh:
+        """Group ``group`` of the atlas alone at ``level`` (-1: the base): the viewer's unit
+        of refinement, so that a change of level costs that group's patches only.
+
+        The patches get the held packs of levels ``0..level`` of the group and
+        :func:`_drawn_resolution` ``(level)`` samples per side; the group's seams with
+        other groups are evaluated at the base's resolution, on a frame every group shares,
+        with walls down to the base (:func:`client_py.atlas_mesh.tessellate_atlas_part`),
+        so groups drawn at any levels meet without a crack and the mesh's geometry depends
+        on ``(group, level)`` alone. The group's part (its seam frames) is made once.
+
+        With colour, the mesh carries RGB per vertex by :meth:`atlas_mesh`'s rule (the
+        held colour pack of colour level ``colour_level(level)`` that holds the group; a
+        wall vertex takes its top's colour): the same colours the welded mesh has there at
+        the same level. Without that pack held, ``colors`` stays ``None``.
+
+        Raises
+        ------
+        ValueError
+            A group or level out of range, or a pack of a wanted level not handed over.
+        """
+        atlas, spec = self._atlas_loaded()
+        if isinstance(group, bool) or not isinstance(group, int) \
+                or not 0 <= group < len(spec.groups):
+            raise ValueError(f"group {group!r}; an int in 0..{len(spec.groups) - 1} is needed")
+        if isinstance(level, bool) or not isinstance(level, int) \
+                or not -1 <= level < len(spec.levels):
+            raise ValueError(f"level {level!r}; an int in -1..{len(spec.levels) - 1} is needed")
+        detail: dict[int, list[DetailTile]] = {}
+        for k in range(level + 1):
+            name = pack_name(k, group)
+            if (k, group) not in spec.packs:
+                continue
+            if name not in self._packs:
+                raise ValueError(f"group {group} at level {level} needs pack {name}, which "
+                                 "was not handed over (add_pack)")
+            for patch, tiles in self._packs[name][2].items():
+                detail.setdefault(patch, []).extend(tiles)
+        key = (spec.groups[group].first, spec.groups[group].count, spec.base_resolution)
+        part = self._atlas_parts.get(key)
+        if part is None:
+            first, count, seam_resolution = key
+            frames = self._atlas_frames.get(seam_resolution)
+            if frames is None:  # one table for every group: each seam's frame computed once
+                self._atlas_frames = {seam_resolution: atlas_seam_frames(
+                    atlas, seam_resolution, self._kernel)}
+                frames = self._atlas_frames[seam_resolution]
+            part = self._atlas_parts[key] = atlas_part(atlas, range(first, first + count),
+                                                       seam_resolution, frames)
+        mesh = tessellate_atlas_part(part, _drawn_resolution(spec, level), detail,
+                                     self._kernel)
+        self._colour_groups(mesh, spec, [group], [level])
         return mesh
 
     def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes],
@@ -595,17 +664,21 @@ class WorkerSession:
         """Whether the colour pack ``name`` has been handed over and not dropped."""
         return name in self._colours
 
-    def _colour_atlas_mesh(self, mesh: Mesh, spec: AtlasTiles, levels: Sequence[int]) -> None:
-        """Colour :meth:`atlas_mesh`'s ``mesh`` per vertex from the held colour packs, group
-        ``g`` at the colour level of ``levels[g]``, when the bundle has colour and every
-        group's pack is held (else it stays uncoloured: the packs are still on their way)."""
+    def _colour_groups(self, mesh: AtlasMesh, spec: AtlasTiles, groups: Sequence[int],
+                       levels: Sequence[int]) -> None:
+        """Colour ``mesh`` (of the patches of detail groups ``groups``) per vertex from the
+        held colour packs, group ``groups[i]`` at the colour level of detail level
+        ``levels[i]`` (:func:`client_py.atlas_texture.colours_for_groups`), when the bundle
+        has colour and a pack is held for every patch of those groups (else it stays
+        uncoloured: the packs are still on their way). The one colour rule of
+        :meth:`atlas_mesh` (every group) and :meth:`atlas_part_mesh` (one group)."""
         colour = atlas_colour(self._manifest_read())
         if colour is None or not self._colours:
             return
-        groups = [(g.first, g.count) for g in spec.groups]
-        of_patch = colours_for_groups(list(self._colours.values()), groups, levels,
+        runs = [(spec.groups[g].first, spec.groups[g].count) for g in groups]
+        of_patch = colours_for_groups(list(self._colours.values()), runs, levels,
                                       len(colour.levels))
-        if len(of_patch) == spec.patches:
+        if len(of_patch) == sum(count for _, count in runs):
             mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, of_patch)
 
     def _plan_colour_packs(self, nodes: Sequence[Mapping],

@@ -17,7 +17,13 @@ from test_atlas import random_cube_atlas
 
 from client_py import Mesh
 from client_py.atlas import AtlasSurface, atlas_edges
-from client_py.atlas_mesh import AtlasMesh, atlas_ply, tessellate_atlas
+from client_py.atlas_mesh import (
+    AtlasMesh,
+    atlas_part,
+    atlas_ply,
+    tessellate_atlas,
+    tessellate_atlas_part,
+)
 from client_py.layers import DetailTile
 
 MIXED = [3, 5, 9, 3, 5, 2]  # the cube's six patches: 2, 4 and 8 segments a side
@@ -303,3 +309,133 @@ def test_an_open_layout_has_exactly_its_border_as_boundary():
         expected = sum(resolution[f] - 1 if isinstance(resolution, list) else r - 1
                        for f, _ in (atlas.edges.faces[e][0] for e in atlas.edges.border_edges))
         assert len(boundary) == expected
+
+
+# ------------------------------------------------------------------ parts drawn apart
+def _sphere_parts(seam_resolution=5, rational=False):
+    atlas = sphere_atlas(2, noise=0.02, seed=4, rational=rational)
+    return atlas, [atlas_part(atlas, range(4 * g, 4 * g + 4), seam_resolution)
+                   for g in range(6)]  # a cube face each
+
+
+def _welded_by_position(meshes, surface_only=True):
+    """The parts' surfaces (or all their triangles) as one mesh, vertices merged where their
+    float32 positions are equal bit for bit."""
+    ids: dict[tuple, int] = {}
+    points, indices = [], []
+    for mesh in meshes:
+        xyz = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3)
+        local = []
+        for p in map(tuple, xyz.tolist()):
+            if p not in ids:
+                ids[p] = len(ids)
+                points.append(p)
+            local.append(ids[p])
+        count = 3 * mesh.surface_triangles if surface_only else len(mesh.indices)
+        indices += [local[k] for k in mesh.indices[:count]]
+    from array import array
+    return Mesh(array("f", np.ravel(points).astype(np.float32).tobytes()), array("f"),
+                array("f"), array("I", indices))
+
+
+def test_parts_without_detail_weld_into_the_closed_atlas():
+    """Parts at the base resolution share their seam vertices bit for bit: together they
+    are the whole atlas's closed, consistently oriented mesh (each edge in two triangles)."""
+    atlas, parts = _sphere_parts()
+    meshes = [tessellate_atlas_part(part, 5, kernel="python") for part in parts]
+    assert all(m.vertex_count == m.surface_vertices for m in meshes)  # no walls
+    union = _welded_by_position(meshes)
+    assert_closed_and_oriented(union)
+    whole = tessellate_atlas(atlas, 5, kernel="python")
+    assert union.vertex_count == whole.vertex_count
+    assert union.triangle_count == whole.triangle_count
+    a = np.sort(np.frombuffer(union.positions, np.float32).reshape(-1, 3), axis=0)
+    b = np.sort(np.frombuffer(whole.positions, np.float32).reshape(-1, 3), axis=0)
+    assert np.abs(a - b).max() < 1e-6
+
+
+@pytest.mark.parametrize("rational", [False, True])
+def test_parts_at_mixed_levels_meet_without_a_crack(rational):
+    """Detail at different levels on either side of a seam: both parts place their seam
+    samples on one shared line ``S + t n`` (the frame, equal bit for bit in both parts) and
+    each hangs a wall from its edge to ``S``, so the two walls span the whole step between
+    the edges (``[d_A, 0]`` and ``[d_B, 0]`` cover ``[d_A, d_B]``); between samples the
+    edges and walls are chords of those samples. The step is real: without the walls the
+    two edges are apart."""
+    atlas, parts = _sphere_parts()
+    if rational:  # the same layout with weights: the frames come from the rational patches
+        w = [1.0 + 0.3 * ((k * 7919) % 5) / 5 for k in range(atlas.control_point_count)]
+        atlas = AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, atlas.quads,
+                             atlas.edge_points, atlas.face_points, w)
+        parts = [atlas_part(atlas, part.patches, 5) for part in parts]
+    levels = [0, 1, -1, 1, 0, -1]
+    resolution = {-1: 5, 0: 9, 1: 17}
+    meshes = []
+    for g, part in enumerate(parts):
+        detail = None
+        if levels[g] >= 0:
+            detail = {f: random_tiles(f, levels=levels[g] + 1, amplitude=0.2)
+                      for f in part.patches}
+        meshes.append(tessellate_atlas_part(part, resolution[levels[g]], detail,
+                                            kernel="python"))
+    owner = {f: g for g, part in enumerate(parts) for f in part.patches}
+    largest_step, seams = 0.0, 0
+    for e, pairs in enumerate(atlas.edges.faces):
+        ga, gb = owner[pairs[0][0]], owner[pairs[1][0]]
+        if ga == gb:
+            continue
+        seams += 1
+        frames = [parts[g].frames[parts[g].full_edges.index(e)] for g in (ga, gb)]
+        assert frames[0] == frames[1]
+        S, n = (np.array(x, float) for x in frames[0])
+        tops = []
+        for g in (ga, gb):
+            mesh = meshes[g]
+            xyz = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3)
+            nodes = mesh.seams[e]
+            step = (len(nodes) - 1) // 4  # 5 samples evaluated on every seam
+            top = xyz[[nodes[K * step] for K in range(5)]].astype(float)
+            assert np.abs(np.cross(top - S, n)).max() < 1e-5  # on the line S + t n
+            tops.append(top)
+            if levels[g] < 0:
+                assert mesh.vertex_count == mesh.surface_vertices  # the base: no wall
+                assert np.array_equal(top, S.astype(np.float32).astype(float))
+                continue
+            walls = np.asarray(mesh.indices, np.int64).reshape(-1, 3)[mesh.surface_triangles:]
+            for a, b in zip(nodes, nodes[1:], strict=False):
+                assert sum(1 for t in walls.tolist() if a in t and b in t) == 1, (e, a, b)
+            for K in range(5):
+                a = nodes[K * step]
+                under = {v for t in walls.tolist() if a in t for v in t
+                         if v >= mesh.surface_vertices}
+                assert any(np.array_equal(xyz[v], S[K].astype(np.float32)) for v in under)
+        largest_step = max(largest_step, float(np.abs(tops[0] - tops[1]).max()))
+    assert seams == 24  # the cube's 12 edges, cut in two
+    assert largest_step > 1e-3
+
+
+def test_part_walls_fold_against_the_surface():
+    """Surface and walls of a part are consistently oriented: every seam edge is used once
+    in each direction (the surface's triangle and its wall's)."""
+    _, parts = _sphere_parts()
+    part = parts[1]
+    mesh = tessellate_atlas_part(part, 9, {f: random_tiles(f) for f in part.patches},
+                                 kernel="python")
+    _, directed = edge_uses(mesh)
+    for nodes in mesh.seams.values():
+        for a, b in zip(nodes, nodes[1:], strict=False):
+            assert directed[a, b] == 1 and directed[b, a] == 1
+
+
+def test_a_part_needs_a_stitchable_resolution_and_its_own_detail():
+    atlas, parts = _sphere_parts()
+    with pytest.raises(ValueError, match="seam resolution"):
+        tessellate_atlas_part(parts[0], 3)
+    with pytest.raises(ValueError, match="power-of-2"):
+        tessellate_atlas_part(parts[0], 7)
+    with pytest.raises(ValueError, match="no patch of the part"):
+        tessellate_atlas_part(parts[0], 9, {20: random_tiles(1)})
+    with pytest.raises(ValueError, match="twice"):
+        atlas_part(atlas, [0, 0], 5)
+    with pytest.raises(ValueError, match="no patch index"):
+        atlas_part(atlas, [24], 5)

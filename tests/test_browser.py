@@ -144,23 +144,33 @@ def test_download_ply_with_the_error_map_carries_its_colours(viewer, tmp_path):
     assert len(np.unique(colours, axis=0)) > 10  # a colour scale, not one flat colour
 
 
-def test_zooming_in_refines_the_tessellation(page, live_server):
-    """Without a fixed ?resolution the grid follows the object's size on screen."""
+def test_the_base_grid_follows_the_view_and_is_a_backdrop_under_regions(page, live_server):
+    """Without a fixed ?resolution the grid follows the object's size on screen; while detail
+    regions are drawn over the base it is a backdrop of at most 96² (base-mesh.js: hidden
+    under them, it would cost every draw all its vertices)."""
     page.set_viewport_size({"width": 900, "height": 600})
     page.goto(f"{live_server.url}/objects/relief/")
     page.wait_for_function("document.body.dataset.refined === '1' || !!document.body.dataset.error",
                            timeout=60_000)
-    before = page.evaluate("window.tessera.stats")
+    before = page.evaluate("window.tessera.tilesIdle()")
     assert before["coarse_resolution"] < before["resolution"]  # coarse first, then refined
     assert before["vertices"] == before["resolution"] ** 2
+    assert before["regions"] > 0 and before["resolution"] <= 96  # detail over the whole view
     page.mouse.move(600, 300)
-    for _ in range(6):
+    for _ in range(8):  # far out: no region is worth drawing, the base shows and follows
+        page.mouse.wheel(0, 400)
+        page.wait_for_timeout(50)
+    page.wait_for_function(f"window.tessera.stats.resolution < {before['resolution']}",
+                           timeout=30_000)
+    far = page.evaluate("window.tessera.tilesIdle()")
+    assert far["regions"] == 0 and far["vertices"] == far["resolution"] ** 2
+    for _ in range(12):  # close in: regions again, and the base a backdrop
         page.mouse.wheel(0, -400)
         page.wait_for_timeout(50)
-    page.wait_for_function(f"window.tessera.stats.resolution > {before['resolution']}",
-                           timeout=20_000)
-    after = page.evaluate("window.tessera.stats")
-    assert after["vertices"] == after["resolution"] ** 2
+    page.wait_for_function("window.tessera.stats.regions > 0", timeout=30_000)
+    page.wait_for_timeout(1000)
+    close = page.evaluate("window.tessera.tilesIdle()")
+    assert close["regions"] > 0 and close["resolution"] <= 96
 
 
 def test_corrupt_patch_shows_its_error_quickly(page, live_server):

@@ -171,9 +171,9 @@ def _watched_page(browser, **options):
 
 
 def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **options):
-    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready:
-    ``(context, page, problems, fetched)`` with the page's errors and the ``(level, i, j)`` of
-    every detail tile it requests."""
+    """A new page on the viewer of ``object_id`` (the relief with detail by default), ready
+    and its base refined: ``(context, page, problems, fetched)`` with the page's errors and
+    the ``(level, i, j)`` of every detail tile it requests."""
     context, page, problems = _watched_page(browser, viewport={"width": 800, "height": 600},
                                             **options)
     fetched: list[tuple[int, int, int]] = []
@@ -187,6 +187,8 @@ def _open_detail_viewer(browser, server, object_id: str = "relief-detail", **opt
     page.goto(f"{server.url}/objects/{object_id}/?resolution=64")
     page.wait_for_function(READY, timeout=60_000)
     assert page.evaluate("document.body.dataset.error") is None
+    # the base at its grid too (it waits in the worker behind the first regions)
+    page.wait_for_function("document.body.dataset.refined === '1'", timeout=60_000)
     return context, page, problems, fetched
 
 
@@ -264,6 +266,35 @@ def test_zoom_fetches_only_the_tiles_in_view_and_refines_the_mesh(browser, detai
               f"{before['tile_tessellate_ms']:.0f} ms; zoom: {zoomed} tiles, "
               f"{after['tile_bytes'] - before['tile_bytes']} B, {after['regions']} regions, "
               f"{after['tile_tessellate_ms']:.0f} ms; rms {base_rms:.3f} -> {refined_rms:.3f}")
+    finally:
+        context.close()
+
+
+def test_a_wheel_step_draws_its_regions_and_keeps_the_base_a_backdrop(browser, detail_server):
+    """With detail regions on screen the base is a backdrop, at most 96² (every draw processes
+    all its vertices: 9k instead of the 147k of the 384² the view would want); a wheel zoom
+    draws its new regions and asks for no finer base, and nothing is chosen again after."""
+    context, page, problems = _watched_page(browser, viewport={"width": 800, "height": 600})
+    try:
+        page.goto(f"{detail_server.url}/objects/relief-detail/")
+        page.wait_for_function("document.body.dataset.refined === '1' || "
+                               "!!document.body.dataset.error", timeout=60_000)
+        before = page.evaluate("window.tessera.tilesIdle()")
+        assert before["regions"] > 0
+        assert before["coarse_resolution"] < before["resolution"] <= 96
+        page.mouse.move(400, 300)
+        page.mouse.wheel(0, -1200)
+        page.wait_for_function(f"window.tessera.stats.tile_updates > {before['tile_updates']}",
+                               timeout=60_000)
+        after = page.evaluate("window.tessera.tilesIdle()")
+        assert after["tile_timing"]["at"] > before["tile_timing"]["at"]  # new regions drawn
+        assert after["regions"] > 0
+        page.wait_for_timeout(1000)  # the base's settle time and more: nothing follows
+        final = page.evaluate("window.tessera.stats")
+        assert final["resolution"] == before["resolution"]
+        assert final["meshes"] == before["meshes"]
+        assert final["tile_updates"] == after["tile_updates"]
+        assert problems == []
     finally:
         context.close()
 

@@ -529,3 +529,62 @@ def test_skirts_from_the_samples_equal_skirts_evaluated_again():
     with pytest.raises(ValueError, match=r"samples are of a 9x9 grid over .* not of the 5x5"):
         hang_skirts(tessellate_region(surface, rect, 5, 5, tiles), surface, rect, 5, tiles,
                     0.05, samples=samples)
+
+
+# ------------------------------------------------------------------ an atlas drawn by group
+def test_atlas_part_mesh_draws_one_group_at_its_level_from_its_packs(tmp_path):
+    """atlas_part_mesh(g, k): group g alone, its patches at level k's resolution with the
+    packs of levels 0..k; the parts of every group at the base weld into the whole base mesh
+    (atlas_mesh), a part at a level equals tessellate_atlas_part of the same tiles, and a
+    group's mesh does not depend on the other groups' levels."""
+    from array import array
+
+    from atlas_bundle import write_atlas_bundle
+
+    from client_py.atlas_detail import read_pack
+    from client_py.atlas_mesh import atlas_part, tessellate_atlas_part
+
+    folder = tmp_path / "sphere"
+    write_atlas_bundle(folder, k=2, levels=2, base_resolution=5)
+    session = WorkerSession(kernel="python")
+    session.load_atlas((folder / "base.tsa").read_bytes(), "base.tsa")
+    session.read_manifest((folder / "manifest.json").read_text())
+    groups = session.atlas_refinement()["groups"]
+    assert len(groups) == 6
+
+    parts = [session.atlas_part_mesh(g, -1) for g in range(6)]
+    whole = session.atlas_mesh([-1] * 6)
+    assert sum(p.triangle_count for p in parts) == whole.triangle_count
+    ours = {tuple(p) for m in parts
+            for p in np.frombuffer(m.positions, np.float32).reshape(-1, 3).tolist()}
+    theirs = {tuple(p) for p in np.frombuffer(whole.positions, np.float32).reshape(-1, 3).tolist()}
+    assert len(ours) == len(theirs) == whole.vertex_count
+    assert max(min(np.abs(np.subtract(p, q)).max() for q in theirs) for p in list(ours)[:50]) < 1e-6
+
+    with pytest.raises(ValueError, match="needs pack detail/0/2.tsdp"):
+        session.atlas_part_mesh(2, 1)
+    for name in groups[2]["packs"]:
+        session.add_pack(name, (folder / name).read_bytes())
+    mine = session.atlas_part_mesh(2, 1)
+    # the reference: the same group and tiles through the library directly
+    atlas = session._atlas
+    detail: dict[int, list] = {}
+    for name in groups[2]["packs"]:
+        for patch, tiles in read_pack((folder / name).read_bytes())[1].items():
+            detail.setdefault(patch, []).extend(tiles)
+    first, count = groups[2]["first"], groups[2]["count"]
+    reference = tessellate_atlas_part(atlas_part(atlas, range(first, first + count), 5),
+                                      session.atlas_refinement()["resolutions"][2], detail,
+                                      kernel="python")
+    assert array("f", mine.positions) == array("f", reference.positions)
+    assert array("I", mine.indices) == array("I", reference.indices)
+    assert mine.vertex_count > mine.surface_vertices  # walls hang under its seams
+    # another group's level changes nothing of this one (the viewer keeps its mesh)
+    for name in groups[3]["packs"]:
+        session.add_pack(name, (folder / name).read_bytes())
+    session.atlas_part_mesh(3, 1)
+    assert array("f", session.atlas_part_mesh(2, 1).positions) == array("f", mine.positions)
+
+    for group, level, match in ((6, -1, "group 6"), (0, 2, "level 2"), (True, 0, "group True")):
+        with pytest.raises(ValueError, match=match):
+            session.atlas_part_mesh(group, level)

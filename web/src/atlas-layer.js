@@ -1,7 +1,6 @@
-// AtlasLayer: an atlas bundle (manifest format_version 2) on screen — one welded mesh of every
-// patch that the worker re-tessellates with each GROUP of patches at its own detail level,
-// chosen by screen-space error as in OGC 3D Tiles (docs/format.md, "Bundle manifest,
-// version 2 (atlas)").
+// AtlasLayer: an atlas bundle (manifest format_version 2) on screen — one mesh per GROUP of
+// patches, each drawn at its own detail level, chosen by screen-space error as in OGC 3D
+// Tiles (docs/format.md, "Bundle manifest, version 2 (atlas)").
 //
 // The worker's refinement table (WorkerSession.atlas_refinement, from the manifest) gives per
 // group its bounding sphere (scan frame) and, per level k, its pack (detail/K/G.tsdp, or null:
@@ -15,12 +14,19 @@
 // and a group inside the view frustum is refined one level at a time while sse > DETAIL_PX;
 // groups outside it go back to the base. Refinements are granted largest sse first within a
 // budget of MAX_VERTICES drawn vertices (a group at level k costs count * R_k^2, R_k the
-// worker's samples per patch side at that level), since the whole atlas is tessellated again
-// in pure Python for each change (client_py.atlas_mesh; about 2 s per 40 000 vertices in
-// CPython on a busy machine, more in Pyodide). The packs a choice needs are fetched (at most
+// worker's samples per patch side at that level).
+//
+// Only what changed is tessellated: a group's mesh (WorkerSession.atlas_part_mesh, one
+// request for all the groups an update needs) depends on its own level alone — its seams with
+// the other groups lie on a frame every group shares, with walls down to the base, so groups
+// at any levels meet without a crack (client_py.atlas_mesh.tessellate_atlas_part) — and the
+// meshes made are kept (least recently used dropped beyond CACHE_VERTICES), so going back to
+// a level seen before tessellates nothing. The packs a choice needs are fetched (at most
 // FETCH_PARALLEL at once), handed to the worker (MeshWorkerClient.addPack) and those no
-// longer needed dropped; then WorkerSession.atlas_mesh draws the new mesh, which replaces the
-// shown one in one frame.
+// longer needed dropped; the changed groups are swapped in in one frame. The first frame is
+// the whole atlas at the base welded in one mesh (Viewer.setMesh: it frames the view); right
+// after it the worker makes every group's base mesh in the background, and the first
+// refinement puts the groups in its place.
 //
 // Colour (a bundle with tiles.texture; WorkerSession.atlas_colour_refinement): a group drawn at
 // level k is coloured per vertex from the colour pack (texture/C/G.webp) of colour level
@@ -28,14 +34,20 @@
 // has cells (client_py.atlas_texture). As the single patch's texture tiles (tile-tree.js), a
 // group is also refined while its texels look larger than TEXEL_PX on screen,
 // texel_k * f / d > TEXEL_PX (texel_k: the world size of a texel at level k, median patch),
-// and a finer colour level exists. Before each mesh, the packs the levels need are fetched,
-// decoded to RGB (page.js decodeTextureRgb) and handed to the worker (addColourPack), those
-// no longer needed dropped; the worker's mesh then carries RGB per vertex, shown through
-// three.js vertex colours (converted from sRGB to linear, as the renderer expects).
+// and a finer colour level exists. Before the worker makes meshes (the welded first frame, or
+// the groups not kept), the colour packs of those groups at their levels are fetched, decoded
+// to RGB (page.js decodeTextureRgb) and handed to the worker (addColourPack), those no longer
+// needed dropped; the worker's meshes then carry RGB per vertex (one rule for the welded mesh
+// and a group's: WorkerSession._colour_groups), shown through three.js vertex colours
+// (converted from sRGB to linear, as the renderer expects). A kept group mesh is keyed by its
+// group, level and colour pack, so it is never shown with other colours than it was made with.
 //
 // Stats (window.tessera.stats): atlas_levels (per group), atlas_refined_groups,
-// atlas_packs_loaded, atlas_pack_bytes, atlas_tessellate_ms, atlas_updates, vertices,
-// triangles, tessellate_ms, atlas_colour_packs_loaded, atlas_colour_bytes.
+// atlas_packs_loaded, atlas_pack_bytes, atlas_tessellate_ms (Python time of the groups the
+// last update tessellated), atlas_parts_made and atlas_parts_cached (that update's groups
+// tessellated and taken from the cache), atlas_refine_ms (its wall time, from the choice to
+// the swap drawn), atlas_updates, vertices, triangles, tessellate_ms,
+// atlas_colour_packs_loaded, atlas_colour_bytes.
 
 import * as THREE from "three";
 
@@ -44,6 +56,8 @@ import { decodeTextureRgb, forEachLimited } from "./page.js";
 import { DETAIL_PX, TEXEL_PX } from "./tile-tree.js";
 
 export const MAX_VERTICES = 250000;
+/** Vertices of the group meshes kept off screen (about 32 bytes each with their triangles). */
+export const CACHE_VERTICES = 1000000;
 const FETCH_PARALLEL = 6;
 const SETTLE_MS = 200;
 /** sRGB byte -> linear intensity (IEC 61966-2-1), for three.js vertex colours. */
@@ -74,12 +88,15 @@ export class AtlasLayer {
     this.onError = onError;
     this.onChange = onChange;
     this.shown = this.groups.map(() => -1); // the level of each group on screen
+    this.cache = new Map(); // "g/level" -> the worker's mesh of that group, least recently used first
+    this.baseParts = null; // the request for every group's base mesh (after the first frame)
     this.timer = null;
     this.running = null; // the update in progress, or null
     this.again = false; // the camera moved during an update: run once more after it
     this.colour = undefined; // WorkerSession.atlas_colour_refinement, read at the first show
     Object.assign(stats, { atlas_levels: [...this.shown], atlas_refined_groups: 0,
                            atlas_packs_loaded: 0, atlas_pack_bytes: 0, atlas_tessellate_ms: 0,
+                           atlas_parts_made: 0, atlas_parts_cached: 0, atlas_refine_ms: 0,
                            atlas_updates: 0, atlas_colour_packs_loaded: 0,
                            atlas_colour_bytes: 0 });
   }
@@ -89,11 +106,49 @@ export class AtlasLayer {
     return this.levelCount > 0 && this.groups.length > 0;
   }
 
-  /** The whole atlas with every group at `levels` from the worker, shown; resolves with
-   *  the worker's mesh. */
+  /** Every group at `levels` on screen: the groups whose mesh at that level is neither
+   *  shown nor kept are tessellated by the worker (one request), then the changed groups
+   *  are swapped in at once. Resolves with the stats. */
   async show(levels) {
     const t0 = performance.now();
-    await this.bringColours(levels);
+    if (this.viewer.mesh === null) return this._showFirst(levels);
+    await this.baseParts; // the base of every group, asked for after the first frame
+    const wanted = levels.map((level, g) => this.partKey(g, level));
+    const missing = levels.map((level, g) => [g, level]).filter(([g, level]) =>
+      !this.cache.has(this.partKey(g, level)));
+    await this.bringColours(missing);
+    const meshes = missing.length ? await this.worker.atlasParts(missing) : [];
+    let pythonMs = 0;
+    for (const mesh of meshes) {
+      pythonMs += mesh.tessellate_ms;
+      this._rememberMade(mesh);
+    }
+    const parts = wanted.map((key) => this._cached(key));
+    this.viewer.setAtlasParts(new Map(wanted.map((key, g) => [key, parts[g]])));
+    useVertexColours(this.viewer.regionMaterial, parts.every((part) => part.colors));
+    this.shown = [...levels];
+    this._trimCache(new Set(wanted));
+    const vertices = parts.reduce((sum, part) => sum + part.positions.length / 3, 0);
+    const triangles = parts.reduce((sum, part) => sum + part.indices.length / 3, 0);
+    Object.assign(this.stats, {
+      vertices, triangles, tessellate_ms: pythonMs, atlas_tessellate_ms: pythonMs,
+      atlas_parts_made: meshes.length, atlas_parts_cached: levels.length - meshes.length,
+      round_trip_ms: performance.now() - t0, atlas_levels: [...levels],
+      atlas_refined_groups: levels.filter((k) => k >= 0).length,
+      meshes: (this.stats.meshes || 0) + 1,
+    });
+    await this.viewer.whenDrawn();
+    this.stats.atlas_refine_ms = performance.now() - t0;
+    return { ...this.stats };
+  }
+
+  /** The first frame: the whole atlas welded at `levels` in one mesh (WorkerSession.atlas_mesh:
+   *  as fast as one group mesh per group, and Viewer.setMesh frames the view by it); then, in
+   *  the background, every group's base mesh, which the first refinement shows beside the
+   *  groups it refines. */
+  async _showFirst(levels) {
+    const t0 = performance.now();
+    await this.bringColours(levels.map((level, g) => [g, level]));
     const mesh = await this.worker.atlasMesh(levels);
     this.viewer.setMesh(mesh, [0, 1, 0, 1]);
     this.showColours(mesh.colors);
@@ -105,7 +160,51 @@ export class AtlasLayer {
       atlas_refined_groups: levels.filter((k) => k >= 0).length,
       meshes: (this.stats.meshes || 0) + 1,
     });
+    if (this.enabled) {
+      this.baseParts = this.worker.atlasParts(this.groups.map((_, g) => [g, -1])).then(
+        (meshes) => meshes.forEach((part) => this._rememberMade(part)),
+        (error) => this.onError(`atlas groups: ${error.message}`));
+    }
+    return { ...this.stats };
+  }
+
+  /** The cache's key of group `g` at `level`: with the colour pack it is coloured from (what
+   *  changes its colours), so a kept mesh is never shown with stale colour. */
+  partKey(g, level) {
+    const pack = this.colour ? this.colour.group_packs[g][level + 1] : "";
+    return `${g}/${level}/${pack}`;
+  }
+
+  /** Keep a group mesh the worker made, its colours made linear (showColours' rule), under
+   *  the key of the colours it carries: one made while its colour pack was not held (none)
+   *  is not taken for a coloured one. */
+  _rememberMade(mesh) {
+    const key = mesh.colors || !this.colour ? this.partKey(mesh.group, mesh.level)
+      : `${mesh.group}/${mesh.level}/`;
+    mesh.colors = mesh.colors && linearColours(mesh.colors);
+    this._remember(key, mesh);
+  }
+
+  _remember(key, mesh) {
+    this.cache.delete(key);
+    this.cache.set(key, mesh);
+  }
+
+  _cached(key) {
+    const mesh = this.cache.get(key);
+    if (!mesh) throw new Error(`the worker made no mesh ${key} (group/level/colour pack)`);
+    this._remember(key, mesh); // most recently used
     return mesh;
+  }
+
+  /** Drop the least recently used meshes not on screen beyond CACHE_VERTICES. */
+  _trimCache(shown) {
+    let kept = 0;
+    for (const [key, mesh] of [...this.cache].reverse()) {
+      if (shown.has(key)) continue;
+      kept += mesh.positions.length / 3;
+      if (kept > CACHE_VERTICES) this.cache.delete(key);
+    }
   }
 
   /** The error of group `g` at `level` (-1: the base's): its pack's geometric_error, or for
@@ -161,12 +260,13 @@ export class AtlasLayer {
     return next > c ? colour.texel[level + 1] : 0;
   }
 
-  /** Fetch, decode and hand the worker the colour packs `levels` need (WorkerSession
-   *  atlas_colour_refinement's group_packs), and drop the others it holds. */
-  async bringColours(levels) {
+  /** Fetch, decode and hand the worker the colour packs that the meshes it is to make,
+   *  `parts` = [[group, level], ...], need (WorkerSession atlas_colour_refinement's
+   *  group_packs), and drop the others it holds (a kept mesh has its colours). */
+  async bringColours(parts) {
     if (this.colour === undefined) this.colour = await this.worker.atlasColour();
     if (!this.colour) return;
-    const needed = new Set(levels.map((level, g) => this.colour.group_packs[g][level + 1]));
+    const needed = new Set(parts.map(([g, level]) => this.colour.group_packs[g][level + 1]));
     const missing = [...needed].filter((name) => !this.worker.colourPacks.has(name));
     await forEachLimited(missing, FETCH_PARALLEL, async (name) => {
       const bytes = await fetchBytes(new URL(name, this.baseUrl).href, `colour pack ${name}`);
@@ -179,27 +279,14 @@ export class AtlasLayer {
     if (unneeded.length) await this.worker.dropColourPacks(unneeded);
   }
 
-  /** Show the mesh's RGB per vertex (bytes, sRGB) as three.js vertex colours (linear), or
-   *  the viewer's plain material without them. */
+  /** Show the welded mesh's RGB per vertex (bytes, sRGB) as three.js vertex colours
+   *  (linear), or the viewer's plain material without them. */
   showColours(colors) {
-    const material = this.viewer.material;
-    if (!colors) {
-      if (material.vertexColors) {
-        material.vertexColors = false;
-        material.color.copy(this.plainColour);
-        material.needsUpdate = true;
-      }
-      return;
+    if (colors) {
+      this.viewer.mesh.geometry.setAttribute(
+        "color", new THREE.BufferAttribute(linearColours(colors), 3));
     }
-    const linear = new Float32Array(colors.length);
-    for (let k = 0; k < colors.length; k++) linear[k] = SRGB_TO_LINEAR[colors[k]];
-    this.viewer.mesh.geometry.setAttribute("color", new THREE.BufferAttribute(linear, 3));
-    if (!material.vertexColors) {
-      this.plainColour = material.color.clone();
-      material.vertexColors = true;
-      material.color.set(0xffffff);
-      material.needsUpdate = true;
-    }
+    useVertexColours(this.viewer.material, Boolean(colors));
     this.viewer.render();
   }
 
@@ -237,8 +324,9 @@ export class AtlasLayer {
   async _updateOnce() {
     const levels = this.wanted();
     if (levels.every((k, g) => k === this.shown[g])) return;
-    const needed = new Set();
+    const needed = new Set(); // the packs of the groups to tessellate (a kept mesh needs none)
     levels.forEach((level, g) => {
+      if (this.cache.has(this.partKey(g, level))) return;
       for (let k = 0; k <= level; k++) if (this.groups[g].packs[k]) needed.add(this.groups[g].packs[k]);
     });
     const missing = [...needed].filter((name) => !this.worker.holds(name));
@@ -268,4 +356,45 @@ export class AtlasLayer {
       else await new Promise((resolve) => setTimeout(resolve, 50));
     }
   }
+}
+
+/** sRGB bytes (RGB per vertex) -> linear intensities, as three.js vertex colours expect. */
+function linearColours(colors) {
+  const linear = new Float32Array(colors.length);
+  for (let k = 0; k < colors.length; k++) linear[k] = SRGB_TO_LINEAR[colors[k]];
+  return linear;
+}
+
+/** Draw `material` with the geometry's vertex colours (its own colour white, to multiply by)
+ *  or, `on` false, with its own colour again. */
+function useVertexColours(material, on) {
+  if (Boolean(material.vertexColors) === Boolean(on)) return;
+  if (on) {
+    material.userData.plainColour = material.color.clone();
+    material.color.set(0xffffff);
+  } else {
+    material.color.copy(material.userData.plainColour);
+  }
+  material.vertexColors = Boolean(on);
+  material.needsUpdate = true;
+}
+
+/** The group meshes as one mesh (typed arrays concatenated, indices shifted): the first
+ *  frame, which Viewer.setMesh frames the view by. */
+export function mergeParts(parts) {
+  const total = (name) => parts.reduce((sum, part) => sum + part[name].length, 0);
+  const merged = { positions: new Float32Array(total("positions")),
+                   normals: new Float32Array(total("normals")), uvs: new Float32Array(total("uvs")),
+                   indices: new Uint32Array(total("indices")) };
+  let at = { positions: 0, normals: 0, uvs: 0, indices: 0 };
+  for (const part of parts) {
+    merged.positions.set(part.positions, at.positions);
+    merged.normals.set(part.normals, at.normals);
+    merged.uvs.set(part.uvs, at.uvs);
+    const first = at.positions / 3;
+    for (let k = 0; k < part.indices.length; k++) merged.indices[at.indices + k] = part.indices[k] + first;
+    at = { positions: at.positions + part.positions.length, normals: at.normals + part.normals.length,
+           uvs: at.uvs + part.uvs.length, indices: at.indices + part.indices.length };
+  }
+  return merged;
 }

@@ -21,6 +21,8 @@ export class MeshWorkerClient {
     this.held = new Set();
     this.packs = new Set(); // of those, an atlas's detail packs (addPack)
     this.colourPacks = new Set(); // an atlas's decoded colour packs the worker holds
+    // called with the worker's Resource Timing entries when it fetched something (fetchTiles)
+    this.onResources = () => {};
     this.worker = new Worker(workerUrl, { type: "module", name: "tessera-mesh-worker" });
     this.worker.onmessage = (event) => this._receive(event.data);
     this.worker.onerror = (event) => {
@@ -114,7 +116,23 @@ export class MeshWorkerClient {
     });
   }
 
-  /** Forget tiles the worker holds (names as given to addTile). */
+  /** Have the worker fetch detail tiles itself ([{name, url}]: a bundle's `.tsd` files) and
+   *  keep each decoded, off the page's thread: resolves with [{name, bytes, level, i, j}]; a
+   *  tile that cannot be fetched or decoded rejects with its reason. The worker's Resource
+   *  Timing entries then go to `onResources(entries)`. Requests sent after this one find the
+   *  tiles held. */
+  fetchTiles(tiles) {
+    for (const { name } of tiles) this.held.add(name);
+    return this._request({ type: "fetchTiles", tiles }).then((reply) => {
+      this.onResources(reply.resources);
+      return reply.tiles;
+    }, (error) => {
+      for (const { name } of tiles) this.held.delete(name);
+      throw error;
+    });
+  }
+
+  /** Forget tiles the worker holds (names as given to addTile or fetchTiles). */
   dropTiles(names) {
     for (const name of names) this.held.delete(name);
     return this._request({ type: "drop", names });
@@ -174,7 +192,8 @@ export class MeshWorkerClient {
   }
 
   /** Hand a decoded colour pack (`texture/C/G.webp` of the manifest: {width, height, rgb},
-   *  rgb transferred) to the worker, which keeps it for atlasMesh's vertex colours. */
+   *  rgb transferred) to the worker, which keeps it for the vertex colours of atlasMesh
+   *  and atlasParts. */
   addColourPack(name, { width, height, rgb }) {
     this.colourPacks.add(name);
     return this._request({ type: "colourPack", name, width, height, rgb }, [rgb.buffer])
@@ -195,6 +214,14 @@ export class MeshWorkerClient {
    *  the worker holds every group's colour pack, else null). */
   atlasMesh(levels) {
     return this._request({ type: "atlasMesh", levels });
+  }
+
+  /** Meshes of single groups of the atlas, `parts` = [[group, level], ...] (level -1: the
+   *  base): resolves with [{group, level, positions, normals, uvs, indices, colors,
+   *  tessellate_ms}] in that order (WorkerSession.atlas_part_mesh: groups at any levels meet
+   *  without a crack; colors as atlasMesh's, from the colour packs the worker holds). */
+  async atlasParts(parts) {
+    return (await this._request({ type: "atlasParts", parts })).meshes;
   }
 
   terminate() {

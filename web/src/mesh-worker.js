@@ -35,12 +35,21 @@
 //   page -> {type: "atlasMesh", levels} -> {type: "atlasMesh", positions, normals, uvs,
 //           indices, colors, tessellate_ms}  (atlas_mesh: one welded mesh, group g at
 //           levels[g]; colors RGB per vertex from the colour packs held, or null)
+//   page -> {type: "atlasParts", parts: [[group, level], ...]}
+//        -> {type: "atlasParts", meshes: [{group, level, positions, normals, uvs, indices,
+//           colors, tessellate_ms}, ...]}  (atlas_part_mesh for each, in order: one group
+//           alone, its seams shared with every other group's; what the viewer draws; colors
+//           as atlasMesh's, by the same rule)
 //   page -> {type: "atlasColour"} -> {type: "atlasColour", colour}  (atlas_colour_refinement)
 //   page -> {type: "colourPack", name, width, height, rgb} -> {type: "colourPack", name, level,
 //           first, count}  (add_colour_pack: a decoded texture/C/G.webp)
 //   page -> {type: "dropColourPacks", names} -> {type: "droppedColourPacks", names}
 //   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
+//   page -> {type: "fetchTiles", tiles: [{name, url}, ...]}
+//        -> {type: "fetchedTiles", tiles: [{name, bytes, level, i, j}, ...], resources}
+//           (the worker fetches the tiles itself, then add_tile each, kept; resources: as in
+//           "resources", the page's tally of what the visit transferred)
 //   page -> {type: "drop", names}        -> {type: "dropped", names}            (drop_tiles)
 //   page -> {type: "region", level, i, j, grid, names, skirtDepth}
 //        -> {type: "region", positions, normals, uvs, indices, tessellate_ms}  (region_mesh:
@@ -284,6 +293,19 @@ function tile({ id, name, bytes }) {
   post({ type: "tile", id, name, level, i, j });
 }
 
+/** Fetch detail tiles here, off the page's thread (a draw there does not hold them up), and
+ *  keep each decoded (add_tile); the region requests the page sends behind this one find
+ *  them held. Replies with their sizes and this worker's Resource Timing entries. */
+async function fetchTiles({ id, tiles }) {
+  const fetched = await Promise.all(tiles.map(async ({ name, url }) =>
+    ({ name, bytes: await fetchBytes(url, name) })));
+  const added = fetched.map(({ name, bytes }) => {
+    const [level, i, j] = toPlain(session.add_tile(name, bytes));
+    return { name, bytes: bytes.length, level, i, j };
+  });
+  post({ type: "fetchedTiles", id, tiles: added, resources: resourceEntries() });
+}
+
 function drop({ id, names }) {
   withPy(names, (list) => session.drop_tiles(list));
   post({ type: "dropped", id, names });
@@ -317,6 +339,15 @@ function dropPacks({ id, names }) {
   post({ type: "droppedPacks", id, names });
 }
 
+function atlasParts({ id, parts }) {
+  const meshes = parts.map(([group, level]) => {
+    const t0 = performance.now();
+    return meshArrays(session.atlas_part_mesh(group, level), performance.now() - t0,
+                      { group, level });
+  });
+  post({ type: "atlasParts", id, meshes }, meshes.flatMap(buffersOf));
+}
+
 function atlasMesh({ id, levels }) {
   const t0 = performance.now();
   const mesh = withPy(levels, (list) => session.atlas_mesh(list));
@@ -341,7 +372,8 @@ function resources({ id }) {
   post({ type: "resources", id, resources: resourceEntries() });
 }
 
-const handlers = { init, tessellate, plan, ply, tile, drop, region, regions, resources };
+const handlers = { init, tessellate, plan, ply, tile, fetchTiles, drop, region, regions,
+                   resources };
 
 async function run(request) {
   const handler = handlers[request.type];
@@ -393,5 +425,5 @@ self.onmessage = (event) => {
   pump();
 };
 
-Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh, atlasColour, colourPack,
-                          dropColourPacks }); // an atlas bundle's
+Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh, atlasParts, atlasColour,
+                          colourPack, dropColourPacks }); // an atlas bundle's

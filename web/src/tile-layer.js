@@ -1,9 +1,10 @@
 // TileLayer: detail and texture tiles superimposed on the base as the camera moves.
 //
 // After each camera change (debounced) it asks the TileTree for the regions the view needs,
-// fetches the tiles they need and nothing else (`.tsd` bytes go to the worker as each
-// arrives, which decodes and keeps them; texture images are decoded by the browser into
-// three.js textures), has the worker tessellate each new region (client_py.tessellate_region
+// fetches the tiles they need and nothing else (the worker fetches the `.tsd` files itself,
+// decodes and keeps them, and the region requests follow at once behind that request; texture
+// images are fetched here and decoded by the browser into three.js textures), has the worker
+// tessellate each new region (client_py.tessellate_region
 // with the region's tiles, plus skirts hanging behind its inner borders, 2 x its remaining
 // error deep, so no crack shows next to a coarser or finer neighbour) and swaps all new
 // regions in at once: until then the old regions and the base stay on screen, so no frame
@@ -29,7 +30,8 @@
 // is running or due), tile_timing (the last refinement's split: select_ms, fetch_ms (tiles
 // fetched and handed to the worker), regions_ms (the worker's batches), python_ms, build_ms
 // (three.js geometries), swap_ms (swap and draw), total_ms, made, cached, stale (batches
-// not sent: the camera moved on), at (performance.now() when drawn)).
+// not sent: the camera moved on), at (performance.now() when drawn)); fetch_ms ends when the
+// worker holds the new tiles, and regions_ms is what is left of the worker's batches after it.
 //
 // Each region is tessellated on the tree's regionGrid (R = 2 spans_per_tile + 1, tile-tree.js).
 
@@ -150,26 +152,32 @@ export class TileLayer {
     const baseTexture = this.tree.textureNode(0, 0, 0);
     if (baseTexture) textureNames.add(baseTexture.file);
 
-    // fetch what is missing, all at once; each detail tile goes to the worker as it arrives
+    // fetch what is missing, all at once: the detail tiles by the worker itself, off this
+    // thread (a draw here, up to a second under a software rasteriser, does not hold them
+    // up), the texture images here
     const newDetail = [...detailNames].filter((name) => !this.detailTiles.has(name));
     const newTexture = [...textureNames].filter((name) => !this.textures.has(name));
-    await Promise.all([
-      ...newDetail.map(async (name) => {
-        const bytes = await this._fetch(name);
-        await this.worker.addTile(name, bytes);
-        this.detailTiles.add(name);
-      }),
-      ...newTexture.map(async (name) => {
-        const texture = await decodeTexture(await this._fetch(name), name);
-        this.textures.set(name, texture);
-      }),
-    ]);
-    const tFetched = performance.now();
+    const detailFetched = newDetail.length
+      ? this.worker.fetchTiles(newDetail.map((name) => ({ name, url: new URL(name, this.baseUrl).href })))
+      : Promise.resolve([]);
+    const texturesFetched = Promise.all(newTexture.map(async (name) => {
+      const texture = await decodeTexture(await this._fetch(name), name);
+      this.textures.set(name, texture);
+    }));
 
-    // the regions not on screen: from the cache, or made by the worker, most needed first
+    // the regions not on screen: from the cache, or made by the worker, most needed first;
+    // sent now, behind the tiles they need (the worker runs requests in order)
     const missing = [...wanted.values()].filter((leaf) =>
       this.shownKeys.get(`${leaf.level}/${leaf.i}/${leaf.j}`) !== leaf.key && !this.cache.has(leaf.key));
-    const made = await this._makeRegions(prioritised(missing));
+    const making = this._makeRegions(prioritised(missing));
+    making.catch(() => {}); // a tile's own failure below is the one reported
+    const [fetchedTiles] = await Promise.all([detailFetched, texturesFetched]);
+    for (const tile of fetchedTiles) {
+      this.detailTiles.add(tile.name);
+      this._count(tile.bytes);
+    }
+    const tFetched = performance.now();
+    const made = await making;
     if (made.stale) return; // the camera moved on: update() runs again for the new view
     const tMade = performance.now();
 
@@ -279,10 +287,15 @@ export class TileLayer {
 
   async _fetch(name) {
     const bytes = await fetchBytes(new URL(name, this.baseUrl).href, name);
-    this.stats.tile_bytes += bytes.length;
-    this.stats.bytes_downloaded += bytes.length;
-    this.stats.tiles_fetched += 1;
+    this._count(bytes.length);
     return bytes;
+  }
+
+  /** One tile file of `bytes` bytes fetched (here or by the worker). */
+  _count(bytes) {
+    this.stats.tile_bytes += bytes;
+    this.stats.bytes_downloaded += bytes;
+    this.stats.tiles_fetched += 1;
   }
 }
 

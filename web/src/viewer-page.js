@@ -88,22 +88,22 @@ function showTransfers(tally, facts) {
   facts.showTransfer(stats.transfer);
 }
 
-/** The first mesh, coarse, on screen, then the page is ready (document.body.dataset.ready);
- *  resolves with the grid to refine to. */
+/** The first mesh, coarse, on screen, then the page is ready (document.body.dataset.ready). */
 async function showFirstMesh(base) {
   showStage("tessellation");
-  const target = base.targetResolution();
-  await base.show(Math.min(COARSE_RESOLUTION, target));
+  await base.show(Math.min(COARSE_RESOLUTION, base.targetResolution()));
   await nextFrame();
   stats.first_frame_ms = performance.now();
   stats.coarse_resolution = base.resolution;
   document.body.dataset.ready = "1";
   $("loading").hidden = true;
-  return target;
 }
 
-/** The base at the grid `target`, then document.body.dataset.refined. */
-async function refineBase(base, target) {
+/** The base at the grid the view wants once the first detail regions are in (a backdrop's
+ *  when they cover the view), then document.body.dataset.refined. */
+async function refineBase(base, tiles) {
+  if (tiles && tiles.enabled) await tiles.idle();
+  const target = base.targetResolution();
   if (target !== base.resolution) await base.show(target);
   await nextFrame();
   stats.refined_ms = performance.now();
@@ -278,13 +278,17 @@ async function main() {
   const tilesStarted = new Promise((resolve) => { settleTiles = resolve; });
   const base = new BaseMesh({
     viewer, worker, stats, fixedResolution: config.resolution || null,
-    onShown: (mesh) => {
+    onShown: (mesh, { following }) => {
       facts.showMesh(stats);
       if (tiles) {
         tiles.setBase(mesh, base.domain);
-        tiles.schedule(0);
+        // the coarse first base's boxes were rough: choose again; a zoom's finer base only
+        // sharpens them a little, and the regions it has are already drawn
+        if (!following) tiles.schedule(0);
       }
     },
+    waitFor: () => (tiles ? tiles.idle() : Promise.resolve()),
+    backdrop: () => Boolean(tiles && tiles.enabled && stats.regions > 0),
   });
   exposeTestHooks({ viewer, base, tiles: () => tiles, tilesStarted });
   // the camera moved: new regions; a zoom gesture ended: maybe a finer or coarser base grid
@@ -306,7 +310,8 @@ async function main() {
   viewer.setObjectView(manifest.view || null); // older bundles have none: the fallback framing
   const transfers = new TransferTally(config.manifest_url, window.location.href);
   transfers.add("worker", ready.resources || []);
-  const target = await showFirstMesh(base);
+  worker.onResources = (entries) => transfers.add("worker", entries); // tiles it fetched
+  await showFirstMesh(base);
   showTransfers(transfers, facts);
 
   const { TileLayer } = await tileModule;
@@ -318,7 +323,7 @@ async function main() {
 
   await offerPly(new PlyDownload({ worker, base, errorMap, config, stats, onError: showError }),
                  worker, manifest, ready);
-  await refineBase(base, target);
+  await refineBase(base, tiles);
   showTransfers(transfers, facts);
 }
 

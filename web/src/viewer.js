@@ -106,6 +106,10 @@ export class Viewer {
     this.regionGroup = new THREE.Group();
     this.scene.add(this.regionGroup);
     this.regionMaterial = this.material.clone();
+    // An atlas's groups (setAtlasParts): key -> THREE.Mesh, drawn instead of this.mesh.
+    this.atlasParts = new Map();
+    this.atlasGroup = new THREE.Group();
+    this.scene.add(this.atlasGroup);
     this.mask = null; // {texture: DataTexture, cells}: 1 where a region replaces the base
     this.maskUniforms = { tesseraMask: { value: null }, tesseraMaskOn: { value: 0 } };
     this.material.onBeforeCompile = (shader) => {
@@ -436,6 +440,35 @@ export class Viewer {
    * redrawn. `mask` is {cells, rects}: the mask's cells per side (2^finest level) and the
    * [u0, v0, u1, v1] rectangles the regions cover.
    */
+  /**
+   * An atlas drawn as separate groups (AtlasLayer) in place of the one mesh: `parts` maps a
+   * key to the worker's mesh data ({positions, normals, indices, colors?}: colors linear RGB
+   * per vertex, drawn when the material has vertexColors); parts already shown under the same
+   * key stay, the others are built, the rest removed, in one frame.
+   */
+  setAtlasParts(parts) {
+    for (const [key, mesh] of this.atlasParts) {
+      if (parts.has(key)) continue;
+      this.atlasGroup.remove(mesh);
+      mesh.geometry.dispose();
+      this.atlasParts.delete(key);
+    }
+    for (const [key, data] of parts) {
+      if (this.atlasParts.has(key)) continue;
+      const geometry = new THREE.BufferGeometry();
+      geometry.setAttribute("position", new THREE.BufferAttribute(data.positions, 3));
+      geometry.setAttribute("normal", new THREE.BufferAttribute(data.normals, 3));
+      if (data.colors) geometry.setAttribute("color", new THREE.BufferAttribute(data.colors, 3));
+      geometry.setIndex(new THREE.BufferAttribute(data.indices, 1));
+      geometry.computeBoundingSphere();
+      const mesh = new THREE.Mesh(geometry, this.regionMaterial);
+      this.atlasParts.set(key, mesh);
+      this.atlasGroup.add(mesh);
+    }
+    if (this.mesh) this.mesh.visible = false;
+    this.render();
+  }
+
   setRegions(wanted, mask) {
     for (const [key, mesh] of this.regions) {
       if (wanted.get(key) === mesh) continue;

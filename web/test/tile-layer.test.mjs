@@ -6,6 +6,7 @@
 import assert from "node:assert/strict";
 import { afterEach, beforeEach, describe, test } from "node:test";
 
+import { fetchBytes } from "../src/fetch-bytes.js";
 import { REGION_BATCH, TileLayer } from "../src/tile-layer.js";
 import { TileTree } from "../src/tile-tree.js";
 import { camera, detailTiles, planeMesh } from "./scenes.mjs";
@@ -39,17 +40,42 @@ afterEach(() => {
 function standIns(cam) {
   const worker = {
     held: new Map(), regions: [], dropped: [],
+    // requests run one at a time in the order they came, as in mesh-worker.js
+    queue: Promise.resolve(),
+    run(job) {
+      const result = this.queue.then(job);
+      this.queue = result.catch(() => {});
+      return result;
+    },
     async addTile(name, bytes) { this.held.set(name, bytes); },
+    // as mesh-worker.js's fetchTiles: fetched by the worker itself (the same fetchBytes)
+    fetchTiles(tiles) {
+      return this.run(async () => {
+        const fetchedHere = await Promise.all(tiles.map(async ({ name, url }) =>
+          ({ name, bytes: await fetchBytes(url, name) })));
+        return fetchedHere.map(({ name, bytes }) => {
+          this.held.set(name, bytes);
+          return { name, bytes: bytes.length };
+        });
+      });
+    },
     async dropTiles(names) {
       this.dropped.push(...names);
       for (const name of names) this.held.delete(name);
     },
     batches: [],
-    async regionBatch(grid, regions) {
-      this.batches.push(regions.length);
-      return regions.map(({ level, i, j, names, skirtDepth }) => {
-        this.regions.push({ level, i, j, grid, names, skirtDepth });
-        return { tessellate_ms: 2, level, i, j, grid };
+    regionBatch(grid, regions) {
+      return this.run(async () => {
+        for (const { names } of regions) {
+          for (const name of names) {
+            if (!this.held.has(name)) throw new Error(`detail tile ${name} was not handed over`);
+          }
+        }
+        this.batches.push(regions.length);
+        return regions.map(({ level, i, j, names, skirtDepth }) => {
+          this.regions.push({ level, i, j, grid, names, skirtDepth });
+          return { tessellate_ms: 2, level, i, j, grid };
+        });
       });
     },
   };
