@@ -7,13 +7,18 @@ group of random detail tiles (every tile of every patch at every level, small
 displacements so the mesh stays a closed surface), and the manifest. Groups are the six
 cube faces (``k^2`` contiguous patches each), their bounding spheres measured on the
 atlas's own tessellation; a pack's ``geometric_error`` shrinks with the level.
+
+:func:`add_colour_packs` gives such a bundle colour (docs/format.md, "Atlas colour"): WebP
+colour packs of two levels whose cells the caller paints.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import random
+from collections.abc import Callable
 from pathlib import Path
 
 from atlas_cases import sphere_atlas
@@ -21,6 +26,7 @@ from atlas_cases import sphere_atlas
 from client_py.atlas_detail import pack_name, write_pack
 from client_py.atlas_format import write_atlas
 from client_py.atlas_mesh import tessellate_atlas
+from client_py.atlas_texture import colour_pack_name, pack_shape
 from client_py.layers import DetailTile
 
 DEGREE, SPANS_PER_TILE = 2, 2
@@ -93,5 +99,50 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
             "base": {"rms": 0.008, "max": 0.03}, "levels": level_entries,
             "groups": groups, "packs": packs}},
     }
+    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+#: colour levels of :func:`add_colour_packs`: per level, its packs' runs of detail groups
+#: ``(first group, groups)`` (level 0: one pack of all six; level 1: two packs of three)
+COLOUR_PACK_RUNS = ((0, ((0, 6),)), (1, ((0, 3), (3, 3))))
+
+
+def add_colour_packs(folder: Path, manifest: dict, paint_cell: Callable, cell: int = 8) -> dict:
+    """Colour packs of two levels (:data:`COLOUR_PACK_RUNS`) for the bundle of
+    :func:`write_atlas_bundle` in ``folder``: level ``c``'s cells are ``cell 2^c`` texels per
+    side, patch ``f``'s painted ``paint_cell(c, f, side)`` (a ``(side, side, 3)`` uint8
+    array, row 0 the top), filler cells grey; the manifest is updated, rewritten and
+    returned. Lossless WebP, so the texels read back are those painted."""
+    import numpy as np  # test helpers only: the bundle itself needs neither
+    from PIL import Image
+
+    groups = manifest["tiles"]["detail"]["groups"]
+    levels, packs = [], []
+    for level, runs in COLOUR_PACK_RUNS:
+        side = cell << level
+        total = 0
+        for g, count in runs:
+            first = groups[g]["first"]
+            patches = sum(groups[h]["count"] for h in range(g, g + count))
+            width, height = pack_shape(patches, side)
+            image = np.full((height, width, 3), 128, np.uint8)
+            columns = width // side
+            for s in range(patches):
+                x, y = (s % columns) * side, (s // columns) * side
+                image[y:y + side, x:x + side] = paint_cell(level, first + s, side)
+            buffer = io.BytesIO()
+            Image.fromarray(image).save(buffer, "WEBP", lossless=True)
+            name = colour_pack_name(level, g)
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_bytes(buffer.getvalue())
+            manifest["files"][name] = len(buffer.getvalue())
+            total += len(buffer.getvalue())
+            packs.append({"level": level, "group": g, "groups": count,
+                          "bytes": len(buffer.getvalue())})
+        levels.append({"level": level, "cell": side, "texel": 1.0 / side,
+                       "bytes_total": total, "packs": len(runs)})
+    manifest["tiles"]["texture"] = {"format": "webp", "source": "vertex colours",
+                                    "levels": levels, "packs": packs}
     (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return manifest

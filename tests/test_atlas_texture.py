@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from atlas_bundle import write_atlas_bundle
+from atlas_bundle import add_colour_packs, write_atlas_bundle
 from PIL import Image
 
 from client_py.atlas_texture import (
@@ -167,6 +167,77 @@ def test_the_viewer_session_colours_each_group_at_its_level(coloured_sphere):
     assert mesh.colors is not None and len(mesh.colors) == 3 * mesh.vertex_count
     with pytest.raises(ValueError, match="not a colour pack the manifest lists"):
         session.add_colour_pack("texture/9/0.webp", 16, 16, bytes(768))
+
+
+def _paint_patch_and_level(level: int, patch: int, side: int) -> np.ndarray:
+    """A cell whose red names its patch and colour level, ``(7 f + 100 c) mod 256``, over
+    green and blue ramps along its columns and rows (so a wrong texel shows too)."""
+    ramp = np.linspace(0, 255, side)
+    cell = np.empty((side, side, 3))
+    cell[..., 0] = (7 * patch + 100 * level) % 256
+    cell[..., 1] = ramp[None, :]
+    cell[..., 2] = ramp[:, None]
+    return np.rint(cell).astype(np.uint8)
+
+
+def test_a_group_mesh_has_the_welded_mesh_s_colours_at_the_same_levels(tmp_path):
+    """atlas_part_mesh colours its group by atlas_mesh's rule: at the same levels (one group
+    at the finest level, the others at the base), every vertex of the group's mesh at a
+    patch and (u, v) that the welded mesh also has (all but its seams) has the welded mesh's
+    RGB, a wall vertex its top's, and every red names the vertex's patch and its group's
+    colour level (independent of the sampling code). A group is coloured once ITS pack is
+    held; the welded mesh waits for every group's."""
+    folder = tmp_path / "sphere"
+    manifest = write_atlas_bundle(folder, k=2, levels=2, base_resolution=5)
+    add_colour_packs(folder, manifest, _paint_patch_and_level)
+    session = WorkerSession(kernel="python")
+    session.read_manifest(json.dumps(manifest))
+    session.load_atlas((folder / "base.tsa").read_bytes(), "sphere")
+    refinement, table = session.atlas_refinement(), session.atlas_colour_refinement()
+    g, top = 2, refinement["levels"] - 1
+    for name in refinement["groups"][g]["packs"]:
+        session.add_pack(name, (folder / name).read_bytes())
+
+    def hand(name):
+        with Image.open(folder / name) as im:
+            rgb = im.convert("RGB")
+            session.add_colour_pack(name, rgb.width, rgb.height, rgb.tobytes())
+
+    levels = [-1] * len(refinement["groups"])
+    levels[g] = top
+    assert table["group_packs"][g] == ["texture/0/0.webp", "texture/0/0.webp",
+                                       "texture/1/0.webp"]
+    hand("texture/1/0.webp")
+    part = session.atlas_part_mesh(g, top)
+    assert part.colors is not None and len(part.colors) == 3 * part.vertex_count
+    assert session.atlas_part_mesh(g, -1).colors is None  # level 0's pack is not held
+    assert session.atlas_mesh(levels).colors is None  # nor the other groups' packs
+    hand("texture/0/0.webp")
+    welded = session.atlas_mesh(levels)
+    assert welded.colors is not None
+
+    def vertices(mesh):
+        uvs = np.frombuffer(mesh.uvs, np.float32).reshape(-1, 2).tolist()
+        rgb = [tuple(c) for c in np.frombuffer(mesh.colors, np.uint8).reshape(-1, 3).tolist()]
+        return [(int(f), u, v) for f, (u, v) in zip(mesh.patches, uvs, strict=True)], rgb
+
+    keys, rgb = vertices(part)
+    theirs = dict(zip(*vertices(welded), strict=True))
+    on_seams = {k for nodes in part.seams.values() for k in nodes}
+    inner = [k for k in range(part.surface_vertices) if k not in on_seams]
+    assert len(inner) > part.surface_vertices / 2
+    assert all(keys[k] in theirs for k in inner)  # the group's inner vertices: same samples
+    shared = [k for k in range(part.surface_vertices) if keys[k] in theirs]
+    assert [rgb[k] for k in shared] == [theirs[keys[k]] for k in shared]
+    assert len({rgb[k][1:] for k in shared}) > 20  # the ramps vary across the cells
+    surface = {keys[k]: rgb[k] for k in range(part.surface_vertices)}
+    walls = range(part.surface_vertices, part.vertex_count)
+    assert len(walls) > 0 and all(surface[keys[k]] == rgb[k] for k in walls)
+    assert all(r == (7 * f + 100) % 256 for (f, _, _), (r, _, _) in zip(keys, rgb, strict=True))
+    welded_keys, welded_rgb = vertices(welded)
+    first, count = refinement["groups"][g]["first"], refinement["groups"][g]["count"]
+    assert all(r == (7 * f + (100 if first <= f < first + count else 0)) % 256
+               for (f, _, _), (r, _, _) in zip(welded_keys, welded_rgb, strict=True))
 
 
 def test_a_uv_textured_scan_gives_two_colour_levels_of_its_texture(coloured_sphere):

@@ -12,10 +12,8 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from atlas_bundle import write_atlas_bundle
+from atlas_bundle import add_colour_packs, write_atlas_bundle
 from PIL import Image
-
-from client_py.atlas_texture import colour_pack_name, pack_shape
 
 pytestmark = pytest.mark.browser
 
@@ -24,40 +22,26 @@ GROUP_COLOURS = [(220, 30, 30), (30, 200, 40), (40, 60, 230), (230, 200, 20), (2
                  (20, 210, 210)]
 
 
-def add_group_colours(folder, manifest: dict, cell: int = 8) -> dict:
+def add_group_colours(folder, manifest: dict) -> dict:
     """Colour packs of two levels (level 0: one pack of every group; level 1: two packs of
-    three groups), each patch its group's colour; the manifest updated and rewritten."""
-    groups = manifest["tiles"]["detail"]["groups"]
-    levels, packs = [], []
-    for level, runs in ((0, [(0, 6)]), (1, [(0, 3), (3, 3)])):
-        side = cell << level
-        total = 0
-        for g, count in runs:
-            first = groups[g]["first"]
-            patches = sum(groups[h]["count"] for h in range(g, g + count))
-            width, height = pack_shape(patches, side)
-            image = np.full((height, width, 3), 128, np.uint8)
-            columns = width // side
-            for s in range(patches):
-                group = next(h for h in range(6) if groups[h]["first"] <= first + s
-                             < groups[h]["first"] + groups[h]["count"])
-                x, y = (s % columns) * side, (s // columns) * side
-                image[y:y + side, x:x + side] = GROUP_COLOURS[group]
-            buffer = io.BytesIO()
-            Image.fromarray(image).save(buffer, "WEBP", lossless=True)
-            name = colour_pack_name(level, g)
-            (folder / name).parent.mkdir(parents=True, exist_ok=True)
-            (folder / name).write_bytes(buffer.getvalue())
-            manifest["files"][name] = len(buffer.getvalue())
-            total += len(buffer.getvalue())
-            packs.append({"level": level, "group": g, "groups": count,
-                          "bytes": len(buffer.getvalue())})
-        levels.append({"level": level, "cell": side, "texel": 1.0 / side,
-                       "bytes_total": total, "packs": len(runs)})
-    manifest["tiles"]["texture"] = {"format": "webp", "source": "vertex colours",
-                                    "levels": levels, "packs": packs}
-    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
-    return manifest
+    three groups), each patch its group's colour (tests/atlas_bundle.py)."""
+    per_group = manifest["tiles"]["detail"]["groups"][0]["count"]
+    return add_colour_packs(folder, manifest, lambda level, patch, side: np.full(
+        (side, side, 3), GROUP_COLOURS[patch // per_group], np.uint8))
+
+
+def group_colours_seen(page) -> set[int]:
+    """The groups whose colour (GROUP_COLOURS, shaded) covers 200+ pixels of the canvas: a
+    pixel of a colour's hue has its strong channels 60+ above its weak ones."""
+    shot = np.asarray(Image.open(io.BytesIO(page.locator("canvas").screenshot())))
+    rgb = shot[..., :3].astype(int).reshape(-1, 3)
+    seen = set()
+    for k, colour in enumerate(GROUP_COLOURS):
+        strong = [c for c, v in enumerate(colour) if v > 150]
+        weak = [c for c, v in enumerate(colour) if v <= 150]
+        if np.count_nonzero(rgb[:, strong].min(axis=1) > rgb[:, weak].max(axis=1) + 60) > 200:
+            seen.add(k)
+    return seen
 
 
 @pytest.fixture(scope="module")
@@ -101,17 +85,7 @@ def test_the_viewer_draws_the_atlas_in_its_colours(colour_page):
     stats = colour_page.evaluate("window.tessera.stats")
     assert stats["atlas_colour_packs_loaded"] == 1  # the base: level 0's one pack
     assert stats["atlas_colour_bytes"] > 0
-    shot = np.asarray(Image.open(io.BytesIO(colour_page.locator("canvas").screenshot())))
-    rgb = shot[..., :3].astype(int).reshape(-1, 3)
-    seen = set()
-    for k, (r, g, b) in enumerate(GROUP_COLOURS):
-        # a pixel of this hue: its strong channels stand 60+ above its weak ones
-        strong = [c for c, v in enumerate((r, g, b)) if v > 150]
-        weak = [c for c, v in enumerate((r, g, b)) if v <= 150]
-        lo = rgb[:, strong].min(axis=1)
-        hi = rgb[:, weak].max(axis=1)
-        if np.count_nonzero(lo > hi + 60) > 200:
-            seen.add(k)
+    seen = group_colours_seen(colour_page)
     assert len(seen) >= 2, seen  # a sphere shows several faces of its cube, each a colour
     assert colour_page.errors == []
 
@@ -127,10 +101,37 @@ def test_zooming_in_fetches_the_finer_colour_pack_of_the_groups_in_view(colour_p
     # ... coloured from level 1's pack of groups 0-2 (texture/1/0.webp), fetched after the
     # base's (other groups in view may need level 1's second pack too)
     assert stats["atlas_colour_packs_loaded"] >= 2
+    # drawn as group meshes now (the welded first frame is hidden): the refined ones made,
+    # the others the base meshes made after the first frame
+    assert stats["atlas_parts_made"] >= 1
+    assert stats["atlas_parts_made"] + stats["atlas_parts_cached"] == 6
     shot = np.asarray(Image.open(io.BytesIO(colour_page.locator("canvas").screenshot())))
     rgb = shot[..., :3].astype(int).reshape(-1, 3)
     red = (rgb[:, 0] > rgb[:, 1] + 60) & (rgb[:, 0] > rgb[:, 2] + 60)
     assert red.mean() > 0.2  # group 0 (red) fills much of the close view
+    assert colour_page.errors == []
+
+
+def test_group_meshes_kept_come_back_in_their_colours(colour_page, colour_collection):
+    """Seen whole, every group is refined for its colour (its texels look large) and drawn
+    coloured; looking away sends them to the base meshes kept since the first frame
+    (nothing made; the colour packs no mesh to make needs are dropped); looking back shows
+    the kept refined meshes again in their colours, with nothing tessellated or fetched."""
+    manifest = json.loads((colour_collection / "sphere" / "manifest.json").read_text())
+    centre = np.array(manifest["tiles"]["detail"]["groups"][0]["center"])
+    whole = [(centre * 6 + [1.5, 1.5, 0]).tolist(), [0, 0, 0]]
+    seen_whole = colour_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)", whole)
+    assert seen_whole["atlas_levels"] == [1] * 6
+    assert len(group_colours_seen(colour_page)) >= 3
+    away = colour_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)",
+                                [(centre * 3).tolist(), (centre * 6).tolist()])
+    assert away["atlas_levels"] == [-1] * 6
+    assert away["atlas_parts_made"] == 0 and away["atlas_parts_cached"] == 6
+    again = colour_page.evaluate("([p, t]) => window.tessera.atlasView(p, t)", whole)
+    assert again["atlas_levels"] == [1] * 6 and again["atlas_updates"] == away["atlas_updates"] + 1
+    assert again["atlas_parts_made"] == 0 and again["atlas_parts_cached"] == 6
+    assert again["atlas_colour_packs_loaded"] == seen_whole["atlas_colour_packs_loaded"]
+    assert len(group_colours_seen(colour_page)) >= 3  # the kept meshes' own colours
     assert colour_page.errors == []
 
 
