@@ -197,3 +197,29 @@ def test_a_conf_registration_shows_every_file_read_and_its_points(tmp_path):
     gallery = client.get("/").get_data(as_text=True)
     assert f"(scan: {read / 1024:.1f} KB)" in gallery and "6,000 points" in gallery
 
+
+
+def test_an_atlas_bundle_takes_the_same_edits_and_its_thumbnail_follows(tmp_path,
+                                                                         admin_app_factory):
+    """Atlases are the default for closed objects: the admin's edits reach their served
+    manifest, gallery card and thumbnail as a single patch's do."""
+    from atlas_bundle import write_atlas_bundle
+
+    collection = tmp_path / "collection"
+    write_atlas_bundle(collection / "relief", k=1, levels=1, base_resolution=5)
+    client = admin_app_factory(collection, PROPAGATE_EXCEPTIONS=False).test_client()
+    fitted = _served(client)
+    assert fitted["format_version"] == 2
+    before = client.get("/objects/relief/thumbnail.png").data
+    response = _patch(client, title="A sphere of six patches", units="cm",
+                      description="An atlas.", up=[1, 0, 0], front=[0, 0, 1])
+    assert response.status_code == 200, response.get_json()
+    served = _served(client)
+    assert (served["title"], served["units"], served["description"]) == \
+        ("A sphere of six patches", "cm", "An atlas.")
+    assert served["view"]["up"] == [1, 0, 0] and served["view"]["up_source"] == "admin"
+    assert served["base"] == fitted["base"] and served["tiles"] == fitted["tiles"]
+    gallery = client.get("/").get_data(as_text=True)
+    assert "A sphere of six patches" in gallery and "atlas of 6 patches" in gallery
+    after = client.get("/objects/relief/thumbnail.png")
+    assert after.status_code == 200 and after.data != before

@@ -385,8 +385,11 @@ def test_the_server_accepts_serves_and_thumbnails_an_atlas_bundle(bundle, tmp_pa
     app = create_app({"TESSERA_COLLECTION": str(root), "TESSERA_PYODIDE_SNAPSHOT": False,
                       "TESTING": True})
     client = app.test_client()
-    listed = [o["id"] for o in client.get("/api/objects").get_json()]
-    assert listed == ["sphere"]
+    listed = client.get("/api/objects").get_json()
+    assert [o["id"] for o in listed] == ["sphere"]
+    assert listed[0]["patches"] == manifest["base"]["patches"] and listed[0]["grid"] is None
+    gallery = client.get("/").get_data(as_text=True)
+    assert f"atlas of {manifest['base']['patches']:,} patches" in gallery
     for name in ("base.tsa", "detail/1/4.tsdp"):
         response = client.get(f"/bundles/sphere/{name}", headers={"Accept-Encoding": "gzip"})
         assert response.status_code == 200

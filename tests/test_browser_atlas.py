@@ -69,6 +69,8 @@ def test_the_atlas_shows_welded_with_no_error(atlas_page, atlas_collection):
                    for f in ("manifest.json", "base.tsa"))
     assert stats["bytes_downloaded"] == expected
     assert "24 patches" in atlas_page.locator("#fact-grid").inner_text()
+    error_button = atlas_page.locator("#toggle-error")  # no raster over an atlas: said so
+    assert error_button.is_disabled() and "atlas" in error_button.get_attribute("title")
     assert atlas_page.errors == []
     shot = atlas_page.locator("#view").screenshot()
     from io import BytesIO

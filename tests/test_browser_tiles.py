@@ -431,7 +431,10 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
         page.wait_for_function("!document.body.dataset.plyBusy")
         stats = page.evaluate("window.tessera.stats")
         shown = page.evaluate("window.plyStatus")
-        assert any(t.startswith(f"Fetching the detail tiles of levels 0–{level}: ") for t in shown)
+        heading = f"Fetching the detail tiles of levels 0–{level}: "
+        fetching = [t for t in shown if t.startswith(heading)]
+        percents = [int(re.search(r": (\d+) % \(", t).group(1)) for t in fetching]
+        assert percents and all(0 <= p <= 100 for p in percents) and percents[-1] == 100, fetching
         assert any(t.startswith(f"Tessellating level {level} on a {resolution} × ") for t in shown)
         assert shown[-1].startswith(f"relief-detail_level{level}.ply: ")
 

@@ -62,6 +62,7 @@ def object_summary(bundle: Bundle) -> dict[str, Any]:
         "files": sizes,
         "units": bundle.units,
         "grid": base.get("grid"),
+        "patches": base.get("patches"),  # an atlas (format_version 2): its patch count
         "degree": base.get("degree"),
         "stats": bundle.stats,
         "provenance": bundle.provenance,

@@ -221,17 +221,21 @@ def compressed_cache() -> CompressedCache:
     return cache
 
 
-def send_path(path: Path, max_age: int, immutable: bool = False) -> Response:
+def send_path(path: Path, max_age: int, immutable: bool = False,
+              compress: bool | None = None) -> Response:
     """Send the file ``path`` with the caching, ETag, range and compression rules above.
 
     ``max_age`` is the Cache-Control lifetime in seconds (0: the browser revalidates every
     time, a cheap 304 while the ETag holds); ``immutable`` adds ``immutable`` for URLs that
-    name one version of a file forever (a digest or a version in the path).
+    name one version of a file forever (a digest or a version in the path). ``compress``
+    says whether the file's content compresses when its suffix does not tell (the trimmed
+    standard library is a ``.zip`` of stored members); None: by :data:`COMPRESSIBLE`.
     """
     mimetype = mime_type(path)
     stat = path.stat()
-    compressible = (current_app.config.get("TESSERA_GZIP", True)
-                    and path.suffix.lower() in COMPRESSIBLE
+    if compress is None:
+        compress = path.suffix.lower() in COMPRESSIBLE
+    compressible = (current_app.config.get("TESSERA_GZIP", True) and compress
                     and COMPRESS_MIN_BYTES <= stat.st_size <= COMPRESS_MAX_BYTES)
     found = None
     if compressible and "Range" not in request.headers:

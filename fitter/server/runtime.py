@@ -202,7 +202,7 @@ def pyodide_stdlib(key: str) -> ResponseReturnValue:
     if key != stdlib.key:
         abort(404, description="no such version of the standard library here")
     return send_path(stdlib.ensure(), current_app.config["TESSERA_BUNDLE_MAX_AGE"],
-                     immutable=True)
+                     immutable=True, compress=True)  # stored members: brotli/gzip of the whole
 
 
 @bp.get("/vendor/pyodide-snapshot/<key>.bin")

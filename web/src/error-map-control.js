@@ -44,6 +44,8 @@ export class ErrorMapControl {
     this.button.setAttribute("aria-pressed", String(on));
     this.viewer.setErrorOverlay(on ? this.errorMap.rgba() : null);
     $("legend").hidden = !on;
+    // the panel scrolls: below a long title and the facts the legend may start out of sight
+    if (on) $("legend").scrollIntoView({ block: "nearest" });
   }
 
   /** RGB per vertex of `uvs` (patch parameters in `domain`) while the map is shown, else null. */

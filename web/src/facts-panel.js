@@ -5,7 +5,7 @@
 // the numbers come from the manifest, the worker's reply, window.tessera.stats and the
 // Resource Timing API.
 
-import { $, formatBytes, formatLength } from "./page.js";
+import { $, formatBytes, formatLength, plural } from "./page.js";
 
 export class FactsPanel {
   /** Write `text` into the fact `id` (absent from the page: nothing to do). */
@@ -50,7 +50,7 @@ export class FactsPanel {
     this.set("fact-bundle", formatBytes(stats.bytes_downloaded));
     this.set("fact-patch", formatBytes(ready.patch_bytes));
     this.set("fact-grid", `atlas of ${patches.toLocaleString("en")} patches, degree ${degree}, ` +
-      `${spans} spans a side` + (rational ? ", rational" : ""));
+      `${plural(spans, "span")} a side` + (rational ? ", rational" : ""));
     this.set("fact-rms", formatLength(fit.rms, units));
     this.set("fact-max", formatLength(fit.max, units));
   }

@@ -79,10 +79,26 @@ export function formatBytes(n) {
   return `${(n / 1024 / 1024).toFixed(1)} MB`;
 }
 
+/** Millimetres per metric unit (client_py's unit names, fitter.fitting.io.scan): a length
+ *  under one of these units is shown in mm, so that a fit error of 0.0003 m reads "0.309 mm". */
+const MM_PER_UNIT = { km: 1e6, m: 1e3, cm: 10 };
+
+/**
+ * A length with its unit for the panel and the legend: 1 decimal from 10, 2 from 1, else 3
+ * significant digits (never rounded to "0.000"); below 1 km, m or cm it is given in mm; no
+ * unit for "unknown"; a dash for no value.
+ */
 export function formatLength(value, units) {
   if (value === undefined || value === null || !Number.isFinite(value)) return "—";
-  const digits = Math.abs(value) >= 10 ? 1 : Math.abs(value) >= 1 ? 2 : 3;
-  return `${value.toFixed(digits)} ${units === "unknown" ? "" : units}`.trim();
+  let unit = units === "unknown" ? "" : units;
+  if (unit in MM_PER_UNIT && Math.abs(value) < 1) {
+    value *= MM_PER_UNIT[unit];
+    unit = "mm";
+  }
+  const size = Math.abs(value);
+  const text = size >= 10 ? value.toFixed(1) : size >= 1 ? value.toFixed(2)
+    : size === 0 ? "0" : value.toPrecision(3);
+  return `${text} ${unit}`.trim();
 }
 
 /** The bundle's manifest.json, parsed; its size is added to stats.bytes_downloaded. */
@@ -195,10 +211,14 @@ export async function levelPly(worker, choice, { manifestUrl, stats, onProgress 
   const total = choice.detail_files.length;
   const textures = choice.texture_nodes;
   const lacking = () => choice.detail_files.filter((name) => !fresh.has(name) && !worker.holds(name));
-  const progress = () => onProgress(`Fetching the detail tiles of levels 0–${choice.level}: ` +
-    `${total - lacking().length} of ${total}` +
-    (textures.length ? `, texture tiles: ${images.length} of ${textures.length}` : "") +
-    ` (${formatBytes(fetched + textureBytes)} fetched)…`);
+  const progress = () => {
+    const done = total - lacking().length + images.length;
+    const percent = Math.floor((100 * done) / Math.max(1, total + textures.length));
+    onProgress(`Fetching the detail tiles of levels 0–${choice.level}: ${percent} % (` +
+      `${total - lacking().length} of ${total}` +
+      (textures.length ? `, texture tiles: ${images.length} of ${textures.length}` : "") +
+      `, ${formatBytes(fetched + textureBytes)} fetched)…`);
+  };
   const fetchTiles = (names) => forEachLimited(names, FETCH_PARALLEL, async (name) => {
     const bytes = await fetchBytes(new URL(name, baseUrl).href, `detail tile ${name}`);
     fresh.set(name, bytes);

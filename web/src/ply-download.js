@@ -120,6 +120,7 @@ export class PlyDownload {
     const line = $("ply-status");
     line.textContent = text;
     line.hidden = !text;
+    if (text) line.scrollIntoView({ block: "nearest" }); // the panel scrolls (a long title)
   }
 
   /** Make and save the PLY of `level` (-1: the base on screen); a failure goes to onError. */

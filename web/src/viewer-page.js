@@ -212,6 +212,8 @@ async function offerPly(download, worker, manifest, ready) {
  *  (AtlasLayer), "Download PLY" of every level. */
 async function showAtlas({ viewer, worker, manifest, ready, facts, transfers }) {
   facts.describeAtlas(manifest, ready, stats);
+  // the error map is a raster over one patch's (u, v) domain (ErrorMap): an atlas has none yet
+  $("toggle-error").title = "No error map for an atlas bundle: its fit error is in the panel";
   viewer.setObjectView(manifest.view || null);
   showStage("tessellation");
   const plan = await worker.plan(manifest); // the worker keeps the manifest for what follows

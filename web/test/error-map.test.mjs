@@ -19,6 +19,8 @@ function fakeDocument() {
         setAttribute(name, value) { attributes.set(name, String(value)); },
         getAttribute(name) { return attributes.has(name) ? attributes.get(name) : null; },
         click() { for (const listener of this.listeners) listener(); },
+        scrolledIntoView: 0,
+        scrollIntoView() { this.scrolledIntoView += 1; },
       });
     }
     return elements.get(id);
@@ -56,6 +58,7 @@ test("the legend ends at the panel's max, in the bundle's units", async () => {
   element("toggle-error").click();
   assert.equal(control.shown, true);
   assert.equal(element("legend").hidden, false);
+  assert.equal(element("legend").scrolledIntoView, 1, "the panel scrolls to the legend");
   const image = overlays[0];
   assert.ok(image.rows >= 256 && image.cols >= 256, "finer than the cells: no blocks");
   assert.equal(image.rgba.length, 4 * image.rows * image.cols);
