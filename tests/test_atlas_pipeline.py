@@ -1,6 +1,7 @@
 """fit_scan's atlas branch: a closed object becomes a format-2 bundle scored on every point."""
 
 import json
+import zlib
 
 import numpy as np
 import pytest
@@ -67,9 +68,84 @@ def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):
     assert stats["points"] == len(mesh.vertices)  # every scan point, no covered subset
     assert stats["rms_relative"] < 0.002 and manifest["coverage"]["uncovered_points"] == 0
     packs = {f"detail/{p['level']}/{p['group']}.tsdp" for p in manifest["tiles"]["detail"]["packs"]}
-    assert set(manifest["files"]) == {"base.tsa", "error.png", "error.ply"} | packs
+    assert set(manifest["files"]) == {"base.tsa", "error_raster.bin", "error.png",
+                                      "error.ply"} | packs
     assert all((bundle.path / name).stat().st_size == size
                for name, size in manifest["files"].items())
+    _check_error_raster(bundle.path, manifest, mesh.vertices, atlas)
+    _check_level_errors(manifest, atlas, mesh.vertices, bundle.path)
+
+
+def _check_error_raster(folder, manifest, points, atlas):
+    """The atlas's error raster holds what the points give: its largest cell is the panel's
+    max, and each point's |d| is within its cell's value, the cell found independently (the
+    point's nearest vertex of the drawn mesh, away from cell borders)."""
+    from scipy.spatial import cKDTree
+
+    from client_py.atlas_mesh import tessellate_atlas
+
+    raster = manifest["error_raster"]
+    stats = manifest["stats"]
+    assert raster["max"] == stats["max"] and raster["patches"] == len(atlas.quads)
+    side = raster["rows"]
+    codes = np.frombuffer(zlib.decompress((folder / raster["file"]).read_bytes()), np.uint8)
+    assert codes.size == len(atlas.quads) * side * side == raster["cols"] * side * len(atlas.quads)
+    assert codes[codes < 255].max() == 254  # the worst point's cell decodes to the max
+    values = np.where(codes < 255, codes / 254 * raster["max"], np.nan)
+    detail = manifest["tiles"]["detail"]
+    finest = detail["levels"][-1]
+    tiles = _finest_detail(folder, manifest)
+    drawn = tessellate_atlas(atlas, finest_resolution(manifest), tiles, kernel="numpy")
+    vertices = np.frombuffer(drawn.positions, np.float32).reshape(-1, 3)
+    patch = np.frombuffer(drawn.patches, np.uintc)
+    uv = np.frombuffer(drawn.uvs, np.float32).reshape(-1, 2)
+    dist, nearest = cKDTree(vertices).query(points)
+    d = point_mesh_distance(points, vertices, np.frombuffer(drawn.indices, np.uintc)
+                            .reshape(-1, 3))
+    assert finest["rms"] == pytest.approx(stats["rms"], rel=1e-5)
+    cell_uv = uv[nearest] * side
+    inner = np.all(np.abs(cell_uv - np.rint(cell_uv)) > 0.15, axis=1)
+    cell = (patch[nearest].astype(np.int64) * side + np.minimum(cell_uv[:, 0].astype(int),
+                                                               side - 1)) * side \
+        + np.minimum(cell_uv[:, 1].astype(int), side - 1)
+    held = values[cell[inner]]
+    assert np.isfinite(held).mean() > 0.95
+    ok = held >= d[inner] - raster["max"] / 254
+    assert inner.sum() > 100 and ok.mean() > 0.95
+
+
+def finest_resolution(manifest):
+    from client_py.bundle import atlas_tiles
+
+    spec = atlas_tiles(manifest)
+    return spec.resolution(len(spec.levels) - 1)
+
+
+def _finest_detail(folder, manifest):
+    from client_py.atlas_detail import read_pack
+
+    tiles = {}
+    for pack in manifest["tiles"]["detail"]["packs"]:
+        _, found = read_pack((folder / f"detail/{pack['level']}/{pack['group']}.tsdp")
+                             .read_bytes())
+        for patch, held in found.items():
+            tiles.setdefault(patch, []).extend(held)
+    return tiles
+
+
+def _check_level_errors(manifest, atlas, points, folder):
+    """The level list's figures are the panel's measure: the finest level's are the panel's
+    stats, the base's are every point's distance to the welded base."""
+    from client_py.atlas_mesh import tessellate_atlas
+
+    detail = manifest["tiles"]["detail"]
+    stats = manifest["stats"]
+    assert detail["levels"][-1]["max"] == pytest.approx(stats["max"], rel=1e-5)
+    base = tessellate_atlas(atlas, manifest["base"]["resolution"], kernel="numpy")
+    d = point_mesh_distance(points, np.frombuffer(base.positions, np.float32).reshape(-1, 3),
+                            np.frombuffer(base.indices, np.uintc).reshape(-1, 3))
+    assert detail["base"]["rms"] == pytest.approx(np.sqrt(np.mean(d ** 2)), rel=1e-4)
+    assert "samples_rms" in detail["base"] and "samples_rms" in detail["levels"][0]
 
 
 def test_an_atlas_that_strays_from_the_surface_is_refused():

@@ -129,16 +129,29 @@ def error_raster(dev: Deviations, max_deviation: float) -> dict:
     """
     n = len(dev.d)
     side = int(np.clip(int(np.sqrt(n / RASTER_POINTS_PER_CELL)), *RASTER_SIDE))
-    iu = np.clip((dev.u * side).astype(np.int64), 0, side - 1)
-    iv = np.clip((dev.v * side).astype(np.int64), 0, side - 1)
-    cell = iu * side + iv
-    largest = np.full(side * side, -1.0)
-    np.maximum.at(largest, cell, np.abs(dev.d))
-    scale = 254.0 / max_deviation if max_deviation > 0 else 0.0
-    codes = np.where(largest >= 0, np.rint(np.clip(largest, 0, None) * scale), RASTER_EMPTY)
+    codes = raster_codes(np.zeros(n, dtype=np.int64), dev.u, dev.v, dev.d, 1, side,
+                         max_deviation)
     return {"rows": side, "cols": side, "statistic": "max |d|", "max": float(max_deviation),
             "encoding": "uint8 base64; code k < 255: k / 254 max; 255: no scan point",
-            "data": base64.b64encode(codes.astype(np.uint8).tobytes()).decode("ascii")}
+            "data": base64.b64encode(codes.tobytes()).decode("ascii")}
+
+
+def raster_codes(patch: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
+                 patches: int, side: int, max_deviation: float) -> np.ndarray:
+    """The error raster's one-byte codes, ``(patches side side,)`` ``uint8``: for each patch
+    (``patch (N,)`` of each point, its foot ``u, v (N,)`` in ``[0, 1]``) ``side x side`` cells
+    (row ``i`` = ``u`` in ``[i/side, (i+1)/side)``, row-major, patch after patch), each the
+    largest ``|d|`` of the points whose foot falls in it, ``round(254 |d| / max_deviation)``,
+    and :data:`RASTER_EMPTY` where none falls. The rule of :func:`error_raster` (one patch)
+    and of an atlas's ``error_raster`` (``fitter.fitting.atlas.pipeline``)."""
+    iu = np.clip((np.asarray(u) * side).astype(np.int64), 0, side - 1)
+    iv = np.clip((np.asarray(v) * side).astype(np.int64), 0, side - 1)
+    cell = (np.asarray(patch, dtype=np.int64) * side + iu) * side + iv
+    largest = np.full(patches * side * side, -1.0)
+    np.maximum.at(largest, cell, np.abs(d))
+    scale = 254.0 / max_deviation if max_deviation > 0 else 0.0
+    codes = np.where(largest >= 0, np.rint(np.clip(largest, 0, None) * scale), RASTER_EMPTY)
+    return codes.astype(np.uint8)
 
 
 def _colour_limit(d: np.ndarray) -> float:

@@ -97,12 +97,12 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     return out, out_tri, out_q
 
 
-def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                        k: int = CANDIDATES, signed: bool = False) -> np.ndarray:
-    """Distance of each of ``points (N, 3)`` to the mesh ``(vertices (V, 3), faces (T, 3))``
-    (:func:`closest_points_on_mesh`).
-
-    ``signed``: positive on the side the triangle's normal ``(b - a) × (c - a)`` points to.
+def signed_point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                               k: int = CANDIDATES
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`closest_points_on_mesh` with the distance signed: positive on the side the
+    closest triangle's normal ``(b - a) x (c - a)`` points to. Returns ``(d (N,),
+    triangle (N,), closest (N, 3))``.
 
     Raises
     ------
@@ -111,8 +111,22 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
     """
     points = np.asarray(points, dtype=float)
     dist, best_tri, best_q = closest_points_on_mesh(points, vertices, faces, k)
+    t = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)[best_tri]]
+    normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    dist = np.where(np.einsum("ij,ij->i", points - best_q, normal) < 0, -dist, dist)
+    return dist, best_tri, best_q
+
+
+def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                        k: int = CANDIDATES, signed: bool = False) -> np.ndarray:
+    """Distance of each of ``points (N, 3)`` to the mesh ``(vertices (V, 3), faces (T, 3))``
+    (:func:`closest_points_on_mesh`; ``signed``: :func:`signed_point_mesh_distance`).
+
+    Raises
+    ------
+    ValueError
+        An empty mesh or point set.
+    """
     if signed:
-        t = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)[best_tri]]
-        normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        dist = np.where(np.einsum("ij,ij->i", points - best_q, normal) < 0, -dist, dist)
-    return dist
+        return signed_point_mesh_distance(points, vertices, faces, k)[0]
+    return closest_points_on_mesh(points, vertices, faces, k)[0]

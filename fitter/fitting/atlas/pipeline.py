@@ -29,6 +29,7 @@ over its best plane, where a single patch already covers the object; an atlas fo
 from __future__ import annotations
 
 import json
+import zlib
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -39,12 +40,12 @@ from client_py.atlas_format import read_atlas, write_atlas
 from client_py.atlas_mesh import tessellate_atlas
 
 from ..bundle import write_bundle
-from ..error import error_stats, write_error_ply
+from ..error import error_stats, raster_codes, write_error_ply
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
 from .fit import AtlasFitError, fit_atlas
-from .measure import point_mesh_distance
+from .measure import point_mesh_distance, signed_point_mesh_distance
 from .surface import area_samples, scan_surface
 from .texture import drawn_colour_error, fit_atlas_texture
 
@@ -55,6 +56,8 @@ STRAY_DISTANCE = 0.02  # a base point farther than this share of the diagonal ha
 MAX_STRAY_SHARE = 0.05  # ... and an atlas with more of its area strayed is refused
 HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
+RASTER_CELLS = 8  # cells per patch side of the error raster (576 patches: 36 KiB of codes)
+RASTER_FILE = "error_raster.bin"  # the bundle's file of an atlas's error raster
 
 
 def base_resolution(spans: int) -> int:
@@ -119,10 +122,94 @@ def _cloud_normals(points: np.ndarray, k: int = 12, count: int = 20_000) -> np.n
 def _drawn_mesh(atlas, resolution: int, detail: dict | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
     """The welded mesh the browser draws: ``tessellate_atlas`` with ``detail`` applied."""
+    vertices, faces, _, _ = _drawn_mesh_with_feet(atlas, resolution, detail)
+    return vertices, faces
+
+
+def _drawn_mesh_with_feet(atlas, resolution: int, detail: dict | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_drawn_mesh` with each vertex's patch ``(V,)`` and ``(u, v)`` ``(V, 2)``
+    (``AtlasMesh.patches``, ``uvs``)."""
     mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy")
     vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
     faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
-    return vertices, faces
+    patches = np.frombuffer(mesh.patches, dtype=np.uintc).astype(np.int64)
+    uvs = np.frombuffer(mesh.uvs, dtype=np.float32).reshape(-1, 2).astype(float)
+    return vertices, faces, patches, uvs
+
+
+def foot_parameters(vertices: np.ndarray, faces: np.ndarray, patches: np.ndarray,
+                    uvs: np.ndarray, triangle: np.ndarray, closest: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The patch and ``(u, v)`` of each point's foot ``closest (N, 3)`` on ``triangle (N,)``
+    of the welded mesh: the barycentric interpolation of the triangle's vertex parameters
+    when its three vertices carry the same patch (a patch's interior), else the patch and
+    ``(u, v)`` of its vertex nearest the foot (a seam triangle, whose welded vertices carry
+    the parameters of different patches): off by at most a triangle, far under a raster
+    cell. Returns ``patch (N,)``, ``u (N,)``, ``v (N,)``."""
+    corner = faces[triangle]  # (N, 3)
+    a, b, c = (vertices[corner[:, i]] for i in range(3))
+    v0, v1, v2 = b - a, c - a, closest - a
+    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum("ij,ij->i", v2, v0), np.einsum("ij,ij->i", v2, v1)
+    denom = d00 * d11 - d01 * d01
+    safe = np.where(np.abs(denom) > 1e-300, denom, 1.0)
+    wb, wc = (d11 * d20 - d01 * d21) / safe, (d00 * d21 - d01 * d20) / safe
+    weights = np.clip(np.stack([1.0 - wb - wc, wb, wc], axis=1), 0.0, 1.0)
+    weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-300)
+    patch_of = patches[corner]
+    one_patch = (patch_of[:, 0] == patch_of[:, 1]) & (patch_of[:, 0] == patch_of[:, 2])
+    uv = np.einsum("nk,nkj->nj", weights, uvs[corner])
+    nearest = np.argmax(weights, axis=1)
+    rows = np.arange(len(corner))
+    uv = np.where(one_patch[:, None], uv, uvs[corner[rows, nearest]])
+    patch = np.where(one_patch, patch_of[:, 0], patch_of[rows, nearest])
+    return patch, np.clip(uv[:, 0], 0.0, 1.0), np.clip(uv[:, 1], 0.0, 1.0)
+
+
+def atlas_error_raster(patch: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
+                       patches: int, max_deviation: float) -> tuple[dict, bytes]:
+    """An atlas's ``error_raster`` (docs/format.md): per patch :data:`RASTER_CELLS` x
+    :data:`RASTER_CELLS` cells of its ``(u, v)``, each the largest ``|d|`` of the scan points
+    whose foot on the drawn mesh falls in it, one byte of ``max_deviation`` (the single
+    patch's codes, ``fitter.fitting.error.raster_codes``; 255: no point, an uncovered part),
+    zlib-compressed into the bundle's :data:`RASTER_FILE`. Returns the manifest entry (its
+    ``bytes`` filled by the writer) and the file."""
+    codes = raster_codes(patch, u, v, d, patches, RASTER_CELLS, max_deviation)
+    data = zlib.compress(codes.tobytes(), 9)
+    return ({"file": RASTER_FILE, "patches": int(patches), "rows": RASTER_CELLS,
+             "cols": RASTER_CELLS, "statistic": "max |d|", "max": float(max_deviation),
+             "bytes": len(data),
+             "encoding": "zlib of uint8 codes, patch after patch, rows x cols each (row = "
+                         "u); code k < 255: k / 254 max; 255: no scan point"}, data)
+
+
+def drawn_level_errors(atlas, detail, points: np.ndarray, diagonal: float, units: str,
+                       finest_d: np.ndarray) -> dict:
+    """Every scan point's distance to the welded mesh drawn at each level (``-1`` the base
+    at :func:`base_resolution`, ``k`` with the packs of levels ``0..k`` at that level's
+    resolution): ``{level: error_stats}``, the panel's measure for each level (the finest's
+    is ``finest_d``, already measured)."""
+    finest = len(detail.levels) - 1
+    out = {finest: error_stats(finest_d, diagonal, units)}
+    for k in range(-1, finest):
+        resolution = base_resolution(atlas.spans) if k < 0 else detail.levels[k]["resolution"]
+        vertices, faces = _drawn_mesh(atlas, resolution, detail.detail_up_to(k))
+        out[k] = error_stats(point_mesh_distance(points, vertices, faces, signed=True),
+                             diagonal, units)
+    return out
+
+
+def restate_level_errors(tree: dict, errors: dict) -> None:
+    """Put each level's every-point ``rms``/``max`` (:func:`drawn_level_errors`) in the
+    detail tree's ``base`` and ``levels[k]`` (what the viewer's level list and the
+    refinement's base error read), keeping the detail fit's own figures, over its surface
+    samples, as ``samples_rms``/``samples_max``."""
+    for entry, k in ((tree["base"], -1), *((row, row["level"]) for row in tree["levels"])):
+        entry["samples_rms"], entry["samples_max"] = entry["rms"], entry["max"]
+        entry["rms"] = float(f"{errors[k]['rms']:.6g}")
+        entry["max"] = float(f"{errors[k]['max']:.6g}")
+        entry["measure"] = "every scan point to the drawn mesh"
 
 
 def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
@@ -229,16 +316,24 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     stages.start("error")
     points = np.asarray(scan.points, dtype=float)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    vertices, faces = _drawn_mesh(atlas, detail.levels[finest]["resolution"] if finest >= 0
-                                  else resolution, detail.detail_up_to(finest))
-    d = point_mesh_distance(points, vertices, faces, signed=True)
+    vertices, faces, vertex_patch, vertex_uv = _drawn_mesh_with_feet(
+        atlas, detail.levels[finest]["resolution"] if finest >= 0 else resolution,
+        detail.detail_up_to(finest))
+    d, triangle, closest = signed_point_mesh_distance(points, vertices, faces)
     stats = error_stats(d, diagonal, scan.units)
+    raster, raster_data = atlas_error_raster(
+        *foot_parameters(vertices, faces, vertex_patch, vertex_uv, triangle, closest), d,
+        len(atlas.quads), stats["max"])
+    if detail.levels:
+        restate_level_errors(detail.tree, drawn_level_errors(atlas, detail, points, diagonal,
+                                                             scan.units, d))
     far = np.abs(d) > UNCOVERED * diagonal
     texture = _atlas_colour(scan, detail, options, stages)
     fields = object_fields(scan, options)
     stages.start("report")
     with write_bundle(out_dir) as folder:
         (folder / "base.tsa").write_bytes(data)
+        (folder / RASTER_FILE).write_bytes(raster_data)
         for name, pack in {**detail.files, **(texture.files if texture else {})}.items():
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             (folder / name).write_bytes(pack)
@@ -249,7 +344,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                               f"{fields['title']}: RMS {stats['rms']:.4g} {scan.units} over "
                               f"all {len(points):,} points, max {stats['max']:.4g}")
         files = {name: (folder / name).stat().st_size
-                 for name in ("base.tsa", "error.png", "error.ply", *detail.files,
+                 for name in ("base.tsa", RASTER_FILE, "error.png", "error.ply", *detail.files,
                               *(texture.files if texture else ()))}
         stages.stop()
         manifest = {
@@ -265,6 +360,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
             "transform": np.eye(4).tolist(),
             "stats": stats,
             "stats_all_points": stats,
+            "error_raster": raster,
             "coverage": {"points": int(len(points)),
                          "within_0.5%": float(np.mean(np.abs(d) <= 0.005 * diagonal)),
                          "uncovered_points": int(far.sum()),
