@@ -243,3 +243,42 @@ def colours_for_groups(packs: Sequence[ColourPack], groups: Sequence[tuple[int, 
                     out[f] = pack
                 break
     return out
+
+
+def error_colour_pack(codes: bytes, patches: int, side: int, palette: bytes) -> ColourPack:
+    """The atlas's error map as one colour pack of every patch, for
+    :func:`atlas_vertex_colours` (the one per-vertex colouring rule of an atlas).
+
+    ``codes`` are the error raster's one-byte codes (docs/format.md, "error_raster" of an
+    atlas: patch after patch, ``side x side`` cells each, row ``i`` over ``u``, column ``j``
+    over ``v``), ``palette`` the ``3 x 256`` RGB bytes of each code (the viewer's colour scale
+    and its colour of no scan point, ``web/src/error-map.js``, so the scale is defined once).
+    Cell ``(i, j)`` of patch ``f`` is texel ``(x, y) = (i, side - 1 - j)`` of the patch's cell
+    (the texel rule above); a vertex then takes the bilinear blend of the cell colours
+    around it, as the single patch's map interpolates its cells.
+
+    Raises
+    ------
+    ValueError
+        ``codes`` or ``palette`` of the wrong length, or a bad count or side.
+    """
+    codes, palette = bytes(codes), bytes(palette)
+    if len(palette) != 3 * 256:
+        raise ValueError(f"palette has {len(palette)} bytes; 256 RGB colours need 768")
+    if isinstance(side, bool) or not isinstance(side, int) or not 1 <= side <= MAX_CELL:
+        raise ValueError(f"side must be an integer in 1..{MAX_CELL}, got {side!r}")
+    if isinstance(patches, bool) or not isinstance(patches, int) or patches < 1:
+        raise ValueError(f"patches must be an integer >= 1, got {patches!r}")
+    if len(codes) != patches * side * side:
+        raise ValueError(f"the error raster has {len(codes)} codes; {patches} patches of "
+                         f"{side}x{side} cells need {patches * side * side}")
+    width, height = pack_shape(patches, side)
+    rgb = bytearray(3 * width * height)
+    for f in range(patches):
+        left, top = cell_origin(f, patches, side)
+        for i in range(side):
+            for j in range(side):
+                code = codes[(f * side + i) * side + j]
+                at = 3 * ((top + side - 1 - j) * width + left + i)
+                rgb[at:at + 3] = palette[3 * code:3 * code + 3]
+    return ColourPack(0, 0, patches, side, width, height, bytes(rgb))

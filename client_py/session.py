@@ -21,6 +21,7 @@ welded mesh with each group at its own level (``web/src/atlas-layer.js`` chooses
 from __future__ import annotations
 
 import json
+import zlib
 from array import array
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -37,7 +38,12 @@ from .atlas_mesh import (
     tessellate_atlas,
     tessellate_atlas_part,
 )
-from .atlas_texture import ColourPack, atlas_vertex_colours, colours_for_groups
+from .atlas_texture import (
+    ColourPack,
+    atlas_vertex_colours,
+    colours_for_groups,
+    error_colour_pack,
+)
 from .bundle import (
     PLY_MAX_RESOLUTION,
     AtlasTiles,
@@ -120,6 +126,7 @@ class WorkerSession:
         self._atlas_units = "unknown"
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
         self._colours: dict[str, ColourPack] = {}  # an atlas's decoded colour packs, by name
+        self._error_pack: ColourPack | None = None  # the atlas's error map while it is shown
         self._atlas_parts: dict[tuple[int, int, int], AtlasPart] = {}  # atlas_part_mesh's
         self._atlas_frames: dict[int, dict] = {}  # seam resolution -> atlas_seam_frames
 
@@ -398,6 +405,7 @@ class WorkerSession:
         self._atlas_units = str(metadata.get("units", "unknown"))
         self._packs.clear()
         self._colours.clear()
+        self._error_pack = None
         self._atlas_parts.clear()
         self._atlas_frames.clear()
         return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
@@ -664,14 +672,50 @@ class WorkerSession:
         """Whether the colour pack ``name`` has been handed over and not dropped."""
         return name in self._colours
 
+    def set_error_map(self, data: bytes | None, palette: bytes | None = None) -> dict:
+        """Show the atlas's error map (``data``: the bundle's ``error_raster.bin``, the
+        manifest's ``error_raster``; ``palette``: RGB of each of its 256 codes) on the meshes
+        made from now on, in place of the colour packs, or ``data`` ``None``: no more.
+        Returns ``{"patches", "rows"}``.
+
+        Raises
+        ------
+        ValueError
+            No error raster in the manifest, or a file or palette that does not fit it.
+        """
+        _, spec = self._atlas_loaded()
+        if data is None:
+            self._error_pack = None
+            return {"patches": spec.patches, "rows": 0}
+        raster = self._manifest_read().get("error_raster")
+        if not isinstance(raster, dict) or "file" not in raster:
+            raise ValueError("the manifest has no atlas error_raster (an older bundle)")
+        try:
+            codes = zlib.decompress(bytes(data))
+        except zlib.error as exc:
+            raise ValueError(f"{raster['file']} is not zlib data: {exc}") from None
+        if raster.get("patches") != spec.patches or raster.get("rows") != raster.get("cols"):
+            raise ValueError(f"error_raster has {raster.get('patches')} patches of "
+                             f"{raster.get('rows')}x{raster.get('cols')} cells; the atlas has "
+                             f"{spec.patches} patches and square cells are needed")
+        self._error_pack = error_colour_pack(codes, spec.patches, raster["rows"],
+                                             bytes(palette or b""))
+        return {"patches": spec.patches, "rows": raster["rows"]}
+
     def _colour_groups(self, mesh: AtlasMesh, spec: AtlasTiles, groups: Sequence[int],
                        levels: Sequence[int]) -> None:
         """Colour ``mesh`` (of the patches of detail groups ``groups``) per vertex from the
         held colour packs, group ``groups[i]`` at the colour level of detail level
         ``levels[i]`` (:func:`client_py.atlas_texture.colours_for_groups`), when the bundle
         has colour and a pack is held for every patch of those groups (else it stays
-        uncoloured: the packs are still on their way). The one colour rule of
+        uncoloured: the packs are still on their way); while the error map is shown
+        (:meth:`set_error_map`), from its one pack instead. The one colour rule of
         :meth:`atlas_mesh` (every group) and :meth:`atlas_part_mesh` (one group)."""
+        if self._error_pack is not None:
+            everywhere = {f: self._error_pack for g in groups for f in range(
+                spec.groups[g].first, spec.groups[g].first + spec.groups[g].count)}
+            mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, everywhere)
+            return
         colour = atlas_colour(self._manifest_read())
         if colour is None or not self._colours:
             return

@@ -18,6 +18,7 @@ import io
 import json
 import math
 import random
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -80,6 +81,8 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
         level_entries.append({"level": level, "rms": 0.004 / 2**level, "max": 0.01 / 2**level,
                               "bytes_total": total, "packs": 6,
                               "resolution": min(129, 2 * SPANS_PER_TILE * 2**level + 1)})
+    raster = write_error_raster(folder, len(atlas.quads), rnd, 0.02)
+    files[raster["file"]] = raster["bytes"]
     manifest = {
         "format": "tessera-bundle", "format_version": 2, "title": title,
         "description": "a test atlas", "units": "mm",
@@ -93,6 +96,7 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
                  "rational": False, "resolution": base_resolution},
         "transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
         "stats": {"rms": 0.004, "max": 0.02, "units": "mm"},
+        "error_raster": raster,
         "tiles": {"version": 2, "texture": None, "detail": {
             "format": "tsdp", "format_version": 1, "tile_format_version": 2,
             "degree": DEGREE, "spans_per_tile": SPANS_PER_TILE,
@@ -101,6 +105,25 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
     }
     (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return manifest
+
+
+#: cells per patch side of :func:`write_error_raster`
+ERROR_RASTER_SIDE = 4
+
+
+def write_error_raster(folder: Path, patches: int, rnd: random.Random, largest: float) -> dict:
+    """An atlas's ``error_raster.bin`` (docs/format.md) of random codes, patch 0 uncovered
+    (every cell 255) and one cell of patch 1 at the largest code (254 = ``largest``);
+    returns its manifest entry."""
+    side = ERROR_RASTER_SIDE
+    codes = bytearray(rnd.randrange(0, 200) for _ in range(patches * side * side))
+    codes[: side * side] = bytes([255]) * (side * side)
+    codes[side * side + 5] = 254
+    data = zlib.compress(bytes(codes))
+    (folder / "error_raster.bin").write_bytes(data)
+    return {"file": "error_raster.bin", "patches": patches, "rows": side, "cols": side,
+            "statistic": "max |d|", "max": largest, "bytes": len(data),
+            "encoding": "zlib of uint8 codes"}
 
 
 #: colour levels of :func:`add_colour_packs`: per level, its packs' runs of detail groups

@@ -588,3 +588,50 @@ def test_atlas_part_mesh_draws_one_group_at_its_level_from_its_packs(tmp_path):
     for group, level, match in ((6, -1, "group 6"), (0, 2, "level 2"), (True, 0, "group True")):
         with pytest.raises(ValueError, match=match):
             session.atlas_part_mesh(group, level)
+
+
+def test_the_atlas_error_map_colours_every_mesh_per_vertex_from_its_raster(tmp_path):
+    """set_error_map: the welded mesh and a group's mesh take each vertex's colour from the
+    error raster's cells (a grey palette: the colour is the code, bilinear between cell
+    centres, clamped at the patch's edge; reference: scipy's interpolator), the uncovered
+    patch the palette's colour of no point; turned off, the meshes lose it again."""
+    import zlib
+
+    from atlas_bundle import ERROR_RASTER_SIDE, write_atlas_bundle
+    from scipy.interpolate import RegularGridInterpolator
+
+    folder = tmp_path / "sphere"
+    manifest = write_atlas_bundle(folder, k=2, levels=1, base_resolution=5)
+    session = WorkerSession(kernel="python")
+    session.load_atlas((folder / "base.tsa").read_bytes(), "base.tsa")
+    session.read_manifest((folder / "manifest.json").read_text())
+    data = (folder / "error_raster.bin").read_bytes()
+    palette = bytes(c for k in range(256) for c in ((k, k, k) if k < 255 else (150, 128, 170)))
+    with pytest.raises(ValueError, match="palette has 3 bytes"):
+        session.set_error_map(data, b"abc")
+    with pytest.raises(ValueError, match="not zlib data"):
+        session.set_error_map(b"nonsense", palette)
+    assert session.set_error_map(data, palette) == {"patches": 24, "rows": ERROR_RASTER_SIDE}
+    side = ERROR_RASTER_SIDE
+    codes = np.frombuffer(zlib.decompress(data), np.uint8).reshape(-1, side, side)
+    centres = (np.arange(side) + 0.5) / side
+
+    def check(mesh):
+        patch = np.asarray(mesh.patches)
+        uv = np.clip(np.asarray(mesh.uvs, float).reshape(-1, 2), centres[0], centres[-1])
+        rgb = np.asarray(mesh.colors).reshape(-1, 3)
+        hole = patch == 0
+        assert (rgb[hole] == (150, 128, 170)).all()
+        for f in set(patch[~hole].tolist()):
+            at = patch == f
+            expected = RegularGridInterpolator((centres, centres), codes[f].astype(float))(uv[at])
+            assert np.abs(rgb[at, 0] - expected).max() <= 0.5 + 1e-9
+        return rgb
+
+    welded = session.atlas_mesh([-1] * 6)
+    check(welded)
+    assert 0 in welded.patches  # the uncovered patch was checked
+    check(session.atlas_part_mesh(1, -1))
+    assert manifest["error_raster"]["max"] == manifest["stats"]["max"]
+    session.set_error_map(None)
+    assert session.atlas_mesh([-1] * 6).colors is None
