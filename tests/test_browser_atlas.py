@@ -69,8 +69,7 @@ def test_the_atlas_shows_welded_with_no_error(atlas_page, atlas_collection):
                    for f in ("manifest.json", "base.tsa"))
     assert stats["bytes_downloaded"] == expected
     assert "24 patches" in atlas_page.locator("#fact-grid").inner_text()
-    error_button = atlas_page.locator("#toggle-error")  # no raster over an atlas: said so
-    assert error_button.is_disabled() and "atlas" in error_button.get_attribute("title")
+    assert atlas_page.locator("#toggle-error").is_enabled()  # the atlas's error_raster
     assert atlas_page.errors == []
     shot = atlas_page.locator("#view").screenshot()
     from io import BytesIO
@@ -79,6 +78,41 @@ def test_the_atlas_shows_welded_with_no_error(atlas_page, atlas_collection):
     rgb = np.asarray(Image.open(BytesIO(shot)).convert("RGB")).astype(int)
     differs = np.abs(rgb - rgb[2, -3]).max(axis=2) > 30
     assert differs.mean() > 0.05
+
+
+def _canvas(page):
+    from io import BytesIO
+
+    from PIL import Image
+    return np.asarray(Image.open(BytesIO(page.locator("#view").screenshot()))
+                      .convert("RGB")).astype(int)
+
+
+def test_the_atlas_error_map_colours_it_with_the_panels_max(atlas_page, atlas_collection):
+    """The Error map button of an atlas: the worker colours every group per vertex from the
+    bundle's error_raster.bin (fetched once, counted), in viridis (blue over red, where the
+    plain material is grey), the legend ending at the panel's max; pressed again, the plain
+    mesh is back."""
+    before = _canvas(atlas_page)
+    atlas_page.click("#toggle-error")
+    try:
+        atlas_page.wait_for_function("!document.getElementById('legend').hidden && "
+                                     "!document.body.dataset.errorMapBusy", timeout=60_000)
+        assert atlas_page.inner_text("#legend-max") == atlas_page.inner_text("#fact-max") != "—"
+        assert "no scan point" in atlas_page.inner_text("#legend")
+        stats = atlas_page.evaluate("window.tessera.stats")
+        size = (atlas_collection / "sphere" / "error_raster.bin").stat().st_size
+        assert stats["atlas_error_map_bytes"] == size
+        after = _canvas(atlas_page)
+        changed = np.abs(after - before).max(axis=2) > 30
+        assert changed.mean() > 0.05
+        assert after[changed][:, 2].mean() > after[changed][:, 0].mean()  # viridis: blue
+    finally:
+        atlas_page.click("#toggle-error")
+    atlas_page.wait_for_function("document.getElementById('legend').hidden && "
+                                 "!document.body.dataset.errorMapBusy", timeout=60_000)
+    assert np.abs(_canvas(atlas_page) - before).max(axis=2).mean() < 5
+    assert atlas_page.errors == []
 
 
 def test_zooming_refines_the_groups_in_view(atlas_page, atlas_collection):

@@ -94,6 +94,8 @@ export class AtlasLayer {
     this.running = null; // the update in progress, or null
     this.again = false; // the camera moved during an update: run once more after it
     this.colour = undefined; // WorkerSession.atlas_colour_refinement, read at the first show
+    this.errorShown = false; // the worker colours the meshes by the error map (showErrorMap)
+    this.errorBytes = null; // the bundle's error_raster.bin, fetched at the first showErrorMap
     Object.assign(stats, { atlas_levels: [...this.shown], atlas_refined_groups: 0,
                            atlas_packs_loaded: 0, atlas_pack_bytes: 0, atlas_tessellate_ms: 0,
                            atlas_parts_made: 0, atlas_parts_cached: 0, atlas_refine_ms: 0,
@@ -116,7 +118,7 @@ export class AtlasLayer {
     const wanted = levels.map((level, g) => this.partKey(g, level));
     const missing = levels.map((level, g) => [g, level]).filter(([g, level]) =>
       !this.cache.has(this.partKey(g, level)));
-    await this.bringColours(missing);
+    if (!this.errorShown) await this.bringColours(missing);
     const meshes = missing.length ? await this.worker.atlasParts(missing) : [];
     let pythonMs = 0;
     for (const mesh of meshes) {
@@ -171,6 +173,7 @@ export class AtlasLayer {
   /** The cache's key of group `g` at `level`: with the colour pack it is coloured from (what
    *  changes its colours), so a kept mesh is never shown with stale colour. */
   partKey(g, level) {
+    if (this.errorShown) return `${g}/${level}/error map`;
     const pack = this.colour ? this.colour.group_packs[g][level + 1] : "";
     return `${g}/${level}/${pack}`;
   }
@@ -277,6 +280,28 @@ export class AtlasLayer {
     });
     const unneeded = [...this.worker.colourPacks].filter((name) => !needed.has(name));
     if (unneeded.length) await this.worker.dropColourPacks(unneeded);
+  }
+
+  /** Colour every group by the error map `errorMap` (ErrorMap of the manifest's error_raster:
+   *  its file fetched once, handed to the worker with the map's palette) or, null, by the
+   *  colour packs again; the groups on screen are made again (or taken from the cache) with
+   *  those colours. Resolves when they are drawn. */
+  async showErrorMap(errorMap) {
+    await this.baseParts; // made with the colours of before: kept under their own key
+    await this.idle();
+    if (errorMap) {
+      if (!this.errorBytes) {
+        this.errorBytes = await fetchBytes(new URL(errorMap.file, this.baseUrl).href,
+                                           `error map ${errorMap.file}`);
+        this.stats.bytes_downloaded = (this.stats.bytes_downloaded || 0) + this.errorBytes.length;
+        this.stats.atlas_error_map_bytes = this.errorBytes.length;
+      }
+      await this.worker.setErrorMap(this.errorBytes.slice(), errorMap.palette());
+    } else {
+      await this.worker.setErrorMap(null);
+    }
+    this.errorShown = Boolean(errorMap);
+    await this.show(this.shown);
   }
 
   /** Show the welded mesh's RGB per vertex (bytes, sRGB) as three.js vertex colours

@@ -5,7 +5,8 @@
 // the legend: the colour scale from 0 to the map's max in the bundle's units — the fitter
 // writes the statistics' max there, so the legend ends at the panel's "max" (FactsPanel, the
 // same formatLength) — and the colour of no scan point (holes, uncovered parts). A base PLY
-// written while it is shown takes its colours.
+// written while it is shown takes its colours. An atlas's map is shown by the `show` given
+// (AtlasLayer.showErrorMap: the worker colours its meshes per vertex), not by the overlay.
 
 import { cssColor, ErrorMap, HOLE_COLOR } from "./error-map.js";
 import { $, formatLength } from "./page.js";
@@ -14,9 +15,12 @@ export class ErrorMapControl {
   /**
    * @param {object} manifest  the bundle's manifest.json, parsed
    * @param {import("./viewer.js").Viewer} viewer
+   * @param {{show?: (errorMap: ErrorMap|null) => Promise<void>}} [options]  how the map is
+   *   shown (default: the viewer's overlay over the single patch's (u, v))
    */
-  constructor(manifest, viewer) {
+  constructor(manifest, viewer, { show = null } = {}) {
     this.viewer = viewer;
+    this.show = show ?? (async (map) => viewer.setErrorOverlay(map ? map.rgba() : null));
     this.button = $("toggle-error");
     this.errorMap = null;
     try {
@@ -39,13 +43,26 @@ export class ErrorMapControl {
     return this.button.getAttribute("aria-pressed") === "true";
   }
 
-  toggle() {
+  /** Show or hide the map; resolves when it is drawn (document.body.dataset.errorMapBusy
+   *  is "1" meanwhile; a failure goes to the button's title and hides the map again). */
+  async toggle() {
     const on = !this.shown && this.errorMap !== null;
     this.button.setAttribute("aria-pressed", String(on));
-    this.viewer.setErrorOverlay(on ? this.errorMap.rgba() : null);
-    $("legend").hidden = !on;
-    // the panel scrolls: below a long title and the facts the legend may start out of sight
-    if (on) $("legend").scrollIntoView({ block: "nearest" });
+    this.button.disabled = true;
+    document.body.dataset.errorMapBusy = "1";
+    try {
+      await this.show(on ? this.errorMap : null);
+      $("legend").hidden = !on;
+      // the panel scrolls: below a long title and the facts the legend may start out of sight
+      if (on) $("legend").scrollIntoView({ block: "nearest" });
+    } catch (error) {
+      this.button.setAttribute("aria-pressed", "false");
+      this.button.title = `The error map failed: ${error.message}`;
+      $("legend").hidden = true;
+    } finally {
+      this.button.disabled = false;
+      delete document.body.dataset.errorMapBusy;
+    }
   }
 
   /** RGB per vertex of `uvs` (patch parameters in `domain`) while the map is shown, else null. */

@@ -4,6 +4,11 @@
 // cells of the normalised domain, rows over u, row-major, each the largest |d| of the covered
 // scan points in the cell, one byte of `max` (code k < 255: k / 254 max; 255: no scan point),
 // base64. `max` is the manifest's stats.max, the panel's "max": the colour scale ends there.
+// An atlas bundle's error_raster names a file instead of holding data (docs/format.md: per
+// patch rows x cols cells of its (u, v), zlib, one byte per cell as above): the worker colours
+// its meshes per vertex from it (WorkerSession.set_error_map, through the atlas's one
+// per-vertex colouring rule), with palette() — this file's colour of each code — so the scale
+// is defined here alone; the legend is the same.
 // A bundle written before the raster has error_grid instead ({rows, cols, max, values}: the
 // RMS per cell, null where no point fell); it is read the same way, its max its own.
 //
@@ -63,6 +68,20 @@ function decodeRaster(raster) {
   return { rows, cols, max, values, statistic: "largest distance to the scan" };
 }
 
+/** The shape and max of an atlas's error_raster (its cells are in its file, read by the
+ *  worker); values null. */
+function decodeAtlasRaster(raster) {
+  const { rows, cols, max, file, patches } = raster;
+  checkShape("error_raster", rows, cols);
+  if (!(Number.isFinite(max) && max >= 0) || typeof file !== "string" ||
+      !Number.isInteger(patches) || patches < 1) {
+    throw new Error(`manifest error_raster is malformed: an atlas's needs max >= 0, a file ` +
+                    `and patches >= 1, got max ${max}, file ${file}, patches ${patches}`);
+  }
+  return { rows, cols, max, values: null, statistic: "largest distance to the scan", file,
+           patches };
+}
+
 /** The cell values (NaN: no point) and max of a manifest error_grid (older bundles). */
 function decodeGrid(grid) {
   const { rows, cols, values } = grid;
@@ -84,7 +103,9 @@ export class ErrorMap {
    * @throws {Error} a malformed error_raster (or error_grid), naming what is wrong
    */
   static fromManifest(manifest) {
-    if (manifest.error_raster) return new ErrorMap(decodeRaster(manifest.error_raster), manifest.units || "");
+    const raster = manifest.error_raster;
+    if (raster && raster.file !== undefined) return new ErrorMap(decodeAtlasRaster(raster), manifest.units || "");
+    if (raster) return new ErrorMap(decodeRaster(raster), manifest.units || "");
     if (manifest.error_grid) return new ErrorMap(decodeGrid(manifest.error_grid), manifest.units || "");
     return null;
   }
@@ -94,8 +115,10 @@ export class ErrorMap {
    *          statistic: string}} cells  values per cell, rows over u, NaN where no point
    * @param {string} units
    */
-  constructor({ rows, cols, max, values, statistic }, units = "") {
+  constructor({ rows, cols, max, values, statistic, file = null, patches = 1 }, units = "") {
     this.rows = rows;
+    this.file = file; // an atlas's: the bundle's file of the cells (values null)
+    this.patches = patches;
     this.cols = cols;
     this.values = values;
     this.max = max;
@@ -170,6 +193,16 @@ export class ErrorMap {
     for (let k = 0; k < n; k++) {
       const value = this.valueAt((uvs[2 * k] - u0) / (u1 - u0), (uvs[2 * k + 1] - v0) / (v1 - v0));
       out.set(this.color(value), 3 * k);
+    }
+    return out;
+  }
+
+  /** RGB of each of the raster's 256 codes (k < 255: the value k / 254 max; 255: no scan
+   *  point), 768 bytes: what the worker colours an atlas's vertices with. */
+  palette() {
+    const out = new Uint8Array(3 * 256);
+    for (let code = 0; code < 256; code++) {
+      out.set(this.color(code === EMPTY_CODE ? NaN : (code / 254) * this.max), 3 * code);
     }
     return out;
   }

@@ -203,6 +203,13 @@ export class MeshWorkerClient {
       });
   }
 
+  /** Colour the atlas meshes made from now on by its error map (`bytes`: the bundle's
+   *  error_raster.bin, `palette`: 768 bytes, RGB of each code), or by the colour packs again
+   *  (`bytes` null). */
+  setErrorMap(bytes, palette = null) {
+    return this._request({ type: "errorMap", bytes, palette });
+  }
+
   /** Forget colour packs the worker holds. */
   dropColourPacks(names) {
     for (const name of names) this.colourPacks.delete(name);

@@ -44,6 +44,9 @@
 //   page -> {type: "colourPack", name, width, height, rgb} -> {type: "colourPack", name, level,
 //           first, count}  (add_colour_pack: a decoded texture/C/G.webp)
 //   page -> {type: "dropColourPacks", names} -> {type: "droppedColourPacks", names}
+//   page -> {type: "errorMap", bytes, palette} -> {type: "errorMap", patches, rows}
+//           (set_error_map: the atlas's error_raster.bin and the RGB of its 256 codes colour
+//           the meshes made from now on; bytes null: the colour packs again)
 //   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
 //   page -> {type: "fetchTiles", tiles: [{name, url}, ...]}
@@ -368,6 +371,12 @@ function dropColourPacks({ id, names }) {
   post({ type: "droppedColourPacks", id, names });
 }
 
+function errorMap({ id, bytes, palette }) {
+  // undefined, not null, arrives in Python as None (null is a JsNull)
+  post({ type: "errorMap", id,
+         ...toPlain(session.set_error_map(bytes ?? undefined, palette ?? undefined)) });
+}
+
 function resources({ id }) {
   post({ type: "resources", id, resources: resourceEntries() });
 }
@@ -426,4 +435,4 @@ self.onmessage = (event) => {
 };
 
 Object.assign(handlers, { atlasRefinement, pack, dropPacks, atlasMesh, atlasParts, atlasColour,
-                          colourPack, dropColourPacks }); // an atlas bundle's
+                          colourPack, dropColourPacks, errorMap }); // an atlas bundle's

@@ -212,8 +212,6 @@ async function offerPly(download, worker, manifest, ready) {
  *  (AtlasLayer), "Download PLY" of every level. */
 async function showAtlas({ viewer, worker, manifest, ready, facts, transfers }) {
   facts.describeAtlas(manifest, ready, stats);
-  // the error map is a raster over one patch's (u, v) domain (ErrorMap): an atlas has none yet
-  $("toggle-error").title = "No error map for an atlas bundle: its fit error is in the panel";
   viewer.setObjectView(manifest.view || null);
   showStage("tessellation");
   const plan = await worker.plan(manifest); // the worker keeps the manifest for what follows
@@ -233,6 +231,12 @@ async function showAtlas({ viewer, worker, manifest, ready, facts, transfers }) 
     },
   });
   await layer.show(refinement.groups.map(() => -1));
+  // the error map: per patch cells of the fit error, coloured per vertex by the worker
+  const errorMap = new ErrorMapControl(manifest, viewer, { show: (map) => layer.showErrorMap(map) });
+  if (!errorMap.errorMap && !$("toggle-error").title) {
+    $("toggle-error").title = "No error map in this atlas bundle (fitted before error_raster): " +
+      "its fit error is in the panel";
+  }
   facts.showMesh(stats);
   if (layer.enabled) facts.showAtlas(stats, refinement.groups.length);
   else facts.set("fact-detail", "none in this bundle");
