@@ -25,7 +25,7 @@ function fakeDocument() {
     }
     return elements.get(id);
   };
-  globalThis.document = { getElementById: element };
+  globalThis.document = { getElementById: element, body: { dataset: {} } };
   return element;
 }
 
@@ -56,6 +56,7 @@ test("the legend ends at the panel's max, in the bundle's units", async () => {
   assert.equal(element("toggle-error").disabled, false);
   assert.equal(element("legend-hole-swatch").style.background, `rgb(${HOLE_COLOR.join(",")})`);
   element("toggle-error").click();
+  await new Promise((resolve) => setTimeout(resolve, 0)); // toggle() resolves after its show
   assert.equal(control.shown, true);
   assert.equal(element("legend").hidden, false);
   assert.equal(element("legend").scrolledIntoView, 1, "the panel scrolls to the legend");
@@ -118,4 +119,31 @@ test("older bundles' error_grid (RMS per cell, null where empty) is still read",
   assert.ok(Number.isNaN(map.valueAt(0.25, 0.75)));
   assert.equal(map.valueAt(0.75, 0.75), 4);
   assert.equal(ErrorMap.fromManifest({ units: "mm" }), null);
+});
+
+test("an atlas's raster: the same legend, its file and a palette of every code for the worker", async () => {
+  const element = fakeDocument();
+  const { ErrorMapControl } = await import("../src/error-map-control.js");
+  const manifest = { units: "mm", stats: { max: MAX },
+                     error_raster: { file: "error_raster.bin", patches: 576, rows: 8, cols: 8,
+                                     max: MAX, statistic: "max |d|", bytes: 900 } };
+  const shown = [];
+  const control = new ErrorMapControl(manifest, {}, { show: async (map) => shown.push(map) });
+  assert.equal(element("toggle-error").disabled, false);
+  assert.equal(element("legend-max").textContent, "6.68 mm");
+  element("toggle-error").click();
+  await new Promise((resolve) => setTimeout(resolve, 0));
+  assert.equal(shown[0].file, "error_raster.bin");
+  assert.equal(control.shown, true);
+  const palette = shown[0].palette();
+  assert.equal(palette.length, 768);
+  assert.deepEqual([...palette.slice(0, 3)], viridis(0));
+  assert.deepEqual([...palette.slice(3 * 254, 3 * 255)], viridis(1)); // code 254: the max
+  assert.deepEqual([...palette.slice(3 * 255)], HOLE_COLOR);
+  element("toggle-error").click();
+  await new Promise((resolve) => setTimeout(resolve, 0));
+  assert.deepEqual(shown, [shown[0], null]);
+  assert.equal(element("legend").hidden, true);
+  assert.throws(() => ErrorMap.fromManifest({ error_raster: { ...manifest.error_raster, patches: 0 } }),
+                /needs max >= 0, a file and patches >= 1/);
 });
