@@ -42,7 +42,7 @@ from __future__ import annotations
 import math
 import struct
 from array import array
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache, partial
 from itertools import chain
@@ -59,6 +59,11 @@ from .tessellate import MAX_GRID, Mesh, _samples, grid_indices
 #: vertices of one atlas mesh: 2^24 (16.7 M) float32 positions and normals, 400 MB of
 #: pure-Python floats while it is built
 MAX_ATLAS_MESH_VERTICES = 1 << 24
+#: patches between two progress reports of :func:`tessellate_atlas`
+PROGRESS_BATCH = 32
+#: the share of :func:`tessellate_atlas`'s work reported for evaluating the patches' grids
+#: (the rest: displacing them and welding; measured in Pyodide, pure Python, 576 patches)
+PROGRESS_EVALUATION = 0.5
 
 
 @dataclass
@@ -364,7 +369,8 @@ def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
 
 def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
                      detail: Mapping[int, Sequence[DetailTile]] | None = None,
-                     kernel: str | None = None) -> AtlasMesh:
+                     kernel: str | None = None,
+                     progress: Callable[[float], object] | None = None) -> AtlasMesh:
     """One welded, watertight mesh of ``atlas`` (module docstring for the rules).
 
     Parameters
@@ -377,6 +383,10 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         Patch ``f`` -> its detail tiles over its own ``[0, 1]^2``.
     kernel : {'python', 'numpy'}, optional
         Force an evaluation kernel; default the one ``client_py._kernel`` selects.
+    progress : callable, optional
+        Called with the share done, ``0 < x <= 1``, after every :data:`PROGRESS_BATCH`
+        patches evaluated (:data:`PROGRESS_EVALUATION` of the work) and displaced (the
+        rest): the viewer's "Download PLY" shows it.
 
     Returns
     -------
@@ -389,12 +399,13 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
     res = _check_resolutions(atlas, resolution)
     tiles = _check_detail(atlas, detail)
-    return _welded_mesh(atlas, res, tiles, kernel)[0]
+    return _welded_mesh(atlas, res, tiles, kernel, progress=progress)[0]
 
 
 def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                  kernel: str | None, evaluated_at: Mapping[int, int] | None = None,
-                 seam_frames: Mapping[int, tuple[tuple, tuple]] | None = None
+                 seam_frames: Mapping[int, tuple[tuple, tuple]] | None = None,
+                 progress: Callable[[float], object] | None = None
                  ) -> tuple[AtlasMesh, _Layout]:
     """:func:`tessellate_atlas` of checked arguments, and the layout it numbered the
     vertices by; ``evaluated_at``: edges evaluated at a coarser resolution than their
@@ -411,8 +422,12 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     for f, r in enumerate(res):
         by_res.setdefault(r, []).append(f)
     grids: dict[int, tuple[list, list, list]] = {}
+    batch = PROGRESS_BATCH if progress is not None else len(res)
     for r, patches in sorted(by_res.items()):
-        grids.update(evaluate(atlas, comps, patches, r, tol))
+        for start in range(0, len(patches), batch):
+            grids.update(evaluate(atlas, comps, patches[start:start + batch], r, tol))
+            if progress is not None:
+                progress(PROGRESS_EVALUATION * len(grids) / len(res))
     surfaces: dict[int, object] = {}
 
     def surface(f):
@@ -436,6 +451,8 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     for f in range(len(res)):
         ids[f], borders[f] = layout.patch_vertices(f)
     for f, r in enumerate(res):
+        if progress is not None and f % PROGRESS_BATCH == PROGRESS_BATCH - 1:
+            progress(PROGRESS_EVALUATION + (1 - PROGRESS_EVALUATION) * f / len(res))
         params = _tables(atlas.degree, atlas.spans, r)[0]
         pos, nrm, bad = grids[f]
         for k in bad:  # a pole: the limit normal from inside the patch

@@ -911,7 +911,8 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
                     level: int, resolution: int | Sequence[int], source: str,
                     textures: Iterable[TextureImage] = (), binary: bool = True,
                     texture_file: str | None = None, kernel: str | None = None,
-                    units: str | None = None) -> tuple[bytes, Mesh]:
+                    units: str | None = None,
+                    progress: Callable[[float], object] | None = None) -> tuple[bytes, Mesh]:
     """The PLY of the bundle at detail level ``level``: ``X = S + sum_{k <= L} D_k n``
     over the whole domain on a ``resolution x resolution`` grid, in the scan frame.
 
@@ -943,6 +944,10 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
         Named in the header; default the patch's ``units`` metadata (an atlas: the
         metadata ``read_atlas`` returns, which the caller passes here).
 
+    progress : callable, optional
+        An atlas's: called with the share of the tessellation done
+        (:func:`client_py.atlas_mesh.tessellate_atlas`).
+
     Returns
     -------
     data : bytes
@@ -961,7 +966,7 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
         raise ValueError(f"level must be an integer >= -1, got {level!r}")
     if isinstance(surface, AtlasSurface):
         return _write_atlas_ply(surface, tiles, level, resolution, source, binary, kernel,
-                                units, list(textures))
+                                units, list(textures), progress)
     tiles = list(tiles)
     textures = list(textures)
     for tile in tiles:
@@ -986,7 +991,8 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
 def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTile]],
                      level: int, resolution: int | Sequence[int], source: str, binary: bool,
                      kernel: str | None, units: str | None,
-                     packs: Sequence[ColourPack] = ()) -> tuple[bytes, Mesh]:
+                     packs: Sequence[ColourPack] = (),
+                     progress: Callable[[float], object] | None = None) -> tuple[bytes, Mesh]:
     """:func:`write_level_ply` of an atlas: one welded mesh, ``detail`` = ``{patch: tiles}``,
     coloured per vertex from ``packs`` (the decoded colour packs of the level's plan, which
     hold every patch's cell once) when given."""
@@ -1000,7 +1006,7 @@ def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTi
             if tile.level > level:
                 raise ValueError(f"patch {patch}: detail tile {tile.level}/{tile.i}_{tile.j} "
                                  f"is of level {tile.level}, finer than level {level}")
-    mesh = tessellate_atlas(atlas, resolution, detail, kernel)
+    mesh = tessellate_atlas(atlas, resolution, detail, kernel, progress)
     grid = (f"{resolution}x{resolution} grid per patch" if isinstance(resolution, int)
             else f"{min(resolution)}..{max(resolution)} samples per patch side")
     comments = [f"source {source}", f"units {units or 'unknown'}",

@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import zlib
 from array import array
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 from . import _kernel
@@ -312,7 +312,8 @@ class WorkerSession:
                 "spans_per_tile": detail_spans(manifest)}
 
     def level_ply(self, level: int, fresh: Mapping[str, bytes] | None = None,
-                  textures: Iterable[Mapping] = ()) -> PlyFile:
+                  textures: Iterable[Mapping] = (),
+                  progress: Callable[[float], object] | None = None) -> PlyFile:
         """The PLY of the bundle at detail level ``level``, as ``tessera tessellate BUNDLE
         --level L`` writes it (:func:`client_py.bundle.write_level_ply` on
         :func:`client_py.bundle.plan_level`'s grid).
@@ -340,10 +341,12 @@ class WorkerSession:
         -----
         With an atlas loaded (:meth:`load_atlas`), ``fresh`` names packs
         (``detail/K/G.tsdp``) and the PLY is one welded mesh of every patch; ``textures``
-        are the plan's colour packs decoded, ``{"file", "width", "height", "rgb"}``.
+        are the plan's colour packs decoded, ``{"file", "width", "height", "rgb"}``, and
+        ``progress`` (optional) is called with the share of its tessellation done
+        (:func:`client_py.atlas_mesh.tessellate_atlas`: seconds for hundreds of patches).
         """
         if self._atlas is not None:
-            return self._atlas_level_ply(level, dict(fresh or {}), list(textures))
+            return self._atlas_level_ply(level, dict(fresh or {}), list(textures), progress)
         patch = self._loaded()
         plan = plan_level(self._manifest_read(), level)
         fresh = dict(fresh or {})
@@ -589,7 +592,8 @@ class WorkerSession:
         return mesh
 
     def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes],
-                         textures: Sequence[Mapping] = ()) -> PlyFile:
+                         textures: Sequence[Mapping] = (),
+                         progress: Callable[[float], object] | None = None) -> PlyFile:
         """:meth:`level_ply` of an atlas: the packs of levels ``0..level``, held or fresh,
         coloured from the decoded colour packs ``textures`` (those of the plan, each once)."""
         atlas, spec = self._atlas_loaded()
@@ -617,7 +621,7 @@ class WorkerSession:
         data, mesh = write_level_ply(atlas, detail, plan.level, plan.resolution, self._source,
                                      packs, kernel=self._kernel,
                                      units=self._manifest_read().get("units")
-                                     or self._atlas_units)
+                                     or self._atlas_units, progress=progress)
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
 
 

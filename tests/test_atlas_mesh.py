@@ -439,3 +439,21 @@ def test_a_part_needs_a_stitchable_resolution_and_its_own_detail():
         atlas_part(atlas, [0, 0], 5)
     with pytest.raises(ValueError, match="no patch index"):
         atlas_part(atlas, [24], 5)
+
+
+@pytest.mark.parametrize("kernel", ["python", "numpy"])
+def test_progress_reports_rise_to_the_end_and_change_nothing(kernel):
+    """tessellate_atlas(progress=...): one report per PROGRESS_BATCH patches evaluated and
+    displaced, rising, within (0, 1]; the mesh is the one made without it."""
+    from client_py.atlas_mesh import PROGRESS_BATCH
+
+    atlas = sphere_atlas(6, noise=0.02, seed=1)  # 216 patches: several batches
+    reports: list[float] = []
+    with_progress = tessellate_atlas(atlas, 5, kernel=kernel, progress=reports.append)
+    plain = tessellate_atlas(atlas, 5, kernel=kernel)
+    assert list(with_progress.positions) == list(plain.positions)
+    assert list(with_progress.indices) == list(plain.indices)
+    batches = -(-len(atlas.quads) // PROGRESS_BATCH)
+    assert len(reports) == batches + len(atlas.quads) // PROGRESS_BATCH
+    assert reports == sorted(reports) and 0 < reports[0] and reports[-1] <= 1
+    assert reports[batches - 1] == pytest.approx(0.5) and reports[-1] > 0.9

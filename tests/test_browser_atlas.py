@@ -163,6 +163,9 @@ def test_download_ply_is_the_cli_s_welded_mesh(atlas_page, atlas_collection, tmp
     assert main(["tessellate", str(atlas_collection / "sphere"), "--level", str(level),
                  "-o", str(out)]) == 0
     assert path.read_bytes().replace(b"source base.tsa", b"source sphere") == out.read_bytes()
+    # the worker reported its progress while it tessellated (shown as a percentage)
+    progress = atlas_page.evaluate("window.tessera.stats.ply_progress")
+    assert progress and progress == sorted(progress) and 0 < progress[-1] <= 1
     mesh = trimesh.load(path, process=False)
     mesh.merge_vertices()
     assert mesh.is_watertight

@@ -86,8 +86,9 @@ export class MeshWorkerClient {
    *  height, rgb} (rgb a Uint8Array of rows top to bottom, transferred; see page.js
    *  decodeTextureRgb). Resolves with {bytes, vertices, triangles, resolution, write_ms}.
    *  Tiles the worker does not hold at the moment of the call and `fresh` lacks reject at
-   *  once (the caller fetches them). */
-  plyLevel(choice, fresh = new Map(), textures = []) {
+   *  once (the caller fetches them). `onProgress(fraction)`: the share of an atlas's
+   *  tessellation done, as the worker reports it. */
+  plyLevel(choice, fresh = new Map(), textures = [], onProgress = () => {}) {
     const missing = choice.detail_files.filter((name) => !this.held.has(name) && !fresh.has(name));
     if (missing.length) {
       return Promise.reject(new Error(`detail tiles not fetched: ${missing.join(", ")}`));
@@ -97,7 +98,7 @@ export class MeshWorkerClient {
       ({ level: k, i, j, file, width, height, rgb }));
     return this._request({ type: "ply", level: choice.level, fresh: sent, textures: images },
                          [...sent.map((tile) => tile.bytes.buffer),
-                          ...images.map((image) => image.rgb.buffer)]);
+                          ...images.map((image) => image.rgb.buffer)], onProgress);
   }
 
   /** Whether the worker will hold detail tile `name` when it reaches the next request. */
@@ -236,15 +237,19 @@ export class MeshWorkerClient {
     this._failAll("the mesh worker was stopped");
   }
 
-  _request(message, transfer = []) {
+  _request(message, transfer = [], onProgress = null) {
     const id = this.nextId++;
     return new Promise((resolve, reject) => {
-      this.pending.set(id, { resolve, reject });
+      this.pending.set(id, { resolve, reject, onProgress });
       this.worker.postMessage({ ...message, id }, transfer);
     });
   }
 
   _receive(message) {
+    if (message.type === "plyProgress") {
+      this.pending.get(message.id)?.onProgress?.(message.fraction);
+      return;
+    }
     if (message.type === "progress") {
       this.onProgress(message.loaded, message.total);
       return;

@@ -47,7 +47,8 @@
 //   page -> {type: "errorMap", bytes, palette} -> {type: "errorMap", patches, rows}
 //           (set_error_map: the atlas's error_raster.bin and the RGB of its 256 codes colour
 //           the meshes made from now on; bytes null: the colour packs again)
-//   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L)
+//   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L);
+//           meanwhile {type: "plyProgress", id, fraction} (the share of the atlas tessellated)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
 //   page -> {type: "fetchTiles", tiles: [{name, url}, ...]}
 //        -> {type: "fetchedTiles", tiles: [{name, bytes, level, i, j}, ...], resources}
@@ -282,8 +283,10 @@ function ply({ id, resolution, colors, level, fresh, textures }) {
   const t0 = performance.now();
   if (Number.isInteger(level) && (level >= 0 || atlasLoaded)) {
     const tiles = new Map((fresh || []).map((tile) => [tile.name, tile.bytes]));
+    // the share of the tessellation done, posted as it goes (an atlas: seconds of Python)
+    const progress = (fraction) => post({ type: "plyProgress", id, fraction });
     const result = withPy(tiles, (pyTiles) => withPy(textures || [], (pyTextures) =>
-      session.level_ply(level, pyTiles, pyTextures)));
+      session.level_ply(level, pyTiles, pyTextures, progress)));
     postPly(result, performance.now() - t0, id);
   } else {
     postPly(session.base_ply(resolution, colors || undefined), // undefined -> None

@@ -237,13 +237,19 @@ export async function levelPly(worker, choice, { manifestUrl, stats, onProgress 
   await Promise.all([fetchTiles(lacking()), fetchTextures()]);
   // the viewer's tile layer may drop a tile meanwhile (the camera moved): fetch until none lacks
   for (let missing = lacking(); missing.length; missing = lacking()) await fetchTiles(missing);
-  Object.assign(stats, { ply_tiles_fetched: fresh.size, ply_fetch_bytes: fetched,
+  Object.assign(stats, { ply_progress: [], ply_tiles_fetched: fresh.size, ply_fetch_bytes: fetched,
                          ply_textures: images.length, ply_texture_bytes: textureBytes });
-  onProgress(`Tessellating level ${choice.level} on a ${choice.resolution} × ` +
-             `${choice.resolution} grid with ${plural(total, "detail tile")}` +
-             (images.length ? ` and ${plural(images.length, "texture tile")}…` : "…"));
+  const tessellating = (fraction) => onProgress(
+    `Tessellating level ${choice.level} on a ${choice.resolution} × ` +
+    `${choice.resolution} grid with ${plural(total, "detail tile")}` +
+    (images.length ? ` and ${plural(images.length, "texture tile")}` : "") +
+    `: ${Math.floor(100 * fraction)} %…`);
+  tessellating(0);
   // no await since the last check: the worker will hold every name not in `fresh`
-  const ply = await worker.plyLevel(choice, fresh, images);
+  const ply = await worker.plyLevel(choice, fresh, images, (fraction) => {
+    stats.ply_progress = [...(stats.ply_progress || []), fraction];
+    tessellating(fraction);
+  });
   stats.ply_total_ms = performance.now() - t0;
   return ply;
 }

@@ -8,7 +8,9 @@
 // levelPly, on the worker's plan of each level: client_py.bundle.plan_level).
 // Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
 // ply_ms (Python), ply_total_ms (fetch + tessellate + write), ply_tiles_fetched,
-// ply_fetch_bytes (detail tiles), ply_textures, ply_texture_bytes (texture tiles fetched);
+// ply_fetch_bytes (detail tiles), ply_textures, ply_texture_bytes (texture tiles fetched),
+// ply_progress (the shares of an atlas's tessellation the worker reported, shown as a
+// percentage in #ply-status);
 // document.body.dataset.plyBusy is "1" while a PLY is being made, and #ply-status (under the
 // buttons) says what is being done, then the file written. "Open in 3DHOP" follows the level
 // chosen (its ?level=L).
