@@ -40,7 +40,7 @@ from client_py.atlas_format import read_atlas, write_atlas
 from client_py.atlas_mesh import tessellate_atlas
 
 from ..bundle import write_bundle
-from ..error import error_stats, raster_codes, write_error_ply
+from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_error_ply
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
@@ -56,7 +56,7 @@ STRAY_DISTANCE = 0.02  # a base point farther than this share of the diagonal ha
 MAX_STRAY_SHARE = 0.05  # ... and an atlas with more of its area strayed is refused
 HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
-RASTER_CELLS = 8  # cells per patch side of the error raster (576 patches: 36 KiB of codes)
+RASTER_CELLS = (2, 8)  # least and most cells per patch side of the error raster
 RASTER_FILE = "error_raster.bin"  # the bundle's file of an atlas's error raster
 
 
@@ -169,16 +169,21 @@ def foot_parameters(vertices: np.ndarray, faces: np.ndarray, patches: np.ndarray
 
 def atlas_error_raster(patch: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
                        patches: int, max_deviation: float) -> tuple[dict, bytes]:
-    """An atlas's ``error_raster`` (docs/format.md): per patch :data:`RASTER_CELLS` x
-    :data:`RASTER_CELLS` cells of its ``(u, v)``, each the largest ``|d|`` of the scan points
-    whose foot on the drawn mesh falls in it, one byte of ``max_deviation`` (the single
-    patch's codes, ``fitter.fitting.error.raster_codes``; 255: no point, an uncovered part),
-    zlib-compressed into the bundle's :data:`RASTER_FILE`. Returns the manifest entry (its
-    ``bytes`` filled by the writer) and the file."""
-    codes = raster_codes(patch, u, v, d, patches, RASTER_CELLS, max_deviation)
+    """An atlas's ``error_raster`` (docs/format.md): per patch ``s x s`` cells of its
+    ``(u, v)``, each the largest ``|d|`` of the scan points whose foot on the drawn mesh falls
+    in it, one byte of ``max_deviation`` (the single patch's codes,
+    ``fitter.fitting.error.raster_codes``; 255: no point, an uncovered part),
+    zlib-compressed into the bundle's :data:`RASTER_FILE`. ``s = clip(floor(sqrt(N / (4 F))),
+    2, 8)`` for ``N`` points and ``F`` patches: about four points per cell, as the single
+    patch's raster (``RASTER_POINTS_PER_CELL``), so that an empty cell is a part no point is
+    near, not a sparse scan (35,002 points over 576 patches: ``s = 3``). Returns the manifest
+    entry and the file."""
+    side = int(np.clip(int(np.sqrt(len(d) / (RASTER_POINTS_PER_CELL * patches))),
+                       *RASTER_CELLS))
+    codes = raster_codes(patch, u, v, d, patches, side, max_deviation)
     data = zlib.compress(codes.tobytes(), 9)
-    return ({"file": RASTER_FILE, "patches": int(patches), "rows": RASTER_CELLS,
-             "cols": RASTER_CELLS, "statistic": "max |d|", "max": float(max_deviation),
+    return ({"file": RASTER_FILE, "patches": int(patches), "rows": side, "cols": side,
+             "statistic": "max |d|", "max": float(max_deviation),
              "bytes": len(data),
              "encoding": "zlib of uint8 codes, patch after patch, rows x cols each (row = "
                          "u); code k < 255: k / 254 max; 255: no scan point"}, data)
