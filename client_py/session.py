@@ -434,7 +434,9 @@ class WorkerSession:
             detail level ``k``, ``packs[k]`` (the pack's file name or ``None``: the group
             has no tiles there), ``bytes[k]`` and ``errors[k]`` (its ``geometric_error``:
             the largest distance of the group's scan points after levels ``0..k``);
-            ``base_error``: ``tiles.detail.base.max`` (the base's error, for every group);
+            ``base_error``: ``tiles.detail.base.samples_max`` (the base's error, for every
+            group, by the packs' measure: the detail fit's samples), else ``base.max``
+            (bundles before issue 14, where ``max`` was that measure);
             ``resolutions``: samples per patch side drawn with levels ``-1, 0, .., L``
             (:meth:`atlas_mesh`'s rule); ``levels``: ``L + 1``.
         """
@@ -449,7 +451,8 @@ class WorkerSession:
                            "bytes": [key and spec.packs[key]["bytes"] for key in keys],
                            "errors": [key and spec.packs[key]["geometric_error"]
                                       for key in keys]})
-        return {"groups": groups, "base_error": (detail.get("base") or {}).get("max"),
+        base = detail.get("base") or {}
+        return {"groups": groups, "base_error": base.get("samples_max", base.get("max")),
                 "levels": len(spec.levels),
                 "resolutions": [_drawn_resolution(spec, k)
                                 for k in range(-1, len(spec.levels))]}

@@ -277,6 +277,13 @@ def test_the_session_loads_an_atlas_and_refines_groups_watertight(bundle):
     assert all(a < -0.9 and b > 0.9 for a, b in zip(lo, hi, strict=True))
     refinement = session.atlas_refinement()
     assert refinement["levels"] == LEVELS and refinement["base_error"] == 0.03
+    # a bundle since issue 14: base.max is every point's, samples_max the packs' measure
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    manifest["tiles"]["detail"]["base"].update(max=0.02, samples_max=0.05)
+    restated = WorkerSession(kernel="python")
+    restated.load_atlas((bundle / "base.tsa").read_bytes(), "base.tsa")
+    restated.read_manifest(json.dumps(manifest))
+    assert restated.atlas_refinement()["base_error"] == 0.05
     assert refinement["resolutions"] == [5, 5, 9, 17]
     groups = refinement["groups"]
     assert [(g["first"], g["count"]) for g in groups] == [(g, 1) for g in range(6)]
