@@ -865,14 +865,17 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int,
 
 
 def _hang_seam_walls(mesh: AtlasMesh, layout: _Layout, part: AtlasPart) -> None:
-    """Append to ``mesh`` a wall under each seam (:func:`tessellate_atlas_part`): for
-    consecutive seam vertices ``a, b`` (tops) and their base points ``A, B`` (the seam
-    frame's ``S``, blended between samples as the tops are), the quad ``a b B A`` as two
-    triangles, turned so that it folds away from the surface (its directed edge ``a b``
-    runs against the surface triangle's). The bottoms keep their top's normal, ``(u, v)``
-    and patch, so a wall seen at a grazing angle shades like the surface."""
+    """Append to ``mesh`` a wall under each seam (:func:`tessellate_atlas_part`): for each
+    chord between two evaluated samples ``K0, K1`` of a seam, the polygon of its top vertices
+    ``X_K0 .. X_K1`` (the part's own edge, in-between vertices included) and the two base
+    points ``S_K1, S_K0``, as a fan from one of them, turned so that it folds away from the
+    surface (its top edges run against the surface triangles'). Its bottom edge is the base
+    chord ``S_K0 S_K1`` itself, with no vertex between, as every other part's wall or base
+    edge there: no T-junction where two parts' walls or a wall and a base part meet, so no
+    pinholes when they are drawn. The bottoms keep the normal, ``(u, v)`` and patch of their
+    sample's top, so a wall seen at a grazing angle shades like the surface."""
     positions, normals, uvs, owners = mesh.positions, mesh.normals, mesh.uvs, mesh.patches
-    bottom: dict[int, int] = {}
+    bottom: dict[int, int] = {}  # the top vertex at a sample -> its base point's vertex
     count = mesh.vertex_count
     walls = array("I")
     for e in part.seams:
@@ -880,17 +883,11 @@ def _hang_seam_walls(mesh: AtlasMesh, layout: _Layout, part: AtlasPart) -> None:
         step = (fine - 1) // (part.seam_resolution - 1)
         points = part.frames[e][0]
         nodes = [layout.edge_node(e, K) for K in range(fine)]
-        for K, node in enumerate(nodes):
+        for k, point in enumerate(points):
+            node = nodes[k * step]
             if node in bottom:
                 continue
-            K0 = K - K % step
-            if K0 == K:
-                base = points[K // step]
-            else:
-                s = (K - K0) / step
-                p, q = points[K0 // step], points[K0 // step + 1]
-                base = [(1 - s) * p[c] + s * q[c] for c in range(3)]
-            positions.extend(array("f", base))
+            positions.extend(array("f", point))
             normals.extend(normals[3 * node : 3 * node + 3])
             uvs.extend(uvs[2 * node : 2 * node + 2])
             owners.append(owners[node])
@@ -902,9 +899,12 @@ def _hang_seam_walls(mesh: AtlasMesh, layout: _Layout, part: AtlasPart) -> None:
         quad = layout.atlas.quads[f]
         enters = quad[s] if k < 2 else quad[t]
         forward = enters == layout.table.edges[e][0]
-        for a, b in zip(nodes, nodes[1:], strict=False):
-            if forward:  # the surface runs a -> b: the wall runs b -> a
-                a, b = b, a
-            walls.extend((a, b, bottom[b], a, bottom[b], bottom[a]))
+        for K0 in range(0, fine - 1, step):
+            tops = nodes[K0 : K0 + step + 1]
+            first, last = bottom[tops[0]], bottom[tops[-1]]
+            # the loop a -> b -> B -> A of the old quad, with the chord's vertices as a -> b
+            loop = [*reversed(tops), first, last] if forward else [*tops, last, first]
+            apex = loop[-1]
+            for m in range(len(loop) - 2):
+                walls.extend((apex, loop[m], loop[m + 1]))
     mesh.indices.extend(walls)
-
