@@ -41,9 +41,17 @@ from ..error import error_stats, write_error_ply
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
-from .fit import AtlasFitError, fit_atlas
+from .fit import AtlasFit, AtlasFitError, fit_atlas
+from .layout import AtlasLayoutError
 from .measure import point_mesh_distance
-from .surface import area_samples, scan_surface
+from .surface import (
+    MAX_LAYOUT_HANDLES,
+    ScanSurface,
+    area_samples,
+    handle_count,
+    layout_stand_in,
+    scan_surface,
+)
 
 BUNDLE_FORMAT_VERSION = 2
 DEFAULT_BITS = 12  # quantisation of base.tsa: 1/4096 of the extent, far under the 0.5 % goal
@@ -145,6 +153,50 @@ def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
     return share
 
 
+def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stages,
+                     bits: int) -> tuple[AtlasFit, object, dict]:
+    """The base atlas, decoded from its bytes and checked to follow the surface.
+
+    The layout is decimated from the surface itself while it has at most
+    :data:`~.surface.MAX_LAYOUT_HANDLES` handles, else from its closed low-genus stand-in
+    (:func:`~.surface.layout_stand_in`); when the surface's own layout is refused (no
+    manifold decimation, or a base that strays: :func:`check_base_follows_surface`), the
+    stand-in is tried before the error is raised.
+
+    Returns
+    -------
+    fit, decoded, layout
+        The fit, its base as read back from ``write_atlas(fit.atlas, bits)``, and the
+        manifest's ``fit.layout`` record (``source``, ``handles``, why a stand-in).
+    """
+    handles = handle_count(surface.vertices, surface.faces)
+    record: dict = {"source": "surface", "surface_handles": handles}
+    attempts = ["surface", "stand-in"]
+    if handles > MAX_LAYOUT_HANDLES:
+        attempts = ["stand-in"]
+        record["why_stand_in"] = f"{handles} handles (over {MAX_LAYOUT_HANDLES})"
+    for attempt in attempts:
+        stages.start("refine")
+        layout_surface = None
+        if attempt == "stand-in":
+            layout_surface = layout_stand_in(surface)
+            record.update(source="stand-in", stand_in_handles=layout_surface.repairs["handles"],
+                          stand_in_faces=int(len(layout_surface.faces)))
+        try:
+            fit = fit_atlas(scan, "auto" if options.patches is None else options.patches,
+                            surface=surface, layout_surface=layout_surface,
+                            progress=stages.report, bits=bits)
+            stages.start("encode")
+            decoded, _ = read_atlas(write_atlas(fit.atlas, bits))
+            record["stray_share"] = check_base_follows_surface(decoded, surface)
+            return fit, decoded, record
+        except (AtlasLayoutError, AtlasFitError) as exc:
+            if attempt == attempts[-1]:
+                raise
+            record["why_stand_in"] = str(exc)
+    raise AssertionError("unreachable")  # the last attempt returns or raises
+
+
 def write_atlas_error_png(path: Path, points: np.ndarray, d: np.ndarray, front: np.ndarray,
                           up: np.ndarray, units: str, title: str) -> None:
     """The scan seen from the front and from behind (the manifest's ``view``), each pixel
@@ -193,14 +245,8 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     """
     stages.start("project")
     surface = scan_surface(scan)
-    stages.start("refine")
-    fit = fit_atlas(scan, "auto" if options.patches is None else options.patches,
-                    surface=surface, progress=stages.report,
-                    bits=options.bits or DEFAULT_BITS)
-    stages.start("encode")
     bits = options.bits or DEFAULT_BITS
-    decoded, _ = read_atlas(write_atlas(fit.atlas, bits))
-    check_base_follows_surface(decoded, surface)
+    fit, decoded, layout_record = fit_checked_base(scan, surface, options, stages, bits)
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
     detail = fit_atlas_detail(replace(fit, atlas=decoded), scan, options.detail_levels,
                               progress=stages.report)
@@ -253,6 +299,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                                             if far.any() else None)},
             "fit": {"triangles": fit.triangles, "patches": fit.patches,
                     "surface": surface.origin, "surface_pieces": surface.pieces,
+                    "layout": layout_record,
                     "repairs": surface.repairs, "working_points": int(len(fit.points)),
                     "working_rms": fit.rms, "trials": fit.trials,
                     "steps": {k: round(v, 3) for k, v in fit.timings.items()},
