@@ -31,6 +31,7 @@ from ..io.thin import thin_to_count
 MIN_CLOUD_POINTS = 100
 MIN_ISLAND_SHARE = 0.002
 LAYOUT_POISSON_DEPTH = 6  # the layout stand-in's octree (layout_stand_in)
+LAYOUT_TRIM = 0.03  # ... trimmed farther than this share of the diagonal from the surface
 MAX_LAYOUT_HANDLES = 8  # more handles than this: the layout is decimated from the stand-in
 
 
@@ -399,7 +400,8 @@ def handle_count(vertices: np.ndarray, faces: np.ndarray) -> int:
 
 
 def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
-                    samples: int = 100_000, seed: int = 0) -> ScanSurface:
+                    trim: float = LAYOUT_TRIM, samples: int = 100_000, seed: int = 0
+                    ) -> ScanSurface:
     """A closed, low-genus stand-in of ``surface`` for the patch layout to be decimated from.
 
     A quad layout decimated from the surface keeps its topology (``atlas.layout``), so every
@@ -409,9 +411,12 @@ def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
     screened Poisson (Kazhdan & Hoppe 2013, ``open3d``) of ``samples`` area-weighted points
     of the surface with their outward normals (:func:`area_samples`), on a coarse ``2^depth``
     grid over the bounding cube. On the Bali mask (a shell 1.2 % of the diagonal thick)
-    ``depth = 6`` gives genus 3 and stays within 0.4 % of the diagonal of the scan. Pieces
-    under ``MIN_ISLAND_SHARE`` of the faces are dropped, the rest repaired as a scan's
-    mesh (:func:`clean_mesh`). The working points stay the scan's: only the layout's
+    ``depth = 6`` gives genus 3 and stays within 0.4 % of the diagonal of the scan.
+    Poisson also closes what the scan leaves open (a statuette's unscanned underside), so
+    a triangle with a vertex farther than ``trim`` of the diagonal from every vertex of the
+    surface is cut away: the layout stays open where the scan is. Pieces under
+    ``MIN_ISLAND_SHARE`` of the faces are then dropped, the rest repaired as a scan's mesh
+    (:func:`clean_mesh`). The working points stay the scan's: only the layout's
     triangles come from here.
 
     Raises
@@ -430,11 +435,15 @@ def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
     faces = np.asarray(mesh.triangles, np.int64).copy()
     if len(faces) == 0:
         raise SurfaceError("the layout's stand-in surface (Poisson of the surface) is empty")
+    far = cKDTree(surface.vertices).query(vertices)[0] > trim * surface.diagonal
+    faces = faces[~far[faces].any(axis=1)]
+    if len(faces) == 0:
+        raise SurfaceError("nothing of the layout's stand-in surface lies near the surface")
     count, labels = face_pieces(faces, len(vertices))
     sizes = np.bincount(labels, minlength=count)
     faces = faces[(sizes >= max(4, MIN_ISLAND_SHARE * len(faces)))[labels]]
     vertices, faces, repairs = clean_mesh(vertices, faces, "the layout's stand-in surface")
     pieces, _ = face_pieces(faces, len(vertices))
-    repairs = {**repairs, "poisson_depth": depth,
+    repairs = {**repairs, "poisson_depth": depth, "trimmed_vertices": int(far.sum()),
                "handles": handle_count(vertices, faces)}
     return ScanSurface(vertices, faces, "poisson", pieces, repairs)
