@@ -58,6 +58,7 @@ DEFAULT_BITS = 12  # quantisation of base.tsa: 1/4096 of the extent, far under t
 UNCOVERED = 0.01  # a point farther than this share of the diagonal is not represented
 STRAY_DISTANCE = 0.02  # a base point farther than this share of the diagonal has strayed
 MAX_STRAY_SHARE = 0.05  # ... and an atlas with more of its area strayed is refused
+OUTLIER_DISTANCE = UNCOVERED  # a cloud's point this far from its surface is not fitted
 STRAY_BUDGET_FACTOR = 2  # an atlas refused for strays is refitted once with this x the bytes
 HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
@@ -152,6 +153,30 @@ def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
             f"{100 * MAX_STRAY_SHARE:g}% accepted); the surface has {surface.pieces} piece(s) "
             "and its layout could not follow it")
     return share
+
+
+def without_outliers(scan: Scan, surface: ScanSurface) -> tuple[Scan, int]:
+    """A point cloud without the points farther than :data:`OUTLIER_DISTANCE` of the
+    diagonal from its surface, and their count; a mesh scan as it is.
+
+    Least squares follows an outlier: on a unit sphere of 20,000 points with 200 points
+    scattered around it, 64 % of the base strayed. The outliers are left out of the base's
+    and the detail's fit only; the error report measures every point, so they are counted
+    in the manifest's ``coverage`` as uncovered.
+    """
+    if scan.faces is not None and len(scan.faces):
+        return scan, 0
+    points = np.asarray(scan.points, dtype=float)
+    near = point_mesh_distance(points, surface.vertices, surface.faces) \
+        <= OUTLIER_DISTANCE * surface.diagonal
+    if near.all():
+        return scan, 0
+
+    def kept(values):
+        return None if values is None else values[near]
+
+    return replace(scan, points=points[near], normals=kept(scan.normals),
+                   colors=kept(scan.colors), uv=kept(scan.uv)), int(np.sum(~near))
 
 
 def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stages,
@@ -254,10 +279,11 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     """
     stages.start("project")
     surface = scan_surface(scan)
+    fitted, outliers = without_outliers(scan, surface)
     bits = options.bits or DEFAULT_BITS
-    fit, decoded, layout_record = fit_checked_base(scan, surface, options, stages, bits)
+    fit, decoded, layout_record = fit_checked_base(fitted, surface, options, stages, bits)
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
-    detail = fit_atlas_detail(replace(fit, atlas=decoded), scan, options.detail_levels,
+    detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
                               progress=stages.report)
     atlas = detail.atlas  # renumbered so that every group of patches is a range
     data = write_atlas(atlas, bits, {"units": scan.units})
@@ -303,12 +329,13 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
             "coverage": {"points": int(len(points)),
                          "within_0.5%": float(np.mean(np.abs(d) <= 0.005 * diagonal)),
                          "uncovered_points": int(far.sum()),
+                         "uncovered_share": float(np.mean(far)),
                          "uncovered_bbox": ([points[far].min(axis=0).tolist(),
                                              points[far].max(axis=0).tolist()]
                                             if far.any() else None)},
             "fit": {"triangles": fit.triangles, "patches": fit.patches,
                     "surface": surface.origin, "surface_pieces": surface.pieces,
-                    "layout": layout_record,
+                    "layout": layout_record, "outliers_not_fitted": outliers,
                     "repairs": surface.repairs, "working_points": int(len(fit.points)),
                     "working_rms": fit.rms, "trials": fit.trials,
                     "steps": {k: round(v, 3) for k, v in fit.timings.items()},
