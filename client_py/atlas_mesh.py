@@ -650,8 +650,9 @@ class AtlasPart:
     seam_resolution : int
         Samples evaluated along every seam (the coarsest resolution any part is drawn at).
     frames : dict
-        Seam edge (the part's index) -> ``(points, normals)``, ``seam_resolution`` each,
-        from the edge's lower layout vertex to its higher (:func:`atlas_seam_frames`).
+        Seam edge (the part's index) -> ``(points, direction)``: ``seam_resolution`` base
+        points from the edge's lower layout vertex to its higher, and the edge's unit
+        direction (:func:`atlas_seam_frames`).
     """
 
     atlas: AtlasSurface
@@ -748,15 +749,16 @@ def _patches_at_vertices(atlas: AtlasSurface) -> dict[int, list[tuple[int, int]]
 def atlas_seam_frames(atlas: AtlasSurface, samples: int,
                       kernel: str | None = None) -> dict[int, tuple[list, list]]:
     """The frame of every inner edge of ``atlas`` that parts drawn apart place their seams by
-    (:func:`tessellate_atlas_part`): edge ``e`` -> ``(points, normals)`` at ``samples``
-    parameters ``t_K = K / (samples - 1)`` from its lower layout vertex to its higher.
+    (:func:`tessellate_atlas_part`): edge ``e`` -> ``(points, direction)``, base points at
+    ``samples`` parameters ``t_K = K / (samples - 1)`` from its lower layout vertex to its
+    higher, and one unit direction for the edge.
 
     One evaluation of every patch at ``samples`` samples per side (the grid kernel, as the
-    base mesh is drawn); the point is the lowest-numbered sampling patch's sample, the normal
-    the normalised sum, in patch order, of the unit normals of every patch sampling it (two
-    along the edge, all those at a corner; at a pole the reference evaluator's limit), as
-    :func:`tessellate_atlas` weighs a welded border vertex's. Computed once and shared, the
-    frame is the same numbers for the parts on both sides of a seam.
+    base mesh is drawn); the point is the lowest-numbered sampling patch's sample; the
+    direction is the normalised sum, over the samples, of the sums in patch order of the unit
+    normals of the patches sampling each (two along the edge, all those at a corner; at a
+    pole the reference evaluator's limit). Computed once and shared, the frame is the same
+    numbers for the parts on both sides of a seam.
     """
     if not isinstance(atlas, AtlasSurface):
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
@@ -799,8 +801,10 @@ def atlas_seam_frames(atlas: AtlasSurface, samples: int,
             for f, slot in at:
                 nx, ny, nz = unit_normal(f, slot)
                 x, y, z = x + nx, y + ny, z + nz
-            normals.append(_unit(x, y, z))
-        frames[e] = (points, normals)
+            normals.append((x, y, z))
+        # one direction for the whole edge: every chord's wall is planar, and a part's chord
+        # lies in the plane of the other part's wall
+        frames[e] = (points, _unit(*(sum(n[c] for n in normals) for c in range(3))))
     return frames
 
 
@@ -814,22 +818,28 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int,
     on its *seams* (edges shared with a patch outside it):
 
     * a seam is evaluated at ``part.seam_resolution`` samples ``K``, each placed at
-      ``X_K = S_K + d_K n_K`` with the seam frame ``(S_K, n_K)`` that every part computes
-      alike (:func:`atlas_seam_frames`) and ``d_K`` the mean displacement of the part's own
-      patches there (0 without detail); its ``resolution - 1`` segments are laid on the
-      straight chords between those, as ``tessellate_atlas`` lays a finer side on a
-      coarser neighbour's;
-    * under each seam vertex hangs a wall to the base, from ``X`` to ``S`` (for a vertex
-      between samples, the same blend of the two samples' ``S``).
+      ``X_K = S_K + d_K n`` with the seam's base points ``S_K`` and its one direction ``n``
+      that every part computes alike (:func:`atlas_seam_frames`) and ``d_K`` the mean
+      displacement of the part's own patches there (0 without detail, and 0 at the seam's
+      two ends, the layout vertices where more than two parts may meet); its
+      ``resolution - 1`` segments are laid on the straight chords between those, as
+      ``tessellate_atlas`` lays a finer side on a coarser neighbour's;
+    * under each chord of a part with detail hangs a wall, down from its edge only
+      (:func:`_hang_seam_walls`).
 
-    Two parts meeting on a seam differ there only along the shared ``n_K``: one shows
-    ``S + d_A n``, the other ``S + d_B n``, and the two walls together span every point
-    between (each from its edge to ``d = 0``: the higher covers ``[max(0, d_lo), d_hi]``,
-    the lower ``[d_lo, min(0, d_hi)]``), so no crack shows from any side; nor does a wall
-    rise above both edges (no fin). Without detail, ``d = 0``: the two parts' seam
-    vertices are the same points bit for bit and no wall is hung. A part's mesh depends on
-    its own resolution and detail alone, so a viewer redraws only the parts whose level
-    changed.
+    Two parts meeting on a seam differ there only along the shared ``n``: one shows
+    ``S + d_A n``, the other ``S + d_B n``, and every chord and wall of either lies in the
+    plane through the base chord along ``n``. The higher edge's wall hangs past the lower
+    edge when the lower is a part with detail lower by no more than twice the higher part's
+    largest displacement along the seam, or a base part (``d = 0``) below a part displaced
+    outwards; **a part displaced inwards (``d < 0``) next to a base part leaves a step of
+    ``|d|`` open** (the base part hangs no wall: it cannot know its neighbour's
+    displacement). No wall rises above its edge (no fin). The detail is not applied at the
+    group corners (the surface meets the base there) and is offset along the seam's
+    direction, not each point's normal, on the seams. Without detail, ``d = 0``: the two
+    parts' seam vertices are the same points bit for bit and no wall is hung. A part's mesh
+    depends on its own resolution and detail alone, so a viewer redraws only the parts
+    whose level changed.
 
     Parameters
     ----------
@@ -865,9 +875,11 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int,
     frames = {}
     for e in part.seams:
         step = (layout.fine[e] - 1) // (part.seam_resolution - 1)
-        points, normals = part.frames[e]
-        for K, frame in enumerate(zip(points, normals, strict=True)):
-            frames[layout.edge_node(e, K * step)] = frame
+        points, direction = part.frames[e]
+        last = len(points) - 1
+        for K, point in enumerate(points):  # no displacement at the seam's ends (below)
+            frames[layout.edge_node(e, K * step)] = \
+                (point, (0.0, 0.0, 0.0) if K in (0, last) else direction)
     mesh, layout = _welded_mesh(atlas, res, tiles, kernel,
                                 dict.fromkeys(part.seams, part.seam_resolution), frames)
     surface_vertices, surface_triangles = mesh.vertex_count, mesh.triangle_count
@@ -882,32 +894,36 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int,
 
 
 def _hang_seam_walls(mesh: AtlasMesh, layout: _Layout, part: AtlasPart) -> None:
-    """Append to ``mesh`` a wall under each seam (:func:`tessellate_atlas_part`): for
-    consecutive seam vertices ``a, b`` (tops) and their base points ``A, B`` (the seam
-    frame's ``S``, blended between samples as the tops are), the quad ``a b B A`` as two
-    triangles, turned so that it folds away from the surface (its directed edge ``a b``
-    runs against the surface triangle's). The bottoms keep their top's normal, ``(u, v)``
-    and patch, so a wall seen at a grazing angle shades like the surface."""
+    """Append to ``mesh`` a wall under each seam (:func:`tessellate_atlas_part`), hanging
+    *down* from the part's own edge, never above it (a wall rising above the edge stands out
+    of the surface as a fin wherever the neighbour is lower still).
+
+    At sample ``K`` of a seam (base point ``S_K``, the seam's direction ``n``, the part's
+    displacement ``d_K``), the wall reaches from the top ``X_K = S_K + d_K n`` down to
+    ``S_K + (min(d_K, 0) - h) n`` with ``h`` twice the largest ``|d_K|`` along the seam: past
+    the base, and past a neighbour lower by up to twice the part's own largest displacement
+    there (a bound, not a guarantee: both fit the same scan, so their displacements agree
+    to within their errors). For each chord between two samples, the polygon of its top vertices
+    (in-between ones included) and the two bottoms is one fan, turned so that it folds away
+    from the surface (its top edges run against the surface triangles'); the bottoms keep
+    their top's normal, ``(u, v)`` and patch, so a wall seen at a grazing angle shades like
+    the surface."""
     positions, normals, uvs, owners = mesh.positions, mesh.normals, mesh.uvs, mesh.patches
-    bottom: dict[int, int] = {}
     count = mesh.vertex_count
     walls = array("I")
     for e in part.seams:
         fine = layout.fine[e]
         step = (fine - 1) // (part.seam_resolution - 1)
-        points = part.frames[e][0]
+        points, direction = part.frames[e]
         nodes = [layout.edge_node(e, K) for K in range(fine)]
-        for K, node in enumerate(nodes):
-            if node in bottom:
-                continue
-            K0 = K - K % step
-            if K0 == K:
-                base = points[K // step]
-            else:
-                s = (K - K0) / step
-                p, q = points[K0 // step], points[K0 // step + 1]
-                base = [(1 - s) * p[c] + s * q[c] for c in range(3)]
-            positions.extend(array("f", base))
+        samples = [nodes[k * step] for k in range(len(points))]
+        offsets = [sum((positions[3 * node + c] - point[c]) * direction[c] for c in range(3))
+                   for node, point in zip(samples, points, strict=True)]
+        depth = 2.0 * max(map(abs, offsets))
+        bottom = {}
+        for node, point, d in zip(samples, points, offsets, strict=True):
+            t = min(d, 0.0) - depth
+            positions.extend(array("f", [point[c] + t * direction[c] for c in range(3)]))
             normals.extend(normals[3 * node : 3 * node + 3])
             uvs.extend(uvs[2 * node : 2 * node + 2])
             owners.append(owners[node])
@@ -919,9 +935,12 @@ def _hang_seam_walls(mesh: AtlasMesh, layout: _Layout, part: AtlasPart) -> None:
         quad = layout.atlas.quads[f]
         enters = quad[s] if k < 2 else quad[t]
         forward = enters == layout.table.edges[e][0]
-        for a, b in zip(nodes, nodes[1:], strict=False):
-            if forward:  # the surface runs a -> b: the wall runs b -> a
-                a, b = b, a
-            walls.extend((a, b, bottom[b], a, bottom[b], bottom[a]))
+        for K0 in range(0, fine - 1, step):
+            tops = nodes[K0 : K0 + step + 1]
+            first, last = bottom[tops[0]], bottom[tops[-1]]
+            # the loop a -> b -> B -> A of a quad, with the chord's vertices as a -> b
+            loop = [*reversed(tops), first, last] if forward else [*tops, last, first]
+            apex = loop[-1]
+            for m in range(len(loop) - 2):
+                walls.extend((apex, loop[m], loop[m + 1]))
     mesh.indices.extend(walls)
-

@@ -355,13 +355,12 @@ def test_parts_without_detail_weld_into_the_closed_atlas():
 
 
 @pytest.mark.parametrize("rational", [False, True])
-def test_parts_at_mixed_levels_meet_without_a_crack(rational):
+def test_parts_at_mixed_levels_meet_on_shared_lines_with_walls_down_to_the_lower_edge(rational):
     """Detail at different levels on either side of a seam: both parts place their seam
-    samples on one shared line ``S + t n`` (the frame, equal bit for bit in both parts) and
-    each hangs a wall from its edge to ``S``, so the two walls span the whole step between
-    the edges (``[d_A, 0]`` and ``[d_B, 0]`` cover ``[d_A, d_B]``); between samples the
-    edges and walls are chords of those samples. The step is real: without the walls the
-    two edges are apart."""
+    samples on lines ``S + t n`` of one shared frame (equal bit for bit in both parts), the
+    seam's ends on ``S``; a part with detail hangs a wall down from every sample, never above
+    its edge, and where two parts with detail meet, the higher edge's wall reaches past the
+    lower edge (no crack). The step is real (without the walls the edges are apart)."""
     atlas, parts = _sphere_parts()
     if rational:  # the same layout with weights: the frames come from the rational patches
         w = [1.0 + 0.3 * ((k * 7919) % 5) / 5 for k in range(atlas.control_point_count)]
@@ -379,7 +378,7 @@ def test_parts_at_mixed_levels_meet_without_a_crack(rational):
         meshes.append(tessellate_atlas_part(part, resolution[levels[g]], detail,
                                             kernel="python"))
     owner = {f: g for g, part in enumerate(parts) for f in part.patches}
-    largest_step, seams = 0.0, 0
+    largest_step, seams, covered = 0.0, 0, 0
     for e, pairs in enumerate(atlas.edges.faces):
         ga, gb = owner[pairs[0][0]], owner[pairs[1][0]]
         if ga == gb:
@@ -387,31 +386,44 @@ def test_parts_at_mixed_levels_meet_without_a_crack(rational):
         seams += 1
         frames = [parts[g].frames[parts[g].full_edges.index(e)] for g in (ga, gb)]
         assert frames[0] == frames[1]
-        S, n = (np.array(x, float) for x in frames[0])
-        tops = []
+        S, n = (np.array(x, float) for x in frames[0])  # base points, the seam's direction
+        tops, lowest = [], []
         for g in (ga, gb):
             mesh = meshes[g]
-            xyz = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3)
+            xyz = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float)
             nodes = mesh.seams[e]
             step = (len(nodes) - 1) // 4  # 5 samples evaluated on every seam
-            top = xyz[[nodes[K * step] for K in range(5)]].astype(float)
-            assert np.abs(np.cross(top - S, n)).max() < 1e-5  # on the line S + t n
-            tops.append(top)
+            top = xyz[[nodes[K * step] for K in range(5)]]
+            assert np.abs(np.cross(top - S, n)).max() < 1e-5  # on the lines S + t n
+            assert np.array_equal(top[[0, 4]], S[[0, 4]].astype(np.float32).astype(float))
+            t_top = (top - S) @ n
+            tops.append(t_top)
             if levels[g] < 0:
                 assert mesh.vertex_count == mesh.surface_vertices  # the base: no wall
-                assert np.array_equal(top, S.astype(np.float32).astype(float))
+                assert np.abs(t_top).max() < 1e-6
+                lowest.append(t_top)
                 continue
             walls = np.asarray(mesh.indices, np.int64).reshape(-1, 3)[mesh.surface_triangles:]
             for a, b in zip(nodes, nodes[1:], strict=False):
                 assert sum(1 for t in walls.tolist() if a in t and b in t) == 1, (e, a, b)
-            for K in range(5):
+            bottom = []
+            for K in range(5):  # the wall under sample K: down from the top, on its line
                 a = nodes[K * step]
-                under = {v for t in walls.tolist() if a in t for v in t
-                         if v >= mesh.surface_vertices}
-                assert any(np.array_equal(xyz[v], S[K].astype(np.float32)) for v in under)
+                under = [v for t in walls.tolist() if a in t for v in t
+                         if v >= mesh.surface_vertices]
+                t_under = [(xyz[v] - S[K]) @ n for v in under
+                           if np.abs(np.cross(xyz[v] - S[K], n)).max() < 1e-5]
+                assert t_under and max(t_under) <= t_top[K] + 1e-6  # no fin
+                bottom.append(min(t_under))
+            lowest.append(np.array(bottom))
+        for K in range(1, 4):
+            hi = 0 if tops[0][K] >= tops[1][K] else 1
+            if levels[(ga, gb)[hi]] >= 0 and levels[(ga, gb)[1 - hi]] >= 0:
+                assert lowest[hi][K] <= tops[1 - hi][K] + 1e-6  # the higher wall covers
+                covered += 1
         largest_step = max(largest_step, float(np.abs(tops[0] - tops[1]).max()))
     assert seams == 24  # the cube's 12 edges, cut in two
-    assert largest_step > 1e-3
+    assert covered > 0 and largest_step > 1e-3
 
 
 def test_part_walls_fold_against_the_surface():

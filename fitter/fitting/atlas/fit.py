@@ -484,7 +484,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
               working_count: int = 60_000, rounds: int = 4, smoothing: float = 0.1,
               anchor: float = 1e-3,
               progress: Callable[[float], None] | None = None,
-              surface: ScanSurface | None = None) -> AtlasFit:
+              surface: ScanSurface | None = None,
+              layout_surface: ScanSurface | None = None) -> AtlasFit:
     """Fit a whole object as an atlas of ``F = 3 T`` bicubic patches on a quad layout.
 
     Parameters
@@ -518,6 +519,10 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         Called with the fraction done, 0..1.
     surface : ScanSurface, optional
         The scan's surface when already built (:func:`scan_surface`).
+    layout_surface : ScanSurface, optional
+        The surface the layout is decimated from, when not ``surface`` itself: a stand-in
+        with the small handles closed (``atlas.surface.layout_stand_in``); the working
+        points and their normals still come from ``surface``.
 
     Returns
     -------
@@ -551,14 +556,15 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     clock = time.perf_counter()
     # every trial decimates from one intermediate mesh, not from the full scan (MeshLab's
     # collapse of 10^5 faces takes seconds each time)
-    coarse = surface
-    if len(surface.faces) > PREDECIMATED_TRIANGLES:
+    source = surface if layout_surface is None else layout_surface
+    coarse = source
+    if len(source.faces) > PREDECIMATED_TRIANGLES:
         try:
-            vertices, triangles = decimate(surface, PREDECIMATED_TRIANGLES)
-            coarse = ScanSurface(vertices, triangles, surface.origin, surface.pieces,
-                                 surface.repairs)
+            vertices, triangles = decimate(source, PREDECIMATED_TRIANGLES)
+            coarse = ScanSurface(vertices, triangles, source.origin, source.pieces,
+                                 source.repairs)
         except (AtlasLayoutError, SurfaceError):
-            coarse = surface  # every trial decimates from the full surface instead
+            coarse = source  # every trial decimates from the full surface instead
     timings["predecimate"] = time.perf_counter() - clock
     if patches == "auto":
         plan = []
