@@ -485,6 +485,13 @@ def run_large(sizes: tuple[int, ...] = (10_000_000, 100_000_000),
                      for r in cluster])
     result = {"rows": rows, "e57": e57, "cluster": cluster, "load_before": load_before,
               "load_after": _load_average()}
+    earlier = ROOT / "bench" / "results" / "fit_large.json"
+    if earlier.exists():  # a run of other sizes keeps the figures of the sizes it did not run
+        before = json.loads(earlier.read_text())
+        for key in ("rows", "e57", "cluster"):
+            ran = {r["points"] for r in result[key]}
+            result[key] = [r for r in before.get(key, []) if r.get("points") not in ran] \
+                + result[key]
     write_results("fit_large", result)
     return result
 

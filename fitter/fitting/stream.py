@@ -130,8 +130,9 @@ def _error_block(start: int, stop: int, stream: PointStream, patch: bytes,
     points' count, minimum and maximum corner (scan coordinates)."""
     points, _ = stream.read(start, stop)
     model = PatchModel.from_surface(read_patch(patch))
-    u, v, _ = projection.to_uvh(points)
-    dev = deviations(model, projection.local(points), u, v, projection.periodic_u, threads=1)
+    local = projection.local(points)
+    u, v, _ = projection.to_uvh(points, local)
+    dev = deviations(model, local, u, v, projection.periodic_u, threads=1)
     covered = voxel_covered[index.positions(points)]
     out = points[~covered]
     box = (out.min(axis=0), out.max(axis=0)) if len(out) else None
