@@ -140,11 +140,12 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v: np.ndarray,
+def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v: np.ndarray,
             periodic_u: bool, start: tuple[np.ndarray, ...] | None = None,
             iterations: int = ITERATIONS, tol: float = TOLERANCE) -> tuple[np.ndarray, ...]:
-    """Gauss-Newton foot points of ``points (3, m)`` from ``u, v`` (modified in place), as
-    :func:`fitter.fitting.fit.foot_points`: steps ``[S_u S_v]^+ (P - S)`` clamped to the
+    """Gauss-Newton foot points of ``points (3, m)`` from ``u, v`` (modified in place), the
+    fit's and the error's one rule (:func:`fitter.fitting.fit.foot_points` is its row-major
+    form): steps ``[S_u S_v]^+ (P - S)`` clamped to the
     domain (wrapped in a periodic ``u``), halved up to four times while the distance would
     grow; a point is done when its step moves the surface point by less than
     ``tol |P - S|`` (within ``tol`` radians of the normal) or no halved step helps.
@@ -241,12 +242,12 @@ class ClosestPoints:
         start = self.surface.evaluate(u, v)
         r = P - start[0]
         start_distance = np.sqrt(_dot(r, r))
-        u, v, S, Su, Sv, dist = _newton(self.surface, P, u, v, self.periodic_u, start)
+        u, v, S, Su, Sv, dist = gauss_newton(self.surface, P, u, v, self.periodic_u, start)
         # a second search from the vertices nearer than the start (a search from the
         # projection parameters may end in a shallower basin, or short of its minimum)
         seeded, nearest = self._nearer_vertices(points, start_distance)
         if len(seeded):
-            su, sv, sS, sSu, sSv, sdist = _newton(
+            su, sv, sS, sSu, sSv, sdist = gauss_newton(
                 self.surface, P[:, seeded], self.seed_u[nearest], self.seed_v[nearest],
                 self.periodic_u)
             nearer = sdist < dist[seeded]
