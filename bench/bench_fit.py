@@ -23,6 +23,14 @@ from ``../shared/data`` (skipped when absent), and the generated example relief.
    in a subprocess: wall time, CPU time and peak resident memory.
 
 Writes ``bench/results/fit.json``.
+
+With ``--points`` (``python -m bench fit --points 1e7 1e8``) it runs the out-of-core
+benchmark (issue 16, :func:`run_large`) instead: generated float32 binary PLYs of those
+sizes, each fitted with default options in a subprocess under ``/usr/bin/time -v`` (wall,
+CPU, peak resident memory, stage times, load average), the same cloud written as E57
+(``--e57-points``: same ``base.tsp`` bytes? time against the PLY's) and fitted on
+LocalClusters of 1 and 2 workers (``--cluster-points``); writes
+``bench/results/fit_large.json``.
 """
 
 from __future__ import annotations
