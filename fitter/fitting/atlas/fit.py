@@ -47,7 +47,14 @@ from client_py.atlas import AtlasSurface
 
 from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
-from .layout import AtlasLayoutError, QuadLayout, bilinear_atlas, decimate, quad_layout
+from .layout import (
+    AtlasLayoutError,
+    QuadLayout,
+    bilinear_atlas,
+    decimate,
+    quad_layout,
+    thin_part_weights,
+)
 from .surface import ScanSurface, SurfaceError, scan_surface
 
 DEFAULT_BYTE_BUDGET = 24_000
@@ -482,7 +489,7 @@ def _check_arguments(patches: object, degree: object, spans: object, bits: objec
 def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans: int = 1,
               bits: int = 12, byte_budget: int = DEFAULT_BYTE_BUDGET,
               working_count: int = 60_000, rounds: int = 4, smoothing: float = 0.1,
-              anchor: float = 1e-3,
+              anchor: float = 1e-3, thin_parts: bool = True,
               progress: Callable[[float], None] | None = None,
               surface: ScanSurface | None = None) -> AtlasFit:
     """Fit a whole object as an atlas of ``F = 3 T`` bicubic patches on a quad layout.
@@ -494,10 +501,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     patches : 'auto' or int
         ``int``: about that many patches (``T = round(patches / 3)`` layout triangles; the
         decimation may end a few triangles off). ``'auto'``: ``T`` doubles from
-        ``AUTO_FIRST_TRIANGLES`` while the file stays within ``byte_budget`` and each
-        doubling lowers the working points' RMS below ``AUTO_MIN_GAIN`` of the previous
-        (trials: ``AUTO_TRIAL_POINTS`` of the points, two rounds); the chosen layout is then
-        fitted with all working points and ``rounds``.
+        ``AUTO_FIRST_TRIANGLES`` while the file stays within ``byte_budget``, and the
+        largest ``T`` whose working points' RMS is below ``AUTO_MIN_GAIN`` of the best of
+        the smaller ones is taken (trials: ``AUTO_TRIAL_POINTS`` of the points, two rounds;
+        one doubling that gains nothing does not end the search: the next may); the chosen
+        layout is then fitted with all working points and ``rounds``.
     degree, spans : int
         Per patch side (``n = spans + degree`` control points).
     bits : int
@@ -514,6 +522,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         deviation 7x against ``0.01``: a stiffer net keeps foot points from sliding off a
         patch's border and leaving it unsupported. ``spans = 1`` at the same ``T`` cost
         10 % more RMS than 2 spans for 35 % fewer bytes.
+    thin_parts : bool
+        Decimate the layout with :func:`.layout.thin_part_weights`, so that sheets thinner
+        than a layout triangle keep triangles of their own. At 576 patches (about the same
+        bytes) this took the share of the points within 0.5 % of the diagonal of the base
+        from 95.7 % to 99.5 % on the bunny and from 96.4 % to 97.9 % on Lucy.
     progress : callable(float), optional
         Called with the fraction done, 0..1.
     surface : ScanSurface, optional
@@ -579,7 +592,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         trial_timings: dict = {}
         clock = time.perf_counter()
         try:
-            tri_vertices, triangles = decimate(coarse, max(4, target))
+            weights = thin_part_weights(coarse, max(4, target)) if thin_parts else None
+            tri_vertices, triangles = decimate(coarse, max(4, target), weights)
         except (AtlasLayoutError, SurfaceError) as exc:
             # a coarse target may not decimate to a manifold (a range scan's many borders);
             # 'auto' tries the next size, an explicit count is refused
@@ -601,10 +615,10 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
                        "control_points": atlas.control_point_count, "bytes": size,
                        "rms": rms, "seconds": sum(trial_timings.values())})
         report(0.2 + 0.7 * (step + 1) / len(plan))
-        if patches == "auto" and best is not None and (
-                size > byte_budget or rms > AUTO_MIN_GAIN * best[0]):
+        if patches == "auto" and best is not None and size > byte_budget:
             break
-        best = (rms, size, layout, atlas, f, u, v, trial_timings)
+        if best is None or rms <= AUTO_MIN_GAIN * best[0]:
+            best = (rms, size, layout, atlas, f, u, v, trial_timings)
         if patches == "auto" and size > byte_budget:
             break
     if best is None:
