@@ -99,7 +99,7 @@ MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 MU_FLOOR = 0.25
 OFFSET_LIMIT = 0.1  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy)
-MIN_FACING = -1.0  # least n . n_x of a fitted sample (its base normal against its own)
+MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against its own)
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 
 
@@ -337,9 +337,13 @@ def auto_levels(side: float, spacing: float, patches: int, spans: int = SPANS) -
 def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarray:
     """The samples a displacement along the normal can explain, ``(N,)`` booleans: a
     foot point that is an orthogonal projection (tangential remainder ``t`` within the
-    scan's ``spacing``: not clamped on an open border or stuck at a fold) and an offset
+    scan's ``spacing``: not clamped on an open border or stuck at a fold), an offset
     ``|s|`` within ``OFFSET_LIMIT`` median patch ``side``s (a larger one would be a spike, not
-    detail: the base missed that part). The others still count in every error figure."""
+    detail: the base missed that part), and a base normal at the foot point that agrees with
+    the sample's own (``n . n_x >= MIN_FACING``): a sample of the back of a thin part
+    projected onto its front would pull the front through it (on Lucy, 0.5 cut the drawn
+    area farther than 1 % of the diagonal from the scan from 4.3 % to 3.0 % at the finest
+    level, and the RMS a little). The others still count in every error figure."""
     return ((samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= OFFSET_LIMIT * side)
             & (samples.facing >= MIN_FACING))
 

@@ -175,7 +175,14 @@ def thin_part_weights(surface: ScanSurface, target_triangles: int) -> np.ndarray
 
 
 def _weighted_meshset(surface: ScanSurface, weights: np.ndarray):
-    """``_meshset`` of the surface with ``weights`` as its vertex quality."""
+    """``_meshset`` of the surface with ``weights`` as its vertex quality.
+
+    MeshLab's weighted simplification maps the quality range ``[min, max]`` affinely onto
+    ``[1, 100]`` (vcglib's ``QualityWeightFactor``), so only the weights' ratios matter: the
+    thinnest part always gets the full 100. (Pinning the range with an unreferenced vertex
+    of quality :data:`THIN_CAP`, so that a weight means itself, made the bunny's base
+    worse: 94.4 % of the points within 0.5 % of the diagonal against 99.5 %.)
+    """
     import pymeshlab
 
     weights = np.asarray(weights, np.float64)
