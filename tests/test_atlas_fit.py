@@ -273,5 +273,8 @@ def test_thin_part_weights_give_a_thin_sheet_more_of_the_layout():
     disc_share = [np.mean(v[t].mean(axis=1)[:, 0] > 2.0) for v, t in
                   ((plain_v, plain_t), (thin_v, thin_t))]
     assert disc_share[1] > disc_share[0] + 0.1
+    # equal weights (a ball alone has no thin part) are the plain decimation
+    even_v, even_t = decimate(surface, 100, np.ones(len(surface.vertices)))
+    np.testing.assert_array_equal(even_t, plain_t)
     with pytest.raises(ValueError, match="finite numbers > 0"):
         decimate(surface, 100, np.zeros(len(surface.vertices)))

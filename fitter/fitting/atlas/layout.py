@@ -78,18 +78,28 @@ def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | 
 
     ``weights (V,)``, optional: per-vertex factors >= 1 on the quadric error of a collapse
     there (MeshLab's weighted simplification, the vertex quality), such as
-    :func:`thin_part_weights`; a heavier vertex keeps more triangles around it.
+    :func:`thin_part_weights`; a heavier vertex keeps more triangles around it. Equal
+    weights (no thin part) are the plain decimation: MeshLab stretches the weights' range
+    onto 1..100 and would divide by an empty one.
 
     Raises
     ------
     ValueError
-        ``target_triangles`` not an int >= 4.
+        ``target_triangles`` not an int >= 4, or ``weights`` not ``V`` finite numbers > 0.
     AtlasLayoutError
         The result is not an oriented 2-manifold (counts named).
     """
     if isinstance(target_triangles, bool) or not isinstance(target_triangles, int) \
             or target_triangles < 4:
         raise ValueError(f"target_triangles must be an int >= 4, got {target_triangles!r}")
+    if weights is not None:
+        weights = np.asarray(weights, np.float64)
+        if weights.shape != (len(surface.vertices),) or not np.all(np.isfinite(weights)) \
+                or np.any(weights <= 0):
+            raise ValueError(f"weights must be {len(surface.vertices)} finite numbers > 0, "
+                             f"got shape {weights.shape}")
+        if np.ptp(weights) == 0:
+            weights = None
     if len(surface.faces) <= target_triangles:
         return _checked(surface, surface.vertices.copy(), surface.faces.copy())
     # MeshLab's topology check also refuses every collapse of a border edge, so a scan with
@@ -185,11 +195,6 @@ def _weighted_meshset(surface: ScanSurface, weights: np.ndarray):
     """
     import pymeshlab
 
-    weights = np.asarray(weights, np.float64)
-    if weights.shape != (len(surface.vertices),) or not np.all(np.isfinite(weights)) \
-            or np.any(weights <= 0):
-        raise ValueError(f"weights must be {len(surface.vertices)} finite numbers > 0, "
-                         f"got shape {weights.shape}")
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(surface.vertices, np.float64),
                                face_matrix=np.ascontiguousarray(surface.faces, np.int32),
