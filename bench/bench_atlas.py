@@ -17,7 +17,8 @@ does), then for every level the bundle offers (the base alone, then each detail 
 
 It writes ``bench/results/atlas.json`` and, per object, a picture of the scan and the
 finest drawn level from six directions (``bench/results/atlas/<object>.png``) with the
-silhouette IoU of each view. ``TESSERA_ATLAS_OBJECTS=bunny,lucy`` picks objects.
+silhouette IoU of each view. ``TESSERA_ATLAS_OBJECTS=bunny,lucy`` picks objects; the
+others keep their records from the earlier ``atlas.json`` (with their own ``date``).
 """
 
 from __future__ import annotations
@@ -172,6 +173,20 @@ def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
     return out
 
 
+def _with_earlier(results: list[dict]) -> list[dict]:
+    """``results`` with the earlier ``atlas.json``'s records of the objects not re-run now
+    (``TESSERA_ATLAS_OBJECTS``), each keeping the ``date`` of the run that measured it."""
+    path = RESULTS / "atlas.json"
+    if not path.exists():
+        return results
+    earlier = json.loads(path.read_text())
+    measured = {r["object"] for r in results}
+    kept = [{"date": earlier.get("date"), **r} for r in earlier.get("objects", [])
+            if r.get("object") not in measured]
+    now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    return [{"date": now, **r} for r in results] + kept
+
+
 def run() -> dict | None:
     objects = _objects()
     if not objects:
@@ -204,6 +219,6 @@ def run() -> dict | None:
     print_table("atlas: ALL scan points vs the drawn mesh, per level (default fit)",
                 ["object", "patches", "level", "bytes", "% within 0.5%", "RMS all",
                  "Draco RMS", "max mesh->scan %diag", "border edges", "scan border"], table)
-    record = {"objects": results}
+    record = {"objects": _with_earlier(results)}
     write_results("atlas", record)
     return record
