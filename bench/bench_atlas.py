@@ -147,7 +147,17 @@ def score_object(name: str, path: Path, work: Path) -> dict:
             "scan_border": scan_border, "fit_s": fit_s,
             "format_version": manifest.get("format_version"),
             "patches": (manifest.get("base") or {}).get("patches", 1),
+            "layout": _chosen_layout(manifest), "trials": (manifest.get("fit") or {}).get("trials"),
             "levels": rows, "silhouette_iou": iou, "draco": draco}
+
+
+def _chosen_layout(manifest: dict) -> str | None:
+    """The atlas layout the fit kept (``'plain'`` or ``'weighted'``); ``None`` for a single
+    patch or a bundle that does not say."""
+    fit = manifest.get("fit") or {}
+    chosen = [t.get("layout") for t in fit.get("trials") or []
+              if t.get("triangles") == fit.get("triangles") and "layout" in t]
+    return chosen[-1] if chosen else None
 
 
 def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
