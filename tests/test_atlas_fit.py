@@ -278,3 +278,36 @@ def test_thin_part_weights_give_a_thin_sheet_more_of_the_layout():
     np.testing.assert_array_equal(even_t, plain_t)
     with pytest.raises(ValueError, match="finite numbers > 0"):
         decimate(surface, 100, np.zeros(len(surface.vertices)))
+
+
+def _bumpy_ball_and_small_disc() -> Scan:
+    """A ball whose radius waves by 8 % (detail that needs layout triangles) and, apart, a
+    disc 0.6 wide and 0.04 thick (a thin part that the weighted decimation favours)."""
+    ball = trimesh.creation.icosphere(subdivisions=4)
+    v = ball.vertices
+    ball.vertices = v * (1 + 0.08 * np.prod(np.sin(6 * v), axis=1))[:, None]
+    disc = trimesh.creation.icosphere(subdivisions=2)
+    disc.vertices = disc.vertices * [0.3, 0.3, 0.02] + [1.6, 0.0, 0.0]
+    both = trimesh.util.concatenate([ball, disc])
+    return _mesh_scan(both.vertices, both.faces, "bumpy ball and small disc")
+
+
+@pytest.mark.parametrize("triangles, kept", [(60, "plain"), (120, "weighted")])
+def test_a_trial_keeps_the_layout_with_the_lower_rms(triangles, kept):
+    # at 60 triangles the disc's weights take too many from the waves (plain RMS about half
+    # the weighted); at 120 the waves have enough and the disc gains (weighted 0.6x plain)
+    fit = fit_atlas(_bumpy_ball_and_small_disc(), 3 * triangles, working_count=2000,
+                    rounds=1)
+    (trial,) = fit.trials
+    rms = trial["rms_by_layout"]
+    assert set(rms) == {"plain", "weighted"}
+    assert trial["layout"] == min(rms, key=rms.get) == kept
+    assert max(rms.values()) > 1.3 * min(rms.values())  # a clear winner, not a tie
+    assert fit.rms == trial["rms"] == rms[kept]  # the fit returned is the kept one
+    assert fit.triangles == trial["triangles"]
+
+
+def test_a_ball_alone_fits_the_plain_layout_only():
+    fit = fit_atlas(_sphere_scan(3), 150, working_count=2000, rounds=1)
+    (trial,) = fit.trials
+    assert trial["layout"] == "plain" and set(trial["rms_by_layout"]) == {"plain"}
