@@ -374,7 +374,7 @@ def test_a_part_needs_good_arguments():
     atlas = sphere_atlas(2, noise=0.02, seed=4)
     part = atlas_part(atlas, range(4))
     with pytest.raises(ValueError, match="power-of-2"):
-        tessellate_atlas_part(part, [5] * 23 + [7])
+        tessellate_atlas_part(part, [7] + [5] * 23)
     with pytest.raises(ValueError, match="24 patches"):
         tessellate_atlas_part(part, [5] * 4)
     with pytest.raises(ValueError, match="no patch index"):
