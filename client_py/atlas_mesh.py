@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 import struct
 from array import array
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache, partial
@@ -382,13 +383,47 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
     return _welded_mesh(atlas, res, tiles, kernel)
 
 
+class PatchGrids:
+    """The evaluated grids (points and unit normals) and displacement grids of an atlas's
+    patches, kept between the meshes :func:`tessellate_atlas_part` makes of one atlas: a
+    patch's depend on its own resolution and tiles alone, and a refinement re-makes the
+    groups around the one that changed, whose patches are mostly as before. Least recently
+    used entries are dropped beyond ``max_samples`` grid samples (about 56 bytes each).
+    """
+
+    def __init__(self, max_samples: int = 1 << 19) -> None:
+        self.max_samples = max_samples
+        self._items: OrderedDict = OrderedDict()  # key -> (samples, value)
+        self._samples = 0
+
+    def get(self, key: tuple) -> object | None:
+        item = self._items.get(key)
+        if item is None:
+            return None
+        self._items.move_to_end(key)
+        return item[1]
+
+    def put(self, key: tuple, value: object, samples: int) -> None:
+        old = self._items.pop(key, None)
+        if old is not None:
+            self._samples -= old[0]
+        self._items[key] = (samples, value)
+        self._samples += samples
+        while self._samples > self.max_samples and len(self._items) > 1:
+            _, (dropped, _) = self._items.popitem(last=False)
+            self._samples -= dropped
+
+
 def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                  kernel: str | None, tol: float | None = None,
-                 drawn: Sequence[int] | None = None) -> AtlasMesh:
+                 drawn: Sequence[int] | None = None, names: Sequence[int] | None = None,
+                 cache: PatchGrids | None = None) -> AtlasMesh:
     """:func:`tessellate_atlas` of checked arguments; ``tol``: the degenerate-normal
     tolerance (default :func:`_normal_tolerance` of ``atlas``); ``drawn``: the patches whose
     triangles are kept, in increasing order (default all), with only the vertices they use,
-    in increasing order of their number in the whole mesh (:func:`tessellate_atlas_part`)."""
+    in increasing order of their number in the whole mesh (:func:`tessellate_atlas_part`);
+    ``cache``: patch grids kept between calls, under the patches' ``names`` (default their
+    indices)."""
     backend = _kernel.backend(kernel)
     layout = _Layout(atlas, res)
     comps = _homogeneous(atlas)
@@ -396,18 +431,30 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         tol = _normal_tolerance(comps)
     evaluate = (_evaluate_python if backend is _kernel_python
                 else partial(_evaluate_numpy, backend=backend))
-    by_res: dict[int, list[int]] = {}
-    for f, r in enumerate(res):
-        by_res.setdefault(r, []).append(f)
-    grids: dict[int, tuple[list, list, list]] = {}
-    for r, patches in sorted(by_res.items()):
-        grids.update(evaluate(atlas, comps, patches, r, tol))
     surfaces: dict[int, object] = {}
 
     def surface(f):
         if f not in surfaces:
             surfaces[f] = atlas.patch_surface(f)
         return surfaces[f]
+
+    names = names or range(len(res))
+    by_res: dict[int, list[int]] = {}
+    grids: dict[int, tuple] = {}  # patch -> (points, unit normals) of its grid
+    for f, r in enumerate(res):
+        held = cache and cache.get(("grid", names[f], r))
+        if held:
+            grids[f] = held
+        else:
+            by_res.setdefault(r, []).append(f)
+    for r, patches in sorted(by_res.items()):
+        params = _tables(atlas.degree, atlas.spans, r)[0]
+        for f, (pos, nrm, bad) in evaluate(atlas, comps, patches, r, tol).items():
+            for k in bad:  # a pole: the limit normal from inside the patch
+                nrm[3 * k : 3 * k + 3] = surface(f).normal(params[k // r], params[k % r])
+            grids[f] = (pos, nrm)
+            if cache is not None:
+                cache.put(("grid", names[f], r), (array("d", pos), array("d", nrm)), r * r)
 
     count = layout.count
     positions = array("d", bytes(24 * count))
@@ -426,12 +473,17 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         ids[f], borders[f] = layout.patch_vertices(f)
     for f, r in enumerate(res):
         params = _tables(atlas.degree, atlas.spans, r)[0]
-        pos, nrm, bad = grids[f]
-        for k in bad:  # a pole: the limit normal from inside the patch
-            nrm[3 * k : 3 * k + 3] = surface(f).normal(params[k // r], params[k % r])
+        pos, nrm = grids[f]
         disp = None
         if f in tiles:
-            disp = displacement_grid(tiles[f], params, params, kernel)
+            key = ("detail", names[f], r, tuple(map(id, tiles[f])))
+            held = cache and cache.get(key)
+            if held:
+                disp = held[1]
+            else:
+                disp = displacement_grid(tiles[f], params, params, kernel)
+                if cache is not None:  # the tiles stay referenced: their ids stay theirs
+                    cache.put(key, (tuple(tiles[f]), array("d", disp)), r * r)
         # interior vertices: one contiguous block of the patch, gathered at C speed
         at, block = layout.face_base[f], 3 * (r - 2) ** 2
         if block:
@@ -702,7 +754,8 @@ def atlas_part(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> A
 
 def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
                           detail: Mapping[int, Sequence[DetailTile]] | None = None,
-                          kernel: str | None = None) -> AtlasMesh:
+                          kernel: str | None = None, cache: PatchGrids | None = None
+                          ) -> AtlasMesh:
     """The triangles of the part's own patches in :func:`tessellate_atlas` ``(atlas,
     resolution, detail)`` of the full atlas, with the vertices they use (renumbered in
     order): the same positions, normals, ``(u, v)`` and patches, bit for bit.
@@ -731,6 +784,9 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
     detail : mapping of int to sequence of DetailTile, optional
         Full-atlas patch index -> its tiles (only the ring's are read).
     kernel : {'python', 'numpy'}, optional
+    cache : PatchGrids, optional
+        Patch grids kept between the parts of one atlas (made with one kernel): a patch is
+        evaluated, and its tiles summed, once per resolution and tiles.
 
     Returns
     -------
@@ -767,6 +823,7 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
     if tiles and part.rings < 2 and min(res) < 3:
         raise ValueError("detail on 2-sample patches needs a part of two rings "
                          "(atlas_part(..., rings=2))")
-    mesh = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn)
+    mesh = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn, part.patches,
+                        cache)
     mesh.patches = array("I", [part.patches[k] for k in mesh.patches])
     return mesh

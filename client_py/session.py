@@ -33,6 +33,7 @@ from .atlas_format import read_atlas
 from .atlas_mesh import (
     AtlasMesh,
     AtlasPart,
+    PatchGrids,
     atlas_part,
     atlas_ring,
     tessellate_atlas,
@@ -122,6 +123,7 @@ class WorkerSession:
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
         self._colours: dict[str, ColourPack] = {}  # an atlas's decoded colour packs, by name
         self._atlas_parts: dict[int, AtlasPart] = {}  # group -> atlas_part_mesh's part
+        self._patch_grids = PatchGrids()  # atlas_part_mesh's patch grids, kept between calls
 
     @property
     def kernel(self) -> str:
@@ -165,6 +167,7 @@ class WorkerSession:
         self._packs.clear()
         self._colours.clear()
         self._atlas_parts.clear()
+        self._patch_grids = PatchGrids()
         self._tiles.clear()
         self._last = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
@@ -398,6 +401,7 @@ class WorkerSession:
         self._packs.clear()
         self._colours.clear()
         self._atlas_parts.clear()
+        self._patch_grids = PatchGrids()
         return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
                 "spans": atlas.spans, "vertices": len(atlas.vertices),
                 "rational": atlas.weights is not None, "units": self._atlas_units,
@@ -570,7 +574,7 @@ class WorkerSession:
             first, count = spec.groups[group].first, spec.groups[group].count
             part = self._atlas_parts[group] = atlas_part(atlas, range(first, first + count),
                                                          _ring_depth(spec))
-        mesh = tessellate_atlas_part(part, resolution, detail, self._kernel)
+        mesh = tessellate_atlas_part(part, resolution, detail, self._kernel, self._patch_grids)
         self._colour_groups(mesh, spec, groups, [levels[g] for g in groups])
         return mesh
 

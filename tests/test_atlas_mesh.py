@@ -19,6 +19,7 @@ from client_py import Mesh
 from client_py.atlas import AtlasSurface, atlas_edges
 from client_py.atlas_mesh import (
     AtlasMesh,
+    PatchGrids,
     atlas_part,
     atlas_ply,
     tessellate_atlas,
@@ -340,6 +341,7 @@ def test_the_parts_of_a_partition_are_the_welded_mesh_bit_for_bit(kernel, ration
     triangles with the same float32 positions, normals, ``(u, v)`` and patches, bit for bit
     (so two groups' shared seam vertices are equal, and the GPU draws no crack)."""
     atlas = sphere_atlas(2, noise=0.02, seed=4, rational=rational)
+    kept = PatchGrids()  # grids kept between the parts of both level vectors
     for seed in range(2):
         groups = _groups_of(atlas, seed)
         rnd = random.Random(10 + seed)
@@ -352,7 +354,8 @@ def test_the_parts_of_a_partition_are_the_welded_mesh_bit_for_bit(kernel, ration
                                for f in group})
         whole = tessellate_atlas(atlas, resolution, detail, kernel=kernel)
         meshes = [tessellate_atlas_part(atlas_part(atlas, group, rings), resolution, detail,
-                                        kernel=kernel) for group in groups]
+                                        kernel=kernel, cache=kept if g % 2 else None)
+                  for g, group in enumerate(groups)]
         for name, width in (("positions", 3), ("normals", 3), ("uvs", 2), ("patches", 1)):
             joined = np.concatenate([_drawn(m, name, width) for m in meshes])
             assert joined.tobytes() == _drawn(whole, name, width).tobytes(), name
@@ -387,3 +390,13 @@ def test_a_part_needs_good_arguments():
         atlas_part(atlas, [24])
     with pytest.raises(ValueError, match="rings"):
         atlas_part(atlas, [0], rings=3)
+
+
+def test_patch_grids_drop_the_least_recently_used_beyond_their_samples():
+    kept = PatchGrids(max_samples=10)
+    for k in range(3):
+        kept.put(("grid", k, 2), k, 4)
+    assert kept.get(("grid", 0, 2)) is None and kept.get(("grid", 2, 2)) == 2
+    kept.get(("grid", 1, 2))  # used: 2 is now the oldest
+    kept.put(("grid", 3, 2), 3, 4)
+    assert kept.get(("grid", 2, 2)) is None and kept.get(("grid", 1, 2)) == 1

