@@ -486,7 +486,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                     cache.put(key, (tuple(tiles[f]), array("d", disp)), r * r)
         # interior vertices: one contiguous block of the patch, gathered at C speed
         at, block = layout.face_base[f], 3 * (r - 2) ** 2
-        if block:
+        if block and (drawn is None or tiles or f in drawn):  # else never read
             take3, take1, block_uvs = _interior(r)
             inner_pos, inner_nrm = take3(pos), take3(nrm)
             if disp is not None:
@@ -538,24 +538,45 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                     (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
 
     if tiles:
-        # normals of the drawn (displaced, welded) surface by differences within each patch
+        # normals of the drawn (displaced, welded) surface by differences within each patch;
+        # of a patch not drawn (drawn's ring), only those at the drawn patches' vertices: on
+        # a window of the grid one sample wider, where the differences are the whole grid's
         backend_displace = backend.displace_grid
         shading = [0.0] * (3 * n_border)
+        mine = range(len(res)) if drawn is None else set(drawn)
+        used = () if drawn is None else set(chain.from_iterable(ids[f] for f in drawn))
         for f, r in enumerate(res):
             local = ids[f]
-            grid = array("d", bytes(24 * r * r))
+            i0, i1, j0, j1 = 0, r, 0, r
+            if f not in mine:
+                rows_cols = [divmod(slot, r) for slot, g, _ in borders[f] if g in used]
+                if not rows_cols:
+                    continue
+                i0, i1 = min(i for i, _ in rows_cols), max(i for i, _ in rows_cols) + 1
+                j0, j1 = min(j for _, j in rows_cols), max(j for _, j in rows_cols) + 1
+            a0, a1, b0, b1 = max(i0 - 1, 0), min(i1 + 1, r), max(j0 - 1, 0), min(j1 + 1, r)
+            height, width = a1 - a0, b1 - b0
+            slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
+            grid = array("d", bytes(24 * height * width))
             for c in range(3):
-                grid[c::3] = array("d", [positions[3 * g + c] for g in local])
-            base_normals = array("d", grids[f][1])
-            _, shaded = backend_displace(grid, base_normals, array("d", bytes(8 * r * r)), r,
-                                         r, (0, r, 0, r))
+                grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
+            nrm = grids[f][1]
+            base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
+            _, shaded = backend_displace(grid, base_normals,
+                                         array("d", bytes(8 * height * width)), height, width,
+                                         (i0 - a0, i1 - a0, j0 - b0, j1 - b0))
             shaded = array("d", shaded)
-            for slot, g in enumerate(local):
-                if g >= n_border:
-                    normals[3 * g : 3 * g + 3] = shaded[3 * slot : 3 * slot + 3]
+            if f in mine:  # the whole grid: shaded is in slot order
+                for slot, g in enumerate(local):
+                    if g >= n_border:
+                        normals[3 * g : 3 * g + 3] = shaded[3 * slot : 3 * slot + 3]
+            span = j1 - j0
             for slot, g, _ in borders[f]:
-                for c in range(3):
-                    shading[3 * g + c] += shaded[3 * slot + c]
+                i, j = divmod(slot, r)
+                if i0 <= i < i1 and j0 <= j < j1:
+                    k = 3 * ((i - i0) * span + j - j0)
+                    for c in range(3):
+                        shading[3 * g + c] += shaded[k + c]
     for node in range(n_border):
         normals[3 * node : 3 * node + 3] = array("d", _unit(*shading[3 * node : 3 * node + 3]))
 
