@@ -286,7 +286,7 @@ def run_regions() -> dict | None:
 
 # Atlas refinement (issue 14): an atlas bundle's groups change level as a visitor zooms;
 # per refinement, the old viewer's work (WorkerSession.atlas_mesh: the whole atlas welded
-# again) against the new one's (WorkerSession.atlas_part_mesh of the groups whose mesh at
+# again) against the new one's (WorkerSession.atlas_part_meshes of the groups whose mesh at
 # their new level and their neighbours' levels was not made before in the visit: AtlasLayer
 # keeps the others). Step 1 is
 # the first frame: the welded base in both viewers; the new one then makes every group's base
@@ -322,7 +322,7 @@ for levels in INPUT["steps"]:
     keys = [(g, k, tuple(levels[h] for h in neighbours[g])) for g, k in enumerate(levels)]
     wanted = [key for key in keys if key not in made]
     start, start_cpu = time.perf_counter(), cpu_ms()
-    parts = [session.atlas_part_mesh(g, levels) for g, _, _ in wanted]
+    parts = session.atlas_part_meshes([g for g, _, _ in wanted], levels)
     after = (1000 * (time.perf_counter() - start), cpu_ms() - start_cpu)
     made.update(wanted)
     rows.append({"levels": levels, "before_ms": before[0], "before_cpu_ms": before[1],

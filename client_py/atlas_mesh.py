@@ -380,12 +380,12 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
     res = _check_resolutions(atlas, resolution)
     tiles = _check_detail(atlas, detail)
-    return _welded_mesh(atlas, res, tiles, kernel)
+    return _welded_mesh(atlas, res, tiles, kernel)[0]
 
 
 class PatchGrids:
     """The evaluated grids (points and unit normals) and displacement grids of an atlas's
-    patches, kept between the meshes :func:`tessellate_atlas_part` makes of one atlas: a
+    patches, kept between the meshes :func:`tessellate_atlas_parts` makes of one atlas: a
     patch's depend on its own resolution and tiles alone, and a refinement re-makes the
     groups around the one that changed, whose patches are mostly as before. Least recently
     used entries are dropped beyond ``max_samples`` grid samples (about 56 bytes each).
@@ -416,12 +416,14 @@ class PatchGrids:
 
 def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                  kernel: str | None, tol: float | None = None,
-                 drawn: Sequence[int] | None = None, names: Sequence[int] | None = None,
-                 cache: PatchGrids | None = None) -> AtlasMesh:
-    """:func:`tessellate_atlas` of checked arguments; ``tol``: the degenerate-normal
-    tolerance (default :func:`_normal_tolerance` of ``atlas``); ``drawn``: the patches whose
-    triangles are kept, in increasing order (default all), with only the vertices they use,
-    in increasing order of their number in the whole mesh (:func:`tessellate_atlas_part`);
+                 drawn: Sequence[Sequence[int]] | None = None,
+                 names: Sequence[int] | None = None,
+                 cache: PatchGrids | None = None) -> list[AtlasMesh]:
+    """:func:`tessellate_atlas` of checked arguments (one mesh); ``tol``: the
+    degenerate-normal tolerance (default :func:`_normal_tolerance` of ``atlas``); ``drawn``:
+    instead, one mesh per sequence of patches (in increasing order): their triangles, with
+    only the vertices these use, in increasing order of their number in the whole mesh
+    (:func:`tessellate_atlas_parts`);
     ``cache``: patch grids kept between calls, under the patches' ``names`` (default their
     indices)."""
     backend = _kernel.backend(kernel)
@@ -469,6 +471,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     shading = [0.0] * (3 * n_border)  # sum of the unit normals of the drawn surface
 
     ids, borders = {}, {}
+    mine = range(len(res)) if drawn is None else set(chain.from_iterable(drawn))
     for f in range(len(res)):
         ids[f], borders[f] = layout.patch_vertices(f)
     for f, r in enumerate(res):
@@ -486,7 +489,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                     cache.put(key, (tuple(tiles[f]), array("d", disp)), r * r)
         # interior vertices: one contiguous block of the patch, gathered at C speed
         at, block = layout.face_base[f], 3 * (r - 2) ** 2
-        if block and (drawn is None or tiles or f in drawn):  # else never read
+        if block and (f in mine or tiles):  # else never read
             take3, take1, block_uvs = _interior(r)
             inner_pos, inner_nrm = take3(pos), take3(nrm)
             if disp is not None:
@@ -543,8 +546,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # a window of the grid one sample wider, where the differences are the whole grid's
         backend_displace = backend.displace_grid
         shading = [0.0] * (3 * n_border)
-        mine = range(len(res)) if drawn is None else set(drawn)
-        used = () if drawn is None else set(chain.from_iterable(ids[f] for f in drawn))
+        used = () if drawn is None else set(chain.from_iterable(ids[f] for f in mine))
         for f, r in enumerate(res):
             local = ids[f]
             i0, i1, j0, j1 = 0, r, 0, r
@@ -584,40 +586,52 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     extra_normals: list[float] = []
     extra_uvs: list[float] = []
     extra_owners: list[int] = []
-    indices = array("I")
-    for f in range(len(res)) if drawn is None else drawn:
-        r, local = res[f], ids[f]
-        finer = [layout.fine[layout.table.sides[f][k][0]] > r for k in range(4)]
-        if not any(finer):
-            indices.extend(map(local.__getitem__, grid_indices(r, r, kernel=kernel)))
-            continue
+    triangles = []  # per part: its triangles' vertices (numbered in the whole mesh)
+    for patches in [range(len(res))] if drawn is None else drawn:
+        indices = array("I")
+        for f in patches:
+            r, local = res[f], ids[f]
+            finer = [layout.fine[layout.table.sides[f][k][0]] > r for k in range(4)]
+            if not any(finer):
+                indices.extend(map(local.__getitem__, grid_indices(r, r, kernel=kernel)))
+                continue
 
-        def centre(f, r, i, j):
-            u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
-            point, n = surface(f).evaluate(u, v), surface(f).normal(u, v)
-            if f in tiles:
-                d = displacement_grid(tiles[f], [u], [v], kernel)[0]
-                point = tuple(p + d * c for p, c in zip(point, n, strict=True))
-            extra_positions.extend(point)
-            extra_normals.extend(n)
-            extra_uvs.extend((u, v))
-            extra_owners.append(f)
-            return count + len(extra_owners) - 1
+            def centre(f, r, i, j):
+                u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
+                point, n = surface(f).evaluate(u, v), surface(f).normal(u, v)
+                if f in tiles:
+                    d = displacement_grid(tiles[f], [u], [v], kernel)[0]
+                    point = tuple(p + d * c for p, c in zip(point, n, strict=True))
+                extra_positions.extend(point)
+                extra_normals.extend(n)
+                extra_uvs.extend((u, v))
+                extra_owners.append(f)
+                return count + len(extra_owners) - 1
 
-        indices.extend(_patch_triangles(layout, f, r, local, finer, centre))
+            indices.extend(_patch_triangles(layout, f, r, local, finer, centre))
+        triangles.append(indices)
     if extra_owners:
         positions.extend(extra_positions)
         normals.extend(extra_normals)
         uvs.extend(extra_uvs)
         owners.extend(extra_owners)
-    if drawn is not None:  # the vertices the kept triangles use, renumbered in order
+    if drawn is None:
+        return [_packed(positions, normals, uvs, owners, triangles[0])]
+    meshes = []
+    for indices in triangles:  # the vertices a part's triangles use, renumbered in order
         keep = sorted(set(indices))
         number = {old: new for new, old in enumerate(keep)}
-        indices = array("I", map(number.__getitem__, indices))
         take3 = itemgetter(*[3 * k + c for k in keep for c in range(3)])
         take2 = itemgetter(*[2 * k + c for k in keep for c in range(2)])
-        positions, normals = array("d", take3(positions)), array("d", take3(normals))
-        uvs, owners = array("d", take2(uvs)), array("I", [owners[k] for k in keep])
+        meshes.append(_packed(array("d", take3(positions)), array("d", take3(normals)),
+                              array("d", take2(uvs)), array("I", [owners[k] for k in keep]),
+                              array("I", map(number.__getitem__, indices))))
+    return meshes
+
+
+def _packed(positions: array, normals: array, uvs: array, owners: array,
+            indices: array) -> AtlasMesh:
+    """An :class:`AtlasMesh` of double-precision vertex arrays, stored as float32."""
     total = len(owners)
     pack = struct.Struct(f"={3 * total}f").pack
     try:
@@ -679,21 +693,21 @@ def atlas_ply(atlas: AtlasSurface, resolution: int | Sequence[int],
 # ------------------------------------------------------------------ one group's share of it
 @dataclass(frozen=True)
 class AtlasPart:
-    """Some patches of an atlas (a detail group) and the patches around them: all that
+    """Groups of patches of an atlas (detail groups) and the patches around them: all that
     their triangles in the welded mesh (:func:`tessellate_atlas`) depend on
-    (:func:`tessellate_atlas_part`).
+    (:func:`tessellate_atlas_parts`).
 
     Attributes
     ----------
     atlas : AtlasSurface
-        The part's patches and their rings (:func:`atlas_ring`) as an atlas of their own, in
+        The groups' patches and their rings (:func:`atlas_ring`) as an atlas of their own, in
         the full atlas's patch order, on its layout vertices (unused ones stay, so vertex
         indices are the full atlas's), with their own edge numbering (``atlas_edges`` of
         their quads) and the control points of their edges and faces.
     patches : tuple of int
         The full atlas's index of each patch of ``atlas`` (increasing).
-    drawn : tuple of int
-        The part's own patches, as indices into ``patches`` (increasing).
+    drawn : tuple of tuple of int
+        Each group's patches, as indices into ``patches`` (increasing).
     patch_count : int
         Patches of the full atlas.
     rings : int
@@ -704,7 +718,7 @@ class AtlasPart:
 
     atlas: AtlasSurface
     patches: tuple[int, ...]
-    drawn: tuple[int, ...]
+    drawn: tuple[tuple[int, ...], ...]
     patch_count: int
     rings: int
     tolerance: float
@@ -724,28 +738,30 @@ def atlas_ring(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> l
     return sorted(found)
 
 
-def atlas_part(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> AtlasPart:
-    """The patches ``patches`` of ``atlas`` with ``rings`` rings of patches around them
-    (:func:`atlas_ring`) as an :class:`AtlasPart` (made once per group).
+def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
+                rings: int = 1) -> AtlasPart:
+    """The groups of patches ``groups`` of ``atlas`` with ``rings`` rings of patches around
+    them (:func:`atlas_ring`) as an :class:`AtlasPart`.
 
-    One ring is all :func:`tessellate_atlas_part` needs while every patch of it has at
+    One ring is all :func:`tessellate_atlas_parts` needs while every patch of it has at
     least 3 samples per side; with detail on 2-sample patches it needs two (a drawn normal
     by differences then reaches the far corners of the ring's patches).
 
     Raises
     ------
     ValueError
-        No patches, a repeated one or one that is no index of ``atlas``; ``rings`` not 1
-        or 2.
+        A group without patches, a patch in two places or one that is no index of
+        ``atlas``; ``rings`` not 1 or 2.
     """
     if not isinstance(atlas, AtlasSurface):
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
     if rings not in (1, 2) or isinstance(rings, bool):
         raise ValueError(f"rings = {rings!r}; 1 or 2 is needed")
-    chosen = tuple(patches)
+    groups = [tuple(group) for group in groups]
+    chosen = tuple(chain.from_iterable(groups))
     count = len(atlas.quads)
-    if not chosen:
-        raise ValueError("a part needs at least one patch")
+    if not groups or not all(groups):
+        raise ValueError("a part needs groups of at least one patch")
     for f in chosen:
         if isinstance(f, bool) or not isinstance(f, int) or not 0 <= f < count:
             raise ValueError(f"part patch {f!r} is no patch index in 0..{count - 1}")
@@ -768,16 +784,17 @@ def atlas_part(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> A
     part = AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, quads,
                         [atlas.edge_points[k] for run in edge_runs for k in run],
                         [atlas.face_points[k] for run in face_runs for k in run], weights)
-    mine = set(chosen)
-    return AtlasPart(part, tuple(ring), tuple(k for k, f in enumerate(ring) if f in mine),
+    at = {f: k for k, f in enumerate(ring)}
+    return AtlasPart(part, tuple(ring), tuple(tuple(sorted(at[f] for f in group))
+                                              for group in groups),
                      count, rings, _normal_tolerance(_homogeneous(atlas)))
 
 
-def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
-                          detail: Mapping[int, Sequence[DetailTile]] | None = None,
-                          kernel: str | None = None, cache: PatchGrids | None = None
-                          ) -> AtlasMesh:
-    """The triangles of the part's own patches in :func:`tessellate_atlas` ``(atlas,
+def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],
+                           detail: Mapping[int, Sequence[DetailTile]] | None = None,
+                           kernel: str | None = None, cache: PatchGrids | None = None
+                           ) -> list[AtlasMesh]:
+    """Per group of ``part``, its patches' triangles in :func:`tessellate_atlas` ``(atlas,
     resolution, detail)`` of the full atlas, with the vertices they use (renumbered in
     order): the same positions, normals, ``(u, v)`` and patches, bit for bit.
 
@@ -786,19 +803,20 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
     their normals; the normalised sum of their drawn normals), an edge is evaluated at its
     coarser side's resolution, and a drawn normal by differences reaches one sample into
     each patch. So the part's triangles depend only on the patches sharing a layout vertex
-    with it (its ring, ``part.atlas``): this is the welded mesh of the part and its ring
-    with the full atlas's resolutions, detail and normal tolerance, cut to the part's
-    triangles. Two parts' meshes share their seam vertices exactly (the same arithmetic
-    on the same numbers, in the same order: the grid kernels evaluate each patch alike
-    whatever else is in the batch), so they meet without a crack, and the parts of a
-    partition of the atlas together are its welded mesh. A part's mesh depends on the
-    resolutions and detail of its ring's patches too: a viewer redraws a part when its
-    own or a neighbouring part's level changes.
+    with it (its ring): this is the welded mesh of the groups and their ring
+    (``part.atlas``) with the full atlas's resolutions, detail and normal tolerance, cut
+    into the groups' triangles (one evaluation for all the groups, their rings shared).
+    Two groups' meshes share their seam vertices exactly, made together or apart (the same
+    arithmetic on the same numbers, in the same order: the grid kernels evaluate each patch
+    alike whatever else is in the batch), so they meet without a crack, and the groups of
+    a partition of the atlas together are its welded mesh. A group's mesh depends on the
+    resolutions and detail of its ring's patches too: a viewer redraws a group when its
+    own or a neighbouring group's level changes.
 
     Parameters
     ----------
     part : AtlasPart
-        From :func:`atlas_part`.
+        From :func:`atlas_parts`.
     resolution : int or sequence of int
         Samples per patch side, for all patches or one per patch of the *full* atlas (as
         :func:`tessellate_atlas`; only the ring's are read).
@@ -811,8 +829,9 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
 
     Returns
     -------
-    AtlasMesh
-        ``patches`` holds the full atlas's patch indices.
+    list of AtlasMesh
+        One per group of ``part``, in its order; ``patches`` holds the full atlas's patch
+        indices.
 
     Raises
     ------
@@ -821,7 +840,7 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
         a part of one ring.
     """
     if not isinstance(part, AtlasPart):
-        raise ValueError(f"part must be an AtlasPart (atlas_part), got {type(part).__name__}")
+        raise ValueError(f"part must be an AtlasPart (atlas_parts), got {type(part).__name__}")
     if isinstance(resolution, int) and not isinstance(resolution, bool):
         resolution = [resolution] * part.patch_count
     elif isinstance(resolution, Sequence) and not isinstance(resolution, str | bytes) \
@@ -843,8 +862,9 @@ def tessellate_atlas_part(part: AtlasPart, resolution: int | Sequence[int],
                                   if f in detail})
     if tiles and part.rings < 2 and min(res) < 3:
         raise ValueError("detail on 2-sample patches needs a part of two rings "
-                         "(atlas_part(..., rings=2))")
-    mesh = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn, part.patches,
-                        cache)
-    mesh.patches = array("I", [part.patches[k] for k in mesh.patches])
-    return mesh
+                         "(atlas_parts(..., rings=2))")
+    meshes = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn,
+                          part.patches, cache)
+    for mesh in meshes:
+        mesh.patches = array("I", [part.patches[k] for k in mesh.patches])
+    return meshes

@@ -25,6 +25,7 @@ from array import array
 from bisect import bisect_right
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from itertools import chain
 
 from . import _kernel
 from .atlas import AtlasSurface
@@ -32,12 +33,11 @@ from .atlas_detail import pack_name, read_pack
 from .atlas_format import read_atlas
 from .atlas_mesh import (
     AtlasMesh,
-    AtlasPart,
     PatchGrids,
-    atlas_part,
+    atlas_parts,
     atlas_ring,
     tessellate_atlas,
-    tessellate_atlas_part,
+    tessellate_atlas_parts,
 )
 from .atlas_texture import ColourPack, atlas_vertex_colours, colours_for_groups
 from .bundle import (
@@ -122,8 +122,7 @@ class WorkerSession:
         self._atlas_units = "unknown"
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
         self._colours: dict[str, ColourPack] = {}  # an atlas's decoded colour packs, by name
-        self._atlas_parts: dict[int, AtlasPart] = {}  # group -> atlas_part_mesh's part
-        self._patch_grids = PatchGrids()  # atlas_part_mesh's patch grids, kept between calls
+        self._patch_grids = PatchGrids()  # atlas_part_meshes' patch grids, kept between calls
 
     @property
     def kernel(self) -> str:
@@ -166,7 +165,6 @@ class WorkerSession:
         self._atlas = None
         self._packs.clear()
         self._colours.clear()
-        self._atlas_parts.clear()
         self._patch_grids = PatchGrids()
         self._tiles.clear()
         self._last = None
@@ -400,7 +398,6 @@ class WorkerSession:
         self._atlas_units = str(metadata.get("units", "unknown"))
         self._packs.clear()
         self._colours.clear()
-        self._atlas_parts.clear()
         self._patch_grids = PatchGrids()
         return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
                 "spans": atlas.spans, "vertices": len(atlas.vertices),
@@ -429,7 +426,7 @@ class WorkerSession:
             ``resolutions``: samples per patch side drawn with levels ``-1, 0, .., L``
             (:meth:`atlas_mesh`'s rule); ``levels``: ``L + 1``; per group also
             ``neighbours``: the other groups whose levels its mesh depends on
-            (:meth:`atlas_part_mesh`).
+            (:meth:`atlas_part_meshes`).
         """
         atlas, spec = self._atlas_loaded()
         detail = self._manifest_read()["tiles"].get("detail") or {}
@@ -516,7 +513,7 @@ class WorkerSession:
         """Samples per side of every patch and the detail of the patches of ``groups``, group
         ``g`` at ``levels[g]`` (the held packs of levels ``0..levels[g]`` of the group and
         :func:`_drawn_resolution` ``(levels[g])``): :meth:`atlas_mesh`'s rule, which
-        :meth:`atlas_part_mesh` shares. ``ValueError`` for not one level per group, a level
+        :meth:`atlas_part_meshes` shares. ``ValueError`` for not one level per group, a level
         out of range, or a pack a group of ``groups`` needs not handed over."""
         levels = list(levels)
         if len(levels) != len(spec.groups):
@@ -543,40 +540,46 @@ class WorkerSession:
                     detail.setdefault(patch, []).extend(tiles)
         return resolution, detail
 
-    def atlas_part_mesh(self, group: int, levels: Sequence[int]) -> Mesh:
-        """Group ``group``'s share of :meth:`atlas_mesh` ``(levels)``: its triangles of that
-        welded mesh, with the vertices they use, the same numbers bit for bit
-        (:func:`client_py.atlas_mesh.tessellate_atlas_part`); the viewer's unit of
-        refinement. Groups made at one level vector meet without a crack, and together are
-        the welded mesh.
+    def atlas_part_meshes(self, groups: Sequence[int], levels: Sequence[int]) -> list[Mesh]:
+        """Each of ``groups``' share of :meth:`atlas_mesh` ``(levels)``: its triangles of
+        that welded mesh, with the vertices they use, the same numbers bit for bit
+        (:func:`client_py.atlas_mesh.tessellate_atlas_parts`, one evaluation for all of
+        them); the viewer's unit of refinement. Groups made at one level vector, together or
+        apart, meet without a crack, and together are the welded mesh.
 
-        The mesh depends on the levels of the group and of its ``neighbours``
+        A group's mesh depends on the levels of the group and of its ``neighbours``
         (:meth:`atlas_refinement`: the groups of the patches sharing a layout vertex with
-        it) alone, and needs their held packs; the group's part (its patches and their ring)
-        is made once. With colour, the mesh carries RGB per vertex by :meth:`atlas_mesh`'s
-        rule (it needs the colour packs of the group and its neighbours at their levels;
-        without them ``colors`` stays ``None``).
+        it) alone, and needs their held packs. With colour, a mesh carries RGB per vertex by
+        :meth:`atlas_mesh`'s rule (it needs the colour packs of the group and its
+        neighbours at their levels; without them its ``colors`` stays ``None``).
 
         Raises
         ------
         ValueError
-            A group out of range, bad ``levels`` (:meth:`atlas_mesh`), or a pack the group
-            or a neighbour needs not handed over.
+            A group out of range or twice, bad ``levels`` (:meth:`atlas_mesh`), or a pack a
+            group or a neighbour needs not handed over.
         """
         atlas, spec = self._atlas_loaded()
-        if isinstance(group, bool) or not isinstance(group, int) \
-                or not 0 <= group < len(spec.groups):
-            raise ValueError(f"group {group!r}; an int in 0..{len(spec.groups) - 1} is needed")
-        groups = [group, *_neighbour_groups(atlas, spec, group)]
-        resolution, detail = self._atlas_levels(spec, levels, groups)
-        part = self._atlas_parts.get(group)
-        if part is None:
-            first, count = spec.groups[group].first, spec.groups[group].count
-            part = self._atlas_parts[group] = atlas_part(atlas, range(first, first + count),
-                                                         _ring_depth(spec))
-        mesh = tessellate_atlas_part(part, resolution, detail, self._kernel, self._patch_grids)
-        self._colour_groups(mesh, spec, groups, [levels[g] for g in groups])
-        return mesh
+        groups = list(groups)
+        for group in groups:
+            if isinstance(group, bool) or not isinstance(group, int) \
+                    or not 0 <= group < len(spec.groups):
+                raise ValueError(f"group {group!r}; an int in 0..{len(spec.groups) - 1} is "
+                                 "needed")
+        if len(set(groups)) != len(groups):
+            raise ValueError(f"groups {groups} lists a group twice")
+        if not groups:
+            return []
+        around = {g: [g, *_neighbour_groups(atlas, spec, g)] for g in groups}
+        resolution, detail = self._atlas_levels(spec, levels, sorted(set(chain(*around.values()))))
+        runs = [range(spec.groups[g].first, spec.groups[g].first + spec.groups[g].count)
+                for g in groups]
+        part = atlas_parts(atlas, runs, _ring_depth(spec))
+        meshes = tessellate_atlas_parts(part, resolution, detail, self._kernel,
+                                        self._patch_grids)
+        for g, mesh in zip(groups, meshes, strict=True):
+            self._colour_groups(mesh, spec, around[g], [levels[h] for h in around[g]])
+        return meshes
 
     def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes],
                          textures: Sequence[Mapping] = ()) -> PlyFile:
@@ -669,7 +672,7 @@ class WorkerSession:
         ``levels[i]`` (:func:`client_py.atlas_texture.colours_for_groups`), when the bundle
         has colour and a pack is held for every patch of those groups (else it stays
         uncoloured: the packs are still on their way). The one colour rule of
-        :meth:`atlas_mesh` (every group) and :meth:`atlas_part_mesh` (one group)."""
+        :meth:`atlas_mesh` (every group) and :meth:`atlas_part_meshes` (some groups)."""
         colour = atlas_colour(self._manifest_read())
         if colour is None or not self._colours:
             return

@@ -20,10 +20,10 @@ from client_py.atlas import AtlasSurface, atlas_edges
 from client_py.atlas_mesh import (
     AtlasMesh,
     PatchGrids,
-    atlas_part,
+    atlas_parts,
     atlas_ply,
     tessellate_atlas,
-    tessellate_atlas_part,
+    tessellate_atlas_parts,
 )
 from client_py.layers import DetailTile
 
@@ -336,10 +336,11 @@ def _drawn(mesh, name, width):
                           (False, (2, 3, 5), 2)])
 def test_the_parts_of_a_partition_are_the_welded_mesh_bit_for_bit(kernel, rational,
                                                                  resolutions, rings):
-    """Every group's :func:`tessellate_atlas_part` at a random level vector, with detail,
-    concatenated in group order, is :func:`tessellate_atlas` of the same arguments: the same
-    triangles with the same float32 positions, normals, ``(u, v)`` and patches, bit for bit
-    (so two groups' shared seam vertices are equal, and the GPU draws no crack)."""
+    """Every group's mesh (:func:`tessellate_atlas_parts`, made alone or all together) at a
+    random level vector, with detail, concatenated in group order, is
+    :func:`tessellate_atlas` of the same arguments: the same triangles with the same float32
+    positions, normals, ``(u, v)`` and patches, bit for bit (so two groups' shared seam
+    vertices are equal, and the GPU draws no crack)."""
     atlas = sphere_atlas(2, noise=0.02, seed=4, rational=rational)
     kept = PatchGrids()  # grids kept between the parts of both level vectors
     for seed in range(2):
@@ -353,43 +354,51 @@ def test_the_parts_of_a_partition_are_the_welded_mesh_bit_for_bit(kernel, ration
                 detail.update({f: random_tiles(f, levels=level + 1, amplitude=0.2)
                                for f in group})
         whole = tessellate_atlas(atlas, resolution, detail, kernel=kernel)
-        meshes = [tessellate_atlas_part(atlas_part(atlas, group, rings), resolution, detail,
-                                        kernel=kernel, cache=kept if g % 2 else None)
-                  for g, group in enumerate(groups)]
-        for name, width in (("positions", 3), ("normals", 3), ("uvs", 2), ("patches", 1)):
-            joined = np.concatenate([_drawn(m, name, width) for m in meshes])
-            assert joined.tobytes() == _drawn(whole, name, width).tobytes(), name
-        for mesh, group in zip(meshes, groups, strict=True):
+        apart = [tessellate_atlas_parts(atlas_parts(atlas, [group], rings), resolution,
+                                        detail, kernel=kernel,
+                                        cache=kept if g % 2 else None)[0]
+                 for g, group in enumerate(groups)]
+        order = [*range(1, len(groups), 2), *range(0, len(groups), 2)]  # any order
+        made = tessellate_atlas_parts(atlas_parts(atlas, [groups[g] for g in order], rings),
+                                      resolution, detail, kernel=kernel)
+        together = [made[order.index(g)] for g in range(len(groups))]
+        for meshes in (apart, together):
+            for name, width in (("positions", 3), ("normals", 3), ("uvs", 2), ("patches", 1)):
+                joined = np.concatenate([_drawn(m, name, width) for m in meshes])
+                assert joined.tobytes() == _drawn(whole, name, width).tobytes(), name
+        for mesh, group in zip(apart, groups, strict=True):
             assert len(set(mesh.indices)) == mesh.vertex_count  # only the vertices it uses
-            assert set(mesh.patches) <= set(atlas_part(atlas, group).patches)
+            assert set(mesh.patches) <= set(atlas_parts(atlas, [group]).patches)
 
 
 def test_a_part_is_its_patches_and_their_vertex_ring():
     atlas = sphere_atlas(2, noise=0.02, seed=4)
-    part = atlas_part(atlas, [0])
+    part = atlas_parts(atlas, [[0]])
     ring = {f for f, quad in enumerate(atlas.quads) if set(quad) & set(atlas.quads[0])}
     assert part.patches == tuple(sorted(ring)) and len(ring) == 8  # at a cube corner
-    assert [part.patches[k] for k in part.drawn] == [0]
-    assert len(atlas_part(atlas, [0], rings=2).patches) > len(ring)
+    assert [[part.patches[k] for k in group] for group in part.drawn] == [[0]]
+    assert len(atlas_parts(atlas, [[0]], rings=2).patches) > len(ring)
 
 
 def test_a_part_needs_good_arguments():
     atlas = sphere_atlas(2, noise=0.02, seed=4)
-    part = atlas_part(atlas, range(4))
+    part = atlas_parts(atlas, [range(4)])
     with pytest.raises(ValueError, match="power-of-2"):
-        tessellate_atlas_part(part, [7] + [5] * 23)
+        tessellate_atlas_parts(part, [7] + [5] * 23)
     with pytest.raises(ValueError, match="24 patches"):
-        tessellate_atlas_part(part, [5] * 4)
+        tessellate_atlas_parts(part, [5] * 4)
     with pytest.raises(ValueError, match="no patch index"):
-        tessellate_atlas_part(part, 9, {24: random_tiles(1)})
+        tessellate_atlas_parts(part, 9, {24: random_tiles(1)})
     with pytest.raises(ValueError, match="two rings"):
-        tessellate_atlas_part(part, 2, {0: random_tiles(1)})
+        tessellate_atlas_parts(part, 2, {0: random_tiles(1)})
     with pytest.raises(ValueError, match="twice"):
-        atlas_part(atlas, [0, 0])
+        atlas_parts(atlas, [[0], [1, 0]])
     with pytest.raises(ValueError, match="no patch index"):
-        atlas_part(atlas, [24])
+        atlas_parts(atlas, [[24]])
+    with pytest.raises(ValueError, match="at least one patch"):
+        atlas_parts(atlas, [[0], []])
     with pytest.raises(ValueError, match="rings"):
-        atlas_part(atlas, [0], rings=3)
+        atlas_parts(atlas, [[0]], rings=3)
 
 
 def test_patch_grids_drop_the_least_recently_used_beyond_their_samples():

@@ -181,7 +181,7 @@ def _paint_patch_and_level(level: int, patch: int, side: int) -> np.ndarray:
 
 
 def test_a_group_mesh_has_the_welded_mesh_s_colours_at_the_same_levels(tmp_path):
-    """atlas_part_mesh colours its group by atlas_mesh's rule: at the same levels (one group
+    """atlas_part_meshes colours its groups by atlas_mesh's rule: at the same levels (one group
     at the finest level, the others at the base), every group's mesh has the welded mesh's
     RGB at every triangle corner, and every red names the vertex's patch and its group's
     colour level (independent of the sampling code). A group is coloured once the packs of
@@ -207,12 +207,12 @@ def test_a_group_mesh_has_the_welded_mesh_s_colours_at_the_same_levels(tmp_path)
     assert table["group_packs"][g] == ["texture/0/0.webp", "texture/0/0.webp",
                                        "texture/1/0.webp"]
     hand("texture/1/0.webp")
-    assert session.atlas_part_mesh(g, levels).colors is None  # its neighbours' is not held
+    assert session.atlas_part_meshes([g], levels)[0].colors is None  # its neighbours' isn't held
     assert session.atlas_mesh(levels).colors is None  # nor the other groups' packs
     hand("texture/0/0.webp")
     welded = session.atlas_mesh(levels)
     assert welded.colors is not None
-    parts = [session.atlas_part_mesh(h, levels) for h in range(len(levels))]
+    parts = session.atlas_part_meshes(range(len(levels)), levels)
     assert all(p.colors is not None and len(p.colors) == 3 * p.vertex_count for p in parts)
 
     def corners(mesh):

@@ -539,10 +539,11 @@ def _corners(mesh, name="positions", width=3):
 
 
 def test_atlas_part_mesh_is_its_group_s_share_of_the_welded_mesh(tmp_path):
-    """atlas_part_mesh(g, levels): group g's triangles of atlas_mesh(levels), bit for bit
-    (so every group's together are the welded mesh, at the base and with detail), from the
-    packs of the group and its neighbours (the groups around it on the layout); a change
-    of a group that is no neighbour changes nothing of it."""
+    """atlas_part_meshes(groups, levels): each group's triangles of atlas_mesh(levels), bit
+    for bit, made together or apart (so every group's together are the welded mesh, at the
+    base and with detail), from the packs of the group and its neighbours (the groups
+    around it on the layout); a change of a group that is no neighbour changes nothing of
+    it."""
     from atlas_bundle import write_atlas_bundle
 
     folder = tmp_path / "sphere"
@@ -557,29 +558,38 @@ def test_atlas_part_mesh_is_its_group_s_share_of_the_welded_mesh(tmp_path):
     opposite = ({0, 1, 3, 4, 5} - set(groups[2]["neighbours"])).pop()
     neighbour = groups[2]["neighbours"][0]
 
-    def parts(levels):
-        return b"".join(_corners(session.atlas_part_mesh(g, levels)) for g in range(6))
+    def parts(levels, together=False):
+        meshes = session.atlas_part_meshes([5, 0, 1, 2, 3, 4], levels) if together else \
+            [session.atlas_part_meshes([g], levels)[0] for g in range(6)]
+        if together:
+            meshes = meshes[1:] + meshes[:1]
+        return b"".join(map(_corners, meshes))
+
+    def one(g, levels):
+        return session.atlas_part_meshes([g], levels)[0]
 
     base = [-1] * 6
-    assert parts(base) == _corners(session.atlas_mesh(base))
+    assert parts(base) == parts(base, together=True) == _corners(session.atlas_mesh(base))
+    assert session.atlas_part_meshes([], base) == []
     levels = list(base)
     levels[2] = levels[neighbour] = 1
-    with pytest.raises(ValueError, match="needs pack detail/0/2.tsdp"):
-        session.atlas_part_mesh(2, levels)
+    with pytest.raises(ValueError, match=f"needs pack detail/0/{min(2, neighbour)}.tsdp"):
+        one(2, levels)
     for name in groups[2]["packs"]:
         session.add_pack(name, (folder / name).read_bytes())
     with pytest.raises(ValueError, match=f"group {neighbour} at level 1 needs pack"):
-        session.atlas_part_mesh(2, levels)  # the neighbour's detail moves the seam
+        one(2, levels)  # the neighbour's detail moves the seam
     for name in groups[neighbour]["packs"]:
         session.add_pack(name, (folder / name).read_bytes())
-    assert parts(levels) == _corners(session.atlas_mesh(levels))
-    mine = session.atlas_part_mesh(2, levels)
+    assert parts(levels) == parts(levels, together=True) == _corners(session.atlas_mesh(levels))
+    mine = one(2, levels)
     far = list(levels)
     far[opposite] = 1  # its packs are not even held: group 2 does not need them
-    assert _corners(session.atlas_part_mesh(2, far)) == _corners(mine)
-    assert _corners(session.atlas_part_mesh(2, base)) != _corners(mine)
+    assert _corners(one(2, far)) == _corners(mine)
+    assert _corners(one(2, base)) != _corners(mine)
 
-    for group, levels, match in ((6, base, "group 6"), (0, [2] + base[1:], r"levels\[0\] = 2"),
-                                 (True, base, "group True"), (0, base[1:], "5 values")):
+    for groups, levels, match in (([6], base, "group 6"), ([0], [2] + base[1:], r"levels\[0\] = 2"),
+                                  ([True], base, "group True"), ([0], base[1:], "5 values"),
+                                  ([1, 1], base, "twice")):
         with pytest.raises(ValueError, match=match):
-            session.atlas_part_mesh(group, levels)
+            session.atlas_part_meshes(groups, levels)

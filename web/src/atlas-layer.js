@@ -16,9 +16,9 @@
 // budget of MAX_VERTICES drawn vertices (a group at level k costs count * R_k^2, R_k the
 // worker's samples per patch side at that level).
 //
-// Only what changed is tessellated: a group's mesh (WorkerSession.atlas_part_mesh, one
+// Only what changed is tessellated: a group's mesh (WorkerSession.atlas_part_meshes, one
 // request for all the groups an update needs) is its triangles of the whole atlas welded at
-// the current levels, bit for bit (client_py.atlas_mesh.tessellate_atlas_part: the welded
+// the current levels, bit for bit (client_py.atlas_mesh.tessellate_atlas_parts: the welded
 // mesh's rules are local, so the group's patches and the ring of patches around them
 // decide it), so the groups meet without a crack or a wall. It depends on the levels of the
 // group and of its neighbours (refinement.groups[g].neighbours: the groups of that ring), so

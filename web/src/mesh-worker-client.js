@@ -218,7 +218,7 @@ export class MeshWorkerClient {
 
   /** Meshes of the atlas's `groups` with group g at detail level levels[g] (-1: the base):
    *  resolves with [{group, level, positions, normals, uvs, indices, colors, tessellate_ms}]
-   *  in that order (WorkerSession.atlas_part_mesh: each group's triangles of
+   *  in that order (WorkerSession.atlas_part_meshes: each group's triangles of
    *  atlasMesh(levels), so groups made at one level vector meet without a crack; a group's
    *  mesh depends on its own and its neighbours' levels; colors as atlasMesh's, from the
    *  colour packs the worker holds). */

@@ -37,10 +37,10 @@
 //           levels[g]; colors RGB per vertex from the colour packs held, or null)
 //   page -> {type: "atlasParts", levels, groups: [group, ...]}
 //        -> {type: "atlasParts", meshes: [{group, level, positions, normals, uvs, indices,
-//           colors, tessellate_ms}, ...]}  (atlas_part_mesh(group, levels) for each, in
-//           order: the group's triangles of atlasMesh(levels), bit for bit, so groups made
-//           at one level vector meet without a crack; what the viewer draws; colors as
-//           atlasMesh's, by the same rule)
+//           colors, tessellate_ms}, ...]}  (atlas_part_meshes(groups, levels), in order:
+//           each group's triangles of atlasMesh(levels), bit for bit, so groups made at one
+//           level vector meet without a crack; what the viewer draws; colors as atlasMesh's,
+//           by the same rule; tessellate_ms: the call's time shared among them)
 //   page -> {type: "atlasColour"} -> {type: "atlasColour", colour}  (atlas_colour_refinement)
 //   page -> {type: "colourPack", name, width, height, rgb} -> {type: "colourPack", name, level,
 //           first, count}  (add_colour_pack: a decoded texture/C/G.webp)
@@ -341,11 +341,16 @@ function dropPacks({ id, names }) {
 }
 
 function atlasParts({ id, levels, groups }) {
-  const meshes = withPy(levels, (list) => groups.map((group) => {
-    const t0 = performance.now();
-    return meshArrays(session.atlas_part_mesh(group, list), performance.now() - t0,
-                      { group, level: levels[group] });
-  }));
+  const t0 = performance.now();
+  const made = withPy(levels, (levelList) => withPy(groups, (groupList) =>
+    session.atlas_part_meshes(groupList, levelList)));
+  const ms = (performance.now() - t0) / Math.max(groups.length, 1); // one call: its time shared
+  let meshes;
+  try {
+    meshes = groups.map((group, k) => meshArrays(made.get(k), ms, { group, level: levels[group] }));
+  } finally {
+    made.destroy();
+  }
   post({ type: "atlasParts", id, meshes }, meshes.flatMap(buffersOf));
 }
 
