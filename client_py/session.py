@@ -721,7 +721,7 @@ def _decode_tile(name: str, data: bytes) -> DetailTile:
 
 
 def _ring_depth(spec: AtlasTiles) -> int:
-    """Rings of patches a group's mesh depends on (:func:`client_py.atlas_mesh.atlas_part`):
+    """Rings of patches a group's mesh depends on (:func:`client_py.atlas_mesh.atlas_parts`):
     one, or two where the base has 2 samples per side."""
     return 1 if spec.base_resolution >= 3 else 2
 
