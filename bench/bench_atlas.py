@@ -17,7 +17,8 @@ does), then for every level the bundle offers (the base alone, then each detail 
 
 It writes ``bench/results/atlas.json`` and, per object, a picture of the scan and the
 finest drawn level from six directions (``bench/results/atlas/<object>.png``) with the
-silhouette IoU of each view. ``TESSERA_ATLAS_OBJECTS=bunny,lucy`` picks objects.
+silhouette IoU of each view. ``TESSERA_ATLAS_OBJECTS=bunny,lucy`` picks objects; the
+others keep their records from the earlier ``atlas.json`` (with their own ``date``).
 """
 
 from __future__ import annotations
@@ -146,7 +147,17 @@ def score_object(name: str, path: Path, work: Path) -> dict:
             "scan_border": scan_border, "fit_s": fit_s,
             "format_version": manifest.get("format_version"),
             "patches": (manifest.get("base") or {}).get("patches", 1),
+            "layout": _chosen_layout(manifest), "trials": (manifest.get("fit") or {}).get("trials"),
             "levels": rows, "silhouette_iou": iou, "draco": draco}
+
+
+def _chosen_layout(manifest: dict) -> str | None:
+    """The atlas layout the fit kept (``'plain'`` or ``'weighted'``); ``None`` for a single
+    patch or a bundle that does not say."""
+    fit = manifest.get("fit") or {}
+    chosen = [t.get("layout") for t in fit.get("trials") or []
+              if t.get("triangles") == fit.get("triangles") and "layout" in t]
+    return chosen[-1] if chosen else None
 
 
 def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
@@ -170,6 +181,20 @@ def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
         out.append({"budget": budget, "best": best,
                     "rms_relative": None if best is None else best["rms"] / diag})
     return out
+
+
+def _with_earlier(results: list[dict]) -> list[dict]:
+    """``results`` with the earlier ``atlas.json``'s records of the objects not re-run now
+    (``TESSERA_ATLAS_OBJECTS``), each keeping the ``date`` of the run that measured it."""
+    path = RESULTS / "atlas.json"
+    if not path.exists():
+        return results
+    earlier = json.loads(path.read_text())
+    measured = {r["object"] for r in results}
+    kept = [{"date": earlier.get("date"), **r} for r in earlier.get("objects", [])
+            if r.get("object") not in measured]
+    now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    return [{"date": now, **r} for r in results] + kept
 
 
 def run() -> dict | None:
@@ -204,6 +229,6 @@ def run() -> dict | None:
     print_table("atlas: ALL scan points vs the drawn mesh, per level (default fit)",
                 ["object", "patches", "level", "bytes", "% within 0.5%", "RMS all",
                  "Draco RMS", "max mesh->scan %diag", "border edges", "scan border"], table)
-    record = {"objects": results}
+    record = {"objects": _with_earlier(results)}
     write_results("atlas", record)
     return record

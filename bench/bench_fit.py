@@ -23,6 +23,14 @@ from ``../shared/data`` (skipped when absent), and the generated example relief.
    in a subprocess: wall time, CPU time and peak resident memory.
 
 Writes ``bench/results/fit.json``.
+
+With ``--points`` (``python -m bench fit --points 1e7 1e8``) it runs the out-of-core
+benchmark (issue 16, :func:`run_large`) instead: generated float32 binary PLYs of those
+sizes, each fitted with default options in a subprocess under ``/usr/bin/time -v`` (wall,
+CPU, peak resident memory, stage times, load average), the same cloud written as E57
+(``--e57-points``: same ``base.tsp`` bytes? time against the PLY's) and fitted on
+LocalClusters of 1 and 2 workers (``--cluster-points``); writes
+``bench/results/fit_large.json``.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ from __future__ import annotations
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -243,7 +252,7 @@ def _big(points: int) -> dict | None:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def run(big_points: int = 10_000_000) -> dict:
+def run_methods(big_points: int = 10_000_000) -> dict:
     from fitter.fitting.examples import relief_scan
     from fitter.fitting.io import load_scan
     from fitter.fitting.io.scan import Scan
@@ -343,6 +352,31 @@ def write_large_ply(path: Path, points: int) -> None:
             fh.write(np.column_stack([x, y, z]).astype("<f4").tobytes())
 
 
+E57_SCAN_POINTS = 10_000_000  # points per scan of the generated E57 (bounded memory)
+
+
+def write_large_e57(ply: Path, path: Path) -> None:
+    """The cloud of the float32 PLY ``ply`` as an E57 file (pye57), in scans of
+    ``E57_SCAN_POINTS`` consecutive points with the identity pose (as float64 cartesian
+    coordinates: the same values), so that writing 10^8 points takes one scan of memory."""
+    import pye57
+
+    from fitter.fitting.io.ply import open_ply_stream
+
+    stream = open_ply_stream(ply)[0]
+    path.unlink(missing_ok=True)
+    e57 = pye57.E57(str(path), mode="w")
+    try:
+        for k, start in enumerate(range(0, stream.count, E57_SCAN_POINTS)):
+            points, _ = stream.read(start, min(stream.count, start + E57_SCAN_POINTS))
+            e57.write_scan_raw({"cartesianX": np.ascontiguousarray(points[:, 0]),
+                                "cartesianY": np.ascontiguousarray(points[:, 1]),
+                                "cartesianZ": np.ascontiguousarray(points[:, 2])},
+                               name=f"part {k}")
+    finally:
+        e57.close()
+
+
 def _timed_fit(scan: Path, out: Path, workers: int = 0) -> dict | None:
     """``fit_scan`` with default options in a subprocess under ``/usr/bin/time -v``: its
     JSON line plus the peak resident set (MB; with workers, of the client process only)."""
@@ -365,57 +399,129 @@ def _timed_fit(scan: Path, out: Path, workers: int = 0) -> dict | None:
     return result
 
 
-def run_large(sizes: tuple[int, ...] = (10_000_000, 100_000_000),
-              cluster_points: int = 10_000_000, scratch: Path | None = None) -> dict:
-    """The out-of-core fit (``fitter.fitting.stream``) of generated float32 binary PLYs of
-    ``sizes`` points, default options, and the 2-worker LocalCluster against 1 worker on
-    ``cluster_points``; writes ``bench/results/fit_large.json``."""
-    scratch = Path(scratch or tempfile.mkdtemp(prefix="tessera-bench-large-"))
-    rows, cluster = [], []
+def _load_average() -> list[str]:
     with open("/proc/loadavg") as fh:
-        load_before = fh.read().split()[:3]
+        return fh.read().split()[:3]
+
+
+def _base_digest(bundle: Path) -> str | None:
+    import hashlib
+
+    base = bundle / "base.tsp"
+    return hashlib.sha256(base.read_bytes()).hexdigest() if base.exists() else None
+
+
+def run_large(sizes: tuple[int, ...] = (10_000_000, 100_000_000),
+              cluster_points: int | None = None, e57_points: int | None = None,
+              scratch: Path | None = None) -> dict:
+    """The out-of-core fit (``fitter.fitting.stream``) of generated float32 binary PLYs of
+    ``sizes`` points, default options, each in a subprocess under ``/usr/bin/time -v``;
+    for ``e57_points`` (default: the largest size) the same cloud as E57 (``base.tsp``
+    compared byte for byte, time against the PLY's), for ``cluster_points`` (default: the
+    largest size) LocalClusters of 1 and 2 workers. The load average is taken before and
+    after each fit. Writes ``bench/results/fit_large.json``; the files are deleted."""
+    sizes = tuple(sorted(int(n) for n in sizes))
+    cluster_points = sizes[-1] if cluster_points is None else int(cluster_points)
+    e57_points = sizes[-1] if e57_points is None else int(e57_points)
+    scratch = Path(scratch or tempfile.mkdtemp(prefix="tessera-bench-large-"))
+    scratch.mkdir(parents=True, exist_ok=True)
+    rows, cluster, e57 = [], [], []
+    load_before = _load_average()
+
+    def fit(scan: Path, out: Path, workers: int = 0) -> dict | None:
+        before = _load_average()
+        row = _timed_fit(scan, out, workers)
+        if row:
+            row.update(load_before=before, load_after=_load_average(),
+                       base_sha256=_base_digest(out), input_bytes=scan.stat().st_size)
+        shutil.rmtree(out, ignore_errors=True)
+        return row
+
     for n in sizes:
         ply = scratch / f"relief-{n}.ply"
         start = time.perf_counter()
         write_large_ply(ply, n)
         generated = time.perf_counter() - start
-        row = _timed_fit(ply, scratch / f"bundle-{n}")
+        row = fit(ply, scratch / f"bundle-{n}")
         if row:
-            row.update(generate_s=generated, ply_bytes=ply.stat().st_size)
+            row.update(generate_s=generated)
             rows.append(row)
+        if n == e57_points:
+            e57_path = scratch / f"relief-{n}.e57"
+            write_large_e57(ply, e57_path)
+            r = fit(e57_path, scratch / f"bundle-{n}-e57")
+            e57_path.unlink()
+            if r:
+                r["same_base_as_ply"] = bool(row) and r["base_sha256"] == row["base_sha256"]
+                r["wall_vs_ply"] = r["wall_s"] / row["wall_s"] if row else None
+                e57.append(r)
         if n == cluster_points:
             for workers in (1, 2):
-                r = _timed_fit(ply, scratch / f"bundle-{n}-w{workers}", workers)
+                r = fit(ply, scratch / f"bundle-{n}-w{workers}", workers)
                 if r:
+                    r["same_base_as_ply"] = bool(row) and r["base_sha256"] == row["base_sha256"]
                     cluster.append(r)
+            if len(cluster) == 2:
+                cluster[1]["wall_vs_1_worker"] = cluster[1]["wall_s"] / cluster[0]["wall_s"]
         ply.unlink()
-    with open("/proc/loadavg") as fh:
-        load_after = fh.read().split()[:3]
+
+    def stages(r: dict) -> str:
+        return " ".join(f"{k} {v:.1f}" for k, v in r["timings"].items())
+
     print_table("out-of-core fit, default options, generated float32 binary PLY",
                 ["points", "wall s", "CPU s", "peak MB", "working set", "levels", "RMS",
-                 "stages"],
+                 "load", "stages (wall s)"],
                 [[r["points"], f"{r['wall_s']:.1f}", f"{r['user_s'] + r['sys_s']:.0f}",
                   f"{r['peak_mb']:.0f}",
                   r["working_set"]["points_after"] if r["working_set"] else "-",
-                  r["detail_levels"], f"{r['rms']:.4g}",
-                  " ".join(f"{k} {v:.1f}" for k, v in r["timings"].items())] for r in rows])
+                  r["detail_levels"], f"{r['rms']:.4g}", r["load_before"][0], stages(r)]
+                 for r in rows])
+    if e57:
+        print_table("the same cloud as E57 (pye57)",
+                    ["points", "wall s", "vs PLY", "CPU s", "peak MB", "same base.tsp",
+                     "load", "stages (wall s)"],
+                    [[r["points"], f"{r['wall_s']:.1f}", f"{r['wall_vs_ply'] or 0:.2f}",
+                      f"{r['user_s'] + r['sys_s']:.0f}", f"{r['peak_mb']:.0f}",
+                      r["same_base_as_ply"], r["load_before"][0], stages(r)] for r in e57])
     if cluster:
         print_table(f"{cluster_points} points on a LocalCluster",
-                    ["workers", "wall s", "client peak MB", "stages"],
-                    [[r["workers"], f"{r['wall_s']:.1f}", f"{r['peak_mb']:.0f}",
-                      " ".join(f"{k} {v:.1f}" for k, v in r["timings"].items())]
+                    ["workers", "wall s", "vs 1 worker", "client peak MB", "same base.tsp",
+                     "load", "stages (wall s)"],
+                    [[r["workers"], f"{r['wall_s']:.1f}",
+                      f"{r.get('wall_vs_1_worker', 1.0):.2f}", f"{r['peak_mb']:.0f}",
+                      r["same_base_as_ply"], r["load_before"][0], stages(r)]
                      for r in cluster])
-    result = {"rows": rows, "cluster": cluster, "load_before": load_before,
-              "load_after": load_after}
+    result = {"rows": rows, "e57": e57, "cluster": cluster, "load_before": load_before,
+              "load_after": _load_average()}
+    earlier = ROOT / "bench" / "results" / "fit_large.json"
+    if earlier.exists():  # a run of other sizes keeps the figures of the sizes it did not run
+        before = json.loads(earlier.read_text())
+        for key in ("rows", "e57", "cluster"):
+            ran = {r["points"] for r in result[key]}
+            result[key] = [r for r in before.get(key, []) if r.get("points") not in ran] \
+                + result[key]
     write_results("fit_large", result)
     return result
 
 
-if __name__ == "__main__":
-    import argparse
+def add_arguments(parser) -> None:
+    """``python -m bench fit`` options: with ``--points``, the out-of-core benchmark."""
+    parser.add_argument("--points", type=float, nargs="+", default=None,
+                        help="fit generated float32 binary PLYs of these sizes (e.g. 1e7 1e8) "
+                             "out of core instead of the method comparison")
+    parser.add_argument("--e57-points", type=float, default=None,
+                        help="the size also written as E57 (default: the largest; 0: none)")
+    parser.add_argument("--cluster-points", type=float, default=None,
+                        help="the size also fitted on LocalClusters of 1 and 2 workers "
+                             "(default: the largest; 0: none)")
+    parser.add_argument("--scratch", type=Path, default=None,
+                        help="directory of the generated files (default: a new temporary one)")
 
-    parser = argparse.ArgumentParser(description="the out-of-core fit benchmark (issue 16)")
-    parser.add_argument("--points", type=float, nargs="+", default=[1e7, 1e8])
-    parser.add_argument("--cluster-points", type=float, default=1e7)
-    args = parser.parse_args()
-    run_large(tuple(int(p) for p in args.points), int(args.cluster_points))
+
+def run(points: list[float] | None = None, e57_points: float | None = None,
+        cluster_points: float | None = None, scratch: Path | None = None,
+        big_points: int = 10_000_000) -> dict:
+    """The method comparison (module docstring), or with ``points`` :func:`run_large`."""
+    if points:
+        return run_large(tuple(int(p) for p in points), cluster_points, e57_points, scratch)
+    return run_methods(big_points)

@@ -286,8 +286,9 @@ def run_regions() -> dict | None:
 
 # Atlas refinement (issue 14): an atlas bundle's groups change level as a visitor zooms;
 # per refinement, the old viewer's work (WorkerSession.atlas_mesh: the whole atlas welded
-# again) against the new one's (WorkerSession.atlas_part_mesh of the groups whose mesh at
-# their new level was not made before in the visit: AtlasLayer keeps the others). Step 1 is
+# again) against the new one's (WorkerSession.atlas_part_meshes of the groups whose mesh at
+# their new level and their neighbours' levels was not made before in the visit: AtlasLayer
+# keeps the others). Step 1 is
 # the first frame: the welded base in both viewers; the new one then makes every group's base
 # mesh in the background (its "after" figure), which its first refinement shows. INPUT:
 # {"atlas": b64, "manifest": text, "packs": {name: b64}, "steps": [levels per group, ...]}.
@@ -311,15 +312,17 @@ session.load_atlas(base64.b64decode(INPUT["atlas"]), "base.tsa")
 session.read_manifest(INPUT["manifest"])
 for name, data in INPUT["packs"].items():
     session.add_pack(name, base64.b64decode(data))
+neighbours = [g["neighbours"] for g in session.atlas_refinement()["groups"]]
 made = set()
 rows = []
 for levels in INPUT["steps"]:
     start, start_cpu = time.perf_counter(), cpu_ms()
     whole = session.atlas_mesh(levels)
     before = (1000 * (time.perf_counter() - start), cpu_ms() - start_cpu)
-    wanted = [(g, k) for g, k in enumerate(levels) if (g, k) not in made]
+    keys = [(g, k, tuple(levels[h] for h in neighbours[g])) for g, k in enumerate(levels)]
+    wanted = [key for key in keys if key not in made]
     start, start_cpu = time.perf_counter(), cpu_ms()
-    parts = [session.atlas_part_mesh(g, k) for g, k in wanted]
+    parts = session.atlas_part_meshes([g for g, _, _ in wanted], levels)
     after = (1000 * (time.perf_counter() - start), cpu_ms() - start_cpu)
     made.update(wanted)
     rows.append({"levels": levels, "before_ms": before[0], "before_cpu_ms": before[1],

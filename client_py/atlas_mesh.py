@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 import struct
 from array import array
+from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache, partial
@@ -49,7 +50,7 @@ from itertools import chain
 from operator import itemgetter
 
 from . import _kernel, _kernel_python
-from .atlas import SIDES, AtlasSurface, atlas_edges
+from .atlas import AtlasSurface, atlas_edges
 from .basis import basis_table
 from .layers import DetailTile, displacement_grid
 from .ply import write_ply
@@ -62,7 +63,7 @@ MAX_ATLAS_MESH_VERTICES = 1 << 24
 #: patches between two progress reports of :func:`tessellate_atlas`
 PROGRESS_BATCH = 32
 #: the share of :func:`tessellate_atlas`'s work reported for evaluating the patches' grids
-#: (the rest: displacing them and welding; measured in Pyodide, pure Python, 576 patches)
+#: (the rest: displacing them and welding)
 PROGRESS_EVALUATION = 0.5
 
 
@@ -122,25 +123,16 @@ def _check_detail(atlas: AtlasSurface, detail: object) -> dict[int, list[DetailT
     return out
 
 
-def _edge_resolutions(atlas: AtlasSurface, res: list[int],
-                      evaluated_at: Mapping[int, int] | None = None
-                      ) -> tuple[list[int], list[int]]:
+def _edge_resolutions(atlas: AtlasSurface, res: list[int]) -> tuple[list[int], list[int]]:
     """``(R_e, r_c)`` per edge: vertices along it (the finer side) and its evaluated
-    resolution (the coarser, or ``evaluated_at[e]`` where that is coarser still: a seam of
-    :func:`tessellate_atlas_part`); ``ValueError`` where ``(R_e - 1) / (r - 1)`` is no power
+    resolution (the coarser); ``ValueError`` where ``(R_e - 1) / (r_c - 1)`` is no power
     of 2."""
-    evaluated_at = evaluated_at or {}
     fine, coarse = [], []
     for e, pairs in enumerate(atlas.edges.faces):
         rs = [res[f] for f, _ in pairs]
-        hi = max(rs)
-        lo = min(rs + [evaluated_at.get(e, hi)])
+        hi, lo = max(rs), min(rs)
         ratio, rest = divmod(hi - 1, lo - 1)
         if rest or ratio & (ratio - 1):
-            if len(pairs) == 1:
-                raise ValueError(f"patch {pairs[0][0]} has resolution {hi} on seam edge "
-                                 f"{atlas.edges.edges[e]}, evaluated at {lo}: r - 1 must be "
-                                 "a power-of-2 multiple of the seam's")
             f, g = (f for f, _ in pairs)
             raise ValueError(f"patches {f} and {g} share edge {atlas.edges.edges[e]} with "
                              f"resolutions {res[f]} and {res[g]}: neighbours need "
@@ -264,11 +256,10 @@ def _normal_tolerance(comps: list[list[float]]) -> float:
 class _Layout:
     """Vertex numbering of the welded mesh: corners, edges, patches (module docstring)."""
 
-    def __init__(self, atlas: AtlasSurface, res: list[int],
-                 evaluated_at: Mapping[int, int] | None = None) -> None:
+    def __init__(self, atlas: AtlasSurface, res: list[int]) -> None:
         self.atlas, self.res = atlas, res
         self.table = atlas.edges
-        self.fine, self.coarse = _edge_resolutions(atlas, res, evaluated_at)
+        self.fine, self.coarse = _edge_resolutions(atlas, res)
         used = sorted({k for quad in atlas.quads for k in quad})
         self.corner = {v: i for i, v in enumerate(used)}
         self.used = used
@@ -402,38 +393,87 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
     return _welded_mesh(atlas, res, tiles, kernel, progress=progress)[0]
 
 
+class PatchGrids:
+    """The evaluated grids (points and unit normals) and displacement grids of an atlas's
+    patches, kept between the meshes :func:`tessellate_atlas_parts` makes of one atlas: a
+    patch's depend on its own resolution and tiles alone, and a refinement re-makes the
+    groups around the one that changed, whose patches are mostly as before. Least recently
+    used entries are dropped beyond ``max_samples`` grid samples (about 56 bytes each).
+    """
+
+    def __init__(self, max_samples: int = 1 << 19) -> None:
+        self.max_samples = max_samples
+        self._items: OrderedDict = OrderedDict()  # key -> (samples, value)
+        self._samples = 0
+
+    def get(self, key: tuple) -> object | None:
+        item = self._items.get(key)
+        if item is None:
+            return None
+        self._items.move_to_end(key)
+        return item[1]
+
+    def put(self, key: tuple, value: object, samples: int) -> None:
+        old = self._items.pop(key, None)
+        if old is not None:
+            self._samples -= old[0]
+        self._items[key] = (samples, value)
+        self._samples += samples
+        while self._samples > self.max_samples and len(self._items) > 1:
+            _, (dropped, _) = self._items.popitem(last=False)
+            self._samples -= dropped
+
+
 def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
-                 kernel: str | None, evaluated_at: Mapping[int, int] | None = None,
-                 seam_frames: Mapping[int, tuple[tuple, tuple]] | None = None,
-                 progress: Callable[[float], object] | None = None
-                 ) -> tuple[AtlasMesh, _Layout]:
-    """:func:`tessellate_atlas` of checked arguments, and the layout it numbered the
-    vertices by; ``evaluated_at``: edges evaluated at a coarser resolution than their
-    patches' (``_edge_resolutions``); ``seam_frames``: evaluated border vertex -> the base
-    point and unit normal it is placed by (``S + d n``, ``d`` the mean displacement of the
-    patches here that sample it) instead of its first sampler's point and their normals."""
+                 kernel: str | None, tol: float | None = None,
+                 drawn: Sequence[Sequence[int]] | None = None,
+                 names: Sequence[int] | None = None,
+                 cache: PatchGrids | None = None,
+                 progress: Callable[[float], object] | None = None) -> list[AtlasMesh]:
+    """:func:`tessellate_atlas` of checked arguments (one mesh); ``tol``: the
+    degenerate-normal tolerance (default :func:`_normal_tolerance` of ``atlas``); ``drawn``:
+    instead, one mesh per sequence of patches (in increasing order): their triangles, with
+    only the vertices these use, in increasing order of their number in the whole mesh
+    (:func:`tessellate_atlas_parts`);
+    ``cache``: patch grids kept between calls, under the patches' ``names`` (default their
+    indices); ``progress``: :func:`tessellate_atlas`'s."""
     backend = _kernel.backend(kernel)
-    layout = _Layout(atlas, res, evaluated_at)
+    layout = _Layout(atlas, res)
     comps = _homogeneous(atlas)
-    tol = _normal_tolerance(comps)
+    if tol is None:
+        tol = _normal_tolerance(comps)
     evaluate = (_evaluate_python if backend is _kernel_python
                 else partial(_evaluate_numpy, backend=backend))
-    by_res: dict[int, list[int]] = {}
-    for f, r in enumerate(res):
-        by_res.setdefault(r, []).append(f)
-    grids: dict[int, tuple[list, list, list]] = {}
-    batch = PROGRESS_BATCH if progress is not None else len(res)
-    for r, patches in sorted(by_res.items()):
-        for start in range(0, len(patches), batch):
-            grids.update(evaluate(atlas, comps, patches[start:start + batch], r, tol))
-            if progress is not None:
-                progress(PROGRESS_EVALUATION * len(grids) / len(res))
     surfaces: dict[int, object] = {}
 
     def surface(f):
         if f not in surfaces:
             surfaces[f] = atlas.patch_surface(f)
         return surfaces[f]
+
+    names = names or range(len(res))
+    by_res: dict[int, list[int]] = {}
+    grids: dict[int, tuple] = {}  # patch -> (points, unit normals) of its grid
+    for f, r in enumerate(res):
+        held = cache and cache.get(("grid", names[f], r))
+        if held:
+            grids[f] = held
+        else:
+            by_res.setdefault(r, []).append(f)
+    batch = PROGRESS_BATCH if progress is not None else len(res)
+    for r, patches in sorted(by_res.items()):
+        params = _tables(atlas.degree, atlas.spans, r)[0]
+        for start in range(0, len(patches), batch):
+            some = patches[start:start + batch]
+            for f, (pos, nrm, bad) in evaluate(atlas, comps, some, r, tol).items():
+                for k in bad:  # a pole: the limit normal from inside the patch
+                    nrm[3 * k : 3 * k + 3] = surface(f).normal(params[k // r], params[k % r])
+                grids[f] = (pos, nrm)
+                if cache is not None:
+                    cache.put(("grid", names[f], r), (array("d", pos), array("d", nrm)),
+                              r * r)
+            if progress is not None:
+                progress(PROGRESS_EVALUATION * len(grids) / len(res))
 
     count = layout.count
     positions = array("d", bytes(24 * count))
@@ -448,21 +488,27 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     shading = [0.0] * (3 * n_border)  # sum of the unit normals of the drawn surface
 
     ids, borders = {}, {}
+    mine = range(len(res)) if drawn is None else set(chain.from_iterable(drawn))
     for f in range(len(res)):
         ids[f], borders[f] = layout.patch_vertices(f)
     for f, r in enumerate(res):
         if progress is not None and f % PROGRESS_BATCH == PROGRESS_BATCH - 1:
             progress(PROGRESS_EVALUATION + (1 - PROGRESS_EVALUATION) * f / len(res))
         params = _tables(atlas.degree, atlas.spans, r)[0]
-        pos, nrm, bad = grids[f]
-        for k in bad:  # a pole: the limit normal from inside the patch
-            nrm[3 * k : 3 * k + 3] = surface(f).normal(params[k // r], params[k % r])
+        pos, nrm = grids[f]
         disp = None
         if f in tiles:
-            disp = displacement_grid(tiles[f], params, params, kernel)
+            key = ("detail", names[f], r, tuple(map(id, tiles[f])))
+            held = cache and cache.get(key)
+            if held:
+                disp = held[1]
+            else:
+                disp = displacement_grid(tiles[f], params, params, kernel)
+                if cache is not None:  # the tiles stay referenced: their ids stay theirs
+                    cache.put(key, (tuple(tiles[f]), array("d", disp)), r * r)
         # interior vertices: one contiguous block of the patch, gathered at C speed
         at, block = layout.face_base[f], 3 * (r - 2) ** 2
-        if block:
+        if block and (f in mine or tiles):  # else never read
             take3, take1, block_uvs = _interior(r)
             inner_pos, inner_nrm = take3(pos), take3(nrm)
             if disp is not None:
@@ -492,16 +538,9 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 direction[3 * node + 2] += nz
 
     # welded border positions: evaluated vertices, then the in-between ones on their segment
-    seam_frames = seam_frames or {}
     for node in range(n_border):
         point = base_at[node]
-        if node in seam_frames:  # a part's seam: the frame every part shares (base, normal)
-            point, n = seam_frames[node]
-            if shift[node]:
-                d = shift[node] / samplers[node]
-                point = (point[0] + d * n[0], point[1] + d * n[1], point[2] + d * n[2])
-            positions[3 * node : 3 * node + 3] = array("d", point)
-        elif point:
+        if point:
             if shift[node]:
                 n = _unit(*direction[3 * node : 3 * node + 3])
                 d = shift[node] / samplers[node]
@@ -521,24 +560,44 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                     (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
 
     if tiles:
-        # normals of the drawn (displaced, welded) surface by differences within each patch
+        # normals of the drawn (displaced, welded) surface by differences within each patch;
+        # of a patch not drawn (drawn's ring), only those at the drawn patches' vertices: on
+        # a window of the grid one sample wider, where the differences are the whole grid's
         backend_displace = backend.displace_grid
         shading = [0.0] * (3 * n_border)
+        used = () if drawn is None else set(chain.from_iterable(ids[f] for f in mine))
         for f, r in enumerate(res):
             local = ids[f]
-            grid = array("d", bytes(24 * r * r))
+            i0, i1, j0, j1 = 0, r, 0, r
+            if f not in mine:
+                rows_cols = [divmod(slot, r) for slot, g, _ in borders[f] if g in used]
+                if not rows_cols:
+                    continue
+                i0, i1 = min(i for i, _ in rows_cols), max(i for i, _ in rows_cols) + 1
+                j0, j1 = min(j for _, j in rows_cols), max(j for _, j in rows_cols) + 1
+            a0, a1, b0, b1 = max(i0 - 1, 0), min(i1 + 1, r), max(j0 - 1, 0), min(j1 + 1, r)
+            height, width = a1 - a0, b1 - b0
+            slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
+            grid = array("d", bytes(24 * height * width))
             for c in range(3):
-                grid[c::3] = array("d", [positions[3 * g + c] for g in local])
-            base_normals = array("d", grids[f][1])
-            _, drawn = backend_displace(grid, base_normals, array("d", bytes(8 * r * r)), r, r,
-                                        (0, r, 0, r))
-            drawn = array("d", drawn)
-            for slot, g in enumerate(local):
-                if g >= n_border:
-                    normals[3 * g : 3 * g + 3] = drawn[3 * slot : 3 * slot + 3]
+                grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
+            nrm = grids[f][1]
+            base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
+            _, shaded = backend_displace(grid, base_normals,
+                                         array("d", bytes(8 * height * width)), height, width,
+                                         (i0 - a0, i1 - a0, j0 - b0, j1 - b0))
+            shaded = array("d", shaded)
+            if f in mine:  # the whole grid: shaded is in slot order
+                for slot, g in enumerate(local):
+                    if g >= n_border:
+                        normals[3 * g : 3 * g + 3] = shaded[3 * slot : 3 * slot + 3]
+            span = j1 - j0
             for slot, g, _ in borders[f]:
-                for c in range(3):
-                    shading[3 * g + c] += drawn[3 * slot + c]
+                i, j = divmod(slot, r)
+                if i0 <= i < i1 and j0 <= j < j1:
+                    k = 3 * ((i - i0) * span + j - j0)
+                    for c in range(3):
+                        shading[3 * g + c] += shaded[k + c]
     for node in range(n_border):
         normals[3 * node : 3 * node + 3] = array("d", _unit(*shading[3 * node : 3 * node + 3]))
 
@@ -546,33 +605,53 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     extra_normals: list[float] = []
     extra_uvs: list[float] = []
     extra_owners: list[int] = []
-    indices = array("I")
-    for f, r in enumerate(res):
-        local = ids[f]
-        finer = [layout.fine[layout.table.sides[f][k][0]] > r for k in range(4)]
-        if not any(finer):
-            indices.extend(map(local.__getitem__, grid_indices(r, r, kernel=kernel)))
-            continue
+    triangles = []  # per part: its triangles' vertices (numbered in the whole mesh)
+    for patches in [range(len(res))] if drawn is None else drawn:
+        indices = array("I")
+        for f in patches:
+            r, local = res[f], ids[f]
+            finer = [layout.fine[layout.table.sides[f][k][0]] > r for k in range(4)]
+            if not any(finer):
+                indices.extend(map(local.__getitem__, grid_indices(r, r, kernel=kernel)))
+                continue
 
-        def centre(f, r, i, j):
-            u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
-            point, n = surface(f).evaluate(u, v), surface(f).normal(u, v)
-            if f in tiles:
-                d = displacement_grid(tiles[f], [u], [v], kernel)[0]
-                point = tuple(p + d * c for p, c in zip(point, n, strict=True))
-            extra_positions.extend(point)
-            extra_normals.extend(n)
-            extra_uvs.extend((u, v))
-            extra_owners.append(f)
-            return count + len(extra_owners) - 1
+            def centre(f, r, i, j):
+                u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
+                point, n = surface(f).evaluate(u, v), surface(f).normal(u, v)
+                if f in tiles:
+                    d = displacement_grid(tiles[f], [u], [v], kernel)[0]
+                    point = tuple(p + d * c for p, c in zip(point, n, strict=True))
+                extra_positions.extend(point)
+                extra_normals.extend(n)
+                extra_uvs.extend((u, v))
+                extra_owners.append(f)
+                return count + len(extra_owners) - 1
 
-        indices.extend(_patch_triangles(layout, f, r, local, finer, centre))
+            indices.extend(_patch_triangles(layout, f, r, local, finer, centre))
+        triangles.append(indices)
     if extra_owners:
         positions.extend(extra_positions)
         normals.extend(extra_normals)
         uvs.extend(extra_uvs)
         owners.extend(extra_owners)
-    total = count + len(extra_owners)
+    if drawn is None:
+        return [_packed(positions, normals, uvs, owners, triangles[0])]
+    meshes = []
+    for indices in triangles:  # the vertices a part's triangles use, renumbered in order
+        keep = sorted(set(indices))
+        number = {old: new for new, old in enumerate(keep)}
+        take3 = itemgetter(*[3 * k + c for k in keep for c in range(3)])
+        take2 = itemgetter(*[2 * k + c for k in keep for c in range(2)])
+        meshes.append(_packed(array("d", take3(positions)), array("d", take3(normals)),
+                              array("d", take2(uvs)), array("I", [owners[k] for k in keep]),
+                              array("I", map(number.__getitem__, indices))))
+    return meshes
+
+
+def _packed(positions: array, normals: array, uvs: array, owners: array,
+            indices: array) -> AtlasMesh:
+    """An :class:`AtlasMesh` of double-precision vertex arrays, stored as float32."""
+    total = len(owners)
     pack = struct.Struct(f"={3 * total}f").pack
     try:
         out_positions = array("f", pack(*positions))
@@ -580,7 +659,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         out_positions = array("f", positions.tolist())
     return AtlasMesh(out_positions, array("f", pack(*normals)),
                      array("f", struct.pack(f"={2 * total}f", *uvs)), indices,
-                     patches=owners), layout
+                     patches=owners)
 
 
 def _patch_triangles(layout: _Layout, f: int, r: int, local: list[int], finer: list[bool],
@@ -630,94 +709,91 @@ def atlas_ply(atlas: AtlasSurface, resolution: int | Sequence[int],
                      comments=comments)
 
 
-# ------------------------------------------------------------------ parts drawn apart
+# ------------------------------------------------------------------ one group's share of it
 @dataclass(frozen=True)
 class AtlasPart:
-    """Some patches of an atlas (a detail group) as an atlas of their own, drawn apart.
+    """Groups of patches of an atlas (detail groups) and the patches around them: all that
+    their triangles in the welded mesh (:func:`tessellate_atlas`) depend on
+    (:func:`tessellate_atlas_parts`).
 
     Attributes
     ----------
     atlas : AtlasSurface
-        The part's patches on the full atlas's layout vertices (unused ones stay, so vertex
+        The groups' patches and their rings (:func:`atlas_ring`) as an atlas of their own, in
+        the full atlas's patch order, on its layout vertices (unused ones stay, so vertex
         indices are the full atlas's), with their own edge numbering (``atlas_edges`` of
         their quads) and the control points of their edges and faces.
     patches : tuple of int
-        The full atlas's index of each patch of the part, in the part's order.
-    full_edges : tuple of int
-        The full atlas's index of each edge of the part.
-    seams : tuple of int
-        The part's edges that the full atlas shares with a patch outside the part.
-    seam_resolution : int
-        Samples evaluated along every seam (the coarsest resolution any part is drawn at).
-    frames : dict
-        Seam edge (the part's index) -> ``(points, direction)``: ``seam_resolution`` base
-        points from the edge's lower layout vertex to its higher, and the edge's unit
-        direction (:func:`atlas_seam_frames`).
+        The full atlas's index of each patch of ``atlas`` (increasing).
+    drawn : tuple of tuple of int
+        Each group's patches, as indices into ``patches`` (increasing).
+    patch_count : int
+        Patches of the full atlas.
+    rings : int
+        Rings of patches around the part in ``atlas``.
+    tolerance : float
+        The full atlas's degenerate-normal tolerance (:func:`_normal_tolerance`).
     """
 
     atlas: AtlasSurface
     patches: tuple[int, ...]
-    full_edges: tuple[int, ...]
-    seams: tuple[int, ...]
-    seam_resolution: int
-    frames: dict
+    drawn: tuple[tuple[int, ...], ...]
+    patch_count: int
+    rings: int
+    tolerance: float
 
 
-@dataclass
-class AtlasPartMesh(AtlasMesh):
-    """:func:`tessellate_atlas_part`'s mesh: the part's welded surface, then its walls.
-
-    Attributes
-    ----------
-    patches : array('I')
-        The *full* atlas's patch of every vertex (a wall vertex: that of its top).
-    seams : dict of int to list of int
-        Full-atlas edge -> the surface vertices along it, from its lower layout vertex to
-        its higher (``R_e`` of them).
-    surface_vertices, surface_triangles : int
-        The surface comes first; the walls are the vertices and triangles after these.
-    """
-
-    seams: dict = field(default_factory=dict)
-    surface_vertices: int = 0
-    surface_triangles: int = 0
+def atlas_ring(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> list[int]:
+    """``patches`` and every patch within ``rings`` vertex rings of them (ring 1: the
+    patches sharing a layout vertex with one of ``patches``; ring ``k + 1``: those sharing
+    one with ring ``k``), in increasing order."""
+    around: dict[int, list[int]] = {}
+    for f, quad in enumerate(atlas.quads):
+        for k in quad:
+            around.setdefault(k, []).append(f)
+    found = set(patches)
+    for _ in range(rings):
+        found.update(g for f in list(found) for k in atlas.quads[f] for g in around[k])
+    return sorted(found)
 
 
-def atlas_part(atlas: AtlasSurface, patches: Sequence[int], seam_resolution: int,
-               frames: Mapping[int, tuple[list, list]] | None = None) -> AtlasPart:
-    """The patches ``patches`` of ``atlas`` as an :class:`AtlasPart` (made once per group).
+def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
+                rings: int = 1) -> AtlasPart:
+    """The groups of patches ``groups`` of ``atlas`` with ``rings`` rings of patches around
+    them (:func:`atlas_ring`) as an :class:`AtlasPart`.
 
-    ``frames``: :func:`atlas_seam_frames` ``(atlas, seam_resolution)``, computed once for
-    all the parts of a drawing (default: computed here).
+    One ring is all :func:`tessellate_atlas_parts` needs while every patch of it has at
+    least 3 samples per side; with detail on 2-sample patches it needs two (a drawn normal
+    by differences then reaches the far corners of the ring's patches).
 
     Raises
     ------
     ValueError
-        No patches, a repeated one or one that is no index of ``atlas``; a seam resolution
-        out of ``2..MAX_GRID``.
+        A group without patches, a patch in two places or one that is no index of
+        ``atlas``; ``rings`` not 1 or 2.
     """
     if not isinstance(atlas, AtlasSurface):
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
-    if isinstance(seam_resolution, bool) or not isinstance(seam_resolution, int) \
-            or not 2 <= seam_resolution <= MAX_GRID:
-        raise ValueError(f"seam_resolution = {seam_resolution!r}; an int in 2..{MAX_GRID} "
-                         "is needed")
-    chosen = tuple(patches)
+    if rings not in (1, 2) or isinstance(rings, bool):
+        raise ValueError(f"rings = {rings!r}; 1 or 2 is needed")
+    groups = [tuple(group) for group in groups]
+    chosen = tuple(chain.from_iterable(groups))
     count = len(atlas.quads)
-    if not chosen:
-        raise ValueError("a part needs at least one patch")
+    if not groups or not all(groups):
+        raise ValueError("a part needs groups of at least one patch")
     for f in chosen:
         if isinstance(f, bool) or not isinstance(f, int) or not 0 <= f < count:
             raise ValueError(f"part patch {f!r} is no patch index in 0..{count - 1}")
     if len(set(chosen)) != len(chosen):
         raise ValueError("a part lists a patch twice")
-    quads = [atlas.quads[f] for f in chosen]
+    ring = atlas_ring(atlas, chosen, rings)
+    quads = [atlas.quads[f] for f in ring]
     table = atlas_edges(quads)
     full_index = {key: e for e, key in enumerate(atlas.edges.edges)}
-    full_edges = tuple(full_index[key] for key in table.edges)
+    full_edges = [full_index[key] for key in table.edges]
     inner = atlas.side - 2
     edge_runs = [range(e * inner, (e + 1) * inner) for e in full_edges]
-    face_runs = [range(f * inner * inner, (f + 1) * inner * inner) for f in chosen]
+    face_runs = [range(f * inner * inner, (f + 1) * inner * inner) for f in ring]
     weights = None
     if atlas.weights is not None:
         w, vertex_count = atlas.weights, len(atlas.vertices)
@@ -727,220 +803,87 @@ def atlas_part(atlas: AtlasSurface, patches: Sequence[int], seam_resolution: int
     part = AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, quads,
                         [atlas.edge_points[k] for run in edge_runs for k in run],
                         [atlas.face_points[k] for run in face_runs for k in run], weights)
-    seams = tuple(e for e, full in enumerate(full_edges)
-                  if len(table.faces[e]) == 1 and len(atlas.edges.faces[full]) == 2)
-    if frames is None:
-        frames = atlas_seam_frames(atlas, seam_resolution)
-    frames = {e: frames[full_edges[e]] for e in seams}
-    if any(len(points) != seam_resolution for points, _ in frames.values()):
-        raise ValueError(f"the seam frames are not of {seam_resolution} samples")
-    return AtlasPart(part, chosen, full_edges, seams, seam_resolution, frames)
+    at = {f: k for k, f in enumerate(ring)}
+    return AtlasPart(part, tuple(ring), tuple(tuple(sorted(at[f] for f in group))
+                                              for group in groups),
+                     count, rings, _normal_tolerance(_homogeneous(atlas)))
 
 
-def _patches_at_vertices(atlas: AtlasSurface) -> dict[int, list[tuple[int, int]]]:
-    """Layout vertex -> the ``(patch, corner)`` pairs at it, patches in index order."""
-    around: dict[int, list[tuple[int, int]]] = {}
-    for f, quad in enumerate(atlas.quads):
-        for c, k in enumerate(quad):
-            around.setdefault(k, []).append((f, c))
-    return around
+def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],
+                           detail: Mapping[int, Sequence[DetailTile]] | None = None,
+                           kernel: str | None = None, cache: PatchGrids | None = None
+                           ) -> list[AtlasMesh]:
+    """Per group of ``part``, its patches' triangles in :func:`tessellate_atlas` ``(atlas,
+    resolution, detail)`` of the full atlas, with the vertices they use (renumbered in
+    order): the same positions, normals, ``(u, v)`` and patches, bit for bit.
 
-
-def atlas_seam_frames(atlas: AtlasSurface, samples: int,
-                      kernel: str | None = None) -> dict[int, tuple[list, list]]:
-    """The frame of every inner edge of ``atlas`` that parts drawn apart place their seams by
-    (:func:`tessellate_atlas_part`): edge ``e`` -> ``(points, direction)``, base points at
-    ``samples`` parameters ``t_K = K / (samples - 1)`` from its lower layout vertex to its
-    higher, and one unit direction for the edge.
-
-    One evaluation of every patch at ``samples`` samples per side (the grid kernel, as the
-    base mesh is drawn); the point is the lowest-numbered sampling patch's sample; the
-    direction is the normalised sum, over the samples, of the sums in patch order of the unit
-    normals of the patches sampling each (two along the edge, all those at a corner; at a
-    pole the reference evaluator's limit). Computed once and shared, the frame is the same
-    numbers for the parts on both sides of a seam.
-    """
-    if not isinstance(atlas, AtlasSurface):
-        raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
-    if isinstance(samples, bool) or not isinstance(samples, int) or not 2 <= samples <= MAX_GRID:
-        raise ValueError(f"seam samples = {samples!r}; an int in 2..{MAX_GRID} is needed")
-    backend = _kernel.backend(kernel)
-    comps = _homogeneous(atlas)
-    evaluate = (_evaluate_python if backend is _kernel_python
-                else partial(_evaluate_numpy, backend=backend))
-    r = samples
-    grids = evaluate(atlas, comps, list(range(len(atlas.quads))), r, _normal_tolerance(comps))
-    params = _tables(atlas.degree, atlas.spans, r)[0]
-    poles = {f: set(bad) for f, (_, _, bad) in grids.items() if bad}
-    sides = _side_slots(r)
-    corner_slot = (0, (r - 1) * r, r * r - 1, r - 1)  # corners a, b, c, d of the quad
-    around = _patches_at_vertices(atlas)
-    table = atlas.edges
-
-    def unit_normal(f, slot):
-        if slot in poles.get(f, ()):
-            return atlas.patch_surface(f).normal(params[slot // r], params[slot % r])
-        return grids[f][1][3 * slot : 3 * slot + 3]
-
-    frames = {}
-    for e, pairs in enumerate(table.faces):
-        if len(pairs) != 2:
-            continue
-        lo, hi = table.edges[e]
-        on_edge = sorted(pairs)
-        points, normals = [], []
-        for K in range(r):
-            if K in (0, r - 1):
-                at = [(f, corner_slot[c]) for f, c in around[lo if K == 0 else hi]]
-            else:
-                at = [(f, sides[f_k][r - 1 - K if table.sides[f][f_k][1] else K])
-                      for f, f_k in on_edge]
-            f0, slot0 = at[0]
-            points.append(tuple(grids[f0][0][3 * slot0 : 3 * slot0 + 3]))
-            x = y = z = 0.0
-            for f, slot in at:
-                nx, ny, nz = unit_normal(f, slot)
-                x, y, z = x + nx, y + ny, z + nz
-            normals.append((x, y, z))
-        # one direction for the whole edge: every chord's wall is planar, and a part's chord
-        # lies in the plane of the other part's wall
-        frames[e] = (points, _unit(*(sum(n[c] for n in normals) for c in range(3))))
-    return frames
-
-
-def tessellate_atlas_part(part: AtlasPart, resolution: int,
-                          detail: Mapping[int, Sequence[DetailTile]] | None = None,
-                          kernel: str | None = None) -> AtlasPartMesh:
-    """One part of an atlas, welded within itself, that meets every other part without a
-    crack whatever their resolutions and detail.
-
-    The part is :func:`tessellate_atlas` of its own patches, all at ``resolution``, except
-    on its *seams* (edges shared with a patch outside it):
-
-    * a seam is evaluated at ``part.seam_resolution`` samples ``K``, each placed at
-      ``X_K = S_K + d_K n`` with the seam's base points ``S_K`` and its one direction ``n``
-      that every part computes alike (:func:`atlas_seam_frames`) and ``d_K`` the mean
-      displacement of the part's own patches there (0 without detail, and 0 at the seam's
-      two ends, the layout vertices where more than two parts may meet); its
-      ``resolution - 1`` segments are laid on the straight chords between those, as
-      ``tessellate_atlas`` lays a finer side on a coarser neighbour's;
-    * under each chord of a part with detail hangs a wall, down from its edge only
-      (:func:`_hang_seam_walls`).
-
-    Two parts meeting on a seam differ there only along the shared ``n``: one shows
-    ``S + d_A n``, the other ``S + d_B n``, and every chord and wall of either lies in the
-    plane through the base chord along ``n``. The higher edge's wall hangs past the lower
-    edge when the lower is a part with detail lower by no more than twice the higher part's
-    largest displacement along the seam, or a base part (``d = 0``) below a part displaced
-    outwards; **a part displaced inwards (``d < 0``) next to a base part leaves a step of
-    ``|d|`` open** (the base part hangs no wall: it cannot know its neighbour's
-    displacement). No wall rises above its edge (no fin). The detail is not applied at the
-    group corners (the surface meets the base there) and is offset along the seam's
-    direction, not each point's normal, on the seams. Without detail, ``d = 0``: the two
-    parts' seam vertices are the same points bit for bit and no wall is hung. A part's mesh
-    depends on its own resolution and detail alone, so a viewer redraws only the parts
-    whose level changed.
+    Every rule of the welded mesh is local: a border vertex is placed and shaded by the
+    patches that sample it (the mean of their displacements along the normalised mean of
+    their normals; the normalised sum of their drawn normals), an edge is evaluated at its
+    coarser side's resolution, and a drawn normal by differences reaches one sample into
+    each patch. So the part's triangles depend only on the patches sharing a layout vertex
+    with it (its ring): this is the welded mesh of the groups and their ring
+    (``part.atlas``) with the full atlas's resolutions, detail and normal tolerance, cut
+    into the groups' triangles (one evaluation for all the groups, their rings shared).
+    Two groups' meshes share their seam vertices exactly, made together or apart (the same
+    arithmetic on the same numbers, in the same order: the grid kernels evaluate each patch
+    alike whatever else is in the batch), so they meet without a crack, and the groups of
+    a partition of the atlas together are its welded mesh. A group's mesh depends on the
+    resolutions and detail of its ring's patches too: a viewer redraws a group when its
+    own or a neighbouring group's level changes.
 
     Parameters
     ----------
     part : AtlasPart
-        From :func:`atlas_part`.
-    resolution : int
-        Samples per patch side; ``resolution - 1`` a power-of-2 multiple of
-        ``part.seam_resolution - 1``.
+        From :func:`atlas_parts`.
+    resolution : int or sequence of int
+        Samples per patch side, for all patches or one per patch of the *full* atlas (as
+        :func:`tessellate_atlas`; only the ring's are read).
     detail : mapping of int to sequence of DetailTile, optional
-        Full-atlas patch index (a patch of the part) -> its tiles.
+        Full-atlas patch index -> its tiles (only the ring's are read).
     kernel : {'python', 'numpy'}, optional
+    cache : PatchGrids, optional
+        Patch grids kept between the parts of one atlas (made with one kernel): a patch is
+        evaluated, and its tiles summed, once per resolution and tiles.
 
     Returns
     -------
-    AtlasPartMesh
+    list of AtlasMesh
+        One per group of ``part``, in its order; ``patches`` holds the full atlas's patch
+        indices.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments (:func:`tessellate_atlas`'s checks), or detail on a 2-sample patch of
+        a part of one ring.
     """
     if not isinstance(part, AtlasPart):
-        raise ValueError(f"part must be an AtlasPart (atlas_part), got {type(part).__name__}")
-    if isinstance(resolution, bool) or not isinstance(resolution, int) \
-            or resolution < part.seam_resolution:
-        raise ValueError(f"resolution = {resolution!r}; an int >= the part's seam resolution "
-                         f"({part.seam_resolution}) is needed")
-    index = {f: k for k, f in enumerate(part.patches)}
-    local = {}
-    for f, tiles in (detail or {}).items():
-        if f not in index:
-            raise ValueError(f"detail key {f!r} is no patch of the part")
-        local[index[f]] = tiles
+        raise ValueError(f"part must be an AtlasPart (atlas_parts), got {type(part).__name__}")
+    if isinstance(resolution, int) and not isinstance(resolution, bool):
+        resolution = [resolution] * part.patch_count
+    elif isinstance(resolution, Sequence) and not isinstance(resolution, str | bytes) \
+            and len(resolution) != part.patch_count:
+        raise ValueError(f"resolution has {len(resolution)} values; the atlas has "
+                         f"{part.patch_count} patches (give one int, or one per patch)")
+    elif not isinstance(resolution, Sequence):
+        raise ValueError(f"resolution must be an int or a sequence of ints, got {resolution!r}")
     atlas = part.atlas
-    res = _check_resolutions(atlas, resolution)
-    tiles = _check_detail(atlas, local)
-    layout = _Layout(atlas, res, dict.fromkeys(part.seams, part.seam_resolution))
-    frames = {}
-    for e in part.seams:
-        step = (layout.fine[e] - 1) // (part.seam_resolution - 1)
-        points, direction = part.frames[e]
-        last = len(points) - 1
-        for K, point in enumerate(points):  # no displacement at the seam's ends (below)
-            frames[layout.edge_node(e, K * step)] = \
-                (point, (0.0, 0.0, 0.0) if K in (0, last) else direction)
-    mesh, layout = _welded_mesh(atlas, res, tiles, kernel,
-                                dict.fromkeys(part.seams, part.seam_resolution), frames)
-    surface_vertices, surface_triangles = mesh.vertex_count, mesh.triangle_count
-    seams = {part.full_edges[e]: [layout.edge_node(e, K) for K in range(layout.fine[e])]
-             for e in part.seams}
-    if tiles:
-        _hang_seam_walls(mesh, layout, part)
-    return AtlasPartMesh(mesh.positions, mesh.normals, mesh.uvs, mesh.indices,
-                         patches=array("I", [part.patches[k] for k in mesh.patches]),
-                         seams=seams, surface_vertices=surface_vertices,
-                         surface_triangles=surface_triangles)
-
-
-def _hang_seam_walls(mesh: AtlasMesh, layout: _Layout, part: AtlasPart) -> None:
-    """Append to ``mesh`` a wall under each seam (:func:`tessellate_atlas_part`), hanging
-    *down* from the part's own edge, never above it (a wall rising above the edge stands out
-    of the surface as a fin wherever the neighbour is lower still).
-
-    At sample ``K`` of a seam (base point ``S_K``, the seam's direction ``n``, the part's
-    displacement ``d_K``), the wall reaches from the top ``X_K = S_K + d_K n`` down to
-    ``S_K + (min(d_K, 0) - h) n`` with ``h`` twice the largest ``|d_K|`` along the seam: past
-    the base, and past a neighbour lower by up to twice the part's own largest displacement
-    there (a bound, not a guarantee: both fit the same scan, so their displacements agree
-    to within their errors). For each chord between two samples, the polygon of its top vertices
-    (in-between ones included) and the two bottoms is one fan, turned so that it folds away
-    from the surface (its top edges run against the surface triangles'); the bottoms keep
-    their top's normal, ``(u, v)`` and patch, so a wall seen at a grazing angle shades like
-    the surface."""
-    positions, normals, uvs, owners = mesh.positions, mesh.normals, mesh.uvs, mesh.patches
-    count = mesh.vertex_count
-    walls = array("I")
-    for e in part.seams:
-        fine = layout.fine[e]
-        step = (fine - 1) // (part.seam_resolution - 1)
-        points, direction = part.frames[e]
-        nodes = [layout.edge_node(e, K) for K in range(fine)]
-        samples = [nodes[k * step] for k in range(len(points))]
-        offsets = [sum((positions[3 * node + c] - point[c]) * direction[c] for c in range(3))
-                   for node, point in zip(samples, points, strict=True)]
-        depth = 2.0 * max(map(abs, offsets))
-        bottom = {}
-        for node, point, d in zip(samples, points, offsets, strict=True):
-            t = min(d, 0.0) - depth
-            positions.extend(array("f", [point[c] + t * direction[c] for c in range(3)]))
-            normals.extend(normals[3 * node : 3 * node + 3])
-            uvs.extend(uvs[2 * node : 2 * node + 2])
-            owners.append(owners[node])
-            bottom[node] = count
-            count += 1
-        # the one patch side on the seam: does its counter-clockwise loop run it lo -> hi?
-        f, k = layout.table.faces[e][0]
-        s, t = SIDES[k]
-        quad = layout.atlas.quads[f]
-        enters = quad[s] if k < 2 else quad[t]
-        forward = enters == layout.table.edges[e][0]
-        for K0 in range(0, fine - 1, step):
-            tops = nodes[K0 : K0 + step + 1]
-            first, last = bottom[tops[0]], bottom[tops[-1]]
-            # the loop a -> b -> B -> A of a quad, with the chord's vertices as a -> b
-            loop = [*reversed(tops), first, last] if forward else [*tops, last, first]
-            apex = loop[-1]
-            for m in range(len(loop) - 2):
-                walls.extend((apex, loop[m], loop[m + 1]))
-    mesh.indices.extend(walls)
+    res = _check_resolutions(atlas, [resolution[f] for f in part.patches])
+    detail = detail or {}
+    if not isinstance(detail, Mapping):
+        raise ValueError(f"detail must be a mapping of patch index to DetailTile lists, "
+                         f"got {type(detail).__name__}")
+    for f in detail:
+        if isinstance(f, bool) or not isinstance(f, int) or not 0 <= f < part.patch_count:
+            raise ValueError(f"detail key {f!r} is no patch index in 0..{part.patch_count - 1}")
+    tiles = _check_detail(atlas, {k: detail[f] for k, f in enumerate(part.patches)
+                                  if f in detail})
+    if tiles and part.rings < 2 and min(res) < 3:
+        raise ValueError("detail on 2-sample patches needs a part of two rings "
+                         "(atlas_parts(..., rings=2))")
+    meshes = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn,
+                          part.patches, cache)
+    for mesh in meshes:
+        mesh.patches = array("I", [part.patches[k] for k in mesh.patches])
+    return meshes

@@ -23,8 +23,10 @@ from __future__ import annotations
 import json
 import zlib
 from array import array
+from bisect import bisect_right
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from itertools import chain
 
 from . import _kernel
 from .atlas import AtlasSurface
@@ -32,11 +34,11 @@ from .atlas_detail import pack_name, read_pack
 from .atlas_format import read_atlas
 from .atlas_mesh import (
     AtlasMesh,
-    AtlasPart,
-    atlas_part,
-    atlas_seam_frames,
+    PatchGrids,
+    atlas_parts,
+    atlas_ring,
     tessellate_atlas,
-    tessellate_atlas_part,
+    tessellate_atlas_parts,
 )
 from .atlas_texture import (
     ColourPack,
@@ -127,8 +129,7 @@ class WorkerSession:
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
         self._colours: dict[str, ColourPack] = {}  # an atlas's decoded colour packs, by name
         self._error_pack: ColourPack | None = None  # the atlas's error map while it is shown
-        self._atlas_parts: dict[tuple[int, int, int], AtlasPart] = {}  # atlas_part_mesh's
-        self._atlas_frames: dict[int, dict] = {}  # seam resolution -> atlas_seam_frames
+        self._patch_grids = PatchGrids()  # atlas_part_meshes' patch grids, kept between calls
 
     @property
     def kernel(self) -> str:
@@ -171,8 +172,7 @@ class WorkerSession:
         self._atlas = None
         self._packs.clear()
         self._colours.clear()
-        self._atlas_parts.clear()
-        self._atlas_frames.clear()
+        self._patch_grids = PatchGrids()
         self._tiles.clear()
         self._last = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
@@ -409,8 +409,7 @@ class WorkerSession:
         self._packs.clear()
         self._colours.clear()
         self._error_pack = None
-        self._atlas_parts.clear()
-        self._atlas_frames.clear()
+        self._patch_grids = PatchGrids()
         return {"kind": "atlas", "patches": len(atlas.quads), "degree": atlas.degree,
                 "spans": atlas.spans, "vertices": len(atlas.vertices),
                 "rational": atlas.weights is not None, "units": self._atlas_units,
@@ -438,9 +437,11 @@ class WorkerSession:
             group, by the packs' measure: the detail fit's samples), else ``base.max``
             (bundles before issue 14, where ``max`` was that measure);
             ``resolutions``: samples per patch side drawn with levels ``-1, 0, .., L``
-            (:meth:`atlas_mesh`'s rule); ``levels``: ``L + 1``.
+            (:meth:`atlas_mesh`'s rule); ``levels``: ``L + 1``; per group also
+            ``neighbours``: the other groups whose levels its mesh depends on
+            (:meth:`atlas_part_meshes`).
         """
-        _, spec = self._atlas_loaded()
+        atlas, spec = self._atlas_loaded()
         detail = self._manifest_read()["tiles"].get("detail") or {}
         groups = []
         for g, group in enumerate(spec.groups):
@@ -450,7 +451,8 @@ class WorkerSession:
                            "packs": [key and pack_name(*key) for key in keys],
                            "bytes": [key and spec.packs[key]["bytes"] for key in keys],
                            "errors": [key and spec.packs[key]["geometric_error"]
-                                      for key in keys]})
+                                      for key in keys],
+                           "neighbours": _neighbour_groups(atlas, spec, g)})
         base = detail.get("base") or {}
         return {"groups": groups, "base_error": base.get("samples_max", base.get("max")),
                 "levels": len(spec.levels),
@@ -514,85 +516,84 @@ class WorkerSession:
             handed over (:meth:`add_pack`).
         """
         atlas, spec = self._atlas_loaded()
+        resolution, detail = self._atlas_levels(spec, levels, range(len(spec.groups)))
+        mesh = tessellate_atlas(atlas, resolution, detail, self._kernel)
+        self._colour_groups(mesh, spec, range(len(spec.groups)), levels)
+        self._last = (-2, mesh)  # not a base grid: base_ply never reuses it
+        return mesh
+
+    def _atlas_levels(self, spec: AtlasTiles, levels: Sequence[int], groups: Iterable[int]
+                      ) -> tuple[list[int], dict[int, list[DetailTile]]]:
+        """Samples per side of every patch and the detail of the patches of ``groups``, group
+        ``g`` at ``levels[g]`` (the held packs of levels ``0..levels[g]`` of the group and
+        :func:`_drawn_resolution` ``(levels[g])``): :meth:`atlas_mesh`'s rule, which
+        :meth:`atlas_part_meshes` shares. ``ValueError`` for not one level per group, a level
+        out of range, or a pack a group of ``groups`` needs not handed over."""
         levels = list(levels)
         if len(levels) != len(spec.groups):
             raise ValueError(f"levels has {len(levels)} values; the atlas has "
                              f"{len(spec.groups)} groups")
-        detail: dict[int, dict[int, list[DetailTile]]] = {}
-        for level, group, held in self._packs.values():
-            if level <= levels[group]:
-                for patch, tiles in held.items():
-                    detail.setdefault(patch, []).extend(tiles)
         resolution = [spec.base_resolution] * spec.patches
         for g, (group, level) in enumerate(zip(spec.groups, levels, strict=True)):
             if isinstance(level, bool) or not isinstance(level, int) \
                     or not -1 <= level < len(spec.levels):
                 raise ValueError(f"levels[{g}] = {level!r}; an int in -1..{len(spec.levels) - 1}"
                                  " is needed")
-            for k in range(level + 1):
-                if (k, g) in spec.packs and pack_name(k, g) not in self._packs:
-                    raise ValueError(f"group {g} at level {level} needs pack {pack_name(k, g)}, "
-                                     "which was not handed over (add_pack)")
             r = _drawn_resolution(spec, level)
             resolution[group.first : group.first + group.count] = [r] * group.count
-        mesh = tessellate_atlas(atlas, resolution, detail, self._kernel)
-        self._colour_groups(mesh, spec, range(len(spec.groups)), levels)
-        self._last = (-2, mesh)  # not a base grid: base_ply never reuses it
-        return mesh
+        detail: dict[int, list[DetailTile]] = {}
+        for g in groups:
+            for k in range(levels[g] + 1):
+                if (k, g) not in spec.packs:
+                    continue
+                name = pack_name(k, g)
+                if name not in self._packs:
+                    raise ValueError(f"group {g} at level {levels[g]} needs pack {name}, "
+                                     "which was not handed over (add_pack)")
+                for patch, tiles in self._packs[name][2].items():
+                    detail.setdefault(patch, []).extend(tiles)
+        return resolution, detail
 
-    def atlas_part_mesh(self, group: int, level: int) -> Mesh:
-        """Group ``group`` of the atlas alone at ``level`` (-1: the base): the viewer's unit
-        of refinement, so that a change of level costs that group's patches only.
+    def atlas_part_meshes(self, groups: Sequence[int], levels: Sequence[int]) -> list[Mesh]:
+        """Each of ``groups``' share of :meth:`atlas_mesh` ``(levels)``: its triangles of
+        that welded mesh, with the vertices they use, the same numbers bit for bit
+        (:func:`client_py.atlas_mesh.tessellate_atlas_parts`, one evaluation for all of
+        them); the viewer's unit of refinement. Groups made at one level vector, together or
+        apart, meet without a crack, and together are the welded mesh.
 
-        The patches get the held packs of levels ``0..level`` of the group and
-        :func:`_drawn_resolution` ``(level)`` samples per side; the group's seams with
-        other groups are evaluated at the base's resolution, on a frame every group shares,
-        with walls down to the base (:func:`client_py.atlas_mesh.tessellate_atlas_part`),
-        so groups drawn at any levels meet without a crack and the mesh's geometry depends
-        on ``(group, level)`` alone. The group's part (its seam frames) is made once.
-
-        With colour, the mesh carries RGB per vertex by :meth:`atlas_mesh`'s rule (the
-        held colour pack of colour level ``colour_level(level)`` that holds the group; a
-        wall vertex takes its top's colour): the same colours the welded mesh has there at
-        the same level. Without that pack held, ``colors`` stays ``None``.
+        A group's mesh depends on the levels of the group and of its ``neighbours``
+        (:meth:`atlas_refinement`: the groups of the patches sharing a layout vertex with
+        it) alone, and needs their held packs. With colour, a mesh carries RGB per vertex by
+        :meth:`atlas_mesh`'s rule (it needs the colour packs of the group and its
+        neighbours at their levels; without them its ``colors`` stays ``None``).
 
         Raises
         ------
         ValueError
-            A group or level out of range, or a pack of a wanted level not handed over.
+            A group out of range or twice, bad ``levels`` (:meth:`atlas_mesh`), or a pack a
+            group or a neighbour needs not handed over.
         """
         atlas, spec = self._atlas_loaded()
-        if isinstance(group, bool) or not isinstance(group, int) \
-                or not 0 <= group < len(spec.groups):
-            raise ValueError(f"group {group!r}; an int in 0..{len(spec.groups) - 1} is needed")
-        if isinstance(level, bool) or not isinstance(level, int) \
-                or not -1 <= level < len(spec.levels):
-            raise ValueError(f"level {level!r}; an int in -1..{len(spec.levels) - 1} is needed")
-        detail: dict[int, list[DetailTile]] = {}
-        for k in range(level + 1):
-            name = pack_name(k, group)
-            if (k, group) not in spec.packs:
-                continue
-            if name not in self._packs:
-                raise ValueError(f"group {group} at level {level} needs pack {name}, which "
-                                 "was not handed over (add_pack)")
-            for patch, tiles in self._packs[name][2].items():
-                detail.setdefault(patch, []).extend(tiles)
-        key = (spec.groups[group].first, spec.groups[group].count, spec.base_resolution)
-        part = self._atlas_parts.get(key)
-        if part is None:
-            first, count, seam_resolution = key
-            frames = self._atlas_frames.get(seam_resolution)
-            if frames is None:  # one table for every group: each seam's frame computed once
-                self._atlas_frames = {seam_resolution: atlas_seam_frames(
-                    atlas, seam_resolution, self._kernel)}
-                frames = self._atlas_frames[seam_resolution]
-            part = self._atlas_parts[key] = atlas_part(atlas, range(first, first + count),
-                                                       seam_resolution, frames)
-        mesh = tessellate_atlas_part(part, _drawn_resolution(spec, level), detail,
-                                     self._kernel)
-        self._colour_groups(mesh, spec, [group], [level])
-        return mesh
+        groups = list(groups)
+        for group in groups:
+            if isinstance(group, bool) or not isinstance(group, int) \
+                    or not 0 <= group < len(spec.groups):
+                raise ValueError(f"group {group!r}; an int in 0..{len(spec.groups) - 1} is "
+                                 "needed")
+        if len(set(groups)) != len(groups):
+            raise ValueError(f"groups {groups} lists a group twice")
+        if not groups:
+            return []
+        around = {g: [g, *_neighbour_groups(atlas, spec, g)] for g in groups}
+        resolution, detail = self._atlas_levels(spec, levels, sorted(set(chain(*around.values()))))
+        runs = [range(spec.groups[g].first, spec.groups[g].first + spec.groups[g].count)
+                for g in groups]
+        part = atlas_parts(atlas, runs, _ring_depth(spec))
+        meshes = tessellate_atlas_parts(part, resolution, detail, self._kernel,
+                                        self._patch_grids)
+        for g, mesh in zip(groups, meshes, strict=True):
+            self._colour_groups(mesh, spec, around[g], [levels[h] for h in around[g]])
+        return meshes
 
     def _atlas_level_ply(self, level: int, fresh: Mapping[str, bytes],
                          textures: Sequence[Mapping] = (),
@@ -717,10 +718,9 @@ class WorkerSession:
         has colour and a pack is held for every patch of those groups (else it stays
         uncoloured: the packs are still on their way); while the error map is shown
         (:meth:`set_error_map`), from its one pack instead. The one colour rule of
-        :meth:`atlas_mesh` (every group) and :meth:`atlas_part_mesh` (one group)."""
+        :meth:`atlas_mesh` (every group) and :meth:`atlas_part_meshes` (some groups)."""
         if self._error_pack is not None:
-            everywhere = {f: self._error_pack for g in groups for f in range(
-                spec.groups[g].first, spec.groups[g].first + spec.groups[g].count)}
+            everywhere = dict.fromkeys(range(spec.patches), self._error_pack)
             mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, everywhere)
             return
         colour = atlas_colour(self._manifest_read())
@@ -768,6 +768,20 @@ def _decode_tile(name: str, data: bytes) -> DetailTile:
     except PatchFormatError as exc:
         raise PatchFormatError(exc.offset, f"{exc.reason} (detail tile {name})",
                                exc.section) from None
+
+
+def _ring_depth(spec: AtlasTiles) -> int:
+    """Rings of patches a group's mesh depends on (:func:`client_py.atlas_mesh.atlas_parts`):
+    one, or two where the base has 2 samples per side."""
+    return 1 if spec.base_resolution >= 3 else 2
+
+
+def _neighbour_groups(atlas: AtlasSurface, spec: AtlasTiles, group: int) -> list[int]:
+    """The other groups with a patch in group ``group``'s rings (:func:`_ring_depth`)."""
+    first, count = spec.groups[group].first, spec.groups[group].count
+    firsts = [g.first for g in spec.groups]
+    ring = atlas_ring(atlas, range(first, first + count), _ring_depth(spec))
+    return sorted({bisect_right(firsts, f) - 1 for f in ring} - {group})
 
 
 def _drawn_resolution(spec: AtlasTiles, level: int) -> int:

@@ -126,3 +126,19 @@ def test_bad_arguments_are_named():
         atlas_detail.fit_atlas_detail(fit, scan, step_factor=0.0)
     with pytest.raises(ValueError, match="permutation"):
         atlas_detail.renumber_patches(fit.atlas, np.zeros(len(fit.atlas.quads), int))
+
+
+def test_a_sample_from_the_other_sheet_is_not_fitted():
+    """A sample whose own normal opposes the base's at its foot point (the back of a thin
+    part matched to its front) is left out of the fit; one that agrees is fitted."""
+    fit, _ = _bumpy_sphere_fit()
+    rng = np.random.default_rng(3)
+    unit = rng.normal(size=(400, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    points = unit * 1.01
+    normals = np.where(np.arange(400)[:, None] < 200, unit, -unit)  # half face inward
+    samples = atlas_detail.project_samples(fit.atlas, fit, points, normals)
+    assert np.sum(samples.facing < 0) == 200  # the foot points' normals: outward, all
+    np.testing.assert_allclose(np.abs(samples.facing), 1.0, atol=0.05)
+    use = atlas_detail.fit_samples(samples, spacing=0.05, side=1.0)
+    np.testing.assert_array_equal(use, samples.facing > 0)

@@ -18,7 +18,14 @@ from fitter.fitting.atlas.fit import (
     solve_control_points,
     triangle_to_quad,
 )
-from fitter.fitting.atlas.layout import bilinear_atlas, decimate, euler_characteristics
+from fitter.fitting.atlas.layout import (
+    THIN_CAP,
+    bilinear_atlas,
+    decimate,
+    euler_characteristics,
+    thickness,
+    thin_part_weights,
+)
 from fitter.fitting.atlas.surface import clean_mesh, manifold_problems
 from fitter.fitting.io.scan import Scan, make_scan, new_source
 from tests.test_atlas import random_cube_atlas
@@ -230,3 +237,77 @@ def test_auto_grows_the_layout_within_the_byte_budget():
     assert fit.bytes <= 9000 * 1.05  # the final fit of the chosen layout, all points
     assert fit.patches == 3 * fit.triangles
     assert fit.triangles in [trial["triangles"] for trial in fit.trials]
+
+
+def test_thickness_is_the_chord_through_the_solid_and_inf_on_an_open_sheet():
+    m = trimesh.creation.icosphere(subdivisions=3, radius=2.0)
+    tau = thickness(m.vertices, m.faces)
+    np.testing.assert_allclose(tau, 4.0, rtol=0.01)  # every inward ray is a diameter
+    grid = trimesh.creation.box().subdivide()  # a closed box, cut open below
+    keep = grid.triangles_center[:, 2] > -0.49
+    sheet = trimesh.Trimesh(grid.vertices, grid.faces[keep])
+    sheet.remove_unreferenced_vertices()
+    tau = dict(zip(map(tuple, np.round(sheet.vertices, 6)),
+                   thickness(sheet.vertices, sheet.faces), strict=True))
+    assert tau[(0.5, 0.0, 0.0)] == pytest.approx(1.0, rel=1e-3)  # a side's centre: across
+    assert np.isinf(tau[(0.0, 0.0, 0.5)])  # the top's centre: the ray leaves by the opening
+
+
+def _sphere_and_thin_disc() -> Scan:
+    """A ball of radius 1 and, apart, a disc 1.6 wide and 0.06 thick (two closed pieces)."""
+    ball = trimesh.creation.icosphere(subdivisions=4)
+    disc = trimesh.creation.icosphere(subdivisions=4)
+    disc.vertices = disc.vertices * [0.8, 0.8, 0.03] + [3.0, 0.0, 0.0]
+    both = trimesh.util.concatenate([ball, disc])
+    return _mesh_scan(both.vertices, both.faces, "ball and disc")
+
+
+def test_thin_part_weights_give_a_thin_sheet_more_of_the_layout():
+    surface = scan_surface(_sphere_and_thin_disc())
+    weights = thin_part_weights(surface, 100)
+    on_disc = surface.vertices[:, 0] > 2.0
+    assert weights.min() >= 1.0 and weights.max() <= THIN_CAP
+    assert np.median(weights[on_disc]) > 10 * np.median(weights[~on_disc])
+    plain_v, plain_t = decimate(surface, 100)
+    thin_v, thin_t = decimate(surface, 100, weights)
+    disc_share = [np.mean(v[t].mean(axis=1)[:, 0] > 2.0) for v, t in
+                  ((plain_v, plain_t), (thin_v, thin_t))]
+    assert disc_share[1] > disc_share[0] + 0.1
+    # equal weights (a ball alone has no thin part) are the plain decimation
+    even_v, even_t = decimate(surface, 100, np.ones(len(surface.vertices)))
+    np.testing.assert_array_equal(even_t, plain_t)
+    with pytest.raises(ValueError, match="finite numbers > 0"):
+        decimate(surface, 100, np.zeros(len(surface.vertices)))
+
+
+def _bumpy_ball_and_small_disc() -> Scan:
+    """A ball whose radius waves by 8 % (detail that needs layout triangles) and, apart, a
+    disc 0.6 wide and 0.04 thick (a thin part that the weighted decimation favours)."""
+    ball = trimesh.creation.icosphere(subdivisions=4)
+    v = ball.vertices
+    ball.vertices = v * (1 + 0.08 * np.prod(np.sin(6 * v), axis=1))[:, None]
+    disc = trimesh.creation.icosphere(subdivisions=2)
+    disc.vertices = disc.vertices * [0.3, 0.3, 0.02] + [1.6, 0.0, 0.0]
+    both = trimesh.util.concatenate([ball, disc])
+    return _mesh_scan(both.vertices, both.faces, "bumpy ball and small disc")
+
+
+@pytest.mark.parametrize("triangles, kept", [(60, "plain"), (120, "weighted")])
+def test_a_trial_keeps_the_layout_with_the_lower_rms(triangles, kept):
+    # at 60 triangles the disc's weights take too many from the waves (plain RMS about half
+    # the weighted); at 120 the waves have enough and the disc gains (weighted 0.6x plain)
+    fit = fit_atlas(_bumpy_ball_and_small_disc(), 3 * triangles, working_count=2000,
+                    rounds=1)
+    (trial,) = fit.trials
+    rms = trial["rms_by_layout"]
+    assert set(rms) == {"plain", "weighted"}
+    assert trial["layout"] == min(rms, key=rms.get) == kept
+    assert max(rms.values()) > 1.3 * min(rms.values())  # a clear winner, not a tie
+    assert fit.rms == trial["rms"] == rms[kept]  # the fit returned is the kept one
+    assert fit.triangles == trial["triangles"]
+
+
+def test_a_ball_alone_fits_the_plain_layout_only():
+    fit = fit_atlas(_sphere_scan(3), 150, working_count=2000, rounds=1)
+    (trial,) = fit.trials
+    assert trial["layout"] == "plain" and set(trial["rms_by_layout"]) == {"plain"}

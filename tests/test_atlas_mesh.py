@@ -19,10 +19,11 @@ from client_py import Mesh
 from client_py.atlas import AtlasSurface, atlas_edges
 from client_py.atlas_mesh import (
     AtlasMesh,
-    atlas_part,
+    PatchGrids,
+    atlas_parts,
     atlas_ply,
     tessellate_atlas,
-    tessellate_atlas_part,
+    tessellate_atlas_parts,
 )
 from client_py.layers import DetailTile
 
@@ -311,146 +312,103 @@ def test_an_open_layout_has_exactly_its_border_as_boundary():
         assert len(boundary) == expected
 
 
-# ------------------------------------------------------------------ parts drawn apart
-def _sphere_parts(seam_resolution=5, rational=False):
+# ------------------------------------------------------------------ one group's share of it
+def _groups_of(atlas, seed):
+    """A random partition of the patches into runs of 1..7 (the bundle's detail groups)."""
+    rnd, groups, first = random.Random(seed), [], 0
+    while first < len(atlas.quads):
+        count = min(rnd.randint(1, 7), len(atlas.quads) - first)
+        groups.append(range(first, first + count))
+        first += count
+    return groups
+
+
+def _drawn(mesh, name, width):
+    """Per triangle corner, the vertex's ``name`` values, as bytes to compare bit for bit."""
+    values = np.frombuffer(getattr(mesh, name), dtype=getattr(mesh, name).typecode)
+    values = values.reshape(-1, width)
+    return values[np.asarray(mesh.indices, dtype=np.int64)]
+
+
+@pytest.mark.parametrize("kernel", ["python", "numpy"])
+@pytest.mark.parametrize(("rational", "resolutions", "rings"),
+                         [(False, (5, 9, 17), 1), (True, (5, 9, 17), 1),
+                          (False, (2, 3, 5), 2)])
+def test_the_parts_of_a_partition_are_the_welded_mesh_bit_for_bit(kernel, rational,
+                                                                 resolutions, rings):
+    """Every group's mesh (:func:`tessellate_atlas_parts`, made alone or all together) at a
+    random level vector, with detail, concatenated in group order, is
+    :func:`tessellate_atlas` of the same arguments: the same triangles with the same float32
+    positions, normals, ``(u, v)`` and patches, bit for bit (so two groups' shared seam
+    vertices are equal, and the GPU draws no crack)."""
     atlas = sphere_atlas(2, noise=0.02, seed=4, rational=rational)
-    return atlas, [atlas_part(atlas, range(4 * g, 4 * g + 4), seam_resolution)
-                   for g in range(6)]  # a cube face each
+    kept = PatchGrids()  # grids kept between the parts of both level vectors
+    for seed in range(2):
+        groups = _groups_of(atlas, seed)
+        rnd = random.Random(10 + seed)
+        levels = [rnd.randrange(-1, 2) for _ in groups]
+        resolution, detail = [], {}
+        for group, level in zip(groups, levels, strict=True):
+            resolution += [resolutions[level + 1]] * len(group)
+            if level >= 0:
+                detail.update({f: random_tiles(f, levels=level + 1, amplitude=0.2)
+                               for f in group})
+        whole = tessellate_atlas(atlas, resolution, detail, kernel=kernel)
+        apart = [tessellate_atlas_parts(atlas_parts(atlas, [group], rings), resolution,
+                                        detail, kernel=kernel,
+                                        cache=kept if g % 2 else None)[0]
+                 for g, group in enumerate(groups)]
+        order = [*range(1, len(groups), 2), *range(0, len(groups), 2)]  # any order
+        made = tessellate_atlas_parts(atlas_parts(atlas, [groups[g] for g in order], rings),
+                                      resolution, detail, kernel=kernel)
+        together = [made[order.index(g)] for g in range(len(groups))]
+        for meshes in (apart, together):
+            for name, width in (("positions", 3), ("normals", 3), ("uvs", 2), ("patches", 1)):
+                joined = np.concatenate([_drawn(m, name, width) for m in meshes])
+                assert joined.tobytes() == _drawn(whole, name, width).tobytes(), name
+        for mesh, group in zip(apart, groups, strict=True):
+            assert len(set(mesh.indices)) == mesh.vertex_count  # only the vertices it uses
+            assert set(mesh.patches) <= set(atlas_parts(atlas, [group]).patches)
 
 
-def _welded_by_position(meshes, surface_only=True):
-    """The parts' surfaces (or all their triangles) as one mesh, vertices merged where their
-    float32 positions are equal bit for bit."""
-    ids: dict[tuple, int] = {}
-    points, indices = [], []
-    for mesh in meshes:
-        xyz = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3)
-        local = []
-        for p in map(tuple, xyz.tolist()):
-            if p not in ids:
-                ids[p] = len(ids)
-                points.append(p)
-            local.append(ids[p])
-        count = 3 * mesh.surface_triangles if surface_only else len(mesh.indices)
-        indices += [local[k] for k in mesh.indices[:count]]
-    from array import array
-    return Mesh(array("f", np.ravel(points).astype(np.float32).tobytes()), array("f"),
-                array("f"), array("I", indices))
+def test_a_part_is_its_patches_and_their_vertex_ring():
+    atlas = sphere_atlas(2, noise=0.02, seed=4)
+    part = atlas_parts(atlas, [[0]])
+    ring = {f for f, quad in enumerate(atlas.quads) if set(quad) & set(atlas.quads[0])}
+    assert part.patches == tuple(sorted(ring)) and len(ring) == 8  # at a cube corner
+    assert [[part.patches[k] for k in group] for group in part.drawn] == [[0]]
+    assert len(atlas_parts(atlas, [[0]], rings=2).patches) > len(ring)
 
 
-def test_parts_without_detail_weld_into_the_closed_atlas():
-    """Parts at the base resolution share their seam vertices bit for bit: together they
-    are the whole atlas's closed, consistently oriented mesh (each edge in two triangles)."""
-    atlas, parts = _sphere_parts()
-    meshes = [tessellate_atlas_part(part, 5, kernel="python") for part in parts]
-    assert all(m.vertex_count == m.surface_vertices for m in meshes)  # no walls
-    union = _welded_by_position(meshes)
-    assert_closed_and_oriented(union)
-    whole = tessellate_atlas(atlas, 5, kernel="python")
-    assert union.vertex_count == whole.vertex_count
-    assert union.triangle_count == whole.triangle_count
-    a = np.sort(np.frombuffer(union.positions, np.float32).reshape(-1, 3), axis=0)
-    b = np.sort(np.frombuffer(whole.positions, np.float32).reshape(-1, 3), axis=0)
-    assert np.abs(a - b).max() < 1e-6
-
-
-@pytest.mark.parametrize("rational", [False, True])
-def test_parts_at_mixed_levels_meet_on_shared_lines_with_walls_down_to_the_lower_edge(rational):
-    """Detail at different levels on either side of a seam: both parts place their seam
-    samples on lines ``S + t n`` of one shared frame (equal bit for bit in both parts), the
-    seam's ends on ``S``; a part with detail hangs a wall down from every sample, never above
-    its edge, and where two parts with detail meet, the higher edge's wall reaches past the
-    lower edge (no crack). The step is real (without the walls the edges are apart)."""
-    atlas, parts = _sphere_parts()
-    if rational:  # the same layout with weights: the frames come from the rational patches
-        w = [1.0 + 0.3 * ((k * 7919) % 5) / 5 for k in range(atlas.control_point_count)]
-        atlas = AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, atlas.quads,
-                             atlas.edge_points, atlas.face_points, w)
-        parts = [atlas_part(atlas, part.patches, 5) for part in parts]
-    levels = [0, 1, -1, 1, 0, -1]
-    resolution = {-1: 5, 0: 9, 1: 17}
-    meshes = []
-    for g, part in enumerate(parts):
-        detail = None
-        if levels[g] >= 0:
-            detail = {f: random_tiles(f, levels=levels[g] + 1, amplitude=0.2)
-                      for f in part.patches}
-        meshes.append(tessellate_atlas_part(part, resolution[levels[g]], detail,
-                                            kernel="python"))
-    owner = {f: g for g, part in enumerate(parts) for f in part.patches}
-    largest_step, seams, covered = 0.0, 0, 0
-    for e, pairs in enumerate(atlas.edges.faces):
-        ga, gb = owner[pairs[0][0]], owner[pairs[1][0]]
-        if ga == gb:
-            continue
-        seams += 1
-        frames = [parts[g].frames[parts[g].full_edges.index(e)] for g in (ga, gb)]
-        assert frames[0] == frames[1]
-        S, n = (np.array(x, float) for x in frames[0])  # base points, the seam's direction
-        tops, lowest = [], []
-        for g in (ga, gb):
-            mesh = meshes[g]
-            xyz = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float)
-            nodes = mesh.seams[e]
-            step = (len(nodes) - 1) // 4  # 5 samples evaluated on every seam
-            top = xyz[[nodes[K * step] for K in range(5)]]
-            assert np.abs(np.cross(top - S, n)).max() < 1e-5  # on the lines S + t n
-            assert np.array_equal(top[[0, 4]], S[[0, 4]].astype(np.float32).astype(float))
-            t_top = (top - S) @ n
-            tops.append(t_top)
-            if levels[g] < 0:
-                assert mesh.vertex_count == mesh.surface_vertices  # the base: no wall
-                assert np.abs(t_top).max() < 1e-6
-                lowest.append(t_top)
-                continue
-            walls = np.asarray(mesh.indices, np.int64).reshape(-1, 3)[mesh.surface_triangles:]
-            for a, b in zip(nodes, nodes[1:], strict=False):
-                assert sum(1 for t in walls.tolist() if a in t and b in t) == 1, (e, a, b)
-            bottom = []
-            for K in range(5):  # the wall under sample K: down from the top, on its line
-                a = nodes[K * step]
-                under = [v for t in walls.tolist() if a in t for v in t
-                         if v >= mesh.surface_vertices]
-                t_under = [(xyz[v] - S[K]) @ n for v in under
-                           if np.abs(np.cross(xyz[v] - S[K], n)).max() < 1e-5]
-                assert t_under and max(t_under) <= t_top[K] + 1e-6  # no fin
-                bottom.append(min(t_under))
-            lowest.append(np.array(bottom))
-        for K in range(1, 4):
-            hi = 0 if tops[0][K] >= tops[1][K] else 1
-            if levels[(ga, gb)[hi]] >= 0 and levels[(ga, gb)[1 - hi]] >= 0:
-                assert lowest[hi][K] <= tops[1 - hi][K] + 1e-6  # the higher wall covers
-                covered += 1
-        largest_step = max(largest_step, float(np.abs(tops[0] - tops[1]).max()))
-    assert seams == 24  # the cube's 12 edges, cut in two
-    assert covered > 0 and largest_step > 1e-3
-
-
-def test_part_walls_fold_against_the_surface():
-    """Surface and walls of a part are consistently oriented: every seam edge is used once
-    in each direction (the surface's triangle and its wall's)."""
-    _, parts = _sphere_parts()
-    part = parts[1]
-    mesh = tessellate_atlas_part(part, 9, {f: random_tiles(f) for f in part.patches},
-                                 kernel="python")
-    _, directed = edge_uses(mesh)
-    for nodes in mesh.seams.values():
-        for a, b in zip(nodes, nodes[1:], strict=False):
-            assert directed[a, b] == 1 and directed[b, a] == 1
-
-
-def test_a_part_needs_a_stitchable_resolution_and_its_own_detail():
-    atlas, parts = _sphere_parts()
-    with pytest.raises(ValueError, match="seam resolution"):
-        tessellate_atlas_part(parts[0], 3)
+def test_a_part_needs_good_arguments():
+    atlas = sphere_atlas(2, noise=0.02, seed=4)
+    part = atlas_parts(atlas, [range(4)])
     with pytest.raises(ValueError, match="power-of-2"):
-        tessellate_atlas_part(parts[0], 7)
-    with pytest.raises(ValueError, match="no patch of the part"):
-        tessellate_atlas_part(parts[0], 9, {20: random_tiles(1)})
-    with pytest.raises(ValueError, match="twice"):
-        atlas_part(atlas, [0, 0], 5)
+        tessellate_atlas_parts(part, [7] + [5] * 23)
+    with pytest.raises(ValueError, match="24 patches"):
+        tessellate_atlas_parts(part, [5] * 4)
     with pytest.raises(ValueError, match="no patch index"):
-        atlas_part(atlas, [24], 5)
+        tessellate_atlas_parts(part, 9, {24: random_tiles(1)})
+    with pytest.raises(ValueError, match="two rings"):
+        tessellate_atlas_parts(part, 2, {0: random_tiles(1)})
+    with pytest.raises(ValueError, match="twice"):
+        atlas_parts(atlas, [[0], [1, 0]])
+    with pytest.raises(ValueError, match="no patch index"):
+        atlas_parts(atlas, [[24]])
+    with pytest.raises(ValueError, match="at least one patch"):
+        atlas_parts(atlas, [[0], []])
+    with pytest.raises(ValueError, match="rings"):
+        atlas_parts(atlas, [[0]], rings=3)
+
+
+def test_patch_grids_drop_the_least_recently_used_beyond_their_samples():
+    kept = PatchGrids(max_samples=10)
+    for k in range(3):
+        kept.put(("grid", k, 2), k, 4)
+    assert kept.get(("grid", 0, 2)) is None and kept.get(("grid", 2, 2)) == 2
+    kept.get(("grid", 1, 2))  # used: 2 is now the oldest
+    kept.put(("grid", 3, 2), 3, 4)
+    assert kept.get(("grid", 2, 2)) is None and kept.get(("grid", 1, 2)) == 1
 
 
 @pytest.mark.parametrize("kernel", ["python", "numpy"])

@@ -181,12 +181,11 @@ def _paint_patch_and_level(level: int, patch: int, side: int) -> np.ndarray:
 
 
 def test_a_group_mesh_has_the_welded_mesh_s_colours_at_the_same_levels(tmp_path):
-    """atlas_part_mesh colours its group by atlas_mesh's rule: at the same levels (one group
-    at the finest level, the others at the base), every vertex of the group's mesh at a
-    patch and (u, v) that the welded mesh also has (all but its seams) has the welded mesh's
-    RGB, a wall vertex its top's, and every red names the vertex's patch and its group's
-    colour level (independent of the sampling code). A group is coloured once ITS pack is
-    held; the welded mesh waits for every group's."""
+    """atlas_part_meshes colours its groups by atlas_mesh's rule: at the same levels (one group
+    at the finest level, the others at the base), every group's mesh has the welded mesh's
+    RGB at every triangle corner, and every red names the vertex's patch and its group's
+    colour level (independent of the sampling code). A group is coloured once the packs of
+    it and its neighbours are held; the welded mesh waits for every group's."""
     folder = tmp_path / "sphere"
     manifest = write_atlas_bundle(folder, k=2, levels=2, base_resolution=5)
     add_colour_packs(folder, manifest, _paint_patch_and_level)
@@ -208,36 +207,27 @@ def test_a_group_mesh_has_the_welded_mesh_s_colours_at_the_same_levels(tmp_path)
     assert table["group_packs"][g] == ["texture/0/0.webp", "texture/0/0.webp",
                                        "texture/1/0.webp"]
     hand("texture/1/0.webp")
-    part = session.atlas_part_mesh(g, top)
-    assert part.colors is not None and len(part.colors) == 3 * part.vertex_count
-    assert session.atlas_part_mesh(g, -1).colors is None  # level 0's pack is not held
+    assert session.atlas_part_meshes([g], levels)[0].colors is None  # its neighbours' isn't held
     assert session.atlas_mesh(levels).colors is None  # nor the other groups' packs
     hand("texture/0/0.webp")
     welded = session.atlas_mesh(levels)
     assert welded.colors is not None
+    parts = session.atlas_part_meshes(range(len(levels)), levels)
+    assert all(p.colors is not None and len(p.colors) == 3 * p.vertex_count for p in parts)
 
-    def vertices(mesh):
-        uvs = np.frombuffer(mesh.uvs, np.float32).reshape(-1, 2).tolist()
-        rgb = [tuple(c) for c in np.frombuffer(mesh.colors, np.uint8).reshape(-1, 3).tolist()]
-        return [(int(f), u, v) for f, (u, v) in zip(mesh.patches, uvs, strict=True)], rgb
+    def corners(mesh):
+        at = np.asarray(mesh.indices, np.int64)
+        rgb = np.frombuffer(mesh.colors, np.uint8).reshape(-1, 3)[at]
+        return np.asarray(mesh.patches, np.int64)[at], rgb
 
-    keys, rgb = vertices(part)
-    theirs = dict(zip(*vertices(welded), strict=True))
-    on_seams = {k for nodes in part.seams.values() for k in nodes}
-    inner = [k for k in range(part.surface_vertices) if k not in on_seams]
-    assert len(inner) > part.surface_vertices / 2
-    assert all(keys[k] in theirs for k in inner)  # the group's inner vertices: same samples
-    shared = [k for k in range(part.surface_vertices) if keys[k] in theirs]
-    assert [rgb[k] for k in shared] == [theirs[keys[k]] for k in shared]
-    assert len({rgb[k][1:] for k in shared}) > 20  # the ramps vary across the cells
-    surface = {keys[k]: rgb[k] for k in range(part.surface_vertices)}
-    walls = range(part.surface_vertices, part.vertex_count)
-    assert len(walls) > 0 and all(surface[keys[k]] == rgb[k] for k in walls)
-    assert all(r == (7 * f + 100) % 256 for (f, _, _), (r, _, _) in zip(keys, rgb, strict=True))
-    welded_keys, welded_rgb = vertices(welded)
+    patches, rgb = (np.concatenate(x) for x in zip(*map(corners, parts), strict=True))
+    welded_patches, welded_rgb = corners(welded)
+    assert np.array_equal(patches, welded_patches) and np.array_equal(rgb, welded_rgb)
+    assert len({tuple(c) for c in rgb[:, 1:].tolist()}) > 20  # the ramps vary across the cells
     first, count = refinement["groups"][g]["first"], refinement["groups"][g]["count"]
-    assert all(r == (7 * f + (100 if first <= f < first + count else 0)) % 256
-               for (f, _, _), (r, _, _) in zip(welded_keys, welded_rgb, strict=True))
+    mine = (patches >= first) & (patches < first + count)
+    assert np.array_equal(rgb[:, 0], (7 * patches + np.where(mine, 100, 0)) % 256)
+    assert mine.any() and not mine.all()
 
 
 def test_a_uv_textured_scan_gives_two_colour_levels_of_its_texture(coloured_sphere):

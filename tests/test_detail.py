@@ -279,3 +279,19 @@ def test_no_mask_while_the_level_is_coarser_than_the_trim():
     assert all(t.drawn is None for t, _, _ in pyramid.levels[0].tiles)
     masks = [t.drawn for t, _, _ in pyramid.levels[1].tiles if t.drawn is not None]
     assert len(masks) == 1 and sum(masks[0].flat) == 10 * 10  # the block, in tile (0, 0)
+
+
+@pytest.mark.parametrize("periodic_u", [False, True])
+def test_normal_matrix_is_the_sparse_product(periodic_u):
+    """``normal_matrix`` (diagonals summed by bincount) against scipy's ``A.T @ A``."""
+    from fitter.fitting.detail import collocation_matrix, normal_matrix
+
+    rng = np.random.default_rng(4)
+    u, v = rng.random(20_000), rng.random(20_000)
+    u[:3] = [0.0, 1.0, 0.999999]
+    n = 16 + 2
+    knots = np.array(level_knots(2, 16, 0))
+    A = collocation_matrix(2, knots, n, u, v, periodic_u)
+    expected = (A.T @ A).toarray()
+    np.testing.assert_allclose(normal_matrix(A).toarray(), expected, rtol=1e-12,
+                               atol=1e-12 * np.abs(expected).max())

@@ -1,12 +1,16 @@
-"""fitter.fitting.error's reports: the z-buffered scan view and the coloured error PLY."""
+"""fitter.fitting.error: the foot-point deviations (against scipy.optimize) and their
+evaluator (against the patch's own), the z-buffered scan view and the coloured error PLY."""
 
 from __future__ import annotations
 
 import matplotlib
 import numpy as np
+import pytest
 import trimesh
 
-from fitter.fitting.error import _depth_view, write_error_ply
+from fitter.fitting.closest import SpanPolynomials
+from fitter.fitting.error import _depth_view, deviations, write_error_ply
+from fitter.fitting.nurbs import PatchModel
 
 
 def test_depth_view_shows_the_nearest_point_of_each_pixel():
@@ -71,3 +75,81 @@ def test_error_ply_reads_back_through_trimesh_with_the_same_points_colours_and_q
     expected["quality"] = d
     assert data[data.index(b"end_header\n") + len(b"end_header\n"):] == expected.tobytes()
     assert b"element face" not in data[: data.index(b"end_header\n")]
+
+
+def _curved_patch(rational: bool, degree: tuple[int, int] = (2, 3)) -> PatchModel:
+    """A wavy, strongly curved patch (a quarter tube with ripples) on non-uniform knots."""
+    rng = np.random.default_rng(5)
+    model = PatchModel.uniform((9, 8), degree)
+    n_u, n_v = model.shape
+    knots_u = model.knots[0].copy()
+    inner = slice(degree[0] + 1, n_u)
+    knots_u[inner] = np.sort(rng.uniform(0.05, 0.95, n_u - degree[0] - 1))
+    model.knots = (knots_u, model.knots[1])
+    a = np.linspace(0.0, 0.5 * np.pi, n_u)[:, None]
+    y = np.linspace(0.0, 3.0, n_v)[None, :]
+    model.Q[..., 0] = np.cos(a) * (1.0 + 0.15 * np.sin(4 * y))
+    model.Q[..., 1] = y + 0 * a
+    model.Q[..., 2] = np.sin(a) * (1.0 + 0.15 * np.sin(4 * y))
+    if rational:
+        model.W[:] = rng.uniform(0.6, 1.6, model.W.shape)
+    return model
+
+
+def _reference_distances(model: PatchModel, points: np.ndarray) -> np.ndarray:
+    """The distance from each point to ``model`` by scipy: the best of L-BFGS-B runs
+    (bounded to the domain) from the 2 nearest vertices of a 100 x 100 tessellation."""
+    from scipy.optimize import minimize
+
+    g = np.linspace(0, 1, 100)
+    GU, GV = (x.ravel() for x in np.meshgrid(g, g, indexing="ij"))
+    grid = model.evaluate(GU, GV)
+    out = []
+    for point in points:
+        def squared(x: np.ndarray, point: np.ndarray = point) -> float:
+            return float(np.sum((model.evaluate(x[:1], x[1:]) - point) ** 2))
+
+        starts = np.argsort(np.sum((grid - point) ** 2, axis=1))[:2]
+        out.append(min(minimize(squared, [GU[k], GV[k]], method="L-BFGS-B",
+                                bounds=[(0, 1), (0, 1)],
+                                options={"ftol": 1e-15, "gtol": 1e-12}).fun for k in starts))
+    return np.sqrt(out)
+
+
+@pytest.mark.parametrize("rational", [False, True])
+def test_span_polynomials_equal_the_patch_evaluator(rational):
+    model = _curved_patch(rational, (3, 2))
+    rng = np.random.default_rng(1)
+    u, v = rng.random(5000), rng.random(5000)
+    u[:4], v[:4] = [0.0, 1.0, model.knots[0][4], 1.0], [0.0, 1.0, 0.5, model.knots[1][3]]
+    expected = model.evaluate(u, v, derivatives=True)
+    got = SpanPolynomials(model).evaluate(u, v)
+    for e, g in zip(expected, got, strict=True):
+        np.testing.assert_allclose(g.T, e, rtol=0, atol=1e-11 * np.abs(e).max())
+
+
+@pytest.mark.parametrize("rational", [False, True])
+def test_deviations_are_the_distances_scipy_finds(rational):
+    """Foot-point distances against an independent reference (scipy.optimize from the
+    nearest vertices of a tessellation) on 60 points at up to 0.3 from a curved patch,
+    starting from deliberately poor parameters (a projection that is off by up to 0.2)."""
+    model = _curved_patch(rational)
+    rng = np.random.default_rng(2)
+    m = 60
+    u, v = rng.random(m), rng.random(m)
+    S, Su, Sv = model.evaluate(u, v, derivatives=True)
+    normal = np.cross(Su, Sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    offset = rng.uniform(-0.3, 0.3, m)
+    points = S + offset[:, None] * normal
+    u0 = np.clip(u + rng.uniform(-0.2, 0.2, m), 0, 1)
+    v0 = np.clip(v + rng.uniform(-0.2, 0.2, m), 0, 1)
+    dev = deviations(model, points, u0, v0, chunk=32, threads=2)
+    reference = _reference_distances(model, points)
+    np.testing.assert_allclose(np.abs(dev.d), reference, rtol=1e-5, atol=1e-9)
+    # the foot point is a point of the patch at that distance, on the normal's side
+    foot = model.evaluate(dev.u, dev.v)
+    np.testing.assert_allclose(np.linalg.norm(points - foot, axis=1), np.abs(dev.d),
+                               rtol=1e-12, atol=1e-12)
+    inside = np.abs(offset) > 1e-3
+    assert np.all(np.sign(dev.d[inside]) == np.sign(offset[inside]))

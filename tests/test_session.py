@@ -532,17 +532,19 @@ def test_skirts_from_the_samples_equal_skirts_evaluated_again():
 
 
 # ------------------------------------------------------------------ an atlas drawn by group
-def test_atlas_part_mesh_draws_one_group_at_its_level_from_its_packs(tmp_path):
-    """atlas_part_mesh(g, k): group g alone, its patches at level k's resolution with the
-    packs of levels 0..k; the parts of every group at the base weld into the whole base mesh
-    (atlas_mesh), a part at a level equals tessellate_atlas_part of the same tiles, and a
-    group's mesh does not depend on the other groups' levels."""
-    from array import array
+def _corners(mesh, name="positions", width=3):
+    """Per triangle corner, the vertex's float32 values (bytes to compare bit for bit)."""
+    values = np.frombuffer(getattr(mesh, name), np.float32).reshape(-1, width)
+    return values[np.asarray(mesh.indices, np.int64)].tobytes()
 
+
+def test_atlas_part_mesh_is_its_group_s_share_of_the_welded_mesh(tmp_path):
+    """atlas_part_meshes(groups, levels): each group's triangles of atlas_mesh(levels), bit
+    for bit, made together or apart (so every group's together are the welded mesh, at the
+    base and with detail), from the packs of the group and its neighbours (the groups
+    around it on the layout); a change of a group that is no neighbour changes nothing of
+    it."""
     from atlas_bundle import write_atlas_bundle
-
-    from client_py.atlas_detail import read_pack
-    from client_py.atlas_mesh import atlas_part, tessellate_atlas_part
 
     folder = tmp_path / "sphere"
     write_atlas_bundle(folder, k=2, levels=2, base_resolution=5)
@@ -551,43 +553,46 @@ def test_atlas_part_mesh_draws_one_group_at_its_level_from_its_packs(tmp_path):
     session.read_manifest((folder / "manifest.json").read_text())
     groups = session.atlas_refinement()["groups"]
     assert len(groups) == 6
+    # a cube face per group: each touches the four faces around it, not the opposite one
+    assert all(len(g["neighbours"]) == 4 for g in groups)
+    opposite = ({0, 1, 3, 4, 5} - set(groups[2]["neighbours"])).pop()
+    neighbour = groups[2]["neighbours"][0]
 
-    parts = [session.atlas_part_mesh(g, -1) for g in range(6)]
-    whole = session.atlas_mesh([-1] * 6)
-    assert sum(p.triangle_count for p in parts) == whole.triangle_count
-    ours = {tuple(p) for m in parts
-            for p in np.frombuffer(m.positions, np.float32).reshape(-1, 3).tolist()}
-    theirs = {tuple(p) for p in np.frombuffer(whole.positions, np.float32).reshape(-1, 3).tolist()}
-    assert len(ours) == len(theirs) == whole.vertex_count
-    assert max(min(np.abs(np.subtract(p, q)).max() for q in theirs) for p in list(ours)[:50]) < 1e-6
+    def parts(levels, together=False):
+        meshes = session.atlas_part_meshes([5, 0, 1, 2, 3, 4], levels) if together else \
+            [session.atlas_part_meshes([g], levels)[0] for g in range(6)]
+        if together:
+            meshes = meshes[1:] + meshes[:1]
+        return b"".join(map(_corners, meshes))
 
-    with pytest.raises(ValueError, match="needs pack detail/0/2.tsdp"):
-        session.atlas_part_mesh(2, 1)
+    def one(g, levels):
+        return session.atlas_part_meshes([g], levels)[0]
+
+    base = [-1] * 6
+    assert parts(base) == parts(base, together=True) == _corners(session.atlas_mesh(base))
+    assert session.atlas_part_meshes([], base) == []
+    levels = list(base)
+    levels[2] = levels[neighbour] = 1
+    with pytest.raises(ValueError, match=f"needs pack detail/0/{min(2, neighbour)}.tsdp"):
+        one(2, levels)
     for name in groups[2]["packs"]:
         session.add_pack(name, (folder / name).read_bytes())
-    mine = session.atlas_part_mesh(2, 1)
-    # the reference: the same group and tiles through the library directly
-    atlas = session._atlas
-    detail: dict[int, list] = {}
-    for name in groups[2]["packs"]:
-        for patch, tiles in read_pack((folder / name).read_bytes())[1].items():
-            detail.setdefault(patch, []).extend(tiles)
-    first, count = groups[2]["first"], groups[2]["count"]
-    reference = tessellate_atlas_part(atlas_part(atlas, range(first, first + count), 5),
-                                      session.atlas_refinement()["resolutions"][2], detail,
-                                      kernel="python")
-    assert array("f", mine.positions) == array("f", reference.positions)
-    assert array("I", mine.indices) == array("I", reference.indices)
-    assert mine.vertex_count > mine.surface_vertices  # walls hang under its seams
-    # another group's level changes nothing of this one (the viewer keeps its mesh)
-    for name in groups[3]["packs"]:
+    with pytest.raises(ValueError, match=f"group {neighbour} at level 1 needs pack"):
+        one(2, levels)  # the neighbour's detail moves the seam
+    for name in groups[neighbour]["packs"]:
         session.add_pack(name, (folder / name).read_bytes())
-    session.atlas_part_mesh(3, 1)
-    assert array("f", session.atlas_part_mesh(2, 1).positions) == array("f", mine.positions)
+    assert parts(levels) == parts(levels, together=True) == _corners(session.atlas_mesh(levels))
+    mine = one(2, levels)
+    far = list(levels)
+    far[opposite] = 1  # its packs are not even held: group 2 does not need them
+    assert _corners(one(2, far)) == _corners(mine)
+    assert _corners(one(2, base)) != _corners(mine)
 
-    for group, level, match in ((6, -1, "group 6"), (0, 2, "level 2"), (True, 0, "group True")):
+    for groups, levels, match in (([6], base, "group 6"), ([0], [2] + base[1:], r"levels\[0\] = 2"),
+                                  ([True], base, "group True"), ([0], base[1:], "5 values"),
+                                  ([1, 1], base, "twice")):
         with pytest.raises(ValueError, match=match):
-            session.atlas_part_mesh(group, level)
+            session.atlas_part_meshes(groups, levels)
 
 
 def test_the_atlas_error_map_colours_every_mesh_per_vertex_from_its_raster(tmp_path):
@@ -631,7 +636,8 @@ def test_the_atlas_error_map_colours_every_mesh_per_vertex_from_its_raster(tmp_p
     welded = session.atlas_mesh([-1] * 6)
     check(welded)
     assert 0 in welded.patches  # the uncovered patch was checked
-    check(session.atlas_part_mesh(1, -1))
+    for part in session.atlas_part_meshes([1, 4], [-1] * 6):
+        check(part)
     assert manifest["error_raster"]["max"] == manifest["stats"]["max"]
     session.set_error_map(None)
     assert session.atlas_mesh([-1] * 6).colors is None

@@ -1,10 +1,10 @@
 """The geometric error between the scan and the fitted patch (the paper's Fig. 5 and 9).
 
 Every scan point's deviation is its signed foot-point distance: the distance to
-the closest point of the patch (found by :func:`fitter.fitting.fit.project_points`
+the closest point of the patch (found by :class:`fitter.fitting.closest.ClosestPoints`
 from the better of two starts: the point's own projection parameters and the
-nearest vertex of a dense tessellation), positive on the side the patch normal
-points to. Statistics: RMS, mean absolute, max (the one-sided Hausdorff
+nearest vertex of a dense tessellation where that is nearer), positive on the side the
+patch normal points to. Statistics: RMS, mean absolute, max (the one-sided Hausdorff
 distance from the scan), P95, P99, in scan units and relative to the scan's
 bounding-box diagonal. Reports: ``error.png`` (a heat map over the parameter
 domain and over a render of the object, with a colour bar in scan units) and
@@ -21,17 +21,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from client_py.ply import write_points_ply
 
-from .fit import foot_points
+from .closest import ClosestPoints
 from .nurbs import PatchModel
 
-SEED_GRID = 192  # tessellation used to seed foot-point searches
+CHUNK = 1 << 14  # points per task of the foot-point search
 RASTER_SIDE = (8, 64)  # least and most cells per side of the manifest's error raster
 RASTER_POINTS_PER_CELL = 4  # about this many covered points per cell, within RASTER_SIDE
 RASTER_EMPTY = 255  # the raster's code of a cell without a scan point
+RASTER_CHUNK = 1 << 22  # points per chunk of the raster's cell maxima
 
 
 @dataclass
@@ -44,39 +44,27 @@ class Deviations:
 
 
 def deviations(model: PatchModel, points: np.ndarray, u0: np.ndarray, v0: np.ndarray,
-               periodic_u: bool = False, chunk: int = 1 << 17,
+               periodic_u: bool = False, chunk: int = CHUNK,
                threads: int | None = None) -> Deviations:
-    """Signed foot-point distance of every point ``(N, 3)`` (patch frame) to ``model``.
+    """Signed foot-point distance of every point ``(N, 3)`` (patch frame) to ``model``
+    (:class:`fitter.fitting.closest.ClosestPoints` from the projection parameters
+    ``u0, v0 (N,)``), positive on the side ``S_u x S_v`` points to.
 
-    Chunks of ``chunk`` points run on ``threads`` threads (default: one per
-    core): the work is numpy on whole arrays, which releases the GIL.
+    Chunks of ``chunk`` points (small enough for the kernel's temporaries to stay in
+    cache) run on ``threads`` threads (default: one per core): the work is numpy on whole
+    arrays, which releases the GIL.
     """
-    g = np.linspace(0.0, 1.0, SEED_GRID)
-    GU, GV = np.meshgrid(g, g, indexing="ij")
-    GU, GV = GU.ravel(), GV.ravel()
-    seeds = model.evaluate(GU, GV)
-    tree = cKDTree(seeds)
+    closest = ClosestPoints(model, periodic_u)
     d = np.empty(len(points))
     us = np.empty(len(points))
     vs = np.empty(len(points))
 
     def one_chunk(s: int) -> None:
         p = points[s:s + chunk]
-        _, nearest = tree.query(p)
-        u, v = u0[s:s + chunk].copy(), v0[s:s + chunk].copy()
-        S, Su, Sv = model.evaluate(u, v, derivatives=True)
-        seeded = np.flatnonzero(np.einsum("ij,ij->i", seeds[nearest] - p, seeds[nearest] - p)
-                                < np.einsum("ij,ij->i", S - p, S - p))
-        u[seeded], v[seeded] = GU[nearest[seeded]], GV[nearest[seeded]]
-        if len(seeded):
-            S[seeded], Su[seeded], Sv[seeded] = model.evaluate(u[seeded], v[seeded], True)
-        u, v, S, Su, Sv = foot_points(model, p, u, v, periodic_u, iterations=6,
-                                      start=(S, Su, Sv))
-        n = np.cross(Su, Sv)
+        u, v, S, n = closest(p, u0[s:s + chunk], v0[s:s + chunk])
         r = p - S
-        dist = np.linalg.norm(r, axis=1)
-        side = np.sign(np.einsum("ij,ij->i", r, n))
-        d[s:s + chunk] = np.where(side < 0, -dist, dist)
+        dist = np.sqrt(np.einsum("ij,ij->i", r, r))
+        d[s:s + chunk] = np.where(np.einsum("ij,ij->i", r, n) < 0, -dist, dist)
         us[s:s + chunk], vs[s:s + chunk] = u, v
 
     starts = range(0, len(points), chunk)
@@ -129,26 +117,29 @@ def error_raster(dev: Deviations, max_deviation: float) -> dict:
     """
     n = len(dev.d)
     side = int(np.clip(int(np.sqrt(n / RASTER_POINTS_PER_CELL)), *RASTER_SIDE))
-    codes = raster_codes(np.zeros(n, dtype=np.int64), dev.u, dev.v, dev.d, 1, side,
-                         max_deviation)
+    codes = raster_codes(None, dev.u, dev.v, dev.d, 1, side, max_deviation)
     return {"rows": side, "cols": side, "statistic": "max |d|", "max": float(max_deviation),
             "encoding": "uint8 base64; code k < 255: k / 254 max; 255: no scan point",
             "data": base64.b64encode(codes.tobytes()).decode("ascii")}
 
 
-def raster_codes(patch: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
+def raster_codes(patch: np.ndarray | None, u: np.ndarray, v: np.ndarray, d: np.ndarray,
                  patches: int, side: int, max_deviation: float) -> np.ndarray:
     """The error raster's one-byte codes, ``(patches side side,)`` ``uint8``: for each patch
-    (``patch (N,)`` of each point, its foot ``u, v (N,)`` in ``[0, 1]``) ``side x side`` cells
-    (row ``i`` = ``u`` in ``[i/side, (i+1)/side)``, row-major, patch after patch), each the
-    largest ``|d|`` of the points whose foot falls in it, ``round(254 |d| / max_deviation)``,
-    and :data:`RASTER_EMPTY` where none falls. The rule of :func:`error_raster` (one patch)
-    and of an atlas's ``error_raster`` (``fitter.fitting.atlas.pipeline``)."""
-    iu = np.clip((np.asarray(u) * side).astype(np.int64), 0, side - 1)
-    iv = np.clip((np.asarray(v) * side).astype(np.int64), 0, side - 1)
-    cell = (np.asarray(patch, dtype=np.int64) * side + iu) * side + iv
+    (``patch (N,)`` of each point, ``None``: all patch 0; its foot ``u, v (N,)`` in
+    ``[0, 1]``) ``side x side`` cells (row ``i`` = ``u`` in ``[i/side, (i+1)/side)``,
+    row-major, patch after patch), each the largest ``|d|`` of the points whose foot falls in
+    it, ``round(254 |d| / max_deviation)``, and :data:`RASTER_EMPTY` where none falls. The
+    rule of :func:`error_raster` (one patch) and of an atlas's ``error_raster``
+    (``fitter.fitting.atlas.pipeline``); taken in chunks of :data:`RASTER_CHUNK` points."""
     largest = np.full(patches * side * side, -1.0)
-    np.maximum.at(largest, cell, np.abs(d))
+    for s in range(0, len(d), RASTER_CHUNK):  # in chunks: 10^8 points' int64 cells were 2.4 GB
+        iu = np.clip((np.asarray(u[s:s + RASTER_CHUNK]) * side).astype(np.int64), 0, side - 1)
+        iv = np.clip((np.asarray(v[s:s + RASTER_CHUNK]) * side).astype(np.int64), 0, side - 1)
+        cell = iu * side + iv
+        if patch is not None:
+            cell += np.asarray(patch[s:s + RASTER_CHUNK], dtype=np.int64) * (side * side)
+        np.maximum.at(largest, cell, np.abs(d[s:s + RASTER_CHUNK]))
     scale = 254.0 / max_deviation if max_deviation > 0 else 0.0
     codes = np.where(largest >= 0, np.rint(np.clip(largest, 0, None) * scale), RASTER_EMPTY)
     return codes.astype(np.uint8)

@@ -38,6 +38,7 @@ from scipy.sparse.linalg import spsolve
 
 from client_py._numpy_basis import basis_arrays
 
+from .closest import SpanPolynomials, gauss_newton
 from .nurbs import BasisRows, PatchModel
 
 DEFAULT_SMOOTHING = 1e-6
@@ -302,61 +303,14 @@ def foot_points(model: PatchModel, points: np.ndarray, u: np.ndarray, v: np.ndar
     with ``S, S_u, S_v`` there (each ``(m, 3)``). ``start`` may pass ``S, S_u, S_v`` at
     the starting parameters when the caller has them.
 
-    Gauss-Newton steps ``[S_u S_v]^+ (P - S)`` clamped to the domain (wrapped
-    in ``u`` for periodic maps), each step halved until the distance does not
-    grow: robust on curved patches where a full step overshoots. A point is
-    done when its residual is within ``tol`` radians of the surface normal (the
-    step's displacement ``|du S_u + dv S_v|`` is below ``tol |P - S|``; the
-    distance still to gain is of order ``tol^2 |P - S|``) or when no halved step
-    improves it; later iterations evaluate only the points still moving.
+    Gauss-Newton steps ``[S_u S_v]^+ (P - S)`` clamped to the domain, each halved until the
+    distance does not grow, until the residual is within ``tol`` radians of the normal
+    (:func:`fitter.fitting.closest.gauss_newton`, on the patch's piecewise power form).
     """
-    u = np.array(u, dtype=float)
-    v = np.array(v, dtype=float)
-    S, Su, Sv = start if start is not None else model.evaluate(u, v, derivatives=True)
-    r = points - S
-    dist = np.einsum("ij,ij->i", r, r)
-    active = np.arange(len(u))
-    for _ in range(iterations):
-        a = np.einsum("ij,ij->i", Su[active], Su[active])
-        b = np.einsum("ij,ij->i", Su[active], Sv[active])
-        c = np.einsum("ij,ij->i", Sv[active], Sv[active])
-        gu = np.einsum("ij,ij->i", Su[active], r[active])
-        gv = np.einsum("ij,ij->i", Sv[active], r[active])
-        det = a * c - b * b
-        ok = det > 1e-14 * np.maximum(a * c, 1e-300)
-        safe = np.where(ok, det, 1.0)
-        du = np.where(ok, (c * gu - b * gv) / safe, 0.0)
-        dv = np.where(ok, (a * gv - b * gu) / safe, 0.0)
-        # the step that clamping to the domain leaves (a point on the rim stays put)
-        lo_u, hi_u = (-np.inf, np.inf) if periodic_u else (-u[active], 1.0 - u[active])
-        du = np.clip(du, lo_u, hi_u)
-        dv = np.clip(dv, -v[active], 1.0 - v[active])
-        # the step moves the surface point by |du S_u + dv S_v|, the residual's tangential part:
-        # against |r| that is the sine of its angle to the normal, the foot-point condition
-        shift = du[:, None] * Su[active] + dv[:, None] * Sv[active]
-        moving = np.einsum("ij,ij->i", shift, shift) > tol**2 * dist[active]
-        active, du, dv = active[moving], du[moving], dv[moving]
-        if len(active) == 0:
-            break
-        step = np.ones(len(active))
-        todo = np.ones(len(active), dtype=bool)
-        for _half in range(4):
-            idx = active[todo]
-            nu = u[idx] + step[todo] * du[todo]
-            nu = nu % 1.0 if periodic_u else np.clip(nu, 0.0, 1.0)
-            nv = np.clip(v[idx] + step[todo] * dv[todo], 0.0, 1.0)
-            S_t, Su_t, Sv_t = model.evaluate(nu, nv, derivatives=True)
-            r_t = points[idx] - S_t
-            d_t = np.einsum("ij,ij->i", r_t, r_t)
-            better = d_t <= dist[idx]
-            done = idx[better]
-            u[done], v[done] = nu[better], nv[better]
-            S[done], Su[done], Sv[done], r[done], dist[done] = (S_t[better], Su_t[better],
-                                                                Sv_t[better], r_t[better],
-                                                                d_t[better])
-            todo[np.flatnonzero(todo)[better]] = False
-            step[todo] *= 0.5
-            if not todo.any():
-                break
-        active = active[~todo]  # a point no halved step improved has reached its minimum
-    return u, v, S, Su, Sv
+    surface = SpanPolynomials(model)
+    if start is not None:
+        start = tuple(np.ascontiguousarray(np.asarray(x, dtype=float).T) for x in start)
+    u, v, S, Su, Sv, _ = gauss_newton(
+        surface, np.ascontiguousarray(np.asarray(points, dtype=float).T),
+        np.array(u, dtype=float), np.array(v, dtype=float), periodic_u, start, iterations, tol)
+    return u, v, np.ascontiguousarray(S.T), np.ascontiguousarray(Su.T), np.ascontiguousarray(Sv.T)

@@ -73,9 +73,11 @@ class Projection:
     def local(self, points: np.ndarray) -> np.ndarray:
         return (np.asarray(points, dtype=float) - self.origin) @ self.axes.T
 
-    def native(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Unscaled domain coordinates and height of scan points."""
-        x = self.local(points)
+    def native(self, points: np.ndarray, local: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unscaled domain coordinates and height of scan points (``local``: their
+        :meth:`local` coordinates, when the caller has them)."""
+        x = self.local(points) if local is None else local
         if self.kind == "plane":
             return x[:, 0], x[:, 1], x[:, 2]
         radial = np.hypot(x[:, 1], x[:, 2])
@@ -85,9 +87,11 @@ class Projection:
         r = np.sqrt(radial**2 + x[:, 0] ** 2)
         return angle, np.arctan2(radial, x[:, 0]), r
 
-    def to_uvh(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``u, v`` in ``[0, 1]`` and height ``h`` for each point ``(N, 3)``."""
-        a, b, h = self.native(points)
+    def to_uvh(self, points: np.ndarray, local: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``u, v`` in ``[0, 1]`` and height ``h`` for each point ``(N, 3)`` (``local``: their
+        :meth:`local` coordinates, when the caller has them)."""
+        a, b, h = self.native(points, local)
         span = np.where(self.hi > self.lo, self.hi - self.lo, 1.0)
         u = np.clip((a - self.lo[0]) / span[0], 0.0, 1.0)
         v = np.clip((b - self.lo[1]) / span[1], 0.0, 1.0)

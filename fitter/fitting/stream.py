@@ -47,7 +47,7 @@ from .error import Deviations, deviations
 from .io.limits import InputBudget, InputLimits
 from .io.points import PointStream, file_sha256
 from .io.scan import Scan, ScanError, make_scan
-from .io.thin import VoxelGrid, VoxelNearest, VoxelSums, voxel_size_for
+from .io.thin import VoxelGrid, VoxelIndex, VoxelNearest, VoxelSums, voxel_size_for
 from .nurbs import PatchModel
 from .parameterize import Projection
 
@@ -118,21 +118,22 @@ def _sums_block(start: int, stop: int, stream: PointStream, grid: VoxelGrid) -> 
     return VoxelSums.of(stream.read(start, stop)[0], grid)
 
 
-def _nearest_block(start: int, stop: int, stream: PointStream, grid: VoxelGrid,
-                   keys: np.ndarray, centroids: np.ndarray) -> tuple:
-    return VoxelNearest.of_block(stream.read(start, stop)[0], start, grid, keys, centroids)
+def _nearest_block(start: int, stop: int, stream: PointStream, index: VoxelIndex,
+                   centroids: np.ndarray) -> tuple:
+    return VoxelNearest.of_block(stream.read(start, stop)[0], start, index, centroids)
 
 
 def _error_block(start: int, stop: int, stream: PointStream, patch: bytes,
-                 projection: Projection, grid: VoxelGrid, keys: np.ndarray,
+                 projection: Projection, index: VoxelIndex,
                  voxel_covered: np.ndarray) -> tuple:
     """One block of the error pass: ``d, u, v`` (float32), covered flags, and the uncovered
     points' count, minimum and maximum corner (scan coordinates)."""
     points, _ = stream.read(start, stop)
     model = PatchModel.from_surface(read_patch(patch))
-    u, v, _ = projection.to_uvh(points)
-    dev = deviations(model, projection.local(points), u, v, projection.periodic_u, threads=1)
-    covered = voxel_covered[np.searchsorted(keys, grid.keys(points))]
+    local = projection.local(points)
+    u, v, _ = projection.to_uvh(points, local)
+    dev = deviations(model, local, u, v, projection.periodic_u, threads=1)
+    covered = voxel_covered[index.positions(points)]
     out = points[~covered]
     box = (out.min(axis=0), out.max(axis=0)) if len(out) else None
     return (dev.d.astype(np.float32), dev.u.astype(np.float32), dev.v.astype(np.float32),
@@ -183,7 +184,7 @@ class LargeScan:
         lo, hi, outside = np.full(3, np.inf), np.full(3, -np.inf), 0
         blocks = self.stream.blocks(BLOCK_POINTS)
         results = self.blocks.map(_error_block, blocks, self.stream, patch, projection,
-                                  self.grid, self.sums.keys, voxel_covered)
+                                  VoxelIndex(self.grid, self.sums.keys), voxel_covered)
         for k, ((start, stop), (bd, bu, bv, bc, count, box)) in enumerate(
                 zip(blocks, results, strict=True)):
             d[start:stop], u[start:stop], v[start:stop], covered[start:stop] = bd, bu, bv, bc
@@ -255,8 +256,8 @@ def thin_stream(stream: PointStream, lo: np.ndarray, hi: np.ndarray, size: float
             break
         size *= float(np.sqrt(len(sums.keys) / (0.9 * most)))
     nearest = VoxelNearest.empty(len(sums.keys))
-    for k, part in enumerate(blocks.map(_nearest_block, spans, stream, grid, sums.keys,
-                                        sums.centroids())):
+    for k, part in enumerate(blocks.map(_nearest_block, spans, stream,
+                                        VoxelIndex(grid, sums.keys), sums.centroids())):
         nearest.update(*part)
         if progress is not None:
             progress(0.5 + 0.5 * (k + 1) / len(spans), spans[k][1])

@@ -16,12 +16,16 @@
 // budget of MAX_VERTICES drawn vertices (a group at level k costs count * R_k^2, R_k the
 // worker's samples per patch side at that level).
 //
-// Only what changed is tessellated: a group's mesh (WorkerSession.atlas_part_mesh, one
-// request for all the groups an update needs) depends on its own level alone — its seams with
-// the other groups lie on a frame every group shares, with walls down to the base, so groups
-// at any levels meet without a crack (client_py.atlas_mesh.tessellate_atlas_part) — and the
-// meshes made are kept (least recently used dropped beyond CACHE_VERTICES), so going back to
-// a level seen before tessellates nothing. The packs a choice needs are fetched (at most
+// Only what changed is tessellated: a group's mesh (WorkerSession.atlas_part_meshes, one
+// request for all the groups an update needs) is its triangles of the whole atlas welded at
+// the current levels, bit for bit (client_py.atlas_mesh.tessellate_atlas_parts: the welded
+// mesh's rules are local, so the group's patches and the ring of patches around them
+// decide it), so the groups meet without a crack or a wall. It depends on the levels of the
+// group and of its neighbours (refinement.groups[g].neighbours: the groups of that ring), so
+// a change of one group's level re-makes it and its neighbours; the meshes made are kept
+// under the key of those levels (least recently used dropped beyond CACHE_VERTICES), so going
+// back to levels seen before tessellates nothing. The packs of the groups to make and of
+// their neighbours are needed. The packs a choice needs are fetched (at most
 // FETCH_PARALLEL at once), handed to the worker (MeshWorkerClient.addPack) and those no
 // longer needed dropped; the changed groups are swapped in in one frame. The first frame is
 // the whole atlas at the base welded in one mesh (Viewer.setMesh: it frames the view); right
@@ -37,10 +41,13 @@
 // and a finer colour level exists. Before the worker makes meshes (the welded first frame, or
 // the groups not kept), the colour packs of those groups at their levels are fetched, decoded
 // to RGB (page.js decodeTextureRgb) and handed to the worker (addColourPack), those no longer
-// needed dropped; the worker's meshes then carry RGB per vertex (one rule for the welded mesh
-// and a group's: WorkerSession._colour_groups), shown through three.js vertex colours
-// (converted from sRGB to linear, as the renderer expects). A kept group mesh is keyed by its
-// group, level and colour pack, so it is never shown with other colours than it was made with.
+// needed dropped (a group's mesh needs those of its neighbours too: a seam vertex takes the
+// colour of the first patch that samples it, as in the welded mesh); the worker's meshes then
+// carry RGB per vertex (one rule for the welded mesh and a group's:
+// WorkerSession._colour_groups), shown through three.js vertex colours (converted from sRGB to
+// linear, as the renderer expects). A kept group mesh is keyed by its group, the levels it
+// depends on and its colour pack, so it is never shown with other colours than it was made
+// with.
 //
 // Stats (window.tessera.stats): atlas_levels (per group), atlas_refined_groups,
 // atlas_packs_loaded, atlas_pack_bytes, atlas_tessellate_ms (Python time of the groups the
@@ -88,7 +95,7 @@ export class AtlasLayer {
     this.onError = onError;
     this.onChange = onChange;
     this.shown = this.groups.map(() => -1); // the level of each group on screen
-    this.cache = new Map(); // "g/level" -> the worker's mesh of that group, least recently used first
+    this.cache = new Map(); // partKey -> the worker's mesh of that group, least recently used first
     this.baseParts = null; // the request for every group's base mesh (after the first frame)
     this.timer = null;
     this.running = null; // the update in progress, or null
@@ -115,15 +122,16 @@ export class AtlasLayer {
     const t0 = performance.now();
     if (this.viewer.mesh === null) return this._showFirst(levels);
     await this.baseParts; // the base of every group, asked for after the first frame
-    const wanted = levels.map((level, g) => this.partKey(g, level));
-    const missing = levels.map((level, g) => [g, level]).filter(([g, level]) =>
-      !this.cache.has(this.partKey(g, level)));
-    if (!this.errorShown) await this.bringColours(missing);
-    const meshes = missing.length ? await this.worker.atlasParts(missing) : [];
+    const wanted = levels.map((_, g) => this.partKey(g, levels));
+    const missing = levels.map((_, g) => g).filter((g) => !this.cache.has(wanted[g]));
+    if (!this.errorShown) { // the error map's colours are the worker's already
+      await this.bringColours([...this.withNeighbours(missing)].map((g) => [g, levels[g]]));
+    }
+    const meshes = missing.length ? await this.worker.atlasParts(levels, missing) : [];
     let pythonMs = 0;
     for (const mesh of meshes) {
       pythonMs += mesh.tessellate_ms;
-      this._rememberMade(mesh);
+      this._rememberMade(mesh, levels);
     }
     const parts = wanted.map((key) => this._cached(key));
     this.viewer.setAtlasParts(new Map(wanted.map((key, g) => [key, parts[g]])));
@@ -163,27 +171,35 @@ export class AtlasLayer {
       meshes: (this.stats.meshes || 0) + 1,
     });
     if (this.enabled) {
-      this.baseParts = this.worker.atlasParts(this.groups.map((_, g) => [g, -1])).then(
-        (meshes) => meshes.forEach((part) => this._rememberMade(part)),
+      const base = this.groups.map(() => -1);
+      this.baseParts = this.worker.atlasParts(base, base.map((_, g) => g)).then(
+        (meshes) => meshes.forEach((part) => this._rememberMade(part, base)),
         (error) => this.onError(`atlas groups: ${error.message}`));
     }
     return { ...this.stats };
   }
 
-  /** The cache's key of group `g` at `level`: with the colour pack it is coloured from (what
-   *  changes its colours), so a kept mesh is never shown with stale colour. */
-  partKey(g, level) {
-    if (this.errorShown) return `${g}/${level}/error map`;
-    const pack = this.colour ? this.colour.group_packs[g][level + 1] : "";
-    return `${g}/${level}/${pack}`;
+  /** The cache's key of group `g`'s mesh with every group h at levels[h]: its level, its
+   *  neighbours' (what its mesh depends on) and the colour pack it is coloured from (what
+   *  changes its colours; `coloured` false: none; "error map" while it is shown), so a kept
+   *  mesh is never shown with other seams or stale colour. */
+  partKey(g, levels, coloured = true) {
+    const around = this.groups[g].neighbours.map((h) => levels[h]).join(",");
+    if (this.errorShown) return `${g}/${levels[g]}/error map/${around}`;
+    const pack = this.colour && coloured ? this.colour.group_packs[g][levels[g] + 1] : "";
+    return `${g}/${levels[g]}/${pack}/${around}`;
   }
 
-  /** Keep a group mesh the worker made, its colours made linear (showColours' rule), under
-   *  the key of the colours it carries: one made while its colour pack was not held (none)
-   *  is not taken for a coloured one. */
-  _rememberMade(mesh) {
-    const key = mesh.colors || !this.colour ? this.partKey(mesh.group, mesh.level)
-      : `${mesh.group}/${mesh.level}/`;
+  /** `groups` and their neighbours (a Set). */
+  withNeighbours(groups) {
+    return new Set(groups.flatMap((g) => [g, ...this.groups[g].neighbours]));
+  }
+
+  /** Keep a group mesh the worker made at `levels`, its colours made linear (showColours'
+   *  rule), under the key of the colours it carries: one made while its colour packs were
+   *  not held (none) is not taken for a coloured one. */
+  _rememberMade(mesh, levels) {
+    const key = this.partKey(mesh.group, levels, Boolean(mesh.colors));
     mesh.colors = mesh.colors && linearColours(mesh.colors);
     this._remember(key, mesh);
   }
@@ -195,7 +211,9 @@ export class AtlasLayer {
 
   _cached(key) {
     const mesh = this.cache.get(key);
-    if (!mesh) throw new Error(`the worker made no mesh ${key} (group/level/colour pack)`);
+    if (!mesh) {
+      throw new Error(`the worker made no mesh ${key} (group/level/colour pack/neighbours' levels)`);
+    }
     this._remember(key, mesh); // most recently used
     return mesh;
   }
@@ -263,9 +281,10 @@ export class AtlasLayer {
     return next > c ? colour.texel[level + 1] : 0;
   }
 
-  /** Fetch, decode and hand the worker the colour packs that the meshes it is to make,
-   *  `parts` = [[group, level], ...], need (WorkerSession atlas_colour_refinement's
-   *  group_packs), and drop the others it holds (a kept mesh has its colours). */
+  /** Fetch, decode and hand the worker the colour packs of `parts` = [[group, level], ...]
+   *  (the groups of the meshes it is to make and their neighbours: WorkerSession
+   *  atlas_colour_refinement's group_packs), and drop the others it holds (a kept mesh has
+   *  its colours). */
   async bringColours(parts) {
     if (this.colour === undefined) this.colour = await this.worker.atlasColour();
     if (!this.colour) return;
@@ -349,11 +368,12 @@ export class AtlasLayer {
   async _updateOnce() {
     const levels = this.wanted();
     if (levels.every((k, g) => k === this.shown[g])) return;
-    const needed = new Set(); // the packs of the groups to tessellate (a kept mesh needs none)
-    levels.forEach((level, g) => {
-      if (this.cache.has(this.partKey(g, level))) return;
-      for (let k = 0; k <= level; k++) if (this.groups[g].packs[k]) needed.add(this.groups[g].packs[k]);
-    });
+    // the packs of the groups to tessellate and of their neighbours (a kept mesh needs none)
+    const made = levels.map((_, g) => g).filter((g) => !this.cache.has(this.partKey(g, levels)));
+    const needed = new Set();
+    for (const g of this.withNeighbours(made)) {
+      for (let k = 0; k <= levels[g]; k++) if (this.groups[g].packs[k]) needed.add(this.groups[g].packs[k]);
+    }
     const missing = [...needed].filter((name) => !this.worker.holds(name));
     let next = 0;
     const fetchOne = async () => {
@@ -402,24 +422,4 @@ function useVertexColours(material, on) {
   }
   material.vertexColors = Boolean(on);
   material.needsUpdate = true;
-}
-
-/** The group meshes as one mesh (typed arrays concatenated, indices shifted): the first
- *  frame, which Viewer.setMesh frames the view by. */
-export function mergeParts(parts) {
-  const total = (name) => parts.reduce((sum, part) => sum + part[name].length, 0);
-  const merged = { positions: new Float32Array(total("positions")),
-                   normals: new Float32Array(total("normals")), uvs: new Float32Array(total("uvs")),
-                   indices: new Uint32Array(total("indices")) };
-  let at = { positions: 0, normals: 0, uvs: 0, indices: 0 };
-  for (const part of parts) {
-    merged.positions.set(part.positions, at.positions);
-    merged.normals.set(part.normals, at.normals);
-    merged.uvs.set(part.uvs, at.uvs);
-    const first = at.positions / 3;
-    for (let k = 0; k < part.indices.length; k++) merged.indices[at.indices + k] = part.indices[k] + first;
-    at = { positions: at.positions + part.positions.length, normals: at.normals + part.normals.length,
-           uvs: at.uvs + part.uvs.length, indices: at.indices + part.indices.length };
-  }
-  return merged;
 }

@@ -224,12 +224,14 @@ export class MeshWorkerClient {
     return this._request({ type: "atlasMesh", levels });
   }
 
-  /** Meshes of single groups of the atlas, `parts` = [[group, level], ...] (level -1: the
-   *  base): resolves with [{group, level, positions, normals, uvs, indices, colors,
-   *  tessellate_ms}] in that order (WorkerSession.atlas_part_mesh: groups at any levels meet
-   *  without a crack; colors as atlasMesh's, from the colour packs the worker holds). */
-  async atlasParts(parts) {
-    return (await this._request({ type: "atlasParts", parts })).meshes;
+  /** Meshes of the atlas's `groups` with group g at detail level levels[g] (-1: the base):
+   *  resolves with [{group, level, positions, normals, uvs, indices, colors, tessellate_ms}]
+   *  in that order (WorkerSession.atlas_part_meshes: each group's triangles of
+   *  atlasMesh(levels), so groups made at one level vector meet without a crack; a group's
+   *  mesh depends on its own and its neighbours' levels; colors as atlasMesh's, from the
+   *  colour packs the worker holds). */
+  async atlasParts(levels, groups) {
+    return (await this._request({ type: "atlasParts", levels, groups })).meshes;
   }
 
   terminate() {

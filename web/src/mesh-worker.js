@@ -35,11 +35,12 @@
 //   page -> {type: "atlasMesh", levels} -> {type: "atlasMesh", positions, normals, uvs,
 //           indices, colors, tessellate_ms}  (atlas_mesh: one welded mesh, group g at
 //           levels[g]; colors RGB per vertex from the colour packs held, or null)
-//   page -> {type: "atlasParts", parts: [[group, level], ...]}
+//   page -> {type: "atlasParts", levels, groups: [group, ...]}
 //        -> {type: "atlasParts", meshes: [{group, level, positions, normals, uvs, indices,
-//           colors, tessellate_ms}, ...]}  (atlas_part_mesh for each, in order: one group
-//           alone, its seams shared with every other group's; what the viewer draws; colors
-//           as atlasMesh's, by the same rule)
+//           colors, tessellate_ms}, ...]}  (atlas_part_meshes(groups, levels), in order:
+//           each group's triangles of atlasMesh(levels), bit for bit, so groups made at one
+//           level vector meet without a crack; what the viewer draws; colors as atlasMesh's,
+//           by the same rule; tessellate_ms: the call's time shared among them)
 //   page -> {type: "atlasColour"} -> {type: "atlasColour", colour}  (atlas_colour_refinement)
 //   page -> {type: "colourPack", name, width, height, rgb} -> {type: "colourPack", name, level,
 //           first, count}  (add_colour_pack: a decoded texture/C/G.webp)
@@ -345,12 +346,17 @@ function dropPacks({ id, names }) {
   post({ type: "droppedPacks", id, names });
 }
 
-function atlasParts({ id, parts }) {
-  const meshes = parts.map(([group, level]) => {
-    const t0 = performance.now();
-    return meshArrays(session.atlas_part_mesh(group, level), performance.now() - t0,
-                      { group, level });
-  });
+function atlasParts({ id, levels, groups }) {
+  const t0 = performance.now();
+  const made = withPy(levels, (levelList) => withPy(groups, (groupList) =>
+    session.atlas_part_meshes(groupList, levelList)));
+  const ms = (performance.now() - t0) / Math.max(groups.length, 1); // one call: its time shared
+  let meshes;
+  try {
+    meshes = groups.map((group, k) => meshArrays(made.get(k), ms, { group, level: levels[group] }));
+  } finally {
+    made.destroy();
+  }
   post({ type: "atlasParts", id, meshes }, meshes.flatMap(buffersOf));
 }
 

@@ -99,6 +99,7 @@ MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 MU_FLOOR = 0.25
 OFFSET_LIMIT = 0.1  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy)
+MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against its own)
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 
 
@@ -188,6 +189,8 @@ class AtlasSamples:
         Patch ``f``'s samples are ``offsets[f]:offsets[f + 1]``.
     distance : ndarray, shape (N,)
         ``|x - C|`` at the foot point.
+    facing : ndarray, shape (N,)
+        ``n . n_x``: the base's unit normal at the foot point against the sample's own.
     """
 
     patch: np.ndarray
@@ -197,6 +200,7 @@ class AtlasSamples:
     t2: np.ndarray
     offsets: np.ndarray
     distance: np.ndarray
+    facing: np.ndarray
 
     def of(self, f: int) -> DetailSamples:
         """Patch ``f``'s samples as ``fitter.fitting.detail.DetailSamples``."""
@@ -286,14 +290,17 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
                                            iterations=NEWTON_ITERATIONS)
         c, cu, cv = evaluate_patches(table, cps, d, s, f, u, v, derivatives=True)
         off, t2 = normal_split(x, c, cu, cv)
-        parts.append((f, u, v, off, t2, dist))
+        n = np.cross(cu, cv)
+        facing = np.einsum("kc,kc->k", n, nx) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
+        parts.append((f, u, v, off, t2, dist, facing))
         if progress is not None:
             progress(min(1.0, (start + chunk) / len(points)))
-    f, u, v, off, t2, dist = (np.concatenate(c) for c in zip(*parts, strict=True))
+    f, u, v, off, t2, dist, facing = (np.concatenate(c) for c in zip(*parts, strict=True))
     order = np.argsort(f, kind="stable")
     f = f[order]
     offsets = np.searchsorted(f, np.arange(len(atlas.quads) + 1))
-    return AtlasSamples(f, u[order], v[order], off[order], t2[order], offsets, dist[order])
+    return AtlasSamples(f, u[order], v[order], off[order], t2[order], offsets, dist[order],
+                        facing[order])
 
 
 # ------------------------------------------------------------------ depth
@@ -330,10 +337,15 @@ def auto_levels(side: float, spacing: float, patches: int, spans: int = SPANS) -
 def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarray:
     """The samples a displacement along the normal can explain, ``(N,)`` booleans: a
     foot point that is an orthogonal projection (tangential remainder ``t`` within the
-    scan's ``spacing``: not clamped on an open border or stuck at a fold) and an offset
+    scan's ``spacing``: not clamped on an open border or stuck at a fold), an offset
     ``|s|`` within ``OFFSET_LIMIT`` median patch ``side``s (a larger one would be a spike, not
-    detail: the base missed that part). The others still count in every error figure."""
-    return (samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= OFFSET_LIMIT * side)
+    detail: the base missed that part), and a base normal at the foot point that agrees with
+    the sample's own (``n . n_x >= MIN_FACING``): a sample of the back of a thin part
+    projected onto its front would pull the front through it (on Lucy, 0.5 cut the drawn
+    area farther than 1 % of the diagonal from the scan from 4.3 % to 3.0 % at the finest
+    level, and the RMS a little). The others still count in every error figure."""
+    return ((samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= OFFSET_LIMIT * side)
+            & (samples.facing >= MIN_FACING))
 
 
 # ------------------------------------------------------------------ one level

@@ -20,6 +20,7 @@ B-splines), so patch ``f`` *is* its planar quad ``B_f(u, v)`` and a point's bili
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,19 +72,34 @@ class QuadLayout:
         return len(self.triangles)
 
 
-def decimate(surface: ScanSurface, target_triangles: int) -> tuple[np.ndarray, np.ndarray]:
+def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """The surface decimated to about ``target_triangles`` (topology and borders preserved).
+
+    ``weights (V,)``, optional: per-vertex factors >= 1 on the quadric error of a collapse
+    there (MeshLab's weighted simplification, the vertex quality), such as
+    :func:`thin_part_weights`; a heavier vertex keeps more triangles around it. Equal
+    weights (no thin part) are the plain decimation: MeshLab stretches the weights' range
+    onto 1..100 and would divide by an empty one.
 
     Raises
     ------
     ValueError
-        ``target_triangles`` not an int >= 4.
+        ``target_triangles`` not an int >= 4, or ``weights`` not ``V`` finite numbers > 0.
     AtlasLayoutError
         The result is not an oriented 2-manifold (counts named).
     """
     if isinstance(target_triangles, bool) or not isinstance(target_triangles, int) \
             or target_triangles < 4:
         raise ValueError(f"target_triangles must be an int >= 4, got {target_triangles!r}")
+    if weights is not None:
+        weights = np.asarray(weights, np.float64)
+        if weights.shape != (len(surface.vertices),) or not np.all(np.isfinite(weights)) \
+                or np.any(weights <= 0):
+            raise ValueError(f"weights must be {len(surface.vertices)} finite numbers > 0, "
+                             f"got shape {weights.shape}")
+        if np.ptp(weights) == 0:
+            weights = None
     if len(surface.faces) <= target_triangles:
         return _checked(surface, surface.vertices.copy(), surface.faces.copy())
     # MeshLab's topology check also refuses every collapse of a border edge, so a scan with
@@ -92,11 +108,13 @@ def decimate(surface: ScanSurface, target_triangles: int) -> tuple[np.ndarray, n
     # it is an oriented 2-manifold with the input's pieces and Euler characteristics (its
     # topology), else decimate again with the topology check on.
     for preserve in (False, True):
-        ms = _meshset(surface.vertices, surface.faces)
+        ms = (_meshset(surface.vertices, surface.faces) if weights is None
+              else _weighted_meshset(surface, weights))
         ms.meshing_decimation_quadric_edge_collapse(
             targetfacenum=target_triangles, preservetopology=preserve,
             preserveboundary=False, boundaryweight=1.0, preservenormal=True,
-            optimalplacement=False, planarquadric=True, qualitythr=0.5, autoclean=True)
+            optimalplacement=False, planarquadric=True, qualitythr=0.5, autoclean=True,
+            qualityweight=weights is not None)
         ms.meshing_remove_unreferenced_vertices()
         vertices, triangles = _arrays(ms)
         if preserve or _same_topology(surface, vertices, triangles):
@@ -108,6 +126,80 @@ def decimate(surface: ScanSurface, target_triangles: int) -> tuple[np.ndarray, n
         # the same repair as the scan's (split, re-orient) makes it a layout again
         vertices, triangles, _ = clean_mesh(vertices, triangles, "the decimated surface")
     return _checked(surface, vertices, triangles)
+
+
+THIN_POWER = 1.0  # weight (layout edge / thickness)^THIN_POWER (2: Lucy base 96.9 %, not 97.9)
+THIN_CAP = 100.0  # ... at most this
+
+
+def thickness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Local thickness at every vertex: the distance along the inward normal to the
+    surface's other side, ``inf`` where the ray leaves an open surface. Shape ``(V,)``.
+
+    A ray cast from just under each vertex (``1e-5`` of the diagonal) along minus its
+    area-weighted normal, against all triangles (``open3d``'s ``RaycastingScene``, Embree);
+    the shape diameter function of Shapira, Shamir & Cohen-Or (*Consistent mesh
+    partitioning and skeletonisation using the shape diameter function*, 2008) with its
+    single central ray.
+    """
+    import open3d as o3d
+
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], cross)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = normals / np.where(length > 0, length, 1.0)
+    diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                        o3d.core.Tensor(faces.astype(np.uint32)))
+    rays = np.concatenate([vertices - 1e-5 * diagonal * normals, -normals], axis=1)
+    hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+    return np.where(np.isfinite(hit) & (length[:, 0] > 0), hit, np.inf).astype(np.float64)
+
+
+def thin_part_weights(surface: ScanSurface, target_triangles: int) -> np.ndarray:
+    """Per-vertex decimation weights that keep thin parts (ears, wings, drapery, fingers)
+    in the layout: ``clip((ℓ / τ)^THIN_POWER, 1, THIN_CAP)``, shape ``(V,)``.
+
+    ``τ`` is the local :func:`thickness` and ``ℓ = sqrt(4 A / (√3 T))`` the edge of an
+    equilateral layout triangle when the surface's area ``A`` is cut into ``T`` of them.
+    Plain quadric decimation measures the distance to the planes of the collapsed
+    triangles only, so a sheet thinner than a layout triangle collapses onto a few
+    triangles whose patches cannot hold both of its sides, and their points end up fitted
+    to the other side (the bunny's ears: 4 % of the points farther than 0.5 % of the
+    diagonal from the base). Weighting the quadric where ``τ < ℓ`` spends the same
+    triangle count there instead of on flat parts.
+    """
+    if isinstance(target_triangles, bool) or not isinstance(target_triangles, int) \
+            or target_triangles < 1:
+        raise ValueError(f"target_triangles must be an int >= 1, got {target_triangles!r}")
+    edge = math.sqrt(4.0 * float(surface.face_areas.sum()) / (math.sqrt(3.0) * target_triangles))
+    tau = thickness(surface.vertices, surface.faces)
+    ratio = edge / np.maximum(tau, 1e-300)
+    return np.clip(ratio ** THIN_POWER, 1.0, THIN_CAP)
+
+
+def _weighted_meshset(surface: ScanSurface, weights: np.ndarray):
+    """``_meshset`` of the surface with ``weights`` as its vertex quality.
+
+    MeshLab's weighted simplification maps the quality range ``[min, max]`` affinely onto
+    ``[1, 100]`` (vcglib's ``QualityWeightFactor``), so only the weights' ratios matter: the
+    thinnest part always gets the full 100. (Pinning the range with an unreferenced vertex
+    of quality :data:`THIN_CAP`, so that a weight means itself, made the bunny's base
+    worse: 94.4 % of the points within 0.5 % of the diagonal against 99.5 %.)
+    """
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(surface.vertices, np.float64),
+                               face_matrix=np.ascontiguousarray(surface.faces, np.int32),
+                               v_scalar_array=np.ascontiguousarray(weights)))
+    return ms
 
 
 def euler_characteristics(vertices: np.ndarray, triangles: np.ndarray) -> list[int]:
