@@ -8,6 +8,9 @@ options for Debian's Chromium (never a downloaded browser build).
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from types import TracebackType
 
 from flask import Flask
@@ -73,3 +76,41 @@ class LiveServer:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.stop()
+
+
+#: the viewer page's "done loading" condition: ready, or an error shown
+VIEWER_READY = "document.body.dataset.ready === '1' || !!document.body.dataset.error"
+
+
+@contextmanager
+def serve_collection(collection: Path) -> Iterator[LiveServer]:
+    """The Tessera app over the bundles in ``collection`` (its Pyodide snapshot made, when
+    on, before the first page asks for it), live while the ``with`` block runs."""
+    from fitter.server import create_app
+
+    app = create_app({"TESSERA_COLLECTION": str(collection), "TESTING": True})
+    if app.extensions["tessera_snapshot"] is not None:
+        app.extensions["tessera_snapshot"].ensure()
+    with LiveServer(app) as live:
+        yield live
+
+
+@contextmanager
+def open_viewer(browser, url: str, refined_timeout_ms: float = 90_000) -> Iterator[object]:
+    """A Playwright page (1000 x 700, downloads accepted) on the viewer at ``url``, once it
+    is ready and its first refinement drawn; ``page.errors`` collects the page's uncaught
+    errors and console errors."""
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1000, "height": 700})
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    try:
+        page.goto(url)
+        page.wait_for_function(VIEWER_READY, timeout=90_000)
+        page.wait_for_function("document.body.dataset.refined === '1'",
+                               timeout=refined_timeout_ms)
+        page.errors = errors
+        yield page
+    finally:
+        context.close()

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 import trimesh
 from atlas_bundle import write_atlas_bundle
+from live import VIEWER_READY as READY
+from live import open_viewer, serve_collection
 
 pytestmark = pytest.mark.browser
 
-READY = "document.body.dataset.ready === '1' || !!document.body.dataset.error"
 # drawn by group: 6 groups (a cube face each) of 2 x 2 patches at 5 samples a side, each its
 # triangles of the welded atlas (9 x 9 vertices, its seam vertices copies of its neighbours')
 BASE_VERTICES = 6 * 9 * 9
@@ -30,30 +31,14 @@ def atlas_collection(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def atlas_server(atlas_collection):
-    from live import LiveServer
-
-    from fitter.server import create_app
-
-    app = create_app({"TESSERA_COLLECTION": str(atlas_collection), "TESTING": True})
-    if app.extensions["tessera_snapshot"] is not None:
-        app.extensions["tessera_snapshot"].ensure()
-    with LiveServer(app) as live:
+    with serve_collection(atlas_collection) as live:
         yield live
 
 
 @pytest.fixture(scope="module")
 def atlas_page(browser, atlas_server):
-    context = browser.new_context(accept_downloads=True, viewport={"width": 1000, "height": 700})
-    page = context.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.goto(f"{atlas_server.url}/objects/sphere/")
-    page.wait_for_function(READY, timeout=90_000)
-    page.wait_for_function("document.body.dataset.refined === '1'", timeout=30_000)
-    page.errors = errors
-    yield page
-    context.close()
+    with open_viewer(browser, f"{atlas_server.url}/objects/sphere/", 30_000) as page:
+        yield page
 
 
 def test_the_atlas_shows_welded_with_no_error(atlas_page, atlas_collection):

@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 import trimesh
 from atlas_bundle import add_colour_packs, write_atlas_bundle
+from live import VIEWER_READY as READY
+from live import open_viewer, serve_collection
 from PIL import Image
 
 pytestmark = pytest.mark.browser
 
-READY = "document.body.dataset.ready === '1' || !!document.body.dataset.error"
 GROUP_COLOURS = [(220, 30, 30), (30, 200, 40), (40, 60, 230), (230, 200, 20), (200, 40, 210),
                  (20, 210, 210)]
 
@@ -54,30 +55,14 @@ def colour_collection(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def colour_server(colour_collection):
-    from live import LiveServer
-
-    from fitter.server import create_app
-
-    app = create_app({"TESSERA_COLLECTION": str(colour_collection), "TESTING": True})
-    if app.extensions["tessera_snapshot"] is not None:
-        app.extensions["tessera_snapshot"].ensure()
-    with LiveServer(app) as live:
+    with serve_collection(colour_collection) as live:
         yield live
 
 
 @pytest.fixture(scope="module")
 def colour_page(browser, colour_server):
-    context = browser.new_context(accept_downloads=True, viewport={"width": 1000, "height": 700})
-    page = context.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.goto(f"{colour_server.url}/objects/sphere/")
-    page.wait_for_function(READY, timeout=90_000)
-    page.wait_for_function("document.body.dataset.refined === '1'", timeout=90_000)
-    page.errors = errors
-    yield page
-    context.close()
+    with open_viewer(browser, f"{colour_server.url}/objects/sphere/") as page:
+        yield page
 
 
 def test_the_viewer_draws_the_atlas_in_its_colours(colour_page):

@@ -101,14 +101,9 @@ def _coloured(points: np.ndarray):
 
 @pytest.fixture(scope="module")
 def detail_server(detail_collection):
-    from live import LiveServer
+    from live import serve_collection
 
-    from fitter.server import create_app
-
-    app = create_app({"TESSERA_COLLECTION": str(detail_collection), "TESTING": True})
-    if app.extensions["tessera_snapshot"] is not None:
-        app.extensions["tessera_snapshot"].ensure()
-    with LiveServer(app) as live:
+    with serve_collection(detail_collection) as live:
         yield live
 
 
@@ -625,8 +620,9 @@ def test_3dhop_page_at_a_detail_level(browser, detail_server, detail_collection,
         shown = page.evaluate("window.loadingTexts")
         assert any(t.startswith(f"Fetching the detail tiles of levels 0–{level}: ") and
                    "texture tiles: " in t for t in shown), shown
-        assert f"Tessellating level {level} on a {resolution} × {resolution} grid with " \
-               f"{len(wanted)} detail tiles and 1 texture tile…" in shown, shown
+        tessellating = f"Tessellating level {level} on a {resolution} × {resolution} grid " \
+                       f"with {len(wanted)} detail tiles and 1 texture tile: "
+        assert any(re.fullmatch(re.escape(tessellating) + r"\d{1,3} %…", t) for t in shown), shown
         assert f"Handing the mesh to 3DHOP ({resolution**2:,} vertices)…" in shown, shown
 
         # the PLY 3DHOP was given is the bundle at level L, coloured
