@@ -333,12 +333,14 @@ print(json.dumps({"wall_s": wall, "timings": m["timings"], "rms": m["stats"]["rm
 
 
 def write_large_ply(path: Path, points: int) -> None:
-    """A float32 binary PLY of ``points`` samples of the example relief (noise 0.05 mm),
+    """A float32 binary PLY of ``points`` samples of the example relief (noise 0.05 units),
     written in chunks of ``GENERATE_CHUNK`` (each its own seeded generator), so that
-    generating 10^8 points takes one chunk of memory."""
+    generating 10^8 points takes one chunk of memory. Its header declares metres, the unit
+    an E57 file's lengths have by the standard, so that the same cloud written as E57
+    (``write_large_e57``) gives the same bundle: ``base.tsp`` carries the units."""
     from fitter.fitting.examples import relief_height
 
-    header = ("ply\nformat binary_little_endian 1.0\ncomment units mm\n"
+    header = ("ply\nformat binary_little_endian 1.0\ncomment units m\n"
               "comment generated example relief (synthetic, not a real scan)\n"
               f"element vertex {points}\nproperty float x\nproperty float y\n"
               "property float z\nend_header\n").encode("ascii")
