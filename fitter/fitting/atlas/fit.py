@@ -26,6 +26,15 @@ keeps the 2 × 2 system positive definite), hopping into the neighbouring patch 
 side where ``(u, v)`` leaves ``[0, 1]²`` (clamped on an open border), keeping the old foot
 point where the new one is not nearer. Then the solve again: ``rounds`` times.
 
+Open borders. Where the scan is open (a bust's cut rim), the points beyond the layout's
+border (its decimated chords) get foot points clamped onto the patches' border, and the
+border curves, pulled by them and held by the thin-plate term, stop short of the rim: the
+detail, a displacement along the normal, cannot reach those points. So the scan's own
+border (:func:`border_points`) enters the data term too, each of its points at its foot
+point on the atlas's open border curves (:func:`border_foot_points`), found again every
+round: ``+ w Σ_b |C_{f_b}(u_b, v_b) - x_b|²`` with ``(u_b, v_b)`` on a side without a
+neighbour (``w`` in :func:`fit_layout`).
+
 Weights stay 1 (polynomial patches): the NURBS weight step of the single patch is not
 carried over to the shared control points yet.
 """
@@ -186,19 +195,22 @@ def regularisation_weights(A: sp.csr_matrix, L: sp.csr_matrix, smoothing: float,
 
 
 def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix,
-                         prior: np.ndarray, smoothing: float, anchor: float = 1e-2
-                         ) -> np.ndarray:
+                         prior: np.ndarray, smoothing: float, anchor: float = 1e-2,
+                         data_rows: int | None = None) -> np.ndarray:
     """``argmin_P |A P - X|² + λ |L P|² + μ |P - P_0|²`` through the normal equations.
 
     ``(AᵀA + λ LᵀL + μ I) P = Aᵀ X + μ P_0``, one SuperLU factorisation for the three
-    columns of ``X (K, 3)``; ``λ, μ`` from :func:`regularisation_weights`.
+    columns of ``X (K, 3)``; ``λ, μ`` from :func:`regularisation_weights` of the first
+    ``data_rows`` rows of ``A`` (all by default: rows after them, such as the border
+    points', do not stiffen the rest).
 
     Raises
     ------
     AtlasFitError
         A singular system (SuperLU's factorisation fails).
     """
-    lam, mu = regularisation_weights(A, L, smoothing, anchor)
+    lam, mu = regularisation_weights(A if data_rows is None else A[:data_rows], L, smoothing,
+                                     anchor)
     H = (A.T @ A + lam * (L.T @ L) + mu * sp.identity(A.shape[1], format="csr")).tocsc()
     rhs = A.T @ targets + mu * prior
     try:
@@ -363,7 +375,7 @@ def signed_distances(table: np.ndarray, points: np.ndarray, degree: int, spans: 
 
 
 # ------------------------------------------------------------------ open borders
-BORDER_WEIGHT = 1.0  # one open patch side's border points weigh as a patch's working points
+BORDER_WEIGHT = 3.0  # one open patch side's border points weigh as 3 patches' working points
 BORDER_REACH = 0.05  # a border point farther than this share of the diagonal is not fitted
 BORDER_SIDE_SAMPLES = 17  # samples per open patch side for the first border foot point
 
@@ -539,7 +551,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                                          bv[near])
                 A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
                 targets = np.concatenate([points, math.sqrt(weight) * border[near]])
-        current = solve_control_points(A, targets, L, prior, smoothing, anchor)
+        current = solve_control_points(A, targets, L, prior, smoothing, anchor, len(points))
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - clock
         clock = time.perf_counter()
         f, u, v, dist = correct_parameters(table, current, degree, spans, nb, points, normals,
