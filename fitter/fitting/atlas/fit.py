@@ -534,6 +534,8 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     t = assign_triangles(points, normals, layout.triangle_vertices, layout.triangles)
     f, u, v = triangle_to_quad(points, layout.triangle_vertices, layout.triangles, t)
     border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
+    if border.ndim != 2 or border.shape[1] != 3 or not np.all(np.isfinite(border)):
+        raise ValueError(f"border must be finite points of shape (B, 3), got {border.shape}")
     open_sides = int(np.sum(nb[:, :, 0] < 0))
     reach = BORDER_REACH * float(np.linalg.norm(np.ptp(points, axis=0)))
     timings["foot_points"] = timings.get("foot_points", 0.0) + time.perf_counter() - clock
