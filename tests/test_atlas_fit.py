@@ -8,15 +8,20 @@ import trimesh
 
 from fitter.fitting.atlas import AtlasFit, SurfaceError, fit_atlas, quad_layout, scan_surface
 from fitter.fitting.atlas.fit import (
+    border_foot_points,
+    border_points,
     control_points,
     design_matrix,
     evaluate_patches,
+    fit_layout,
     grid_mesh,
     index_table,
+    neighbour_table,
     regularisation_weights,
     smoothing_matrix,
     solve_control_points,
     triangle_to_quad,
+    working_points,
 )
 from fitter.fitting.atlas.layout import (
     THIN_CAP,
@@ -311,3 +316,51 @@ def test_a_ball_alone_fits_the_plain_layout_only():
     fit = fit_atlas(_sphere_scan(3), 150, working_count=2000, rounds=1)
     (trial,) = fit.trials
     assert trial["layout"] == "plain" and set(trial["rms_by_layout"]) == {"plain"}
+
+
+def _cut_sphere_scan(cut: float = -0.45) -> Scan:
+    """A unit sphere with its cap below ``z = cut`` cut away: one open border, a bust's rim."""
+    m = trimesh.creation.icosphere(subdivisions=4)
+    faces = m.faces[m.vertices[m.faces][:, :, 2].min(axis=1) > cut]
+    used, faces = np.unique(faces, return_inverse=True)
+    return _mesh_scan(m.vertices[used], faces.reshape(-1, 3), "cut sphere")
+
+
+def test_border_points_are_the_open_border_and_its_midpoints():
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.0]])
+    fan = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    got = border_points(square, fan)
+    assert len(got) == 8  # the 4 corners and the 4 side midpoints, not the centre
+    assert not np.any(np.all(np.isclose(got, [0.5, 0.5, 0.0]), axis=1))
+    assert len(border_points(*_sphere_mesh())) == 0
+
+
+def _sphere_mesh():
+    m = trimesh.creation.icosphere(subdivisions=1)
+    return m.vertices, m.faces
+
+
+def test_open_border_curves_follow_the_scans_cut_rim():
+    scan = _cut_sphere_scan()
+    surface = scan_surface(scan)
+    vertices, triangles = decimate(surface, 80)
+    layout = quad_layout(vertices, triangles)
+    points, normals = working_points(scan, surface, 4000)
+    rim = border_points(surface.vertices, surface.faces)
+    gaps, rms = {}, {}
+    for name, border in (("free", None), ("held", rim)):
+        atlas, _, _, _, distance = fit_layout(layout, points, normals, rounds=3, border=border)
+        _, _, _, gaps[name] = border_foot_points(index_table(atlas), control_points(atlas), 3,
+                                                 1, neighbour_table(atlas), rim)
+        rms[name] = np.sqrt(np.mean(distance ** 2))
+    # held, the open border curves run along the rim (free, the chords of the decimated rim
+    # and the foot points clamped onto them leave 0.06 of the unit radius between them)
+    assert gaps["held"].max() < 0.02
+    assert gaps["free"].max() > 3 * gaps["held"].max()
+    assert rms["held"] < 1.2 * rms["free"]  # and the rest of the sphere is fitted as well
+    fit = fit_atlas(scan, 240, working_count=4000, rounds=3)  # fit_atlas holds the rim too
+    _, _, _, gap = border_foot_points(index_table(fit.atlas), control_points(fit.atlas), 3, 1,
+                                      neighbour_table(fit.atlas), rim)
+    assert gap.max() < 0.02
+    with pytest.raises(ValueError, match="border must be finite points"):
+        fit_layout(layout, points, normals, rounds=1, border=rim[:, :2])

@@ -26,6 +26,15 @@ keeps the 2 × 2 system positive definite), hopping into the neighbouring patch 
 side where ``(u, v)`` leaves ``[0, 1]²`` (clamped on an open border), keeping the old foot
 point where the new one is not nearer. Then the solve again: ``rounds`` times.
 
+Open borders. Where the scan is open (a bust's cut rim), the points beyond the layout's
+border (its decimated chords) get foot points clamped onto the patches' border, and the
+border curves, pulled by them and held by the thin-plate term, stop short of the rim: the
+detail, a displacement along the normal, cannot reach those points. So the scan's own
+border (:func:`border_points`) enters the data term too, each of its points at its foot
+point on the atlas's open border curves (:func:`border_foot_points`), found again every
+round: ``+ w Σ_b |C_{f_b}(u_b, v_b) - x_b|²`` with ``(u_b, v_b)`` on a side without a
+neighbour (``w`` in :func:`fit_layout`).
+
 Weights stay 1 (polynomial patches): the NURBS weight step of the single patch is not
 carried over to the shared control points yet.
 """
@@ -186,19 +195,22 @@ def regularisation_weights(A: sp.csr_matrix, L: sp.csr_matrix, smoothing: float,
 
 
 def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix,
-                         prior: np.ndarray, smoothing: float, anchor: float = 1e-2
-                         ) -> np.ndarray:
+                         prior: np.ndarray, smoothing: float, anchor: float = 1e-2,
+                         data_rows: int | None = None) -> np.ndarray:
     """``argmin_P |A P - X|² + λ |L P|² + μ |P - P_0|²`` through the normal equations.
 
     ``(AᵀA + λ LᵀL + μ I) P = Aᵀ X + μ P_0``, one SuperLU factorisation for the three
-    columns of ``X (K, 3)``; ``λ, μ`` from :func:`regularisation_weights`.
+    columns of ``X (K, 3)``; ``λ, μ`` from :func:`regularisation_weights` of the first
+    ``data_rows`` rows of ``A`` (all by default: rows after them, such as the border
+    points', do not stiffen the rest).
 
     Raises
     ------
     AtlasFitError
         A singular system (SuperLU's factorisation fails).
     """
-    lam, mu = regularisation_weights(A, L, smoothing, anchor)
+    lam, mu = regularisation_weights(A if data_rows is None else A[:data_rows], L, smoothing,
+                                     anchor)
     H = (A.T @ A + lam * (L.T @ L) + mu * sp.identity(A.shape[1], format="csr")).tocsc()
     rhs = A.T @ targets + mu * prior
     try:
@@ -362,6 +374,68 @@ def signed_distances(table: np.ndarray, points: np.ndarray, degree: int, spans: 
     return np.linalg.norm(r, axis=1) * np.where(side < 0, -1.0, 1.0)
 
 
+# ------------------------------------------------------------------ open borders
+BORDER_WEIGHT = 3.0  # one open patch side's border points weigh as 3 patches' working points
+BORDER_REACH = 0.05  # a border point farther than this share of the diagonal is not fitted
+BORDER_SIDE_SAMPLES = 17  # samples per open patch side for the first border foot point
+
+
+def border_points(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Points along the open border of a triangle surface: every vertex of an edge that one
+    triangle uses, and every such edge's midpoint. Shape ``(B, 3)``; empty when closed."""
+    faces = np.asarray(faces, np.int64)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
+                    axis=1)
+    unique, count = np.unique(edges, axis=0, return_counts=True)
+    border = unique[count == 1]
+    vertices = np.asarray(vertices, np.float64)
+    if not len(border):
+        return np.empty((0, 3))
+    return np.concatenate([vertices[np.unique(border)], vertices[border].mean(axis=1)])
+
+
+def _side_parameters(k: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(u, v)`` of the point at ``t`` along side ``k`` of a patch (the sides of
+    :func:`_hop`: 0 is ``v = 0``, 1 is ``u = 1``, 2 is ``v = 1``, 3 is ``u = 0``)."""
+    u = np.select([k == 0, k == 1, k == 2, k == 3], [t, np.ones_like(t), t, np.zeros_like(t)])
+    v = np.select([k == 0, k == 1, k == 2, k == 3], [np.zeros_like(t), t, np.ones_like(t), t])
+    return u, v
+
+
+def border_foot_points(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
+                       nb: np.ndarray, x: np.ndarray, iterations: int = 4
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Foot points of ``x (B, 3)`` on the atlas's open border curves.
+
+    The nearest of :data:`BORDER_SIDE_SAMPLES` samples along every patch side without a
+    neighbour, then Gauss-Newton along that side's curve, ``δt = C' · (x - C) / |C'|²``
+    (``t`` clamped to ``[0, 1]``). Returns ``f, u, v, distance``, each ``(B,)``; all empty
+    when the atlas has no open border.
+    """
+    open_f, open_k = np.nonzero(nb[:, :, 0] < 0)
+    if not len(open_f) or not len(x):
+        empty = np.empty(0)
+        return empty.astype(np.int64), empty, empty, empty
+    t = np.linspace(0.0, 1.0, BORDER_SIDE_SAMPLES)
+    side_f = np.repeat(open_f, len(t))
+    side_k = np.repeat(open_k, len(t))
+    side_t = np.tile(t, len(open_f))
+    (curve,) = evaluate_patches(table, points, degree, spans, side_f,
+                                *_side_parameters(side_k, side_t))
+    _, nearest = cKDTree(curve).query(x)
+    f, k, t = side_f[nearest], side_k[nearest], side_t[nearest]
+    for _ in range(iterations):
+        u, v = _side_parameters(k, t)
+        c, cu, cv = evaluate_patches(table, points, degree, spans, f, u, v, True)
+        tangent = np.where((k % 2 == 0)[:, None], cu, cv)
+        step = np.einsum("kc,kc->k", tangent, x - c) / np.maximum(
+            np.einsum("kc,kc->k", tangent, tangent), 1e-300)
+        t = np.clip(t + step, 0.0, 1.0)
+    u, v = _side_parameters(k, t)
+    (c,) = evaluate_patches(table, points, degree, spans, f, u, v)
+    return f, u, v, np.linalg.norm(x - c, axis=1)
+
+
 # ------------------------------------------------------------------ working points
 def working_points(scan: Scan, surface: ScanSurface, count: int, seed: int = 0
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -431,9 +505,19 @@ class AtlasFit:
 
 def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                degree: int = 3, spans: int = 1, rounds: int = 4, smoothing: float = 0.1,
-               anchor: float = 1e-3, timings: dict | None = None
+               anchor: float = 1e-3, border: np.ndarray | None = None,
+               timings: dict | None = None
                ) -> tuple[AtlasSurface, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fit an atlas on ``layout`` to ``points``: foot points, solve, ``rounds`` corrections.
+
+    ``border (B, 3)``, optional: points along the scan's open border (:func:`border_points`).
+    Each round they get foot points on the atlas's open border curves
+    (:func:`border_foot_points`) and enter the data term with the weight ``w`` that makes one
+    open side's border points weigh :data:`BORDER_WEIGHT` times a patch's working points,
+    ``w = BORDER_WEIGHT (K / F) / (B / S)`` (``S`` open sides): the open border curves follow
+    the scan's cut rim instead of stopping short of it where the foot points of the points
+    beyond are clamped onto the border. Border points farther than :data:`BORDER_REACH` of
+    the diagonal from every open border curve (a layout from a closed stand-in) are left out.
 
     Returns
     -------
@@ -449,13 +533,27 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     L = smoothing_matrix(initial, table)
     t = assign_triangles(points, normals, layout.triangle_vertices, layout.triangles)
     f, u, v = triangle_to_quad(points, layout.triangle_vertices, layout.triangles, t)
+    border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
+    if border.ndim != 2 or border.shape[1] != 3 or not np.all(np.isfinite(border)):
+        raise ValueError(f"border must be finite points of shape (B, 3), got {border.shape}")
+    open_sides = int(np.sum(nb[:, :, 0] < 0))
+    reach = BORDER_REACH * float(np.linalg.norm(np.ptp(points, axis=0)))
     timings["foot_points"] = timings.get("foot_points", 0.0) + time.perf_counter() - clock
     current = prior
     dist = None
     for _ in range(max(1, rounds)):
         clock = time.perf_counter()
-        A = design_matrix(table, len(prior), degree, spans, f, u, v)
-        current = solve_control_points(A, points, L, prior, smoothing, anchor)
+        A, targets = design_matrix(table, len(prior), degree, spans, f, u, v), points
+        if len(border) and open_sides:
+            bf, bu, bv, bd = border_foot_points(table, current, degree, spans, nb, border)
+            near = bd <= reach
+            if near.any():
+                weight = BORDER_WEIGHT * (len(points) / len(table)) / (near.sum() / open_sides)
+                A_border = design_matrix(table, len(prior), degree, spans, bf[near], bu[near],
+                                         bv[near])
+                A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
+                targets = np.concatenate([points, math.sqrt(weight) * border[near]])
+        current = solve_control_points(A, targets, L, prior, smoothing, anchor, len(points))
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - clock
         clock = time.perf_counter()
         f, u, v, dist = correct_parameters(table, current, degree, spans, nb, points, normals,
@@ -606,6 +704,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     # every trial decimates from one intermediate mesh, not from the full scan (MeshLab's
     # collapse of 10^5 faces takes seconds each time)
     source = surface if layout_surface is None else layout_surface
+    # the open border curves follow the scan's border; a stand-in's borders are its own
+    border = border_points(surface.vertices, surface.faces) if layout_surface is None else None
     coarse = source
     if len(source.faces) > PREDECIMATED_TRIANGLES:
         try:
@@ -648,7 +748,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             atlas, f, u, v, dist = fit_layout(layout, trial_points, trial_normals,
                                               degree=degree, spans=spans, rounds=trial_rounds,
                                               smoothing=smoothing, anchor=anchor,
-                                              timings=trial_timings)
+                                              border=border, timings=trial_timings)
             fitted.append((float(np.sqrt(np.mean(dist ** 2))), name, layout, atlas, f, u, v,
                            trial_timings))
         if not fitted:
@@ -679,7 +779,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         final_timings: dict = {"layout": best[7]["layout"]}
         atlas, f, u, v, dist = fit_layout(layout, points, normals, degree=degree, spans=spans,
                                           rounds=rounds, smoothing=smoothing, anchor=anchor,
-                                          timings=final_timings)
+                                          border=border, timings=final_timings)
         timings["trials"] = sum(trial.get("seconds", 0.0) for trial in trials)
         best = (float(np.sqrt(np.mean(dist ** 2))), atlas_bytes(atlas, bits), layout, atlas,
                 f, u, v, final_timings)
