@@ -26,6 +26,7 @@ from fitter.fitting.io.las import LasStream, open_las_stream
 from fitter.fitting.io.limits import InputBudget
 from fitter.fitting.options import FitOptions
 from fitter.fitting.pipeline import fit_scan
+from tests.test_out_of_core import small_out_of_core  # noqa: F401 (a fixture)
 from tests.test_readers_scanner import write_e57, write_las, write_spherical_e57
 
 RNG = np.random.default_rng(57)
@@ -39,16 +40,6 @@ def small_blocks(monkeypatch):
     monkeypatch.setattr(las_io, "BLOCK_POINTS", 64)
     monkeypatch.setattr(points_io, "TAKE_BLOCK", 100)
     monkeypatch.setattr(points_io, "WINDOW_REQUESTS", 2)
-
-
-@pytest.fixture
-def small_out_of_core(monkeypatch):
-    """The out-of-core path for a 40,000-point scan (as in tests/test_out_of_core.py)."""
-    monkeypatch.setattr(stream, "STREAM_ABOVE", 20_000)
-    monkeypatch.setattr(stream, "WORKING_SET_POINTS", 8_000)
-    monkeypatch.setattr(stream, "WORKING_SET_MOST", 32_000)
-    monkeypatch.setattr(stream, "BLOCK_POINTS", 6_000)
-    monkeypatch.setattr(stream, "VOXEL_SAMPLE", 10_000)
 
 
 def _posed_site(path):
@@ -110,7 +101,7 @@ def test_e57_stream_gives_the_points_of_load_e57_in_any_order(tmp_path, small_bl
     np.testing.assert_array_equal(fresh.take(index)[0], loaded[index])
     # a pickled stream (a Dask worker's) leaves its file and window behind and reopens
     again = pickle.loads(pickle.dumps(fresh))
-    assert again._e57 is None and again.decoded == 0
+    assert again._file is None and again.decoded == 0
     np.testing.assert_array_equal(again.read(600, 700)[0], loaded[600:700])
     fresh.close()
     np.testing.assert_array_equal(fresh.read(0, 5)[0], loaded[:5])
@@ -160,8 +151,8 @@ def test_e57_stream_opening_keeps_the_limits_and_errors(tmp_path):
         opened[0].read(0, opened[0].count)
 
 
-def test_streamed_e57_fit_gives_the_bundle_of_the_same_cloud_as_ply(tmp_path,
-                                                                    small_out_of_core):
+@pytest.mark.usefixtures("small_out_of_core")
+def test_streamed_e57_fit_gives_the_bundle_of_the_same_cloud_as_ply(tmp_path):
     points = relief_scan(40_000, seed=11).astype(np.float32)
     colours = RNG.integers(0, 256, (40_000, 3), dtype=np.uint8)
     ply, e57 = tmp_path / "relief.ply", tmp_path / "relief.e57"
@@ -196,7 +187,7 @@ def test_las_and_laz_streams_give_the_points_of_load_las(tmp_path, small_blocks)
         index = np.sort(RNG.choice(n, 50, replace=False))
         np.testing.assert_array_equal(pstream.take(index)[0], loaded[index])
         again = pickle.loads(pickle.dumps(pstream))
-        assert again._reader is None
+        assert again._file is None
         np.testing.assert_array_equal(again.read(900, 1_000)[0], loaded[900:])
         pstream.close()
     assert open_las_stream(tmp_path / "site.laz", stream_above=n) is None
@@ -204,7 +195,8 @@ def test_las_and_laz_streams_give_the_points_of_load_las(tmp_path, small_blocks)
         open_point_stream(tmp_path / "site.laz", InputBudget(InputLimits(max_points=999)))
 
 
-def test_streamed_laz_fit_gives_the_bundle_of_the_loaded_cloud(tmp_path, small_out_of_core):
+@pytest.mark.usefixtures("small_out_of_core")
+def test_streamed_laz_fit_gives_the_bundle_of_the_loaded_cloud(tmp_path):
     points = relief_scan(40_000, seed=13) / 1000.0
     path = tmp_path / "relief.laz"
     write_las(path, points, offsets=(0.25, -0.04, 1.2), scales=(1e-5, 1e-5, 1e-5))
@@ -215,3 +207,25 @@ def test_streamed_laz_fit_gives_the_bundle_of_the_loaded_cloud(tmp_path, small_o
     assert ((streamed.path / "base.tsp").read_bytes()
             == (loaded.path / "base.tsp").read_bytes())
     assert streamed.manifest["stats_all_points"] == loaded.manifest["stats_all_points"]
+
+
+@pytest.mark.usefixtures("small_out_of_core")
+def test_e57_stream_on_a_dask_cluster_writes_the_same_bundle(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    points = relief_scan(40_000, seed=17)
+    q = Rotation.from_euler("xyz", [10, 20, 30], degrees=True)
+    t = np.array([3.0, -1.0, 0.5])
+    path = tmp_path / "posed.e57"  # each scan stored in its own frame, posed back
+    write_e57(path, [{"xyz": q.inv().apply(points[:22_000] - t),
+                      "rotation": [*q.as_quat()[3:], *q.as_quat()[:3]], "translation": t},
+                     {"xyz": points[22_000:]}])
+    local = fit_scan(path, tmp_path / "local", FitOptions(**OPTIONS))
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        on_dask = fit_scan(path, tmp_path / "dask", FitOptions(**OPTIONS),
+                           blocks=stream.DaskBlocks(client))
+    assert local.manifest["provenance"]["reader"] == "pye57-stream"
+    for name in ("base.tsp", "error.ply", "error.png"):
+        assert (local.path / name).read_bytes() == (on_dask.path / name).read_bytes(), name
+    assert local.manifest["stats_all_points"] == on_dask.manifest["stats_all_points"]

@@ -325,19 +325,21 @@ def scan_blocks(e57: Any, reading: ScanReading, name: str,
         fields.update(dict.fromkeys(COLOURS, np.float64))
     if reading.invalid:
         fields[reading.invalid] = np.int8
-    for arrays in _read_fields(e57, reading, fields, name):
-        n = len(arrays[reading.xyz[0]])
-        keep = slice(None) if reading.invalid is None else arrays[reading.invalid] == 0
-        block = np.column_stack([arrays[f][keep] for f in reading.xyz])
-        if reading.spherical:
-            block = convert_spherical_to_cartesian(block)
-        if reading.rotation is not None:
-            local, block = block, np.empty_like(block)
-            apply_pose(local, reading.rotation, reading.translation, block)
-        rgb = None
-        if colour is not None:
-            rgb = colours_to_uint8(np.column_stack([arrays[f][keep] for f in COLOURS]), *colour)
-        yield block, rgb, (arrays["intensity"][keep] if intensity else None), n
+    with closing(_read_fields(e57, reading, fields, name)) as blocks:  # closed with us
+        for arrays in blocks:
+            n = len(arrays[reading.xyz[0]])
+            keep = slice(None) if reading.invalid is None else arrays[reading.invalid] == 0
+            block = np.column_stack([arrays[f][keep] for f in reading.xyz])
+            if reading.spherical:
+                block = convert_spherical_to_cartesian(block)
+            if reading.rotation is not None:
+                local, block = block, np.empty_like(block)
+                apply_pose(local, reading.rotation, reading.translation, block)
+            rgb = None
+            if colour is not None:
+                rgb = colours_to_uint8(np.column_stack([arrays[f][keep] for f in COLOURS]),
+                                       *colour)
+            yield block, rgb, (arrays["intensity"][keep] if intensity else None), n
 
 
 def count_valid(e57: Any, reading: ScanReading, name: str) -> int:
@@ -494,37 +496,25 @@ class E57Stream(ReaderStream):
     def __init__(self, path: Path, readings: list[ScanReading], valid: list[int]) -> None:
         super().__init__(Path(path).name, path, valid)
         self.readings = list(readings)
-        self._e57: Any = None
 
-    def __getstate__(self) -> dict:
-        state = super().__getstate__()
-        state["_e57"] = None  # each process opens the file itself
-        return state
+    def open_file(self) -> Any:
+        """The file through pye57."""
+        import pye57
+        from pye57 import libe57
 
-    def _file(self) -> Any:
-        if self._e57 is None:
-            import pye57
-            from pye57 import libe57
-
-            try:
-                self._e57 = pye57.E57(str(self.path))
-            except libe57.E57Exception as exc:
-                raise _e57_error(self.name, exc, "opening the file") from None
-        return self._e57
+        try:
+            return pye57.E57(str(self.path))
+        except libe57.E57Exception as exc:
+            raise _e57_error(self.name, exc, "opening the file") from None
 
     def open_segment(self, segment: int, first: int) -> tuple[int, Iterator[np.ndarray]]:
         """Scan ``segment`` from its first point (``first`` is reached by decoding)."""
         return 0, self._points_of(segment)
 
     def _points_of(self, segment: int) -> Iterator[np.ndarray]:
-        with closing(scan_blocks(self._file(), self.readings[segment], self.name)) as blocks:
+        with closing(scan_blocks(self.file(), self.readings[segment], self.name)) as blocks:
             for points, _, _, _ in blocks:
                 yield points
-
-    def close_handles(self) -> None:
-        if self._e57 is not None:
-            e57, self._e57 = self._e57, None
-            e57.close()
 
 
 def open_e57_stream(path: Path, budget: InputBudget | None = None, stream_above: int = 0

@@ -477,12 +477,11 @@ class LasStream(ReaderStream):
 
     def __init__(self, path: Path, count: int) -> None:
         super().__init__(Path(path).name, path, [count])
-        self._reader: Any = None
 
-    def __getstate__(self) -> dict:
-        state = super().__getstate__()
-        state["_reader"] = None  # each process opens the file itself
-        return state
+    def open_file(self) -> Any:
+        """The file through ``laspy.open``."""
+        with _as_scan_errors(self.path):
+            return _open_las(self.path, False)
 
     def open_segment(self, segment: int, first: int) -> tuple[int, Iterator[np.ndarray]]:
         """The points from ``first`` on (laspy seeks to it)."""
@@ -490,15 +489,8 @@ class LasStream(ReaderStream):
 
     def _points_from(self, first: int) -> Iterator[np.ndarray]:
         with _as_scan_errors(self.path):
-            if self._reader is None:
-                self._reader = _open_las(self.path, False)
-            for points, _, _ in las_blocks(self._reader, self.name, self.count, first):
+            for points, _, _ in las_blocks(self.file(), self.name, self.count, first):
                 yield points
-
-    def close_handles(self) -> None:
-        if self._reader is not None:
-            reader, self._reader = self._reader, None
-            reader.close()
 
 
 def open_las_stream(path: Path, budget: InputBudget | None = None, stream_above: int = 0

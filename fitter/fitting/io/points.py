@@ -169,8 +169,8 @@ class _Cursor:
 
 class ReaderStream:
     """The points ``(N, 3)`` of a file a library decodes forward, in segments (see the module
-    docstring); a subclass opens a segment (:meth:`open_segment`) and closes its library's
-    handles (:meth:`close_handles`).
+    docstring); a subclass opens its library's file (:meth:`open_file`) and a segment of it
+    (:meth:`open_segment`).
 
     Attributes
     ----------
@@ -202,6 +202,7 @@ class ReaderStream:
         self._cursor: _Cursor | None = None
         self._window: deque[tuple[int, np.ndarray]] = deque()
         self._keep = 0
+        self._file: object = None
         self.decoded = 0
 
     def open_segment(self, segment: int, first: int) -> tuple[int, Iterator[np.ndarray]]:
@@ -209,19 +210,28 @@ class ReaderStream:
         consecutive points to the segment's end)``, starting at or before local ``first``."""
         raise NotImplementedError
 
-    def close_handles(self) -> None:
-        """Close the library's file handles of this process (reopened when needed)."""
+    def open_file(self) -> object:
+        """The library's open file (with a ``close()``), opened once per process."""
+        raise NotImplementedError
+
+    def file(self) -> object:
+        """:meth:`open_file`'s object of this process, opened on first use."""
+        if self._file is None:
+            self._file = self.open_file()
+        return self._file
 
     def close(self) -> None:
         """Close the cursor and the file; the stream can still be read (it reopens)."""
         with self._lock:
             self._close_cursor()
             self._window.clear()
-            self.close_handles()
+            if self._file is not None:
+                opened, self._file = self._file, None
+                opened.close()
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        for key in ("_lock", "_cursor", "_window", "_keep", "decoded"):
+        for key in ("_lock", "_cursor", "_window", "_keep", "decoded", "_file"):
             state.pop(key)
         return state
 
