@@ -94,6 +94,13 @@ def test_e57_stream_gives_the_points_of_load_e57_in_any_order(tmp_path, small_bl
     fresh = open_e57_stream(path)[0]
     np.testing.assert_array_equal(_read_in_blocks(fresh, 97, "pairs"), loaded)
     assert fresh.decoded == fresh.count
+    # the same across scans: the end of scan 0 asked for after the start of scan 1
+    across = open_e57_stream(path)[0]
+    s1 = across.segments[0]
+    for start in (s1 - 300, s1, s1 - 150):
+        np.testing.assert_array_equal(across.read(start, start + 150)[0],
+                                      loaded[start:start + 150])
+    assert across.decoded == s1 + 192  # scan 0 once, scan 1 to its third block of 64
     # backward past the window: the scan is decoded again from its start
     np.testing.assert_array_equal(fresh.read(3, 40)[0], loaded[3:40])
     assert fresh.decoded > fresh.count

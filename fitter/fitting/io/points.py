@@ -288,12 +288,19 @@ class ReaderStream:
 
     def _decode_through(self, position: int, horizon: int) -> None:
         """Decode the next block of the cursor, first moving it to ``position``'s segment
-        (forward) or re-opening that segment (backward, or a long gap when seekable); the
-        window then drops its blocks that end at or before ``horizon`` (never the new one)."""
+        (forward: after decoding the rest of its own segment when that is within the window's
+        reach) or re-opening that segment (backward, or a long gap when seekable); the window
+        then drops its blocks that end at or before ``horizon`` (never the new one)."""
         segment = int(np.searchsorted(self.starts, position, side="right")) - 1
         cursor = self._cursor
-        if (cursor is None or cursor.segment != segment or cursor.next > position
+        if (cursor is not None and cursor.segment < segment and not self.seekable
+                and cursor.next < self.starts[cursor.segment + 1]
+                and position - cursor.next <= self._keep):
+            segment = cursor.segment  # finish it: a thread may ask for the points passed over
+        elif (cursor is None or cursor.segment != segment or cursor.next > position
                 or (self.seekable and position - cursor.next > SEEK_GAP)):
+            if cursor is not None and (cursor.segment > segment or cursor.next > position):
+                self._window.clear()  # backward: the window holds points ahead, not wanted soon
             self._close_cursor()
             start = int(self.starts[segment])
             first, blocks = self.open_segment(segment, position - start)
