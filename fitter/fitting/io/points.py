@@ -26,8 +26,8 @@ decoded last and decodes forward from its cursor; a read behind the cursor, or i
 earlier segment, re-opens the segment (an E57 scan is decoded again from its first point:
 libE57Format's reader cannot seek). The passes read consecutive blocks from a few threads,
 so the window reaches ``WINDOW_REQUESTS`` requests back from the one being served: blocks a
-thread skipped are kept for the thread that wants them, and a pass in block order decodes
-every point once. The cursor
+thread skipped are kept for the thread that wants them, a block leaves the window once every
+point of it has been read, and a pass in block order decodes every point once. The cursor
 and the window are not pickled: each process (a Dask worker) opens the file itself.
 """
 
@@ -152,6 +152,21 @@ class PointStream:
         return block_ranges(self.count, size)
 
 
+@dataclass(eq=False)
+class _Decoded:
+    """A block in a ReaderStream's window: its first point's index, its points, and how
+    many of them reads have taken (a block is dropped once all are taken: a pass asks for
+    each point once)."""
+
+    first: int
+    points: np.ndarray
+    served: int = 0
+
+    @property
+    def stop(self) -> int:
+        return self.first + len(self.points)
+
+
 @dataclass
 class _Cursor:
     """Where a ReaderStream decodes: its segment, the global index of the next point its
@@ -200,7 +215,7 @@ class ReaderStream:
     def _reset(self) -> None:
         self._lock = threading.Lock()
         self._cursor: _Cursor | None = None
-        self._window: deque[tuple[int, np.ndarray]] = deque()
+        self._window: deque[_Decoded] = deque()
         self._keep = 0
         self._file: object = None
         self.decoded = 0
@@ -256,9 +271,11 @@ class ReaderStream:
                 if hit is None:
                     self._decode_through(position, stop - self._keep)
                     continue
-                first, block = hit
-                end = min(stop, first + len(block))
-                parts.append(block[position - first:end - first])
+                end = min(stop, hit.stop)
+                parts.append(hit.points[position - hit.first:end - hit.first])
+                hit.served += end - position
+                if hit.served >= len(hit.points):  # every point handed out: not wanted again
+                    self._window.remove(hit)
                 position = end
             points = np.concatenate(parts) if parts else np.empty((0, 3))
         return points, None
@@ -275,10 +292,10 @@ class ReaderStream:
                 points[lo:hi] = self.read(start, stop)[0][index[lo:hi] - start]
         return points, None
 
-    def _in_window(self, position: int) -> tuple[int, np.ndarray] | None:
-        for first, block in self._window:
-            if first <= position < first + len(block):
-                return first, block
+    def _in_window(self, position: int) -> _Decoded | None:
+        for decoded in self._window:
+            if decoded.first <= position < decoded.stop:
+                return decoded
         return None
 
     def _close_cursor(self) -> None:
@@ -313,10 +330,10 @@ class ReaderStream:
             raise ScanError(f"{self.name}: the file changed while it was read: segment "
                             f"{segment} gave {'only ' if block is None else ''}{got:,} "
                             f"points, the first pass counted {self.segments[segment]:,}")
-        self._window.append((cursor.next, block))
+        self._window.append(_Decoded(cursor.next, block))
         cursor.next += len(block)
         self.decoded += len(block)
-        while len(self._window) > 1 and self._window[0][0] + len(self._window[0][1]) <= horizon:
+        while len(self._window) > 1 and self._window[0].stop <= horizon:
             self._window.popleft()
 
 
