@@ -330,6 +330,8 @@ class ReaderStream:
             raise ScanError(f"{self.name}: the file changed while it was read: segment "
                             f"{segment} gave {'only ' if block is None else ''}{got:,} "
                             f"points, the first pass counted {self.segments[segment]:,}")
+        if len(block) == 0:  # an E57 block of invalid points only
+            return
         self._window.append(_Decoded(cursor.next, block))
         cursor.next += len(block)
         self.decoded += len(block)
