@@ -201,6 +201,14 @@ def test_las_and_laz_streams_give_the_points_of_load_las(tmp_path, small_blocks)
     assert open_las_stream(tmp_path / "site.laz", stream_above=n) is None
     with pytest.raises(ScanError, match=r"site\.laz: 1,000 points, over the limit"):
         open_point_stream(tmp_path / "site.laz", InputBudget(InputLimits(max_points=999)))
+    laz = (tmp_path / "site.laz").read_bytes()
+    (tmp_path / "cut.laz").write_bytes(laz[:len(laz) // 2])
+    with pytest.raises(ScanError, match=r"cut\.laz: corrupt or truncated LAZ file"):
+        open_point_stream(tmp_path / "cut.laz")
+    las = (tmp_path / "site.las").read_bytes()
+    (tmp_path / "cut.las").write_bytes(las[:len(las) - 500])
+    with pytest.raises(ScanError, match=r"cut\.las: truncated LAS file: the header claims"):
+        open_point_stream(tmp_path / "cut.las")
 
 
 @pytest.mark.usefixtures("small_out_of_core")
