@@ -45,7 +45,7 @@ from client_py import read_patch
 
 from .error import Deviations, deviations
 from .io.limits import InputBudget, InputLimits
-from .io.points import PointStream, file_sha256
+from .io.points import PointStream, ReaderStream, file_sha256
 from .io.scan import Scan, ScanError, make_scan
 from .io.thin import VoxelGrid, VoxelIndex, VoxelNearest, VoxelSums, voxel_size_for
 from .nurbs import PatchModel
@@ -202,15 +202,13 @@ def fits_out_of_core(n_points: int) -> bool:
 
 
 def open_stream(path: Path, limits: InputLimits | None = None
-                ) -> tuple[PointStream, dict, str] | None:
+                ) -> tuple[PointStream | ReaderStream, dict, str] | None:
     """The stream of a scan file the out-of-core path can read without loading it (an
-    uncompressed binary PLY point cloud over ``STREAM_ABOVE`` points), else ``None``."""
-    from .io.ply import open_ply_stream
+    uncompressed binary PLY point cloud, an E57 or LAS/LAZ file, over ``STREAM_ABOVE``
+    points: ``fitter.fitting.io.open_point_stream``), else ``None``."""
+    from .io import open_point_stream
 
-    path = Path(path)
-    if path.suffix.lower() != ".ply" or not path.is_file():
-        return None  # the readers of fitter.fitting.io say what is wrong
-    opened = open_ply_stream(path, InputBudget(limits))
+    opened = open_point_stream(path, InputBudget(limits), STREAM_ABOVE)
     if opened is None or not fits_out_of_core(opened[0].count):
         return None
     return opened

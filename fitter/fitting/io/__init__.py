@@ -24,6 +24,11 @@ for the bundle's provenance. E57 and LAS/LAZ are the exception: their libraries
 read the file by path, so it is hashed in a second streamed pass. ``thin=h`` keeps one
 point per voxel of edge ``h`` (``fitter.fitting.io.thin``).
 
+``open_point_stream(path, budget, stream_above)`` is the out-of-core entry point
+(``fitter.fitting.stream``): for an uncompressed binary PLY point cloud, an E57 or a
+LAS/LAZ file of more than ``stream_above`` points, a stream that reads the points block by
+block (:data:`STREAMERS`: ``fitter.fitting.io.points``), never the whole cloud at once.
+
 Every read is bounded by one ``InputLimits`` (``fitter.fitting.io.limits``: decompressed
 bytes, compression ratio, points, files per registration, paths confined to the
 ``.conf``'s folder), the same for the command line and the admin uploads. Each loader
@@ -39,18 +44,19 @@ from functools import partial
 from pathlib import Path
 
 from .conf import load_conf
-from .e57 import load_e57
-from .las import load_las
+from .e57 import load_e57, open_e57_stream
+from .las import load_las, open_las_stream
 from .limits import InputBudget, InputLimits
 from .mesh import load_mesh
-from .ply import load_ply
+from .ply import load_ply, open_ply_stream
+from .points import PointStream, ReaderStream
 from .scan import Scan, ScanError
 from .source import check_path
 from .text import load_text
 from .thin import check_voxel_size, thin_scan, voxel_thin_indices
 
-__all__ = ["LOADERS", "SUPPORTED_EXTENSIONS", "InputBudget", "InputLimits", "Scan", "ScanError",
-           "load_scan", "thin_scan", "voxel_thin_indices"]
+__all__ = ["LOADERS", "STREAMERS", "SUPPORTED_EXTENSIONS", "InputBudget", "InputLimits", "Scan",
+           "ScanError", "load_scan", "open_point_stream", "thin_scan", "voxel_thin_indices"]
 
 
 def _load_conf(path: Path, gzipped: bool, budget: InputBudget) -> Scan:
@@ -76,6 +82,15 @@ LOADERS: dict[str, Callable[[Path, bool, InputBudget], Scan]] = {
 #: formats read by path by their library (random access), never through gzip
 NOT_GZIPPED = (".e57", ".las", ".laz")
 SUPPORTED_EXTENSIONS = tuple(LOADERS)
+#: extension -> opener(path, budget, stream_above) -> (stream, source, units) or None (the
+#: file is then read whole by its loader: a PLY mesh or ASCII PLY, a small file)
+STREAMERS: dict[str, Callable[[Path, InputBudget, int],
+                              tuple[PointStream | ReaderStream, dict, str] | None]] = {
+    ".ply": lambda path, budget, stream_above: open_ply_stream(path, budget),
+    ".e57": open_e57_stream,
+    ".las": open_las_stream,
+    ".laz": open_las_stream,
+}
 
 
 def _split_extension(path: Path) -> tuple[str, bool]:
@@ -140,3 +155,28 @@ def load_scan(path: str | os.PathLike, thin: float | None = None,
         check_voxel_size(thin)  # reject a bad argument before reading a large file
     scan = _load(Path(path), InputBudget(limits))
     return scan if thin is None else thin_scan(scan, thin)
+
+
+def open_point_stream(path: str | os.PathLike, budget: InputBudget | None = None,
+                      stream_above: int = 0
+                      ) -> tuple[PointStream | ReaderStream, dict, str] | None:
+    """``(stream, source, units)`` of a scan file read block by block, or ``None`` for a file
+    no streamed reader takes (another format, gzip-compressed, a PLY mesh or ASCII PLY, at
+    most ``stream_above`` points claimed): its loader (``load_scan``) reads it whole.
+
+    The stream's ``source`` lacks ``sha256`` (the out-of-core passes hash the file beside
+    their first pass). The points the file claims are counted against ``budget``.
+
+    Raises
+    ------
+    ScanError
+        What the format's reader finds wrong in the header (and, for an E57 file with
+        invalid points, in the counting pass), a limit of ``budget`` passed.
+    """
+    path = Path(path)
+    ext, gzipped = _split_extension(path)
+    opener = STREAMERS.get(ext)
+    if opener is None or gzipped or not path.is_file():
+        return None  # the loaders say what is wrong
+    check_path(path)
+    return opener(path, budget if budget is not None else InputBudget(), stream_above)

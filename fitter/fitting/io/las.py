@@ -32,6 +32,11 @@ the SHA-256 of the stored file is taken in a separate streamed pass
 (``fitter.fitting.io.source.HashedInput``); a gzip-compressed LAS is refused (LAZ is the
 compressed form).
 
+Streamed reading (the out-of-core fit, ``fitter.fitting.stream``): :func:`open_las_stream`
+checks the same header and returns a :class:`LasStream`, which reads the points through
+the same :func:`las_blocks` as :func:`load_las` (the same points, bit for bit), seeking to
+the block asked for; only the coordinates are read there (no colour, no intensity).
+
 Every failure is a ``ScanError`` naming the file: the ``LASF`` signature is checked here
 first, and a LAZ file's chunk table is bounded before lazrs reads it
 (:func:`check_laz_chunk_table`); what laspy and lazrs raise on a corrupt or truncated file
@@ -42,14 +47,18 @@ from __future__ import annotations
 
 import re
 import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .limits import InputBudget
+from .points import ReaderStream
 from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source
-from .source import HashedInput
+from .source import HashedInput, file_record
 
 #: the first bytes of every LAS and LAZ file (the header's ``File Signature``)
 LAS_SIGNATURE = b"LASF"
@@ -298,33 +307,117 @@ def _has_rgb(header: Any) -> bool:
     return {"red", "green", "blue"} <= set(header.point_format.dimension_names)
 
 
-def _read_points(reader: Any, name: str, count: int, rgb: bool
-                 ) -> tuple[np.ndarray, np.ndarray | None, list[float] | None]:
-    """``(points (N, 3), RGB (N, 3) uint16 or None, intensity [min, max] or None)``, read in
-    blocks; ``ScanError`` when the file holds fewer points than ``count``."""
-    points = np.empty((count, 3), np.float64)
-    colours = np.empty((count, 3), np.uint16) if rgb else None
-    low, high = np.inf, -np.inf
-    done = 0
-    for chunk in reader.chunk_iterator(BLOCK_POINTS):
+def las_blocks(reader: Any, name: str, count: int, first: int | None = None,
+               rgb: bool = False) -> Iterator[tuple[np.ndarray, np.ndarray | None, np.ndarray]]:
+    """Points ``first..count`` of an open ``laspy`` reader (sought to ``first``; None: from
+    where the reader stands, a new reader's first point) in blocks of ``BLOCK_POINTS``
+    (the one reading :func:`load_las` and :class:`LasStream` share): ``(points (m, 3)
+    float64 = X s + o, RGB (m, 3) uint16 or None, intensity (m,))``.
+
+    Raises
+    ------
+    ScanError
+        The file holds fewer points than ``count`` (laspy returns what it could read).
+    """
+    if first is not None:
+        reader.seek(first)
+    done = reader.points_read
+    while done < count:
+        want = min(BLOCK_POINTS, count - done)
+        chunk = reader.read_points(want)
         m = len(chunk)
-        if m == 0:
-            break
-        end = done + m
-        points[done:end, 0] = np.asarray(chunk.x, np.float64)
-        points[done:end, 1] = np.asarray(chunk.y, np.float64)
-        points[done:end, 2] = np.asarray(chunk.z, np.float64)
-        if colours is not None:
-            colours[done:end, 0] = chunk.red
-            colours[done:end, 1] = chunk.green
-            colours[done:end, 2] = chunk.blue
-        intensity = np.asarray(chunk.intensity)
-        low, high = min(low, float(intensity.min())), max(high, float(intensity.max()))
-        done = end
-    if done < count:
-        raise ScanError(f"{name}: truncated: the header claims {count:,} points, the file "
-                        f"holds {done:,}")
-    return points, colours, ([low, high] if count else None)
+        if m < want:
+            raise ScanError(f"{name}: truncated: the header claims {count:,} points, the file "
+                            f"holds {done + m:,}")
+        points = np.empty((m, 3), np.float64)
+        points[:, 0] = np.asarray(chunk.x, np.float64)
+        points[:, 1] = np.asarray(chunk.y, np.float64)
+        points[:, 2] = np.asarray(chunk.z, np.float64)
+        colours = (np.column_stack([chunk.red, chunk.green, chunk.blue]).astype(np.uint16)
+                   if rgb else None)
+        yield points, colours, np.asarray(chunk.intensity)
+        done += m
+
+
+@contextmanager
+def _as_scan_errors(path: Path) -> Iterator[None]:
+    """What laspy and lazrs raise on a corrupt or truncated file, as a ``ScanError``."""
+    try:
+        yield
+    except ScanError:  # a ValueError too: ours, already worded
+        raise
+    except _las_errors() as exc:
+        kind = "LAZ" if path.suffix.lower() == ".laz" else "LAS"
+        raise ScanError(f"{path.name}: corrupt or truncated {kind} file: "
+                        f"{type(exc).__name__}: {exc}") from None
+
+
+@dataclass
+class _LasFile:
+    """What the header of a checked LAS/LAZ file states."""
+
+    count: int
+    compressed: bool
+    rgb: bool
+    units: str
+    crs: dict | None
+    warnings: list[str]
+    version: str
+    point_format: int
+    scales: list[float]
+    offsets: list[float]
+
+
+def _check_las(path: Path, budget: InputBudget, header: Any) -> _LasFile:
+    """Check the header of the file at ``path`` (points against ``budget``, the file's
+    length or LAZ chunk table) and return what it states."""
+    name = path.name
+    count = int(header.point_count)
+    compressed = bool(header.are_points_compressed)
+    if count == 0:
+        raise ScanError(f"{name}: the file contains no points (its header counts 0)")
+    budget.take_points(name, count)  # refused before a point is read
+    size = path.stat().st_size
+    needed = int(header.offset_to_point_data) + count * header.point_format.size
+    if compressed:
+        check_laz_chunk_table(path, header, size)
+    elif size < needed:
+        raise ScanError(f"{name}: truncated LAS file: the header claims {count:,} "
+                        f"points of {header.point_format.size} bytes from byte "
+                        f"{header.offset_to_point_data:,} ({needed:,} bytes), the "
+                        f"file has {size:,}")
+    units, crs, warnings = units_of_header(header)
+    return _LasFile(count, compressed, _has_rgb(header), units, crs, warnings,
+                    f"{header.version.major}.{header.version.minor}",
+                    int(header.point_format.id), header.scales.tolist(),
+                    header.offsets.tolist())
+
+
+def _open_las(path: Path, gzipped: bool) -> Any:
+    """``laspy.open`` of a file whose signature is checked first."""
+    import laspy
+
+    name = path.name
+    if gzipped:
+        raise ScanError(f"{name}: a gzip-compressed LAS file is not read; decompress it, or "
+                        "compress it as LAZ")
+    with open(path, "rb") as fh:
+        head = fh.read(len(LAS_SIGNATURE))
+    if head != LAS_SIGNATURE:
+        raise ScanError(f"{name}: not a LAS/LAZ file: it starts with {head!r}, a LAS or LAZ "
+                        f"file starts with {LAS_SIGNATURE.decode()!r}")
+    return laspy.open(str(path))
+
+
+def _las_source(path: Path, info: _LasFile, file: dict, reader: str) -> dict:
+    fmt = "laz" if info.compressed else "las"
+    source = new_source(path.name, str(path), fmt, "laszip" if info.compressed else None,
+                        reader)
+    source.update(bytes=file["bytes"], sha256=file["sha256"], files=[file],
+                  las_version=info.version, point_format=info.point_format,
+                  scales=info.scales, offsets=info.offsets, crs=info.crs)
+    source["warnings"] += info.warnings
+    return source
 
 
 def load_las(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Scan:
@@ -337,48 +430,21 @@ def load_las(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Sc
         Not a LAS/LAZ file, truncated or corrupt, gzip-compressed, no points, more
         points claimed than ``max_points``.
     """
-    import laspy
-
     name = path.name
     budget = budget if budget is not None else InputBudget()
-    if gzipped:
-        raise ScanError(f"{name}: a gzip-compressed LAS file is not read; decompress it, or "
-                        "compress it as LAZ")
-    with open(path, "rb") as fh:
-        head = fh.read(len(LAS_SIGNATURE))
-    if head != LAS_SIGNATURE:
-        raise ScanError(f"{name}: not a LAS/LAZ file: it starts with {head!r}, a LAS or LAZ "
-                        f"file starts with {LAS_SIGNATURE.decode()!r}")
-    errors = _las_errors()
-    size = path.stat().st_size
-    try:
-        with laspy.open(str(path)) as reader:
-            header = reader.header
-            count = int(header.point_count)
-            compressed = bool(header.are_points_compressed)
-            if count == 0:
-                raise ScanError(f"{name}: the file contains no points (its header counts 0)")
-            budget.take_points(name, count)  # refused before a point is read
-            needed = int(header.offset_to_point_data) + count * header.point_format.size
-            if compressed:
-                check_laz_chunk_table(path, header, size)
-            elif size < needed:
-                raise ScanError(f"{name}: truncated LAS file: the header claims {count:,} "
-                                f"points of {header.point_format.size} bytes from byte "
-                                f"{header.offset_to_point_data:,} ({needed:,} bytes), the "
-                                f"file has {size:,}")
-            units, crs, warnings = units_of_header(header)
-            rgb = _has_rgb(header)
-            points, colours16, intensity = _read_points(reader, name, count, rgb)
-            version = f"{header.version.major}.{header.version.minor}"
-            point_format = int(header.point_format.id)
-            scales, offsets = header.scales.tolist(), header.offsets.tolist()
-    except ScanError:  # a ValueError too: ours, already worded
-        raise
-    except errors as exc:
-        kind = "LAZ" if path.suffix.lower() == ".laz" else "LAS"
-        raise ScanError(f"{name}: corrupt or truncated {kind} file: "
-                        f"{type(exc).__name__}: {exc}") from None
+    with _as_scan_errors(path), _open_las(path, gzipped) as reader:
+        info = _check_las(path, budget, reader.header)
+        points = np.empty((info.count, 3), np.float64)
+        colours16 = np.empty((info.count, 3), np.uint16) if info.rgb else None
+        low, high = np.inf, -np.inf
+        done = 0
+        for block, rgb, intensity in las_blocks(reader, name, info.count, rgb=info.rgb):
+            end = done + len(block)
+            points[done:end] = block
+            if colours16 is not None:
+                colours16[done:end] = rgb
+            low, high = min(low, float(intensity.min())), max(high, float(intensity.max()))
+            done = end
     colours, rgb_bits = None, None
     if colours16 is not None:
         rgb_bits = 8 if int(colours16.max(initial=0)) <= 255 else 16
@@ -390,15 +456,64 @@ def load_las(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Sc
         del colours16
     with HashedInput(path, False, budget) as inp:
         file = inp.finish()
-    fmt = "laz" if compressed else "las"
-    source = new_source(name, str(path), fmt, "laszip" if compressed else None, "laspy")
-    source.update(bytes=file["bytes"], sha256=file["sha256"], files=[file],
-                  las_version=version, point_format=point_format, scales=scales,
-                  offsets=offsets, crs=crs, rgb_bits=rgb_bits,
-                  intensity=intensity,
+    source = _las_source(path, info, file, "laspy")
+    source.update(rgb_bits=rgb_bits, intensity=[low, high],
                   hash_method="sha256 of the stored file, streamed in a separate pass "
                               "(laspy reads the file itself)")
-    source["warnings"] += warnings
     source["warnings"].append("intensity read but not kept (Scan has no intensity channel); "
                               "its range is in 'intensity'")
-    return make_scan(name, points, colors=colours, units=units, source=source)
+    return make_scan(name, points, colors=colours, units=info.units, source=source)
+
+
+class LasStream(ReaderStream):
+    """The points of a LAS or LAZ file read block by block for the out-of-core fit
+    (``fitter.fitting.io.points.ReaderStream``): one segment, which laspy seeks into (a
+    LAS record by its offset, a LAZ point by the LASzip chunk table: the chunk holding it
+    is decompressed from its start), read by :func:`las_blocks` as :func:`load_las` reads
+    it. The file is opened lazily in each process.
+    """
+
+    seekable = True
+
+    def __init__(self, path: Path, count: int) -> None:
+        super().__init__(Path(path).name, path, [count])
+
+    def open_file(self) -> Any:
+        """The file through ``laspy.open``."""
+        with _as_scan_errors(self.path):
+            return _open_las(self.path, False)
+
+    def open_segment(self, segment: int, first: int) -> tuple[int, Iterator[np.ndarray]]:
+        """The points from ``first`` on (laspy seeks to it)."""
+        return first, self._points_from(first)
+
+    def _points_from(self, first: int) -> Iterator[np.ndarray]:
+        with _as_scan_errors(self.path):
+            for points, _, _ in las_blocks(self.file(), self.name, self.count, first):
+                yield points
+
+
+def open_las_stream(path: Path, budget: InputBudget | None = None, stream_above: int = 0
+                    ) -> tuple[LasStream, dict, str] | None:
+    """A :class:`LasStream` over a LAS/LAZ file, its provenance record (without ``sha256``:
+    the out-of-core passes hash the file beside their first pass) and its units; ``None``
+    when its header counts at most ``stream_above`` points (then read it whole with
+    :func:`load_las`).
+
+    Raises
+    ------
+    ScanError
+        As :func:`load_las`, for what the header shows.
+    """
+    with _as_scan_errors(path), _open_las(path, False) as reader:
+        info = _check_las(path, budget or InputBudget(), reader.header)
+    if info.count <= stream_above:
+        return None
+    file = file_record(path.name, nbytes=path.stat().st_size, sha256=None)
+    source = _las_source(path, info, file, "laspy-stream")
+    source["hash_method"] = "sha256 of the stored file, read in chunks beside the bounds pass"
+    if info.rgb:
+        source["warnings"].append("colours are not kept by the out-of-core fit (no texture)")
+    source["warnings"].append("intensity not read by the out-of-core fit (Scan has no "
+                              "intensity channel)")
+    return LasStream(path, info.count), source, info.units
