@@ -31,7 +31,10 @@ The stream: for every patch of the range and every tile ``(i, j)`` of level ``k`
 (``i``-major), a presence bit (context: the previous tile's); a present tile's ``(m + p)²``
 values coded as a ``.tsd`` v2 tile's (``client_py.format``: zero flag, sign, unary
 magnitude, Exp-Golomb escape, with neighbour contexts), ONE adaptive model for the whole
-pack; then, with ``w > 0``, a bit whether the tile has a drawn mask and its ``w²`` cells.
+pack, except that a value the patch's tile ``(i - 1, j)`` or ``(i, j - 1)`` also holds
+(the ``p`` shared rows; 0 for an absent tile) is first a bit "equal to it", then the value
+only when it is not (a quarter to a third of a level's values from level 1 on); then, with
+``w > 0``, a bit whether the tile has a drawn mask and its ``w²`` cells.
 Version 1 packs (an index of per-tile ``.tsd`` files, 30 bytes of framing per tile: half
 the bytes of a bunny's level 0) are still read (:func:`read_pack`).
 
@@ -88,6 +91,27 @@ def pack_capacity(level: int, patches: int, degree: int, spans: int, side: int =
     a writer keeps it within ``MAX_PACK_VALUES`` (and ``patches 4^level`` within
     ``MAX_PACK_TILES``), which bounds a reader's work whatever the bytes claim."""
     return patches * (1 << 2 * level) * ((spans + degree) ** 2 + side * side)
+
+
+def _overlap_values(done: Mapping[tuple[int, int], Sequence[int]], i: int, j: int,
+                    spans: int, size: int) -> list[int | None] | None:
+    """Per value of tile ``(i, j)``, what the patch's tile before it along ``u``, ``(i - 1,
+    j)``, or along ``v``, ``(i, j - 1)``, holds at the same coefficient (neighbouring tiles
+    share ``size - spans = p`` rows: docs/format.md, "Detail field"), 0 where that tile is
+    absent (a zero field), ``None`` where no earlier tile holds it; ``done`` maps the
+    patch's tiles coded so far to their values."""
+    if not i and not j:
+        return None
+    given: list[int | None] = [None] * (size * size)
+    for a in range(size - spans if i else 0):  # rows a < p: rows spans + a of (i - 1, j)
+        up = done.get((i - 1, j))
+        for b in range(size):
+            given[a * size + b] = up[(spans + a) * size + b] if up else 0
+    for a in range(size if j else 0):  # columns b < p: columns spans + b of (i, j - 1)
+        left = done.get((i, j - 1))
+        for b in range(size - spans):
+            given[a * size + b] = left[a * size + spans + b] if left else 0
+    return given
 
 
 def _shared(tiles: Sequence[DetailTile], name: str) -> object:
@@ -153,6 +177,7 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]]) -> bytes:
     presence, has_mask = [HALF, HALF], [HALF]
     size, before = spans + degree, 0
     for patch in range(first, first + count):
+        done: dict[tuple[int, int], Sequence[int]] = {}
         for i in range(per_side):
             for j in range(per_side):
                 tile = by_node.get((patch, i, j))
@@ -160,7 +185,9 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]]) -> bytes:
                 before = tile is not None
                 if tile is None:
                     continue
-                _encode_tile_values(enc, tile.values, size, model)
+                _encode_tile_values(enc, tile.values, size, model,
+                                    _overlap_values(done, i, j, spans, size))
+                done[i, j] = tile.values
                 if side:
                     enc.bit(has_mask, 0, tile.drawn is not None)
                     if tile.drawn is not None:
@@ -230,12 +257,15 @@ def _read_pack_v2(data: bytes, level: int) -> dict[int, list[DetailTile]]:
     try:  # the decoder reads its first bytes when it is made: inside the try too
         dec = RangeDecoder(data[PACK_HEADER_SIZE:len(data) - CRC_SIZE])
         for patch in range(first, first + count):
+            done: dict[tuple[int, int], Sequence[int]] = {}
             for i in range(per_side):
                 for j in range(per_side):
                     before = dec.bit(presence, before)
                     if not before:
                         continue
-                    values = _decode_tile_values(dec, size * size, size, model)
+                    values = _decode_tile_values(dec, size * size, size, model,
+                                                 _overlap_values(done, i, j, spans, size))
+                    done[i, j] = values
                     drawn = None
                     if side and dec.bit(has_mask, 0):
                         drawn = TrimMask.from_flat(side, side, _code_mask(dec, model, side))

@@ -521,6 +521,7 @@ class _TileModel:
         self.prefix = [HALF] * ESCAPE_BITS
         self.suffix = [HALF] * ESCAPE_BITS
         self.mask = [HALF] * 4  # drawn cells: by the cell above and the one before
+        self.same = [HALF]  # a value another tile also holds: is it that tile's? (packs)
 
     @staticmethod
     def contexts(values: Sequence[int], k: int, size: int) -> tuple[int, int]:
@@ -530,8 +531,15 @@ class _TileModel:
 
 
 def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
-                        model: _TileModel) -> None:
+                        model: _TileModel, given: Sequence[int | None] | None = None) -> None:
+    """Code ``values``; where ``given[k]`` is not ``None`` (a value the decoder already
+    has from another tile: ``client_py.atlas_detail``), first a bit whether ``values[k]``
+    equals it, and the value itself only when it does not."""
     for k, q in enumerate(values):
+        if given is not None and given[k] is not None:
+            enc.bit(model.same, 0, q != given[k])
+            if q == given[k]:
+                continue
         zero_ctx, unary_ctx = model.contexts(values, k, size)
         enc.bit(model.zero, zero_ctx, q != 0)
         if not q:
@@ -553,9 +561,14 @@ def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
 
 
 def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
-                        model: _TileModel) -> list[int]:
+                        model: _TileModel, given: Sequence[int | None] | None = None
+                        ) -> list[int]:
+    """Inverse of :func:`_encode_tile_values` (the same ``given``)."""
     values: list[int] = []
     for k in range(count):
+        if given is not None and given[k] is not None and not dec.bit(model.same, 0):
+            values.append(given[k])
+            continue
         zero_ctx, unary_ctx = model.contexts(values, k, size)
         if not dec.bit(model.zero, zero_ctx):
             values.append(0)
