@@ -68,7 +68,14 @@ from .format import (
     _unframe,
     check_bits,
 )
-from .rangecoder import HALF, RangeDecodeError, RangeDecoder, RangeEncoder
+from .rangecoder import (
+    HALF,
+    RangeDecodeError,
+    RangeDecoder,
+    RangeEncoder,
+    decode_exp_golomb,
+    encode_exp_golomb,
+)
 
 MAGIC = b"TSPA"
 VERSION = 2  # written; version 1 files are still read
@@ -280,14 +287,8 @@ def _encode_residuals(enc: RangeEncoder, residuals: Sequence[int], classes: Sequ
         if not r:
             continue
         enc.bit(model.sign, c, r < 0)
-        m = abs(r)
-        n = m.bit_length() - 1
-        base = (c * RESIDUAL_BUCKETS + b) * PREFIX_LIMIT
-        for t in range(n):
-            enc.bit(model.prefix, base + t, 1)
-        enc.bit(model.prefix, base + n, 0)
-        for t in range(n - 1, -1, -1):
-            enc.bit(model.mantissa, c * PREFIX_LIMIT + t, (m >> t) & 1)
+        encode_exp_golomb(enc, abs(r), model.prefix, (c * RESIDUAL_BUCKETS + b) * PREFIX_LIMIT,
+                          model.mantissa, c * PREFIX_LIMIT)
 
 
 def _decode_residuals(dec: RangeDecoder, classes: Sequence[int], before: Sequence[int] | None,
@@ -306,16 +307,11 @@ def _decode_residuals(dec: RangeDecoder, classes: Sequence[int], before: Sequenc
             previous = 0
             continue
         negative = bit(sign, c)
-        base = (c * RESIDUAL_BUCKETS + b) * PREFIX_LIMIT
-        n = 0
-        while bit(prefix, base + n):
-            n += 1
-            if n >= longest:
-                raise PatchFormatError(HEADER_SIZE, f"{what}: residual {k} longer than "
-                                       f"{longest} bits")
-        m = 1
-        for t in range(n - 1, -1, -1):
-            m = (m << 1) | bit(mantissa, c * PREFIX_LIMIT + t)
+        m = decode_exp_golomb(dec, prefix, (c * RESIDUAL_BUCKETS + b) * PREFIX_LIMIT,
+                              mantissa, c * PREFIX_LIMIT, longest)
+        if m is None:
+            raise PatchFormatError(HEADER_SIZE, f"{what}: residual {k} longer than "
+                                   f"{longest} bits")
         previous = -m if negative else m
         out.append(previous)
     return out

@@ -30,7 +30,14 @@ from .errors import PatchFormatError
 from .layers import MAX_DETAIL_DEGREE, DetailTile
 from .layers import MAX_LEVEL as MAX_TILE_LEVEL
 from .layers import MAX_SPANS as MAX_TILE_SPANS
-from .rangecoder import HALF, RangeDecodeError, RangeDecoder, RangeEncoder
+from .rangecoder import (
+    HALF,
+    RangeDecodeError,
+    RangeDecoder,
+    RangeEncoder,
+    decode_exp_golomb,
+    encode_exp_golomb,
+)
 from .surface import NurbsSurface
 from .trim import MAX_SIDE as TRIM_MAX_SIDE
 from .trim import TrimMask
@@ -550,14 +557,8 @@ def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
             enc.bit(model.unary, unary_ctx + b - 1, m > b)
             if m <= b:
                 break
-        else:  # Exp-Golomb order 0 of x = |q| - UNARY_BINS - 1
-            x = m - UNARY_BINS
-            n = x.bit_length() - 1
-            for t in range(n):
-                enc.bit(model.prefix, t, 1)
-            enc.bit(model.prefix, n, 0)
-            for t in range(n - 1, -1, -1):
-                enc.bit(model.suffix, t, (x >> t) & 1)
+        else:  # Exp-Golomb order 0 of x = |q| - UNARY_BINS
+            encode_exp_golomb(enc, m - UNARY_BINS, model.prefix, 0, model.suffix, 0)
 
 
 def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
@@ -578,15 +579,10 @@ def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
         while m <= UNARY_BINS and dec.bit(model.unary, unary_ctx + m - 1):
             m += 1
         if m > UNARY_BINS:
-            n = 0
-            while dec.bit(model.prefix, n):
-                n += 1
-                if n >= ESCAPE_BITS:
-                    raise PatchFormatError(TILE_HEADER_SIZE, f"value {k}: escape longer "
-                                           f"than {ESCAPE_BITS} bits")
-            x = 1
-            for t in range(n - 1, -1, -1):
-                x = (x << 1) | dec.bit(model.suffix, t)
+            x = decode_exp_golomb(dec, model.prefix, 0, model.suffix, 0, ESCAPE_BITS)
+            if x is None:
+                raise PatchFormatError(TILE_HEADER_SIZE, f"value {k}: escape longer "
+                                       f"than {ESCAPE_BITS} bits")
             m = x + UNARY_BINS
         values.append(-m if negative else m)
     return values
