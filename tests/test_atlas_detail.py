@@ -187,3 +187,18 @@ def test_rows_that_neighbouring_tiles_share_cost_a_bit_each():
         assert _as_table(read_pack(data)[1]) == _as_table(tiles)
     shared = (16 * size * size - n * n) / (16 * size * size)  # values held twice: 44 %
     assert len(packs[0]) < (1 - 0.6 * shared) * len(packs[1])
+
+
+def test_random_streams_behind_a_valid_header_and_crc_are_tiles_or_format_errors():
+    """Any coded bytes after a valid header (and a CRC made to match) decode to tiles of the
+    header's shape or raise PatchFormatError, never anything else, and quickly."""
+    rnd = random.Random(11)
+    head = write_pack(1, _tiles())[:PACK_HEADER_SIZE]
+    for _ in range(300):
+        data = _reframe(head + bytes(rnd.randrange(256) for _ in range(rnd.randrange(0, 60))))
+        try:
+            level, tiles = read_pack(data)
+        except PatchFormatError:
+            continue
+        assert level == 1
+        assert all(t.size == 6 and len(t.values) == 36 for ts in tiles.values() for t in ts)
