@@ -1,47 +1,79 @@
 """Detail packs: the detail tiles of one level for a group of neighbouring atlas patches.
 
 An atlas (``client_py.atlas``) has hundreds of patches, each refined by its own pyramid of
-``.tsd`` detail tiles over its own ``[0, 1]²`` (``client_py.layers.DetailTile``,
-docs/format.md). One file per tile would cost a visitor thousands of requests, so the
-tiles of level ``k`` of the patches in group ``g`` travel together in one *pack*,
-``detail/K/G.tsdp`` (:func:`pack_name`: the one naming rule). A viewer fetches the packs of
-the groups on screen whose error it must refine; ``tessera tessellate --level L`` reads
-every pack of levels ``0..L``.
+detail tiles over its own ``[0, 1]²`` (``client_py.layers.DetailTile``, docs/format.md).
+One file per tile would cost a visitor thousands of requests, so the tiles of level ``k``
+of the patches in group ``g`` travel together in one *pack*, ``detail/K/G.tsdp``
+(:func:`pack_name`: the one naming rule). A viewer fetches the packs of the groups on
+screen whose error it must refine; ``tessera tessellate --level L`` reads every pack of
+levels ``0..L``.
 
-Layout (little-endian; ``client_py.format`` frames the tiles themselves)::
+Version 2 (written; docs/format.md, "Atlas detail packs") codes the whole pack as ONE
+stream of the adaptive binary range coder (``client_py.rangecoder``) after a 24-byte
+header that holds what every tile of an atlas level shares (level, degree, spans, the
+level's quantisation step, the drawn-mask side) and the pack's patch range::
 
-    offset  size       field
-    0       4          magic  b"TSDP"
-    4       1          version 1
-    5       1          level k (0..7, as in every tile it holds)
-    6       2          reserved, 0
-    8       4          count: tiles in the pack (1..MAX_PACK_TILES)
-    12      8 count    index: per tile, u32 patch and u32 byte length, in file order
-    ...     sum(len)   the tiles' .tsd bytes, back to back, in index order
-    end-4   4          CRC-32 of everything before it
+    offset  size  field
+    0       4     magic  b"TSDP"
+    4       1     version 2
+    5       1     level k (0..7)
+    6       1     degree p (1..3)
+    7       1     spans per tile m (1..64)
+    8       4     f32 quantisation step (finite, > 0)
+    12      4     u32 first patch
+    16      4     u32 count: patches first..first+count-1 (>= 1)
+    20      1     drawn mask side w (0: no tile has a mask; else 1..64)
+    21      3     reserved, 0
+    24      ...   range-coded stream
+    end-4   4     CRC-32 of everything before it
 
-The lengths must add up to the file exactly; every tile must be of level ``k``; the
-patches must be in non-decreasing order and a patch's tiles in ``(i, j)`` order without a
-repeat. Every failure is a ``PatchFormatError(offset, reason)``, checked before any tile is
-decoded; decoding is bounded by the file's length.
+The stream: for every patch of the range and every tile ``(i, j)`` of level ``k``
+(``i``-major), a presence bit (context: the previous tile's); a present tile's ``(m + p)²``
+values coded as a ``.tsd`` v2 tile's (``client_py.format``: zero flag, sign, unary
+magnitude, Exp-Golomb escape, with neighbour contexts), ONE adaptive model for the whole
+pack, except that a value the patch's tile ``(i - 1, j)`` or ``(i, j - 1)`` also holds
+(the ``p`` shared rows; 0 for an absent tile) is first a bit "equal to it", then the value
+only when it is not (a quarter to a third of a level's values from level 1 on); then, with
+``w > 0``, a bit whether the tile has a drawn mask and its ``w²`` cells.
+Version 1 packs (an index of per-tile ``.tsd`` files, 30 bytes of framing per tile: half
+the bytes of a bunny's level 0) are still read (:func:`read_pack`).
+
+Every failure is a ``PatchFormatError(offset, reason)``; the header bounds the decoding
+(at most ``MAX_PACK_TILES`` tiles and ``MAX_PACK_VALUES`` values), so it never hangs.
 """
 
 from __future__ import annotations
 
+import math
 import struct
 import zlib
 from collections.abc import Mapping, Sequence
 
 from .errors import PatchFormatError
-from .format import read_detail_tile, write_detail_tile
-from .layers import MAX_LEVEL, DetailTile
+from .format import (
+    CRC_SIZE,
+    MAX_DRAWN_SIDE,
+    MAX_TILE_VALUE,
+    _code_mask,
+    _decode_tile_values,
+    _encode_tile_values,
+    _TileModel,
+    read_detail_tile,
+)
+from .layers import MAX_DETAIL_DEGREE, MAX_LEVEL, MAX_SPANS, DetailTile
+from .rangecoder import HALF, RangeDecodeError, RangeDecoder, RangeEncoder
+from .trim import TrimMask
 
 PACK_MAGIC = b"TSDP"
-PACK_VERSION = 1
-PACK_HEADER = struct.Struct("<4sBBHI")
-PACK_HEADER_SIZE = PACK_HEADER.size  # 12
-PACK_ENTRY = struct.Struct("<II")
-MAX_PACK_TILES = 1 << 16
+PACK_VERSION = 2
+# magic version level degree spans step first count drawn_side reserved(u8) reserved(u16)
+PACK_HEADER = struct.Struct("<4sBBBBfIIBBH")
+PACK_HEADER_SIZE = PACK_HEADER.size  # 24
+PACK_V1_HEADER = struct.Struct("<4sBBHI")  # magic version level reserved count
+PACK_V1_HEADER_SIZE = PACK_V1_HEADER.size  # 12
+PACK_ENTRY = struct.Struct("<II")  # version 1's index: patch, byte length
+MAX_PACK_TILES = 1 << 16  # tiles a pack can hold (version 2: patches x 4^level)
+MAX_PACK_VALUES = 1 << 21  # values a version 2 pack can hold: the decoding bound (~1.6 s)
 MAX_PACK_PATCH = 1 << 16  # client_py.atlas.MAX_ATLAS_QUADS
 
 
@@ -53,59 +85,212 @@ def pack_name(level: int, group: int) -> str:
     return f"detail/{level}/{group}.tsdp"
 
 
+def pack_capacity(level: int, patches: int, degree: int, spans: int, side: int = 0) -> int:
+    """The most values (coefficients and drawn cells) a version 2 pack of ``patches``
+    patches of level ``level`` can hold, ``patches 4^level ((spans + degree)^2 + side^2)``:
+    a writer keeps it within ``MAX_PACK_VALUES`` (and ``patches 4^level`` within
+    ``MAX_PACK_TILES``), which bounds a reader's work whatever the bytes claim."""
+    return patches * (1 << 2 * level) * ((spans + degree) ** 2 + side * side)
+
+
+def _overlap_values(done: Mapping[tuple[int, int], Sequence[int]], i: int, j: int,
+                    spans: int, size: int) -> list[int | None] | None:
+    """Per value of tile ``(i, j)``, what the patch's tile before it along ``u``, ``(i - 1,
+    j)``, or along ``v``, ``(i, j - 1)``, holds at the same coefficient (neighbouring tiles
+    share ``size - spans = p`` rows: docs/format.md, "Detail field"), 0 where that tile is
+    absent (a zero field), ``None`` where no earlier tile holds it; ``done`` maps the
+    patch's tiles coded so far to their values."""
+    if not i and not j:
+        return None
+    given: list[int | None] = [None] * (size * size)
+    for a in range(size - spans if i else 0):  # rows a < p: rows spans + a of (i - 1, j)
+        up = done.get((i - 1, j))
+        for b in range(size):
+            given[a * size + b] = up[(spans + a) * size + b] if up else 0
+    for a in range(size if j else 0):  # columns b < p: columns spans + b of (i, j - 1)
+        left = done.get((i, j - 1))
+        for b in range(size - spans):
+            given[a * size + b] = left[a * size + spans + b] if left else 0
+    return given
+
+
+def _shared(tiles: Sequence[DetailTile], name: str) -> object:
+    values = {getattr(t, name) for t in tiles}
+    if len(values) != 1:
+        raise ValueError(f"every tile of a pack has one {name}; got {sorted(values)}")
+    return values.pop()
+
+
 def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]]) -> bytes:
-    """The pack of ``tiles`` (patch -> its level-``level`` tiles).
+    """The version 2 pack of ``tiles`` (patch -> its level-``level`` tiles).
+
+    Every tile shares the pack's degree, spans and quantisation step (an atlas level has
+    one step: ``fitter.fitting.atlas.detail``) and, when it has one, its drawn mask's side.
 
     Raises
     ------
     ValueError
-        An empty pack, a tile of another level, a patch index out of range or too many tiles.
+        An empty pack, a tile of another level, a patch index out of range, a repeated
+        tile, tiles that differ in degree, spans, step or mask side, or more than
+        ``MAX_PACK_TILES`` tiles / ``MAX_PACK_VALUES`` coefficients in the patch range.
     """
-    entries: list[tuple[int, bytes]] = []
-    for patch in sorted(tiles):
+    by_node: dict[tuple[int, int, int], DetailTile] = {}
+    for patch in tiles:
         if isinstance(patch, bool) or not isinstance(patch, int) \
                 or not 0 <= patch < MAX_PACK_PATCH:
             raise ValueError(f"patch index must be an int in 0..{MAX_PACK_PATCH - 1}, "
                              f"got {patch!r}")
-        for tile in sorted(tiles[patch], key=lambda t: (t.i, t.j)):
+        for tile in tiles[patch]:
+            if not isinstance(tile, DetailTile):
+                raise ValueError(f"patch {patch}: expected DetailTile, got "
+                                 f"{type(tile).__name__}")
             if tile.level != level:
                 raise ValueError(f"patch {patch}: a level-{tile.level} tile in a level-{level} "
                                  "pack")
-            entries.append((patch, write_detail_tile(tile)))
-    if not 1 <= len(entries) <= MAX_PACK_TILES:
-        raise ValueError(f"a pack holds 1..{MAX_PACK_TILES} tiles, got {len(entries)}")
-    body = b"".join([PACK_HEADER.pack(PACK_MAGIC, PACK_VERSION, level, 0, len(entries))]
-                    + [PACK_ENTRY.pack(patch, len(data)) for patch, data in entries]
-                    + [data for _, data in entries])
+            if (patch, tile.i, tile.j) in by_node:
+                raise ValueError(f"patch {patch}: tile {tile.i}_{tile.j} given twice")
+            by_node[patch, tile.i, tile.j] = tile
+    if not by_node:
+        raise ValueError("a pack holds at least one tile, got none")
+    every = list(by_node.values())
+    degree, spans, step = (_shared(every, name) for name in ("degree", "spans", "step"))
+    masks = {t.drawn.rows for t in every if t.drawn is not None}
+    if len(masks) > 1 or any(t.drawn.cols != t.drawn.rows for t in every
+                             if t.drawn is not None):
+        raise ValueError(f"every drawn mask of a pack is square with one side; got "
+                         f"{sorted(masks)}")
+    side = masks.pop() if masks else 0
+    if side > MAX_DRAWN_SIDE:
+        raise ValueError(f"a drawn mask has 1..{MAX_DRAWN_SIDE} cells per side, got {side}")
+    if any(abs(q) > MAX_TILE_VALUE for t in every for q in t.values):
+        raise ValueError(f"tile values must lie within +-{MAX_TILE_VALUE}: raise the step")
+    first = min(p for p, _, _ in by_node)
+    count = max(p for p, _, _ in by_node) - first + 1
+    per_side = 1 << level
+    if count * per_side * per_side > MAX_PACK_TILES \
+            or pack_capacity(level, count, degree, spans, side) > MAX_PACK_VALUES:
+        raise ValueError(f"patches {first}..{first + count - 1} of level {level} hold up to "
+                         f"{count * per_side * per_side} tiles of {(spans + degree) ** 2} "
+                         f"values (and {side}² drawn cells); a pack holds at most "
+                         f"{MAX_PACK_TILES} tiles and {MAX_PACK_VALUES} values: split the group")
+    enc, model = RangeEncoder(), _TileModel()
+    presence, has_mask = [HALF, HALF], [HALF]
+    size, before = spans + degree, 0
+    for patch in range(first, first + count):
+        done: dict[tuple[int, int], Sequence[int]] = {}
+        for i in range(per_side):
+            for j in range(per_side):
+                tile = by_node.get((patch, i, j))
+                enc.bit(presence, before, tile is not None)
+                before = tile is not None
+                if tile is None:
+                    continue
+                _encode_tile_values(enc, tile.values, size, model,
+                                    _overlap_values(done, i, j, spans, size))
+                done[i, j] = tile.values
+                if side:
+                    enc.bit(has_mask, 0, tile.drawn is not None)
+                    if tile.drawn is not None:
+                        _code_mask(enc, model, side, tile.drawn.flat)
+    body = PACK_HEADER.pack(PACK_MAGIC, PACK_VERSION, level, degree, spans, step, first,
+                            count, side, 0, 0) + enc.finish()
     return body + struct.pack("<I", zlib.crc32(body))
 
 
 def read_pack(data: bytes) -> tuple[int, dict[int, list[DetailTile]]]:
-    """``(level, {patch: [tiles]})`` of a pack's bytes (module docstring for the checks)."""
+    """``(level, {patch: [tiles]})`` of a pack's bytes, version 2 or 1 (module docstring).
+
+    Raises
+    ------
+    PatchFormatError
+        For anything but a valid pack, with the byte offset and the reason.
+    """
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise PatchFormatError(0, f"a pack is bytes, got {type(data).__name__}")
     data = bytes(data)
-    if len(data) < PACK_HEADER_SIZE + PACK_ENTRY.size + 4:
-        raise PatchFormatError(len(data), f"a pack has at least "
-                               f"{PACK_HEADER_SIZE + PACK_ENTRY.size + 4} bytes, got {len(data)}")
-    magic, version, level, reserved, count = PACK_HEADER.unpack_from(data)
-    if magic != PACK_MAGIC:
-        raise PatchFormatError(0, f"magic {magic!r} is not {PACK_MAGIC!r}")
-    (crc,) = struct.unpack_from("<I", data, len(data) - 4)
-    if zlib.crc32(data[:-4]) != crc:
-        raise PatchFormatError(len(data) - 4, "CRC-32 mismatch: the pack is corrupt")
-    if version != PACK_VERSION:
-        raise PatchFormatError(4, f"version {version} is not {PACK_VERSION}")
+    least = PACK_V1_HEADER_SIZE + PACK_ENTRY.size + CRC_SIZE  # the shortest of either version
+    if len(data) < least:
+        raise PatchFormatError(len(data), f"a pack has at least {least} bytes, got {len(data)}")
+    if data[:4] != PACK_MAGIC:
+        raise PatchFormatError(0, f"magic {data[:4]!r} is not {PACK_MAGIC!r}")
+    (crc,) = struct.unpack_from("<I", data, len(data) - CRC_SIZE)
+    if zlib.crc32(data[:-CRC_SIZE]) != crc:
+        raise PatchFormatError(len(data) - CRC_SIZE, "CRC-32 mismatch: the pack is corrupt")
+    version, level = data[4], data[5]
+    if version not in (1, PACK_VERSION):
+        raise PatchFormatError(4, f"version {version} is not {PACK_VERSION} (or 1)")
     if level > MAX_LEVEL:
         raise PatchFormatError(5, f"level {level} is above {MAX_LEVEL}")
+    if version == 1:
+        return level, _read_pack_v1(data, level)
+    return level, _read_pack_v2(data, level)
+
+
+def _read_pack_v2(data: bytes, level: int) -> dict[int, list[DetailTile]]:
+    if len(data) < PACK_HEADER_SIZE + CRC_SIZE:
+        raise PatchFormatError(len(data), f"a version 2 pack has at least "
+                               f"{PACK_HEADER_SIZE + CRC_SIZE} bytes, got {len(data)}")
+    _, _, _, degree, spans, step, first, count, side, reserved, reserved2 = \
+        PACK_HEADER.unpack_from(data)
+    if not 1 <= degree <= MAX_DETAIL_DEGREE:
+        raise PatchFormatError(6, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
+    if not 1 <= spans <= MAX_SPANS:
+        raise PatchFormatError(7, f"spans = {spans} outside 1..{MAX_SPANS}")
+    if not (math.isfinite(step) and step > 0):
+        raise PatchFormatError(8, f"quantisation step {step} is not a positive finite number")
+    if side > MAX_DRAWN_SIDE:
+        raise PatchFormatError(20, f"drawn mask side {side} outside 0..{MAX_DRAWN_SIDE}")
+    per_side = 1 << level
+    if not 1 <= count or first + count > MAX_PACK_PATCH \
+            or count * per_side * per_side > MAX_PACK_TILES \
+            or pack_capacity(level, count, degree, spans, side) > MAX_PACK_VALUES:
+        raise PatchFormatError(12, f"patches {first}..{first + count - 1} of level {level}: "
+                               f"a pack holds 1..{MAX_PACK_TILES} tiles, at most "
+                               f"{MAX_PACK_VALUES} values, patches below {MAX_PACK_PATCH}")
+    if reserved or reserved2:
+        raise PatchFormatError(21, "reserved bytes are not 0")
+    size = spans + degree
+    model = _TileModel()
+    presence, has_mask = [HALF, HALF], [HALF]
+    tiles: dict[int, list[DetailTile]] = {}
+    before = 0
+    try:  # the decoder reads its first bytes when it is made: inside the try too
+        dec = RangeDecoder(data[PACK_HEADER_SIZE:len(data) - CRC_SIZE])
+        for patch in range(first, first + count):
+            done: dict[tuple[int, int], Sequence[int]] = {}
+            for i in range(per_side):
+                for j in range(per_side):
+                    before = dec.bit(presence, before)
+                    if not before:
+                        continue
+                    values = _decode_tile_values(dec, size * size, size, model,
+                                                 _overlap_values(done, i, j, spans, size))
+                    done[i, j] = values
+                    drawn = None
+                    if side and dec.bit(has_mask, 0):
+                        drawn = TrimMask.from_flat(side, side, _code_mask(dec, model, side))
+                    if any(abs(q) > MAX_TILE_VALUE for q in values):
+                        raise PatchFormatError(PACK_HEADER_SIZE, f"patch {patch} tile {i}_{j}: "
+                                               f"decoded values beyond +-{MAX_TILE_VALUE}")
+                    tiles.setdefault(patch, []).append(
+                        DetailTile(level, i, j, degree, spans, step, tuple(values), drawn))
+    except RangeDecodeError as exc:
+        raise PatchFormatError(len(data) - CRC_SIZE, f"coded tiles end early: {exc}") from None
+    return tiles
+
+
+def _read_pack_v1(data: bytes, level: int) -> dict[int, list[DetailTile]]:
+    """Version 1: header ``<4sBBHI`` (magic, version, level, reserved, count), an index of
+    ``(u32 patch, u32 length)`` per tile, the tiles' ``.tsd`` files back to back, CRC-32."""
+    _, _, _, reserved, count = PACK_V1_HEADER.unpack_from(data)
     if reserved:
         raise PatchFormatError(6, f"reserved field is {reserved}, not 0")
-    body_end = len(data) - 4
-    index_end = PACK_HEADER_SIZE + count * PACK_ENTRY.size
+    body_end = len(data) - CRC_SIZE
+    index_end = PACK_V1_HEADER_SIZE + count * PACK_ENTRY.size
     if not 1 <= count <= MAX_PACK_TILES or index_end > body_end:
         raise PatchFormatError(8, f"count {count} does not fit the pack's {len(data)} bytes "
                                f"(1..{MAX_PACK_TILES} tiles)")
-    entries = [PACK_ENTRY.unpack_from(data, PACK_HEADER_SIZE + k * PACK_ENTRY.size)
+    entries = [PACK_ENTRY.unpack_from(data, PACK_V1_HEADER_SIZE + k * PACK_ENTRY.size)
                for k in range(count)]
     if sum(length for _, length in entries) != body_end - index_end:
         raise PatchFormatError(index_end, "the index's lengths do not add up to the tiles' "
@@ -113,7 +298,7 @@ def read_pack(data: bytes) -> tuple[int, dict[int, list[DetailTile]]]:
     tiles: dict[int, list[DetailTile]] = {}
     offset, previous = index_end, (-1, -1, -1)
     for k, (patch, length) in enumerate(entries):
-        at = PACK_HEADER_SIZE + k * PACK_ENTRY.size
+        at = PACK_V1_HEADER_SIZE + k * PACK_ENTRY.size
         if patch >= MAX_PACK_PATCH:
             raise PatchFormatError(at, f"patch {patch} is above {MAX_PACK_PATCH - 1}")
         try:
@@ -131,4 +316,4 @@ def read_pack(data: bytes) -> tuple[int, dict[int, list[DetailTile]]]:
         previous = key
         tiles.setdefault(patch, []).append(tile)
         offset += length
-    return level, tiles
+    return tiles

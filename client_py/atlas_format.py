@@ -61,7 +61,6 @@ from .format import (
     _Cursor,
     _decode_planes,
     _dequantise,
-    _encode_planes,
     _inflate,
     _plane_count,
     _quantise,
@@ -69,9 +68,17 @@ from .format import (
     _unframe,
     check_bits,
 )
+from .rangecoder import (
+    HALF,
+    RangeDecodeError,
+    RangeDecoder,
+    RangeEncoder,
+    decode_exp_golomb,
+    encode_exp_golomb,
+)
 
 MAGIC = b"TSPA"
-VERSION = 1
+VERSION = 2  # written; version 1 files are still read
 # magic version flags degree spans bits reserved V F payload_size raw_size
 HEADER = struct.Struct("<4sHHBBBBIIII")
 HEADER_SIZE = HEADER.size  # 28
@@ -102,17 +109,18 @@ def _control_point_range(n_vertices: int, n_quads: int, side: int) -> tuple[int,
 
 
 def payload_size_range(flags: int, degree: int, spans: int, bits: int, n_vertices: int,
-                       n_quads: int) -> tuple[int, int]:
+                       n_quads: int, version: int = VERSION) -> tuple[int, int]:
     """``(least, most)`` bytes of the decompressed payload of an atlas with these header fields.
 
     ``4 F w + 48 + G N B + (16 if rational) + 4 + L`` with ``w`` the index width, ``G = 4``
-    when rational else 3, ``B`` bytes per residual, ``N`` the control points (between
+    when rational else 3, ``B`` bytes per residual (version 1; 0 in version 2, whose
+    residuals are range-coded after the zlib stream), ``N`` the control points (between
     :func:`_control_point_range`'s bounds) and ``L`` the metadata (2 bytes ``{}`` .. 2^20).
     """
     least_points, most_points = _control_point_range(n_vertices, n_quads, spans + degree)
     grids = 4 if flags & FLAG_RATIONAL else 3
     fixed = 4 * n_quads * index_width(n_vertices) + 48 + 4 + (16 if flags & FLAG_RATIONAL else 0)
-    planes = _plane_count(bits)
+    planes = _plane_count(bits) if version == 1 else 0
     return (fixed + grids * least_points * planes + 2,
             fixed + grids * most_points * planes + MAX_METADATA)
 
@@ -152,13 +160,31 @@ def _coons_terms(side: int) -> list[tuple[tuple[int, int, int], ...]]:
     return terms
 
 
+def _vertex_prediction(q: Sequence[int], k: int, earlier: Sequence[int]) -> int:
+    """Version 2's prediction of layout vertex ``k``: the mean of its layout neighbours
+    ``earlier`` (those ``< k``) rounded half up, ``floor((2 sum + c) / 2c)``; without one,
+    vertex ``k - 1`` (0 for the first)."""
+    if earlier:
+        c = len(earlier)
+        return (2 * sum(q[n] for n in earlier) + c) // (2 * c)
+    return q[k - 1] if k else 0
+
+
 class _Predictor:
-    """The predictions of one atlas layout (module docstring), for any integer axis."""
+    """The predictions of one atlas layout (module docstring), for any integer axis;
+    ``version`` 1 predicts a layout vertex from the vertex before it, version 2 from its
+    layout neighbours decoded before it."""
 
     def __init__(self, quads: Sequence[Sequence[int]], table: EdgeTable, side: int,
-                 n_vertices: int, bits: int) -> None:
+                 n_vertices: int, bits: int, version: int = VERSION) -> None:
         self.n_vertices, self.side, self.top = n_vertices, side, (1 << bits) - 1
         self.edges = table.edges
+        self.earlier: list[list[int]] | None = None
+        if version >= 2:  # per vertex, its layout neighbours with a lower index
+            linked: list[set[int]] = [set() for _ in range(n_vertices)]
+            for a, b in table.edges:
+                linked[max(a, b)].add(min(a, b))
+            self.earlier = [sorted(n) for n in linked]
         borders = _border_indices(quads, table, side, n_vertices)
         # per interior (i, j): its 8 weights and, per term, the point of every patch
         self.coons = [(tuple(w for w, _, _ in terms),
@@ -190,10 +216,17 @@ class _Predictor:
             out = [top if p > top else 0 if p < 0 else p for p in out]
         return out
 
+    def vertices(self, q: Sequence[int]) -> list[int]:
+        """Predicted layout vertices (version 2) from ``q[:V]`` (:func:`_vertex_prediction`)."""
+        return [_vertex_prediction(q, k, earlier) for k, earlier in enumerate(self.earlier)]
+
     def residuals(self, q: Sequence[int]) -> list[int]:
         """``q`` (every control point of one axis, global order) minus its prediction."""
         n_v, n_e = self.n_vertices, self.n_vertices + self.n_edge_points
-        res = [q[0], *map(sub, q[1:n_v], q[: n_v - 1])]
+        if self.earlier is None:
+            res = [q[0], *map(sub, q[1:n_v], q[: n_v - 1])]
+        else:
+            res = list(map(sub, q[:n_v], self.vertices(q)))
         res += map(sub, q[n_v:n_e], self.edge_points(q))
         res += map(sub, q[n_e:], self.face_points(q))
         return res
@@ -201,10 +234,87 @@ class _Predictor:
     def undo(self, residuals: Sequence[int]) -> list[int]:
         """Inverse of :meth:`residuals`: vertices by a running sum, then edges, then faces."""
         n_v, n_e = self.n_vertices, self.n_vertices + self.n_edge_points
-        q = list(accumulate(residuals[:n_v]))
+        if self.earlier is None:
+            q = list(accumulate(residuals[:n_v]))
+        else:  # one vertex at a time: each prediction needs the vertices before it
+            q = []
+            for k, earlier in enumerate(self.earlier):
+                q.append(residuals[k] + _vertex_prediction(q, k, earlier))
         q += map(add, residuals[n_v:n_e], self.edge_points(q))
         q += map(add, residuals[n_e:], self.face_points(q))
         return q
+
+
+# ------------------------------------------------------------------ residual coding (v2)
+RESIDUAL_BUCKETS = 5  # context: bit length of a neighbouring residual, 0..4+
+PREFIX_LIMIT = MAX_BITS + 2  # |r| < 2^bits: its bit length never reaches this
+
+
+class _ResidualModel:
+    """Adaptive contexts of one run of residuals (docs/format.md, "Atlas residuals"): by the
+    point's class ``c`` (0 layout vertex, 1 edge point, 2 patch interior) and a bucket
+    ``b``, the bit length (capped at 4) of a neighbouring residual."""
+
+    def __init__(self) -> None:
+        self.zero = [HALF] * (3 * RESIDUAL_BUCKETS)
+        self.sign = [HALF] * 3
+        self.prefix = [HALF] * (3 * RESIDUAL_BUCKETS * PREFIX_LIMIT)
+        self.mantissa = [HALF] * (3 * PREFIX_LIMIT)
+
+
+def _bucket(r: int) -> int:
+    m = abs(r).bit_length()
+    return m if m < RESIDUAL_BUCKETS else RESIDUAL_BUCKETS - 1
+
+
+def _classes(n_v: int, n_e: int, count: int) -> list[int]:
+    return [0] * n_v + [1] * (n_e - n_v) + [2] * (count - n_e)
+
+
+def _encode_residuals(enc: RangeEncoder, residuals: Sequence[int], classes: Sequence[int],
+                      before: Sequence[int] | None, model: _ResidualModel) -> None:
+    """Code one axis's residuals: per value ``r`` of class ``c`` with bucket ``b`` (of the
+    same point's residual on the axis ``before``, or of the previous residual on the first
+    axis), a zero bit (context ``c, b``); then a sign bit (``c``), then ``n = bitlen(|r|) - 1``
+    in unary (``c, b``, position), then the ``n`` bits of ``|r|`` below its leading one,
+    most significant first (``c``, position)."""
+    previous = 0
+    for k, r in enumerate(residuals):
+        c = classes[k]
+        b = _bucket(before[k] if before is not None else previous)
+        previous = r
+        enc.bit(model.zero, c * RESIDUAL_BUCKETS + b, r != 0)
+        if not r:
+            continue
+        enc.bit(model.sign, c, r < 0)
+        encode_exp_golomb(enc, abs(r), model.prefix, (c * RESIDUAL_BUCKETS + b) * PREFIX_LIMIT,
+                          model.mantissa, c * PREFIX_LIMIT)
+
+
+def _decode_residuals(dec: RangeDecoder, classes: Sequence[int], before: Sequence[int] | None,
+                      model: _ResidualModel, longest: int, what: str) -> list[int]:
+    """Inverse of :func:`_encode_residuals`; a bit length beyond ``longest`` (``bits``: no
+    residual of ``bits``-bit values has more) is a :class:`PatchFormatError`."""
+    out: list[int] = []
+    bit = dec.bit
+    zero, sign, prefix, mantissa = model.zero, model.sign, model.prefix, model.mantissa
+    previous = 0
+    for k, c in enumerate(classes):
+        m = abs(before[k] if before is not None else previous).bit_length()
+        b = m if m < RESIDUAL_BUCKETS else RESIDUAL_BUCKETS - 1
+        if not bit(zero, c * RESIDUAL_BUCKETS + b):
+            out.append(0)
+            previous = 0
+            continue
+        negative = bit(sign, c)
+        m = decode_exp_golomb(dec, prefix, (c * RESIDUAL_BUCKETS + b) * PREFIX_LIMIT,
+                              mantissa, c * PREFIX_LIMIT, longest)
+        if m is None:
+            raise PatchFormatError(HEADER_SIZE, f"{what}: residual {k} longer than "
+                                   f"{longest} bits")
+        previous = -m if negative else m
+        out.append(previous)
+    return out
 
 
 def _all_points(atlas: AtlasSurface) -> list[tuple[float, float, float]]:
@@ -213,7 +323,7 @@ def _all_points(atlas: AtlasSurface) -> list[tuple[float, float, float]]:
 
 # ------------------------------------------------------------------ writing
 def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = None) -> bytes:
-    """Encode ``atlas`` as a ``.tsa`` v1 file (docs/format.md).
+    """Encode ``atlas`` as a ``.tsa`` v2 file (docs/format.md).
 
     Parameters
     ----------
@@ -258,23 +368,27 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
     lows, highs = [min(a) for a in axes], [max(a) for a in axes]
     parts.append(struct.pack("<6d", *lows, *highs))
     predictor = _Predictor(quads, atlas.edges, atlas.side, n_vertices, bits)
-    planes = _plane_count(bits)
+    classes = _classes(n_vertices, n_vertices + predictor.n_edge_points, len(points))
+    enc, model, before = RangeEncoder(), _ResidualModel(), None
     for axis, lo, hi in zip(axes, lows, highs, strict=True):
-        parts.append(_encode_planes(predictor.residuals(_quantise(axis, lo, hi, bits)), planes))
+        residuals = predictor.residuals(_quantise(axis, lo, hi, bits))
+        _encode_residuals(enc, residuals, classes, before, model)
+        before = residuals
     flags = 0
     if atlas.weights is not None:
         flags |= FLAG_RATIONAL
         logs = [math.log(w) for w in atlas.weights]
         lo, hi = min(logs), max(logs)
         parts.append(struct.pack("<2d", lo, hi))
-        parts.append(_encode_planes(predictor.residuals(_quantise(logs, lo, hi, bits)), planes))
+        _encode_residuals(enc, predictor.residuals(_quantise(logs, lo, hi, bits)), classes,
+                          None, _ResidualModel())
     parts.append(struct.pack("<I", len(meta_bytes)) + meta_bytes)
 
     raw = b"".join(parts)
     payload = zlib.compress(raw, 9)
     header = HEADER.pack(MAGIC, VERSION, flags, atlas.degree, atlas.spans, bits, 0,
                          n_vertices, len(quads), len(payload), len(raw))
-    body = header + payload
+    body = header + payload + enc.finish()
     return body + struct.pack("<I", zlib.crc32(body))
 
 
@@ -282,13 +396,20 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
 def read_atlas_header(data: bytes) -> dict:
     """Check the framing (magic, version, sizes, CRC32) and the header fields, in order.
 
+    Version 1's zlib stream ends at the CRC; version 2's is followed by the range-coded
+    residuals, at least 4 bytes.
+
     Returns
     -------
     dict
-        ``flags``, ``degree``, ``spans``, ``bits``, ``vertices``, ``quads``,
+        ``version``, ``flags``, ``degree``, ``spans``, ``bits``, ``vertices``, ``quads``,
         ``payload_size``, ``raw_size`` and the file's ``data``.
     """
-    data, fields = _unframe(data, MAGIC, "atlas", HEADER, VERSION, 9)
+    version = VERSION
+    if isinstance(data, bytes | bytearray | memoryview) and len(data) >= 6 \
+            and bytes(data[4:6]) == struct.pack("<H", 1):
+        version = 1
+    data, fields = _unframe(data, MAGIC, "atlas", HEADER, version, 9 if version == 1 else None)
     _, _, flags, degree, spans, bits, reserved, n_vertices, n_quads, size, raw_size = fields
     if flags & ~KNOWN_FLAGS:
         raise PatchFormatError(6, f"unknown flags 0x{flags:04x}")
@@ -309,7 +430,7 @@ def read_atlas_header(data: bytes) -> dict:
         raise PatchFormatError(12, f"{n_vertices} vertices and {n_quads} quads of side "
                                f"{spans + degree} need at least {least_points} control "
                                f"points; at most {MAX_CONTROL_POINTS} accepted")
-    least, most = payload_size_range(flags, degree, spans, bits, n_vertices, n_quads)
+    least, most = payload_size_range(flags, degree, spans, bits, n_vertices, n_quads, version)
     if raw_size > most:
         raise PatchFormatError(24, f"payload size {raw_size} exceeds the {most} the layout "
                                "allows")
@@ -320,22 +441,30 @@ def read_atlas_header(data: bytes) -> dict:
     if raw_size < least:
         raise PatchFormatError(24, f"payload size {raw_size} is below the {least} bytes "
                                "the layout needs")
-    return {"flags": flags, "degree": degree, "spans": spans, "bits": bits,
-            "vertices": n_vertices, "quads": n_quads, "payload_size": size,
+    if version >= 2 and HEADER_SIZE + size + 4 > len(data) - CRC_SIZE:
+        raise PatchFormatError(20, f"payload size {size} leaves no room for the coded "
+                               f"residuals in {len(data)} bytes")
+    return {"version": version, "flags": flags, "degree": degree, "spans": spans,
+            "bits": bits, "vertices": n_vertices, "quads": n_quads, "payload_size": size,
             "raw_size": raw_size, "data": data}
+
+
+def _in_range(values: list[int], top: int, start: int, what: str) -> list[int]:
+    if values and (min(values) < 0 or max(values) > top):
+        raise PatchFormatError(start, f"{what} decode outside 0..{top}", "payload")
+    return values
 
 
 def _read_axis(cur: _Cursor, predictor: _Predictor, count: int, bits: int,
                what: str) -> list[int]:
+    """Version 1: one axis's byte planes from the payload, undone."""
     start, planes = cur.pos, _plane_count(bits)
     values = predictor.undo(_decode_planes(cur.take(count * planes, what), count, planes))
-    if min(values) < 0 or max(values) > predictor.top:
-        raise PatchFormatError(start, f"{what} decode outside 0..{predictor.top}", "payload")
-    return values
+    return _in_range(values, predictor.top, start, what)
 
 
 def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
-    """Decode a ``.tsa`` v1 file into ``(AtlasSurface, metadata)``.
+    """Decode a ``.tsa`` file, version 2 or 1, into ``(AtlasSurface, metadata)``.
 
     Raises
     ------
@@ -344,7 +473,8 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
         byte offset and the reason; never anything else.
     """
     head = read_atlas_header(data)
-    flags, bits, degree, spans = head["flags"], head["bits"], head["degree"], head["spans"]
+    version, flags, bits = head["version"], head["flags"], head["bits"]
+    degree, spans = head["degree"], head["spans"]
     n_vertices, n_quads = head["vertices"], head["quads"]
     raw = _inflate(head["data"], HEADER_SIZE, head["payload_size"], head["raw_size"], 24)
 
@@ -369,17 +499,22 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
         raise PatchFormatError(0, f"the layout has {count} control points; at most "
                                f"{MAX_CONTROL_POINTS} accepted", "payload")
     bounds = cur.finite("<6d", "control point bounds")
-    predictor = _Predictor(quads, table, side, n_vertices, bits)
-    axes = [_dequantise(_read_axis(cur, predictor, count, bits, f"control points axis {name}"),
-                        bounds[a], bounds[a + 3], bits) for a, name in enumerate("xyz")]
+    predictor = _Predictor(quads, table, side, n_vertices, bits, version)
+    if version == 1:
+        grids = [_read_axis(cur, predictor, count, bits, f"control points axis {name}")
+                 for name in "xyz"]
+        if flags & FLAG_RATIONAL:
+            log_bounds = _log_weight_bounds(cur)
+            grids.append(_read_axis(cur, predictor, count, bits, "weights"))
+    else:
+        log_bounds = _log_weight_bounds(cur) if flags & FLAG_RATIONAL else None
+        grids = _read_coded_axes(head["data"], HEADER_SIZE + head["payload_size"], predictor,
+                                 n_vertices, count, bits, log_bounds is not None)
+    metadata = _read_metadata(cur, raw)
+    axes = [_dequantise(grids[a], bounds[a], bounds[a + 3], bits) for a in range(3)]
     weights = None
     if flags & FLAG_RATIONAL:
-        lo, hi = cur.finite("<2d", "log-weight bounds")
-        if max(abs(lo), abs(hi)) > 700:
-            raise PatchFormatError(cur.pos - 16, "log-weights beyond +-700 overflow", "payload")
-        weights = [math.exp(x) for x in _dequantise(
-            _read_axis(cur, predictor, count, bits, "weights"), lo, hi, bits)]
-    metadata = _read_metadata(cur, raw)
+        weights = [math.exp(x) for x in _dequantise(grids[3], *log_bounds, bits)]
     points = list(zip(*axes, strict=True))
     n_edge = n_vertices + len(table.edges) * inner
     try:
@@ -388,6 +523,34 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
     except ValueError as exc:
         raise PatchFormatError(HEADER_SIZE, f"decoded atlas is invalid: {exc}") from None
     return atlas, metadata
+
+
+def _log_weight_bounds(cur: _Cursor) -> tuple[float, float]:
+    lo, hi = cur.finite("<2d", "log-weight bounds")
+    if max(abs(lo), abs(hi)) > 700:
+        raise PatchFormatError(cur.pos - 16, "log-weights beyond +-700 overflow", "payload")
+    return lo, hi
+
+
+def _read_coded_axes(data: bytes, start: int, predictor: _Predictor, n_vertices: int,
+                     count: int, bits: int, rational: bool) -> list[list[int]]:
+    """Version 2: the range-coded residuals ``data[start:-4]`` of x, y, z (and the
+    log-weights), each undone and checked to lie in ``0..2^bits - 1``."""
+    classes = _classes(n_vertices, n_vertices + predictor.n_edge_points, count)
+    grids, before, model = [], None, _ResidualModel()
+    names = ["control points axis x", "control points axis y", "control points axis z"]
+    try:  # the decoder reads its first bytes when it is made: inside the try too
+        dec = RangeDecoder(data[start:len(data) - CRC_SIZE])
+        for what in names + (["weights"] if rational else []):
+            if what == "weights":
+                before, model = None, _ResidualModel()
+            residuals = _decode_residuals(dec, classes, before, model, bits, what)
+            grids.append(_in_range(predictor.undo(residuals), predictor.top, start, what))
+            before = residuals
+    except RangeDecodeError as exc:
+        raise PatchFormatError(len(data) - CRC_SIZE, f"coded residuals end early: {exc}") \
+            from None
+    return grids
 
 
 __all__ = ["ATLAS_LIMITS", "HEADER", "HEADER_SIZE", "MAGIC", "VERSION", "CRC_SIZE",

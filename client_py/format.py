@@ -30,7 +30,14 @@ from .errors import PatchFormatError
 from .layers import MAX_DETAIL_DEGREE, DetailTile
 from .layers import MAX_LEVEL as MAX_TILE_LEVEL
 from .layers import MAX_SPANS as MAX_TILE_SPANS
-from .rangecoder import HALF, RangeDecodeError, RangeDecoder, RangeEncoder
+from .rangecoder import (
+    HALF,
+    RangeDecodeError,
+    RangeDecoder,
+    RangeEncoder,
+    decode_exp_golomb,
+    encode_exp_golomb,
+)
 from .surface import NurbsSurface
 from .trim import MAX_SIDE as TRIM_MAX_SIDE
 from .trim import TrimMask
@@ -521,6 +528,7 @@ class _TileModel:
         self.prefix = [HALF] * ESCAPE_BITS
         self.suffix = [HALF] * ESCAPE_BITS
         self.mask = [HALF] * 4  # drawn cells: by the cell above and the one before
+        self.same = [HALF]  # a value another tile also holds: is it that tile's? (packs)
 
     @staticmethod
     def contexts(values: Sequence[int], k: int, size: int) -> tuple[int, int]:
@@ -530,8 +538,15 @@ class _TileModel:
 
 
 def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
-                        model: _TileModel) -> None:
+                        model: _TileModel, given: Sequence[int | None] | None = None) -> None:
+    """Code ``values``; where ``given[k]`` is not ``None`` (a value the decoder already
+    has from another tile: ``client_py.atlas_detail``), first a bit whether ``values[k]``
+    equals it, and the value itself only when it does not."""
     for k, q in enumerate(values):
+        if given is not None and given[k] is not None:
+            enc.bit(model.same, 0, q != given[k])
+            if q == given[k]:
+                continue
         zero_ctx, unary_ctx = model.contexts(values, k, size)
         enc.bit(model.zero, zero_ctx, q != 0)
         if not q:
@@ -542,20 +557,19 @@ def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
             enc.bit(model.unary, unary_ctx + b - 1, m > b)
             if m <= b:
                 break
-        else:  # Exp-Golomb order 0 of x = |q| - UNARY_BINS - 1
-            x = m - UNARY_BINS
-            n = x.bit_length() - 1
-            for t in range(n):
-                enc.bit(model.prefix, t, 1)
-            enc.bit(model.prefix, n, 0)
-            for t in range(n - 1, -1, -1):
-                enc.bit(model.suffix, t, (x >> t) & 1)
+        else:  # Exp-Golomb order 0 of x = |q| - UNARY_BINS
+            encode_exp_golomb(enc, m - UNARY_BINS, model.prefix, 0, model.suffix, 0)
 
 
 def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
-                        model: _TileModel) -> list[int]:
+                        model: _TileModel, given: Sequence[int | None] | None = None
+                        ) -> list[int]:
+    """Inverse of :func:`_encode_tile_values` (the same ``given``)."""
     values: list[int] = []
     for k in range(count):
+        if given is not None and given[k] is not None and not dec.bit(model.same, 0):
+            values.append(given[k])
+            continue
         zero_ctx, unary_ctx = model.contexts(values, k, size)
         if not dec.bit(model.zero, zero_ctx):
             values.append(0)
@@ -565,15 +579,10 @@ def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
         while m <= UNARY_BINS and dec.bit(model.unary, unary_ctx + m - 1):
             m += 1
         if m > UNARY_BINS:
-            n = 0
-            while dec.bit(model.prefix, n):
-                n += 1
-                if n >= ESCAPE_BITS:
-                    raise PatchFormatError(TILE_HEADER_SIZE, f"value {k}: escape longer "
-                                           f"than {ESCAPE_BITS} bits")
-            x = 1
-            for t in range(n - 1, -1, -1):
-                x = (x << 1) | dec.bit(model.suffix, t)
+            x = decode_exp_golomb(dec, model.prefix, 0, model.suffix, 0, ESCAPE_BITS)
+            if x is None:
+                raise PatchFormatError(TILE_HEADER_SIZE, f"value {k}: escape longer "
+                                       f"than {ESCAPE_BITS} bits")
             m = x + UNARY_BINS
         values.append(-m if negative else m)
     return values

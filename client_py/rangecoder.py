@@ -111,3 +111,32 @@ class RangeDecoder:
             self.range <<= 8
             self.code = ((self.code << 8) | self._byte()) & MASK32
         return bit
+
+
+def encode_exp_golomb(enc: RangeEncoder, x: int, prefix: list[int], prefix_at: int,
+                      suffix: list[int], suffix_at: int) -> None:
+    """Code ``x >= 1`` as adaptive order-0 Exp-Golomb: ``n = bitlen(x) - 1`` ones then a
+    zero (the ``t``-th with context ``prefix[prefix_at + t]``), then the ``n`` bits of
+    ``x`` below its leading one, most significant first (the bit of weight ``2^t`` with
+    context ``suffix[suffix_at + t]``)."""
+    n = x.bit_length() - 1
+    for t in range(n):
+        enc.bit(prefix, prefix_at + t, 1)
+    enc.bit(prefix, prefix_at + n, 0)
+    for t in range(n - 1, -1, -1):
+        enc.bit(suffix, suffix_at + t, (x >> t) & 1)
+
+
+def decode_exp_golomb(dec: RangeDecoder, prefix: list[int], prefix_at: int,
+                      suffix: list[int], suffix_at: int, limit: int) -> int | None:
+    """Inverse of :func:`encode_exp_golomb`; ``None`` when the prefix reaches ``limit``
+    ones (the caller names that error)."""
+    n = 0
+    while dec.bit(prefix, prefix_at + n):
+        n += 1
+        if n >= limit:
+            return None
+    x = 1
+    for t in range(n - 1, -1, -1):
+        x = (x << 1) | dec.bit(suffix, suffix_at + t)
+    return x

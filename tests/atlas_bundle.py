@@ -24,7 +24,7 @@ from pathlib import Path
 
 from atlas_cases import sphere_atlas
 
-from client_py.atlas_detail import pack_name, write_pack
+from client_py.atlas_detail import PACK_VERSION, pack_name, write_pack
 from client_py.atlas_format import write_atlas
 from client_py.atlas_mesh import tessellate_atlas
 from client_py.atlas_texture import colour_pack_name, pack_shape
@@ -98,7 +98,7 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
         "stats": {"rms": 0.004, "max": 0.02, "units": "mm"},
         "error_raster": raster,
         "tiles": {"version": 2, "texture": None, "detail": {
-            "format": "tsdp", "format_version": 1, "tile_format_version": 2,
+            "format": "tsdp", "format_version": PACK_VERSION, "tile_format_version": 2,
             "degree": DEGREE, "spans_per_tile": SPANS_PER_TILE,
             "base": {"rms": 0.008, "max": 0.03}, "levels": level_entries,
             "groups": groups, "packs": packs}},

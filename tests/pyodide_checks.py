@@ -309,7 +309,7 @@ def _atlas_manifest(atlas: AtlasSurface, groups: int, spans: int, levels: int,
             "base": {"file": "base.tsa", "kind": "atlas", "patches": len(atlas.quads),
                      "resolution": base_resolution},
             "tiles": {"version": 2, "texture": None, "detail": {
-                "format": "tsdp", "format_version": 1, "tile_format_version": 2,
+                "format": "tsdp", "format_version": 2, "tile_format_version": 2,
                 "degree": 2, "spans_per_tile": spans, "base": {"rms": 0.1, "max": 0.3},
                 "levels": [{"level": k, "rms": 0.1 / 2**k} for k in range(levels)],
                 "groups": [{"first": f, "count": c, "center": [0, 0, 0], "radius": 1}

@@ -399,7 +399,9 @@ def test_laurana_atlas_keeps_the_scan_colour(tmp_path):
     assert manifest["format_version"] == 2 and texture is not None
     assert texture["error"]["points"] == 25160  # every scan vertex
     assert texture["error"]["mean_abs"] < 5.0
-    assert sum(lv["bytes_total"] for lv in texture["levels"]) < 20_000
+    # one cell per patch: 22.6 bytes a patch at 576 patches (13,044), 18.3 at 1,149 (21,002)
+    patches = manifest["base"]["patches"]
+    assert sum(lv["bytes_total"] for lv in texture["levels"]) < 25 * patches
     with Image.open(io.BytesIO((bundle.path / texture_file(texture)).read_bytes())) as im:
         assert im.format == "WEBP"
 

@@ -212,8 +212,9 @@ OPTIONS: tuple[Option, ...] = (
            "published method, a baseline; linear: the paper's initial linear fit alone",
            choices=METHODS, cli="--method", form="method"),
     Option("bits", "int", None, "Bits",
-           "quantisation bits per control-point axis (automatic: the fewest that keep the RMS "
-           "within 0.5%)", minimum=8, maximum=24, none="automatic", cli="--bits", form="bits"),
+           "quantisation bits per control-point axis (automatic: the fewest that keep a single "
+           "patch's RMS within 0.5%; an atlas's step at 1.2x its RMS)",
+           minimum=8, maximum=24, none="automatic", cli="--bits", form="bits"),
     Option("max_error", "float", None, "Target RMS (scan units)",
            "grow the control grid (x1.25 per side) until the RMS deviation in scan units is "
            "at most this", minimum=0, exclusive_minimum=True, none="no target",
@@ -279,7 +280,9 @@ class FitOptions:
     ``tessera`` (default, the best we have), ``paper`` (as published) or ``linear``
     (the paper's initial linear solution alone, a baseline); bits : quantisation of the
     patch file, or ``None`` for the fewest bits that keep the fit's RMS within 0.5 %
-    (``fitter.fitting.compact``); max_error : target RMS in scan units (grows the grid);
+    (``fitter.fitting.compact``; an atlas: a step of
+    ``fitter.fitting.atlas.fit.BASE_STEP_OVER_RMS`` times its RMS); max_error : target
+    RMS in scan units (grows the grid);
     max_grid : cap for that growth (``None``: :attr:`largest_grid`); patches : of the atlas
     (``None``: ``fitter.fitting.atlas.pipeline.wants_atlas`` decides; 1: one patch);
     projection : ``auto`` or a map; up : the object's up axis (``auto``: found by

@@ -65,9 +65,15 @@ from scipy.spatial import cKDTree
 
 from client_py import layers
 from client_py.atlas import AtlasSurface
-from client_py.atlas_detail import PACK_VERSION, pack_name, write_pack
+from client_py.atlas_detail import (
+    MAX_PACK_VALUES,
+    PACK_VERSION,
+    pack_capacity,
+    pack_name,
+    write_pack,
+)
 from client_py.bundle import ATLAS_MAX_RESOLUTION, atlas_level_resolution
-from client_py.format import TILE_VERSION
+from client_py.format import CRC_SIZE, TILE_HEADER_SIZE, TILE_VERSION
 
 from ..detail import (
     STEP_FACTOR,
@@ -634,7 +640,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         report(0.4 + 0.5 * (k + 1) / max(levels, 1))
     timings["levels"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    groups = _groups(per_level_tiles[-1] if levels else {}, F, pack_bytes)
+    groups = _groups(per_level_tiles[-1] if levels else {}, F, pack_bytes,
+                     max(levels - 1, 0), spans)
     files: dict[str, bytes] = {}
     packs = []
     for k, tiles in enumerate(per_level_tiles):
@@ -680,16 +687,22 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                        spacing, side, timings)
 
 
-def _groups(finest: dict, patches: int, pack_bytes: int) -> list[tuple[int, int]]:
-    """Contiguous ``(first, count)`` ranges of patches whose finest-level tiles (with the
-    pack's 8-byte index entries, 12-byte header and CRC) stay within ``pack_bytes``."""
+def _groups(finest: dict, patches: int, pack_bytes: int, level: int = 0,
+            spans: int = SPANS) -> list[tuple[int, int]]:
+    """Contiguous ``(first, count)`` ranges of patches whose finest-level (``level``) tiles
+    stay within ``pack_bytes`` in a pack (``client_py.atlas_detail``, version 2: one
+    range-coded stream, so a tile costs about its ``.tsd`` coded bytes without the tile's
+    own header and CRC; 28 bytes of pack framing) and within the values a pack may hold
+    (:func:`client_py.atlas_detail.pack_capacity` <= ``MAX_PACK_VALUES``)."""
+    framing = TILE_HEADER_SIZE + CRC_SIZE
     groups = []
-    first, size = 0, 16
+    first, size = 0, 28
     for f in range(patches):
-        cost = sum(len(data) + 8 for _, data, _ in finest.get(f, []))
-        if f > first and size + cost > pack_bytes:
+        cost = sum(len(data) - framing for _, data, _ in finest.get(f, []))
+        full = pack_capacity(level, f - first + 1, DEGREE, spans) > MAX_PACK_VALUES
+        if f > first and (size + cost > pack_bytes or full):
             groups.append((first, f - first))
-            first, size = f, 16
+            first, size = f, 28
         size += cost
     groups.append((first, patches - first))
     return groups

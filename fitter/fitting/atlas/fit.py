@@ -71,6 +71,8 @@ AUTO_FIRST_TRIANGLES = 48
 AUTO_MAX_TRIANGLES = 4096
 AUTO_MIN_GAIN = 0.95  # a doubling must bring the RMS below 95 % of the previous to be taken
 AUTO_TRIAL_POINTS = 20_000
+BASE_BITS = (8, 16)  # base.tsa's automatic quantisation bits (base_bits)
+BASE_STEP_OVER_RMS = 1.2  # its quantisation step over the fit's RMS (base_bits)
 PREDECIMATED_TRIANGLES = 20_000
 
 
@@ -479,7 +481,8 @@ class AtlasFit:
     rms : float
         RMS of ``distance``.
     bytes : int
-        ``len(client_py.atlas_format.write_atlas(atlas, bits))``.
+        ``len(client_py.atlas_format.write_atlas(atlas, bits))`` (``bits`` or
+        :func:`base_bits`).
     timings : dict
         Seconds per step (``surface``, ``layout``, ``points``, ``solve``, ``correct``, ...).
     trials : list of dict
@@ -594,11 +597,29 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
     return candidates, failures
 
 
-def atlas_bytes(atlas: AtlasSurface, bits: int) -> int:
-    """Bytes of the ``.tsa`` file (``client_py.atlas_format.write_atlas``)."""
+def base_bits(atlas: AtlasSurface, rms: float) -> int:
+    """The fewest bits in ``BASE_BITS`` whose ``.tsa`` quantisation step, the control points'
+    largest extent over ``2^bits - 1``, is at most ``BASE_STEP_OVER_RMS`` times ``rms``.
+
+    Rounding every coordinate moves a bicubic atlas's surface by an RMS of about 0.26 step
+    (measured on the bunny's and Nefertiti's 576-patch bases at 8..11 bits), so the base's
+    RMS grows by about 4 % in quadrature at 1.2 steps per RMS, for 2..3 bits (20..30 % of
+    the base's bytes) fewer than 12 bits; the detail levels, fitted to the decoded base,
+    take the rest back.
+    """
+    extent = float(np.ptp(control_points(atlas), axis=0).max())
+    for bits in range(BASE_BITS[0], BASE_BITS[1] + 1):
+        if extent / ((1 << bits) - 1) <= BASE_STEP_OVER_RMS * rms:
+            return bits
+    return BASE_BITS[1]
+
+
+def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
+    """Bytes of the ``.tsa`` file (``client_py.atlas_format.write_atlas``) at ``bits``, or
+    with ``bits=None`` at :func:`base_bits` of the fit's ``rms``."""
     from client_py.atlas_format import write_atlas
 
-    return len(write_atlas(atlas, bits))
+    return len(write_atlas(atlas, bits or base_bits(atlas, rms)))
 
 
 def _check_arguments(patches: object, degree: object, spans: object, bits: object,
@@ -609,7 +630,8 @@ def _check_arguments(patches: object, degree: object, spans: object, bits: objec
                          f"(three quads per layout triangle), got {patches!r}; one patch is "
                          "the single-patch fit (fit_scan)")
     for name, value, lo, hi in (("degree", degree, 1, 3), ("spans", spans, 1, 4),
-                                ("bits", bits, 8, 24), ("rounds", rounds, 1, 20),
+                                ("bits", 12 if bits is None else bits, 8, 24),
+                                ("rounds", rounds, 1, 20),
                                 ("working_points", working_count, 1000, 2_000_000)):
         if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
             raise ValueError(f"{name} must be an int in {lo}..{hi}, got {value!r}")
@@ -618,7 +640,7 @@ def _check_arguments(patches: object, degree: object, spans: object, bits: objec
 
 
 def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans: int = 1,
-              bits: int = 12, byte_budget: int = DEFAULT_BYTE_BUDGET,
+              bits: int | None = 12, byte_budget: int = DEFAULT_BYTE_BUDGET,
               working_count: int = 60_000, rounds: int = 4, smoothing: float = 0.1,
               anchor: float = 1e-3, thin_parts: bool = True,
               progress: Callable[[float], None] | None = None,
@@ -640,8 +662,9 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         layout is then fitted with all working points and ``rounds``.
     degree, spans : int
         Per patch side (``n = spans + degree`` control points).
-    bits : int
-        Quantisation of the ``.tsa`` the bytes are counted for.
+    bits : int or None
+        Quantisation of the ``.tsa`` the bytes are counted for; ``None``: :func:`base_bits`
+        of each trial's RMS.
     byte_budget : int
         Largest ``.tsa`` size ``'auto'`` accepts.
     working_count : int
@@ -757,7 +780,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         # one whose trial RMS is lower (the weights help a thin sheet, the bunny's ears, and
         # can starve the rest where few vertices are thin, Laurana's cut base)
         rms, name, layout, atlas, f, u, v, trial_timings = min(fitted, key=lambda c: c[0])
-        size = atlas_bytes(atlas, bits)
+        size = atlas_bytes(atlas, bits, rms)
         trials.append({"triangles": layout.n_triangles, "patches": len(atlas.quads),
                        "control_points": atlas.control_point_count, "bytes": size,
                        "rms": rms, "layout": name,
@@ -781,7 +804,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
                                           rounds=rounds, smoothing=smoothing, anchor=anchor,
                                           border=border, timings=final_timings)
         timings["trials"] = sum(trial.get("seconds", 0.0) for trial in trials)
-        best = (float(np.sqrt(np.mean(dist ** 2))), atlas_bytes(atlas, bits), layout, atlas,
+        rms = float(np.sqrt(np.mean(dist ** 2)))
+        best = (rms, atlas_bytes(atlas, bits, rms), layout, atlas,
                 f, u, v, final_timings)
     rms, size, layout, atlas, f, u, v, trial_timings = best
     timings.update(trial_timings)

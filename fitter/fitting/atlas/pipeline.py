@@ -44,7 +44,7 @@ from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_err
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
-from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, fit_atlas
+from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, base_bits, fit_atlas
 from .layout import AtlasLayoutError
 from .measure import point_mesh_distance, signed_point_mesh_distance
 from .surface import (
@@ -58,7 +58,6 @@ from .surface import (
 from .texture import drawn_colour_error, fit_atlas_texture
 
 BUNDLE_FORMAT_VERSION = 2
-DEFAULT_BITS = 12  # quantisation of base.tsa: 1/4096 of the extent, far under the 0.5 % goal
 UNCOVERED = 0.01  # a point farther than this share of the diagonal is not represented
 STRAY_DISTANCE = 0.02  # a base point farther than this share of the diagonal has strayed
 MAX_STRAY_SHARE = 0.05  # ... and an atlas with more of its area strayed is refused
@@ -275,7 +274,7 @@ def without_outliers(scan: Scan, surface: ScanSurface) -> tuple[Scan, int]:
 
 
 def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stages,
-                     bits: int) -> tuple[AtlasFit, object, dict]:
+                     bits: int | None) -> tuple[AtlasFit, object, dict]:
     """The base atlas, decoded from its bytes and checked to follow the surface.
 
     The layout is decimated from the surface itself while it has at most
@@ -287,12 +286,14 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
     default budget's patches (the 15-scan Happy Buddha: 8.8 % of a 576-patch base strayed).
     The last refusal is raised.
 
+    ``bits=None`` quantises ``base.tsa`` by the fit's RMS (:func:`.fit.base_bits`).
+
     Returns
     -------
     fit, decoded, layout
         The fit, its base as read back from ``write_atlas(fit.atlas, bits)``, and the
         manifest's ``fit.layout`` record (``source``, handles, ``byte_budget``, the
-        refusals that led to it).
+        refusals that led to it, and the ``bits`` of ``base.tsa``).
     """
     handles = handle_count(surface.vertices, surface.faces)
     attempts = [("surface", DEFAULT_BYTE_BUDGET), ("stand-in", DEFAULT_BYTE_BUDGET)]
@@ -316,7 +317,8 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
                             surface=surface, layout_surface=stand_in if source == "stand-in"
                             else None, progress=stages.report, bits=bits, byte_budget=budget)
             stages.start("encode")
-            decoded, _ = read_atlas(write_atlas(fit.atlas, bits))
+            record["bits"] = bits or base_bits(fit.atlas, fit.rms)
+            decoded, _ = read_atlas(write_atlas(fit.atlas, record["bits"]))
             record["stray_share"] = check_base_follows_surface(decoded, surface)
             return fit, decoded, record
         except (AtlasLayoutError, AtlasFitError) as exc:
@@ -390,8 +392,9 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     stages.start("project")
     surface = scan_surface(scan)
     fitted, outliers = without_outliers(scan, surface)
-    bits = options.bits or DEFAULT_BITS
-    fit, decoded, layout_record = fit_checked_base(fitted, surface, options, stages, bits)
+    fit, decoded, layout_record = fit_checked_base(fitted, surface, options, stages,
+                                                   options.bits)
+    bits = layout_record["bits"]
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
     detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
                               progress=stages.report)
