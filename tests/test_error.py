@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from fitter.fitting.closest import SpanPolynomials
+from fitter.fitting.closest import ClosestPoints, SpanPolynomials
 from fitter.fitting.error import _depth_view, deviations, write_error_ply
+from fitter.fitting.io.thin import VoxelGrid
 from fitter.fitting.nurbs import PatchModel
 
 
@@ -153,3 +154,38 @@ def test_deviations_are_the_distances_scipy_finds(rational):
                                rtol=1e-12, atol=1e-12)
     inside = np.abs(offset) > 1e-3
     assert np.all(np.sign(dev.d[inside]) == np.sign(offset[inside]))
+
+
+@pytest.mark.parametrize("rational", [False, True])
+def test_voxel_candidates_answer_as_the_tree_does(rational):
+    """The tessellation vertex nearer than a bound, from each point's voxel candidates
+    (``ClosestPoints.cell_candidates``, the streamed error pass) and from the k-d tree alone:
+    the same points and vertices, and so the same foot points to the last bit."""
+    model = _curved_patch(rational)
+    rng = np.random.default_rng(8)
+    m = 20_000
+    u, v = rng.random(m), rng.random(m)
+    S, Su, Sv = model.evaluate(u, v, derivatives=True)
+    normal = np.cross(Su, Sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    points = S + rng.uniform(-0.05, 0.05, m)[:, None] * normal
+    grid = VoxelGrid.over(points.min(axis=0), points.max(axis=0), 0.006)
+    keys = np.unique(grid.keys(points))
+    np.testing.assert_array_equal(grid.keys(grid.centres(keys)), keys)
+    closest = ClosestPoints(model)
+    candidates, reach = closest.cell_candidates(grid.centres(keys), grid.half_diagonal)
+    voxel = np.searchsorted(keys, grid.keys(points))
+    near = candidates[voxel], reach[voxel]
+    bound = rng.uniform(0.0, 0.03, m)  # on either side of the reach (about 0.01 here)
+    assert 0.2 < np.mean(bound <= near[1]) < 0.8
+    by_tree = closest._nearer_vertices(points, bound)
+    by_cells = closest._nearer_vertices(points, bound, near)
+    assert len(by_tree[0]) > 1000
+    for a, b in zip(by_tree, by_cells, strict=True):
+        np.testing.assert_array_equal(a, b)
+    u0 = np.clip(u + rng.uniform(-0.1, 0.1, m), 0, 1)
+    v0 = np.clip(v + rng.uniform(-0.1, 0.1, m), 0, 1)
+    plain = deviations(closest, points, u0, v0, chunk=4096, threads=2)
+    fast = deviations(closest, points, u0, v0, chunk=4096, threads=2, near=near)
+    for a, b in ((plain.d, fast.d), (plain.u, fast.u), (plain.v, fast.v)):
+        np.testing.assert_array_equal(a, b)

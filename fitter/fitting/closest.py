@@ -42,6 +42,8 @@ SEED_GRID = 192
 ITERATIONS = 6
 #: a point is done when its step moves the surface point less than ``TOLERANCE |P - S|``
 TOLERANCE = 1e-4
+#: tessellation vertices a grid cell keeps as its points' candidates (``cell_candidates``)
+CELL_VERTICES = 3
 
 
 def _span_power_basis(degree: int, knots: np.ndarray, n_ctrl: int
@@ -155,49 +157,88 @@ def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v:
     grow; a point is done when its step moves the surface point by less than
     ``tol |P - S|`` (within ``tol`` radians of the normal) or no halved step helps.
     ``start`` may pass ``S, S_u, S_v`` at ``u, v`` (overwritten).
-    Returns ``u, v, S, S_u, S_v`` (``(3, m)``) and the squared distance."""
+    Returns ``u, v, S, S_u, S_v`` (``(3, m)``) and the squared distance.
+
+    The points still searching are kept in compact arrays of their own (dropped as they
+    finish, whose results are then written back once): each step reads contiguous rows
+    instead of gathering the whole state by index, and an accepted step updates them in place.
+    Every point's arithmetic is the same whatever the others do."""
     S, Su, Sv = start if start is not None else surface.evaluate(u, v)
     r = points - S
     dist = _dot(r, r)
-    active = np.arange(len(u))
+    # the state of the points still searching: index, parameters, distance^2, point, S, S_u,
+    # S_v, P - S; at first the full arrays themselves, compact copies once a point finishes
+    index = np.arange(len(u))
+    wu, wv, wd, wP, wS, wSu, wSv, wr = u, v, dist, points, S, Su, Sv, r
+    owned = False  # whether the w* arrays are copies (finished points are then written back)
+    stuck = None  # points no halved step improved: at their minimum
+    tol2 = tol * tol
+
+    def finish(which: np.ndarray) -> None:
+        at = index[which]
+        u[at], v[at], dist[at] = wu[which], wv[which], wd[which]
+        S[:, at], Su[:, at], Sv[:, at] = wS[:, which], wSu[:, which], wSv[:, which]
+
     for _ in range(iterations):
-        a_Su, a_Sv, a_r = Su[:, active], Sv[:, active], r[:, active]
-        a, b, c = _dot(a_Su, a_Su), _dot(a_Su, a_Sv), _dot(a_Sv, a_Sv)
-        gu, gv = _dot(a_Su, a_r), _dot(a_Sv, a_r)
+        a, b, c = _dot(wSu, wSu), _dot(wSu, wSv), _dot(wSv, wSv)
+        gu, gv = _dot(wSu, wr), _dot(wSv, wr)
         det = a * c - b * b
         ok = det > 1e-14 * np.maximum(a * c, 1e-300)
         inverse = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
         du = (c * gu - b * gv) * inverse
         dv = (a * gv - b * gu) * inverse
-        au, av = u[active], v[active]
         if not periodic_u:
-            du = np.clip(du, -au, 1.0 - au)
-        dv = np.clip(dv, -av, 1.0 - av)
+            du = np.clip(du, -wu, 1.0 - wu)
+        dv = np.clip(dv, -wv, 1.0 - wv)
         shift = a * du * du + 2.0 * b * du * dv + c * dv * dv  # |du S_u + dv S_v|^2
-        moving = shift > tol * tol * dist[active]
-        active, au, av, du, dv = (x[moving] for x in (active, au, av, du, dv))
-        step, trial = 1.0, active
-        for _half in range(4):
-            if len(trial) == 0:
-                break
-            nu = au + step * du
-            nu = nu % 1.0 if periodic_u else np.clip(nu, 0.0, 1.0)
-            nv = np.clip(av + step * dv, 0.0, 1.0)
-            S_t, Su_t, Sv_t = surface.evaluate(nu, nv)
-            r_t = points[:, trial] - S_t
-            d_t = _dot(r_t, r_t)
-            better = d_t <= dist[trial]
-            done = trial[better]
-            u[done], v[done], dist[done] = nu[better], nv[better], d_t[better]
-            S[:, done], Su[:, done], Sv[:, done], r[:, done] = (
-                S_t[:, better], Su_t[:, better], Sv_t[:, better], r_t[:, better])
-            worse = ~better
-            trial, au, av, du, dv = (x[worse] for x in (trial, au, av, du, dv))
-            step *= 0.5
-        if len(trial):  # no halved step improved these: they are at their minimum
-            active = np.setdiff1d(active, trial, assume_unique=True)
-        if len(active) == 0:
+        moving = shift > tol2 * wd
+        if stuck is not None:
+            moving &= ~stuck
+        if not moving.all():
+            if owned:
+                finish(~moving)
+            index, wu, wv, wd, du, dv = (x[moving] for x in (index, wu, wv, wd, du, dv))
+            wP, wS, wSu, wSv, wr = (x[:, moving] for x in (wP, wS, wSu, wSv, wr))
+            owned = True
+        if len(index) == 0:
             break
+        nu = wu + du
+        nu = nu % 1.0 if periodic_u else np.clip(nu, 0.0, 1.0)
+        nv = np.clip(wv + dv, 0.0, 1.0)
+        S_t, Su_t, Sv_t = surface.evaluate(nu, nv)
+        r_t = wP - S_t
+        d_t = _dot(r_t, r_t)
+        better = d_t <= wd
+        for x, y in ((wu, nu), (wv, nv), (wd, d_t), (wS, S_t), (wSu, Su_t), (wSv, Sv_t),
+                     (wr, r_t)):
+            np.copyto(x, y, where=better)
+        stuck = None
+        if not better.all():  # halve the steps that would move away
+            trial = np.flatnonzero(~better)
+            au, av, tdu, tdv = wu[trial], wv[trial], du[trial], dv[trial]
+            step = 0.5
+            for _half in range(3):
+                nu = au + step * tdu
+                nu = nu % 1.0 if periodic_u else np.clip(nu, 0.0, 1.0)
+                nv = np.clip(av + step * tdv, 0.0, 1.0)
+                S_t, Su_t, Sv_t = surface.evaluate(nu, nv)
+                r_t = wP[:, trial] - S_t
+                d_t = _dot(r_t, r_t)
+                better = d_t <= wd[trial]
+                done = trial[better]
+                wu[done], wv[done], wd[done] = nu[better], nv[better], d_t[better]
+                wS[:, done], wSu[:, done], wSv[:, done], wr[:, done] = (
+                    S_t[:, better], Su_t[:, better], Sv_t[:, better], r_t[:, better])
+                worse = ~better
+                trial, au, av, tdu, tdv = (x[worse] for x in (trial, au, av, tdu, tdv))
+                step *= 0.5
+                if len(trial) == 0:
+                    break
+            if len(trial):
+                stuck = np.zeros(len(index), bool)
+                stuck[trial] = True
+    if owned and len(index):
+        finish(slice(None))
     return u, v, S, Su, Sv, dist
 
 
@@ -213,34 +254,66 @@ class ClosestPoints:
         self.seed_u, self.seed_v = GU.ravel(), GV.ravel()
         self.tree = cKDTree(self.surface.evaluate(self.seed_u, self.seed_v)[0].T)
 
-    def _nearer_vertices(self, points: np.ndarray, bound: np.ndarray
+    def cell_candidates(self, centres: np.ndarray, half_diagonal: float
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """For cells of a grid (centres ``(K, 3)`` in the patch frame, every point of a cell
+        within ``half_diagonal`` of its centre): the ``CELL_VERTICES`` tessellation vertices
+        nearest each centre ``(K, CELL_VERTICES)`` (int32) and the reach ``(K,)``, the
+        distance to the next vertex less ``half_diagonal``. Any vertex nearer than the reach
+        to a point of the cell is one of its candidates (triangle inequality: it is nearer
+        the centre than the next vertex), so a point whose search bound is within the reach
+        needs no tree query (:meth:`__call__`'s ``near``)."""
+        distance, nearest = self.tree.query(centres, k=CELL_VERTICES + 1)
+        # less a margin for the rounding of the centres and of the points' cells
+        return (nearest[:, :CELL_VERTICES].astype(np.int32),
+                distance[:, CELL_VERTICES] - half_diagonal * (1.0 + 1e-9))
+
+    def _nearer_vertices(self, points: np.ndarray, bound: np.ndarray,
+                         near: tuple[np.ndarray, np.ndarray] | None = None
                          ) -> tuple[np.ndarray, np.ndarray]:
         """The indices of the points with a tessellation vertex nearer than ``bound (m,)``
-        and that vertex's index. The tree's search is bounded by one distance, so the
-        points are queried in groups of bounds within a factor of 2 (a small bound prunes
-        nearly the whole tree)."""
+        and that vertex's index (the nearest). With ``near`` (each point's cell candidates
+        and reach, :meth:`cell_candidates`) the points whose bound is within their reach are
+        answered from their candidates (the nearest of them, if nearer than the bound); the
+        others ask the tree, whose search is bounded by one distance, so they are queried in
+        groups of bounds within a factor of 2 (a small bound prunes nearly the whole tree)."""
         found, vertex = [], []
-        octave = np.floor(np.log2(np.maximum(bound, 1e-300))).astype(np.int64)
-        order = np.argsort(octave, kind="stable")
-        cuts = np.flatnonzero(np.diff(octave[order])) + 1
-        for group in np.split(order, cuts):
-            if len(group) == 0:
-                continue
-            distance, nearest = self.tree.query(points[group],
-                                                distance_upper_bound=bound[group].max())
-            nearer = distance < bound[group]
-            found.append(group[nearer])
-            vertex.append(nearest[nearer])
+        ask = np.arange(len(points))
+        if near is not None:
+            candidates, reach = near
+            sure = bound <= reach
+            ask, sure = np.flatnonzero(~sure), np.flatnonzero(sure)
+            if len(sure):
+                cand = candidates[sure]
+                offset = self.tree.data[cand] - points[sure][:, None, :]  # (s, k, 3)
+                squared = np.einsum("ikj,ikj->ik", offset, offset)
+                best = np.argmin(squared, axis=1)
+                distance = np.sqrt(np.take_along_axis(squared, best[:, None], 1)[:, 0])
+                nearer = distance < bound[sure]
+                found.append(sure[nearer])
+                vertex.append(cand[nearer, best[nearer]].astype(np.int64))
+        if len(ask):
+            octave = np.floor(np.log2(np.maximum(bound[ask], 1e-300))).astype(np.int64)
+            order = ask[np.argsort(octave, kind="stable")]
+            cuts = np.flatnonzero(np.diff(np.sort(octave, kind="stable"))) + 1
+            for group in np.split(order, cuts):
+                distance, nearest = self.tree.query(points[group],
+                                                    distance_upper_bound=bound[group].max())
+                nearer = distance < bound[group]
+                found.append(group[nearer])
+                vertex.append(nearest[nearer])
         if not found:
             return np.empty(0, np.int64), np.empty(0, np.int64)
         found, vertex = np.concatenate(found), np.concatenate(vertex)
         order = np.argsort(found)
         return found[order], vertex[order]
 
-    def __call__(self, points: np.ndarray, u0: np.ndarray, v0: np.ndarray
-                 ) -> tuple[np.ndarray, ...]:
+    def __call__(self, points: np.ndarray, u0: np.ndarray, v0: np.ndarray,
+                 near: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, ...]:
         """``u, v, S, n`` (foot parameters, foot points and the unnormalised normal
-        ``S_u x S_v`` there) for ``points (m, 3)`` in the patch frame from ``u0, v0``."""
+        ``S_u x S_v`` there) for ``points (m, 3)`` in the patch frame from ``u0, v0``;
+        ``near``: each point's cell candidates ``(m, CELL_VERTICES)`` and reach ``(m,)``
+        (:meth:`cell_candidates`), which spare most points the tree query."""
         u = np.array(u0, dtype=float)
         v = np.array(v0, dtype=float)
         P = np.ascontiguousarray(points.T, dtype=float)
@@ -250,7 +323,7 @@ class ClosestPoints:
         u, v, S, Su, Sv, dist = gauss_newton(self.surface, P, u, v, self.periodic_u, start)
         # a second search from the vertices nearer than the start (a search from the
         # projection parameters may end in a shallower basin, or short of its minimum)
-        seeded, nearest = self._nearer_vertices(points, start_distance)
+        seeded, nearest = self._nearer_vertices(points, start_distance, near)
         if len(seeded):
             su, sv, sS, sSu, sSv, sdist = gauss_newton(
                 self.surface, P[:, seeded], self.seed_u[nearest], self.seed_v[nearest],

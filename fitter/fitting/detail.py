@@ -224,6 +224,9 @@ def normal_matrix(A: sp.csr_matrix) -> sp.csr_matrix:
     offset ``c_kj - c_ki`` is the same in every row (always, but for a periodic map's
     wrapped columns) the pair fills one diagonal, summed per column by ``bincount``: three
     times faster than the sparse product (0.6 s against 2.0 s for 888,000 rows, level 4).
+    Pair ``(j, i)`` holds the same products as ``(i, j)`` in the same rows, so its column
+    sums are those of ``(i, j)`` moved by the offset: only the ``k (k + 1) / 2`` pairs
+    ``i <= j`` are summed (the same numbers, added in the same order).
     """
     m, columns = A.shape
     k = A.indptr[1] - A.indptr[0] if m else 0
@@ -233,18 +236,30 @@ def normal_matrix(A: sp.csr_matrix) -> sp.csr_matrix:
     vals = A.data.reshape(m, k)
     diagonals: dict[int, np.ndarray] = {}
     rows, cols_other, data = [], [], []
+    pairs: dict[tuple[int, int], tuple] = {}  # (i, j), i <= j: (offset, column sums or products)
     for i in range(k):
         for j in range(k):
-            products = vals[:, i] * vals[:, j]
-            offset = cols[:, j] - cols[:, i]
-            if np.all(offset == offset[0]):
-                total = np.bincount(cols[:, i], weights=products, minlength=columns)
-                key = int(offset[0])
-                diagonals[key] = diagonals[key] + total if key in diagonals else total
-            else:
+            first, second = min(i, j), max(i, j)
+            if (first, second) not in pairs:
+                products = vals[:, first] * vals[:, second]
+                offset = cols[:, second] - cols[:, first]
+                if np.all(offset == offset[0]):
+                    pairs[first, second] = (int(offset[0]), np.bincount(
+                        cols[:, first], weights=products, minlength=columns))
+                else:
+                    pairs[first, second] = (None, products)
+            key, total = pairs[first, second]
+            if key is None:
                 rows.append(cols[:, i])
                 cols_other.append(cols[:, j])
-                data.append(products)
+                data.append(total)
+                continue
+            if i > j:  # (i, j)'s sum at column c is (j, i)'s at column c + offset
+                key, moved = -key, np.zeros(columns)
+                moved[max(0, -key):columns - max(0, key)] = total[max(0, key):
+                                                                 columns + min(0, key)]
+                total = moved
+            diagonals[key] = diagonals[key] + total if key in diagonals else total
     for key, total in diagonals.items():
         start = max(0, -key)
         stop = min(columns, columns - key)

@@ -43,25 +43,30 @@ class Deviations:
     v: np.ndarray
 
 
-def deviations(model: PatchModel, points: np.ndarray, u0: np.ndarray, v0: np.ndarray,
-               periodic_u: bool = False, chunk: int = CHUNK,
-               threads: int | None = None) -> Deviations:
+def deviations(model: PatchModel | ClosestPoints, points: np.ndarray, u0: np.ndarray,
+               v0: np.ndarray, periodic_u: bool = False, chunk: int = CHUNK,
+               threads: int | None = None,
+               near: tuple[np.ndarray, np.ndarray] | None = None) -> Deviations:
     """Signed foot-point distance of every point ``(N, 3)`` (patch frame) to ``model``
     (:class:`fitter.fitting.closest.ClosestPoints` from the projection parameters
-    ``u0, v0 (N,)``), positive on the side ``S_u x S_v`` points to.
+    ``u0, v0 (N,)``; or that search itself, built once for many calls), positive on the
+    side ``S_u x S_v`` points to. ``near``: each point's tessellation vertex candidates and
+    their reach (``ClosestPoints.cell_candidates``), the same result with fewer tree queries.
 
     Chunks of ``chunk`` points (small enough for the kernel's temporaries to stay in
     cache) run on ``threads`` threads (default: one per core): the work is numpy on whole
     arrays, which releases the GIL.
     """
-    closest = ClosestPoints(model, periodic_u)
+    closest = model if isinstance(model, ClosestPoints) else ClosestPoints(model, periodic_u)
     d = np.empty(len(points))
     us = np.empty(len(points))
     vs = np.empty(len(points))
 
     def one_chunk(s: int) -> None:
         p = points[s:s + chunk]
-        u, v, S, n = closest(p, u0[s:s + chunk], v0[s:s + chunk])
+        u, v, S, n = closest(p, u0[s:s + chunk], v0[s:s + chunk],
+                             None if near is None else (near[0][s:s + chunk],
+                                                        near[1][s:s + chunk]))
         r = p - S
         dist = np.sqrt(np.einsum("ij,ij->i", r, r))
         d[s:s + chunk] = np.where(np.einsum("ij,ij->i", r, n) < 0, -dist, dist)

@@ -43,6 +43,7 @@ import numpy as np
 
 from client_py import read_patch
 
+from .closest import ClosestPoints
 from .error import Deviations, deviations
 from .io.limits import InputBudget, InputLimits
 from .io.points import PointStream, file_sha256
@@ -124,16 +125,19 @@ def _nearest_block(start: int, stop: int, stream: PointStream, index: VoxelIndex
 
 
 def _error_block(start: int, stop: int, stream: PointStream, patch: bytes,
-                 projection: Projection, index: VoxelIndex,
-                 voxel_covered: np.ndarray) -> tuple:
+                 projection: Projection, index: VoxelIndex, voxel_covered: np.ndarray,
+                 voxel_near: tuple[np.ndarray, np.ndarray]) -> tuple:
     """One block of the error pass: ``d, u, v`` (float32), covered flags, and the uncovered
-    points' count, minimum and maximum corner (scan coordinates)."""
+    points' count, minimum and maximum corner (scan coordinates). ``voxel_near`` is each
+    voxel's tessellation vertex candidates and their reach (``ClosestPoints.cell_candidates``)."""
     points, _ = stream.read(start, stop)
-    model = PatchModel.from_surface(read_patch(patch))
+    closest = ClosestPoints(PatchModel.from_surface(read_patch(patch)), projection.periodic_u)
     local = projection.local(points)
     u, v, _ = projection.to_uvh(points, local)
-    dev = deviations(model, local, u, v, projection.periodic_u, threads=1)
-    covered = voxel_covered[index.positions(points)]
+    voxel = index.positions(points)
+    dev = deviations(closest, local, u, v, threads=1,
+                     near=(voxel_near[0][voxel], voxel_near[1][voxel]))
+    covered = voxel_covered[voxel]
     out = points[~covered]
     box = (out.min(axis=0), out.max(axis=0)) if len(out) else None
     return (dev.d.astype(np.float32), dev.u.astype(np.float32), dev.v.astype(np.float32),
@@ -181,10 +185,15 @@ class LargeScan:
         d, u, v = (np.empty(n, np.float32) for _ in range(3))
         covered = np.empty(n, bool)
         voxel_covered = covered_working[self.representative]
+        closest = ClosestPoints(PatchModel.from_surface(read_patch(patch)),
+                                projection.periodic_u)
+        voxel_near = closest.cell_candidates(
+            projection.local(self.grid.centres(self.sums.keys)), self.grid.half_diagonal)
         lo, hi, outside = np.full(3, np.inf), np.full(3, -np.inf), 0
         blocks = self.stream.blocks(BLOCK_POINTS)
         results = self.blocks.map(_error_block, blocks, self.stream, patch, projection,
-                                  VoxelIndex(self.grid, self.sums.keys), voxel_covered)
+                                  VoxelIndex(self.grid, self.sums.keys), voxel_covered,
+                                  voxel_near)
         for k, ((start, stop), (bd, bu, bv, bc, count, box)) in enumerate(
                 zip(blocks, results, strict=True)):
             d[start:stop], u[start:stop], v[start:stop], covered[start:stop] = bd, bu, bv, bc
@@ -222,19 +231,26 @@ def stream_of_scan(scan: Scan) -> tuple[PointStream, dict, str]:
             dict(scan.source), scan.units)
 
 
-def _bounds(stream: PointStream, progress: PassProgress | None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pass 1: the box ``lo, hi (3,)`` and an even sample of about ``VOXEL_SAMPLE`` points."""
+def _bounds_block(start: int, stop: int, stream: PointStream, step: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    points, _ = stream.read(start, stop)
+    # a copy: a view would keep the whole block alive until the sample is joined
+    return points.min(axis=0), points.max(axis=0), points[::step].copy()
+
+
+def _bounds(stream: PointStream, blocks: LocalBlocks | DaskBlocks,
+            progress: PassProgress | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pass 1: the box ``lo, hi (3,)`` and an even sample of about ``VOXEL_SAMPLE`` points
+    (every ``step``-th point: a block starts at a multiple of ``step``)."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     step = max(1, -(-stream.count // VOXEL_SAMPLE))
     sample = []
-    blocks = stream.blocks(BLOCK_POINTS - BLOCK_POINTS % step)
-    for k, (start, stop) in enumerate(blocks):
-        points, _ = stream.read(start, stop)
-        lo, hi = np.minimum(lo, points.min(axis=0)), np.maximum(hi, points.max(axis=0))
-        sample.append(points[::step])
+    spans = stream.blocks(BLOCK_POINTS - BLOCK_POINTS % step)
+    for k, (low, high, part) in enumerate(blocks.map(_bounds_block, spans, stream, step)):
+        lo, hi = np.minimum(lo, low), np.maximum(hi, high)
+        sample.append(part)
         if progress is not None:
-            progress((k + 1) / len(blocks), stop)
+            progress((k + 1) / len(spans), spans[k][1])
     return lo, hi, np.concatenate(sample)
 
 
@@ -279,7 +295,7 @@ def load_working_set(stream: PointStream, source: dict, units: str,
     started = time.perf_counter()
     with ThreadPoolExecutor(1) as hashing:
         digest = hashing.submit(file_sha256, stream.path) if stream.path else None
-        lo, hi, sample = _bounds(stream, None if progress is None
+        lo, hi, sample = _bounds(stream, blocks, None if progress is None
                                  else lambda f, p: progress(0.2 * f, p))
         if digest is not None:
             source["sha256"] = source["files"][0]["sha256"] = digest.result()

@@ -187,6 +187,20 @@ class VoxelGrid:
         """:func:`voxel_keys` of ``points (m, 3)``."""
         return voxel_keys(points, self.lo, self.size, self.dims)
 
+    def centres(self, keys: np.ndarray) -> np.ndarray:
+        """The centres ``(K, 3)`` of the voxels of ``keys (K,)`` (:func:`voxel_keys`'
+        inverse): ``lo + (i + 1/2) h``."""
+        cells = np.empty((len(keys), 3), np.int64)
+        rest = np.asarray(keys, np.int64)
+        for k in (2, 1, 0):
+            rest, cells[:, k] = np.divmod(rest, self.dims[k])
+        return self.lo + (cells + 0.5) * self.size
+
+    @property
+    def half_diagonal(self) -> float:
+        """The distance from a voxel's centre to its corners, ``h sqrt(3) / 2``."""
+        return 0.5 * math.sqrt(3.0) * self.size
+
 
 class VoxelIndex:
     """The position of each point's voxel among the ascending ``keys (K,)`` of a
