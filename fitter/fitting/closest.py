@@ -85,17 +85,26 @@ class SpanPolynomials:
         local = net[rows_u[:, None, :, None], rows_v[None, :, None, :]]  # ku kv a b c
         coefficients = np.einsum("iae,jbf,ijabc->ijefc", Bu, Bv, local)
         self.spans_v = len(self.breaks_v) - 1
+        self.equal_u = self._equal_spans(self.breaks_u)
+        self.equal_v = self._equal_spans(self.breaks_v)
         self.table = np.ascontiguousarray(
             coefficients.reshape(-1, (p + 1) * (q + 1) * self.channels).T)
 
     @staticmethod
-    def _locate(breaks: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Span index, local parameter in ``[0, 1]`` and width of each ``t`` (equal spans,
-        the usual knots, are found by a product, others by a binary search; a parameter a
-        rounding away from a break may land in either neighbour, where the polynomials
-        agree to rounding)."""
+    def _equal_spans(breaks: np.ndarray) -> bool:
+        """Whether the spans are equal to rounding (the usual knots)."""
         k = len(breaks) - 1
-        if np.allclose(np.diff(breaks), (breaks[-1] - breaks[0]) / k, rtol=1e-12, atol=0):
+        return bool(np.allclose(np.diff(breaks), (breaks[-1] - breaks[0]) / k, rtol=1e-12,
+                                atol=0))
+
+    @staticmethod
+    def _locate(breaks: np.ndarray, equal: bool, t: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Span index, local parameter in ``[0, 1]`` and width of each ``t`` (``equal``
+        spans, the usual knots, are found by a product, others by a binary search; a
+        parameter a rounding away from a break may land in either neighbour, where the
+        polynomials agree to rounding)."""
+        k = len(breaks) - 1
+        if equal:
             span = ((t - breaks[0]) * (k / (breaks[-1] - breaks[0]))).astype(np.intp)
             np.clip(span, 0, k - 1, out=span)
         else:
@@ -112,9 +121,10 @@ class SpanPolynomials:
         alongside), then in ``s``; a rational patch divides by ``w``:
         ``S_u = (H_u - w_u S) / w`` (*The NURBS Book*, eq. 4.8)."""
         (p, q), m, nc = self.degree, len(u), self.channels
-        iu, s, hu = self._locate(self.breaks_u, u)
-        iv, t, hv = self._locate(self.breaks_v, v)
-        C = np.take(self.table, iu * self.spans_v + iv, axis=1).reshape(p + 1, q + 1, nc, m)
+        iu, s, hu = self._locate(self.breaks_u, self.equal_u, u)
+        iv, t, hv = self._locate(self.breaks_v, self.equal_v, v)
+        C = np.take(self.table, iu * self.spans_v + iv, axis=1, mode="clip").reshape(
+            p + 1, q + 1, nc, m)
         rows, rows_t = [], []  # per power e of s: the polynomial in t and its t-derivative
         for e in range(p + 1):
             value, slope = C[e, q], np.zeros((nc, m))
@@ -147,6 +157,21 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def _take(x: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The columns ``at`` of ``x (..., m)`` (``np.take`` along the last axis: several times
+    faster than fancy or boolean indexing of a 2-d array)."""
+    return np.take(x, at, axis=-1, mode="clip")
+
+
+def _put(x: np.ndarray, at: np.ndarray, values: np.ndarray) -> None:
+    """``x[..., at] = values`` row by row (a 1-d assignment is faster than a 2-d one)."""
+    if x.ndim == 1:
+        x[at] = values
+    else:
+        for row, value in zip(x, values, strict=True):
+            row[at] = value
+
+
 def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v: np.ndarray,
             periodic_u: bool, start: tuple[np.ndarray, ...] | None = None,
             iterations: int = ITERATIONS, tol: float = TOLERANCE) -> tuple[np.ndarray, ...]:
@@ -159,27 +184,23 @@ def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v:
     ``start`` may pass ``S, S_u, S_v`` at ``u, v`` (overwritten).
     Returns ``u, v, S, S_u, S_v`` (``(3, m)``) and the squared distance.
 
-    The points still searching are kept in compact arrays of their own (dropped as they
-    finish, whose results are then written back once): each step reads contiguous rows
-    instead of gathering the whole state by index, and an accepted step updates them in place.
-    Every point's arithmetic is the same whatever the others do."""
+    The points still searching are kept in compact arrays of their own: each step reads
+    contiguous rows (no gather of the whole state by index), an accepted step replaces them
+    by a selection, and the points that finish are set aside and put back in order once, at
+    the end. Every point's arithmetic is the same whatever the others do."""
     S, Su, Sv = start if start is not None else surface.evaluate(u, v)
     r = points - S
     dist = _dot(r, r)
-    # the state of the points still searching: index, parameters, distance^2, point, S, S_u,
-    # S_v, P - S; at first the full arrays themselves, compact copies once a point finishes
-    index = np.arange(len(u))
-    wu, wv, wd, wP, wS, wSu, wSv, wr = u, v, dist, points, S, Su, Sv, r
-    owned = False  # whether the w* arrays are copies (finished points are then written back)
+    m = len(u)
+    # the state of the points still searching: their index, u, v, distance^2 and (3, k)
+    # point, S, S_u, S_v, P - S; the finished points' index and state are set aside
+    index = np.arange(m)
+    flat, rows = [u, v, dist], [points, S, Su, Sv, r]
+    finished: list[tuple[np.ndarray, list, list]] = []
     stuck = None  # points no halved step improved: at their minimum
     tol2 = tol * tol
-
-    def finish(which: np.ndarray) -> None:
-        at = index[which]
-        u[at], v[at], dist[at] = wu[which], wv[which], wd[which]
-        S[:, at], Su[:, at], Sv[:, at] = wS[:, which], wSu[:, which], wSv[:, which]
-
     for _ in range(iterations):
+        (wu, wv, wd), (wP, wS, wSu, wSv, wr) = flat, rows
         a, b, c = _dot(wSu, wSu), _dot(wSu, wSv), _dot(wSv, wSv)
         gu, gv = _dot(wSu, wr), _dot(wSv, wr)
         det = a * c - b * b
@@ -195,11 +216,12 @@ def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v:
         if stuck is not None:
             moving &= ~stuck
         if not moving.all():
-            if owned:
-                finish(~moving)
-            index, wu, wv, wd, du, dv = (x[moving] for x in (index, wu, wv, wd, du, dv))
-            wP, wS, wSu, wSv, wr = (x[:, moving] for x in (wP, wS, wSu, wSv, wr))
-            owned = True
+            done, keep = np.flatnonzero(~moving), np.flatnonzero(moving)
+            finished.append((index[done], [x[done] for x in flat],
+                             [_take(x, done) for x in rows[1:4]]))
+            index, du, dv = index[keep], du[keep], dv[keep]
+            flat, rows = [x[keep] for x in flat], [_take(x, keep) for x in rows]
+            (wu, wv, wd), (wP, wS, wSu, wSv, wr) = flat, rows
         if len(index) == 0:
             break
         nu = wu + du
@@ -209,11 +231,12 @@ def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v:
         r_t = wP - S_t
         d_t = _dot(r_t, r_t)
         better = d_t <= wd
-        for x, y in ((wu, nu), (wv, nv), (wd, d_t), (wS, S_t), (wSu, Su_t), (wSv, Sv_t),
-                     (wr, r_t)):
-            np.copyto(x, y, where=better)
+        flat = [np.where(better, y, x) for x, y in ((wu, nu), (wv, nv), (wd, d_t))]
+        rows = [wP] + [np.where(better, y, x) for x, y in ((wS, S_t), (wSu, Su_t),
+                                                           (wSv, Sv_t), (wr, r_t))]
         stuck = None
         if not better.all():  # halve the steps that would move away
+            (wu, wv, wd), (wP, wS, wSu, wSv, wr) = flat, rows
             trial = np.flatnonzero(~better)
             au, av, tdu, tdv = wu[trial], wv[trial], du[trial], dv[trial]
             step = 0.5
@@ -222,14 +245,14 @@ def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v:
                 nu = nu % 1.0 if periodic_u else np.clip(nu, 0.0, 1.0)
                 nv = np.clip(av + step * tdv, 0.0, 1.0)
                 S_t, Su_t, Sv_t = surface.evaluate(nu, nv)
-                r_t = wP[:, trial] - S_t
+                r_t = _take(wP, trial) - S_t
                 d_t = _dot(r_t, r_t)
                 better = d_t <= wd[trial]
-                done = trial[better]
-                wu[done], wv[done], wd[done] = nu[better], nv[better], d_t[better]
-                wS[:, done], wSu[:, done], wSv[:, done], wr[:, done] = (
-                    S_t[:, better], Su_t[:, better], Sv_t[:, better], r_t[:, better])
-                worse = ~better
+                at, got = trial[better], np.flatnonzero(better)
+                for x, y in ((wu, nu), (wv, nv), (wd, d_t), (wS, S_t), (wSu, Su_t),
+                             (wSv, Sv_t), (wr, r_t)):
+                    _put(x, at, _take(y, got))
+                worse = np.flatnonzero(~better)
                 trial, au, av, tdu, tdv = (x[worse] for x in (trial, au, av, tdu, tdv))
                 step *= 0.5
                 if len(trial) == 0:
@@ -237,8 +260,16 @@ def gauss_newton(surface: SpanPolynomials, points: np.ndarray, u: np.ndarray, v:
             if len(trial):
                 stuck = np.zeros(len(index), bool)
                 stuck[trial] = True
-    if owned and len(index):
-        finish(slice(None))
+    if not finished:  # no point finished before the last step: the arrays are in order
+        (u[:], v[:], dist), (_, S, Su, Sv, _) = flat, rows
+        return u, v, S, Su, Sv, dist
+    finished.append((index, flat, rows[1:4]))
+    order = np.empty(m, np.intp)
+    order[np.concatenate([f[0] for f in finished])] = np.arange(m)
+    u[:], v[:], dist = (_take(np.concatenate([f[1][k] for f in finished]), order)
+                        for k in range(3))
+    S, Su, Sv = (_take(np.concatenate([f[2][k] for f in finished], axis=1), order)
+                 for k in range(3))
     return u, v, S, Su, Sv, dist
 
 
@@ -252,7 +283,8 @@ class ClosestPoints:
         g = np.linspace(0.0, 1.0, SEED_GRID)
         GU, GV = np.meshgrid(g, g, indexing="ij")
         self.seed_u, self.seed_v = GU.ravel(), GV.ravel()
-        self.tree = cKDTree(self.surface.evaluate(self.seed_u, self.seed_v)[0].T)
+        self.vertices = self.surface.evaluate(self.seed_u, self.seed_v)[0]  # (3, V)
+        self.tree = cKDTree(self.vertices.T)
 
     def cell_candidates(self, centres: np.ndarray, half_diagonal: float
                         ) -> tuple[np.ndarray, np.ndarray]:
@@ -284,14 +316,18 @@ class ClosestPoints:
             sure = bound <= reach
             ask, sure = np.flatnonzero(~sure), np.flatnonzero(sure)
             if len(sure):
-                cand = candidates[sure]
-                offset = self.tree.data[cand] - points[sure][:, None, :]  # (s, k, 3)
-                squared = np.einsum("ikj,ikj->ik", offset, offset)
-                best = np.argmin(squared, axis=1)
-                distance = np.sqrt(np.take_along_axis(squared, best[:, None], 1)[:, 0])
-                nearer = distance < bound[sure]
+                P = np.ascontiguousarray(points[sure].T)
+                best_squared, best = np.full(len(sure), np.inf), np.zeros(len(sure), np.int64)
+                for j in range(candidates.shape[1]):  # the nearest of a point's candidates
+                    vertex_j = candidates[sure, j]
+                    offset = _take(self.vertices, vertex_j) - P
+                    squared = _dot(offset, offset)
+                    nearer = squared < best_squared
+                    best_squared = np.where(nearer, squared, best_squared)
+                    best = np.where(nearer, vertex_j, best)
+                nearer = np.sqrt(best_squared) < bound[sure]
                 found.append(sure[nearer])
-                vertex.append(cand[nearer, best[nearer]].astype(np.int64))
+                vertex.append(best[nearer])
         if len(ask):
             octave = np.floor(np.log2(np.maximum(bound[ask], 1e-300))).astype(np.int64)
             order = ask[np.argsort(octave, kind="stable")]
