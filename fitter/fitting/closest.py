@@ -295,7 +295,7 @@ class ClosestPoints:
         to a point of the cell is one of its candidates (triangle inequality: it is nearer
         the centre than the next vertex), so a point whose search bound is within the reach
         needs no tree query (:meth:`__call__`'s ``near``)."""
-        distance, nearest = self.tree.query(centres, k=CELL_VERTICES + 1)
+        distance, nearest = self.tree.query(centres, k=CELL_VERTICES + 1, workers=-1)
         # less a margin for the rounding of the centres and of the points' cells
         return (nearest[:, :CELL_VERTICES].astype(np.int32),
                 distance[:, CELL_VERTICES] - half_diagonal * (1.0 + 1e-9))

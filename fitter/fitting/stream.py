@@ -136,7 +136,7 @@ def _error_block(start: int, stop: int, stream: PointStream, patch: bytes,
     u, v, _ = projection.to_uvh(points, local)
     voxel = index.positions(points)
     dev = deviations(closest, local, u, v, threads=1,
-                     near=(voxel_near[0][voxel], voxel_near[1][voxel]))
+                     near=(np.take(voxel_near[0], voxel, axis=0), voxel_near[1][voxel]))
     covered = voxel_covered[voxel]
     out = points[~covered]
     box = (out.min(axis=0), out.max(axis=0)) if len(out) else None
@@ -191,6 +191,7 @@ class LargeScan:
             projection.local(self.grid.centres(self.sums.keys)), self.grid.half_diagonal)
         lo, hi, outside = np.full(3, np.inf), np.full(3, -np.inf), 0
         blocks = self.stream.blocks(BLOCK_POINTS)
+        # a table of its own (not kept with the scan: up to 192 MB while the detail is fitted)
         results = self.blocks.map(_error_block, blocks, self.stream, patch, projection,
                                   VoxelIndex(self.grid, self.sums.keys), voxel_covered,
                                   voxel_near)
@@ -256,10 +257,11 @@ def _bounds(stream: PointStream, blocks: LocalBlocks | DaskBlocks,
 
 def thin_stream(stream: PointStream, lo: np.ndarray, hi: np.ndarray, size: float,
                 blocks: LocalBlocks | DaskBlocks, progress: PassProgress | None = None,
-                most: int | None = None) -> tuple[VoxelGrid, VoxelSums, np.ndarray]:
-    """Passes 2a and 2b: the voxel grid of edge ``size``, its sums, and the representatives'
-    indices (ascending), by the rule of ``voxel_thin_indices``. With ``most``, the sums are
-    taken again at ``size sqrt(K / (0.9 most))`` while ``K > most`` voxels are occupied."""
+                most: int | None = None) -> tuple[VoxelIndex, VoxelSums, np.ndarray]:
+    """Passes 2a and 2b: the voxel grid of edge ``size`` (as the index of its occupied
+    voxels, ``index.grid``), its sums, and the representatives' indices (ascending), by the
+    rule of ``voxel_thin_indices``. With ``most``, the sums are taken again at
+    ``size sqrt(K / (0.9 most))`` while ``K > most`` voxels are occupied."""
     spans = stream.blocks(BLOCK_POINTS)
     while True:
         grid = VoxelGrid.over(lo, hi, size)
@@ -272,12 +274,13 @@ def thin_stream(stream: PointStream, lo: np.ndarray, hi: np.ndarray, size: float
             break
         size *= float(np.sqrt(len(sums.keys) / (0.9 * most)))
     nearest = VoxelNearest.empty(len(sums.keys))
-    for k, part in enumerate(blocks.map(_nearest_block, spans, stream,
-                                        VoxelIndex(grid, sums.keys), sums.centroids())):
+    index = VoxelIndex(grid, sums.keys)
+    for k, part in enumerate(blocks.map(_nearest_block, spans, stream, index,
+                                        sums.centroids())):
         nearest.update(*part)
         if progress is not None:
             progress(0.5 + 0.5 * (k + 1) / len(spans), spans[k][1])
-    return grid, sums, nearest.kept()
+    return index, sums, nearest.kept()
 
 
 def load_working_set(stream: PointStream, source: dict, units: str,
@@ -304,16 +307,14 @@ def load_working_set(stream: PointStream, source: dict, units: str,
         raise ScanError(f"{name}: non-finite coordinates (NaN or inf) in the points")
     if not np.linalg.norm(hi - lo) > 0:
         raise ScanError(f"{name}: all {stream.count} points coincide; there is no surface to fit")
-    grid, sums, kept = thin_stream(
+    index, sums, kept = thin_stream(
         stream, lo, hi, voxel_size_for(sample, stream.count, WORKING_SET_POINTS, lo, hi),
         blocks, None if progress is None else lambda f, p: progress(0.2 + 0.8 * f, p),
         WORKING_SET_MOST)
-    size = grid.size
+    grid, size = index.grid, index.grid.size
     points, normals = stream.take(kept)
-    # the representative of voxel i is the kept point holding index best[i]: both ascending
-    best_position = np.searchsorted(sums.keys, grid.keys(points))
-    representative = np.empty(len(sums.keys), np.int64)
-    representative[best_position] = np.arange(len(kept))
+    representative = np.empty(len(sums.keys), np.int64)  # the working set's point of a voxel
+    representative[index.positions(points)] = np.arange(len(kept))
     source = dict(source, thinning={
         "voxel_size": size, "points_before": stream.count, "points_after": int(len(kept)),
         "rule": "one point per voxel, the nearest to its centroid (fitter.fitting.stream)",
