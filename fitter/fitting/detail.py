@@ -40,6 +40,7 @@ not stray (``ScanNeighbourhood.stray`` with that level's RMS).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -232,8 +233,11 @@ def normal_matrix(A: sp.csr_matrix) -> sp.csr_matrix:
     k = A.indptr[1] - A.indptr[0] if m else 0
     if m == 0 or not np.all(np.diff(A.indptr) == k):
         return (A.T @ A).tocsr()
-    cols = A.indices.reshape(m, k)
-    vals = A.data.reshape(m, k)
+    cols = np.ascontiguousarray(A.indices.reshape(m, k).T)  # entry i of every row
+    vals = np.ascontiguousarray(A.data.reshape(m, k).T)
+    # entry i's column less entry 0's: the same in every row unless a periodic map wraps, and
+    # then so is every pair's offset (one check per entry instead of one per pair)
+    steady = [bool(np.all(d == d[0])) for d in (cols[i] - cols[0] for i in range(k))]
     diagonals: dict[int, np.ndarray] = {}
     rows, cols_other, data = [], [], []
     pairs: dict[tuple[int, int], tuple] = {}  # (i, j), i <= j: (offset, column sums or products)
@@ -241,17 +245,19 @@ def normal_matrix(A: sp.csr_matrix) -> sp.csr_matrix:
         for j in range(k):
             first, second = min(i, j), max(i, j)
             if (first, second) not in pairs:
-                products = vals[:, first] * vals[:, second]
-                offset = cols[:, second] - cols[:, first]
+                products = vals[first] * vals[second]
+                offset = cols[second, :1] - cols[first, :1]
+                if not (steady[first] and steady[second]):
+                    offset = cols[second] - cols[first]
                 if np.all(offset == offset[0]):
                     pairs[first, second] = (int(offset[0]), np.bincount(
-                        cols[:, first], weights=products, minlength=columns))
+                        cols[first], weights=products, minlength=columns))
                 else:
                     pairs[first, second] = (None, products)
             key, total = pairs[first, second]
             if key is None:
-                rows.append(cols[:, i])
-                cols_other.append(cols[:, j])
+                rows.append(cols[i])
+                cols_other.append(cols[j])
                 data.append(total)
                 continue
             if i > j:  # (i, j)'s sum at column c is (j, i)'s at column c + offset
@@ -286,10 +292,11 @@ def regularisation(n: int) -> sp.csr_matrix:
 
 def fit_level(samples: DetailSamples, residual: np.ndarray, level: int, degree: int = DEGREE,
               spans: int = SPANS, periodic_u: bool = False,
-              A: sp.csr_matrix | None = None) -> np.ndarray:
+              A: sp.csr_matrix | None = None, AtA: sp.csr_matrix | None = None) -> np.ndarray:
     """Unquantised coefficients ``(n, n)``, ``n = spans 2^level + degree``, of the level's
     field fitted to ``residual (N,)`` at the samples' ``(u, v)`` (see module docstring);
-    ``A`` is the level's :func:`collocation_matrix` when the caller has it.
+    ``A`` is the level's :func:`collocation_matrix` and ``AtA`` its :func:`normal_matrix`
+    when the caller has them.
 
     The normal equations are symmetric positive definite: SuperLU orders them by minimum
     degree on ``M^T + M`` (``MMD_AT_PLUS_A``), 3x faster than its default column ordering
@@ -298,7 +305,8 @@ def fit_level(samples: DetailSamples, residual: np.ndarray, level: int, degree: 
     if A is None:
         knots = np.array(layers.level_knots(degree, spans, level))
         A = collocation_matrix(degree, knots, n, samples.u, samples.v, periodic_u)
-    AtA = normal_matrix(A)
+    if AtA is None:
+        AtA = normal_matrix(A)
     mu = AtA.diagonal().sum() / (n * n)
     M = AtA + mu * regularisation(n)
     c = spla.spsolve(M.tocsc(), A.T @ residual, permc_spec="MMD_AT_PLUS_A").reshape(n, n)
@@ -395,29 +403,45 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
     e = samples.error(np.zeros_like(residual))
     pyramid.base_rms, pyramid.base_max = float(np.sqrt(np.mean(e**2))), float(e.max())
     fields: list[np.ndarray] = []
-    for k in range(levels):
-        n = (spans << k) + degree
-        knots = np.array(layers.level_knots(degree, spans, k))
-        A = collocation_matrix(degree, knots, n, samples.u, samples.v, periodic_u)
-        # the field's values at the samples (a periodic fit's columns wrap; its field not)
-        E = collocation_matrix(degree, knots, n, samples.u, samples.v) if periodic_u else A
-        c = fit_level(samples, residual, k, degree, spans, periodic_u, A)
-        fitted = residual - E @ c.ravel()
-        rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
-        step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
-                                 float(np.abs(residual).max()), step_factor)
-        q = np.rint(c / step).astype(np.int64)
-        fields.append(q * step)
-        residual = residual - E @ fields[-1].ravel()
-        e = samples.error(samples.s - residual)
-        rms = float(np.sqrt(np.mean(e**2)))
-        drawn = None if redraw is None else redraw.cells(k, fields, degree, spans, rms)
-        tiles = level_tiles(q, step, k, degree, spans, samples.u, samples.v, e, drawn)
-        pyramid.levels.append(DetailLevel(k, step, tiles, rms, float(e.max()),
-                                          int(np.count_nonzero(q))))
-        if progress is not None:
-            progress((k + 1) / levels)
+    with ThreadPoolExecutor(1) as ahead:  # the next level's matrices (SuperLU frees the GIL)
+        upcoming = (ahead.submit(level_matrices, samples, 0, degree, spans, periodic_u)
+                    if levels else None)
+        for k in range(levels):
+            A, E, AtA = upcoming.result()
+            if k + 1 < levels:
+                upcoming = ahead.submit(level_matrices, samples, k + 1, degree, spans,
+                                        periodic_u)
+            c = fit_level(samples, residual, k, degree, spans, periodic_u, A, AtA)
+            fitted = residual - E @ c.ravel()
+            rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
+            step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
+                                     float(np.abs(residual).max()), step_factor)
+            q = np.rint(c / step).astype(np.int64)
+            fields.append(q * step)
+            residual = residual - E @ fields[-1].ravel()
+            del A, E, AtA, fitted
+            e = samples.error(samples.s - residual)
+            rms = float(np.sqrt(np.mean(e**2)))
+            drawn = None if redraw is None else redraw.cells(k, fields, degree, spans, rms)
+            tiles = level_tiles(q, step, k, degree, spans, samples.u, samples.v, e, drawn)
+            pyramid.levels.append(DetailLevel(k, step, tiles, rms, float(e.max()),
+                                              int(np.count_nonzero(q))))
+            if progress is not None:
+                progress((k + 1) / levels)
     return pyramid
+
+
+def level_matrices(samples: DetailSamples, level: int, degree: int, spans: int,
+                   periodic_u: bool) -> tuple[sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]:
+    """A level's :func:`collocation_matrix` ``A``, the matrix ``E`` of its field's values at
+    the samples (``A`` but for a periodic map, whose columns wrap while its field does not)
+    and :func:`normal_matrix` ``A^T A``: they depend on the samples alone, so
+    :func:`fit_pyramid` makes the next level's while this level's system is solved."""
+    n = (spans << level) + degree
+    knots = np.array(layers.level_knots(degree, spans, level))
+    A = collocation_matrix(degree, knots, n, samples.u, samples.v, periodic_u)
+    E = collocation_matrix(degree, knots, n, samples.u, samples.v) if periodic_u else A
+    return A, E, normal_matrix(A)
 
 
 # ------------------------------------------------------------------ the bundle's tile tree
