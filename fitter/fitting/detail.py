@@ -40,7 +40,7 @@ not stray (``ScanNeighbourhood.stray`` with that level's RMS).
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -385,50 +385,71 @@ def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
 
 def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans: int = SPANS,
                 step_factor: float = STEP_FACTOR, periodic_u: bool = False,
-                progress=None, redraw: Redraw | None = None) -> DetailPyramid:
+                progress=None, redraw: Redraw | Future | None = None,
+                background: ThreadPoolExecutor | None = None) -> DetailPyramid:
     """Fit levels ``0..levels-1`` coarse to fine; each fits what the coarser ones left.
 
     Returns the tiles to write (with their bytes and ``geometric_error``: max
     ``e`` of the points inside the tile's rectangle after levels ``0..k``) and
-    per level the RMS and max of ``e`` over all samples. With ``redraw`` the
-    tiles carry drawn masks (module docstring).
+    per level the RMS and max of ``e`` over all samples. With ``redraw`` (or the future of
+    one) the tiles carry drawn masks (module docstring).
+
+    The work is shared with one ``background`` thread (a new one by default): it makes the
+    even levels' matrices (:func:`level_matrices`: they depend on the samples alone) while
+    this thread makes the odd levels' and solves (SuperLU frees the GIL), then each level's
+    tiles (:func:`_level_result`). The numbers are those of one thread doing it all in turn.
     """
     if not (isinstance(levels, int) and 0 <= levels <= layers.MAX_LEVEL + 1):  # 0..MAX_LEVEL
         raise ValueError(f"levels must be an integer in 0..{layers.MAX_LEVEL + 1}, "
                          f"got {levels!r}")
     if not step_factor > 0:
         raise ValueError(f"step_factor must be positive, got {step_factor!r}")
+    if background is None:
+        with ThreadPoolExecutor(1) as background:
+            return fit_pyramid(samples, levels, degree, spans, step_factor, periodic_u,
+                               progress, redraw, background)
     pyramid = DetailPyramid(degree, spans)
     residual = samples.s.copy()
     e = samples.error(np.zeros_like(residual))
     pyramid.base_rms, pyramid.base_max = float(np.sqrt(np.mean(e**2))), float(e.max())
     fields: list[np.ndarray] = []
-    with ThreadPoolExecutor(1) as ahead:  # the next level's matrices (SuperLU frees the GIL)
-        upcoming = (ahead.submit(level_matrices, samples, 0, degree, spans, periodic_u)
-                    if levels else None)
-        for k in range(levels):
-            A, E, AtA = upcoming.result()
-            if k + 1 < levels:
-                upcoming = ahead.submit(level_matrices, samples, k + 1, degree, spans,
-                                        periodic_u)
-            c = fit_level(samples, residual, k, degree, spans, periodic_u, A, AtA)
-            fitted = residual - E @ c.ravel()
-            rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
-            step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
-                                     float(np.abs(residual).max()), step_factor)
-            q = np.rint(c / step).astype(np.int64)
-            fields.append(q * step)
-            residual = residual - E @ fields[-1].ravel()
-            del A, E, AtA, fitted
-            e = samples.error(samples.s - residual)
-            rms = float(np.sqrt(np.mean(e**2)))
-            drawn = None if redraw is None else redraw.cells(k, fields, degree, spans, rms)
-            tiles = level_tiles(q, step, k, degree, spans, samples.u, samples.v, e, drawn)
-            pyramid.levels.append(DetailLevel(k, step, tiles, rms, float(e.max()),
-                                              int(np.count_nonzero(q))))
-            if progress is not None:
-                progress((k + 1) / levels)
+    results: list[Future] = []
+    # the even levels' matrices on the background thread, in order, the odd levels' here:
+    # the finest level's (the largest) are then ready when the coarser ones are solved
+    made = {k: background.submit(level_matrices, samples, k, degree, spans, periodic_u)
+            for k in range(0, levels, 2)}
+    for k in range(levels):
+        A, E, AtA = (made.pop(k).result() if k in made
+                     else level_matrices(samples, k, degree, spans, periodic_u))
+        c = fit_level(samples, residual, k, degree, spans, periodic_u, A, AtA)
+        fitted = residual - E @ c.ravel()
+        rms_fit = float(np.sqrt(np.mean(fitted**2 + samples.t2)))
+        step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
+                                 float(np.abs(residual).max()), step_factor)
+        q = np.rint(c / step).astype(np.int64)
+        fields.append(q * step)
+        residual = residual - E @ fields[-1].ravel()
+        del A, E, AtA, fitted
+        results.append(background.submit(_level_result, samples, residual, q, step, k, degree,
+                                         spans, list(fields), redraw))
+        if progress is not None:
+            progress((k + 1) / levels)
+    pyramid.levels = [result.result() for result in results]
     return pyramid
+
+
+def _level_result(samples: DetailSamples, residual: np.ndarray, q: np.ndarray, step: float,
+                  level: int, degree: int, spans: int, fields: list[np.ndarray],
+                  redraw: Redraw | Future | None) -> DetailLevel:
+    """Level ``level`` of :func:`fit_pyramid` once its quantised coefficients ``q`` (the
+    field ``fields[-1] = q step``) left ``residual``: its errors, drawn masks and tiles."""
+    e = samples.error(samples.s - residual)
+    rms = float(np.sqrt(np.mean(e**2)))
+    if isinstance(redraw, Future):
+        redraw = redraw.result()
+    drawn = None if redraw is None else redraw.cells(level, fields, degree, spans, rms)
+    tiles = level_tiles(q, step, level, degree, spans, samples.u, samples.v, e, drawn)
+    return DetailLevel(level, step, tiles, rms, float(e.max()), int(np.count_nonzero(q)))
 
 
 def level_matrices(samples: DetailSamples, level: int, degree: int, spans: int,
@@ -436,7 +457,7 @@ def level_matrices(samples: DetailSamples, level: int, degree: int, spans: int,
     """A level's :func:`collocation_matrix` ``A``, the matrix ``E`` of its field's values at
     the samples (``A`` but for a periodic map, whose columns wrap while its field does not)
     and :func:`normal_matrix` ``A^T A``: they depend on the samples alone, so
-    :func:`fit_pyramid` makes the next level's while this level's system is solved."""
+    :func:`fit_pyramid` makes some levels' on a second thread."""
     n = (spans << level) + degree
     knots = np.array(layers.level_knots(degree, spans, level))
     A = collocation_matrix(degree, knots, n, samples.u, samples.v, periodic_u)
@@ -459,14 +480,18 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
         d = np.abs(dev.d[covered])
         return DetailPyramid(DEGREE, spans, base_rms=float(np.sqrt(np.mean(d**2))),
                              base_max=float(d.max(initial=0.0)))
-    samples = detail_samples(model, points_local[covered], dev.u[covered], dev.v[covered])
-    redraw = None
-    if trim is not None:
-        drawn = np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool)
-        redraw = Redraw.from_foot_points(model, drawn, points_local[covered], samples.u,
-                                         samples.v, periodic_u)
-    return fit_pyramid(samples, levels, spans=spans, periodic_u=periodic_u, progress=progress,
-                       step_factor=step_factor, redraw=redraw)
+    points = points_local[covered]
+    u, v = np.asarray(dev.u[covered], float), np.asarray(dev.v[covered], float)
+    with ThreadPoolExecutor(1) as background:  # the redraw's k-d tree beside the samples
+        redraw = None
+        if trim is not None:
+            drawn = np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool)
+            redraw = background.submit(Redraw.from_foot_points, model, drawn, points, u, v,
+                                       periodic_u)
+        samples = detail_samples(model, points, u, v)
+        return fit_pyramid(samples, levels, spans=spans, periodic_u=periodic_u,
+                           progress=progress, step_factor=step_factor, redraw=redraw,
+                           background=background)
 
 
 def _rounded(x: float) -> float:
