@@ -279,13 +279,14 @@ class VoxelSums:
         later_at = np.empty(len(later.keys), np.intp)
         later_at[shared] = self_at[place[shared]]
         later_at[~shared] = place[~shared] + np.arange(len(new_keys))
-        sums = np.zeros((len(keys), 3))
+        sums = np.zeros((3, len(keys)))  # column by column: 1-d assignments are faster
+        for row, first, second in zip(sums, self.sums.T, later.sums.T, strict=True):
+            row[self_at] = first + 0.0  # 0 + x, as bincount adds it (-0.0 gives +0.0)
+            row[later_at] += second
         counts = np.zeros(len(keys), np.int64)
-        sums[self_at] += self.sums
-        sums[later_at] += later.sums
-        counts[self_at] += self.counts
+        counts[self_at] = self.counts
         counts[later_at] += later.counts
-        return VoxelSums(keys, sums, counts)
+        return VoxelSums(keys, sums.T, counts)
 
     def centroids(self) -> np.ndarray:
         """``c_v = sums / counts``, ``(K, 3)``."""
@@ -315,7 +316,7 @@ class VoxelNearest:
         position = index.positions(points)
         dist2 = np.zeros(len(points))
         for k in range(3):  # |p - c|^2 summed over the coordinates in order, as above
-            column = points[:, k] - centroids[position, k]
+            column = points[:, k] - np.take(centroids[:, k], position)
             column *= column
             dist2 += column
         best = np.full(len(centroids), np.inf)
