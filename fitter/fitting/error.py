@@ -27,7 +27,7 @@ from client_py.ply import write_points_ply
 from .closest import ClosestPoints
 from .nurbs import PatchModel
 
-CHUNK = 1 << 14  # points per task of the foot-point search
+CHUNK = 1 << 16  # points per task of the foot-point search (fewer numpy calls than 2^14)
 RASTER_SIDE = (8, 64)  # least and most cells per side of the manifest's error raster
 RASTER_POINTS_PER_CELL = 4  # about this many covered points per cell, within RASTER_SIDE
 RASTER_EMPTY = 255  # the raster's code of a cell without a scan point
