@@ -97,6 +97,18 @@ def _curved_patch(rational: bool, degree: tuple[int, int] = (2, 3)) -> PatchMode
     return model
 
 
+def _points_off(model: PatchModel, rng: np.random.Generator, m: int, largest: float
+                ) -> tuple[np.ndarray, ...]:
+    """``m`` points at random ``(u, v)`` of ``model``, moved along its normal by up to
+    ``largest`` either way: the points ``(m, 3)``, ``u``, ``v`` and the offsets."""
+    u, v = rng.random(m), rng.random(m)
+    S, Su, Sv = model.evaluate(u, v, derivatives=True)
+    normal = np.cross(Su, Sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    offset = rng.uniform(-largest, largest, m)
+    return S + offset[:, None] * normal, u, v, offset
+
+
 def _reference_distances(model: PatchModel, points: np.ndarray) -> np.ndarray:
     """The distance from each point to ``model`` by scipy: the best of L-BFGS-B runs
     (bounded to the domain) from the 2 nearest vertices of a 100 x 100 tessellation."""
@@ -137,12 +149,7 @@ def test_deviations_are_the_distances_scipy_finds(rational):
     model = _curved_patch(rational)
     rng = np.random.default_rng(2)
     m = 60
-    u, v = rng.random(m), rng.random(m)
-    S, Su, Sv = model.evaluate(u, v, derivatives=True)
-    normal = np.cross(Su, Sv)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    offset = rng.uniform(-0.3, 0.3, m)
-    points = S + offset[:, None] * normal
+    points, u, v, offset = _points_off(model, rng, m, 0.3)
     u0 = np.clip(u + rng.uniform(-0.2, 0.2, m), 0, 1)
     v0 = np.clip(v + rng.uniform(-0.2, 0.2, m), 0, 1)
     dev = deviations(model, points, u0, v0, chunk=32, threads=2)
@@ -164,11 +171,7 @@ def test_voxel_candidates_answer_as_the_tree_does(rational):
     model = _curved_patch(rational)
     rng = np.random.default_rng(8)
     m = 20_000
-    u, v = rng.random(m), rng.random(m)
-    S, Su, Sv = model.evaluate(u, v, derivatives=True)
-    normal = np.cross(Su, Sv)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    points = S + rng.uniform(-0.05, 0.05, m)[:, None] * normal
+    points, u, v, _ = _points_off(model, rng, m, 0.05)
     grid = VoxelGrid.over(points.min(axis=0), points.max(axis=0), 0.006)
     keys = np.unique(grid.keys(points))
     np.testing.assert_array_equal(grid.keys(grid.centres(keys)), keys)
