@@ -20,6 +20,9 @@ Two things make it a few times cheaper than Newton on :meth:`PatchModel.evaluate
 
 So each point ends at the better of the same two starts as before (its projection
 parameters, and the tessellation's nearest vertex when that is nearer than the start).
+The streamed error pass spares most points the tree query itself: each voxel of the working
+set keeps its nearest vertices (:meth:`ClosestPoints.cell_candidates`), which answer for
+every point whose bound is within the voxel's reach (the same vertex as the tree's).
 On 2^19 points of the 10^7-point benchmark relief against the previous kernel: no distance
 larger (by more than 1e-13), 1,242 smaller (by up to 0.27 mm, points whose old single
 search stopped short), and 1.5 times less CPU (2.4 against 3.7 µs a point, same load).

@@ -13,7 +13,8 @@ output, never through a float64 copy of the cloud:
    working set, a ``Scan`` every later stage fits as it would a small scan (its PCA frame,
    map, coverage, sample, detail pyramid, ``error.png`` and ``error.ply``);
 3. *error* — once the base is chosen, the signed foot-point deviation of every original point
-   (``fitter.fitting.error.deviations``, block by block) from the decoded ``base.tsp``. A
+   (``fitter.fitting.error.deviations``, block by block, the tree query of most points
+   answered by their voxel's nearest tessellation vertices) from the decoded ``base.tsp``. A
    point counts as covered when its voxel's representative is (one rule, the working set's
    coverage, instead of a second outer-layer test). The pass keeps ``d``, ``u``, ``v`` as
    float32 and a covered flag: 13 bytes a point (1.3 GB for 10^8), from which the
