@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from fitter.fitting.closest import SpanPolynomials
+from fitter.fitting.closest import ClosestPoints, SpanPolynomials
 from fitter.fitting.error import _depth_view, deviations, write_error_ply
+from fitter.fitting.io.thin import VoxelGrid
 from fitter.fitting.nurbs import PatchModel
 
 
@@ -96,6 +97,18 @@ def _curved_patch(rational: bool, degree: tuple[int, int] = (2, 3)) -> PatchMode
     return model
 
 
+def _points_off(model: PatchModel, rng: np.random.Generator, m: int, largest: float
+                ) -> tuple[np.ndarray, ...]:
+    """``m`` points at random ``(u, v)`` of ``model``, moved along its normal by up to
+    ``largest`` either way: the points ``(m, 3)``, ``u``, ``v`` and the offsets."""
+    u, v = rng.random(m), rng.random(m)
+    S, Su, Sv = model.evaluate(u, v, derivatives=True)
+    normal = np.cross(Su, Sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    offset = rng.uniform(-largest, largest, m)
+    return S + offset[:, None] * normal, u, v, offset
+
+
 def _reference_distances(model: PatchModel, points: np.ndarray) -> np.ndarray:
     """The distance from each point to ``model`` by scipy: the best of L-BFGS-B runs
     (bounded to the domain) from the 2 nearest vertices of a 100 x 100 tessellation."""
@@ -136,12 +149,7 @@ def test_deviations_are_the_distances_scipy_finds(rational):
     model = _curved_patch(rational)
     rng = np.random.default_rng(2)
     m = 60
-    u, v = rng.random(m), rng.random(m)
-    S, Su, Sv = model.evaluate(u, v, derivatives=True)
-    normal = np.cross(Su, Sv)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    offset = rng.uniform(-0.3, 0.3, m)
-    points = S + offset[:, None] * normal
+    points, u, v, offset = _points_off(model, rng, m, 0.3)
     u0 = np.clip(u + rng.uniform(-0.2, 0.2, m), 0, 1)
     v0 = np.clip(v + rng.uniform(-0.2, 0.2, m), 0, 1)
     dev = deviations(model, points, u0, v0, chunk=32, threads=2)
@@ -153,3 +161,34 @@ def test_deviations_are_the_distances_scipy_finds(rational):
                                rtol=1e-12, atol=1e-12)
     inside = np.abs(offset) > 1e-3
     assert np.all(np.sign(dev.d[inside]) == np.sign(offset[inside]))
+
+
+@pytest.mark.parametrize("rational", [False, True])
+def test_voxel_candidates_answer_as_the_tree_does(rational):
+    """The tessellation vertex nearer than a bound, from each point's voxel candidates
+    (``ClosestPoints.cell_candidates``, the streamed error pass) and from the k-d tree alone:
+    the same points and vertices, and so the same foot points to the last bit."""
+    model = _curved_patch(rational)
+    rng = np.random.default_rng(8)
+    m = 20_000
+    points, u, v, _ = _points_off(model, rng, m, 0.05)
+    grid = VoxelGrid.over(points.min(axis=0), points.max(axis=0), 0.006)
+    keys = np.unique(grid.keys(points))
+    np.testing.assert_array_equal(grid.keys(grid.centres(keys)), keys)
+    closest = ClosestPoints(model)
+    candidates, reach = closest.cell_candidates(grid.centres(keys), grid.half_diagonal)
+    voxel = np.searchsorted(keys, grid.keys(points))
+    near = candidates[voxel], reach[voxel]
+    bound = rng.uniform(0.0, 0.03, m)  # on either side of the reach (about 0.01 here)
+    assert 0.2 < np.mean(bound <= near[1]) < 0.8
+    by_tree = closest._nearer_vertices(points, bound)
+    by_cells = closest._nearer_vertices(points, bound, near)
+    assert len(by_tree[0]) > 1000
+    for a, b in zip(by_tree, by_cells, strict=True):
+        np.testing.assert_array_equal(a, b)
+    u0 = np.clip(u + rng.uniform(-0.1, 0.1, m), 0, 1)
+    v0 = np.clip(v + rng.uniform(-0.1, 0.1, m), 0, 1)
+    plain = deviations(closest, points, u0, v0, chunk=4096, threads=2)
+    fast = deviations(closest, points, u0, v0, chunk=4096, threads=2, near=near)
+    for a, b in ((plain.d, fast.d), (plain.u, fast.u), (plain.v, fast.v)):
+        np.testing.assert_array_equal(a, b)

@@ -19,7 +19,7 @@ from fitter.fitting.examples import relief_scan
 from fitter.fitting.io import load_scan, voxel_thin_indices
 from fitter.fitting.io.ply import open_ply_stream
 from fitter.fitting.io.points import PointStream
-from fitter.fitting.io.thin import VoxelGrid, voxel_size_for
+from fitter.fitting.io.thin import VoxelGrid, VoxelSums, unique_inverse, voxel_size_for
 from fitter.fitting.nurbs import PatchModel
 from fitter.fitting.options import FitOptions
 from fitter.fitting.parameterize import Projection
@@ -78,11 +78,41 @@ def test_streamed_thinning_equals_voxel_thin_indices(monkeypatch):
     points = rng.uniform(0, 10, (30_000, 3)) * [1, 1, 0.1]
     monkeypatch.setattr(stream, "BLOCK_POINTS", 7_000)
     lo, hi = points.min(axis=0), points.max(axis=0)
-    _, sums, kept = stream.thin_stream(PointStream.from_arrays("p", points), lo, hi, 0.37,
+    index, sums, kept = stream.thin_stream(PointStream.from_arrays("p", points), lo, hi, 0.37,
                                        stream.LocalBlocks(2))
     expected = voxel_thin_indices(points, 0.37)
     np.testing.assert_array_equal(kept, expected)
     assert sums.counts.sum() == len(points) and len(sums.keys) == len(expected)
+
+
+def test_unique_inverse_and_merged_sums_are_numpy_unique_and_bincount():
+    """The sums pass's sort-based ``unique_inverse`` and its merge of two blocks' sums by
+    binary search give, to the last bit, what ``np.unique`` and one ``bincount`` over both
+    blocks give (each voxel's sum ``(0 + first) + second``; a -0.0 sum becomes +0.0)."""
+    rng = np.random.default_rng(9)
+    keys = rng.integers(0, 5_000, 40_000)
+    for got, expected in zip(unique_inverse(keys), np.unique(keys, return_inverse=True),
+                             strict=True):
+        np.testing.assert_array_equal(got, expected)
+    big = np.array([2**61, 3, 2**61, 0])  # too large to pack with a position: np.unique
+    np.testing.assert_array_equal(unique_inverse(big)[1], [2, 1, 2, 0])
+    assert [len(x) for x in unique_inverse(np.empty(0, np.int64))] == [0, 0]
+    parts = []
+    for n in (3_000, 2_000):
+        k = np.unique(rng.integers(0, 8_000, n))
+        sums = rng.normal(size=(len(k), 3))
+        sums[:5] = -0.0
+        parts.append(VoxelSums(k, sums, rng.integers(1, 9, len(k))))
+    merged = parts[0].merged(parts[1])
+    keys, inverse = np.unique(np.concatenate([p.keys for p in parts]), return_inverse=True)
+    both = np.concatenate([p.sums for p in parts])
+    np.testing.assert_array_equal(merged.keys, keys)
+    for k in range(3):
+        expected = np.bincount(inverse, weights=both[:, k], minlength=len(keys))
+        assert merged.sums[:, k].tobytes() == expected.tobytes()
+    np.testing.assert_array_equal(merged.counts, np.bincount(
+        inverse, weights=np.concatenate([p.counts for p in parts])).astype(np.int64))
+    assert merged.merged(VoxelSums.empty()).keys.tolist() == keys.tolist()
 
 
 def test_voxel_size_for_a_surface_hits_the_target():

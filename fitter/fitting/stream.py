@@ -13,7 +13,8 @@ output, never through a float64 copy of the cloud:
    working set, a ``Scan`` every later stage fits as it would a small scan (its PCA frame,
    map, coverage, sample, detail pyramid, ``error.png`` and ``error.ply``);
 3. *error* — once the base is chosen, the signed foot-point deviation of every original point
-   (``fitter.fitting.error.deviations``, block by block) from the decoded ``base.tsp``. A
+   (``fitter.fitting.error.deviations``, block by block, the tree query of most points
+   answered by their voxel's nearest tessellation vertices) from the decoded ``base.tsp``. A
    point counts as covered when its voxel's representative is (one rule, the working set's
    coverage, instead of a second outer-layer test). The pass keeps ``d``, ``u``, ``v`` as
    float32 and a covered flag: 13 bytes a point (1.3 GB for 10^8), from which the
@@ -32,6 +33,7 @@ order-free, per-point outputs land at their index. So the bundle is byte-identic
 
 from __future__ import annotations
 
+import copy
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -43,6 +45,7 @@ import numpy as np
 
 from client_py import read_patch
 
+from .closest import ClosestPoints
 from .error import Deviations, deviations
 from .io.limits import InputBudget, InputLimits
 from .io.points import PointStream, ReaderStream, file_sha256
@@ -70,15 +73,25 @@ PassProgress = Callable[[float, int], None]
 
 
 class LocalBlocks:
-    """Runs a pass's blocks on ``threads`` threads of this process, results in block order."""
+    """Runs a pass's blocks on ``threads`` threads of this process, results in block order.
+
+    A :class:`PointStream` among the shared arguments is passed as a copy that maps the file
+    for this pass only: the mapped pages leave the process's resident memory with it (a
+    binary PLY of 10^8 points would otherwise hold 1.2 GB of it until the fit ends)."""
 
     def __init__(self, threads: int | None = None) -> None:
         self.threads = max(1, threads or os.cpu_count() or 1)
 
     def map(self, function: Callable, blocks: Sequence[tuple[int, int]],
             *shared: object) -> Iterator:
+        shared = tuple(_unmapped(x) if isinstance(x, PointStream) else x for x in shared)
         with ThreadPoolExecutor(self.threads) as pool:
             yield from pool.map(lambda block: function(*block, *shared), blocks)
+
+
+def _unmapped(stream: PointStream) -> PointStream:
+    """A copy of ``stream`` without its file map (it maps the file again when read)."""
+    return copy.copy(stream)  # PointStream.__getstate__ leaves the map behind
 
 
 class DaskBlocks:
@@ -124,16 +137,19 @@ def _nearest_block(start: int, stop: int, stream: PointStream, index: VoxelIndex
 
 
 def _error_block(start: int, stop: int, stream: PointStream, patch: bytes,
-                 projection: Projection, index: VoxelIndex,
-                 voxel_covered: np.ndarray) -> tuple:
+                 projection: Projection, index: VoxelIndex, voxel_covered: np.ndarray,
+                 voxel_near: tuple[np.ndarray, np.ndarray]) -> tuple:
     """One block of the error pass: ``d, u, v`` (float32), covered flags, and the uncovered
-    points' count, minimum and maximum corner (scan coordinates)."""
+    points' count, minimum and maximum corner (scan coordinates). ``voxel_near`` is each
+    voxel's tessellation vertex candidates and their reach (``ClosestPoints.cell_candidates``)."""
     points, _ = stream.read(start, stop)
-    model = PatchModel.from_surface(read_patch(patch))
+    closest = ClosestPoints(PatchModel.from_surface(read_patch(patch)), projection.periodic_u)
     local = projection.local(points)
     u, v, _ = projection.to_uvh(points, local)
-    dev = deviations(model, local, u, v, projection.periodic_u, threads=1)
-    covered = voxel_covered[index.positions(points)]
+    voxel = index.positions(points)
+    dev = deviations(closest, local, u, v, threads=1,
+                     near=(np.take(voxel_near[0], voxel, axis=0), voxel_near[1][voxel]))
+    covered = voxel_covered[voxel]
     out = points[~covered]
     box = (out.min(axis=0), out.max(axis=0)) if len(out) else None
     return (dev.d.astype(np.float32), dev.u.astype(np.float32), dev.v.astype(np.float32),
@@ -181,10 +197,16 @@ class LargeScan:
         d, u, v = (np.empty(n, np.float32) for _ in range(3))
         covered = np.empty(n, bool)
         voxel_covered = covered_working[self.representative]
+        closest = ClosestPoints(PatchModel.from_surface(read_patch(patch)),
+                                projection.periodic_u)
+        voxel_near = closest.cell_candidates(
+            projection.local(self.grid.centres(self.sums.keys)), self.grid.half_diagonal)
         lo, hi, outside = np.full(3, np.inf), np.full(3, -np.inf), 0
         blocks = self.stream.blocks(BLOCK_POINTS)
+        # a table of its own (not kept with the scan: up to 192 MB while the detail is fitted)
         results = self.blocks.map(_error_block, blocks, self.stream, patch, projection,
-                                  VoxelIndex(self.grid, self.sums.keys), voxel_covered)
+                                  VoxelIndex(self.grid, self.sums.keys), voxel_covered,
+                                  voxel_near)
         for k, ((start, stop), (bd, bu, bv, bc, count, box)) in enumerate(
                 zip(blocks, results, strict=True)):
             d[start:stop], u[start:stop], v[start:stop], covered[start:stop] = bd, bu, bv, bc
@@ -220,28 +242,36 @@ def stream_of_scan(scan: Scan) -> tuple[PointStream, dict, str]:
             dict(scan.source), scan.units)
 
 
-def _bounds(stream: PointStream, progress: PassProgress | None
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pass 1: the box ``lo, hi (3,)`` and an even sample of about ``VOXEL_SAMPLE`` points."""
+def _bounds_block(start: int, stop: int, stream: PointStream, step: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    points, _ = stream.read(start, stop)
+    # a copy: a view would keep the whole block alive until the sample is joined
+    return points.min(axis=0), points.max(axis=0), points[::step].copy()
+
+
+def _bounds(stream: PointStream, blocks: LocalBlocks | DaskBlocks,
+            progress: PassProgress | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pass 1: the box ``lo, hi (3,)`` and an even sample of about ``VOXEL_SAMPLE`` points
+    (every ``step``-th point: a block starts at a multiple of ``step``)."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     step = max(1, -(-stream.count // VOXEL_SAMPLE))
     sample = []
-    blocks = stream.blocks(BLOCK_POINTS - BLOCK_POINTS % step)
-    for k, (start, stop) in enumerate(blocks):
-        points, _ = stream.read(start, stop)
-        lo, hi = np.minimum(lo, points.min(axis=0)), np.maximum(hi, points.max(axis=0))
-        sample.append(points[::step])
+    spans = stream.blocks(BLOCK_POINTS - BLOCK_POINTS % step)
+    for k, (low, high, part) in enumerate(blocks.map(_bounds_block, spans, stream, step)):
+        lo, hi = np.minimum(lo, low), np.maximum(hi, high)
+        sample.append(part)
         if progress is not None:
-            progress((k + 1) / len(blocks), stop)
+            progress((k + 1) / len(spans), spans[k][1])
     return lo, hi, np.concatenate(sample)
 
 
 def thin_stream(stream: PointStream, lo: np.ndarray, hi: np.ndarray, size: float,
                 blocks: LocalBlocks | DaskBlocks, progress: PassProgress | None = None,
-                most: int | None = None) -> tuple[VoxelGrid, VoxelSums, np.ndarray]:
-    """Passes 2a and 2b: the voxel grid of edge ``size``, its sums, and the representatives'
-    indices (ascending), by the rule of ``voxel_thin_indices``. With ``most``, the sums are
-    taken again at ``size sqrt(K / (0.9 most))`` while ``K > most`` voxels are occupied."""
+                most: int | None = None) -> tuple[VoxelIndex, VoxelSums, np.ndarray]:
+    """Passes 2a and 2b: the voxel grid of edge ``size`` (as the index of its occupied
+    voxels, ``index.grid``), its sums, and the representatives' indices (ascending), by the
+    rule of ``voxel_thin_indices``. With ``most``, the sums are taken again at
+    ``size sqrt(K / (0.9 most))`` while ``K > most`` voxels are occupied."""
     spans = stream.blocks(BLOCK_POINTS)
     while True:
         grid = VoxelGrid.over(lo, hi, size)
@@ -254,12 +284,13 @@ def thin_stream(stream: PointStream, lo: np.ndarray, hi: np.ndarray, size: float
             break
         size *= float(np.sqrt(len(sums.keys) / (0.9 * most)))
     nearest = VoxelNearest.empty(len(sums.keys))
-    for k, part in enumerate(blocks.map(_nearest_block, spans, stream,
-                                        VoxelIndex(grid, sums.keys), sums.centroids())):
+    index = VoxelIndex(grid, sums.keys)
+    for k, part in enumerate(blocks.map(_nearest_block, spans, stream, index,
+                                        sums.centroids())):
         nearest.update(*part)
         if progress is not None:
             progress(0.5 + 0.5 * (k + 1) / len(spans), spans[k][1])
-    return grid, sums, nearest.kept()
+    return index, sums, nearest.kept()
 
 
 def load_working_set(stream: PointStream, source: dict, units: str,
@@ -277,7 +308,7 @@ def load_working_set(stream: PointStream, source: dict, units: str,
     started = time.perf_counter()
     with ThreadPoolExecutor(1) as hashing:
         digest = hashing.submit(file_sha256, stream.path) if stream.path else None
-        lo, hi, sample = _bounds(stream, None if progress is None
+        lo, hi, sample = _bounds(stream, blocks, None if progress is None
                                  else lambda f, p: progress(0.2 * f, p))
         if digest is not None:
             source["sha256"] = source["files"][0]["sha256"] = digest.result()
@@ -286,16 +317,14 @@ def load_working_set(stream: PointStream, source: dict, units: str,
         raise ScanError(f"{name}: non-finite coordinates (NaN or inf) in the points")
     if not np.linalg.norm(hi - lo) > 0:
         raise ScanError(f"{name}: all {stream.count} points coincide; there is no surface to fit")
-    grid, sums, kept = thin_stream(
+    index, sums, kept = thin_stream(
         stream, lo, hi, voxel_size_for(sample, stream.count, WORKING_SET_POINTS, lo, hi),
         blocks, None if progress is None else lambda f, p: progress(0.2 + 0.8 * f, p),
         WORKING_SET_MOST)
-    size = grid.size
-    points, normals = stream.take(kept)
-    # the representative of voxel i is the kept point holding index best[i]: both ascending
-    best_position = np.searchsorted(sums.keys, grid.keys(points))
-    representative = np.empty(len(sums.keys), np.int64)
-    representative[best_position] = np.arange(len(kept))
+    grid, size = index.grid, index.grid.size
+    points, normals = _unmapped(stream).take(kept)
+    representative = np.empty(len(sums.keys), np.int64)  # the working set's point of a voxel
+    representative[index.positions(points)] = np.arange(len(kept))
     source = dict(source, thinning={
         "voxel_size": size, "points_before": stream.count, "points_after": int(len(kept)),
         "rule": "one point per voxel, the nearest to its centroid (fitter.fitting.stream)",
