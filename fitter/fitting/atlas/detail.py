@@ -54,8 +54,10 @@ sphere (the control points' hull widened by the largest displacement).
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -254,8 +256,11 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
 
 def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
                     normals: np.ndarray, chunk: int = CHUNK, candidates: int = 8,
-                    progress: Callable[[float], None] | None = None) -> AtlasSamples:
-    """Foot points of ``points (N, 3)`` on ``atlas`` and their split, in chunks.
+                    progress: Callable[[float], None] | None = None,
+                    threads: int | None = None) -> AtlasSamples:
+    """Foot points of ``points (N, 3)`` on ``atlas`` and their split, in chunks of
+    ``chunk`` samples on ``threads`` threads (default: one per core); the result does not
+    depend on either.
 
     The first foot point is that of a nearby working point of the base fit (``fit.points``
     with their converged ``fit.patch, u, v``): among the ``candidates`` nearest, the nearest
@@ -278,8 +283,8 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     seed_n /= np.maximum(np.linalg.norm(seed_n, axis=1, keepdims=True), 1e-300)
     tree = cKDTree(fit.points)
     k = min(candidates, len(fit.points))
-    parts = []
-    for start in range(0, len(points), chunk):
+
+    def one_chunk(start: int) -> tuple[np.ndarray, ...]:
         x, nx = points[start:start + chunk], normals[start:start + chunk]
         _, near = tree.query(x, k=k)
         near = near.reshape(len(x), k)
@@ -292,9 +297,17 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
         off, t2 = normal_split(x, c, cu, cv)
         n = np.cross(cu, cv)
         facing = np.einsum("kc,kc->k", n, nx) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
-        parts.append((f, u, v, off, t2, dist, facing))
-        if progress is not None:
-            progress(min(1.0, (start + chunk) / len(points)))
+        return f, u, v, off, t2, dist, facing
+
+    starts = range(0, len(points), chunk)
+    parts = []
+    # the chunks are independent and their work is numpy on whole arrays, which releases
+    # the GIL: one thread per core (as fitter.fitting.error.deviations); map keeps the order
+    with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
+        for done, part in enumerate(pool.map(one_chunk, starts), start=1):
+            parts.append(part)
+            if progress is not None:
+                progress(done / len(starts))
     f, u, v, off, t2, dist, facing = (np.concatenate(c) for c in zip(*parts, strict=True))
     order = np.argsort(f, kind="stable")
     f = f[order]
