@@ -105,17 +105,22 @@ def evaluate_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: 
                      ) -> tuple[np.ndarray, ...]:
     """``C_{f_k}(u_k, v_k)`` (and ``C_u``, ``C_v``) of polynomial patches, each (K, 3).
 
-    ``C = Σ_ij N_i(u) N_j(v) P_{I[f, i, j]}`` evaluated as ``N(u)ᵀ P_f N(v)``.
+    ``C = Σ_ij N_i(u) N_j(v) P_{I[f, i, j]}``: the ``n²`` products ``N_i(u) N_j(v)`` of each
+    point times its patch's net ``(n², 3)``, one batched matrix product (twice as fast as
+    the three-operand ``einsum`` it replaced, equal to rounding).
     """
-    net = points[table[f]]  # (K, n, n, 3)
+    k, n = len(f), table.shape[1]
+    net = points[table[f].reshape(k, n * n)]  # (K, n², 3)
+
+    def combine(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.matmul((a[:, :, None] * b[:, None, :]).reshape(k, 1, n * n), net)[:, 0]
+
     bu, bv = basis_matrix(u, degree, spans), basis_matrix(v, degree, spans)
-    c = np.einsum("ki,kj,kijc->kc", bu, bv, net)
+    c = combine(bu, bv)
     if not derivatives:
         return (c,)
     du, dv = basis_matrix(u, degree, spans, 1), basis_matrix(v, degree, spans, 1)
-    cu = np.einsum("ki,kj,kijc->kc", du, bv, net)
-    cv = np.einsum("ki,kj,kijc->kc", bu, dv, net)
-    return c, cu, cv
+    return c, combine(du, bv), combine(bu, dv)
 
 
 def design_matrix(table: np.ndarray, n_control: int, degree: int, spans: int,
