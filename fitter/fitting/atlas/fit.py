@@ -530,7 +530,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
               anchor: float = 1e-3, thin_parts: bool = True,
               progress: Callable[[float], None] | None = None,
               surface: ScanSurface | None = None,
-              layout_surface: ScanSurface | None = None) -> AtlasFit:
+              layout_surface: ScanSurface | None = None,
+              trial_cache: dict | None = None) -> AtlasFit:
     """Fit a whole object as an atlas of ``F = 3 T`` bicubic patches on a quad layout.
 
     Parameters
@@ -577,6 +578,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         The surface the layout is decimated from, when not ``surface`` itself: a stand-in
         with the small handles closed (``atlas.surface.layout_stand_in``); the working
         points and their normals still come from ``surface``.
+    trial_cache : dict, optional
+        Trials kept between calls with the same ``scan``, ``surface``, ``layout_surface``
+        and fit parameters, which differ only in ``byte_budget`` (a refit with a larger
+        budget after a refusal): a target already tried is not decimated and fitted again
+        (the same numbers). Filled by this call.
 
     Returns
     -------
@@ -635,8 +641,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         trial_points, trial_normals, trial_rounds = points, normals, rounds
     trials: list[dict] = []
     best = None
+    cache = {} if trial_cache is None else trial_cache
     for step, target in enumerate(plan):
-        candidates, failures = layout_candidates(coarse, max(4, target), thin_parts)
+        if ("layouts", target) not in cache:
+            cache["layouts", target] = layout_candidates(coarse, max(4, target), thin_parts)
+        candidates, failures = cache["layouts", target]
         if not candidates:
             # a coarse target may not decimate to a manifold (a range scan's many borders);
             # 'auto' tries the next size, an explicit count is refused
@@ -649,11 +658,13 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         for name, layout, layout_seconds in candidates:
             if best is not None and layout.n_triangles <= best[2].n_triangles:
                 continue  # the decimation stopped short of the target: no new size to judge
-            trial_timings: dict = {"layout": layout_seconds}
-            atlas, f, u, v, dist = fit_layout(layout, trial_points, trial_normals,
-                                              degree=degree, spans=spans, rounds=trial_rounds,
-                                              smoothing=smoothing, anchor=anchor,
-                                              timings=trial_timings)
+            if ("fit", target, name) not in cache:
+                trial_timings: dict = {"layout": layout_seconds}
+                cache["fit", target, name] = (*fit_layout(
+                    layout, trial_points, trial_normals, degree=degree, spans=spans,
+                    rounds=trial_rounds, smoothing=smoothing, anchor=anchor,
+                    timings=trial_timings), trial_timings)
+            atlas, f, u, v, dist, trial_timings = cache["fit", target, name]
             fitted.append((float(np.sqrt(np.mean(dist ** 2))), name, layout, atlas, f, u, v,
                            trial_timings))
         if not fitted:

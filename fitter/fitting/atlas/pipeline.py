@@ -284,7 +284,8 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
     or a base that strays: :func:`check_base_follows_surface`), the next is tried: the
     surface's own, then the stand-in, then (``--patches auto`` only) the stand-in with
     :data:`STRAY_BUDGET_FACTOR` times the byte budget, for an object too intricate for the
-    default budget's patches (the 15-scan Happy Buddha: 8.8 % of a 576-patch base strayed).
+    default budget's patches (the 15-scan Happy Buddha: 8.8 % of a 576-patch base strayed),
+    which reuses the trials the smaller budget fitted (``fit_atlas``'s ``trial_cache``).
     The last refusal is raised.
 
     Returns
@@ -304,6 +305,7 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
         record["refused"].append(f"the surface's own layout: {handles} handles (over "
                                  f"{MAX_LAYOUT_HANDLES})")
     stand_in = None
+    trials: dict = {"surface": {}, "stand-in": {}}  # a refit reuses the trials it shares
     for number, (source, budget) in enumerate(attempts):
         stages.start("refine")
         if source == "stand-in" and stand_in is None:
@@ -314,7 +316,8 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
         try:
             fit = fit_atlas(scan, "auto" if options.patches is None else options.patches,
                             surface=surface, layout_surface=stand_in if source == "stand-in"
-                            else None, progress=stages.report, bits=bits, byte_budget=budget)
+                            else None, progress=stages.report, bits=bits, byte_budget=budget,
+                            trial_cache=trials[source])
             stages.start("encode")
             decoded, _ = read_atlas(write_atlas(fit.atlas, bits))
             record["stray_share"] = check_base_follows_surface(decoded, surface)
