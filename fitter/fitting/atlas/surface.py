@@ -272,15 +272,20 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
 
 def _carried_agreement(points: np.ndarray, normals: np.ndarray, i: np.ndarray,
                        j: np.ndarray) -> np.ndarray:
-    """``c_ij = n_i . n_j - 2 (n_i . e)(n_j . e)``, ``e`` the unit vector from ``p_i`` to
-    ``p_j``: ``n_i`` reflected in the plane bisecting ``p_i p_j`` (carried along the circle
-    through both points that is tangent to ``n_i``'s plane at ``p_i``), against ``n_j``.
-    Symmetric in ``i, j``; shape ``(m,)``."""
+    """The agreement of two neighbours' normals, shape ``(m,)``, symmetric in ``i, j``: of
+    the plain ``n_i . n_j`` and the carried ``n_i . n_j - 2 (n_i . e)(n_j . e)`` (``e`` the
+    unit vector from ``p_i`` to ``p_j``: ``n_i`` reflected in the plane bisecting
+    ``p_i p_j``, carried along the circle through both points tangent to ``n_i``'s plane),
+    the one of larger magnitude. Across a crease sharper than 90° the carried one is
+    decisive; between noisy neighbours of one smooth sheet (a registration of range
+    scans) the plain one is: the carried one alone left 6.4 % of the 15-scan Buddha's
+    neighbour pairs inconsistent against 4.5 % for open3d's propagation."""
     e = points[j] - points[i]
     e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300)
     ni, nj = normals[i], normals[j]
-    return (np.einsum("ij,ij->i", ni, nj)
-            - 2.0 * np.einsum("ij,ij->i", ni, e) * np.einsum("ij,ij->i", nj, e))
+    plain = np.einsum("ij,ij->i", ni, nj)
+    carried = plain - 2.0 * np.einsum("ij,ij->i", ni, e) * np.einsum("ij,ij->i", nj, e)
+    return np.where(np.abs(carried) > np.abs(plain), carried, plain)
 
 
 def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = ORIENT_NEIGHBOURS
