@@ -296,11 +296,11 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = ORIENT_NEIG
     Hoppe et al. (*Surface reconstruction from unorganized points*, SIGGRAPH 1992, §3.3):
     the graph of each point's ``k`` nearest neighbours, its minimum spanning tree, and the
     orientation propagated along the tree from a root. The agreement of two neighbours is
-    not the plain ``n_i . n_j`` (which turns the wrong way across a crease sharper than
-    90°, a cone's rim against its base, or across the two sides of a thin sheet) but
-    :func:`_carried_agreement`, the normal carried along the circular arc through both
-    points (the idea of König & Gumhold, *Consistent propagation of normal orientations
-    in point clouds*, VMV 2009): an edge costs ``1 - |c_ij|``, the tree prefers the
+    not always the plain ``n_i . n_j`` (which turns the wrong way across a crease sharper
+    than 90°, a cone's rim against its base): :func:`_carried_agreement` also weighs the
+    normal carried along the circular arc through both points (the idea of König &
+    Gumhold, *Consistent propagation of normal orientations in point clouds*, VMV 2009)
+    and takes the more decisive of the two: an edge costs ``1 - |c_ij|``, the tree prefers the
     edges whose relative orientation is least ambiguous, and ``n_j`` is flipped when
     ``c_ij < 0`` for its tree parent ``i``. The sign of each point relative to its piece's
     root is the product of the edge signs on its path, found by pointer doubling
