@@ -280,3 +280,37 @@ def test_cloud_outliers_are_not_fitted_and_are_reported_uncovered(tmp_path):
     assert coverage["uncovered_share"] == pytest.approx(
         coverage["uncovered_points"] / scan.n_points)
     assert coverage["within_0.5%"] > 0.98
+
+
+def test_a_refit_with_a_larger_budget_reuses_the_trials_and_fits_the_same_atlas(monkeypatch):
+    """``fit_checked_base``'s refit after a stray refusal passes the first fit's trials
+    (``fit_atlas(trial_cache=)``): only the targets the smaller budget did not reach are
+    fitted again, and the atlas is the one a fit from scratch gives."""
+    import fitter.fitting.atlas.fit as fit_module
+
+    scan = _mesh_scan(trimesh.creation.icosphere(subdivisions=3), "sphere")
+    options = {"working_count": 1000, "rounds": 1}
+    calls = []
+    real_fit_layout = fit_module.fit_layout
+
+    def counted(layout, *args, **kwargs):
+        calls.append(layout.n_triangles)
+        return real_fit_layout(layout, *args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "fit_layout", counted)
+    cache: dict = {}
+    small = fit_module.fit_atlas(scan, "auto", byte_budget=9000, trial_cache=cache, **options)
+    first = len(calls)
+    reused = fit_module.fit_atlas(scan, "auto", byte_budget=12_000, trial_cache=cache,
+                                  **options)
+    reused_calls = calls[first:]
+    fresh = fit_module.fit_atlas(scan, "auto", byte_budget=12_000, **options)
+    fresh_calls = calls[first + len(reused_calls):]
+    assert fresh.patches > small.patches  # the larger budget reached a larger layout
+    assert [t.get("rms") for t in reused.trials] == [t.get("rms") for t in fresh.trials]
+    assert np.array_equal(fit_module.control_points(reused.atlas),
+                          fit_module.control_points(fresh.atlas))
+    shared = {t["triangles"] for t in small.trials}
+    assert shared & set(fresh_calls[:-1])  # from scratch, the shared targets are fitted
+    assert not shared & set(reused_calls[:-1])  # with the cache, only the new ones
+    assert reused_calls[-1] == fresh_calls[-1] == fresh.triangles  # then the final fit

@@ -53,9 +53,12 @@ sphere (the control points' hull widened by the largest displacement).
 
 from __future__ import annotations
 
+import functools
 import math
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -260,8 +263,11 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
 
 def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
                     normals: np.ndarray, chunk: int = CHUNK, candidates: int = 8,
-                    progress: Callable[[float], None] | None = None) -> AtlasSamples:
-    """Foot points of ``points (N, 3)`` on ``atlas`` and their split, in chunks.
+                    progress: Callable[[float], None] | None = None,
+                    threads: int | None = None) -> AtlasSamples:
+    """Foot points of ``points (N, 3)`` on ``atlas`` and their split, in chunks of
+    ``chunk`` samples on ``threads`` threads (default: one per core); the result does not
+    depend on either.
 
     The first foot point is that of a nearby working point of the base fit (``fit.points``
     with their converged ``fit.patch, u, v``): among the ``candidates`` nearest, the nearest
@@ -284,8 +290,8 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     seed_n /= np.maximum(np.linalg.norm(seed_n, axis=1, keepdims=True), 1e-300)
     tree = cKDTree(fit.points)
     k = min(candidates, len(fit.points))
-    parts = []
-    for start in range(0, len(points), chunk):
+
+    def one_chunk(start: int) -> tuple[np.ndarray, ...]:
         x, nx = points[start:start + chunk], normals[start:start + chunk]
         _, near = tree.query(x, k=k)
         near = near.reshape(len(x), k)
@@ -298,9 +304,17 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
         off, t2 = normal_split(x, c, cu, cv)
         n = np.cross(cu, cv)
         facing = np.einsum("kc,kc->k", n, nx) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
-        parts.append((f, u, v, off, t2, dist, facing))
-        if progress is not None:
-            progress(min(1.0, (start + chunk) / len(points)))
+        return f, u, v, off, t2, dist, facing
+
+    starts = range(0, len(points), chunk)
+    parts = []
+    # the chunks are independent and their work is numpy on whole arrays, which releases
+    # the GIL: one thread per core (as fitter.fitting.error.deviations); map keeps the order
+    with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
+        for done, part in enumerate(pool.map(one_chunk, starts), start=1):
+            parts.append(part)
+            if progress is not None:
+                progress(done / len(starts))
     f, u, v, off, t2, dist, facing = (np.concatenate(c) for c in zip(*parts, strict=True))
     order = np.argsort(f, kind="stable")
     f = f[order]
@@ -355,9 +369,49 @@ def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarra
 
 
 # ------------------------------------------------------------------ one level
+@functools.lru_cache(maxsize=16)
+def block_order(n: int, interior: bool) -> np.ndarray:
+    """A fill-reducing order of one patch's unknowns (its ``(n, n)`` grid, or with
+    ``interior`` the ``(n - 2)^2`` inside the border ring), shape ``(m,)``: SuperLU's
+    minimum degree on ``M^T + M`` (``MMD_AT_PLUS_A``, as ``fitter.fitting.detail.fit_level``)
+    of the widest pattern a patch's normal matrix can have: every pair of coefficients
+    within ``max(p, 2)`` of each other along both ``u`` and ``v`` (the collocation's
+    ``(p + 1)^2`` support and the second differences of the smoothing). Every patch's
+    matrix has (part of) this pattern, so one order serves them all.
+    """
+    width = max(DEGREE, 2)
+    band = sp.diags([np.ones(n - abs(k)) for k in range(-width, width + 1)],
+                    list(range(-width, width + 1)))
+    pattern = sp.kron(band, band).tocsr()
+    if interior:
+        inside = np.flatnonzero(~border_ring(n).reshape(-1))
+        pattern = pattern[inside][:, inside]
+    dominant = pattern + sp.diags(np.asarray(pattern.sum(axis=1)).ravel())  # SPD values
+    lu = spla.splu(dominant.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    return np.argsort(lu.perm_c)
+
+
+def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """``M^-1 rhs`` for a block-diagonal symmetric positive definite ``M`` of equal blocks
+    of ``m = len(order)`` unknowns, each block's unknowns taken in ``order``
+    (:func:`block_order`): SuperLU on the permuted matrix in its natural column order and
+    without pivoting (an SPD matrix needs none: this is a Cholesky factorisation in LU
+    form). On 216 level-2 patches (250,000 unknowns) 1.0 s against 3.0 s for SuperLU's
+    default column ordering (COLAMD) with partial pivoting, to 1e-12 of it."""
+    m = len(order)
+    blocks = M.shape[0] // m
+    perm = (np.arange(blocks)[:, None] * m + order[None, :]).reshape(-1)
+    lu = spla.splu(M[perm][:, perm].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    out = np.empty_like(rhs)
+    out[perm] = lu.solve(rhs[perm])
+    return out
+
+
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
-                  fixed: np.ndarray | None = None, use: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  fixed: np.ndarray | None = None, use: np.ndarray | None = None,
+                  threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
@@ -367,6 +421,10 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     given). ``use (N,)``: the samples that enter the fit (the others weigh 0). ``mu_f`` is
     at least ``MU_FLOOR`` of the mean patch's (a patch with few or no samples gets the
     smoothest field through its border, or zero, rather than one swinging between them).
+    The patches are solved in batches of about ``BATCH_UNKNOWNS`` unknowns
+    (:func:`solve_spd_blocks`), the batches on ``threads`` threads (default: one per
+    core; SuperLU and the sparse products release the GIL); the result does not depend
+    on the thread count.
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
@@ -375,6 +433,7 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     ring = border_ring(n).reshape(-1)
     free = np.flatnonzero(~ring) if fixed is not None else np.arange(n * n)
     held = np.flatnonzero(ring)
+    order = block_order(n, fixed is not None)
     out = np.zeros((F, n, n))
     weight = np.zeros((F, n, n))
     # the typical patch's data weight per coefficient: a patch with few samples is held to
@@ -383,7 +442,8 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     per_sample = float(np.sum(counts)) / max(F, 1) / (n * n)
     mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
     per_batch = max(1, BATCH_UNKNOWNS // (n * n))
-    for first in range(0, F, per_batch):
+
+    def one_batch(first: int) -> None:
         last = min(F, first + per_batch)
         lo, hi = samples.offsets[first], samples.offsets[last]
         count = last - first
@@ -398,17 +458,21 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         rhs = A.T @ residual[lo:hi]
         weight[first:last] = diag.reshape(count, n, n)
         if fixed is None:
-            out[first:last] = spla.spsolve(M.tocsc(), rhs).reshape(count, n, n)
-            continue
+            out[first:last] = solve_spd_blocks(M, rhs, order).reshape(count, n, n)
+            return
         cols_free = (np.arange(count)[:, None] * n * n + free[None, :]).reshape(-1)
         cols_held = (np.arange(count)[:, None] * n * n + held[None, :]).reshape(-1)
         c_held = fixed[first:last].reshape(count, n * n)[:, held].reshape(-1)
         M_free = M[cols_free][:, cols_free]
         b = rhs[cols_free] - M[cols_free][:, cols_held] @ c_held
         c = np.zeros(count * n * n)
-        c[cols_free] = spla.spsolve(M_free.tocsc(), b)
+        c[cols_free] = solve_spd_blocks(M_free, b, order)
         c[cols_held] = c_held
         out[first:last] = c.reshape(count, n, n)
+
+    starts = range(0, F, per_batch)
+    with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
+        list(pool.map(one_batch, starts))  # list(): re-raise a batch's error here
     return out, weight
 
 

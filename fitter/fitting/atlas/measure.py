@@ -13,9 +13,46 @@ far from its nearest part.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 CHUNK = 200_000
+
+
+@dataclass(frozen=True)
+class DrawnMesh:
+    """The welded mesh a visitor's browser draws of an atlas at one resolution
+    (``client_py.atlas_mesh.tessellate_atlas``), as float64/int64 arrays.
+
+    Attributes
+    ----------
+    vertices : ndarray, shape (V, 3)
+        The drawn float32 positions.
+    faces : ndarray, shape (T, 3)
+    patches : ndarray, shape (V,)
+        Each vertex's patch (``AtlasMesh.patches``).
+    uvs : ndarray, shape (V, 2)
+        Its ``(u, v)`` in that patch.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    patches: np.ndarray
+    uvs: np.ndarray
+
+
+def drawn_mesh(atlas, resolution: int, detail: dict | None = None) -> DrawnMesh:
+    """``tessellate_atlas(atlas, resolution, detail)`` with the numpy kernel, as a
+    :class:`DrawnMesh` (``detail``: ``{patch: [tiles]}``, ``None`` or empty for the base)."""
+    from client_py.atlas_mesh import tessellate_atlas
+
+    mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy")
+    return DrawnMesh(
+        np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float),
+        np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64),
+        np.frombuffer(mesh.patches, dtype=np.uintc).astype(np.int64),
+        np.frombuffer(mesh.uvs, dtype=np.float32).reshape(-1, 2).astype(float))
 
 
 def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray,

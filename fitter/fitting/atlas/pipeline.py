@@ -31,13 +31,13 @@ from __future__ import annotations
 import json
 import zlib
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from client_py.atlas_format import read_atlas, write_atlas
-from client_py.atlas_mesh import tessellate_atlas
 
 from ..bundle import write_bundle
 from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_error_ply
@@ -46,7 +46,12 @@ from ..options import FitOptions
 from .detail import fit_atlas_detail
 from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, base_bits, fit_atlas
 from .layout import AtlasLayoutError
-from .measure import point_mesh_distance, signed_point_mesh_distance
+from .measure import (
+    DrawnMesh,
+    drawn_mesh,
+    point_mesh_distance,
+    signed_point_mesh_distance,
+)
 from .surface import (
     MAX_LAYOUT_HANDLES,
     ScanSurface,
@@ -128,25 +133,6 @@ def _cloud_normals(points: np.ndarray, k: int = 12, count: int = 20_000) -> np.n
     return np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0]
 
 
-def _drawn_mesh(atlas, resolution: int, detail: dict | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """The welded mesh the browser draws: ``tessellate_atlas`` with ``detail`` applied."""
-    vertices, faces, _, _ = _drawn_mesh_with_feet(atlas, resolution, detail)
-    return vertices, faces
-
-
-def _drawn_mesh_with_feet(atlas, resolution: int, detail: dict | None = None
-                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_drawn_mesh` with each vertex's patch ``(V,)`` and ``(u, v)`` ``(V, 2)``
-    (``AtlasMesh.patches``, ``uvs``)."""
-    mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy")
-    vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
-    faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
-    patches = np.frombuffer(mesh.patches, dtype=np.uintc).astype(np.int64)
-    uvs = np.frombuffer(mesh.uvs, dtype=np.float32).reshape(-1, 2).astype(float)
-    return vertices, faces, patches, uvs
-
-
 def foot_parameters(vertices: np.ndarray, faces: np.ndarray, patches: np.ndarray,
                     uvs: np.ndarray, triangle: np.ndarray, closest: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -198,24 +184,49 @@ def atlas_error_raster(patch: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.nd
                          "u); code k < 255: k / 254 max; 255: no scan point"}, data)
 
 
-def drawn_level_errors(atlas, detail, points: np.ndarray, diagonal: float, units: str,
-                       finest_d: np.ndarray) -> dict:
-    """Every scan point's distance to the welded mesh drawn at each level (``-1`` the base
-    at :func:`base_resolution`, ``k`` with the packs of levels ``0..k`` at that level's
-    resolution): ``{level: error_stats}``, the panel's measure for each level (the finest's
-    is ``finest_d``, already measured)."""
-    finest = len(detail.levels) - 1
-    out = {finest: error_stats(finest_d, diagonal, units)}
-    for k in range(-1, finest):
-        resolution = base_resolution(atlas.spans) if k < 0 else detail.levels[k]["resolution"]
-        vertices, faces = _drawn_mesh(atlas, resolution, detail.detail_up_to(k))
-        out[k] = error_stats(point_mesh_distance(points, vertices, faces, signed=True),
-                             diagonal, units)
-    return out
+def level_resolution(atlas, detail, level: int) -> int:
+    """Samples per patch side of the mesh drawn at ``level``: ``-1`` the base alone
+    (:func:`base_resolution`), ``k`` the detail level's own resolution."""
+    return base_resolution(atlas.spans) if level < 0 else detail.levels[level]["resolution"]
+
+
+def measure_levels(atlas, detail, points: np.ndarray
+                   ) -> tuple[dict[int, np.ndarray], DrawnMesh, np.ndarray, np.ndarray]:
+    """Every scan point's signed distance to the welded mesh drawn at each level (``-1``
+    the base, ``k`` with the packs of levels ``0..k``, each at :func:`level_resolution`),
+    the panel's measure for each level (:func:`restate_level_errors`).
+
+    The meshes are tessellated here, finest first (``client_py``: Python that holds the
+    GIL), while one worker thread measures the level tessellated before (open3d's BVH
+    query and numpy, which release it), so the two overlap.
+
+    Returns
+    -------
+    distances : dict of int to ndarray, shape (N,)
+        ``{level: d}`` for ``-1`` and every detail level.
+    finest : DrawnMesh
+        The mesh of the finest level (the base without detail levels).
+    triangle, closest : ndarray, shapes (N,), (N, 3)
+        Each point's nearest triangle of ``finest`` and its closest point on it.
+    """
+    top = len(detail.levels) - 1
+    jobs = {}
+    with ThreadPoolExecutor(1) as measuring:
+        for k in range(top, -2, -1):
+            mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k), detail.detail_up_to(k))
+            if k == top:
+                finest = mesh
+            jobs[k] = measuring.submit(signed_point_mesh_distance, points, mesh.vertices,
+                                       mesh.faces)
+            del mesh  # the job holds it until measured
+        d, triangle, closest = jobs[top].result()
+        distances = {k: job.result()[0] for k, job in jobs.items() if k != top}
+    return {top: d, **distances}, finest, triangle, closest
 
 
 def restate_level_errors(tree: dict, errors: dict) -> None:
-    """Put each level's every-point ``rms``/``max`` (:func:`drawn_level_errors`) in the
+    """Put each level's every-point ``rms``/``max`` (``errors``: ``{level: error_stats}`` of
+    :func:`measure_levels`' distances) in the
     detail tree's ``base`` and ``levels[k]`` (what the viewer's level list and the
     refinement's base error read), keeping the detail fit's own figures, over its surface
     samples, as ``samples_rms``/``samples_max``."""
@@ -235,8 +246,8 @@ def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
     scan (flaps across a thin shell with many tunnels, such as a carved mask), so such an
     atlas is refused before its detail is fitted; ``--patches auto`` then fits one patch.
     """
-    vertices, faces = _drawn_mesh(atlas, base_resolution(atlas.spans))
-    points, _ = area_samples(vertices, faces, samples, np.random.default_rng(0))
+    base = drawn_mesh(atlas, base_resolution(atlas.spans))
+    points, _ = area_samples(base.vertices, base.faces, samples, np.random.default_rng(0))
     diagonal = surface.diagonal
     d = point_mesh_distance(points, surface.vertices, surface.faces)
     share = float(np.mean(d > STRAY_DISTANCE * diagonal))
@@ -283,7 +294,8 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
     or a base that strays: :func:`check_base_follows_surface`), the next is tried: the
     surface's own, then the stand-in, then (``--patches auto`` only) the stand-in with
     :data:`STRAY_BUDGET_FACTOR` times the byte budget, for an object too intricate for the
-    default budget's patches (the 15-scan Happy Buddha: 8.8 % of a 576-patch base strayed).
+    default budget's patches (the 15-scan Happy Buddha: 8.8 % of a 576-patch base strayed),
+    which reuses the trials the smaller budget fitted (``fit_atlas``'s ``trial_cache``).
     The last refusal is raised.
 
     ``bits=None`` quantises ``base.tsa`` by the fit's RMS (:func:`.fit.base_bits`).
@@ -305,6 +317,7 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
         record["refused"].append(f"the surface's own layout: {handles} handles (over "
                                  f"{MAX_LAYOUT_HANDLES})")
     stand_in = None
+    trials: dict = {"surface": {}, "stand-in": {}}  # a refit reuses the trials it shares
     for number, (source, budget) in enumerate(attempts):
         stages.start("refine")
         if source == "stand-in" and stand_in is None:
@@ -315,7 +328,8 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
         try:
             fit = fit_atlas(scan, "auto" if options.patches is None else options.patches,
                             surface=surface, layout_surface=stand_in if source == "stand-in"
-                            else None, progress=stages.report, bits=bits, byte_budget=budget)
+                            else None, progress=stages.report, bits=bits, byte_budget=budget,
+                            trial_cache=trials[source])
             stages.start("encode")
             record["bits"] = bits or base_bits(fit.atlas, fit.rms)
             decoded, _ = read_atlas(write_atlas(fit.atlas, record["bits"]))
@@ -359,16 +373,18 @@ def write_atlas_error_png(path: Path, points: np.ndarray, d: np.ndarray, front: 
     plt.close(fig)
 
 
-def _atlas_colour(scan: Scan, detail, options: FitOptions, stages):
+def _atlas_colour(scan: Scan, detail, options: FitOptions, stages, drawn: DrawnMesh,
+                  triangle: np.ndarray, closest: np.ndarray):
     """Stage ``texture``: the atlas's colour packs (``atlas.texture``), and in their
-    ``tree["error"]`` the colour error of every scan point against the mesh drawn at the
-    finest level, coloured from the decoded images; ``None`` without colour."""
+    ``tree["error"]`` the colour error of every scan point against ``drawn``, the mesh drawn
+    at the finest level, coloured from the decoded images (the points' feet ``triangle``,
+    ``closest`` on it: the error stage's); ``None`` without colour."""
     stages.start("texture")
     texture = fit_atlas_texture(scan, detail, options.texture)
     if texture is not None:
         finest = len(detail.levels) - 1
-        error = drawn_colour_error(scan, detail.atlas, detail.levels[finest]["resolution"],
-                                   detail.detail_up_to(finest), texture, finest)
+        error = drawn_colour_error(scan, drawn, (triangle, closest), texture, finest,
+                                   len(detail.atlas.quads))
         texture.tree["error"] = {k: float(f"{v:.4g}") if isinstance(v, float) else v
                                  for k, v in error.items()}
     return texture
@@ -400,24 +416,22 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                               progress=stages.report)
     atlas = detail.atlas  # renumbered so that every group of patches is a range
     data = write_atlas(atlas, bits, {"units": scan.units})
-    finest = len(detail.levels) - 1
     resolution = base_resolution(atlas.spans)
     stages.start("error")
     points = np.asarray(scan.points, dtype=float)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    vertices, faces, vertex_patch, vertex_uv = _drawn_mesh_with_feet(
-        atlas, detail.levels[finest]["resolution"] if finest >= 0 else resolution,
-        detail.detail_up_to(finest))
-    d, triangle, closest = signed_point_mesh_distance(points, vertices, faces)
+    distances, drawn, triangle, closest = measure_levels(atlas, detail, points)
+    d = distances[len(detail.levels) - 1]
     stats = error_stats(d, diagonal, scan.units)
     raster, raster_data = atlas_error_raster(
-        *foot_parameters(vertices, faces, vertex_patch, vertex_uv, triangle, closest), d,
-        len(atlas.quads), stats["max"])
+        *foot_parameters(drawn.vertices, drawn.faces, drawn.patches, drawn.uvs, triangle,
+                         closest), d, len(atlas.quads), stats["max"])
     if detail.levels:
-        restate_level_errors(detail.tree, drawn_level_errors(atlas, detail, points, diagonal,
-                                                             scan.units, d))
+        restate_level_errors(detail.tree, {k: error_stats(dk, diagonal, scan.units)
+                                           for k, dk in distances.items()})
     far = np.abs(d) > UNCOVERED * diagonal
-    texture = _atlas_colour(scan, detail, options, stages)
+    texture = _atlas_colour(scan, detail, options, stages, drawn, triangle, closest)
+    del drawn, triangle, closest
     fields = object_fields(scan, options)
     stages.start("report")
     with write_bundle(out_dir) as folder:

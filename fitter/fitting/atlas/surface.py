@@ -33,6 +33,8 @@ MIN_ISLAND_SHARE = 0.002
 LAYOUT_POISSON_DEPTH = 6  # the layout stand-in's octree (layout_stand_in)
 LAYOUT_TRIM = 0.03  # ... trimmed farther than this share of the diagonal from the surface
 MAX_LAYOUT_HANDLES = 8  # more handles than this: the layout is decimated from the stand-in
+NORMAL_NEIGHBOURS = 20  # points of a cloud's local PCA normal
+ORIENT_NEIGHBOURS = 10  # neighbours of a point in the orientation graph (orient_normals)
 
 
 class SurfaceError(ScanError):
@@ -268,6 +270,103 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
     return v, f, repairs
 
 
+def _carried_agreement(points: np.ndarray, normals: np.ndarray, i: np.ndarray,
+                       j: np.ndarray) -> np.ndarray:
+    """The agreement of two neighbours' normals, shape ``(m,)``, symmetric in ``i, j``: of
+    the plain ``n_i . n_j`` and the carried ``n_i . n_j - 2 (n_i . e)(n_j . e)`` (``e`` the
+    unit vector from ``p_i`` to ``p_j``: ``n_i`` reflected in the plane bisecting
+    ``p_i p_j``, carried along the circle through both points tangent to ``n_i``'s plane),
+    the one of larger magnitude. Across a crease sharper than 90° the carried one is
+    decisive; between noisy neighbours of one smooth sheet (a registration of range
+    scans) the plain one is: the carried one alone left 6.4 % of the 15-scan Buddha's
+    neighbour pairs inconsistent against 4.5 % for open3d's propagation."""
+    e = points[j] - points[i]
+    e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300)
+    ni, nj = normals[i], normals[j]
+    plain = np.einsum("ij,ij->i", ni, nj)
+    carried = plain - 2.0 * np.einsum("ij,ij->i", ni, e) * np.einsum("ij,ij->i", nj, e)
+    return np.where(np.abs(carried) > np.abs(plain), carried, plain)
+
+
+def orient_normals(points: np.ndarray, normals: np.ndarray, k: int = ORIENT_NEIGHBOURS
+                   ) -> np.ndarray:
+    """Unoriented unit ``normals (N, 3)`` of a cloud turned to one consistent side, each
+    connected piece outward on the whole.
+
+    Hoppe et al. (*Surface reconstruction from unorganized points*, SIGGRAPH 1992, §3.3):
+    the graph of each point's ``k`` nearest neighbours, its minimum spanning tree, and the
+    orientation propagated along the tree from a root. The agreement of two neighbours is
+    not always the plain ``n_i . n_j`` (which turns the wrong way across a crease sharper
+    than 90°, a cone's rim against its base): :func:`_carried_agreement` also weighs the
+    normal carried along the circular arc through both points (the idea of König &
+    Gumhold, *Consistent propagation of normal orientations in point clouds*, VMV 2009)
+    and takes the more decisive of the two: an edge costs ``1 - |c_ij|``, the tree prefers the
+    edges whose relative orientation is least ambiguous, and ``n_j`` is flipped when
+    ``c_ij < 0`` for its tree parent ``i``. The sign of each point relative to its piece's
+    root is the product of the edge signs on its path, found by pointer doubling
+    (``log2`` of the tree's depth vectorised passes). Last, each piece of the graph is
+    turned so that ``sum_i n_i . (p_i - centroid) >= 0`` (outward on a closed piece, an
+    open scan towards the side it bulges to).
+
+    ``open3d``'s ``orient_normals_consistent_tangent_plane(12)`` took 70 s of a 30,000-point
+    cone's fit; this takes well under a second for 10^5 points (scipy's k-d tree, minimum
+    spanning tree and breadth-first order).
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+    normals : ndarray, shape (N, 3)
+        Unit normals of either sign (a local PCA's least-variance direction).
+    k : int
+        Neighbours per point in the graph.
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        ``normals`` with some rows negated.
+    """
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+    points = np.asarray(points, np.float64)
+    normals = np.asarray(normals, np.float64)
+    count = len(points)
+    if count < 2:
+        return normals.copy()
+    k = min(k, count - 1)
+    _, near = cKDTree(points).query(points, k=k + 1)
+    i = np.repeat(np.arange(count), k)
+    j = near[:, 1:].reshape(-1)
+    keep = i != j  # duplicates of a point may list it among its own neighbours
+    i, j = i[keep], j[keep]
+    cost = 1.0 - np.abs(_carried_agreement(points, normals, i, j)) + 1e-9  # > 0: an edge
+    tree = minimum_spanning_tree(coo_matrix((cost, (i, j)), shape=(count, count)).tocsr())
+    pieces, piece = connected_components(tree, directed=False)
+    # one breadth-first pass over every piece: a virtual root (index ``count``) joined to
+    # the first point of each piece
+    first = np.unique(piece, return_index=True)[1]
+    tree = tree.tocoo()
+    graph = coo_matrix((np.ones(len(tree.data) + pieces),
+                        (np.r_[tree.row, np.full(pieces, count)], np.r_[tree.col, first])),
+                       shape=(count + 1, count + 1)).tocsr()
+    _, parent = breadth_first_order(graph, count, directed=False, return_predecessors=True)
+    parent = parent[:count]
+    sign = np.ones(count + 1)
+    inner = parent != count
+    sign[:count][inner] = np.where(
+        _carried_agreement(points, normals, parent[inner], np.flatnonzero(inner)) < 0,
+        -1.0, 1.0)
+    hop = np.r_[parent, count]
+    while np.any(hop[:count] != count):  # pointer doubling: sign to the root of the path
+        sign, hop = sign * sign[hop], hop[hop]
+    oriented = normals * sign[:count, None]
+    centroid = np.zeros((pieces, 3))
+    np.add.at(centroid, piece, points)
+    centroid /= np.bincount(piece, minlength=pieces)[:, None]
+    outward = np.bincount(piece, np.einsum("ij,ij->i", oriented, points - centroid[piece]),
+                          minlength=pieces)
+    return oriented * np.where(outward < 0, -1.0, 1.0)[piece, None]
+
+
 def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: int = 8,
                     trim_spacings: float = 2.0, max_cloud_points: int = 100_000,
                     name: str = "scan") -> tuple[np.ndarray, np.ndarray, dict]:
@@ -277,9 +376,8 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: in
     ----------
     points : ndarray, shape (N, 3)
     normals : ndarray, shape (N, 3), or None
-        Oriented normals; estimated when None (PCA of the 20 nearest points, oriented
-        consistently over a tangent-plane graph, Hoppe et al. 1992, then outward from the
-        centroid on average).
+        Oriented normals; estimated when None (PCA of the ``NORMAL_NEIGHBOURS`` nearest
+        points, then :func:`orient_normals`).
     depth : int
         Octree depth (a ``2^depth`` grid over the bounding cube).
     trim_spacings : float
@@ -301,11 +399,9 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: in
                                                                          np.float64)))
         estimated = False
     else:
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
-        cloud.orient_normals_consistent_tangent_plane(12)
-        n = np.asarray(cloud.normals)
-        if np.einsum("ij,ij->", n, pts - pts.mean(axis=0)) < 0:
-            cloud.normals = o3d.utility.Vector3dVector(-n)
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
+        cloud.normals = o3d.utility.Vector3dVector(
+            orient_normals(pts, np.asarray(cloud.normals, np.float64)))
         estimated = True
     mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         cloud, depth=depth, n_threads=1)

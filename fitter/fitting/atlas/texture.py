@@ -27,6 +27,7 @@ area, over the patch count) give the side a cell need not pass; at most the deta
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +45,7 @@ from ..texture import (
     uv_picture,
 )
 from .fit import control_points, evaluate_patches, index_table
-from .measure import closest_points_on_mesh
+from .measure import DrawnMesh, closest_points_on_mesh
 
 TEXELS_PER_PACK = 512 * 512  # an image grows by whole groups until it passes this
 CHUNK_TEXELS = 200_000  # texels projected at once (memory ~ 1 KB each)
@@ -249,16 +250,19 @@ def scan_vertex_colours(scan) -> np.ndarray:
     return scan.colors[:, :3].astype(float)
 
 
-def colour_error(scan, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> dict:
+def colour_error(scan, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray,
+                 foot: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """How far the drawn colours are from the scan's: for EVERY scan point, its colour
     (:func:`scan_vertex_colours`) against the drawn mesh's ``(vertices, faces)`` vertex
     ``colours (V, 3)`` interpolated at its foot point (the closest point of the drawn
-    triangles, as the GPU interpolates vertex colours). ``mean_abs``: mean ``|ΔRGB|`` per
+    triangles, as the GPU interpolates vertex colours; ``foot``: each point's nearest
+    triangle ``(N,)`` and closest point ``(N, 3)`` when already found,
+    ``atlas.measure.closest_points_on_mesh``). ``mean_abs``: mean ``|ΔRGB|`` per
     channel; ``rms``, ``p95``: of the Euclidean ``ΔRGB`` (0..255 units)."""
     points = np.asarray(scan.points, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     vertices = np.asarray(vertices, dtype=float)
-    _, tri, q = closest_points_on_mesh(points, vertices, faces)
+    tri, q = closest_points_on_mesh(points, vertices, faces)[1:] if foot is None else foot
     corners = faces[tri]
     w = barycentric(q, *(vertices[corners[:, k]] for k in range(3)))
     drawn = np.einsum("nk,nkc->nc", w, np.asarray(colours, float)[corners])
@@ -292,19 +296,20 @@ def decoded_packs(texture: AtlasTexture, level: int) -> list:
     return out
 
 
-def drawn_colour_error(scan, atlas, resolution: int, tiles_of_patch: dict,
-                       texture: AtlasTexture, level: int) -> dict:
-    """:func:`colour_error` of the mesh a visitor is drawn with every group at detail level
-    ``level``: ``client_py``'s welded mesh coloured from the DECODED colour images of the
-    level's colour level (``client_py.atlas_texture.atlas_vertex_colours``)."""
-    from client_py.atlas_mesh import tessellate_atlas
+def drawn_colour_error(scan, drawn: DrawnMesh, foot: tuple[np.ndarray, np.ndarray],
+                       texture: AtlasTexture, level: int, patches: int) -> dict:
+    """:func:`colour_error` of ``drawn``, the mesh a visitor is drawn with every group at
+    detail level ``level`` (``atlas.measure.drawn_mesh`` of an atlas of ``patches``
+    patches), coloured from the DECODED colour images of the level's colour level
+    (``client_py.atlas_texture.atlas_vertex_colours``); ``foot``: the scan points' nearest
+    triangles of ``drawn`` and closest points on them (the error stage's, not searched
+    again)."""
     from client_py.atlas_texture import atlas_vertex_colours, colour_level, colours_by_patch
 
     c = colour_level(level, len(texture.tree["levels"]))
-    mesh = tessellate_atlas(atlas, resolution, tiles_of_patch or None, kernel="numpy")
-    of_patch = colours_by_patch(decoded_packs(texture, c), len(atlas.quads))
-    rgb = np.frombuffer(atlas_vertex_colours(mesh.patches, mesh.uvs, of_patch), np.uint8)
-    vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3)
-    faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3)
+    of_patch = colours_by_patch(decoded_packs(texture, c), patches)
+    rgb = np.frombuffer(atlas_vertex_colours(
+        array("I", drawn.patches.astype(np.uint32).tobytes()),
+        array("f", drawn.uvs.astype(np.float32).tobytes()), of_patch), np.uint8)
     return {"level": level, "colour_level": c,
-            **colour_error(scan, vertices, faces, rgb.reshape(-1, 3))}
+            **colour_error(scan, drawn.vertices, drawn.faces, rgb.reshape(-1, 3), foot)}
