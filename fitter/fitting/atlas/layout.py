@@ -301,3 +301,61 @@ def bilinear_atlas(layout: QuadLayout, degree: int = 3, spans: int = 2) -> Atlas
     face = (1 - s) * (1 - t) * a + s * (1 - t) * b + s * t * c + (1 - s) * t * d
     return AtlasSurface(degree, spans, corners.tolist(), layout.quads.tolist(),
                         edge_points.tolist(), face.reshape(-1, 3).tolist(), None)
+
+
+def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
+                positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The triangle mesh with every edge of ``edges`` split at a new vertex.
+
+    Edge ``(a, b)`` gets vertex ``m`` at ``positions[i]``; each triangle ``(a, b, c)`` on it
+    (one on an open border, two inside) becomes ``(a, m, c)`` and ``(m, b, c)``, in its own
+    orientation. An edge split (Hoppe et al., *Mesh optimization*, 1993) keeps an oriented
+    2-manifold one, with its borders and topology: a local refinement of the layout.
+    Edges are split one after the other, so two edges of one triangle may both be split.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (Vt, 3)
+    triangles : ndarray, shape (T, 3)
+    edges : ndarray, shape (S, 2)
+        Distinct undirected edges of ``triangles``.
+    positions : ndarray, shape (S, 3)
+        The new vertices, e.g. the midpoints moved onto the scan.
+
+    Returns
+    -------
+    vertices : ndarray, shape (Vt + S, 3)
+    triangles : ndarray, shape (T + s, 3), ``s`` the triangles on the split edges.
+
+    Raises
+    ------
+    ValueError
+        An edge that is no edge of the mesh, or shapes that do not match.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    tris = [list(t) for t in np.asarray(triangles, np.int64).tolist()]
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    if len(edges) != len(positions):
+        raise ValueError(f"{len(edges)} edges but {len(positions)} positions")
+    by_vertex: dict[int, set[int]] = {}
+    for t, tri in enumerate(tris):
+        for x in tri:
+            by_vertex.setdefault(x, set()).add(t)
+    for i, (a, b) in enumerate(edges.tolist()):
+        m = len(vertices) + i
+        on_edge = sorted(by_vertex.get(a, set()) & by_vertex.get(b, set()))
+        if not on_edge or a == b:
+            raise ValueError(f"({a}, {b}) is not an edge of the triangles")
+        for t in on_edge:
+            tri = tris[t]
+            k = next(k for k in range(3) if {tri[k], tri[(k + 1) % 3]} == {a, b})
+            x, y, z = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]
+            tris[t] = [x, m, z]
+            tris.append([m, y, z])
+            new = len(tris) - 1
+            by_vertex[y].discard(t)  # (x, m, z) no longer holds y; (m, y, z) does
+            by_vertex[y].add(new)
+            by_vertex[z].add(new)
+            by_vertex.setdefault(m, set()).update({t, new})
+    return np.concatenate([vertices, positions]), np.array(tris, np.int64)
