@@ -17,7 +17,6 @@ from fitter.fitting.atlas.fit import (
     grid_mesh,
     index_table,
     neighbour_table,
-    refine_far_triangles,
     regularisation_weights,
     smoothing_matrix,
     solve_control_points,
@@ -29,7 +28,6 @@ from fitter.fitting.atlas.layout import (
     bilinear_atlas,
     decimate,
     euler_characteristics,
-    split_edges,
     thickness,
     thin_part_weights,
 )
@@ -366,49 +364,3 @@ def test_open_border_curves_follow_the_scans_cut_rim():
     assert gap.max() < 0.02
     with pytest.raises(ValueError, match="border must be finite points"):
         fit_layout(layout, points, normals, rounds=1, border=rim[:, :2])
-
-
-def _signed_area_vector(vertices, triangles):
-    t = vertices[triangles]
-    return 0.5 * np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]).sum(axis=0)
-
-
-def test_split_edges_keeps_an_oriented_manifold_of_the_same_topology():
-    vertices, faces = _sphere_mesh()
-    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.0]])
-    fan = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
-    # an inner edge and two edges of one triangle on the sphere; a border and an inner edge
-    # of the open square, split at their midpoints (so the square's area stays)
-    for v, t, edges, border in ((vertices, faces, [faces[0, :2], faces[0, 1:], faces[7, [0, 2]]],
-                                 0), (square, fan, [[0, 1], [1, 4]], 5)):
-        edges = np.sort(np.asarray(edges), axis=1)
-        edges = np.unique(edges, axis=0)
-        nv, nt = split_edges(v, t, edges, v[edges].mean(axis=1))
-        problems = manifold_problems(nt)
-        assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
-        assert problems["border_edges"] == border  # a split border edge: two border edges
-        assert euler_characteristics(nv, nt) == euler_characteristics(v, t)
-        assert len(nv) == len(v) + len(edges)
-        np.testing.assert_allclose(_signed_area_vector(nv, nt), _signed_area_vector(v, t),
-                                   atol=1e-12)
-    with pytest.raises(ValueError, match="not an edge"):
-        split_edges(square, fan, [[0, 2]], [[0.5, 0.5, 0.0]])
-
-
-def test_refine_far_triangles_splits_the_far_ones_longest_edge_onto_the_scan():
-    scan = _sphere_scan(3)
-    surface = scan_surface(scan)
-    layout = quad_layout(*decimate(surface, 40))
-    far = np.zeros(layout.n_triangles)
-    far[[3, 11]] = [0.5, 0.2]
-    assert refine_far_triangles(layout, far, surface, 5, 0.6) is None
-    refined = refine_far_triangles(layout, far, surface, 1, 0.1)  # the limit: triangle 3 only
-    assert refined.n_triangles == layout.n_triangles + 2  # a closed surface: 2 on an edge
-    new = refined.triangle_vertices[-1]
-    assert abs(np.linalg.norm(new) - 1.0) < 0.01  # the foot point on the sphere, not a chord
-    tri = layout.triangle_vertices[layout.triangles[3]]
-    sides = np.linalg.norm(tri - np.roll(tri, -1, axis=0), axis=1)
-    k = int(np.argmax(sides))
-    middle = 0.5 * (tri[k] + tri[(k + 1) % 3])
-    assert np.linalg.norm(new - middle / np.linalg.norm(middle)) < 0.02
-    assert manifold_problems(refined.triangles)["border_edges"] == 0

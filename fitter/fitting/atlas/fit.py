@@ -62,10 +62,8 @@ from .layout import (
     bilinear_atlas,
     decimate,
     quad_layout,
-    split_edges,
     thin_part_weights,
 )
-from .measure import closest_points_on_mesh
 from .surface import ScanSurface, SurfaceError, scan_surface
 
 DEFAULT_BYTE_BUDGET = 24_000
@@ -596,49 +594,6 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
     return candidates, failures
 
 
-FOLD_DISTANCE = 0.0075  # a layout triangle whose patches reach this share of the diagonal
-FOLD_GRID = 7  # ... from the scan, sampled on this grid per patch, gets its longest edge split
-
-
-def far_triangles(atlas: AtlasSurface, surface: ScanSurface, grid: int = FOLD_GRID
-                  ) -> np.ndarray:
-    """The largest distance from each layout triangle's three patches to the scan, (T,).
-
-    Every patch sampled on a ``grid × grid`` of ``(u, v)`` (:func:`grid_mesh`), each sample's
-    distance to the surface (:func:`.measure.closest_points_on_mesh`); patch ``f`` belongs
-    to layout triangle ``f // 3`` (:func:`.layout.quad_layout`).
-    """
-    samples, _ = grid_mesh(atlas, grid)
-    distance, _, _ = closest_points_on_mesh(samples, surface.vertices, surface.faces)
-    return distance.reshape(-1, 3 * grid * grid).max(axis=1)
-
-
-def refine_far_triangles(layout: QuadLayout, far: np.ndarray, surface: ScanSurface,
-                         limit: int, threshold: float) -> QuadLayout | None:
-    """``layout`` with the longest edge of every triangle farther than ``threshold`` split.
-
-    Where parts meet (an ear's root against the head, an arm against drapery) a coarse
-    layout triangle bridges the crease and its patches fold over it like a web; splitting
-    the bridging edge at the foot point on the scan of its midpoint
-    (:func:`.layout.split_edges`) gives the fit a corner in the crease. The ``limit``
-    farthest triangles at most (the byte budget); ``None`` when none is far. (Splitting
-    instead the edge whose midpoint lies farthest off the scan was worse on the bunny:
-    largest base-to-scan distance 3.77 % of the diagonal against 3.02 %.)
-    """
-    order = np.argsort(-far)
-    order = order[far[order] > threshold][:max(0, limit)]
-    if not len(order):
-        return None
-    tri = layout.triangle_vertices[layout.triangles[order]]  # (S, 3, 3)
-    k = np.argmax(np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=2), axis=1)
-    ends = np.stack([layout.triangles[order, k], layout.triangles[order, (k + 1) % 3]], axis=1)
-    ends = np.unique(np.sort(ends, axis=1), axis=0)
-    _, _, foot = closest_points_on_mesh(layout.triangle_vertices[ends].mean(axis=1),
-                                        surface.vertices, surface.faces)
-    vertices, triangles = split_edges(layout.triangle_vertices, layout.triangles, ends, foot)
-    return quad_layout(vertices, triangles)
-
-
 def atlas_bytes(atlas: AtlasSurface, bits: int) -> int:
     """Bytes of the ``.tsa`` file (``client_py.atlas_format.write_atlas``)."""
     from client_py.atlas_format import write_atlas
@@ -828,16 +783,6 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         timings["trials"] = sum(trial.get("seconds", 0.0) for trial in trials)
         best = (float(np.sqrt(np.mean(dist ** 2))), atlas_bytes(atlas, bits), layout, atlas,
                 f, u, v, final_timings)
-        clock = time.perf_counter()
-        best = _refine_folds(best, surface, points, normals, border, byte_budget, bits,
-                             degree=degree, spans=spans, rounds=rounds, smoothing=smoothing,
-                             anchor=anchor)
-        timings["refine"] = time.perf_counter() - clock
-        if best[2] is not layout:
-            trials.append({"triangles": best[2].n_triangles, "patches": len(best[3].quads),
-                           "control_points": best[3].control_point_count, "bytes": best[1],
-                           "rms": best[0], "layout": "refined",
-                           "refined_from": layout.n_triangles})
     rms, size, layout, atlas, f, u, v, trial_timings = best
     timings.update(trial_timings)
     table = index_table(atlas)
@@ -845,36 +790,6 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     report(1.0)
     return AtlasFit(atlas, layout, surface, layout.n_triangles, len(atlas.quads), points, f, u,
                     v, distance, rms, size, timings, trials)
-
-
-def _refine_folds(best: tuple, surface: ScanSurface, points: np.ndarray, normals: np.ndarray,
-                  border: np.ndarray | None, byte_budget: int, bits: int, **fit_options
-                  ) -> tuple:
-    """The fit ``best = (rms, bytes, layout, atlas, f, u, v, timings)`` refined where its
-    patches fold away from the scan (:func:`refine_far_triangles`), refitted, and kept when
-    its largest patch-to-scan distance is lower, its RMS not above and its bytes within
-    ``byte_budget``.
-
-    The splits allowed are the budget left over at the bytes a layout triangle costs now
-    (an edge split adds at most 2 triangles).
-    """
-    rms, size, layout, atlas = best[:4]
-    threshold = FOLD_DISTANCE * surface.diagonal
-    far = far_triangles(atlas, surface)
-    per_triangle = size / layout.n_triangles
-    limit = int((byte_budget - size) // (2 * per_triangle))
-    refined = refine_far_triangles(layout, far, surface, limit, threshold)
-    if refined is None:
-        return best
-    timings: dict = {"layout": best[7].get("layout", 0.0)}
-    new_atlas, f, u, v, dist = fit_layout(refined, points, normals, border=border,
-                                          timings=timings, **fit_options)
-    new_rms = float(np.sqrt(np.mean(dist ** 2)))
-    new_size = atlas_bytes(new_atlas, bits)
-    if new_size > byte_budget or new_rms > rms \
-            or far_triangles(new_atlas, surface).max() >= far.max():
-        return best
-    return (new_rms, new_size, refined, new_atlas, f, u, v, timings)
 
 
 def grid_mesh(atlas: AtlasSurface, resolution: int) -> tuple[np.ndarray, np.ndarray]:
