@@ -299,7 +299,7 @@ def test_a_refit_with_a_larger_budget_reuses_the_trials_and_fits_the_same_atlas(
 
     monkeypatch.setattr(fit_module, "fit_layout", counted)
     cache: dict = {}
-    small = fit_module.fit_atlas(scan, "auto", byte_budget=9000, trial_cache=cache, **options)
+    small = fit_module.fit_atlas(scan, "auto", byte_budget=6000, trial_cache=cache, **options)
     first = len(calls)
     reused = fit_module.fit_atlas(scan, "auto", byte_budget=12_000, trial_cache=cache,
                                   **options)
