@@ -64,7 +64,7 @@ from .layout import (
     quad_layout,
     thin_part_weights,
 )
-from .surface import ScanSurface, SurfaceError, scan_surface
+from .surface import ScanSurface, SurfaceError, border_edges, scan_surface
 
 DEFAULT_BYTE_BUDGET = 24_000
 AUTO_FIRST_TRIANGLES = 48
@@ -390,11 +390,7 @@ BORDER_SIDE_SAMPLES = 17  # samples per open patch side for the first border foo
 def border_points(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Points along the open border of a triangle surface: every vertex of an edge that one
     triangle uses, and every such edge's midpoint. Shape ``(B, 3)``; empty when closed."""
-    faces = np.asarray(faces, np.int64)
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
-                    axis=1)
-    unique, count = np.unique(edges, axis=0, return_counts=True)
-    border = unique[count == 1]
+    border = border_edges(faces)
     vertices = np.asarray(vertices, np.float64)
     if not len(border):
         return np.empty((0, 3))

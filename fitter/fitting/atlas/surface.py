@@ -144,6 +144,16 @@ def face_pieces(faces: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
     return int(face_labels.max() + 1) if m else 0, face_labels
 
 
+def border_edges(faces: np.ndarray) -> np.ndarray:
+    """The open border of a triangle surface: its undirected edges (``(B, 2)``, each sorted,
+    in lexicographic order) that exactly one triangle uses."""
+    faces = np.asarray(faces, np.int64)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
+                    axis=1)
+    unique, count = np.unique(edges, axis=0, return_counts=True)
+    return unique[count == 1]
+
+
 def manifold_problems(faces: np.ndarray) -> dict:
     """Edges used by more than two faces, and edges two faces run the same way.
 
