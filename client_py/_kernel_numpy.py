@@ -406,7 +406,7 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
                         np.tile(params[slots // r], count_g), np.tile(params[slots % r], count_g)))
     # border samples in the pure-Python weld's order: patch by patch, then along its border
     patch_of, node, evaluated, point, normal, shift, u, v = (np.concatenate(x)
-                                                               for x in zip(*samples))
+                                                               for x in zip(*samples, strict=True))
     order = np.argsort(patch_of, kind="stable")
     patch_of, node, evaluated, point, normal, shift, u, v = (
         x[order] for x in (patch_of, node, evaluated, point, normal, shift, u, v))
