@@ -612,20 +612,24 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 j0, j1 = min(j for _, j in rows_cols), max(j for _, j in rows_cols) + 1
             a0, a1, b0, b1 = max(i0 - 1, 0), min(i1 + 1, r), max(j0 - 1, 0), min(j1 + 1, r)
             height, width = a1 - a0, b1 - b0
-            slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
-            grid = array("d", bytes(24 * height * width))
-            for c in range(3):
-                grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
             nrm = grids[f][1]
-            base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
+            if height == width == r:  # the whole grid, gathered at C speed
+                grid = array("d", itemgetter(*[3 * g + c for g in local for c in range(3)])(
+                    positions))
+                base_normals = array("d", nrm)
+            else:
+                slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
+                grid = array("d", bytes(24 * height * width))
+                for c in range(3):
+                    grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
+                base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
             _, shaded = backend_displace(grid, base_normals,
                                          array("d", bytes(8 * height * width)), height, width,
                                          (i0 - a0, i1 - a0, j0 - b0, j1 - b0))
             shaded = array("d", shaded)
-            if f in mine:  # the whole grid: shaded is in slot order
-                for slot, g in enumerate(local):
-                    if g >= n_border:
-                        normals[3 * g : 3 * g + 3] = shaded[3 * slot : 3 * slot + 3]
+            if f in mine and r > 2:  # the whole grid in slot order: its interior block
+                at = layout.face_base[f]
+                normals[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", _interior(r)[0](shaded))
             span = j1 - j0
             for slot, g, _ in borders[f]:
                 i, j = divmod(slot, r)
