@@ -631,12 +631,19 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 at = layout.face_base[f]
                 normals[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", _interior(r)[0](shaded))
             span = j1 - j0
-            for slot, g, _ in borders[f]:
-                i, j = divmod(slot, r)
-                if i0 <= i < i1 and j0 <= j < j1:
-                    k = 3 * ((i - i0) * span + j - j0)
-                    for c in range(3):
-                        shading[3 * g + c] += shaded[k + c]
+            if span * (i1 - i0) == r * r:  # the whole grid: every border sample, at its slot
+                for slot, g, _ in borders[f]:
+                    k, g = 3 * slot, 3 * g
+                    shading[g] += shaded[k]
+                    shading[g + 1] += shaded[k + 1]
+                    shading[g + 2] += shaded[k + 2]
+            else:
+                for slot, g, _ in borders[f]:
+                    i, j = divmod(slot, r)
+                    if i0 <= i < i1 and j0 <= j < j1:
+                        k = 3 * ((i - i0) * span + j - j0)
+                        for c in range(3):
+                            shading[3 * g + c] += shaded[k + c]
     for node in range(n_border):
         normals[3 * node : 3 * node + 3] = array("d", _unit(*shading[3 * node : 3 * node + 3]))
 
