@@ -372,10 +372,10 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
                 base[g, k // r, k % r] = normal
         bases.append(base)
         params = np.asarray(group.params, dtype=float)
-        sides = np.frombuffer(group.sides, dtype=np.uint32).reshape(count_g, 4, r)
-        ids = np.empty((count_g, r, r), dtype=np.int64)
+        sides = np.frombuffer(group.sides, dtype=np.uint32).astype(np.intp).reshape(count_g, 4, r)
+        ids = np.empty((count_g, r, r), dtype=np.intp)
         inner = (r - 2) ** 2
-        ids[:, 1:-1, 1:-1] = (np.asarray(group.face_base, dtype=np.int64)[:, None]
+        ids[:, 1:-1, 1:-1] = (np.asarray(group.face_base, dtype=np.intp)[:, None]
                               + np.arange(inner)).reshape(count_g, r - 2, r - 2)
         ids[:, :, 0], ids[:, -1, :] = sides[:, 0], sides[:, 1]  # SIDES order: v = 0, u = 1,
         ids[:, :, -1], ids[:, 0, :] = sides[:, 2], sides[:, 3]  # v = 1, u = 0
