@@ -16,7 +16,8 @@ its control rows along ``v`` and the rows along ``u`` in homogeneous coordinates
 (``client_py._kernel_python``'s generated row evaluator; with numpy, all patches of one
 resolution at once as ``B P^w B^T``). With numpy the whole mesh is also welded by the
 kernel (``_kernel_numpy.weld_atlas``: the same arithmetic, its sums in the same order, so
-the same bytes as the pure-Python weld here; 4.7 M vertices in 3 s instead of 25).
+the same bytes as the pure-Python weld here; the 4.7 M vertices of the Happy Buddha's
+finest level in 4.5 CPU-s instead of 17).
 
 Mixed resolutions: an edge is *evaluated* at its coarser side's resolution ``r_c`` and
 carries ``R_e = r_fine`` vertices; those between two evaluated ones lie on the straight
