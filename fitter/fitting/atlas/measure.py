@@ -192,6 +192,8 @@ class MeasuringProcess:
     """
 
     def __init__(self) -> None:
+        if not sys.executable:  # an embedded interpreter: no Python to start
+            raise OSError("no Python executable to start a measuring process with")
         root = str(Path(__file__).resolve().parents[3])  # the folder holding fitter/
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             x for x in (root, os.environ.get("PYTHONPATH")) if x)}
