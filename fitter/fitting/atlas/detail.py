@@ -101,6 +101,7 @@ from .fit import (
 DEGREE = 2
 SPANS = 8  # spans per tile side: on the bunny, 8 reached 0.27 mm RMS in 49 KB, 4 in 112 KB
 SAMPLES_PER_CELL = 6.0  # surface samples per knot cell of the finest level
+TRIANGLE_SHARE = 0.2  # the triangle samples' total weight over the mesh vertices' (see below)
 MAX_SAMPLES = 1_000_000  # ~100 bytes each while fitted; projection runs in chunks
 CHUNK = 100_000
 NEWTON_ITERATIONS = 8
@@ -200,6 +201,8 @@ class AtlasSamples:
         ``|x - C|`` at the foot point.
     facing : ndarray, shape (N,)
         ``n . n_x``: the base's unit normal at the foot point against the sample's own.
+    weight : ndarray, shape (N,)
+        The sample's weight in the least-squares fit (:func:`surface_samples`).
     """
 
     patch: np.ndarray
@@ -210,6 +213,7 @@ class AtlasSamples:
     offsets: np.ndarray
     distance: np.ndarray
     facing: np.ndarray
+    weight: np.ndarray
 
     def of(self, f: int) -> DetailSamples:
         """Patch ``f``'s samples as ``fitter.fitting.detail.DetailSamples``."""
@@ -237,37 +241,43 @@ def median_spacing(scan: Scan, fit: AtlasFit) -> float:
 
 
 def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Points of the scan's surface to fit the detail to, and their unit normals.
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points of the scan's surface to fit the detail to, their unit normals and weights.
 
-    A mesh: its (cleaned) vertices and ``count - V`` area-weighted samples of its
-    triangles; a cloud: its points, voxel-thinned to about ``count`` when more. A point's
-    normal is that of the surface vertex nearest to it (a mesh vertex's own; a triangle
-    sample's is its triangle's). Shapes ``(N, 3)``, ``(N, 3)``.
+    A mesh: its (cleaned) vertices, weight 1, and ``count - V`` area-weighted samples of
+    its triangles, together weighing ``TRIANGLE_SHARE`` of the vertices (each
+    ``TRIANGLE_SHARE V / (count - V)``: :data:`TRIANGLE_SHARE` says why); a cloud: its
+    points, voxel-thinned to about ``count`` when more, weight 1. A point's normal is that
+    of the surface vertex nearest to it (a mesh vertex's own; a triangle sample's is its
+    triangle's). Shapes ``(N, 3)``, ``(N, 3)``, ``(N,)``.
     """
     surface = fit.surface
     if surface.origin == "mesh":
         points, normals = surface.vertices, surface.vertex_normals
+        weights = np.ones(len(points))
         extra = count - len(points)
         if extra > 0:
             samples, sample_normals = surface.sample(extra, np.random.default_rng(seed))
             points = np.concatenate([points, samples])
             normals = np.concatenate([normals, sample_normals])
-        return points, normals
+            weights = np.concatenate([weights, np.full(extra, TRIANGLE_SHARE * len(weights)
+                                                       / extra)])
+        return points, normals, weights
     points = scan.points
     if len(points) > count:
         points = points[thin_to_count(points, count, slack=1.2)]
     _, nearest = cKDTree(surface.vertices).query(points)
-    return points, surface.vertex_normals[nearest]
+    return points, surface.vertex_normals[nearest], np.ones(len(points))
 
 
 def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
                     normals: np.ndarray, chunk: int = CHUNK, candidates: int = 8,
                     progress: Callable[[float], None] | None = None,
-                    threads: int | None = None) -> AtlasSamples:
+                    threads: int | None = None,
+                    weights: np.ndarray | None = None) -> AtlasSamples:
     """Foot points of ``points (N, 3)`` on ``atlas`` and their split, in chunks of
     ``chunk`` samples on ``threads`` threads (default: one per core); the result does not
-    depend on either.
+    depend on either. ``weights (N,)`` (default 1) travel with the samples.
 
     The first foot point is that of a nearby working point of the base fit (``fit.points``
     with their converged ``fit.patch, u, v``): among the ``candidates`` nearest, the nearest
@@ -319,8 +329,9 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     order = np.argsort(f, kind="stable")
     f = f[order]
     offsets = np.searchsorted(f, np.arange(len(atlas.quads) + 1))
+    weights = np.ones(len(points)) if weights is None else np.asarray(weights, float)
     return AtlasSamples(f, u[order], v[order], off[order], t2[order], offsets, dist[order],
-                        facing[order])
+                        facing[order], weights[order])
 
 
 # ------------------------------------------------------------------ depth
@@ -410,7 +421,7 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
 
 
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
-                  fixed: np.ndarray | None = None, use: np.ndarray | None = None,
+                  fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
                   threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
@@ -418,7 +429,8 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
 
     With ``fixed (F, n, n)`` the border ring holds those values and only the interior is
     solved: ``M_II c_I = A_I^T r - M_IB c_B`` (the same quadratic, minimised with ``c_B``
-    given). ``use (N,)``: the samples that enter the fit (the others weigh 0). ``mu_f`` is
+    given). ``weights (N,)``: each sample's weight ``w`` in the sum of squares,
+    ``sum w (A c - r)^2`` (0: left out; default 1). ``mu_f`` is
     at least ``MU_FLOOR`` of the mean patch's (a patch with few or no samples gets the
     smoothest field through its border, or zero, rather than one swinging between them).
     The patches are solved in batches of about ``BATCH_UNKNOWNS`` unknowns
@@ -438,8 +450,8 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     weight = np.zeros((F, n, n))
     # the typical patch's data weight per coefficient: a patch with few samples is held to
     # at least MU_FLOOR of it, so its field stays smooth instead of swinging between them
-    counts = np.diff(samples.offsets).astype(float)
-    per_sample = float(np.sum(counts)) / max(F, 1) / (n * n)
+    total = float(np.sum(weights)) if weights is not None else float(len(samples.u))
+    per_sample = total / max(F, 1) / (n * n)
     mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
     per_batch = max(1, BATCH_UNKNOWNS // (n * n))
 
@@ -449,13 +461,15 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         count = last - first
         A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
                                block=samples.patch[lo:hi] - first, blocks=count)
-        if use is not None:
-            A = sp.diags(use[lo:hi].astype(float)) @ A
+        r = residual[lo:hi]
+        if weights is not None:
+            root = np.sqrt(weights[lo:hi])
+            A, r = sp.diags(root) @ A, root * r
         AtA = (A.T @ A).tocsr()
         diag = AtA.diagonal().reshape(count, n * n)
         mu = np.maximum(diag.sum(axis=1) / (n * n), mu_floor)
         M = (AtA + sp.kron(sp.diags(mu), R)).tocsr()
-        rhs = A.T @ residual[lo:hi]
+        rhs = A.T @ r
         weight[first:last] = diag.reshape(count, n, n)
         if fixed is None:
             out[first:last] = solve_spd_blocks(M, rhs, order).reshape(count, n, n)
@@ -653,13 +667,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         levels = auto_levels(side, spacing, F, spans)
     finest_cells = F * (spans << max(levels - 1, 0)) ** 2
     count = int(min(max_samples, max(SAMPLES_PER_CELL * finest_cells, len(scan.points))))
-    points, normals = surface_samples(scan, fit, count)
+    points, normals, weights = surface_samples(scan, fit, count)
     timings["setup"] = time.perf_counter() - clock
     clock = time.perf_counter()
     samples = project_samples(atlas, fit, points, normals,
-                              progress=lambda x: report(0.4 * x))
+                              progress=lambda x: report(0.4 * x), weights=weights)
     timings["project"] = time.perf_counter() - clock
     use = fit_samples(samples, spacing, side)
+    fit_weight = np.where(use, samples.weight, 0.0)
     residual = samples.s.copy()
     e = samples.error(np.zeros_like(residual))
     base_rms, base_max = float(np.sqrt(np.mean(e ** 2))), float(e.max(initial=0.0))
@@ -672,12 +687,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
-        free, weight = _solve_blocks(samples, residual, k, spans, use=use)
+        free, weight = _solve_blocks(samples, residual, k, spans, weights=fit_weight)
         independent.append(free)
         shared = _share_borders(free, weight, G)
-        c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared, use=use)
+        c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared,
+                             weights=fit_weight)
         fitted = residual - evaluate_fields(c, k, spans, samples.patch, samples.u, samples.v)
-        rms_fit = float(np.sqrt(np.mean(fitted[use] ** 2 + samples.t2[use])))
+        rms_fit = float(np.sqrt(np.average(fitted[use] ** 2 + samples.t2[use],
+                                           weights=samples.weight[use]))) if use.any() else 0.0
         step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
                                  float(np.abs(residual[use]).max(initial=0.0)), step_factor)
         q = np.rint(c / step).astype(np.int64)
