@@ -256,33 +256,3 @@ def test_mesh_samples_weigh_vertices_one_and_triangles_their_share():
     assert len(points) == len(normals) == len(weights) == 3 * V
     np.testing.assert_array_equal(weights[:V], 1.0)
     assert weights[V:].sum() == pytest.approx(atlas_detail.TRIANGLE_SHARE * V)
-
-
-def test_successive_rounding_leaves_less_than_plain_rounding(fitted):
-    """The field of :func:`quantise_refitted`'s integers fits the samples better than the
-    rounded least-squares field at the same step, and its border ring is the rounding of
-    the shared border (equal across patches)."""
-    fit, _, det = fitted
-    rng = np.random.default_rng(13)
-    unit = rng.normal(size=(6000, 3))
-    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
-    points = unit * (1.0 + bump(unit))[:, None]
-    samples = atlas_detail.project_samples(det.atlas, fit, points, unit)
-    model = atlas_detail.DrawnModel.of(det.atlas, samples, 9)
-    w = samples.weight
-    G = atlas_detail.shared_index(det.atlas, 6)
-    free, weight = atlas_detail._solve_blocks(samples, model.target, 0, 4, weights=w,
-                                              model=model)
-    shared = atlas_detail._share_borders(free, weight, G)
-    c, _ = atlas_detail._solve_blocks(samples, model.target, 0, 4, fixed=shared, weights=w,
-                                      model=model)
-    step = 0.5 * float(np.abs(c).max()) / 4
-    plain = np.rint(c / step).astype(np.int64)
-    better = atlas_detail.quantise_refitted(samples, model.target, 0, 4, c, step, w, model)
-    ring = atlas_detail.border_ring(6)
-    np.testing.assert_array_equal(better[:, ring], plain[:, ring])
-
-    def sse(q):
-        return float(np.sum((model.target - model.drawn(q * step, 0, 4, samples.patch)) ** 2))
-
-    assert sse(better) < 0.9 * sse(plain), (sse(better), sse(plain))

@@ -11,7 +11,8 @@ per side over the patch's own ``[0, 1]^2`` (``client_py.layers.level_knots``), c
 Samples. The field is fitted to the scan's *surface*: for a mesh, its vertices (weight 1)
 and area-weighted samples of its triangles (Turk, *Generating random points in triangles*,
 Graphics Gems 1990), as many as ``SAMPLES_PER_CELL`` per knot cell of the finest level,
-together weighing ``TRIANGLE_SHARE`` of the vertices; for a cloud, its points. Each sample ``x`` gets a foot point ``(f, u, v)`` on the base by
+together weighing ``TRIANGLE_SHARE`` of the vertices; for a cloud, its points. Each
+sample ``x`` gets a foot point ``(f, u, v)`` on the base by
 the base fit's own projection (:func:`.fit.assign_triangles`, :func:`.fit.triangle_to_quad`,
 then Newton point inversion with hops across borders, :func:`.fit.correct_parameters`), in
 chunks of ``CHUNK`` samples, and splits into its normal offset
@@ -25,8 +26,6 @@ block-diagonal solve per batch. The rows are not the field's collocation but the
 client draws at the level's resolution (two vertices per span), linearised at each sample
 (:class:`DrawnModel`: the sample's drawn triangle, its nodes' displacement directions,
 averaged on patch borders as the client averages them, and the base's chord).
-Quantisation rounds a class of coefficients at a time and re-solves the classes left
-(:func:`quantise_refitted`).
 
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
@@ -85,6 +84,7 @@ from client_py.bundle import ATLAS_MAX_RESOLUTION, atlas_level_resolution
 from client_py.format import CRC_SIZE, TILE_HEADER_SIZE, TILE_VERSION
 
 from ..detail import (
+    STEP_FACTOR,
     DetailSamples,
     collocation_matrix,
     level_tiles,
@@ -112,11 +112,6 @@ SAMPLES_PER_CELL = 6.0  # surface samples per knot cell of the finest level
 # 3.03e-5 at 0.05, 3.17e-5 at 0.2, 3.38e-5 at 0.5, 3.01e-5 vertices alone); the triangles
 # still hold the field where vertices are sparse, as the issue asks of a mesh.
 TRIANGLE_SHARE = 0.2
-# Quantisation step over the level's remaining RMS (``fitter.fitting.detail``'s factor is
-# 2): with :func:`quantise_refitted`, the bunny's level 0 is 2.87e-5 in 51.6 KB at 3
-# against 2.80e-5 in 56.7 KB at 2 with plain rounding, Lucy 0.548 in 55.8 KB against
-# 0.542 in 61.3 KB; at 4, 3.14e-5 in 47.1 KB and 0.575 in 51.0 KB.
-STEP_FACTOR = 3.0
 MAX_SAMPLES = 1_000_000  # ~100 bytes each while fitted; projection runs in chunks
 CHUNK = 100_000
 NEWTON_ITERATIONS = 8
@@ -131,7 +126,8 @@ MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against it
 # d . n exact, the fit moved such nodes far along d to fit the samples along n, and their
 # sideways motion, which the model does not see, drew flaps (Lucy level 0: drawn area
 # farther than 1 % of the diagonal 3.1 %, largest 6.0 %); at 0.8 it is 0.42 %, 1.98 %
-# (main: 0.48 %, 1.96 %) and the RMS 0.623 (exact 0.548, 1 everywhere 0.644).
+# (before the drawn model: 0.48 %, 1.96 %) and the RMS 0.623 (exact 0.548, 1 everywhere
+# 0.644; these three measured with a coarser quantisation step, 3 times the RMS).
 MIN_DIRECTION = 0.8
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 
@@ -405,7 +401,8 @@ class DrawnModel:
         ``y - sum_i w_i D(node_i)``,  ``y = s + (C(u, v) - sum_i beta_i C_i) . n``,
         ``w_i = beta_i max(d_i . n, MIN_DIRECTION)``
 
-    (``y - s``: the base's own chord; the floor: :data:`MIN_DIRECTION`). A level fitted to these rows fits what is drawn
+    (``y - s``: the base's own chord; the floor: :data:`MIN_DIRECTION`). A level fitted to
+    these rows fits what is drawn
     (two vertices per span: the quadratic field drawn as its chords; the border's averaged
     directions where the base creases between patches), not the smooth field the client
     never draws: on the bunny, the field's RMS over all points drawn at 17 nodes per
@@ -534,10 +531,11 @@ def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarra
 
 
 # ------------------------------------------------------------------ one level
-@functools.lru_cache(maxsize=32)
-def block_order(n: int, held: tuple[int, ...] = ()) -> np.ndarray:
-    """A fill-reducing order of one patch's unknowns (its ``(n, n)`` grid without the
-    ``held`` flat indices), shape ``(m,)``: SuperLU's minimum degree on ``M^T + M``
+@functools.lru_cache(maxsize=16)
+def block_order(n: int, interior: bool) -> np.ndarray:
+    """A fill-reducing order of one patch's unknowns (its ``(n, n)`` grid, or with
+    ``interior`` the ``(n - 2)^2`` inside the border ring), shape ``(m,)``: SuperLU's
+    minimum degree on ``M^T + M``
     (``MMD_AT_PLUS_A``, as ``fitter.fitting.detail.fit_level``) of the widest pattern a
     patch's normal matrix can have: every pair of coefficients within ``max(p + 1, 2)`` of
     each other along both ``u`` and ``v`` (a drawn triangle's three nodes' supports,
@@ -548,8 +546,8 @@ def block_order(n: int, held: tuple[int, ...] = ()) -> np.ndarray:
     band = sp.diags([np.ones(n - abs(k)) for k in range(-width, width + 1)],
                     list(range(-width, width + 1)))
     pattern = sp.kron(band, band).tocsr()
-    if held:
-        inside = np.setdiff1d(np.arange(n * n), np.asarray(held))
+    if interior:
+        inside = np.flatnonzero(~border_ring(n).reshape(-1))
         pattern = pattern[inside][:, inside]
     dominant = pattern + sp.diags(np.asarray(pattern.sum(axis=1)).ravel())  # SPD values
     lu = spla.splu(dominant.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
@@ -576,15 +574,15 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
 
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                   fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
-                  threads: int | None = None, model: DrawnModel | None = None,
-                  hold: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  threads: int | None = None, model: DrawnModel | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
 
-    With ``fixed (F, n, n)`` the coefficients ``hold (n, n)`` (default: the border ring)
-    hold those values and only the others are solved: ``M_II c_I = A_I^T r - M_IB c_B``
-    (the same quadratic, minimised with ``c_B`` given). ``model``: the rows are those of the drawn mesh (:class:`DrawnModel`), not
+    With ``fixed (F, n, n)`` the border ring holds those values and only the interior is
+    solved: ``M_II c_I = A_I^T r - M_IB c_B`` (the same quadratic, minimised with ``c_B``
+    given). ``model``: the rows are those of the drawn mesh (:class:`DrawnModel`), not
     the field's own collocation. ``weights (N,)``: each sample's weight ``w`` in the sum
     of squares,
     ``sum w (A c - r)^2`` (0: left out; default 1). ``mu_f`` is
@@ -599,10 +597,10 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     n = (spans << level) + DEGREE
     knots = np.array(layers.level_knots(DEGREE, spans, level))
     R = regularisation(n).tocsr()
-    held_mask = (border_ring(n) if hold is None else hold).reshape(-1)
-    free = np.flatnonzero(~held_mask) if fixed is not None else np.arange(n * n)
-    held = np.flatnonzero(held_mask)
-    order = block_order(n, tuple(int(x) for x in held) if fixed is not None else ())
+    ring = border_ring(n).reshape(-1)
+    free = np.flatnonzero(~ring) if fixed is not None else np.arange(n * n)
+    held = np.flatnonzero(ring)
+    order = block_order(n, fixed is not None)
     out = np.zeros((F, n, n))
     weight = np.zeros((F, n, n))
     # the typical patch's data weight per coefficient: a patch with few samples is held to
@@ -648,37 +646,6 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
         list(pool.map(one_batch, starts))  # list(): re-raise a batch's error here
     return out, weight
-
-
-def quantise_refitted(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
-                      coefficients: np.ndarray, step: float, weights: np.ndarray,
-                      model: DrawnModel | None = None) -> np.ndarray:
-    """The level's integers ``q (F, n, n)``, rounded a class at a time, each class's
-    rounding error taken up by the classes not yet rounded (successive quantisation).
-
-    Round the border ring (its shared slots hold one value: every patch rounds it alike),
-    then solve the rest again with it held (:func:`_solve_blocks` with ``hold``); then
-    the interior in the four classes of ``(a mod 2, b mod 2)``, re-solving the classes left
-    after each. Plain rounding leaves each coefficient's error, about ``step^2 / 12`` a
-    coefficient, in the field; here the next classes absorb what they can (their rows
-    overlap: a quadratic's support is three coefficients wide). On the bunny level 0 at
-    ``step_factor`` 3: RMS of all points 3.18e-5 in 49.2 KB with plain rounding, 2.87e-5
-    in 51.6 KB with this (Laurana: 0.164 in 37.0 KB, 0.152 in 41.1 KB); plain rounding at
-    step factor 2 gave 2.80e-5 in 56.7 KB (0.153 in 43.6 KB).
-    """
-    n = coefficients.shape[1]
-    a, b = np.indices((n, n))
-    ring = border_ring(n)
-    classes = [ring] + [~ring & (a % 2 == i) & (b % 2 == j)
-                        for i, j in ((0, 0), (1, 1), (0, 1), (1, 0))]
-    held = np.zeros((n, n), bool)
-    c = coefficients.copy()
-    for group in classes[:-1]:
-        held |= group
-        c[:, held] = np.rint(c[:, held] / step) * step
-        c, _ = _solve_blocks(samples, residual, level, spans, fixed=c, weights=weights,
-                             model=model, hold=held)
-    return np.rint(c / step).astype(np.int64)
 
 
 def _share_borders(coefficients: np.ndarray, weight: np.ndarray, G: np.ndarray) -> np.ndarray:
@@ -891,7 +858,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                            weights=samples.weight[use]))) if use.any() else 0.0
         step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
                                  float(np.abs(residual[use]).max(initial=0.0)), step_factor)
-        q = quantise_refitted(samples, residual, k, spans, c, step, fit_weight, model)
+        q = np.rint(c / step).astype(np.int64)
         fields.append(q * step)
         residual = residual - model.drawn(fields[-1], k, spans, samples.patch)
         e = np.sqrt(residual ** 2 + samples.t2)
