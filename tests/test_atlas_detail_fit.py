@@ -256,3 +256,17 @@ def test_mesh_samples_weigh_vertices_one_and_triangles_their_share():
     assert len(points) == len(normals) == len(weights) == 3 * V
     np.testing.assert_array_equal(weights[:V], 1.0)
     assert weights[V:].sum() == pytest.approx(atlas_detail.TRIANGLE_SHARE * V)
+
+
+def test_coefficients_are_bounded_by_twice_their_patchs_residual():
+    """Patch 0's fitted residuals reach 0.5 (an unfitted sample's 9 does not count):
+    its coefficients are clipped to +-1; patch 1 has no fitted sample: all 0."""
+    patch = np.array([0, 0, 0, 1])
+    samples = atlas_detail.AtlasSamples(patch, *(np.zeros(4) for _ in range(4)),
+                                        np.array([0, 3, 4]), *(np.zeros(4) for _ in range(2)),
+                                        np.ones(4))
+    residual = np.array([0.5, -0.2, 9.0, 3.0])
+    use = np.array([True, True, False, False])
+    c = np.array([[[3.0, -0.7], [-5.0, 1.0]], [[2.0, 0.0], [0.0, -1.0]]])
+    out = atlas_detail.bounded_by_residual(c, samples, residual, use)
+    np.testing.assert_array_equal(out, [[[1.0, -0.7], [-1.0, 1.0]], np.zeros((2, 2))])
