@@ -32,7 +32,8 @@ displacements (``client_py.atlas_mesh``); two independent fields would differ th
 leave a crease. A clamped field's value on a side depends only on its border row of
 coefficients (The NURBS Book §3.4, as the base's border curves), and neighbours' level-``k``
 fields have the same knots along their common side. So, as the base shares its border
-control points, every level shares its border coefficients: after the independent solve,
+control points, every level shares its border coefficients: after the independent solve
+(its coefficients clipped to twice the patch's largest residual, :func:`bounded_by_residual`),
 each border coefficient (corner: every patch at the layout vertex; edge row: both patches,
 read reversed where a side runs ``hi -> lo``) is set to the mean of the patches' values
 weighted by their data (the diagonal of ``A_f^T A_f`` there), and each patch's interior is
