@@ -428,21 +428,36 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray | None, *, depth: in
     inside = ~far[faces].any(axis=1)
     trimmed = int(np.sum(~inside))
     faces = faces[inside]
+    vertices, faces, islands, island_faces = without_islands(vertices, faces)
+    if len(faces) == 0:
+        raise SurfaceError(f"{name}: nothing of the Poisson surface is within "
+                           f"{trim_spacings} point spacings of the points")
+    repairs = {"cloud_points_used": int(len(pts)), "normals_estimated": estimated,
+               "poisson_depth": depth, "median_spacing": spacing,
+               "faces_trimmed": trimmed, "islands_dropped": islands,
+               "island_faces_dropped": island_faces}
+    return vertices, faces, repairs
+
+
+def without_islands(vertices: np.ndarray, faces: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The surface without its small pieces (under ``MIN_ISLAND_SHARE`` of the faces, or
+    under 4 faces) and the vertices no face uses.
+
+    Returns
+    -------
+    vertices, faces, islands, island_faces
+        The kept surface (vertices renumbered), the count of dropped pieces and of their
+        faces.
+    """
     count, labels = face_pieces(faces, len(vertices))
     sizes = np.bincount(labels, minlength=count)
     big = sizes >= max(4, MIN_ISLAND_SHARE * len(faces))
     faces = faces[big[labels]]
-    if len(faces) == 0:
-        raise SurfaceError(f"{name}: nothing of the Poisson surface is within "
-                           f"{trim_spacings} point spacings of the points")
     used = np.unique(faces)
     remap = np.full(len(vertices), -1, np.int64)
     remap[used] = np.arange(len(used))
-    repairs = {"cloud_points_used": int(len(pts)), "normals_estimated": estimated,
-               "poisson_depth": depth, "median_spacing": spacing,
-               "faces_trimmed": trimmed, "islands_dropped": int(np.sum(~big)),
-               "island_faces_dropped": int(sizes[~big].sum())}
-    return vertices[used], remap[faces], repairs
+    return vertices[used], remap[faces], int(np.sum(~big)), int(sizes[~big].sum())
 
 
 def scan_surface(scan: Scan, *, poisson_depth: int = 8, trim_spacings: float = 2.0,
@@ -505,6 +520,22 @@ def handle_count(vertices: np.ndarray, faces: np.ndarray) -> int:
     return int(np.sum(np.maximum(0, (2 - chi - loops) // 2)))
 
 
+def stand_in_far(vertices: np.ndarray, faces: np.ndarray, near: np.ndarray, reach: float
+                 ) -> np.ndarray:
+    """The triangles ``faces`` of ``vertices`` that reach farther than ``reach`` from every
+    point of ``near`` (a surface's vertices), shape ``(M,)`` bool.
+
+    Each triangle is probed at seven points: its corners, its edges' midpoints and its
+    centroid. A coarse triangle whose corners all lie on the surface can still span a
+    cavity the scan never saw (its middle hangs in the air); its probes find it.
+    """
+    tri = np.asarray(vertices, np.float64)[faces]
+    probes = np.concatenate([tri, 0.5 * (tri + tri[:, [1, 2, 0]]), tri.mean(axis=1)[:, None]],
+                            axis=1)
+    distance = cKDTree(near).query(probes.reshape(-1, 3))[0].reshape(len(faces), 7)
+    return np.any(distance > reach, axis=1)
+
+
 def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
                     trim: float = LAYOUT_TRIM, samples: int = 100_000, seed: int = 0
                     ) -> ScanSurface:
@@ -541,15 +572,16 @@ def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
     faces = np.asarray(mesh.triangles, np.int64).copy()
     if len(faces) == 0:
         raise SurfaceError("the layout's stand-in surface (Poisson of the surface) is empty")
-    far = cKDTree(surface.vertices).query(vertices)[0] > trim * surface.diagonal
-    faces = faces[~far[faces].any(axis=1)]
+    far = stand_in_far(vertices, faces, surface.vertices, trim * surface.diagonal)
+    faces = faces[~far]
     if len(faces) == 0:
         raise SurfaceError("nothing of the layout's stand-in surface lies near the surface")
-    count, labels = face_pieces(faces, len(vertices))
-    sizes = np.bincount(labels, minlength=count)
-    faces = faces[(sizes >= max(4, MIN_ISLAND_SHARE * len(faces)))[labels]]
+    vertices, faces, _, _ = without_islands(vertices, faces)
     vertices, faces, repairs = clean_mesh(vertices, faces, "the layout's stand-in surface")
+    # MeshLab's splits of non-manifold vertices can cut a sliver of two triangles off a
+    # piece; decimated into one layout triangle, its patches quantise to a point
+    vertices, faces, _, _ = without_islands(vertices, faces)
     pieces, _ = face_pieces(faces, len(vertices))
-    repairs = {**repairs, "poisson_depth": depth, "trimmed_vertices": int(far.sum()),
+    repairs = {**repairs, "poisson_depth": depth, "trimmed_faces": int(far.sum()),
                "handles": handle_count(vertices, faces)}
     return ScanSurface(vertices, faces, "poisson", pieces, repairs)
