@@ -520,20 +520,23 @@ def handle_count(vertices: np.ndarray, faces: np.ndarray) -> int:
     return int(np.sum(np.maximum(0, (2 - chi - loops) // 2)))
 
 
-def stand_in_far(vertices: np.ndarray, faces: np.ndarray, near: np.ndarray, reach: float
+def stand_in_far(vertices: np.ndarray, faces: np.ndarray, surface: ScanSurface, reach: float
                  ) -> np.ndarray:
-    """The triangles ``faces`` of ``vertices`` that reach farther than ``reach`` from every
-    point of ``near`` (a surface's vertices), shape ``(M,)`` bool.
+    """The triangles ``faces`` of ``vertices`` that reach farther than ``reach`` from the
+    triangles of ``surface``, shape ``(M,)`` bool.
 
     Each triangle is probed at seven points: its corners, its edges' midpoints and its
-    centroid. A coarse triangle whose corners all lie on the surface can still span a
-    cavity the scan never saw (its middle hangs in the air); its probes find it.
+    centroid (their exact distances to the surface: ``measure.point_mesh_distance``). A
+    coarse triangle whose corners all lie on the surface can still span a cavity the scan
+    never saw (its middle hangs in the air); its probes find it.
     """
+    from .measure import point_mesh_distance
+
     tri = np.asarray(vertices, np.float64)[faces]
     probes = np.concatenate([tri, 0.5 * (tri + tri[:, [1, 2, 0]]), tri.mean(axis=1)[:, None]],
                             axis=1)
-    distance = cKDTree(near).query(probes.reshape(-1, 3))[0].reshape(len(faces), 7)
-    return np.any(distance > reach, axis=1)
+    distance = point_mesh_distance(probes.reshape(-1, 3), surface.vertices, surface.faces)
+    return np.any(distance.reshape(len(faces), 7) > reach, axis=1)
 
 
 def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
@@ -572,7 +575,7 @@ def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
     faces = np.asarray(mesh.triangles, np.int64).copy()
     if len(faces) == 0:
         raise SurfaceError("the layout's stand-in surface (Poisson of the surface) is empty")
-    far = stand_in_far(vertices, faces, surface.vertices, trim * surface.diagonal)
+    far = stand_in_far(vertices, faces, surface, trim * surface.diagonal)
     faces = faces[~far]
     if len(faces) == 0:
         raise SurfaceError("nothing of the layout's stand-in surface lies near the surface")
