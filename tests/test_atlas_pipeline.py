@@ -232,30 +232,6 @@ def test_the_layout_stand_in_closes_narrow_tunnels_and_stays_on_the_surface():
     assert len(layout.quads) == 3 * layout.n_triangles >= 3 * 40
 
 
-def test_a_stand_in_triangle_over_a_gap_is_found_by_its_middle():
-    from fitter.fitting.atlas.surface import ScanSurface, stand_in_far
-
-    # two flat strips x in [0, 1] and [2, 3] (y in [0, 1]) with a gap between them
-    grid = np.linspace(0.0, 1.0, 11)
-    strip = np.array([[x, y, 0.0] for y in grid for x in grid])
-    grid_faces = np.array([[j * 11 + i, j * 11 + i + 1, (j + 1) * 11 + i + 1]
-                           for j in range(10) for i in range(10)]
-                          + [[j * 11 + i, (j + 1) * 11 + i + 1, (j + 1) * 11 + i]
-                             for j in range(10) for i in range(10)])
-    vertices = np.vstack([strip, strip + [2.0, 0.0, 0.0]])
-    faces = np.vstack([grid_faces, grid_faces + len(strip)])
-    surface = ScanSurface(vertices, faces, "mesh", 2)
-    # corners on the strips: a triangle bridging the gap, one lying on a strip, one lifted
-    tri = np.array([[0.9, 0.2, 0], [2.1, 0.2, 0], [2.1, 0.8, 0],  # bridges x 1..2
-                    [0.1, 0.1, 0], [0.8, 0.1, 0], [0.1, 0.9, 0],  # on the first strip
-                    [2.2, 0.2, 0], [2.8, 0.2, 0], [2.5, 0.5, 0.6]])  # a corner 0.6 above
-    far = stand_in_far(tri, np.arange(9).reshape(3, 3), surface, reach=0.3)
-    # independent reference: the gap is 1 wide, so the bridge's edge midpoint (1.5, 0.2)
-    # is 0.5 from both strips while its corners are 0.1 away
-    assert far.tolist() == [True, False, True]
-    assert not stand_in_far(tri, np.arange(9).reshape(3, 3), surface, reach=0.61).any()
-
-
 def test_small_pieces_are_dropped_with_their_vertices():
     from fitter.fitting.atlas.surface import MIN_ISLAND_SHARE, without_islands
 
