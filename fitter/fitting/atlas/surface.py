@@ -31,7 +31,7 @@ from ..io.thin import thin_to_count
 MIN_CLOUD_POINTS = 100
 MIN_ISLAND_SHARE = 0.002
 LAYOUT_POISSON_DEPTH = 6  # the layout stand-in's octree (layout_stand_in)
-LAYOUT_TRIM = 0.03  # ... trimmed where it reaches this share of the diagonal off the surface
+LAYOUT_TRIM = 0.03  # ... trimmed farther than this share of the diagonal from the surface
 MAX_LAYOUT_HANDLES = 8  # more handles than this: the layout is decimated from the stand-in
 NORMAL_NEIGHBOURS = 20  # points of a cloud's local PCA normal
 ORIENT_NEIGHBOURS = 10  # neighbours of a point in the orientation graph (orient_normals)
