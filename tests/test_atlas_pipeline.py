@@ -279,6 +279,21 @@ def test_the_layout_stand_in_closes_narrow_tunnels_and_stays_on_the_surface():
     assert len(layout.quads) == 3 * layout.n_triangles >= 3 * 40
 
 
+def test_small_pieces_are_dropped_with_their_vertices():
+    from fitter.fitting.atlas.surface import MIN_ISLAND_SHARE, without_islands
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)  # 1280 faces
+    sliver = np.array([[5.0, 0, 0], [6, 0, 0], [6, 1, 0], [5, 1, 0]])
+    vertices = np.vstack([sphere.vertices, sliver])
+    n = len(sphere.vertices)
+    faces = np.vstack([sphere.faces, [[n, n + 1, n + 2], [n, n + 2, n + 3]]])
+    assert 2 < MIN_ISLAND_SHARE * len(faces) < 4  # the 4-face floor decides
+    kept_vertices, kept_faces, islands, island_faces = without_islands(vertices, faces)
+    assert (islands, island_faces) == (1, 2)
+    assert len(kept_vertices) == n and len(kept_faces) == len(sphere.faces)
+    assert np.array_equal(kept_vertices[kept_faces], sphere.vertices[sphere.faces])
+
+
 def test_a_surface_with_many_handles_is_laid_out_on_its_stand_in():
     from fitter.fitting.atlas.pipeline import fit_checked_base
     from fitter.fitting.atlas.surface import MAX_LAYOUT_HANDLES, scan_surface
