@@ -28,8 +28,10 @@ from fitter.fitting.atlas.layout import (
     bilinear_atlas,
     decimate,
     euler_characteristics,
+    flip_edges,
     thickness,
     thin_part_weights,
+    triangle_fidelity,
 )
 from fitter.fitting.atlas.surface import clean_mesh, manifold_problems
 from fitter.fitting.io.scan import Scan, make_scan, new_source
@@ -364,3 +366,58 @@ def test_open_border_curves_follow_the_scans_cut_rim():
     assert gap.max() < 0.02
     with pytest.raises(ValueError, match="border must be finite points"):
         fit_layout(layout, points, normals, rounds=1, border=rim[:, :2])
+
+
+def _valley_surface(n: int = 24):
+    """``z = |x|`` over ``[-1.5, 1.5]²``: a straight valley along ``y``, its crease on grid
+    lines, triangles counter-clockwise seen from ``+z``."""
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    t = np.linspace(-1.5, 1.5, n + 1)
+    x, y = np.meshgrid(t, t, indexing="ij")
+    vertices = np.stack([x.ravel(), y.ravel(), np.abs(x.ravel())], axis=1)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    p = (i * (n + 1) + j).ravel()
+    faces = np.concatenate([np.stack([p, p + n + 1, p + n + 2], axis=1),
+                            np.stack([p, p + n + 2, p + 1], axis=1)])
+    return ScanSurface(vertices, faces, "mesh", 1, {})
+
+
+def test_a_layout_edge_bridging_a_valley_is_flipped_into_it():
+    surface = _valley_surface()
+    # a = (0, -1) and b = (0, 1) lie on the crease, c and d on the walls' tops; the edge
+    # (c, d) bridges the valley 1 above its floor, the other diagonal (a, b) follows it
+    vertices = np.array([[0, -1, 0], [0, 1, 0], [-1, 0, 1], [1, 0, 1]], np.float64)
+    bridged = np.array([[2, 0, 3], [3, 1, 2]])
+    energy, away = triangle_fidelity(surface, vertices, bridged)
+    assert energy.sum() > 0.05 and away.sum() == 0  # far from the floor, facing up
+    triangles, flips = flip_edges(surface, vertices, bridged)
+    assert flips == 1
+    assert {frozenset(t) for t in triangles.tolist()} == {frozenset((0, 1, 2)),
+                                                         frozenset((0, 1, 3))}
+    corners = vertices[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert np.all(normals[:, 2] > 0)  # still counter-clockwise seen from above
+    np.testing.assert_allclose(triangle_fidelity(surface, vertices, triangles)[0], 0,
+                               atol=1e-12)  # each new triangle lies in a wall's plane
+    # a layout already on the surface is left alone
+    assert flip_edges(surface, vertices, triangles)[1] == 0
+
+
+def test_edge_flips_keep_a_decimated_layout_an_oriented_manifold_of_its_topology():
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.35, major_sections=64,
+                                   minor_sections=32)
+    v = torus.vertices
+    torus.vertices = v * (1 + 0.06 * np.sin(7 * v[:, :1]) * np.cos(5 * v[:, 1:2]))
+    surface = scan_surface(_mesh_scan(torus.vertices, torus.faces, "wavy torus"))
+    vertices, triangles = decimate(surface, 120)
+    before = triangle_fidelity(surface, vertices, triangles)
+    flipped, flips = flip_edges(surface, vertices, triangles)
+    after = triangle_fidelity(surface, vertices, flipped)
+    assert flips > 0 and len(flipped) == len(triangles)
+    problems = manifold_problems(flipped)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    assert euler_characteristics(vertices, flipped) == euler_characteristics(
+        vertices, triangles) == [0]
+    assert after[1].sum() <= before[1].sum()  # no more area facing away
+    assert after[0].sum() < before[0].sum()
