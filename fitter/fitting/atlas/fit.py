@@ -492,6 +492,8 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
     target = c + m * np.einsum("kc,kc->k", q - c, m)[:, None]
     far = np.linalg.norm(q - c, axis=1) > REVERSE_REACH * float(
         np.linalg.norm(np.ptp(vertices, axis=0)))
+    if not far.any():
+        return sp.csr_matrix((0, len(points))), np.empty((0, 3))
     return design_matrix(table, len(points), degree, spans, f[far], u[far], v[far]), target[far]
 
 
@@ -624,8 +626,9 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
         if scan_mesh is not None and reverse_weight > 0 and round_index > 0:
             A_rev, y_rev = reverse_rows(table, current, degree, spans, scan_mesh)
             weight = reverse_weight * (len(points) / len(table)) / REVERSE_SAMPLES ** 2
-            A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
-            targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
+            if len(y_rev):
+                A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
+                targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
         current = solve_control_points(A, targets, L, prior, smoothing, anchor, len(points))
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - clock
         clock = time.perf_counter()
