@@ -108,6 +108,7 @@ MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 MU_FLOOR = 0.25
 OFFSET_LIMIT = 0.1  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy)
+FIELD_LIMIT = 2 * OFFSET_LIMIT  # largest coefficient of a level, in median patch sides
 MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against its own)
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 
@@ -680,7 +681,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         # their coefficients' range, The NURBS Book P3.4): where a patch has few samples in
         # one corner, the smoothing carries their slope across the patch and, unclamped,
         # drew 8 mm spikes on the bunny (3.2 % of the diagonal) from 0.7 mm offsets
-        c = np.clip(c, -OFFSET_LIMIT * side, OFFSET_LIMIT * side)
+        c = np.clip(c, -FIELD_LIMIT * side, FIELD_LIMIT * side)
         fitted = residual - evaluate_fields(c, k, spans, samples.patch, samples.u, samples.v)
         rms_fit = float(np.sqrt(np.mean(fitted[use] ** 2 + samples.t2[use])))
         step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),

@@ -206,6 +206,7 @@ FLIP_SAMPLES = 4  # barycentric grid level of a layout triangle's samples (15 a 
 FLIP_PASSES = 6  # rounds of edge flips at most
 FLIP_DISTANCE_GAIN = 0.7  # a flip that keeps the facing-away area must cut the energy to this
 FLIP_DISTANCE_SLACK = 1.5  # one that lessens it may raise the energy up to this factor
+FLIP_AWAY_REACH = 0.005  # a sample faces away when also this share of the diagonal away
 
 
 def triangle_fidelity(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
@@ -215,8 +216,11 @@ def triangle_fidelity(surface: ScanSurface, vertices: np.ndarray, triangles: np.
     On a barycentric grid of level :data:`FLIP_SAMPLES` over triangle ``t`` (area ``A_t``,
     unit normal ``n_t``), with ``d_s`` the distance of sample ``s`` to the surface and
     ``m_s`` the normal of the surface triangle closest to it (``measure.closest_points_on_mesh``):
-    ``energy_t = A_t mean_s d_s²`` and ``away_t = A_t mean_s [n_t · m_s < 0]``, the area
-    of the triangle facing against the surface under it.
+    ``energy_t = A_t mean_s d_s²`` and ``away_t = A_t mean_s [n_t · m_s < 0, d_s > ρ]``,
+    the area of the triangle facing against the surface under it and farther from it than
+    ``ρ``, :data:`FLIP_AWAY_REACH` of the diagonal (where a thin sheet folds over at its
+    rim, the Bali mask's, a triangle near the front can be nearest to the back: counting
+    those made flips that doubled the mask's RMS).
     """
     from .measure import closest_points_on_mesh
 
@@ -232,7 +236,8 @@ def triangle_fidelity(surface: ScanSurface, vertices: np.ndarray, triangles: np.
     facing = np.einsum("kc,kc->k", surface.face_normals[nearest],
                        np.repeat(normal, len(bary), axis=0))
     energy = area * (d ** 2).reshape(len(tri), -1).mean(axis=1)
-    away = area * (facing < 0).reshape(len(tri), -1).mean(axis=1)
+    far = d > FLIP_AWAY_REACH * surface.diagonal
+    away = area * ((facing < 0) & far).reshape(len(tri), -1).mean(axis=1)
     return energy, away
 
 
