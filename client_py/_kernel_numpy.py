@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from array import array
 from collections.abc import Sequence
+from functools import lru_cache
 
 import numpy as np
 
@@ -33,10 +34,21 @@ def _basis_bands(degree: int, knots, n_ctrl: int, params: Sequence[float]):
 
     Row ``k`` of the bands holds ``N_{s_t + k}(t)`` for each parameter ``t``
     with window start ``s_t = span(t) - p``: the non-zero diagonals of the
-    basis matrix ``B[t, a] = N_a(t)``.
+    basis matrix ``B[t, a] = N_a(t)``. Kept per ``(p, knots, n, params)``
+    (:func:`_cached_bands`): every patch of an atlas sums tiles on the same
+    grid, so the same few dozen bands recur thousands of times.
     """
+    return _cached_bands(degree, tuple(knots), n_ctrl, tuple(params))
+
+
+@lru_cache(maxsize=512)
+def _cached_bands(degree: int, knots: tuple, n_ctrl: int, params: tuple):
+    """:func:`_basis_bands` of hashable arguments; the arrays are read-only (shared)."""
     spans, values, derivs = basis_arrays(degree, knots, n_ctrl, params)
-    return spans.astype(np.intp) - degree, values.T.copy(), derivs.T.copy()
+    bands = spans.astype(np.intp) - degree, values.T.copy(), derivs.T.copy()
+    for band in bands:
+        band.flags.writeable = False
+    return bands
 
 
 def _blend(bands, starts, rows, axis: int) -> np.ndarray:
@@ -248,12 +260,30 @@ def atlas_patch_grids(comps: list[list[float]], index: list[list[list[int]]], ra
                       degree: int, n: int, spans_t: Sequence[int], N: Sequence[Sequence[float]],
                       dN: Sequence[Sequence[float]], tol: float) -> list[tuple[list, list, list]]:
     """Points, unit normals and degenerate-normal vertices of atlas patches on an ``r × r``
-    grid: ``S^w = B P^w B^T`` with the dense ``(r, n)`` basis matrices ``B``, ``B'`` built from
-    the shared basis table (``spans_t``, ``N``, ``dN``), ``P^w`` the homogeneous control
-    points ``comps`` (component-major) gathered by each patch's ``index`` ``(n, n)``.
+    grid (:func:`atlas_patch_arrays`), per patch ``(S flat (r² 3), n flat (r² 3), [k of
+    vertices without a normal])`` as lists (``client_py.atlas_mesh``'s evaluator contract).
+    """
+    S, unit, bad = atlas_patch_arrays(comps, index, rational, degree, n, spans_t, N, dN, tol)
+    return [(S[k].reshape(-1).tolist(), unit[k].reshape(-1).tolist(), bad[k])
+            for k in range(len(index))]
 
-    Returns, per patch, ``(S flat (r² 3), n flat (r² 3), [k of vertices without a normal])``
-    (``client_py.atlas_mesh``'s evaluator contract).
+
+#: patches evaluated together by :func:`atlas_patch_arrays`: their ``(F, r, r, 4)``
+#: temporaries stay a few MB at the finest resolution, not a GB for a thousand patches
+PATCHES_PER_BLOCK = 32
+
+
+def atlas_patch_arrays(comps: list[list[float]], index: list[list[list[int]]], rational: bool,
+                       degree: int, n: int, spans_t: Sequence[int], N: Sequence[Sequence[float]],
+                       dN: Sequence[Sequence[float]], tol: float
+                       ) -> tuple[np.ndarray, np.ndarray, list[list[int]]]:
+    """Points ``S (F, r, r, 3)``, unit normals ``(F, r, r, 3)`` and, per patch, the vertices
+    ``k = i r + j`` without a normal (``|C_u x C_v| <= tol``, normal left 0) of ``F`` atlas
+    patches on an ``r × r`` grid: ``S^w = B P^w B^T`` with the dense ``(r, n)`` basis
+    matrices ``B``, ``B'`` built from the shared basis table (``spans_t``, ``N``, ``dN``),
+    ``P^w`` the homogeneous control points ``comps`` (component-major) gathered by each
+    patch's ``index`` ``(n, n)``; in blocks of :data:`PATCHES_PER_BLOCK` patches, each
+    evaluated alike whatever else is in its block.
     """
     r, d = len(spans_t), degree
     B, dB = np.zeros((r, n)), np.zeros((r, n))
@@ -261,24 +291,185 @@ def atlas_patch_grids(comps: list[list[float]], index: list[list[list[int]]], ra
         B[k, span - d : span + 1] = N[k]
         dB[k, span - d : span + 1] = dN[k]
     H = np.asarray(comps, dtype=float).T  # (control points, C)
-    P = H[np.asarray(index, dtype=np.intp)]  # (F, n, n, C), P[f, a, b] = P^w_ab
-    rows = np.einsum("jb,fabc->fajc", B, P)
-    drows = np.einsum("jb,fabc->fajc", dB, P)
-    A = np.einsum("ia,fajc->fijc", B, rows)
-    Au = np.einsum("ia,fajc->fijc", dB, rows)
-    Av = np.einsum("ia,fajc->fijc", B, drows)
-    if not rational:
-        S, Su, Sv = A, Au, Av
-        small = tol
-    else:
-        w = A[..., 3:]
-        S = A[..., :3] / w
-        Su = Au[..., :3] - Au[..., 3:] * S  # (A_u - w_u S) / w: the 1/w the unit normal drops
-        Sv = Av[..., :3] - Av[..., 3:] * S
-        small = tol * w[..., 0] ** 2
-    cross = np.cross(Su, Sv)
-    length = np.sqrt((cross**2).sum(axis=-1))
-    ok = length > small
-    unit = np.where(ok[..., None], cross / np.where(ok, length, 1.0)[..., None], 0.0)
-    return [(S[k].reshape(-1).tolist(), unit[k].reshape(-1).tolist(),
-             np.flatnonzero(~ok[k].reshape(-1)).tolist()) for k in range(len(index))]
+    gather = np.asarray(index, dtype=np.intp).reshape(len(index), n, n)
+    points = np.empty((len(index), r, r, 3))
+    normals = np.empty((len(index), r, r, 3))
+    bad: list[list[int]] = []
+    for first in range(0, len(index), PATCHES_PER_BLOCK):
+        block = slice(first, first + PATCHES_PER_BLOCK)
+        P = H[gather[block]]  # (F, n, n, C), P[f, a, b] = P^w_ab
+        rows = np.einsum("jb,fabc->fajc", B, P)
+        drows = np.einsum("jb,fabc->fajc", dB, P)
+        A = np.einsum("ia,fajc->fijc", B, rows)
+        Au = np.einsum("ia,fajc->fijc", dB, rows)
+        Av = np.einsum("ia,fajc->fijc", B, drows)
+        if not rational:
+            S, Su, Sv = A, Au, Av
+            small = tol
+        else:
+            w = A[..., 3:]
+            S = A[..., :3] / w
+            Su = Au[..., :3] - Au[..., 3:] * S  # (A_u - w_u S) / w: the 1/w the unit normal drops
+            Sv = Av[..., :3] - Av[..., 3:] * S
+            small = tol * w[..., 0] ** 2
+        cross = np.cross(Su, Sv)
+        length = np.sqrt((cross**2).sum(axis=-1))
+        ok = length > small
+        points[block] = S
+        normals[block] = np.where(ok[..., None], cross / np.where(ok, length, 1.0)[..., None],
+                                  0.0)
+        bad += [np.flatnonzero(~row).tolist() for row in ok.reshape(len(ok), -1)]
+    return points, normals, bad
+
+
+def _unit_rows(x: np.ndarray) -> np.ndarray:
+    """Each row of ``x (m, 3)`` over its length, ``(0, 0, 0)`` where that is 0:
+    ``client_py.atlas_mesh._unit``'s arithmetic, operation for operation."""
+    length = np.sqrt(x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2])
+    zero = length == 0.0
+    out = x / np.where(zero, 1.0, length)[:, None]
+    out[zero] = 0.0
+    return out
+
+
+def _difference_normals(X: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """:func:`displace_grid`'s normals of whole grids ``X (F, r, r, 3)`` with no
+    displacement, ``base (F, r, r, 3)`` the normals kept at poles: the same arithmetic on
+    every patch at once, as float32."""
+    P = np.pad(X + 0.0 * base, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")
+    ax, ay, az = np.moveaxis(P[:, 2:, 1:-1] - P[:, :-2, 1:-1], -1, 0)
+    bx, by, bz = np.moveaxis(P[:, 1:-1, 2:] - P[:, 1:-1, :-2], -1, 0)
+    m = np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+    length = np.sqrt(m[..., 0] * m[..., 0] + m[..., 1] * m[..., 1] + m[..., 2] * m[..., 2])
+    ok = length > 0.0
+    return np.where(ok[..., None], m / np.where(ok, length, 1.0)[..., None],
+                    base).astype(np.float32)
+
+
+def weld_atlas(plan) -> tuple[array, array, array, array, array]:
+    """``client_py.atlas_mesh``'s welded mesh of a whole atlas from its weld plan
+    (``atlas_mesh._WeldPlan``: the layout's vertex numbering, the evaluated grids and
+    displacements per resolution, the seams' in-between vertices and the fans), with the
+    pure-Python weld's arithmetic operation for operation and its sums in its order (one
+    sequential ``bincount`` over the border samples in patch order), so that both give
+    the same bytes. Returns float32 positions, normals and ``(u, v)``, then the triangles
+    and the vertices' patches, as ``array``.
+    """
+    count, n_border = plan.count, plan.n_border
+    positions = np.zeros((count, 3))
+    normals = np.zeros((count, 3))
+    uvs = np.zeros((count, 2))
+    owners = np.zeros(count, dtype=np.uint32)
+    samples = []  # per group: the border samples' patch, node, flag, point, normal, shift, u, v
+    ids_of = []  # per group: (F, r, r) global vertex of every sample
+    bases = []  # per group: the unit normals of its grids, with the limit normal at poles
+    for group in plan.groups:
+        r, count_g = group.r, len(group.patches)
+        points, base, poles = group.grid
+        base = base.copy() if any(poles) else base
+        for g, row in enumerate(poles):
+            for k, normal in zip(row, group.pole_normals[g], strict=True):
+                base[g, k // r, k % r] = normal
+        bases.append(base)
+        params = np.asarray(group.params, dtype=float)
+        sides = np.frombuffer(group.sides, dtype=np.uint32).astype(np.intp).reshape(count_g, 4, r)
+        ids = np.empty((count_g, r, r), dtype=np.intp)
+        inner = (r - 2) ** 2
+        ids[:, 1:-1, 1:-1] = (np.asarray(group.face_base, dtype=np.intp)[:, None]
+                              + np.arange(inner)).reshape(count_g, r - 2, r - 2)
+        ids[:, :, 0], ids[:, -1, :] = sides[:, 0], sides[:, 1]  # SIDES order: v = 0, u = 1,
+        ids[:, :, -1], ids[:, 0, :] = sides[:, 2], sides[:, 3]  # v = 1, u = 0
+        ids_of.append(ids)
+        shifted = np.array([d is not None for d in group.displacements])
+        D = np.zeros((count_g, r, r))
+        for g, disp in enumerate(group.displacements):
+            if disp is not None:
+                D[g] = np.frombuffer(disp, dtype=float).reshape(r, r)
+        # interior vertices: each patch's own block, displaced along its normal
+        if inner:
+            at = ids[:, 1:-1, 1:-1].reshape(-1)
+            P, n = points[:, 1:-1, 1:-1], base[:, 1:-1, 1:-1]
+            P = np.where(shifted[:, None, None, None], P + D[:, 1:-1, 1:-1, None] * n, P)
+            positions[at], normals[at] = P.reshape(-1, 3), n.reshape(-1, 3)
+            uvs[at, 0] = np.repeat(params[1:-1], r - 2)[None, :].repeat(count_g, 0).ravel()
+            uvs[at, 1] = np.tile(params[1:-1], (count_g, r - 2)).ravel()
+            owners[at] = np.repeat(np.asarray(group.patches, dtype=np.uint32), inner)
+        slots = np.asarray(group.border_slots, dtype=np.intp)
+        pick = np.asarray(group.border_picks, dtype=np.intp)
+        flags = np.frombuffer(group.evaluated, dtype=np.uint8).reshape(count_g, 4 * r)
+        samples.append((np.repeat(np.asarray(group.patches, dtype=np.int64), len(slots)),
+                        sides.reshape(count_g, 4 * r)[:, pick].reshape(-1),
+                        flags[:, pick].reshape(-1).astype(bool),
+                        points.reshape(count_g, r * r, 3)[:, slots].reshape(-1, 3),
+                        base.reshape(count_g, r * r, 3)[:, slots].reshape(-1, 3),
+                        D.reshape(count_g, r * r)[:, slots].reshape(-1),
+                        np.tile(params[slots // r], count_g), np.tile(params[slots % r], count_g)))
+    # border samples in the pure-Python weld's order: patch by patch, then along its border
+    patch_of, node, evaluated, point, normal, shift, u, v = (np.concatenate(x)
+                                                               for x in zip(*samples, strict=True))
+    order = np.argsort(patch_of, kind="stable")
+    patch_of, node, evaluated, point, normal, shift, u, v = (
+        x[order] for x in (patch_of, node, evaluated, point, normal, shift, u, v))
+    shading = np.stack([np.bincount(node, normal[:, c], n_border) for c in range(3)], 1)
+    on, at = node[evaluated], evaluated
+    direction = np.stack([np.bincount(on, normal[at, c], n_border) for c in range(3)], 1)
+    shifts = np.bincount(on, shift[at], n_border)
+    samplers = np.bincount(on, minlength=n_border)
+    nodes, first = np.unique(node, return_index=True)  # each vertex's first sampler
+    if len(nodes) != n_border:
+        raise AssertionError("a border vertex no patch samples")
+    owners[:n_border] = patch_of[first]
+    uvs[:n_border, 0], uvs[:n_border, 1] = u[first], v[first]
+    sampled = evaluated[first]
+    moved = sampled & (shifts != 0.0)
+    place = point[first]
+    place[moved] = place[moved] + (shifts[moved] / samplers[moved])[:, None] \
+        * _unit_rows(direction[moved])
+    positions[:n_border][sampled] = place[sampled]
+    between, a, b, s = (np.asarray(x) for x in plan.between)
+    if len(between):  # on the segment of their coarse side's evaluated neighbours
+        s = s.astype(float)[:, None]
+        positions[between] = (1 - s) * positions[a] + s * positions[b]
+    if plan.by_differences:  # normals of the displaced, welded surface
+        shading = np.zeros((n_border, 3))
+        shaded_samples = []
+        for group, ids, base in zip(plan.groups, ids_of, bases, strict=True):
+            r, count_g = group.r, len(group.patches)
+            slots = np.asarray(group.border_slots, dtype=np.intp)
+            shaded = np.empty((count_g, r * r, 3), dtype=np.float32)
+            for first_patch in range(0, count_g, PATCHES_PER_BLOCK):
+                block = slice(first_patch, first_patch + PATCHES_PER_BLOCK)
+                shaded[block] = _difference_normals(positions[ids[block]], base[block]
+                                                    ).reshape(-1, r * r, 3)
+            normals[ids[:, 1:-1, 1:-1].reshape(-1)] = shaded.reshape(count_g, r, r, 3)[
+                :, 1:-1, 1:-1].reshape(-1, 3)
+            shaded_samples.append(shaded[:, slots].reshape(-1, 3).astype(float))
+        shaded = np.concatenate(shaded_samples)[order]
+        shading = np.stack([np.bincount(node, shaded[:, c], n_border) for c in range(3)], 1)
+    normals[:n_border] = _unit_rows(shading)
+    # triangles, patch by patch: whole cells, or the fans given at resolution changes
+    triangles = {}
+    for group, ids in zip(plan.groups, ids_of, strict=True):
+        r = group.r
+        cells = np.frombuffer(cell_indices(r, r), dtype=np.uint32).astype(np.intp)
+        flat = ids.reshape(len(group.patches), r * r)
+        for g, f in enumerate(group.patches):
+            triangles[f] = plan.fans[f] if f in plan.fans else flat[g, cells]
+    indices = np.concatenate([np.asarray(triangles[f], dtype=np.uint32)
+                              for f in sorted(triangles)])
+    extra_positions, extra_normals, extra_uvs, extra_owners = plan.extra
+    if extra_owners:
+        positions = np.concatenate([positions, np.reshape(extra_positions, (-1, 3))])
+        normals = np.concatenate([normals, np.reshape(extra_normals, (-1, 3))])
+        uvs = np.concatenate([uvs, np.reshape(extra_uvs, (-1, 2))])
+        owners = np.concatenate([owners, np.asarray(extra_owners, dtype=np.uint32)])
+    with np.errstate(over="ignore"):  # beyond float32: inf, as the pure-Python packing
+        out = [array("f", x.astype(np.float32).tobytes()) for x in (positions, normals, uvs)]
+    return (*out, array("I", indices.astype(np.uint32).tobytes()),
+            array("I", owners.tobytes()))
+
+
+def join_patch_arrays(parts: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, list]:
+    """One :func:`atlas_patch_arrays` result of several, patches in order."""
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+            [row for p in parts for row in p[2]])

@@ -14,7 +14,10 @@ knot vector, so the spans and the basis values and derivatives ``N_a(t_k)``, ``N
 (The NURBS Book A2.1, A2.3) are computed once per ``(d, s, r)``; each patch then blends
 its control rows along ``v`` and the rows along ``u`` in homogeneous coordinates
 (``client_py._kernel_python``'s generated row evaluator; with numpy, all patches of one
-resolution at once as ``B P^w B^T``).
+resolution at once as ``B P^w B^T``). With numpy the whole mesh is also welded by the
+kernel (``_kernel_numpy.weld_atlas``: the same arithmetic, its sums in the same order, so
+the same bytes as the pure-Python weld here; the 4.7 M vertices of the Happy Buddha's
+finest level in 4.5 CPU-s instead of 17).
 
 Mixed resolutions: an edge is *evaluated* at its coarser side's resolution ``r_c`` and
 carries ``R_e = r_fine`` vertices; those between two evaluated ones lie on the straight
@@ -300,6 +303,10 @@ class _Layout:
             evaluated.reverse()
         return nodes, evaluated
 
+    def finer_sides(self, f: int) -> list[bool]:
+        """Whether each side of patch ``f`` has a finer neighbour (its cells there are fans)."""
+        return [self.fine[self.table.sides[f][k][0]] > self.res[f] for k in range(4)]
+
     def between(self, f: int, k: int, t0: int, t1: int) -> list[int]:
         """The edge vertices strictly between samples ``t0`` and ``t1`` of side ``k`` of
         patch ``f``, in the order from ``t0`` to ``t1``."""
@@ -321,14 +328,30 @@ class _Layout:
         for i in range(1, r - 1):
             ids[i * r + 1 : i * r + r - 1] = range(base + (i - 1) * inner,
                                                    base + i * inner)
-        border = []
-        for k, slots in enumerate(_side_slots(r)):
-            nodes, evaluated = self.side_nodes(f, k)
-            for t, (slot, node, flag) in enumerate(zip(slots, nodes, evaluated, strict=True)):
+        sides = [self.side_nodes(f, k) for k in range(4)]
+        for slots, (nodes, _) in zip(_side_slots(r), sides, strict=True):
+            for slot, node in zip(slots, nodes, strict=True):
                 ids[slot] = node
-                if k in (0, 2) or 0 < t < r - 1:  # sides 0 and 2 hold the four corners
-                    border.append((slot, node, flag))
+        slots, picks = _border_samples(r)
+        border = [(slot, sides[k // r][0][k % r], sides[k // r][1][k % r])
+                  for slot, k in zip(slots, picks, strict=True)]
         return ids, border
+
+    def in_between(self) -> tuple[list[int], list[int], list[int], list[float]]:
+        """The edge vertices between two evaluated ones (a finer side's, where the edge is
+        evaluated at its coarser side's resolution): ``(vertex, a, b, s)`` lists, the vertex
+        at ``(1 - s) X_a + s X_b`` on the segment of its evaluated neighbours ``a``, ``b``."""
+        nodes, lows, highs, shares = [], [], [], []
+        for e, (fine, coarse) in enumerate(zip(self.fine, self.coarse, strict=True)):
+            step = (fine - 1) // (coarse - 1)
+            for K in range(1, fine - 1) if step > 1 else ():
+                if K % step:
+                    K0 = K - K % step
+                    nodes.append(self.edge_node(e, K))
+                    lows.append(self.edge_node(e, K0))
+                    highs.append(self.edge_node(e, K0 + step))
+                    shares.append((K - K0) / step)
+        return nodes, lows, highs, shares
 
 
 @lru_cache(maxsize=64)
@@ -337,6 +360,17 @@ def _side_slots(r: int) -> tuple[tuple[int, ...], ...]:
     last = r - 1
     return (tuple(t * r for t in range(r)), tuple(last * r + t for t in range(r)),
             tuple(t * r + last for t in range(r)), tuple(t for t in range(r)))
+
+
+@lru_cache(maxsize=64)
+def _border_samples(r: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """A patch's border samples in the weld's order, each corner once (sides 0 and 2 hold
+    the four corners): their grid slots ``i r + j``, and where each is in its sides' nodes
+    listed side after side (``k r + t`` for sample ``t`` of side ``k``)."""
+    picks = tuple(k * r + t for k in range(4) for t in range(r)
+                  if k in (0, 2) or 0 < t < r - 1)
+    sides = _side_slots(r)
+    return tuple(sides[k // r][k % r] for k in picks), picks
 
 
 @lru_cache(maxsize=64)
@@ -429,27 +463,40 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                  drawn: Sequence[Sequence[int]] | None = None,
                  names: Sequence[int] | None = None,
                  cache: PatchGrids | None = None,
-                 progress: Callable[[float], object] | None = None) -> list[AtlasMesh]:
+                 progress: Callable[[float], object] | None = None,
+                 weld: str | None = None) -> list[AtlasMesh]:
     """:func:`tessellate_atlas` of checked arguments (one mesh); ``tol``: the
     degenerate-normal tolerance (default :func:`_normal_tolerance` of ``atlas``); ``drawn``:
     instead, one mesh per sequence of patches (in increasing order): their triangles, with
     only the vertices these use, in increasing order of their number in the whole mesh
     (:func:`tessellate_atlas_parts`);
     ``cache``: patch grids kept between calls, under the patches' ``names`` (default their
-    indices); ``progress``: :func:`tessellate_atlas`'s."""
+    indices); ``progress``: :func:`tessellate_atlas`'s.
+
+    The whole mesh (no ``drawn``, no ``cache``) with the numpy kernel is welded by the
+    kernel (``_kernel_numpy.weld_atlas`` of :func:`_weld_plan`: the same bytes at array
+    speed); ``weld='python'`` welds it here whatever the kernel (the two are compared in
+    tests/test_atlas_mesh.py)."""
     backend = _kernel.backend(kernel)
     layout = _Layout(atlas, res)
     comps = _homogeneous(atlas)
     if tol is None:
         tol = _normal_tolerance(comps)
-    evaluate = (_evaluate_python if backend is _kernel_python
-                else partial(_evaluate_numpy, backend=backend))
     surfaces: dict[int, object] = {}
 
     def surface(f):
         if f not in surfaces:
             surfaces[f] = atlas.patch_surface(f)
         return surfaces[f]
+
+    if weld not in (None, "python"):
+        raise ValueError(f"weld must be None or 'python', got {weld!r}")
+    if backend is not _kernel_python and weld is None and drawn is None and cache is None:
+        plan = _weld_plan(atlas, layout, comps, tiles, kernel, backend, tol, surface, progress)
+        positions, normals, uvs, indices, owners = backend.weld_atlas(plan)
+        return [AtlasMesh(positions, normals, uvs, indices, patches=owners)]
+    evaluate = (_evaluate_python if backend is _kernel_python
+                else partial(_evaluate_numpy, backend=backend))
 
     names = names or range(len(res))
     by_res: dict[int, list[int]] = {}
@@ -546,18 +593,9 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 d = shift[node] / samplers[node]
                 point = (point[0] + d * n[0], point[1] + d * n[1], point[2] + d * n[2])
             positions[3 * node : 3 * node + 3] = array("d", point)
-    for e, (fine, coarse) in enumerate(zip(layout.fine, layout.coarse, strict=True)):
-        step = (fine - 1) // (coarse - 1)
-        if step == 1:
-            continue
-        for K in range(1, fine - 1):
-            if K % step:
-                K0 = K - K % step
-                a, b = layout.edge_node(e, K0), layout.edge_node(e, K0 + step)
-                s = (K - K0) / step
-                node = layout.edge_node(e, K)
-                positions[3 * node : 3 * node + 3] = array("d", [
-                    (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
+    for node, a, b, s in zip(*layout.in_between(), strict=True):
+        positions[3 * node : 3 * node + 3] = array("d", [
+            (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
 
     if tiles:
         # normals of the drawn (displaced, welded) surface by differences within each patch;
@@ -577,63 +615,58 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 j0, j1 = min(j for _, j in rows_cols), max(j for _, j in rows_cols) + 1
             a0, a1, b0, b1 = max(i0 - 1, 0), min(i1 + 1, r), max(j0 - 1, 0), min(j1 + 1, r)
             height, width = a1 - a0, b1 - b0
-            slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
-            grid = array("d", bytes(24 * height * width))
-            for c in range(3):
-                grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
             nrm = grids[f][1]
-            base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
+            if height == width == r:  # the whole grid, gathered at C speed
+                grid = array("d", itemgetter(*[3 * g + c for g in local for c in range(3)])(
+                    positions))
+                base_normals = array("d", nrm)
+            else:
+                slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
+                grid = array("d", bytes(24 * height * width))
+                for c in range(3):
+                    grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
+                base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
             _, shaded = backend_displace(grid, base_normals,
                                          array("d", bytes(8 * height * width)), height, width,
                                          (i0 - a0, i1 - a0, j0 - b0, j1 - b0))
             shaded = array("d", shaded)
-            if f in mine:  # the whole grid: shaded is in slot order
-                for slot, g in enumerate(local):
-                    if g >= n_border:
-                        normals[3 * g : 3 * g + 3] = shaded[3 * slot : 3 * slot + 3]
+            if f in mine and r > 2:  # the whole grid in slot order: its interior block
+                at = layout.face_base[f]
+                normals[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", _interior(r)[0](shaded))
             span = j1 - j0
-            for slot, g, _ in borders[f]:
-                i, j = divmod(slot, r)
-                if i0 <= i < i1 and j0 <= j < j1:
-                    k = 3 * ((i - i0) * span + j - j0)
-                    for c in range(3):
-                        shading[3 * g + c] += shaded[k + c]
+            if span * (i1 - i0) == r * r:  # the whole grid: every border sample, at its slot
+                for slot, g, _ in borders[f]:
+                    k, g = 3 * slot, 3 * g
+                    shading[g] += shaded[k]
+                    shading[g + 1] += shaded[k + 1]
+                    shading[g + 2] += shaded[k + 2]
+            else:
+                for slot, g, _ in borders[f]:
+                    i, j = divmod(slot, r)
+                    if i0 <= i < i1 and j0 <= j < j1:
+                        k = 3 * ((i - i0) * span + j - j0)
+                        for c in range(3):
+                            shading[3 * g + c] += shaded[k + c]
     for node in range(n_border):
         normals[3 * node : 3 * node + 3] = array("d", _unit(*shading[3 * node : 3 * node + 3]))
 
-    extra_positions: list[float] = []
-    extra_normals: list[float] = []
-    extra_uvs: list[float] = []
-    extra_owners: list[int] = []
+    centres = _Centres(surface, tiles, kernel, count)
     triangles = []  # per part: its triangles' vertices (numbered in the whole mesh)
     for patches in [range(len(res))] if drawn is None else drawn:
         indices = array("I")
         for f in patches:
             r, local = res[f], ids[f]
-            finer = [layout.fine[layout.table.sides[f][k][0]] > r for k in range(4)]
+            finer = layout.finer_sides(f)
             if not any(finer):
                 indices.extend(map(local.__getitem__, grid_indices(r, r, kernel=kernel)))
                 continue
-
-            def centre(f, r, i, j):
-                u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
-                point, n = surface(f).evaluate(u, v), surface(f).normal(u, v)
-                if f in tiles:
-                    d = displacement_grid(tiles[f], [u], [v], kernel)[0]
-                    point = tuple(p + d * c for p, c in zip(point, n, strict=True))
-                extra_positions.extend(point)
-                extra_normals.extend(n)
-                extra_uvs.extend((u, v))
-                extra_owners.append(f)
-                return count + len(extra_owners) - 1
-
-            indices.extend(_patch_triangles(layout, f, r, local, finer, centre))
+            indices.extend(_patch_triangles(layout, f, r, local, finer, centres.add))
         triangles.append(indices)
-    if extra_owners:
-        positions.extend(extra_positions)
-        normals.extend(extra_normals)
-        uvs.extend(extra_uvs)
-        owners.extend(extra_owners)
+    if centres.owners:
+        positions.extend(centres.positions)
+        normals.extend(centres.normals)
+        uvs.extend(centres.uvs)
+        owners.extend(centres.owners)
     if drawn is None:
         return [_packed(positions, normals, uvs, owners, triangles[0])]
     meshes = []
@@ -648,6 +681,108 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     return meshes
 
 
+@dataclass
+class _WeldGroup:
+    """The patches of one resolution ``r`` in a :class:`_WeldPlan`.
+
+    ``grid``: the kernel's ``atlas_patch_arrays`` (points, unit normals, and per patch the
+    samples without a normal), ``pole_normals`` the limit normal of each of those;
+    ``sides``: per patch, the vertex of sample ``t`` of each side ``k`` at ``(4 g + k) r +
+    t`` (``_Layout.side_nodes``), ``evaluated`` their flags; ``border_slots``,
+    ``border_picks``: :func:`_border_samples`; ``displacements``: per patch its tiles' sum
+    on the grid (``array('d')``) or ``None``."""
+
+    r: int
+    patches: list[int]
+    face_base: list[int]
+    grid: tuple
+    pole_normals: list[list[tuple[float, float, float]]]
+    sides: array
+    evaluated: bytearray
+    border_slots: tuple[int, ...]
+    border_picks: tuple[int, ...]
+    displacements: list
+    params: list[float]
+
+
+@dataclass
+class _WeldPlan:
+    """What a kernel's ``weld_atlas`` needs to weld a whole atlas: ``count`` vertices of
+    the layout (``n_border`` of them on corners and edges), the groups of patches by
+    resolution, the in-between vertices (``_Layout.in_between``), whether normals are taken
+    by differences of the displaced surface (any detail), the triangles of the patches with
+    finer neighbours (``{f: triangles}``, :func:`_patch_triangles`) and the centre vertices
+    these add (``positions, normals, uvs, owners``, :class:`_Centres`)."""
+
+    count: int
+    n_border: int
+    groups: list[_WeldGroup]
+    between: tuple[list, list, list, list]
+    by_differences: bool
+    fans: dict[int, array]
+    extra: tuple[list, list, list, list]
+
+
+def _weld_plan(atlas: AtlasSurface, layout: _Layout, comps: list[list[float]],
+               tiles: dict[int, list[DetailTile]], kernel: str | None, backend, tol: float,
+               surface: Callable, progress: Callable[[float], object] | None) -> _WeldPlan:
+    """The :class:`_WeldPlan` of the whole atlas: every patch evaluated by the kernel
+    (``atlas_patch_arrays``, by resolution, in :data:`PROGRESS_BATCH` patches when
+    ``progress`` is given), its tiles summed on its grid, its sides' vertices numbered; the
+    progress reports are :func:`_welded_mesh`'s."""
+    res = layout.res
+    by_res: dict[int, list[int]] = {}
+    for f, r in enumerate(res):
+        by_res.setdefault(r, []).append(f)
+    batch = PROGRESS_BATCH if progress is not None else len(res)
+    grids: dict[int, list] = {}
+    done = 0
+    for r, patches in sorted(by_res.items()):
+        _, spans_t, N, dN = _tables(atlas.degree, atlas.spans, r)
+        parts = []
+        for start in range(0, len(patches), batch):
+            some = patches[start:start + batch]
+            parts.append(backend.atlas_patch_arrays(
+                comps, [atlas.patch_indices(f) for f in some], atlas.weights is not None,
+                atlas.degree, atlas.side, spans_t, N, dN, tol))
+            done += len(some)
+            if progress is not None:
+                progress(PROGRESS_EVALUATION * done / len(res))
+        grids[r] = parts
+    groups = []
+    for r, patches in sorted(by_res.items()):
+        params = _tables(atlas.degree, atlas.spans, r)[0]
+        parts = grids.pop(r)
+        grid = parts[0] if len(parts) == 1 else backend.join_patch_arrays(parts)
+        groups.append(_WeldGroup(r, patches, [layout.face_base[f] for f in patches], grid,
+                                 [], array("I"), bytearray(), *_border_samples(r), [],
+                                 params))
+    for f, r in enumerate(res):  # in patch order, as _welded_mesh reports its progress
+        if progress is not None and f % PROGRESS_BATCH == PROGRESS_BATCH - 1:
+            progress(PROGRESS_EVALUATION + (1 - PROGRESS_EVALUATION) * f / len(res))
+        group = next(g for g in groups if g.r == r)
+        g = len(group.displacements)
+        params = group.params
+        group.pole_normals.append([surface(f).normal(params[k // r], params[k % r])
+                                   for k in group.grid[2][g]])
+        for k in range(4):
+            nodes, evaluated = layout.side_nodes(f, k)
+            group.sides.extend(nodes)
+            group.evaluated.extend(evaluated)
+        group.displacements.append(displacement_grid(tiles[f], params, params, kernel)
+                                   if f in tiles else None)
+    centres = _Centres(surface, tiles, kernel, layout.count)
+    fans = {}
+    for f, r in enumerate(res):
+        finer = layout.finer_sides(f)
+        if any(finer):
+            fans[f] = array("I", _patch_triangles(layout, f, r, layout.patch_vertices(f)[0],
+                                                  finer, centres.add))
+    return _WeldPlan(layout.count, layout.border_count, groups, layout.in_between(),
+                     bool(tiles), fans,
+                     (centres.positions, centres.normals, centres.uvs, centres.owners))
+
+
 def _packed(positions: array, normals: array, uvs: array, owners: array,
             indices: array) -> AtlasMesh:
     """An :class:`AtlasMesh` of double-precision vertex arrays, stored as float32."""
@@ -660,6 +795,32 @@ def _packed(positions: array, normals: array, uvs: array, owners: array,
     return AtlasMesh(out_positions, array("f", pack(*normals)),
                      array("f", struct.pack(f"={2 * total}f", *uvs)), indices,
                      patches=owners)
+
+
+class _Centres:
+    """The centre vertices of the cells of 2-sample patches between finer neighbours
+    (:func:`_patch_triangles`), numbered after the ``count`` vertices of the layout: the
+    surface at the cell's centre, displaced by the patch's tiles along its unit normal."""
+
+    def __init__(self, surface: Callable, tiles: dict, kernel: str | None, count: int) -> None:
+        self.surface, self.tiles, self.kernel, self.count = surface, tiles, kernel, count
+        self.positions: list[float] = []
+        self.normals: list[float] = []
+        self.uvs: list[float] = []
+        self.owners: list[int] = []
+
+    def add(self, f: int, r: int, i: int, j: int) -> int:
+        """The centre vertex of cell ``(i, j)`` of patch ``f`` (``r`` samples a side)."""
+        u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
+        point, n = self.surface(f).evaluate(u, v), self.surface(f).normal(u, v)
+        if f in self.tiles:
+            d = displacement_grid(self.tiles[f], [u], [v], self.kernel)[0]
+            point = tuple(p + d * c for p, c in zip(point, n, strict=True))
+        self.positions.extend(point)
+        self.normals.extend(n)
+        self.uvs.extend((u, v))
+        self.owners.append(f)
+        return self.count + len(self.owners) - 1
 
 
 def _patch_triangles(layout: _Layout, f: int, r: int, local: list[int], finer: list[bool],

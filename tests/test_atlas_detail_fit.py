@@ -145,3 +145,128 @@ def test_a_sample_from_the_other_sheet_is_not_fitted():
     np.testing.assert_allclose(np.abs(samples.facing), 1.0, atol=0.05)
     use = atlas_detail.fit_samples(samples, spacing=0.05, side=1.0)
     np.testing.assert_array_equal(use, samples.facing > 0)
+
+
+def test_drawn_triangles_are_the_clients_grid_triangles():
+    """Each (u, v)'s nodes and barycentric weights against a search over the triangles
+    ``client_py.tessellate.grid_indices`` draws, in the parameter plane."""
+    from client_py.tessellate import grid_indices
+
+    r = 5
+    tri = np.asarray(grid_indices(r, r), np.int64).reshape(-1, 3)
+    nodes = np.stack(np.divmod(np.arange(r * r), r), axis=1) / (r - 1)  # vertex k = i r + j
+    rng = np.random.default_rng(5)
+    uv = np.concatenate([rng.random((300, 2)), [[0.0, 0.0], [1.0, 1.0], [0.5, 0.25]]])
+    a, b, beta = atlas_detail.drawn_triangles(uv[:, 0], uv[:, 1], r)
+    for k, p in enumerate(uv):
+        # the reference: the triangle whose barycentric coordinates of p are all >= 0
+        for t in tri:
+            m = np.column_stack([nodes[t[1]] - nodes[t[0]], nodes[t[2]] - nodes[t[0]]])
+            l1, l2 = np.linalg.solve(m, p - nodes[t[0]])
+            weights = np.array([1 - l1 - l2, l1, l2])
+            if weights.min() >= -1e-12:
+                break
+        got = {(int(x), int(y)): w for x, y, w in zip(a[k], b[k], beta[k], strict=True)}
+        rows, cols = np.divmod(t, r)
+        want = {(int(x), int(y)): w for x, y, w in zip(rows, cols, weights, strict=True)}
+        for key, w in want.items():
+            if w > 1e-9:
+                assert got.get(key, 0.0) == pytest.approx(w, abs=1e-9), (p, got, want)
+        assert sum(got.values()) == pytest.approx(1.0)
+
+
+def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
+    """``target - sum_levels drawn`` of a sample is ``(x - sum_i beta_i X_i) . n`` with
+    ``X_i`` the vertices of ``client_py.atlas_mesh``'s welded, displaced mesh (border
+    vertices included), found by their undisplaced positions."""
+    from scipy.spatial import cKDTree
+
+    fit, scan, det = fitted
+    atlas = det.atlas
+    rng = np.random.default_rng(7)
+    unit = rng.normal(size=(3000, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    points = unit * (1.0 + bump(unit))[:, None]
+    samples = atlas_detail.project_samples(atlas, fit, points, unit)
+    level = 1
+    r = det.levels[level]["resolution"]
+    model = atlas_detail.DrawnModel.of(atlas, samples, r)
+    fields = [_coefficients(det, k) for k in range(level + 1)]
+    predicted = model.target - sum(model.drawn(c, k, det.tree["spans_per_tile"], samples.patch)
+                                   for k, c in enumerate(fields))
+    base = tessellate_atlas(atlas, r, None, kernel="numpy")
+    drawn = tessellate_atlas(atlas, r, det.detail_up_to(level), kernel="numpy")
+    plain = np.frombuffer(base.positions, np.float32).reshape(-1, 3).astype(float)
+    shown = np.frombuffer(drawn.positions, np.float32).reshape(-1, 3).astype(float)
+    table, cps = index_table(atlas), control_points(atlas)
+    c, cu, cv = evaluate_patches(table, cps, atlas.degree, atlas.spans, samples.patch,
+                                 samples.u, samples.v, derivatives=True)
+    n = np.cross(cu, cv)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    x = c + samples.s[:, None] * n + 0.0  # the sample with its tangential part dropped
+    a, b, beta = atlas_detail.drawn_triangles(samples.u, samples.v, r)
+    tree = cKDTree(plain)
+    corner = np.zeros_like(x)
+    for i in range(3):
+        (node,) = evaluate_patches(table, cps, atlas.degree, atlas.spans, samples.patch,
+                                   a[:, i] / (r - 1), b[:, i] / (r - 1))
+        gap, vertex = tree.query(node)
+        assert gap.max() < 1e-5
+        corner += beta[:, i, None] * shown[vertex]
+    want = np.einsum("kc,kc->k", x - corner, n)
+    np.testing.assert_allclose(predicted, want, atol=2e-6)
+
+
+def _coefficients(det, level):
+    """Level ``level``'s field ``(F, n, n)`` (times its step) read back from its tiles."""
+    spans = det.tree["spans_per_tile"]
+    n = (spans << level) + det.tree["degree"]
+    out = np.zeros((len(det.atlas.quads), n, n))
+    size = spans + det.tree["degree"]
+    for f, tiles in det.tiles[level].items():
+        for t in tiles:
+            out[f, t.i * spans:t.i * spans + size, t.j * spans:t.j * spans + size] = \
+                np.asarray(t.values, float).reshape(size, size) * t.step
+    return out
+
+
+def test_a_sample_of_weight_two_is_that_sample_twice(fitted):
+    """``_solve_blocks``'s weights are weights of the sum of squares: doubling a sample's
+    weight gives the coefficients of the samples with that one repeated (an independent
+    reading of the objective)."""
+    fit, _, det = fitted
+    rng = np.random.default_rng(11)
+    unit = rng.normal(size=(4000, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    points = unit * (1.0 + bump(unit))[:, None]
+    twice = np.arange(len(points)) % 3 == 0
+    weights = np.where(twice, 2.0, 1.0)
+    one = atlas_detail.project_samples(det.atlas, fit, points, unit, weights=weights)
+    both = atlas_detail.project_samples(det.atlas, fit, np.concatenate([points, points[twice]]),
+                                        np.concatenate([unit, unit[twice]]))
+    c1, _ = atlas_detail._solve_blocks(one, one.s, 0, 4, weights=one.weight)
+    c2, _ = atlas_detail._solve_blocks(both, both.s, 0, 4, weights=both.weight)
+    np.testing.assert_allclose(c1, c2, atol=1e-10 * np.abs(c2).max())
+
+
+def test_mesh_samples_weigh_vertices_one_and_triangles_their_share():
+    fit, scan = _bumpy_sphere_fit()
+    V = len(fit.surface.vertices)
+    points, normals, weights = atlas_detail.surface_samples(scan, fit, 3 * V)
+    assert len(points) == len(normals) == len(weights) == 3 * V
+    np.testing.assert_array_equal(weights[:V], 1.0)
+    assert weights[V:].sum() == pytest.approx(atlas_detail.TRIANGLE_SHARE * V)
+
+
+def test_coefficients_are_bounded_by_twice_their_patchs_residual():
+    """Patch 0's fitted residuals reach 0.5 (an unfitted sample's 9 does not count):
+    its coefficients are clipped to +-1; patch 1 has no fitted sample: all 0."""
+    patch = np.array([0, 0, 0, 1])
+    samples = atlas_detail.AtlasSamples(patch, *(np.zeros(4) for _ in range(4)),
+                                        np.array([0, 3, 4]), *(np.zeros(4) for _ in range(2)),
+                                        np.ones(4))
+    residual = np.array([0.5, -0.2, 9.0, 3.0])
+    use = np.array([True, True, False, False])
+    c = np.array([[[3.0, -0.7], [-5.0, 1.0]], [[2.0, 0.0], [0.0, -1.0]]])
+    out = atlas_detail.bounded_by_residual(c, samples, residual, use)
+    np.testing.assert_array_equal(out, [[[1.0, -0.7], [-1.0, 1.0]], np.zeros((2, 2))])

@@ -287,9 +287,10 @@ def test_a_two_sample_patch_between_finer_neighbours_gets_a_centre_vertex():
             assert np.allclose(mesh.positions[3 * centre :], point, atol=1e-6)
 
 
-def test_an_open_layout_has_exactly_its_border_as_boundary():
-    """The cube without its top: the 4 border edges' samples are the only boundary."""
-    full = random_cube_atlas(3, 2, seed=7)
+def open_cube_atlas(seed: int = 7) -> AtlasSurface:
+    """:func:`random_cube_atlas` without its second face (z = 1): an open layout, 4 border
+    edges."""
+    full = random_cube_atlas(3, 2, seed=seed)
     quads = full.quads[:1] + full.quads[2:]  # drop the z = 1 face
     inner = full.side - 2
     edges = full.edges.edges
@@ -298,7 +299,12 @@ def test_an_open_layout_has_exactly_its_border_as_boundary():
     edge_points = [p for edge in table.edges
                    for p in full.edge_points[index[edge] * inner : (index[edge] + 1) * inner]]
     face_points = full.face_points[: inner * inner] + full.face_points[2 * inner * inner :]
-    atlas = AtlasSurface(3, 2, full.vertices, quads, edge_points, face_points)
+    return AtlasSurface(3, 2, full.vertices, quads, edge_points, face_points)
+
+
+def test_an_open_layout_has_exactly_its_border_as_boundary():
+    """The cube without its top: the 4 border edges' samples are the only boundary."""
+    atlas = open_cube_atlas()
     assert len(atlas.edges.border_edges) == 4
     r = 6
     for resolution in (r, [9, 5, 3, 5, 9]):
@@ -310,6 +316,50 @@ def test_an_open_layout_has_exactly_its_border_as_boundary():
         expected = sum(resolution[f] - 1 if isinstance(resolution, list) else r - 1
                        for f, _ in (atlas.edges.faces[e][0] for e in atlas.edges.border_edges))
         assert len(boundary) == expected
+
+
+def pole_cube_atlas() -> AtlasSurface:
+    """:func:`random_cube_atlas` with edge 0's first inner control point on its ``lo`` corner:
+    ``C_t = 0`` there along the edge, so the two patches on it have no ``C_u x C_v`` at that
+    corner (a pole: the limit normal from inside the patch is drawn)."""
+    cube = random_cube_atlas(3, 2, seed=6)
+    edge_points = list(cube.edge_points)
+    edge_points[0] = cube.vertices[cube.edges.edges[0][0]]
+    return AtlasSurface(3, 2, cube.vertices, cube.quads, edge_points, cube.face_points,
+                        cube.weights)
+
+
+def _weld_cases():
+    """(atlas, resolution, detail) with open borders, detail on some patches, poles, rational
+    weights, mixed resolutions and a 2-sample patch between finer neighbours."""
+    cube, open_cube = random_cube_atlas(3, 2, seed=6), open_cube_atlas()
+    sphere = sphere_atlas(2, noise=0.02, seed=4, rational=True)
+    pole = pole_cube_atlas()
+    some = {f: random_tiles(f, levels=2, amplitude=0.2) for f in range(0, 24, 3)}
+    return [(cube, 9, None), (cube, MIXED, random_detail(cube)),
+            (cube, [2, 3, 3, 3, 3, 3], random_detail(cube)), (cube, [2, 3, 3, 3, 3, 3], None),
+            (open_cube, 6, None), (open_cube, [9, 5, 3, 5, 9], random_detail(open_cube)),
+            (open_cube, [9, 5, 3, 5, 9], {1: random_tiles(1)}),
+            (sphere, [5, 9, 17] * 8, some), (sphere, 2, None), (sphere, 17, some),
+            (pole, 5, None), (pole, [5, 9, 5, 3, 5, 5], random_detail(pole))]
+
+
+@pytest.mark.parametrize("case", range(12))
+def test_the_numpy_weld_gives_the_bytes_of_the_pure_python_weld(case):
+    """The whole mesh welded by the numpy kernel (``_kernel_numpy.weld_atlas``) and by the
+    pure-Python weld from the same evaluated grids: the same positions, normals, ``(u, v)``,
+    triangles and patches, byte for byte."""
+    pytest.importorskip("numpy")
+    from client_py.atlas_mesh import _check_detail, _check_resolutions, _welded_mesh
+
+    atlas, resolution, detail = _weld_cases()[case]
+    res, tiles = _check_resolutions(atlas, resolution), _check_detail(atlas, detail)
+    (fast,) = _welded_mesh(atlas, res, tiles, "numpy")
+    (slow,) = _welded_mesh(atlas, res, tiles, "numpy", weld="python")
+    assert fast.triangle_count > 0
+    for name in ("positions", "normals", "uvs", "indices", "patches"):
+        a, b = getattr(fast, name), getattr(slow, name)
+        assert a.typecode == b.typecode and a.tobytes() == b.tobytes(), name
 
 
 # ------------------------------------------------------------------ one group's share of it

@@ -8,7 +8,13 @@ import pytest
 import trimesh
 
 from client_py.atlas_format import read_atlas
-from fitter.fitting.atlas.measure import closest_points_on_triangles, point_mesh_distance
+from fitter.fitting.atlas.measure import (
+    MeasuringProcess,
+    MeasuringProcessError,
+    closest_points_on_triangles,
+    point_mesh_distance,
+    signed_point_mesh_distance,
+)
 from fitter.fitting.atlas.pipeline import wants_atlas
 from fitter.fitting.io import Scan
 from fitter.fitting.io.scan import make_scan, new_source
@@ -39,6 +45,47 @@ def test_point_mesh_distance_equals_brute_force():
     signed = point_mesh_distance(points, mesh.vertices, mesh.faces, signed=True)
     inside = np.linalg.norm(points, axis=1) < 0.9
     assert np.all(signed[inside] < 0) and np.all(signed[np.linalg.norm(points, axis=1) > 1.1] > 0)
+
+
+def test_the_measuring_process_gives_the_distances_measured_here():
+    """MeasuringProcess (a fresh Python process, arrays through pipes) returns the signed
+    distances, triangles and feet of signed_point_mesh_distance here, bit for bit; a
+    process that dies says so."""
+    rng = np.random.default_rng(1)
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    points = rng.normal(size=(2000, 3))
+    vertices = mesh.vertices.astype(np.float32).astype(float)  # drawn meshes are float32
+    here = signed_point_mesh_distance(points, vertices, mesh.faces)
+    there = MeasuringProcess().measure(points, vertices, mesh.faces)
+    for a, b in zip(here, there, strict=True):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    broken = MeasuringProcess()
+    broken.process.kill()
+    with pytest.raises(MeasuringProcessError):
+        broken.measure(points, vertices, mesh.faces)
+    broken.close()
+
+
+def test_measure_levels_gives_the_same_distances_with_the_finest_level_in_a_process(
+        monkeypatch):
+    """The finest level measured in a MeasuringProcess (PROCESS_TRIANGLES lowered to 0) or
+    here: the same distances at every level, the same feet."""
+    from fitter.fitting.atlas import pipeline
+    from fitter.fitting.atlas.detail import fit_atlas_detail
+    from fitter.fitting.atlas.fit import fit_atlas
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    scan = _mesh_scan(mesh, "sphere")
+    fit = fit_atlas(scan, 24)
+    detail = fit_atlas_detail(fit, scan, 1)
+    points = np.asarray(mesh.vertices, dtype=float)
+    here = pipeline.measure_levels(detail.atlas, detail, points)
+    monkeypatch.setattr(pipeline, "PROCESS_TRIANGLES", 0)
+    there = pipeline.measure_levels(detail.atlas, detail, points)
+    assert here[0].keys() == there[0].keys() == {-1, 0}
+    for k in here[0]:
+        assert here[0][k].tobytes() == there[0][k].tobytes()
+    assert here[2].tobytes() == there[2].tobytes() and here[3].tobytes() == there[3].tobytes()
 
 
 def test_auto_rule_keeps_one_patch_for_a_height_field_and_an_atlas_for_a_closed_object():

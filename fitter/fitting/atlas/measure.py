@@ -13,7 +13,12 @@ far from its nearest part.
 
 from __future__ import annotations
 
+import math
+import os
+import subprocess
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -156,6 +161,104 @@ def signed_point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: 
     return np.where(np.einsum("ij,ij->i", points - q, normal) < 0, -dist, dist), tri, q
 
 
+def signed_distance_to_drawn(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`signed_point_mesh_distance` of a drawn mesh passed as its float32 vertices
+    and uint32 faces (exactly the :class:`DrawnMesh`'s values, half the bytes to send to
+    a :class:`MeasuringProcess`)."""
+    return signed_point_mesh_distance(points, vertices.astype(float), faces.astype(np.int64))
+
+
+class MeasuringProcessError(RuntimeError):
+    """A :class:`MeasuringProcess` that failed, died or answered short."""
+
+
+class MeasuringProcess:
+    """:func:`signed_distance_to_drawn` of one mesh in a fresh Python process
+    (``python -m fitter.fitting.atlas.measure``), which imports ``open3d`` as soon as it
+    starts.
+
+    ``open3d`` holds the GIL while it builds its BVH (one core: 6 s for the 9.4 M triangles
+    of the Happy Buddha's finest level) and queries it, so no thread of this process runs
+    beside it; another process does. The arrays travel through pipes as raw bytes
+    (``dtype`` and shape on a line, then the data): no pickle, and no re-import of the
+    caller's ``__main__`` (as ``multiprocessing``'s spawn would). :meth:`measure` blocks
+    in pipe I/O, which releases the GIL: call it from a thread.
+
+    Raises
+    ------
+    OSError
+        When no process can be started.
+    """
+
+    def __init__(self) -> None:
+        if not sys.executable:  # an embedded interpreter: no Python to start
+            raise OSError("no Python executable to start a measuring process with")
+        root = str(Path(__file__).resolve().parents[3])  # the folder holding fitter/
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            x for x in (root, os.environ.get("PYTHONPATH")) if x)}
+        self.process = subprocess.Popen([sys.executable, "-m", "fitter.fitting.atlas.measure"],
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+
+    def measure(self, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`signed_distance_to_drawn` ``(points, vertices, faces)`` in the process,
+        which then exits."""
+        try:
+            _write_arrays(self.process.stdin, [np.asarray(points, dtype=float),
+                                               np.asarray(vertices, dtype=np.float32),
+                                               np.asarray(faces, dtype=np.uint32)])
+            self.process.stdin.close()
+            out = _read_arrays(self.process.stdout, 3)
+        except (OSError, ValueError) as exc:
+            raise MeasuringProcessError(f"the measuring process failed: {exc}") from exc
+        finally:
+            code = self.process.wait()
+        if code != 0:
+            raise MeasuringProcessError(f"the measuring process exited with {code}")
+        return out[0], out[1], out[2]
+
+    def close(self) -> None:
+        """End the process if it still runs (an error elsewhere)."""
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+        for stream in (self.process.stdin, self.process.stdout):
+            stream.close()
+
+
+def _write_arrays(stream, arrays: list[np.ndarray]) -> None:
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        stream.write(f"{a.dtype.str} {' '.join(map(str, a.shape))}\n".encode())
+        stream.write(a.reshape(-1).view(np.uint8))
+    stream.flush()
+
+
+def _read_arrays(stream, count: int) -> list[np.ndarray]:
+    out = []
+    for _ in range(count):
+        dtype, *shape = stream.readline().decode().split()
+        size = np.dtype(dtype).itemsize * math.prod(int(x) for x in shape)
+        data = stream.read(size)
+        if len(data) != size:
+            raise ValueError(f"an array of {size} bytes ended after {len(data)}")
+        out.append(np.frombuffer(data, dtype=dtype).reshape([int(x) for x in shape]))
+    return out
+
+
+def _serve() -> None:
+    """The :class:`MeasuringProcess` side: three arrays in on stdin, three out on the
+    original stdout (anything a library prints goes to stderr)."""
+    import open3d  # noqa: F401  (imported while the caller still tessellates)
+
+    answer = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    points, vertices, faces = _read_arrays(sys.stdin.buffer, 3)
+    _write_arrays(answer, list(signed_distance_to_drawn(points, vertices, faces)))
+    answer.close()
+
+
 def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
                         signed: bool = False) -> np.ndarray:
     """Distance of each of ``points (N, 3)`` to the mesh ``(vertices (V, 3), faces (T, 3))``
@@ -169,3 +272,7 @@ def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndar
     if signed:
         return signed_point_mesh_distance(points, vertices, faces)[0]
     return closest_points_on_mesh(points, vertices, faces)[0]
+
+
+if __name__ == "__main__":
+    _serve()

@@ -48,6 +48,8 @@ from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, fit_atlas
 from .layout import AtlasLayoutError
 from .measure import (
     DrawnMesh,
+    MeasuringProcess,
+    MeasuringProcessError,
     drawn_mesh,
     point_mesh_distance,
     signed_point_mesh_distance,
@@ -72,6 +74,10 @@ HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height fiel
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
 RASTER_CELLS = (2, 8)  # least and most cells per patch side of the error raster
 RASTER_FILE = "error_raster.bin"  # the bundle's file of an atlas's error raster
+#: triangles of the finest drawn level from which it is measured in a worker process
+#: (:func:`measure_levels`): its BVH then builds beside the coarser levels' (the Happy
+#: Buddha's 9.4 M: 6 s of one core, under the GIL)
+PROCESS_TRIANGLES = 2_000_000
 
 
 def base_resolution(spans: int) -> int:
@@ -196,9 +202,14 @@ def measure_levels(atlas, detail, points: np.ndarray
     the base, ``k`` with the packs of levels ``0..k``, each at :func:`level_resolution`),
     the panel's measure for each level (:func:`restate_level_errors`).
 
-    The meshes are tessellated here, finest first (``client_py``: Python that holds the
-    GIL), while one worker thread measures the level tessellated before (open3d's BVH
-    query and numpy, which release it), so the two overlap.
+    The meshes are tessellated here, finest first, and measured by one worker thread in
+    that order. ``open3d`` holds the GIL while it builds its BVH (one core) and queries
+    it, so no thread overlaps it; a finest level of at least :data:`PROCESS_TRIANGLES`
+    triangles is therefore measured in a :class:`~.measure.MeasuringProcess`, started
+    first so that it imports ``open3d`` while the mesh is tessellated, and the coarser
+    levels here meanwhile. Where no process can be started, or it fails, the finest level
+    is measured here. The distances are the same either way (the same function on the
+    same numbers).
 
     Returns
     -------
@@ -210,17 +221,36 @@ def measure_levels(atlas, detail, points: np.ndarray
         Each point's nearest triangle of ``finest`` and its closest point on it.
     """
     top = len(detail.levels) - 1
+    r = level_resolution(atlas, detail, top)
+    far = None
+    if 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES:
+        try:
+            far = MeasuringProcess()
+        except OSError:
+            far = None
     jobs = {}
-    with ThreadPoolExecutor(1) as measuring:
-        for k in range(top, -2, -1):
-            mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k), detail.detail_up_to(k))
-            if k == top:
-                finest = mesh
-            jobs[k] = measuring.submit(signed_point_mesh_distance, points, mesh.vertices,
-                                       mesh.faces)
-            del mesh  # the job holds it until measured
-        d, triangle, closest = jobs[top].result()
-        distances = {k: job.result()[0] for k, job in jobs.items() if k != top}
+    try:
+        with ThreadPoolExecutor(1) as measuring, ThreadPoolExecutor(1) as talking:
+            for k in range(top, -2, -1):
+                mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k),
+                                  detail.detail_up_to(k))
+                if k == top:
+                    finest = mesh
+                if k == top and far is not None:
+                    jobs[k] = talking.submit(far.measure, points, mesh.vertices, mesh.faces)
+                else:
+                    jobs[k] = measuring.submit(signed_point_mesh_distance, points,
+                                               mesh.vertices, mesh.faces)
+                del mesh  # the job holds it until measured
+            distances = {k: job.result()[0] for k, job in jobs.items() if k != top}
+            try:
+                d, triangle, closest = jobs[top].result()
+            except MeasuringProcessError:  # killed, out of memory...: measured here then
+                d, triangle, closest = signed_point_mesh_distance(points, finest.vertices,
+                                                                  finest.faces)
+    finally:
+        if far is not None:
+            far.close()
     return {top: d, **distances}, finest, triangle, closest
 
 
