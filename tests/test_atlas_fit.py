@@ -421,3 +421,40 @@ def test_edge_flips_keep_a_decimated_layout_an_oriented_manifold_of_its_topology
         vertices, triangles) == [0]
     assert after[1].sum() <= before[1].sum()  # no more area facing away
     assert after[0].sum() < before[0].sum()
+
+
+def test_reverse_rows_pull_only_far_samples_straight_onto_the_surface():
+    from fitter.fitting.atlas.fit import REVERSE_SAMPLES, reverse_rows
+
+    plane = _valley_surface()
+    flat = type(plane)(plane.vertices * [1.0, 1.0, 0.0], plane.faces, "mesh", 1, {})
+    square = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    atlas = bilinear_atlas(quad_layout(square, np.array([[0, 1, 2], [0, 2, 3]])), 3, 1)
+    table = index_table(atlas)
+    points = control_points(atlas)
+    A, targets = reverse_rows(table, points, 3, 1, (flat.vertices, flat.faces))
+    assert A.shape == (0, len(points)) and targets.shape == (0, 3)  # all on the plane
+    lifted = points.copy()
+    inner = table[4][1:-1, 1:-1].reshape(-1)  # patch 4's own interior control points
+    lifted[inner, 2] += 0.2
+    A, targets = reverse_rows(table, lifted, 3, 1, (flat.vertices, flat.faces))
+    drawn = A @ lifted  # the rows evaluate the atlas at the samples they hold
+    assert 0 < len(targets) <= REVERSE_SAMPLES ** 2  # only the lifted patch is far
+    assert np.all(drawn[:, 2] > 0.005 * flat.diagonal)
+    np.testing.assert_allclose(targets[:, :2], drawn[:, :2], atol=1e-12)  # along the normal
+    np.testing.assert_allclose(targets[:, 2], 0.0, atol=1e-12)  # onto the plane
+
+
+def test_budget_bits_takes_one_bit_fewer_only_when_that_fits_the_budget(sphere_fit):
+    from fitter.fitting.atlas.fit import atlas_bytes, base_bits, budget_bits
+
+    atlas, rms = sphere_fit.atlas, sphere_fit.rms
+    bits = base_bits(atlas, rms)
+    full, fewer = atlas_bytes(atlas, bits), atlas_bytes(atlas, bits - 1)
+    assert fewer < full
+    assert budget_bits(atlas, rms, None, full) == (bits, full)  # within: as the RMS says
+    assert budget_bits(atlas, rms, None, full - 1) == (bits - 1, fewer)
+    assert budget_bits(atlas, rms, None, fewer - 1) == (bits, full)  # never two bits fewer
+    assert budget_bits(atlas, rms, None, None) == (bits, full)  # an explicit patch count
+    assert budget_bits(atlas, rms, 14, 10) == (14, atlas_bytes(atlas, 14))  # bits asked for
+    assert sphere_fit.bits == 12  # fit_atlas asks for 12 bits unless told None
