@@ -28,8 +28,10 @@ from fitter.fitting.atlas.layout import (
     bilinear_atlas,
     decimate,
     euler_characteristics,
+    flip_edges,
     thickness,
     thin_part_weights,
+    triangle_fidelity,
 )
 from fitter.fitting.atlas.surface import clean_mesh, manifold_problems
 from fitter.fitting.io.scan import Scan, make_scan, new_source
@@ -364,3 +366,95 @@ def test_open_border_curves_follow_the_scans_cut_rim():
     assert gap.max() < 0.02
     with pytest.raises(ValueError, match="border must be finite points"):
         fit_layout(layout, points, normals, rounds=1, border=rim[:, :2])
+
+
+def _valley_surface(n: int = 24):
+    """``z = |x|`` over ``[-1.5, 1.5]²``: a straight valley along ``y``, its crease on grid
+    lines, triangles counter-clockwise seen from ``+z``."""
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    t = np.linspace(-1.5, 1.5, n + 1)
+    x, y = np.meshgrid(t, t, indexing="ij")
+    vertices = np.stack([x.ravel(), y.ravel(), np.abs(x.ravel())], axis=1)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    p = (i * (n + 1) + j).ravel()
+    faces = np.concatenate([np.stack([p, p + n + 1, p + n + 2], axis=1),
+                            np.stack([p, p + n + 2, p + 1], axis=1)])
+    return ScanSurface(vertices, faces, "mesh", 1, {})
+
+
+def test_a_layout_edge_bridging_a_valley_is_flipped_into_it():
+    surface = _valley_surface()
+    # a = (0, -1) and b = (0, 1) lie on the crease, c and d on the walls' tops; the edge
+    # (c, d) bridges the valley 1 above its floor, the other diagonal (a, b) follows it
+    vertices = np.array([[0, -1, 0], [0, 1, 0], [-1, 0, 1], [1, 0, 1]], np.float64)
+    bridged = np.array([[2, 0, 3], [3, 1, 2]])
+    energy, away = triangle_fidelity(surface, vertices, bridged)
+    assert energy.sum() > 0.05 and away.sum() == 0  # far from the floor, facing up
+    triangles, flips = flip_edges(surface, vertices, bridged)
+    assert flips == 1
+    assert {frozenset(t) for t in triangles.tolist()} == {frozenset((0, 1, 2)),
+                                                         frozenset((0, 1, 3))}
+    corners = vertices[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert np.all(normals[:, 2] > 0)  # still counter-clockwise seen from above
+    np.testing.assert_allclose(triangle_fidelity(surface, vertices, triangles)[0], 0,
+                               atol=1e-12)  # each new triangle lies in a wall's plane
+    # a layout already on the surface is left alone
+    assert flip_edges(surface, vertices, triangles)[1] == 0
+
+
+def test_edge_flips_keep_a_decimated_layout_an_oriented_manifold_of_its_topology():
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.35, major_sections=64,
+                                   minor_sections=32)
+    v = torus.vertices
+    torus.vertices = v * (1 + 0.06 * np.sin(7 * v[:, :1]) * np.cos(5 * v[:, 1:2]))
+    surface = scan_surface(_mesh_scan(torus.vertices, torus.faces, "wavy torus"))
+    vertices, triangles = decimate(surface, 120)
+    before = triangle_fidelity(surface, vertices, triangles)
+    flipped, flips = flip_edges(surface, vertices, triangles)
+    after = triangle_fidelity(surface, vertices, flipped)
+    assert flips > 0 and len(flipped) == len(triangles)
+    problems = manifold_problems(flipped)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    assert euler_characteristics(vertices, flipped) == euler_characteristics(
+        vertices, triangles) == [0]
+    assert after[1].sum() <= before[1].sum()  # no more area facing away
+    assert after[0].sum() < before[0].sum()
+
+
+def test_reverse_rows_pull_only_far_samples_straight_onto_the_surface():
+    from fitter.fitting.atlas.fit import REVERSE_SAMPLES, reverse_rows
+
+    plane = _valley_surface()
+    flat = type(plane)(plane.vertices * [1.0, 1.0, 0.0], plane.faces, "mesh", 1, {})
+    square = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    atlas = bilinear_atlas(quad_layout(square, np.array([[0, 1, 2], [0, 2, 3]])), 3, 1)
+    table = index_table(atlas)
+    points = control_points(atlas)
+    A, targets = reverse_rows(table, points, 3, 1, (flat.vertices, flat.faces))
+    assert A.shape == (0, len(points)) and targets.shape == (0, 3)  # all on the plane
+    lifted = points.copy()
+    inner = table[4][1:-1, 1:-1].reshape(-1)  # patch 4's own interior control points
+    lifted[inner, 2] += 0.2
+    A, targets = reverse_rows(table, lifted, 3, 1, (flat.vertices, flat.faces))
+    drawn = A @ lifted  # the rows evaluate the atlas at the samples they hold
+    assert 0 < len(targets) <= REVERSE_SAMPLES ** 2  # only the lifted patch is far
+    assert np.all(drawn[:, 2] > 0.005 * flat.diagonal)
+    np.testing.assert_allclose(targets[:, :2], drawn[:, :2], atol=1e-12)  # along the normal
+    np.testing.assert_allclose(targets[:, 2], 0.0, atol=1e-12)  # onto the plane
+
+
+def test_budget_bits_takes_one_bit_fewer_only_when_that_fits_the_budget(sphere_fit):
+    from fitter.fitting.atlas.fit import atlas_bytes, base_bits, budget_bits
+
+    atlas, rms = sphere_fit.atlas, sphere_fit.rms
+    bits = base_bits(atlas, rms)
+    full, fewer = atlas_bytes(atlas, bits), atlas_bytes(atlas, bits - 1)
+    assert fewer < full
+    assert budget_bits(atlas, rms, None, full) == (bits, full)  # within: as the RMS says
+    assert budget_bits(atlas, rms, None, full - 1) == (bits - 1, fewer)
+    assert budget_bits(atlas, rms, None, fewer - 1) == (bits, full)  # never two bits fewer
+    assert budget_bits(atlas, rms, None, None) == (bits, full)  # an explicit patch count
+    assert budget_bits(atlas, rms, 14, 10) == (14, atlas_bytes(atlas, 14))  # bits asked for
+    assert sphere_fit.bits == 12  # fit_atlas asks for 12 bits unless told None

@@ -44,7 +44,7 @@ from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_err
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
-from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, base_bits, fit_atlas
+from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, fit_atlas
 from .layout import AtlasLayoutError
 from .measure import (
     DrawnMesh,
@@ -328,7 +328,8 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
     which reuses the trials the smaller budget fitted (``fit_atlas``'s ``trial_cache``).
     The last refusal is raised.
 
-    ``bits=None`` quantises ``base.tsa`` by the fit's RMS (:func:`.fit.base_bits`).
+    ``bits=None`` quantises ``base.tsa`` by the fit's RMS and byte budget
+    (:func:`.fit.budget_bits`).
 
     Returns
     -------
@@ -361,7 +362,7 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
                             else None, progress=stages.report, bits=bits, byte_budget=budget,
                             trial_cache=trials[source])
             stages.start("encode")
-            record["bits"] = bits or base_bits(fit.atlas, fit.rms)
+            record["bits"] = fit.bits
             decoded, _ = read_atlas(write_atlas(fit.atlas, record["bits"]))
             record["stray_share"] = check_base_follows_surface(decoded, surface)
             return fit, decoded, record
