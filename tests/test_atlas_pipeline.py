@@ -211,6 +211,24 @@ def test_an_atlas_that_strays_from_the_surface_is_refused():
         check_base_follows_surface(sphere_atlas(3, noise=0.3), surface)
 
 
+def test_a_base_with_a_patch_collapsed_to_a_point_is_refused_by_name():
+    from fitter.fitting.atlas import AtlasFitError, quad_layout
+    from fitter.fitting.atlas.fit import control_points, with_control_points
+    from fitter.fitting.atlas.layout import bilinear_atlas
+    from fitter.fitting.atlas.pipeline import check_base_follows_surface
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float64)
+    triangles = np.array([[0, 1, 2], [0, 2, 3]])
+    atlas = bilinear_atlas(quad_layout(square, triangles), 3, 1)
+    surface = ScanSurface(square, triangles, "mesh", 1)
+    assert check_base_follows_surface(atlas, surface) == 0.0
+    points = control_points(atlas)
+    points[:] = 0.5  # every patch quantised onto one point
+    with pytest.raises(AtlasFitError, match="collapsed to a line or a point"):
+        check_base_follows_surface(with_control_points(atlas, points), surface)
+
+
 def test_thin_to_count_keeps_about_the_target():
     from fitter.fitting.io.thin import thin_to_count
 

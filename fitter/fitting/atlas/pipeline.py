@@ -270,13 +270,18 @@ def restate_level_errors(tree: dict, errors: dict) -> None:
 def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
     """The share of the base's area farther than :data:`STRAY_DISTANCE` of the diagonal
     from the scan's surface (dense area-weighted samples of the welded base against the
-    surface's triangles); an ``AtlasFitError`` when it is over :data:`MAX_STRAY_SHARE`.
+    surface's triangles); an ``AtlasFitError`` when it is over :data:`MAX_STRAY_SHARE`, or
+    when a patch has no normal (collapsed by the quantisation: the next layout is tried).
 
     A displacement along the normal cannot bring back a base that has folded away from the
     scan (flaps across a thin shell with many tunnels, such as a carved mask), so such an
     atlas is refused before its detail is fitted; ``--patches auto`` then fits one patch.
     """
-    base = drawn_mesh(atlas, base_resolution(atlas.spans))
+    try:
+        base = drawn_mesh(atlas, base_resolution(atlas.spans))
+    except ValueError as exc:  # client_py's evaluation: a patch without a normal
+        raise AtlasFitError(f"the atlas base, as quantised, has a patch collapsed to a "
+                            f"line or a point ({exc}); its layout has a sliver") from exc
     points, _ = area_samples(base.vertices, base.faces, samples, np.random.default_rng(0))
     diagonal = surface.diagonal
     d = point_mesh_distance(points, surface.vertices, surface.faces)
