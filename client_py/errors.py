@@ -29,6 +29,10 @@ beside the code that raises them, each a subclass of :class:`TesseraError`
 ``fitter.collection.uploads.UploadError``  an upload refused (with its status)
 ``fitter.cli.UserError``                   a command-line problem (exit 2)
 =========================================  ===================================
+
+One more never reaches a caller: ``fitter.fitting.atlas.measure.MeasuringProcessError``,
+a measuring process that failed or died; the error stage then measures that level in
+its own process.
 """
 
 from __future__ import annotations

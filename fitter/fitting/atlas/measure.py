@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from client_py.errors import TesseraError
+
 CHUNK = 200_000
 
 
@@ -169,7 +171,7 @@ def signed_distance_to_drawn(points: np.ndarray, vertices: np.ndarray, faces: np
     return signed_point_mesh_distance(points, vertices.astype(float), faces.astype(np.int64))
 
 
-class MeasuringProcessError(RuntimeError):
+class MeasuringProcessError(TesseraError, RuntimeError):
     """A :class:`MeasuringProcess` that failed, died or answered short."""
 
 
