@@ -472,11 +472,14 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
     the other half of a two-sided distance: the foot-point term alone leaves any part of
     the atlas that no scan point projects onto (a wall across a crease, a flap turned
     over) free to stay far from the scan, where the visitor sees it and no detail reaches.
+    Only the samples farther than :data:`REVERSE_REACH` of the scan's diagonal get a row:
+    pulling the near ones too held the parameterisation back for no lower distance.
 
     Returns
     -------
-    A : csr_matrix, shape (F r², N_cp)
-    targets : ndarray, shape (F r², 3)
+    A : csr_matrix, shape (R, N_cp)
+        ``R <= F r²`` rows, one per far sample (none when every sample is near).
+    targets : ndarray, shape (R, 3)
     """
     from .measure import closest_points_on_mesh
 
