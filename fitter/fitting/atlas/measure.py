@@ -226,7 +226,10 @@ class MeasuringProcess:
             self.process.kill()
             self.process.wait()
         for stream in (self.process.stdin, self.process.stdout):
-            stream.close()
+            try:
+                stream.close()
+            except BrokenPipeError:  # bytes still buffered for a process that died: moot
+                pass
 
 
 def _write_arrays(stream, arrays: list[np.ndarray]) -> None:
