@@ -76,6 +76,7 @@ from .layout import (
     flip_edges,
     quad_layout,
     thin_part_weights,
+    triangle_samples,
 )
 from .surface import ScanSurface, SurfaceError, border_edges, scan_surface
 
@@ -242,16 +243,6 @@ def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix
 
 
 # ------------------------------------------------------------------ foot points
-def _triangle_samples(vertices: np.ndarray, triangles: np.ndarray, level: int = 5
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """A barycentric grid of ``(level+1)(level+2)/2`` points in every triangle, and its ids."""
-    bary = np.array([(i, j, level - i - j) for i in range(level + 1)
-                     for j in range(level + 1 - i)], np.float64) / level
-    tri = vertices[triangles]  # (T, 3, 3)
-    pts = np.einsum("sk,tkc->tsc", bary, tri).reshape(-1, 3)
-    return pts, np.repeat(np.arange(len(triangles)), len(bary))
-
-
 def assign_triangles(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray,
                      triangles: np.ndarray, candidates: int = 24) -> np.ndarray:
     """The layout triangle of each point: nearest among those whose normal agrees.
@@ -262,7 +253,7 @@ def assign_triangles(points: np.ndarray, normals: np.ndarray, vertices: np.ndarr
     tri = vertices[triangles]
     tri_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     tri_normals /= np.maximum(np.linalg.norm(tri_normals, axis=1, keepdims=True), 1e-300)
-    samples, owner = _triangle_samples(vertices, triangles)
+    samples, owner = triangle_samples(vertices, triangles, 5)
     k = min(candidates, len(samples))
     _, near = cKDTree(samples).query(points, k=k)
     near = near.reshape(len(points), k)

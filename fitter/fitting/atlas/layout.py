@@ -202,6 +202,17 @@ def _weighted_meshset(surface: ScanSurface, weights: np.ndarray):
     return ms
 
 
+def triangle_samples(vertices: np.ndarray, triangles: np.ndarray, level: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """A barycentric grid of ``(level+1)(level+2)/2`` points in every triangle, shape
+    ``(T (level+1)(level+2)/2, 3)``, triangle by triangle, and each point's triangle."""
+    bary = np.array([(i, j, level - i - j) for i in range(level + 1)
+                     for j in range(level + 1 - i)], np.float64) / level
+    tri = np.asarray(vertices, np.float64)[triangles]  # (T, 3, 3)
+    points = np.einsum("sk,tkc->tsc", bary, tri).reshape(-1, 3)
+    return points, np.repeat(np.arange(len(triangles)), len(bary))
+
+
 FLIP_SAMPLES = 4  # barycentric grid level of a layout triangle's samples (15 a triangle)
 FLIP_PASSES = 6  # rounds of edge flips at most
 FLIP_DISTANCE_GAIN = 0.7  # a flip that keeps the facing-away area must cut the energy to this
@@ -226,17 +237,13 @@ def triangle_fidelity(surface: ScanSurface, vertices: np.ndarray, triangles: np.
     """
     from .measure import closest_points_on_mesh
 
-    level = FLIP_SAMPLES
-    bary = np.array([(i, j, level - i - j) for i in range(level + 1)
-                     for j in range(level + 1 - i)], np.float64) / level
     tri = vertices[triangles]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = 0.5 * np.linalg.norm(cross, axis=1)
     normal = cross / np.maximum(2.0 * area, 1e-300)[:, None]
-    samples = np.einsum("sk,tkc->tsc", bary, tri).reshape(-1, 3)
+    samples, owner = triangle_samples(vertices, triangles, FLIP_SAMPLES)
     d, nearest, _ = closest_points_on_mesh(samples, surface.vertices, surface.faces)
-    facing = np.einsum("kc,kc->k", surface.face_normals[nearest],
-                       np.repeat(normal, len(bary), axis=0))
+    facing = np.einsum("kc,kc->k", surface.face_normals[nearest], normal[owner])
     energy = area * (d ** 2).reshape(len(tri), -1).mean(axis=1)
     far = d > FLIP_AWAY_REACH * surface.diagonal
     away = area * ((facing < 0) & far).reshape(len(tri), -1).mean(axis=1)
