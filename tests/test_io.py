@@ -126,7 +126,7 @@ def test_ascii_ply_cloud_with_range_grid(tmp_path):
     path = tmp_path / "scan.ply"
     path.write_text(text)
     scan = load_scan(path)
-    assert scan.source["reader"] == "ply-ascii"
+    assert scan.source["reader"] == "ply-range-grid"  # tests/test_range_grid.py: the faces
     np.testing.assert_array_equal(scan.points, pts)
     assert any("bye" in w for w in scan.source["warnings"])
 
@@ -643,8 +643,9 @@ def test_real_buddha_registration_overlaps(buddha, shared_data):
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("relative,points,faces", [
-    ("happy-buddha-rangescans/happyStandRight_0.ply.gz", 78056, None),
-    ("stanford-bunny/bun000.ply.gz", 40256, None),
+    # raw range scans: their range grids triangulated (tests/test_range_grid.py)
+    ("happy-buddha-rangescans/happyStandRight_0.ply.gz", 78056, 147889),
+    ("stanford-bunny/bun000.ply.gz", 40256, 78336),
     ("stanford-bunny/bun_zipper.ply.gz", 35947, 69451),
     ("stanford-lucy/lucy.ply", 49987, 99970),
     ("nefertiti/nefertiti-lowres.obj", 35002, 70000),

@@ -161,8 +161,8 @@ def load_conf(path: Path, gzipped: bool, budget: InputBudget,
         points.append(scan.points @ rot + t)  # rows: (R^T p)^T = p^T R
         normals.append(None if scan.normals is None else scan.normals @ rot)
         colors.append(scan.colors)
-        if scan.faces is not None:
-            faces.append(scan.faces + offset)
+        if scan.faces is not None and scan.source["reader"] != "ply-range-grid":
+            faces.append(scan.faces + offset)  # overlapping range images are not one mesh
         offset += scan.n_points
         files += [dict(f, role="scan") for f in scan.source["files"]]
         units.add(scan.units)

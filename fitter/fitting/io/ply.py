@@ -12,10 +12,12 @@ so the reader knows before touching the body which path fits:
   trailing elements) and converted into preallocated float64 points in the same
   pass, so a file of any size is read once and peak memory is the output arrays
   plus one chunk. ``.ply.gz`` is streamed through gzip in the same chunks.
-* **ASCII point cloud** (the Stanford range scans: ``vertex`` then ``range_grid``):
-  the vertex lines go through ``numpy.loadtxt`` (C parser: 23 ms for a 78k-point
-  Buddha scan against 1.5 s in trimesh's ASCII reader); later elements are
-  hashed, not parsed.
+* **raw range scan** (the Stanford range scans: ``vertex`` then ``range_grid``, ASCII
+  or binary): the vertex lines go through ``numpy.loadtxt`` (C parser: 23 ms for a
+  78k-point Buddha scan against 1.5 s in trimesh's ASCII reader) and the range image
+  is triangulated into the scan's faces (``fitter.fitting.io.range_grid``).
+* **ASCII point cloud** (``vertex`` alone): the vertex lines through ``loadtxt``;
+  later elements are hashed, not parsed.
 * **ASCII triangle mesh** (``vertex`` then an all-triangle ``face`` list, e.g.
   the zippered bunny): vertex and face lines both through ``loadtxt``.
 * **everything else** (binary meshes, polygons, vertex elements with list
@@ -47,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import range_grid
 from .limits import InputBudget
 from .points import PointStream
 from .scan import Scan, ScanError, colors_to_uint8, make_scan, new_source, units_from_comments
@@ -324,6 +327,41 @@ def _is_point_cloud(header: PlyHeader) -> bool:
     return header.elements[0].is_scalar and faces == 0
 
 
+def _is_range_image(header: PlyHeader) -> bool:
+    """``vertex`` (scalar properties) then ``range_grid`` with one list property: a raw
+    range scan (``fitter.fitting.io.range_grid``)."""
+    els = header.elements
+    return (len(els) >= 2 and els[0].name == "vertex" and els[0].is_scalar
+            and els[1].name == "range_grid" and len(els[1].properties) == 1
+            and els[1].properties[0].list_count_type is not None
+            and els[1].count > 0 and not any(e.name in FACE_ELEMENTS for e in els))
+
+
+def _parse_range_image(body: bytes, header: PlyHeader,
+                       name: str) -> tuple[_VertexArrays, np.ndarray]:
+    """Vertices and the triangulated ``range_grid`` of a raw range scan
+    (:func:`fitter.fitting.io.range_grid.triangulate`)."""
+    vertex, grid = header.elements[0], header.elements[1]
+    shape = range_grid.grid_shape(header.comments, grid.count, name)
+    layout = _VertexLayout.of(vertex, name)
+    prop = grid.properties[0]
+    if header.byte_order is None:
+        newlines = np.flatnonzero(np.frombuffer(body, np.uint8) == ord("\n"))
+        if len(newlines) < vertex.count:
+            raise ScanError(f"{name}: truncated ASCII PLY: the header promises {vertex.count} "
+                            f"vertices but the file holds only {len(newlines)} lines")
+        end = newlines[vertex.count - 1] + 1 if vertex.count else 0
+        arrays = _read_ascii(io.BytesIO(body[:end]), header, layout, name)
+        indices = range_grid.ascii_grid_indices(body[end:], grid.count, vertex.count, name)
+    else:
+        end = vertex.count * header.vertex_dtype().itemsize
+        arrays = _read_binary_stream(io.BytesIO(body[:end]), header, layout, name)
+        indices = range_grid.binary_grid_indices(body[end:], grid.count, prop.list_count_type,
+                                                 prop.type, header.byte_order, vertex.count,
+                                                 name)
+    return arrays, range_grid.triangulate(arrays.points, indices.reshape(shape))
+
+
 def _is_ascii_triangle_mesh(header: PlyHeader) -> bool:
     """ASCII ``vertex`` (scalar properties) then ``face`` with one list property."""
     els = header.elements
@@ -345,10 +383,16 @@ def load_ply(path: Path, gzipped: bool, budget: InputBudget | None = None) -> Sc
                 budget.take_points(name, sum(e.count for e in header.elements
                                              if e.name == "vertex"))
             units = units_from_comments(header.comments)
-            if _is_point_cloud(header) and header.byte_order and not gzipped:
+            if _is_range_image(header):
+                body = inp.stream.read()
+                record = inp.finish()
+                reader = "ply-range-grid"
+                arrays, faces = _parse_range_image(body, header, name)
+                layout = arrays.layout
+            elif _is_point_cloud(header) and header.byte_order and not gzipped:
                 inp.close()
                 return _load_memmap(path, header, units)
-            if _is_point_cloud(header):
+            elif _is_point_cloud(header):
                 reader = "ply-stream" if header.byte_order else "ply-ascii"
                 read = _read_binary_stream if header.byte_order else _read_ascii
                 layout = _VertexLayout.of(header.elements[0], name)
