@@ -578,16 +578,20 @@ def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
     largest distance to the scan 4.45 %, 4.05 % and 6.42 % of the diagonal. A 1 % trim cuts
     the stand-in open at the cavities between the arms and the body, and the coarse layout's
     decimation then spans the body's inside with triangles whose patches are drawn as walls
-    through it (5.4 % of the diagonal off the surface at 379 triangles): hence 2 %. Pieces
-    under ``MIN_ISLAND_SHARE`` of the faces are then dropped, the rest repaired as a scan's
-    mesh (:func:`clean_mesh`), and pieces under that share dropped again (MeshLab's split of
-    a non-manifold vertex can cut off a sliver of two triangles, whose one layout triangle's
-    patches quantise to a point). The trimmed stand-in is an oriented 2-manifold with open
-    borders (17 border loops at 1 %); its quadric decimations (``layout.decimate``) can fold
-    a flap over a border (a third face on an edge), which :func:`clean_mesh`'s last round
-    removes: at 1 % that took the refused plain and weighted decimations from 48 to 1536
-    triangles from 8 of 12 (both at 192 and at 384, 576 and 1152 patches) to 3. The working
-    points stay the scan's: only the layout's triangles come from here.
+    through it (5.4 % of the diagonal off the surface at 379 triangles): hence 2 %. Not a
+    cure: at 2 % the left opening of the arch over the head is drawn closed (its far area;
+    the 3 % trim's layout left it open but drew the pedestal's membranes), and the walls the
+    largest distance measures are the coarse layout's triangles across openings, not the
+    stand-in's. Pieces under ``MIN_ISLAND_SHARE`` of the faces are then dropped, the rest
+    repaired as a scan's mesh (:func:`clean_mesh`), and pieces under that share dropped
+    again (MeshLab's split of a non-manifold vertex can cut off a sliver of two triangles,
+    whose one layout triangle's patches quantise to a point). The trimmed stand-in is an
+    oriented 2-manifold with open borders (17 border loops at 1 %); its quadric decimations
+    (``layout.decimate``) can fold a flap over a border (a third face on an edge), which
+    :func:`clean_mesh`'s last round removes: at 1 % that took the refused plain and weighted
+    decimations from 48 to 1536 triangles from 8 of 12 (both at 192 and at 384, 576 and 1152
+    patches) to 3. The working points stay the scan's: only the layout's triangles come from
+    here.
 
     Raises
     ------
