@@ -181,6 +181,25 @@ def test_a_non_manifold_edge_is_split_and_a_moebius_strip_refused():
         clean_mesh(strip, np.array(quads), "moebius")
 
 
+def test_a_folded_flap_that_splitting_leaves_is_removed():
+    # five triangles (the neighbourhood of a fold in a quadric decimation of the Buddha's
+    # trimmed stand-in): edge (2, 3) has three faces, which MeshLab's split leaves as they are
+    vertices = np.array([[-2.0, 0, 0], [0, 0, -1.0], [0, 0, 0], [1, 1, 0], [0, 1, 1.0]])
+    faces = np.array([[2, 1, 0], [2, 3, 1], [3, 0, 4], [3, 2, 0], [3, 4, 2]])
+    v, f, repairs = clean_mesh(vertices, faces, "flap")
+    problems = manifold_problems(f)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    assert repairs["nonmanifold_faces_removed"] == 1 and len(f) == 4
+    # independent reference: the removed face is the smallest of the three on edge (2, 3)
+    kept = {tuple(sorted(map(tuple, v[face]))) for face in f}
+    gone = [k for k, face in enumerate(faces)
+            if tuple(sorted(map(tuple, vertices[face]))) not in kept]
+    on_edge = [k for k, face in enumerate(faces) if {2, 3} <= set(face.tolist())]
+    tri = vertices[faces[on_edge]]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    assert gone == [on_edge[int(np.argmin(area))]]
+
+
 def test_a_point_cloud_is_reconstructed_and_fitted():
     rng = np.random.default_rng(3)
     p = rng.normal(size=(6000, 3))
