@@ -70,11 +70,15 @@ from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
 from .layout import (
     AtlasLayoutError,
+    SPLIT_REACH,
+    SPLIT_SHARE,
     QuadLayout,
     bilinear_atlas,
     decimate,
+    far_triangles,
     flip_edges,
     quad_layout,
+    split_far_edges,
     thin_part_weights,
     triangle_samples,
 )
@@ -447,10 +451,12 @@ def border_foot_points(table: np.ndarray, points: np.ndarray, degree: int, spans
 REVERSE_SAMPLES = 5  # samples per patch side of the atlas-to-scan term
 REVERSE_WEIGHT = 1.0  # a patch's samples there weigh as much as its share of working points
 REVERSE_REACH = 0.005  # only samples farther from the scan than this share of the diagonal
+REVERSE_STICKY = True
 
 
 def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
-                 scan_mesh: tuple[np.ndarray, np.ndarray]) -> tuple[sp.csr_matrix, np.ndarray]:
+                 scan_mesh: tuple[np.ndarray, np.ndarray], held: np.ndarray | None = None
+                 ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """Rows holding the atlas onto the scan: its own samples pulled to the scan's surface.
 
     ``Σ_f Σ_ab |C_f(u_a, v_b) - y_fab|²`` over a grid of :data:`REVERSE_SAMPLES` ``²``
@@ -489,9 +495,12 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
     target = c + m * np.einsum("kc,kc->k", q - c, m)[:, None]
     far = np.linalg.norm(q - c, axis=1) > REVERSE_REACH * float(
         np.linalg.norm(np.ptp(vertices, axis=0)))
+    if held is not None and REVERSE_STICKY:
+        far = far | held
     if not far.any():
-        return sp.csr_matrix((0, len(points))), np.empty((0, 3))
-    return design_matrix(table, len(points), degree, spans, f[far], u[far], v[far]), target[far]
+        return sp.csr_matrix((0, len(points))), np.empty((0, 3)), far
+    return (design_matrix(table, len(points), degree, spans, f[far], u[far], v[far]),
+            target[far], far)
 
 
 # ------------------------------------------------------------------ working points
@@ -608,6 +617,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     timings["foot_points"] = timings.get("foot_points", 0.0) + time.perf_counter() - clock
     current = prior
     dist = None
+    held = None
     for round_index in range(max(1, rounds)):
         clock = time.perf_counter()
         A, targets = design_matrix(table, len(prior), degree, spans, f, u, v), points
@@ -621,7 +631,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                 A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
                 targets = np.concatenate([targets, math.sqrt(weight) * border[near]])
         if scan_mesh is not None and reverse_weight > 0 and round_index > 0:
-            A_rev, y_rev = reverse_rows(table, current, degree, spans, scan_mesh)
+            A_rev, y_rev, held = reverse_rows(table, current, degree, spans, scan_mesh, held)
             weight = reverse_weight * (len(points) / len(table)) / REVERSE_SAMPLES ** 2
             if len(y_rev):
                 A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
@@ -633,6 +643,35 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                                            f, u, v)
         timings["correct"] = timings.get("correct", 0.0) + time.perf_counter() - clock
     return with_control_points(initial, current), f, u, v, dist
+
+
+def refined_layout(surface: ScanSurface, target: int, weights: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The layout triangles of a trial of ``target``: decimated, flipped, split where far.
+
+    Quadric decimation to ``target`` triangles and :func:`.layout.flip_edges`. When ``s``
+    of its triangles are still far from the surface (:func:`.layout.far_triangles`), the
+    surface is decimated again to ``target - 2 s'`` triangles, ``s' = min(s, SPLIT_SHARE
+    target / 2)``, and ``s'`` edges are split where it is far
+    (:func:`.layout.split_far_edges`, two triangles an inner edge), then flipped again: the
+    same triangle count (so about the same bytes), moved from where the surface is flat
+    to where a coarse triangle bridged a groove or a gap.
+
+    Raises
+    ------
+    AtlasLayoutError, SurfaceError
+        From :func:`.layout.decimate`.
+    """
+    tri_vertices, triangles = decimate(surface, target, weights)
+    triangles, _ = flip_edges(surface, tri_vertices, triangles)
+    far = int(np.sum(far_triangles(surface, tri_vertices, triangles) > SPLIT_REACH))
+    splits = min(far, int(SPLIT_SHARE * target) // 2)
+    if splits and target - 2 * splits >= 4:
+        tri_vertices, triangles = decimate(surface, target - 2 * splits, weights)
+        triangles, _ = flip_edges(surface, tri_vertices, triangles)
+        tri_vertices, triangles, _ = split_far_edges(surface, tri_vertices, triangles, splits)
+        triangles, _ = flip_edges(surface, tri_vertices, triangles)
+    return tri_vertices, triangles
 
 
 def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
@@ -658,11 +697,10 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
                 weights = thin_part_weights(surface, target)
                 if np.ptp(weights) == 0:
                     break
-            tri_vertices, triangles = decimate(surface, target, weights)
+            tri_vertices, triangles = refined_layout(surface, target, weights)
         except (AtlasLayoutError, SurfaceError) as exc:
             failures.append((name, exc))
             continue
-        triangles, _ = flip_edges(surface, tri_vertices, triangles)
         candidates.append((name, quad_layout(tri_vertices, triangles),
                            time.perf_counter() - clock))
     return candidates, failures

@@ -235,19 +235,29 @@ def triangle_fidelity(surface: ScanSurface, vertices: np.ndarray, triangles: np.
     points within 0.5 %); with 2 % the bunny's ear-root chords (2.4 % from the scan) stayed;
     at 1 % the mask has 1.29e-4 (99.94 %) and the bunny's base 0.61 % at most.
     """
-    from .measure import closest_points_on_mesh
-
     tri = vertices[triangles]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = 0.5 * np.linalg.norm(cross, axis=1)
     normal = cross / np.maximum(2.0 * area, 1e-300)[:, None]
-    samples, owner = triangle_samples(vertices, triangles, FLIP_SAMPLES)
-    d, nearest, _ = closest_points_on_mesh(samples, surface.vertices, surface.faces)
-    facing = np.einsum("kc,kc->k", surface.face_normals[nearest], normal[owner])
-    energy = area * (d ** 2).reshape(len(tri), -1).mean(axis=1)
+    d, m = triangle_distances(surface, vertices, triangles)
+    facing = np.einsum("tsc,tc->ts", m, normal)
+    energy = area * (d ** 2).mean(axis=1)
     far = d > FLIP_AWAY_REACH * surface.diagonal
-    away = area * ((facing < 0) & far).reshape(len(tri), -1).mean(axis=1)
+    away = area * ((facing < 0) & far).mean(axis=1)
     return energy, away
+
+
+def triangle_distances(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to the surface of every sample of each triangle's barycentric grid of level
+    :data:`FLIP_SAMPLES`, shape ``(T, S)``, and the unit normal of the surface triangle
+    closest to it, ``(T, S, 3)`` (``measure.closest_points_on_mesh``)."""
+    from .measure import closest_points_on_mesh
+
+    samples, _ = triangle_samples(vertices, triangles, FLIP_SAMPLES)
+    d, nearest, _ = closest_points_on_mesh(samples, surface.vertices, surface.faces)
+    return d.reshape(len(triangles), -1), surface.face_normals[nearest].reshape(
+        len(triangles), -1, 3)
 
 
 def flip_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
@@ -432,3 +442,117 @@ def bilinear_atlas(layout: QuadLayout, degree: int = 3, spans: int = 2) -> Atlas
     face = (1 - s) * (1 - t) * a + s * (1 - t) * b + s * t * c + (1 - s) * t * d
     return AtlasSurface(degree, spans, corners.tolist(), layout.quads.tolist(),
                         edge_points.tolist(), face.reshape(-1, 3).tolist(), None)
+
+
+SPLIT_REACH = 0.01  # a layout triangle is far where a sample is this share of the diagonal off
+SPLIT_SHARE = 0.1  # at most this share of a layout's triangles goes to splits where it is far
+
+
+def far_triangles(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
+                  ) -> np.ndarray:
+    """Each triangle's largest sample distance to the surface over the diagonal, (T,); the
+    triangles above :data:`SPLIT_REACH` are the far ones :func:`split_far_edges` refines."""
+    d, _ = triangle_distances(surface, vertices, triangles)
+    return d.max(axis=1) / surface.diagonal
+
+
+def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
+                positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The triangle mesh with every edge of ``edges (S, 2)`` split at a new vertex.
+
+    Edge ``(a, b)`` gets vertex ``Vt + i`` at ``positions[i]``; each triangle ``(a, b, c)``
+    on it (one on an open border, two inside) becomes ``(a, m, c)`` and ``(m, b, c)`` in its
+    own orientation. An edge split (Hoppe et al., *Mesh optimization*, 1993) keeps an
+    oriented 2-manifold one, with its borders and topology. The edges must be distinct and
+    no two may share a triangle (each triangle is split at most once).
+
+    Raises
+    ------
+    ValueError
+        An edge that is not an edge of ``triangles``, two edges of one triangle, or shapes
+        that do not match.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    triangles = np.array(triangles, np.int64)
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    if len(edges) != len(positions):
+        raise ValueError(f"{len(edges)} edges but {len(positions)} positions")
+    directed = {}
+    for t, tri in enumerate(triangles.tolist()):
+        for k in range(3):
+            directed[tri[k], tri[(k + 1) % 3]] = (t, k)
+    used: set[int] = set()
+    added = []
+    for i, (a, b) in enumerate(edges.tolist()):
+        m = len(vertices) + i
+        sides = [directed[e] for e in ((a, b), (b, a)) if e in directed]
+        if not sides or a == b:
+            raise ValueError(f"({a}, {b}) is not an edge of the triangles")
+        for t, k in sides:
+            if t in used:
+                raise ValueError(f"triangle {t} holds two of the edges to split")
+            used.add(t)
+            x, y, z = triangles[t, k], triangles[t, (k + 1) % 3], triangles[t, (k + 2) % 3]
+            triangles[t] = (x, m, z)
+            added.append((m, y, z))
+    return (np.concatenate([vertices, positions]),
+            np.concatenate([triangles, np.array(added, np.int64).reshape(-1, 3)]))
+
+
+def split_far_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
+                    splits: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Up to ``splits`` edge splits where the layout lies far from the surface.
+
+    A coarse layout triangle can bridge a groove or a gap between two sheets (the Bali
+    mask's deep carving, Lucy's drapery and wing edges): its corners lie on the surface,
+    its inside up to 3 % of the diagonal off it. Its patches must then reach down into
+    the groove from corners at its mouth, and where a bicubic patch cannot bend that far it
+    stays a wall or a fin that no detail (a displacement along the normal) removes. So,
+    farthest first, the longest edge of every triangle with a sample farther than
+    :data:`SPLIT_REACH` of the diagonal (:func:`far_triangles`) is split at the closest
+    point of the surface to its midpoint (:func:`split_edges`), one edge per triangle and
+    pass, until ``splits`` are made or no triangle is far; each pass measures again.
+
+    Returns
+    -------
+    vertices, triangles, count
+        The refined layout and the number of edges split.
+    """
+    from .measure import closest_points_on_mesh
+
+    vertices = np.asarray(vertices, np.float64)
+    triangles = np.asarray(triangles, np.int64)
+    made = 0
+    while made < splits:
+        far = far_triangles(surface, vertices, triangles)
+        order = [t for t in np.argsort(-far) if far[t] > SPLIT_REACH]
+        if not order:
+            break
+        owners: dict[tuple[int, int], list[int]] = {}
+        for t, tri in enumerate(triangles.tolist()):
+            for k in range(3):
+                a, b = tri[k], tri[(k + 1) % 3]
+                owners.setdefault((min(a, b), max(a, b)), []).append(t)
+        touched: set[int] = set()
+        chosen = []
+        for t in order:
+            if made + len(chosen) >= splits:
+                break
+            corners = vertices[triangles[t]]
+            lengths = np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)
+            k = int(np.argmax(lengths))
+            a, b = int(triangles[t, k]), int(triangles[t, (k + 1) % 3])
+            on_edge = owners[min(a, b), max(a, b)]
+            if touched.intersection(on_edge):
+                continue
+            touched.update(on_edge)
+            chosen.append((a, b))
+        if not chosen:
+            break
+        edges = np.array(chosen, np.int64)
+        _, _, positions = closest_points_on_mesh(vertices[edges].mean(axis=1),
+                                                 surface.vertices, surface.faces)
+        vertices, triangles = split_edges(vertices, triangles, edges, positions)
+        made += len(chosen)
+    return vertices, triangles, made
