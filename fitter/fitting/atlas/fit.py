@@ -451,7 +451,6 @@ def border_foot_points(table: np.ndarray, points: np.ndarray, degree: int, spans
 REVERSE_SAMPLES = 5  # samples per patch side of the atlas-to-scan term
 REVERSE_WEIGHT = 1.0  # a patch's samples there weigh as much as its share of working points
 REVERSE_REACH = 0.005  # only samples farther from the scan than this share of the diagonal
-REVERSE_STICKY = True
 
 
 def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
@@ -470,13 +469,25 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
     the atlas that no scan point projects onto (a wall across a crease, a flap turned
     over) free to stay far from the scan, where the visitor sees it and no detail reaches.
     Only the samples farther than :data:`REVERSE_REACH` of the scan's diagonal get a row:
-    pulling the near ones too held the parameterisation back for no lower distance.
+    pulling the near ones too held the parameterisation back for no lower distance. A
+    sample keeps its row in later rounds once it has had one (``held``, the rows of the
+    previous rounds): one pulled near in a round would otherwise lose its row in the next,
+    spring back and be far again after the last solve (an active set that only grows; on
+    the Bali mask's 1,152-patch base, the largest distance fell from 2.85 % to 2.43 % of the
+    diagonal, the working points' RMS unchanged).
+
+    Parameters
+    ----------
+    held : ndarray of bool, shape (F r²,), optional
+        The samples that had a row in an earlier round.
 
     Returns
     -------
     A : csr_matrix, shape (R, N_cp)
         ``R <= F r²`` rows, one per far sample (none when every sample is near).
     targets : ndarray, shape (R, 3)
+    held : ndarray of bool, shape (F r²,)
+        The samples with a row: ``held`` for the next round.
     """
     from .measure import closest_points_on_mesh
 
@@ -495,7 +506,7 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
     target = c + m * np.einsum("kc,kc->k", q - c, m)[:, None]
     far = np.linalg.norm(q - c, axis=1) > REVERSE_REACH * float(
         np.linalg.norm(np.ptp(vertices, axis=0)))
-    if held is not None and REVERSE_STICKY:
+    if held is not None:
         far = far | held
     if not far.any():
         return sp.csr_matrix((0, len(points))), np.empty((0, 3)), far

@@ -11,6 +11,11 @@ of any manifold triangle mesh, ``F = 3 T`` quads, with valence-3 vertices at cen
 (the quadrangulation Eck & Hoppe 1996 reach through their triangle pairs is coarser but
 needs a perfect matching; this split needs nothing).
 
+Where a decimated triangle still lies far from the surface (it bridges a groove or the gap
+between two sheets), :func:`split_far_edges` splits its longest edge at the surface, within
+the same triangle count (``atlas.fit.refined_layout``), and :func:`flip_edges` swaps
+diagonals that cross a crease.
+
 The initial atlas puts every patch on its bilinear quad: control point ``P[i][j]`` is the
 bilinear blend of the quad's corners at the Greville abscissae ``(ξ_i, ξ_j)``,
 ``ξ_i = (t_{i+1} + … + t_{i+d}) / d`` (The NURBS Book §9.2.2, the linear precision of
