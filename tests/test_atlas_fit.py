@@ -28,10 +28,9 @@ from fitter.fitting.atlas.layout import (
     bilinear_atlas,
     decimate,
     euler_characteristics,
-    far_triangles,
     flip_edges,
     split_edges,
-    split_far_edges,
+    split_longest_edges,
     thickness,
     thin_part_weights,
     triangle_fidelity,
@@ -500,28 +499,26 @@ def test_split_edges_cuts_both_triangles_of_an_edge_in_their_own_orientation():
         split_edges(vertices, triangles, [[0, 1]], np.zeros((2, 3)))
 
 
-def test_split_far_edges_drops_a_layout_bridging_a_valley_onto_its_floor():
-    surface = _valley_surface()  # z = |x|, diagonal sqrt(3² + 3² + 1.5²)
+def test_split_longest_edges_drops_a_layout_bridging_a_valley_onto_its_floor():
+    surface = _valley_surface()  # z = |x|
     # corners on the walls' tops (|x| = 1, z = 1); the shared diagonal (a, b) is the longest
     # edge and bridges the valley: its midpoint (0, 0, 1) is 1/sqrt(2) from both walls,
     # with feet (±1/2, 0, 1/2)
     vertices = np.array([[-1, -1, 1], [1, 1, 1], [1, -1, 1], [-1, 1, 1]], np.float64)
     triangles = np.array([[0, 2, 1], [0, 1, 3]])
-    far = far_triangles(surface, vertices, triangles)
-    np.testing.assert_allclose(far, (1 / np.sqrt(2)) / surface.diagonal, rtol=1e-9)
     energy = triangle_fidelity(surface, vertices, triangles)[0].sum()
-    new_v, new_t, made = split_far_edges(surface, vertices, triangles, 1)
+    new_v, new_t, made = split_longest_edges(surface, vertices, triangles, [1, 0])
+    # both triangles share their longest edge: split once, for the first asked
     assert made == 1 and len(new_v) == 5 and len(new_t) == 4
     np.testing.assert_allclose(np.abs(new_v[4]), [0.5, 0.0, 0.5], atol=1e-9)
     assert _cyclic(new_t) == _cyclic([(0, 2, 4), (4, 2, 1), (0, 4, 3), (4, 1, 3)])
     assert triangle_fidelity(surface, new_v, new_t)[0].sum() < 0.6 * energy
-    # more splits are made pass by pass while triangles stay far, each at most once a pass
-    more_v, more_t, more = split_far_edges(surface, vertices, triangles, 3)
-    # then the longest edges are the square's sides (2 against 1.87 for the half diagonals),
-    # border edges, which split their one triangle: 2 + 2 + 1 + 1 triangles
-    assert more == 3 and len(more_t) == 6
-    problems = manifold_problems(more_t)
+    problems = manifold_problems(new_t)
     assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
-    # a layout on the surface is not split
-    on = np.array([[-1, -1, 1], [0, -1, 0], [0, 1, 0], [-1, 1, 1]], np.float64)
-    assert split_far_edges(surface, on, np.array([[0, 1, 2], [0, 2, 3]]), 5)[2] == 0
+    # then the longest edges are the square's sides (2 against 1.87 for the half
+    # diagonals), border edges, which split their one triangle: 4 + 1 + 1 triangles, the
+    # new vertices on the surface
+    more_v, more_t, more = split_longest_edges(surface, new_v, new_t, [0, 2])
+    assert more == 2 and len(more_t) == 6 and len(more_v) == 7
+    np.testing.assert_allclose(more_v[5:, 2], np.abs(more_v[5:, 0]), atol=1e-9)
+    assert split_longest_edges(surface, vertices, triangles, [])[2] == 0

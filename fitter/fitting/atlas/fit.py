@@ -70,15 +70,12 @@ from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
 from .layout import (
     AtlasLayoutError,
-    SPLIT_REACH,
-    SPLIT_SHARE,
     QuadLayout,
     bilinear_atlas,
     decimate,
-    far_triangles,
     flip_edges,
     quad_layout,
-    split_far_edges,
+    split_longest_edges,
     thin_part_weights,
     triangle_samples,
 )
@@ -588,7 +585,8 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                degree: int = 3, spans: int = 1, rounds: int = 4, smoothing: float = 0.1,
                anchor: float = 1e-3, border: np.ndarray | None = None,
                scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
-               reverse_weight: float = REVERSE_WEIGHT, timings: dict | None = None
+               reverse_weight: float = REVERSE_WEIGHT, hold: bool = False,
+               timings: dict | None = None
                ) -> tuple[AtlasSurface, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fit an atlas on ``layout`` to ``points``: foot points, solve, ``rounds`` corrections.
 
@@ -604,7 +602,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     ``scan_mesh (vertices, faces)``, optional: the scan's surface. From the second round on,
     :func:`reverse_rows` pull the atlas's own samples onto it, each patch's weighing
     ``reverse_weight`` times its share of working points, ``w_r = reverse_weight (K / F) /
-    r²``.
+    r²``; with ``hold``, a sample keeps its row once far (``reverse_rows``'s ``held``).
 
     Returns
     -------
@@ -642,7 +640,9 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                 A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
                 targets = np.concatenate([targets, math.sqrt(weight) * border[near]])
         if scan_mesh is not None and reverse_weight > 0 and round_index > 0:
-            A_rev, y_rev, held = reverse_rows(table, current, degree, spans, scan_mesh, held)
+            A_rev, y_rev, rows_held = reverse_rows(table, current, degree, spans, scan_mesh,
+                                                   held)
+            held = rows_held if hold else None
             weight = reverse_weight * (len(points) / len(table)) / REVERSE_SAMPLES ** 2
             if len(y_rev):
                 A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
@@ -656,33 +656,61 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     return with_control_points(initial, current), f, u, v, dist
 
 
-def refined_layout(surface: ScanSurface, target: int, weights: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The layout triangles of a trial of ``target``: decimated, flipped, split where far.
+FAR_REACH = 0.01  # the fitted base is far where a sample is this share of the diagonal off
+FAR_SAMPLES = 9  # samples per patch side (borders included) to find where the base is far
 
-    Quadric decimation to ``target`` triangles and :func:`.layout.flip_edges`. When ``s``
-    of its triangles are still far from the surface (:func:`.layout.far_triangles`), the
-    surface is decimated again to ``target - 2 s'`` triangles, ``s' = min(s, SPLIT_SHARE
-    target / 2)``, and ``s'`` edges are split where it is far
-    (:func:`.layout.split_far_edges`, two triangles an inner edge), then flipped again: the
-    same triangle count (so about the same bytes), moved from where the surface is flat
-    to where a coarse triangle bridged a groove or a gap.
 
-    Raises
-    ------
-    AtlasLayoutError, SurfaceError
-        From :func:`.layout.decimate`.
+def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray]
+                      ) -> np.ndarray:
+    """Distance over the diagonal of the scan's surface from each patch's
+    :data:`FAR_SAMPLES` ² grid (:func:`grid_mesh`'s vertices), shape ``(F, FAR_SAMPLES²)``."""
+    from .measure import closest_points_on_mesh
+
+    vertices, faces = scan_mesh
+    grid, _ = grid_mesh(atlas, FAR_SAMPLES)
+    d, _, _ = closest_points_on_mesh(grid, vertices, faces)
+    diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0)))
+    return d.reshape(len(atlas.quads), -1) / diagonal
+
+
+def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurface,
+                    points: np.ndarray, normals: np.ndarray, *,
+                    scan_mesh: tuple[np.ndarray, np.ndarray], **fit_options
+                    ) -> tuple[AtlasSurface, QuadLayout, np.ndarray, np.ndarray, np.ndarray,
+                               np.ndarray] | None:
+    """The fit on a layout split where the fitted base lies far from the scan, or ``None``.
+
+    Where a coarse layout triangle bridges a groove or the gap between two sheets (the
+    Bali mask's carving, Lucy's drapery and wing edges), its corners lie on the surface and
+    its inside up to 3 % of the diagonal off it; its patches must reach into the groove
+    from corners at its mouth, and where a bicubic patch cannot bend that far it stays a
+    wall or a fin that no detail (a displacement along the normal) removes. So when a
+    sample of the fitted base (:func:`far_patch_samples`) lies farther than
+    :data:`FAR_REACH` of the diagonal from the scan, the layout triangles of those patches,
+    farthest first, get their longest edge split at the surface
+    (:func:`.layout.split_longest_edges`, two more triangles an inner edge), the diagonals
+    are flipped again (:func:`.layout.flip_edges`) and the layout is fitted again
+    (:func:`fit_layout`, every far sample keeping its reverse row, ``hold``). The refit is
+    returned when its largest distance is lower; ``None`` when the base is near everywhere
+    (the bunny, Nefertiti, Laurana: their fits are unchanged) or the refit is no nearer.
     """
-    tri_vertices, triangles = decimate(surface, target, weights)
-    triangles, _ = flip_edges(surface, tri_vertices, triangles)
-    far = int(np.sum(far_triangles(surface, tri_vertices, triangles) > SPLIT_REACH))
-    splits = min(far, int(SPLIT_SHARE * target) // 2)
-    if splits and target - 2 * splits >= 4:
-        tri_vertices, triangles = decimate(surface, target - 2 * splits, weights)
-        triangles, _ = flip_edges(surface, tri_vertices, triangles)
-        tri_vertices, triangles, _ = split_far_edges(surface, tri_vertices, triangles, splits)
-        triangles, _ = flip_edges(surface, tri_vertices, triangles)
-    return tri_vertices, triangles
+    far = far_patch_samples(atlas, scan_mesh).max(axis=1)
+    if far.max() <= FAR_REACH:
+        return None
+    by_triangle = far.reshape(-1, 3).max(axis=1)
+    order = np.argsort(-by_triangle)
+    order = order[by_triangle[order] > FAR_REACH]
+    vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
+                                                    layout.triangles, order)
+    if not made:
+        return None
+    triangles, _ = flip_edges(surface, vertices, triangles)
+    refined = quad_layout(vertices, triangles)
+    r_atlas, f, u, v, dist = fit_layout(refined, points, normals, scan_mesh=scan_mesh,
+                                        hold=True, **fit_options)
+    if far_patch_samples(r_atlas, scan_mesh).max() >= far.max():
+        return None
+    return r_atlas, refined, f, u, v, dist
 
 
 def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
@@ -708,10 +736,11 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
                 weights = thin_part_weights(surface, target)
                 if np.ptp(weights) == 0:
                     break
-            tri_vertices, triangles = refined_layout(surface, target, weights)
+            tri_vertices, triangles = decimate(surface, target, weights)
         except (AtlasLayoutError, SurfaceError) as exc:
             failures.append((name, exc))
             continue
+        triangles, _ = flip_edges(surface, tri_vertices, triangles)
         candidates.append((name, quad_layout(tri_vertices, triangles),
                            time.perf_counter() - clock))
     return candidates, failures
@@ -964,6 +993,20 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         final_bits, size = budget_bits(atlas, rms, bits, byte_budget)
         best = (rms, size, layout, atlas, f, u, v, final_timings, final_bits)
     rms, size, layout, atlas, f, u, v, trial_timings, chosen_bits = best
+    clock = time.perf_counter()
+    refined = refine_far_base(atlas, layout, coarse,
+                              points, normals, degree=degree, spans=spans, rounds=rounds,
+                              smoothing=smoothing, anchor=anchor, border=border,
+                              scan_mesh=scan_mesh)
+    if refined is not None:
+        r_atlas, r_layout, rf, ru, rv, rdist = refined
+        r_rms = float(np.sqrt(np.mean(rdist ** 2)))
+        r_bits, r_size = budget_bits(r_atlas, r_rms, bits,
+                                     byte_budget if patches == "auto" else None)
+        if patches != "auto" or r_size <= byte_budget:
+            rms, size, layout, atlas, f, u, v, chosen_bits = (r_rms, r_size, r_layout, r_atlas,
+                                                              rf, ru, rv, r_bits)
+    timings["refine_far"] = time.perf_counter() - clock
     timings.update(trial_timings)
     table = index_table(atlas)
     distance = signed_distances(table, control_points(atlas), degree, spans, points, f, u, v)

@@ -11,10 +11,9 @@ of any manifold triangle mesh, ``F = 3 T`` quads, with valence-3 vertices at cen
 (the quadrangulation Eck & Hoppe 1996 reach through their triangle pairs is coarser but
 needs a perfect matching; this split needs nothing).
 
-Where a decimated triangle still lies far from the surface (it bridges a groove or the gap
-between two sheets), :func:`split_far_edges` splits its longest edge at the surface, within
-the same triangle count (``atlas.fit.refined_layout``), and :func:`flip_edges` swaps
-diagonals that cross a crease.
+:func:`flip_edges` swaps diagonals that cross a crease; where the fitted base still lies far
+from the scan (a triangle bridging a groove or the gap between two sheets),
+:func:`split_longest_edges` refines the layout (``atlas.fit.refine_far_base``).
 
 The initial atlas puts every patch on its bilinear quad: control point ``P[i][j]`` is the
 bilinear blend of the quad's corners at the Greville abscissae ``(ξ_i, ξ_j)``,
@@ -449,18 +448,6 @@ def bilinear_atlas(layout: QuadLayout, degree: int = 3, spans: int = 2) -> Atlas
                         edge_points.tolist(), face.reshape(-1, 3).tolist(), None)
 
 
-SPLIT_REACH = 0.01  # a layout triangle is far where a sample is this share of the diagonal off
-SPLIT_SHARE = 0.1  # at most this share of a layout's triangles goes to splits where it is far
-
-
-def far_triangles(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
-                  ) -> np.ndarray:
-    """Each triangle's largest sample distance to the surface over the diagonal, (T,); the
-    triangles above :data:`SPLIT_REACH` are the far ones :func:`split_far_edges` refines."""
-    d, _ = triangle_distances(surface, vertices, triangles)
-    return d.max(axis=1) / surface.diagonal
-
-
 def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
                 positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The triangle mesh with every edge of ``edges (S, 2)`` split at a new vertex.
@@ -505,19 +492,14 @@ def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
             np.concatenate([triangles, np.array(added, np.int64).reshape(-1, 3)]))
 
 
-def split_far_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
-                    splits: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Up to ``splits`` edge splits where the layout lies far from the surface.
+def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
+                        chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The longest edge of each triangle in ``chosen`` split at the surface.
 
-    A coarse layout triangle can bridge a groove or a gap between two sheets (the Bali
-    mask's deep carving, Lucy's drapery and wing edges): its corners lie on the surface,
-    its inside up to 3 % of the diagonal off it. Its patches must then reach down into
-    the groove from corners at its mouth, and where a bicubic patch cannot bend that far it
-    stays a wall or a fin that no detail (a displacement along the normal) removes. So,
-    farthest first, the longest edge of every triangle with a sample farther than
-    :data:`SPLIT_REACH` of the diagonal (:func:`far_triangles`) is split at the closest
-    point of the surface to its midpoint (:func:`split_edges`), one edge per triangle and
-    pass, until ``splits`` are made or no triangle is far; each pass measures again.
+    In the order given (the most urgent first), triangle ``t``'s longest edge is split
+    (:func:`split_edges`) at the closest point of the surface to its midpoint
+    (``measure.closest_points_on_mesh``); a triangle whose longest edge's triangles are
+    already being split is skipped (one split per triangle).
 
     Returns
     -------
@@ -528,36 +510,26 @@ def split_far_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.nd
 
     vertices = np.asarray(vertices, np.float64)
     triangles = np.asarray(triangles, np.int64)
-    made = 0
-    while made < splits:
-        far = far_triangles(surface, vertices, triangles)
-        order = [t for t in np.argsort(-far) if far[t] > SPLIT_REACH]
-        if not order:
-            break
-        owners: dict[tuple[int, int], list[int]] = {}
-        for t, tri in enumerate(triangles.tolist()):
-            for k in range(3):
-                a, b = tri[k], tri[(k + 1) % 3]
-                owners.setdefault((min(a, b), max(a, b)), []).append(t)
-        touched: set[int] = set()
-        chosen = []
-        for t in order:
-            if made + len(chosen) >= splits:
-                break
-            corners = vertices[triangles[t]]
-            lengths = np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)
-            k = int(np.argmax(lengths))
-            a, b = int(triangles[t, k]), int(triangles[t, (k + 1) % 3])
-            on_edge = owners[min(a, b), max(a, b)]
-            if touched.intersection(on_edge):
-                continue
-            touched.update(on_edge)
-            chosen.append((a, b))
-        if not chosen:
-            break
-        edges = np.array(chosen, np.int64)
-        _, _, positions = closest_points_on_mesh(vertices[edges].mean(axis=1),
-                                                 surface.vertices, surface.faces)
-        vertices, triangles = split_edges(vertices, triangles, edges, positions)
-        made += len(chosen)
-    return vertices, triangles, made
+    owners: dict[tuple[int, int], list[int]] = {}
+    for t, tri in enumerate(triangles.tolist()):
+        for k in range(3):
+            a, b = tri[k], tri[(k + 1) % 3]
+            owners.setdefault((min(a, b), max(a, b)), []).append(t)
+    touched: set[int] = set()
+    edges = []
+    for t in np.asarray(chosen, np.int64).tolist():
+        corners = vertices[triangles[t]]
+        k = int(np.argmax(np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)))
+        a, b = int(triangles[t, k]), int(triangles[t, (k + 1) % 3])
+        on_edge = owners[min(a, b), max(a, b)]
+        if touched.intersection(on_edge):
+            continue
+        touched.update(on_edge)
+        edges.append((a, b))
+    if not edges:
+        return vertices, triangles, 0
+    edges = np.array(edges, np.int64)
+    _, _, positions = closest_points_on_mesh(vertices[edges].mean(axis=1), surface.vertices,
+                                             surface.faces)
+    vertices, triangles = split_edges(vertices, triangles, edges, positions)
+    return vertices, triangles, len(edges)
