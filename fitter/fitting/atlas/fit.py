@@ -658,6 +658,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
 
 FAR_REACH = 0.01  # the fitted base is far where a sample is this share of the diagonal off
 FAR_SAMPLES = 9  # samples per patch side (borders included) to find where the base is far
+FAR_PASSES = 3  # refine_far_base at most this many times, while it gets nearer in the budget
 
 
 def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray]
@@ -994,18 +995,20 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         best = (rms, size, layout, atlas, f, u, v, final_timings, final_bits)
     rms, size, layout, atlas, f, u, v, trial_timings, chosen_bits = best
     clock = time.perf_counter()
-    refined = refine_far_base(atlas, layout, coarse,
-                              points, normals, degree=degree, spans=spans, rounds=rounds,
-                              smoothing=smoothing, anchor=anchor, border=border,
-                              scan_mesh=scan_mesh)
-    if refined is not None:
+    for _ in range(FAR_PASSES):
+        refined = refine_far_base(atlas, layout, coarse, points, normals, degree=degree,
+                                  spans=spans, rounds=rounds, smoothing=smoothing,
+                                  anchor=anchor, border=border, scan_mesh=scan_mesh)
+        if refined is None:
+            break
         r_atlas, r_layout, rf, ru, rv, rdist = refined
         r_rms = float(np.sqrt(np.mean(rdist ** 2)))
         r_bits, r_size = budget_bits(r_atlas, r_rms, bits,
                                      byte_budget if patches == "auto" else None)
-        if patches != "auto" or r_size <= byte_budget:
-            rms, size, layout, atlas, f, u, v, chosen_bits = (r_rms, r_size, r_layout, r_atlas,
-                                                              rf, ru, rv, r_bits)
+        if patches == "auto" and r_size > byte_budget:
+            break
+        rms, size, layout, atlas, f, u, v, chosen_bits = (r_rms, r_size, r_layout, r_atlas,
+                                                          rf, ru, rv, r_bits)
     timings["refine_far"] = time.perf_counter() - clock
     timings.update(trial_timings)
     table = index_table(atlas)
