@@ -522,3 +522,31 @@ def test_split_longest_edges_drops_a_layout_bridging_a_valley_onto_its_floor():
     assert more == 2 and len(more_t) == 6 and len(more_v) == 7
     np.testing.assert_allclose(more_v[5:, 2], np.abs(more_v[5:, 0]), atol=1e-9)
     assert split_longest_edges(surface, vertices, triangles, [])[2] == 0
+
+
+def test_far_patch_samples_measure_the_drawn_base_against_the_scan():
+    from fitter.fitting.atlas.fit import FAR_SAMPLES, far_patch_samples, with_control_points
+
+    plane = _valley_surface()
+    flat = type(plane)(plane.vertices * [1.0, 1.0, 0.0], plane.faces, "mesh", 1, {})
+    square = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    atlas = bilinear_atlas(quad_layout(square, np.array([[0, 1, 2], [0, 2, 3]])), 3, 1)
+    mesh = (flat.vertices, flat.faces)
+    near = far_patch_samples(atlas, mesh)
+    assert near.shape == (len(atlas.quads), FAR_SAMPLES ** 2)
+    np.testing.assert_allclose(near, 0.0, atol=1e-12)
+    # every control point 0.03 above the plane: the whole base is 0.03 / diagonal off
+    lifted = with_control_points(atlas, control_points(atlas) + [0.0, 0.0, 0.03])
+    diagonal = float(np.linalg.norm(np.ptp(flat.vertices, axis=0)))
+    np.testing.assert_allclose(far_patch_samples(lifted, mesh), 0.03 / diagonal, rtol=1e-9)
+
+
+def test_a_base_near_the_scan_everywhere_is_not_refined(sphere_fit):
+    from fitter.fitting.atlas.fit import FAR_REACH, far_patch_samples, refine_far_base
+
+    mesh = (sphere_fit.surface.vertices, sphere_fit.surface.faces)
+    assert far_patch_samples(sphere_fit.atlas, mesh).max() <= FAR_REACH
+    normals = np.zeros_like(sphere_fit.points)
+    assert refine_far_base(sphere_fit.atlas, sphere_fit.layout, sphere_fit.surface,
+                           sphere_fit.points, normals, scan_mesh=mesh) is None
+    assert "refine_far" in sphere_fit.timings
