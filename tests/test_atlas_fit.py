@@ -29,6 +29,8 @@ from fitter.fitting.atlas.layout import (
     decimate,
     euler_characteristics,
     flip_edges,
+    split_edges,
+    split_longest_edges,
     thickness,
     thin_part_weights,
     triangle_fidelity,
@@ -451,17 +453,24 @@ def test_reverse_rows_pull_only_far_samples_straight_onto_the_surface():
     atlas = bilinear_atlas(quad_layout(square, np.array([[0, 1, 2], [0, 2, 3]])), 3, 1)
     table = index_table(atlas)
     points = control_points(atlas)
-    A, targets = reverse_rows(table, points, 3, 1, (flat.vertices, flat.faces))
+    A, targets, held = reverse_rows(table, points, 3, 1, (flat.vertices, flat.faces))
     assert A.shape == (0, len(points)) and targets.shape == (0, 3)  # all on the plane
+    assert held.shape == (len(table) * REVERSE_SAMPLES ** 2,) and not held.any()
     lifted = points.copy()
     inner = table[4][1:-1, 1:-1].reshape(-1)  # patch 4's own interior control points
     lifted[inner, 2] += 0.2
-    A, targets = reverse_rows(table, lifted, 3, 1, (flat.vertices, flat.faces))
+    A, targets, held = reverse_rows(table, lifted, 3, 1, (flat.vertices, flat.faces))
     drawn = A @ lifted  # the rows evaluate the atlas at the samples they hold
     assert 0 < len(targets) <= REVERSE_SAMPLES ** 2  # only the lifted patch is far
     assert np.all(drawn[:, 2] > 0.005 * flat.diagonal)
     np.testing.assert_allclose(targets[:, :2], drawn[:, :2], atol=1e-12)  # along the normal
     np.testing.assert_allclose(targets[:, 2], 0.0, atol=1e-12)  # onto the plane
+    assert np.array_equal(np.nonzero(held)[0] // REVERSE_SAMPLES ** 2,
+                          np.full(len(targets), 4))  # the far samples are patch 4's
+    # a sample once far keeps its row in the next rounds, now pulled onto where it lies
+    A2, targets2, held2 = reverse_rows(table, points, 3, 1, (flat.vertices, flat.faces), held)
+    assert np.array_equal(held2, held) and len(targets2) == len(targets)
+    np.testing.assert_allclose(targets2, A2 @ points, atol=1e-12)
 
 
 def test_budget_bits_takes_one_bit_fewer_only_when_that_fits_the_budget(sphere_fit):
@@ -477,3 +486,86 @@ def test_budget_bits_takes_one_bit_fewer_only_when_that_fits_the_budget(sphere_f
     assert budget_bits(atlas, rms, None, None) == (bits, full)  # an explicit patch count
     assert budget_bits(atlas, rms, 14, 10) == (14, atlas_bytes(atlas, 14))  # bits asked for
     assert sphere_fit.bits == 12  # fit_atlas asks for 12 bits unless told None
+
+
+def _cyclic(triangles) -> list[tuple[int, ...]]:
+    """Triangles each rotated to start at its smallest index (orientation kept), sorted."""
+    out = []
+    for t in np.asarray(triangles).tolist():
+        k = t.index(min(t))
+        out.append(tuple(t[k:] + t[:k]))
+    return sorted(out)
+
+
+def test_split_edges_cuts_both_triangles_of_an_edge_in_their_own_orientation():
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float64)
+    triangles = np.array([[0, 1, 2], [2, 1, 3]])
+    new_v, new_t = split_edges(vertices, triangles, [[1, 2]], [[0.5, 0.5, 0.1]])
+    np.testing.assert_array_equal(new_v[4], [0.5, 0.5, 0.1])
+    # by hand: (0, 1, 2) -> (0, 1, 4), (4, 2, 0); (2, 1, 3) -> (2, 4, 3), (4, 1, 3)
+    assert _cyclic(new_t) == _cyclic([(0, 1, 4), (4, 2, 0), (2, 4, 3), (4, 1, 3)])
+    problems = manifold_problems(new_t)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    assert problems["border_edges"] == 4  # the square's outline, as before
+    # a border edge splits its one triangle
+    _, border_t = split_edges(vertices, triangles, [[0, 1]], [[0.5, 0, 0]])
+    assert _cyclic(border_t) == _cyclic([(0, 4, 2), (4, 1, 2), (2, 1, 3)])
+    with pytest.raises(ValueError, match="not an edge"):
+        split_edges(vertices, triangles, [[0, 3]], [[0, 0, 0]])
+    with pytest.raises(ValueError, match="two of the edges"):
+        split_edges(vertices, triangles, [[0, 1], [1, 2]], [[0, 0, 0], [1, 1, 1]])
+    with pytest.raises(ValueError, match="positions"):
+        split_edges(vertices, triangles, [[0, 1]], np.zeros((2, 3)))
+
+
+def test_split_longest_edges_drops_a_layout_bridging_a_valley_onto_its_floor():
+    surface = _valley_surface()  # z = |x|
+    # corners on the walls' tops (|x| = 1, z = 1); the shared diagonal (a, b) is the longest
+    # edge and bridges the valley: its midpoint (0, 0, 1) is 1/sqrt(2) from both walls,
+    # with feet (±1/2, 0, 1/2)
+    vertices = np.array([[-1, -1, 1], [1, 1, 1], [1, -1, 1], [-1, 1, 1]], np.float64)
+    triangles = np.array([[0, 2, 1], [0, 1, 3]])
+    energy = triangle_fidelity(surface, vertices, triangles)[0].sum()
+    new_v, new_t, made = split_longest_edges(surface, vertices, triangles, [1, 0])
+    # both triangles share their longest edge: split once, for the first asked
+    assert made == 1 and len(new_v) == 5 and len(new_t) == 4
+    np.testing.assert_allclose(np.abs(new_v[4]), [0.5, 0.0, 0.5], atol=1e-9)
+    assert _cyclic(new_t) == _cyclic([(0, 2, 4), (4, 2, 1), (0, 4, 3), (4, 1, 3)])
+    assert triangle_fidelity(surface, new_v, new_t)[0].sum() < 0.6 * energy
+    problems = manifold_problems(new_t)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    # then the longest edges are the square's sides (2 against 1.87 for the half
+    # diagonals), border edges, which split their one triangle: 4 + 1 + 1 triangles, the
+    # new vertices on the surface
+    more_v, more_t, more = split_longest_edges(surface, new_v, new_t, [0, 2])
+    assert more == 2 and len(more_t) == 6 and len(more_v) == 7
+    np.testing.assert_allclose(more_v[5:, 2], np.abs(more_v[5:, 0]), atol=1e-9)
+    assert split_longest_edges(surface, vertices, triangles, [])[2] == 0
+
+
+def test_far_patch_samples_measure_the_drawn_base_against_the_scan():
+    from fitter.fitting.atlas.fit import FAR_SAMPLES, far_patch_samples, with_control_points
+
+    plane = _valley_surface()
+    flat = type(plane)(plane.vertices * [1.0, 1.0, 0.0], plane.faces, "mesh", 1, {})
+    square = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    atlas = bilinear_atlas(quad_layout(square, np.array([[0, 1, 2], [0, 2, 3]])), 3, 1)
+    mesh = (flat.vertices, flat.faces)
+    near = far_patch_samples(atlas, mesh)
+    assert near.shape == (len(atlas.quads), FAR_SAMPLES ** 2)
+    np.testing.assert_allclose(near, 0.0, atol=1e-12)
+    # every control point 0.03 above the plane: the whole base is 0.03 / diagonal off
+    lifted = with_control_points(atlas, control_points(atlas) + [0.0, 0.0, 0.03])
+    diagonal = float(np.linalg.norm(np.ptp(flat.vertices, axis=0)))
+    np.testing.assert_allclose(far_patch_samples(lifted, mesh), 0.03 / diagonal, rtol=1e-9)
+
+
+def test_a_base_near_the_scan_everywhere_is_not_refined(sphere_fit):
+    from fitter.fitting.atlas.fit import FAR_REACH, far_patch_samples, refine_far_base
+
+    mesh = (sphere_fit.surface.vertices, sphere_fit.surface.faces)
+    assert far_patch_samples(sphere_fit.atlas, mesh).max() <= FAR_REACH
+    normals = np.zeros_like(sphere_fit.points)
+    assert refine_far_base(sphere_fit.atlas, sphere_fit.layout, sphere_fit.surface,
+                           sphere_fit.points, normals, scan_mesh=mesh) is None
+    assert "refine_far" in sphere_fit.timings

@@ -11,6 +11,10 @@ of any manifold triangle mesh, ``F = 3 T`` quads, with valence-3 vertices at cen
 (the quadrangulation Eck & Hoppe 1996 reach through their triangle pairs is coarser but
 needs a perfect matching; this split needs nothing).
 
+:func:`flip_edges` swaps diagonals that cross a crease; where the fitted base still lies far
+from the scan (a triangle bridging a groove or the gap between two sheets),
+:func:`split_longest_edges` refines the layout (``atlas.fit.refine_far_base``).
+
 The initial atlas puts every patch on its bilinear quad: control point ``P[i][j]`` is the
 bilinear blend of the quad's corners at the Greville abscissae ``(ξ_i, ξ_j)``,
 ``ξ_i = (t_{i+1} + … + t_{i+d}) / d`` (The NURBS Book §9.2.2, the linear precision of
@@ -235,19 +239,29 @@ def triangle_fidelity(surface: ScanSurface, vertices: np.ndarray, triangles: np.
     points within 0.5 %); with 2 % the bunny's ear-root chords (2.4 % from the scan) stayed;
     at 1 % the mask has 1.29e-4 (99.94 %) and the bunny's base 0.61 % at most.
     """
-    from .measure import closest_points_on_mesh
-
     tri = vertices[triangles]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = 0.5 * np.linalg.norm(cross, axis=1)
     normal = cross / np.maximum(2.0 * area, 1e-300)[:, None]
-    samples, owner = triangle_samples(vertices, triangles, FLIP_SAMPLES)
-    d, nearest, _ = closest_points_on_mesh(samples, surface.vertices, surface.faces)
-    facing = np.einsum("kc,kc->k", surface.face_normals[nearest], normal[owner])
-    energy = area * (d ** 2).reshape(len(tri), -1).mean(axis=1)
+    d, m = triangle_distances(surface, vertices, triangles)
+    facing = np.einsum("tsc,tc->ts", m, normal)
+    energy = area * (d ** 2).mean(axis=1)
     far = d > FLIP_AWAY_REACH * surface.diagonal
-    away = area * ((facing < 0) & far).reshape(len(tri), -1).mean(axis=1)
+    away = area * ((facing < 0) & far).mean(axis=1)
     return energy, away
+
+
+def triangle_distances(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to the surface of every sample of each triangle's barycentric grid of level
+    :data:`FLIP_SAMPLES`, shape ``(T, S)``, and the unit normal of the surface triangle
+    closest to it, ``(T, S, 3)`` (``measure.closest_points_on_mesh``)."""
+    from .measure import closest_points_on_mesh
+
+    samples, _ = triangle_samples(vertices, triangles, FLIP_SAMPLES)
+    d, nearest, _ = closest_points_on_mesh(samples, surface.vertices, surface.faces)
+    return d.reshape(len(triangles), -1), surface.face_normals[nearest].reshape(
+        len(triangles), -1, 3)
 
 
 def flip_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
@@ -432,3 +446,90 @@ def bilinear_atlas(layout: QuadLayout, degree: int = 3, spans: int = 2) -> Atlas
     face = (1 - s) * (1 - t) * a + s * (1 - t) * b + s * t * c + (1 - s) * t * d
     return AtlasSurface(degree, spans, corners.tolist(), layout.quads.tolist(),
                         edge_points.tolist(), face.reshape(-1, 3).tolist(), None)
+
+
+def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
+                positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The triangle mesh with every edge of ``edges (S, 2)`` split at a new vertex.
+
+    Edge ``(a, b)`` gets vertex ``Vt + i`` at ``positions[i]``; each triangle ``(a, b, c)``
+    on it (one on an open border, two inside) becomes ``(a, m, c)`` and ``(m, b, c)`` in its
+    own orientation. An edge split (Hoppe et al., *Mesh optimization*, 1993) keeps an
+    oriented 2-manifold one, with its borders and topology. The edges must be distinct and
+    no two may share a triangle (each triangle is split at most once).
+
+    Raises
+    ------
+    ValueError
+        An edge that is not an edge of ``triangles``, two edges of one triangle, or shapes
+        that do not match.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    triangles = np.array(triangles, np.int64)
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    if len(edges) != len(positions):
+        raise ValueError(f"{len(edges)} edges but {len(positions)} positions")
+    directed = {}
+    for t, tri in enumerate(triangles.tolist()):
+        for k in range(3):
+            directed[tri[k], tri[(k + 1) % 3]] = (t, k)
+    used: set[int] = set()
+    added = []
+    for i, (a, b) in enumerate(edges.tolist()):
+        m = len(vertices) + i
+        sides = [directed[e] for e in ((a, b), (b, a)) if e in directed]
+        if not sides or a == b:
+            raise ValueError(f"({a}, {b}) is not an edge of the triangles")
+        for t, k in sides:
+            if t in used:
+                raise ValueError(f"triangle {t} holds two of the edges to split")
+            used.add(t)
+            x, y, z = triangles[t, k], triangles[t, (k + 1) % 3], triangles[t, (k + 2) % 3]
+            triangles[t] = (x, m, z)
+            added.append((m, y, z))
+    return (np.concatenate([vertices, positions]),
+            np.concatenate([triangles, np.array(added, np.int64).reshape(-1, 3)]))
+
+
+def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
+                        chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The longest edge of each triangle in ``chosen`` split at the surface.
+
+    In the order given (the most urgent first), triangle ``t``'s longest edge is split
+    (:func:`split_edges`) at the closest point of the surface to its midpoint
+    (``measure.closest_points_on_mesh``); a triangle whose longest edge's triangles are
+    already being split is skipped (one split per triangle).
+
+    Returns
+    -------
+    vertices, triangles, count
+        The refined layout and the number of edges split.
+    """
+    from .measure import closest_points_on_mesh
+
+    vertices = np.asarray(vertices, np.float64)
+    triangles = np.asarray(triangles, np.int64)
+    owners: dict[tuple[int, int], list[int]] = {}
+    for t, tri in enumerate(triangles.tolist()):
+        for k in range(3):
+            a, b = tri[k], tri[(k + 1) % 3]
+            owners.setdefault((min(a, b), max(a, b)), []).append(t)
+    touched: set[int] = set()
+    edges = []
+    for t in np.asarray(chosen, np.int64).tolist():
+        corners = vertices[triangles[t]]
+        k = int(np.argmax(np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)))
+        a, b = int(triangles[t, k]), int(triangles[t, (k + 1) % 3])
+        on_edge = owners[min(a, b), max(a, b)]
+        if touched.intersection(on_edge):
+            continue
+        touched.update(on_edge)
+        edges.append((a, b))
+    if not edges:
+        return vertices, triangles, 0
+    edges = np.array(edges, np.int64)
+    _, _, positions = closest_points_on_mesh(vertices[edges].mean(axis=1), surface.vertices,
+                                             surface.faces)
+    vertices, triangles = split_edges(vertices, triangles, edges, positions)
+    return vertices, triangles, len(edges)
