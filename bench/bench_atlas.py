@@ -152,12 +152,17 @@ def score_object(name: str, path: Path, work: Path) -> dict:
 
 
 def _chosen_layout(manifest: dict) -> str | None:
-    """The atlas layout the fit kept (``'plain'`` or ``'weighted'``); ``None`` for a single
-    patch or a bundle that does not say."""
+    """The atlas layout the fit kept (``'plain'`` or ``'weighted'``, with ``' + splits'``
+    when ``fit.refine_far_base`` split some of its triangles after the trials); ``None``
+    for a single patch or a bundle that does not say."""
     fit = manifest.get("fit") or {}
-    chosen = [t.get("layout") for t in fit.get("trials") or []
-              if t.get("triangles") == fit.get("triangles") and "layout" in t]
-    return chosen[-1] if chosen else None
+    triangles = fit.get("triangles") or 0
+    tried = [t for t in fit.get("trials") or [] if "layout" in t
+             and (t.get("triangles") or 0) <= triangles]
+    if not tried:
+        return None
+    kept = max(tried, key=lambda t: t["triangles"])
+    return kept["layout"] + ("" if kept["triangles"] == triangles else " + splits")
 
 
 def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
