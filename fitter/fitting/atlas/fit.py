@@ -786,6 +786,27 @@ def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
     return len(write_atlas(atlas, bits or base_bits(atlas, rms)))
 
 
+def base_resolution(spans: int) -> int:
+    """Samples per patch side of the base alone: ``4 s + 1`` (four per knot span)."""
+    return 4 * spans + 1
+
+
+def keeps_every_normal(atlas: AtlasSurface, bits: int) -> bool:
+    """Whether ``base.tsa`` at ``bits``, decoded, still has a normal at every sample the
+    client draws the base at (``client_py.atlas_mesh.tessellate_atlas`` refuses a patch
+    that the rounding collapsed to a line or a point: a tiny patch, such as a small piece
+    of a range scan, whose extent is a few quantisation steps)."""
+    from client_py.atlas_format import read_atlas, write_atlas
+    from client_py.atlas_mesh import tessellate_atlas
+
+    decoded, _ = read_atlas(write_atlas(atlas, bits))
+    try:
+        tessellate_atlas(decoded, base_resolution(atlas.spans), kernel="numpy")
+    except ValueError:
+        return False
+    return True
+
+
 def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: int | None
                 ) -> tuple[int, int]:
     """The bits ``base.tsa`` is written at and its size then: ``(bits, bytes)``.
@@ -796,13 +817,21 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     quadrature, which the detail levels fitted to the decoded base take back; missing the
     budget by a few bytes would instead leave the layout with half the patches and about
     twice the RMS (Lucy at 384 triangles: 24,103 bytes).
+
+    Automatic bits are never so few that a patch collapses (:func:`keeps_every_normal`):
+    they rise until every patch keeps its normal, and the size then counts against the
+    budget like any other (on the Buddha's range scan 0, 8 bits collapsed a patch of a
+    small piece of the scan; the base was refused and the fit fell back to a stand-in).
     """
-    chosen = bits or base_bits(atlas, rms)
+    if bits is not None:
+        return bits, atlas_bytes(atlas, bits)
+    chosen = base_bits(atlas, rms)
+    while chosen < BASE_BITS[1] and not keeps_every_normal(atlas, chosen):
+        chosen += 1
     size = atlas_bytes(atlas, chosen)
-    if bits is None and byte_budget is not None and size > byte_budget \
-            and chosen > BASE_BITS[0]:
+    if byte_budget is not None and size > byte_budget and chosen > BASE_BITS[0]:
         coarser = atlas_bytes(atlas, chosen - 1)
-        if coarser <= byte_budget:
+        if coarser <= byte_budget and keeps_every_normal(atlas, chosen - 1):
             return chosen - 1, coarser
     return chosen, size
 

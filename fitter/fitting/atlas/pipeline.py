@@ -44,7 +44,7 @@ from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_err
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
-from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, fit_atlas
+from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, base_resolution, fit_atlas
 from .layout import AtlasLayoutError
 from .measure import (
     DrawnMesh,
@@ -78,11 +78,6 @@ RASTER_FILE = "error_raster.bin"  # the bundle's file of an atlas's error raster
 #: (:func:`measure_levels`): its BVH then builds beside the coarser levels' (the Happy
 #: Buddha's 9.4 M: 6 s of one core, under the GIL)
 PROCESS_TRIANGLES = 2_000_000
-
-
-def base_resolution(spans: int) -> int:
-    """Samples per patch side of the base alone: ``4 s + 1`` (four per knot span)."""
-    return 4 * spans + 1
 
 
 def _unit(rows: np.ndarray) -> np.ndarray:
