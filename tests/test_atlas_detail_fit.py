@@ -192,7 +192,7 @@ def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
     r = det.levels[level]["resolution"]
     model = atlas_detail.DrawnModel.of(atlas, samples, r)
     fields = [_coefficients(det, k) for k in range(level + 1)]
-    predicted = model.target - sum(model.drawn(c, k, det.tree["spans_per_tile"], samples.patch)
+    predicted = model.target - sum(model.drawn(c, k, det.tree["spans_per_tile"])
                                    for k, c in enumerate(fields))
     base = tessellate_atlas(atlas, r, None, kernel="numpy")
     drawn = tessellate_atlas(atlas, r, det.detail_up_to(level), kernel="numpy")
