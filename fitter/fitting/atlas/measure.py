@@ -176,17 +176,16 @@ class MeasuringProcessError(TesseraError, RuntimeError):
 
 
 class MeasuringProcess:
-    """:func:`signed_distance_to_drawn` of one point set against one mesh or several in
-    turn, in a fresh Python process (``python -m fitter.fitting.atlas.measure``), which
-    imports ``open3d`` as soon as it starts.
+    """:func:`signed_distance_to_drawn` of one mesh in a fresh Python process
+    (``python -m fitter.fitting.atlas.measure``), which imports ``open3d`` as soon as it
+    starts.
 
     ``open3d`` holds the GIL while it builds its BVH (one core: 6 s for the 9.4 M triangles
     of the Happy Buddha's finest level) and queries it, so no thread of this process runs
     beside it; another process does. The arrays travel through pipes as raw bytes
     (``dtype`` and shape on a line, then the data): no pickle, and no re-import of the
-    caller's ``__main__`` (as ``multiprocessing``'s spawn would). The points are sent once
-    (:meth:`send_points`), then each mesh (:meth:`measure_mesh`); :meth:`finish` ends the
-    process. These block in pipe I/O, which releases the GIL: call them from a thread.
+    caller's ``__main__`` (as ``multiprocessing``'s spawn would). :meth:`measure` blocks
+    in pipe I/O, which releases the GIL: call it from a thread.
 
     Raises
     ------
@@ -203,53 +202,23 @@ class MeasuringProcess:
         self.process = subprocess.Popen([sys.executable, "-m", "fitter.fitting.atlas.measure"],
                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
 
-    def _talk(self, send: list[np.ndarray], answers: int) -> list[np.ndarray]:
-        try:
-            _write_arrays(self.process.stdin, send)
-            return _read_arrays(self.process.stdout, answers) if answers else []
-        except (OSError, ValueError) as exc:
-            raise MeasuringProcessError(f"the measuring process failed: {exc}") from exc
-
-    def send_points(self, points: np.ndarray) -> None:
-        """The points every mesh is measured from (once, first)."""
-        self._talk([np.asarray(points, dtype=float)], 0)
-
-    def measure_mesh(self, vertices: np.ndarray, faces: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:func:`signed_distance_to_drawn` ``(points, vertices, faces)`` in the process,
-        ``points`` those of :meth:`send_points`."""
-        out = self._talk([np.asarray(vertices, dtype=np.float32),
-                          np.asarray(faces, dtype=np.uint32)], 3)
-        return out[0], out[1], out[2]
-
-    def finish(self) -> None:
-        """Tell the process there is no other mesh and wait for it to exit."""
-        try:
-            self.process.stdin.close()
-        except OSError as exc:
-            raise MeasuringProcessError(f"the measuring process failed: {exc}") from exc
-        finally:
-            code = self.process.wait()
-        if code != 0:
-            raise MeasuringProcessError(f"the measuring process exited with {code}")
-
     def measure(self, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`signed_distance_to_drawn` ``(points, vertices, faces)`` in the process,
         which then exits."""
         try:
-            self.send_points(points)
-            out = self.measure_mesh(vertices, faces)
+            _write_arrays(self.process.stdin, [np.asarray(points, dtype=float),
+                                               np.asarray(vertices, dtype=np.float32),
+                                               np.asarray(faces, dtype=np.uint32)])
+            self.process.stdin.close()
+            out = _read_arrays(self.process.stdout, 3)
+        except (OSError, ValueError) as exc:
+            raise MeasuringProcessError(f"the measuring process failed: {exc}") from exc
         finally:
-            if self.process.poll() is None and not self.process.stdin.closed:
-                try:
-                    self.process.stdin.close()
-                except OSError:
-                    pass
             code = self.process.wait()
         if code != 0:
             raise MeasuringProcessError(f"the measuring process exited with {code}")
-        return out
+        return out[0], out[1], out[2]
 
     def close(self) -> None:
         """End the process if it still runs (an error elsewhere)."""
@@ -272,14 +241,9 @@ def _write_arrays(stream, arrays: list[np.ndarray]) -> None:
 
 
 def _read_arrays(stream, count: int) -> list[np.ndarray]:
-    """``count`` arrays of :func:`_write_arrays`; an empty list at the end of the stream
-    (before the first array's line)."""
     out = []
     for _ in range(count):
-        line = stream.readline()
-        if not line and not out:
-            return []
-        dtype, *shape = line.decode().split()
+        dtype, *shape = stream.readline().decode().split()
         size = np.dtype(dtype).itemsize * math.prod(int(x) for x in shape)
         data = stream.read(size)
         if len(data) != size:
@@ -289,16 +253,14 @@ def _read_arrays(stream, count: int) -> list[np.ndarray]:
 
 
 def _serve() -> None:
-    """The :class:`MeasuringProcess` side: the points on stdin, then meshes (vertices,
-    faces) until the stream ends, three arrays out for each on the original stdout
-    (anything a library prints goes to stderr)."""
+    """The :class:`MeasuringProcess` side: three arrays in on stdin, three out on the
+    original stdout (anything a library prints goes to stderr)."""
     import open3d  # noqa: F401  (imported while the caller still tessellates)
 
     answer = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
-    (points,) = _read_arrays(sys.stdin.buffer, 1)
-    while mesh := _read_arrays(sys.stdin.buffer, 2):
-        _write_arrays(answer, list(signed_distance_to_drawn(points, *mesh)))
+    points, vertices, faces = _read_arrays(sys.stdin.buffer, 3)
+    _write_arrays(answer, list(signed_distance_to_drawn(points, vertices, faces)))
     answer.close()
 
 

@@ -202,15 +202,14 @@ def measure_levels(atlas, detail, points: np.ndarray
     the base, ``k`` with the packs of levels ``0..k``, each at :func:`level_resolution`),
     the panel's measure for each level (:func:`restate_level_errors`).
 
-    The meshes are tessellated here, finest first, and measured by worker threads.
-    ``open3d`` holds the GIL while it builds its BVH (one core) and queries it, so no
-    thread overlaps it; when the finest level has at least :data:`PROCESS_TRIANGLES`
-    triangles, every level is therefore measured in a :class:`~.measure.MeasuringProcess`:
-    the finest in one, the coarser in turn in another, both started first so that they
-    import ``open3d`` while the meshes are tessellated here (each level's BVH and queries
-    then run beside the next level's tessellation). Where no process can be started, or it
-    fails, the levels are measured here. The distances are the same either way (the same
-    function on the same numbers).
+    The meshes are tessellated here, finest first, and measured by one worker thread in
+    that order. ``open3d`` holds the GIL while it builds its BVH (one core) and queries
+    it, so no thread overlaps it; a finest level of at least :data:`PROCESS_TRIANGLES`
+    triangles is therefore measured in a :class:`~.measure.MeasuringProcess`, started
+    first so that it imports ``open3d`` while the mesh is tessellated, and the coarser
+    levels here meanwhile. Where no process can be started, or it fails, the finest level
+    is measured here. The distances are the same either way (the same function on the
+    same numbers).
 
     Returns
     -------
@@ -223,24 +222,13 @@ def measure_levels(atlas, detail, points: np.ndarray
     """
     top = len(detail.levels) - 1
     r = level_resolution(atlas, detail, top)
-    far = near = None
+    far = None
     if 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES:
         try:
             far = MeasuringProcess()
-            near = MeasuringProcess() if top > -1 else None
         except OSError:
-            pass
+            far = None
     jobs = {}
-    meshes: dict[int, DrawnMesh] = {}  # kept while a process measures them, to measure here
-
-    def there(process: MeasuringProcess, mesh: DrawnMesh, first: bool, last: bool):
-        if first:
-            process.send_points(points)
-        out = process.measure_mesh(mesh.vertices, mesh.faces)
-        if last:
-            process.finish()
-        return out
-
     try:
         with ThreadPoolExecutor(1) as measuring, ThreadPoolExecutor(1) as talking:
             for k in range(top, -2, -1):
@@ -249,29 +237,21 @@ def measure_levels(atlas, detail, points: np.ndarray
                 if k == top:
                     finest = mesh
                 if k == top and far is not None:
-                    jobs[k] = talking.submit(there, far, mesh, True, True)
-                elif near is not None:
-                    jobs[k] = measuring.submit(there, near, mesh, k == top - 1, k == -1)
-                    meshes[k] = mesh
+                    jobs[k] = talking.submit(far.measure, points, mesh.vertices, mesh.faces)
                 else:
                     jobs[k] = measuring.submit(signed_point_mesh_distance, points,
                                                mesh.vertices, mesh.faces)
                 del mesh  # the job holds it until measured
-            distances = {}
-            for k in range(top, -2, -1):
-                try:
-                    distances[k] = jobs[k].result()
-                except MeasuringProcessError:  # killed, out of memory...: measured here then
-                    mesh = finest if k == top else meshes[k]
-                    distances[k] = signed_point_mesh_distance(points, mesh.vertices,
-                                                              mesh.faces)
-                meshes.pop(k, None)
+            distances = {k: job.result()[0] for k, job in jobs.items() if k != top}
+            try:
+                d, triangle, closest = jobs[top].result()
+            except MeasuringProcessError:  # killed, out of memory...: measured here then
+                d, triangle, closest = signed_point_mesh_distance(points, finest.vertices,
+                                                                  finest.faces)
     finally:
-        for process in (far, near):
-            if process is not None:
-                process.close()
-    d, triangle, closest = distances[top]
-    return {k: v[0] for k, v in distances.items()}, finest, triangle, closest
+        if far is not None:
+            far.close()
+    return {top: d, **distances}, finest, triangle, closest
 
 
 def restate_level_errors(tree: dict, errors: dict) -> None:
