@@ -175,6 +175,14 @@ def test_drawn_triangles_are_the_clients_grid_triangles():
         assert sum(got.values()) == pytest.approx(1.0)
 
 
+def _bump_samples(fit, atlas, seed: int, count: int):
+    """``count`` random points of the bumped unit sphere, projected on ``atlas``."""
+    unit = np.random.default_rng(seed).normal(size=(count, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    points = unit * (1.0 + bump(unit))[:, None]
+    return atlas_detail.project_samples(atlas, fit, points, unit)
+
+
 def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
     """``target - sum_levels drawn`` of a sample is ``(x - sum_i beta_i X_i) . n`` with
     ``X_i`` the vertices of ``client_py.atlas_mesh``'s welded, displaced mesh (border
@@ -183,16 +191,12 @@ def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
 
     fit, scan, det = fitted
     atlas = det.atlas
-    rng = np.random.default_rng(7)
-    unit = rng.normal(size=(3000, 3))
-    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
-    points = unit * (1.0 + bump(unit))[:, None]
-    samples = atlas_detail.project_samples(atlas, fit, points, unit)
+    samples = _bump_samples(fit, atlas, 7, 3000)
     level = 1
     r = det.levels[level]["resolution"]
     model = atlas_detail.DrawnModel.of(atlas, samples, r)
     fields = [_coefficients(det, k) for k in range(level + 1)]
-    predicted = model.target - sum(model.drawn(c, k, det.tree["spans_per_tile"], samples.patch)
+    predicted = model.target - sum(model.drawn(c, k, det.tree["spans_per_tile"])
                                    for k, c in enumerate(fields))
     base = tessellate_atlas(atlas, r, None, kernel="numpy")
     drawn = tessellate_atlas(atlas, r, det.detail_up_to(level), kernel="numpy")
@@ -215,6 +219,64 @@ def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
         corner += beta[:, i, None] * shown[vertex]
     want = np.einsum("kc,kc->k", x - corner, n)
     np.testing.assert_allclose(predicted, want, atol=2e-6)
+
+
+def test_drawn_model_evaluates_each_node_once_to_the_same_numbers(fitted):
+    """DrawnModel evaluates every drawn node once and gathers it per sample: its target,
+    weights and ``drawn`` are those of the per-sample reference (each sample's three nodes
+    evaluated on their own, the model as it was written first), to rounding (the same
+    numbers on the 15-scan Happy Buddha); and the feet given or computed make the same
+    model, bit for bit."""
+    fit, scan, det = fitted
+    atlas = det.atlas
+    samples = _bump_samples(fit, atlas, 11, 2500)
+    spans = det.tree["spans_per_tile"]
+    level = 1
+    r = det.levels[level]["resolution"]
+    model = atlas_detail.DrawnModel.of(atlas, samples, r, chunk=700)
+    again = atlas_detail.DrawnModel.of(atlas, samples, r,
+                                       feet=atlas_detail.DrawnModel.feet(atlas, samples))
+    table, cps = index_table(atlas), control_points(atlas)
+    d, s = atlas.degree, atlas.spans
+    a, b, beta = atlas_detail.drawn_triangles(samples.u, samples.v, r)
+    # the reference: border directions as the model's docstring says, nodes per sample
+    G = atlas_detail.shared_index(atlas, r)
+    F = len(atlas.quads)
+    rim = [(f, i, j) for f in range(F) for i in range(r) for j in range(r)
+           if i in (0, r - 1) or j in (0, r - 1)]
+    rf, ra, rb = (np.array(x) for x in zip(*rim, strict=True))
+    _, cu, cv = evaluate_patches(table, cps, d, s, rf, ra / (r - 1), rb / (r - 1),
+                                 derivatives=True)
+    unit_n = np.cross(cu, cv)
+    unit_n /= np.linalg.norm(unit_n, axis=1, keepdims=True)
+    total = np.zeros((int(G.max()) + 1, 3))
+    np.add.at(total, G[rf, ra, rb], unit_n)
+    total /= np.maximum(np.linalg.norm(total, axis=1, keepdims=True), 1e-300)
+    c, cu, cv = evaluate_patches(table, cps, d, s, samples.patch, samples.u, samples.v,
+                                 derivatives=True)
+    n = np.cross(cu, cv)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    target = samples.s.copy()
+    field = _coefficients(det, level)
+    drawn = np.zeros(len(samples.u))
+    for i in range(3):
+        ci, cui, cvi = evaluate_patches(table, cps, d, s, samples.patch, a[:, i] / (r - 1),
+                                        b[:, i] / (r - 1), derivatives=True)
+        di = np.cross(cui, cvi)
+        di /= np.linalg.norm(di, axis=1, keepdims=True)
+        on_rim = (a[:, i] == 0) | (a[:, i] == r - 1) | (b[:, i] == 0) | (b[:, i] == r - 1)
+        di[on_rim] = total[G[samples.patch[on_rim], a[on_rim, i], b[on_rim, i]]]
+        weight = beta[:, i] * np.maximum(np.einsum("kc,kc->k", di, n),
+                                         atlas_detail.MIN_DIRECTION)
+        np.testing.assert_allclose(model.weight[:, i], weight, rtol=1e-12, atol=1e-15)
+        target += beta[:, i] * np.einsum("kc,kc->k", c - ci, n)
+        drawn += weight * atlas_detail.evaluate_fields(field, level, spans, samples.patch,
+                                                       a[:, i] / (r - 1), b[:, i] / (r - 1))
+    np.testing.assert_allclose(model.target, target, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(model.drawn(field, level, spans), drawn, rtol=1e-12,
+                               atol=1e-15)
+    for name in ("weight", "target", "node", "node_u", "node_v"):
+        assert getattr(model, name).tobytes() == getattr(again, name).tobytes(), name
 
 
 def _coefficients(det, level):

@@ -347,8 +347,8 @@ def quantisation_step(rms_fit: float, coefficient_max: float, residual_max: floa
 
 def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
                 u: np.ndarray, v: np.ndarray, e: np.ndarray,
-                drawn: np.ndarray | None = None
-                ) -> list[tuple[layers.DetailTile, bytes, float]]:
+                drawn: np.ndarray | None = None, encode: bool = True
+                ) -> list[tuple[layers.DetailTile, bytes | None, float]]:
     """Cut a level's quantised coefficients ``q (n, n)`` into its ``2^level x 2^level`` tiles.
 
     Tile ``(i, j)`` keeps ``q[i m : i m + m + p, j m : j m + m + p]``; its
@@ -359,7 +359,8 @@ def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
     Returns
     -------
     list of (DetailTile, bytes, float)
-        Each tile, its ``.tsd`` bytes and its ``geometric_error``, in ``(i, j)`` order.
+        Each tile, its ``.tsd`` bytes (``None`` with ``encode=False``: a caller that packs
+        the tiles itself) and its ``geometric_error``, in ``(i, j)`` order.
     """
     count = 1 << level
     cell = _tile_index(u, level) * count + _tile_index(v, level)
@@ -379,7 +380,8 @@ def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
                 continue
             tile = layers.DetailTile(level, i, j, degree, spans, step,
                                      tuple(int(x) for x in block.ravel()), mask)
-            tiles.append((tile, write_detail_tile(tile), float(worst[i * count + j])))
+            tiles.append((tile, write_detail_tile(tile) if encode else None,
+                          float(worst[i * count + j])))
     return tiles
 
 

@@ -426,11 +426,37 @@ class DrawnModel:
     v: np.ndarray
     weight: np.ndarray
     target: np.ndarray
+    node: np.ndarray
+    node_patch: np.ndarray
+    node_u: np.ndarray
+    node_v: np.ndarray
+
+    @staticmethod
+    def feet(atlas: AtlasSurface, samples: AtlasSamples, chunk: int = CHUNK
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Each sample's foot point ``C(u, v)`` and the base's unit normal ``n`` there, shapes
+        ``(N, 3)``: the same at every level, so :meth:`of` takes them once computed."""
+        table, cps = index_table(atlas), control_points(atlas)
+        foot = np.empty((len(samples.u), 3))
+        normal = np.empty((len(samples.u), 3))
+        for lo in range(0, len(samples.u), chunk):
+            hi = lo + chunk
+            foot[lo:hi], cu, cv = evaluate_patches(table, cps, atlas.degree, atlas.spans,
+                                                   samples.patch[lo:hi], samples.u[lo:hi],
+                                                   samples.v[lo:hi], derivatives=True)
+            normal[lo:hi] = _unit(np.cross(cu, cv))
+        return foot, normal
 
     @classmethod
     def of(cls, atlas: AtlasSurface, samples: AtlasSamples, resolution: int,
-           chunk: int = CHUNK) -> DrawnModel:
-        """The model of ``atlas``'s mesh drawn at ``resolution`` nodes per patch side."""
+           chunk: int = CHUNK, feet: tuple[np.ndarray, np.ndarray] | None = None
+           ) -> DrawnModel:
+        """The model of ``atlas``'s mesh drawn at ``resolution`` nodes per patch side
+        (``feet``: :meth:`feet`, computed here when not given).
+
+        Each node some sample's triangle uses is evaluated once (``node``: the index of
+        sample ``k``'s node ``i`` among them), not once per sample that uses it: the same
+        numbers, a third of the evaluations at the finest level and far fewer below."""
         table, cps = index_table(atlas), control_points(atlas)
         d, spans = atlas.degree, atlas.spans
         F, r = len(atlas.quads), resolution
@@ -448,25 +474,34 @@ class DrawnModel:
         total = np.zeros((int(G.max()) + 1, 3))
         np.add.at(total, G[rf, ra, rb], _unit(np.cross(cu, cv)))
         total = _unit(total)
+        # the nodes the samples' triangles use, each once: position and displacement direction
+        nodes, node = np.unique((samples.patch[:, None] * r + a) * r + b, return_inverse=True)
+        node = node.reshape(-1, 3)
+        nf, na, nb = nodes // (r * r), nodes // r % r, nodes % r
+        node_c = np.empty((len(nodes), 3))
+        node_d = np.empty((len(nodes), 3))
+        for lo in range(0, len(nodes), chunk):
+            hi = lo + chunk
+            fk, ai, bi = nf[lo:hi], na[lo:hi], nb[lo:hi]
+            node_c[lo:hi], cui, cvi = evaluate_patches(table, cps, d, spans, fk, ai / (r - 1),
+                                                       bi / (r - 1), derivatives=True)
+            di = _unit(np.cross(cui, cvi))
+            rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
+            di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
+            node_d[lo:hi] = di
+        foot, normal = feet if feet is not None else cls.feet(atlas, samples, chunk)
         weight = np.empty_like(beta)
         target = samples.s.copy()
         for lo in range(0, len(samples.u), chunk):
             hi = lo + chunk
-            fk = samples.patch[lo:hi]
-            c, cu, cv = evaluate_patches(table, cps, d, spans, fk, samples.u[lo:hi],
-                                         samples.v[lo:hi], derivatives=True)
-            n = _unit(np.cross(cu, cv))
+            c, n = foot[lo:hi], normal[lo:hi]
             for i in range(3):
-                ai, bi = a[lo:hi, i], b[lo:hi, i]
-                ci, cui, cvi = evaluate_patches(table, cps, d, spans, fk, ai / (r - 1),
-                                                bi / (r - 1), derivatives=True)
-                di = _unit(np.cross(cui, cvi))
-                rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
-                di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
-                weight[lo:hi, i] = beta[lo:hi, i] * np.maximum(np.einsum("kc,kc->k", di, n),
-                                                               MIN_DIRECTION)
-                target[lo:hi] += beta[lo:hi, i] * np.einsum("kc,kc->k", c - ci, n)
-        return cls(r, a / (r - 1), b / (r - 1), weight, target)
+                at = node[lo:hi, i]
+                weight[lo:hi, i] = beta[lo:hi, i] * np.maximum(
+                    np.einsum("kc,kc->k", node_d[at], n), MIN_DIRECTION)
+                target[lo:hi] += beta[lo:hi, i] * np.einsum("kc,kc->k", c - node_c[at], n)
+        return cls(r, a / (r - 1), b / (r - 1), weight, target, node, nf, na / (r - 1),
+                   nb / (r - 1))
 
     def rows(self, degree: int, knots: np.ndarray, n: int, lo: int, hi: int,
              block: np.ndarray, blocks: int) -> sp.csr_matrix:
@@ -479,12 +514,12 @@ class DrawnModel:
             out = out + sp.diags(self.weight[lo:hi, i]) @ A
         return out.tocsr()
 
-    def drawn(self, coefficients: np.ndarray, level: int, spans: int,
-              patch: np.ndarray) -> np.ndarray:
-        """``sum_i w_i D(node_i)`` of level ``level``'s field ``coefficients (F, n, n)``."""
-        return sum(self.weight[:, i] * evaluate_fields(coefficients, level, spans, patch,
-                                                       self.u[:, i], self.v[:, i])
-                   for i in range(3))
+    def drawn(self, coefficients: np.ndarray, level: int, spans: int) -> np.ndarray:
+        """``sum_i w_i D(node_i)`` of level ``level``'s field ``coefficients (F, n, n)``
+        (``D`` evaluated once per node)."""
+        at_nodes = evaluate_fields(coefficients, level, spans, self.node_patch, self.node_u,
+                                   self.node_v)
+        return sum(self.weight[:, i] * at_nodes[self.node[:, i]] for i in range(3))
 
 
 # ------------------------------------------------------------------ depth
@@ -576,8 +611,8 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
 
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                   fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
-                  threads: int | None = None, model: DrawnModel | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  threads: int | None = None, model: DrawnModel | None = None,
+                  rows: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
@@ -593,7 +628,10 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     The patches are solved in batches of about ``BATCH_UNKNOWNS`` unknowns
     (:func:`solve_spd_blocks`), the batches on ``threads`` threads (default: one per
     core; SuperLU and the sparse products release the GIL); the result does not depend
-    on the thread count.
+    on the thread count. ``rows``: a dict that keeps each batch's weighted rows and
+    residual, filled by the first call given it and read by the next (the border-held
+    solve has the independent solve's rows: on the 15-scan Happy Buddha they were a third
+    of the solves' CPU time); the same numbers either way.
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
@@ -616,15 +654,20 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         last = min(F, first + per_batch)
         lo, hi = samples.offsets[first], samples.offsets[last]
         count = last - first
-        if model is None:
-            A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
-                                   block=samples.patch[lo:hi] - first, blocks=count)
+        if rows is not None and first in rows:
+            A, r = rows[first]
         else:
-            A = model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first, count)
-        r = residual[lo:hi]
-        if weights is not None:
-            root = np.sqrt(weights[lo:hi])
-            A, r = sp.diags(root) @ A, root * r
+            if model is None:
+                A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
+                                       block=samples.patch[lo:hi] - first, blocks=count)
+            else:
+                A = model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first, count)
+            r = residual[lo:hi]
+            if weights is not None:
+                root = np.sqrt(weights[lo:hi])
+                A, r = sp.diags(root) @ A, root * r
+            if rows is not None:
+                rows[first] = A, r
         AtA = (A.T @ A).tocsr()
         diag = AtA.diagonal().reshape(count, n * n)
         mu = np.maximum(diag.sum(axis=1) / (n * n), mu_floor)
@@ -749,10 +792,8 @@ class AtlasDetail:
         ``tiles[k][f]``: patch ``f``'s level-``k`` tiles (for ``client_py.atlas_mesh``).
     levels : list of dict
         Per level ``level``, ``rms``, ``max`` (sample errors after levels ``0..k``),
-        ``bytes`` (its packs), ``packs``, ``resolution``, ``step``, ``border_jump``
-        (``{rms, max}`` of ``|D_f - D_g|`` on shared borders after levels ``0..k``) and
-        ``border_jump_independent`` (the same of the independent per-patch fits, before
-        the borders are shared).
+        ``bytes`` (its packs), ``packs``, ``resolution``, ``step`` and ``border_jump``
+        (``{rms, max}`` of ``|D_f - D_g|`` on shared borders after levels ``0..k``).
     samples : int
     spacing : float
         The scan's median edge length / point spacing the depth aims at.
@@ -780,6 +821,13 @@ class AtlasDetail:
             for f, tiles in self.tiles[k].items():
                 out.setdefault(f, []).extend(tiles)
         return out
+
+
+def _tick(timings: dict, name: str, clock: float) -> float:
+    """Add the seconds since ``clock`` to ``timings[name]``; returns the time now."""
+    now = time.perf_counter()
+    timings[name] = timings.get(name, 0.0) + now - clock
+    return now
 
 
 def _rounded(x: float) -> float:
@@ -859,56 +907,60 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     e = samples.error(np.zeros_like(samples.s))
     base_rms, base_max = float(np.sqrt(np.mean(e ** 2))), float(e.max(initial=0.0))
     fields: list[np.ndarray] = []
-    independent: list[np.ndarray] = []
     per_level_tiles: list[dict] = []
     level_rows: list[dict] = []
     worst_of_patch: list[np.ndarray] = []  # per level: max e of each patch's samples
+    timings.update(model=0.0, solve=0.0, tiles=0.0)  # the levels' steps, summed
     clock = time.perf_counter()
+    feet = DrawnModel.feet(atlas, samples)
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
-        model = DrawnModel.of(atlas, samples, atlas_level_resolution(spans, k))
-        residual = model.target - sum((model.drawn(c, j, spans, samples.patch)
+        model = DrawnModel.of(atlas, samples, atlas_level_resolution(spans, k), feet=feet)
+        residual = model.target - sum((model.drawn(c, j, spans)
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
+        clock = _tick(timings, "model", clock)
+        rows: dict = {}  # the batches' rows, made once for both solves
         free, weight = _solve_blocks(samples, residual, k, spans, weights=fit_weight,
-                                     model=model)
-        independent.append(free)
+                                     model=model, rows=rows)
         shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
         c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared,
-                             weights=fit_weight, model=model)
+                             weights=fit_weight, model=model, rows=rows)
+        del rows
         # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
         # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border
         # ring kept (shared, bounded already, and equal on both sides of a border)
         inner = ~border_ring(n)
         c[:, inner] = bounded_by_residual(c, samples, residual, use)[:, inner]
-        fitted = residual - model.drawn(c, k, spans, samples.patch)
+        clock = _tick(timings, "solve", clock)
+        fitted = residual - model.drawn(c, k, spans)
         rms_fit = float(np.sqrt(np.average(fitted[use] ** 2 + samples.t2[use],
                                            weights=samples.weight[use]))) if use.any() else 0.0
         step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
                                  float(np.abs(residual[use]).max(initial=0.0)), step_factor)
         q = np.rint(c / step).astype(np.int64)
         fields.append(q * step)
-        residual = residual - model.drawn(fields[-1], k, spans, samples.patch)
+        residual = residual - model.drawn(fields[-1], k, spans)
         e = np.sqrt(residual ** 2 + samples.t2)
         worst = np.zeros(F)
         np.maximum.at(worst, samples.patch, e)
         worst_of_patch.append(worst)
+        clock = _tick(timings, "model", clock)
         tiles: dict = {}
         for f in range(F):
             lo, hi = samples.offsets[f], samples.offsets[f + 1]
+            # a tile's own .tsd bytes size the finest level's groups (_groups) alone
             made = level_tiles(q[f], step, k, DEGREE, spans, samples.u[lo:hi],
-                               samples.v[lo:hi], e[lo:hi])
+                               samples.v[lo:hi], e[lo:hi], encode=k == levels - 1)
             if made:
                 tiles[f] = made
         per_level_tiles.append(tiles)
         level_rows.append({"level": k, "rms": float(np.sqrt(np.mean(e ** 2))),
                            "max": float(e.max(initial=0.0)), "step": step,
                            "resolution": atlas_level_resolution(spans, k),
-                           "border_jump": border_jump(atlas, fields, spans),
-                           "border_jump_independent": border_jump(atlas, independent, spans)})
+                           "border_jump": border_jump(atlas, fields, spans)})
         report(0.4 + 0.5 * (k + 1) / max(levels, 1))
-    timings["levels"] = time.perf_counter() - clock
-    clock = time.perf_counter()
+        clock = _tick(timings, "tiles", clock)
     groups = _groups(per_level_tiles[-1] if levels else {}, F, pack_bytes,
                      max(levels - 1, 0), spans)
     files: dict[str, bytes] = {}
