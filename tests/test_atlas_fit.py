@@ -569,3 +569,23 @@ def test_a_base_near_the_scan_everywhere_is_not_refined(sphere_fit):
     assert refine_far_base(sphere_fit.atlas, sphere_fit.layout, sphere_fit.surface,
                            sphere_fit.points, normals, scan_mesh=mesh) is None
     assert "refine_far" in sphere_fit.timings
+
+
+def test_automatic_bits_never_collapse_a_small_piece():
+    """A unit tetrahedron and one 2e-4 its size: at 8 bits (a step of 1/255) the small
+    one's patches round to a point and the client has no normal for them; the automatic
+    bits rise until it does, and that is what budget_bits returns."""
+    from fitter.fitting.atlas.fit import atlas_bytes, budget_bits, keeps_every_normal
+    from fitter.fitting.atlas.layout import bilinear_atlas, quad_layout
+
+    tetra = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float64)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    vertices = np.concatenate([tetra, 0.5 + 2e-4 * tetra])
+    atlas = bilinear_atlas(quad_layout(vertices, np.concatenate([faces, faces + 4])),
+                           spans=1)
+    assert keeps_every_normal(bilinear_atlas(quad_layout(tetra, faces), spans=1), 8)
+    assert not keeps_every_normal(atlas, 8)
+    bits, size = budget_bits(atlas, 1.0, None, None)  # an RMS that asks for 8 bits
+    assert bits > 8 and keeps_every_normal(atlas, bits) and size == atlas_bytes(atlas, bits)
+    assert not keeps_every_normal(atlas, bits - 1)
+    assert budget_bits(atlas, 1.0, 8, None)[0] == 8  # bits asked for are kept
