@@ -28,7 +28,8 @@ dominate the RMS: docs/benchmarks.md.)
   fitter's figure (``fitter.fitting.detail``: the distance to the refined surface at
   the point's foot point, an upper bound of its true distance that knows
   neither the trim masks nor the tessellation), for reference.
-* **Draco**: the scan's own mesh (a point cloud is meshed by Delaunay
+* **Draco**: the scan's own mesh (a raw range scan's is its triangulated range grid,
+  ``fitter.fitting.io.range_grid``; a point cloud is meshed by Delaunay
   triangulation of its foot points in the patch's ``(u, v)``, triangles with an
   edge over 4x the median left out; a cloud's mesh is of the covered points),
   quadric-decimated (fast-simplification) to a range of face counts and
