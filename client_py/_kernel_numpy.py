@@ -353,11 +353,14 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
     pure-Python weld's arithmetic operation for operation and its sums in its order (one
     sequential ``bincount`` over the border samples in patch order), so that both give
     the same bytes. Returns float32 positions, normals and ``(u, v)``, then the triangles
-    and the vertices' patches, as ``array``.
+    and the vertices' patches, as ``array``; without ``plan.shading`` the normals are empty
+    and none of their work is done (the drawn normals by differences, the interior copies,
+    the border sums), the rest is the same arithmetic on the same numbers, so the same
+    bytes.
     """
-    count, n_border = plan.count, plan.n_border
+    count, n_border, shade = plan.count, plan.n_border, plan.shading
     positions = np.zeros((count, 3))
-    normals = np.zeros((count, 3))
+    normals = np.zeros((count, 3)) if shade else None
     uvs = np.zeros((count, 2))
     owners = np.zeros(count, dtype=np.uint32)
     samples = []  # per group: the border samples' patch, node, flag, point, normal, shift, u, v
@@ -390,7 +393,9 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
             at = ids[:, 1:-1, 1:-1].reshape(-1)
             P, n = points[:, 1:-1, 1:-1], base[:, 1:-1, 1:-1]
             P = np.where(shifted[:, None, None, None], P + D[:, 1:-1, 1:-1, None] * n, P)
-            positions[at], normals[at] = P.reshape(-1, 3), n.reshape(-1, 3)
+            positions[at] = P.reshape(-1, 3)
+            if shade:
+                normals[at] = n.reshape(-1, 3)
             uvs[at, 0] = np.repeat(params[1:-1], r - 2)[None, :].repeat(count_g, 0).ravel()
             uvs[at, 1] = np.tile(params[1:-1], (count_g, r - 2)).ravel()
             owners[at] = np.repeat(np.asarray(group.patches, dtype=np.uint32), inner)
@@ -410,7 +415,6 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
     order = np.argsort(patch_of, kind="stable")
     patch_of, node, evaluated, point, normal, shift, u, v = (
         x[order] for x in (patch_of, node, evaluated, point, normal, shift, u, v))
-    shading = np.stack([np.bincount(node, normal[:, c], n_border) for c in range(3)], 1)
     on, at = node[evaluated], evaluated
     direction = np.stack([np.bincount(on, normal[at, c], n_border) for c in range(3)], 1)
     shifts = np.bincount(on, shift[at], n_border)
@@ -430,8 +434,9 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
     if len(between):  # on the segment of their coarse side's evaluated neighbours
         s = s.astype(float)[:, None]
         positions[between] = (1 - s) * positions[a] + s * positions[b]
-    if plan.by_differences:  # normals of the displaced, welded surface
-        shading = np.zeros((n_border, 3))
+    if shade and not plan.by_differences:  # the welded vertex's normal: its samplers' sum
+        shading = np.stack([np.bincount(node, normal[:, c], n_border) for c in range(3)], 1)
+    elif shade:  # normals of the displaced, welded surface
         shaded_samples = []
         for group, ids, base in zip(plan.groups, ids_of, bases, strict=True):
             r, count_g = group.r, len(group.patches)
@@ -446,7 +451,8 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
             shaded_samples.append(shaded[:, slots].reshape(-1, 3).astype(float))
         shaded = np.concatenate(shaded_samples)[order]
         shading = np.stack([np.bincount(node, shaded[:, c], n_border) for c in range(3)], 1)
-    normals[:n_border] = _unit_rows(shading)
+    if shade:
+        normals[:n_border] = _unit_rows(shading)
     # triangles, patch by patch: whole cells, or the fans given at resolution changes
     triangles = {}
     for group, ids in zip(plan.groups, ids_of, strict=True):
@@ -460,11 +466,13 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
     extra_positions, extra_normals, extra_uvs, extra_owners = plan.extra
     if extra_owners:
         positions = np.concatenate([positions, np.reshape(extra_positions, (-1, 3))])
-        normals = np.concatenate([normals, np.reshape(extra_normals, (-1, 3))])
+        if shade:
+            normals = np.concatenate([normals, np.reshape(extra_normals, (-1, 3))])
         uvs = np.concatenate([uvs, np.reshape(extra_uvs, (-1, 2))])
         owners = np.concatenate([owners, np.asarray(extra_owners, dtype=np.uint32)])
     with np.errstate(over="ignore"):  # beyond float32: inf, as the pure-Python packing
-        out = [array("f", x.astype(np.float32).tobytes()) for x in (positions, normals, uvs)]
+        out = [array("f", x.astype(np.float32).tobytes()) if x is not None else array("f")
+               for x in (positions, normals, uvs)]
     return (*out, array("I", indices.astype(np.uint32).tobytes()),
             array("I", owners.tobytes()))
 

@@ -395,7 +395,8 @@ def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
 def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
                      detail: Mapping[int, Sequence[DetailTile]] | None = None,
                      kernel: str | None = None,
-                     progress: Callable[[float], object] | None = None) -> AtlasMesh:
+                     progress: Callable[[float], object] | None = None,
+                     normals: bool = True) -> AtlasMesh:
     """One welded, watertight mesh of ``atlas`` (module docstring for the rules).
 
     Parameters
@@ -412,6 +413,12 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         Called with the share done, ``0 < x <= 1``, after every :data:`PROGRESS_BATCH`
         patches evaluated (:data:`PROGRESS_EVALUATION` of the work) and displaced (the
         rest): the viewer's "Download PLY" shows it.
+    normals : bool, optional
+        ``False``: no shading normals (``normals`` left empty), for a caller that only
+        measures the mesh (``fitter.fitting.atlas.measure``). The drawn normals by
+        differences and the border vertices' normalised sums are then skipped; the unit
+        base normals the detail displaces along are still computed, so the positions,
+        ``(u, v)``, triangles and patches are those of ``normals=True``, bit for bit.
 
     Returns
     -------
@@ -424,7 +431,7 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
     res = _check_resolutions(atlas, resolution)
     tiles = _check_detail(atlas, detail)
-    return _welded_mesh(atlas, res, tiles, kernel, progress=progress)[0]
+    return _welded_mesh(atlas, res, tiles, kernel, progress=progress, normals=normals)[0]
 
 
 class PatchGrids:
@@ -464,14 +471,15 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                  names: Sequence[int] | None = None,
                  cache: PatchGrids | None = None,
                  progress: Callable[[float], object] | None = None,
-                 weld: str | None = None) -> list[AtlasMesh]:
+                 weld: str | None = None, normals: bool = True) -> list[AtlasMesh]:
     """:func:`tessellate_atlas` of checked arguments (one mesh); ``tol``: the
     degenerate-normal tolerance (default :func:`_normal_tolerance` of ``atlas``); ``drawn``:
     instead, one mesh per sequence of patches (in increasing order): their triangles, with
     only the vertices these use, in increasing order of their number in the whole mesh
     (:func:`tessellate_atlas_parts`);
     ``cache``: patch grids kept between calls, under the patches' ``names`` (default their
-    indices); ``progress``: :func:`tessellate_atlas`'s.
+    indices); ``progress``, ``normals``: :func:`tessellate_atlas`'s (``normals=False``
+    with ``drawn``: empty normals for every part).
 
     The whole mesh (no ``drawn``, no ``cache``) with the numpy kernel is welded by the
     kernel (``_kernel_numpy.weld_atlas`` of :func:`_weld_plan`: the same bytes at array
@@ -492,9 +500,11 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     if weld not in (None, "python"):
         raise ValueError(f"weld must be None or 'python', got {weld!r}")
     if backend is not _kernel_python and weld is None and drawn is None and cache is None:
-        plan = _weld_plan(atlas, layout, comps, tiles, kernel, backend, tol, surface, progress)
-        positions, normals, uvs, indices, owners = backend.weld_atlas(plan)
-        return [AtlasMesh(positions, normals, uvs, indices, patches=owners)]
+        plan = _weld_plan(atlas, layout, comps, tiles, kernel, backend, tol, surface, progress,
+                          normals)
+        positions, shading, uvs, indices, owners = backend.weld_atlas(plan)
+        return [AtlasMesh(positions, shading, uvs, indices, patches=owners)]
+    shade = normals
     evaluate = (_evaluate_python if backend is _kernel_python
                 else partial(_evaluate_numpy, backend=backend))
 
@@ -597,7 +607,9 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         positions[3 * node : 3 * node + 3] = array("d", [
             (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
 
-    if tiles:
+    if not shade:  # measured, not drawn: no shading normals
+        normals = array("d")
+    elif tiles:
         # normals of the drawn (displaced, welded) surface by differences within each patch;
         # of a patch not drawn (drawn's ring), only those at the drawn patches' vertices: on
         # a window of the grid one sample wider, where the differences are the whole grid's
@@ -647,7 +659,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                         k = 3 * ((i - i0) * span + j - j0)
                         for c in range(3):
                             shading[3 * g + c] += shaded[k + c]
-    for node in range(n_border):
+    for node in range(n_border if shade else 0):
         normals[3 * node : 3 * node + 3] = array("d", _unit(*shading[3 * node : 3 * node + 3]))
 
     centres = _Centres(surface, tiles, kernel, count)
@@ -664,7 +676,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         triangles.append(indices)
     if centres.owners:
         positions.extend(centres.positions)
-        normals.extend(centres.normals)
+        normals.extend(centres.normals if shade else ())
         uvs.extend(centres.uvs)
         owners.extend(centres.owners)
     if drawn is None:
@@ -675,7 +687,8 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         number = {old: new for new, old in enumerate(keep)}
         take3 = itemgetter(*[3 * k + c for k in keep for c in range(3)])
         take2 = itemgetter(*[2 * k + c for k in keep for c in range(2)])
-        meshes.append(_packed(array("d", take3(positions)), array("d", take3(normals)),
+        meshes.append(_packed(array("d", take3(positions)),
+                              array("d", take3(normals) if shade else ()),
                               array("d", take2(uvs)), array("I", [owners[k] for k in keep]),
                               array("I", map(number.__getitem__, indices))))
     return meshes
@@ -711,8 +724,9 @@ class _WeldPlan:
     the layout (``n_border`` of them on corners and edges), the groups of patches by
     resolution, the in-between vertices (``_Layout.in_between``), whether normals are taken
     by differences of the displaced surface (any detail), the triangles of the patches with
-    finer neighbours (``{f: triangles}``, :func:`_patch_triangles`) and the centre vertices
-    these add (``positions, normals, uvs, owners``, :class:`_Centres`)."""
+    finer neighbours (``{f: triangles}``, :func:`_patch_triangles`), the centre vertices
+    these add (``positions, normals, uvs, owners``, :class:`_Centres`), and whether shading
+    normals are wanted at all (``shading``: :func:`tessellate_atlas`'s ``normals``)."""
 
     count: int
     n_border: int
@@ -721,15 +735,17 @@ class _WeldPlan:
     by_differences: bool
     fans: dict[int, array]
     extra: tuple[list, list, list, list]
+    shading: bool = True
 
 
 def _weld_plan(atlas: AtlasSurface, layout: _Layout, comps: list[list[float]],
                tiles: dict[int, list[DetailTile]], kernel: str | None, backend, tol: float,
-               surface: Callable, progress: Callable[[float], object] | None) -> _WeldPlan:
+               surface: Callable, progress: Callable[[float], object] | None,
+               shading: bool = True) -> _WeldPlan:
     """The :class:`_WeldPlan` of the whole atlas: every patch evaluated by the kernel
     (``atlas_patch_arrays``, by resolution, in :data:`PROGRESS_BATCH` patches when
     ``progress`` is given), its tiles summed on its grid, its sides' vertices numbered; the
-    progress reports are :func:`_welded_mesh`'s."""
+    progress reports are :func:`_welded_mesh`'s; ``shading``: :attr:`_WeldPlan.shading`."""
     res = layout.res
     by_res: dict[int, list[int]] = {}
     for f, r in enumerate(res):
@@ -780,7 +796,8 @@ def _weld_plan(atlas: AtlasSurface, layout: _Layout, comps: list[list[float]],
                                                   finer, centres.add))
     return _WeldPlan(layout.count, layout.border_count, groups, layout.in_between(),
                      bool(tiles), fans,
-                     (centres.positions, centres.normals, centres.uvs, centres.owners))
+                     (centres.positions, centres.normals, centres.uvs, centres.owners),
+                     shading)
 
 
 def _packed(positions: array, normals: array, uvs: array, owners: array,
@@ -792,7 +809,7 @@ def _packed(positions: array, normals: array, uvs: array, owners: array,
         out_positions = array("f", pack(*positions))
     except OverflowError:  # beyond float32: store inf, as fromlist() and numpy would
         out_positions = array("f", positions.tolist())
-    return AtlasMesh(out_positions, array("f", pack(*normals)),
+    return AtlasMesh(out_positions, array("f", pack(*normals)) if normals else array("f"),
                      array("f", struct.pack(f"={2 * total}f", *uvs)), indices,
                      patches=owners)
 

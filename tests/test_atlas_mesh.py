@@ -362,6 +362,31 @@ def test_the_numpy_weld_gives_the_bytes_of_the_pure_python_weld(case):
         assert a.typecode == b.typecode and a.tobytes() == b.tobytes(), name
 
 
+@pytest.mark.parametrize("weld", ["numpy", "numpy weld='python'", "python"])
+@pytest.mark.parametrize("case", range(12))
+def test_a_mesh_without_normals_is_the_drawn_mesh_bit_for_bit(case, weld):
+    """``normals=False`` (what the fitter's error stage measures): empty normals, and the
+    positions, ``(u, v)``, triangles and patches of the mesh with normals, byte for byte,
+    with the numpy weld, the pure-Python weld of numpy grids and the pure-Python kernel."""
+    from client_py.atlas_mesh import _check_detail, _check_resolutions, _welded_mesh
+
+    kernel, _, python_weld = weld.partition(" ")
+    if kernel == "numpy":
+        pytest.importorskip("numpy")
+    atlas, resolution, detail = _weld_cases()[case]
+    res, tiles = _check_resolutions(atlas, resolution), _check_detail(atlas, detail)
+    how = {"weld": "python"} if python_weld else {}
+    (full,) = _welded_mesh(atlas, res, tiles, kernel, **how)
+    (bare,) = _welded_mesh(atlas, res, tiles, kernel, normals=False, **how)
+    assert len(full.normals) == len(full.positions) > 0 and len(bare.normals) == 0
+    for name in ("positions", "uvs", "indices", "patches"):
+        a, b = getattr(full, name), getattr(bare, name)
+        assert a.typecode == b.typecode and a.tobytes() == b.tobytes(), name
+    if case == 1:  # the public function passes it on
+        mesh = tessellate_atlas(atlas, resolution, detail, kernel=kernel, normals=False)
+        assert mesh.positions.tobytes() == full.positions.tobytes() and not mesh.normals
+
+
 # ------------------------------------------------------------------ one group's share of it
 def _groups_of(atlas, seed):
     """A random partition of the patches into runs of 1..7 (the bundle's detail groups)."""

@@ -51,10 +51,14 @@ class DrawnMesh:
 
 def drawn_mesh(atlas, resolution: int, detail: dict | None = None) -> DrawnMesh:
     """``tessellate_atlas(atlas, resolution, detail)`` with the numpy kernel, as a
-    :class:`DrawnMesh` (``detail``: ``{patch: [tiles]}``, ``None`` or empty for the base)."""
+    :class:`DrawnMesh` (``detail``: ``{patch: [tiles]}``, ``None`` or empty for the base).
+
+    Without shading normals (``normals=False``): nothing here reads them, and the drawn
+    positions, triangles, ``(u, v)`` and patches are the same bytes either way
+    (tests/test_atlas_mesh.py); a third of the Happy Buddha's finest tessellation."""
     from client_py.atlas_mesh import tessellate_atlas
 
-    mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy")
+    mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy", normals=False)
     return DrawnMesh(
         np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float),
         np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64),
