@@ -55,7 +55,8 @@ def drawn_mesh(atlas, resolution: int, detail: dict | None = None) -> DrawnMesh:
 
     Without shading normals (``normals=False``): nothing here reads them, and the drawn
     positions, triangles, ``(u, v)`` and patches are the same bytes either way
-    (tests/test_atlas_mesh.py); a third of the Happy Buddha's finest tessellation."""
+    (tests/test_atlas_mesh.py); the Happy Buddha's finest drawn mesh in 3.9 CPU-s instead of
+    5.5."""
     from client_py.atlas_mesh import tessellate_atlas
 
     mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy", normals=False)
