@@ -134,6 +134,26 @@ def test_a_registration_keeps_the_points_only(tmp_path: Path):
     assert scan.faces is None and scan.n_points == 2 * len(points)
 
 
+def test_a_registration_of_meshes_is_a_cloud_and_of_one_scan_a_mesh(tmp_path: Path):
+    """The rule does not depend on the scan's reader: two triangle-mesh PLYs give a cloud;
+    one placed scan keeps its triangles, moved with its points."""
+    points, grid = step_image()
+    faces = triangulate(points, grid)
+    mesh = ["ply", "format ascii 1.0", f"element vertex {len(points)}", "property float x",
+            "property float y", "property float z", f"element face {len(faces)}",
+            "property list uchar int vertex_indices", "end_header",
+            *(" ".join(map(repr, p.tolist())) for p in points.astype(np.float32)),
+            *(f"3 {a} {b} {c}" for a, b, c in faces)]
+    (tmp_path / "m.ply").write_text("\n".join(mesh) + "\n")
+    (tmp_path / "r.ply").write_text(ply_text(points, grid))
+    (tmp_path / "two.conf").write_text("bmesh m.ply 0 0 0 0 0 0 1\nbmesh r.ply 0 0 1 0 0 0 1\n")
+    assert load_scan(tmp_path / "two.conf").faces is None
+    (tmp_path / "one.conf").write_text("bmesh r.ply 0 0 5 0 0 0 1\n")
+    one = load_scan(tmp_path / "one.conf")
+    np.testing.assert_array_equal(one.faces, faces)
+    np.testing.assert_allclose(one.points, points + [0, 0, 5], atol=1e-5)
+
+
 @pytest.mark.realdata
 def test_real_buddha_scan_is_a_mesh_with_open_borders(shared_data):
     path = shared_data / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz"

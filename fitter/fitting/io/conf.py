@@ -26,6 +26,11 @@ viewer's camera and does not move the data. ``mesh`` lines name scanalyze's
 own raw scans (e.g. Cyberware ``_cybcyl`` cylinders, no PLY), which are not
 read; each is reported in ``source["warnings"]``.
 
+The result is a cloud: overlapping range images are not one mesh (their sheets lie on
+top of each other, a fraction of the sampling step apart), so the scans' own triangles,
+from a mesh PLY or a raw ``range_grid``, are dropped once there are two or more of them.
+A ``.conf`` placing a single scan keeps that scan's faces.
+
 The listed names are input too (``fitter.fitting.io.limits``): each must lie inside the
 ``.conf``'s folder (no absolute name, no ``..``, no link leading out), may be named once,
 and there may be at most ``max_files`` of them; all the scans share the read's one
@@ -153,17 +158,15 @@ def load_conf(path: Path, gzipped: bool, budget: InputBudget,
     name = path.name
     entries, skipped, record = read_conf(path, gzipped, budget)
     listed = check_registration(path, entries, budget)
-    points, normals, colors, faces, files, scans, units = [], [], [], [], [record], [], set()
-    offset = 0
+    points, normals, colors, files, scans, units = [], [], [], [record], [], set()
+    faces = None
     for (scan_name, t, q), file in zip(entries, listed, strict=True):
         scan = load_one(file)
         rot = quaternion_matrix(q)
         points.append(scan.points @ rot + t)  # rows: (R^T p)^T = p^T R
         normals.append(None if scan.normals is None else scan.normals @ rot)
         colors.append(scan.colors)
-        if scan.faces is not None and scan.source["reader"] != "ply-range-grid":
-            faces.append(scan.faces + offset)  # overlapping range images are not one mesh
-        offset += scan.n_points
+        faces = scan.faces  # kept only for a single scan: see the module docstring
         files += [dict(f, role="scan") for f in scan.source["files"]]
         units.add(scan.units)
         scans.append({"name": scan_name, "file": scan.source["name"], "points": scan.n_points,
@@ -179,5 +182,5 @@ def load_conf(path: Path, gzipped: bool, budget: InputBudget,
     source["warnings"] += [f"'mesh {m}' line skipped: not a scan file this reader loads"
                            for m in skipped]
     return make_scan(name, np.concatenate(points), normals=joined(normals),
-                     colors=joined(colors), faces=np.concatenate(faces) if faces else None,
+                     colors=joined(colors), faces=faces if len(entries) == 1 else None,
                      units=units.pop() if len(units) == 1 else "unknown", source=source)
