@@ -332,3 +332,53 @@ def test_coefficients_are_bounded_by_twice_their_patchs_residual():
     c = np.array([[[3.0, -0.7], [-5.0, 1.0]], [[2.0, 0.0], [0.0, -1.0]]])
     out = atlas_detail.bounded_by_residual(c, samples, residual, use)
     np.testing.assert_array_equal(out, [[[1.0, -0.7], [-1.0, 1.0]], np.zeros((2, 2))])
+
+
+def _noisy_sphere_cloud(count: int = 60_000, noise: float = 0.01, seed: int = 5):
+    """The bumpy sphere as a cloud of ``count`` points with radial Gaussian noise of
+    standard deviation ``noise`` (a third of the bump), fitted as a cloud (a stand-in
+    surface for the normals)."""
+    fit, mesh_scan = _bumpy_sphere_fit()
+    rng = np.random.default_rng(seed)
+    unit = rng.normal(size=(count, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    points = unit * (1.0 + bump(unit) + rng.normal(0.0, noise, count))[:, None]
+    scan = make_scan("noisy", points, source={"name": "noisy"})
+    surface = ScanSurface(mesh_scan.points, mesh_scan.faces, "poisson", 1)
+    from dataclasses import replace
+    return replace(fit, surface=surface), scan
+
+
+def test_automatic_depth_stops_before_levels_that_draw_the_noise():
+    """Against the noise-free surface (the independent reference), the levels the held-out
+    samples reject are worse than none: the automatic pyramid stops before them, and
+    is nearer the true surface than the full depth forced by hand."""
+    fit, scan = _noisy_sphere_cloud()
+    auto = atlas_detail.fit_atlas_detail(fit, scan, spans=4)
+    side = float(np.median(atlas_detail.patch_sides(auto.atlas)))
+    full_depth = atlas_detail.auto_levels(side, auto.spacing, len(auto.atlas.quads), 4)
+    kept = len(auto.levels)
+    assert 1 <= kept < full_depth, (kept, full_depth)
+    held = auto.tree["held_out"]
+    assert len(held["rms"]) == kept + 2  # the base, each kept level, the rejected one
+    assert all(b < (1 - held["min_gain"]) * a for a, b in zip(held["rms"][:kept],
+                                                                held["rms"][1:kept + 1],
+                                                                strict=True))
+    assert held["rms"][-1] >= (1 - held["min_gain"]) * held["rms"][-2]
+    assert 0.08 < held["share"] < 0.12
+    forced = atlas_detail.fit_atlas_detail(fit, scan, levels=full_depth, spans=4)
+    assert "held_out" not in forced.tree and len(forced.levels) == full_depth
+    true_auto, _ = _radial_error(auto.atlas, auto.detail_up_to(kept - 1),
+                                 auto.levels[-1]["resolution"])
+    true_forced, _ = _radial_error(forced.atlas, forced.detail_up_to(full_depth - 1),
+                                   forced.levels[-1]["resolution"])
+    assert true_auto < true_forced, (true_auto, true_forced)
+    assert sum(len(d) for d in auto.files.values()) < sum(len(d) for d in forced.files.values())
+
+
+def test_a_mesh_keeps_every_sample_and_its_automatic_depth():
+    fit, scan = _bumpy_sphere_fit()
+    det = atlas_detail.fit_atlas_detail(fit, scan, spans=4)
+    side = float(np.median(atlas_detail.patch_sides(det.atlas)))
+    assert "held_out" not in det.tree
+    assert len(det.levels) == atlas_detail.auto_levels(side, det.spacing, len(det.atlas.quads), 4)
