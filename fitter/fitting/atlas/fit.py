@@ -228,13 +228,16 @@ def regularisation_weights(A: sp.csr_matrix, L: sp.csr_matrix, smoothing: float,
 
 def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix,
                          prior: np.ndarray, smoothing: float, anchor: float = 1e-2,
-                         data_rows: int | None = None) -> np.ndarray:
-    """``argmin_P |A P - X|² + λ |L P|² + μ |P - P_0|²`` through the normal equations.
+                         data_rows: int | None = None, row_weights: np.ndarray | None = None
+                         ) -> np.ndarray:
+    """``argmin_P |A P - X|² + λ |W L P|² + μ |P - P_0|²`` through the normal equations.
 
-    ``(AᵀA + λ LᵀL + μ I) P = Aᵀ X + μ P_0``, one SuperLU factorisation for the three
+    ``(AᵀA + λ LᵀW²L + μ I) P = Aᵀ X + μ P_0``, one SuperLU factorisation for the three
     columns of ``X (K, 3)``; ``λ, μ`` from :func:`regularisation_weights` of the first
     ``data_rows`` rows of ``A`` (all by default: rows after them, such as the border
-    points', do not stiffen the rest).
+    points', do not stiffen the rest) and of the unweighted ``L``. ``W = diag(row_weights)``
+    (all 1 by default) stiffens some rows of ``L`` beyond the rest (folded patches,
+    :func:`fold_row_weights`).
 
     Raises
     ------
@@ -243,6 +246,8 @@ def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix
     """
     lam, mu = regularisation_weights(A if data_rows is None else A[:data_rows], L, smoothing,
                                      anchor)
+    if row_weights is not None:
+        L = sp.diags(np.asarray(row_weights, np.float64)) @ L
     H = (A.T @ A + lam * (L.T @ L) + mu * sp.identity(A.shape[1], format="csr")).tocsc()
     rhs = A.T @ targets + mu * prior
     try:
@@ -521,6 +526,52 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
             target[far], far)
 
 
+# ------------------------------------------------------------------ folds
+WARM_SMOOTHING = 100.0  # the first solve's smoothing, times the later rounds' (fit_layout)
+FOLD_SAMPLES = 5  # samples per patch side of the fold test (borders included)
+FOLD_STIFFNESS = 1.0  # thin-plate weight on folded patches' rows, times the rest's (1: off)
+
+
+def folded_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: int
+                   ) -> np.ndarray:
+    """Patches whose surface turns over inside them: the Jacobian changes sign.
+
+    On a grid of :data:`FOLD_SAMPLES` ² parameters per patch (its border included), the
+    normal ``n_ab = C_u × C_v`` at each sample against the patch's mean normal
+    ``a_f = Σ_ab n_ab`` (a discrete ``∫∫ C_u × C_v du dv``, the patch's vector area): the
+    patch is folded where some ``n_ab · a_f < 0``, a pleat whose middle sheet faces back
+    (the map ``(u, v) → C`` reverses its orientation there, do Carmo, *Differential
+    Geometry of Curves and Surfaces*, §2-4). A sample whose ``C_u × C_v`` vanishes (a
+    collapsed corner) is not counted. Returns ``folded (F,)`` of bool.
+    """
+    r = FOLD_SAMPLES
+    t = np.linspace(0.0, 1.0, r)
+    n_f = len(table)
+    f = np.repeat(np.arange(n_f), r * r)
+    u = np.tile(np.repeat(t, r), n_f)
+    v = np.tile(np.tile(t, r), n_f)
+    _, du, dv = evaluate_patches(table, points, degree, spans, f, u, v, True)
+    normal = np.cross(du, dv).reshape(n_f, r * r, 3)
+    mean = normal.sum(axis=1, keepdims=True)
+    side = np.einsum("fkc,fkc->fk", normal, np.broadcast_to(mean, normal.shape))
+    scale = np.linalg.norm(normal, axis=2) * np.linalg.norm(mean, axis=2)
+    return (side < -1e-6 * scale).any(axis=1)
+
+
+def fold_row_weights(L: sp.csr_matrix, table: np.ndarray, stiff: np.ndarray,
+                     stiffness: float) -> np.ndarray:
+    """``W`` of :func:`solve_control_points`: ``sqrt(stiffness)`` on every row of ``L``
+    that touches a control point of a ``stiff`` patch (its own second differences and the
+    ones across its sides, so its neighbours' rows next to it too), 1 elsewhere: the
+    thin-plate energy there weighs ``stiffness`` times the rest. A folded bicubic net has
+    large second differences (its rows go back and forth), so the stiffer plate irons the
+    pleat out, while the foot points keep the unfolded patches as they were."""
+    mark = np.zeros(L.shape[1])
+    mark[np.unique(table[stiff])] = 1.0
+    touched = (abs(L) @ mark) > 0
+    return np.where(touched, math.sqrt(stiffness), 1.0)
+
+
 # ------------------------------------------------------------------ working points
 def working_points(scan: Scan, surface: ScanSurface, count: int, seed: int = 0
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -596,6 +647,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                anchor: float = 1e-3, border: np.ndarray | None = None,
                scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
                reverse_weight: float = REVERSE_WEIGHT, hold: bool = False,
+               warm_smoothing: float = WARM_SMOOTHING, fold_stiffness: float | None = None,
                timings: dict | None = None
                ) -> tuple[AtlasSurface, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fit an atlas on ``layout`` to ``points``: foot points, solve, ``rounds`` corrections.
@@ -620,6 +672,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
         The fitted atlas and the final foot points with their unsigned distances.
     """
     timings = {} if timings is None else timings
+    fold_stiffness = FOLD_STIFFNESS if fold_stiffness is None else fold_stiffness
     clock = time.perf_counter()
     initial = bilinear_atlas(layout, degree, spans)
     table = index_table(initial)
@@ -637,6 +690,8 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     current = prior
     dist = None
     held = None
+    stiff = np.zeros(len(table), bool)
+    weights = None
     for round_index in range(max(1, rounds)):
         clock = time.perf_counter()
         A, targets = design_matrix(table, len(prior), degree, spans, f, u, v), points
@@ -657,7 +712,17 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
             if len(y_rev):
                 A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
                 targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
-        current = solve_control_points(A, targets, L, prior, smoothing, anchor, len(points))
+        # a stiff first solve when later rounds follow (the folds paragraph of the module)
+        warm = warm_smoothing if round_index == 0 and rounds > 1 else 1.0
+        current = solve_control_points(A, targets, L, prior, warm * smoothing, anchor,
+                                       len(points), weights)
+        if fold_stiffness > 1:
+            folded = folded_patches(table, current, degree, spans)
+            if (folded & ~stiff).any():
+                stiff |= folded
+                weights = fold_row_weights(L, table, stiff, fold_stiffness)
+                current = solve_control_points(A, targets, L, prior, warm * smoothing,
+                                               anchor, len(points), weights)
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - clock
         clock = time.perf_counter()
         f, u, v, dist = correct_parameters(table, current, degree, spans, nb, points, normals,
