@@ -1,21 +1,14 @@
 """The atlas fit's speed-ups give the numbers of their slow references.
 
 ``solve_spd_blocks`` (SuperLU without pivoting, single-column supernodes) against a dense
-least-squares solve of each patch, and against SuperLU's own defaults; ``concurrent_map``
-(a trial's two layouts fitted at once) against the serial loop, including a whole
-``fit_atlas`` with one and with two threads.
+least-squares solve of each patch, and against SuperLU's own defaults.
 """
-import threading
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-import trimesh
 
 from fitter.fitting.atlas import detail as atlas_detail
-from fitter.fitting.atlas import fit as fit_module
-from fitter.fitting.io.scan import make_scan, new_source
 
 
 def _patch_rows(n: int, count: int, rng: np.random.Generator) -> sp.csr_matrix:
@@ -70,41 +63,3 @@ def test_single_column_supernodes_are_superlus_default_solve():
     assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
     assert atlas_detail.SUPERNODE_COLUMNS == 1
 
-
-def test_concurrent_map_keeps_order_and_the_first_error():
-    seen = set()
-
-    def job(k, delay):
-        seen.add(threading.get_ident())
-        threading.Event().wait(delay)
-        if k in (1, 2):
-            raise ValueError(f"job {k}")
-        return k * k
-
-    assert fit_module.concurrent_map(job, [(0, 0.05), (3, 0.0), (4, 0.01)]) == [0, 9, 16]
-    with pytest.raises(ValueError, match="job 1"):  # job 2 fails first in time, 1 in order
-        fit_module.concurrent_map(job, [(1, 0.05), (2, 0.0)])
-    assert fit_module.concurrent_map(job, [], threads=2) == []
-    assert fit_module.concurrent_map(job, [(5, 0.0)], threads=1) == [25]
-
-
-def test_a_fit_with_its_trials_on_two_threads_is_the_serial_fit(monkeypatch):
-    """The auto fit of a bunny-like shape with thin parts (both layouts at every trial) on
-    two threads: trials, control points and foot points bit for bit those of one thread."""
-    mesh = trimesh.creation.icosphere(subdivisions=3)
-    mesh.vertices[:, 2] *= np.where(mesh.vertices[:, 0] > 0.3, 0.15, 1.0)  # a thin sheet
-    source = new_source("sheet", None, "array", compression=None, reader="array")
-    scan = make_scan("sheet", np.asarray(mesh.vertices), faces=np.asarray(mesh.faces),
-                     source=source)
-    options = {"working_count": 1500, "rounds": 1, "byte_budget": 6000}
-    fits = []
-    for threads in (1, 2):
-        monkeypatch.setattr(fit_module, "TRIAL_THREADS", threads)
-        fits.append(fit_module.fit_atlas(scan, "auto", **options))
-    one, two = fits
-    assert any(len(t.get("rms_by_layout", {})) == 2 for t in one.trials)
-    strip = [{k: v for k, v in t.items() if not k.startswith("seconds")} for t in one.trials]
-    assert strip == [{k: v for k, v in t.items() if not k.startswith("seconds")}
-                     for t in two.trials]
-    assert np.array_equal(fit_module.control_points(one.atlas),
-                          fit_module.control_points(two.atlas))

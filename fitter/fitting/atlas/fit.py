@@ -64,10 +64,8 @@ carried over to the shared control points yet.
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -101,25 +99,6 @@ AUTO_TRIAL_POINTS = 20_000
 BASE_BITS = (8, 16)  # base.tsa's automatic quantisation bits (base_bits)
 BASE_STEP_OVER_RMS = 1.2  # its quantisation step over the fit's RMS (base_bits)
 PREDECIMATED_TRIANGLES = 20_000
-
-
-TRIAL_THREADS = 2  # a trial's layouts (plain, weighted) are fitted at once, one a thread
-
-
-def concurrent_map(fn: Callable, jobs: list[tuple], threads: int | None = None) -> list:
-    """``[fn(*job) for job in jobs]``, the jobs run at once on up to ``threads`` threads
-    (default :data:`TRIAL_THREADS`, at most one per core).
-
-    For independent jobs whose work is mostly numpy, SuperLU and open3d's queries, which
-    release the GIL: a trial's plain and weighted layouts (:func:`fit_layout`) share no
-    state, so each result is the one a serial loop gives, bit for bit. The first job (in
-    ``jobs``' order) that raised re-raises here, as in the loop.
-    """
-    workers = min(threads or TRIAL_THREADS, os.cpu_count() or 1, len(jobs))
-    if workers <= 1:
-        return [fn(*job) for job in jobs]
-    with ThreadPoolExecutor(workers) as pool:
-        return list(pool.map(lambda job: fn(*job), jobs))
 
 
 class AtlasFitError(ScanError):
@@ -1008,22 +987,16 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             trials.append({"triangles": target,
                            "error": "; ".join(str(exc) for _, exc in failures)})
             continue
-        judged = [(name, layout, seconds) for name, layout, seconds in candidates
-                  if best is None or layout.n_triangles > best[2].n_triangles]
-        # (a decimation that stopped short of the target has no new size to judge)
-
-        def fit_trial(name: str, layout: QuadLayout, layout_seconds: float) -> tuple:
-            trial_timings: dict = {"layout": layout_seconds}
-            return (*fit_layout(layout, trial_points, trial_normals, degree=degree,
-                                spans=spans, rounds=trial_rounds, smoothing=smoothing,
-                                anchor=anchor, border=border, scan_mesh=scan_mesh,
-                                timings=trial_timings), trial_timings)
-
-        todo = [c for c in judged if ("fit", target, c[0]) not in cache]
-        for (name, _, _), made in zip(todo, concurrent_map(fit_trial, todo), strict=True):
-            cache["fit", target, name] = made
         fitted = []
-        for name, layout, _ in judged:
+        for name, layout, layout_seconds in candidates:
+            if best is not None and layout.n_triangles <= best[2].n_triangles:
+                continue  # the decimation stopped short of the target: no new size to judge
+            if ("fit", target, name) not in cache:
+                trial_timings: dict = {"layout": layout_seconds}
+                cache["fit", target, name] = (*fit_layout(
+                    layout, trial_points, trial_normals, degree=degree, spans=spans,
+                    rounds=trial_rounds, smoothing=smoothing, anchor=anchor, border=border,
+                    scan_mesh=scan_mesh, timings=trial_timings), trial_timings)
             atlas, f, u, v, dist, trial_timings = cache["fit", target, name]
             fitted.append((float(np.sqrt(np.mean(dist ** 2))), name, layout, atlas, f, u, v,
                            trial_timings))
