@@ -9,6 +9,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fitter.fitting.atlas import detail as atlas_detail
+from fitter.fitting.atlas import fit as fit_module
 
 
 def _patch_rows(n: int, count: int, rng: np.random.Generator) -> sp.csr_matrix:
@@ -61,5 +62,20 @@ def test_single_column_supernodes_are_superlus_default_solve():
     got = atlas_detail.solve_spd_blocks(M, b, atlas_detail.block_order(n, False))
     want = spla.spsolve(M.tocsc(), b)
     assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
-    assert atlas_detail.SUPERNODE_COLUMNS == 1
 
+
+
+def test_spd_lu_solves_like_superlus_defaults_and_names_a_singular_matrix():
+    """``spd_lu`` (minimum degree, no pivoting, single-column supernodes) on a random
+    sparse SPD matrix: the solution of ``spsolve``; an exactly singular one raises, as the
+    default factorisation does (``solve_control_points`` names it ``AtlasFitError``)."""
+    rng = np.random.default_rng(5)
+    B = sp.random(400, 400, density=0.01, random_state=rng, format="csr")
+    M = (B.T @ B + 1e-2 * sp.identity(400)).tocsc()
+    b = rng.normal(size=(400, 3))
+    got = fit_module.spd_lu(M).solve(b)
+    want = spla.spsolve(M, b)
+    assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
+    singular = sp.diags(np.r_[np.ones(399), 0.0]).tocsc()
+    with pytest.raises(RuntimeError):
+        fit_module.spd_lu(singular)

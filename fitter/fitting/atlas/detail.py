@@ -102,6 +102,7 @@ from .fit import (
     evaluate_patches,
     index_table,
     neighbour_table,
+    spd_lu,
 )
 
 DEGREE = 2
@@ -132,7 +133,6 @@ MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against it
 MIN_DIRECTION = 0.8
 COEFFICIENT_REACH = 2.0  # an independent fit's coefficients within this times its residual
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
-SUPERNODE_COLUMNS = 1  # SuperLU relax and panel size of solve_spd_blocks (single columns)
 
 
 # ------------------------------------------------------------------ patch order
@@ -599,20 +599,14 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
     (:func:`block_order`): SuperLU on the permuted matrix in its natural column order and
     without pivoting (an SPD matrix needs none: this is a Cholesky factorisation in LU
     form). On 216 level-2 patches (250,000 unknowns) 1.0 s against 3.0 s for SuperLU's
-    default column ordering (COLAMD) with partial pivoting, to 1e-12 of it.
-
-    SuperLU's supernodes are kept to single columns (``relax``, ``panel_size`` =
-    :data:`SUPERNODE_COLUMNS`): a patch's factor has about 50 non-zeros a column, too few
-    for its dense supernode updates to pay for their bookkeeping. On the 15-scan Happy
-    Buddha's level-2 batches (216 patches, 250,000 unknowns) 0.66 s against 0.94 s with
-    SuperLU's defaults, the same factor up to rounding (2e-14 relative);
-    ``test_atlas_detail`` holds it to a dense solve."""
+    default column ordering (COLAMD) with partial pivoting, to 1e-12 of it; with
+    single-column supernodes (:func:`.fit.spd_lu`), on the 15-scan Happy Buddha's level-2 batches 0.66 s against
+    0.94 s with SuperLU's default supernodes, to 2e-14 of it; ``test_atlas_speed`` holds
+    it to each patch's dense least squares."""
     m = len(order)
     blocks = M.shape[0] // m
     perm = (np.arange(blocks)[:, None] * m + order[None, :]).reshape(-1)
-    lu = spla.splu(M[perm][:, perm].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                   relax=SUPERNODE_COLUMNS, panel_size=SUPERNODE_COLUMNS,
-                   options={"SymmetricMode": True})
+    lu = spd_lu(M[perm][:, perm], "NATURAL")
     out = np.empty_like(rhs)
     out[perm] = lu.solve(rhs[perm])
     return out
