@@ -255,8 +255,8 @@ def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix
                          data_rows: int | None = None) -> np.ndarray:
     """``argmin_P |A P - X|² + λ |L P|² + μ |P - P_0|²`` through the normal equations.
 
-    ``(AᵀA + λ LᵀL + μ I) P = Aᵀ X + μ P_0``, one factorisation (:func:`spd_lu`: the
-    matrix is SPD, ``μ > 0``) for the three columns of ``X (K, 3)``; ``λ, μ`` from :func:`regularisation_weights` of the first
+    ``(AᵀA + λ LᵀL + μ I) P = Aᵀ X + μ P_0``, one SuperLU factorisation for the three
+    columns of ``X (K, 3)``; ``λ, μ`` from :func:`regularisation_weights` of the first
     ``data_rows`` rows of ``A`` (all by default: rows after them, such as the border
     points', do not stiffen the rest).
 
@@ -270,7 +270,7 @@ def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix
     H = (A.T @ A + lam * (L.T @ L) + mu * sp.identity(A.shape[1], format="csr")).tocsc()
     rhs = A.T @ targets + mu * prior
     try:
-        lu = spd_lu(H)
+        lu = spd_lu(H)  # SPD: mu > 0
     except RuntimeError as exc:
         raise AtlasFitError(f"the atlas's normal equations ({A.shape[1]} control points) "
                             f"are singular: {exc}") from None
