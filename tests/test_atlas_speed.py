@@ -1,0 +1,81 @@
+"""The atlas fit's speed-ups give the numbers of their slow references.
+
+``solve_spd_blocks`` (SuperLU without pivoting, single-column supernodes) against a dense
+least-squares solve of each patch, and against SuperLU's own defaults.
+"""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from fitter.fitting.atlas import detail as atlas_detail
+from fitter.fitting.atlas import fit as fit_module
+
+
+def _patch_rows(n: int, count: int, rng: np.random.Generator) -> sp.csr_matrix:
+    """Rows of ``count`` samples on an ``(n, n)`` grid, each touching the 3 x 3 nodes around
+    a random cell (a degree-2 field's support), random positive values."""
+    i = rng.integers(0, n - 2, count)
+    j = rng.integers(0, n - 2, count)
+    cols = ((i[:, None, None] + np.arange(3)[None, :, None]) * n
+            + j[:, None, None] + np.arange(3)[None, None, :]).reshape(count, 9)
+    values = rng.random((count, 9)) + 0.05
+    rows = np.repeat(np.arange(count), 9)
+    return sp.csr_matrix((values.reshape(-1), (rows, cols.reshape(-1))), shape=(count, n * n))
+
+
+@pytest.mark.parametrize("n, interior", [(10, False), (10, True), (18, False), (18, True)])
+def test_block_solve_is_each_patchs_dense_least_squares(n, interior):
+    """``M = A^T A + mu R`` per patch, block-diagonal over 7 patches: the batched solve in
+    the patch order of ``block_order`` equals ``numpy.linalg.lstsq`` of the stacked
+    ``[A; sqrt(mu) R^(1/2)]`` system, patch by patch (the regularisation's Cholesky factor
+    gives the square root)."""
+    rng = np.random.default_rng(n + interior)
+    keep = np.flatnonzero(~atlas_detail.border_ring(n).reshape(-1)) if interior \
+        else np.arange(n * n)
+    m = len(keep)
+    R = atlas_detail.regularisation(n).toarray()[np.ix_(keep, keep)]
+    blocks, rhs, dense = [], [], []
+    for _ in range(7):
+        A = _patch_rows(n, 6 * n * n, rng)[:, keep]
+        r = rng.normal(size=A.shape[0])
+        mu = 1e-2 * float(A.multiply(A).sum()) / m
+        blocks.append(A.T @ A + sp.csr_matrix(mu * R))
+        rhs.append(A.T @ r)
+        stacked = np.vstack([A.toarray(), np.sqrt(mu) * np.linalg.cholesky(R).T])
+        dense.append(np.linalg.lstsq(stacked, np.r_[r, np.zeros(m)], rcond=None)[0])
+    M = sp.block_diag(blocks, format="csr")
+    got = atlas_detail.solve_spd_blocks(M, np.concatenate(rhs),
+                                        atlas_detail.block_order(n, interior))
+    want = np.concatenate(dense)
+    assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
+
+
+def test_single_column_supernodes_are_superlus_default_solve():
+    """``SUPERNODE_COLUMNS`` changes how SuperLU groups its work, not the solution: the
+    same system through ``spsolve`` (COLAMD, partial pivoting, default supernodes)."""
+    rng = np.random.default_rng(3)
+    n = 18
+    A = sp.block_diag([_patch_rows(n, 5 * n * n, rng) for _ in range(5)], format="csr")
+    M = (A.T @ A + 1e-3 * sp.identity(A.shape[1])).tocsr()
+    b = rng.normal(size=M.shape[0])
+    got = atlas_detail.solve_spd_blocks(M, b, atlas_detail.block_order(n, False))
+    want = spla.spsolve(M.tocsc(), b)
+    assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
+
+
+
+def test_spd_lu_solves_like_superlus_defaults_and_names_a_singular_matrix():
+    """``spd_lu`` (minimum degree, no pivoting, single-column supernodes) on a random
+    sparse SPD matrix: the solution of ``spsolve``; an exactly singular one raises, as the
+    default factorisation does (``solve_control_points`` names it ``AtlasFitError``)."""
+    rng = np.random.default_rng(5)
+    B = sp.random(400, 400, density=0.01, random_state=rng, format="csr")
+    M = (B.T @ B + 1e-2 * sp.identity(400)).tocsc()
+    b = rng.normal(size=(400, 3))
+    got = fit_module.spd_lu(M).solve(b)
+    want = spla.spsolve(M, b)
+    assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
+    singular = sp.diags(np.r_[np.ones(399), 0.0]).tocsc()
+    with pytest.raises(RuntimeError):
+        fit_module.spd_lu(singular)
