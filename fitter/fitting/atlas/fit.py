@@ -552,6 +552,7 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
 
 # ------------------------------------------------------------------ folds
 WARM_SMOOTHING = 100.0  # the first solve's smoothing, times the later rounds' (fit_layout)
+WARM_STAGES = 1  # rounds solved stiffer than the rest, λ stepping down geometrically (fit_layout)
 FOLD_SAMPLES = 5  # samples per patch side of the fold test (borders included)
 FOLD_STIFFNESS = 1.0  # thin-plate weight on folded patches' rows, times the rest's (1: off)
 
@@ -666,13 +667,28 @@ class AtlasFit:
     bits: int = 12
 
 
+def warm_factor(round_index: int, rounds: int, warm_smoothing: float, warm_stages: int
+                ) -> float:
+    """The smoothing factor of solve ``round_index`` of ``rounds`` (a continuation in ``λ``).
+
+    With ``s = min(warm_stages, rounds - 1)`` warm stages, solve ``i < s`` uses
+    ``warm_smoothing ** ((s - i) / s)`` times the smoothing and the later ones 1: e.g. 100, 10,
+    then 1 for ``s = 2``. The last round is always at the normal ``λ``; ``rounds = 1`` has no
+    warm stage.
+    """
+    stages = min(int(warm_stages), rounds - 1)
+    if round_index >= stages:
+        return 1.0
+    return float(warm_smoothing) ** ((stages - round_index) / stages)
+
+
 def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                degree: int = 3, spans: int = 1, rounds: int = 4, smoothing: float = 0.1,
                anchor: float = 1e-3, border: np.ndarray | None = None,
                scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
                reverse_weight: float = REVERSE_WEIGHT, hold: bool = False,
-               warm_smoothing: float = WARM_SMOOTHING, fold_stiffness: float | None = None,
-               timings: dict | None = None
+               warm_smoothing: float | None = None, warm_stages: int | None = None,
+               fold_stiffness: float | None = None, timings: dict | None = None
                ) -> tuple[AtlasSurface, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fit an atlas on ``layout`` to ``points``: foot points, solve, ``rounds`` corrections.
 
@@ -690,8 +706,10 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     ``reverse_weight`` times its share of working points, ``w_r = reverse_weight (K / F) /
     r²``; with ``hold``, a sample keeps its row once far (``reverse_rows``'s ``held``).
 
-    ``warm_smoothing``: when ``rounds > 1``, the first solve's ``λ`` is ``warm_smoothing``
-    times ``smoothing``'s (the folds paragraph of the module; 1 turns it off).
+    ``warm_smoothing`` (default :data:`WARM_SMOOTHING`), ``warm_stages`` (default
+    :data:`WARM_STAGES`): when ``rounds > 1``, the first solves' ``λ`` is up to
+    ``warm_smoothing`` times ``smoothing``'s, stepping down to it (:func:`warm_factor`, the
+    folds paragraph of the module; 1 turns it off).
     ``fold_stiffness`` (default :data:`FOLD_STIFFNESS`, 1: off): after each solve, the
     patches :func:`folded_patches` finds (kept from round to round) get their thin-plate
     rows weighted ``fold_stiffness`` times (:func:`fold_row_weights`) and the round is
@@ -704,6 +722,8 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     """
     timings = {} if timings is None else timings
     fold_stiffness = FOLD_STIFFNESS if fold_stiffness is None else fold_stiffness
+    warm_smoothing = WARM_SMOOTHING if warm_smoothing is None else warm_smoothing
+    warm_stages = WARM_STAGES if warm_stages is None else warm_stages
     clock = time.perf_counter()
     initial = bilinear_atlas(layout, degree, spans)
     table = index_table(initial)
@@ -744,7 +764,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                 A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
                 targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
         # a stiff first solve when later rounds follow (the folds paragraph of the module)
-        warm = warm_smoothing if round_index == 0 and rounds > 1 else 1.0
+        warm = warm_factor(round_index, rounds, warm_smoothing, warm_stages)
         current = solve_control_points(A, targets, L, prior, warm * smoothing, anchor,
                                        len(points), weights)
         if fold_stiffness > 1:
