@@ -23,6 +23,7 @@ from fitter.fitting.atlas.fit import (
     smoothing_matrix,
     solve_control_points,
     triangle_to_quad,
+    warm_factor,
     working_points,
 )
 from fitter.fitting.atlas.layout import (
@@ -667,3 +668,14 @@ def test_a_stiff_first_solve_fits_a_bumpy_sphere_closer_with_fewer_folds():
     # the exact surface's radial error of the drawn base, not the fit's own measure
     assert result[100.0][0] < 0.9 * result[1.0][0]  # measured: 0.0143 against 0.0171
     assert result[100.0][1] <= result[1.0][1]
+
+
+def test_warm_factor_steps_the_smoothing_down_geometrically_to_one():
+    # s stages: solve i < s at warm ** ((s - i) / s), the rest and always the last round at 1
+    assert [warm_factor(i, 4, 100.0, 1) for i in range(4)] == [100.0, 1.0, 1.0, 1.0]
+    np.testing.assert_allclose([warm_factor(i, 4, 100.0, 2) for i in range(4)],
+                               [100.0, 10.0, 1.0, 1.0])
+    # more stages than rounds - 1: clamped, the last round stays at the normal smoothing
+    np.testing.assert_allclose([warm_factor(i, 3, 1000.0, 5) for i in range(3)],
+                               [1000.0, 1000.0 ** 0.5, 1.0])
+    assert warm_factor(0, 1, 100.0, 2) == 1.0  # one round: no warm stage
