@@ -23,6 +23,7 @@ from fitter.fitting.atlas.fit import (
     smoothing_matrix,
     solve_control_points,
     triangle_to_quad,
+    warm_factor,
     working_points,
 )
 from fitter.fitting.atlas.layout import (
@@ -475,16 +476,19 @@ def test_reverse_rows_pull_only_far_samples_straight_onto_the_surface():
     np.testing.assert_allclose(targets2, A2 @ points, atol=1e-12)
 
 
-def test_budget_bits_takes_one_bit_fewer_only_when_that_fits_the_budget(sphere_fit):
-    from fitter.fitting.atlas.fit import atlas_bytes, base_bits, budget_bits
+def test_budget_bits_takes_one_or_two_bits_fewer_only_when_that_fits_the_budget(sphere_fit):
+    from fitter.fitting.atlas.fit import BASE_BITS, atlas_bytes, base_bits, budget_bits
 
     atlas, rms = sphere_fit.atlas, sphere_fit.rms
     bits = base_bits(atlas, rms)
+    assert bits - 3 >= BASE_BITS[0]
     full, fewer = atlas_bytes(atlas, bits), atlas_bytes(atlas, bits - 1)
-    assert fewer < full
+    two_fewer = atlas_bytes(atlas, bits - 2)
+    assert two_fewer < fewer < full
     assert budget_bits(atlas, rms, None, full) == (bits, full)  # within: as the RMS says
-    assert budget_bits(atlas, rms, None, full - 1) == (bits - 1, fewer)
-    assert budget_bits(atlas, rms, None, fewer - 1) == (bits, full)  # never two bits fewer
+    assert budget_bits(atlas, rms, None, full - 1) == (bits - 1, fewer)  # the most that fits
+    assert budget_bits(atlas, rms, None, fewer - 1) == (bits - 2, two_fewer)
+    assert budget_bits(atlas, rms, None, two_fewer - 1) == (bits, full)  # never three fewer
     assert budget_bits(atlas, rms, None, None) == (bits, full)  # an explicit patch count
     assert budget_bits(atlas, rms, 14, 10) == (14, atlas_bytes(atlas, 14))  # bits asked for
     assert sphere_fit.bits == 12  # fit_atlas asks for 12 bits unless told None
@@ -667,3 +671,14 @@ def test_a_stiff_first_solve_fits_a_bumpy_sphere_closer_with_fewer_folds():
     # the exact surface's radial error of the drawn base, not the fit's own measure
     assert result[100.0][0] < 0.9 * result[1.0][0]  # measured: 0.0143 against 0.0171
     assert result[100.0][1] <= result[1.0][1]
+
+
+def test_warm_factor_steps_the_smoothing_down_geometrically_to_one():
+    # s stages: solve i < s at warm ** ((s - i) / s), the rest and always the last round at 1
+    assert [warm_factor(i, 4, 100.0, 1) for i in range(4)] == [100.0, 1.0, 1.0, 1.0]
+    np.testing.assert_allclose([warm_factor(i, 4, 100.0, 2) for i in range(4)],
+                               [100.0, 10.0, 1.0, 1.0])
+    # more stages than rounds - 1: clamped, the last round stays at the normal smoothing
+    np.testing.assert_allclose([warm_factor(i, 3, 1000.0, 5) for i in range(3)],
+                               [1000.0, 1000.0 ** 0.5, 1.0])
+    assert warm_factor(0, 1, 100.0, 2) == 1.0  # one round: no warm stage

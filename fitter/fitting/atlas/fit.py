@@ -80,6 +80,17 @@ faces away from the scan from 5.9 / 15.8 / 23.3 % (Nefertiti, Lucy, mask) to 1.9
 22.4 %. Stiffening only the patches found
 folded after each solve (``fold_stiffness``, :func:`fold_row_weights`) removed fewer folds
 and raised the finest level's RMS (Nefertiti +2.9 %, bunny +1.5 %): off by default.
+A sweep through the whole bundle (finest RMS over Draco's; before: the figures above)
+chose two warm stages and 6 rounds. A stiffer first solve (300 or 1000 times, or 1000,
+100, 10 over three solves, :data:`WARM_STAGES`, :func:`warm_factor`) with 6 rounds helped
+Lucy (2.07) but
+pulled the Bali mask's thin shell off (0.69 -> 1.42 and 1.48, 0.7 % of its points beyond
+0.5 % of the diagonal). 100 then 10 with 6 rounds improved all five (bunny 1.08, Nefertiti
+1.60, Lucy 2.10, Laurana 1.87, mask 0.65; largest distances within 0.03 % of the diagonal
+of before, Lucy's 1.10 -> 1.03 %, Nefertiti's 0.80 -> 0.71 %), once :func:`budget_bits` may
+give up two bits (Nefertiti's lower RMS asked for 12 bits, 28.8 KB): the default (the
+:func:`warm_factor` schedule 100, 10, 1, 1, 1, 1). 6 rounds at 100 alone raised the mask
+(0.77, largest distance 1.45 -> 1.56 %).
 
 Weights stay 1 (polynomial patches): the NURBS weight step of the single patch is not
 carried over to the shared control points yet.
@@ -122,6 +133,7 @@ AUTO_MIN_GAIN = 0.95  # a doubling must bring the RMS below 95 % of the previous
 AUTO_TRIAL_POINTS = 20_000
 BASE_BITS = (8, 16)  # base.tsa's automatic quantisation bits (base_bits)
 BASE_STEP_OVER_RMS = 1.2  # its quantisation step over the fit's RMS (base_bits)
+BUDGET_FEWER_BITS = 2  # budget_bits gives up at most this many bits to meet the byte budget
 PREDECIMATED_TRIANGLES = 20_000
 
 
@@ -576,6 +588,7 @@ def reverse_rows(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
 
 # ------------------------------------------------------------------ folds
 WARM_SMOOTHING = 100.0  # the first solve's smoothing, times the later rounds' (fit_layout)
+WARM_STAGES = 2  # rounds solved stiffer than the rest, λ stepping down geometrically (fit_layout)
 FOLD_SAMPLES = 5  # samples per patch side of the fold test (borders included)
 FOLD_STIFFNESS = 1.0  # thin-plate weight on folded patches' rows, times the rest's (1: off)
 
@@ -690,13 +703,28 @@ class AtlasFit:
     bits: int = 12
 
 
+def warm_factor(round_index: int, rounds: int, warm_smoothing: float, warm_stages: int
+                ) -> float:
+    """The smoothing factor of solve ``round_index`` of ``rounds`` (a continuation in ``λ``).
+
+    With ``s = min(warm_stages, rounds - 1)`` warm stages, solve ``i < s`` uses
+    ``warm_smoothing ** ((s - i) / s)`` times the smoothing and the later ones 1: e.g. 100, 10,
+    then 1 for ``s = 2``. The last round is always at the normal ``λ``; ``rounds = 1`` has no
+    warm stage.
+    """
+    stages = min(int(warm_stages), rounds - 1)
+    if round_index >= stages:
+        return 1.0
+    return float(warm_smoothing) ** ((stages - round_index) / stages)
+
+
 def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                degree: int = 3, spans: int = 1, rounds: int = 4, smoothing: float = 0.1,
                anchor: float = 1e-3, border: np.ndarray | None = None,
                scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
                reverse_weight: float = REVERSE_WEIGHT, hold: bool = False,
-               warm_smoothing: float = WARM_SMOOTHING, fold_stiffness: float | None = None,
-               timings: dict | None = None
+               warm_smoothing: float | None = None, warm_stages: int | None = None,
+               fold_stiffness: float | None = None, timings: dict | None = None
                ) -> tuple[AtlasSurface, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fit an atlas on ``layout`` to ``points``: foot points, solve, ``rounds`` corrections.
 
@@ -714,8 +742,10 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     ``reverse_weight`` times its share of working points, ``w_r = reverse_weight (K / F) /
     r²``; with ``hold``, a sample keeps its row once far (``reverse_rows``'s ``held``).
 
-    ``warm_smoothing``: when ``rounds > 1``, the first solve's ``λ`` is ``warm_smoothing``
-    times ``smoothing``'s (the folds paragraph of the module; 1 turns it off).
+    ``warm_smoothing`` (default :data:`WARM_SMOOTHING`), ``warm_stages`` (default
+    :data:`WARM_STAGES`): when ``rounds > 1``, the first solves' ``λ`` is up to
+    ``warm_smoothing`` times ``smoothing``'s, stepping down to it (:func:`warm_factor`, the
+    folds paragraph of the module; 1 turns it off).
     ``fold_stiffness`` (default :data:`FOLD_STIFFNESS`, 1: off): after each solve, the
     patches :func:`folded_patches` finds (kept from round to round) get their thin-plate
     rows weighted ``fold_stiffness`` times (:func:`fold_row_weights`) and the round is
@@ -728,6 +758,8 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     """
     timings = {} if timings is None else timings
     fold_stiffness = FOLD_STIFFNESS if fold_stiffness is None else fold_stiffness
+    warm_smoothing = WARM_SMOOTHING if warm_smoothing is None else warm_smoothing
+    warm_stages = WARM_STAGES if warm_stages is None else warm_stages
     clock = time.perf_counter()
     initial = bilinear_atlas(layout, degree, spans)
     table = index_table(initial)
@@ -768,7 +800,7 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                 A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
                 targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
         # a stiff first solve when later rounds follow (the folds paragraph of the module)
-        warm = warm_smoothing if round_index == 0 and rounds > 1 else 1.0
+        warm = warm_factor(round_index, rounds, warm_smoothing, warm_stages)
         current = solve_control_points(A, targets, L, prior, warm * smoothing, anchor,
                                        len(points), weights)
         if fold_stiffness > 1:
@@ -931,10 +963,13 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
                 ) -> tuple[int, int]:
     """The bits ``base.tsa`` is written at and its size then: ``(bits, bytes)``.
 
-    ``bits`` when given; else :func:`base_bits` of ``rms``, or one bit fewer when only that
-    keeps the file within ``byte_budget`` (``None``: no budget, an explicit patch count). A
-    step of up to ``2 BASE_STEP_OVER_RMS`` RMS raises the base's RMS by about 18 % in
-    quadrature, which the detail levels fitted to the decoded base take back; missing the
+    ``bits`` when given; else :func:`base_bits` of ``rms``, or one or two bits fewer
+    (:data:`BUDGET_FEWER_BITS`), the most that keeps the file within ``byte_budget``
+    (``None``: no budget, an explicit patch count). A step of up to ``2 BASE_STEP_OVER_RMS``
+    RMS raises the base's RMS by about 18 % in quadrature (two bits, up to 4 steps per RMS:
+    about 60 %), which the detail levels fitted to the decoded base take back; a base one
+    bit over when its RMS just crosses a bit's threshold (Nefertiti, 6 rounds: 0.201 asked
+    for 12 bits, 28.8 KB, and 11 bits were 24.7 KB) is not refused for it; missing the
     budget by a few bytes would instead leave the layout with half the patches and about
     twice the RMS (Lucy at 384 triangles: 24,103 bytes).
 
@@ -949,10 +984,12 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     while chosen < BASE_BITS[1] and not keeps_every_normal(atlas, chosen):
         chosen += 1
     size = atlas_bytes(atlas, chosen)
-    if byte_budget is not None and size > byte_budget and chosen > BASE_BITS[0]:
-        coarser = atlas_bytes(atlas, chosen - 1)
-        if coarser <= byte_budget and keeps_every_normal(atlas, chosen - 1):
-            return chosen - 1, coarser
+    if byte_budget is None or size <= byte_budget:
+        return chosen, size
+    for fewer in range(chosen - 1, max(BASE_BITS[0], chosen - BUDGET_FEWER_BITS) - 1, -1):
+        coarser = atlas_bytes(atlas, fewer)
+        if coarser <= byte_budget and keeps_every_normal(atlas, fewer):
+            return fewer, coarser
     return chosen, size
 
 
@@ -975,7 +1012,7 @@ def _check_arguments(patches: object, degree: object, spans: object, bits: objec
 
 def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans: int = 1,
               bits: int | None = 12, byte_budget: int = DEFAULT_BYTE_BUDGET,
-              working_count: int = 60_000, rounds: int = 4, smoothing: float = 0.1,
+              working_count: int = 60_000, rounds: int = 6, smoothing: float = 0.1,
               anchor: float = 1e-3, thin_parts: bool = True,
               progress: Callable[[float], None] | None = None,
               surface: ScanSurface | None = None,
