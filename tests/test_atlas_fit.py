@@ -7,9 +7,11 @@ import pytest
 import trimesh
 
 from fitter.fitting.atlas import AtlasFit, SurfaceError, fit_atlas, quad_layout, scan_surface
+from fitter.fitting.atlas import fit as atlas_fit
 from fitter.fitting.atlas.fit import (
     border_foot_points,
     border_points,
+    cloud_warm,
     control_points,
     design_matrix,
     evaluate_patches,
@@ -682,3 +684,37 @@ def test_warm_factor_steps_the_smoothing_down_geometrically_to_one():
     np.testing.assert_allclose([warm_factor(i, 3, 1000.0, 5) for i in range(3)],
                                [1000.0, 1000.0 ** 0.5, 1.0])
     assert warm_factor(0, 1, 100.0, 2) == 1.0  # one round: no warm stage
+
+
+def test_a_point_cloud_keeps_only_the_last_warm_stage(monkeypatch):
+    # the default schedule 100, 10, 1, ... without its first stage: 10, 1, ...
+    rounds = 6
+    defaults = {"warm_smoothing": atlas_fit.WARM_SMOOTHING,
+                "warm_stages": atlas_fit.WARM_STAGES}
+    full = [warm_factor(i, rounds, **defaults) for i in range(rounds)]
+    gentle = [warm_factor(i, rounds, **{**defaults, **cloud_warm()}) for i in range(rounds)]
+    np.testing.assert_allclose(full, [100.0, 10.0, 1.0, 1.0, 1.0, 1.0])
+    np.testing.assert_allclose(gentle, [10.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    monkeypatch.setattr(atlas_fit, "CLOUD_WARM_STAGES", 2)  # all stages kept: defaults
+    assert cloud_warm() == {}
+    monkeypatch.setattr(atlas_fit, "CLOUD_WARM_STAGES", 1)
+    # fit_atlas hands it to every fit_layout of a cloud, and to none of a mesh
+    calls = []
+    real = atlas_fit.fit_layout
+
+    def spy(*args, **kwargs):
+        calls.append((kwargs.get("warm_stages"), kwargs.get("warm_smoothing")))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(atlas_fit, "fit_layout", spy)
+    mesh = _sphere_scan(3)
+    fit_atlas(mesh, 60, working_count=2000, rounds=3)
+    assert calls and all(call == (None, None) for call in calls)
+    calls.clear()
+    p = np.random.default_rng(3).normal(size=(6000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    cloud = Scan.from_array(p, normals=p.astype(np.float32), name="cloud")
+    surface = scan_surface(cloud, poisson_depth=6)
+    assert surface.origin == "poisson"
+    fit_atlas(cloud, 60, working_count=2000, rounds=3, surface=surface)
+    assert calls and all(call == (1, pytest.approx(10.0)) for call in calls)
