@@ -145,12 +145,12 @@ MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against it
 MIN_DIRECTION = 0.8
 COEFFICIENT_REACH = 2.0  # an independent fit's coefficients within this times its residual
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
-# Held-out samples (automatic depth only): one in HELD_OUT of the fitted samples stays out of
-# every level's solve, and a level is kept only if it brings their RMS down by MIN_GAIN of
-# the levels before it (module docstring, "Depth"). On the 15-scan Happy Buddha (a cloud of
-# overlapping registered range scans) the held-out RMS went 3.05e-4 (base), 1.84e-4 (level
-# 0), 1.95e-4 (1), 2.80e-4 (2) while the fitted samples' fell to 1.29e-4: levels 1 and 2
-# drew the registration's noise as a speckle.
+# Held-out samples (a cloud's automatic depth only): one in HELD_OUT of the fitted samples
+# stays out of every level's solve, and a level is kept only if it brings their RMS down by
+# MIN_GAIN of the levels before it (module docstring, "Depth"). On the 15-scan Happy Buddha
+# (a cloud of overlapping registered range scans) the held-out RMS went 3.05e-4 (base),
+# 1.84e-4 (level 0), 1.95e-4 (1), 2.80e-4 (2) while the fitted samples' fell to 1.29e-4:
+# levels 1 and 2 drew the registration's noise as a speckle.
 HELD_OUT = 10
 MIN_HELD = 1000  # fewer held-out samples decide nothing: every auto level is kept
 MIN_GAIN = 0.02
@@ -982,9 +982,6 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
             if held_rms[-1] > (1.0 - MIN_GAIN) * held_rms[-2]:
                 fields.pop()
                 levels = k  # this level draws noise: the pyramid stops before it
-                if per_level_tiles:  # the new finest level's tiles size the groups
-                    per_level_tiles[-1] = {f: [(t, write_detail_tile(t), g) for t, _, g in made]
-                                           for f, made in per_level_tiles[-1].items()}
                 break
         worst = np.zeros(F)
         np.maximum.at(worst, samples.patch, e)
@@ -993,9 +990,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         tiles: dict = {}
         for f in range(F):
             lo, hi = samples.offsets[f], samples.offsets[f + 1]
-            # a tile's own .tsd bytes size the finest level's groups (_groups) alone
             made = level_tiles(q[f], step, k, DEGREE, spans, samples.u[lo:hi],
-                               samples.v[lo:hi], e[lo:hi], encode=k == levels - 1)
+                               samples.v[lo:hi], e[lo:hi], encode=False)
             if made:
                 tiles[f] = made
         per_level_tiles.append(tiles)
@@ -1005,6 +1001,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                            "border_jump": border_jump(atlas, fields, spans)})
         report(0.4 + 0.5 * (k + 1) / max(levels, 1))
         clock = _tick(timings, "tiles", clock)
+    if per_level_tiles:  # the finest level's own .tsd bytes size the groups (_groups) alone
+        per_level_tiles[-1] = {f: [(t, write_detail_tile(t), g) for t, _, g in made]
+                               for f, made in per_level_tiles[-1].items()}
     groups = _groups(per_level_tiles[-1] if levels else {}, F, pack_bytes,
                      max(levels - 1, 0), spans)
     files: dict[str, bytes] = {}

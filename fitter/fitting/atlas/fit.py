@@ -77,21 +77,20 @@ scan's from 4.2 / 2.1 / 8.9 % to 3.8 / 1.2 / 6.6 %. Through the whole bundle (th
 0.80 -> 0.69, every largest mesh-to-scan distance lower (Lucy 1.24 -> 1.10 %, the mask
 1.61 -> 1.45 % of the diagonal), the squared error on points whose foot lies where the base
 faces away from the scan from 5.9 / 15.8 / 23.3 % (Nefertiti, Lucy, mask) to 1.9 / 12.0 /
-22.4 %. Stiffening only the patches found
-folded after each solve (``fold_stiffness``, :func:`fold_row_weights`) removed fewer folds
-and raised the finest level's RMS (Nefertiti +2.9 %, bunny +1.5 %): off by default.
-A sweep through the whole bundle (finest RMS over Draco's; before: the figures above)
-chose two warm stages and 6 rounds. A stiffer first solve (300 or 1000 times, or 1000,
-100, 10 over three solves, :data:`WARM_STAGES`, :func:`warm_factor`) with 6 rounds helped
-Lucy (2.07) but
-pulled the Bali mask's thin shell off (0.69 -> 1.42 and 1.48, 0.7 % of its points beyond
-0.5 % of the diagonal). 100 then 10 with 6 rounds improved all five (bunny 1.08, Nefertiti
-1.60, Lucy 2.10, Laurana 1.87, mask 0.65; largest distances within 0.03 % of the diagonal
-of before, Lucy's 1.10 -> 1.03 %, Nefertiti's 0.80 -> 0.71 %), once :func:`budget_bits` may
-give up two bits (Nefertiti's lower RMS asked for 12 bits, 28.8 KB): the default (the
-:func:`warm_factor` schedule 100, 10, 1, 1, 1, 1). 6 rounds at 100 alone raised the mask
-(0.77, largest distance 1.45 -> 1.56 %). A point cloud keeps only the 10-times stage
-(:func:`cloud_warm`: the 15-scan Buddha's fins under its unscanned pedestal bottom).
+22.4 %. Stiffening only the patches found folded after each solve (``fold_stiffness``,
+:func:`fold_row_weights`) removed fewer folds and raised the finest level's RMS (Nefertiti
++2.9 %, bunny +1.5 %): off by default. A sweep through the whole bundle (finest RMS over
+Draco's; before: the figures above) chose two warm stages and 6 rounds. A stiffer first
+solve (300 or 1000 times, or 1000, 100, 10 over three solves, :data:`WARM_STAGES`,
+:func:`warm_factor`) with 6 rounds helped Lucy (2.07) but pulled the Bali mask's thin shell
+off (0.69 -> 1.42 and 1.48, 0.7 % of its points beyond 0.5 % of the diagonal). 100 then 10
+with 6 rounds improved all five (bunny 1.08, Nefertiti 1.60, Lucy 2.10, Laurana 1.87, mask
+0.65; largest distances within 0.03 % of the diagonal of before, Lucy's 1.10 -> 1.03 %,
+Nefertiti's 0.80 -> 0.71 %), once :func:`budget_bits` may give up two bits (Nefertiti's
+lower RMS asked for 12 bits, 28.8 KB): the default (the :func:`warm_factor` schedule 100,
+10, 1, 1, 1, 1). 6 rounds at 100 alone raised the mask (0.77, largest distance 1.45 -> 1.56
+%). A point cloud keeps only the 10-times stage (:func:`cloud_warm`: the 15-scan Buddha's
+fins under its unscanned pedestal bottom).
 
 Weights stay 1 (polynomial patches): the NURBS weight step of the single patch is not
 carried over to the shared control points yet.
