@@ -243,23 +243,37 @@ class AtlasSurface:
             ``i`` along ``u``, ``j`` along ``v``; the same numbering as ``weights``.
         """
         n, inner = self.side, self.side - 2
-        quad = self.quads[f]
-        n_vertices, n_edge = len(self.vertices), len(self.edge_points)
         grid = [[-1] * n for _ in range(n)]
-        grid[0][0], grid[n - 1][0] = quad[0], quad[1]
-        grid[n - 1][n - 1], grid[0][n - 1] = quad[2], quad[3]
-        for k, (e, reverse) in enumerate(self.edges.sides[f]):
-            run = [n_vertices + e * inner + t for t in range(inner)]
-            if reverse:
-                run.reverse()
-            for t, index in enumerate(run, start=1):
-                i, j = ((t, 0), (n - 1, t), (t, n - 1), (0, t))[k]
-                grid[i][j] = index
-        base = n_vertices + n_edge + f * inner * inner
+        for i, j, index in self.border_slots(f, n):
+            grid[i][j] = index
+        base = len(self.vertices) + len(self.edge_points) + f * inner * inner
         for i in range(1, n - 1):
             for j in range(1, n - 1):
                 grid[i][j] = base + (i - 1) * inner + (j - 1)
         return grid
+
+    def border_slots(self, f: int, n: int) -> list[tuple[int, int, int]]:
+        """``(i, j, slot)`` for the border ring of an ``(n, n)`` grid on patch ``f``: the one
+        rule numbering what neighbouring patches share, for the control points (``n = s +
+        d``, :meth:`patch_indices`) and for any grid of coefficients laid on the patches the
+        same way (a detail level's, ``client_py.atlas_detail``).
+
+        Corner ``(0, 0), (n-1, 0), (n-1, n-1), (0, n-1)`` is slot ``quads[f][0..3]`` (the
+        layout vertex); the ``n - 2`` interior points of side ``k`` (``SIDES``) are slots
+        ``V + e (n - 2) + t``, ``t = 0..n-3`` from edge ``e``'s lower vertex to its higher,
+        so reversed where the side runs ``hi -> lo``. ``n >= 2``; ``4 (n - 1)`` entries.
+        """
+        if isinstance(n, bool) or not isinstance(n, int) or n < 2:
+            raise ValueError(f"a grid has n >= 2 points per side, got {n!r}")
+        inner, last = n - 2, n - 1
+        quad = self.quads[f]
+        ring = [(0, 0, quad[0]), (last, 0, quad[1]), (last, last, quad[2]), (0, last, quad[3])]
+        n_vertices = len(self.vertices)
+        for k, (e, reverse) in enumerate(self.edges.sides[f]):
+            for t in range(1, n - 1):
+                slot = n_vertices + e * inner + ((inner - t) if reverse else (t - 1))
+                ring.append(((t, 0), (last, t), (t, last), (0, t))[k] + (slot,))
+        return ring
 
     def control_point(self, index: int) -> Vec3:
         """The control point with ``index`` in the order vertices, edge points, face points."""

@@ -49,6 +49,7 @@ import struct
 import zlib
 from collections.abc import Mapping, Sequence
 
+from .atlas import AtlasSurface
 from .errors import PatchFormatError
 from .format import (
     CRC_SIZE,
@@ -65,9 +66,11 @@ from .rangecoder import HALF, RangeDecodeError, RangeDecoder, RangeEncoder
 from .trim import TrimMask
 
 PACK_MAGIC = b"TSDP"
-PACK_VERSION = 2
-# magic version level degree spans step first count drawn_side reserved(u8) reserved(u16)
+PACK_VERSION = 3
+READ_VERSIONS = (1, 2, 3)
+# magic version level degree spans step first count drawn_side flags(u8) reserved(u16)
 PACK_HEADER = struct.Struct("<4sBBBBfIIBBH")
+PACK_FLAG_WELDED = 0x1  # version 3: a border slot an earlier patch carried is not coded
 PACK_HEADER_SIZE = PACK_HEADER.size  # 24
 PACK_V1_HEADER = struct.Struct("<4sBBHI")  # magic version level reserved count
 PACK_V1_HEADER_SIZE = PACK_V1_HEADER.size  # 12
@@ -114,6 +117,50 @@ def _overlap_values(done: Mapping[tuple[int, int], Sequence[int]], i: int, j: in
     return given
 
 
+def _holding(g: int, spans: int, size: int, per_side: int) -> range:
+    """The tiles along one direction that hold coefficient ``g`` of the level's grid: tile
+    ``i`` holds ``i m .. i m + m + p - 1`` (``size = m + p``)."""
+    return range(max(0, -((size - 1 - g) // spans)), min(per_side - 1, g // spans) + 1)
+
+
+def _ring_by_tile(atlas: AtlasSurface, patch: int, level: int, spans: int, degree: int
+                  ) -> dict[tuple[int, int], list[tuple[int, int]]]:
+    """Patch ``patch``'s border slots at ``level`` by the tile that holds them: ``(i, j) ->
+    [(index in the tile's values, slot)]``. The level's grid has ``n = m 2^k + p``
+    coefficients per side, numbered by the atlas's one rule
+    (:meth:`client_py.atlas.AtlasSurface.border_slots`)."""
+    per_side, size = 1 << level, spans + degree
+    out: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for a, b, slot in atlas.border_slots(patch, spans * per_side + degree):
+        for i in _holding(a, spans, size, per_side):
+            for j in _holding(b, spans, size, per_side):
+                out.setdefault((i, j), []).append(((a - i * spans) * size + b - j * spans,
+                                                   slot))
+    return out
+
+
+def _welded_values(carried: Mapping[int, tuple[int, int]], ring: Sequence[tuple[int, int]],
+                   patch: int, size: int) -> list[int | None] | None:
+    """Per value of a tile, the value an earlier patch of the pack carried in the same
+    shared slot (``carried``: slot -> (patch, value), its first carrier), else ``None``;
+    ``None`` when no value of the tile is so known."""
+    known: list[int | None] | None = None
+    for k, slot in ring:
+        held = carried.get(slot)
+        if held is not None and held[0] != patch:
+            if known is None:
+                known = [None] * (size * size)
+            known[k] = held[1]
+    return known
+
+
+def _carry(carried: dict[int, tuple[int, int]], ring: Sequence[tuple[int, int]], patch: int,
+           values: Sequence[int]) -> None:
+    for k, slot in ring:
+        if slot not in carried:
+            carried[slot] = (patch, values[k])
+
+
 def _shared(tiles: Sequence[DetailTile], name: str) -> object:
     values = {getattr(t, name) for t in tiles}
     if len(values) != 1:
@@ -121,18 +168,24 @@ def _shared(tiles: Sequence[DetailTile], name: str) -> object:
     return values.pop()
 
 
-def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]]) -> bytes:
-    """The version 2 pack of ``tiles`` (patch -> its level-``level`` tiles).
+def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
+               atlas: AtlasSurface | None = None) -> bytes:
+    """The version 3 pack of ``tiles`` (patch -> its level-``level`` tiles).
 
     Every tile shares the pack's degree, spans and quantisation step (an atlas level has
     one step: ``fitter.fitting.atlas.detail``) and, when it has one, its drawn mask's side.
+    With ``atlas`` (the layout the patches lie on) the pack is *welded* (module docstring):
+    a border coefficient whose shared slot an earlier patch of the pack carried is not
+    coded again, and reading it needs the same atlas.
 
     Raises
     ------
     ValueError
-        An empty pack, a tile of another level, a patch index out of range, a repeated
-        tile, tiles that differ in degree, spans, step or mask side, or more than
-        ``MAX_PACK_TILES`` tiles / ``MAX_PACK_VALUES`` coefficients in the patch range.
+        An empty pack, a tile of another level, a patch index out of range (of the atlas
+        too), a repeated tile, tiles that differ in degree, spans, step or mask side, more
+        than ``MAX_PACK_TILES`` tiles / ``MAX_PACK_VALUES`` coefficients in the patch range,
+        or, welded, a border coefficient that differs from the value an earlier patch of
+        the pack holds in the same shared slot (neighbours share their border integers).
     """
     by_node: dict[tuple[int, int, int], DetailTile] = {}
     for patch in tiles:
@@ -173,11 +226,16 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]]) -> bytes:
                          f"{count * per_side * per_side} tiles of {(spans + degree) ** 2} "
                          f"values (and {side}² drawn cells); a pack holds at most "
                          f"{MAX_PACK_TILES} tiles and {MAX_PACK_VALUES} values: split the group")
+    if atlas is not None and first + count > len(atlas.quads):
+        raise ValueError(f"patch {first + count - 1} is not one of the atlas's "
+                         f"{len(atlas.quads)} patches")
     enc, model = RangeEncoder(), _TileModel()
     presence, has_mask = [HALF, HALF], [HALF]
     size, before = spans + degree, 0
+    carried: dict[int, tuple[int, int]] = {}  # welded: slot -> (first patch, its value)
     for patch in range(first, first + count):
         done: dict[tuple[int, int], Sequence[int]] = {}
+        rings = _ring_by_tile(atlas, patch, level, spans, degree) if atlas else {}
         for i in range(per_side):
             for j in range(per_side):
                 tile = by_node.get((patch, i, j))
@@ -185,30 +243,54 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]]) -> bytes:
                 before = tile is not None
                 if tile is None:
                     continue
+                ring = rings.get((i, j), ())
+                known = _welded_values(carried, ring, patch, size)
+                if known is not None:
+                    for k, q in enumerate(known):
+                        if q is not None and q != tile.values[k]:
+                            raise ValueError(
+                                f"patch {patch} tile {i}_{j}: value {k} is "
+                                f"{tile.values[k]}, but an earlier patch of the pack holds "
+                                f"{q} in the same shared border slot")
                 _encode_tile_values(enc, tile.values, size, model,
-                                    _overlap_values(done, i, j, spans, size))
+                                    _overlap_values(done, i, j, spans, size), known)
+                _carry(carried, ring, patch, tile.values)
                 done[i, j] = tile.values
                 if side:
                     enc.bit(has_mask, 0, tile.drawn is not None)
                     if tile.drawn is not None:
                         _code_mask(enc, model, side, tile.drawn.flat)
+    flags = PACK_FLAG_WELDED if atlas is not None else 0
     body = PACK_HEADER.pack(PACK_MAGIC, PACK_VERSION, level, degree, spans, step, first,
-                            count, side, 0, 0) + enc.finish()
+                            count, side, flags, 0) + enc.finish()
     return body + struct.pack("<I", zlib.crc32(body))
 
 
-def read_pack(data: bytes) -> tuple[int, dict[int, list[DetailTile]]]:
-    """``(level, {patch: [tiles]})`` of a pack's bytes, version 2 or 1 (module docstring).
+def pack_is_welded(data: bytes) -> bool:
+    """Whether ``data`` looks like a welded pack (version 3, flag ``PACK_FLAG_WELDED``),
+    which :func:`read_pack` reads only with its atlas; nothing else is checked here."""
+    return len(data) > 21 and bytes(data[:4]) == PACK_MAGIC and data[4] >= 3 \
+        and bool(data[21] & PACK_FLAG_WELDED)
+
+
+def read_pack(data: bytes, atlas: AtlasSurface | None = None
+              ) -> tuple[int, dict[int, list[DetailTile]]]:
+    """``(level, {patch: [tiles]})`` of a pack's bytes, version 3, 2 or 1 (module docstring).
+
+    ``atlas``: the layout the pack's patches lie on, needed by a welded pack (version 3
+    with flag ``PACK_FLAG_WELDED``) and unused by any other.
 
     Raises
     ------
     PatchFormatError
         For anything but a valid pack, with the byte offset and the reason.
+    ValueError
+        A welded pack read without ``atlas``.
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise PatchFormatError(0, f"a pack is bytes, got {type(data).__name__}")
     data = bytes(data)
-    least = PACK_V1_HEADER_SIZE + PACK_ENTRY.size + CRC_SIZE  # the shortest of either version
+    least = PACK_V1_HEADER_SIZE + PACK_ENTRY.size + CRC_SIZE  # the shortest of any version
     if len(data) < least:
         raise PatchFormatError(len(data), f"a pack has at least {least} bytes, got {len(data)}")
     if data[:4] != PACK_MAGIC:
@@ -217,20 +299,23 @@ def read_pack(data: bytes) -> tuple[int, dict[int, list[DetailTile]]]:
     if zlib.crc32(data[:-CRC_SIZE]) != crc:
         raise PatchFormatError(len(data) - CRC_SIZE, "CRC-32 mismatch: the pack is corrupt")
     version, level = data[4], data[5]
-    if version not in (1, PACK_VERSION):
-        raise PatchFormatError(4, f"version {version} is not {PACK_VERSION} (or 1)")
+    if version not in READ_VERSIONS:
+        raise PatchFormatError(4, f"version {version} is not one of {READ_VERSIONS}")
     if level > MAX_LEVEL:
         raise PatchFormatError(5, f"level {level} is above {MAX_LEVEL}")
     if version == 1:
         return level, _read_pack_v1(data, level)
-    return level, _read_pack_v2(data, level)
+    return level, _read_pack_stream(data, level, version, atlas)
 
 
-def _read_pack_v2(data: bytes, level: int) -> dict[int, list[DetailTile]]:
+def _read_pack_stream(data: bytes, level: int, version: int,
+                      atlas: AtlasSurface | None) -> dict[int, list[DetailTile]]:
+    """Versions 2 and 3: the header and ONE range-coded stream (version 2 is version 3
+    with every flag 0)."""
     if len(data) < PACK_HEADER_SIZE + CRC_SIZE:
-        raise PatchFormatError(len(data), f"a version 2 pack has at least "
+        raise PatchFormatError(len(data), f"a version {version} pack has at least "
                                f"{PACK_HEADER_SIZE + CRC_SIZE} bytes, got {len(data)}")
-    _, _, _, degree, spans, step, first, count, side, reserved, reserved2 = \
+    _, _, _, degree, spans, step, first, count, side, flags, reserved = \
         PACK_HEADER.unpack_from(data)
     if not 1 <= degree <= MAX_DETAIL_DEGREE:
         raise PatchFormatError(6, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
@@ -247,24 +332,40 @@ def _read_pack_v2(data: bytes, level: int) -> dict[int, list[DetailTile]]:
         raise PatchFormatError(12, f"patches {first}..{first + count - 1} of level {level}: "
                                f"a pack holds 1..{MAX_PACK_TILES} tiles, at most "
                                f"{MAX_PACK_VALUES} values, patches below {MAX_PACK_PATCH}")
-    if reserved or reserved2:
-        raise PatchFormatError(21, "reserved bytes are not 0")
+    known_flags = PACK_FLAG_WELDED if version >= 3 else 0
+    if flags & ~known_flags:
+        raise PatchFormatError(21, f"unknown flags 0x{flags:02x} (version {version})"
+                               if version >= 3 else "reserved bytes are not 0")
+    if reserved:
+        raise PatchFormatError(22, "reserved bytes are not 0")
+    welded = bool(flags & PACK_FLAG_WELDED)
+    if welded and atlas is None:
+        raise ValueError("a welded pack (version 3, flag 0x1) codes each shared border "
+                         "coefficient once: reading it needs the atlas (read_pack(data, atlas))")
+    if welded and first + count > len(atlas.quads):
+        raise PatchFormatError(12, f"patches {first}..{first + count - 1}: the atlas has "
+                               f"{len(atlas.quads)}")
     size = spans + degree
     model = _TileModel()
     presence, has_mask = [HALF, HALF], [HALF]
     tiles: dict[int, list[DetailTile]] = {}
+    carried: dict[int, tuple[int, int]] = {}
     before = 0
     try:  # the decoder reads its first bytes when it is made: inside the try too
         dec = RangeDecoder(data[PACK_HEADER_SIZE:len(data) - CRC_SIZE])
         for patch in range(first, first + count):
             done: dict[tuple[int, int], Sequence[int]] = {}
+            rings = _ring_by_tile(atlas, patch, level, spans, degree) if welded else {}
             for i in range(per_side):
                 for j in range(per_side):
                     before = dec.bit(presence, before)
                     if not before:
                         continue
+                    ring = rings.get((i, j), ())
                     values = _decode_tile_values(dec, size * size, size, model,
-                                                 _overlap_values(done, i, j, spans, size))
+                                                 _overlap_values(done, i, j, spans, size),
+                                                 _welded_values(carried, ring, patch, size))
+                    _carry(carried, ring, patch, values)
                     done[i, j] = values
                     drawn = None
                     if side and dec.bit(has_mask, 0):

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from .atlas import MAX_ATLAS_QUADS, AtlasSurface
-from .atlas_detail import pack_name, read_pack
+from .atlas_detail import pack_is_welded, pack_name, read_pack
 from .atlas_format import read_atlas
 from .atlas_mesh import tessellate_atlas
 from .atlas_texture import (
@@ -793,9 +793,12 @@ def _level_mesh(surface: NurbsSurface, tiles: Sequence[DetailTile], resolution: 
 
 
 def atlas_level_detail(manifest: dict, read: Callable[[str], bytes],
-                       level: int | None = None) -> dict[int, list[DetailTile]]:
+                       level: int | None = None, atlas: AtlasSurface | None = None
+                       ) -> dict[int, list[DetailTile]]:
     """The detail tiles of an atlas bundle at ``level``: every pack of levels ``0..level``
     read and decoded, as ``{patch: [tiles]}`` for ``client_py.atlas_mesh.tessellate_atlas``.
+    ``atlas``: the bundle's base, which a welded pack needs (``client_py.atlas_detail``);
+    ``None``: read from ``base.tsa`` when a pack needs it.
 
     Raises
     ------
@@ -807,8 +810,12 @@ def atlas_level_detail(manifest: dict, read: Callable[[str], bytes],
     detail: dict[int, list[DetailTile]] = {}
     for name in plan_level(manifest, level).detail_files:
         level_k, group = pack_name_parts(name)
+        data = read(name)
+        if atlas is None and pack_is_welded(data):
+            atlas, _ = read_atlas(read(base_file(manifest)))
+            check_atlas_base(atlas, manifest)
         try:
-            found, tiles = read_pack(read(name))
+            found, tiles = read_pack(data, atlas)
         except PatchFormatError as exc:
             raise PatchFormatError(exc.offset, f"{exc.reason} (detail pack {name})",
                                    exc.section) from None
@@ -877,7 +884,7 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
         atlas_tiles(manifest)  # the manifest is checked before any file is read
         atlas, _ = read_atlas(read(base_file(manifest)))
         check_atlas_base(atlas, manifest)
-        detail = atlas_level_detail(manifest, read, level)
+        detail = atlas_level_detail(manifest, read, level, atlas)
         mesh = tessellate_atlas(atlas, resolution, detail, kernel)
         if textures:
             if atlas_colour(manifest) is None:

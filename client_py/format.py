@@ -538,11 +538,16 @@ class _TileModel:
 
 
 def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
-                        model: _TileModel, given: Sequence[int | None] | None = None) -> None:
+                        model: _TileModel, given: Sequence[int | None] | None = None,
+                        known: Sequence[int | None] | None = None) -> None:
     """Code ``values``; where ``given[k]`` is not ``None`` (a value the decoder already
     has from another tile: ``client_py.atlas_detail``), first a bit whether ``values[k]``
-    equals it, and the value itself only when it does not."""
+    equals it, and the value itself only when it does not; where ``known[k]`` is not
+    ``None`` (the caller's promise that it equals ``values[k]``: a welded pack's border
+    slot another patch carried), nothing."""
     for k, q in enumerate(values):
+        if known is not None and known[k] is not None:
+            continue
         if given is not None and given[k] is not None:
             enc.bit(model.same, 0, q != given[k])
             if q == given[k]:
@@ -562,11 +567,14 @@ def _encode_tile_values(enc: RangeEncoder, values: Sequence[int], size: int,
 
 
 def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
-                        model: _TileModel, given: Sequence[int | None] | None = None
-                        ) -> list[int]:
-    """Inverse of :func:`_encode_tile_values` (the same ``given``)."""
+                        model: _TileModel, given: Sequence[int | None] | None = None,
+                        known: Sequence[int | None] | None = None) -> list[int]:
+    """Inverse of :func:`_encode_tile_values` (the same ``given`` and ``known``)."""
     values: list[int] = []
     for k in range(count):
+        if known is not None and known[k] is not None:
+            values.append(known[k])
+            continue
         if given is not None and given[k] is not None and not dec.bit(model.same, 0):
             values.append(given[k])
             continue

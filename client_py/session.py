@@ -470,14 +470,14 @@ class WorkerSession:
         PatchFormatError
             A bad pack, or one holding another level or patches outside its group.
         """
-        _, spec = self._atlas_loaded()
+        atlas, spec = self._atlas_loaded()
         name = str(name)
         parts = pack_name_parts(name)
         if parts is None or parts not in spec.packs:
             raise ValueError(f"{name!r} is not a pack the manifest lists (detail/K/G.tsdp)")
         level, group = parts
         try:
-            found, tiles = read_pack(bytes(data))
+            found, tiles = read_pack(bytes(data), atlas)
         except PatchFormatError as exc:
             raise PatchFormatError(exc.offset, f"{exc.reason} (detail pack {name})",
                                    exc.section) from None
@@ -612,7 +612,7 @@ class WorkerSession:
             if name in fresh:
                 level_k, group = pack_name_parts(name)
                 try:
-                    found, tiles = read_pack(bytes(fresh[name]))
+                    found, tiles = read_pack(bytes(fresh[name]), atlas)
                 except PatchFormatError as exc:
                     raise PatchFormatError(exc.offset, f"{exc.reason} (detail pack {name})",
                                            exc.section) from None

@@ -187,7 +187,7 @@ def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: d
         plan = plan_level(manifest, args.level)
         atlas, metadata = read_atlas(read(base_file(manifest)))
         check_atlas_base(atlas, manifest)
-        detail = atlas_level_detail(manifest, read, plan.level)
+        detail = atlas_level_detail(manifest, read, plan.level, atlas)
         if args.texture and not plan.texture_nodes:
             raise UserError(f"{bundle}: --texture: the bundle has no colour")
         packs = colour_packs_of(plan.texture_nodes, _decode_images(bundle, plan.texture_nodes))

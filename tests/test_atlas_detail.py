@@ -1,5 +1,7 @@
-"""Detail packs: round trip (version 2, one range-coded stream), the version 1 fixture still
-read, and every malformed pack refused with a PatchFormatError."""
+"""Detail packs: round trip (version 3, one range-coded stream; welded: each shared border
+coefficient coded once a pack), the version 2 and 1 fixtures still read, a welded pack
+decoding alone and against the old writer's values, and every malformed pack refused with a
+PatchFormatError."""
 
 import math
 import random
@@ -10,10 +12,15 @@ from pathlib import Path
 
 import pytest
 
+from atlas_cases import sphere_atlas
+
 from client_py.atlas_detail import (
     MAX_PACK_VALUES,
+    PACK_FLAG_WELDED,
     PACK_HEADER,
     PACK_HEADER_SIZE,
+    PACK_VERSION,
+    pack_is_welded,
     pack_name,
     read_pack,
     write_pack,
@@ -23,6 +30,9 @@ from client_py.layers import DetailTile
 from client_py.trim import TrimMask
 
 V1_FIXTURE = Path(__file__).parent / "data" / "pack_v1.tsdp"  # write_pack of _tiles(), v1
+V2_FIXTURE = Path(__file__).parent / "data" / "pack_v2.tsdp"  # write_pack of _tiles(), v2
+# version 2's write_pack (main 43b3669) of _welded_tiles(): every patch, no atlas
+V2_WELDED_FIXTURE = Path(__file__).parent / "data" / "pack_v2_welded.tsdp"
 
 
 def _tile(level: int, i: int, j: int, seed: int) -> DetailTile:
@@ -45,7 +55,8 @@ def test_round_trip():
     level, tiles = read_pack(data)
     assert level == 1
     assert _as_table(tiles) == _as_table(_tiles())
-    assert data[4] == 2 and len(data) == PACK_HEADER_SIZE + len(data[PACK_HEADER_SIZE:-4]) + 4
+    assert data[4] == PACK_VERSION == 3 and data[21] == 0 and not pack_is_welded(data)
+    assert len(data) == PACK_HEADER_SIZE + len(data[PACK_HEADER_SIZE:-4]) + 4
 
 
 def test_round_trip_against_an_independent_reference():
@@ -110,7 +121,7 @@ def _reframe(body: bytes) -> bytes:
 
 def _with_header(data: bytes, **fields) -> bytes:
     names = ("magic", "version", "level", "degree", "spans", "step", "first", "count", "side",
-             "reserved", "reserved2")
+             "flags", "reserved2")
     head = dict(zip(names, PACK_HEADER.unpack_from(data), strict=True)) | fields
     return _reframe(PACK_HEADER.pack(*head.values()) + data[PACK_HEADER_SIZE:-4])
 
@@ -119,7 +130,9 @@ def _with_header(data: bytes, **fields) -> bytes:
     (lambda b: b[:10], "at least"),
     (lambda b: b[:-5] + bytes([b[-5] ^ 1]) + b[-4:], "CRC"),
     (lambda b: _reframe(b"TSDX" + b[4:-4]), "magic"),
-    (lambda b: _with_header(b, version=3), "version 3"),
+    (lambda b: _with_header(b, version=4), "version 4"),
+    (lambda b: _with_header(b, flags=2), "unknown flags 0x02"),
+    (lambda b: _with_header(b, version=2, flags=1), "reserved"),
     (lambda b: _with_header(b, level=9), "level 9"),
     (lambda b: _with_header(b, degree=0), "degree 0"),
     (lambda b: _with_header(b, spans=65), "spans = 65"),
@@ -202,3 +215,118 @@ def test_random_streams_behind_a_valid_header_and_crc_are_tiles_or_format_errors
             continue
         assert level == 1
         assert all(t.size == 6 and len(t.values) == 36 for ts in tiles.values() for t in ts)
+
+
+def test_version_2_packs_still_read():
+    data = V2_FIXTURE.read_bytes()
+    assert data[4] == 2
+    level, tiles = read_pack(data)
+    assert level == 1
+    assert _as_table(tiles) == _as_table(_tiles())
+    # the same stream: version 3 without an atlas differs in its version byte alone
+    new = write_pack(1, _tiles())
+    assert new[:4] + new[5:-4] == data[:4] + data[5:-4]
+
+
+# ------------------------------------------------------------------ welded packs
+WELD_LEVEL, WELD_SPANS, WELD_DEGREE = 1, 4, 2
+
+
+def _welded_tiles(seed: int = 3, absent: float = 0.1) -> tuple[object, dict]:
+    """Level-1 tiles of the 24 patches of a sphere atlas as the fitter makes them: per patch
+    a level grid of ``n = 4 * 2 + 2`` coefficients a side whose border ring takes one value
+    per shared slot (the atlas's rule, computed here from the layout's corners and edges
+    directly, not through ``border_slots``), interior values of their own; a share
+    ``absent`` of the tiles left out (a zero field there, which a neighbour need not match).
+    """
+    atlas = sphere_atlas(2)
+    rnd = random.Random(seed)
+    n = (WELD_SPANS << WELD_LEVEL) + WELD_DEGREE
+    size = WELD_SPANS + WELD_DEGREE
+    slot_value: dict = {}
+
+    def shared(key):
+        if key not in slot_value:
+            slot_value[key] = int(round(rnd.gauss(0, 4)))
+        return slot_value[key]
+
+    tiles = {}
+    for f, quad in enumerate(atlas.quads):
+        grid = [[int(round(rnd.gauss(0, 4))) for _ in range(n)] for _ in range(n)]
+        for (a, b), corner in zip(((0, 0), (n - 1, 0), (n - 1, n - 1), (0, n - 1)), quad,
+                                  strict=True):
+            grid[a][b] = shared(("vertex", corner))
+        sides = (((1, 0), (1, 0)), ((n - 1, 1), (0, 1)), ((1, n - 1), (1, 0)), ((0, 1), (0, 1)))
+        for k, ((a0, b0), (da, db)) in enumerate(sides):
+            start, end = quad[(0, 1, 3, 0)[k]], quad[(1, 2, 2, 3)[k]]
+            for t in range(n - 2):  # t-th interior point from the side's start corner
+                along = t if start < end else n - 3 - t  # from the edge's lower vertex
+                grid[a0 + da * t][b0 + db * t] = shared(("edge", min(start, end),
+                                                         max(start, end), along))
+        for i in range(2):
+            for j in range(2):
+                if rnd.random() < absent:
+                    continue
+                values = tuple(grid[i * WELD_SPANS + a][j * WELD_SPANS + b]
+                               for a in range(size) for b in range(size))
+                tiles.setdefault(f, []).append(DetailTile(WELD_LEVEL, i, j, WELD_DEGREE,
+                                                          WELD_SPANS, 0.02, values))
+    return atlas, tiles
+
+
+def test_welded_pack_round_trips_to_the_old_writers_values_in_fewer_bytes():
+    atlas, tiles = _welded_tiles()
+    old = V2_WELDED_FIXTURE.read_bytes()
+    assert old[4] == 2
+    _, old_tiles = read_pack(old)
+    assert _as_table(old_tiles) == _as_table(tiles)  # the generator has not drifted
+    data = write_pack(WELD_LEVEL, tiles, atlas)
+    assert data[4] == 3 and data[21] == PACK_FLAG_WELDED and pack_is_welded(data)
+    level, decoded = read_pack(data, atlas)
+    assert level == WELD_LEVEL and _as_table(decoded) == _as_table(old_tiles)
+    # 24 patches of 10 x 10 coefficients: 36 ring values each, 26 slots per edge and vertex
+    # ring of the cube layout's 48 edges (8 each) and 26 vertices: 864 ring values over
+    # 26 + 48 * 8 = 410 slots; about half of the ring values are not coded again
+    assert len(data) < 0.9 * len(old)
+    with pytest.raises(ValueError, match="needs the atlas"):
+        read_pack(data)
+
+
+def test_a_welded_pack_decodes_without_its_neighbour_pack():
+    """Two groups of 12 patches: each pack codes what its own earlier patches did not, so
+    either decodes alone (the border slots shared with the other group are in both)."""
+    atlas, tiles = _welded_tiles(seed=4)
+    halves = [{f: t for f, t in tiles.items() if f < 12}, {f: t for f, t in tiles.items()
+                                                           if f >= 12}]
+    for half in halves:
+        level, decoded = read_pack(write_pack(WELD_LEVEL, half, atlas), atlas)
+        assert _as_table(decoded) == _as_table(half)
+    # one patch alone shares nothing within its pack: the same stream as unwelded
+    one = {13: tiles[13]}
+    welded, plain = write_pack(WELD_LEVEL, one, atlas), write_pack(WELD_LEVEL, one)
+    assert welded[:21] + welded[22:-4] == plain[:21] + plain[22:-4]
+    assert _as_table(read_pack(welded, atlas)[1]) == _as_table(one)
+
+
+def test_welded_writer_refuses_borders_that_differ():
+    atlas, tiles = _welded_tiles(absent=0.0)
+    first = tiles[1][0]
+    tiles[1][0] = DetailTile(first.level, first.i, first.j, first.degree, first.spans,
+                             first.step, (first.values[0] + 1,) + first.values[1:])
+    with pytest.raises(ValueError, match="same shared border slot"):
+        write_pack(WELD_LEVEL, tiles, atlas)
+    with pytest.raises(ValueError, match="not one of the atlas's 24 patches"):
+        write_pack(WELD_LEVEL, {30: tiles[2]}, atlas)
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda b: b[:PACK_HEADER_SIZE + 6], "at least|CRC"),
+    (lambda b: _reframe(b[:len(b) // 2]), "end early"),
+    (lambda b: b[:40] + bytes([b[40] ^ 0x10]) + b[41:], "CRC"),
+    (lambda b: _with_header(b, count=40), "the atlas has 24"),
+    (lambda b: _with_header(b, flags=3), "unknown flags"),
+])
+def test_bad_welded_packs(edit, match):
+    atlas, tiles = _welded_tiles()
+    with pytest.raises(PatchFormatError, match=match):
+        read_pack(edit(write_pack(WELD_LEVEL, tiles, atlas)), atlas)

@@ -1015,7 +1015,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                     if f in tiles}
             if not mine:
                 continue
-            data = write_pack(k, mine)
+            data = write_pack(k, mine, atlas)
             name = pack_name(k, g)
             files[name] = data
             total += len(data)
