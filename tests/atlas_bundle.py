@@ -42,10 +42,32 @@ def random_tile(level: int, i: int, j: int, rnd: random.Random, amplitude: float
                       tuple(rnd.randint(-8, 8) for _ in range(size * size)))
 
 
+def welded_tiles(atlas, level: int, rnd: random.Random, amplitude: float
+                 ) -> dict[int, list[DetailTile]]:
+    """Every tile of every patch at ``level`` as the fitter makes them: a level grid of ``n
+    = SPANS_PER_TILE 2^level + DEGREE`` random coefficients a side per patch whose border
+    ring takes one value per shared slot (``AtlasSurface.border_slots``), cut into tiles."""
+    n, size = (SPANS_PER_TILE << level) + DEGREE, SPANS_PER_TILE + DEGREE
+    slots: dict[int, int] = {}
+    out = {}
+    for f in range(len(atlas.quads)):
+        grid = [[rnd.randint(-8, 8) for _ in range(n)] for _ in range(n)]
+        for a, b, slot in atlas.border_slots(f, n):
+            grid[a][b] = slots.setdefault(slot, rnd.randint(-8, 8))
+        out[f] = [DetailTile(level, i, j, DEGREE, SPANS_PER_TILE, amplitude / 8,
+                             tuple(grid[i * SPANS_PER_TILE + a][j * SPANS_PER_TILE + b]
+                                   for a in range(size) for b in range(size)))
+                  for i in range(1 << level) for j in range(1 << level)]
+    return out
+
+
 def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolution: int = 5,
-                       seed: int = 0, title: str = "Atlas sphere") -> dict:
+                       seed: int = 0, title: str = "Atlas sphere", welded: bool = False
+                       ) -> dict:
     """Write an atlas bundle of ``6 k^2`` patches and ``levels`` detail levels into
-    ``folder``; returns its manifest."""
+    ``folder``; returns its manifest. ``welded``: tiles whose neighbours share their border
+    coefficients (:func:`welded_tiles`), in welded packs (``write_pack(..., atlas)``), as the
+    fitter writes them; else independent random tiles in packs without an atlas."""
     folder.mkdir(parents=True, exist_ok=True)
     rnd = random.Random(seed)
     atlas = sphere_atlas(k, noise=0.02, seed=seed)
@@ -66,11 +88,15 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
     for level in range(levels):
         amplitude = 0.02 / 2**level
         total = 0
+        every = welded_tiles(atlas, level, rnd, amplitude) if welded else None
         for g in range(6):
-            tiles = {f: [random_tile(level, i, j, rnd, amplitude) for i in range(1 << level)
-                         for j in range(1 << level)]
-                     for f in range(g * per_face, (g + 1) * per_face)}
-            data = write_pack(level, tiles)
+            patches = range(g * per_face, (g + 1) * per_face)
+            if welded:
+                data = write_pack(level, {f: every[f] for f in patches}, atlas)
+            else:
+                data = write_pack(level, {f: [random_tile(level, i, j, rnd, amplitude)
+                                              for i in range(1 << level)
+                                              for j in range(1 << level)] for f in patches})
             name = pack_name(level, g)
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             (folder / name).write_bytes(data)

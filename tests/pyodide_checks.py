@@ -368,6 +368,37 @@ def _atlas_session_checks(checks: dict, digests: dict, timings: dict, atlas: Atl
 
     _check(checks, "atlas session: groups at different levels, welded and closed; level PLY",
            refines_welded)
+    _welded_pack_checks(checks, digests, atlas)
+
+
+def _welded_pack_checks(checks: dict, digests: dict, atlas: AtlasSurface) -> None:
+    """A welded pack (version 3: each shared border coefficient coded once) of every patch
+    at level 1, its tiles cut from level grids whose border rings share one value per slot
+    (``AtlasSurface.border_slots``): the same bytes and the same tiles back in both
+    interpreters."""
+    from client_py.atlas_detail import read_pack, write_pack
+
+    n, size = 2 * 2 + 2, 2 + 2  # level 1, spans 2, degree 2
+    slots: dict = {}
+    tiles = {}
+    for f in range(len(atlas.quads)):
+        flat = _lcg_values(n * n, 7 + f, 6)
+        grid = [flat[a * n : (a + 1) * n] for a in range(n)]
+        for a, b, slot in atlas.border_slots(f, n):
+            grid[a][b] = slots.setdefault(slot, grid[a][b])
+        tiles[f] = [DetailTile(1, i, j, 2, 2, 0.002, tuple(grid[2 * i + a][2 * j + b]
+                                                          for a in range(size)
+                                                          for b in range(size)))
+                    for i in range(2) for j in range(2)]
+    data = write_pack(1, tiles, atlas)
+    digests["welded_pack"] = _sha(data)
+
+    def round_trip():
+        _require(data[4] == 3 and data[21] == 1, "a welded version 3 pack")
+        _require(read_pack(data, atlas) == (1, tiles), "welded pack round trip")
+        _require(len(data) < len(write_pack(1, tiles)), "welding saves bytes")
+
+    _check(checks, "welded detail pack: round trip, fewer bytes", round_trip)
     if timed is not None:  # the viewer's re-tessellation: 6 groups of 100 patches
         session = WorkerSession(kernel="python")
         session.load_atlas(write_atlas(timed, 12), "base.tsa")

@@ -539,3 +539,41 @@ def test_a_fitted_atlas_bundle_reads_everywhere(tmp_path):
     assert len(session.atlas_refinement()["resolutions"]) == len(plan_levels(manifest)) + 1
     png = render_atlas_thumbnail((folder / "base.tsa").read_bytes(), manifest.get("view"))
     assert png.startswith(b"\x89PNG")
+
+
+# ------------------------------------------------------------------ welded packs
+def test_a_welded_bundle_draws_the_same_mesh_as_its_tiles_unwelded(tmp_path):
+    """Welded packs (version 3, each shared border coefficient coded once a pack) through
+    every reader: tessellate_bundle (the atlas read once), atlas_level_detail without the
+    atlas (it reads base.tsa), the session with one group's pack alone; the mesh is the one
+    the same tiles draw in packs without welding, bit for bit."""
+    folder = tmp_path / "welded"
+    manifest = write_atlas_bundle(folder, k=2, levels=2, welded=True)
+    atlas, _ = read_atlas((folder / "base.tsa").read_bytes())
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for name in manifest["files"]:
+        data = (folder / name).read_bytes()
+        if name.endswith(".tsdp"):
+            assert data[4] == 3 and data[21] == 1
+            level, tiles = read_pack(data, atlas)
+            data = write_pack(level, tiles)
+        (plain / name).parent.mkdir(parents=True, exist_ok=True)
+        (plain / name).write_bytes(data)
+    (plain / "manifest.json").write_text(json.dumps(manifest))
+    smaller = [len((folder / n).read_bytes()) < len((plain / n).read_bytes())
+               for n in manifest["files"] if n.endswith(".tsdp")]
+    assert all(smaller)
+    for level in (0, 1):
+        a = tessellate_bundle(manifest, _reader(folder), level, kernel="python")
+        b = tessellate_bundle(manifest, _reader(plain), level, kernel="python")
+        assert a.positions == b.positions and a.indices == b.indices
+        assert _boundary_edges(a.indices) == 0
+        assert atlas_level_detail(manifest, _reader(folder), level) == \
+            atlas_level_detail(manifest, _reader(plain), level)
+    session, _ = _session(folder)
+    name = pack_name(1, 4)
+    assert session.add_pack(name, (folder / name).read_bytes())["tiles"] == 4 * 4
+    assert session._packs[name][2] == read_pack((plain / name).read_bytes())[1]
+    with pytest.raises(ValueError, match="needs the atlas"):
+        read_pack((folder / name).read_bytes())

@@ -330,3 +330,27 @@ def test_bad_welded_packs(edit, match):
     atlas, tiles = _welded_tiles()
     with pytest.raises(PatchFormatError, match=match):
         read_pack(edit(write_pack(WELD_LEVEL, tiles, atlas)), atlas)
+
+
+@pytest.mark.parametrize("n", [2, 3, 7, 10])
+def test_border_slots_number_the_points_neighbours_share(n):
+    """An independent reference: the atlas is watertight, so the point of patch ``f`` at
+    ``(a, b) / (n - 1)`` of its grid is the same 3D point for every patch holding the slot,
+    and different slots are different points; every layout vertex is a slot, every edge
+    ``n - 2`` of them."""
+    atlas = sphere_atlas(2, noise=0.05, seed=2)
+    at: dict = {}
+    for f in range(len(atlas.quads)):
+        ring = atlas.border_slots(f, n)
+        assert len(ring) == 4 * (n - 1) == len({(a, b) for a, b, _ in ring})
+        surface = atlas.patch_surface(f)
+        for a, b, slot in ring:
+            point = surface.evaluate(a / (n - 1), b / (n - 1))
+            if slot in at:
+                assert math.dist(point, at[slot]) < 1e-9
+            at[slot] = point
+    assert sorted(at) == list(range(len(atlas.vertices)
+                                    + (n - 2) * len(atlas.edges.edges)))
+    assert len({tuple(round(x, 6) for x in p) for p in at.values()}) == len(at)
+    with pytest.raises(ValueError, match="n >= 2"):
+        atlas.border_slots(0, 1)

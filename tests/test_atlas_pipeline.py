@@ -173,11 +173,13 @@ def finest_resolution(manifest):
 
 def _finest_detail(folder, manifest):
     from client_py.atlas_detail import read_pack
+    from client_py.atlas_format import read_atlas
 
+    atlas, _ = read_atlas((folder / "base.tsa").read_bytes())  # the packs are welded
     tiles = {}
     for pack in manifest["tiles"]["detail"]["packs"]:
         _, found = read_pack((folder / f"detail/{pack['level']}/{pack['group']}.tsdp")
-                             .read_bytes())
+                             .read_bytes(), atlas)
         for patch, held in found.items():
             tiles.setdefault(patch, []).extend(held)
     return tiles

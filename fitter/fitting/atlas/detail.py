@@ -64,7 +64,9 @@ unfitted (the bunny's finest RMS of all points rose 7 %).
 Groups and packs. Patches are renumbered along the Morton (Z-order) curve of their centres,
 so that a contiguous range of patch indices is a compact piece of the object, and cut into
 groups whose finest-level pack stays within ``PACK_BYTES``; every level's tiles of a group
-travel in one pack (``client_py.atlas_detail``), with the pack's ``geometric_error`` (max
+travel in one welded pack (``client_py.atlas_detail``, version 3: a border coefficient that
+an earlier patch of the pack holds in the same shared slot, ``shared_index``, is coded once:
+the bunny's level 0 18 % smaller), with the pack's ``geometric_error`` (max
 sample error of the group after levels ``0..k``, as OGC 3D Tiles) and each group's bounding
 sphere (the control points' hull widened by the largest displacement).
 """
@@ -196,29 +198,18 @@ def renumber_patches(atlas: AtlasSurface, order: np.ndarray) -> AtlasSurface:
 # ------------------------------------------------------------------ shared coefficients
 def shared_index(atlas: AtlasSurface, n: int) -> np.ndarray:
     """``G[f, a, b]``: the shared slot of coefficient ``(a, b)`` of patch ``f``'s ``(n, n)``
-    grid, by the atlas's own rule (``AtlasSurface.patch_indices``) for ``n`` per side:
-    layout vertices, then ``n - 2`` slots per edge from its lower vertex, then the
-    ``(n - 2)^2`` interior slots per patch. Shape ``(F, n, n)``."""
-    inner = n - 2
-    n_vertices = len(atlas.vertices)
-    n_edges = len(atlas.edges.edges)
-    grid = np.empty((len(atlas.quads), n, n), np.int64)
-    run = np.arange(inner)
-    for f, quad in enumerate(atlas.quads):
-        g = grid[f]
-        g[0, 0], g[n - 1, 0], g[n - 1, n - 1], g[0, n - 1] = quad
-        for k, (e, reverse) in enumerate(atlas.edges.sides[f]):
-            slots = n_vertices + e * inner + (run[::-1] if reverse else run)
-            if k == 0:
-                g[1:n - 1, 0] = slots
-            elif k == 1:
-                g[n - 1, 1:n - 1] = slots
-            elif k == 2:
-                g[1:n - 1, n - 1] = slots
-            else:
-                g[0, 1:n - 1] = slots
-        base = n_vertices + n_edges * inner + f * inner * inner
-        g[1:n - 1, 1:n - 1] = base + np.arange(inner * inner).reshape(inner, inner)
+    grid, by the atlas's own rule for ``n`` per side (the ring:
+    ``AtlasSurface.border_slots``, which the packs use too): layout vertices, then ``n - 2``
+    slots per edge from its lower vertex, then the ``(n - 2)^2`` interior slots per patch.
+    Shape ``(F, n, n)``."""
+    inner, count = n - 2, len(atlas.quads)
+    grid = np.empty((count, n, n), np.int64)
+    first = len(atlas.vertices) + len(atlas.edges.edges) * inner
+    grid[:, 1:n - 1, 1:n - 1] = first + np.arange(count * inner * inner).reshape(
+        count, inner, inner)
+    for f in range(count):
+        ring = np.array(atlas.border_slots(f, n), np.int64)
+        grid[f, ring[:, 0], ring[:, 1]] = ring[:, 2]
     return grid
 
 
@@ -1057,9 +1048,10 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
 def _groups(finest: dict, patches: int, pack_bytes: int, level: int = 0,
             spans: int = SPANS) -> list[tuple[int, int]]:
     """Contiguous ``(first, count)`` ranges of patches whose finest-level (``level``) tiles
-    stay within ``pack_bytes`` in a pack (``client_py.atlas_detail``, version 2: one
-    range-coded stream, so a tile costs about its ``.tsd`` coded bytes without the tile's
-    own header and CRC; 28 bytes of pack framing) and within the values a pack may hold
+    stay within ``pack_bytes`` in a pack (``client_py.atlas_detail``: one range-coded
+    stream, so a tile costs about its ``.tsd`` coded bytes without the tile's own header and
+    CRC, less the border slots a welded pack does not repeat, which this bound does not
+    count; 28 bytes of pack framing) and within the values a pack may hold
     (:func:`client_py.atlas_detail.pack_capacity` <= ``MAX_PACK_VALUES``)."""
     framing = TILE_HEADER_SIZE + CRC_SIZE
     groups = []
