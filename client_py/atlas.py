@@ -32,6 +32,7 @@ numbered by :func:`atlas_edges`, the one rule every reader and writer uses.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -49,6 +50,19 @@ MAX_ATLAS_VERTICES = 1 << 17
 # in the order they are listed everywhere (side 0: v = 0, side 1: u = 1, side 2: v = 1,
 # side 3: u = 0), each oriented along increasing u or v.
 SIDES = ((0, 1), (1, 2), (3, 2), (0, 3))
+
+
+@functools.lru_cache(maxsize=32)
+def ring_positions(n: int) -> tuple[tuple[int, int], ...]:
+    """``(i, j)`` of the ``4 (n - 1)`` points on the border ring of an ``(n, n)`` grid, in the
+    order :meth:`AtlasSurface.border_slots` numbers them: the corners ``(0, 0), (n-1, 0),
+    (n-1, n-1), (0, n-1)``, then the inner points of sides 0..3 (``SIDES``: ``v = 0``, ``u =
+    1``, ``v = 1``, ``u = 0``), each along increasing ``u`` or ``v``."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 2:
+        raise ValueError(f"a grid has n >= 2 points per side, got {n!r}")
+    last, run = n - 1, range(1, n - 1)
+    return ((0, 0), (last, 0), (last, last), (0, last), *((t, 0) for t in run),
+            *((last, t) for t in run), *((t, last) for t in run), *((0, t) for t in run))
 
 
 @dataclass(frozen=True)
@@ -244,7 +258,7 @@ class AtlasSurface:
         """
         n, inner = self.side, self.side - 2
         grid = [[-1] * n for _ in range(n)]
-        for i, j, index in self.border_slots(f, n):
+        for (i, j), index in zip(ring_positions(n), self.border_slots(f, n), strict=True):
             grid[i][j] = index
         base = len(self.vertices) + len(self.edge_points) + f * inner * inner
         for i in range(1, n - 1):
@@ -252,28 +266,27 @@ class AtlasSurface:
                 grid[i][j] = base + (i - 1) * inner + (j - 1)
         return grid
 
-    def border_slots(self, f: int, n: int) -> list[tuple[int, int, int]]:
-        """``(i, j, slot)`` for the border ring of an ``(n, n)`` grid on patch ``f``: the one
-        rule numbering what neighbouring patches share, for the control points (``n = s +
-        d``, :meth:`patch_indices`) and for any grid of coefficients laid on the patches the
-        same way (a detail level's, ``client_py.atlas_detail``).
+    def border_slots(self, f: int, n: int) -> list[int]:
+        """The shared slot of each point of the border ring of an ``(n, n)`` grid on patch
+        ``f``, in the order of :func:`ring_positions`: the one rule numbering what
+        neighbouring patches share, for the control points (``n = s + d``,
+        :meth:`patch_indices`) and for any grid of coefficients laid on the patches the same
+        way (a detail level's, ``client_py.atlas_detail``).
 
         Corner ``(0, 0), (n-1, 0), (n-1, n-1), (0, n-1)`` is slot ``quads[f][0..3]`` (the
-        layout vertex); the ``n - 2`` interior points of side ``k`` (``SIDES``) are slots
-        ``V + e (n - 2) + t``, ``t = 0..n-3`` from edge ``e``'s lower vertex to its higher,
-        so reversed where the side runs ``hi -> lo``. ``n >= 2``; ``4 (n - 1)`` entries.
+        layout vertex); the ``n - 2`` inner points of side ``k`` (``SIDES``, from its start
+        corner) are slots ``V + e (n - 2) + t``, ``t = 0..n-3`` from edge ``e``'s lower vertex
+        to its higher, so reversed where the side runs ``hi -> lo``. ``n >= 2``.
         """
         if isinstance(n, bool) or not isinstance(n, int) or n < 2:
             raise ValueError(f"a grid has n >= 2 points per side, got {n!r}")
-        inner, last = n - 2, n - 1
-        quad = self.quads[f]
-        ring = [(0, 0, quad[0]), (last, 0, quad[1]), (last, last, quad[2]), (0, last, quad[3])]
-        n_vertices = len(self.vertices)
-        for k, (e, reverse) in enumerate(self.edges.sides[f]):
-            for t in range(1, n - 1):
-                slot = n_vertices + e * inner + ((inner - t) if reverse else (t - 1))
-                ring.append(((t, 0), (last, t), (t, last), (0, t))[k] + (slot,))
-        return ring
+        inner, first = n - 2, len(self.vertices)
+        slots = list(self.quads[f])
+        for e, reverse in self.edges.sides[f]:
+            start = first + e * inner
+            slots.extend(range(start + inner - 1, start - 1, -1) if reverse
+                         else range(start, start + inner))
+        return slots
 
     def control_point(self, index: int) -> Vec3:
         """The control point with ``index`` in the order vertices, edge points, face points."""

@@ -60,12 +60,13 @@ Every failure is a ``PatchFormatError(offset, reason)``; the header bounds the d
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import zlib
 from collections.abc import Mapping, Sequence
 
-from .atlas import AtlasSurface
+from .atlas import AtlasSurface, ring_positions
 from .errors import PatchFormatError
 from .format import (
     CRC_SIZE,
@@ -133,36 +134,34 @@ def _overlap_values(done: Mapping[tuple[int, int], Sequence[int]], i: int, j: in
     return given
 
 
-def _holding(g: int, spans: int, size: int, per_side: int) -> range:
-    """The tiles along one direction that hold coefficient ``g`` of the level's grid: tile
-    ``i`` holds ``i m .. i m + m + p - 1`` (``size = m + p``)."""
-    return range(max(0, -((size - 1 - g) // spans)), min(per_side - 1, g // spans) + 1)
-
-
-def _ring_by_tile(atlas: AtlasSurface, patch: int, level: int, spans: int, degree: int
-                  ) -> dict[tuple[int, int], list[tuple[int, int]]]:
-    """Patch ``patch``'s border slots at ``level`` by the tile that holds them: ``(i, j) ->
-    [(index in the tile's values, slot)]``. The level's grid has ``n = m 2^k + p``
-    coefficients per side, numbered by the atlas's one rule
-    (:meth:`client_py.atlas.AtlasSurface.border_slots`)."""
+@functools.lru_cache(maxsize=64)
+def _ring_template(level: int, spans: int, degree: int
+                   ) -> dict[tuple[int, int], tuple[tuple[int, int], ...]]:
+    """Where a level's border ring lies in its tiles: ``(i, j) -> ((index in the tile's
+    values, index in the ring), ...)``. Level ``k``'s grid has ``n = m 2^k + p``
+    coefficients per side, its ring's points in the order of
+    :func:`client_py.atlas.ring_positions` (that of ``AtlasSurface.border_slots``); tile
+    ``(i, j)`` holds rows ``i m .. i m + m + p - 1`` and the same columns."""
     per_side, size = 1 << level, spans + degree
     out: dict[tuple[int, int], list[tuple[int, int]]] = {}
-    for a, b, slot in atlas.border_slots(patch, spans * per_side + degree):
-        for i in _holding(a, spans, size, per_side):
-            for j in _holding(b, spans, size, per_side):
-                out.setdefault((i, j), []).append(((a - i * spans) * size + b - j * spans,
-                                                   slot))
-    return out
+    for r, (a, b) in enumerate(ring_positions(spans * per_side + degree)):
+        # tiles i with i m <= a <= i m + size - 1
+        for i in range(max(0, -((size - 1 - a) // spans)), min(per_side - 1, a // spans) + 1):
+            for j in range(max(0, -((size - 1 - b) // spans)),
+                           min(per_side - 1, b // spans) + 1):
+                out.setdefault((i, j), []).append(((a - i * spans) * size + b - j * spans, r))
+    return {key: tuple(entries) for key, entries in out.items()}
 
 
 def _welded_values(carried: Mapping[int, tuple[int, int]], ring: Sequence[tuple[int, int]],
-                   patch: int, size: int) -> list[int | None] | None:
-    """Per value of a tile, the value an earlier patch of the pack carried in the same
-    shared slot (``carried``: slot -> (patch, value), its first carrier), else ``None``;
-    ``None`` when no value of the tile is so known."""
+                   slots: Sequence[int], patch: int, size: int) -> list[int | None] | None:
+    """Per value of a tile (``ring``: its border points, from :func:`_ring_template`;
+    ``slots``: the patch's ring slots), the value an earlier patch of the pack carried in
+    the same shared slot (``carried``: slot -> (patch, value), its first carrier), else
+    ``None``; ``None`` when no value of the tile is so known."""
     known: list[int | None] | None = None
-    for k, slot in ring:
-        held = carried.get(slot)
+    for k, r in ring:
+        held = carried.get(slots[r])
         if held is not None and held[0] != patch:
             if known is None:
                 known = [None] * (size * size)
@@ -170,11 +169,11 @@ def _welded_values(carried: Mapping[int, tuple[int, int]], ring: Sequence[tuple[
     return known
 
 
-def _carry(carried: dict[int, tuple[int, int]], ring: Sequence[tuple[int, int]], patch: int,
-           values: Sequence[int]) -> None:
-    for k, slot in ring:
-        if slot not in carried:
-            carried[slot] = (patch, values[k])
+def _carry(carried: dict[int, tuple[int, int]], ring: Sequence[tuple[int, int]],
+           slots: Sequence[int], patch: int, values: Sequence[int]) -> None:
+    """Record the tile's border values in the slots no earlier tile carried."""
+    for k, r in ring:
+        carried.setdefault(slots[r], (patch, values[k]))
 
 
 def _shared(tiles: Sequence[DetailTile], name: str) -> object:
@@ -251,7 +250,8 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
     carried: dict[int, tuple[int, int]] = {}  # welded: slot -> (first patch, its value)
     for patch in range(first, first + count):
         done: dict[tuple[int, int], Sequence[int]] = {}
-        rings = _ring_by_tile(atlas, patch, level, spans, degree) if atlas else {}
+        slots = atlas.border_slots(patch, spans * per_side + degree) if atlas else ()
+        rings = _ring_template(level, spans, degree) if atlas else {}
         for i in range(per_side):
             for j in range(per_side):
                 tile = by_node.get((patch, i, j))
@@ -260,7 +260,7 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
                 if tile is None:
                     continue
                 ring = rings.get((i, j), ())
-                known = _welded_values(carried, ring, patch, size)
+                known = _welded_values(carried, ring, slots, patch, size)
                 if known is not None:
                     for k, q in enumerate(known):
                         if q is not None and q != tile.values[k]:
@@ -270,7 +270,7 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
                                 f"{q} in the same shared border slot")
                 _encode_tile_values(enc, tile.values, size, model,
                                     _overlap_values(done, i, j, spans, size), known)
-                _carry(carried, ring, patch, tile.values)
+                _carry(carried, ring, slots, patch, tile.values)
                 done[i, j] = tile.values
                 if side:
                     enc.bit(has_mask, 0, tile.drawn is not None)
@@ -366,12 +366,13 @@ def _read_pack_stream(data: bytes, level: int, version: int,
     presence, has_mask = [HALF, HALF], [HALF]
     tiles: dict[int, list[DetailTile]] = {}
     carried: dict[int, tuple[int, int]] = {}
+    rings = _ring_template(level, spans, degree) if welded else {}
     before = 0
     try:  # the decoder reads its first bytes when it is made: inside the try too
         dec = RangeDecoder(data[PACK_HEADER_SIZE:len(data) - CRC_SIZE])
         for patch in range(first, first + count):
             done: dict[tuple[int, int], Sequence[int]] = {}
-            rings = _ring_by_tile(atlas, patch, level, spans, degree) if welded else {}
+            slots = atlas.border_slots(patch, spans * per_side + degree) if welded else ()
             for i in range(per_side):
                 for j in range(per_side):
                     before = dec.bit(presence, before)
@@ -380,8 +381,9 @@ def _read_pack_stream(data: bytes, level: int, version: int,
                     ring = rings.get((i, j), ())
                     values = _decode_tile_values(dec, size * size, size, model,
                                                  _overlap_values(done, i, j, spans, size),
-                                                 _welded_values(carried, ring, patch, size))
-                    _carry(carried, ring, patch, values)
+                                                 _welded_values(carried, ring, slots, patch,
+                                                                size))
+                    _carry(carried, ring, slots, patch, values)
                     done[i, j] = values
                     drawn = None
                     if side and dec.bit(has_mask, 0):

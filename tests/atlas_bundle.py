@@ -24,6 +24,7 @@ from pathlib import Path
 
 from atlas_cases import sphere_atlas
 
+from client_py.atlas import ring_positions
 from client_py.atlas_detail import PACK_VERSION, pack_name, write_pack
 from client_py.atlas_format import write_atlas
 from client_py.atlas_mesh import tessellate_atlas
@@ -52,7 +53,7 @@ def welded_tiles(atlas, level: int, rnd: random.Random, amplitude: float
     out = {}
     for f in range(len(atlas.quads)):
         grid = [[rnd.randint(-8, 8) for _ in range(n)] for _ in range(n)]
-        for a, b, slot in atlas.border_slots(f, n):
+        for (a, b), slot in zip(ring_positions(n), atlas.border_slots(f, n), strict=True):
             grid[a][b] = slots.setdefault(slot, rnd.randint(-8, 8))
         out[f] = [DetailTile(level, i, j, DEGREE, SPANS_PER_TILE, amplitude / 8,
                              tuple(grid[i * SPANS_PER_TILE + a][j * SPANS_PER_TILE + b]

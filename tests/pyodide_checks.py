@@ -376,6 +376,7 @@ def _welded_pack_checks(checks: dict, digests: dict, atlas: AtlasSurface) -> Non
     at level 1, its tiles cut from level grids whose border rings share one value per slot
     (``AtlasSurface.border_slots``): the same bytes and the same tiles back in both
     interpreters."""
+    from client_py.atlas import ring_positions
     from client_py.atlas_detail import read_pack, write_pack
 
     n, size = 2 * 2 + 2, 2 + 2  # level 1, spans 2, degree 2
@@ -384,7 +385,7 @@ def _welded_pack_checks(checks: dict, digests: dict, atlas: AtlasSurface) -> Non
     for f in range(len(atlas.quads)):
         flat = _lcg_values(n * n, 7 + f, 6)
         grid = [flat[a * n : (a + 1) * n] for a in range(n)]
-        for a, b, slot in atlas.border_slots(f, n):
+        for (a, b), slot in zip(ring_positions(n), atlas.border_slots(f, n), strict=True):
             grid[a][b] = slots.setdefault(slot, grid[a][b])
         tiles[f] = [DetailTile(1, i, j, 2, 2, 0.002, tuple(grid[2 * i + a][2 * j + b]
                                                           for a in range(size)

@@ -14,6 +14,7 @@ import pytest
 
 from atlas_cases import sphere_atlas
 
+from client_py.atlas import ring_positions
 from client_py.atlas_detail import (
     MAX_PACK_VALUES,
     PACK_FLAG_WELDED,
@@ -341,10 +342,11 @@ def test_border_slots_number_the_points_neighbours_share(n):
     atlas = sphere_atlas(2, noise=0.05, seed=2)
     at: dict = {}
     for f in range(len(atlas.quads)):
-        ring = atlas.border_slots(f, n)
-        assert len(ring) == 4 * (n - 1) == len({(a, b) for a, b, _ in ring})
+        ring = list(zip(ring_positions(n), atlas.border_slots(f, n), strict=True))
+        assert len(ring) == 4 * (n - 1) == len({ab for ab, _ in ring})
+        assert all(0 in ab or n - 1 in ab for ab, _ in ring)
         surface = atlas.patch_surface(f)
-        for a, b, slot in ring:
+        for (a, b), slot in ring:
             point = surface.evaluate(a / (n - 1), b / (n - 1))
             if slot in at:
                 assert math.dist(point, at[slot]) < 1e-9

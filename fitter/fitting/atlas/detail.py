@@ -87,7 +87,7 @@ import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
 from client_py import layers
-from client_py.atlas import AtlasSurface
+from client_py.atlas import AtlasSurface, ring_positions
 from client_py.atlas_detail import (
     MAX_PACK_VALUES,
     PACK_VERSION,
@@ -198,18 +198,17 @@ def renumber_patches(atlas: AtlasSurface, order: np.ndarray) -> AtlasSurface:
 # ------------------------------------------------------------------ shared coefficients
 def shared_index(atlas: AtlasSurface, n: int) -> np.ndarray:
     """``G[f, a, b]``: the shared slot of coefficient ``(a, b)`` of patch ``f``'s ``(n, n)``
-    grid, by the atlas's own rule for ``n`` per side (the ring:
-    ``AtlasSurface.border_slots``, which the packs use too): layout vertices, then ``n - 2``
-    slots per edge from its lower vertex, then the ``(n - 2)^2`` interior slots per patch.
-    Shape ``(F, n, n)``."""
+    grid, by the atlas's own rule for ``n`` per side (the ring: ``AtlasSurface.border_slots``
+    at ``client_py.atlas.ring_positions``, which the packs use too): layout vertices, then
+    ``n - 2`` slots per edge from its lower vertex, then the ``(n - 2)^2`` interior slots per
+    patch. Shape ``(F, n, n)``."""
     inner, count = n - 2, len(atlas.quads)
     grid = np.empty((count, n, n), np.int64)
     first = len(atlas.vertices) + len(atlas.edges.edges) * inner
     grid[:, 1:n - 1, 1:n - 1] = first + np.arange(count * inner * inner).reshape(
         count, inner, inner)
-    for f in range(count):
-        ring = np.array(atlas.border_slots(f, n), np.int64)
-        grid[f, ring[:, 0], ring[:, 1]] = ring[:, 2]
+    a, b = np.array(ring_positions(n)).T
+    grid[:, a, b] = [atlas.border_slots(f, n) for f in range(count)]
     return grid
 
 
