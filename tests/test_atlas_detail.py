@@ -11,7 +11,6 @@ import zlib
 from pathlib import Path
 
 import pytest
-
 from atlas_cases import sphere_atlas
 
 from client_py.atlas import ring_positions
