@@ -92,8 +92,8 @@ PACK_HEADER_SIZE = PACK_HEADER.size  # 24
 PACK_V1_HEADER = struct.Struct("<4sBBHI")  # magic version level reserved count
 PACK_V1_HEADER_SIZE = PACK_V1_HEADER.size  # 12
 PACK_ENTRY = struct.Struct("<II")  # version 1's index: patch, byte length
-MAX_PACK_TILES = 1 << 16  # tiles a pack can hold (version 2: patches x 4^level)
-MAX_PACK_VALUES = 1 << 21  # values a version 2 pack can hold: the decoding bound (~1.6 s)
+MAX_PACK_TILES = 1 << 16  # tiles a pack can hold (versions 2, 3: patches x 4^level)
+MAX_PACK_VALUES = 1 << 21  # values a version 2 or 3 pack can hold: the decoding bound (~1.6 s)
 MAX_PACK_PATCH = 1 << 16  # client_py.atlas.MAX_ATLAS_QUADS
 
 
@@ -106,7 +106,7 @@ def pack_name(level: int, group: int) -> str:
 
 
 def pack_capacity(level: int, patches: int, degree: int, spans: int, side: int = 0) -> int:
-    """The most values (coefficients and drawn cells) a version 2 pack of ``patches``
+    """The most values (coefficients and drawn cells) a version 2 or 3 pack of ``patches``
     patches of level ``level`` can hold, ``patches 4^level ((spans + degree)^2 + side^2)``:
     a writer keeps it within ``MAX_PACK_VALUES`` (and ``patches 4^level`` within
     ``MAX_PACK_TILES``), which bounds a reader's work whatever the bytes claim."""
