@@ -81,14 +81,22 @@ def test_round_trip_against_an_independent_reference():
     assert _as_table(tiles) == _as_table(reference)
 
 
-def test_version_1_packs_still_read():
-    data = V1_FIXTURE.read_bytes()
-    assert data[4] == 1
+@pytest.mark.parametrize("fixture,version", [(V1_FIXTURE, 1), (V2_FIXTURE, 2)])
+def test_older_packs_still_read(fixture, version):
+    data = fixture.read_bytes()
+    assert data[4] == version
     level, tiles = read_pack(data)
     assert level == 1
     assert _as_table(tiles) == _as_table(_tiles())
-    # version 2 drops the 30 bytes of per-tile framing (index entry, .tsd header, CRC)
-    assert len(write_pack(1, _tiles())) < len(data) - 3 * 22
+
+
+def test_one_stream_drops_version_1_s_framing_and_is_version_2_s():
+    new = write_pack(1, _tiles())
+    # version 2 dropped the 30 bytes of per-tile framing (index entry, .tsd header, CRC)
+    assert len(new) < len(V1_FIXTURE.read_bytes()) - 3 * 22
+    # without an atlas, version 3 is version 2's stream: only the version byte differs
+    old = V2_FIXTURE.read_bytes()
+    assert new[:4] + new[5:-4] == old[:4] + old[5:-4]
 
 
 def test_writer_refuses_what_one_pack_cannot_hold():
@@ -215,17 +223,6 @@ def test_random_streams_behind_a_valid_header_and_crc_are_tiles_or_format_errors
             continue
         assert level == 1
         assert all(t.size == 6 and len(t.values) == 36 for ts in tiles.values() for t in ts)
-
-
-def test_version_2_packs_still_read():
-    data = V2_FIXTURE.read_bytes()
-    assert data[4] == 2
-    level, tiles = read_pack(data)
-    assert level == 1
-    assert _as_table(tiles) == _as_table(_tiles())
-    # the same stream: version 3 without an atlas differs in its version byte alone
-    new = write_pack(1, _tiles())
-    assert new[:4] + new[5:-4] == data[:4] + data[5:-4]
 
 
 # ------------------------------------------------------------------ welded packs
