@@ -5,9 +5,10 @@ The layout is specified in ``docs/format.md`` ("Atlas patch file ``.tsa``"). In 
 28-byte header (magic ``TSPA``, version, flags, degree ``d``, spans ``s``, quantisation
 bits, ``V`` vertices, ``F`` quads, payload sizes), a zlib-compressed payload (the quads'
 vertex indices, the global bounds of the control points, every control point *once*
-quantised over those bounds and coded as the residual from a prediction made from
-integers decoded before it, the log-weights coded the same way, metadata JSON) and a
-CRC32 of all that precedes it.
+quantised over those bounds (to the nearest grid point, but for a patch's corners that
+would fall on one: :func:`keep_corners_apart`) and coded as the residual from a
+prediction made from integers decoded before it, the log-weights coded the same way,
+metadata JSON) and a CRC32 of all that precedes it.
 
 Prediction (all in integers, so reader and writer agree bit for bit): a layout vertex
 from the vertex before it; an edge's interior point ``t`` (``1..n-2``, ``m = n - 1``) from

@@ -1,7 +1,9 @@
 """The atlas file ``.tsa`` v2 (docs/format.md, "Atlas patch file"): round trips within half a
 quantisation step with shared points one value and equal to an independent numpy
-quantisation, version 1 files still read, the header layout, sizes checked before
-inflating, and every malformed file a PatchFormatError (property-based, bounded examples)."""
+quantisation, a patch's corners kept apart where that rounding would merge them (and the
+welded tessellation then without a non-manifold edge), version 1 files still read, the
+header layout, sizes checked before inflating, and every malformed file a PatchFormatError
+(property-based, bounded examples)."""
 
 from __future__ import annotations
 
