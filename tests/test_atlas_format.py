@@ -1,7 +1,9 @@
 """The atlas file ``.tsa`` v2 (docs/format.md, "Atlas patch file"): round trips within half a
 quantisation step with shared points one value and equal to an independent numpy
-quantisation, version 1 files still read, the header layout, sizes checked before
-inflating, and every malformed file a PatchFormatError (property-based, bounded examples)."""
+quantisation, a patch's corners kept apart where that rounding would merge them (and the
+welded tessellation then without a non-manifold edge), version 1 files still read, the
+header layout, sizes checked before inflating, and every malformed file a PatchFormatError
+(property-based, bounded examples)."""
 
 from __future__ import annotations
 
@@ -415,3 +417,88 @@ def test_the_documented_header_is_the_code_s():
         line = next(x for x in section.splitlines() if row in x)
         assert f"..{limit}" in line, line
     assert ATLAS_LIMITS["control points"] == 1 << 18 and "<= 2^18" in section
+
+
+# ------------------------------------------------------------------ corners kept apart
+def short_side_atlas() -> AtlasSurface:
+    """Two bicubic patches (one span) whose shared side (layout edge 1-2) is shorter than a
+    quantisation step at 8 bits, with its edge points raised into a spike: rounded to the
+    nearest grid point, its control polygon reads the same both ways (the bunny's base)."""
+    vertices = [(0.0, 0.0, 0.0), (1.001, 0.501, 0.0), (1.001, 0.502, 0.0), (0.0, 1.0, 0.0),
+                (2.0, 0.0, 0.0), (2.0, 1.0, 0.0)]
+    quads = [(0, 1, 2, 3), (1, 4, 5, 2)]
+    n = 4
+    table = AtlasSurface(3, 1, vertices, quads, [(0.0, 0.0, 0.0)] * 7 * (n - 2),
+                         [(0.0, 0.0, 0.0)] * 2 * (n - 2) ** 2).edges
+    spike = {(1, 2): [(1.001, 0.5013, 0.3), (1.001, 0.5017, 0.3)]}
+    v = np.array(vertices)
+    edge_points = []
+    for lo, hi in table.edges:  # straight edges but the spike
+        edge_points += spike.get((lo, hi), [tuple(v[lo] + (v[hi] - v[lo]) * t / (n - 1))
+                                            for t in (1, 2)])
+    face_points = []
+    for quad in quads:  # bilinear insides
+        a, b, c, d = v[list(quad)]
+        face_points += [tuple((1 - s) * (1 - t) * a + s * (1 - t) * b + s * t * c
+                              + (1 - s) * t * d) for s in (1 / 3, 2 / 3) for t in (1 / 3, 2 / 3)]
+    return AtlasSurface(3, 1, vertices, quads, edge_points, face_points)
+
+
+def nearest_rounding(atlas: AtlasSurface, bits: int) -> np.ndarray:
+    """Every control point at its nearest grid point (numpy, independent of the writer)."""
+    x = np.array(_points(atlas))
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    top = (1 << bits) - 1
+    return lo + np.clip(np.rint((x - lo) * (top / (hi - lo))), 0, top) * ((hi - lo) / top)
+
+
+def welded_nonmanifold_edges(atlas: AtlasSurface, resolution: int) -> int:
+    """Edges of more than two triangles once the tessellation is welded by position (a grid
+    of 1e-6 of its diagonal, as a PLY consumer does), zero-area triangles dropped."""
+    from client_py.atlas_mesh import tessellate_atlas
+
+    mesh = tessellate_atlas(atlas, resolution)
+    vertices = np.array(mesh.positions, dtype=np.float64).reshape(-1, 3)
+    faces = np.array(mesh.indices, dtype=np.int64).reshape(-1, 3)
+    tolerance = 1e-6 * np.linalg.norm(np.ptp(vertices, axis=0))
+    _, welded = np.unique(np.round(vertices / tolerance), axis=0, return_inverse=True)
+    faces = welded.reshape(-1)[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+                  & (faces[:, 2] != faces[:, 0])]
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
+                    axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int(np.sum(counts > 2))
+
+
+def test_a_side_shorter_than_a_step_keeps_its_corners_apart():
+    """Rounded to nearest, corners 1 and 2 are one point; written, they are two, each
+    within one step of the fit, and every other control point is its nearest grid point."""
+    atlas, bits = short_side_atlas(), 8
+    nearest = nearest_rounding(atlas, bits)
+    assert np.array_equal(nearest[1], nearest[2])  # the collapse the writer must avoid
+    back, _ = read_atlas(write_atlas(atlas, bits))
+    decoded = np.array(_points(back))
+    assert not np.array_equal(decoded[1], decoded[2])
+    x = np.array(_points(atlas))
+    step = np.ptp(x, axis=0) / ((1 << bits) - 1)
+    assert np.all(np.abs(decoded - x) <= step * (1 + 1e-9))
+    others = np.ones(len(x), bool)
+    others[[1, 2]] = False
+    assert np.array_equal(decoded[others], nearest[others])
+    # the two moved on the axis where they lie farthest apart (y), down and up
+    assert decoded[1][1] < x[1][1] < x[2][1] < decoded[2][1]
+
+
+@pytest.mark.parametrize("resolution", [5, 9, 17])
+def test_a_side_shorter_than_a_step_welds_into_a_manifold(resolution):
+    """The side's control polygon rounded to nearest folds back onto itself, and the welded
+    tessellation has edges of four triangles; written, it has none."""
+    atlas, bits = short_side_atlas(), 8
+    nearest = [tuple(p) for p in nearest_rounding(atlas, bits)]
+    n_v, n_e = len(atlas.vertices), len(atlas.edge_points)
+    folded = AtlasSurface(3, 1, nearest[:n_v], atlas.quads, nearest[n_v:n_v + n_e],
+                          nearest[n_v + n_e:])
+    assert welded_nonmanifold_edges(folded, resolution) > 0
+    back, _ = read_atlas(write_atlas(atlas, bits))
+    assert welded_nonmanifold_edges(back, resolution) == 0
