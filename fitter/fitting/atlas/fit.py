@@ -848,6 +848,7 @@ FAR_REACH = 0.01  # the fitted base is far where a sample is this share of the d
 # (0.7 %: Lucy level 0 max 1.24 -> 1.08 %, but Laurana's base was refined too and its level 0
 # went 0.81 -> 1.01 %, RMS 0.180 -> 0.182; at 1 % the bunny, Nefertiti, Laurana are not touched)
 FAR_SAMPLES = 9  # samples per patch side (borders included) to find where the base is far
+BUDGET_REFITS = 3  # refits refined_within_budget tries to meet the byte budget
 FAR_PASSES = 1  # refine_far_base at most this many times, while it gets nearer in the budget
 # (3 passes: Lucy 1,194 -> 1,212 patches, base max 1.16 -> 1.10 %, but level 0 1.24 -> 1.34 %;
 # the mask's second pass was not kept)
@@ -914,14 +915,15 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
                           byte_budget: int | None, **fit_options) -> tuple | None:
     """:func:`refine_far_base` of ``fitted = (atlas, layout, bytes)`` kept within the budget.
 
-    Every far layout triangle split first, as long as the refit's file stays within
-    ``byte_budget`` (``None``: no budget). When it does not (the 15-scan Happy Buddha: 170
-    of 381 triangles far, the refit 37 KB against 24 KB, so the farthest triangles, a
-    triangle across the corner of an arm's loop over the head 3.8 % of the diagonal off
-    the scan, were never split), the refit is done again with only the farthest
-    triangles' splits that fit: ``⌊(B - b) / β⌋`` added triangles, ``b`` the bytes before,
-    ``B`` the budget and ``β = (b' - b) / (T' - T)`` the bytes per added triangle the
-    refused refit ``(T', b')`` took. An object whose full refit fits is unchanged.
+    Every far layout triangle is split first, and that refit is kept when its file stays
+    within ``byte_budget`` (``None``: no budget): an object whose full refit fits is
+    refined as before. When it does not (the 15-scan Happy Buddha: 170 of 381 triangles
+    far, the refit 37 KB against 24 KB, so that the farthest, a triangle across the corner
+    of an arm's loop over the head 3.8 % of the diagonal off the scan, was never split),
+    the refit is done again with only the farthest triangles' splits, adding at most
+    ``⌊a (B - b) / (b' - b)⌋`` triangles: ``b`` the bytes before, ``B`` the budget and a
+    refused refit that added ``a`` triangles for ``b'`` bytes (bytes per triangle are not
+    quite constant: up to :data:`BUDGET_REFITS` refits, each scaled from the last refused).
 
     Returns
     -------
@@ -929,8 +931,10 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
     none (nothing far, no nearer refit, or none within the budget).
     """
     atlas, layout, size = fitted
-    refined = refine_far_base(atlas, layout, surface, points, normals, **fit_options)
-    for attempt in range(2):
+    max_added = None
+    for _ in range(BUDGET_REFITS):
+        refined = refine_far_base(atlas, layout, surface, points, normals,
+                                  max_added=max_added, **fit_options)
         if refined is None:
             return None
         r_atlas, r_layout, rf, ru, rv, rdist = refined
@@ -939,11 +943,9 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
         if byte_budget is None or r_size <= byte_budget:
             return r_rms, r_size, r_layout, r_atlas, rf, ru, rv, r_bits
         added = r_layout.n_triangles - layout.n_triangles
-        room = int((byte_budget - size) * added // max(r_size - size, 1))
-        if attempt or room < 1:
+        max_added = min(added - 1, (byte_budget - size) * added // max(r_size - size, 1))
+        if max_added < 1:
             return None
-        refined = refine_far_base(atlas, layout, surface, points, normals, max_added=room,
-                                  **fit_options)
     return None
 
 
