@@ -55,7 +55,8 @@ groove from corners at its mouth, stay a fin or a wall (the mask's largest dista
 of the diagonal on the base, 3.01 % at level 0, no matter the reverse term's samples,
 weight or rounds: 2.4–2.5 %). After the fit, :func:`refine_far_base` splits the layout
 where the base is still far and fits again, up to :data:`FAR_PASSES` times within the byte
-budget; a base near the scan everywhere is left as it is.
+budget (when splitting every far triangle would overflow it, the farthest ones that fit:
+:func:`refined_within_budget`); a base near the scan everywhere is left as it is.
 
 Folds. The first foot points come from flat layout triangles: on a curved part the points
 crowd toward a triangle's sides in ``(u, v)`` and spread elsewhere, and a net held only by the
