@@ -718,3 +718,75 @@ def test_a_point_cloud_keeps_only_the_last_warm_stage(monkeypatch):
     assert surface.origin == "poisson"
     fit_atlas(cloud, 60, working_count=2000, rounds=3, surface=surface)
     assert calls and all(call == (1, pytest.approx(10.0)) for call in calls)
+
+
+def test_split_longest_edges_stops_before_adding_more_than_max_added():
+    surface = _valley_surface()
+    vertices = np.array([[-1, -1, 1], [1, 1, 1], [1, -1, 1], [-1, 1, 1]], np.float64)
+    triangles = np.array([[0, 2, 1], [0, 1, 3]])
+    # the shared diagonal is both triangles' longest edge: its split adds two triangles
+    assert split_longest_edges(surface, vertices, triangles, [0, 1], max_added=1)[2] == 0
+    made_v, made_t, made = split_longest_edges(surface, vertices, triangles, [0], max_added=2)
+    assert made == 1 and len(made_t) == 4
+
+
+def _height_grid(n: int, height) -> tuple[np.ndarray, np.ndarray]:
+    """``z = height(x, y)`` on an ``n × n`` grid over ``[-1.5, 1.5]²``, counter-clockwise
+    from ``+z``."""
+    t = np.linspace(-1.5, 1.5, n + 1)
+    x, y = (a.ravel() for a in np.meshgrid(t, t, indexing="ij"))
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    p = (i * (n + 1) + j).ravel()
+    faces = np.concatenate([np.stack([p, p + n + 1, p + n + 2], axis=1),
+                            np.stack([p, p + n + 2, p + 1], axis=1)])
+    return np.stack([x, y, height(x, y)], axis=1), faces
+
+
+def _four_bumps_fit():
+    """Four narrow bumps (heights 0.8, 0.72, 0.64, 0.56, width 0.17) on a plane, fitted on
+    a 4 x 4 layout whose corners lie on the surface: the bicubic patches cannot rise into
+    the bumps, 3.6 % of the diagonal off at the tallest."""
+    from fitter.fitting.atlas.fit import fit_layout
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    centres = [(0.2, 0.1), (-0.8, -0.7), (0.9, -0.8), (-0.7, 0.8)]
+
+    def height(x, y):
+        return sum(0.8 * (1 - 0.1 * k) * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / 0.03)
+                   for k, (cx, cy) in enumerate(centres))
+
+    surface = ScanSurface(*_height_grid(48, height), "mesh", 1, {})
+    layout = quad_layout(*_height_grid(4, height))
+    points, normals = surface.sample(4000, np.random.default_rng(3))
+    options = dict(rounds=2, scan_mesh=(surface.vertices, surface.faces))
+    atlas, *_ = fit_layout(layout, points, normals, **options)
+    return surface, layout, atlas, points, normals, options
+
+
+def test_a_far_base_over_the_budget_is_refined_where_farthest_within_it():
+    from fitter.fitting.atlas.fit import (FAR_REACH, budget_bits, far_patch_samples,
+                                          refine_far_base, refined_within_budget)
+
+    surface, layout, atlas, points, normals, options = _four_bumps_fit()
+    far = far_patch_samples(atlas, options["scan_mesh"]).max()
+    assert far > 1.5 * FAR_REACH
+    size = budget_bits(atlas, 0.0, 8, None)[1]
+    full = refine_far_base(atlas, layout, surface, points, normals, **options)
+    full_size = budget_bits(full[0], 0.0, 8, None)[1]
+    assert full[1].n_triangles >= layout.n_triangles + 6 and full_size > size
+    # a budget with room for about half the full refinement's triangles: the full refit is
+    # over it, and the farthest triangles' splits that fit are fitted instead
+    budget = (size + full_size) // 2
+    rms, kept_size, kept_layout, kept_atlas, *_ , kept_bits = refined_within_budget(
+        (atlas, layout, size), surface, points, normals, bits=8, byte_budget=budget,
+        **options)
+    assert kept_bits == 8 and kept_size <= budget
+    assert layout.n_triangles < kept_layout.n_triangles < full[1].n_triangles
+    assert far_patch_samples(kept_atlas, options["scan_mesh"]).max() < far
+    # no budget, or room for all: the full refinement itself
+    unlimited = refined_within_budget((atlas, layout, size), surface, points, normals,
+                                      bits=8, byte_budget=None, **options)
+    assert unlimited[2].n_triangles == full[1].n_triangles and unlimited[1] == full_size
+    # no room for one more triangle: no refit
+    assert refined_within_budget((atlas, layout, size), surface, points, normals, bits=8,
+                                 byte_budget=size, **options) is None

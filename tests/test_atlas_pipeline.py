@@ -301,6 +301,36 @@ def test_the_layout_stand_in_closes_narrow_tunnels_and_stays_on_the_surface():
     assert len(layout.quads) == 3 * layout.n_triangles >= 3 * 40
 
 
+def _open_tube(around: int = 96, along: int = 72) -> tuple[np.ndarray, np.ndarray]:
+    """The side of a cylinder of radius 1 and height 3 about ``z``, open at both ends."""
+    angle = np.linspace(0.0, 2.0 * np.pi, around, endpoint=False)
+    a, z = np.meshgrid(angle, np.linspace(-1.5, 1.5, along + 1), indexing="ij")
+    vertices = np.stack([np.cos(a).ravel(), np.sin(a).ravel(), z.ravel()], axis=1)
+    i, j = np.meshgrid(np.arange(around), np.arange(along), indexing="ij")
+    p, q = (i * (along + 1) + j).ravel(), (((i + 1) % around) * (along + 1) + j).ravel()
+    return vertices, np.concatenate([np.stack([p, q, q + 1], 1), np.stack([p, q + 1, p + 1], 1)])
+
+
+def test_the_stand_in_of_an_open_tube_keeps_its_ends_open():
+    from fitter.fitting.atlas.surface import ScanSurface, handle_count, layout_stand_in
+
+    surface = ScanSurface(*_open_tube(), "mesh", 1)
+    stand_in = layout_stand_in(surface)  # Poisson closes the ends with caps; trimmed off
+    assert handle_count(stand_in.vertices, stand_in.faces) == 0
+    samples, _ = stand_in.sample(50_000, np.random.default_rng(0))
+    # exact distance to the tube: radial, and along z beyond its ends
+    radial = np.hypot(samples[:, 0], samples[:, 1]) - 1.0
+    beyond = np.maximum(0.0, np.abs(samples[:, 2]) - 1.5)
+    distance = np.hypot(radial, beyond) / surface.diagonal
+    # a 2 % trim kept rims of the caps 1.8 % of the diagonal off the tube (1.3 % at 1.5 %)
+    assert distance.max() < 0.015
+    assert np.mean(distance > 0.01) < 0.005
+    # and it still covers the tube: every sample of the tube has the stand-in near
+    tube, _ = surface.sample(5000, np.random.default_rng(1))
+    assert point_mesh_distance(tube, stand_in.vertices, stand_in.faces).max() \
+        < 0.01 * surface.diagonal
+
+
 def test_a_stand_in_triangle_over_a_gap_is_found_by_its_middle():
     from fitter.fitting.atlas.surface import ScanSurface, stand_in_far
 
@@ -349,11 +379,12 @@ def test_the_buddha_stand_in_is_trimmed_off_its_cavities_and_still_decimates():
     assert problems["nonmanifold_edges"] == problems["misoriented_edges"] == 0
     assert problems["border_edges"] > 0  # open where the scan never saw (the cavities)
     # independent reference: area samples of the stand-in against the 1.1 M scan points;
-    # the 3 % vertex trim before left 9.3 % of the area farther than 1 % of the diagonal
+    # the 3 % vertex trim before left 9.3 % of the area farther than 1 % of the diagonal,
+    # the 2 % trim 5.1 %, 1.5 % 2.7 %
     samples, _ = stand_in.sample(100_000, np.random.default_rng(1))
     diagonal = float(np.linalg.norm(np.ptp(scan.points, axis=0)))
     distance = cKDTree(scan.points).query(samples)[0]
-    assert np.mean(distance > 0.01 * diagonal) < 0.07
+    assert np.mean(distance > 0.01 * diagonal) < 0.035
     assert np.max(distance) < 1.5 * LAYOUT_TRIM * diagonal
     # the layouts of 576 and 1152 patches decimate to oriented 2-manifolds
     for triangles in (192, 384):

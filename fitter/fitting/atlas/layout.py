@@ -493,13 +493,16 @@ def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
 
 
 def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
-                        chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+                        chosen: np.ndarray, max_added: int | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, int]:
     """The longest edge of each triangle in ``chosen`` split at the surface.
 
     In the order given (the most urgent first), triangle ``t``'s longest edge is split
     (:func:`split_edges`) at the closest point of the surface to its midpoint
     (``measure.closest_points_on_mesh``); a triangle whose longest edge's triangles are
-    already being split is skipped (one split per triangle).
+    already being split is skipped (one split per triangle). With ``max_added``, the splits
+    stop before the triangles they add (one per triangle on the edge: two inside, one on
+    an open border) would exceed it.
 
     Returns
     -------
@@ -524,6 +527,8 @@ def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: n
         on_edge = owners[min(a, b), max(a, b)]
         if touched.intersection(on_edge):
             continue
+        if max_added is not None and len(touched) + len(on_edge) > max_added:
+            break
         touched.update(on_edge)
         edges.append((a, b))
     if not edges:
