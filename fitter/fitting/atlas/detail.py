@@ -154,6 +154,8 @@ BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 HELD_OUT = 10
 MIN_HELD = 1000  # fewer held-out samples decide nothing: every auto level is kept
 MIN_GAIN = 0.02
+PULL_REACH = 0.0075  # drawn nodes farther than this share of the diagonal are pulled
+PULL_WEIGHT = 10.0  # a patch's pulled nodes weigh this times its mean samples' weight
 
 
 # ------------------------------------------------------------------ patch order
@@ -409,6 +411,43 @@ def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-300)
 
 
+def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
+                b: np.ndarray, chunk: int = CHUNK) -> tuple[np.ndarray, np.ndarray]:
+    """The base position ``C_f(node)`` and the displacement direction ``d`` the client
+    draws node ``(a, b)`` of patch ``f``'s ``r x r`` grid with (``r = resolution``;
+    ``patch, a, b (K,)``), shapes ``(K, 3)``: ``d`` the base's unit normal there, or on a
+    border node the normalised sum of the unit normals of every patch that samples it
+    (``client_py.atlas_mesh``; :class:`DrawnModel`)."""
+    table, cps = index_table(atlas), control_points(atlas)
+    d, spans = atlas.degree, atlas.spans
+    F, r = len(atlas.quads), resolution
+    G = shared_index(atlas, r)
+    # border nodes' directions: the sum of every sampling patch's unit normal per slot
+    t = np.arange(r)
+    last = np.full(r, r - 1)
+    rim_a = np.concatenate([t, t, 0 * t, last])
+    rim_b = np.concatenate([0 * t, last, t, t])
+    rf = np.repeat(np.arange(F), len(rim_a))
+    ra, rb = np.tile(rim_a, F), np.tile(rim_b, F)
+    _, cu, cv = evaluate_patches(table, cps, d, spans, rf, ra / (r - 1), rb / (r - 1),
+                                 derivatives=True)
+    total = np.zeros((int(G.max()) + 1, 3))
+    np.add.at(total, G[rf, ra, rb], _unit(np.cross(cu, cv)))
+    total = _unit(total)
+    node_c = np.empty((len(patch), 3))
+    node_d = np.empty((len(patch), 3))
+    for lo in range(0, len(patch), chunk):
+        hi = lo + chunk
+        fk, ai, bi = patch[lo:hi], a[lo:hi], b[lo:hi]
+        node_c[lo:hi], cui, cvi = evaluate_patches(table, cps, d, spans, fk, ai / (r - 1),
+                                                   bi / (r - 1), derivatives=True)
+        di = _unit(np.cross(cui, cvi))
+        rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
+        di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
+        node_d[lo:hi] = di
+    return node_c, node_d
+
+
 @dataclass
 class DrawnModel:
     """The mesh the client draws at one level's resolution, linearised at the samples.
@@ -479,38 +518,13 @@ class DrawnModel:
         Each node some sample's triangle uses is evaluated once (``node``: the index of
         sample ``k``'s node ``i`` among them), not once per sample that uses it: the same
         numbers, a third of the evaluations at the finest level and far fewer below."""
-        table, cps = index_table(atlas), control_points(atlas)
-        d, spans = atlas.degree, atlas.spans
-        F, r = len(atlas.quads), resolution
+        r = resolution
         a, b, beta = drawn_triangles(samples.u, samples.v, r)
-        G = shared_index(atlas, r)
-        # border nodes' directions: the sum of every sampling patch's unit normal per slot
-        t = np.arange(r)
-        last = np.full(r, r - 1)
-        rim_a = np.concatenate([t, t, 0 * t, last])
-        rim_b = np.concatenate([0 * t, last, t, t])
-        rf = np.repeat(np.arange(F), len(rim_a))
-        ra, rb = np.tile(rim_a, F), np.tile(rim_b, F)
-        _, cu, cv = evaluate_patches(table, cps, d, spans, rf, ra / (r - 1), rb / (r - 1),
-                                     derivatives=True)
-        total = np.zeros((int(G.max()) + 1, 3))
-        np.add.at(total, G[rf, ra, rb], _unit(np.cross(cu, cv)))
-        total = _unit(total)
         # the nodes the samples' triangles use, each once: position and displacement direction
         nodes, node = np.unique((samples.patch[:, None] * r + a) * r + b, return_inverse=True)
         node = node.reshape(-1, 3)
         nf, na, nb = nodes // (r * r), nodes // r % r, nodes % r
-        node_c = np.empty((len(nodes), 3))
-        node_d = np.empty((len(nodes), 3))
-        for lo in range(0, len(nodes), chunk):
-            hi = lo + chunk
-            fk, ai, bi = nf[lo:hi], na[lo:hi], nb[lo:hi]
-            node_c[lo:hi], cui, cvi = evaluate_patches(table, cps, d, spans, fk, ai / (r - 1),
-                                                       bi / (r - 1), derivatives=True)
-            di = _unit(np.cross(cui, cvi))
-            rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
-            di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
-            node_d[lo:hi] = di
+        node_c, node_d = node_frames(atlas, r, nf, na, nb, chunk)
         foot, normal = feet if feet is not None else cls.feet(atlas, samples, chunk)
         weight = np.empty_like(beta)
         target = samples.s.copy()
@@ -542,6 +556,59 @@ class DrawnModel:
         at_nodes = evaluate_fields(coefficients, level, spans, self.node_patch, self.node_u,
                                    self.node_v)
         return sum(self.weight[:, i] * at_nodes[self.node[:, i]] for i in range(3))
+
+
+@dataclass
+class PullRows:
+    """Drawn nodes far from the scan, each pulled toward its closest scan point
+    (:func:`far_node_rows`), sorted by patch.
+
+    Attributes
+    ----------
+    patch, u, v : ndarray, shape (R,)
+        The node's patch and its parameters ``a / (r - 1)``, ``b / (r - 1)``.
+    target : ndarray, shape (R,)
+        ``(q - X) . d``: the level's displacement that brings the node ``X`` (the base and
+        the levels before) nearest to ``q`` along its direction ``d``.
+    offsets : ndarray, shape (F + 1,)
+        Patch ``f``'s rows are ``offsets[f]:offsets[f + 1]``.
+    weight : float
+        Each row's weight in the sum of squares.
+    """
+
+    patch: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    target: np.ndarray
+    offsets: np.ndarray
+    weight: float
+
+
+def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
+                  scan_mesh: tuple[np.ndarray, np.ndarray], reach: float, weight: float,
+                  chunk: int = CHUNK) -> PullRows:
+    """The nodes of the mesh drawn at level ``level``'s resolution, with the levels before
+    it (``fields``), that lie farther than ``reach`` from the scan's surface ``scan_mesh
+    (vertices, faces)``, each with the row ``D_f(node) = (q - X) . d`` (module docstring,
+    "Far nodes"): ``X = C + sum_j D_j d`` the drawn node, ``q`` its closest point on the
+    scan's triangles (:func:`.measure.closest_points_on_mesh`), ``d`` its direction
+    (:func:`node_frames`)."""
+    from .measure import closest_points_on_mesh
+
+    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
+    f = np.repeat(np.arange(F), r * r)
+    a = np.tile(np.repeat(np.arange(r), r), F)
+    b = np.tile(np.arange(r), F * r)
+    c, d = node_frames(atlas, r, f, a, b, chunk)
+    u, v = a / (r - 1), b / (r - 1)
+    x = c + d * sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
+                    np.zeros(len(f)))[:, None]
+    vertices, faces = scan_mesh
+    dist, _, q = closest_points_on_mesh(x, vertices, faces)
+    far = np.flatnonzero(dist > reach)
+    target = np.einsum("kc,kc->k", q[far] - x[far], d[far])
+    return PullRows(f[far], u[far], v[far], target, np.searchsorted(f[far], np.arange(F + 1)),
+                    weight)
 
 
 # ------------------------------------------------------------------ depth
@@ -641,7 +708,8 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                   fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
                   threads: int | None = None, model: DrawnModel | None = None,
-                  rows: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  rows: dict | None = None, pull: PullRows | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
@@ -695,6 +763,13 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
             if weights is not None:
                 root = np.sqrt(weights[lo:hi])
                 A, r = sp.diags(root) @ A, root * r
+            if pull is not None and pull.offsets[last] > pull.offsets[first]:
+                plo, phi = pull.offsets[first], pull.offsets[last]
+                root = math.sqrt(pull.weight)
+                A = sp.vstack([A, root * collocation_matrix(
+                    DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
+                    block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
+                r = np.concatenate([r, root * pull.target[plo:phi]])
             if rows is not None:
                 rows[first] = A, r
         AtA = (A.T @ A).tocsr()
@@ -948,6 +1023,10 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     timings.update(model=0.0, solve=0.0, tiles=0.0)  # the levels' steps, summed
     clock = time.perf_counter()
     feet = DrawnModel.feet(atlas, samples)
+    scan_mesh = (fit.surface.vertices, fit.surface.faces)
+    diagonal = float(np.linalg.norm(np.ptp(np.asarray(fit.surface.vertices, float), axis=0)))
+    # a node row weighs PULL_WEIGHT times the fitted samples' mean weight per patch
+    pull_weight = PULL_WEIGHT * float(np.sum(fit_weight)) / F
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
@@ -955,12 +1034,15 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         residual = model.target - sum((model.drawn(c, j, spans)
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
+        pull = (far_node_rows(atlas, fields, k, spans, scan_mesh, PULL_REACH * diagonal,
+                              pull_weight / atlas_level_resolution(spans, k) ** 2)
+                if PULL_WEIGHT > 0 else None)
         rows: dict = {}  # the batches' rows, made once for both solves
         free, weight = _solve_blocks(samples, residual, k, spans, weights=fit_weight,
-                                     model=model, rows=rows)
+                                     model=model, rows=rows, pull=pull)
         shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
         c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared,
-                             weights=fit_weight, model=model, rows=rows)
+                             weights=fit_weight, model=model, rows=rows, pull=pull)
         del rows
         # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
         # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border
