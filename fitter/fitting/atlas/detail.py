@@ -27,6 +27,27 @@ client draws at the level's resolution (two vertices per span), linearised at ea
 (:class:`DrawnModel`: the sample's drawn triangle, its nodes' displacement directions,
 averaged on patch borders as the client averages them, and the base's chord).
 
+Far nodes. Where the base is a web across the mouth of a pocket (a layout triangle whose
+corners lie on the scan and whose inside does not: Lucy's drapery folds, the Bali mask's
+cavities), no sample's offset holds the field there (the pocket's samples are beyond
+``OFFSET_LIMIT`` or face away), and the field is what the samples around it and the
+shared border coefficients extrapolate: on Lucy (main 43b3669) the detail moved the places
+of level 0 farther than 1 % of the diagonal from the scan by 0.31 % of it (median; 82 %
+away from the scan), from 0.87 % to 1.02 % (largest 1.00 -> 1.03 %). So, as the base's
+reverse rows (:func:`.fit.reverse_rows`), each level also holds the mesh it draws onto the
+scan: every node of the level's drawn grid whose position ``X`` (the base and the levels
+before) lies farther than ``PULL_REACH`` of the diagonal from the scan's surface gets the
+row ``D_f(node) = (q - X) . d`` (:func:`far_node_rows`: ``q`` its closest scan point,
+``d`` its drawn direction, so the node moves toward ``q`` as far as a displacement along
+``d`` can), weighing ``PULL_WEIGHT`` times the fitted samples' mean weight per node. On
+Lucy the level-0 largest distance is 0.99 % and the far area 0 (was 1.03 %, 0.0015 %),
+the RMS of all points 0.1 % lower; on the mask 1.44 % and 0.063 % (was 1.48 %, 0.091 %);
+the bunny's and Laurana's packs are byte-identical (no node that far). Leaving out the
+samples whose foot point is farther than 3 times the base's RMS instead (as the base's far
+patches): Lucy 1.00 %, but the mask's RMS +15 %; a reach of 0.5 % with weight 1: Lucy
+1.00 % at RMS +0.8 %, the mask 1.44 % at +1.9 %; clipping coefficients at once the
+residual (``COEFFICIENT_REACH``) changed nothing.
+
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
 leave a crease. A clamped field's value on a side depends only on its border row of
@@ -154,8 +175,13 @@ BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 HELD_OUT = 10
 MIN_HELD = 1000  # fewer held-out samples decide nothing: every auto level is kept
 MIN_GAIN = 0.02
-PULL_REACH = 0.0075  # drawn nodes farther than this share of the diagonal are pulled
-PULL_WEIGHT = 10.0  # a patch's pulled nodes weigh this times its mean samples' weight
+# Far drawn nodes (module docstring, "Far nodes"): those farther than PULL_REACH of the
+# diagonal from the scan are pulled toward it, each row weighing PULL_WEIGHT times the fitted
+# samples' mean weight per node (0: off). Lucy level 0, max / RMS of all points: 0.5 % and 1:
+# 0.997 % / 0.4416; 0.75 % and 1: 1.017 % / 0.4368; 0.75 % and 10: 0.992 % / 0.4376 (the
+# mask 1.436 % / 1.0587e-4; without: 1.031 % / 0.4381, 1.483 % / 1.0592e-4).
+PULL_REACH = 0.0075
+PULL_WEIGHT = 10.0
 
 
 # ------------------------------------------------------------------ patch order
@@ -728,7 +754,9 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     on the thread count. ``rows``: a dict that keeps each batch's weighted rows and
     residual, filled by the first call given it and read by the next (the border-held
     solve has the independent solve's rows: on the 15-scan Happy Buddha they were a third
-    of the solves' CPU time); the same numbers either way.
+    of the solves' CPU time); the same numbers either way. ``pull``: the far drawn nodes'
+    rows (:func:`far_node_rows`), appended to their patch's, each weighing
+    ``pull.weight``.
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
@@ -1025,7 +1053,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     feet = DrawnModel.feet(atlas, samples)
     scan_mesh = (fit.surface.vertices, fit.surface.faces)
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(fit.surface.vertices, float), axis=0)))
-    # a node row weighs PULL_WEIGHT times the fitted samples' mean weight per patch
+    # per patch: the fitted samples' weight, shared by the r^2 nodes of each level below
     pull_weight = PULL_WEIGHT * float(np.sum(fit_weight)) / F
     for k in range(levels):
         n = (spans << k) + DEGREE
