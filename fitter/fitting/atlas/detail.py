@@ -44,11 +44,11 @@ Lucy the level-0 largest distance is 0.99 % and the far area 0 (was 1.03 %, 0.00
 the RMS of all points 0.1 % lower; on the mask 1.44 % and 0.063 % (was 1.48 %, 0.091 %);
 the 15-scan Happy Buddha's 4.14 % and 4.65 % become 4.07 % and 4.26 % (RMS +0.4 %); the
 bunny's, Nefertiti's and Laurana's packs are byte-identical (no node that far). The nodes'
-closest points cost Lucy's detail 1 CPU-s of 9. Leaving out the
-samples whose foot point is farther than 3 times the base's RMS instead (as the base's far
-patches): Lucy 1.00 %, but the mask's RMS +15 %; a reach of 0.5 % with weight 1: Lucy
-1.00 % at RMS +0.8 %, the mask 1.44 % at +1.9 %; clipping coefficients at once the
-residual (``COEFFICIENT_REACH``) changed nothing.
+closest points cost Lucy's detail 1 CPU-s of 9. Leaving out the samples whose foot point
+is farther than 3 times the base's RMS instead (as the base's far patches): Lucy 1.00 %,
+but the mask's RMS +15 %; a reach of 0.5 % with weight 1: Lucy 1.00 % at RMS +0.8 %, the
+mask 1.44 % at +1.9 %; clipping coefficients at once the residual (``COEFFICIENT_REACH``)
+changed nothing.
 
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
