@@ -1,5 +1,7 @@
 """The atlas's detail pyramid (fitter.fitting.atlas.detail) on a bumpy sphere with a known field."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -382,3 +384,81 @@ def test_a_mesh_keeps_every_sample_and_its_automatic_depth():
     side = float(np.median(atlas_detail.patch_sides(det.atlas)))
     assert "held_out" not in det.tree
     assert len(det.levels) == atlas_detail.auto_levels(side, det.spacing, len(det.atlas.quads), 4)
+
+
+# ------------------------------------------------------------------ a web over a pit
+PIT_AXIS = np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])
+PIT_ANGLE, PIT_DEPTH, RIM = 0.12, 0.3, 0.03
+
+
+def pit_radius(theta: np.ndarray) -> np.ndarray:
+    """The pitted sphere's radius at the angle ``theta`` from :data:`PIT_AXIS`: a cone
+    ``PIT_DEPTH`` deep of half-angle ``PIT_ANGLE`` ringed by a raised lip ``RIM`` high."""
+    return (1.0 - PIT_DEPTH * np.clip(1.0 - theta / PIT_ANGLE, 0.0, None)
+            + RIM * np.exp(-((theta - 1.3 * PIT_ANGLE) / (0.4 * PIT_ANGLE)) ** 2))
+
+
+def distance_to_pitted_sphere(p: np.ndarray, steps: int = 40_000, window: float = 0.3,
+                              chunk: int = 500) -> np.ndarray:
+    """Distance of ``p (K, 3)`` to the exact pitted sphere (a surface of revolution about
+    :data:`PIT_AXIS`): the nearest point lies in ``p``'s meridian half-plane, so it is the
+    nearest of the profile ``pit_radius(theta) (cos theta, sin theta)`` sampled every
+    ``pi / steps`` within ``window`` of ``p``'s own angle (the surface is within 0.3 of
+    the unit sphere, so nothing nearer lies outside it)."""
+    h = p @ PIT_AXIS
+    q = np.stack([h, np.linalg.norm(p - np.outer(h, PIT_AXIS), axis=1)], axis=1)
+    theta = np.linspace(0.0, np.pi, steps + 1)
+    profile = np.stack([np.cos(theta), np.sin(theta)], axis=1) * pit_radius(theta)[:, None]
+    own = np.arctan2(q[:, 1], q[:, 0])
+    span = np.arange(int(2 * window / (np.pi / steps)) + 1)
+    out = np.empty(len(p))
+    for lo in range(0, len(p), chunk):
+        first = np.searchsorted(theta, own[lo:lo + chunk] - window)
+        at = np.clip(first[:, None] + span, 0, steps)
+        out[lo:lo + chunk] = np.linalg.norm(profile[at] - q[lo:lo + chunk, None],
+                                            axis=2).min(axis=1)
+    return out
+
+
+def _pitted_sphere_fit():
+    """A fake base fit as :func:`_bumpy_sphere_fit`: the unit sphere's atlas is the base, a
+    web across the mouth of a pit too deep for the detail's offsets (``OFFSET_LIMIT``)
+    whose lip pushes the detail outward."""
+    ico = trimesh.creation.icosphere(subdivisions=6)
+    unit = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    vertices = unit * pit_radius(np.arccos(np.clip(unit @ PIT_AXIS, -1.0, 1.0)))[:, None]
+    faces = np.asarray(ico.faces, np.int64)
+    fit, _ = _bumpy_sphere_fit()
+    scan = make_scan("pit", vertices, faces=faces, source={"name": "pit"})
+    return replace(fit, surface=ScanSurface(vertices, faces, "mesh", 1)), scan
+
+
+def _farthest(atlas, tiles, resolution: int, diagonal: float) -> float:
+    """The largest distance over ``diagonal`` of 20,000 area samples of the drawn mesh
+    from the exact pitted sphere."""
+    from fitter.fitting.atlas.surface import area_samples
+
+    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy")
+    x = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float)
+    tri = np.frombuffer(mesh.indices, np.uint32).reshape(-1, 3).astype(np.int64)
+    p, _ = area_samples(x, tri, 20_000, np.random.default_rng(0))
+    return float(distance_to_pitted_sphere(p).max()) / diagonal
+
+
+def test_far_drawn_nodes_are_pulled_toward_the_scan_not_pushed_away(monkeypatch):
+    """Where the base is a web across a pit's mouth, the lip's samples push the detail
+    outward and nothing inside the pit holds it: without the far nodes' rows
+    (``far_node_rows``) the finest drawn mesh lies farther from the exact surface than the
+    base does; with them it lies nearer."""
+    fit, scan = _pitted_sphere_fit()
+    diagonal = float(np.linalg.norm(np.ptp(scan.points, axis=0)))
+    found = {}
+    for weight in (0.0, atlas_detail.PULL_WEIGHT):
+        monkeypatch.setattr(atlas_detail, "PULL_WEIGHT", weight)
+        det = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4)
+        found[weight] = _farthest(det.atlas, det.detail_up_to(1), det.levels[1]["resolution"],
+                                  diagonal)
+    base = _farthest(det.atlas, None, det.levels[1]["resolution"], diagonal)
+    assert base > 0.01  # the web: its middle is over 1 % of the diagonal off the pit
+    assert found[0.0] > 1.3 * base, (found, base)  # pushed out without the rows
+    assert found[atlas_detail.PULL_WEIGHT] < base, (found, base)  # and nearer with them

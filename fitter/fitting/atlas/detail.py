@@ -27,6 +27,29 @@ client draws at the level's resolution (two vertices per span), linearised at ea
 (:class:`DrawnModel`: the sample's drawn triangle, its nodes' displacement directions,
 averaged on patch borders as the client averages them, and the base's chord).
 
+Far nodes. Where the base is a web across the mouth of a pocket (a layout triangle whose
+corners lie on the scan and whose inside does not: Lucy's drapery folds, the Bali mask's
+cavities), no sample's offset holds the field there (the pocket's samples are beyond
+``OFFSET_LIMIT`` or face away), and the field is what the samples around it and the
+shared border coefficients extrapolate: on Lucy (main 43b3669) the detail moved the places
+of level 0 farther than 1 % of the diagonal from the scan by 0.31 % of it (median; 82 %
+away from the scan), from 0.87 % to 1.02 % (largest 1.00 -> 1.03 %). So, as the base's
+reverse rows (:func:`.fit.reverse_rows`), each level also holds the mesh it draws onto the
+scan: every node of the level's drawn grid whose position ``X`` (the base and the levels
+before) lies farther than ``PULL_REACH`` of the diagonal from the scan's surface gets the
+row ``D_f(node) = (q - X) . d`` (:func:`far_node_rows`: ``q`` its closest scan point,
+``d`` its drawn direction, so the node moves toward ``q`` as far as a displacement along
+``d`` can), weighing ``PULL_WEIGHT`` times the fitted samples' mean weight per node. On
+Lucy the level-0 largest distance is 0.99 % and the far area 0 (was 1.03 %, 0.0015 %),
+the RMS of all points 0.1 % lower; on the mask 1.44 % and 0.063 % (was 1.48 %, 0.091 %);
+the 15-scan Happy Buddha's 4.14 % and 4.65 % become 4.07 % and 4.26 % (RMS +0.4 %); the
+bunny's, Nefertiti's and Laurana's packs are byte-identical (no node that far). The nodes'
+closest points cost Lucy's detail 1 CPU-s of 9. Leaving out the samples whose foot point
+is farther than 3 times the base's RMS instead (as the base's far patches): Lucy 1.00 %,
+but the mask's RMS +15 %; a reach of 0.5 % with weight 1: Lucy 1.00 % at RMS +0.8 %, the
+mask 1.44 % at +1.9 %; clipping coefficients at once the residual (``COEFFICIENT_REACH``)
+changed nothing.
+
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
 leave a crease. A clamped field's value on a side depends only on its border row of
@@ -156,6 +179,13 @@ BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
 HELD_OUT = 10
 MIN_HELD = 1000  # fewer held-out samples decide nothing: every auto level is kept
 MIN_GAIN = 0.02
+# Far drawn nodes (module docstring, "Far nodes"): those farther than PULL_REACH of the
+# diagonal from the scan are pulled toward it, each row weighing PULL_WEIGHT times the fitted
+# samples' mean weight per node (0: off). Lucy level 0, max / RMS of all points: 0.5 % and 1:
+# 0.997 % / 0.4416; 0.75 % and 1: 1.017 % / 0.4368; 0.75 % and 10: 0.992 % / 0.4376 (the
+# mask 1.436 % / 1.0587e-4; without: 1.031 % / 0.4381, 1.483 % / 1.0592e-4).
+PULL_REACH = 0.0075
+PULL_WEIGHT = 10.0
 
 
 # ------------------------------------------------------------------ patch order
@@ -399,6 +429,43 @@ def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-300)
 
 
+def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
+                b: np.ndarray, chunk: int = CHUNK) -> tuple[np.ndarray, np.ndarray]:
+    """The base position ``C_f(node)`` and the displacement direction ``d`` the client
+    draws node ``(a, b)`` of patch ``f``'s ``r x r`` grid with (``r = resolution``;
+    ``patch, a, b (K,)``), shapes ``(K, 3)``: ``d`` the base's unit normal there, or on a
+    border node the normalised sum of the unit normals of every patch that samples it
+    (``client_py.atlas_mesh``; :class:`DrawnModel`)."""
+    table, cps = index_table(atlas), control_points(atlas)
+    d, spans = atlas.degree, atlas.spans
+    F, r = len(atlas.quads), resolution
+    G = shared_index(atlas, r)
+    # border nodes' directions: the sum of every sampling patch's unit normal per slot
+    t = np.arange(r)
+    last = np.full(r, r - 1)
+    rim_a = np.concatenate([t, t, 0 * t, last])
+    rim_b = np.concatenate([0 * t, last, t, t])
+    rf = np.repeat(np.arange(F), len(rim_a))
+    ra, rb = np.tile(rim_a, F), np.tile(rim_b, F)
+    _, cu, cv = evaluate_patches(table, cps, d, spans, rf, ra / (r - 1), rb / (r - 1),
+                                 derivatives=True)
+    total = np.zeros((int(G.max()) + 1, 3))
+    np.add.at(total, G[rf, ra, rb], _unit(np.cross(cu, cv)))
+    total = _unit(total)
+    node_c = np.empty((len(patch), 3))
+    node_d = np.empty((len(patch), 3))
+    for lo in range(0, len(patch), chunk):
+        hi = lo + chunk
+        fk, ai, bi = patch[lo:hi], a[lo:hi], b[lo:hi]
+        node_c[lo:hi], cui, cvi = evaluate_patches(table, cps, d, spans, fk, ai / (r - 1),
+                                                   bi / (r - 1), derivatives=True)
+        di = _unit(np.cross(cui, cvi))
+        rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
+        di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
+        node_d[lo:hi] = di
+    return node_c, node_d
+
+
 @dataclass
 class DrawnModel:
     """The mesh the client draws at one level's resolution, linearised at the samples.
@@ -469,38 +536,13 @@ class DrawnModel:
         Each node some sample's triangle uses is evaluated once (``node``: the index of
         sample ``k``'s node ``i`` among them), not once per sample that uses it: the same
         numbers, a third of the evaluations at the finest level and far fewer below."""
-        table, cps = index_table(atlas), control_points(atlas)
-        d, spans = atlas.degree, atlas.spans
-        F, r = len(atlas.quads), resolution
+        r = resolution
         a, b, beta = drawn_triangles(samples.u, samples.v, r)
-        G = shared_index(atlas, r)
-        # border nodes' directions: the sum of every sampling patch's unit normal per slot
-        t = np.arange(r)
-        last = np.full(r, r - 1)
-        rim_a = np.concatenate([t, t, 0 * t, last])
-        rim_b = np.concatenate([0 * t, last, t, t])
-        rf = np.repeat(np.arange(F), len(rim_a))
-        ra, rb = np.tile(rim_a, F), np.tile(rim_b, F)
-        _, cu, cv = evaluate_patches(table, cps, d, spans, rf, ra / (r - 1), rb / (r - 1),
-                                     derivatives=True)
-        total = np.zeros((int(G.max()) + 1, 3))
-        np.add.at(total, G[rf, ra, rb], _unit(np.cross(cu, cv)))
-        total = _unit(total)
         # the nodes the samples' triangles use, each once: position and displacement direction
         nodes, node = np.unique((samples.patch[:, None] * r + a) * r + b, return_inverse=True)
         node = node.reshape(-1, 3)
         nf, na, nb = nodes // (r * r), nodes // r % r, nodes % r
-        node_c = np.empty((len(nodes), 3))
-        node_d = np.empty((len(nodes), 3))
-        for lo in range(0, len(nodes), chunk):
-            hi = lo + chunk
-            fk, ai, bi = nf[lo:hi], na[lo:hi], nb[lo:hi]
-            node_c[lo:hi], cui, cvi = evaluate_patches(table, cps, d, spans, fk, ai / (r - 1),
-                                                       bi / (r - 1), derivatives=True)
-            di = _unit(np.cross(cui, cvi))
-            rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
-            di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
-            node_d[lo:hi] = di
+        node_c, node_d = node_frames(atlas, r, nf, na, nb, chunk)
         foot, normal = feet if feet is not None else cls.feet(atlas, samples, chunk)
         weight = np.empty_like(beta)
         target = samples.s.copy()
@@ -532,6 +574,59 @@ class DrawnModel:
         at_nodes = evaluate_fields(coefficients, level, spans, self.node_patch, self.node_u,
                                    self.node_v)
         return sum(self.weight[:, i] * at_nodes[self.node[:, i]] for i in range(3))
+
+
+@dataclass
+class PullRows:
+    """Drawn nodes far from the scan, each pulled toward its closest scan point
+    (:func:`far_node_rows`), sorted by patch.
+
+    Attributes
+    ----------
+    patch, u, v : ndarray, shape (R,)
+        The node's patch and its parameters ``a / (r - 1)``, ``b / (r - 1)``.
+    target : ndarray, shape (R,)
+        ``(q - X) . d``: the level's displacement that brings the node ``X`` (the base and
+        the levels before) nearest to ``q`` along its direction ``d``.
+    offsets : ndarray, shape (F + 1,)
+        Patch ``f``'s rows are ``offsets[f]:offsets[f + 1]``.
+    weight : float
+        Each row's weight in the sum of squares.
+    """
+
+    patch: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    target: np.ndarray
+    offsets: np.ndarray
+    weight: float
+
+
+def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
+                  scan_mesh: tuple[np.ndarray, np.ndarray], reach: float, weight: float,
+                  chunk: int = CHUNK) -> PullRows:
+    """The nodes of the mesh drawn at level ``level``'s resolution, with the levels before
+    it (``fields``), that lie farther than ``reach`` from the scan's surface ``scan_mesh
+    (vertices, faces)``, each with the row ``D_f(node) = (q - X) . d`` (module docstring,
+    "Far nodes"): ``X = C + sum_j D_j d`` the drawn node, ``q`` its closest point on the
+    scan's triangles (:func:`.measure.closest_points_on_mesh`), ``d`` its direction
+    (:func:`node_frames`)."""
+    from .measure import closest_points_on_mesh
+
+    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
+    f = np.repeat(np.arange(F), r * r)
+    a = np.tile(np.repeat(np.arange(r), r), F)
+    b = np.tile(np.arange(r), F * r)
+    c, d = node_frames(atlas, r, f, a, b, chunk)
+    u, v = a / (r - 1), b / (r - 1)
+    x = c + d * sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
+                    np.zeros(len(f)))[:, None]
+    vertices, faces = scan_mesh
+    dist, _, q = closest_points_on_mesh(x, vertices, faces)
+    far = np.flatnonzero(dist > reach)
+    target = np.einsum("kc,kc->k", q[far] - x[far], d[far])
+    return PullRows(f[far], u[far], v[far], target, np.searchsorted(f[far], np.arange(F + 1)),
+                    weight)
 
 
 # ------------------------------------------------------------------ depth
@@ -631,7 +726,8 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                   fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
                   threads: int | None = None, model: DrawnModel | None = None,
-                  rows: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  rows: dict | None = None, pull: PullRows | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
@@ -650,7 +746,9 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     on the thread count. ``rows``: a dict that keeps each batch's weighted rows and
     residual, filled by the first call given it and read by the next (the border-held
     solve has the independent solve's rows: on the 15-scan Happy Buddha they were a third
-    of the solves' CPU time); the same numbers either way.
+    of the solves' CPU time); the same numbers either way. ``pull``: the far drawn nodes'
+    rows (:func:`far_node_rows`), appended to their patch's, each weighing
+    ``pull.weight``.
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
@@ -685,6 +783,13 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
             if weights is not None:
                 root = np.sqrt(weights[lo:hi])
                 A, r = sp.diags(root) @ A, root * r
+            if pull is not None and pull.offsets[last] > pull.offsets[first]:
+                plo, phi = pull.offsets[first], pull.offsets[last]
+                root = math.sqrt(pull.weight)
+                A = sp.vstack([A, root * collocation_matrix(
+                    DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
+                    block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
+                r = np.concatenate([r, root * pull.target[plo:phi]])
             if rows is not None:
                 rows[first] = A, r
         AtA = (A.T @ A).tocsr()
@@ -938,6 +1043,10 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     timings.update(model=0.0, solve=0.0, tiles=0.0)  # the levels' steps, summed
     clock = time.perf_counter()
     feet = DrawnModel.feet(atlas, samples)
+    scan_mesh = (fit.surface.vertices, fit.surface.faces)
+    diagonal = float(np.linalg.norm(np.ptp(np.asarray(fit.surface.vertices, float), axis=0)))
+    # per patch: the fitted samples' weight, shared by the r^2 nodes of each level below
+    pull_weight = PULL_WEIGHT * float(np.sum(fit_weight)) / F
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
@@ -945,12 +1054,15 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         residual = model.target - sum((model.drawn(c, j, spans)
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
+        pull = (far_node_rows(atlas, fields, k, spans, scan_mesh, PULL_REACH * diagonal,
+                              pull_weight / atlas_level_resolution(spans, k) ** 2)
+                if PULL_WEIGHT > 0 else None)
         rows: dict = {}  # the batches' rows, made once for both solves
         free, weight = _solve_blocks(samples, residual, k, spans, weights=fit_weight,
-                                     model=model, rows=rows)
+                                     model=model, rows=rows, pull=pull)
         shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
         c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared,
-                             weights=fit_weight, model=model, rows=rows)
+                             weights=fit_weight, model=model, rows=rows, pull=pull)
         del rows
         # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
         # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border
