@@ -50,7 +50,7 @@ import scipy.sparse.linalg as spla
 from client_py import layers
 from client_py._numpy_basis import basis_arrays
 from client_py.format import MAX_TILE_VALUE, TILE_VERSION, write_detail_tile
-from client_py.trim import TrimMask
+from client_py.trim import MAX_SIDE, TrimMask
 
 from .compact import ScanNeighbourhood
 from .nurbs import PatchModel
@@ -104,6 +104,10 @@ class DetailPyramid:
     levels: list[DetailLevel] = field(default_factory=list)
     base_rms: float = 0.0
     base_max: float = 0.0
+    # the base's trim without the finest level's walls (Redraw.trim_without; None: the
+    # trim as it was) and how many of its cells they took
+    trim: np.ndarray | None = None
+    wall_cells: int = 0
 
 
 def detail_samples(model: PatchModel, points: np.ndarray, u: np.ndarray,
@@ -170,7 +174,13 @@ class Redraw:
         fine = self.candidates[np.ix_((centre * rows).astype(np.int64),
                                       (centre * cols).astype(np.int64))]
         r, c = np.nonzero(fine)
+        far = self.near.stray(self._refined(fields, degree, spans), r, c, (size, size), rms)
+        out = np.zeros((size, size), bool)
+        out[r[~far], c[~far]] = True
+        return out
 
+    def _refined(self, fields: list[np.ndarray], degree: int, spans: int):
+        """``X(u, v) = S + sum_k D_k n``: the base refined by the levels ``fields``."""
         def refined(u: np.ndarray, v: np.ndarray) -> np.ndarray:
             S, Su, Sv = self.model.evaluate(u, v, derivatives=True)
             n = np.cross(Su, Sv)
@@ -178,11 +188,47 @@ class Redraw:
             n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
             d = sum(evaluate_level(f, k, degree, spans, u, v) for k, f in enumerate(fields))
             return S + d[:, None] * n
+        return refined
 
-        far = self.near.stray(refined, r, c, (size, size), rms)
+    def walls(self, fields: list[np.ndarray], degree: int, spans: int,
+              rms: float) -> np.ndarray:
+        """``(R, R)`` booleans, ``R = min(DRAWN_SIDE 2^L, client_py.trim.MAX_SIDE)`` for the
+        finest level ``L = len(fields) - 1``: the cells the base's trim or a tile's drawn
+        mask may draw (:attr:`drawn` or :attr:`candidates` at the cell's centre) where the
+        surface refined by all ``fields`` strays (``ScanNeighbourhood.stray`` with the
+        finest level's ``rms``).
+
+        A cell of the base's trim straddling an occluding contour (a range image's depth
+        jump) or hanging over the scan's open border holds scan points, so the base does
+        not stray at its probes; the refined surface follows the points on both sides and
+        bridges them with a steep wall (or a fin past the border) narrower than the cell.
+        The drawn cells only grow from level to level (``client_py.layers.drawn_covers``:
+        the base's trim or a tile's mask), so these are left out of the base's trim and of
+        every level's mask (:func:`fit_pyramid`), at the resolution the finest level is
+        drawn at.
+        """
+        size = min(DRAWN_SIDE << (len(fields) - 1), MAX_SIDE)
+        rows, cols = self.drawn.shape
+        centre = (np.arange(size) + 0.5) / size
+        may = (self.drawn | self.candidates)[np.ix_((centre * rows).astype(np.int64),
+                                                     (centre * cols).astype(np.int64))]
+        r, c = np.nonzero(may)
+        far = self.near.stray(self._refined(fields, degree, spans), r, c, (size, size), rms)
         out = np.zeros((size, size), bool)
-        out[r[~far], c[~far]] = True
+        out[r[far], c[far]] = True
         return out
+
+    def trim_without(self, walls: np.ndarray) -> np.ndarray | None:
+        """The base's trim at the resolution of ``walls (R, R)`` (:meth:`walls`) without
+        them; ``None`` when it draws none of them (the trim stays as it was)."""
+        size = len(walls)
+        rows, cols = self.drawn.shape
+        centre = (np.arange(size) + 0.5) / size
+        fine = self.drawn[np.ix_((centre * rows).astype(np.int64),
+                                 (centre * cols).astype(np.int64))]
+        if not (fine & walls).any():
+            return None
+        return fine & ~walls
 
 
 def auto_levels(n_points: int, spans: int = SPANS) -> int:
@@ -436,22 +482,49 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
                                          spans, list(fields), redraw))
         if progress is not None:
             progress((k + 1) / levels)
-    pyramid.levels = [result.result() for result in results]
+    done = [result.result() for result in results]
+    pyramid.levels = [level for level, _, _ in done]
+    if isinstance(redraw, Future):
+        redraw = redraw.result()
+    if redraw is not None and levels:
+        walls = redraw.walls(fields, degree, spans, pyramid.levels[-1].rms)
+        pyramid.trim = redraw.trim_without(walls)
+        pyramid.wall_cells = int(walls.sum())
+        for k, (level, drawn, e) in enumerate(done):
+            thinned = _without_walls(drawn, walls)
+            if thinned is not drawn:  # this level's mask drew some of them: tiles anew
+                q = np.rint(fields[k] / level.step).astype(np.int64)
+                level.tiles = level_tiles(q, level.step, k, degree, spans, samples.u,
+                                          samples.v, e, thinned)
     return pyramid
+
+
+def _without_walls(drawn: np.ndarray | None, walls: np.ndarray) -> np.ndarray | None:
+    """A level's drawn mask ``(D, D)`` without the cells holding a cell of ``walls (R, R)``
+    (:meth:`Redraw.walls`); ``drawn`` itself when it has none, or when it is finer than
+    ``walls`` (a level past ``client_py.trim.MAX_SIDE``: its own stray test stands)."""
+    if drawn is None or len(drawn) > len(walls):
+        return drawn
+    block = len(walls) // len(drawn)
+    hit = walls.reshape(len(drawn), block, len(drawn), block).any(axis=(1, 3))
+    return drawn & ~hit if (drawn & hit).any() else drawn
 
 
 def _level_result(samples: DetailSamples, residual: np.ndarray, q: np.ndarray, step: float,
                   level: int, degree: int, spans: int, fields: list[np.ndarray],
-                  redraw: Redraw | Future | None) -> DetailLevel:
+                  redraw: Redraw | Future | None
+                  ) -> tuple[DetailLevel, np.ndarray | None, np.ndarray]:
     """Level ``level`` of :func:`fit_pyramid` once its quantised coefficients ``q`` (the
-    field ``fields[-1] = q step``) left ``residual``: its errors, drawn masks and tiles."""
+    field ``fields[-1] = q step``) left ``residual``: the level with its tiles, its drawn
+    mask (:meth:`Redraw.cells`) and the samples' errors after it."""
     e = samples.error(samples.s - residual)
     rms = float(np.sqrt(np.mean(e**2)))
     if isinstance(redraw, Future):
         redraw = redraw.result()
     drawn = None if redraw is None else redraw.cells(level, fields, degree, spans, rms)
     tiles = level_tiles(q, step, level, degree, spans, samples.u, samples.v, e, drawn)
-    return DetailLevel(level, step, tiles, rms, float(e.max()), int(np.count_nonzero(q)))
+    return (DetailLevel(level, step, tiles, rms, float(e.max()), int(np.count_nonzero(q))),
+            drawn, e)
 
 
 def level_matrices(samples: DetailSamples, level: int, degree: int, spans: int,
