@@ -154,9 +154,19 @@ class ScanNeighbourhood:
             return np.zeros(0, bool)
         u = np.concatenate([(r + a) / rows for a, _ in CELL_PROBES])
         v = np.concatenate([(c + b) / cols for _, b in CELL_PROBES])
-        distance, _ = self.tree.query(surface(u, v))
-        limit = STRAY_FACTOR * fit_rms + 2 * self.spacing
-        return (distance.reshape(len(CELL_PROBES), -1) > limit).any(axis=0)
+        far = self.farther(surface(u, v), self.limit(fit_rms))
+        return far.reshape(len(CELL_PROBES), -1).any(axis=0)
+
+    def limit(self, fit_rms: float) -> float:
+        """How far a drawn surface may lie from every scan point: ``STRAY_FACTOR * fit_rms``
+        plus twice the spacing (a perfect fit still passes between the points)."""
+        return STRAY_FACTOR * fit_rms + 2 * self.spacing
+
+    def farther(self, positions: np.ndarray, limit: float) -> np.ndarray:
+        """``(m,)`` booleans: which ``positions (m, 3)`` lie farther than ``limit`` from
+        every scan point."""
+        distance, _ = self.tree.query(positions)
+        return distance > limit
 
 
 CELL_PROBES = ((0.5, 0.5), (0.0, 0.0), (0.0, 1.0), (1.0, 0.0), (1.0, 1.0))

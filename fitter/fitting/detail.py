@@ -64,6 +64,7 @@ SMOOTHING = 1e-3
 MIN_POINTS_PER_CELL = 4.0  # auto depth: finest level keeps this many points per knot cell
 MAX_AUTO_LEVELS = 6
 DRAWN_SIDE = 32  # cells per side of a tile's drawn mask (any spans)
+WALL_BAND = 64  # rows of cells whose walls Redraw.walls finds at once (bounds its memory)
 
 
 @dataclass
@@ -212,10 +213,22 @@ class Redraw:
         centre = (np.arange(size) + 0.5) / size
         may = (self.drawn | self.candidates)[np.ix_((centre * rows).astype(np.int64),
                                                      (centre * cols).astype(np.int64))]
-        r, c = np.nonzero(may)
-        far = self.near.stray(self._refined(fields, degree, spans), r, c, (size, size), rms)
+        # the probes of ScanNeighbourhood.stray (CELL_PROBES: centre and corners), each
+        # corner evaluated once for the four cells sharing it, a band of rows at a time
+        refined, limit = self._refined(fields, degree, spans), self.near.limit(rms)
+        corner = np.arange(size + 1) / size
         out = np.zeros((size, size), bool)
-        out[r[far], c[far]] = True
+        for r0 in range(0, size, WALL_BAND):
+            r1 = min(r0 + WALL_BAND, size)
+            if not may[r0:r1].any():
+                continue
+            u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
+            far_corner = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
+            u, v = np.meshgrid(centre[r0:r1], centre, indexing="ij")
+            far = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
+            far |= far_corner[:-1, :-1] | far_corner[1:, :-1] | far_corner[:-1, 1:] \
+                | far_corner[1:, 1:]
+            out[r0:r1] = far & may[r0:r1]
         return out
 
     def trim_without(self, walls: np.ndarray) -> np.ndarray | None:
@@ -548,7 +561,8 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
     """The pipeline's detail stage: samples of the covered points at their foot points
     ``dev.u, dev.v`` on the decoded base ``model``, then :func:`fit_pyramid`
     (``levels=None``: :func:`auto_levels`) with ``spans`` per tile side; ``trim`` is
-    the base's trim mask, which the tiles' drawn masks complete (:class:`Redraw`)."""
+    the base's trim mask, which the tiles' drawn masks complete (:class:`Redraw`), and
+    which loses the finest level's walls (:meth:`Redraw.walls`: the pyramid's ``trim``)."""
     if levels is None:
         levels = auto_levels(int(covered.sum()), spans)
     if levels == 0:  # no pyramid: the base error is the foot-point deviation itself
@@ -558,11 +572,11 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
     points = points_local[covered]
     u, v = np.asarray(dev.u[covered], float), np.asarray(dev.v[covered], float)
     with ThreadPoolExecutor(1) as background:  # the redraw's k-d tree beside the samples
-        redraw = None
-        if trim is not None:
-            drawn = np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool)
-            redraw = background.submit(Redraw.from_foot_points, model, drawn, points, u, v,
-                                       periodic_u)
+        # without a trim every cell is drawn: nothing to draw again, but the walls to find
+        drawn = (np.ones((1, 1), bool) if trim is None else
+                 np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool))
+        redraw = background.submit(Redraw.from_foot_points, model, drawn, points, u, v,
+                                   periodic_u)
         samples = detail_samples(model, points, u, v)
         return fit_pyramid(samples, levels, spans=spans, periodic_u=periodic_u,
                            progress=progress, step_factor=step_factor, redraw=redraw,
