@@ -36,6 +36,16 @@ grid (``DRAWN_SIDE`` cells per tile side) is at least as fine as the trim, a
 tile carries a ``drawn`` mask (:class:`Redraw`): the cells near the scan's foot
 points, not drawn by the base, where the surface refined up to that level does
 not stray (``ScanNeighbourhood.stray`` with that level's RMS).
+
+*Walls.* Where the scan's height over the domain jumps (a range image's occluding
+contour: the scanner saw a near and a far surface side by side) a cell of the base's
+trim holds points of both, and the refined surface, following both, joins them with a
+steep wall narrower than the cell; past the scan's open border it hangs a fin. The
+drawn cells only grow from level to level, so after the last level the cells of the
+finest level's grid where the finest surface strays from every point (beyond
+``ScanNeighbourhood.wall_limit``) are left out of the base's trim, which is then kept at
+that resolution (the pyramid's ``trim``), and out of every level's drawn mask
+(:meth:`Redraw.walls`).
 """
 
 from __future__ import annotations
@@ -215,7 +225,7 @@ class Redraw:
                                                      (centre * cols).astype(np.int64))]
         # the probes of ScanNeighbourhood.stray (CELL_PROBES: centre and corners), each
         # corner evaluated once for the four cells sharing it, a band of rows at a time
-        refined, limit = self._refined(fields, degree, spans), self.near.limit(rms)
+        refined, limit = self._refined(fields, degree, spans), self.near.wall_limit(rms)
         corner = np.arange(size + 1) / size
         out = np.zeros((size, size), bool)
         for r0 in range(0, size, WALL_BAND):
