@@ -354,3 +354,24 @@ def test_a_range_image_step_is_drawn_without_a_wall(tmp_path):
     assert distance_to_step(samples).max() <= 3 * spacing
     d = point_mesh_distance(points, vertices, triangles)
     assert np.mean(d <= 0.005 * diagonal) >= 0.99 and d.max() <= 0.02 * diagonal
+
+
+def test_a_scattered_clouds_gaps_are_not_walls():
+    """The plane fitted exactly to a uniform random sample of it: no cell of the finest
+    grid is a wall (``wall_limit``, 2 gaps of the 99th-percentile spacing), though its
+    sampling gaps reach beyond 2 median spacings (``limit``) at many probes."""
+    model = plane_model()
+    rng = np.random.default_rng(4)
+    U, V = rng.uniform(0, 1, 20_000), rng.uniform(0, 1, 20_000)
+    points = np.column_stack([U, V, 0 * U])
+    redraw = detail.Redraw.from_foot_points(model, np.ones((1, 1), bool), points, U, V, False)
+    fields = [np.zeros((detail.SPANS << k) + detail.DEGREE) for k in range(3)]
+    fields = [np.zeros((len(f), len(f))) for f in fields]
+    assert not redraw.walls(fields, detail.DEGREE, detail.SPANS, rms=0.0).any()
+    corner = np.arange(129) / 128  # the finest grid's corners, 128 cells a side
+    u, v = (x.ravel() for x in np.meshgrid(corner, corner, indexing="ij"))
+    gaps = redraw.near.farther(np.column_stack([u, v, 0 * u]), redraw.near.limit(0.0))
+    assert gaps.sum() > 100
+    lifted = [f.copy() for f in fields]
+    lifted[-1][40:50, 40:50] = 3 * redraw.near.wall_limit(0.0)  # a bump off the scan
+    assert redraw.walls(lifted, detail.DEGREE, detail.SPANS, rms=0.0).any()

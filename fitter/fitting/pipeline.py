@@ -495,7 +495,8 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     ``files`` for a multi-file input); ``options`` (the ``FitOptions``); ``stats``
     (deviation statistics of the covered points, ``fitter.fitting.error.error_stats``)
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
-    ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``); ``tiles`` (the
+    ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``; ``finest_trim``
+    and ``wall_cells`` when the finest level's walls were trimmed); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
     -> seconds); ``error_raster`` (max ``|d|`` per ``(u, v)`` cell, one byte each,
     ``fitter.fitting.error.error_raster``, its ``max`` = ``stats.max``); ``memory``, only
