@@ -36,6 +36,16 @@ grid (``DRAWN_SIDE`` cells per tile side) is at least as fine as the trim, a
 tile carries a ``drawn`` mask (:class:`Redraw`): the cells near the scan's foot
 points, not drawn by the base, where the surface refined up to that level does
 not stray (``ScanNeighbourhood.stray`` with that level's RMS).
+
+*Walls.* Where the scan's height over the domain jumps (a range image's occluding
+contour: the scanner saw a near and a far surface side by side) a cell of the base's
+trim holds points of both, and the refined surface, following both, joins them with a
+steep wall narrower than the cell; past the scan's open border it hangs a fin. The
+drawn cells only grow from level to level, so after the last level the cells of the
+finest level's grid where the finest surface strays from every point (beyond
+``ScanNeighbourhood.wall_limit``) are left out of the base's trim, which is then kept at
+that resolution (the pyramid's ``trim``), and out of every level's drawn mask
+(:meth:`Redraw.walls`).
 """
 
 from __future__ import annotations
@@ -50,7 +60,7 @@ import scipy.sparse.linalg as spla
 from client_py import layers
 from client_py._numpy_basis import basis_arrays
 from client_py.format import MAX_TILE_VALUE, TILE_VERSION, write_detail_tile
-from client_py.trim import TrimMask
+from client_py.trim import MAX_SIDE, TrimMask
 
 from .compact import ScanNeighbourhood
 from .nurbs import PatchModel
@@ -64,6 +74,7 @@ SMOOTHING = 1e-3
 MIN_POINTS_PER_CELL = 4.0  # auto depth: finest level keeps this many points per knot cell
 MAX_AUTO_LEVELS = 6
 DRAWN_SIDE = 32  # cells per side of a tile's drawn mask (any spans)
+WALL_BAND = 64  # rows of cells whose walls Redraw.walls finds at once (bounds its memory)
 
 
 @dataclass
@@ -104,6 +115,10 @@ class DetailPyramid:
     levels: list[DetailLevel] = field(default_factory=list)
     base_rms: float = 0.0
     base_max: float = 0.0
+    # the base's trim without the finest level's walls (Redraw.trim_without; None: the
+    # trim as it was) and how many of its cells they took
+    trim: np.ndarray | None = None
+    wall_cells: int = 0
 
 
 def detail_samples(model: PatchModel, points: np.ndarray, u: np.ndarray,
@@ -170,7 +185,13 @@ class Redraw:
         fine = self.candidates[np.ix_((centre * rows).astype(np.int64),
                                       (centre * cols).astype(np.int64))]
         r, c = np.nonzero(fine)
+        far = self.near.stray(self._refined(fields, degree, spans), r, c, (size, size), rms)
+        out = np.zeros((size, size), bool)
+        out[r[~far], c[~far]] = True
+        return out
 
+    def _refined(self, fields: list[np.ndarray], degree: int, spans: int):
+        """``X(u, v) = S + sum_k D_k n``: the base refined by the levels ``fields``."""
         def refined(u: np.ndarray, v: np.ndarray) -> np.ndarray:
             S, Su, Sv = self.model.evaluate(u, v, derivatives=True)
             n = np.cross(Su, Sv)
@@ -178,11 +199,59 @@ class Redraw:
             n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
             d = sum(evaluate_level(f, k, degree, spans, u, v) for k, f in enumerate(fields))
             return S + d[:, None] * n
+        return refined
 
-        far = self.near.stray(refined, r, c, (size, size), rms)
+    def walls(self, fields: list[np.ndarray], degree: int, spans: int,
+              rms: float) -> np.ndarray:
+        """``(R, R)`` booleans, ``R = min(DRAWN_SIDE 2^L, client_py.trim.MAX_SIDE)`` for the
+        finest level ``L = len(fields) - 1``: the cells the base's trim or a tile's drawn
+        mask may draw (:attr:`drawn` or :attr:`candidates` at the cell's centre) where the
+        surface refined by all ``fields`` strays (``ScanNeighbourhood.stray`` with the
+        finest level's ``rms``).
+
+        A cell of the base's trim straddling an occluding contour (a range image's depth
+        jump) or hanging over the scan's open border holds scan points, so the base does
+        not stray at its probes; the refined surface follows the points on both sides and
+        bridges them with a steep wall (or a fin past the border) narrower than the cell.
+        The drawn cells only grow from level to level (``client_py.layers.drawn_covers``:
+        the base's trim or a tile's mask), so these are left out of the base's trim and of
+        every level's mask (:func:`fit_pyramid`), at the resolution the finest level is
+        drawn at.
+        """
+        size = min(DRAWN_SIDE << (len(fields) - 1), MAX_SIDE)
+        rows, cols = self.drawn.shape
+        centre = (np.arange(size) + 0.5) / size
+        may = (self.drawn | self.candidates)[np.ix_((centre * rows).astype(np.int64),
+                                                     (centre * cols).astype(np.int64))]
+        # the probes of ScanNeighbourhood.stray (CELL_PROBES: centre and corners), each
+        # corner evaluated once for the four cells sharing it, a band of rows at a time
+        refined, limit = self._refined(fields, degree, spans), self.near.wall_limit(rms)
+        corner = np.arange(size + 1) / size
         out = np.zeros((size, size), bool)
-        out[r[~far], c[~far]] = True
+        for r0 in range(0, size, WALL_BAND):
+            r1 = min(r0 + WALL_BAND, size)
+            if not may[r0:r1].any():
+                continue
+            u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
+            far_corner = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
+            u, v = np.meshgrid(centre[r0:r1], centre, indexing="ij")
+            far = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
+            far |= far_corner[:-1, :-1] | far_corner[1:, :-1] | far_corner[:-1, 1:] \
+                | far_corner[1:, 1:]
+            out[r0:r1] = far & may[r0:r1]
         return out
+
+    def trim_without(self, walls: np.ndarray) -> np.ndarray | None:
+        """The base's trim at the resolution of ``walls (R, R)`` (:meth:`walls`) without
+        them; ``None`` when it draws none of them (the trim stays as it was)."""
+        size = len(walls)
+        rows, cols = self.drawn.shape
+        centre = (np.arange(size) + 0.5) / size
+        fine = self.drawn[np.ix_((centre * rows).astype(np.int64),
+                                 (centre * cols).astype(np.int64))]
+        if not (fine & walls).any():
+            return None
+        return fine & ~walls
 
 
 def auto_levels(n_points: int, spans: int = SPANS) -> int:
@@ -436,22 +505,49 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
                                          spans, list(fields), redraw))
         if progress is not None:
             progress((k + 1) / levels)
-    pyramid.levels = [result.result() for result in results]
+    done = [result.result() for result in results]
+    pyramid.levels = [level for level, _, _ in done]
+    if isinstance(redraw, Future):
+        redraw = redraw.result()
+    if redraw is not None and levels:
+        walls = redraw.walls(fields, degree, spans, pyramid.levels[-1].rms)
+        pyramid.trim = redraw.trim_without(walls)
+        pyramid.wall_cells = int(walls.sum())
+        for k, (level, drawn, e) in enumerate(done):
+            thinned = _without_walls(drawn, walls)
+            if thinned is not drawn:  # this level's mask drew some of them: tiles anew
+                q = np.rint(fields[k] / level.step).astype(np.int64)
+                level.tiles = level_tiles(q, level.step, k, degree, spans, samples.u,
+                                          samples.v, e, thinned)
     return pyramid
+
+
+def _without_walls(drawn: np.ndarray | None, walls: np.ndarray) -> np.ndarray | None:
+    """A level's drawn mask ``(D, D)`` without the cells holding a cell of ``walls (R, R)``
+    (:meth:`Redraw.walls`); ``drawn`` itself when it has none, or when it is finer than
+    ``walls`` (a level past ``client_py.trim.MAX_SIDE``: its own stray test stands)."""
+    if drawn is None or len(drawn) > len(walls):
+        return drawn
+    block = len(walls) // len(drawn)
+    hit = walls.reshape(len(drawn), block, len(drawn), block).any(axis=(1, 3))
+    return drawn & ~hit if (drawn & hit).any() else drawn
 
 
 def _level_result(samples: DetailSamples, residual: np.ndarray, q: np.ndarray, step: float,
                   level: int, degree: int, spans: int, fields: list[np.ndarray],
-                  redraw: Redraw | Future | None) -> DetailLevel:
+                  redraw: Redraw | Future | None
+                  ) -> tuple[DetailLevel, np.ndarray | None, np.ndarray]:
     """Level ``level`` of :func:`fit_pyramid` once its quantised coefficients ``q`` (the
-    field ``fields[-1] = q step``) left ``residual``: its errors, drawn masks and tiles."""
+    field ``fields[-1] = q step``) left ``residual``: the level with its tiles, its drawn
+    mask (:meth:`Redraw.cells`) and the samples' errors after it."""
     e = samples.error(samples.s - residual)
     rms = float(np.sqrt(np.mean(e**2)))
     if isinstance(redraw, Future):
         redraw = redraw.result()
     drawn = None if redraw is None else redraw.cells(level, fields, degree, spans, rms)
     tiles = level_tiles(q, step, level, degree, spans, samples.u, samples.v, e, drawn)
-    return DetailLevel(level, step, tiles, rms, float(e.max()), int(np.count_nonzero(q)))
+    return (DetailLevel(level, step, tiles, rms, float(e.max()), int(np.count_nonzero(q))),
+            drawn, e)
 
 
 def level_matrices(samples: DetailSamples, level: int, degree: int, spans: int,
@@ -475,7 +571,8 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
     """The pipeline's detail stage: samples of the covered points at their foot points
     ``dev.u, dev.v`` on the decoded base ``model``, then :func:`fit_pyramid`
     (``levels=None``: :func:`auto_levels`) with ``spans`` per tile side; ``trim`` is
-    the base's trim mask, which the tiles' drawn masks complete (:class:`Redraw`)."""
+    the base's trim mask, which the tiles' drawn masks complete (:class:`Redraw`), and
+    which loses the finest level's walls (:meth:`Redraw.walls`: the pyramid's ``trim``)."""
     if levels is None:
         levels = auto_levels(int(covered.sum()), spans)
     if levels == 0:  # no pyramid: the base error is the foot-point deviation itself
@@ -485,11 +582,11 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
     points = points_local[covered]
     u, v = np.asarray(dev.u[covered], float), np.asarray(dev.v[covered], float)
     with ThreadPoolExecutor(1) as background:  # the redraw's k-d tree beside the samples
-        redraw = None
-        if trim is not None:
-            drawn = np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool)
-            redraw = background.submit(Redraw.from_foot_points, model, drawn, points, u, v,
-                                       periodic_u)
+        # without a trim every cell is drawn: nothing to draw again, but the walls to find
+        drawn = (np.ones((1, 1), bool) if trim is None else
+                 np.frombuffer(trim.flat, np.uint8).reshape(trim.rows, trim.cols).astype(bool))
+        redraw = background.submit(Redraw.from_foot_points, model, drawn, points, u, v,
+                                   periodic_u)
         samples = detail_samples(model, points, u, v)
         return fit_pyramid(samples, levels, spans=spans, periodic_u=periodic_u,
                            progress=progress, step_factor=step_factor, redraw=redraw,

@@ -392,6 +392,19 @@ def _encode_and_measure(model: PatchModel, history: dict, grid: tuple[int, int],
     return FitResult(decoded, data, dev, stats, history | {"grid": list(grid)}, trim)
 
 
+def _retrimmed(best: FitResult, pyramid: DetailPyramid) -> FitResult:
+    """``best`` with the trim of ``pyramid`` (the base's trim at the finest level's
+    resolution without that level's walls, ``fitter.fitting.detail.Redraw.walls``): the
+    same control points at the same bits, re-encoded with the finer mask. The deviations,
+    foot points on the untrimmed surface, stay the same."""
+    surface = read_patch(best.data)
+    surface.trim = TrimMask(pyramid.trim)
+    data = write_patch(surface, bits=best.history["bits"])
+    history = best.history | {"finest_trim": list(pyramid.trim.shape),
+                              "wall_cells": pyramid.wall_cells}
+    return replace(best, data=data, trim=surface.trim, history=history)
+
+
 def fit_base(projected: ProjectedScan, sample: np.ndarray, options: FitOptions,
              stages: _Stages) -> FitResult:
     """The base patch: fitted, encoded and measured for each grid of :func:`_grid_sizes`
@@ -482,7 +495,8 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     ``files`` for a multi-file input); ``options`` (the ``FitOptions``); ``stats``
     (deviation statistics of the covered points, ``fitter.fitting.error.error_stats``)
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
-    ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``); ``tiles`` (the
+    ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``; ``finest_trim``
+    and ``wall_cells`` when the finest level's walls were trimmed); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
     -> seconds); ``error_raster`` (max ``|d|`` per ``(u, v)`` cell, one byte each,
     ``fitter.fitting.error.error_raster``, its ``max`` = ``stats.max``); ``memory``, only
@@ -622,6 +636,8 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
         best.stats = error_stats(best.full.covered_dev().d, projected.diagonal, scan.units)
     check_patch(best.model, projected.name, projected.diagonal)
     pyramid, textures = _fit_layers(projected, best, options, plan, stages)
+    if pyramid.trim is not None:  # the finest level's walls left out of the base's trim
+        best = _retrimmed(best, pyramid)
     stages.start("report")
     with write_bundle(out_dir) as folder:
         tiles, files = _write_files(folder, projected, best, pyramid, textures, options)
