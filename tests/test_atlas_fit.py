@@ -764,8 +764,13 @@ def _four_bumps_fit():
 
 
 def test_a_far_base_over_the_budget_is_refined_where_farthest_within_it():
-    from fitter.fitting.atlas.fit import (FAR_REACH, budget_bits, far_patch_samples,
-                                          refine_far_base, refined_within_budget)
+    from fitter.fitting.atlas.fit import (
+        FAR_REACH,
+        budget_bits,
+        far_patch_samples,
+        refine_far_base,
+        refined_within_budget,
+    )
 
     surface, layout, atlas, points, normals, options = _four_bumps_fit()
     far = far_patch_samples(atlas, options["scan_mesh"]).max()
