@@ -62,8 +62,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from client_py import layers
+from client_py.bundle import level_resolution
 from client_py._numpy_basis import basis_arrays
-from client_py.format import MAX_TILE_VALUE, TILE_VERSION, write_detail_tile
+from client_py.format import MAX_TILE_VALUE, MAX_WALLS_SIDE, TILE_VERSION, write_detail_tile
 from client_py.trim import MAX_SIDE, TrimMask
 
 from .compact import ScanNeighbourhood
@@ -123,6 +124,8 @@ class DetailPyramid:
     # trim as it was) and how many of its cells they took
     trim: np.ndarray | None = None
     wall_cells: int = 0
+    # per level, the cells of its own walls its tiles leave out (level_walls)
+    level_wall_cells: list[int] = field(default_factory=list)
 
 
 def detail_samples(model: PatchModel, points: np.ndarray, u: np.ndarray,
@@ -206,9 +209,9 @@ class Redraw:
         return refined
 
     def walls(self, fields: list[np.ndarray], degree: int, spans: int,
-              rms: float) -> np.ndarray:
-        """``(R, R)`` booleans, ``R = min(DRAWN_SIDE 2^L, client_py.trim.MAX_SIDE)`` for the
-        finest level ``L = len(fields) - 1``: the cells the base's trim or a tile's drawn
+              rms: float, size: int | None = None) -> np.ndarray:
+        """``(R, R)`` booleans, ``R = size`` or by default ``min(DRAWN_SIDE 2^L,
+        client_py.trim.MAX_SIDE)`` for the level ``L = len(fields) - 1``: the cells the base's trim or a tile's drawn
         mask may draw (:attr:`drawn` or :attr:`candidates` at the cell's centre) where the
         surface refined by all ``fields`` strays (``ScanNeighbourhood.stray`` with the
         finest level's ``rms``).
@@ -222,7 +225,8 @@ class Redraw:
         every level's mask (:func:`fit_pyramid`), at the resolution the finest level is
         drawn at.
         """
-        size = min(DRAWN_SIDE << (len(fields) - 1), MAX_SIDE)
+        if size is None:
+            size = min(DRAWN_SIDE << (len(fields) - 1), MAX_SIDE)
         rows, cols = self.drawn.shape
         centre = (np.arange(size) + 0.5) / size
         may = (self.drawn | self.candidates)[np.ix_((centre * rows).astype(np.int64),
@@ -242,6 +246,41 @@ class Redraw:
             far = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
             far |= far_corner[:-1, :-1] | far_corner[1:, :-1] | far_corner[:-1, 1:] \
                 | far_corner[1:, 1:]
+            out[r0:r1] = far & may[r0:r1]
+        return out
+
+    def mesh_walls(self, fields: list[np.ndarray], degree: int, spans: int, rms: float,
+                   size: int) -> np.ndarray:
+        """``(size, size)`` booleans: the cells the base's trim or a tile's drawn mask may
+        draw where the mesh a client draws on the grid of ``size`` cells per side strays
+        from the scan (beyond ``ScanNeighbourhood.wall_limit(rms)``).
+
+        That mesh joins the refined surface's values ``X`` at the grid's vertices with two
+        triangles a cell (``client_py._kernel_python.cell_indices``: the diagonal from
+        ``(i + 1, j)`` to ``(i, j + 1)``); its probes are the four corners, the midpoints of
+        the four sides and of the diagonal, and the two triangles' centroids. Where a coarse
+        level's cell straddles an occluding contour the corners lie on both surfaces and
+        the triangles between them are a wall even where ``X`` itself has none (the
+        surface probes of :meth:`walls` miss it).
+        """
+        rows, cols = self.drawn.shape
+        centre = (np.arange(size) + 0.5) / size
+        may = (self.drawn | self.candidates)[np.ix_((centre * rows).astype(np.int64),
+                                                     (centre * cols).astype(np.int64))]
+        refined, limit = self._refined(fields, degree, spans), self.near.wall_limit(rms)
+        corner = np.arange(size + 1) / size
+        out = np.zeros((size, size), bool)
+        for r0 in range(0, size, WALL_BAND):
+            r1 = min(r0 + WALL_BAND, size)
+            if not may[r0:r1].any():
+                continue
+            u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
+            X = refined(u.ravel(), v.ravel()).reshape(*u.shape, 3)
+            a, b, c, d = X[:-1, :-1], X[1:, :-1], X[:-1, 1:], X[1:, 1:]  # (i,j) (i+1,j) ...
+            far = np.zeros((r1 - r0, size), bool)
+            for probe in (a, b, c, d, (a + b) / 2, (a + c) / 2, (b + d) / 2, (c + d) / 2,
+                          (b + c) / 2, (a + b + c) / 3, (b + c + d) / 3):
+                far |= self.near.farther(probe.reshape(-1, 3), limit).reshape(far.shape)
             out[r0:r1] = far & may[r0:r1]
         return out
 
@@ -420,7 +459,8 @@ def quantisation_step(rms_fit: float, coefficient_max: float, residual_max: floa
 
 def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
                 u: np.ndarray, v: np.ndarray, e: np.ndarray,
-                drawn: np.ndarray | None = None, encode: bool = True
+                drawn: np.ndarray | None = None, encode: bool = True,
+                walls: tuple[np.ndarray, np.ndarray] | None = None
                 ) -> list[tuple[layers.DetailTile, bytes | None, float]]:
     """Cut a level's quantised coefficients ``q (n, n)`` into its ``2^level x 2^level`` tiles.
 
@@ -428,6 +468,9 @@ def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
     ``geometric_error`` is the largest ``e (N,)`` of the samples ``(u, v) (N,)`` inside its
     rectangle (0 without any). A tile whose values are all zero (and without a ``drawn``
     mask, the ``(DRAWN_SIDE 2^level)^2`` cells of :meth:`Redraw.cells`) is not written.
+    With ``walls = (cells, keep)`` (:func:`level_walls`), tile ``(i, j)`` carries its block
+    of ``cells (W 2^level, W 2^level)`` as its walls mask where the block has a wall or
+    ``keep[i, j]``, and is then written.
 
     Returns
     -------
@@ -449,10 +492,15 @@ def level_tiles(q: np.ndarray, step: float, level: int, degree: int, spans: int,
                 mask = drawn[i * DRAWN_SIDE : (i + 1) * DRAWN_SIDE,
                              j * DRAWN_SIDE : (j + 1) * DRAWN_SIDE]
                 mask = TrimMask(mask) if mask.any() else None
-            if not block.any() and mask is None:
+            wall = None
+            if walls is not None:
+                side = len(walls[0]) >> level
+                wall = walls[0][i * side : (i + 1) * side, j * side : (j + 1) * side]
+                wall = TrimMask(wall) if wall.any() or walls[1][i, j] else None
+            if not block.any() and mask is None and wall is None:
                 continue
             tile = layers.DetailTile(level, i, j, degree, spans, step,
-                                     tuple(int(x) for x in block.ravel()), mask)
+                                     tuple(int(x) for x in block.ravel()), mask, wall)
             tiles.append((tile, write_detail_tile(tile) if encode else None,
                           float(worst[i * count + j])))
     return tiles
@@ -519,13 +567,60 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         walls = redraw.walls(fields, degree, spans, pyramid.levels[-1].rms)
         pyramid.trim = redraw.trim_without(walls)
         pyramid.wall_cells = int(walls.sum())
+        coarser = level_walls(redraw, fields, degree, spans,
+                              [level.rms for level in pyramid.levels], walls)
+        pyramid.level_wall_cells = [int(w[0].sum()) for w in coarser]
         for k, (level, drawn, e) in enumerate(done):
             thinned = _without_walls(drawn, walls)
-            if thinned is not drawn:  # this level's mask drew some of them: tiles anew
+            if thinned is not drawn or coarser[k][1].any() or coarser[k][0].any():
+                # this level's mask drew some of them, or it has walls (or must undo a
+                # coarser level's): tiles anew
                 q = np.rint(fields[k] / level.step).astype(np.int64)
                 level.tiles = level_tiles(q, level.step, k, degree, spans, samples.u,
-                                          samples.v, e, thinned)
+                                          samples.v, e, thinned, walls=coarser[k])
     return pyramid
+
+
+def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: int,
+                rms: list[float], finest: np.ndarray
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per level ``k`` the walls its tiles carry (:class:`client_py.layers.DetailTile`,
+    ``walls``): ``(cells, keep)``.
+
+    ``cells (W_k, W_k)``: :meth:`Redraw.mesh_walls` of the surface refined by
+    ``fields[:k + 1]`` (level ``k``'s ``rms[k]``) on the grid a client draws level ``k``
+    on (``client_py.bundle.level_resolution``: ``W_k = 2 m 2^k`` cells, at most
+    ``MAX_WALLS_SIDE 2^k``); none for the finest level, whose walls (``finest``, found by
+    :meth:`Redraw.walls`) are already out of the base's trim and so of every level. ``keep (2^k, 2^k)``: the tiles whose
+    rectangle holds a coarser level's walls, which carry a walls mask even without walls
+    of their own, to draw again what the coarser one left out (a tessellation takes the
+    finest given walls mask: ``client_py.layers.walls_vetoes``).
+    """
+    last = len(fields) - 1
+    out, taken = [], []  # taken: per coarser level, its walls at its resolution
+    for k in range(len(fields)):
+        size = min(level_resolution(spans, k) - 1, MAX_WALLS_SIDE << k)
+        if k < last:
+            cells = redraw.mesh_walls(fields[: k + 1], degree, spans, rms[k], size)
+        else:
+            cells = np.zeros((size, size), bool)
+        count = 1 << k
+        keep = np.zeros((count, count), bool)
+        for w in taken:
+            keep |= _coarsened(w, count)
+        out.append((cells, keep))
+        taken.append(cells)
+    return out
+
+
+def _coarsened(cells: np.ndarray, size: int) -> np.ndarray:
+    """``(size, size)`` booleans: which blocks of ``cells (R, R)`` (``size`` divides ``R``,
+    or ``R`` divides ``size``: each cell then repeated) hold a true cell."""
+    r = len(cells)
+    if r >= size:
+        block = r // size
+        return cells.reshape(size, block, size, block).any(axis=(1, 3))
+    return np.repeat(np.repeat(cells, size // r, axis=0), size // r, axis=1)
 
 
 def _without_walls(drawn: np.ndarray | None, walls: np.ndarray) -> np.ndarray | None:
