@@ -250,10 +250,13 @@ class Redraw:
         return out
 
     def mesh_walls(self, fields: list[np.ndarray], degree: int, spans: int, rms: float,
-                   size: int) -> np.ndarray:
-        """``(size, size)`` booleans: the cells the base's trim or a tile's drawn mask may
-        draw where the mesh a client draws on the grid of ``size`` cells per side strays
-        from the scan (beyond ``ScanNeighbourhood.wall_limit(rms)``).
+                   size: int, trim: np.ndarray | None = None) -> np.ndarray:
+        """``(size, size)`` booleans: the cells the base's trim (``trim``, as the bundle
+        carries it: by default :attr:`drawn`) or a tile's drawn mask may draw where the mesh
+        a client draws on the grid of ``size`` cells per side strays from the scan (beyond
+        ``ScanNeighbourhood.wall_limit(rms)``). A cell centre on the border of two mask
+        cells (a finer trim: ``trim_without``) may be either's in a client's arithmetic, so
+        both count.
 
         That mesh joins the refined surface's values ``X`` at the grid's vertices with two
         triangles a cell (``client_py._kernel_python.cell_indices``: the diagonal from
@@ -263,10 +266,15 @@ class Redraw:
         the triangles between them are a wall even where ``X`` itself has none (the
         surface probes of :meth:`walls` miss it).
         """
-        rows, cols = self.drawn.shape
         centre = (np.arange(size) + 0.5) / size
-        may = (self.drawn | self.candidates)[np.ix_((centre * rows).astype(np.int64),
-                                                     (centre * cols).astype(np.int64))]
+        may = np.zeros((size, size), bool)
+        for mask in (self.drawn if trim is None else trim, self.candidates):
+            for shift in (-1e-9, 1e-9):
+                rows = np.clip(((centre + shift) * mask.shape[0]).astype(np.int64), 0,
+                               mask.shape[0] - 1)
+                cols = np.clip(((centre + shift) * mask.shape[1]).astype(np.int64), 0,
+                               mask.shape[1] - 1)
+                may |= mask[np.ix_(rows, cols)]
         refined, limit = self._refined(fields, degree, spans), self.near.wall_limit(rms)
         corner = np.arange(size + 1) / size
         out = np.zeros((size, size), bool)
@@ -568,7 +576,7 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
         pyramid.trim = redraw.trim_without(walls)
         pyramid.wall_cells = int(walls.sum())
         coarser = level_walls(redraw, fields, degree, spans,
-                              [level.rms for level in pyramid.levels], walls)
+                              [level.rms for level in pyramid.levels], walls, pyramid.trim)
         pyramid.level_wall_cells = [int(w[0].sum()) for w in coarser]
         for k, (level, drawn, e) in enumerate(done):
             thinned = _without_walls(drawn, walls)
@@ -582,7 +590,7 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
 
 
 def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: int,
-                rms: list[float], finest: np.ndarray
+                rms: list[float], finest: np.ndarray, trim: np.ndarray | None = None
                 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per level ``k`` the walls its tiles carry (:class:`client_py.layers.DetailTile`,
     ``walls``): ``(cells, keep)``.
@@ -591,7 +599,8 @@ def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: in
     ``fields[:k + 1]`` (level ``k``'s ``rms[k]``) on the grid a client draws level ``k``
     on (``client_py.bundle.level_resolution``: ``W_k = 2 m 2^k`` cells, at most
     ``MAX_WALLS_SIDE 2^k``); none for the finest level, whose walls (``finest``, found by
-    :meth:`Redraw.walls`) are already out of the base's trim and so of every level. ``keep (2^k, 2^k)``: the tiles whose
+    :meth:`Redraw.walls`) are already out of the base's trim (``trim``: the pyramid's) and
+    so of every level. ``keep (2^k, 2^k)``: the tiles whose
     rectangle holds a coarser level's walls, which carry a walls mask even without walls
     of their own, to draw again what the coarser one left out (a tessellation takes the
     finest given walls mask: ``client_py.layers.walls_vetoes``).
@@ -601,7 +610,7 @@ def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: in
     for k in range(len(fields)):
         size = min(level_resolution(spans, k) - 1, MAX_WALLS_SIDE << k)
         if k < last:
-            cells = redraw.mesh_walls(fields[: k + 1], degree, spans, rms[k], size)
+            cells = redraw.mesh_walls(fields[: k + 1], degree, spans, rms[k], size, trim)
         else:
             cells = np.zeros((size, size), bool)
         count = 1 << k
