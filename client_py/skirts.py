@@ -37,8 +37,8 @@ def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: 
     the other, so no crack shows from the front. The walls never rise above the
     edge they hang from (no fins). Borders on the domain's outer edge get none
     (nothing to meet there), nor do segments whose inward grid cell the base's
-    trim leaves out (or a tile's walls mask: ``client_py.layers.DetailTile``); where the base's analytic normal vanishes (a pole) the
-    wall has no height.
+    trim leaves out (or a tile's walls mask: ``client_py.layers.DetailTile``); where
+    the base's analytic normal vanishes (a pole) the wall has no height.
 
     Parameters
     ----------

@@ -393,37 +393,34 @@ def reference_drawn(trim: np.ndarray, tiles, us: np.ndarray, vs: np.ndarray) -> 
     """The definition, cell by cell with numpy: the centre covered by the base trim, or by
     the drawn mask of a tile whose closed rectangle contains it; a centre on the border of
     two tiles of a level belongs to the one ``min(floor(u 2^L), 2^L - 1)`` names (the
-    tile above the border), as for the base trim's cells."""
+    tile above the border), as for the base trim's cells. Then, of the tiles with a walls
+    mask holding the centre, the finest one's mask leaves the cell out where it covers it."""
     cu, cv = 0.5 * (us[:-1] + us[1:]), 0.5 * (vs[:-1] + vs[1:])
     U, V = np.meshgrid(cu, cv, indexing="ij")
     rows, cols = trim.shape
     drawn = trim[np.minimum((U * rows).astype(int), rows - 1),
                  np.minimum((V * cols).astype(int), cols - 1)].copy()
+
+    def held(t, mask):  # the centres tile t holds, and its mask's value at every centre
+        u0, v0, u1, v1 = t.uv_rect
+        n = 1 << t.level
+        named = ((np.minimum(np.floor(U * n), n - 1) == t.i)
+                 & (np.minimum(np.floor(V * n), n - 1) == t.j))
+        inside = named & (U >= u0) & (U <= u1) & (V >= v0) & (V <= v1)
+        cells = np.frombuffer(mask.flat, np.uint8).reshape(mask.rows, mask.cols)
+        r = np.clip(((U - u0) / (u1 - u0) * mask.rows).astype(int), 0, mask.rows - 1)
+        c = np.clip(((V - v0) / (v1 - v0) * mask.cols).astype(int), 0, mask.cols - 1)
+        return inside, cells[r, c] != 0
+
     for t in tiles:
-        if t.drawn is None:
-            continue
-        u0, v0, u1, v1 = t.uv_rect
-        n = 1 << t.level
-        named = ((np.minimum(np.floor(U * n), n - 1) == t.i)
-                 & (np.minimum(np.floor(V * n), n - 1) == t.j))
-        inside = named & (U >= u0) & (U <= u1) & (V >= v0) & (V <= v1)
-        mask = np.frombuffer(t.drawn.flat, np.uint8).reshape(t.drawn.rows, t.drawn.cols)
-        r = np.clip(((U - u0) / (u1 - u0) * t.drawn.rows).astype(int), 0, t.drawn.rows - 1)
-        c = np.clip(((V - v0) / (v1 - v0) * t.drawn.cols).astype(int), 0, t.drawn.cols - 1)
-        drawn |= inside & (mask[r, c] != 0)
-    veto = np.zeros_like(drawn)  # the finest tile with a walls mask holding the centre decides
+        if t.drawn is not None:
+            inside, covered = held(t, t.drawn)
+            drawn |= inside & covered
+    veto = np.zeros_like(drawn)
     for t in sorted(tiles, key=lambda t: t.level):
-        if t.walls is None:
-            continue
-        u0, v0, u1, v1 = t.uv_rect
-        n = 1 << t.level
-        named = ((np.minimum(np.floor(U * n), n - 1) == t.i)
-                 & (np.minimum(np.floor(V * n), n - 1) == t.j))
-        inside = named & (U >= u0) & (U <= u1) & (V >= v0) & (V <= v1)
-        mask = np.frombuffer(t.walls.flat, np.uint8).reshape(t.walls.rows, t.walls.cols)
-        r = np.clip(((U - u0) / (u1 - u0) * t.walls.rows).astype(int), 0, t.walls.rows - 1)
-        c = np.clip(((V - v0) / (v1 - v0) * t.walls.cols).astype(int), 0, t.walls.cols - 1)
-        veto[inside] = mask[r, c][inside] != 0
+        if t.walls is not None:
+            inside, covered = held(t, t.walls)
+            veto[inside] = covered[inside]
     return drawn & ~veto
 
 

@@ -72,8 +72,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from client_py import layers
-from client_py.bundle import level_resolution
 from client_py._numpy_basis import basis_arrays
+from client_py.bundle import level_resolution
 from client_py.format import MAX_TILE_VALUE, MAX_WALLS_SIDE, TILE_VERSION, write_detail_tile
 from client_py.trim import MAX_SIDE, TrimMask
 
@@ -221,9 +221,9 @@ class Redraw:
     def walls(self, fields: list[np.ndarray], degree: int, spans: int,
               rms: float, size: int | None = None) -> np.ndarray:
         """``(R, R)`` booleans, ``R = size`` or by default ``min(DRAWN_SIDE 2^L,
-        client_py.trim.MAX_SIDE)`` for the level ``L = len(fields) - 1``: the cells the base's trim or a tile's drawn
-        mask may draw (:attr:`drawn` or :attr:`candidates` at the cell's centre) where the
-        surface refined by all ``fields`` strays (``ScanNeighbourhood.stray`` with the
+        client_py.trim.MAX_SIDE)`` for the level ``L = len(fields) - 1``: the cells the
+        base's trim or a tile's drawn mask may draw (:attr:`drawn` or :attr:`candidates`
+        at the cell's centre) where the surface refined by all ``fields`` strays (``ScanNeighbourhood.stray`` with the
         finest level's ``rms``).
 
         A cell of the base's trim straddling an occluding contour (a range image's depth
@@ -246,19 +246,15 @@ class Redraw:
         # corner evaluated once for the four cells sharing it, a band of rows at a time
         refined, limit = self._refined(fields, degree, spans), self.near.wall_limit(rms)
         corner = np.arange(size + 1) / size
-        out = np.zeros((size, size), bool)
-        for r0 in range(0, size, WALL_BAND):
-            r1 = min(r0 + WALL_BAND, size)
-            if not may[r0:r1].any():
-                continue
+
+        def far_band(r0: int, r1: int) -> np.ndarray:
             u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
             far_corner = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
             u, v = np.meshgrid(centre[r0:r1], centre, indexing="ij")
             far = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
-            far |= far_corner[:-1, :-1] | far_corner[1:, :-1] | far_corner[:-1, 1:] \
+            return far | far_corner[:-1, :-1] | far_corner[1:, :-1] | far_corner[:-1, 1:] \
                 | far_corner[1:, 1:]
-            out[r0:r1] = far & may[r0:r1]
-        return out
+        return _by_bands(may, far_band)
 
     def mesh_walls(self, fields: list[np.ndarray], degree: int, spans: int, rms: float,
                    size: int, trim: np.ndarray | None = None) -> np.ndarray:
@@ -288,11 +284,8 @@ class Redraw:
                 may |= mask[np.ix_(rows, cols)]
         refined, limit = self._refined(fields, degree, spans), self.near.wall_limit(rms)
         corner = np.arange(size + 1) / size
-        out = np.zeros((size, size), bool)
-        for r0 in range(0, size, WALL_BAND):
-            r1 = min(r0 + WALL_BAND, size)
-            if not may[r0:r1].any():
-                continue
+
+        def far_band(r0: int, r1: int) -> np.ndarray:
             u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
             X = refined(u.ravel(), v.ravel()).reshape(*u.shape, 3)
             a, b, c, d = X[:-1, :-1], X[1:, :-1], X[:-1, 1:], X[1:, 1:]  # (i,j) (i+1,j) ...
@@ -300,8 +293,8 @@ class Redraw:
             for probe in (a, b, c, d, (a + b) / 2, (a + c) / 2, (b + d) / 2, (c + d) / 2,
                           (b + c) / 2, (a + b + c) / 3, (b + c + d) / 3):
                 far |= self.near.farther(probe.reshape(-1, 3), limit).reshape(far.shape)
-            out[r0:r1] = far & may[r0:r1]
-        return out
+            return far
+        return _by_bands(may, far_band)
 
     def trim_without(self, walls: np.ndarray) -> np.ndarray | None:
         """The base's trim at the resolution of ``walls (R, R)`` (:meth:`walls`) without
@@ -314,6 +307,18 @@ class Redraw:
         if not (fine & walls).any():
             return None
         return fine & ~walls
+
+
+def _by_bands(may: np.ndarray, far_band) -> np.ndarray:
+    """``may & far`` for a ``(size, size)`` grid of cells, ``far_band(r0, r1)`` giving rows
+    ``r0..r1-1`` of ``far``, ``WALL_BAND`` rows at a time (bounds the memory), skipping the
+    bands where ``may`` holds nothing."""
+    out = np.zeros_like(may)
+    for r0 in range(0, len(may), WALL_BAND):
+        r1 = min(r0 + WALL_BAND, len(may))
+        if may[r0:r1].any():
+            out[r0:r1] = far_band(r0, r1) & may[r0:r1]
+    return out
 
 
 def auto_levels(n_points: int, spans: int = SPANS) -> int:
