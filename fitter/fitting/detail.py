@@ -223,8 +223,8 @@ class Redraw:
         """``(R, R)`` booleans, ``R = size`` or by default ``min(DRAWN_SIDE 2^L,
         client_py.trim.MAX_SIDE)`` for the level ``L = len(fields) - 1``: the cells the
         base's trim or a tile's drawn mask may draw (:attr:`drawn` or :attr:`candidates`
-        at the cell's centre) where the surface refined by all ``fields`` strays (``ScanNeighbourhood.stray`` with the
-        finest level's ``rms``).
+        at the cell's centre) where the surface refined by all ``fields`` strays
+        (``ScanNeighbourhood.stray`` with the finest level's ``rms``).
 
         A cell of the base's trim straddling an occluding contour (a range image's depth
         jump) or hanging over the scan's open border holds scan points, so the base does
