@@ -179,23 +179,34 @@ def add_level(total: array, n_cols: int, blocks) -> None:
     T[lo:hi] += level[lo:hi]
 
 
-def cell_indices(nu: int, nv: int, covers=None) -> array:
+def cell_indices(nu: int, nv: int, covers=None, vetoes=None) -> array:
     """Same contract as :func:`client_py._kernel_python.cell_indices`: the drawn-cell flags
     as one boolean ``(nu - 1, nv - 1)`` array (each cover ORs its gathered mask
-    ``cells[rows][:, cols]`` into its block), the drawn cells' triangles from their
-    row-major indices."""
+    ``cells[rows][:, cols]`` into its block, each veto, in order, sets its block of a
+    second array, which then clears the drawn cells it holds), the drawn cells' triangles
+    from their row-major indices."""
     if covers is None:
         i, j = np.divmod(np.arange((nu - 1) * (nv - 1), dtype=np.uint32), np.uint32(nv - 1))
     else:
         drawn = np.zeros((nu - 1, nv - 1), dtype=bool)
         for i0, j0, rows, cols, cells, width in covers:
-            mask = np.frombuffer(cells, dtype=np.uint8).reshape(-1, width) != 0
-            rows, cols = np.asarray(rows, dtype=np.intp), np.asarray(cols, dtype=np.intp)
-            drawn[i0 : i0 + len(rows), j0 : j0 + len(cols)] |= mask[np.ix_(rows, cols)]
+            drawn[i0 : i0 + len(rows), j0 : j0 + len(cols)] |= _gather(rows, cols, cells, width)
+        if vetoes:
+            veto = np.zeros_like(drawn)
+            for i0, j0, rows, cols, cells, width in vetoes:
+                veto[i0 : i0 + len(rows), j0 : j0 + len(cols)] = _gather(rows, cols, cells,
+                                                                         width)
+            drawn &= ~veto
         i, j = np.nonzero(drawn)
     k = (i * nv + j).astype(np.uint32)
     corners = np.array([0, nv, 1, 1, nv, nv + 1], dtype=np.uint32)
     return array("I", (k[:, None] + corners).tobytes())
+
+
+def _gather(rows, cols, cells: bytes, width: int) -> np.ndarray:
+    """A cover's mask ``cells`` (``width`` columns) at its ``rows`` and ``cols``, as booleans."""
+    mask = np.frombuffer(cells, dtype=np.uint8).reshape(-1, width) != 0
+    return mask[np.ix_(np.asarray(rows, dtype=np.intp), np.asarray(cols, dtype=np.intp))]
 
 
 def map_vectors(values: array, matrix, offset=None, normalise: bool = False) -> array:

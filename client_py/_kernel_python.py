@@ -405,7 +405,8 @@ def _full_grid(nu: int, nv: int) -> array:
 _RUNS = re.compile(b"[^\0]+")  # a run of drawn cells: non-zero flag bytes
 
 
-def cell_indices(nu: int, nv: int, covers: Sequence[tuple] | None = None) -> array:
+def cell_indices(nu: int, nv: int, covers: Sequence[tuple] | None = None,
+                 vetoes: Sequence[tuple] | None = None) -> array:
     """Triangles of the drawn cells of an ``nu x nv`` vertex grid (vertex ``k = i nv + j``).
 
     Cell ``(i, j)`` gives ``(k, k + nv, k + 1, k + 1, k + nv, k + nv + 1)``;
@@ -415,19 +416,25 @@ def cell_indices(nu: int, nv: int, covers: Sequence[tuple] | None = None) -> arr
     j0 + len(cols)``) and ``cells[rows[i - i0] width + cols[j - j0]]`` is non-zero:
     a mask (``bytes``, ``width`` columns) sampled at one mask row per cell row
     and one mask column per cell column (the mask cell holding the cell's centre).
+    ``vetoes`` (same tuples, in order) then take cells away: each *sets* a cell's
+    veto to its mask's value over its block, so of the vetoes holding a cell the
+    last decides, and a vetoed cell is not drawn.
 
     A cell row's drawn flags are one integer per (cover, mask row), a byte per
-    cell, ORed over the covers of the row (``int.from_bytes``: C speed); the
+    cell, ORed over the covers of the row (``int.from_bytes``: C speed); a veto's
+    integer replaces the bytes of its block in the row's veto integer; the
     runs of drawn cells (a regular expression over the bytes) are copied from
-    the full grid's triangles as whole slices. Rows with the same covers and
-    mask rows share their runs.
+    the full grid's triangles as whole slices. Rows with the same covers,
+    vetoes and mask rows share their runs.
     """
     full = _full_grid(nu, nv)
     if covers is None:
         return full
     c1 = nv - 1
+    every = list(covers) + list(vetoes or ())
+    first_veto = len(covers)
     by_row: list[list[tuple[int, int]]] = [[] for _ in range(nu - 1)]
-    for c, (i0, _, rows, _, _, _) in enumerate(covers):
+    for c, (i0, _, rows, _, _, _) in enumerate(every):
         for i, r in enumerate(rows, i0):
             by_row[i].append((c, r))
     bits_of: dict[tuple[int, int], int] = {}
@@ -438,16 +445,19 @@ def cell_indices(nu: int, nv: int, covers: Sequence[tuple] | None = None) -> arr
         key = tuple(row_covers)
         runs = runs_of.get(key)
         if runs is None:
-            bits = 0
+            bits = veto = 0
             for c, r in key:
                 b = bits_of.get((c, r))
+                _, j0, _, cols, cells, width = every[c]
                 if b is None:
-                    _, j0, _, cols, cells, width = covers[c]
                     get = cells[r * width : (r + 1) * width].__getitem__
                     b = int.from_bytes(bytes(map(get, cols)), "little") << (8 * j0)
                     bits_of[c, r] = b
-                bits |= b
-            flags = bits.to_bytes(c1, "little")
+                if c < first_veto:
+                    bits |= b
+                else:  # the block's bytes of the veto become this veto's
+                    veto = veto & ~(((1 << (8 * len(cols))) - 1) << (8 * j0)) | b
+            flags = (bits & ~veto).to_bytes(c1, "little")
             runs = runs_of[key] = [m.span() for m in _RUNS.finditer(flags)]
         base = 24 * i * c1
         for j0, j1 in runs:

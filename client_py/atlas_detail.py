@@ -222,6 +222,8 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
         raise ValueError("a pack holds at least one tile, got none")
     every = list(by_node.values())
     degree, spans, step = (_shared(every, name) for name in ("degree", "spans", "step"))
+    if any(t.walls is not None for t in every):
+        raise ValueError("a pack holds no walls masks (a single patch's .tsd tiles do)")
     masks = {t.drawn.rows for t in every if t.drawn is not None}
     if len(masks) > 1 or any(t.drawn.cols != t.drawn.rows for t in every
                              if t.drawn is not None):

@@ -509,6 +509,9 @@ TILE_VERSION = 2
 TILE_HEADER = struct.Struct("<4sBBBBBBHHf")
 TILE_HEADER_SIZE = TILE_HEADER.size  # 18
 TILE_FLAG_DRAWN = 1  # a drawn mask of drawn_side^2 cells follows the values
+TILE_FLAG_WALLS = 2  # then a walls mask: its side (8 coded bits, side - 1) and side^2 cells
+MAX_WALLS_SIDE = 256  # cells per side of a tile's walls mask
+WALLS_SIDE_BITS = 8
 MAX_TILE_VALUE = (1 << 28) - 1
 UNARY_BINS = 6  # |q| = 1..UNARY_BINS in unary, larger through an Exp-Golomb escape
 ESCAPE_BITS = 28  # an escape's Exp-Golomb prefix: |q| <= MAX_TILE_VALUE needs fewer
@@ -528,6 +531,8 @@ class _TileModel:
         self.prefix = [HALF] * ESCAPE_BITS
         self.suffix = [HALF] * ESCAPE_BITS
         self.mask = [HALF] * 4  # drawn cells: by the cell above and the one before
+        self.walls = [HALF] * 4  # walls cells, likewise
+        self.walls_side = [HALF] * WALLS_SIDE_BITS  # one context per bit of side - 1
         self.same = [HALF]  # a value another tile also holds: is it that tile's? (packs)
 
     @staticmethod
@@ -597,17 +602,33 @@ def _decode_tile_values(dec: RangeDecoder, count: int, size: int,
 
 
 def _code_mask(coder: RangeEncoder | RangeDecoder, model: _TileModel, side: int,
-               cells: bytes | None = None) -> bytes:
-    """Encode ``cells`` (``side^2`` 0/1 bytes, row-major) or, with ``cells=None``, decode."""
+               cells: bytes | None = None, contexts: list[int] | None = None) -> bytes:
+    """Encode ``cells`` (``side^2`` 0/1 bytes, row-major) or, with ``cells=None``, decode;
+    ``contexts``: the four adaptive contexts (default the drawn mask's, ``model.mask``)."""
+    ctxs = model.mask if contexts is None else contexts
     out = bytearray(side * side)
     for k in range(side * side):
         ctx = 2 * (out[k - side] if k >= side else 0) + (out[k - 1] if k % side else 0)
         if cells is None:
-            out[k] = coder.bit(model.mask, ctx)
+            out[k] = coder.bit(ctxs, ctx)
         else:
             out[k] = cells[k]
-            coder.bit(model.mask, ctx, cells[k])
+            coder.bit(ctxs, ctx, cells[k])
     return bytes(out)
+
+
+def _code_walls(coder: RangeEncoder | RangeDecoder, model: _TileModel,
+                walls: TrimMask | None = None) -> TrimMask:
+    """Encode a tile's ``walls`` mask (its side ``w``: ``w - 1`` in ``WALLS_SIDE_BITS``
+    bits, lowest first, then ``w^2`` cells as :func:`_code_mask` with ``model.walls``) or,
+    with ``walls=None``, decode it."""
+    if walls is not None:
+        for b in range(WALLS_SIDE_BITS):
+            coder.bit(model.walls_side, b, ((walls.rows - 1) >> b) & 1)
+        _code_mask(coder, model, walls.rows, walls.flat, model.walls)
+        return walls
+    side = 1 + sum(coder.bit(model.walls_side, b) << b for b in range(WALLS_SIDE_BITS))
+    return TrimMask.from_flat(side, side, _code_mask(coder, model, side, None, model.walls))
 
 
 def write_detail_tile(tile: DetailTile) -> bytes:
@@ -633,10 +654,17 @@ def write_detail_tile(tile: DetailTile) -> bytes:
             raise ValueError(f"a tile's drawn mask must be square with 1..{MAX_DRAWN_SIDE} "
                              f"cells per side, got {tile.drawn.rows}x{tile.drawn.cols}")
         flags = TILE_FLAG_DRAWN
+    if tile.walls is not None:
+        if tile.walls.cols != tile.walls.rows or not 1 <= tile.walls.rows <= MAX_WALLS_SIDE:
+            raise ValueError(f"a tile's walls mask must be square with 1..{MAX_WALLS_SIDE} "
+                             f"cells per side, got {tile.walls.rows}x{tile.walls.cols}")
+        flags |= TILE_FLAG_WALLS
     enc, model = RangeEncoder(), _TileModel()
     _encode_tile_values(enc, tile.values, tile.size, model)
     if side:
         _code_mask(enc, model, side, tile.drawn.flat)
+    if tile.walls is not None:
+        _code_walls(enc, model, tile.walls)
     body = TILE_HEADER.pack(TILE_MAGIC, TILE_VERSION, flags, tile.level, tile.degree,
                             tile.spans, side, tile.i, tile.j, tile.step) + enc.finish()
     return body + struct.pack("<I", zlib.crc32(body))
@@ -653,7 +681,7 @@ def read_detail_tile(data: bytes) -> DetailTile:
     """
     data, fields = _unframe(data, TILE_MAGIC, "detail tile", TILE_HEADER, TILE_VERSION, None)
     _, _, flags, level, degree, spans, side, i, j, step = fields
-    if flags & ~TILE_FLAG_DRAWN:
+    if flags & ~(TILE_FLAG_DRAWN | TILE_FLAG_WALLS):
         raise PatchFormatError(5, f"unknown flags 0x{flags:02x}")
     if level > MAX_TILE_LEVEL:
         raise PatchFormatError(6, f"level {level} outside 0..{MAX_TILE_LEVEL}")
@@ -677,8 +705,9 @@ def read_detail_tile(data: bytes) -> DetailTile:
         dec = RangeDecoder(data[TILE_HEADER_SIZE : len(data) - CRC_SIZE])
         values = _decode_tile_values(dec, (spans + degree) ** 2, spans + degree, model)
         drawn = TrimMask.from_flat(side, side, _code_mask(dec, model, side)) if side else None
+        walls = _code_walls(dec, model) if flags & TILE_FLAG_WALLS else None
     except RangeDecodeError as exc:
         raise PatchFormatError(len(data) - CRC_SIZE, f"coded values end early: {exc}") from None
     if any(abs(q) > MAX_TILE_VALUE for q in values):
         raise PatchFormatError(TILE_HEADER_SIZE, f"decoded values beyond +-{MAX_TILE_VALUE}")
-    return DetailTile(level, i, j, degree, spans, step, tuple(values), drawn)
+    return DetailTile(level, i, j, degree, spans, step, tuple(values), drawn, walls)

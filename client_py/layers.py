@@ -134,6 +134,13 @@ class DetailTile:
         the base strayed from the scan but the displacement brought it back
         (``fitter.fitting.detail``). A tessellation applying the tile draws a cell whose
         centre the base trim *or* this mask covers.
+    walls : TrimMask, optional
+        Cells of ``uv_rect`` (any square side) where the surface refined up to this
+        level strays from the scan: a wall across an occluding contour
+        (``fitter.fitting.detail``, "Walls"). A tessellation leaves out a cell whose
+        centre the walls mask of the *finest* given tile carrying one covers, even where
+        the base trim or a drawn mask covers it; a finer tile's walls mask (all clear,
+        if need be) thus restores what a coarser level's walls took away.
     """
 
     level: int
@@ -144,6 +151,7 @@ class DetailTile:
     step: float
     values: tuple[int, ...]
     drawn: TrimMask | None = None
+    walls: TrimMask | None = None
     _knots: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -163,6 +171,8 @@ class DetailTile:
         object.__setattr__(self, "values", values)
         if self.drawn is not None and not isinstance(self.drawn, TrimMask):
             raise ValueError(f"drawn must be a TrimMask or None, got {type(self.drawn).__name__}")
+        if self.walls is not None and not isinstance(self.walls, TrimMask):
+            raise ValueError(f"walls must be a TrimMask or None, got {type(self.walls).__name__}")
         object.__setattr__(self, "_knots",
                            (tile_knots(self.degree, self.spans, self.level, self.i),
                             tile_knots(self.degree, self.spans, self.level, self.j)))
@@ -369,9 +379,17 @@ def drawn_covers(trim: TrimMask, tiles: Sequence[DetailTile], us: Sequence[float
     cv = [0.5 * (a + b) for a, b in zip(vs, vs[1:], strict=False)]
     covers = [(0, 0, mask_indices(cu, trim.rows), mask_indices(cv, trim.cols), trim.flat,
                trim.cols)]
+    return covers + _mask_covers(tiles, cu, cv, "drawn")
+
+
+def _mask_covers(tiles: Sequence[DetailTile], cu: Sequence[float], cv: Sequence[float],
+                 attribute: str) -> list[tuple]:
+    """Kernel covers of the tiles' ``attribute`` masks (``drawn`` or ``walls``) over the
+    cells with centres ``cu x cv``, levels increasing, ``(i, j)`` order within a level."""
+    covers = []
     by_level: dict[int, dict[tuple[int, int], DetailTile]] = {}
     for tile in tiles:
-        if tile.drawn is not None:
+        if getattr(tile, attribute) is not None:
             by_level.setdefault(tile.level, {})[tile.i, tile.j] = tile
     for level, nodes in sorted(by_level.items()):
         row_blocks, col_blocks = _tile_blocks(cu, 1 << level), _tile_blocks(cv, 1 << level)
@@ -380,11 +398,25 @@ def drawn_covers(trim: TrimMask, tiles: Sequence[DetailTile], us: Sequence[float
                 continue
             (i0, i1), (j0, j1) = row_blocks[ti], col_blocks[tj]
             u0, v0, u1, v1 = tile.uv_rect
-            mask = tile.drawn
+            mask = getattr(tile, attribute)
             rows = mask_indices([(u - u0) / (u1 - u0) for u in cu[i0:i1]], mask.rows)
             cols = mask_indices([(v - v0) / (v1 - v0) for v in cv[j0:j1]], mask.cols)
             covers.append((i0, j0, rows, cols, mask.flat, mask.cols))
     return covers
+
+
+def walls_vetoes(tiles: Sequence[DetailTile], us: Sequence[float],
+                 vs: Sequence[float]) -> list[tuple] | None:
+    """The cells of the grid ``us x vs`` the given tiles' ``walls`` masks leave out, as
+    kernel *vetoes* (:func:`client_py._kernel_python.cell_indices`): one per tile with a
+    walls mask, coarse levels first, each *setting* the veto over the cells it holds, so
+    the finest given walls mask holding a cell decides (:class:`DetailTile`, ``walls``).
+    ``None`` when no tile has one (the cells are as :func:`drawn_covers` alone says)."""
+    if not any(tile.walls is not None for tile in tiles):
+        return None
+    cu = [0.5 * (a + b) for a, b in zip(us, us[1:], strict=False)]
+    cv = [0.5 * (a + b) for a, b in zip(vs, vs[1:], strict=False)]
+    return _mask_covers(tiles, cu, cv, "walls")
 
 
 @dataclass(frozen=True)
@@ -479,10 +511,14 @@ def mesh_of_region(surface: NurbsSurface, samples: RegionSamples, tiles: Sequenc
     else:  # no ring: the sampled grid is the region's
         positions, normals = array("f", samples.positions), array("f", samples.normals)
     uvs = grid_uvs(us, vs)
-    if surface.trim is None:
+    vetoes = walls_vetoes(tiles, us, vs)
+    if surface.trim is None and vetoes is None:
         indices = grid_indices(nu, nv, kernel=kernel)
-    else:
+    elif vetoes is None:
         indices = backend.cell_indices(nu, nv, drawn_covers(surface.trim, tiles, us, vs))
+    else:  # without a trim, every cell is drawn but for the walls
+        trim = TrimMask.from_flat(1, 1, b"\x01") if surface.trim is None else surface.trim
+        indices = backend.cell_indices(nu, nv, drawn_covers(trim, tiles, us, vs), vetoes)
     mesh = Mesh(positions, normals, uvs, indices)
     textures = list(textures)
     if textures:
@@ -522,7 +558,8 @@ def tessellate_region(surface: NurbsSurface, uv_rect: Sequence[float], nu: int, 
         sharing a border get the same normals on it; on the domain's outer
         border the differences are one-sided. Cells are left out as by
         ``tessellate_grid`` where the base's trim leaves out their centre,
-        unless a given tile's ``drawn`` mask covers it.
+        unless a given tile's ``drawn`` mask covers it, and where the ``walls``
+        mask of the finest given tile carrying one covers it.
 
     Notes
     -----

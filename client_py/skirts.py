@@ -37,8 +37,8 @@ def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: 
     the other, so no crack shows from the front. The walls never rise above the
     edge they hang from (no fins). Borders on the domain's outer edge get none
     (nothing to meet there), nor do segments whose inward grid cell the base's
-    trim leaves out; where the base's analytic normal vanishes (a pole) the
-    wall has no height.
+    trim leaves out (or a tile's walls mask: ``client_py.layers.DetailTile``); where
+    the base's analytic normal vanishes (a pole) the wall has no height.
 
     Parameters
     ----------
@@ -88,20 +88,28 @@ def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: 
     us, vs = samples.us, samples.vs
     trim = surface.trim
     half_u, half_v = 0.5 * (u1 - u0) / (n - 1), 0.5 * (v1 - v0) / (n - 1)
-    # (grid vertex (a, b) of the side's s-th vertex, inward cell centre of segment s)
+    # (grid vertex (a, b) of the side's s-th vertex, inward cell centre of segment s,
+    # the grid vertex that cell's triangles start from)
     sides = []
     if u0 > 0.0:
-        sides.append((lambda s: (0, s), lambda s: (u0 + half_u, vs[s] + half_v)))
+        sides.append((lambda s: (0, s), lambda s: (u0 + half_u, vs[s] + half_v),
+                      lambda s: s))
     if u1 < 1.0:
-        sides.append((lambda s: (n - 1, s), lambda s: (u1 - half_u, vs[s] + half_v)))
+        sides.append((lambda s: (n - 1, s), lambda s: (u1 - half_u, vs[s] + half_v),
+                      lambda s: (n - 2) * n + s))
     if v0 > 0.0:
-        sides.append((lambda s: (s, 0), lambda s: (us[s] + half_u, v0 + half_v)))
+        sides.append((lambda s: (s, 0), lambda s: (us[s] + half_u, v0 + half_v),
+                      lambda s: s * n))
     if v1 < 1.0:
-        sides.append((lambda s: (s, n - 1), lambda s: (us[s] + half_u, v1 - half_v)))
+        sides.append((lambda s: (s, n - 1), lambda s: (us[s] + half_u, v1 - half_v),
+                      lambda s: s * n + n - 2))
+    # a walls mask may leave out a cell the trim covers: then no skirt hangs from it either
+    walled = any(t.walls is not None for t in tiles)
+    drawn = set(mesh.indices[0::6]) if walled else None
     points, normals, poles = samples.positions, samples.normals, set(samples.degenerate)
     fields = [field for _, field in samples.levels]
     pos, nrm, uv, idx = mesh.positions, mesh.normals, mesh.uvs, mesh.indices
-    for vertex, inward in sides:
+    for vertex, inward, cell in sides:
         first = len(pos) // 3
         walls = []
         for s in range(n):
@@ -123,7 +131,8 @@ def hang_skirts(mesh: Mesh, surface: NurbsSurface, uv_rect: Sequence[float], n: 
                 mesh.colors.extend(mesh.colors[3 * k : 3 * k + 3] * 2)
         pos.extend(array("f", walls))
         for s in range(n - 1):
-            if trim is not None and not trim.covers(*inward(s)):
+            if trim is not None and not trim.covers(*inward(s)) \
+                    or drawn is not None and cell(s) not in drawn:
                 continue
             a, b = first + 2 * s, first + 2 * s + 2
             idx.extend(array("I", (a, b, b + 1, a, b + 1, a + 1)))

@@ -257,6 +257,31 @@ def test_drawn_mask_round_trips_and_its_side_must_match_the_flag():
         write_detail_tile(dataclasses.replace(tile, drawn=TrimMask([[1, 0]])))
 
 
+#: tile_file() as main wrote it before walls masks (flag 0x2) existed: old tiles read the same
+OLD_TILE_CRC, OLD_TILE_SIZE = 558161692, 134
+
+
+def test_walls_mask_round_trips_and_old_tiles_read_and_write_as_before():
+    """A walls mask (flag 0x2, its own side up to 256) round-trips after the drawn mask; a
+    tile without one is written byte for byte as before the flag (tile_file's bytes as
+    main 9ff7160 wrote them) and reads back without walls."""
+    data = tile_file()
+    assert data[5] == 1 and zlib.crc32(data) == OLD_TILE_CRC and len(data) == OLD_TILE_SIZE
+    assert read_detail_tile(data).walls is None
+    tile = read_detail_tile(data)
+    for side in (1, 5, 256):
+        walls = TrimMask((np.arange(side * side).reshape(side, side) % 7 == 1).tolist())
+        back = read_detail_tile(write_detail_tile(dataclasses.replace(tile, walls=walls)))
+        assert back.walls == walls and back.drawn == tile.drawn and back.values == tile.values
+        alone = dataclasses.replace(tile, drawn=None, walls=walls)
+        assert read_detail_tile(write_detail_tile(alone)) == alone
+    with pytest.raises(ValueError, match="walls mask must be square"):
+        write_detail_tile(dataclasses.replace(tile, walls=TrimMask([[1, 0]])))
+    with pytest.raises(ValueError, match="walls mask must be square"):
+        write_detail_tile(dataclasses.replace(tile, walls=TrimMask(np.zeros((257, 257),
+                                                                            bool))))
+
+
 def test_drawn_masks_bring_back_cells_the_base_trim_leaves_out():
     """Cells drawn = base trim covers the cell's centre, or a given tile's mask does."""
     s, q, tiles = surface_and_tiles()
@@ -335,9 +360,10 @@ def test_random_headers_with_valid_crc_raise_format_errors_only(header, payload)
 
 
 # ------------------------------------------------------------------ kernels on whole grids
-def masked_surface_and_tiles(seed: int = 5):
+def masked_surface_and_tiles(seed: int = 5, walls: float = 0.0):
     """A trimmed patch and tiles of levels 1..3 (some absent, some without a drawn mask),
-    drawn masks of different sides."""
+    drawn masks of different sides; with ``walls``, that share of the tiles carries a walls
+    mask of its own side (some all clear)."""
     s, _, _ = surface_and_tiles()
     rng = np.random.default_rng(seed)
     trim = rng.random((13, 11)) < 0.5
@@ -354,6 +380,11 @@ def masked_surface_and_tiles(seed: int = 5):
                     side = int(rng.integers(1, 9))
                     tile = dataclasses.replace(tile, drawn=TrimMask(rng.random((side, side))
                                                                     < 0.4))
+                if rng.random() < walls:
+                    side = int(rng.integers(1, 12))
+                    share = 0.0 if rng.random() < 0.3 else 0.5
+                    tile = dataclasses.replace(tile, walls=TrimMask(rng.random((side, side))
+                                                                    < share))
                 tiles.append(tile)
     return base, trim, tiles
 
@@ -362,39 +393,60 @@ def reference_drawn(trim: np.ndarray, tiles, us: np.ndarray, vs: np.ndarray) -> 
     """The definition, cell by cell with numpy: the centre covered by the base trim, or by
     the drawn mask of a tile whose closed rectangle contains it; a centre on the border of
     two tiles of a level belongs to the one ``min(floor(u 2^L), 2^L - 1)`` names (the
-    tile above the border), as for the base trim's cells."""
+    tile above the border), as for the base trim's cells. Then, of the tiles with a walls
+    mask holding the centre, the finest one's mask leaves the cell out where it covers it."""
     cu, cv = 0.5 * (us[:-1] + us[1:]), 0.5 * (vs[:-1] + vs[1:])
     U, V = np.meshgrid(cu, cv, indexing="ij")
     rows, cols = trim.shape
     drawn = trim[np.minimum((U * rows).astype(int), rows - 1),
                  np.minimum((V * cols).astype(int), cols - 1)].copy()
-    for t in tiles:
-        if t.drawn is None:
-            continue
+
+    def held(t, mask):  # the centres tile t holds, and its mask's value at every centre
         u0, v0, u1, v1 = t.uv_rect
         n = 1 << t.level
         named = ((np.minimum(np.floor(U * n), n - 1) == t.i)
                  & (np.minimum(np.floor(V * n), n - 1) == t.j))
         inside = named & (U >= u0) & (U <= u1) & (V >= v0) & (V <= v1)
-        mask = np.frombuffer(t.drawn.flat, np.uint8).reshape(t.drawn.rows, t.drawn.cols)
-        r = np.clip(((U - u0) / (u1 - u0) * t.drawn.rows).astype(int), 0, t.drawn.rows - 1)
-        c = np.clip(((V - v0) / (v1 - v0) * t.drawn.cols).astype(int), 0, t.drawn.cols - 1)
-        drawn |= inside & (mask[r, c] != 0)
-    return drawn
+        cells = np.frombuffer(mask.flat, np.uint8).reshape(mask.rows, mask.cols)
+        r = np.clip(((U - u0) / (u1 - u0) * mask.rows).astype(int), 0, mask.rows - 1)
+        c = np.clip(((V - v0) / (v1 - v0) * mask.cols).astype(int), 0, mask.cols - 1)
+        return inside, cells[r, c] != 0
+
+    for t in tiles:
+        if t.drawn is not None:
+            inside, covered = held(t, t.drawn)
+            drawn |= inside & covered
+    veto = np.zeros_like(drawn)
+    for t in sorted(tiles, key=lambda t: t.level):
+        if t.walls is not None:
+            inside, covered = held(t, t.walls)
+            veto[inside] = covered[inside]
+    return drawn & ~veto
 
 
 @pytest.mark.parametrize("rect, nu, nv", [((0, 0, 1, 1), 57, 45), ((0.1, 0.3, 0.77, 0.9), 41, 37),
                                           ((0.26, 0.51, 0.49, 0.74), 19, 23)])
-def test_drawn_cells_are_the_base_trim_or_a_tile_mask_in_both_kernels(rect, nu, nv):
-    base, trim, tiles = masked_surface_and_tiles()
-    us = np.array([rect[0] + k * (rect[2] - rect[0]) / (nu - 1) for k in range(nu - 1)]
+@pytest.mark.parametrize("walls", [0.0, 0.6])
+def test_drawn_cells_are_the_base_trim_or_a_tile_mask_in_both_kernels(rect, nu, nv, walls):
+    """... less the cells the finest given walls mask holding them covers (``walls``)."""
+    base, trim, tiles = masked_surface_and_tiles(walls=walls)
+    # the grid as tessellate_region makes it (u0 + k step, to the bit: a centre one ulp
+    # across a mask cell's border is in the other cell)
+    us = np.array([rect[0] + k * ((rect[2] - rect[0]) / (nu - 1)) for k in range(nu - 1)]
                   + [rect[2]])
-    vs = np.array([rect[1] + k * (rect[3] - rect[1]) / (nv - 1) for k in range(nv - 1)]
+    vs = np.array([rect[1] + k * ((rect[3] - rect[1]) / (nv - 1)) for k in range(nv - 1)]
                   + [rect[3]])
     expected = reference_drawn(trim, tiles, us, vs)
     assert 0 < expected.sum() < expected.size
     # the tiles' masks add cells the base trim leaves out
     assert expected.sum() > reference_drawn(trim, [], us, vs).sum()
+    if walls:  # the walls masks take some away, and a finer one gives some back
+        plain = [dataclasses.replace(t, walls=None) for t in tiles]
+        assert expected.sum() < reference_drawn(trim, plain, us, vs).sum()
+        if rect == (0, 0, 1, 1):
+            coarsest = [t if t.level == 1 else dataclasses.replace(t, walls=None)
+                        for t in tiles]
+            assert (expected & ~reference_drawn(trim, coarsest, us, vs)).any()
     meshes = {k: tessellate_region(base, rect, nu, nv, tiles, kernel=k)
               for k in ("python", "numpy")}
     assert meshes["python"].indices == meshes["numpy"].indices

@@ -279,6 +279,29 @@ def test_no_skirt_on_the_domain_edge_and_none_over_trimmed_cells():
     assert new.min() >= count  # the walls' triangles use the walls' vertices
 
 
+def test_no_skirt_over_cells_a_walls_mask_leaves_out():
+    """A walls mask on the region's finest tile leaving out the cells of its u0 border's
+    first half: those segments hang no skirt; the other sides' segments keep theirs."""
+    import dataclasses
+
+    surface, n, depth = _base_patch(), 9, 0.05
+    surface = NurbsSurface(surface.degree, surface.knots, surface.control_points,
+                           surface.weights)  # no trim: only the walls take segments away
+    node = (2, 1, 2)  # all four borders inner
+    tiles = _region_tiles(*node)
+    rect = tile_rect(*node)
+    walls = np.zeros((8, 8), bool)
+    walls[0, :4] = True  # mask row 0 (along u0), columns 0..3: v in the first half
+    tiles[-1] = dataclasses.replace(tiles[-1], walls=TrimMask(walls.tolist()))
+    plain = tessellate_region(surface, rect, n, n, tiles)
+    mesh = hang_skirts(tessellate_region(surface, rect, n, n, tiles), surface, rect, n, tiles,
+                       depth)
+    # the grid's 8 x 8 cells are the mask's: cells (0, 0..3) left out, so u0's segments 0..3
+    # and v0's segment 0 (its inward cell is (0, 0)) hang nothing
+    assert plain.triangle_count == 2 * (64 - 4)
+    assert mesh.triangle_count - plain.triangle_count == 2 * (4 * (n - 1) - 5)
+
+
 def test_skirt_arguments_are_checked():
     surface = _base_patch()
     mesh = tessellate_region(surface, (0, 0, 0.5, 0.5), 5, 5)

@@ -402,6 +402,8 @@ def _retrimmed(best: FitResult, pyramid: DetailPyramid) -> FitResult:
     data = write_patch(surface, bits=best.history["bits"])
     history = best.history | {"finest_trim": list(pyramid.trim.shape),
                               "wall_cells": pyramid.wall_cells}
+    if any(pyramid.level_wall_cells):
+        history["level_wall_cells"] = pyramid.level_wall_cells
     return replace(best, data=data, trim=surface.trim, history=history)
 
 
@@ -496,7 +498,8 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     (deviation statistics of the covered points, ``fitter.fitting.error.error_stats``)
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
     ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``; ``finest_trim``
-    and ``wall_cells`` when the finest level's walls were trimmed); ``tiles`` (the
+    and ``wall_cells`` when the finest level's walls were trimmed, ``level_wall_cells``
+    with them when a coarser level has walls); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
     -> seconds); ``error_raster`` (max ``|d|`` per ``(u, v)`` cell, one byte each,
     ``fitter.fitting.error.error_raster``, its ``max`` = ``stats.max``); ``memory``, only
