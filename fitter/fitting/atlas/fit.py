@@ -120,6 +120,7 @@ from .layout import (
     bilinear_atlas,
     decimate,
     flip_edges,
+    insert_vertices,
     quad_layout,
     split_longest_edges,
     thin_part_weights,
@@ -862,17 +863,22 @@ FAR_PASSES = 1  # refine_far_base at most this many times, while it gets nearer 
 # the mask's second pass was not kept)
 
 
-def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray]
-                      ) -> np.ndarray:
+def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray],
+                      closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Distance over the diagonal of the scan's surface from each patch's
-    :data:`FAR_SAMPLES` ² grid (:func:`grid_mesh`'s vertices), shape ``(F, FAR_SAMPLES²)``."""
+    :data:`FAR_SAMPLES` ² grid (:func:`grid_mesh`'s vertices), shape ``(F, FAR_SAMPLES²)``;
+    with ``closest``, also each sample's closest point on the scan, ``(F, FAR_SAMPLES², 3)``."""
     from .measure import closest_points_on_mesh
 
     vertices, faces = scan_mesh
     grid, _ = grid_mesh(atlas, FAR_SAMPLES)
-    d, _, _ = closest_points_on_mesh(grid, vertices, faces)
+    d, _, q = closest_points_on_mesh(grid, vertices, faces)
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0)))
-    return d.reshape(len(atlas.quads), -1) / diagonal
+    far = d.reshape(len(atlas.quads), -1) / diagonal
+    return (far, q.reshape(len(atlas.quads), -1, 3)) if closest else far
+
+
+FAR_SPLIT = "longest"  # A/B: "inside" (insert_vertices at the far sample's scan point) | "longest"
 
 
 def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurface,
@@ -899,14 +905,21 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
     ``max_added`` caps the triangles the splits add (the farthest first: a byte budget's
     room, :func:`refined_within_budget`).
     """
-    far = far_patch_samples(atlas, scan_mesh).max(axis=1)
+    samples, closest = far_patch_samples(atlas, scan_mesh, closest=True)
+    far = samples.max(axis=1)
     if far.max() <= FAR_REACH:
         return None
-    by_triangle = far.reshape(-1, 3).max(axis=1)
+    by_sample = samples.reshape(len(samples) // 3, -1)  # (T, 3 FAR_SAMPLES²): a triangle's
+    by_triangle = by_sample.max(axis=1)
     order = np.argsort(-by_triangle)
     order = order[by_triangle[order] > FAR_REACH]
-    vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
-                                                    layout.triangles, order, max_added)
+    if FAR_SPLIT == "inside":
+        feet = closest.reshape(len(by_sample), -1, 3)[order, by_sample[order].argmax(axis=1)]
+        vertices, triangles, made = insert_vertices(layout.triangle_vertices, layout.triangles,
+                                                    order, feet, max_added)
+    else:
+        vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
+                                                        layout.triangles, order, max_added)
     if not made:
         return None
     triangles, _ = flip_edges(surface, vertices, triangles)
