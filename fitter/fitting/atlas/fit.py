@@ -120,7 +120,6 @@ from .layout import (
     bilinear_atlas,
     decimate,
     flip_edges,
-    insert_vertices,
     quad_layout,
     split_longest_edges,
     thin_part_weights,
@@ -860,25 +859,28 @@ FAR_SAMPLES = 9  # samples per patch side (borders included) to find where the b
 BUDGET_REFITS = 3  # refits refined_within_budget tries to meet the byte budget
 FAR_PASSES = 1  # refine_far_base at most this many times, while it gets nearer in the budget
 # (3 passes: Lucy 1,194 -> 1,212 patches, base max 1.16 -> 1.10 %, but level 0 1.24 -> 1.34 %;
-# the mask's second pass was not kept)
+# the mask's second pass is refused as no nearer, not for its bytes: its refit, 404 -> 418
+# triangles, takes four of the five far places of the first under 1.14 % of the diagonal
+# (9² samples a patch: 1.38 -> 1.14, 1.23, 1.15, 1.02 -> under 0.86 %) but the wedge-shaped
+# gap beside the tusk at the mouth's corner rises 1.36 -> 1.45 %: there the layout triangles
+# (edges 7 % of the diagonal) have corners on both sheets of a gap 3-4 % wide, their patches
+# almost no working points (0 to 11), and every split (of the longest chord, of the longest
+# path along the surface at its middle, or a vertex put at the far sample's foot on the
+# scan) leaves triangles across it: a wall between the sheets that the refit moves, never
+# removes)
 
 
-def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray],
-                      closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray]
+                      ) -> np.ndarray:
     """Distance over the diagonal of the scan's surface from each patch's
-    :data:`FAR_SAMPLES` ² grid (:func:`grid_mesh`'s vertices), shape ``(F, FAR_SAMPLES²)``;
-    with ``closest``, also each sample's closest point on the scan, ``(F, FAR_SAMPLES², 3)``."""
+    :data:`FAR_SAMPLES` ² grid (:func:`grid_mesh`'s vertices), shape ``(F, FAR_SAMPLES²)``."""
     from .measure import closest_points_on_mesh
 
     vertices, faces = scan_mesh
     grid, _ = grid_mesh(atlas, FAR_SAMPLES)
-    d, _, q = closest_points_on_mesh(grid, vertices, faces)
+    d, _, _ = closest_points_on_mesh(grid, vertices, faces)
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0)))
-    far = d.reshape(len(atlas.quads), -1) / diagonal
-    return (far, q.reshape(len(atlas.quads), -1, 3)) if closest else far
-
-
-FAR_SPLIT = "longest"  # A/B: "inside" (insert_vertices at the far sample's scan point) | "longest"
+    return d.reshape(len(atlas.quads), -1) / diagonal
 
 
 def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurface,
@@ -905,21 +907,14 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
     ``max_added`` caps the triangles the splits add (the farthest first: a byte budget's
     room, :func:`refined_within_budget`).
     """
-    samples, closest = far_patch_samples(atlas, scan_mesh, closest=True)
-    far = samples.max(axis=1)
+    far = far_patch_samples(atlas, scan_mesh).max(axis=1)
     if far.max() <= FAR_REACH:
         return None
-    by_sample = samples.reshape(len(samples) // 3, -1)  # (T, 3 FAR_SAMPLES²): a triangle's
-    by_triangle = by_sample.max(axis=1)
+    by_triangle = far.reshape(-1, 3).max(axis=1)
     order = np.argsort(-by_triangle)
     order = order[by_triangle[order] > FAR_REACH]
-    if FAR_SPLIT == "inside":
-        feet = closest.reshape(len(by_sample), -1, 3)[order, by_sample[order].argmax(axis=1)]
-        vertices, triangles, made = insert_vertices(layout.triangle_vertices, layout.triangles,
-                                                    order, feet, max_added)
-    else:
-        vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
-                                                        layout.triangles, order, max_added)
+    vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
+                                                    layout.triangles, order, max_added)
     if not made:
         return None
     triangles, _ = flip_edges(surface, vertices, triangles)

@@ -492,140 +492,37 @@ def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
             np.concatenate([triangles, np.array(added, np.int64).reshape(-1, 3)]))
 
 
-def insert_vertices(vertices: np.ndarray, triangles: np.ndarray, chosen: np.ndarray,
-                    positions: np.ndarray, max_added: int | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Each triangle of ``chosen (S,)`` split in three at a new vertex ``positions (S, 3)``.
-
-    Triangle ``(a, b, c)`` gets vertex ``m = Vt + i`` and becomes ``(a, b, m)``, ``(b, c, m)``
-    and ``(c, a, m)`` in its own orientation (a 1-to-3 split, as in Loop's √3 insertion):
-    an oriented 2-manifold stays one, with its borders and topology, and ``m`` may lie off
-    the triangle's plane (into the groove it bridges). In the order given, a triangle
-    already split is skipped; with ``max_added`` the splits stop before the triangles they
-    add (two each) would exceed it.
-
-    Returns
-    -------
-    vertices, triangles, count
-        The refined layout and the number of triangles split.
-    """
-    vertices = np.asarray(vertices, np.float64)
-    triangles = np.array(triangles, np.int64)
-    positions = np.asarray(positions, np.float64).reshape(-1, 3)
-    chosen = np.asarray(chosen, np.int64).reshape(-1)
-    if len(chosen) != len(positions):
-        raise ValueError(f"{len(chosen)} triangles but {len(positions)} positions")
-    seen: set[int] = set()
-    kept = []
-    for i, t in enumerate(chosen.tolist()):
-        if t in seen:
-            continue
-        if max_added is not None and 2 * (len(kept) + 1) > max_added:
-            break
-        seen.add(t)
-        kept.append(i)
-    if not kept:
-        return vertices, triangles, 0
-    kept = np.array(kept, np.int64)
-    split = chosen[kept]
-    m = len(vertices) + np.arange(len(kept))
-    a, b, c = triangles[split, 0].copy(), triangles[split, 1].copy(), triangles[split, 2].copy()
-    triangles[split] = np.stack([a, b, m], axis=1)
-    added = np.concatenate([np.stack([b, c, m], axis=1), np.stack([c, a, m], axis=1)])
-    return (np.concatenate([vertices, positions[kept]]), np.concatenate([triangles, added]),
-            len(kept))
-
-
-def surface_paths(surface: ScanSurface, vertices: np.ndarray, edges: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The shortest path along ``surface``'s edges between the ends of each of ``edges (S, 2)``
-    (indices into ``vertices (V, 3)``, each end taken at its nearest surface vertex):
-    its length and its midpoint (the surface vertex where half of it is walked).
-
-    Dijkstra's algorithm on the surface's edge graph (``scipy.sparse.csgraph.dijkstra``),
-    an upper bound of the geodesic distance (Mitchell, Mount & Papadimitriou 1987 give the
-    exact one) that is close enough to tell an edge along a sheet, whose path is about as
-    long as its chord, from one bridging a groove or the gap between two sheets, whose path
-    runs down into it and back. Ends in different pieces: the chord's length and the
-    surface's closest point to its midpoint.
-
-    Returns
-    -------
-    length : ndarray, shape (S,)
-    midpoint : ndarray, shape (S, 3)
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
-    from scipy.spatial import cKDTree
-
-    from .measure import closest_points_on_mesh
-
-    points = np.asarray(surface.vertices, np.float64)
-    faces = np.asarray(surface.faces, np.int64)
-    vertices = np.asarray(vertices, np.float64)
-    edges = np.asarray(edges, np.int64).reshape(-1, 2)
-    pairs = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]],
-                                              faces[:, [2, 0]]]), axis=1), axis=0)
-    weight = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
-    graph = coo_matrix((weight, (pairs[:, 0], pairs[:, 1])),
-                       shape=(len(points), len(points))).tocsr()
-    _, node = cKDTree(points).query(vertices[edges].reshape(-1, 3))
-    node = node.reshape(-1, 2)
-    sources, row = np.unique(node[:, 0], return_inverse=True)
-    distance, previous = dijkstra(graph, directed=False, indices=sources,
-                                  return_predecessors=True)
-    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
-    _, _, midpoint = closest_points_on_mesh(vertices[edges].mean(axis=1), points, faces)
-    for i, (r, end) in enumerate(zip(row.tolist(), node[:, 1].tolist())):
-        if not np.isfinite(distance[r, end]) or node[i, 0] == end:
-            continue
-        half = 0.5 * distance[r, end]
-        while distance[r, end] > half:
-            end = previous[r, end]
-        length[i], midpoint[i] = distance[r, node[i, 1]], points[end]
-    return length, midpoint
-
-
 def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
                         chosen: np.ndarray, max_added: int | None = None
                         ) -> tuple[np.ndarray, np.ndarray, int]:
-    """The longest edge along the surface of each triangle in ``chosen``, split at the
-    middle of its path on the surface.
+    """The longest edge of each triangle in ``chosen`` split at the surface.
 
-    In the order given (the most urgent first), triangle ``t``'s edge whose path along the
-    surface (:func:`surface_paths`) is the longest is split (:func:`split_edges`) at that
-    path's midpoint. Measured along the surface, an edge that bridges a groove or the gap
-    between two sheets of a fold is the long one and its new vertex lies at the groove's
-    floor or the fold's rim, where the fitted patches could not reach; measured as a chord
-    (the closest point of the surface to the chord's middle) the split went to the longest
-    chord and the new vertex to one of the sheets, and the triangles still bridged the gap
-    (the Bali mask's carving behind its relief: a second round of splits found the base no
-    nearer). A triangle whose edge's triangles are already being split is skipped (one
-    split per triangle). With ``max_added``, the splits stop before the triangles they add
-    (one per triangle on the edge: two inside, one on an open border) would exceed it.
+    In the order given (the most urgent first), triangle ``t``'s longest edge is split
+    (:func:`split_edges`) at the closest point of the surface to its midpoint
+    (``measure.closest_points_on_mesh``); a triangle whose longest edge's triangles are
+    already being split is skipped (one split per triangle). With ``max_added``, the splits
+    stop before the triangles they add (one per triangle on the edge: two inside, one on
+    an open border) would exceed it.
 
     Returns
     -------
     vertices, triangles, count
         The refined layout and the number of edges split.
     """
+    from .measure import closest_points_on_mesh
+
     vertices = np.asarray(vertices, np.float64)
     triangles = np.asarray(triangles, np.int64)
-    chosen = np.asarray(chosen, np.int64).reshape(-1)
     owners: dict[tuple[int, int], list[int]] = {}
     for t, tri in enumerate(triangles.tolist()):
         for k in range(3):
             a, b = tri[k], tri[(k + 1) % 3]
             owners.setdefault((min(a, b), max(a, b)), []).append(t)
-    if not len(chosen):
-        return vertices, triangles, 0
-    sides = np.stack([triangles[chosen], np.roll(triangles[chosen], -1, axis=1)], axis=2)
-    length, middle = surface_paths(surface, vertices, sides.reshape(-1, 2))
-    length, middle = length.reshape(-1, 3), middle.reshape(-1, 3, 3)
     touched: set[int] = set()
-    edges, positions = [], []
-    for i, t in enumerate(chosen.tolist()):
-        k = int(np.argmax(length[i]))
+    edges = []
+    for t in np.asarray(chosen, np.int64).tolist():
+        corners = vertices[triangles[t]]
+        k = int(np.argmax(np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)))
         a, b = int(triangles[t, k]), int(triangles[t, (k + 1) % 3])
         on_edge = owners[min(a, b), max(a, b)]
         if touched.intersection(on_edge):
@@ -634,9 +531,10 @@ def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: n
             break
         touched.update(on_edge)
         edges.append((a, b))
-        positions.append(middle[i, k])
     if not edges:
         return vertices, triangles, 0
-    vertices, triangles = split_edges(vertices, triangles, np.array(edges, np.int64),
-                                      np.array(positions))
+    edges = np.array(edges, np.int64)
+    _, _, positions = closest_points_on_mesh(vertices[edges].mean(axis=1), surface.vertices,
+                                             surface.faces)
+    vertices, triangles = split_edges(vertices, triangles, edges, positions)
     return vertices, triangles, len(edges)
