@@ -883,6 +883,19 @@ def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarr
     return d.reshape(len(atlas.quads), -1) / diagonal
 
 
+def surface_normals_at(points: np.ndarray, scan_mesh: tuple[np.ndarray, np.ndarray]
+                       ) -> np.ndarray:
+    """The unit normal of the scan's triangle closest to each of ``points (P, 3)``, shape
+    ``(P, 3)`` (``measure.closest_points_on_mesh``)."""
+    from .measure import closest_points_on_mesh
+
+    vertices, faces = (np.asarray(a) for a in scan_mesh)
+    _, nearest, _ = closest_points_on_mesh(np.asarray(points, np.float64), vertices, faces)
+    corners = vertices[faces[nearest]].astype(np.float64)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+
+
 def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurface,
                     points: np.ndarray, normals: np.ndarray, *,
                     scan_mesh: tuple[np.ndarray, np.ndarray], max_added: int | None = None,
@@ -913,8 +926,9 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
     by_triangle = far.reshape(-1, 3).max(axis=1)
     order = np.argsort(-by_triangle)
     order = order[by_triangle[order] > FAR_REACH]
-    vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
-                                                    layout.triangles, order, max_added)
+    vertices, triangles, made = split_longest_edges(
+        surface, layout.triangle_vertices, layout.triangles, order, max_added,
+        facing=surface_normals_at(layout.triangle_vertices, scan_mesh))
     if not made:
         return None
     triangles, _ = flip_edges(surface, vertices, triangles)
