@@ -795,3 +795,52 @@ def test_a_far_base_over_the_budget_is_refined_where_farthest_within_it():
     # no room for one more triangle: no refit
     assert refined_within_budget((atlas, layout, size), surface, points, normals, bits=8,
                                  byte_budget=size, **options) is None
+
+
+def test_split_longest_edges_splits_every_edge_across_a_narrow_groove():
+    """A layout triangle bridging the mouth of a V-groove ``z = 3 |x|`` (walls whose normals
+    point against each other, ``n_l · n_r = -0.8``) with two corners on one wall: its longest
+    edge runs along that wall, and splitting it leaves both halves across the groove; with
+    the walls' normals (``facing``), the two edges across it are split instead (both at the
+    right wall here: a third of the mouth still bridged) and the layout comes nearer the
+    exact surface (distance to the two lines ``z = ±3 x`` in closed form)."""
+    from fitter.fitting.atlas.layout import triangle_samples
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    n = 24
+    s = np.linspace(-1.0, 1.0, n + 1)
+    x, y = np.meshgrid(s / 3.0, 2.0 * s, indexing="ij")
+    grid = np.stack([x.ravel(), y.ravel(), 3.0 * np.abs(x.ravel())], axis=1)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    p = (i * (n + 1) + j).ravel()
+    faces = np.concatenate([np.stack([p, p + n + 1, p + n + 2], axis=1),
+                            np.stack([p, p + n + 2, p + 1], axis=1)])
+    surface = ScanSurface(grid, faces, "mesh", 1, {})
+    third = 1.0 / 3.0
+    vertices = np.array([[-third, -1.0, 1.0], [third, 0.0, 1.0], [-third, 1.0, 1.0]])
+    triangles = np.array([[0, 1, 2]])
+    wall = np.array([[3.0, 0.0, -1.0], [-3.0, 0.0, -1.0]]) / np.sqrt(10.0)  # left, right
+    facing = wall[[0, 1, 0]]
+    assert facing[0] @ facing[1] == pytest.approx(-0.8)
+
+    def farthest(v, t):
+        # the layout's samples against the exact groove: distance to the nearer wall line
+        q = np.concatenate([triangle_samples(v, t, 8)[0], v])
+        left = np.abs(q[:, 2] + 3.0 * q[:, 0]) / np.sqrt(10.0)
+        right = np.abs(q[:, 2] - 3.0 * q[:, 0]) / np.sqrt(10.0)
+        outside_left = (q[:, 0] < 0) & (q[:, 2] < -3 * q[:, 0])  # below the left wall's foot
+        d = np.minimum(left, right)
+        return float(np.max(np.where(outside_left, np.hypot(q[:, 0], q[:, 2]), d)))
+
+    before = farthest(vertices, triangles)
+    long_v, long_t, long_made = split_longest_edges(surface, vertices, triangles, [0])
+    gap_v, gap_t, gap_made = split_longest_edges(surface, vertices, triangles, [0],
+                                                 facing=facing)
+    assert long_made == 1 and gap_made == 2 and len(gap_t) == 3
+    assert farthest(long_v, long_t) == pytest.approx(before, rel=0.05)  # still across
+    assert farthest(gap_v, gap_t) < 0.95 * farthest(long_v, long_t)  # 0.285 against 0.316
+    problems = manifold_problems(gap_t)
+    assert problems["nonmanifold_edges"] == 0 and problems["misoriented_edges"] == 0
+    # the new vertices lie on the groove's walls
+    new = gap_v[3:]
+    np.testing.assert_allclose(new[:, 2], 3.0 * np.abs(new[:, 0]), atol=1e-9)
