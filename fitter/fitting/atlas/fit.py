@@ -867,7 +867,10 @@ FAR_PASSES = 1  # refine_far_base at most this many times, while it gets nearer 
 # almost no working points (0 to 11), and every split (of the longest chord, of the longest
 # path along the surface at its middle, or a vertex put at the far sample's foot on the
 # scan) leaves triangles across it: a wall between the sheets that the refit moves, never
-# removes)
+# removes. 12 of the mask's 15 far triangles have corners on facing sheets (their scan
+# normals' n_a . n_b < 0); splitting every edge across the gap (branch w20-mask, dee9df5)
+# took the mask's level 0 max 1.44 -> 1.36 % and far area 0.063 -> 0.031 % (2 passes: 1.38 %,
+# 0.016 %) but its RMS +13 % (+7 %) and Lucy's level 0 max 0.99 -> 1.23 % (1.18 %): not kept)
 
 
 def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray]
@@ -881,19 +884,6 @@ def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarr
     d, _, _ = closest_points_on_mesh(grid, vertices, faces)
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0)))
     return d.reshape(len(atlas.quads), -1) / diagonal
-
-
-def surface_normals_at(points: np.ndarray, scan_mesh: tuple[np.ndarray, np.ndarray]
-                       ) -> np.ndarray:
-    """The unit normal of the scan's triangle closest to each of ``points (P, 3)``, shape
-    ``(P, 3)`` (``measure.closest_points_on_mesh``)."""
-    from .measure import closest_points_on_mesh
-
-    vertices, faces = (np.asarray(a) for a in scan_mesh)
-    _, nearest, _ = closest_points_on_mesh(np.asarray(points, np.float64), vertices, faces)
-    corners = vertices[faces[nearest]].astype(np.float64)
-    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
 
 
 def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurface,
@@ -926,9 +916,8 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
     by_triangle = far.reshape(-1, 3).max(axis=1)
     order = np.argsort(-by_triangle)
     order = order[by_triangle[order] > FAR_REACH]
-    vertices, triangles, made = split_longest_edges(
-        surface, layout.triangle_vertices, layout.triangles, order, max_added,
-        facing=surface_normals_at(layout.triangle_vertices, scan_mesh))
+    vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
+                                                    layout.triangles, order, max_added)
     if not made:
         return None
     triangles, _ = flip_edges(surface, vertices, triangles)

@@ -493,24 +493,16 @@ def split_edges(vertices: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
 
 
 def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
-                        chosen: np.ndarray, max_added: int | None = None,
-                        facing: np.ndarray | None = None
+                        chosen: np.ndarray, max_added: int | None = None
                         ) -> tuple[np.ndarray, np.ndarray, int]:
-    """The longest edge of each triangle in ``chosen``, or every edge across a gap, split at
-    the surface.
+    """The longest edge of each triangle in ``chosen`` split at the surface.
 
     In the order given (the most urgent first), triangle ``t``'s longest edge is split
     (:func:`split_edges`) at the closest point of the surface to its midpoint
     (``measure.closest_points_on_mesh``); a triangle whose longest edge's triangles are
-    already being split is skipped. With ``facing (Vt, 3)``, the surface's unit normal at
-    each layout vertex, a triangle with corners on two facing sheets (an edge whose ends'
-    normals point against each other, ``n_a · n_b < 0``: the two sides of a groove or of
-    the gap between a mask's relief and its back) gets every such edge split instead, in
-    rounds of :func:`split_edges` (one edge a triangle a round): one split leaves the
-    halves across the gap, and their patches a wall between the sheets (the Bali mask, 12
-    of its 15 far triangles). With ``max_added``, the splits stop before the triangles
-    they add (one per triangle on the edge: two inside, one on an open border) would
-    exceed it.
+    already being split is skipped (one split per triangle). With ``max_added``, the splits
+    stop before the triangles they add (one per triangle on the edge: two inside, one on
+    an open border) would exceed it.
 
     Returns
     -------
@@ -527,59 +519,22 @@ def split_longest_edges(surface: ScanSurface, vertices: np.ndarray, triangles: n
             a, b = tri[k], tri[(k + 1) % 3]
             owners.setdefault((min(a, b), max(a, b)), []).append(t)
     touched: set[int] = set()
-    wanted: list[tuple[int, int]] = []
-    added = 0
+    edges = []
     for t in np.asarray(chosen, np.int64).tolist():
-        tri = triangles[t].tolist()
-        sides = [(min(tri[k], tri[(k + 1) % 3]), max(tri[k], tri[(k + 1) % 3]))
-                 for k in range(3)]
-        across = [] if facing is None else [e for e in sides
-                                             if float(facing[e[0]] @ facing[e[1]]) < 0]
-        if across:
-            new = [e for e in across if e not in wanted]
-        else:
-            corners = vertices[tri]
-            k = int(np.argmax(np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)))
-            if touched.intersection(owners[sides[k]]):
-                continue
-            new = [sides[k]]
-        cost = sum(len(owners[e]) for e in new)
-        if max_added is not None and added + cost > max_added:
+        corners = vertices[triangles[t]]
+        k = int(np.argmax(np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)))
+        a, b = int(triangles[t, k]), int(triangles[t, (k + 1) % 3])
+        on_edge = owners[min(a, b), max(a, b)]
+        if touched.intersection(on_edge):
+            continue
+        if max_added is not None and len(touched) + len(on_edge) > max_added:
             break
-        added += cost
-        for e in new:
-            touched.update(owners[e])
-            wanted.append(e)
-    if not wanted:
+        touched.update(on_edge)
+        edges.append((a, b))
+    if not edges:
         return vertices, triangles, 0
-    edges = np.array(wanted, np.int64)
+    edges = np.array(edges, np.int64)
     _, _, positions = closest_points_on_mesh(vertices[edges].mean(axis=1), surface.vertices,
                                              surface.faces)
-    todo = list(range(len(edges)))
-    n_old = len(vertices)
-    vertices = np.concatenate([vertices, positions])
-    while todo:
-        # one edge a triangle a round; an edge split leaves the other edges edges
-        index: dict[tuple[int, int], list[int]] = {}
-        for t, tri in enumerate(triangles.tolist()):
-            for k in range(3):
-                a, b = tri[k], tri[(k + 1) % 3]
-                index.setdefault((min(a, b), max(a, b)), []).append(t)
-        used: set[int] = set()
-        now, later = [], []
-        for i in todo:
-            on_edge = index[tuple(edges[i])]
-            if used.intersection(on_edge):
-                later.append(i)
-            else:
-                now.append(i)
-                used.update(on_edge)
-        base = len(vertices)
-        vertices, triangles = split_edges(vertices, triangles, edges[now], positions[now])
-        # split_edges appended the new vertices again: point the triangles at the first copies
-        vertices = vertices[:base]
-        remap = np.arange(base + len(now))
-        remap[base:] = n_old + np.array(now)
-        triangles = remap[triangles]
-        todo = later
+    vertices, triangles = split_edges(vertices, triangles, edges, positions)
     return vertices, triangles, len(edges)
