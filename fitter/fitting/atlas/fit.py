@@ -859,7 +859,18 @@ FAR_SAMPLES = 9  # samples per patch side (borders included) to find where the b
 BUDGET_REFITS = 3  # refits refined_within_budget tries to meet the byte budget
 FAR_PASSES = 1  # refine_far_base at most this many times, while it gets nearer in the budget
 # (3 passes: Lucy 1,194 -> 1,212 patches, base max 1.16 -> 1.10 %, but level 0 1.24 -> 1.34 %;
-# the mask's second pass was not kept)
+# the mask's second pass is refused as no nearer, not for its bytes: its refit, 404 -> 418
+# triangles, takes four of the five far places of the first under 1.14 % of the diagonal
+# (9² samples a patch: 1.38 -> 1.14, 1.23, 1.15, 1.02 -> under 0.86 %) but the wedge-shaped
+# gap beside the tusk at the mouth's corner rises 1.36 -> 1.45 %: there the layout triangles
+# (edges 7 % of the diagonal) have corners on both sheets of a gap 3-4 % wide, their patches
+# almost no working points (0 to 11), and every split (of the longest chord, of the longest
+# path along the surface at its middle, or a vertex put at the far sample's foot on the
+# scan) leaves triangles across it: a wall between the sheets that the refit moves, never
+# removes. 12 of the mask's 15 far triangles have corners on facing sheets (their scan
+# normals' n_a . n_b < 0); splitting every edge across the gap (branch w20-mask, dee9df5)
+# took the mask's level 0 max 1.44 -> 1.36 % and far area 0.063 -> 0.031 % (2 passes: 1.38 %,
+# 0.016 %) but its RMS +13 % (+7 %) and Lucy's level 0 max 0.99 -> 1.23 % (1.18 %): not kept)
 
 
 def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray]
