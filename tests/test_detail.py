@@ -382,11 +382,11 @@ def test_a_scattered_clouds_gaps_are_not_walls():
     redraw = detail.Redraw.from_foot_points(model, np.ones((1, 1), bool), points, U, V, False)
     fields = [np.zeros((detail.SPANS << k) + detail.DEGREE) for k in range(3)]
     fields = [np.zeros((len(f), len(f))) for f in fields]
-    assert not redraw.walls(fields, detail.DEGREE, detail.SPANS, rms=0.0).any()
+    assert not redraw.walls(fields, detail.DEGREE, detail.SPANS, rms=0.0, size=128).any()
     corner = np.arange(129) / 128  # the finest grid's corners, 128 cells a side
     u, v = (x.ravel() for x in np.meshgrid(corner, corner, indexing="ij"))
     gaps = redraw.near.farther(np.column_stack([u, v, 0 * u]), redraw.near.limit(0.0))
     assert gaps.sum() > 100
     lifted = [f.copy() for f in fields]
     lifted[-1][40:50, 40:50] = 3 * redraw.near.wall_limit(0.0)  # a bump off the scan
-    assert redraw.walls(lifted, detail.DEGREE, detail.SPANS, rms=0.0).any()
+    assert redraw.walls(lifted, detail.DEGREE, detail.SPANS, rms=0.0, size=128).any()

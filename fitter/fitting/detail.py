@@ -42,7 +42,7 @@ contour: the scanner saw a near and a far surface side by side) a cell of the ba
 trim holds points of both, and the refined surface, following both, joins them with a
 steep wall narrower than the cell; past the scan's open border it hangs a fin. The
 drawn cells only grow from level to level, so after the last level the cells of the
-finest level's grid where the finest surface strays from every point (beyond
+finest level's grid where the mesh drawn of it strays from every point (beyond
 ``ScanNeighbourhood.wall_limit``) are left out of the base's trim, which is then kept at
 that resolution (the pyramid's ``trim``), and out of every level's drawn mask
 (:meth:`Redraw.walls`). Only for a mesh: its triangulation leaves a range image's jumps
@@ -56,7 +56,7 @@ smoother surface bridges the jump more widely, and its coarser drawn grid joins
 vertices on both sides of it even where the surface does not. So each coarser level
 ``k``'s tiles carry a *walls mask* (``client_py.layers.DetailTile``: the finest applied
 tile's walls mask leaves cells out, whatever the trim and drawn masks say): the cells of
-the grid a client draws level ``k`` on where that mesh strays (:meth:`Redraw.mesh_walls`,
+the grid a client draws level ``k`` on where that mesh strays (:meth:`Redraw.walls`,
 :func:`level_walls`), and every finer tile over them an all-clear mask, which gives them
 back (Buddha range scan 0, levels 0/1/2: largest distance 7.70/5.79/3.30 ->
 2.04/1.57/1.32 % of the diagonal, far area 13.0/2.2/0.45 -> 2.6/0.95/0.14 %).
@@ -218,46 +218,8 @@ class Redraw:
             return S + d[:, None] * n
         return refined
 
-    def walls(self, fields: list[np.ndarray], degree: int, spans: int,
-              rms: float, size: int | None = None) -> np.ndarray:
-        """``(R, R)`` booleans, ``R = size`` or by default ``min(DRAWN_SIDE 2^L,
-        client_py.trim.MAX_SIDE)`` for the level ``L = len(fields) - 1``: the cells the
-        base's trim or a tile's drawn mask may draw (:attr:`drawn` or :attr:`candidates`
-        at the cell's centre) where the surface refined by all ``fields`` strays
-        (``ScanNeighbourhood.stray`` with the finest level's ``rms``).
-
-        A cell of the base's trim straddling an occluding contour (a range image's depth
-        jump) or hanging over the scan's open border holds scan points, so the base does
-        not stray at its probes; the refined surface follows the points on both sides and
-        bridges them with a steep wall (or a fin past the border) narrower than the cell.
-        The drawn cells only grow from level to level (``client_py.layers.drawn_covers``:
-        the base's trim or a tile's mask) but for walls masks, so these are left out of the
-        base's trim and of every level's mask (:func:`fit_pyramid`), at the resolution the
-        finest level is drawn at; a coarser level's own walls are its tiles' walls masks
-        (:func:`level_walls`).
-        """
-        if size is None:
-            size = min(DRAWN_SIDE << (len(fields) - 1), MAX_SIDE)
-        rows, cols = self.drawn.shape
-        centre = (np.arange(size) + 0.5) / size
-        may = (self.drawn | self.candidates)[np.ix_((centre * rows).astype(np.int64),
-                                                     (centre * cols).astype(np.int64))]
-        # the probes of ScanNeighbourhood.stray (CELL_PROBES: centre and corners), each
-        # corner evaluated once for the four cells sharing it, a band of rows at a time
-        refined, limit = self._refined(fields, degree, spans), self.near.wall_limit(rms)
-        corner = np.arange(size + 1) / size
-
-        def far_band(r0: int, r1: int) -> np.ndarray:
-            u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
-            far_corner = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
-            u, v = np.meshgrid(centre[r0:r1], centre, indexing="ij")
-            far = self.near.farther(refined(u.ravel(), v.ravel()), limit).reshape(u.shape)
-            return far | far_corner[:-1, :-1] | far_corner[1:, :-1] | far_corner[:-1, 1:] \
-                | far_corner[1:, 1:]
-        return _by_bands(may, far_band)
-
-    def mesh_walls(self, fields: list[np.ndarray], degree: int, spans: int, rms: float,
-                   size: int, trim: np.ndarray | None = None) -> np.ndarray:
+    def walls(self, fields: list[np.ndarray], degree: int, spans: int, rms: float,
+              size: int, trim: np.ndarray | None = None) -> np.ndarray:
         """``(size, size)`` booleans: the cells the base's trim (``trim``, as the bundle
         carries it: by default :attr:`drawn`) or a tile's drawn mask may draw where the mesh
         a client draws on the grid of ``size`` cells per side strays from the scan (beyond
@@ -268,10 +230,14 @@ class Redraw:
         That mesh joins the refined surface's values ``X`` at the grid's vertices with two
         triangles a cell (``client_py._kernel_python.cell_indices``: the diagonal from
         ``(i + 1, j)`` to ``(i, j + 1)``); its probes are the four corners, the midpoints of
-        the four sides and of the diagonal, and the two triangles' centroids. Where a coarse
-        level's cell straddles an occluding contour the corners lie on both surfaces and
-        the triangles between them are a wall even where ``X`` itself has none (the
-        surface probes of :meth:`walls` miss it).
+        the four sides and of the diagonal, and the two triangles' centroids. Where a cell
+        straddles an occluding contour the corners lie on both surfaces and the triangles
+        between them are a wall even where ``X`` itself has none: probes of ``X`` alone (at
+        the cells' centres and corners) found no wall of a coarse level on a range image's
+        step. The one rule for every level: the finest level's walls leave the base's trim
+        (:func:`fit_pyramid`; Buddha range scan 0, level 3: largest distance 1.15 % of the
+        diagonal, 1.16 % with ``X``'s probes), a coarser one's are its walls masks
+        (:func:`level_walls`).
         """
         centre = (np.arange(size) + 0.5) / size
         may = np.zeros((size, size), bool)
@@ -534,14 +500,15 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
                 step_factor: float = STEP_FACTOR, periodic_u: bool = False,
                 progress=None, redraw: Redraw | Future | None = None,
                 background: ThreadPoolExecutor | None = None,
-                walls: bool = True) -> DetailPyramid:
+                find_walls: bool = True) -> DetailPyramid:
     """Fit levels ``0..levels-1`` coarse to fine; each fits what the coarser ones left.
 
     Returns the tiles to write (with their bytes and ``geometric_error``: max
     ``e`` of the points inside the tile's rectangle after levels ``0..k``) and
     per level the RMS and max of ``e`` over all samples. With ``redraw`` (or the future of
-    one) the tiles carry drawn masks (module docstring), and with ``walls`` the finest level's
-    walls are left out of them and of the base's trim (:meth:`Redraw.walls`).
+    one) the tiles carry drawn masks (module docstring), and with ``find_walls`` the finest
+    level's walls are left out of them and of the base's trim, and the coarser levels'
+    travel in their walls masks (:meth:`Redraw.walls`, :func:`level_walls`).
 
     The work is shared with one ``background`` thread (a new one by default): it makes the
     even levels' matrices (:func:`level_matrices`: they depend on the samples alone) while
@@ -556,7 +523,7 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
     if background is None:
         with ThreadPoolExecutor(1) as background:
             return fit_pyramid(samples, levels, degree, spans, step_factor, periodic_u,
-                               progress, redraw, background, walls)
+                               progress, redraw, background, find_walls)
     pyramid = DetailPyramid(degree, spans)
     residual = samples.s.copy()
     e = samples.error(np.zeros_like(residual))
@@ -587,8 +554,9 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
     pyramid.levels = [level for level, _, _ in done]
     if isinstance(redraw, Future):
         redraw = redraw.result()
-    if walls and redraw is not None and levels:
-        walls = redraw.walls(fields, degree, spans, pyramid.levels[-1].rms)
+    if find_walls and redraw is not None and levels:
+        walls = redraw.walls(fields, degree, spans, pyramid.levels[-1].rms,
+                                  min(DRAWN_SIDE << (len(fields) - 1), MAX_SIDE))
         pyramid.trim = redraw.trim_without(walls)
         pyramid.wall_cells = int(walls.sum())
         coarser = level_walls(redraw, fields, degree, spans,
@@ -611,7 +579,7 @@ def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: in
     """Per level ``k`` the walls its tiles carry (:class:`client_py.layers.DetailTile`,
     ``walls``): ``(cells, keep)``.
 
-    ``cells (W_k, W_k)``: :meth:`Redraw.mesh_walls` of the surface refined by
+    ``cells (W_k, W_k)``: :meth:`Redraw.walls` of the surface refined by
     ``fields[:k + 1]`` (level ``k``'s ``rms[k]``) on the grid a client draws level ``k``
     on (``client_py.bundle.level_resolution``: ``W_k = 2 m 2^k`` cells, at most
     ``MAX_WALLS_SIDE 2^k``); none for the finest level, whose walls (``finest``, found by
@@ -626,7 +594,7 @@ def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: in
     for k in range(len(fields)):
         size = min(level_resolution(spans, k) - 1, MAX_WALLS_SIDE << k)
         if k < last:
-            cells = redraw.mesh_walls(fields[: k + 1], degree, spans, rms[k], size, trim)
+            cells = redraw.walls(fields[: k + 1], degree, spans, rms[k], size, trim)
         else:
             cells = np.zeros((size, size), bool)
         count = 1 << k
@@ -693,13 +661,13 @@ def level_matrices(samples: DetailSamples, level: int, degree: int, spans: int,
 def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.ndarray,
                periodic_u: bool, levels: int | None = None, progress=None,
                step_factor: float = STEP_FACTOR, trim: TrimMask | None = None,
-               spans: int = SPANS, walls: bool = True) -> DetailPyramid:
+               spans: int = SPANS, find_walls: bool = True) -> DetailPyramid:
     """The pipeline's detail stage: samples of the covered points at their foot points
     ``dev.u, dev.v`` on the decoded base ``model``, then :func:`fit_pyramid`
     (``levels=None``: :func:`auto_levels`) with ``spans`` per tile side; ``trim`` is
     the base's trim mask, which the tiles' drawn masks complete (:class:`Redraw`), and
     which loses the finest level's walls (:meth:`Redraw.walls`: the pyramid's ``trim``)
-    with ``walls`` (the module docstring says when)."""
+    with ``find_walls`` (the module docstring says when)."""
     if levels is None:
         levels = auto_levels(int(covered.sum()), spans)
     if levels == 0:  # no pyramid: the base error is the foot-point deviation itself
@@ -717,7 +685,7 @@ def fit_detail(model: PatchModel, points_local: np.ndarray, dev, covered: np.nda
         samples = detail_samples(model, points, u, v)
         return fit_pyramid(samples, levels, spans=spans, periodic_u=periodic_u,
                            progress=progress, step_factor=step_factor, redraw=redraw,
-                           background=background, walls=walls)
+                           background=background, find_walls=find_walls)
 
 
 def _rounded(x: float) -> float:

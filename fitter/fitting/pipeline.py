@@ -449,7 +449,8 @@ def _fit_layers(projected: ProjectedScan, best: FitResult, options: FitOptions,
     stages.start("detail")
     pyramid = fit_detail(best.model, projected.local, best.dev, covered, periodic,
                          plan.detail_levels, stages.report, trim=read_patch(best.data).trim,
-                         spans=options.detail_spans, walls=projected.scan.faces is not None)
+                         spans=options.detail_spans,
+                         find_walls=projected.scan.faces is not None)
     stages.start("texture")
     textures = fit_texture(projected.scan, best.dev, covered, periodic, len(pyramid.levels),
                            options.texture)
