@@ -450,11 +450,21 @@ def _fit_layers(projected: ProjectedScan, best: FitResult, options: FitOptions,
     pyramid = fit_detail(best.model, projected.local, best.dev, covered, periodic,
                          plan.detail_levels, stages.report, trim=read_patch(best.data).trim,
                          spans=options.detail_spans,
-                         find_walls=projected.scan.faces is not None)
+                         find_walls=projected.scan.faces is not None,
+                         surface=_on_triangles(projected.scan))
     stages.start("texture")
     textures = fit_texture(projected.scan, best.dev, covered, periodic, len(pyramid.levels),
                            options.texture)
     return pyramid, textures
+
+
+def _on_triangles(scan: Scan) -> np.ndarray | None:
+    """``(N,)`` booleans: the points a mesh's triangles use; ``None`` for a cloud."""
+    if scan.faces is None:
+        return None
+    used = np.zeros(len(scan.points), bool)
+    used[np.asarray(scan.faces, dtype=np.int64).ravel()] = True
+    return used
 
 
 def object_title(scan: Scan, options: FitOptions) -> str:
