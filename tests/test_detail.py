@@ -390,3 +390,45 @@ def test_a_scattered_clouds_gaps_are_not_walls():
     lifted = [f.copy() for f in fields]
     lifted[-1][40:50, 40:50] = 3 * redraw.near.wall_limit(0.0)  # a bump off the scan
     assert redraw.walls(lifted, detail.DEGREE, detail.SPANS, rms=0.0, size=128).any()
+
+
+def test_samples_no_triangle_uses_do_not_hold_a_wall_up():
+    """A range image's triangulation leaves out lone samples (past an occluding contour);
+    the walls are measured against the points its triangles use. The plane ``z = 0``
+    sampled on a grid of 160 x 160 (triangulated) and 16 x 16 lone samples at height
+    ``H = 0.05`` over ``[0.375, 0.5]^2`` (in no triangle); the finest field lifts the
+    surface to exactly ``H`` there (its coefficients ``24..33`` on 64 spans: the spans
+    ``24..31``, cells ``48..63`` of 128, have only lifted ones) and ramps down over the
+    next two spans (cells ``44..47`` and ``64..67``). Measured against every point the
+    lifted cells lie on the lone samples (within ``0.0055 < wall_limit = 0.0125``): no
+    wall there, only on the ramps. Against the triangles' points all of them are walls
+    (``H = 4 wall_limit`` from the plane); nothing beyond the ramps ever is."""
+    from fitter.fitting.io import Scan
+    from fitter.fitting.pipeline import _on_triangles
+
+    model = plane_model()
+    g = (np.arange(160) + 0.5) / 160
+    U, V = (x.ravel() for x in np.meshgrid(g, g, indexing="ij"))
+    lone = (np.arange(16) + 0.5) / 16 * 0.125 + 0.375
+    lu, lv = (x.ravel() for x in np.meshgrid(lone, lone, indexing="ij"))
+    points = np.vstack([np.column_stack([U, V, 0 * U]), np.column_stack([lu, lv, 0 * lu + 0.05])])
+    grid = np.arange(160 * 160).reshape(160, 160)
+    quads = np.stack([grid[:-1, :-1], grid[1:, :-1], grid[:-1, 1:], grid[1:, 1:]], -1)
+    quads = quads.reshape(-1, 4)
+    faces = np.concatenate([quads[:, [0, 1, 2]], quads[:, [1, 3, 2]]])
+    surface = _on_triangles(Scan(points, faces=faces, source={"name": "lone"}))
+    np.testing.assert_array_equal(surface, np.arange(len(points)) < 160 * 160)
+    assert _on_triangles(Scan(points, source={"name": "cloud"})) is None
+    fields = [np.zeros(((detail.SPANS << k) + detail.DEGREE,) * 2) for k in range(3)]
+    fields[2][24:34, 24:34] = 0.05
+    plateau, lifted = np.zeros((128, 128), bool), np.zeros((128, 128), bool)
+    plateau[48:64, 48:64], lifted[44:68, 44:68] = True, True
+    walls = {}
+    for name, on in (("every point", None), ("triangles' points", surface)):
+        redraw = detail.Redraw.from_foot_points(model, np.ones((1, 1), bool), points,
+                                                points[:, 0], points[:, 1], False, on)
+        assert redraw.near.wall_limit(0.0) == pytest.approx(0.0125)
+        walls[name] = redraw.walls(fields, detail.DEGREE, detail.SPANS, rms=0.0, size=128)
+        assert not (walls[name] & ~lifted).any(), name
+    assert not (walls["every point"] & plateau).any() and walls["every point"].any()
+    assert walls["triangles' points"][plateau].all()

@@ -45,8 +45,10 @@ drawn cells only grow from level to level, so after the last level the cells of 
 finest level's grid where the mesh drawn of it strays from every point (beyond
 ``ScanNeighbourhood.wall_limit``) are left out of the base's trim, which is then kept at
 that resolution (the pyramid's ``trim``), and out of every level's drawn mask
-(:meth:`Redraw.walls`). Only for a mesh: its triangulation leaves a range image's jumps
-open, while a cloud cannot tell a wall from a steep face it samples thinly, and the cells
+(:meth:`Redraw.walls`), the scan being the points the mesh's triangles use (a lone
+sample the triangulation left out holds no surface up: :meth:`Redraw.from_foot_points`;
+Buddha range scan 0, level 3: 1.15 -> 0.89 %). Only for a mesh: its triangulation leaves
+a range image's jumps open, while a cloud cannot tell a wall from a steep face it samples thinly, and the cells
 the finest level overshoots there become pinholes (the generated example relief of
 ``make demo``, a cloud: 20 of its 65,536 finest cells; Buddha range scan 0, a mesh: its
 largest distance to the scan 3.33 -> 1.16 % of the diagonal at level 3).
