@@ -48,10 +48,11 @@ that resolution (the pyramid's ``trim``), and out of every level's drawn mask
 (:meth:`Redraw.walls`), the scan being the points the mesh's triangles use (a lone
 sample the triangulation left out holds no surface up: :meth:`Redraw.from_foot_points`;
 Buddha range scan 0, level 3: 1.15 -> 0.89 %). Only for a mesh: its triangulation leaves
-a range image's jumps open, while a cloud cannot tell a wall from a steep face it samples thinly, and the cells
-the finest level overshoots there become pinholes (the generated example relief of
-``make demo``, a cloud: 20 of its 65,536 finest cells; Buddha range scan 0, a mesh: its
-largest distance to the scan 3.33 -> 1.16 % of the diagonal at level 3).
+a range image's jumps open, while a cloud cannot tell a wall from a steep face it samples
+thinly, and the cells the finest level overshoots there become pinholes (the generated
+example relief of ``make demo``, a cloud: 20 of its 65,536 finest cells; Buddha range
+scan 0, a mesh: its largest distance to the scan 3.33 -> 1.16 % of the diagonal at level
+3).
 
 A coarser level draws walls of its own where the finest level's do not reach: its
 smoother surface bridges the jump more widely, and its coarser drawn grid joins
