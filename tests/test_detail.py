@@ -432,3 +432,42 @@ def test_samples_no_triangle_uses_do_not_hold_a_wall_up():
         assert not (walls[name] & ~lifted).any(), name
     assert not (walls["every point"] & plateau).any() and walls["every point"].any()
     assert walls["triangles' points"][plateau].all()
+
+
+@pytest.mark.parametrize("mesh", [False, True])
+def test_a_meshs_redraw_strays_beyond_the_walls_limit(mesh):
+    """The plane ``z = 0`` sampled at 20,000 uniform random points and a trim leaving out
+    a block; the refined surface lifted to ``z = d`` between the two limits
+    (``limit = 2 spacing < d < wall_limit = 2 gap``). A candidate cell is drawn where its
+    five probes (centre, corners) lie within the limit of the nearest point, at distance
+    ``sqrt(d^2 + r^2)`` with ``r`` the probe's distance in the plane: ``limit`` for a
+    cloud (``d`` alone exceeds it: none), the walls' ``wall_limit`` for a mesh
+    (:attr:`Redraw.mesh`), whose walls leave out what strays farther. Both against that
+    count."""
+    from scipy.spatial import KDTree
+
+    model = plane_model()
+    rng = np.random.default_rng(7)
+    U, V = rng.uniform(0, 1, 20_000), rng.uniform(0, 1, 20_000)
+    points = np.column_stack([U, V, 0 * U])
+    drawn = np.ones((16, 16), bool)
+    drawn[4:10, 4:10] = False
+    redraw = detail.Redraw.from_foot_points(model, drawn, points, U, V, False,
+                                            np.ones(len(U), bool) if mesh else None)
+    assert redraw.mesh == mesh
+    near = redraw.near
+    assert 2 * near.spacing < 2 * near.gap  # a scattered sample: the limits differ
+    d = near.spacing + near.gap
+    fields = [np.full((detail.SPANS + detail.DEGREE,) * 2, d)]  # D = d: X = (u, v, d)
+    got = redraw.cells(0, fields, detail.DEGREE, detail.SPANS, rms=0.0)
+    limit = 2 * (near.gap if mesh else near.spacing)
+    size = detail.DRAWN_SIDE
+    expected = np.zeros((size, size), bool)
+    expected[8:20, 8:20] = True  # the block's candidate cells (all hold points)
+    tree = KDTree(points[:, :2])
+    for r, c in np.argwhere(expected):
+        probes = np.array([(r + a, c + b) for a, b in
+                           ((0.5, 0.5), (0, 0), (0, 1), (1, 0), (1, 1))]) / size
+        expected[r, c] = np.all(np.hypot(d, tree.query(probes)[0]) <= limit)
+    np.testing.assert_array_equal(got, expected)
+    assert expected.sum() > 100 if mesh else not expected.any()  # d > limit: none for a cloud

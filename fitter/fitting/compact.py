@@ -148,17 +148,19 @@ class ScanNeighbourhood:
         self.gap = float(np.quantile(nearest, GAP_QUANTILE)) if len(nearest) else 0.0
 
     def stray(self, surface, r: np.ndarray, c: np.ndarray, shape: tuple[int, int],
-              fit_rms: float) -> np.ndarray:
+              fit_rms: float, gaps: bool = False) -> np.ndarray:
         """Which cells ``(r, c)`` of a ``shape`` grid over the unit domain stray: where
         ``surface(u, v) -> (m, 3)`` at the cell's centre or one of its corners lies
         farther from every scan point than ``STRAY_FACTOR * fit_rms`` plus twice the
-        spacing (a perfect fit still passes between the points)."""
+        spacing (a perfect fit still passes between the points: :meth:`limit`), or with
+        ``gaps`` twice the sampling's gaps (:meth:`wall_limit`)."""
         rows, cols = shape
         if len(r) == 0:
             return np.zeros(0, bool)
         u = np.concatenate([(r + a) / rows for a, _ in CELL_PROBES])
         v = np.concatenate([(c + b) / cols for _, b in CELL_PROBES])
-        far = self.farther(surface(u, v), self.limit(fit_rms))
+        far = self.farther(surface(u, v),
+                           self.wall_limit(fit_rms) if gaps else self.limit(fit_rms))
         return far.reshape(len(CELL_PROBES), -1).any(axis=0)
 
     def limit(self, fit_rms: float) -> float:
