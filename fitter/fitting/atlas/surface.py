@@ -33,6 +33,8 @@ MIN_ISLAND_SHARE = 0.002
 SPLIT_ROUNDS = 3  # rounds of splitting non-manifold elements before a fin's face is removed
 LAYOUT_POISSON_DEPTH = 6  # the layout stand-in's octree (layout_stand_in)
 LAYOUT_TRIM = 0.015  # ... trimmed where it reaches this share of the diagonal off the surface
+LAYOUT_TRIM_BESIDE = 0.0075  # ... or this share with the surface beside it (stand_in_far)
+BESIDE_COS = 0.7  # "beside": the offset to the surface at over acos(0.7) = 45.6° from the normal
 MAX_LAYOUT_HANDLES = 8  # more handles than this: the layout is decimated from the stand-in
 NORMAL_NEIGHBOURS = 20  # points of a cloud's local PCA normal
 ORIENT_NEIGHBOURS = 10  # neighbours of a point in the orientation graph (orient_normals)
@@ -535,28 +537,43 @@ def handle_count(vertices: np.ndarray, faces: np.ndarray) -> int:
     return int(np.sum(np.maximum(0, (2 - chi - loops) // 2)))
 
 
-def stand_in_far(vertices: np.ndarray, faces: np.ndarray, surface: ScanSurface, reach: float
-                 ) -> np.ndarray:
+def stand_in_far(vertices: np.ndarray, faces: np.ndarray, surface: ScanSurface, reach: float,
+                 beside: float | None = None) -> np.ndarray:
     """The triangles ``faces`` of ``vertices`` that reach farther than ``reach`` from the
-    triangles of ``surface``, shape ``(M,)`` bool.
+    triangles of ``surface``, or (``beside`` given) farther than ``beside`` with the surface
+    beside them; shape ``(M,)`` bool.
 
-    Each triangle is probed at seven points: its corners, its edges' midpoints and its
-    centroid (their exact distances to the surface: ``measure.point_mesh_distance``). A
-    coarse triangle whose corners all lie on the surface can still span a cavity the scan
-    never saw (its middle hangs in the air); its probes find it.
+    Each triangle is probed at seven points ``p``: its corners, its edges' midpoints and its
+    centroid, each with its exact closest point ``q`` on the surface
+    (``measure.closest_points_on_mesh``). A coarse triangle whose corners all lie on the
+    surface can still span a cavity the scan never saw (its middle hangs in the air); its
+    probes find it. A probe has the surface beside it when its offset makes more than
+    ``acos(BESIDE_COS)`` with the triangle's unit normal ``n``:
+    ``|n · (q - p)| < BESIDE_COS |q - p|``. A Poisson membrane spanning a gap the scan left
+    open (a tunnel narrower than the octree's cells, an open rim, the unseen space under an
+    overhang) has its nearest surface at the gap's walls or rim, in its own plane; a coarse
+    blob over a real part thinner than a cell has it below or above, along its normal.
     """
-    from .measure import point_mesh_distance
+    from .measure import closest_points_on_mesh
 
     tri = np.asarray(vertices, np.float64)[faces]
     probes = np.concatenate([tri, 0.5 * (tri + tri[:, [1, 2, 0]]), tri.mean(axis=1)[:, None]],
                             axis=1)
-    distance = point_mesh_distance(probes.reshape(-1, 3), surface.vertices, surface.faces)
-    return np.any(distance.reshape(len(faces), 7) > reach, axis=1)
+    distance, _, closest = closest_points_on_mesh(probes.reshape(-1, 3), surface.vertices,
+                                                  surface.faces)
+    distance = distance.reshape(len(faces), 7)
+    far = distance > reach
+    if beside is not None:
+        normal = _unit_rows(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+        along = np.abs(np.einsum("mj,mkj->mk", normal,
+                                 closest.reshape(len(faces), 7, 3) - probes))
+        far |= (distance > beside) & (along < BESIDE_COS * distance)
+    return np.any(far, axis=1)
 
 
 def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
-                    trim: float = LAYOUT_TRIM, samples: int = 100_000, seed: int = 0
-                    ) -> ScanSurface:
+                    trim: float = LAYOUT_TRIM, trim_beside: float | None = LAYOUT_TRIM_BESIDE,
+                    samples: int = 100_000, seed: int = 0) -> ScanSurface:
     """A closed, low-genus stand-in of ``surface`` for the patch layout to be decimated from.
 
     A quad layout decimated from the surface keeps its topology (``atlas.layout``), so every
@@ -616,7 +633,8 @@ def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
     faces = np.asarray(mesh.triangles, np.int64).copy()
     if len(faces) == 0:
         raise SurfaceError("the layout's stand-in surface (Poisson of the surface) is empty")
-    far = stand_in_far(vertices, faces, surface, trim * surface.diagonal)
+    far = stand_in_far(vertices, faces, surface, trim * surface.diagonal,
+                       None if trim_beside is None else trim_beside * surface.diagonal)
     faces = faces[~far]
     if len(faces) == 0:
         raise SurfaceError("nothing of the layout's stand-in surface lies near the surface")
