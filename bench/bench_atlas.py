@@ -234,6 +234,12 @@ def run() -> dict | None:
     print_table("atlas: ALL scan points vs the drawn mesh, per level (default fit)",
                 ["object", "patches", "level", "bytes", "% within 0.5%", "RMS all",
                  "Draco RMS", "max mesh->scan %diag", "border edges", "scan border"], table)
+    for r in results:  # where each finest level is farther than 1 % from its scan
+        places = [] if "error" in r else r["levels"][-1]["mesh_to_scan"]["places"]
+        if places:
+            print(f"atlas: {r['object']}, finest level, places farther than 1 %: " + "; ".join(
+                f"{100 * p['max_relative']:.2f} % (area {100 * p['far_share']:.3f} %, "
+                f"facing {p['facing']:.2f})" for p in places))
     record = {"objects": _with_earlier(results)}
     write_results("atlas", record)
     return record

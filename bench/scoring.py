@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fitter.fitting.atlas.measure import closest_points_on_mesh, far_places
 from fitter.fitting.atlas.measure import point_mesh_distance as mesh_distance
 from fitter.fitting.atlas.surface import area_samples
 
@@ -51,18 +52,32 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int,
     return area_samples(vertices, faces, count, np.random.default_rng(seed))
 
 
+FAR_PLACES = 5  # the far places reverse_errors lists, farthest first
+FAR_LINK = 0.01  # far samples closer than this share of the diagonal are one place
+
+
 def reverse_errors(vertices: np.ndarray, faces: np.ndarray, scan_points: np.ndarray,
                    scan_faces: np.ndarray | None, diag: float, count: int = 200_000) -> dict:
     """Distance of ``count`` samples of the drawn mesh to the scan's surface (its triangles,
     or its nearest point for a cloud), summarised like :func:`point_errors`, plus the
-    share of the drawn area farther than 1 % of the diagonal (``far_1%``)."""
-    samples, _ = surface_samples(vertices, faces, count)
+    share of the drawn area farther than 1 % of the diagonal (``far_1%``) and where it is:
+    ``places``, the :data:`FAR_PLACES` farthest of its places
+    (``fitter.fitting.atlas.measure.far_places``, samples linked within :data:`FAR_LINK`
+    of the diagonal), each with its largest distance and its share of the drawn area
+    (``max_relative``, ``far_share``), its farthest sample (``where``) and how the scan
+    lies from it (``facing``: 1 along the drawn normal, 0 beside it)."""
+    samples, normals = surface_samples(vertices, faces, count)
     if scan_faces is not None and len(scan_faces):
-        d = mesh_distance(samples, scan_points, scan_faces)
+        d, _, closest = closest_points_on_mesh(samples, scan_points, scan_faces)
     else:
-        d, _ = cKDTree(scan_points).query(samples)
+        d, nearest = cKDTree(scan_points).query(samples)
+        closest = np.asarray(scan_points, dtype=float)[nearest]
     out = _summary(d, diag)
     out["far_1%"] = float(np.mean(d > 0.01 * diag))
+    out["places"] = [{"max_relative": p.distance / diag, "far_share": p.samples / len(d),
+                      "where": [float(x) for x in p.where], "facing": p.facing}
+                     for p in far_places(samples, normals, closest, 0.01 * diag,
+                                         FAR_LINK * diag)[:FAR_PLACES]]
     return out
 
 

@@ -13,6 +13,7 @@ from fitter.fitting.atlas.measure import (
     MeasuringProcess,
     MeasuringProcessError,
     closest_points_on_triangles,
+    far_places,
     point_mesh_distance,
     signed_point_mesh_distance,
 )
@@ -47,6 +48,54 @@ def test_point_mesh_distance_equals_brute_force():
     inside = np.linalg.norm(points, axis=1) < 0.9
     assert np.all(signed[inside] < 0) and np.all(signed[np.linalg.norm(points, axis=1) > 1.1] > 0)
 
+
+
+def _grid(xs, ys):
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    return x.ravel(), y.ravel()
+
+
+def test_far_places_are_the_far_samples_linked_into_places():
+    """Samples of a drawn mesh over the square [0, 4] x [0, 1] of the plane z = 0 (its
+    closest points are their feet, written here): the plane itself, a vertical fin at x = 1
+    rising to 0.5 (normal along x: the scan beside it), a tilted sheet rising to 0.3 (the
+    plane x + 0.75 z = 3.8, normal (0.8, 0, 0.6)) and a lifted square at z = 0.2 (normal
+    along z), each farther than the link from the others: three places, farthest first,
+    with the counts, farthest samples and facings the geometry gives."""
+    t = np.linspace(0.0, 1.0, 11)
+    parts = []
+    x, y = _grid(np.linspace(0, 4, 41), t)  # the plane: never far
+    parts.append((np.c_[x, y, 0 * x], np.tile([0.0, 0.0, 1.0], (len(x), 1))))
+    y, z = _grid(np.linspace(0.2, 0.8, 7), np.linspace(0.0, 0.5, 11))  # the fin
+    parts.append((np.c_[np.full_like(y, 1.0), y, z], np.tile([1.0, 0.0, 0.0], (len(y), 1))))
+    y, z = _grid(np.linspace(0.2, 0.8, 7), np.linspace(0.0, 0.3, 7))  # the tilted sheet
+    parts.append((np.c_[3.8 - 0.75 * z, y, z], np.tile([0.8, 0.0, 0.6], (len(y), 1))))
+    x, y = _grid(np.linspace(2.0, 2.2, 5), np.linspace(0.4, 0.6, 5))  # the lifted square
+    parts.append((np.c_[x, y, np.full_like(x, 0.2)], np.tile([0.0, 0.0, 1.0], (len(x), 1))))
+    samples = np.concatenate([p for p, _ in parts])
+    normals = np.concatenate([n for _, n in parts])
+    closest = samples * [1.0, 1.0, 0.0]  # the foot on z = 0, inside the square
+    places = far_places(samples, normals, closest, reach=0.1, link=0.3)
+    assert [round(p.distance, 12) for p in places] == [0.5, 0.3, 0.2]
+    # z > 0.1: the fin's rows z = 0.15 .. 0.5 (8 of 7), the sheet's z = 0.15 .. 0.3 (4 of 7)
+    assert [p.samples for p in places] == [8 * 7, 4 * 7, 25]
+    np.testing.assert_allclose(places[0].where[[0, 2]], [1.0, 0.5])
+    np.testing.assert_allclose(places[1].where[[0, 2]], [3.8 - 0.225, 0.3])
+    np.testing.assert_allclose([p.facing for p in places], [0.0, 0.6, 1.0], atol=1e-12)
+    # a link shorter than the spacing of the fin's rows (0.05) leaves every sample alone
+    alone = far_places(samples, normals, closest, reach=0.1, link=0.04)
+    assert len(alone) == 8 * 7 + 4 * 7 + 25
+    assert far_places(samples, normals, closest, reach=0.6, link=0.3) == []
+
+
+def test_far_places_refuses_bad_input():
+    good = np.zeros((4, 3))
+    with pytest.raises(ValueError, match="share a shape"):
+        far_places(good, np.zeros((3, 3)), good, 0.1, 0.1)
+    with pytest.raises(ValueError, match="reach must be"):
+        far_places(good, good, good, 0.0, 0.1)
+    with pytest.raises(ValueError, match="link must be"):
+        far_places(good, good, good, 0.1, float("nan"))
 
 def test_the_measuring_process_gives_the_distances_measured_here():
     """MeasuringProcess (a fresh Python process, arrays through pipes) returns the signed
