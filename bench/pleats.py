@@ -1,0 +1,103 @@
+"""Pleats of an atlas bundle's base and the level-0 area turned over against it.
+
+Two measures from session 11 (``docs/benchmarks.md``, "Whole objects"; first written as a
+scratch script on the unmerged branch w21-pleats):
+
+- **in-patch folded pairs**: the base drawn at :data:`PAIR_RESOLUTION` samples a patch side;
+  two of its triangles that share an edge and lie in the same patch, with unit normals
+  ``n_1 · n_2 < cos 120°``, fold over each other: a pleat. Edges are matched by their
+  welded end positions, so triangles of neighbouring patches meet too (those pairs are not
+  counted: they are creases between patches, not pleats inside one).
+- **turned-over share**: the base and level 0 drawn at level 0's resolution have the same
+  triangles in the same order; the share of level 0's area whose triangle's normal points
+  against the base triangle at the same ``(u, v)`` (``n_0 · n_b < 0``).
+
+``python -m bench.pleats BUNDLE`` prints both.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+PAIR_RESOLUTION = 5  # samples a patch side of the base for the folded pairs
+FOLD_COSINE = -0.5  # cos 120°
+
+
+def _drawn(manifest: dict, bundle: Path, level: int, resolution: int
+           ) -> tuple[np.ndarray, np.ndarray]:
+    from client_py.bundle import tessellate_bundle
+
+    mesh = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(), level=level,
+                             resolution=resolution, kernel="numpy")
+    return (np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(np.float64),
+            np.frombuffer(mesh.indices, np.uintc).reshape(-1, 3).astype(np.int64))
+
+
+def unit_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals ``(T, 3)`` and areas ``(T,)`` of the triangles."""
+    cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                     vertices[faces[:, 2]] - vertices[faces[:, 0]])
+    length = np.linalg.norm(cross, axis=1)
+    return cross / np.maximum(length, 1e-300)[:, None], 0.5 * length
+
+
+def folded_pairs(vertices: np.ndarray, faces: np.ndarray, triangle_patch: np.ndarray,
+                 cosine: float = FOLD_COSINE) -> tuple[int, int]:
+    """Pairs of triangles sharing an edge (ends welded at ``1e-9``) in the same patch whose
+    normals' cosine is below ``cosine``, and the number of patches holding one."""
+    normals, _ = unit_normals(vertices, faces)
+    _, welded = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
+    welded = welded.reshape(-1)[faces]
+    edges = np.sort(np.concatenate([welded[:, [0, 1]], welded[:, [1, 2]], welded[:, [2, 0]]]),
+                    axis=1)
+    owner = np.tile(np.arange(len(faces)), 3)
+    key = edges[:, 0] * (int(welded.max()) + 1) + edges[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, owner = key[order], owner[order]
+    same = key[1:] == key[:-1]
+    a, b = owner[:-1][same], owner[1:][same]
+    folded = (np.einsum("ij,ij->i", normals[a], normals[b]) < cosine) \
+        & (triangle_patch[a] == triangle_patch[b])
+    return int(folded.sum()), int(len(np.unique(triangle_patch[a[folded]])))
+
+
+def turned_share(base: tuple[np.ndarray, np.ndarray], level: tuple[np.ndarray, np.ndarray]
+                 ) -> float:
+    """Share of ``level``'s area whose triangles face against ``base``'s same triangles."""
+    if base[1].shape != level[1].shape:
+        raise ValueError(f"the base has {len(base[1])} triangles, the level {len(level[1])}: "
+                         "draw both at the same resolution")
+    nb, _ = unit_normals(*base)
+    nl, area = unit_normals(*level)
+    return float(area[np.einsum("ij,ij->i", nb, nl) < 0].sum() / area.sum())
+
+
+def pleat_stats(bundle: Path) -> dict:
+    """``{'base_pairs_120', 'base_pleated_patches', 'l0_turned_share'}`` of an atlas bundle.
+
+    The base drawn at :data:`PAIR_RESOLUTION` has ``2 (r - 1)²`` triangles a patch, patch
+    after patch (``client_py.atlas_mesh``), which gives each triangle's patch.
+    """
+    from client_py.bundle import plan_levels
+
+    bundle = Path(bundle)
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    vertices, faces = _drawn(manifest, bundle, -1, PAIR_RESOLUTION)
+    per_patch = 2 * (PAIR_RESOLUTION - 1) ** 2
+    patches = (manifest.get("base") or {}).get("patches")
+    if patches is not None and len(faces) != per_patch * patches:
+        raise ValueError(f"the base drawn at {PAIR_RESOLUTION} has {len(faces)} triangles, not "
+                         f"{per_patch} for each of its {patches} patches")
+    pairs, pleated = folded_pairs(vertices, faces, np.arange(len(faces)) // per_patch)
+    plan = next(p for p in plan_levels(manifest) if p.level == 0)
+    share = turned_share(_drawn(manifest, bundle, -1, plan.resolution),
+                         _drawn(manifest, bundle, 0, plan.resolution))
+    return {"base_pairs_120": pairs, "base_pleated_patches": pleated, "l0_turned_share": share}
+
+
+if __name__ == "__main__":
+    print(pleat_stats(Path(sys.argv[1])))

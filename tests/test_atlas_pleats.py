@@ -1,0 +1,35 @@
+"""The bench's pleat measures (``bench.pleats``) on hand-made meshes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.pleats import folded_pairs, turned_share
+
+SQUARE = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float64)
+
+
+def test_folded_pairs_count_only_folds_inside_one_patch_and_weld_the_edge():
+    # (0, 1, 2) faces +z; (5, 6, 4) shares its edge (0, 2) through copies of those corners
+    # and folds back under it (normal about -z: cosine -0.99)
+    vertices = np.concatenate([SQUARE, [[0.8, 0.2, 0.01], [0, 0, 0], [1, 1, 0]]])
+    faces = np.array([[0, 1, 2], [5, 6, 4]])
+    assert folded_pairs(vertices, faces, np.array([0, 0])) == (1, 1)
+    assert folded_pairs(vertices, faces, np.array([0, 1])) == (0, 0)  # a crease between
+    # a flat square: no fold; a right angle (cosine 0) is no fold either
+    flat = np.array([[0, 1, 2], [0, 2, 3]])
+    assert folded_pairs(SQUARE, flat, np.zeros(2, int)) == (0, 0)
+    bent = SQUARE.copy()
+    bent[3] = [1, 1, 1]  # (0, 2, 3) stands up over the diagonal
+    assert folded_pairs(bent, flat, np.zeros(2, int)) == (0, 0)
+
+
+def test_turned_share_is_the_area_facing_against_the_base():
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    level = SQUARE.copy()
+    level[3] = [0.9, 0.1, 0]  # (0, 2, 3) turned over: area 0.4, against 0.5 kept
+    assert turned_share((SQUARE, faces), (level, faces)) == pytest.approx(0.4 / 0.9)
+    assert turned_share((SQUARE, faces), (SQUARE, faces)) == 0.0
+    with pytest.raises(ValueError, match="same resolution"):
+        turned_share((SQUARE, faces), (SQUARE, faces[:1]))
