@@ -55,14 +55,18 @@ scan 0, a mesh: its largest distance to the scan 3.33 -> 1.16 % of the diagonal 
 3).
 
 A coarser level draws walls of its own where the finest level's do not reach: its
-smoother surface bridges the jump more widely, and its coarser drawn grid joins
-vertices on both sides of it even where the surface does not. So each coarser level
-``k``'s tiles carry a *walls mask* (``client_py.layers.DetailTile``: the finest applied
-tile's walls mask leaves cells out, whatever the trim and drawn masks say): the cells of
-the grid a client draws level ``k`` on where that mesh strays (:meth:`Redraw.walls`,
+smoother surface bridges the jump more widely (and, on a grid as coarse as two vertices
+per knot span, its triangles join vertices on both sides of it even where the surface
+does not). So each coarser level ``k``'s tiles carry a *walls mask*
+(``client_py.layers.DetailTile``: the finest applied tile's walls mask leaves cells out,
+whatever the trim and drawn masks say): the cells of the grid a client draws level ``k``
+on (``client_py.bundle.level_resolution``, at least ``MIN_LEVEL_CELLS`` = 256 cells
+across) among those it draws, where that mesh strays (:meth:`Redraw.walls`,
 :func:`level_walls`), and every finer tile over them an all-clear mask, which gives them
-back (Buddha range scan 0, levels 0/1/2: largest distance 7.70/5.79/3.30 ->
-2.04/1.57/1.32 % of the diagonal, far area 13.0/2.2/0.45 -> 2.6/0.95/0.14 %).
+back. Buddha range scan 0, levels 0/1/2, largest distance to the scan: 7.70/5.79/3.30 %
+of the diagonal without walls masks, 2.00/1.56/1.33 % with them on grids of two vertices
+per span (33/65/129 per side), 1.49/1.51/1.18 % on 257 (far area 2.6/0.91/0.15 ->
+0.09/0.08/0.02 %; levels 0 and 1 then need no walls mask, level 2 five cells).
 """
 
 from __future__ import annotations
