@@ -283,11 +283,15 @@ class Redraw:
         def far_band(r0: int, r1: int) -> np.ndarray:
             u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
             X = refined(u.ravel(), v.ravel()).reshape(*u.shape, 3)
-            a, b, c, d = X[:-1, :-1], X[1:, :-1], X[:-1, 1:], X[1:, 1:]  # (i,j) (i+1,j) ...
-            far = np.zeros((r1 - r0, size), bool)
+            held = may[r0:r1]  # only the cells that may be drawn are probed
+            a, b, c, d = (X[:-1, :-1][held], X[1:, :-1][held], X[:-1, 1:][held],
+                          X[1:, 1:][held])  # corners (i, j) (i + 1, j) (i, j + 1) (i + 1, j + 1)
+            hit = np.zeros(len(a), bool)
             for probe in (a, b, c, d, (a + b) / 2, (a + c) / 2, (b + d) / 2, (c + d) / 2,
                           (b + c) / 2, (a + b + c) / 3, (b + c + d) / 3):
-                far |= self.near.farther(probe.reshape(-1, 3), limit).reshape(far.shape)
+                hit |= self.near.farther(probe, limit)
+            far = np.zeros((r1 - r0, size), bool)
+            far[held] = hit
             return far
         return _by_bands(may, far_band)
 

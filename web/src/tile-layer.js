@@ -43,7 +43,9 @@ import { TileTree } from "./tile-tree.js";
 /** Regions per worker request: large enough that messages cost little, small enough that a
  *  camera moving on wastes little work. */
 export const REGION_BATCH = 4;
-/** Region meshes kept after they leave the screen (a 33² region with skirts is ~60 KB). */
+/** Region meshes kept after they leave the screen (a 33² region with skirts is ~60 KB; the
+ *  coarse levels' regions are finer, about 3.7 MB for the default bundle's one 257² level-0
+ *  region, so a whole level's regions weigh about the same at every level). */
 export const REGION_CACHE = 96;
 
 export class TileLayer {
