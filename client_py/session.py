@@ -229,7 +229,8 @@ class WorkerSession:
                     skirt_depth: float) -> Mesh:
         """Quadtree node ``(level, i, j)`` on a ``grid x grid`` mesh with the named tiles
         (the viewer passes the level's ``region_resolution`` of :meth:`level_choices`,
-        :func:`client_py.bundle.drawn_region_resolution`), skirts on its inner borders (:func:`client_py.skirts.hang_skirts`), scan frame:
+        :func:`client_py.bundle.drawn_region_resolution`), skirts on its inner borders
+        (:func:`client_py.skirts.hang_skirts`), scan frame:
         ``transform_mesh(hang_skirts(tessellate_region(patch, ...), ...), transform)``, made
         on the scan-frame patch when the transform is a rigid motion
         (:func:`client_py.layers.is_rigid_motion`: equal to rounding, float32).
