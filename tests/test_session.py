@@ -200,7 +200,9 @@ def test_a_level_is_drawn_on_its_own_grid_halved_until_it_has_256_cells(spans):
     (two per knot span, ``2 m 2^L`` cells: each cell halved ``j`` times): the coarsest of
     them with at least ``MIN_LEVEL_CELLS`` cells across, capped at 1025 vertices. The
     regions of a level side by side are that grid, each a multiple of the tile's spans."""
-    assert MIN_LEVEL_CELLS == 256
+    from client_py.format import MAX_WALLS_SIDE
+
+    assert MIN_LEVEL_CELLS == 256 <= MAX_WALLS_SIDE  # level 0's one tile holds its walls
     for level in range(7):
         own = min(1025, 2 * spans * 2**level + 1)
         assert level_resolution(spans, level, min_cells=0) == own  # bundles before it
