@@ -64,6 +64,15 @@ ATLAS_BASE_FILE = "base.tsa"  # the one name a version-2 (atlas) manifest's ``ba
 MANIFEST_VERSIONS = (1, 2)  # 1: one patch; 2: an atlas
 #: samples per patch side of an atlas level: ``min(129, 2 m 2^k + 1)`` (atlas_resolution)
 ATLAS_MAX_RESOLUTION = 129
+#: cells per side across the domain below which no detail level of one patch is drawn
+#: (:func:`tile_cells`): about the base alone's grid (:data:`BASE_RESOLUTION`), so a level
+#: never draws the base's shape and trim more coarsely than the base alone does. Buddha
+#: range scan 0 (quiet, seed of the default fit): the base alone on 256 x 256 vertices has
+#: 98.3 % of all scan points within 0.5 % of the diagonal, its level 0 on the 33 x 33 grid
+#: of ``2 m 2^L + 1`` only 80.0 % (largest distance to the scan 1.54 against 2.00 %).
+#: At most ``client_py.format.MAX_WALLS_SIDE``: level 0's one tile can carry walls found
+#: on every cell of its grid.
+MIN_LEVEL_CELLS = 256
 TEXTURE_EXTENSIONS = ("webp", "png")
 _NAMING = ("relative POSIX paths inside the bundle, as the fitter writes them: base.tsp, "
            "detail/K/I_J.tsd, texture/K/I_J.webp or .png; in an atlas base.tsa, "
@@ -331,19 +340,96 @@ def texture_nodes(manifest: dict, level: int | None = None) -> list[dict]:
             or (n["level"] < top and not covered(n["level"], n["i"], n["j"]))]
 
 
-def level_resolution(spans_per_tile: int, level: int) -> int:
-    """Grid of a level-``L`` PLY: ``R = min(1025, 2 m 2^L + 1)`` vertices per side.
+def tile_cells(spans_per_tile: int, level: int, min_cells: int = MIN_LEVEL_CELLS) -> int:
+    """Grid cells per tile side that level ``L`` of one patch is drawn with, the one rule of
+    its grid: ``c_L = 2 m 2^j``, ``j >= 0`` the least with ``c_L 2^L >= min_cells``.
 
-    ``m 2^L`` is the number of knot spans of level ``L``'s field across the
-    domain (``m`` = spans per tile), so ``R`` puts two vertices per span of the
-    finest tiles applied, up to :data:`PLY_MAX_RESOLUTION`.
+    ``m 2^L`` is the number of knot spans of level ``L``'s field across the domain (``m`` =
+    spans per tile), so ``j = 0`` puts two vertices per span of the finest tiles applied;
+    a coarse level's grid is refined by halving its cells until the whole domain has at
+    least ``min_cells`` (:data:`MIN_LEVEL_CELLS`; ``0`` for a bundle written before it:
+    :func:`drawn_level_resolution`). Halving keeps every vertex of the coarser grid and
+    makes ``c_L`` divide into the level's ``2^L`` tiles, so a viewer's quadtree regions
+    (:func:`region_resolution`) and the whole level (:func:`level_resolution`) are the same
+    grid. The fitter finds each level's walls masks on it (``fitter.fitting.detail``,
+    ``level_walls``).
     """
     if isinstance(spans_per_tile, bool) or not isinstance(spans_per_tile, int) \
             or spans_per_tile < 1:
         raise ValueError(f"spans_per_tile must be a positive integer, got {spans_per_tile!r}")
     if isinstance(level, bool) or not isinstance(level, int) or level < 0:
         raise ValueError(f"level must be an integer >= 0, got {level!r}")
-    return min(PLY_MAX_RESOLUTION, 2 * spans_per_tile * 2**level + 1)
+    if isinstance(min_cells, bool) or not isinstance(min_cells, int) or min_cells < 0:
+        raise ValueError(f"min_cells must be an integer >= 0, got {min_cells!r}")
+    cells = 2 * spans_per_tile
+    while cells << level < min_cells:
+        cells *= 2
+    return cells
+
+
+def level_resolution(spans_per_tile: int, level: int, min_cells: int = MIN_LEVEL_CELLS) -> int:
+    """Grid of a level-``L`` PLY: ``R = min(1025, c_L 2^L + 1)`` vertices per side.
+
+    ``c_L`` cells per tile side (:func:`tile_cells`: ``2 m 2^j``, at least ``min_cells``
+    across the domain), capped at :data:`PLY_MAX_RESOLUTION`. With the default
+    ``min_cells``, 256: ``R = 257, 257, 257, 257, 513, 1025`` at levels ``0..5`` for
+    ``m = 16``; with ``min_cells = 0`` (bundles written before session 13)
+    ``R = min(1025, 2 m 2^L + 1)``: ``33, 65, 129, 257, ...``.
+    """
+    return min(PLY_MAX_RESOLUTION, (tile_cells(spans_per_tile, level, min_cells) << level) + 1)
+
+
+def region_resolution(spans_per_tile: int, level: int, min_cells: int = MIN_LEVEL_CELLS) -> int:
+    """Vertices per side of a viewer's region at quadtree node ``(L, i, j)``: ``c_L + 1``
+    (:func:`tile_cells`; not capped: a region is a ``2^-L`` part of the domain). The
+    regions of level ``L`` side by side are the level's grid, as long as that is not
+    capped at :data:`PLY_MAX_RESOLUTION`."""
+    return tile_cells(spans_per_tile, level, min_cells) + 1
+
+
+def _level_min_cells(manifest: dict, level: int) -> int:
+    """The ``min_cells`` of :func:`tile_cells` that level ``level`` (``>= 0``) of a
+    version-1 manifest is drawn with: :data:`MIN_LEVEL_CELLS` when its
+    ``tiles.detail.levels[L]`` states ``resolution`` (which must then be
+    :func:`level_resolution`'s), ``0`` when it does not (a bundle written before session
+    13, whose walls masks were found on that grid)."""
+    entry = _levels(manifest)[level]
+    if not isinstance(entry, dict) or entry.get("level") != level:
+        raise ManifestError(f"tiles.detail.levels[{level}]",
+                            f"must describe level {level}, got {_shown(entry)}")
+    stated = entry.get("resolution")
+    if stated is None:
+        return 0
+    spans = detail_spans(manifest)
+    expected = level_resolution(spans, level)
+    if not _is_int(stated) or stated != expected:
+        raise ManifestError(f"tiles.detail.levels[{level}].resolution",
+                            f"is {_shown(stated)}; level {level} is drawn on {expected} "
+                            f"vertices per side (m = {spans}, at least {MIN_LEVEL_CELLS} "
+                            "cells: client_py.bundle.level_resolution)")
+    return MIN_LEVEL_CELLS
+
+
+def drawn_level_resolution(manifest: dict, level: int) -> int:
+    """Vertices per side of the grid level ``level`` (``>= 0``) of a version-1 bundle is
+    drawn on as a whole (``tessera tessellate --level L``, the PLY, the benchmark):
+    :func:`level_resolution` with the bundle's ``min_cells`` (:func:`_level_min_cells`:
+    a level entry without ``resolution`` is drawn as before session 13)."""
+    level = _check_level(manifest, level)
+    if level < 0:
+        raise ValueError("level must be a detail level >= 0; the base alone is drawn on "
+                         f"BASE_RESOLUTION = {BASE_RESOLUTION}")
+    return level_resolution(detail_spans(manifest), level, _level_min_cells(manifest, level))
+
+
+def drawn_region_resolution(manifest: dict, level: int) -> int:
+    """Vertices per side of a viewer's region at a level-``level`` quadtree node of a
+    version-1 bundle: :func:`region_resolution` with the bundle's ``min_cells`` (as
+    :func:`drawn_level_resolution`)."""
+    level = _check_level(manifest, level)
+    if level < 0:
+        raise ValueError("level must be a detail level >= 0: the base alone has no regions")
+    return region_resolution(detail_spans(manifest), level, _level_min_cells(manifest, level))
 
 
 # ------------------------------------------------------------------ version 2: an atlas
@@ -684,7 +770,10 @@ class LevelPlan:
         Their total size.
     resolution : int
         Vertices per side of the grid over the whole domain
-        (:func:`level_resolution`; :data:`BASE_RESOLUTION` at ``-1``).
+        (:func:`drawn_level_resolution`; :data:`BASE_RESOLUTION` at ``-1``).
+    region_resolution : int or None
+        Vertices per side of a viewer's region at a level-``level`` quadtree node
+        (:func:`drawn_region_resolution`); ``None`` for the base alone and an atlas.
     """
 
     level: int
@@ -694,13 +783,15 @@ class LevelPlan:
     texture_nodes: tuple[dict, ...]
     texture_bytes: int
     resolution: int
+    region_resolution: int | None = None
 
     def to_dict(self) -> dict:
         """The plan as JSON-ready plain values (lists for the tuples), for the browser."""
         return {"level": self.level, "rms": self.rms, "detail_files": list(self.detail_files),
                 "detail_bytes": self.detail_bytes,
                 "texture_nodes": [dict(n) for n in self.texture_nodes],
-                "texture_bytes": self.texture_bytes, "resolution": self.resolution}
+                "texture_bytes": self.texture_bytes, "resolution": self.resolution,
+                "region_resolution": self.region_resolution}
 
 
 def plan_level(manifest: dict, level: int | None = None) -> LevelPlan:
@@ -717,8 +808,10 @@ def plan_level(manifest: dict, level: int | None = None) -> LevelPlan:
     -------
     LevelPlan
         Detail tiles of levels ``0..L`` (:func:`detail_nodes`), texture nodes
-        (:func:`texture_nodes`) and the grid ``R = min(1025, 2 m 2^L + 1)``,
-        ``m = tiles.detail.spans_per_tile``.
+        (:func:`texture_nodes`) and the grid ``R = min(1025, c_L 2^L + 1)``,
+        ``c_L = 2 m 2^j`` cells per tile side with at least 256 across the domain
+        (:func:`drawn_level_resolution`; ``2 m 2^L + 1`` for a bundle written before
+        session 13), ``m = tiles.detail.spans_per_tile``.
 
     Raises
     ------
@@ -746,15 +839,14 @@ def plan_level(manifest: dict, level: int | None = None) -> LevelPlan:
         rms = _optional_number(_mapping(detail.get("base"), "tiles.detail.base").get("rms"),
                                "tiles.detail.base.rms")
     else:
-        resolution = level_resolution(detail_spans(manifest), level)
-        entry = _levels(manifest)[level]
-        if not isinstance(entry, dict) or entry.get("level") != level:
-            raise ManifestError(f"tiles.detail.levels[{level}]",
-                                f"must describe level {level}, got {_shown(entry)}")
-        rms = _optional_number(entry.get("rms"), f"tiles.detail.levels[{level}].rms")
+        resolution = drawn_level_resolution(manifest, level)  # checks the level's entry
+        region = drawn_region_resolution(manifest, level)
+        rms = _optional_number(_levels(manifest)[level].get("rms"),
+                               f"tiles.detail.levels[{level}].rms")
     return LevelPlan(level, rms, tuple(n["file"] for n in nodes),
                      sum(n.get("bytes") or 0 for n in nodes), tuple(textures),
-                     sum(n.get("bytes") or 0 for n in textures), resolution)
+                     sum(n.get("bytes") or 0 for n in textures), resolution,
+                     None if level < 0 else region)
 
 
 def _plan_atlas_level(manifest: dict, level: int | None) -> LevelPlan:

@@ -227,8 +227,10 @@ class WorkerSession:
 
     def region_mesh(self, level: int, i: int, j: int, grid: int, names: Iterable[str],
                     skirt_depth: float) -> Mesh:
-        """Quadtree node ``(level, i, j)`` on a ``grid x grid`` mesh with the named tiles,
-        skirts on its inner borders (:func:`client_py.skirts.hang_skirts`), scan frame:
+        """Quadtree node ``(level, i, j)`` on a ``grid x grid`` mesh with the named tiles
+        (the viewer passes the level's ``region_resolution`` of :meth:`level_choices`,
+        :func:`client_py.bundle.drawn_region_resolution`), skirts on its inner borders
+        (:func:`client_py.skirts.hang_skirts`), scan frame:
         ``transform_mesh(hang_skirts(tessellate_region(patch, ...), ...), transform)``, made
         on the scan-frame patch when the transform is a rigid motion
         (:func:`client_py.layers.is_rigid_motion`: equal to rounding, float32).
@@ -302,7 +304,9 @@ class WorkerSession:
         -------
         dict
             ``levels``: :func:`client_py.bundle.plan_levels` as dicts
-            (:meth:`client_py.bundle.LevelPlan.to_dict`); ``max_resolution``: the
+            (:meth:`client_py.bundle.LevelPlan.to_dict`: with each level's grid over the
+            whole patch, ``resolution``, and a viewer region's, ``region_resolution``,
+            the viewer's only source of them); ``max_resolution``: the
             grid's cap :data:`client_py.bundle.PLY_MAX_RESOLUTION`;
             ``spans_per_tile``: the manifest's (``None`` without detail tiles).
         """

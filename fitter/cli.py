@@ -562,9 +562,9 @@ def build_parser() -> argparse.ArgumentParser:
     tess.add_argument("-o", "--output", required=True, help="output .ply path")
     tess.add_argument("--resolution", type=_resolution, default=None,
                       help=f"vertices per side of the parameter grid (default "
-                      f"{BASE_RESOLUTION}; a bundle at a detail level L: "
-                      f"min({PLY_MAX_RESOLUTION}, 2 spans_per_tile 2^L + 1), as the viewer's "
-                      "Download PLY)")
+                      f"{BASE_RESOLUTION}; a bundle at a detail level L: the level's grid, "
+                      "client_py.bundle.plan_level's, at most "
+                      f"{PLY_MAX_RESOLUTION}, as the viewer's Download PLY)")
     tess.add_argument("--level", type=_level, default=None,
                       help="with a bundle: apply the detail tiles of levels 0..LEVEL "
                       "(-1: the base alone; default: the finest)")

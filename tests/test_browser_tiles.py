@@ -388,7 +388,10 @@ def test_download_ply_at_a_detail_level_is_the_bundle_at_that_level(browser, det
     nodes = {(n["level"], n["i"], n["j"]): n for n in detail["nodes"]}
     level = len(detail["levels"]) - 1
     assert level == LEVELS - 1
-    resolution = min(1025, 2 * detail["spans_per_tile"] * 2**level + 1)  # 257 here
+    resolution = detail["levels"][level]["resolution"]  # as the fitter states it
+    # docs/format.md, "The grid a level is drawn on": two vertices per knot span, at least
+    # 256 cells across
+    assert resolution == max(257, 2 * detail["spans_per_tile"] * 2**level + 1)
 
     context, page, problems, fetched = _open_detail_viewer(browser, detail_server,
                                                            accept_downloads=True)
@@ -505,7 +508,10 @@ def test_download_ply_at_a_level_carries_the_texture_colours(browser, detail_ser
     detail = manifest["tiles"]["detail"]
     level = len(detail["levels"]) - 1
     assert level == 1
-    resolution = 2 * detail["spans_per_tile"] * 2**level + 1  # 65
+    resolution = detail["levels"][level]["resolution"]  # as the fitter states it
+    # docs/format.md, "The grid a level is drawn on": two vertices per knot span, at least
+    # 256 cells across
+    assert resolution == max(257, 2 * detail["spans_per_tile"] * 2**level + 1)
 
     context, page, problems, fetched = _open_detail_viewer(browser, detail_server,
                                                            "relief-texture", accept_downloads=True)
@@ -588,7 +594,10 @@ def test_3dhop_page_at_a_detail_level(browser, detail_server, detail_collection,
     manifest = json.loads((bundle / "manifest.json").read_text())
     detail = manifest["tiles"]["detail"]
     level = len(detail["levels"]) - 1
-    resolution = 2 * detail["spans_per_tile"] * 2**level + 1
+    resolution = detail["levels"][level]["resolution"]  # as the fitter states it
+    # docs/format.md, "The grid a level is drawn on": two vertices per knot span, at least
+    # 256 cells across
+    assert resolution == max(257, 2 * detail["spans_per_tile"] * 2**level + 1)
 
     context, page, problems = _watched_page(browser, viewport={"width": 900, "height": 640})
     requested: list[str] = []

@@ -212,6 +212,14 @@ def test_detail_spans_option(tmp_path):
 
 
 # ------------------------------------------------------------------ redrawn cells
+def plane_sample(seed: int, count: int = 20_000) -> np.ndarray:
+    """``count`` points drawn uniformly from the plane ``z = 0`` over the unit square
+    (:func:`plane_model`'s surface: their foot points are their ``x, y``)."""
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(0, 1, count), rng.uniform(0, 1, count)
+    return np.column_stack([u, v, 0 * u])
+
+
 def plane_model():
     """The plane ``z = 0`` over the unit square as a degree-2 patch."""
     from client_py import NurbsSurface
@@ -333,8 +341,11 @@ def test_a_range_image_step_is_drawn_without_a_wall_at_every_level(tmp_path):
     the base's cells alone the finest wall reached 5.1, and without walls masks levels 0
     and 1 reached 5.8 and 7.1), and the drawn mesh still holds the scan (at the finest
     level 99 % of its points within 0.5 % of the diagonal, every point within 2 %; 95 %
-    and 3 % at the coarser ones, whose walls take whole coarse cells). Both kernels draw
-    the same cells; the coarser levels' tiles carry walls masks."""
+    and 3 % at the coarser ones). Both kernels draw the same cells. Every level is drawn
+    on at least 256 cells across (``client_py.bundle.level_resolution``), among which the
+    coarser levels' smooth surfaces draw no wall here: their tiles carry no walls mask (on
+    two vertices per knot span, 33 and 65 per side, their triangles joined both planes and
+    levels 0 and 1 needed walls masks)."""
     from client_py.bundle import plan_levels, tessellate_bundle
     from client_py.format import read_detail_tile
     from fitter.fitting.atlas.measure import point_mesh_distance
@@ -353,7 +364,8 @@ def test_a_range_image_step_is_drawn_without_a_wall_at_every_level(tmp_path):
     assert len(plans) >= 3
     tiles = [read_detail_tile(read(n["file"])) for n in manifest["tiles"]["detail"]["nodes"]]
     walled = {t.level for t in tiles if t.walls is not None and any(t.walls.flat)}
-    assert set(range(len(plans) - 1)) <= walled
+    assert walled == set() and not any(manifest["fit"].get("level_wall_cells") or [0])
+    assert all(plan.resolution >= 257 for plan in plans)
     spacing = 1 / 159
     for plan in plans:
         meshes = {k: tessellate_bundle(manifest, read, level=plan.level,
@@ -390,6 +402,34 @@ def test_a_scattered_clouds_gaps_are_not_walls():
     lifted = [f.copy() for f in fields]
     lifted[-1][40:50, 40:50] = 3 * redraw.near.wall_limit(0.0)  # a bump off the scan
     assert redraw.walls(lifted, detail.DEGREE, detail.SPANS, rms=0.0, size=128).any()
+
+
+def test_a_levels_walls_are_only_among_the_cells_it_draws():
+    """``Redraw.walls`` with the drawn masks of the levels applied (``drawn``): the walls of
+    the default (every candidate cell may be drawn) on exactly the cells the trim or one
+    of those masks covers. A plane sampled uniformly, its trim (32 x 32) leaving out the
+    block ``[0.25, 0.5)^2`` (candidates: foot points fall there), a bump off the scan over
+    ``[0.19, 0.56)^2`` (cells 24..71 of 128), half of the block given back by a level's
+    drawn mask (64 x 64, full domain)."""
+    model, points, trim = plane_model(), plane_sample(5), np.ones((32, 32), bool)
+    trim[8:16, 8:16] = False
+    U, V = points[:, 0], points[:, 1]
+    redraw = detail.Redraw.from_foot_points(model, trim, points, U, V, False)
+    assert redraw.candidates[8:16, 8:16].all() and redraw.candidates.sum() == 64
+    fields = [np.zeros(((detail.SPANS << k) + detail.DEGREE,) * 2) for k in range(3)]
+    fields[2][24:36, 24:36] = 3 * redraw.near.wall_limit(0.0)  # spans 22..35 of 64
+    args = (fields, detail.DEGREE, detail.SPANS, 0.0, 128)
+    every = redraw.walls(*args)
+    block = np.zeros((128, 128), bool)
+    block[32:64, 32:64] = True  # the trim's left-out cells on the 128 grid
+    assert every[block].any() and every[~block].any()
+    assert not redraw.walls(*args, drawn=[])[block].any()
+    np.testing.assert_array_equal(redraw.walls(*args, drawn=[]), every & ~block)
+    half = np.zeros((64, 64), bool)
+    half[16:24, 16:32] = True  # rows 0.25..0.375 of the block, every column
+    given = block.copy()
+    given[48:64] = False
+    np.testing.assert_array_equal(redraw.walls(*args, drawn=[half]), every & ~(block & ~given))
 
 
 def test_samples_no_triangle_uses_do_not_hold_a_wall_up():
@@ -446,10 +486,8 @@ def test_a_meshs_redraw_strays_beyond_the_walls_limit(mesh):
     count."""
     from scipy.spatial import KDTree
 
-    model = plane_model()
-    rng = np.random.default_rng(7)
-    U, V = rng.uniform(0, 1, 20_000), rng.uniform(0, 1, 20_000)
-    points = np.column_stack([U, V, 0 * U])
+    model, points = plane_model(), plane_sample(7)
+    U, V = points[:, 0], points[:, 1]
     drawn = np.ones((16, 16), bool)
     drawn[4:10, 4:10] = False
     redraw = detail.Redraw.from_foot_points(model, drawn, points, U, V, False,
@@ -471,3 +509,44 @@ def test_a_meshs_redraw_strays_beyond_the_walls_limit(mesh):
         expected[r, c] = np.all(np.hypot(d, tree.query(probes)[0]) <= limit)
     np.testing.assert_array_equal(got, expected)
     assert expected.sum() > 100 if mesh else not expected.any()  # d > limit: none for a cloud
+
+
+@pytest.mark.realdata
+def test_buddha_range_scan_0s_coarse_levels_hold_the_scan_as_the_base_alone(shared_data,
+                                                                            tmp_path):
+    """Buddha range scan 0 (one patch, default options): every level a visitor is drawn
+    (``client_py.bundle.plan_level``'s grid, at least 256 cells across) holds ALL scan points
+    at least as well as the base alone on its 256 x 256 grid, within a margin: on the 33 x
+    33 grid of two vertices per knot span level 0 held 80.0 % of them within 0.5 % of the
+    diagonal (the base alone 98.3 %) and strayed 2.0 % of the diagonal from the scan. Both
+    distances by brute-force projection onto the drawn triangles
+    (``fitter.fitting.atlas.measure``), the mesh's by 200,000 samples over its area."""
+    from client_py.bundle import plan_level, plan_levels, tessellate_bundle
+    from fitter.fitting.atlas.measure import point_mesh_distance
+    from fitter.fitting.atlas.surface import area_samples
+    from fitter.fitting.io import load_scan
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
+
+    scan = load_scan(shared_data / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz")
+    points = np.asarray(scan.points, float)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    manifest = fit_scan(scan, tmp_path / "b", FitOptions()).manifest
+    read = lambda name: (tmp_path / "b" / name).read_bytes()  # noqa: E731
+    from scipy.spatial import KDTree
+
+    near = KDTree(points)
+    within, stray = {}, {}
+    for plan in [plan_level(manifest, -1)] + plan_levels(manifest):
+        mesh = tessellate_bundle(manifest, read, level=plan.level, resolution=plan.resolution)
+        vertices = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float)
+        faces = np.frombuffer(mesh.indices, np.uintc).reshape(-1, 3).astype(np.int64)
+        d = point_mesh_distance(points, vertices, faces)
+        within[plan.level] = float(np.mean(d <= 0.005 * diagonal))
+        samples, _ = area_samples(vertices, faces, 200_000, np.random.default_rng(0))
+        stray[plan.level] = float(near.query(samples)[0].max()) / diagonal
+        assert plan.level < 0 or plan.resolution >= 257
+    for level in range(len(plan_levels(manifest))):
+        assert within[level] >= within[-1] - 0.002, (level, within)
+        assert stray[level] <= stray[-1] + 0.001, (level, stray)
+    assert within[0] >= 0.975 and stray[0] <= 0.016, (within, stray)

@@ -274,6 +274,14 @@ def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
     # of decimals), so the manifest's digest below is the one without either
     raster = manifest.pop("error_raster")  # checked in tests/test_metadata.py
     assert raster["max"] == manifest["stats"]["max"]
+    # each level's grid (session 13: client_py.bundle.level_resolution, stated so a reader
+    # tells such a bundle from an older one), added after the reference
+    detail = manifest["tiles"]["detail"]
+    if detail is not None:
+        detail["levels"] = [dict(entry) for entry in detail["levels"]]
+        for entry in detail["levels"]:
+            assert entry.pop("resolution") == max(257, 2 * detail["spans_per_tile"]
+                                                  * 2 ** entry["level"] + 1)
     timings = manifest.pop("timings")
     assert set(timings) <= {"load", "project", "features", "sections", "linear", "refine",
                             "encode", "error", "detail", "texture", "report"}

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import random
 import re
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -30,7 +31,14 @@ from client_py import (
     write_detail_tile,
     write_patch,
 )
-from client_py.bundle import PLY_MAX_RESOLUTION, level_resolution, texture_nodes
+from client_py.bundle import (
+    MIN_LEVEL_CELLS,
+    PLY_MAX_RESOLUTION,
+    ManifestError,
+    level_resolution,
+    region_resolution,
+    texture_nodes,
+)
 from client_py.layers import tile_rect, transform_mesh
 from client_py.session import WorkerSession
 from fitter.cli import main
@@ -167,6 +175,8 @@ def test_the_grid_is_capped_and_the_session_offers_every_level(bundle):
     assert level_resolution(16, 4) == 513
     assert level_resolution(16, 5) == PLY_MAX_RESOLUTION == 1025  # 1025 = 2 16 2^5 + 1
     assert level_resolution(64, 4) == 1025  # not 2049
+    assert [level_resolution(16, k) for k in range(4)] == [257] * 4  # Buddha scan 0's levels
+    assert [level_resolution(16, k, min_cells=0) for k in range(4)] == [33, 65, 129, 257]
     session = _session(bundle)
     offered = session.level_choices()
     assert json.loads(json.dumps(offered)) == offered  # plain values for the page
@@ -175,6 +185,122 @@ def test_the_grid_is_capped_and_the_session_offers_every_level(bundle):
     assert choices == [p.to_dict() for p in plan_levels(_manifest(bundle))]
     assert [c["level"] for c in choices] == list(range(LEVELS))
     assert choices[1]["texture_nodes"] == [dict(n) for n in texture_nodes(_manifest(bundle), 1)]
+
+
+# --- the grid a level is drawn on (client_py.bundle.tile_cells, session 13) ----------------
+
+def _grid(resolution: int) -> set:
+    """The parameter values ``a / (R - 1)`` of an ``R``-vertex grid, exactly."""
+    return {Fraction(a, resolution - 1) for a in range(resolution)}
+
+
+@pytest.mark.parametrize("spans", [1, 3, 4, 16, 64, 255])
+def test_a_level_is_drawn_on_its_own_grid_halved_until_it_has_256_cells(spans):
+    """Against the grids a level could be drawn on that keep every vertex of its own grid
+    (two per knot span, ``2 m 2^L`` cells: each cell halved ``j`` times): the coarsest of
+    them with at least ``MIN_LEVEL_CELLS`` cells across, capped at 1025 vertices. The
+    regions of a level side by side are that grid, each a multiple of the tile's spans."""
+    from client_py.format import MAX_WALLS_SIDE
+
+    assert MIN_LEVEL_CELLS == 256 <= MAX_WALLS_SIDE  # level 0's one tile holds its walls
+    for level in range(7):
+        own = min(1025, 2 * spans * 2**level + 1)
+        assert level_resolution(spans, level, min_cells=0) == own  # bundles before it
+        halved = [2 * spans * 2**level * 2**j for j in range(12)]
+        expected = min(1025, min(c for c in halved if c >= 256) + 1)
+        drawn = level_resolution(spans, level)
+        assert drawn == expected, (spans, level)
+        assert _grid(own) <= _grid(drawn)  # every vertex of the level's own grid is kept
+        region = region_resolution(spans, level)
+        assert (region - 1) % (2 * spans) == 0 and region >= 2 * spans + 1
+        assert region_resolution(spans, level, min_cells=0) == 2 * spans + 1
+        if drawn < 1025:
+            assert (region - 1) * 2**level + 1 == drawn
+            assert (region - 1) * 2**level >= 256
+
+
+@pytest.mark.parametrize(("args", "match"), [
+    ((0, 0), r"spans_per_tile must be a positive integer, got 0"),
+    ((16, -1), r"level must be an integer >= 0, got -1"),
+    ((16, True), r"level must be an integer >= 0, got True"),
+    ((16, 0, -4), r"min_cells must be an integer >= 0, got -4"),
+])
+def test_a_bad_grid_argument_is_refused(args, match):
+    with pytest.raises(ValueError, match=match):
+        level_resolution(*args)
+
+
+def _stating(manifest: dict, levels=range(LEVELS)) -> dict:
+    """``manifest`` with ``resolution`` stated on the level entries ``levels``, as the
+    fitter writes it from session 13."""
+    for k in levels:
+        manifest["tiles"]["detail"]["levels"][k]["resolution"] = level_resolution(SPANS, k)
+    return manifest
+
+
+def test_a_bundle_stating_its_grids_is_drawn_on_them_an_older_one_as_before(bundle):
+    """The fixture's manifest (m = 4) states no ``resolution``: its levels are drawn on
+    ``2 m 2^L + 1`` = 9, 17, 33 vertices, as every bundle before session 13; stated, on
+    257 (every level, 256 cells across), in regions of 257, 129, 65 vertices. A level
+    entry tells its own level's rule."""
+    old = _manifest(bundle)
+    assert [(p.resolution, p.region_resolution) for p in plan_levels(old)] == \
+        [(9, 9), (17, 9), (33, 9)]
+    new = _stating(_manifest(bundle))
+    assert [(p.resolution, p.region_resolution) for p in plan_levels(new)] == \
+        [(257, 257), (257, 129), (257, 65)]
+    assert plan_level(new, -1).region_resolution is None
+    mixed = _stating(_manifest(bundle), levels=[1])
+    assert [p.resolution for p in plan_levels(mixed)] == [9, 257, 33]
+    session = WorkerSession()
+    session.read_manifest(json.dumps(new))
+    assert [c["region_resolution"] for c in session.level_choices()["levels"]] == [257, 129, 65]
+
+
+@pytest.mark.parametrize("stated", [33, 129, 258, "257", 257.0, True, None])
+def test_a_stated_grid_that_is_not_the_rules_is_refused(bundle, stated):
+    manifest = _stating(_manifest(bundle))
+    manifest["tiles"]["detail"]["levels"][1]["resolution"] = stated
+    if stated is None:  # null: no statement, the older rule
+        assert plan_level(manifest, 1).resolution == 17
+        return
+    with pytest.raises(ManifestError, match=r"tiles\.detail\.levels\[1\]\.resolution is "
+                       r".*level 1 is drawn on 257 vertices per side \(m = 4"):
+        plan_level(manifest, 1)
+    with pytest.raises(ManifestError, match=r"levels\[1\]\.resolution"):
+        WorkerSession().read_manifest(json.dumps(manifest))
+
+
+def test_a_levels_regions_side_by_side_are_its_whole_mesh(bundle):
+    """The viewer's regions at a level-1 node, on the plan's region grid (129), hold the
+    vertices of the level-1 PLY's grid (257) over their rectangles: the same points, as
+    ``tessellate_bundle`` draws the whole level (float32 positions, scan frame). But for
+    the lines ``u = 1/2`` and ``v = 1/2`` two regions share: this fixture's tiles are
+    random per tile, so they disagree there (a fitted pyramid's tiles hold one field)."""
+    manifest = _stating(_manifest(bundle))
+    session = WorkerSession()
+    session.load_patch((bundle / "base.tsp").read_bytes(), bundle.name)
+    session.read_manifest(json.dumps(manifest))
+    plan = plan_level(manifest, 1)
+    whole = tessellate_bundle(manifest, lambda n: (bundle / n).read_bytes(), level=1,
+                              resolution=plan.resolution, kernel="numpy")
+    r = plan.resolution
+    xyz = np.frombuffer(whole.positions, np.float32).reshape(r, r, 3)
+    nodes = {(n["level"], n["i"], n["j"]): n["file"] for n in manifest["tiles"]["detail"]["nodes"]}
+    differ = []
+    for (i, j) in [(0, 0), (1, 0), (0, 1), (1, 1)]:
+        names = [nodes[0, 0, 0], nodes[1, i, j]]
+        for name in names:
+            session.add_tile(name, (bundle / name).read_bytes())
+        g = plan.region_resolution
+        mesh = session.region_mesh(1, i, j, g, names, 0.05)
+        region = np.frombuffer(mesh.positions, np.float32)[: 3 * g * g].reshape(g, g, 3)
+        block = xyz[i * (g - 1): i * (g - 1) + g, j * (g - 1): j * (g - 1) + g]
+        rows = slice(1, None) if i else slice(None, -1)  # leave out u = 1/2
+        cols = slice(1, None) if j else slice(None, -1)  # and v = 1/2
+        np.testing.assert_allclose(region[rows, cols], block[rows, cols], rtol=0, atol=2e-4)
+        differ.append(np.abs(region - block).max() > 1e-3)
+    assert any(differ)  # the shared lines do differ here: the reference can tell
 
 
 @pytest.mark.parametrize(("change", "match"), [

@@ -55,14 +55,18 @@ scan 0, a mesh: its largest distance to the scan 3.33 -> 1.16 % of the diagonal 
 3).
 
 A coarser level draws walls of its own where the finest level's do not reach: its
-smoother surface bridges the jump more widely, and its coarser drawn grid joins
-vertices on both sides of it even where the surface does not. So each coarser level
-``k``'s tiles carry a *walls mask* (``client_py.layers.DetailTile``: the finest applied
-tile's walls mask leaves cells out, whatever the trim and drawn masks say): the cells of
-the grid a client draws level ``k`` on where that mesh strays (:meth:`Redraw.walls`,
+smoother surface bridges the jump more widely (and, on a grid as coarse as two vertices
+per knot span, its triangles join vertices on both sides of it even where the surface
+does not). So each coarser level ``k``'s tiles carry a *walls mask*
+(``client_py.layers.DetailTile``: the finest applied tile's walls mask leaves cells out,
+whatever the trim and drawn masks say): the cells of the grid a client draws level ``k``
+on (``client_py.bundle.level_resolution``, at least ``MIN_LEVEL_CELLS`` = 256 cells
+across) among those it draws, where that mesh strays (:meth:`Redraw.walls`,
 :func:`level_walls`), and every finer tile over them an all-clear mask, which gives them
-back (Buddha range scan 0, levels 0/1/2: largest distance 7.70/5.79/3.30 ->
-2.04/1.57/1.32 % of the diagonal, far area 13.0/2.2/0.45 -> 2.6/0.95/0.14 %).
+back. Buddha range scan 0, levels 0/1/2, largest distance to the scan: 7.70/5.79/3.30 %
+of the diagonal without walls masks, 2.00/1.56/1.33 % with them on grids of two vertices
+per span (33/65/129 per side), 1.49/1.51/1.18 % on 257 (far area 2.6/0.91/0.15 ->
+0.09/0.08/0.02 %; levels 0 and 1 then need no walls mask, level 2 five cells).
 """
 
 from __future__ import annotations
@@ -240,13 +244,16 @@ class Redraw:
         return refined
 
     def walls(self, fields: list[np.ndarray], degree: int, spans: int, rms: float,
-              size: int, trim: np.ndarray | None = None) -> np.ndarray:
+              size: int, trim: np.ndarray | None = None,
+              drawn: list[np.ndarray] | None = None) -> np.ndarray:
         """``(size, size)`` booleans: the cells the base's trim (``trim``, as the bundle
         carries it: by default :attr:`drawn`) or a tile's drawn mask may draw where the mesh
         a client draws on the grid of ``size`` cells per side strays from the scan (beyond
-        ``ScanNeighbourhood.wall_limit(rms)``). A cell centre on the border of two mask
-        cells (a finer trim: ``trim_without``) may be either's in a client's arithmetic, so
-        both count.
+        ``ScanNeighbourhood.wall_limit(rms)``). The drawn masks: ``drawn``, the full-domain
+        masks of the levels applied with ``fields`` (:meth:`cells`, as the tiles carry
+        them), or by default every :attr:`candidates` cell, which any level's mask is part
+        of. A cell centre on the border of two mask cells (a finer trim:
+        ``trim_without``) may be either's in a client's arithmetic, so both count.
 
         That mesh joins the refined surface's values ``X`` at the grid's vertices with two
         triangles a cell (``client_py._kernel_python.cell_indices``: the diagonal from
@@ -262,7 +269,8 @@ class Redraw:
         """
         centre = (np.arange(size) + 0.5) / size
         may = np.zeros((size, size), bool)
-        for mask in (self.drawn if trim is None else trim, self.candidates):
+        for mask in (self.drawn if trim is None else trim,
+                     *((self.candidates,) if drawn is None else drawn)):
             for shift in (-1e-9, 1e-9):
                 rows = np.clip(((centre + shift) * mask.shape[0]).astype(np.int64), 0,
                                mask.shape[0] - 1)
@@ -275,11 +283,15 @@ class Redraw:
         def far_band(r0: int, r1: int) -> np.ndarray:
             u, v = np.meshgrid(corner[r0:r1 + 1], corner, indexing="ij")
             X = refined(u.ravel(), v.ravel()).reshape(*u.shape, 3)
-            a, b, c, d = X[:-1, :-1], X[1:, :-1], X[:-1, 1:], X[1:, 1:]  # (i,j) (i+1,j) ...
-            far = np.zeros((r1 - r0, size), bool)
+            held = may[r0:r1]  # only the cells that may be drawn are probed
+            a, b, c, d = (X[:-1, :-1][held], X[1:, :-1][held], X[:-1, 1:][held],
+                          X[1:, 1:][held])  # corners (i, j) (i + 1, j) (i, j + 1) (i + 1, j + 1)
+            hit = np.zeros(len(a), bool)
             for probe in (a, b, c, d, (a + b) / 2, (a + c) / 2, (b + d) / 2, (c + d) / 2,
                           (b + c) / 2, (a + b + c) / 3, (b + c + d) / 3):
-                far |= self.near.farther(probe.reshape(-1, 3), limit).reshape(far.shape)
+                hit |= self.near.farther(probe, limit)
+            far = np.zeros((r1 - r0, size), bool)
+            far[held] = hit
             return far
         return _by_bands(may, far_band)
 
@@ -580,30 +592,38 @@ def fit_pyramid(samples: DetailSamples, levels: int, degree: int = DEGREE, spans
                                   min(DRAWN_SIDE << (len(fields) - 1), MAX_SIDE))
         pyramid.trim = redraw.trim_without(walls)
         pyramid.wall_cells = int(walls.sum())
+        thinned = [_without_walls(drawn, walls) for _, drawn, _ in done]
         coarser = level_walls(redraw, fields, degree, spans,
-                              [level.rms for level in pyramid.levels], walls, pyramid.trim)
+                              [level.rms for level in pyramid.levels], walls, pyramid.trim,
+                              thinned)
         pyramid.level_wall_cells = [int(w[0].sum()) for w in coarser]
         for k, (level, drawn, e) in enumerate(done):
-            thinned = _without_walls(drawn, walls)
-            if thinned is not drawn or coarser[k][1].any() or coarser[k][0].any():
+            if thinned[k] is not drawn or coarser[k][1].any() or coarser[k][0].any():
                 # this level's mask drew some of them, or it has walls (or must undo a
                 # coarser level's): tiles anew
                 q = np.rint(fields[k] / level.step).astype(np.int64)
                 level.tiles = level_tiles(q, level.step, k, degree, spans, samples.u,
-                                          samples.v, e, thinned, walls=coarser[k])
+                                          samples.v, e, thinned[k], walls=coarser[k])
     return pyramid
 
 
 def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: int,
-                rms: list[float], finest: np.ndarray, trim: np.ndarray | None = None
+                rms: list[float], finest: np.ndarray, trim: np.ndarray | None = None,
+                drawn: list[np.ndarray | None] | None = None
                 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per level ``k`` the walls its tiles carry (:class:`client_py.layers.DetailTile`,
     ``walls``): ``(cells, keep)``.
 
     ``cells (W_k, W_k)``: :meth:`Redraw.walls` of the surface refined by
     ``fields[:k + 1]`` (level ``k``'s ``rms[k]``) on the grid a client draws level ``k``
-    on (``client_py.bundle.level_resolution``: ``W_k = 2 m 2^k`` cells, at most
-    ``MAX_WALLS_SIDE 2^k``); none for the finest level, whose walls (``finest``, found by
+    on (``client_py.bundle.level_resolution``: ``W_k = c_k 2^k`` cells, ``c_k = 2 m 2^j``
+    per tile side with ``W_k >= MIN_LEVEL_CELLS``, at most ``MAX_WALLS_SIDE 2^k``), among
+    the cells it draws: the trim and the drawn masks of levels ``0..k`` (``drawn``, per
+    level its full-domain mask or ``None``; by default every candidate cell). A level
+    whose grid is finer than its drawn masks draws no cell a coarser one's walls mask must
+    leave out: Buddha range scan 0, levels 0/1 on 256 cells, 1,617/1,600 wall cells, all
+    in candidate cells no mask of theirs draws, 432/441 B of walls masks that changed no
+    triangle. None for the finest level, whose walls (``finest``, found by
     :meth:`Redraw.walls`) are already out of the base's trim (``trim``: the pyramid's) and
     so of every level. ``keep (2^k, 2^k)``: the tiles whose
     rectangle holds a coarser level's walls, which carry a walls mask even without walls
@@ -615,7 +635,8 @@ def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: in
     for k in range(len(fields)):
         size = min(level_resolution(spans, k) - 1, MAX_WALLS_SIDE << k)
         if k < last:
-            cells = redraw.walls(fields[: k + 1], degree, spans, rms[k], size, trim)
+            masks = None if drawn is None else [d for d in drawn[: k + 1] if d is not None]
+            cells = redraw.walls(fields[: k + 1], degree, spans, rms[k], size, trim, masks)
         else:
             cells = np.zeros((size, size), bool)
         count = 1 << k
@@ -732,9 +753,12 @@ def write_layers(root, pyramid: DetailPyramid, texture_tiles: list) -> tuple[dic
             nodes.append({"level": tile.level, "i": tile.i, "j": tile.j,
                           "uv": list(tile.uv_rect), "file": name, "bytes": len(data),
                           "geometric_error": _rounded(worst)})
+        # the grid a client draws the level on, which its walls masks were found on: its
+        # presence tells a reader the bundle is drawn by the rule of session 13
         summary.append({"level": lev.level, "tiles": len(lev.tiles), "rms": _rounded(lev.rms),
                         "max": _rounded(lev.max), "bytes_total": lev.bytes_total,
-                        "step": _rounded(lev.step), "coefficients": lev.coefficients})
+                        "step": _rounded(lev.step), "coefficients": lev.coefficients,
+                        "resolution": level_resolution(pyramid.spans, lev.level)})
     tree: dict = {"version": 1, "detail": {
         "format": "tsd", "format_version": TILE_VERSION, "degree": pyramid.degree,
         "spans_per_tile": pyramid.spans,

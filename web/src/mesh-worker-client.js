@@ -71,9 +71,11 @@ export class MeshWorkerClient {
 
   /** The PLY levels the bundle offers (the worker keeps the manifest for plyLevel): resolves
    *  with {levels, max_resolution, spans_per_tile}, one entry of levels per detail level,
-   *  {level, rms, detail_files, detail_bytes, texture_nodes, texture_bytes, resolution}
-   *  (client_py.bundle.plan_level: the detail tiles of levels 0..L, the texture nodes its
-   *  vertex colours come from, its grid R = min(max_resolution, 2 spans_per_tile 2^L + 1));
+   *  {level, rms, detail_files, detail_bytes, texture_nodes, texture_bytes, resolution,
+   *  region_resolution} (client_py.bundle.plan_level: the detail tiles of levels 0..L, the
+   *  texture nodes its vertex colours come from, its grid over the whole object and that of
+   *  a viewer's region at a level-L node, client_py.bundle.drawn_level_resolution and
+   *  drawn_region_resolution);
    *  a malformed manifest rejects with the reason. */
   plan(manifest) {
     return this._request({ type: "plan", manifest: JSON.stringify(manifest) });
@@ -147,9 +149,9 @@ export class MeshWorkerClient {
   }
 
   /** Meshes of several quadtree nodes, as region() makes each, in one request: `regions`
-   *  = [{level, i, j, names, skirtDepth}]; resolves with their meshes in that order. */
-  async regionBatch(grid, regions) {
-    return (await this._request({ type: "regions", grid, regions })).meshes;
+   *  = [{level, i, j, grid, names, skirtDepth}]; resolves with their meshes in that order. */
+  async regionBatch(regions) {
+    return (await this._request({ type: "regions", regions })).meshes;
   }
 
   /** An atlas bundle's refinement table (after plan()): {groups: [{first, count, center,

@@ -19,7 +19,8 @@
 //           (WorkerSession.base_ply: the base mesh, with the RGB per vertex `colors`)
 //   page -> {type: "plan", manifest}  -> {type: "plan", levels, max_resolution, spans_per_tile}
 //           (the manifest's JSON text, kept; WorkerSession.level_choices: per detail level its
-//           detail_files, texture_nodes, their bytes, rms and grid, client_py.bundle.plan_level)
+//           detail_files, texture_nodes, their bytes, rms, grid and region grid,
+//           client_py.bundle.plan_level)
 //   page -> {type: "ply", level, fresh?: [{name, bytes}], textures?: [{level, i, j, width,
 //            height, rgb}]}
 //        -> {type: "ply", bytes, vertices, triangles, resolution, write_ms}  (level >= 0:
@@ -59,7 +60,7 @@
 //   page -> {type: "region", level, i, j, grid, names, skirtDepth}
 //        -> {type: "region", positions, normals, uvs, indices, tessellate_ms}  (region_mesh:
 //           node (level, i, j) with the named tiles, skirts on its inner borders, scan frame)
-//   page -> {type: "regions", grid, regions: [{level, i, j, names, skirtDepth}, ...]}
+//   page -> {type: "regions", regions: [{level, i, j, grid, names, skirtDepth}, ...]}
 //        -> {type: "regions", meshes: [{level, i, j, positions, normals, uvs, indices,
 //           tessellate_ms}, ...]}  (region_mesh for each, in order, in one reply)
 //   worker -> {type: "error", stage, message}   for any failure, with the reason
@@ -324,8 +325,8 @@ function region({ id, level, i, j, grid, names, skirtDepth }) {
   postMesh(mesh, performance.now() - t0, { type: "region", id, level, i, j });
 }
 
-function regions({ id, grid, regions: wanted }) {
-  const meshes = wanted.map(({ level, i, j, names, skirtDepth }) => {
+function regions({ id, regions: wanted }) {
+  const meshes = wanted.map(({ level, i, j, grid, names, skirtDepth }) => {
     const t0 = performance.now();
     const mesh = withPy(names, (list) => session.region_mesh(level, i, j, grid, list, skirtDepth));
     return meshArrays(mesh, performance.now() - t0, { level, i, j });

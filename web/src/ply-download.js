@@ -1,9 +1,9 @@
 // PlyDownload: the viewer's "Download PLY" control. It writes the level chosen next to it
 // (#ply-level): "base", the mesh on screen (with the error map's colours when it is shown), or
 // detail level L: every detail tile of levels 0..L is fetched (those the worker already holds
-// are not) and the worker tessellates the whole patch with them on an R x R grid,
-// R = min(1025, 2 spans_per_tile 2^L + 1) (two vertices per knot span of the level's tiles),
-// as `tessera tessellate OUTDIR --level L`; a bundle with texture tiles gives the vertices
+// are not) and the worker tessellates the whole patch with them on the level's R x R grid
+// (the plan's levels[L].resolution, client_py.bundle.drawn_level_resolution), as
+// `tessera tessellate OUTDIR --level L`; a bundle with texture tiles gives the vertices
 // colours sampled from them (decoded here, sampled by client_py in the worker; page.js
 // levelPly, on the worker's plan of each level: client_py.bundle.plan_level).
 // Its stats: ply_level (-1 base), ply_bytes (the file's size), ply_vertices, ply_resolution,
@@ -74,9 +74,9 @@ export class PlyDownload {
       select.title = "Level of detail of the PLY. base: the mesh on screen (with the error map's " +
         "colours when it is shown). level L: the base with every detail tile of levels 0..L " +
         "(their total size is shown; tiles already loaded are not fetched again), the RMS " +
-        "distance to the scan at that level, tessellated over the whole object on an R × R " +
-        `grid, R = min(${plan.max_resolution}, 2 × ${plan.spans_per_tile} spans per tile × 2^L + 1): ` +
-        "two vertices per knot span of the level's tiles" + (textured
+        "distance to the scan at that level, tessellated over the whole object on the R × R " +
+        "grid shown: two vertices per knot span of the level's tiles, finer at the coarse " +
+        `levels (at most ${plan.max_resolution})` + (textured
           ? "; with the object's colours sampled from its texture tiles (size included)." : ".");
       select.hidden = false;
       select.disabled = false;

@@ -33,7 +33,8 @@
 // not sent: the camera moved on), at (performance.now() when drawn)); fetch_ms ends when the
 // worker holds the new tiles, and regions_ms is what is left of the worker's batches after it.
 //
-// Each region is tessellated on the tree's regionGrid (R = 2 spans_per_tile + 1, tile-tree.js).
+// A region at a level-k node is tessellated on the tree's regionGrid(k) (tile-tree.js: the
+// worker's plan of the manifest, levels[k].region_resolution, client_py's one rule).
 
 import * as THREE from "three";
 import { fetchBytes } from "./fetch-bytes.js";
@@ -42,19 +43,23 @@ import { TileTree } from "./tile-tree.js";
 /** Regions per worker request: large enough that messages cost little, small enough that a
  *  camera moving on wastes little work. */
 export const REGION_BATCH = 4;
-/** Region meshes kept after they leave the screen (a 33² region with skirts is ~60 KB). */
+/** Region meshes kept after they leave the screen (a 33² region with skirts is ~60 KB; the
+ *  coarse levels' regions are finer, about 3.7 MB for the default bundle's one 257² level-0
+ *  region, so a whole level's regions weigh about the same at every level). */
 export const REGION_CACHE = 96;
 
 export class TileLayer {
   /**
    * @param {{viewer: import("./viewer.js").Viewer, worker: import("./mesh-worker-client.js").MeshWorkerClient,
-   *          manifest: object, manifestUrl: string, stats: object, onError: (message: string) => void,
-   *          onChange?: () => void}} options
+   *          manifest: object, manifestUrl: string, regionGrids: number[]|null, stats: object,
+   *          onError: (message: string) => void, onChange?: () => void}} options
+   *   regionGrids: vertices per region side at levels 0, 1, .. (the worker's plan:
+   *   levels[k].region_resolution)
    */
-  constructor({ viewer, worker, manifest, manifestUrl, stats, onError, onChange = () => {} }) {
+  constructor({ viewer, worker, manifest, manifestUrl, regionGrids, stats, onError, onChange = () => {} }) {
     this.viewer = viewer;
     this.worker = worker;
-    this.tree = new TileTree(manifest.tiles || null, manifest.transform || null);
+    this.tree = new TileTree(manifest.tiles || null, manifest.transform || null, regionGrids || null);
     this.baseUrl = new URL(manifestUrl, window.location.href);
     this.stats = stats;
     this.onError = onError;
@@ -77,9 +82,10 @@ export class TileLayer {
     return !this.tree.empty && !this.failed;
   }
 
-  /** Vertices per side of every region's grid (TileTree.regionGrid), null without tiles. */
-  get regionGrid() {
-    return this.tree.regionGrid;
+  /** Vertices per side of a level-`level` region's grid (TileTree.regionGrid), null without
+   *  tiles. */
+  regionGrid(level) {
+    return this.tree.regionGrid(level);
   }
 
   /** New base mesh on screen: recompute the nodes' bounding boxes from it. */
@@ -144,8 +150,9 @@ export class TileLayer {
       const texture = this.tree.textureNode(leaf.level, leaf.i, leaf.j);
       const skirtDepth = 2 * this.tree.detailError(leaf.level, leaf.i, leaf.j);
       const names = chain.map((node) => node.file);
-      const key = `${id}|${this.regionGrid}|${skirtDepth}|${names.join(",")}`;
-      wanted.set(id, { ...leaf, chain, names, skirtDepth, key, texture });
+      const grid = this.regionGrid(leaf.level);
+      const key = `${id}|${grid}|${skirtDepth}|${names.join(",")}`;
+      wanted.set(id, { ...leaf, chain, names, skirtDepth, grid, key, texture });
       for (const name of names) detailNames.add(name);
       if (texture) textureNames.add(texture.file);
     }
@@ -251,8 +258,9 @@ export class TileLayer {
     for (let k = 0; k < leaves.length; k += REGION_BATCH) batches.push(leaves.slice(k, k + REGION_BATCH));
     const keys = new Set();
     let ms = 0;
-    const send = (batch) => this.worker.regionBatch(this.regionGrid, batch.map((leaf) => ({
-      level: leaf.level, i: leaf.i, j: leaf.j, names: leaf.names, skirtDepth: leaf.skirtDepth })));
+    const send = (batch) => this.worker.regionBatch(batch.map((leaf) => ({
+      level: leaf.level, i: leaf.i, j: leaf.j, grid: leaf.grid, names: leaf.names,
+      skirtDepth: leaf.skirtDepth })));
     let inFlight = batches.length ? send(batches[0]) : null;
     for (let b = 0; b < batches.length; b++) {
       const following = b + 1 < batches.length && !this.dirty ? send(batches[b + 1]) : null;

@@ -23,30 +23,34 @@
 // screen (the vertices whose (u, v) fall within one grid step of each finest cell), padded by
 // the base's max deviation (detail.base.max: how far the detail may move the surface).
 //
-// Region grid: a region is tessellated on an R x R grid, R = 2 m + 1 with m the manifest's
-// tiles.detail.spans_per_tile (two vertices per knot span of the region's finest tile: 33 for
-// the default 16 spans, 129 for `--detail-spans 64`), read here, once, with the tile tree.
+// Region grid: a region at a level-k node is tessellated on an R_k x R_k grid, R_k given per
+// level by the worker's plan (client_py.bundle.drawn_region_resolution, the one rule of a
+// level's grid: two vertices per knot span of the region's finest tile, finer at coarse levels
+// so a level is never drawn on fewer than 256 cells across the domain; 257, 129, 65, 33 at
+// levels 0..3 for the default 16 spans). This file has no copy of that rule.
 
 import * as THREE from "three";
 
 export const DETAIL_PX = 2;
 export const TEXEL_PX = 1.5;
 export const MAX_REGIONS = 48;
-export const MAX_SPANS_PER_TILE = 255; // a .tsd stores its spans per tile in a byte (docs/format.md)
 
 /**
- * Vertices per side of a region's grid, R = 2 m + 1 for m knot spans per detail tile side.
- * @param {unknown} spansPerTile  manifest tiles.detail.spans_per_tile
- * @returns {number} R (33 for m = 16)
- * @throws {Error} when m is not an integer in 1..MAX_SPANS_PER_TILE
+ * The region grids of levels 0..maxLevel, checked: each an integer >= 2 (vertices per side).
+ * @param {unknown} grids  the plan's levels[k].region_resolution, k = 0, 1, ..
+ * @param {number} maxLevel  the tree's finest level
+ * @returns {number[]}
+ * @throws {Error} naming the level whose grid is missing or not an integer >= 2
  */
-export function regionGridSize(spansPerTile) {
-  if (!Number.isInteger(spansPerTile) || spansPerTile < 1 || spansPerTile > MAX_SPANS_PER_TILE) {
-    throw new Error("manifest tiles.detail.spans_per_tile must be an integer in " +
-                    `1..${MAX_SPANS_PER_TILE} (knot spans per detail tile side), got ` +
-                    `${JSON.stringify(spansPerTile) ?? String(spansPerTile)}`);
+function checkedGrids(grids, maxLevel) {
+  for (let k = 0; k <= maxLevel; k++) {
+    const grid = Array.isArray(grids) ? grids[k] : undefined;
+    if (!Number.isInteger(grid) || grid < 2) {
+      throw new Error(`no region grid for level ${k} (vertices per side, the worker's plan of ` +
+                      `the manifest's detail levels), got ${JSON.stringify(grid) ?? String(grid)}`);
+    }
   }
-  return 2 * spansPerTile + 1;
+  return grids.slice(0, maxLevel + 1);
 }
 
 const key = (level, i, j) => `${level}/${i}/${j}`;
@@ -56,10 +60,12 @@ export class TileTree {
    * @param {object|null} tiles  manifest.tiles (may be null or lack detail/texture)
    * @param {number[][]|null} transform  manifest.transform: the 4x4 row-major map from the
    *   patch's frame (centred, PCA-aligned: tight boxes) to the scan's; null for the identity
+   * @param {number[]|null} regionGrids  vertices per side of a region at levels 0, 1, ..: the
+   *   worker's plan (MeshWorkerClient.plan: levels[k].region_resolution)
    * @throws {Error} for a node with an invalid index or no file, or, when any node is present,
-   *   a tiles.detail.spans_per_tile that is not an integer in 1..MAX_SPANS_PER_TILE
+   *   a level up to the finest node's without a region grid
    */
-  constructor(tiles, transform = null) {
+  constructor(tiles, transform = null, regionGrids = null) {
     // boxes are kept in the patch frame, where they fit the surface closely
     this.frame = new THREE.Matrix4();
     if (transform) this.frame.set(...transform.flat());
@@ -93,13 +99,18 @@ export class TileTree {
         }
       }
     }
-    // vertices per region side; a tree with no node shows no region and needs none
-    this.regionGrid = this.empty ? null : regionGridSize(detail ? detail.spans_per_tile : undefined);
+    // vertices per region side, per level; a tree with no node shows no region and needs none
+    this.regionGrids = this.empty ? null : checkedGrids(regionGrids, this.maxLevel);
     this.boxes = null; // per level k in 0..maxLevel: Float64Array of 4^k boxes (6 numbers)
   }
 
   get empty() {
     return this.maxLevel < 0;
+  }
+
+  /** Vertices per side of a region at a level-`level` node (null in an empty tree). */
+  regionGrid(level) {
+    return this.regionGrids ? this.regionGrids[level] : null;
   }
 
   static rect(level, i, j) {

@@ -116,15 +116,17 @@ async function refineBase(base, tiles) {
  * that reason, or a tile failing later, goes to document.body.dataset.tileError and the
  * Detail fact.
  */
-function startTiles(TileLayer, { viewer, worker, manifest, base, facts, transfers }) {
+function startTiles(TileLayer, { viewer, worker, manifest, planned, base, facts, transfers }) {
   const fail = (message) => {
     document.body.dataset.tileError = message;
     facts.set("fact-detail", message);
   };
   let tiles;
   try {
+    // each level's region grid: the worker's plan (client_py's one rule of a level's grid)
+    const regionGrids = planned.plan ? planned.plan.levels.map((l) => l.region_resolution) : null;
     tiles = new TileLayer({
-      viewer, worker, manifest, manifestUrl: config.manifest_url, stats,
+      viewer, worker, manifest, manifestUrl: config.manifest_url, regionGrids, stats,
       onError: (message) => {
         console.error(message);
         fail(message);
@@ -135,7 +137,7 @@ function startTiles(TileLayer, { viewer, worker, manifest, base, facts, transfer
       },
     });
   } catch (error) {
-    fail(error.message);
+    fail(planned.error || error.message); // a manifest the worker cannot plan: its reason
     return null;
   }
   if (!tiles.enabled) {
@@ -172,9 +174,9 @@ function exposeTestHooks({ viewer, base, tiles, tilesStarted }) {
   window.tessera.regionMeshes = () => {
     const layer = tiles();
     if (!layer) return [];
-    const grid = layer.regionGrid;
     return [...layer.regions].map(([id, mesh]) => {
       const [level, i, j] = id.split("/").map(Number);
+      const grid = layer.regionGrid(level);
       const st = mesh.geometry.getAttribute("uv").array;
       const uvs = [];
       for (let k = 0; k < grid * grid; k++) uvs.push(st[2 * k + 1], st[2 * k]);
@@ -194,16 +196,24 @@ function exposeTestHooks({ viewer, base, tiles, tilesStarted }) {
   };
 }
 
-/** The PLY levels of the bundle, planned by the worker from the manifest, offered by
- *  `download`; a manifest the worker cannot plan leaves the base PLY alone, said so. */
-async function offerPly(download, worker, manifest, ready) {
-  let plan;
+/** The worker's plan of the manifest's levels (MeshWorkerClient.plan): {plan} or, for a
+ *  manifest it cannot plan, {error} (the reason). */
+async function planLevels(worker, manifest) {
   try {
-    plan = await worker.plan(manifest);
+    return { plan: await worker.plan(manifest) };
   } catch (error) {
-    download.offerBaseOnly(error.message);
+    return { error: error.message };
+  }
+}
+
+/** The PLY levels of the bundle, as `planned` (planLevels), offered by `download`; a
+ *  manifest the worker cannot plan leaves the base PLY alone, said so. */
+function offerPly(download, planned, manifest, ready) {
+  if (!planned.plan) {
+    download.offerBaseOnly(planned.error);
     return;
   }
+  const plan = planned.plan;
   download.offerLevels(plan, manifest.units || ready.patch.units || "unknown",
                        Boolean(manifest.tiles && manifest.tiles.texture));
 }
@@ -321,14 +331,15 @@ async function main() {
   showTransfers(transfers, facts);
 
   const { TileLayer } = await tileModule;
-  tiles = startTiles(TileLayer, { viewer, worker, manifest, base, facts, transfers });
+  const planned = await planLevels(worker, manifest); // the worker keeps the manifest
+  tiles = startTiles(TileLayer, { viewer, worker, manifest, planned, base, facts, transfers });
   settleTiles();
   const errorMap = new ErrorMapControl(manifest, viewer);
   $("fit-view").addEventListener("click", () => viewer.fitView());
   $("front-view").addEventListener("click", () => viewer.showFront());
 
-  await offerPly(new PlyDownload({ worker, base, errorMap, config, stats, onError: showError }),
-                 worker, manifest, ready);
+  offerPly(new PlyDownload({ worker, base, errorMap, config, stats, onError: showError }),
+           planned, manifest, ready);
   await refineBase(base, tiles);
   showTransfers(transfers, facts);
 }

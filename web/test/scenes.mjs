@@ -37,6 +37,10 @@ export function completeNodes(levels, folder, extension, extra = () => ({})) {
 
 /** manifest.tiles with complete detail levels 0..errors.length-1, level k's nodes of
  *  geometric_error errors[k]. */
+/** Region grids per level as a worker's plan gives them (levels[k].region_resolution):
+ *  arbitrary stand-ins, not client_py's rule, so a test sees the tree use what it is given. */
+export const REGION_GRIDS = [41, 21, 11, 9, 7, 5, 3];
+
 export function detailTiles(errors, { spans = 16, baseMax = 1 } = {}) {
   return {
     version: 1,

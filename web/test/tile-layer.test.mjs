@@ -1,5 +1,5 @@
 // TileLayer (web/src/tile-layer.js) with a stand-in worker, viewer and fetch: the region grid
-// it asks the worker for (R = 2 spans_per_tile + 1), the tiles it fetches (only those the
+// it asks the worker for (each level's, as the worker's plan gives it), the tiles it fetches (only those the
 // chosen regions need, each once, resolved against the manifest's URL), unloading and the
 // error path. No WebGL, no Worker: the layer only moves messages and buffers.
 
@@ -9,7 +9,7 @@ import { afterEach, beforeEach, describe, test } from "node:test";
 import { fetchBytes } from "../src/fetch-bytes.js";
 import { REGION_BATCH, TileLayer } from "../src/tile-layer.js";
 import { TileTree } from "../src/tile-tree.js";
-import { camera, detailTiles, planeMesh } from "./scenes.mjs";
+import { REGION_GRIDS, camera, detailTiles, planeMesh } from "./scenes.mjs";
 
 const PAGE = "http://tessera.test/objects/relief/";
 const MANIFEST_URL = "/bundles/relief/manifest.json";
@@ -64,7 +64,7 @@ function standIns(cam) {
       for (const name of names) this.held.delete(name);
     },
     batches: [],
-    regionBatch(grid, regions) {
+    regionBatch(regions) {
       return this.run(async () => {
         for (const { names } of regions) {
           for (const name of names) {
@@ -72,7 +72,7 @@ function standIns(cam) {
           }
         }
         this.batches.push(regions.length);
-        return regions.map(({ level, i, j, names, skirtDepth }) => {
+        return regions.map(({ level, i, j, grid, names, skirtDepth }) => {
           this.regions.push({ level, i, j, grid, names, skirtDepth });
           return { tessellate_ms: 2, level, i, j, grid };
         });
@@ -90,11 +90,11 @@ function standIns(cam) {
   return { worker, viewer };
 }
 
-function layerFor(tiles, cam, errors = []) {
+function layerFor(tiles, cam, errors = [], regionGrids = REGION_GRIDS) {
   const { worker, viewer } = standIns(cam);
   const stats = { bytes_downloaded: 0 };
   const layer = new TileLayer({ viewer, worker, manifest: { tiles, transform: null },
-                                manifestUrl: MANIFEST_URL, stats,
+                                manifestUrl: MANIFEST_URL, regionGrids, stats,
                                 onError: (message) => errors.push(message) });
   const mesh = planeMesh();
   layer.setBase(mesh, mesh.domain);
@@ -102,16 +102,16 @@ function layerFor(tiles, cam, errors = []) {
 }
 
 describe("tile layer", () => {
-  test("regions are tessellated on a 2 spans_per_tile + 1 grid with their tiles, fetched once", async () => {
+  test("regions are tessellated on their level's grid with their tiles, fetched once", async () => {
     const errors = [0.8, 0.4, 0.2];
     const tiles = detailTiles(errors, { spans: 64 });
     const close = camera([20, 30, 25], [30, 40, 0]);
     const { layer, worker, viewer, stats } = layerFor(tiles, close);
-    assert.equal(layer.regionGrid, 129);
+    assert.deepEqual([0, 1, 2].map((k) => layer.regionGrid(k)), [41, 21, 11]);
     await layer.update();
 
     // the regions TileTree picks for this camera, each with its chain of tiles
-    const reference = new TileTree(tiles);
+    const reference = new TileTree(tiles, null, REGION_GRIDS);
     const mesh = planeMesh();
     reference.setBounds(mesh.positions, mesh.uvs, mesh.domain, reference.baseError);
     const leaves = reference.select(close, HEIGHT);
@@ -120,7 +120,7 @@ describe("tile layer", () => {
     assert.deepEqual(worker.regions.map(key).sort(), leaves.map(key).sort());
     const nodes = new Map(tiles.detail.nodes.map((node) => [key(node), node]));
     for (const region of worker.regions) {
-      assert.equal(region.grid, 129);
+      assert.equal(region.grid, REGION_GRIDS[region.level]);
       const chain = [];
       for (let k = 0; k <= region.level; k++) {
         chain.push(nodes.get(`${k}/${region.i >> (region.level - k)}/${region.j >> (region.level - k)}`).file);
@@ -173,17 +173,18 @@ describe("tile layer", () => {
     assert.equal(worker.regions.length, 0);
   });
 
-  test("a manifest without a valid spans_per_tile is refused", () => {
-    const tiles = detailTiles([0.8]);
-    tiles.detail.spans_per_tile = "16";
-    assert.throws(() => layerFor(tiles, camera([50, 50, 60], [50, 50, 0])),
-                  /tiles\.detail\.spans_per_tile must be an integer in 1\.\.255 .*got "16"/);
+  test("a layer without a region grid for each level of its tiles is refused", () => {
+    const tiles = detailTiles([0.8, 0.4]);
+    assert.throws(() => layerFor(tiles, camera([50, 50, 60], [50, 50, 0]), [], [33]),
+                  /no region grid for level 1 .*got undefined/);
+    assert.throws(() => layerFor(tiles, camera([50, 50, 60], [50, 50, 0]), [], null),
+                  /no region grid for level 0/);
   });
 
   test("a bundle without tiles makes no layer work", async () => {
     const { layer, worker } = layerFor(null, camera([50, 50, 10], [50, 50, 0]));
     assert.equal(layer.enabled, false);
-    assert.equal(layer.regionGrid, null);
+    assert.equal(layer.regionGrid(0), null);
     await layer.update();
     assert.equal(worker.regions.length, 0);
     assert.equal(fetched.length, 0);
@@ -200,7 +201,7 @@ describe("tile layer", () => {
     assert.ok(worker.batches.every((size) => size <= REGION_BATCH), worker.batches);
     assert.equal(worker.batches.length, Math.ceil(count / REGION_BATCH));
     // the order the worker made them in: projected error never increases
-    const reference = new TileTree(tiles);
+    const reference = new TileTree(tiles, null, REGION_GRIDS);
     const mesh = planeMesh();
     reference.setBounds(mesh.positions, mesh.uvs, mesh.domain, reference.baseError);
     const sse = new Map(reference.select(close, HEIGHT).map((l) => [`${l.level}/${l.i}/${l.j}`, l.sse]));
@@ -233,18 +234,18 @@ describe("tile layer", () => {
     const { layer, worker, viewer, stats } = layerFor(tiles, close);
     const regionBatch = worker.regionBatch.bind(worker);
     let first = true;
-    worker.regionBatch = async (grid, regions) => {
+    worker.regionBatch = async (regions) => {
       if (first) { // the camera moves on while the first batch is being made
         first = false;
         layer.viewer.camera = camera([70, 60, 25], [70, 60, 0]);
         layer.update(); // as schedule() would, once due: marks the running update stale
       }
-      return regionBatch(grid, regions);
+      return regionBatch(regions);
     };
     await layer.update();
     await layer.idle();
     // two batches had been sent (two in flight), no more for the old view
-    const reference = new TileTree(tiles);
+    const reference = new TileTree(tiles, null, REGION_GRIDS);
     const mesh = planeMesh();
     reference.setBounds(mesh.positions, mesh.uvs, mesh.domain, reference.baseError);
     const key = (r) => `${r.level}/${r.i}/${r.j}`;

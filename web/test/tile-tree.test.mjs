@@ -4,16 +4,17 @@
 import assert from "node:assert/strict";
 import { describe, test } from "node:test";
 
-import { DETAIL_PX, MAX_REGIONS, TEXEL_PX, TileTree, regionGridSize } from "../src/tile-tree.js";
+import { DETAIL_PX, MAX_REGIONS, TEXEL_PX, TileTree } from "../src/tile-tree.js";
 import {
-  boxDistance, boxInView, camera, completeNodes, detailTiles, mapPositions, planeMesh, rigidFrame,
+  REGION_GRIDS, boxDistance, boxInView, camera, completeNodes, detailTiles, mapPositions, planeMesh,
+  rigidFrame,
 } from "./scenes.mjs";
 
 const HEIGHT = 600; // drawing buffer height: focal length 300 px with the 90° test camera
 const FOCAL = HEIGHT / 2;
 
 function treeOver(tiles, { side = 100, frame = null, height = undefined } = {}) {
-  const tree = new TileTree(tiles, frame);
+  const tree = new TileTree(tiles, frame, REGION_GRIDS);
   const mesh = planeMesh(side, 33, height);
   const positions = frame ? mapPositions(mesh.positions, frame) : mesh.positions;
   tree.setBounds(positions, mesh.uvs, mesh.domain, tree.baseError);
@@ -23,42 +24,38 @@ function treeOver(tiles, { side = 100, frame = null, height = undefined } = {}) 
 const ids = (leaves) => leaves.map(({ level, i, j }) => `${level}/${i}/${j}`).sort();
 
 describe("region grid", () => {
-  test("R = 2 spans_per_tile + 1", () => {
-    assert.equal(regionGridSize(16), 33);
-    assert.equal(regionGridSize(64), 129);
-    assert.equal(regionGridSize(1), 3);
-    assert.equal(regionGridSize(255), 511);
+  test("each level's grid is the one the plan gives, whatever spans_per_tile says", () => {
+    // the rule is client_py's (bundle.drawn_region_resolution): the tree has no copy of it
+    for (const spans of [16, 64]) {
+      const tree = new TileTree(detailTiles([1, 0.5, 0.2], { spans }), null, REGION_GRIDS);
+      assert.deepEqual([0, 1, 2].map((k) => tree.regionGrid(k)), [41, 21, 11]);
+    }
+    const tree = new TileTree(detailTiles([1, 0.5]), null, [257, 129, 65, 33]);
+    assert.deepEqual([tree.regionGrid(0), tree.regionGrid(1)], [257, 129]);
   });
 
-  for (const bad of [0, -16, 256, 16.5, "16", null, undefined, NaN]) {
-    test(`spans_per_tile ${String(bad)} is rejected with its value`, () => {
-      assert.throws(() => regionGridSize(bad),
-                    new RegExp(`spans_per_tile must be an integer in 1\\.\\.255 .*got ${
-                      bad === undefined ? "undefined" : JSON.stringify(bad)?.replace(".", "\\.")}`));
-    });
-  }
-
-  test("the tree reads it from tiles.detail.spans_per_tile", () => {
-    assert.equal(new TileTree(detailTiles([1], { spans: 64 })).regionGrid, 129);
-    assert.equal(new TileTree(detailTiles([1, 0.5])).regionGrid, 33);
-  });
-
-  test("a tree with tiles but no valid spans_per_tile is an error", () => {
-    const tiles = detailTiles([1]);
-    delete tiles.detail.spans_per_tile;
-    assert.throws(() => new TileTree(tiles), /tiles\.detail\.spans_per_tile .*got undefined/);
-    tiles.detail.spans_per_tile = 0;
-    assert.throws(() => new TileTree(tiles), /got 0/);
-    // texture tiles alone still make regions: their grid needs the detail's spans
+  test("a tree with tiles but no valid grid up to its finest level is an error naming the level", () => {
+    const tiles = detailTiles([1, 0.5, 0.2]);
+    for (const [grids, pattern] of [
+      [null, /no region grid for level 0 .*got undefined/],
+      [[33, 17], /no region grid for level 2 .*got undefined/],
+      [[33, 1, 9], /no region grid for level 1 .*got 1$/],
+      [[33, 16.5, 9], /no region grid for level 1 .*got 16\.5/],
+      [[33, "17", 9], /no region grid for level 1 .*got "17"/],
+    ]) {
+      assert.throws(() => new TileTree(tiles, null, grids), pattern);
+    }
+    // texture tiles alone still make regions: they need a grid too
     const texture = { texture: { size: 256, nodes: completeNodes([0], "texture", "webp") } };
-    assert.throws(() => new TileTree(texture), /spans_per_tile/);
+    assert.throws(() => new TileTree(texture), /no region grid for level 0/);
+    assert.equal(new TileTree(texture, null, [5]).regionGrid(0), 5);
   });
 
   test("no tiles: an empty tree, no grid", () => {
     for (const tiles of [null, {}, { detail: null, texture: null }]) {
       const tree = new TileTree(tiles);
       assert.equal(tree.empty, true);
-      assert.equal(tree.regionGrid, null);
+      assert.equal(tree.regionGrid(0), null);
     }
   });
 });
@@ -73,7 +70,7 @@ describe("tile tree", () => {
       [{ level: 1, i: 0, j: 0 }, /has no file/],
     ]) {
       tiles.detail.nodes = [node];
-      assert.throws(() => new TileTree(tiles), pattern);
+      assert.throws(() => new TileTree(tiles, null, REGION_GRIDS), pattern);
     }
   });
 
@@ -86,9 +83,9 @@ describe("tile tree", () => {
     const tree = new TileTree({
       detail: { spans_per_tile: 8, base: { max: 3 }, nodes },
       texture: { size: 128, nodes: [{ level: 0, i: 0, j: 0, file: "t0" }, { level: 1, i: 1, j: 0, file: "t1" }] },
-    });
+    }, null, [17, 9, 5]);
     assert.equal(tree.maxLevel, 2);
-    assert.equal(tree.regionGrid, 17);
+    assert.equal(tree.regionGrid(2), 5);
     assert.deepEqual(tree.detailChain(2, 2, 1).map((n) => n.file), ["d0", "d1", "d2"]);
     assert.deepEqual(tree.detailChain(2, 3, 1).map((n) => n.file), ["d0", "d1"]); // 2/3/1 absent
     assert.deepEqual(tree.detailChain(2, 0, 3).map((n) => n.file), ["d0"]);
@@ -257,7 +254,7 @@ describe("selection by projected error", () => {
   });
 
   test("nothing is selected before the boxes are known or when looking away", () => {
-    const tree = new TileTree(detailTiles([0.5, 0.2]));
+    const tree = new TileTree(detailTiles([0.5, 0.2]), null, REGION_GRIDS);
     assert.deepEqual(tree.select(camera([50, 50, 10], [50, 50, 0]), HEIGHT), []);
     tree.setBounds(planeMesh().positions, planeMesh().uvs, [0, 1, 0, 1], tree.baseError);
     assert.ok(tree.select(camera([50, 50, 10], [50, 50, 0]), HEIGHT).length > 0);
