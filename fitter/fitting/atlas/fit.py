@@ -125,7 +125,7 @@ from .layout import (
     thin_part_weights,
     triangle_samples,
 )
-from .surface import ScanSurface, SurfaceError, border_edges, scan_surface
+from .surface import BESIDE_COS, ScanSurface, SurfaceError, border_edges, scan_surface
 
 DEFAULT_BYTE_BUDGET = 24_000
 AUTO_FIRST_TRIANGLES = 48
@@ -857,6 +857,7 @@ FAR_REACH = 0.01  # the fitted base is far where a sample is this share of the d
 # went 0.81 -> 1.01 %, RMS 0.180 -> 0.182; at 1 % the bunny, Nefertiti, Laurana are not touched)
 FAR_SAMPLES = 9  # samples per patch side (borders included) to find where the base is far
 BUDGET_REFITS = 3  # refits refined_within_budget tries to meet the byte budget
+MEMBRANE_SHARE = 0.25  # a layout triangle with more of its area spanning a gap is removed
 FAR_PASSES = 1  # refine_far_base at most this many times, while it gets nearer in the budget
 # (3 passes: Lucy 1,194 -> 1,212 patches, base max 1.16 -> 1.10 %, but level 0 1.24 -> 1.34 %;
 # the mask's second pass is refused as no nearer, not for its bytes: its refit, 404 -> 418
@@ -884,6 +885,50 @@ def far_patch_samples(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarr
     d, _, _ = closest_points_on_mesh(grid, vertices, faces)
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0)))
     return d.reshape(len(atlas.quads), -1) / diagonal
+
+
+def membrane_shares(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray]
+                    ) -> np.ndarray:
+    """The share of each layout triangle's drawn area that spans a gap: shape ``(T,)``.
+
+    Every patch on :func:`grid_mesh`'s :data:`FAR_SAMPLES` ² grid; a grid triangle counts
+    (by its area) where its centroid ``p`` lies farther than :data:`FAR_REACH` of the
+    diagonal from the scan's surface with the surface beside it: its closest point ``q``
+    on the scan's triangles off the grid triangle's unit normal ``n`` by more than
+    ``acos(BESIDE_COS)``, ``|n · (q - p)| < BESIDE_COS |q - p|`` (the rule of
+    ``surface.stand_in_far``). A sheet spanning an opening the scan leaves (the hole of
+    an arch, a tunnel under an arm) has its nearest surface at the opening's rim, in its
+    own plane; a patch lifted off the surface has it along its normal. Summed over a
+    triangle's three patches, over their area.
+    """
+    from .measure import closest_points_on_mesh
+
+    vertices, faces = scan_mesh
+    diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices, np.float64), axis=0)))
+    grid, cells = grid_mesh(atlas, FAR_SAMPLES)
+    corners = grid[cells]
+    centroid = corners.mean(axis=1)
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normal = cross / np.maximum(2.0 * area, 1e-300)[:, None]
+    d, _, closest = closest_points_on_mesh(centroid, vertices, faces)
+    along = np.abs(np.einsum("kc,kc->k", normal, closest - centroid))
+    gap = (d > FAR_REACH * diagonal) & (along < BESIDE_COS * d)
+    triangle = np.arange(len(cells)) // (len(cells) // len(atlas.quads)) // 3
+    n_t = len(atlas.quads) // 3
+    total = np.bincount(triangle, area, n_t)
+    return np.bincount(triangle, area * gap, n_t) / np.maximum(total, 1e-300)
+
+
+def without_triangles(vertices: np.ndarray, triangles: np.ndarray, drop: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The layout without the triangles ``drop (T,)`` of bool and the vertices no triangle
+    left uses (renumbered in order)."""
+    kept = np.asarray(triangles, np.int64)[~np.asarray(drop, bool)]
+    used = np.unique(kept)
+    remap = np.full(len(vertices), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return np.asarray(vertices, np.float64)[used], remap[kept]
 
 
 def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurface,
@@ -914,11 +959,21 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
     if far.max() <= FAR_REACH:
         return None
     by_triangle = far.reshape(-1, 3).max(axis=1)
+    shares = membrane_shares(atlas, scan_mesh)
+    gap = shares > MEMBRANE_SHARE
+    import os
+    if os.environ.get("W22_DEBUG"):
+        top = np.argsort(-shares)[:6]
+        centre = layout.triangle_vertices[layout.triangles[top]].mean(axis=1)
+        print("DEBUG membrane", [(int(t), round(float(shares[t]), 3), np.round(c, 3).tolist())
+                                 for t, c in zip(top, centre)], flush=True)
+    vertices, triangles = without_triangles(layout.triangle_vertices, layout.triangles, gap)
+    by_triangle = by_triangle[~gap]
     order = np.argsort(-by_triangle)
     order = order[by_triangle[order] > FAR_REACH]
-    vertices, triangles, made = split_longest_edges(surface, layout.triangle_vertices,
-                                                    layout.triangles, order, max_added)
-    if not made:
+    vertices, triangles, made = split_longest_edges(surface, vertices, triangles, order,
+                                                    max_added)
+    if not made and not gap.any():
         return None
     triangles, _ = flip_edges(surface, vertices, triangles)
     refined = quad_layout(vertices, triangles)
