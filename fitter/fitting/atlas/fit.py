@@ -981,7 +981,7 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
                                         hold=True, **fit_options)
     if far_patch_samples(r_atlas, scan_mesh).max() >= far.max():
         return None
-    return r_atlas, refined, f, u, v, dist
+    return r_atlas, refined, f, u, v, dist, int(gap.sum())
 
 
 def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface: ScanSurface,
@@ -1011,13 +1011,18 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
                                   max_added=max_added, **fit_options)
         if refined is None:
             return None
-        r_atlas, r_layout, rf, ru, rv, rdist = refined
+        r_atlas, r_layout, rf, ru, rv, rdist, removed = refined
         r_rms = float(np.sqrt(np.mean(rdist ** 2)))
         r_bits, r_size = budget_bits(r_atlas, r_rms, bits, byte_budget)
         if byte_budget is None or r_size <= byte_budget:
             return r_rms, r_size, r_layout, r_atlas, rf, ru, rv, r_bits
-        added = r_layout.n_triangles - layout.n_triangles
-        max_added = min(added - 1, (byte_budget - size) * added // max(r_size - size, 1))
+        # the bytes follow the net change of triangles; the removed ones stay removed, and
+        # only the splits' triangles are scaled down
+        net = r_layout.n_triangles - layout.n_triangles
+        if net < 1:
+            return None
+        max_added = min(net + removed - 1,
+                        removed + (byte_budget - size) * net // max(r_size - size, 1))
         if max_added < 1:
             return None
     return None
