@@ -809,31 +809,39 @@ def _plate_with_hole(n: int = 30, hole: float = 0.5):
 
 
 def test_membrane_shares_are_the_area_spanning_the_hole_and_not_a_lifted_sheet():
-    from fitter.fitting.atlas.fit import FAR_REACH, membrane_shares, with_control_points
+    from fitter.fitting.atlas.fit import (
+        MEMBRANE_REACH,
+        MEMBRANE_SHARE,
+        membrane_shares,
+        with_control_points,
+    )
 
     plate = _plate_with_hole()
     mesh = (plate.vertices, plate.faces)
     diagonal = float(np.linalg.norm(np.ptp(plate.vertices, axis=0)))
     square = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
     atlas = bilinear_atlas(quad_layout(square, np.array([[0, 1, 2], [0, 2, 3]])), 3, 1)
-    # the reference: Monte Carlo over each triangle of the share farther than FAR_REACH of
-    # the diagonal from the plate, in its plane (the hole shrunk by that reach)
+    # the reference: Monte Carlo over each triangle of the share farther than
+    # MEMBRANE_REACH of the diagonal from the plate, in its plane (the hole shrunk by it)
     rng = np.random.default_rng(0)
     r1, r2 = rng.random((2, 200_000))
     fold = r1 + r2 > 1
     r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
-    reach = FAR_REACH * diagonal
+    reach = MEMBRANE_REACH * diagonal
     for t, tri in enumerate(([0, 1, 2], [0, 2, 3])):
         a, b, c = square[tri]
         p = a + r1[:, None] * (b - a) + r2[:, None] * (c - a)
         inside = np.all(np.abs(p[:, :2]) < 0.5 - reach, axis=1)
         np.testing.assert_allclose(membrane_shares(atlas, mesh)[t], inside.mean(), atol=0.03)
-    assert 0.15 < membrane_shares(atlas, mesh).min()
-    # the same sheet 0.1 above the plate without its hole: far everywhere, but with the
+    assert membrane_shares(atlas, mesh).min() > MEMBRANE_SHARE
+    # a narrower reach counts more of the hole: at half the reach, the hole shrunk by half
+    assert np.all(membrane_shares(atlas, mesh, MEMBRANE_REACH / 2)
+                  > membrane_shares(atlas, mesh) + 0.02)
+    # the same sheet 0.2 above the plate without its hole: far everywhere, but with the
     # surface below it (along its normal), not beside it
     whole = _height_grid(30, lambda x, y: 0.0 * x)
-    lifted = with_control_points(atlas, control_points(atlas) + [0.0, 0.0, 0.1])
-    assert 0.1 > 2 * reach
+    lifted = with_control_points(atlas, control_points(atlas) + [0.0, 0.0, 0.2])
+    assert 0.2 > 2 * reach
     np.testing.assert_array_equal(membrane_shares(lifted, whole), 0.0)
 
 
