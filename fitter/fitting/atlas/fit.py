@@ -70,8 +70,13 @@ open the hole (a split keeps the topology), so :func:`refine_far_base` removes i
 a triangle with more than :data:`MEMBRANE_SHARE` of its drawn area farther than
 :data:`MEMBRANE_REACH` from the scan *with the scan beside it* (:func:`membrane_shares`, the
 rule of ``surface.stand_in_far``: the nearest surface of a sheet over an opening is the
-rim, in the sheet's plane; a fin or a wall lifted off the surface has it along its normal),
-and the layout is open there, as the scan is.
+rim, in the sheet's plane; a fin or a wall lifted off the surface has it along its normal)
+and nothing of the scan across the sheet within :data:`OPENING_DEPTH` times that distance
+(a sheet under a narrow bump has the bump's flank beside it, but the bump across it); the
+layout is then open there, as the scan is. A wall in a closed groove or wedge has its
+nearest surface beside it too, but within half the groove's width: hence the reach of
+1.5 % of the diagonal, not :data:`FAR_REACH`'s 1 %, which opened the Bali mask's wedges by
+the tusks (level 0 max 1.44 -> 1.77 %).
 
 Folds. The first foot points come from flat layout triangles: on a curved part the points
 crowd toward a triangle's sides in ``(u, v)`` and spread elsewhere, and a net held only by the
@@ -1063,8 +1068,12 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
         net = r_layout.n_triangles - layout.n_triangles
         if net < 1:
             return None
+        # the first retry at the base's own bytes per triangle: the full refit's may be
+        # written with more bits (its lower RMS), which no retry within the budget keeps
+        rate = (size / layout.n_triangles if max_added is None
+                else (r_size - size) / net)
         max_added = min(net + removed - 1,
-                        removed + (byte_budget - size) * net // max(r_size - size, 1))
+                        removed + int((byte_budget - size) / max(rate, 1e-9)))
         if max_added < 1:
             return None
     return None
