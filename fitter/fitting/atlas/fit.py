@@ -881,8 +881,8 @@ MEMBRANE_REACH = LAYOUT_TRIM  # a sheet spans an opening where this share of the
 OPENING_DEPTH = 4  # ... with nothing of the scan across it within this times that distance
 MEMBRANE_SHARE = 0.1  # ... beside the scan over more of its area: its triangle is removed
 # (refine_far_base; stand-in seed 0, before the refit: the Buddha's arch triangles 0.22 and
-# 0.17, its sleeve tunnel's 0.15; at most 0.043 on the Bali mask, whose 1.5-2 % walls lie in
-# grooves and wedges that are closed, and 0.17 there with a 1 % reach, which opened them)
+# 0.17, the next 0.07; at most 0.03 on the Bali mask, whose 1.5-2 % walls lie in grooves and
+# wedges that are closed, and 0.17 there with a 1 % reach, which opened them)
 FAR_PASSES = 1  # refine_far_base at most this many times, while it gets nearer in the budget
 # (3 passes: Lucy 1,194 -> 1,212 patches, base max 1.16 -> 1.10 %, but level 0 1.24 -> 1.34 %;
 # the mask's second pass is refused as no nearer, not for its bytes: its refit, 404 -> 418
@@ -997,10 +997,18 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
 
     A layout triangle spanning an opening of the scan (:func:`membrane_shares` over
     :data:`MEMBRANE_SHARE`; the module's paragraph on openings) is removed before the
-    splits, not split: no split opens a hole. On the 15-scan Happy Buddha (stand-in seed
-    0, level 0, against all 1,099,005 points) the sheet across the arch by the head went,
-    and the largest distance fell from 3.96 % to 2.28 % of the diagonal (the rest: the
-    tunnel under the right sleeve), the drawn area farther than 1 % from 1.62 % to 1.12 %.
+    splits, not split: no split opens a hole. On the 15-scan Happy Buddha (session 13,
+    stand-in seeds 0 / 1 / 2, level 0, against all 1,099,005 points, load 4-7 on 2 cores)
+    the sheets across the arches by the head went: the largest distance from the drawn
+    mesh fell from 3.96 / 3.96 / 3.06 % to 2.23 / 2.30 / 2.10 % of the diagonal (what is
+    left: the tunnel under the right sleeve, whose sheet has the body across it, and fins
+    on the rims), its area farther than 1 % from 1.62 / 1.94 / 1.20 % to 1.21 / 1.38 /
+    1.11 %; the points within 0.5 % 99.51 / 99.55 / 99.50 -> 99.37 / 99.54 / 99.42 % and
+    the RMS 2.17 / 2.25 / 2.19 -> 2.33 / 2.25 / 2.26 e-4 (the points lost lie at the
+    sleeves and the robe, not at the arches: the refit's other changes), 57.3 / 52.9 /
+    56.2 -> 57.0 / 53.3 / 55.0 KB. Lucy's and the Bali mask's largest shares are under
+    :data:`MEMBRANE_SHARE` (nothing removed: their bundles are the same), and the bunny's
+    base is near everywhere.
 
     Returns
     -------
@@ -1040,11 +1048,14 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
     far, the refit 37 KB against 24 KB, so that the farthest, a triangle across the corner
     of an arm's loop over the head 3.8 % of the diagonal off the scan, was never split),
     the refit is done again with only the farthest triangles' splits, adding at most
-    ``r + ⌊a (B - b) / (b' - b)⌋`` triangles: ``b`` the bytes before, ``B`` the budget and a
-    refused refit whose layout had ``a`` triangles more for ``b'`` bytes, ``r`` the
-    triangles it removed over openings (they stay removed; the splits made ``a + r``), so
-    that the net change is the one scaled (bytes per triangle are not quite constant: up
-    to :data:`BUDGET_REFITS` refits, each scaled from the last refused).
+    ``r + ⌊(B - b) / β⌋`` triangles: ``b`` the bytes before, ``B`` the budget, ``r`` the
+    triangles the refused refit removed over openings (they stay removed; its splits made
+    ``a + r`` for a layout ``a`` triangles larger), and ``β`` the bytes per triangle: the
+    base's own ``b / T`` at the first retry, then ``(b' - b) / a`` of the last refused
+    refit of ``b'`` bytes (up to :data:`BUDGET_REFITS` refits). Not the full refit's rate
+    at the first retry: its lower RMS may ask for a bit more (the Buddha, stand-in seed 0:
+    9 bits, 33.4 KB for 115 triangles more, where the base had 8 bits, 22.1 KB for 376),
+    which would let the retry add 18 triangles (23.1 KB) where 31 fit (23.7 KB).
 
     Returns
     -------
