@@ -1020,6 +1020,8 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
         return None
     by_triangle = far.reshape(-1, 3).max(axis=1)
     gap = membrane_shares(atlas, scan_mesh) > MEMBRANE_SHARE
+    if gap.all():
+        gap[:] = False  # a layout all over openings is no layout: split it instead
     vertices, triangles = without_triangles(layout.triangle_vertices, layout.triangles, gap)
     by_triangle = by_triangle[~gap]
     order = np.argsort(-by_triangle)
