@@ -795,3 +795,88 @@ def test_a_far_base_over_the_budget_is_refined_where_farthest_within_it():
     # no room for one more triangle: no refit
     assert refined_within_budget((atlas, layout, size), surface, points, normals, bits=8,
                                  byte_budget=size, **options) is None
+
+
+def _plate_with_hole(n: int = 30, hole: float = 0.5):
+    """The plane ``z = 0`` over ``[-1.5, 1.5]²`` on an ``n × n`` grid, without the cells
+    inside the square ``|x|, |y| < hole`` (grid-aligned for ``n = 30``, ``hole = 0.5``)."""
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    vertices, faces = _height_grid(n, lambda x, y: 0.0 * x)
+    centre = vertices[faces].mean(axis=1)
+    keep = (np.abs(centre[:, 0]) > hole) | (np.abs(centre[:, 1]) > hole)
+    return ScanSurface(vertices, faces[keep], "mesh", 1, {})
+
+
+def test_membrane_shares_are_the_area_spanning_the_hole_and_not_a_lifted_sheet():
+    from fitter.fitting.atlas.fit import (
+        MEMBRANE_REACH,
+        MEMBRANE_SHARE,
+        membrane_shares,
+        with_control_points,
+    )
+
+    plate = _plate_with_hole()
+    mesh = (plate.vertices, plate.faces)
+    diagonal = float(np.linalg.norm(np.ptp(plate.vertices, axis=0)))
+    square = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    atlas = bilinear_atlas(quad_layout(square, np.array([[0, 1, 2], [0, 2, 3]])), 3, 1)
+    # the reference: Monte Carlo over each triangle of the share farther than
+    # MEMBRANE_REACH of the diagonal from the plate, in its plane (the hole shrunk by it)
+    rng = np.random.default_rng(0)
+    r1, r2 = rng.random((2, 200_000))
+    fold = r1 + r2 > 1
+    r1[fold], r2[fold] = 1 - r1[fold], 1 - r2[fold]
+    reach = MEMBRANE_REACH * diagonal
+    for t, tri in enumerate(([0, 1, 2], [0, 2, 3])):
+        a, b, c = square[tri]
+        p = a + r1[:, None] * (b - a) + r2[:, None] * (c - a)
+        inside = np.all(np.abs(p[:, :2]) < 0.5 - reach, axis=1)
+        np.testing.assert_allclose(membrane_shares(atlas, mesh)[t], inside.mean(), atol=0.03)
+    assert membrane_shares(atlas, mesh).min() > MEMBRANE_SHARE
+    # a narrower reach counts more of the hole: at half the reach, the hole shrunk by half
+    assert np.all(membrane_shares(atlas, mesh, MEMBRANE_REACH / 2)
+                  > membrane_shares(atlas, mesh) + 0.02)
+    # the same sheet 0.2 above the plate without its hole: far everywhere, but with the
+    # surface below it (along its normal), not beside it
+    whole = _height_grid(30, lambda x, y: 0.0 * x)
+    lifted = with_control_points(atlas, control_points(atlas) + [0.0, 0.0, 0.2])
+    assert 0.2 > 2 * reach
+    np.testing.assert_array_equal(membrane_shares(lifted, whole), 0.0)
+
+
+def test_a_layout_spanning_a_hole_of_the_scan_is_opened_there():
+    """A 6 x 6 layout over a plate with a square hole: the refit drops the triangles over
+    the hole (the scan is open there, and a bicubic sheet over it is a wall no working
+    point reaches), and keeps every other."""
+    from fitter.fitting.atlas.fit import (
+        FAR_REACH,
+        MEMBRANE_SHARE,
+        far_patch_samples,
+        fit_layout,
+        membrane_shares,
+        refine_far_base,
+    )
+
+    plate = _plate_with_hole()
+    layout = quad_layout(*_height_grid(6, lambda x, y: 0.0 * x))
+    points, normals = plate.sample(4000, np.random.default_rng(3))
+    normals = np.abs(normals)
+    options = dict(rounds=2, scan_mesh=(plate.vertices, plate.faces))
+    atlas, *_ = fit_layout(layout, points, normals, **options)
+    shares = membrane_shares(atlas, options["scan_mesh"])
+    centre = layout.triangle_vertices[layout.triangles].mean(axis=1)
+    over_hole = np.all(np.abs(centre[:, :2]) < 0.5, axis=1)
+    assert over_hole.sum() == 8
+    assert np.all(shares[over_hole] > MEMBRANE_SHARE)
+    assert np.all(shares[~over_hole] <= MEMBRANE_SHARE)
+    far = far_patch_samples(atlas, options["scan_mesh"]).max()
+    assert far > 2 * FAR_REACH
+    refined = refine_far_base(atlas, layout, plate, points, normals, **options)
+    assert refined is not None
+    r_atlas, r_layout = refined[:2]
+    r_centre = r_layout.triangle_vertices[r_layout.triangles].mean(axis=1)
+    assert not np.any(np.all(np.abs(r_centre[:, :2]) < 0.5, axis=1))
+    # every triangle away from the hole stays (none of them was far)
+    assert r_layout.n_triangles == layout.n_triangles - 8
+    assert far_patch_samples(r_atlas, options["scan_mesh"]).max() < far

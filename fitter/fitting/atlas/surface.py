@@ -615,8 +615,9 @@ def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
     0.40 % (a plain 1 % trim: 0.69 %). Its level 0 (session 12, three stand-in sample seeds,
     under load): drawn area farther than 1 % 2.57 / 4.45 / 3.22 % -> 1.62 / 1.94 / 1.20 %
     (the pedestal's top and bottom 1.2 / 1.1 / 1.2 % -> 0.25 / 0.27 / 0.18 %), largest
-    distance 2.86 / 4.17 / 4.20 % -> 3.96 / 3.96 / 3.06 % (fins at the rims of the open
-    arches by the head, which the stand-in does not have), points within 0.5 % 99.71 /
+    distance 2.86 / 4.17 / 4.20 % -> 3.96 / 3.96 / 3.06 % (a sheet across the hole of the
+    arch by the head: the stand-in keeps the hole, its decimated layout lost it, which
+    ``fit.refine_far_base`` now opens again), points within 0.5 % 99.71 /
     99.61 / 99.36 -> 99.51 / 99.55 / 99.50 %, RMS 2.03 / 2.14 / 2.35 -> 2.17 / 2.25 / 2.19
     e-4, bytes 54.6 / 54.9 / 51.6 -> 57.3 / 52.9 / 56.2 KB; a plain 1 % trim gave far
     areas 1.38 / 2.16 / 2.20 % and 99.56 / 99.67 / 99.28 % within. The Bali mask's stand-in
