@@ -79,7 +79,8 @@ from .rangecoder import (
 )
 
 MAGIC = b"TSPA"
-VERSION = 2  # written; version 1 files are still read
+VERSION = 3  # written; versions 1 and 2 are still read
+READ_VERSIONS = (1, 2, 3)
 # magic version flags degree spans bits reserved V F payload_size raw_size
 HEADER = struct.Struct("<4sHHBBBBIIII")
 HEADER_SIZE = HEADER.size  # 28
@@ -113,14 +114,16 @@ def payload_size_range(flags: int, degree: int, spans: int, bits: int, n_vertice
                        n_quads: int, version: int = VERSION) -> tuple[int, int]:
     """``(least, most)`` bytes of the decompressed payload of an atlas with these header fields.
 
-    ``4 F w + 48 + G N B + (16 if rational) + 4 + L`` with ``w`` the index width, ``G = 4``
-    when rational else 3, ``B`` bytes per residual (version 1; 0 in version 2, whose
-    residuals are range-coded after the zlib stream), ``N`` the control points (between
+    ``4 F w + 48 + G N B + (16 if rational) + 4 + L`` with ``w`` the index width (versions
+    1 and 2; 0 in version 3, whose quads are range-coded), ``G = 4`` when rational else 3,
+    ``B`` bytes per residual (version 1; 0 from version 2 on, whose residuals are
+    range-coded after the zlib stream), ``N`` the control points (between
     :func:`_control_point_range`'s bounds) and ``L`` the metadata (2 bytes ``{}`` .. 2^20).
     """
     least_points, most_points = _control_point_range(n_vertices, n_quads, spans + degree)
     grids = 4 if flags & FLAG_RATIONAL else 3
-    fixed = 4 * n_quads * index_width(n_vertices) + 48 + 4 + (16 if flags & FLAG_RATIONAL else 0)
+    quad_bytes = 4 * n_quads * index_width(n_vertices) if version < 3 else 0
+    fixed = quad_bytes + 48 + 4 + (16 if flags & FLAG_RATIONAL else 0)
     planes = _plane_count(bits) if version == 1 else 0
     return (fixed + grids * least_points * planes + 2,
             fixed + grids * most_points * planes + MAX_METADATA)
@@ -322,6 +325,180 @@ def _all_points(atlas: AtlasSurface) -> list[tuple[float, float, float]]:
     return [*atlas.vertices, *atlas.edge_points, *atlas.face_points]
 
 
+# ------------------------------------------------------------------ layout coding (v3)
+#: quads before this one whose corners are the candidates for its first corner
+QUAD_RECENT = 4
+QUAD_RANK_CONTEXTS = 32  # ranks 0..31 have contexts of their own, later ones share the last
+QUAD_DISTANCE_BITS = 18  # 1 <= distance <= V - 1 < 2^17: its bit length is below this
+
+
+def canonical_atlas(atlas: AtlasSurface) -> AtlasSurface:
+    """``atlas`` with its layout vertices numbered in the order the quads first use them.
+
+    Vertex ``k`` becomes the ``k``-th distinct index met reading ``quads`` in order (corner
+    by corner); vertices no quad uses follow in their old order. The quads keep their order
+    and corner order, so every patch is the same surface with the same ``(u, v)``; an
+    edge's points are re-read from its new lower vertex. Version 3 files store this
+    numbering (:func:`_code_quads` then codes a first use as one likely bit), so
+    ``read_atlas(write_atlas(a))`` has ``canonical_atlas(a)``'s layout, and an atlas whose
+    numbering is already canonical is returned as it is. Shared slots
+    (:meth:`~client_py.atlas.AtlasSurface.border_slots`) are renumbered with the
+    vertices, one to one, so a welded detail pack reads alike against either numbering.
+    """
+    order: dict[int, int] = {}
+    for quad in atlas.quads:
+        for k in quad:
+            order.setdefault(k, len(order))
+    n_vertices = len(atlas.vertices)
+    for k in range(n_vertices):
+        order.setdefault(k, len(order))
+    if all(new == old for old, new in order.items()):
+        return atlas
+    old_of = [0] * n_vertices
+    for old, new in order.items():
+        old_of[new] = old
+    quads = [tuple(order[k] for k in quad) for quad in atlas.quads]
+    inner = atlas.side - 2
+    old_edge = {edge: e for e, edge in enumerate(atlas.edges.edges)}
+    edge_index: list[int] = []
+    for lo, hi in atlas_edges(quads).edges:
+        a, b = old_of[lo], old_of[hi]
+        start = n_vertices + old_edge[min(a, b), max(a, b)] * inner
+        run = range(start, start + inner)
+        edge_index.extend(reversed(run) if a > b else run)
+    points = _all_points(atlas)
+    index = old_of + edge_index + list(range(n_vertices + len(edge_index), len(points)))
+    moved = [points[k] for k in index]
+    weights = None if atlas.weights is None else [atlas.weights[k] for k in index]
+    n_edge = n_vertices + len(edge_index)
+    return AtlasSurface(atlas.degree, atlas.spans, moved[:n_vertices], quads,
+                        moved[n_vertices:n_edge], moved[n_edge:], weights)
+
+
+class _QuadModel:
+    """Adaptive contexts of the layout (docs/format.md, "Atlas layout (version 3)"), by the
+    corner's slot ``s`` (0..3 in the quad)."""
+
+    def __init__(self) -> None:
+        self.new = [HALF] * 8  # s, and whether the corner before it in the quad was new
+        self.hit = [HALF] * 16  # s, min(candidates, 3)
+        self.rank = [HALF] * (4 * QUAD_RANK_CONTEXTS)  # s, min(t, 31)
+        self.prefix = [HALF] * (4 * QUAD_DISTANCE_BITS)  # s, t
+        self.suffix = [HALF] * (4 * QUAD_DISTANCE_BITS)  # s, t
+
+
+def _candidates(quad: Sequence[int], slot: int, recent: Sequence[Sequence[int]],
+                linked: Sequence[list[int]], directed: set[tuple[int, int]]) -> list[int]:
+    """The vertices corner ``slot`` of a quad most likely reuses, likeliest first, from its
+    corners ``quad[:slot]`` and the quads decoded before it.
+
+    Corner 0: the corners of the last :data:`QUAD_RECENT` quads, the latest first. Corner
+    ``s > 0``: the layout neighbours (in the order their sides were first decoded) of the
+    corner before it, ``x`` of ``p = quad[s - 1]``, and for the last corner also of the
+    first, ``y = quad[0]``, leaving out the quad's corners so far; ranked by a score, ties
+    in that order: 1 per such neighbour relation, 2 more where an earlier quad runs the
+    side the other way and no quad runs it this way yet (an *open* side, ``x -> p`` or
+    ``y -> x``, which only the quad across it still needs: a manifold layout runs each side
+    once each way).
+    """
+    if slot == 0:
+        out: list[int] = []
+        for q in reversed(recent):
+            out.extend(k for k in q if k not in out)
+        return out
+    before, first = quad[slot - 1], quad[0] if slot == 3 else None
+    pool = linked[before] if first is None else linked[before] + linked[first]
+    scored: dict[int, int] = {}
+    for x in pool:
+        if x in scored or x in quad[:slot]:
+            continue
+        score = 0
+        if x in linked[before]:
+            score += 1 + 2 * ((x, before) in directed and (before, x) not in directed)
+        if first is not None and x in linked[first]:
+            score += 1 + 2 * ((first, x) in directed and (x, first) not in directed)
+        scored[x] = score
+    return sorted(scored, key=lambda x: -scored[x])
+
+
+def _code_quads(coder: RangeEncoder | RangeDecoder, n_quads: int, n_vertices: int,
+                quads: Sequence[Sequence[int]] | None = None) -> list[tuple[int, int, int, int]]:
+    """Encode ``quads`` (numbered as :func:`canonical_atlas` numbers them) or, with
+    ``quads=None``, decode ``n_quads`` of them (docs/format.md, "Atlas layout (version 3)").
+
+    Per corner ``v`` in slot ``s`` of each quad, with ``u`` the count of distinct
+    vertices so far: a bit ``v == u`` (a first use; context ``s`` and whether the corner
+    before it in the quad was one); else, with the :func:`_candidates` ``C`` non-empty,
+    a bit ``v in C`` (context ``s, min(|C|, 3)``) and then its rank ``r`` in ``C`` in
+    unary (``r`` ones and a zero, none after rank ``|C| - 1``; the ``t``-th with context
+    ``s, min(t, 31)``); else ``u - v >= 1`` as adaptive Exp-Golomb (context ``s``).
+
+    Raises
+    ------
+    PatchFormatError
+        (decoding) a first use beyond ``n_vertices`` or a distance beyond the vertices so far.
+    ValueError
+        (encoding) a corner that is neither a first use nor an earlier vertex: the numbering
+        is not canonical.
+    """
+    encoding = quads is not None
+    model, out = _QuadModel(), []
+    linked: list[list[int]] = [[] for _ in range(n_vertices)]
+    directed: set[tuple[int, int]] = set()
+    used = 0
+
+    def flag(probs: list[int], context: int, bit: bool) -> bool:
+        if encoding:
+            coder.bit(probs, context, bit)
+            return bit
+        return bool(coder.bit(probs, context))
+
+    for f in range(n_quads):
+        quad: list[int] = []
+        was_new = True
+        for slot in range(4):
+            v = quads[f][slot] if encoding else -1
+            if encoding and v > used:
+                raise ValueError(f"quads[{f}][{slot}] = {v}: a canonical numbering uses vertex "
+                                 f"{used} first (canonical_atlas)")
+            was_new = flag(model.new, 2 * slot + was_new, v == used)
+            if was_new:
+                if used >= n_vertices:
+                    raise PatchFormatError(HEADER_SIZE, f"quad {f} uses more than the "
+                                           f"{n_vertices} vertices")
+                quad.append(used)
+                used += 1
+                continue
+            pool = _candidates(quad, slot, out[-QUAD_RECENT:], linked, directed)
+            if pool and flag(model.hit, 4 * slot + min(len(pool), 3), v in pool):
+                rank, target = 0, pool.index(v) if encoding else -1
+                while rank < len(pool) - 1 and flag(
+                        model.rank, slot * QUAD_RANK_CONTEXTS + min(rank, QUAD_RANK_CONTEXTS - 1),
+                        rank < target):
+                    rank += 1
+                quad.append(pool[rank])
+                continue
+            at = slot * QUAD_DISTANCE_BITS
+            if encoding:
+                encode_exp_golomb(coder, used - v, model.prefix, at, model.suffix, at)
+                quad.append(v)
+                continue
+            distance = decode_exp_golomb(coder, model.prefix, at, model.suffix, at,
+                                         QUAD_DISTANCE_BITS)
+            if distance is None or distance > used:
+                raise PatchFormatError(HEADER_SIZE, f"quad {f}: corner {slot} refers to a "
+                                       f"vertex before the first")
+            quad.append(used - distance)
+        for k in range(4):
+            a, b = quad[k], quad[(k + 1) % 4]
+            if b not in linked[a]:
+                linked[a].append(b)
+                linked[b].append(a)
+            directed.add((a, b))
+        out.append(tuple(quad))
+    return out
+
+
 # ------------------------------------------------------------------ writing
 #: passes of :func:`keep_corners_apart`: one separates every pair; another is needed only
 #: where three corners of one patch fell on one grid point
@@ -375,7 +552,9 @@ def keep_corners_apart(codes: list[list[int]], axes: Sequence[Sequence[float]],
 
 
 def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = None) -> bytes:
-    """Encode ``atlas`` as a ``.tsa`` v2 file (docs/format.md).
+    """Encode ``atlas`` as a ``.tsa`` v3 file (docs/format.md): its layout numbered by
+    :func:`canonical_atlas` and range-coded (:func:`_code_quads`), then the residuals of
+    the control points (and log-weights) in the same range-coded stream.
 
     Parameters
     ----------
@@ -392,7 +571,8 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
     Returns
     -------
     bytes
-        The same atlas and options always give the same bytes.
+        The same atlas and options always give the same bytes; :func:`read_atlas` gives
+        back ``canonical_atlas(atlas)``'s layout (the same patches, vertices renumbered).
     """
     if not isinstance(atlas, AtlasSurface):
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
@@ -410,23 +590,21 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
     if len(meta_bytes) > MAX_METADATA:
         raise ValueError(f"metadata is {len(meta_bytes)} bytes of JSON; at most 1 MiB fits")
 
+    atlas = canonical_atlas(atlas)
     n_vertices, quads = len(atlas.vertices), atlas.quads
-    width = index_width(n_vertices)
-    flat = array(_WORD_CODE[width], [k for quad in quads for k in quad])
-    if sys.byteorder == "big":
-        flat.byteswap()
-    parts = [flat.tobytes()]
+    enc = RangeEncoder()
+    _code_quads(enc, len(quads), n_vertices, quads)
 
     points = _all_points(atlas)
     axes = [[p[a] for p in points] for a in range(3)]
     lows, highs = [min(a) for a in axes], [max(a) for a in axes]
-    parts.append(struct.pack("<6d", *lows, *highs))
+    parts = [struct.pack("<6d", *lows, *highs)]
     predictor = _Predictor(quads, atlas.edges, atlas.side, n_vertices, bits)
     classes = _classes(n_vertices, n_vertices + predictor.n_edge_points, len(points))
     codes = [_quantise(axis, lo, hi, bits) for axis, lo, hi in zip(axes, lows, highs,
                                                                      strict=True)]
     keep_corners_apart(codes, axes, lows, highs, bits, quads)
-    enc, model, before = RangeEncoder(), _ResidualModel(), None
+    model, before = _ResidualModel(), None
     for axis_codes in codes:
         residuals = predictor.residuals(axis_codes)
         _encode_residuals(enc, residuals, classes, before, model)
@@ -453,8 +631,8 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
 def read_atlas_header(data: bytes) -> dict:
     """Check the framing (magic, version, sizes, CRC32) and the header fields, in order.
 
-    Version 1's zlib stream ends at the CRC; version 2's is followed by the range-coded
-    residuals, at least 4 bytes.
+    Version 1's zlib stream ends at the CRC; from version 2 on it is followed by the
+    range-coded residuals (version 3: the layout, then the residuals), at least 4 bytes.
 
     Returns
     -------
@@ -463,9 +641,9 @@ def read_atlas_header(data: bytes) -> dict:
         ``payload_size``, ``raw_size`` and the file's ``data``.
     """
     version = VERSION
-    if isinstance(data, bytes | bytearray | memoryview) and len(data) >= 6 \
-            and bytes(data[4:6]) == struct.pack("<H", 1):
-        version = 1
+    if isinstance(data, bytes | bytearray | memoryview) and len(data) >= 6:
+        (stated,) = struct.unpack("<H", bytes(data[4:6]))
+        version = stated if stated in READ_VERSIONS else VERSION
     data, fields = _unframe(data, MAGIC, "atlas", HEADER, version, 9 if version == 1 else None)
     _, _, flags, degree, spans, bits, reserved, n_vertices, n_quads, size, raw_size = fields
     if flags & ~KNOWN_FLAGS:
@@ -521,7 +699,7 @@ def _read_axis(cur: _Cursor, predictor: _Predictor, count: int, bits: int,
 
 
 def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
-    """Decode a ``.tsa`` file, version 2 or 1, into ``(AtlasSurface, metadata)``.
+    """Decode a ``.tsa`` file, version 3, 2 or 1, into ``(AtlasSurface, metadata)``.
 
     Raises
     ------
@@ -536,15 +714,17 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
     raw = _inflate(head["data"], HEADER_SIZE, head["payload_size"], head["raw_size"], 24)
 
     cur = _Cursor(raw)
-    width = index_width(n_vertices)
-    flat = array(_WORD_CODE[width])
-    flat.frombytes(cur.take(4 * n_quads * width, "quads"))
-    if sys.byteorder == "big":
-        flat.byteswap()
-    if max(flat) >= n_vertices:
-        raise PatchFormatError(0, f"a quad refers to vertex {max(flat)} of {n_vertices}",
-                               "payload")
-    quads = [tuple(flat[4 * f : 4 * f + 4]) for f in range(n_quads)]
+    dec = None
+    if version >= 3:  # the layout leads the range-coded stream
+        start = HEADER_SIZE + head["payload_size"]
+        try:  # the decoder reads its first bytes when it is made: inside the try too
+            dec = RangeDecoder(head["data"][start:len(head["data"]) - CRC_SIZE])
+            quads = _code_quads(dec, n_quads, n_vertices)
+        except RangeDecodeError as exc:
+            raise PatchFormatError(len(head["data"]) - CRC_SIZE,
+                                   f"coded layout ends early: {exc}") from None
+    else:
+        quads = _read_quads(cur, n_quads, n_vertices)
     try:
         table = atlas_edges(quads)
     except ValueError as exc:
@@ -566,7 +746,7 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
     else:
         log_bounds = _log_weight_bounds(cur) if flags & FLAG_RATIONAL else None
         grids = _read_coded_axes(head["data"], HEADER_SIZE + head["payload_size"], predictor,
-                                 n_vertices, count, bits, log_bounds is not None)
+                                 n_vertices, count, bits, log_bounds is not None, dec)
     metadata = _read_metadata(cur, raw)
     axes = [_dequantise(grids[a], bounds[a], bounds[a + 3], bits) for a in range(3)]
     weights = None
@@ -589,15 +769,31 @@ def _log_weight_bounds(cur: _Cursor) -> tuple[float, float]:
     return lo, hi
 
 
+def _read_quads(cur: _Cursor, n_quads: int, n_vertices: int) -> list[tuple[int, ...]]:
+    """Versions 1 and 2: ``4 F`` vertex indices (u16, or u32 beyond 65,536 vertices)."""
+    width = index_width(n_vertices)
+    flat = array(_WORD_CODE[width])
+    flat.frombytes(cur.take(4 * n_quads * width, "quads"))
+    if sys.byteorder == "big":
+        flat.byteswap()
+    if max(flat) >= n_vertices:
+        raise PatchFormatError(0, f"a quad refers to vertex {max(flat)} of {n_vertices}",
+                               "payload")
+    return [tuple(flat[4 * f : 4 * f + 4]) for f in range(n_quads)]
+
+
 def _read_coded_axes(data: bytes, start: int, predictor: _Predictor, n_vertices: int,
-                     count: int, bits: int, rational: bool) -> list[list[int]]:
-    """Version 2: the range-coded residuals ``data[start:-4]`` of x, y, z (and the
-    log-weights), each undone and checked to lie in ``0..2^bits - 1``."""
+                     count: int, bits: int, rational: bool,
+                     dec: RangeDecoder | None = None) -> list[list[int]]:
+    """Versions 2 and 3: the range-coded residuals of x, y, z (and the log-weights), each
+    undone and checked to lie in ``0..2^bits - 1``; from ``data[start:-4]`` (version 2) or
+    where ``dec`` left off after the layout (version 3)."""
     classes = _classes(n_vertices, n_vertices + predictor.n_edge_points, count)
     grids, before, model = [], None, _ResidualModel()
     names = ["control points axis x", "control points axis y", "control points axis z"]
     try:  # the decoder reads its first bytes when it is made: inside the try too
-        dec = RangeDecoder(data[start:len(data) - CRC_SIZE])
+        if dec is None:
+            dec = RangeDecoder(data[start:len(data) - CRC_SIZE])
         for what in names + (["weights"] if rational else []):
             if what == "weights":
                 before, model = None, _ResidualModel()
@@ -610,6 +806,6 @@ def _read_coded_axes(data: bytes, start: int, predictor: _Predictor, n_vertices:
     return grids
 
 
-__all__ = ["ATLAS_LIMITS", "HEADER", "HEADER_SIZE", "MAGIC", "VERSION", "CRC_SIZE",
-           "index_width", "payload_size_range", "read_atlas", "read_atlas_header",
+__all__ = ["ATLAS_LIMITS", "HEADER", "HEADER_SIZE", "MAGIC", "READ_VERSIONS", "VERSION",
+           "CRC_SIZE", "canonical_atlas", "index_width", "payload_size_range", "read_atlas", "read_atlas_header",
            "write_atlas"]
