@@ -883,5 +883,5 @@ def _read_coded_axes(data: bytes, start: int, predictor: _Predictor, n_vertices:
 
 
 __all__ = ["ATLAS_LIMITS", "HEADER", "HEADER_SIZE", "MAGIC", "READ_VERSIONS", "VERSION",
-           "CRC_SIZE", "canonical_atlas", "index_width", "payload_size_range", "read_atlas", "read_atlas_header",
-           "write_atlas"]
+           "CRC_SIZE", "canonical_atlas", "index_width", "payload_size_range", "read_atlas",
+           "read_atlas_header", "write_atlas"]

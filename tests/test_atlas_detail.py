@@ -314,8 +314,8 @@ def test_neighbour_signs_cost_less_in_version_4():
     magnitude contexts code it in fewer bytes than version 3 did (its fixture is of random
     values, so the comparison is against a version 3 writer made here from the same
     stream with the old contexts)."""
-    from client_py.atlas_detail import _model
     import client_py.atlas_detail as module
+    from client_py.atlas_detail import _model
 
     smooth = {p: [DetailTile(1, i, j, 2, 8, 0.01, tuple(
         round(6 * math.sin(0.7 * (a + 8 * i) + 0.3 * p) * math.cos(0.5 * (b + 8 * j)))
