@@ -491,7 +491,7 @@ def test_budget_bits_takes_up_to_three_bits_fewer_only_when_that_fits_the_budget
     bits = base_bits(atlas, rms)
     assert BUDGET_FEWER_BITS == 3 and bits - 4 >= BASE_BITS[0]
     sizes = [atlas_bytes(atlas, bits - k) for k in range(5)]  # 0..4 bits fewer
-    assert all(a > b for a, b in zip(sizes, sizes[1:]))
+    assert all(sizes[k] > sizes[k + 1] for k in range(4))
     assert budget_bits(atlas, rms, None, sizes[0]) == (bits, sizes[0])  # within: as the RMS says
     for k in (1, 2, 3):  # the most that fits
         assert budget_bits(atlas, rms, None, sizes[k - 1] - 1) == (bits - k, sizes[k])
