@@ -543,7 +543,7 @@ def test_a_fitted_atlas_bundle_reads_everywhere(tmp_path):
 
 # ------------------------------------------------------------------ welded packs
 def test_a_welded_bundle_draws_the_same_mesh_as_its_tiles_unwelded(tmp_path):
-    """Welded packs (version 3, each shared border coefficient coded once a pack) through
+    """Welded packs (version 4, each shared border coefficient coded once a pack) through
     every reader: tessellate_bundle (the atlas read once), atlas_level_detail without the
     atlas (it reads base.tsa), the session with one group's pack alone; the mesh is the one
     the same tiles draw in packs without welding, bit for bit."""
@@ -555,7 +555,7 @@ def test_a_welded_bundle_draws_the_same_mesh_as_its_tiles_unwelded(tmp_path):
     for name in manifest["files"]:
         data = (folder / name).read_bytes()
         if name.endswith(".tsdp"):
-            assert data[4] == 3 and data[21] == 1
+            assert data[4] == 4 and data[21] == 1
             level, tiles = read_pack(data, atlas)
             data = write_pack(level, tiles)
         (plain / name).parent.mkdir(parents=True, exist_ok=True)

@@ -478,20 +478,25 @@ def test_reverse_rows_pull_only_far_samples_straight_onto_the_surface():
     np.testing.assert_allclose(targets2, A2 @ points, atol=1e-12)
 
 
-def test_budget_bits_takes_one_or_two_bits_fewer_only_when_that_fits_the_budget(sphere_fit):
-    from fitter.fitting.atlas.fit import BASE_BITS, atlas_bytes, base_bits, budget_bits
+def test_budget_bits_takes_up_to_three_bits_fewer_only_when_that_fits_the_budget(sphere_fit):
+    from fitter.fitting.atlas.fit import (
+        BASE_BITS,
+        BUDGET_FEWER_BITS,
+        atlas_bytes,
+        base_bits,
+        budget_bits,
+    )
 
     atlas, rms = sphere_fit.atlas, sphere_fit.rms
     bits = base_bits(atlas, rms)
-    assert bits - 3 >= BASE_BITS[0]
-    full, fewer = atlas_bytes(atlas, bits), atlas_bytes(atlas, bits - 1)
-    two_fewer = atlas_bytes(atlas, bits - 2)
-    assert two_fewer < fewer < full
-    assert budget_bits(atlas, rms, None, full) == (bits, full)  # within: as the RMS says
-    assert budget_bits(atlas, rms, None, full - 1) == (bits - 1, fewer)  # the most that fits
-    assert budget_bits(atlas, rms, None, fewer - 1) == (bits - 2, two_fewer)
-    assert budget_bits(atlas, rms, None, two_fewer - 1) == (bits, full)  # never three fewer
-    assert budget_bits(atlas, rms, None, None) == (bits, full)  # an explicit patch count
+    assert BUDGET_FEWER_BITS == 3 and bits - 4 >= BASE_BITS[0]
+    sizes = [atlas_bytes(atlas, bits - k) for k in range(5)]  # 0..4 bits fewer
+    assert all(sizes[k] > sizes[k + 1] for k in range(4))
+    assert budget_bits(atlas, rms, None, sizes[0]) == (bits, sizes[0])  # within: as the RMS says
+    for k in (1, 2, 3):  # the most that fits
+        assert budget_bits(atlas, rms, None, sizes[k - 1] - 1) == (bits - k, sizes[k])
+    assert budget_bits(atlas, rms, None, sizes[3] - 1) == (bits, sizes[0])  # never four fewer
+    assert budget_bits(atlas, rms, None, None) == (bits, sizes[0])  # an explicit patch count
     assert budget_bits(atlas, rms, 14, 10) == (14, atlas_bytes(atlas, 14))  # bits asked for
     assert sphere_fit.bits == 12  # fit_atlas asks for 12 bits unless told None
 

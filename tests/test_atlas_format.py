@@ -1,7 +1,8 @@
-"""The atlas file ``.tsa`` v2 (docs/format.md, "Atlas patch file"): round trips within half a
+"""The atlas file ``.tsa`` v3 (docs/format.md, "Atlas patch file"): round trips within half a
 quantisation step with shared points one value and equal to an independent numpy
-quantisation, a patch's corners kept apart where that rounding would merge them (and the
-welded tessellation then without a non-manifold edge), version 1 files still read, the
+quantisation, the layout renumbered in first-use order (the same patches) and range-coded,
+a patch's corners kept apart where that rounding would merge them (and the welded
+tessellation then without a non-manifold edge), version 1 and 2 files still read, the
 header layout, sizes checked before inflating, and every malformed file a PatchFormatError
 (property-based, bounded examples)."""
 
@@ -27,8 +28,11 @@ from client_py.atlas_format import (
     HEADER,
     HEADER_SIZE,
     MAGIC,
+    _code_quads,
     _encode_residuals,
+    _Predictor,
     _ResidualModel,
+    canonical_atlas,
     payload_size_range,
     read_atlas,
     write_atlas,
@@ -38,6 +42,7 @@ from client_py.format import MAX_CONTROL_POINTS
 from client_py.rangecoder import RangeEncoder
 
 V1_FIXTURE = Path(__file__).parent / "data" / "atlas_v1.tsa"  # the v1 writer's cube_file()
+V2_FIXTURE = Path(__file__).parent / "data" / "atlas_v2.tsa"  # the v2 writer's cube_file()
 
 FUZZ = settings(max_examples=120, deadline=2000, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow])
@@ -62,7 +67,7 @@ def payload_of(data: bytes) -> bytes:
 
 
 def coded_of(data: bytes) -> bytes:
-    """The range-coded residuals after the zlib stream (version 2)."""
+    """The range-coded stream after the zlib stream (version 3: layout and residuals)."""
     return data[HEADER_SIZE + HEADER.unpack_from(data)[9]:-4]
 
 
@@ -84,7 +89,7 @@ def reframe(raw: bytes, data: bytes | None = None, coded: bytes | None = None) -
 ])
 @pytest.mark.parametrize("bits", [8, 12, 16, 24])
 def test_round_trip_within_half_a_step(make, bits):
-    atlas = make()
+    atlas = canonical_atlas(make())  # the numbering a v3 file stores (tested below)
     back, meta = read_atlas(write_atlas(atlas, bits, {"units": "mm", "n": [1, 2]}))
     assert meta == {"units": "mm", "n": [1, 2]}
     assert (back.degree, back.spans, back.quads) == (atlas.degree, atlas.spans, atlas.quads)
@@ -133,6 +138,7 @@ def test_round_trip_equals_an_independent_quantisation():
     ``q = rint((x - lo) top / (hi - lo))`` (half to even, as Python's round)."""
     for atlas, bits in ((sphere_atlas(3, 2, 3, noise=1e-3), 10), (random_atlas(2, 3, 2), 9)):
         back, _ = read_atlas(write_atlas(atlas, bits))
+        atlas = canonical_atlas(atlas)
         x = np.array(_points(atlas))
         lo, hi = x.min(axis=0), x.max(axis=0)
         top = (1 << bits) - 1
@@ -146,11 +152,14 @@ def test_round_trip_equals_an_independent_quantisation():
                                rtol=1e-15, atol=0)
 
 
-def test_version_1_files_still_read():
-    """A file of the version 1 writer (byte planes in the zlib stream, vertices predicted
-    from the vertex before): the same atlas within half a step, and its metadata."""
-    data = V1_FIXTURE.read_bytes()
-    assert HEADER.unpack_from(data)[1] == 1
+@pytest.mark.parametrize("fixture,version", [(V1_FIXTURE, 1), (V2_FIXTURE, 2)])
+def test_older_files_still_read(fixture, version):
+    """Files of the version 1 writer (byte planes in the zlib stream, vertices predicted
+    from the vertex before) and of version 2 (quads as u16 in the zlib stream, residuals
+    range-coded after it): the cube in its own numbering within half a step, its metadata,
+    and the same values as version 3 writes in first-use numbering."""
+    data = fixture.read_bytes()
+    assert HEADER.unpack_from(data)[1] == version
     back, meta = read_atlas(data)
     assert meta == {"title": "cube", "units": "mm"}
     atlas = random_cube_atlas()
@@ -160,7 +169,44 @@ def test_version_1_files_still_read():
         lo, hi = min(p[axis] for p in before), max(p[axis] for p in before)
         worst = max(abs(p[axis] - q[axis]) for p, q in zip(before, after, strict=True))
         assert worst <= (hi - lo) / (2 * 4095) * (1 + 1e-9)
-    assert read_atlas(write_atlas(back, 12, meta))[0] == back  # v2 of it: the same values
+    assert read_atlas(write_atlas(back, 12, meta))[0] == canonical_atlas(back)
+    assert read_atlas(cube_file())[0] == canonical_atlas(back)
+
+
+def _patch_nets(atlas: AtlasSurface) -> list[list[list[tuple]]]:
+    """Every patch's control net ``P[i][j]`` (and weight), read through ``patch_indices``."""
+    points = _points(atlas)
+    weights = atlas.weights or [1.0] * len(points)
+    return [[[(*points[k], weights[k]) for k in row] for row in atlas.patch_indices(f)]
+            for f in range(len(atlas.quads))]
+
+
+@pytest.mark.parametrize("make", [random_cube_atlas, lambda: sphere_atlas(3, 2, 3),
+                                  lambda: random_atlas(2, 3, 2)])
+def test_canonical_numbering_keeps_every_patch(make):
+    """``canonical_atlas``: vertices numbered by first use along the quads (checked against
+    a plain reading of the quads), every patch the same control net and weights (so the
+    same surface), and a canonical atlas returned as it is."""
+    atlas = make()
+    canon = canonical_atlas(atlas)
+    seen: list[int] = []
+    for quad in atlas.quads:
+        seen += [k for k in quad if k not in seen]
+    assert [tuple(seen.index(k) for k in quad) for quad in atlas.quads] == canon.quads
+    assert _patch_nets(canon) == _patch_nets(atlas)
+    assert canonical_atlas(canon) is canon
+
+
+def test_the_layout_costs_little():
+    """The first-use numbering and the neighbour candidates code the 600-quad subdivided
+    cube's layout in under 2 bits per quad corner, against the 16 of u16 indices (the
+    bunny's fitted 1,152-patch layout: 6,016 deflated bytes in version 2, 1.6 KB coded)."""
+    from client_py.rangecoder import RangeEncoder as Encoder
+
+    atlas = canonical_atlas(sphere_atlas(10))
+    enc = Encoder()
+    _code_quads(enc, len(atlas.quads), len(atlas.vertices), atlas.quads)
+    assert len(enc.finish()) * 8 < 2 * 4 * len(atlas.quads)
 
 
 def test_smooth_layouts_cost_less_than_version_1():
@@ -168,27 +214,32 @@ def test_smooth_layouts_cost_less_than_version_1():
     deflated byte planes (measured on the bunny's and Nefertiti's bases: 20-25 % fewer
     bytes at 9 bits; here the jittered sphere of docs/format.md's size table)."""
     atlas = sphere_atlas(10, noise=1e-3)
-    assert len(write_atlas(atlas, 12)) < 0.9 * 20_073  # the v1 size in docs/format.md
+    size = len(write_atlas(atlas, 12))
+    assert size < 0.9 * 20_073  # the v1 size in docs/format.md
+    assert size < 0.9 * 15_874  # v2's: version 3 codes the layout and run differences
 
 
 def test_header_layout_matches_the_spec():
     atlas = random_cube_atlas(3, 2)
     data = write_atlas(atlas, 12)
     magic, version, flags, d, s, bits, reserved, n_v, n_f, size, raw = HEADER.unpack_from(data)
-    assert HEADER_SIZE == 28 and magic == b"TSPA" and version == 2
+    assert HEADER_SIZE == 28 and magic == b"TSPA" and version == 3
     assert (flags, d, s, bits, reserved, n_v, n_f) == (1, 3, 2, 12, 0, 8, 6)
-    assert len(data) >= HEADER_SIZE + size + 4 + 4  # the coded residuals follow
+    assert len(data) >= HEADER_SIZE + size + 4 + 4  # the coded layout and residuals follow
     assert zlib.crc32(data[:-4]) == struct.unpack("<I", data[-4:])[0]
     raw_bytes = payload_of(data)
     assert len(raw_bytes) == raw
     least, most = payload_size_range(flags, d, s, bits, n_v, n_f)
     assert least <= raw <= most
-    # quads as u16 (V <= 65536), then the bounds
-    quads = struct.unpack_from(f"<{4 * n_f}H", raw_bytes)
-    assert [tuple(quads[4 * f : 4 * f + 4]) for f in range(n_f)] == atlas.quads
-    bounds = struct.unpack_from("<6d", raw_bytes, 8 * n_f)
+    # the bounds first (the quads are range-coded), then the log-weight bounds, metadata
+    bounds = struct.unpack_from("<6d", raw_bytes, 0)
     pts = _points(atlas)
     assert bounds[:3] == tuple(min(p[a] for p in pts) for a in range(3))
+    assert raw == 48 + 16 + 4 + 2  # ... and "{}"
+    # the coded stream opens with the layout, in first-use numbering
+    from client_py.rangecoder import RangeDecoder
+    quads = _code_quads(RangeDecoder(coded_of(data)), n_f, n_v)
+    assert quads == canonical_atlas(atlas).quads
 
 
 def test_smooth_atlases_compress_and_random_ones_cost_their_entropy():
@@ -241,7 +292,7 @@ def refused_quickly(data: bytes, match: str, seconds: float = 1.0, megabytes: fl
 
 @pytest.mark.parametrize(("fields", "offset", "match"), [
     ({"magic": b"TSPF"}, 0, "not a Tessera atlas"),
-    ({"version": 3}, 4, "atlas format version 3 is not supported"),
+    ({"version": 4}, 4, "atlas format version 4 is not supported"),
     ({"flags": 2}, 6, "unknown flags 0x0002"),
     ({"degree": 4}, 8, "degree 4 outside 1..3"),
     ({"degree": 0}, 8, "degree 0 outside 1..3"),
@@ -293,36 +344,66 @@ def test_framing_errors():
     assert info.value.offset == len(data) - 4
 
 
-def _raw_with(edit) -> bytes:
-    raw = bytearray(payload_of(cube_file()))
+def _raw_with(edit, data: bytes | None = None) -> bytes:
+    raw = bytearray(payload_of(data or cube_file()))
     edit(raw)
-    return reframe(bytes(raw))
+    return reframe(bytes(raw), data)
 
 
-@pytest.mark.parametrize(("edit", "match"), [
-    (lambda r: r.__setitem__(slice(0, 2), struct.pack("<H", 8)), "refers to vertex 8 of 8"),
+@pytest.mark.parametrize(("edit", "match", "version"), [
+    (lambda r: r.__setitem__(slice(0, 2), struct.pack("<H", 8)), "refers to vertex 8 of 8", 2),
     (lambda r: r.__setitem__(slice(0, 8), struct.pack("<4H", 0, 1, 1, 2)),
-     "the quads are no valid layout: .*4 distinct"),
-    (lambda r: r.__setitem__(slice(48, 56), struct.pack("<d", float("inf"))),
-     "control point bounds holds a non-finite number"),
-    (lambda r: r.__setitem__(slice(-5, None), b"[1]\x00\x00"), "metadata"),
-    (lambda r: r.extend(b"xx"), "bytes left after metadata|metadata is not UTF-8 JSON"),
+     "the quads are no valid layout: .*4 distinct", 2),
+    (lambda r: r.__setitem__(slice(0, 8), struct.pack("<d", float("inf"))),
+     "control point bounds holds a non-finite number", 3),
+    (lambda r: r.__setitem__(slice(-5, None), b"[1]\x00\x00"), "metadata", 3),
+    (lambda r: r.extend(b"xx"), "bytes left after metadata|metadata is not UTF-8 JSON", 3),
 ])
-def test_bad_payloads_behind_a_valid_crc(edit, match):
+def test_bad_payloads_behind_a_valid_crc(edit, match, version):
+    """Version 2 for the quads (in its zlib stream), the current version for the rest."""
+    data = V2_FIXTURE.read_bytes() if version == 2 else None
     with pytest.raises(PatchFormatError, match=match) as info:
-        read_atlas(_raw_with(edit))
+        read_atlas(_raw_with(edit, data))
     assert isinstance(info.value, ValueError)
 
 
+def test_a_coded_layout_that_is_no_manifold_is_refused():
+    """Quads a writer would never store (the third runs the first's sides again), coded
+    by the one layout coder: the reader names the layout."""
+    enc = RangeEncoder()
+    _code_quads(enc, 6, 8, [(0, 1, 2, 3), (1, 0, 3, 2)] + [(0, 1, 2, 3)] * 4)
+    with pytest.raises(PatchFormatError, match="the quads are no valid layout"):
+        read_atlas(reframe(payload_of(cube_file()), coded=enc.finish()))
+
+
+def test_a_layout_not_in_first_use_order_is_not_written():
+    with pytest.raises(ValueError, match=r"quads\[0\]\[1\] = 2: a canonical numbering uses "
+                       "vertex 1 first"):
+        _code_quads(RangeEncoder(), 1, 4, [(0, 2, 1, 3)])
+
+
+def test_a_layout_beyond_its_vertices_is_refused():
+    """The cube's layout (first-use order: quad 1 is (4, 5, 6, 7)) uses 8 vertices; a
+    header of 7 stops the decoder at the 8th."""
+    data = cube_file()
+    bad = _with_crc(_header_with(vertices=7) + data[HEADER_SIZE:-4])
+    with pytest.raises(PatchFormatError, match="quad 1 uses more than the 7 vertices"):
+        read_atlas(bad)
+
+
 def _coded(*axes: list[int]) -> bytes:
-    """Residuals coded as the writer codes them (classes of the cube: 8 vertices, 12 edges
-    of 3 points, 6 patches of 9), for files the writer would never make."""
+    """The cube's layout, then residuals coded as the writer codes them (classes of the
+    cube: 8 vertices, 12 edges of 3 points, 6 patches of 9), for files the writer would
+    never make."""
     classes = [0] * 8 + [1] * 36 + [2] * 54
     enc, model, before = RangeEncoder(), _ResidualModel(), None
+    cube = canonical_atlas(random_cube_atlas())
+    _code_quads(enc, len(cube.quads), len(cube.vertices), cube.quads)
+    sources = _Predictor(cube.quads, cube.edges, cube.side, len(cube.vertices), 12).sources
     for k, residuals in enumerate(axes):
         if k == 3:
             before, model = None, _ResidualModel()
-        _encode_residuals(enc, residuals, classes, before, model)
+        _encode_residuals(enc, residuals, classes, before, model, sources)
         before = residuals
     return enc.finish()
 
@@ -332,11 +413,14 @@ def test_a_grid_value_outside_the_quantised_range_is_refused():
     below = [-1] + [0] * 97  # vertex 0 predicted as 0: -1 is below the range
     with pytest.raises(PatchFormatError, match="control points axis x decode outside 0..4095"):
         read_atlas(reframe(raw, coded=_coded(below, below, below, below)))
-    too_long = [0] * 97 + [1 << 13]  # 14 bits: no residual of 12-bit values is that long
-    with pytest.raises(PatchFormatError, match="axis x: residual 97 longer than 12 bits"):
+    # 15 bits: no difference of residuals of 12-bit values is that long
+    too_long = [0] * 97 + [1 << 14]
+    with pytest.raises(PatchFormatError, match="axis x: residual 97 longer than 13 bits"):
         read_atlas(reframe(raw, coded=_coded(too_long, too_long, too_long, too_long)))
     with pytest.raises(PatchFormatError, match="coded residuals end early"):
-        read_atlas(reframe(raw, coded=_coded([5] * 98)[:6]))
+        read_atlas(reframe(raw, coded=_coded([5] * 98)[:len(_coded()) + 1]))
+    with pytest.raises(PatchFormatError, match="coded layout ends early"):
+        read_atlas(reframe(raw, coded=_coded()[:5]))
     with pytest.raises(PatchFormatError, match="no room for the coded residuals"):
         read_atlas(reframe(raw, coded=b"\0\0"))
 
@@ -502,3 +586,20 @@ def test_a_side_shorter_than_a_step_welds_into_a_manifold(resolution):
     assert welded_nonmanifold_edges(folded, resolution) > 0
     back, _ = read_atlas(write_atlas(atlas, bits))
     assert welded_nonmanifold_edges(back, resolution) == 0
+
+
+def test_run_links_and_differences():
+    """Version 3's runs, against links written out by hand for one edge of 3 inner points
+    and one 3 x 3 interior; differences and sums are inverse on random residuals."""
+    import random
+
+    from client_py.atlas_format import _run_differences, _run_links, _run_sums
+
+    links = _run_links(2, 1, 1, 3)  # 2 vertices, edge points 2..4, interior 5..13
+    assert links[:5] == [(), (), (), (2,), (3,)]
+    assert links[5:] == [(), (5,), (6,), (5,), (8, 6), (9, 7), (8,), (11, 9), (12, 10)]
+    rnd = random.Random(3)
+    res = [rnd.randint(-50, 50) for _ in range(14)]
+    diff = _run_differences(res, links)
+    assert diff[12] == res[12] - (res[11] + res[9]) // 2 and diff[3] == res[3] - res[2]
+    assert _run_sums(diff, links) == res

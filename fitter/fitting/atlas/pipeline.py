@@ -502,7 +502,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                          "uncovered_bbox": ([points[far].min(axis=0).tolist(),
                                              points[far].max(axis=0).tolist()]
                                             if far.any() else None)},
-            "fit": {"triangles": fit.triangles, "patches": fit.patches,
+            "fit": rounded_floats({"triangles": fit.triangles, "patches": fit.patches,
                     "surface": surface.origin, "surface_pieces": surface.pieces,
                     "layout": layout_record, "outliers_not_fitted": outliers,
                     "repairs": surface.repairs, "working_points": int(len(fit.points)),
@@ -511,12 +511,30 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                     "detail": {"samples": detail.samples, "spacing": detail.spacing,
                                "patch_side": detail.patch_side,
                                "border_jump": [r["border_jump"] for r in detail.levels],
-                               "steps": {k: round(v, 3) for k, v in detail.timings.items()}}},
+                               "steps": {k: round(v, 3) for k, v in detail.timings.items()}}}),
             "tiles": {"version": 2, "detail": detail.tree if detail.levels else None,
                       "texture": texture.tree if texture else None},
             "timings": dict(stages.timings),
         }
-        with open(folder / "manifest.json", "w") as fh:
-            json.dump(manifest, fh, indent=1, sort_keys=True)
+        with open(folder / "manifest.json", "w") as fh:  # every visitor downloads it
+            json.dump(manifest, fh, separators=(",", ":"), sort_keys=True)
     return manifest
+
+
+#: significant digits of the manifest's ``fit`` diagnostics (trial errors, seconds)
+FIT_DIGITS = 4
+
+
+def rounded_floats(value: object, digits: int = FIT_DIGITS) -> object:
+    """``value`` (JSON-like: dicts, lists, numbers, strings) with every float rounded to
+    ``digits`` significant digits. The manifest's ``fit`` section is diagnostics that every
+    visitor downloads with the manifest: 17-digit floats there cost about 230 of its 2.4 KB
+    as served (bunny and Lucy, gzip 6), written without indentation 200 more."""
+    if isinstance(value, float):
+        return float(f"{value:.{digits}g}")
+    if isinstance(value, dict):
+        return {k: rounded_floats(v, digits) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [rounded_floats(v, digits) for v in value]
+    return value
 
