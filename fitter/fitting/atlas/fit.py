@@ -451,8 +451,9 @@ def correct_parameters(table: np.ndarray, points: np.ndarray, degree: int, spans
     point's (``n · n_x > 0.3``): no jump around a thin part's edge to its other sheet.
 
     Every point's steps are its own, so the points are split into :data:`CORRECT_THREADS`
-    runs done at once (numpy's products release the GIL): the same numbers, on the 15-scan
-    Happy Buddha's 1,473-patch fit (about 90,000 working points) a third less wall time.
+    runs done at once (numpy's products release the GIL): the same numbers (the 15-scan
+    Happy Buddha's bundle byte for byte), and its final fit's corrections took 1.16 s of
+    wall time instead of 2.25-2.32 s (2 cores, load 1.5-4, interleaved runs).
 
     Returns
     -------
