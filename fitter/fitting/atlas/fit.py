@@ -452,8 +452,8 @@ def correct_parameters(table: np.ndarray, points: np.ndarray, degree: int, spans
 
     Every point's steps are its own, so the points are split into :data:`CORRECT_THREADS`
     runs done at once (numpy's products release the GIL): the same numbers (the 15-scan
-    Happy Buddha's bundle byte for byte), and its final fit's corrections took 1.16 s of
-    wall time instead of 2.25-2.32 s (2 cores, load 1.5-4, interleaved runs).
+    Happy Buddha's bundle byte for byte), and its final fit's corrections took 1.16-1.39 s of
+    wall time instead of 2.25-2.42 s (2 cores, load 1-4, 4 interleaved runs each).
 
     Returns
     -------
