@@ -885,3 +885,29 @@ def test_a_layout_spanning_a_hole_of_the_scan_is_opened_there():
     # every triangle away from the hole stays (none of them was far)
     assert r_layout.n_triangles == layout.n_triangles - 8
     assert far_patch_samples(r_atlas, options["scan_mesh"]).max() < far
+
+
+def test_foot_point_corrections_on_threads_equal_one_run(sphere_fit, monkeypatch):
+    """correct_parameters split over threads gives exactly the numbers of one run."""
+    from fitter.fitting.atlas import fit as atlas_fit
+
+    atlas = sphere_fit.atlas
+    table = index_table(atlas)
+    rng = np.random.default_rng(5)
+    n = 30_000
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    x *= 1.0 + 0.02 * rng.normal(size=(n, 1))
+    f = rng.integers(0, len(atlas.quads), n)
+    u, v = rng.random(n), rng.random(n)
+    args = (table, control_points(atlas), 3, 1, neighbour_table(atlas), x, x, f, u, v)
+    monkeypatch.setattr(atlas_fit, "CORRECT_RUN_POINTS", n + 1)  # one run
+    one = atlas_fit.correct_parameters(*args)
+    monkeypatch.setattr(atlas_fit, "CORRECT_RUN_POINTS", 1_000)
+    monkeypatch.setattr(atlas_fit, "CORRECT_THREADS", 3)  # uneven runs
+    monkeypatch.setattr(atlas_fit.os, "cpu_count", lambda: 4)
+    split = atlas_fit.correct_parameters(*args)
+    assert np.any(one[0] != f)  # some points hopped to another patch
+    for a, b in zip(one, split, strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
