@@ -147,7 +147,14 @@ from .layout import (
     thin_part_weights,
     triangle_samples,
 )
-from .surface import BESIDE_COS, LAYOUT_TRIM, ScanSurface, SurfaceError, border_edges, scan_surface
+from .surface import (
+    LAYOUT_TRIM,
+    ScanSurface,
+    SurfaceError,
+    border_edges,
+    scan_surface,
+    surface_beside,
+)
 
 DEFAULT_BYTE_BUDGET = 24_000
 AUTO_FIRST_TRIANGLES = 48
@@ -953,7 +960,7 @@ def membrane_shares(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray
     (default :data:`MEMBRANE_REACH`, the stand-in's trim) from the scan's surface with the
     surface beside it: its closest point ``q`` on the scan's triangles off the grid
     triangle's unit normal ``n`` by more than ``acos(BESIDE_COS)``,
-    ``|n · (q - p)| < BESIDE_COS |q - p|`` (the rule of ``surface.stand_in_far``). A sheet
+    ``|n · (q - p)| < BESIDE_COS |q - p|`` (``surface.surface_beside``). A sheet
     spanning an opening the scan leaves (the hole of an arch, a tunnel under an arm) has
     its nearest surface at the opening's rim, in its own plane; a patch lifted off the
     surface has it along its normal. Summed over a triangle's three patches, over their
@@ -972,8 +979,7 @@ def membrane_shares(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray
     area = 0.5 * np.linalg.norm(cross, axis=1)
     normal = cross / np.maximum(2.0 * area, 1e-300)[:, None]
     d, _, closest = closest_points_on_mesh(centroid, vertices, faces)
-    along = np.abs(np.einsum("kc,kc->k", normal, closest - centroid))
-    gap = (d > reach * diagonal) & (along < BESIDE_COS * d)
+    gap = (d > reach * diagonal) & surface_beside(normal, closest - centroid, d)
     # an opening: nothing of the scan across the sheet either, on the line p ± t n for
     # |t| <= OPENING_DEPTH d, probed every d / 2 (a line through the surface passes a probe
     # within d / 4 of it); a sheet under a narrow bump has the bump's flank beside it and

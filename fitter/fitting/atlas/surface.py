@@ -565,10 +565,20 @@ def stand_in_far(vertices: np.ndarray, faces: np.ndarray, surface: ScanSurface, 
     far = distance > reach
     if beside is not None:
         normal = _unit_rows(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
-        along = np.abs(np.einsum("mj,mkj->mk", normal,
-                                 closest.reshape(len(faces), 7, 3) - probes))
-        far |= (distance > beside) & (along < BESIDE_COS * distance)
+        far |= (distance > beside) & surface_beside(
+            normal[:, None, :], closest.reshape(len(faces), 7, 3) - probes, distance)
     return np.any(far, axis=1)
+
+
+def surface_beside(normal: np.ndarray, offset: np.ndarray, distance: np.ndarray
+                   ) -> np.ndarray:
+    """Whether the closest surface point lies *beside* a probe rather than along its
+    normal: the offset ``q - p`` (``(..., 3)``, of length ``distance``) makes more than
+    ``acos(BESIDE_COS)`` with the unit ``normal`` (``(..., 3)``, broadcast),
+    ``|n · (q - p)| < BESIDE_COS |q - p|``. A sheet spanning a gap or an opening has its
+    nearest surface at the gap's walls or rim, in its own plane; a sheet lifted off the
+    surface (a coarse blob, a fin) has it below or above."""
+    return np.abs(np.einsum("...j,...j->...", normal, offset)) < BESIDE_COS * distance
 
 
 def layout_stand_in(surface: ScanSurface, *, depth: int = LAYOUT_POISSON_DEPTH,
