@@ -11,6 +11,8 @@ does), then for every level the bundle offers (the base alone, then each detail 
   RMS, max, and the share within 0.5 % of the bounding-box diagonal;
 * dense samples of the drawn mesh against the scan: the largest distance (fins, spikes,
   walls, skirts), as a share of the diagonal;
+* an atlas's folds (:func:`bench.pleats.pleat_stats`): pleats of its base and the share of
+  level 0's area turned over against it;
 * the welded mesh's open border, against the scan's own, and the share of it farther than
   ``BORDER_REACH`` of the diagonal from the scan's border (a hole or skirt where the object
   is closed: the issue's border must lie only where the scan is open);
@@ -35,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from bench import RESULTS, print_table, write_results
+from bench.pleats import pleat_stats
 from bench.scoring import (
     border_edges,
     boundary_length,
@@ -148,13 +151,15 @@ def score_object(name: str, path: Path, work: Path) -> dict:
         PICTURES.mkdir(parents=True, exist_ok=True)
         save_picture(picture, PICTURES / f"{bundle.name}.png", ["scan", "tessera (finest)"])
     draco = _draco_rows(points, scan_faces, diag, [r["bytes"] for r in rows])
+    atlas = (manifest.get("base") or {}).get("kind") == "atlas"
     return {"object": name, "points": int(len(points)), "diagonal": diag,
             "scan_faces": None if scan_faces is None else int(len(scan_faces)),
             "scan_border": scan_border, "fit_s": fit_s,
             "format_version": manifest.get("format_version"),
             "patches": (manifest.get("base") or {}).get("patches", 1),
             "layout": _chosen_layout(manifest), "trials": (manifest.get("fit") or {}).get("trials"),
-            "levels": rows, "silhouette_iou": iou, "draco": draco}
+            "levels": rows, "silhouette_iou": iou, "draco": draco,
+            "pleats": pleat_stats(bundle) if atlas else None}
 
 
 def _chosen_layout(manifest: dict) -> str | None:
@@ -244,6 +249,12 @@ def run() -> dict | None:
                 ["object", "patches", "level", "bytes", "% within 0.5%", "RMS all",
                  "Draco RMS", "max mesh->scan %diag", "border edges", "scan border",
                  "% border off scan's"], table)
+    for r in results:  # folds: pleats of the base, level 0's area turned over against it
+        if r.get("pleats"):
+            p = r["pleats"]
+            print(f"atlas: {r['object']}, pleats: {p['base_pairs_120']} folded triangle pairs "
+                  f"in {p['base_pleated_patches']} base patches, level 0 turned over on "
+                  f"{100 * p['l0_turned_share']:.2f} % of its area")
     for r in results:  # where each finest level is farther than 1 % from its scan
         places = [] if "error" in r else r["levels"][-1]["mesh_to_scan"]["places"]
         if places:
