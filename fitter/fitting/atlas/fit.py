@@ -33,7 +33,10 @@ detail, a displacement along the normal, cannot reach those points. So the scan'
 border (:func:`border_points`) enters the data term too, each of its points at its foot
 point on the atlas's open border curves (:func:`border_foot_points`), found again every
 round: ``+ w Σ_b |C_{f_b}(u_b, v_b) - x_b|²`` with ``(u_b, v_b)`` on a side without a
-neighbour (``w`` in :func:`fit_layout`).
+neighbour (``w`` in :func:`fit_layout`). The rim points are held :data:`BORDER_OVERSHOOT`
+median edges beyond the rim (outward in the surface's plane, :func:`border_outward`): a
+border curve through a jagged rim leaves half the rim's points beyond it, clamped, and on
+Laurana the points within three edges of her rim were 63 % of her level-0 squared error.
 
 The drawn side. Foot points pull the atlas toward the scan only where scan points land on
 it; a patch that none reach (a wall across a crease, a flap turned over) stays where the
