@@ -10,6 +10,7 @@ from fitter.fitting.atlas import AtlasFit, SurfaceError, fit_atlas, quad_layout,
 from fitter.fitting.atlas import fit as atlas_fit
 from fitter.fitting.atlas.fit import (
     border_foot_points,
+    border_outward,
     border_points,
     cloud_warm,
     control_points,
@@ -367,6 +368,30 @@ def test_border_points_are_the_open_border_and_its_midpoints():
     assert len(border_points(*_sphere_mesh())) == 0
 
 
+def test_border_outward_leaves_the_surface_across_its_rim():
+    """The square fan: a side's midpoint leaves along the side's outer normal, a corner
+    along the diagonal, and ``overshoot`` moves the points that far along them. The cut
+    sphere: its rim's directions lie in the sphere's tangent plane (the triangles' planes,
+    to their flatness) and point down the meridian, toward the cut cap."""
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0.0]])
+    fan = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    points, out = border_points(square, fan), border_outward(square, fan)
+    centre = np.array([0.5, 0.5, 0.0])
+    want = (points - centre) / np.linalg.norm(points - centre, axis=1, keepdims=True)
+    np.testing.assert_allclose(out, want, atol=1e-12)
+    np.testing.assert_allclose(border_points(square, fan, 0.1), points + 0.1 * want)
+    scan = _cut_sphere_scan()
+    rim, out = border_points(scan.points, scan.faces), border_outward(scan.points, scan.faces)
+    radial = rim / np.linalg.norm(rim, axis=1, keepdims=True)
+    assert np.max(np.abs(np.einsum("kc,kc->k", out, radial))) < 0.2
+    # the meridian's downward tangent at each rim point: (z r_xy / |r_xy|, -|r_xy|)
+    flat = np.linalg.norm(radial[:, :2], axis=1)
+    down = np.column_stack([radial[:, 2, None] * radial[:, :2] / flat[:, None], -flat])
+    along = np.einsum("kc,kc->k", out, down)  # the cut rim zigzags along its triangles
+    assert np.all(along > 0.5) and np.mean(along) > 0.9
+    assert len(border_outward(*_sphere_mesh())) == 0
+
+
 def _sphere_mesh():
     m = trimesh.creation.icosphere(subdivisions=1)
     return m.vertices, m.faces
@@ -390,9 +415,12 @@ def test_open_border_curves_follow_the_scans_cut_rim():
     assert gaps["held"].max() < 0.02
     assert gaps["free"].max() > 3 * gaps["held"].max()
     assert rms["held"] < 1.2 * rms["free"]  # and the rest of the sphere is fitted as well
-    fit = fit_atlas(scan, 240, working_count=4000, rounds=3)  # fit_atlas holds the rim too
+    # fit_atlas holds the rim too, BORDER_OVERSHOOT median edges beyond it
+    fit = fit_atlas(scan, 240, working_count=4000, rounds=3)
+    beyond = border_points(surface.vertices, surface.faces, atlas_fit.BORDER_OVERSHOOT
+                           * atlas_fit.median_edge(surface.vertices, surface.faces))
     _, _, _, gap = border_foot_points(index_table(fit.atlas), control_points(fit.atlas), 3, 1,
-                                      neighbour_table(fit.atlas), rim)
+                                      neighbour_table(fit.atlas), beyond)
     assert gap.max() < 0.02
     with pytest.raises(ValueError, match="border must be finite points"):
         fit_layout(layout, points, normals, rounds=1, border=rim[:, :2])

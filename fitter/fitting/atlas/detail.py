@@ -65,6 +65,11 @@ solved again with its border ring held. With one quantisation step per level
 neighbours' tiles hold the same integers on their common border and ``D_f = D_g`` there
 exactly: the mean the client takes is each side's own value (no seam).
 
+Quantisation. The border ring is rounded to the level's step; each patch's interior is then
+quantised with the rounding error fed back through the level's own least squares and a
+weight on the integers' size, its rate (:func:`quantised_blocks`): plain rounding had been
+28 % of Laurana's and 26 % of Lucy's level-0 squared error of all points.
+
 Depth. Levels ``0..L-1`` with ``L`` the smallest count whose finest knot spacing, the
 median patch side over ``m 2^(L-1)``, reaches the scan's median edge length (mesh) or
 point spacing (cloud); capped so the finest level is drawn at two vertices per span within
@@ -138,6 +143,7 @@ from .fit import (
     correct_parameters,
     evaluate_patches,
     index_table,
+    median_edge,
     neighbour_table,
     spd_lu,
 )
@@ -157,7 +163,8 @@ NEWTON_ITERATIONS = 8
 MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 MU_FLOOR = 0.25
-OFFSET_LIMIT = 0.1  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy)
+OFFSET_LIMIT = 0.2  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy; 0.1 left
+# out 0.7 % of her points, 27 % of her level-0 squared error: docs/benchmarks.md session 14)
 MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against its own)
 # The least d . n the drawn model credits a node (DrawnModel): a border node's direction d
 # (the mean of its patches' normals) can be oblique to a sample's normal n where the base
@@ -170,6 +177,8 @@ MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against it
 MIN_DIRECTION = 0.8
 COEFFICIENT_REACH = 2.0  # an independent fit's coefficients within this times its residual
 BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
+QUANTISE_SWEEPS = 4  # Gauss-Seidel sweeps of quantised_blocks (0: plain rounding)
+QUANTISE_RATE = 1.0  # quantised_blocks' weight of |q| (a rate proxy), in median data weights
 # Held-out samples (a cloud's automatic depth only): one in HELD_OUT of the fitted samples
 # stays out of every level's solve, and a level is kept only if it brings their RMS down by
 # MIN_GAIN of the levels before it (module docstring, "Depth"). On the 15-scan Happy Buddha
@@ -300,9 +309,7 @@ def median_spacing(scan: Scan, fit: AtlasFit) -> float:
     distance of a point to its nearest neighbour (a cloud)."""
     surface = fit.surface
     if surface.origin == "mesh":
-        tri = surface.vertices[surface.faces]
-        edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
-        return float(np.median(edges))
+        return median_edge(surface.vertices, surface.faces)
     points = scan.points
     if len(points) > 200_000:
         points = points[np.random.default_rng(0).choice(len(points), 200_000, replace=False)]
@@ -730,6 +737,65 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
     return out
 
 
+class _BatchSystem:
+    """The normal equations of one level's fit, a batch of patches at a time: ``M = A^T A +
+    diag(mu_f) (x) R`` and ``A^T r`` (:func:`_solve_blocks` says what ``A``, ``r``, ``mu_f``,
+    ``weights``, ``model``, ``rows`` and ``pull`` are), shared by the solves and by
+    :func:`quantised_blocks` so that both minimise the same objective."""
+
+    def __init__(self, samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
+                 weights: np.ndarray | None, model: DrawnModel | None, rows: dict | None,
+                 pull: PullRows | None) -> None:
+        self.samples, self.residual, self.weights = samples, residual, weights
+        self.model, self.rows, self.pull = model, rows, pull
+        F = len(samples.offsets) - 1
+        self.F = F
+        self.n = n = (spans << level) + DEGREE
+        self.knots = np.array(layers.level_knots(DEGREE, spans, level))
+        self.R = regularisation(n).tocsr()
+        # the typical patch's data weight per coefficient: a patch with few samples is held
+        # to at least MU_FLOOR of it, so its field stays smooth instead of swinging
+        total = float(np.sum(weights)) if weights is not None else float(len(samples.u))
+        per_sample = total / max(F, 1) / (n * n)
+        self.mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
+        self.per_batch = max(1, BATCH_UNKNOWNS // (n * n))
+
+    def normal(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+        """Patches ``first:first + per_batch``'s ``M``, ``A^T r`` and ``diag(A^T A)``."""
+        samples, n, knots = self.samples, self.n, self.knots
+        last = min(self.F, first + self.per_batch)
+        lo, hi = samples.offsets[first], samples.offsets[last]
+        count = last - first
+        if self.rows is not None and first in self.rows:
+            A, r = self.rows[first]
+        else:
+            if self.model is None:
+                A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
+                                       block=samples.patch[lo:hi] - first, blocks=count)
+            else:
+                A = self.model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first,
+                                    count)
+            r = self.residual[lo:hi]
+            if self.weights is not None:
+                root = np.sqrt(self.weights[lo:hi])
+                A, r = sp.diags(root) @ A, root * r
+            pull = self.pull
+            if pull is not None and pull.offsets[last] > pull.offsets[first]:
+                plo, phi = pull.offsets[first], pull.offsets[last]
+                root = math.sqrt(pull.weight)
+                A = sp.vstack([A, root * collocation_matrix(
+                    DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
+                    block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
+                r = np.concatenate([r, root * pull.target[plo:phi]])
+            if self.rows is not None:
+                self.rows[first] = A, r
+        AtA = (A.T @ A).tocsr()
+        diag = AtA.diagonal()
+        mu = np.maximum(diag.reshape(count, n * n).sum(axis=1) / (n * n), self.mu_floor)
+        M = (AtA + sp.kron(sp.diags(mu), self.R)).tocsr()
+        return M, A.T @ r, diag
+
+
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                   fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
                   threads: int | None = None, model: DrawnModel | None = None,
@@ -759,51 +825,18 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
-    knots = np.array(layers.level_knots(DEGREE, spans, level))
-    R = regularisation(n).tocsr()
     ring = border_ring(n).reshape(-1)
     free = np.flatnonzero(~ring) if fixed is not None else np.arange(n * n)
     held = np.flatnonzero(ring)
     order = block_order(n, fixed is not None)
     out = np.zeros((F, n, n))
     weight = np.zeros((F, n, n))
-    # the typical patch's data weight per coefficient: a patch with few samples is held to
-    # at least MU_FLOOR of it, so its field stays smooth instead of swinging between them
-    total = float(np.sum(weights)) if weights is not None else float(len(samples.u))
-    per_sample = total / max(F, 1) / (n * n)
-    mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
-    per_batch = max(1, BATCH_UNKNOWNS // (n * n))
+    system = _BatchSystem(samples, residual, level, spans, weights, model, rows, pull)
 
     def one_batch(first: int) -> None:
-        last = min(F, first + per_batch)
-        lo, hi = samples.offsets[first], samples.offsets[last]
+        last = min(F, first + system.per_batch)
         count = last - first
-        if rows is not None and first in rows:
-            A, r = rows[first]
-        else:
-            if model is None:
-                A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
-                                       block=samples.patch[lo:hi] - first, blocks=count)
-            else:
-                A = model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first, count)
-            r = residual[lo:hi]
-            if weights is not None:
-                root = np.sqrt(weights[lo:hi])
-                A, r = sp.diags(root) @ A, root * r
-            if pull is not None and pull.offsets[last] > pull.offsets[first]:
-                plo, phi = pull.offsets[first], pull.offsets[last]
-                root = math.sqrt(pull.weight)
-                A = sp.vstack([A, root * collocation_matrix(
-                    DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
-                    block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
-                r = np.concatenate([r, root * pull.target[plo:phi]])
-            if rows is not None:
-                rows[first] = A, r
-        AtA = (A.T @ A).tocsr()
-        diag = AtA.diagonal().reshape(count, n * n)
-        mu = np.maximum(diag.sum(axis=1) / (n * n), mu_floor)
-        M = (AtA + sp.kron(sp.diags(mu), R)).tocsr()
-        rhs = A.T @ r
+        M, rhs, diag = system.normal(first)
         weight[first:last] = diag.reshape(count, n, n)
         if fixed is None:
             out[first:last] = solve_spd_blocks(M, rhs, order).reshape(count, n, n)
@@ -819,10 +852,102 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         c[cols_held] = c_held
         out[first:last] = c.reshape(count, n, n)
 
-    starts = range(0, F, per_batch)
+    starts = range(0, F, system.per_batch)
     with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
         list(pool.map(one_batch, starts))  # list(): re-raise a batch's error here
     return out, weight
+
+
+def coupling_stride(degree: int = DEGREE) -> int:
+    """The least index distance (along ``u`` or ``v``) at which two coefficients of one
+    patch share no term of the level's objective: ``max(p + 1, 2) + 1`` (the pattern of
+    :func:`block_order`)."""
+    return max(degree + 1, 2) + 1
+
+
+def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
+                     coefficients: np.ndarray, step: float, limit: np.ndarray,
+                     weights: np.ndarray | None = None, model: DrawnModel | None = None,
+                     rows: dict | None = None, pull: PullRows | None = None,
+                     sweeps: int | None = None, rate: float | None = None,
+                     threads: int | None = None) -> np.ndarray:
+    """The level's integer coefficients ``q (F, n, n)``: ``rint(c / step)`` of the fitted
+    ``coefficients``, then each interior value moved to the integer that minimises the
+    level's own objective (:func:`_solve_blocks`, :class:`_BatchSystem`) given all the
+    others: Gauss-Seidel on the lattice ``step Z`` (iterated conditional modes).
+
+    With ``J(c) = c^T M c - 2 b^T c`` and ``g = M c - b``, coefficient ``i`` alone is best at
+    ``t_i = (c_i - g_i / M_ii) / step`` (clipped to ``+-limit_f / step``, the patch's
+    :func:`bounded_by_residual` bound, ``limit (F,)``). The sweeps minimise ``J + lambda
+    sum |q|``, ``|q|`` standing for the integer's bits (the packs code a zero flag and the
+    magnitude in unary bins, ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with
+    ``m`` the median ``M_ii`` of the batch's interior (``rate`` in units of a typical
+    coefficient's data weight): the exact integer minimiser for ``i`` alone is the rounded
+    soft threshold ``q_i = sign(t_i) max(rint(|t_i| - lambda / (2 M_ii step^2)), 0)``. One
+    ``lambda`` for all is the rate-distortion optimum's equal slope (Shoham and Gersho, IEEE
+    Trans. ASSP 1988; rate-distortion optimised quantisation in video coding): a
+    coefficient the samples hardly see (small ``M_ii``) is zeroed sooner. Each move lowers
+    the penalised objective or keeps it, and ``rate = 0`` never leaves the fit worse than
+    rounding. Rounding
+    alone adds ``step^2 / 12`` of noise to every coefficient, which the drawn surface shows
+    where the samples are (Laurana level 0: 28 % of the squared error of all points, Lucy
+    26 %, docs/benchmarks.md session 14); here a value is rounded the way that the others,
+    already rounded, leave least error, as a least-squares fit is quantised column by column
+    with the error fed back (the idea of GPTQ, Frantar et al., ICLR 2023, and of noise
+    feedback in sigma-delta coding).
+
+    The border ring is not moved: its values are the shared slots' means, equal on both
+    sides of a border (:func:`_share_borders`), and their integers stay equal. Coefficients
+    ``coupling_stride`` apart in ``u`` or ``v`` share no term of ``J``, so one colour of the
+    ``stride^2`` colouring ``(a mod stride, b mod stride)`` is updated at once, exactly as
+    one at a time. At most ``sweeps`` (default :data:`QUANTISE_SWEEPS`) sweeps over the
+    colours, fewer once none moves.
+    """
+    sweeps = QUANTISE_SWEEPS if sweeps is None else sweeps
+    rate = QUANTISE_RATE if rate is None else rate
+    F, n, _ = coefficients.shape
+    q = np.rint(coefficients / step)
+    if sweeps <= 0:
+        return q.astype(np.int64)
+    system = _BatchSystem(samples, residual, level, spans, weights, model, rows, pull)
+    stride = coupling_stride()
+    a, b = np.divmod(np.arange(n * n), n)
+    interior = ~border_ring(n).reshape(-1)
+    colour = (a % stride) * stride + b % stride
+
+    def one_batch(first: int) -> None:
+        last = min(F, first + system.per_batch)
+        count = last - first
+        M, rhs, _ = system.normal(first)
+        diag = M.diagonal()
+        x = q[first:last].reshape(-1) * step
+        bound = np.repeat(limit[first:last], n * n)
+        parts = []
+        for k in range(stride * stride):
+            mine = np.flatnonzero(interior & (colour == k))
+            at = (np.arange(count)[:, None] * n * n + mine[None, :]).reshape(-1)
+            at = at[diag[at] > 0]
+            parts.append((at, M[at]))
+        # the rate's weight: lambda = rate * step^2 * the median data weight of a coefficient
+        inside = np.concatenate([at for at, _ in parts])
+        lam = rate * step * step * float(np.median(diag[inside])) if len(inside) else 0.0
+        for _ in range(sweeps):
+            moved = 0
+            for at, rows_at in parts:
+                g = rows_at @ x - rhs[at]
+                best = np.clip(x[at] - g / diag[at], -bound[at], bound[at]) / step
+                shrink = lam / (2.0 * diag[at] * step * step)
+                new = np.sign(best) * np.maximum(np.rint(np.abs(best) - shrink), 0.0) * step
+                moved += int(np.count_nonzero(new != x[at]))
+                x[at] = new
+            if not moved:
+                break
+        q[first:last] = np.rint(x / step).reshape(count, n, n)
+
+    starts = range(0, F, system.per_batch)
+    with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
+        list(pool.map(one_batch, starts))
+    return q.astype(np.int64)
 
 
 def bounded_by_residual(coefficients: np.ndarray, samples: AtlasSamples,
@@ -840,10 +965,16 @@ def bounded_by_residual(coefficients: np.ndarray, samples: AtlasSamples,
     drawn mesh to the scan is 0.88 % (Laurana 1.58 -> 1.20 %, Lucy 1.96 -> 1.82 %) and the
     RMS over all points moves by under 1.5 %.
     """
-    bound = np.zeros(len(coefficients))
-    np.maximum.at(bound, samples.patch[use], np.abs(residual[use]))
-    limit = reach * bound[:, None, None]
+    limit = reach * _largest_residual(samples, residual, use)[:, None, None]
     return np.clip(coefficients, -limit, limit)
+
+
+def _largest_residual(samples: AtlasSamples, residual: np.ndarray, use: np.ndarray
+                      ) -> np.ndarray:
+    """Each patch's largest ``|residual|`` over its fitted samples ``use``, shape (F,)."""
+    bound = np.zeros(len(samples.offsets) - 1)
+    np.maximum.at(bound, samples.patch[use], np.abs(residual[use]))
+    return bound
 
 
 def _share_borders(coefficients: np.ndarray, weight: np.ndarray, G: np.ndarray) -> np.ndarray:
@@ -1047,7 +1178,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     per_level_tiles: list[dict] = []
     level_rows: list[dict] = []
     worst_of_patch: list[np.ndarray] = []  # per level: max e of each patch's samples
-    timings.update(model=0.0, solve=0.0, tiles=0.0)  # the levels' steps, summed
+    timings.update(model=0.0, solve=0.0, quantise=0.0, tiles=0.0)  # the levels' steps, summed
     clock = time.perf_counter()
     feet = DrawnModel.feet(atlas, samples)
     scan_mesh = (fit.surface.vertices, fit.surface.faces)
@@ -1070,7 +1201,6 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
         c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared,
                              weights=fit_weight, model=model, rows=rows, pull=pull)
-        del rows
         # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
         # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border
         # ring kept (shared, bounded already, and equal on both sides of a border)
@@ -1082,7 +1212,11 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                            weights=samples.weight[use]))) if use.any() else 0.0
         step = quantisation_step(rms_fit, float(np.abs(c).max(initial=0.0)),
                                  float(np.abs(residual[use]).max(initial=0.0)), step_factor)
-        q = np.rint(c / step).astype(np.int64)
+        limit = COEFFICIENT_REACH * _largest_residual(samples, residual, use)
+        q = quantised_blocks(samples, residual, k, spans, c, step, limit, weights=fit_weight,
+                             model=model, rows=rows, pull=pull)
+        del rows
+        clock = _tick(timings, "quantise", clock)
         fields.append(q * step)
         residual = residual - model.drawn(fields[-1], k, spans)
         e = np.sqrt(residual ** 2 + samples.t2)
