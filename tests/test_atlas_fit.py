@@ -950,11 +950,11 @@ def _topology(vertices: np.ndarray, triangles: np.ndarray) -> tuple[int, int, in
 
 
 def _planted_torus():
-    """A torus (256 triangles) with a hole (one quad removed) and, planted, a needle (an
+    """A torus (144 triangles) with a hole (one quad removed) and, planted, a needle (an
     inner edge split 1 % from its end), a tiny triangle (a corner's 1-to-3 split 1 % of the
     way to the centroid) and a border sliver (a border edge split 1 % from its end)."""
-    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.4, major_sections=16,
-                                   minor_sections=8)
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.4, major_sections=12,
+                                   minor_sections=6)
     v, f = np.asarray(torus.vertices, np.float64), np.asarray(torus.faces, np.int64)
     f = f[2:]  # the hole: the first quad's two triangles
     problems = manifold_problems(f)
@@ -962,11 +962,11 @@ def _planted_torus():
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     key = {tuple(e) for e in directed.tolist()}
     border = [e for e in directed.tolist() if (e[1], e[0]) not in key]
-    a, b = f[80, 0], f[80, 1]  # an inner edge far from the hole
+    a, b = f[40, 0], f[40, 1]  # an inner edge far from the hole
     v, f = split_edges(v, f, [[a, b]], [v[a] + 0.01 * (v[b] - v[a])])
     a, b = border[0]
     v, f = split_edges(v, f, [[a, b]], [v[a] + 0.01 * (v[b] - v[a])])
-    t = 170
+    t = 100
     x, y, z = f[t]
     n = len(v)
     v = np.vstack([v, v[x] + 0.01 * (v[f[t]].mean(axis=0) - v[x])])
