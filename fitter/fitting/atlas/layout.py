@@ -441,7 +441,9 @@ def collapse_narrow_triangles(vertices: np.ndarray, triangles: np.ndarray,
             a, b = int(triangles[t, k]), int(triangles[t, (k + 1) % 3])
             if _collapse(vertices, triangles, alive, a, b):
                 collapses += 1
-                refused.clear()  # the neighbourhood changed: try the refused again
+                # a refused triangle near the collapse may collapse now: try it again
+                ring = np.unique(triangles[alive & np.isin(triangles, [a, b]).any(axis=1)])
+                refused -= set(np.flatnonzero(np.isin(triangles, ring).any(axis=1)).tolist())
                 break
         else:
             refused.add(t)
@@ -449,6 +451,14 @@ def collapse_narrow_triangles(vertices: np.ndarray, triangles: np.ndarray,
     renumber = np.full(len(vertices), -1, np.int64)
     renumber[used] = np.arange(len(used))
     return vertices[used], renumber[triangles[alive]], collapses
+
+
+def _on_border(fan: np.ndarray, x: int) -> bool:
+    """Whether vertex ``x`` of the triangles ``fan`` around it has an edge in one of them."""
+    edges = np.sort(np.concatenate([fan[:, [0, 1]], fan[:, [1, 2]], fan[:, [2, 0]]]), axis=1)
+    edges = edges[(edges == x).any(axis=1)]
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.any(counts == 1))
 
 
 def _collapse(vertices: np.ndarray, triangles: np.ndarray, alive: np.ndarray, a: int,
@@ -459,16 +469,12 @@ def _collapse(vertices: np.ndarray, triangles: np.ndarray, alive: np.ndarray, a:
     tri = triangles[live]
     on_a, on_b = live[(tri == a).any(axis=1)], live[(tri == b).any(axis=1)]
     shared = np.intersect1d(on_a, on_b)
-    directed = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    _, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
-    undirected = np.unique(np.sort(directed, axis=1), axis=0)
-    border_vertices = set(undirected[counts == 1].reshape(-1).tolist())
     ring_a = set(triangles[on_a].reshape(-1).tolist()) - {a}
     ring_b = set(triangles[on_b].reshape(-1).tolist()) - {b}
     apexes = set(triangles[shared].reshape(-1).tolist()) - {a, b}
     if not len(shared) or (ring_a & ring_b) != apexes:
         return False  # no edge, or the link condition fails
-    on_border = {a, b} & border_vertices
+    on_border = {x for x, on_x in ((a, on_a), (b, on_b)) if _on_border(triangles[on_x], x)}
     if len(shared) == 2 and len(on_border) == 2:
         return False  # an inner edge between two border vertices: the border would pinch
     ways = [(a, b), (b, a)] if len(on_border) != 1 else \
@@ -484,7 +490,8 @@ def _collapse(vertices: np.ndarray, triangles: np.ndarray, alive: np.ndarray, a:
                          vertices[new[:, 2]] - vertices[new[:, 0]])
         if np.any(np.einsum("ij,ij->i", n_old, n_new) <= 0.0):
             continue  # a triangle turns over or loses its area
-        others = {frozenset(x) for x in triangles[np.setdiff1d(live, changed)].tolist()}
+        kept = on_b if keep == b else on_a  # a triangle the new ones could double has keep
+        others = {frozenset(x) for x in triangles[np.setdiff1d(kept, shared)].tolist()}
         if any(frozenset(x) in others for x in new.tolist()):
             continue  # a triangle onto another (a tetrahedron collapsing to a double sheet)
         worst = float(triangle_widths(vertices, new).min()) if len(new) else np.inf
