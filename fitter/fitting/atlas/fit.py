@@ -1077,7 +1077,6 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
     if not made and not gap.any():
         return None
     triangles, _ = flip_edges(surface, vertices, triangles)
-    vertices, triangles, _ = collapse_narrow_triangles(vertices, triangles)
     refined = quad_layout(vertices, triangles)
     r_atlas, f, u, v, dist = fit_layout(refined, points, normals, scan_mesh=scan_mesh,
                                         hold=True, **fit_options)
