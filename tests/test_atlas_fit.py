@@ -980,7 +980,7 @@ def test_narrow_layout_triangles_are_collapsed_and_the_topology_kept():
     narrower than ``MIN_WIDTH_SHARE`` of the median edge); the Euler characteristic, the
     border loops and the manifold are as before, counted independently."""
     from fitter.fitting.atlas.fit import layout_candidates
-    from fitter.fitting.atlas.layout import MIN_WIDTH_SHARE
+    from fitter.fitting.atlas.layout import MIN_WIDTH_SHARE, collapse_narrow_triangles
 
     v, f = _planted_torus()
     median = np.median([np.linalg.norm(v[a] - v[b]) for a, b in
@@ -999,6 +999,8 @@ def test_narrow_layout_triangles_are_collapsed_and_the_topology_kept():
     after_median = np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]],
                                             axis=1))
     assert _altitudes(vertices, triangles).min() >= MIN_WIDTH_SHARE * after_median
+    with pytest.raises(ValueError, match="share"):
+        collapse_narrow_triangles(v, f, 1.0)
     # the layout's vertices are the input's (a collapse moves none)
     assert {tuple(p) for p in vertices.tolist()} <= {tuple(p) for p in v.tolist()}
 

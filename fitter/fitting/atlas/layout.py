@@ -384,7 +384,8 @@ def collapse_narrow_triangles(vertices: np.ndarray, triangles: np.ndarray,
     that turns over (its normal against its old one) or loses its area. A triangle none
     of whose edges may collapse is left as it is. A collapse keeps the Euler characteristic,
     the border loops and the orientation of every piece, so the layout stays an oriented
-    2-manifold with its topology (``fit.layout_candidates`` checks it again).
+    2-manifold with its topology (checked again on the result: the pieces' Euler
+    characteristics and no non-manifold or misoriented edge).
 
     Why: quadric decimation keeps a triangle wherever its collapses would cost, such as at
     the small holes of a scan, whose borders the topology-preserving decimation keeps at full
@@ -415,6 +416,13 @@ def collapse_narrow_triangles(vertices: np.ndarray, triangles: np.ndarray,
     vertices, triangles, collapses
         The layout (unreferenced vertices dropped, the others in their order) and the
         number of edges collapsed.
+
+    Raises
+    ------
+    ValueError
+        ``share`` outside ``[0, 1)``.
+    AtlasLayoutError
+        The result's topology differs from the input's (a broken rule, never expected).
     """
     vertices = np.asarray(vertices, np.float64)
     triangles = np.array(triangles, np.int64)
@@ -425,6 +433,7 @@ def collapse_narrow_triangles(vertices: np.ndarray, triangles: np.ndarray,
                                               triangles[:, [2, 0]]]), axis=1), axis=0)
     limit = share * float(np.median(np.linalg.norm(vertices[edges[:, 0]]
                                                    - vertices[edges[:, 1]], axis=1)))
+    before = euler_characteristics(vertices, triangles)
     alive = np.ones(len(triangles), bool)
     refused: set[int] = set()  # triangles none of whose edges may collapse (as they are)
     collapses = 0
@@ -450,7 +459,13 @@ def collapse_narrow_triangles(vertices: np.ndarray, triangles: np.ndarray,
     used = np.unique(triangles[alive])
     renumber = np.full(len(vertices), -1, np.int64)
     renumber[used] = np.arange(len(used))
-    return vertices[used], renumber[triangles[alive]], collapses
+    out_vertices, out_triangles = vertices[used], renumber[triangles[alive]]
+    problems = manifold_problems(out_triangles)
+    if problems["nonmanifold_edges"] or problems["misoriented_edges"] \
+            or euler_characteristics(out_vertices, out_triangles) != before:
+        raise AtlasLayoutError("collapsing the narrow layout triangles changed the topology "
+                               f"({problems}); the collapse rules are broken")
+    return out_vertices, out_triangles, collapses
 
 
 def _on_border(fan: np.ndarray, x: int) -> bool:
