@@ -1000,7 +1000,7 @@ def test_narrow_layout_triangles_are_collapsed_and_the_topology_kept():
                                             axis=1))
     assert _altitudes(vertices, triangles).min() >= MIN_WIDTH_SHARE * after_median
     with pytest.raises(ValueError, match="share"):
-        collapse_narrow_triangles(v, f, 1.0)
+        collapse_narrow_triangles(surface, v, f, 1.0)
     # the layout's vertices are the input's (a collapse moves none)
     assert {tuple(p) for p in vertices.tolist()} <= {tuple(p) for p in v.tolist()}
 

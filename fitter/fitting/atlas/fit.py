@@ -1167,9 +1167,11 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
             failures.append((name, exc))
             continue
         # no narrow triangle before the flips judge the diagonals, and none they made
-        tri_vertices, triangles, _ = collapse_narrow_triangles(tri_vertices, triangles)
+        tri_vertices, triangles, _ = collapse_narrow_triangles(surface, tri_vertices,
+                                                               triangles)
         triangles, _ = flip_edges(surface, tri_vertices, triangles)
-        tri_vertices, triangles, _ = collapse_narrow_triangles(tri_vertices, triangles)
+        tri_vertices, triangles, _ = collapse_narrow_triangles(surface, tri_vertices,
+                                                               triangles)
         candidates.append((name, quad_layout(tri_vertices, triangles),
                            time.perf_counter() - clock))
     return candidates, failures
