@@ -404,17 +404,18 @@ def collapse_narrow_triangles(surface: ScanSurface, vertices: np.ndarray,
     welded level 0 had 5 non-manifold edges and 23 collapsed triangles there, the
     15-scan Happy Buddha's 2 and 6. ``share = 0.1`` is the smallest that removes all of
     them. Measured with the defaults against all scan points (``bench.bench_atlas.
-    score_object``, load 7-14 on 2 cores, so the fit times are not comparable), before ->
-    after: bunny 2,304 -> 2,082 patches (64 + 10 collapses, the bottom's border fans),
-    level-0 non-manifold edges 5 -> 0 (collapsed triangles 23 -> 0), level 0 88,749 ->
-    80,694 bytes, RMS 1.976e-5 -> 1.949e-5, largest distance of the drawn mesh to the scan
-    0.58 -> 0.89 % (at the bottom's border); 15-scan Buddha 1,473 -> 1,353 patches,
-    non-manifold 2 -> 0 (collapsed 6 -> 2: two patches at (-0.027, 0.138, -0.008) of a
-    triangle whose fitted corners make it 0.108 of the median edge wide, so that the sides
-    its centroid's quads have inside it are 0.14 % of the diagonal), 57,522 -> 54,747 bytes,
-    99.58 -> 99.79 % of the points within 0.5 %, RMS 2.12e-4 -> 1.87e-4, largest distance
-    2.15 -> 2.65 %; Lucy 2,304 -> 2,268 patches, level-0 RMS 0.216 -> 0.228, largest
-    distance 0.85 -> 1.03 %; Laurana 2,304 -> 2,274, 0.0669 -> 0.0640, 0.72 -> 0.76 %.
+    score_object``, session 14, load 8-15 on 2 cores, so fit times are not comparable;
+    before: main as benchmarked in session 13), before -> after: bunny 2,304 -> 2,082
+    patches (the bottom's border fans collapsed), level-0 non-manifold edges 5 -> 0 and
+    collapsed triangles 23 -> 0, level 0 88,749 -> 86,055 bytes, RMS 1.976e-5 -> 1.927e-5,
+    largest distance of the drawn mesh to the scan 0.58 -> 0.79 % (at the bottom's border);
+    15-scan Buddha 1,473 -> 1,428 patches, non-manifold 2 -> 0 but collapsed triangles 6 ->
+    6 (its refined layout's splits and its fitted corners make triangles 0.02-0.08 of the
+    median edge wide again), 57,522 -> 56,406 bytes, 99.58 -> 99.61 % of the points within
+    0.5 %, RMS 2.12e-4 -> 2.03e-4, largest distance 2.15 -> 2.06 %; Lucy 2,304 -> 2,268
+    patches, level-0 RMS 0.216 -> 0.224, largest distance 0.85 -> 0.83 %; Laurana 2,304 ->
+    2,274, 0.0669 -> 0.0659, 0.72 -> 0.80 %; Nefertiti 2,304 -> 2,226, 74,710 -> 71,518
+    bytes, 0.0384 -> 0.0418, 0.78 -> 0.68 %.
     A hole narrower than ``share ℓ`` keeps its narrow triangles: no collapse of its border
     keeps it open.
 
