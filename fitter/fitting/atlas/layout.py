@@ -441,7 +441,7 @@ def collapse_narrow_triangles(surface: ScanSurface, vertices: np.ndarray,
     the border loops and the orientation of every piece, so the layout stays an oriented
     2-manifold with its topology; each collapse is checked (the pieces' Euler
     characteristics, no non-manifold or misoriented edge) and undone if it changed them
-    (on the 15-scan Buddha's stand-in, a 96-triangle trial layout with 70 border edges
+    (on the 15-scan Buddha's stand-in, a trial layout of 86 triangles and 70 border edges
     had one the link condition let through).
 
     Why: quadric decimation keeps a triangle wherever its collapses would cost, such as at
