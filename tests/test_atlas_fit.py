@@ -972,3 +972,133 @@ def test_foot_point_corrections_on_threads_equal_one_run(sphere_fit, monkeypatch
     for a, b in zip(one, split, strict=True):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
+
+
+# ------------------------------------------------------------------ narrow layout triangles
+def _altitudes(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Smallest distance of a corner to the line through the other two, per triangle
+    (by projection, not by area: an independent check of ``triangle_widths``)."""
+    out = np.full(len(triangles), np.inf)
+    for k in range(3):
+        p, a, b = (vertices[triangles[:, (k + i) % 3]] for i in range(3))
+        d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+        off = (p - a) - np.einsum("ij,ij->i", p - a, d)[:, None] * d
+        out = np.minimum(out, np.linalg.norm(off, axis=1))
+    return out
+
+
+def _topology(vertices: np.ndarray, triangles: np.ndarray) -> tuple[int, int, int, int]:
+    """``(V - E + F, border loops, edges in > 2 triangles, directed edges used twice)``,
+    counted here: the loops by walking the border edges from vertex to vertex."""
+    directed = [(int(t[k]), int(t[(k + 1) % 3])) for t in triangles for k in range(3)]
+    undirected: dict[tuple[int, int], int] = {}
+    for a, b in directed:
+        undirected[min(a, b), max(a, b)] = undirected.get((min(a, b), max(a, b)), 0) + 1
+    border = {(a, b) for a, b in directed if undirected[min(a, b), max(a, b)] == 1}
+    following = {a: b for a, b in border}
+    loops, seen = 0, set()
+    for start in following:
+        if start in seen:
+            continue
+        loops += 1
+        a = start
+        while a not in seen:
+            seen.add(a)
+            a = following[a]
+    chi = len(np.unique(triangles)) - len(undirected) + len(triangles)
+    return (chi, loops, sum(c > 2 for c in undirected.values()),
+            len(directed) - len(set(directed)))
+
+
+def _planted_torus():
+    """A torus (144 triangles) with a hole (one quad removed) and, planted, a needle (an
+    inner edge split 1 % from its end), a tiny triangle (a corner's 1-to-3 split 1 % of the
+    way to the centroid) and a border sliver (a border edge split 1 % from its end)."""
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.4, major_sections=12,
+                                   minor_sections=6)
+    v, f = np.asarray(torus.vertices, np.float64), np.asarray(torus.faces, np.int64)
+    f = f[2:]  # the hole: the first quad's two triangles
+    problems = manifold_problems(f)
+    assert problems["border_edges"] == 4
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = {tuple(e) for e in directed.tolist()}
+    border = [e for e in directed.tolist() if (e[1], e[0]) not in key]
+    a, b = f[40, 0], f[40, 1]  # an inner edge far from the hole
+    v, f = split_edges(v, f, [[a, b]], [v[a] + 0.01 * (v[b] - v[a])])
+    a, b = border[0]
+    v, f = split_edges(v, f, [[a, b]], [v[a] + 0.01 * (v[b] - v[a])])
+    t = 100
+    x, y, z = f[t]
+    n = len(v)
+    v = np.vstack([v, v[x] + 0.01 * (v[f[t]].mean(axis=0) - v[x])])
+    f = np.vstack([f, [[y, z, n], [z, x, n]]])
+    f[t] = (x, y, n)
+    return v, f
+
+
+def test_narrow_layout_triangles_are_collapsed_and_the_topology_kept():
+    """A planted needle, tiny triangle and border sliver leave the layout (no triangle
+    narrower than ``MIN_WIDTH_SHARE`` of the median edge); the Euler characteristic, the
+    border loops and the manifold are as before, counted independently."""
+    from fitter.fitting.atlas.fit import layout_candidates
+    from fitter.fitting.atlas.layout import MIN_WIDTH_SHARE, collapse_narrow_triangles
+
+    v, f = _planted_torus()
+    median = np.median([np.linalg.norm(v[a] - v[b]) for a, b in
+                        {(min(a, b), max(a, b)) for t in f.tolist()
+                         for a, b in zip(t, t[1:] + t[:1], strict=True)}])
+    assert np.sum(_altitudes(v, f) < MIN_WIDTH_SHARE * median) >= 4
+    before = _topology(v, f)
+    assert before == (-1, 1, 0, 0)
+    surface = scan_surface(_mesh_scan(v, f, "planted torus"))
+    assert len(surface.faces) == len(f)  # nothing merged or repaired on the way
+    (name, layout, _), = layout_candidates(surface, 2 * len(f), False)[0]
+    vertices, triangles = layout.triangle_vertices, layout.triangles
+    assert _topology(vertices, triangles) == before
+    assert len(f) - 12 <= len(triangles) < len(f)  # a few collapses, 1 or 2 triangles each
+    edges = layout.triangle_edges
+    after_median = np.median(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]],
+                                            axis=1))
+    assert _altitudes(vertices, triangles).min() >= MIN_WIDTH_SHARE * after_median
+    with pytest.raises(ValueError, match="share"):
+        collapse_narrow_triangles(surface, v, f, 1.0)
+    # the layout's vertices are the input's (a collapse moves none)
+    assert {tuple(p) for p in vertices.tolist()} <= {tuple(p) for p in v.tolist()}
+
+
+def test_a_fitted_base_at_the_first_levels_resolution_welds_to_a_manifold():
+    """The planted torus fitted with a patch per quad of its own triangles: its layout has
+    no narrow triangle, and its fitted base written at 8 bits, read back and drawn at level
+    0's resolution (17 samples a side), welded at 1e-6 of the diagonal as the benchmark
+    welds, has no collapsed triangle and no edge in more than two triangles; its one open
+    border is the hole's and its Euler characteristic the torus's."""
+    from client_py.atlas_format import read_atlas, write_atlas
+    from client_py.atlas_mesh import tessellate_atlas
+    from client_py.bundle import atlas_level_resolution
+    from fitter.fitting.atlas.detail import SPANS
+    from fitter.fitting.atlas.layout import MIN_WIDTH_SHARE
+
+    v, f = _planted_torus()
+    fit = fit_atlas(_mesh_scan(v, f, "planted torus"), 3 * len(f), working_count=1000,
+                    rounds=2, bits=8)
+    layout = fit.layout
+    edges = layout.triangle_edges
+    fitted_median = np.median(np.linalg.norm(layout.triangle_vertices[edges[:, 0]]
+                                             - layout.triangle_vertices[edges[:, 1]], axis=1))
+    assert _altitudes(layout.triangle_vertices, layout.triangles).min() \
+        >= MIN_WIDTH_SHARE * fitted_median
+    assert _topology(layout.triangle_vertices, layout.triangles) == _topology(v, f) \
+        == (-1, 1, 0, 0)
+    decoded, _ = read_atlas(write_atlas(fit.atlas, 8))
+    mesh = tessellate_atlas(decoded, atlas_level_resolution(SPANS, 0), kernel="numpy",
+                            normals=False)
+    points = np.asarray(mesh.positions, np.float64).reshape(-1, 3)
+    faces = np.asarray(mesh.indices, np.int64).reshape(-1, 3)
+    step = 1e-6 * np.linalg.norm(np.ptp(points, axis=0))
+    _, welded = np.unique(np.round(points / step).astype(np.int64), axis=0,
+                          return_inverse=True)
+    corners = welded.reshape(-1)[faces]
+    assert np.all((corners[:, 0] != corners[:, 1]) & (corners[:, 1] != corners[:, 2])
+                  & (corners[:, 2] != corners[:, 0]))
+    chi, loops, nonmanifold, _ = _topology(np.unique(corners), corners)
+    assert nonmanifold == 0 and loops == 1 and chi == -1

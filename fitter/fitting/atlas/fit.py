@@ -143,6 +143,7 @@ from .layout import (
     AtlasLayoutError,
     QuadLayout,
     bilinear_atlas,
+    collapse_narrow_triangles,
     decimate,
     decimate_on_border,
     flip_edges,
@@ -1226,7 +1227,12 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool,
         except (AtlasLayoutError, SurfaceError) as exc:
             failures.append((name, exc))
             continue
+        # no narrow triangle before the flips judge the diagonals, and none they made
+        tri_vertices, triangles, _ = collapse_narrow_triangles(surface, tri_vertices,
+                                                               triangles)
         triangles, _ = flip_edges(surface, tri_vertices, triangles)
+        tri_vertices, triangles, _ = collapse_narrow_triangles(surface, tri_vertices,
+                                                               triangles)
         candidates.append((name, quad_layout(tri_vertices, triangles),
                            time.perf_counter() - clock))
     return candidates, failures
