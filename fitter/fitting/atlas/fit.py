@@ -121,6 +121,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -206,6 +207,20 @@ def with_control_points(atlas: AtlasSurface, points: np.ndarray) -> AtlasSurface
                         rows[n_v + n_e:], atlas.weights)
 
 
+def point_nets(table: np.ndarray, points: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The control net of patch ``f_k`` for each point, ``P[I[f_k]]``, shape ``(K, n², 3)``.
+
+    Gathered as whole nets, ``P[I]`` of every patch once (``(F, n², 3)``) and then one
+    contiguous ``n² x 3`` row per point, instead of ``n²`` single control points per point:
+    the same numbers, and on the 15-scan Happy Buddha's 1,473-patch base (``n = 4``,
+    20,000 points) 0.65 ms instead of 3.7 ms, half of an evaluation's time. With fewer
+    points than a quarter of the patches, the points' own nets are gathered alone."""
+    k, n2 = len(f), table.shape[1] * table.shape[2]
+    if 4 * k < len(table):
+        return points[table[f].reshape(k, n2)]
+    return points[table.reshape(len(table), n2)][f]
+
+
 def evaluate_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
                      f: np.ndarray, u: np.ndarray, v: np.ndarray, derivatives: bool = False
                      ) -> tuple[np.ndarray, ...]:
@@ -213,10 +228,11 @@ def evaluate_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: 
 
     ``C = Σ_ij N_i(u) N_j(v) P_{I[f, i, j]}``: the ``n²`` products ``N_i(u) N_j(v)`` of each
     point times its patch's net ``(n², 3)``, one batched matrix product (twice as fast as
-    the three-operand ``einsum`` it replaced, equal to rounding).
+    the three-operand ``einsum`` it replaced, equal to rounding). The nets are gathered
+    patch by patch, ``P[I]`` once, then one row of ``n² x 3`` per point (:func:`point_nets`).
     """
     k, n = len(f), table.shape[1]
-    net = points[table[f].reshape(k, n * n)]  # (K, n², 3)
+    net = point_nets(table, points, f)  # (K, n², 3)
 
     def combine(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.matmul((a[:, :, None] * b[:, None, :]).reshape(k, 1, n * n), net)[:, 0]
@@ -1138,12 +1154,21 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
     return None
 
 
+LAYOUT_THREADS = 2  # layout candidates made, and fitted, at once (the machine's 2 cores)
+_MESHLAB = threading.Lock()  # one pymeshlab filter at a time: it is not thread-safe
+
+
 def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
                       ) -> tuple[list[tuple[str, QuadLayout, float]],
                                  list[tuple[str, Exception]]]:
     """The layouts a trial of ``target`` triangles fits: ``'plain'`` quadric decimation and,
     with ``thin_parts``, the ``'weighted'`` one (:func:`.layout.thin_part_weights`) unless
     its weights are all equal (then it is the plain one).
+
+    The two are made on :data:`LAYOUT_THREADS` threads, the same layouts in the same
+    order as one after the other: neither reads the other's. MeshLab's collapses take
+    turns (``pymeshlab`` crashed with two at once); the thin-part weights and the edge
+    flips (``open3d``'s closest points, which release the GIL) overlap them.
 
     Returns
     -------
@@ -1152,23 +1177,25 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
     failures : list of (name, exception)
         The decimations refused (``AtlasLayoutError`` or ``SurfaceError``).
     """
-    weights = None
-    candidates, failures = [], []
-    for name in ("plain", "weighted") if thin_parts else ("plain",):
+    def one(name: str) -> tuple | None:
         clock = time.perf_counter()
+        weights = None
         try:
             if name == "weighted":
                 weights = thin_part_weights(surface, target)
                 if np.ptp(weights) == 0:
-                    break
-            tri_vertices, triangles = decimate(surface, target, weights)
+                    return None
+            with _MESHLAB:
+                tri_vertices, triangles = decimate(surface, target, weights)
         except (AtlasLayoutError, SurfaceError) as exc:
-            failures.append((name, exc))
-            continue
+            return name, exc
         triangles, _ = flip_edges(surface, tri_vertices, triangles)
-        candidates.append((name, quad_layout(tri_vertices, triangles),
-                           time.perf_counter() - clock))
-    return candidates, failures
+        return name, quad_layout(tri_vertices, triangles), time.perf_counter() - clock
+
+    names = ("plain", "weighted") if thin_parts else ("plain",)
+    with ThreadPoolExecutor(min(LAYOUT_THREADS, len(names))) as pool:
+        made = [m for m in pool.map(one, names) if m is not None]  # a thread's error raised
+    return ([m for m in made if len(m) == 3], [m for m in made if len(m) == 2])
 
 
 def base_bits(atlas: AtlasSurface, rms: float) -> int:
@@ -1414,16 +1441,26 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             trials.append({"triangles": target,
                            "error": "; ".join(str(exc) for _, exc in failures)})
             continue
+        # the decimation may stop short of the target: no new size to judge then
+        judged = [c for c in candidates
+                  if best is None or c[1].n_triangles > best[2].n_triangles]
+
+        def fit_trial(candidate: tuple[str, QuadLayout, float]) -> tuple:
+            name, layout, layout_seconds = candidate
+            trial_timings: dict = {"layout": layout_seconds}
+            return (*fit_layout(layout, trial_points, trial_normals, degree=degree,
+                                spans=spans, rounds=trial_rounds, smoothing=smoothing,
+                                anchor=anchor, border=border, scan_mesh=scan_mesh,
+                                timings=trial_timings, **warm), trial_timings)
+
+        # the candidates' fits are independent: fitted at once (fit_layout's solves and
+        # closest points release the GIL), the same numbers as one after the other
+        new = [c for c in judged if ("fit", target, c[0]) not in cache]
+        with ThreadPoolExecutor(max(1, min(LAYOUT_THREADS, len(new)))) as pool:
+            for c, done in zip(new, pool.map(fit_trial, new), strict=True):
+                cache["fit", target, c[0]] = done
         fitted = []
-        for name, layout, layout_seconds in candidates:
-            if best is not None and layout.n_triangles <= best[2].n_triangles:
-                continue  # the decimation stopped short of the target: no new size to judge
-            if ("fit", target, name) not in cache:
-                trial_timings: dict = {"layout": layout_seconds}
-                cache["fit", target, name] = (*fit_layout(
-                    layout, trial_points, trial_normals, degree=degree, spans=spans,
-                    rounds=trial_rounds, smoothing=smoothing, anchor=anchor, border=border,
-                    scan_mesh=scan_mesh, timings=trial_timings, **warm), trial_timings)
+        for name, layout, _ in judged:
             atlas, f, u, v, dist, trial_timings = cache["fit", target, name]
             fitted.append((float(np.sqrt(np.mean(dist ** 2))), name, layout, atlas, f, u, v,
                            trial_timings))

@@ -122,7 +122,7 @@ def _scene(vertices: np.ndarray, faces: np.ndarray):
     the scene's bounding-volume hierarchy at a scene's first query, holding the GIL. A
     mesh is the same mesh when its float32 vertices and uint32 faces have the same bits
     (compared here, about 1 ms for those triangles), so a kept scene answers exactly as a
-    new one built from those arrays would."""
+    new one built from those arrays would. Threads may share one."""
     import open3d as o3d
 
     with _scenes_lock:
@@ -132,6 +132,9 @@ def _scene(vertices: np.ndarray, faces: np.ndarray):
                 return scene
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces))
+        # its first query builds the hierarchy: here, under the lock, so that threads
+        # querying it at once (fit.layout_candidates) only read it
+        scene.compute_closest_points(o3d.core.Tensor(vertices[:1]))
         _scenes.insert(0, (vertices.copy(), faces.copy(), scene))
         del _scenes[SCENES:]
         return scene
