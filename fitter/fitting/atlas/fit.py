@@ -1266,13 +1266,14 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     """
     if bits is not None:
         return bits, atlas_bytes(atlas, bits)
-    from client_py.atlas_format import write_atlas
+    from client_py.atlas_format import AtlasWriter
 
-    written: dict[int, bytes] = {}  # each bits encoded once (the 15-scan Buddha: 0.4 s each)
+    # each bits encoded once (the 15-scan Buddha: 0.4 s each), the layout once for all
+    writer, written = AtlasWriter(atlas), {}
 
     def file(b: int) -> bytes:
         if b not in written:
-            written[b] = write_atlas(atlas, b)
+            written[b] = writer.write(b)
         return written[b]
 
     chosen = base_bits(atlas, rms)
