@@ -11,7 +11,11 @@ does), then for every level the bundle offers (the base alone, then each detail 
   RMS, max, and the share within 0.5 % of the bounding-box diagonal;
 * dense samples of the drawn mesh against the scan: the largest distance (fins, spikes,
   walls, skirts), as a share of the diagonal;
-* the welded mesh's open border, against the scan's own;
+* an atlas's folds (:func:`bench.pleats.pleat_stats`): pleats of its base and the share of
+  level 0's area turned over against it;
+* the welded mesh's open border, against the scan's own, and the share of it farther than
+  ``BORDER_REACH`` of the diagonal from the scan's border (a hole or skirt where the object
+  is closed: the issue's border must lie only where the scan is open);
 * beside it, quadric decimation + Draco of the scan mesh at the nearest byte count at or
   under Tessera's (``bench.bench_rate_distortion.draco_points``), scored the same way.
 
@@ -33,7 +37,9 @@ from pathlib import Path
 import numpy as np
 
 from bench import RESULTS, print_table, write_results
+from bench.pleats import pleat_stats
 from bench.scoring import (
+    border_edges,
     boundary_length,
     diagonal,
     point_errors,
@@ -55,6 +61,7 @@ OBJECTS = {
     "happy-buddha 15 scans": DATA / "happy-buddha-rangescans" / "happyStandRight.conf",
 }
 PICTURES = RESULTS / "atlas"
+BORDER_REACH = 0.005  # a drawn border farther than this (x diagonal) from the scan's is off it
 
 
 def _objects() -> dict[str, Path]:
@@ -124,12 +131,14 @@ def score_object(name: str, path: Path, work: Path) -> dict:
     tolerance = 1e-6 * diag
     scan_border = (boundary_length(points, scan_faces, tolerance)
                    if scan_faces is not None else None)
+    scan_ends = None if scan_faces is None else border_edges(points, scan_faces, tolerance)[0]
     rows = []
     levels = drawn_levels(bundle)
     for level in levels:
         err = point_errors(points, level["vertices"], level["faces"], diag)
         back = reverse_errors(level["vertices"], level["faces"], points, scan_faces, diag)
-        border = boundary_length(level["vertices"], level["faces"], tolerance)
+        border = boundary_length(level["vertices"], level["faces"], tolerance, scan_ends,
+                                 BORDER_REACH * diag)
         rows.append({"level": level["level"], "bytes": level["bytes"],
                      "resolution": level["resolution"], "triangles": len(level["faces"]),
                      "all_points": err, "mesh_to_scan": back, "border": border})
@@ -142,13 +151,15 @@ def score_object(name: str, path: Path, work: Path) -> dict:
         PICTURES.mkdir(parents=True, exist_ok=True)
         save_picture(picture, PICTURES / f"{bundle.name}.png", ["scan", "tessera (finest)"])
     draco = _draco_rows(points, scan_faces, diag, [r["bytes"] for r in rows])
+    atlas = (manifest.get("base") or {}).get("kind") == "atlas"
     return {"object": name, "points": int(len(points)), "diagonal": diag,
             "scan_faces": None if scan_faces is None else int(len(scan_faces)),
             "scan_border": scan_border, "fit_s": fit_s,
             "format_version": manifest.get("format_version"),
             "patches": (manifest.get("base") or {}).get("patches", 1),
             "layout": _chosen_layout(manifest), "trials": (manifest.get("fit") or {}).get("trials"),
-            "levels": rows, "silhouette_iou": iou, "draco": draco}
+            "levels": rows, "silhouette_iou": iou, "draco": draco,
+            "pleats": pleat_stats(bundle) if atlas else None}
 
 
 def _chosen_layout(manifest: dict) -> str | None:
@@ -219,7 +230,8 @@ def run() -> dict | None:
     table = []
     for r in results:
         if "error" in r:
-            table.append([r["object"], "-", "-", "-", "-", "-", "-", "-", "-", r["error"][:60]])
+            table.append([r["object"], "-", "-", "-", "-", "-", "-", "-", "-", "-",
+                          r["error"][:60]])
             continue
         for level, draco in zip(r["levels"], r["draco"] or [None] * len(r["levels"]),
                                 strict=True):
@@ -230,10 +242,19 @@ def run() -> dict | None:
                           "-" if best is None else f"{best['rms']:.3g}",
                           f"{100 * level['mesh_to_scan']['max_relative']:.2f}",
                           level["border"]["border_edges"],
-                          "-" if r["scan_border"] is None else r["scan_border"]["border_edges"]])
+                          "-" if r["scan_border"] is None else r["scan_border"]["border_edges"],
+                          "-" if "off_share" not in level["border"]
+                          else f"{100 * level['border']['off_share']:.1f}"])
     print_table("atlas: ALL scan points vs the drawn mesh, per level (default fit)",
                 ["object", "patches", "level", "bytes", "% within 0.5%", "RMS all",
-                 "Draco RMS", "max mesh->scan %diag", "border edges", "scan border"], table)
+                 "Draco RMS", "max mesh->scan %diag", "border edges", "scan border",
+                 "% border off scan's"], table)
+    for r in results:  # folds: pleats of the base, level 0's area turned over against it
+        if r.get("pleats"):
+            p = r["pleats"]
+            print(f"atlas: {r['object']}, pleats: {p['base_pairs_120']} folded triangle pairs "
+                  f"in {p['base_pleated_patches']} base patches, level 0 turned over on "
+                  f"{100 * p['l0_turned_share']:.2f} % of its area")
     for r in results:  # where each finest level is farther than 1 % from its scan
         places = [] if "error" in r else r["levels"][-1]["mesh_to_scan"]["places"]
         if places:

@@ -9,7 +9,8 @@ mesh a visitor's browser draws (``client_py``'s level-L tessellation in the scan
 * :func:`reverse_errors`: dense area-weighted samples of the drawn mesh against the scan
   (the scan's triangles, or its nearest points for a cloud): fins, spikes and skirts that
   hang off the object show here and nowhere else;
-* :func:`boundary_length`: the welded mesh's open border (edges used by one triangle);
+* :func:`boundary_length`: the welded mesh's open border (edges used by one triangle), and
+  :func:`border_off_scan`: how much of it lies where the scan is not open;
 * :func:`render_views`: the drawn mesh and the scan rendered from the same orthographic
   cameras (z-buffered splats of dense surface samples, Lambert shaded), and the silhouette
   IoU of each pair, so a broken shape is seen as well as measured.
@@ -88,9 +89,10 @@ def weld(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> np.ndarra
     return inverse.reshape(-1)[faces]
 
 
-def boundary_length(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> dict:
-    """Open border of the mesh welded at ``tolerance``: edges used by exactly one triangle,
-    their count and total length, and the count of non-manifold edges (> 2 triangles)."""
+def border_edges(vertices: np.ndarray, faces: np.ndarray, tolerance: float
+                 ) -> tuple[np.ndarray, int]:
+    """Open border of the mesh welded at ``tolerance``: the ends ``(E, 2, 3)`` of the edges
+    used by exactly one triangle, and the count of non-manifold edges (> 2 triangles)."""
     welded = weld(vertices, faces, tolerance)
     welded = welded[(welded[:, 0] != welded[:, 1]) & (welded[:, 1] != welded[:, 2])
                     & (welded[:, 0] != welded[:, 2])]
@@ -99,12 +101,59 @@ def boundary_length(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -
     unique, counts = np.unique(edges, axis=0, return_counts=True)
     border = unique[counts == 1]
     # positions of the welded vertices: any member of each class will do at this tolerance
-    first = np.zeros(welded.max() + 1, dtype=np.int64)
+    first = np.zeros(welded.max() + 1 if len(welded) else 0, dtype=np.int64)
     first[weld(vertices, faces, tolerance).reshape(-1)] = faces.reshape(-1)
-    ends = vertices[first[border]]
-    return {"border_edges": int(len(border)),
-            "border_length": float(np.linalg.norm(ends[:, 0] - ends[:, 1], axis=1).sum()),
-            "nonmanifold_edges": int(np.sum(counts > 2))}
+    return vertices[first[border]].reshape(-1, 2, 3), int(np.sum(counts > 2))
+
+
+def boundary_length(vertices: np.ndarray, faces: np.ndarray, tolerance: float,
+                    scan_border: np.ndarray | None = None, reach: float | None = None) -> dict:
+    """:func:`border_edges` as figures: their count, total length, and non-manifold edges;
+    given the scan's own ``scan_border`` ends and a ``reach``, also :func:`border_off_scan`'s
+    ``off_length`` and ``off_share``."""
+    ends, nonmanifold = border_edges(vertices, faces, tolerance)
+    out = {"border_edges": int(len(ends)),
+           "border_length": float(np.linalg.norm(ends[:, 0] - ends[:, 1], axis=1).sum()),
+           "nonmanifold_edges": nonmanifold}
+    if scan_border is not None:
+        out.update(border_off_scan(ends, scan_border, reach))
+    return out
+
+
+def _along(ends: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points along segments ``ends (E, 2, 3)`` at most ``step`` apart (each segment cut
+    into ``ceil(length / step)`` equal pieces, a point at each piece's middle), and the
+    length each point stands for."""
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+    pieces = np.maximum(np.ceil(length / step).astype(np.int64), 1)
+    segment = np.repeat(np.arange(len(ends)), pieces)
+    first = np.repeat(np.cumsum(pieces) - pieces, pieces)
+    t = (np.arange(len(segment)) - first + 0.5) / pieces[segment]
+    points = ends[segment, 0] + t[:, None] * (ends[segment, 1] - ends[segment, 0])
+    return points, (length / pieces)[segment]
+
+
+def border_off_scan(drawn: np.ndarray, scan: np.ndarray, reach: float) -> dict:
+    """How much of the drawn mesh's open border lies where the scan is NOT open.
+
+    ``drawn`` and ``scan`` are :func:`border_edges` ends. A stretch of the drawn border
+    counts as *off* when no point of the scan's own border lies within ``reach`` of it
+    (both borders sampled every ``reach / 4``, so a distance is read to within
+    ``reach / 8``): a hole or a skirt the visitor sees where the object is closed. The
+    issue's rule is that a bundle's border lies only where the scan itself is open.
+    Returns the off length and its share of the drawn border (0 for a closed drawing;
+    all of it when the scan is closed).
+    """
+    if not len(drawn):
+        return {"off_length": 0.0, "off_share": 0.0}
+    points, weight = _along(drawn, reach / 4)
+    if len(scan):
+        distance, _ = cKDTree(_along(scan, reach / 4)[0]).query(points)
+        off = distance > reach
+    else:
+        off = np.ones(len(points), dtype=bool)
+    return {"off_length": float(weight[off].sum()),
+            "off_share": float(weight[off].sum() / weight.sum())}
 
 
 # ------------------------------------------------------------------------------ pictures

@@ -29,9 +29,12 @@ from fitter.fitting.atlas.fit import (
     working_points,
 )
 from fitter.fitting.atlas.layout import (
+    BORDER_REACH,
     THIN_CAP,
     bilinear_atlas,
+    border_strays,
     decimate,
+    decimate_on_border,
     euler_characteristics,
     flip_edges,
     split_edges,
@@ -40,6 +43,7 @@ from fitter.fitting.atlas.layout import (
     thin_part_weights,
     triangle_fidelity,
 )
+from fitter.fitting.atlas.surface import border_edges as border_edges_of
 from fitter.fitting.atlas.surface import clean_mesh, manifold_problems
 from fitter.fitting.io.scan import Scan, make_scan, new_source
 from tests.test_atlas import random_cube_atlas
@@ -392,6 +396,35 @@ def test_open_border_curves_follow_the_scans_cut_rim():
     assert gap.max() < 0.02
     with pytest.raises(ValueError, match="border must be finite points"):
         fit_layout(layout, points, normals, rounds=1, border=rim[:, :2])
+
+
+def _jagged_cut_sphere_scan() -> Scan:
+    """A unit sphere cut below ``z = -0.5 + 0.2 sin 9θ``: a bust's rim, sawn unevenly."""
+    m = trimesh.creation.icosphere(subdivisions=4)
+    centre = m.vertices[m.faces].mean(axis=1)
+    keep = centre[:, 2] > -0.5 + 0.2 * np.sin(9 * np.arctan2(centre[:, 1], centre[:, 0]))
+    used, faces = np.unique(m.faces[keep], return_inverse=True)
+    return _mesh_scan(m.vertices[used], faces.reshape(-1, 3), "jagged cut sphere")
+
+
+def test_a_layouts_border_vertices_are_kept_on_the_scans_border():
+    surface = scan_surface(_jagged_cut_sphere_scan())
+    own = surface.vertices[np.unique(border_edges_of(surface.faces))]
+    reach = BORDER_REACH * np.linalg.norm(np.ptp(surface.vertices, axis=0))
+
+    def strays(vertices, triangles):  # brute force: every layout border vertex to every rim one
+        ends = vertices[np.unique(border_edges_of(triangles))]
+        return int(np.sum(np.linalg.norm(ends[:, None] - own[None], axis=2).min(axis=1) > reach))
+
+    plain = decimate(surface, 80)  # MeshLab's default border weight: a rim vertex pulled in
+    kept = decimate_on_border(surface, 80)
+    assert border_strays(surface, *plain) == strays(*plain) >= 1
+    assert border_strays(surface, *kept) == strays(*kept) == 0
+    assert euler_characteristics(*kept) == euler_characteristics(surface.vertices, surface.faces)
+    assert not manifold_problems(kept[1])["nonmanifold_edges"]
+    closed = scan_surface(_sphere_scan(2))  # no border of its own: every layout border strays
+    assert border_strays(closed, *plain) == len(np.unique(border_edges_of(plain[1])))
+    assert border_strays(closed, closed.vertices, closed.faces) == 0
 
 
 def _valley_surface(n: int = 24):

@@ -142,6 +142,7 @@ from .layout import (
     QuadLayout,
     bilinear_atlas,
     decimate,
+    decimate_on_border,
     flip_edges,
     quad_layout,
     split_longest_edges,
@@ -1159,12 +1160,14 @@ LAYOUT_THREADS = 2  # layout candidates made, and fitted, at once (the machine's
 _MESHLAB = threading.Lock()  # one pymeshlab filter at a time: it is not thread-safe
 
 
-def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
-                      ) -> tuple[list[tuple[str, QuadLayout, float]],
-                                 list[tuple[str, Exception]]]:
+def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool,
+                      on_border: bool = False) -> tuple[list[tuple[str, QuadLayout, float]],
+                                                        list[tuple[str, Exception]]]:
     """The layouts a trial of ``target`` triangles fits: ``'plain'`` quadric decimation and,
     with ``thin_parts``, the ``'weighted'`` one (:func:`.layout.thin_part_weights`) unless
-    its weights are all equal (then it is the plain one).
+    its weights are all equal (then it is the plain one). ``on_border``: the patches'
+    border curves will follow the surface's border, so the layout's border vertices are
+    kept on it (:func:`.layout.decimate_on_border`).
 
     The two are made on :data:`LAYOUT_THREADS` threads, the same layouts in the same
     order as one after the other: neither reads the other's. MeshLab's collapses take
@@ -1187,7 +1190,8 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool
                 if np.ptp(weights) == 0:
                     return None
             with _MESHLAB:
-                tri_vertices, triangles = decimate(surface, target, weights)
+                tri_vertices, triangles = (decimate_on_border if on_border else decimate)(
+                    surface, target, weights)
         except (AtlasLayoutError, SurfaceError) as exc:
             return name, exc
         triangles, _ = flip_edges(surface, tri_vertices, triangles)
@@ -1409,7 +1413,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     coarse = source
     if len(source.faces) > PREDECIMATED_TRIANGLES:
         try:
-            vertices, triangles = decimate(source, PREDECIMATED_TRIANGLES)
+            vertices, triangles = (decimate_on_border if border is not None else decimate)(
+                source, PREDECIMATED_TRIANGLES)
             coarse = ScanSurface(vertices, triangles, source.origin, source.pieces,
                                  source.repairs)
         except (AtlasLayoutError, SurfaceError):
@@ -1433,7 +1438,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     cache = {} if trial_cache is None else trial_cache
     for step, target in enumerate(plan):
         if ("layouts", target) not in cache:
-            cache["layouts", target] = layout_candidates(coarse, max(4, target), thin_parts)
+            cache["layouts", target] = layout_candidates(coarse, max(4, target), thin_parts,
+                                                      border is not None)
         candidates, failures = cache["layouts", target]
         if not candidates:
             # a coarse target may not decimate to a manifold (a range scan's many borders);

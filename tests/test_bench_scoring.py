@@ -1,0 +1,57 @@
+"""The benchmark's border figures against borders known by construction."""
+
+import numpy as np
+import pytest
+
+from bench.scoring import border_edges, border_off_scan, boundary_length
+
+
+def grid(n: int, hole: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The unit square as ``n x n`` cells of two triangles, cells ``hole[0]..hole[1]-1``
+    (both ways) left out."""
+    t = np.linspace(0.0, 1.0, n + 1)
+    u, v = np.meshgrid(t, t, indexing="ij")
+    vertices = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)
+    faces = []
+    for i in range(n):
+        for j in range(n):
+            if hole and hole[0] <= i < hole[1] and hole[0] <= j < hole[1]:
+                continue
+            a, b, c, d = i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1, \
+                i * (n + 1) + j + 1
+            faces += [(a, b, c), (a, c, d)]
+    return vertices, np.array(faces, dtype=np.int64)
+
+
+def test_border_edges_of_a_square_and_a_fin():
+    vertices, faces = grid(4)
+    figures = boundary_length(vertices, faces, 1e-9)
+    assert figures["border_edges"] == 16
+    assert figures["border_length"] == pytest.approx(4.0)
+    assert figures["nonmanifold_edges"] == 0
+    # a third triangle on the inner diagonal (0,0)-(0.25,0.25): that edge is used three times
+    fin = np.vstack([vertices, [[0.1, 0.1, 0.3]]])
+    faces = np.vstack([faces, [[0, 6, len(fin) - 1]]])
+    ends, nonmanifold = border_edges(fin, faces, 1e-9)
+    assert nonmanifold == 1
+    assert len(ends) == 16 + 2  # and the fin's two other sides are open
+
+
+def test_a_hole_where_the_scan_is_closed_is_off_its_border():
+    scan = border_edges(*grid(8), 1e-9)[0]
+    drawn = border_edges(*grid(8, hole=(3, 5)), 1e-9)[0]  # a 0.25 x 0.25 hole inside
+    off = border_off_scan(drawn, scan, reach=0.05)
+    assert off["off_length"] == pytest.approx(1.0)  # the hole's perimeter
+    assert off["off_share"] == pytest.approx(1.0 / 5.0)  # of 4 outside + 1
+    assert border_off_scan(scan, scan, reach=0.05)["off_share"] == 0.0
+    # a drawn border beside the scan's, nearer than the reach, is on it
+    shifted = scan + np.array([0.0, 0.0, 0.03])
+    assert border_off_scan(shifted, scan, reach=0.05)["off_share"] == 0.0
+    assert border_off_scan(shifted, scan, reach=0.02)["off_share"] == 1.0
+
+
+def test_a_closed_scan_or_a_closed_drawing():
+    drawn = border_edges(*grid(4), 1e-9)[0]
+    empty = np.zeros((0, 2, 3))
+    assert border_off_scan(drawn, empty, reach=0.1)["off_share"] == 1.0
+    assert border_off_scan(empty, drawn, reach=0.1) == {"off_length": 0.0, "off_share": 0.0}
