@@ -462,3 +462,27 @@ def test_far_drawn_nodes_are_pulled_toward_the_scan_not_pushed_away(monkeypatch)
     assert base > 0.01  # the web: its middle is over 1 % of the diagonal off the pit
     assert found[0.0] > 1.3 * base, (found, base)  # pushed out without the rows
     assert found[atlas_detail.PULL_WEIGHT] < base, (found, base)  # and nearer with them
+
+
+def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeypatch):
+    """node_frames, DrawnModel.feet and DrawnModel.of run their chunks on one thread per
+    core (atlas.detail.on_threads); each chunk writes its own rows, so many small chunks on
+    four threads give the numbers of one thread, bit for bit."""
+    fit, scan, det = fitted
+    atlas = det.atlas
+    samples = _bump_samples(fit, atlas, 11, 2500)
+    r = det.levels[1]["resolution"]
+    F = len(atlas.quads)
+    f = np.repeat(np.arange(F), r * r)
+    a = np.tile(np.repeat(np.arange(r), r), F)
+    b = np.tile(np.arange(r), F * r)
+    made = {}
+    for cores in (1, 4):
+        monkeypatch.setattr(atlas_detail.os, "cpu_count", lambda cores=cores: cores)
+        made[cores] = (atlas_detail.node_frames(atlas, r, f, a, b, chunk=333),
+                       atlas_detail.DrawnModel.of(atlas, samples, r, chunk=97))
+    (frames_1, model_1), (frames_4, model_4) = made[1], made[4]
+    for x, y in zip(frames_1, frames_4, strict=True):
+        np.testing.assert_array_equal(x, y)
+    for name in ("u", "v", "weight", "target", "node", "node_patch", "node_u", "node_v"):
+        np.testing.assert_array_equal(getattr(model_1, name), getattr(model_4, name))

@@ -30,7 +30,7 @@ from fitter.fitting.atlas.fit import (
     working_points,
 )
 from fitter.fitting.atlas.layout import (
-    BORDER_REACH,
+    STRAY_REACH,
     THIN_CAP,
     bilinear_atlas,
     border_strays,
@@ -438,7 +438,7 @@ def _jagged_cut_sphere_scan() -> Scan:
 def test_a_layouts_border_vertices_are_kept_on_the_scans_border():
     surface = scan_surface(_jagged_cut_sphere_scan())
     own = surface.vertices[np.unique(border_edges_of(surface.faces))]
-    reach = BORDER_REACH * np.linalg.norm(np.ptp(surface.vertices, axis=0))
+    reach = STRAY_REACH * np.linalg.norm(np.ptp(surface.vertices, axis=0))
 
     def strays(vertices, triangles):  # brute force: every layout border vertex to every rim one
         ends = vertices[np.unique(border_edges_of(triangles))]
@@ -1102,3 +1102,45 @@ def test_a_fitted_base_at_the_first_levels_resolution_welds_to_a_manifold():
                   & (corners[:, 2] != corners[:, 0]))
     chi, loops, nonmanifold, _ = _topology(np.unique(corners), corners)
     assert nonmanifold == 0 and loops == 1 and chi == -1
+
+
+@pytest.mark.parametrize("spans", [1, 2, 4])
+def test_point_nets_equal_each_points_own_gather(spans):
+    """point_nets (every patch's net once, then a row per point) gives exactly the plain
+    gather P[I[f_k]] of each point's n^2 control points, with many points and with few, so
+    evaluate_patches gives the same numbers either way."""
+    atlas = random_cube_atlas(degree=3, spans=spans, seed=spans)
+    table, points = index_table(atlas), control_points(atlas)
+    rng = np.random.default_rng(spans)
+    n2 = table.shape[1] * table.shape[2]
+    for k in (1, 2, 5_000):  # 4 k < F = 6 patches: each point's own gather; else whole nets
+        f = rng.integers(0, len(table), k)
+        plain = np.stack([[points[i] for i in table[g].reshape(-1)] for g in f])
+        nets = atlas_fit.point_nets(table, points, f)
+        assert nets.shape == (k, n2, 3)
+        np.testing.assert_array_equal(nets, plain)
+    u, v = rng.random(len(f)), rng.random(len(f))
+    bu, bv = atlas_fit.basis_matrix(u, 3, spans), atlas_fit.basis_matrix(v, 3, spans)
+    plain = np.matmul((bu[:, :, None] * bv[:, None, :]).reshape(len(f), 1, n2), plain)[:, 0]
+    (c,) = atlas_fit.evaluate_patches(table, points, 3, spans, f, u, v)
+    np.testing.assert_array_equal(c, plain)
+
+
+def test_layout_candidates_and_their_fits_on_threads_equal_one_after_the_other(monkeypatch):
+    """The plain and weighted layouts made, and fitted, on two threads are exactly those
+    made and fitted one after the other (MeshLab's collapses taking turns)."""
+    scan = _bumpy_ball_and_small_disc()
+    fits = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(atlas_fit, "LAYOUT_THREADS", threads)
+        surface = scan_surface(scan)
+        candidates, failures = atlas_fit.layout_candidates(surface, 120, True)
+        assert [c[0] for c in candidates] == ["plain", "weighted"] and not failures
+        fit = fit_atlas(scan, 360, working_count=2000, rounds=1)
+        fits[threads] = candidates, fit
+    (one, fit_one), (two, fit_two) = fits[1], fits[2]
+    for a, b in zip(one, two, strict=True):
+        for name in ("triangle_vertices", "triangles", "vertices", "quads"):
+            np.testing.assert_array_equal(getattr(a[1], name), getattr(b[1], name))
+    assert fit_one.trials[0]["rms_by_layout"] == fit_two.trials[0]["rms_by_layout"]
+    np.testing.assert_array_equal(control_points(fit_one.atlas), control_points(fit_two.atlas))

@@ -28,6 +28,7 @@ from client_py.atlas_format import (
     HEADER,
     HEADER_SIZE,
     MAGIC,
+    AtlasWriter,
     _code_quads,
     _encode_residuals,
     _Predictor,
@@ -603,3 +604,25 @@ def test_run_links_and_differences():
     diff = _run_differences(res, links)
     assert diff[12] == res[12] - (res[11] + res[9]) // 2 and diff[3] == res[3] - res[2]
     assert _run_sums(diff, links) == res
+
+
+@pytest.mark.parametrize("make", [
+    lambda: random_cube_atlas(3, 2), lambda: sphere_atlas(3, 2, 3, rational=True),
+    lambda: random_atlas(2, 3, 2, rational=False), lambda: random_atlas(3, 1, 1),
+])
+def test_one_writer_at_many_bits_writes_each_file_as_a_new_one(make):
+    """AtlasWriter keeps what does not depend on the bits (the layout's coded quads, the
+    bounds, the predictor): one writer writing several bits, in any order and again, gives
+    each time the bytes of a writer made for that bits alone, which read back to the
+    atlas's canonical layout."""
+    atlas = make()
+    fresh = {bits: AtlasWriter(atlas).write(bits) for bits in (8, 12, 16)}
+    writer = AtlasWriter(atlas)
+    for bits in (12, 8, 16, 12, 8):
+        assert writer.write(bits) == fresh[bits]
+    assert writer.write(12, {"units": "mm"}) == write_atlas(atlas, 12, {"units": "mm"})
+    assert read_atlas(fresh[12])[0].quads == canonical_atlas(atlas).quads
+    with pytest.raises(ValueError):
+        writer.write(1)
+    with pytest.raises(ValueError):
+        writer.write(12, {"x": float("nan")})

@@ -50,6 +50,43 @@ def test_point_mesh_distance_equals_brute_force():
 
 
 
+def test_a_kept_scene_answers_as_a_new_one():
+    """nearest_triangles keeps the ray-casting scenes of the meshes it queried last: a kept
+    scene gives each point the triangle a scene built anew gives it, another mesh (or the
+    same mesh moved by one float32 step) is not answered from it, and no more than
+    SCENES meshes are kept."""
+    import open3d as o3d
+
+    from fitter.fitting.atlas import measure
+
+    rng = np.random.default_rng(3)
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    vertices = np.asarray(mesh.vertices) + rng.normal(scale=0.01, size=mesh.vertices.shape)
+    faces = np.asarray(mesh.faces)
+    points = rng.normal(size=(3000, 3))
+
+    def fresh(v):
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(np.asarray(v, np.float32)),
+                            o3d.core.Tensor(np.asarray(faces, np.uint32)))
+        query = o3d.core.Tensor(np.asarray(points, np.float32))
+        return scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
+
+    moved = vertices.astype(np.float32)
+    moved[0, 0] = np.nextafter(moved[0, 0], np.float32(np.inf))
+    other = vertices * 1.5
+    measure._scenes.clear()
+    for v in (vertices, vertices, moved, other, vertices, moved, vertices):
+        np.testing.assert_array_equal(measure.nearest_triangles(points, v, faces), fresh(v))
+        assert len(measure._scenes) <= measure.SCENES
+    kept = measure._scenes[0][2]
+    measure.nearest_triangles(points[:10], vertices.copy(), faces.copy())  # equal copies
+    assert measure._scenes[0][2] is kept
+    measure.nearest_triangles(points[:10], moved, faces)
+    assert measure._scenes[0][2] is not kept
+    measure._scenes.clear()
+
+
 def _grid(xs, ys):
     x, y = np.meshgrid(xs, ys, indexing="ij")
     return x.ravel(), y.ravel()

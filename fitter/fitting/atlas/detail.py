@@ -443,6 +443,17 @@ def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-300)
 
 
+def on_threads(work: Callable[[int], None], count: int, chunk: int) -> None:
+    """``work(lo)`` for every ``lo`` in ``range(0, count, chunk)``, one thread per core.
+
+    For loops whose chunks each write their own rows ``lo:lo + chunk`` of arrays made
+    beforehand, with numpy's array operations (which release the GIL): the numbers do not
+    depend on the thread count. A chunk's error is raised here."""
+    starts = range(0, count, chunk)
+    with ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, len(starts)))) as pool:
+        list(pool.map(work, starts))
+
+
 def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
                 b: np.ndarray, chunk: int = CHUNK) -> tuple[np.ndarray, np.ndarray]:
     """The base position ``C_f(node)`` and the displacement direction ``d`` the client
@@ -468,7 +479,8 @@ def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.n
     total = _unit(total)
     node_c = np.empty((len(patch), 3))
     node_d = np.empty((len(patch), 3))
-    for lo in range(0, len(patch), chunk):
+
+    def frames(lo: int) -> None:
         hi = lo + chunk
         fk, ai, bi = patch[lo:hi], a[lo:hi], b[lo:hi]
         node_c[lo:hi], cui, cvi = evaluate_patches(table, cps, d, spans, fk, ai / (r - 1),
@@ -477,6 +489,8 @@ def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.n
         rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
         di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
         node_d[lo:hi] = di
+
+    on_threads(frames, len(patch), chunk)
     return node_c, node_d
 
 
@@ -532,12 +546,15 @@ class DrawnModel:
         table, cps = index_table(atlas), control_points(atlas)
         foot = np.empty((len(samples.u), 3))
         normal = np.empty((len(samples.u), 3))
-        for lo in range(0, len(samples.u), chunk):
+
+        def one(lo: int) -> None:
             hi = lo + chunk
             foot[lo:hi], cu, cv = evaluate_patches(table, cps, atlas.degree, atlas.spans,
                                                    samples.patch[lo:hi], samples.u[lo:hi],
                                                    samples.v[lo:hi], derivatives=True)
             normal[lo:hi] = _unit(np.cross(cu, cv))
+
+        on_threads(one, len(samples.u), chunk)
         return foot, normal
 
     @classmethod
@@ -560,7 +577,8 @@ class DrawnModel:
         foot, normal = feet if feet is not None else cls.feet(atlas, samples, chunk)
         weight = np.empty_like(beta)
         target = samples.s.copy()
-        for lo in range(0, len(samples.u), chunk):
+
+        def one(lo: int) -> None:
             hi = lo + chunk
             c, n = foot[lo:hi], normal[lo:hi]
             for i in range(3):
@@ -568,6 +586,8 @@ class DrawnModel:
                 weight[lo:hi, i] = beta[lo:hi, i] * np.maximum(
                     np.einsum("kc,kc->k", node_d[at], n), MIN_DIRECTION)
                 target[lo:hi] += beta[lo:hi, i] * np.einsum("kc,kc->k", c - node_c[at], n)
+
+        on_threads(one, len(samples.u), chunk)
         return cls(r, a / (r - 1), b / (r - 1), weight, target, node, nf, na / (r - 1),
                    nb / (r - 1))
 

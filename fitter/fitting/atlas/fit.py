@@ -33,10 +33,12 @@ detail, a displacement along the normal, cannot reach those points. So the scan'
 border (:func:`border_points`) enters the data term too, each of its points at its foot
 point on the atlas's open border curves (:func:`border_foot_points`), found again every
 round: ``+ w Σ_b |C_{f_b}(u_b, v_b) - x_b|²`` with ``(u_b, v_b)`` on a side without a
-neighbour (``w`` in :func:`fit_layout`). The rim points are held :data:`BORDER_OVERSHOOT`
+neighbour (``w`` in :func:`fit_layout`). The rim points can be held :data:`BORDER_OVERSHOOT`
 median edges beyond the rim (outward in the surface's plane, :func:`border_outward`): a
 border curve through a jagged rim leaves half the rim's points beyond it, clamped, and on
-Laurana the points within three edges of her rim were 63 % of her level-0 squared error.
+Laurana the points within three edges of her rim were 63 % of her level-0 squared error
+(off by default: with the layout's border on the scan's, it drew skirts over the bunny's
+holes).
 
 The drawn side. Foot points pull the atlas toward the scan only where scan points land on
 it; a patch that none reach (a wall across a crease, a flap turned over) stays where the
@@ -124,6 +126,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -211,6 +214,21 @@ def with_control_points(atlas: AtlasSurface, points: np.ndarray) -> AtlasSurface
                         rows[n_v + n_e:], atlas.weights)
 
 
+def point_nets(table: np.ndarray, points: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The control net of patch ``f_k`` for each point, ``P[I[f_k]]``, shape ``(K, n², 3)``.
+
+    Gathered as whole nets, ``P[I]`` of every patch once (``(F, n², 3)``) and then one
+    contiguous ``n² x 3`` row per point, instead of ``n²`` single control points per point:
+    the same numbers, and on the 15-scan Happy Buddha's 1,473-patch base (``n = 4``,
+    20,000 points, thread CPU time at load 10) 0.65 ms instead of 3.7 ms; an evaluation
+    with derivatives 10.3 ms instead of 13.1. With fewer
+    points than a quarter of the patches, the points' own nets are gathered alone."""
+    k, n2 = len(f), table.shape[1] * table.shape[2]
+    if 4 * k < len(table):
+        return points[table[f].reshape(k, n2)]
+    return points[table.reshape(len(table), n2)][f]
+
+
 def evaluate_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
                      f: np.ndarray, u: np.ndarray, v: np.ndarray, derivatives: bool = False
                      ) -> tuple[np.ndarray, ...]:
@@ -218,10 +236,11 @@ def evaluate_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: 
 
     ``C = Σ_ij N_i(u) N_j(v) P_{I[f, i, j]}``: the ``n²`` products ``N_i(u) N_j(v)`` of each
     point times its patch's net ``(n², 3)``, one batched matrix product (twice as fast as
-    the three-operand ``einsum`` it replaced, equal to rounding).
+    the three-operand ``einsum`` it replaced, equal to rounding). The nets are gathered
+    patch by patch, ``P[I]`` once, then one row of ``n² x 3`` per point (:func:`point_nets`).
     """
     k, n = len(f), table.shape[1]
-    net = points[table[f].reshape(k, n * n)]  # (K, n², 3)
+    net = point_nets(table, points, f)  # (K, n², 3)
 
     def combine(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.matmul((a[:, :, None] * b[:, None, :]).reshape(k, 1, n * n), net)[:, 0]
@@ -537,14 +556,20 @@ def signed_distances(table: np.ndarray, points: np.ndarray, degree: int, spans: 
 BORDER_WEIGHT = 10.0
 BORDER_REACH = 0.05  # a border point farther than this share of the diagonal is not fitted
 BORDER_SIDE_SAMPLES = 17  # samples per open patch side for the first border foot point
-# The scan's rim points are fitted this many median edge lengths beyond the rim, outward in
-# the surface's tangent plane (border_points, border_outward): a border curve (one cubic per
-# open patch side) through a jagged rim leaves half its points beyond it, where the foot
+# The scan's rim points can be fitted this many median edge lengths beyond the rim, outward
+# in the surface's tangent plane (border_points, border_outward): a border curve (one cubic
+# per open patch side) through a jagged rim leaves half its points beyond it, where the foot
 # points are clamped and no detail along the normal reaches them (module docstring, "Open
 # borders"). Laurana, level 0 with the same detail fit (quantisation feedback at rate 1): RMS
 # of all points 0.0506 in 63,620 bytes against 0.0602 in 60,959 without the overshoot; her
-# base 0.2532 against 0.2445 (docs/benchmarks.md, session 14; load 10-12).
-BORDER_OVERSHOOT = 0.5
+# base 0.2532 against 0.2445 (docs/benchmarks.md, session 14; load 10-12). Off (0) since
+# the layout keeps its border on the scan's (layout.decimate_on_border) and drops narrow
+# triangles (layout.collapse_narrow_triangles): with both, 0.5 drew skirts across the
+# bunny's small holes (largest distance 1.06 / 1.20 % at the base / level 0, 3 % of its
+# drawn border off the scan's) for the same level-0 RMS (1.78e-5), and Laurana's level 0
+# at 88,167 bytes, RMS 0.0179 against Draco's 0.0088 there (2.0x); at 0 the bunny's 0.50 /
+# 0.73 % with no border off, Laurana's level 0 74,494 bytes at 0.0347, Draco's 0.0347.
+BORDER_OVERSHOOT = 0.0
 
 
 def median_edge(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -1197,6 +1222,10 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
     return None
 
 
+LAYOUT_THREADS = 2  # layout candidates made, and fitted, at once (the machine's 2 cores)
+_MESHLAB = threading.Lock()  # one pymeshlab filter at a time: it is not thread-safe
+
+
 def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool,
                       on_border: bool = False) -> tuple[list[tuple[str, QuadLayout, float]],
                                                         list[tuple[str, Exception]]]:
@@ -1206,6 +1235,11 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool,
     border curves will follow the surface's border, so the layout's border vertices are
     kept on it (:func:`.layout.decimate_on_border`).
 
+    The two are made on :data:`LAYOUT_THREADS` threads, the same layouts in the same
+    order as one after the other: neither reads the other's. MeshLab's collapses take
+    turns (``pymeshlab`` crashed with two at once); the thin-part weights and the edge
+    flips (``open3d``'s closest points, which release the GIL) overlap them.
+
     Returns
     -------
     candidates : list of (name, layout, seconds)
@@ -1213,29 +1247,31 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool,
     failures : list of (name, exception)
         The decimations refused (``AtlasLayoutError`` or ``SurfaceError``).
     """
-    weights = None
-    candidates, failures = [], []
-    for name in ("plain", "weighted") if thin_parts else ("plain",):
+    def one(name: str) -> tuple | None:
         clock = time.perf_counter()
+        weights = None
         try:
             if name == "weighted":
                 weights = thin_part_weights(surface, target)
                 if np.ptp(weights) == 0:
-                    break
-            tri_vertices, triangles = (decimate_on_border if on_border else decimate)(
-                surface, target, weights)
+                    return None
+            with _MESHLAB:
+                tri_vertices, triangles = (decimate_on_border if on_border else decimate)(
+                    surface, target, weights)
         except (AtlasLayoutError, SurfaceError) as exc:
-            failures.append((name, exc))
-            continue
+            return name, exc
         # no narrow triangle before the flips judge the diagonals, and none they made
         tri_vertices, triangles, _ = collapse_narrow_triangles(surface, tri_vertices,
                                                                triangles)
         triangles, _ = flip_edges(surface, tri_vertices, triangles)
         tri_vertices, triangles, _ = collapse_narrow_triangles(surface, tri_vertices,
                                                                triangles)
-        candidates.append((name, quad_layout(tri_vertices, triangles),
-                           time.perf_counter() - clock))
-    return candidates, failures
+        return name, quad_layout(tri_vertices, triangles), time.perf_counter() - clock
+
+    names = ("plain", "weighted") if thin_parts else ("plain",)
+    with ThreadPoolExecutor(min(LAYOUT_THREADS, len(names))) as pool:
+        made = [m for m in pool.map(one, names) if m is not None]  # a thread's error raised
+    return ([m for m in made if len(m) == 3], [m for m in made if len(m) == 2])
 
 
 def base_bits(atlas: AtlasSurface, rms: float) -> int:
@@ -1306,13 +1342,14 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     """
     if bits is not None:
         return bits, atlas_bytes(atlas, bits)
-    from client_py.atlas_format import write_atlas
+    from client_py.atlas_format import AtlasWriter
 
-    written: dict[int, bytes] = {}  # each bits encoded once (the 15-scan Buddha: 0.4 s each)
+    # each bits encoded once (the 15-scan Buddha: 0.4 s each), the layout once for all
+    writer, written = AtlasWriter(atlas), {}
 
     def file(b: int) -> bytes:
         if b not in written:
-            written[b] = write_atlas(atlas, b)
+            written[b] = writer.write(b)
         return written[b]
 
     chosen = base_bits(atlas, rms)
@@ -1485,16 +1522,26 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             trials.append({"triangles": target,
                            "error": "; ".join(str(exc) for _, exc in failures)})
             continue
+        # the decimation may stop short of the target: no new size to judge then
+        judged = [c for c in candidates
+                  if best is None or c[1].n_triangles > best[2].n_triangles]
+
+        def fit_trial(candidate: tuple[str, QuadLayout, float]) -> tuple:
+            name, layout, layout_seconds = candidate
+            trial_timings: dict = {"layout": layout_seconds}
+            return (*fit_layout(layout, trial_points, trial_normals, degree=degree,
+                                spans=spans, rounds=trial_rounds, smoothing=smoothing,
+                                anchor=anchor, border=border, scan_mesh=scan_mesh,
+                                timings=trial_timings, **warm), trial_timings)
+
+        # the candidates' fits are independent: fitted at once (fit_layout's solves and
+        # closest points release the GIL), the same numbers as one after the other
+        new = [c for c in judged if ("fit", target, c[0]) not in cache]
+        with ThreadPoolExecutor(max(1, min(LAYOUT_THREADS, len(new)))) as pool:
+            for c, done in zip(new, pool.map(fit_trial, new), strict=True):
+                cache["fit", target, c[0]] = done
         fitted = []
-        for name, layout, layout_seconds in candidates:
-            if best is not None and layout.n_triangles <= best[2].n_triangles:
-                continue  # the decimation stopped short of the target: no new size to judge
-            if ("fit", target, name) not in cache:
-                trial_timings: dict = {"layout": layout_seconds}
-                cache["fit", target, name] = (*fit_layout(
-                    layout, trial_points, trial_normals, degree=degree, spans=spans,
-                    rounds=trial_rounds, smoothing=smoothing, anchor=anchor, border=border,
-                    scan_mesh=scan_mesh, timings=trial_timings, **warm), trial_timings)
+        for name, layout, _ in judged:
             atlas, f, u, v, dist, trial_timings = cache["fit", target, name]
             fitted.append((float(np.sqrt(np.mean(dist ** 2))), name, layout, atlas, f, u, v,
                            trial_timings))

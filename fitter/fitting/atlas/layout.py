@@ -135,13 +135,13 @@ def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | 
     return _checked(surface, vertices, triangles)
 
 
-BORDER_REACH = 0.005  # a layout border vertex farther than this (x diagonal) off the border
-BORDER_WEIGHT = 30.0  # ... makes :func:`decimate_on_border` decimate again at this weight
+STRAY_REACH = 0.005  # a layout border vertex farther than this (x diagonal) off the border
+BORDER_QUADRIC_WEIGHT = 30.0  # ... and :func:`decimate_on_border` decimates again at this
 
 
 def border_strays(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray) -> int:
     """How many vertices of the decimated surface's open border lie farther than
-    ``BORDER_REACH`` of the diagonal from every border vertex of ``surface``.
+    ``STRAY_REACH`` of the diagonal from every border vertex of ``surface``.
 
     The decimation keeps vertices where they were (no optimal placement), so a layout
     border vertex still on the border IS a border vertex of ``surface``, at distance 0."""
@@ -155,14 +155,14 @@ def border_strays(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndar
 
     diagonal = float(np.linalg.norm(np.ptp(surface.vertices, axis=0)))
     distance, _ = cKDTree(surface.vertices[own]).query(vertices[layout_border])
-    return int(np.sum(distance > BORDER_REACH * diagonal))
+    return int(np.sum(distance > STRAY_REACH * diagonal))
 
 
 def decimate_on_border(surface: ScanSurface, target_triangles: int,
                        weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`decimate`, done again with the border's quadric weighted ``BORDER_WEIGHT``
-    when a vertex of the layout's open border is left off the scan's border
-    (:func:`border_strays`).
+    """:func:`decimate`, done again with the border's quadric weighted
+    ``BORDER_QUADRIC_WEIGHT`` when a vertex of the layout's open border is left off the
+    scan's border (:func:`border_strays`).
 
     The fit pulls the patches' border curves onto the scan's border (``fit.border_points``),
     so a layout border vertex that the decimation moved into the surface (an interior
@@ -178,7 +178,8 @@ def decimate_on_border(surface: ScanSurface, target_triangles: int,
     """
     vertices, triangles = decimate(surface, target_triangles, weights)
     if border_strays(surface, vertices, triangles):
-        vertices, triangles = decimate(surface, target_triangles, weights, BORDER_WEIGHT)
+        vertices, triangles = decimate(surface, target_triangles, weights,
+                                       BORDER_QUADRIC_WEIGHT)
     return vertices, triangles
 
 
