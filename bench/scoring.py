@@ -93,16 +93,16 @@ def border_edges(vertices: np.ndarray, faces: np.ndarray, tolerance: float
                  ) -> tuple[np.ndarray, int]:
     """Open border of the mesh welded at ``tolerance``: the ends ``(E, 2, 3)`` of the edges
     used by exactly one triangle, and the count of non-manifold edges (> 2 triangles)."""
-    welded = weld(vertices, faces, tolerance)
-    welded = welded[(welded[:, 0] != welded[:, 1]) & (welded[:, 1] != welded[:, 2])
-                    & (welded[:, 0] != welded[:, 2])]
+    classes = weld(vertices, faces, tolerance)
+    # positions of the welded vertices: any member of each class will do at this tolerance
+    first = np.zeros(classes.max() + 1 if classes.size else 0, dtype=np.int64)
+    first[classes.reshape(-1)] = faces.reshape(-1)
+    welded = classes[(classes[:, 0] != classes[:, 1]) & (classes[:, 1] != classes[:, 2])
+                     & (classes[:, 0] != classes[:, 2])]
     edges = np.sort(np.concatenate([welded[:, [0, 1]], welded[:, [1, 2]], welded[:, [2, 0]]]),
                     axis=1)
     unique, counts = np.unique(edges, axis=0, return_counts=True)
     border = unique[counts == 1]
-    # positions of the welded vertices: any member of each class will do at this tolerance
-    first = np.zeros(welded.max() + 1 if len(welded) else 0, dtype=np.int64)
-    first[weld(vertices, faces, tolerance).reshape(-1)] = faces.reshape(-1)
     return vertices[first[border]].reshape(-1, 2, 3), int(np.sum(counts > 2))
 
 

@@ -68,15 +68,17 @@ def test_plain_rounding_without_sweeps(problem):
     np.testing.assert_array_equal(q, np.rint(c / step))
 
 
-@pytest.mark.parametrize("rate", [0.0, 2.0])
-def test_feedback_leaves_no_better_single_move(problem, rate):
-    """Converged sweeps: no interior coefficient moved by one step lowers the (penalised)
-    objective; the border ring is plain rounding; without the rate the objective is well
-    below rounding's, and the rate zeroes more values."""
+@pytest.mark.parametrize("rate, share", [(0.0, np.inf), (2.0, np.inf), (1.0, 0.3), (2.0, 0.3)])
+def test_feedback_leaves_no_better_single_move(problem, rate, share):
+    """Converged sweeps: no interior coefficient moved by one step within its bound
+    (``share`` of the largest coefficient) lowers the (penalised) objective; the border ring
+    is plain rounding; without the rate the objective is well below rounding's, and the rate
+    zeroes more values."""
     samples, w, c, step = problem
+    limit = np.full(F, share * float(np.abs(c).max()))
     rounded = np.rint(c / step).astype(np.int64)
-    q = atlas_detail.quantised_blocks(samples, samples.s, LEVEL, SPANS, c, step,
-                                      np.full(F, np.inf), weights=w, sweeps=50, rate=rate)
+    q = atlas_detail.quantised_blocks(samples, samples.s, LEVEL, SPANS, c, step, limit,
+                                      weights=w, sweeps=50, rate=rate)
     ring = atlas_detail.border_ring(c.shape[1])
     np.testing.assert_array_equal(q[:, ring], rounded[:, ring])
     j_fed = _objective(samples, w, q, step, rate)
@@ -84,12 +86,15 @@ def test_feedback_leaves_no_better_single_move(problem, rate):
         assert j_fed < 0.95 * _objective(samples, w, rounded, step)
     else:
         plain = atlas_detail.quantised_blocks(samples, samples.s, LEVEL, SPANS, c, step,
-                                              np.full(F, np.inf), weights=w, sweeps=50, rate=0)
+                                              limit, weights=w, sweeps=50, rate=0)
         assert np.count_nonzero(q) < np.count_nonzero(plain)
+    most = np.rint(limit / step)
     for f, a, b in zip(*np.nonzero(~ring[None].repeat(F, axis=0)), strict=True):
         for move in (-1, 1):
             other = q.copy()
             other[f, a, b] += move
+            if abs(other[f, a, b]) > most[f]:
+                continue  # outside the patch's bound: not a move the fit may make
             assert _objective(samples, w, other, step, rate) >= j_fed * (1 - 1e-12)
 
 

@@ -55,3 +55,12 @@ def test_a_closed_scan_or_a_closed_drawing():
     empty = np.zeros((0, 2, 3))
     assert border_off_scan(drawn, empty, reach=0.1)["off_share"] == 1.0
     assert border_off_scan(empty, drawn, reach=0.1) == {"off_length": 0.0, "off_share": 0.0}
+
+
+def test_a_triangle_the_weld_collapses_is_left_out():
+    """Vertex 3 appears only in a triangle that the weld collapses (two corners the same):
+    the border is the other triangle's three sides."""
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5]])
+    ends, nonmanifold = border_edges(vertices, np.array([[0, 1, 2], [3, 3, 1]]), 1e-9)
+    assert len(ends) == 3 and nonmanifold == 0
+    assert np.linalg.norm(ends[:, 0] - ends[:, 1], axis=1).sum() == pytest.approx(2 + 2 ** 0.5)

@@ -897,18 +897,19 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     others: Gauss-Seidel on the lattice ``step Z`` (iterated conditional modes).
 
     With ``J(c) = c^T M c - 2 b^T c`` and ``g = M c - b``, coefficient ``i`` alone is best at
-    ``t_i = (c_i - g_i / M_ii) / step`` (clipped to ``+-limit_f / step``, the patch's
-    :func:`bounded_by_residual` bound, ``limit (F,)``). The sweeps minimise ``J + lambda
-    sum |q|``, ``|q|`` standing for the integer's bits (the packs code a zero flag and the
-    magnitude in unary bins, ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with
-    ``m`` the median ``M_ii`` of the batch's interior (``rate`` in units of a typical
-    coefficient's data weight): the exact integer minimiser for ``i`` alone is the rounded
-    soft threshold ``q_i = sign(t_i) max(rint(|t_i| - lambda / (2 M_ii step^2)), 0)``. One
-    ``lambda`` for all is the rate-distortion optimum's equal slope (Shoham and Gersho, IEEE
-    Trans. ASSP 1988; rate-distortion optimised quantisation in video coding): a
-    coefficient the samples hardly see (small ``M_ii``) is zeroed sooner. Each move lowers
-    the penalised objective or keeps it, and ``rate = 0`` never leaves the fit worse than
-    rounding. Rounding
+    ``t_i = (c_i - g_i / M_ii) / step``. The sweeps minimise ``J + lambda sum |q|``, ``|q|``
+    standing for the integer's bits (the packs code a zero flag and the magnitude in unary
+    bins, ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with ``m`` the median
+    ``M_ii`` of the batch's interior (``rate`` in units of a typical coefficient's data
+    weight; one median per batch of :data:`BATCH_UNKNOWNS`, so a level of several batches
+    has a ``lambda`` each): the exact integer minimiser for ``i`` alone, within the patch's
+    bound ``|q_i| <= Q_f = rint(limit_f / step)`` (:func:`bounded_by_residual`, ``limit
+    (F,)``, the bound plain rounding of a bounded value keeps), is the rounded soft
+    threshold clipped to it, ``q_i = sign(t_i) min(rint(max(|t_i| - lambda / (2 M_ii
+    step^2), 0)), Q_f)``. One ``lambda`` for all is the rate-distortion optimum's equal
+    slope (Shoham and Gersho, IEEE Trans. ASSP 1988; rate-distortion optimised quantisation
+    in video coding): a coefficient the samples hardly see (small ``M_ii``) is zeroed
+    sooner. Each move lowers the penalised objective or keeps it. Rounding
     alone adds ``step^2 / 12`` of noise to every coefficient, which the drawn surface shows
     where the samples are (Laurana level 0: 28 % of the squared error of all points, Lucy
     26 %, docs/benchmarks.md session 14); here a value is rounded the way that the others,
@@ -955,9 +956,12 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
             moved = 0
             for at, rows_at in parts:
                 g = rows_at @ x - rhs[at]
-                best = np.clip(x[at] - g / diag[at], -bound[at], bound[at]) / step
+                best = (x[at] - g / diag[at]) / step
                 shrink = lam / (2.0 * diag[at] * step * step)
-                new = np.sign(best) * np.maximum(np.rint(np.abs(best) - shrink), 0.0) * step
+                # the rounded soft threshold, then the box: the integer minimiser of a
+                # convex function of one integer within [-Q, Q] is the clipped free one
+                new = np.sign(best) * np.minimum(np.rint(np.maximum(np.abs(best) - shrink, 0.0)),
+                                                 np.rint(bound[at] / step)) * step
                 moved += int(np.count_nonzero(new != x[at]))
                 x[at] = new
             if not moved:

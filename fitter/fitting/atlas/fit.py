@@ -557,18 +557,12 @@ BORDER_WEIGHT = 10.0
 BORDER_REACH = 0.05  # a border point farther than this share of the diagonal is not fitted
 BORDER_SIDE_SAMPLES = 17  # samples per open patch side for the first border foot point
 # The scan's rim points can be fitted this many median edge lengths beyond the rim, outward
-# in the surface's tangent plane (border_points, border_outward): a border curve (one cubic
-# per open patch side) through a jagged rim leaves half its points beyond it, where the foot
-# points are clamped and no detail along the normal reaches them (module docstring, "Open
-# borders"). Laurana, level 0 with the same detail fit (quantisation feedback at rate 1): RMS
-# of all points 0.0506 in 63,620 bytes against 0.0602 in 60,959 without the overshoot; her
-# base 0.2532 against 0.2445 (docs/benchmarks.md, session 14; load 10-12). Off (0) since
-# the layout keeps its border on the scan's (layout.decimate_on_border) and drops narrow
-# triangles (layout.collapse_narrow_triangles): with both, 0.5 drew skirts across the
-# bunny's small holes (largest distance 1.06 / 1.20 % at the base / level 0, 3 % of its
-# drawn border off the scan's) for the same level-0 RMS (1.78e-5), and Laurana's level 0
-# at 88,167 bytes, RMS 0.0179 against Draco's 0.0088 there (2.0x); at 0 the bunny's 0.50 /
-# 0.73 % with no border off, Laurana's level 0 74,494 bytes at 0.0347, Draco's 0.0347.
+# in the surface's tangent plane (border_points, border_outward): a border curve through a
+# jagged rim leaves half its points beyond it, where no detail along the normal reaches them.
+# Off: since the layout keeps its border on the scan's (layout.decimate_on_border) and has no
+# narrow triangles (layout.collapse_narrow_triangles), 0.5 drew skirts across the bunny's
+# small holes (largest distance 1.20 % at level 0) for the same RMS, and moved Laurana's
+# level 0 from 74.5 KB to 88 KB, where Draco is near lossless (docs/benchmarks.md, session 14).
 BORDER_OVERSHOOT = 0.0
 
 
@@ -1223,7 +1217,8 @@ def refined_within_budget(fitted: tuple[AtlasSurface, QuadLayout, int], surface:
 
 
 LAYOUT_THREADS = 2  # layout candidates made, and fitted, at once (the machine's 2 cores)
-_MESHLAB = threading.Lock()  # one pymeshlab filter at a time: it is not thread-safe
+_MESHLAB = threading.Lock()  # the candidates' decimations take turns: pymeshlab is not
+# thread-safe (the fit's other MeshLab calls run on one thread, outside any pool)
 
 
 def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool,
@@ -1479,8 +1474,9 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     # collapse of 10^5 faces takes seconds each time)
     source = surface if layout_surface is None else layout_surface
     # the open border curves follow the scan's border; a stand-in's borders are its own
-    border = (border_points(surface.vertices, surface.faces,
-                            BORDER_OVERSHOOT * median_edge(surface.vertices, surface.faces))
+    overshoot = (BORDER_OVERSHOOT * median_edge(surface.vertices, surface.faces)
+                 if BORDER_OVERSHOOT else 0.0)
+    border = (border_points(surface.vertices, surface.faces, overshoot)
               if layout_surface is None else None)
     scan_mesh = (surface.vertices, surface.faces)
     coarse = source

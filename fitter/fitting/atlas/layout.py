@@ -456,7 +456,8 @@ def collapse_narrow_triangles(surface: ScanSurface, vertices: np.ndarray,
     15-scan Happy Buddha's 2 and 6. ``share = 0.1`` is the smallest that removes all of
     them. Measured with the defaults against all scan points (``bench.bench_atlas.
     score_object``, session 14, load 8-15 on 2 cores, so fit times are not comparable;
-    before: main as benchmarked in session 13), before -> after: bunny 2,304 -> 2,082
+    this change alone on main 7f30806, before: main as benchmarked in session 13; with the
+    session's other changes, docs/benchmarks.md "Session 14"), before -> after: bunny 2,304 -> 2,082
     patches (the bottom's border fans collapsed), level-0 non-manifold edges 5 -> 0 and
     collapsed triangles 23 -> 0, level 0 88,749 -> 86,055 bytes, RMS 1.976e-5 -> 1.927e-5,
     largest distance of the drawn mesh to the scan 0.58 -> 0.79 % (at the bottom's border);
