@@ -922,7 +922,8 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     ``coupling_stride`` apart in ``u`` or ``v`` share no term of ``J``, so one colour of the
     ``stride^2`` colouring ``(a mod stride, b mod stride)`` is updated at once, exactly as
     one at a time. At most ``sweeps`` (default :data:`QUANTISE_SWEEPS`) sweeps over the
-    colours, fewer once none moves.
+    colours, fewer once none moves. The batches on ``threads`` threads (default: one per
+    core), each writing only its own patches' rows, as :func:`_solve_blocks`.
     """
     sweeps = QUANTISE_SWEEPS if sweeps is None else sweeps
     rate = QUANTISE_RATE if rate is None else rate

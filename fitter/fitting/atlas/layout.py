@@ -153,9 +153,8 @@ def border_strays(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndar
         return int(len(layout_border))
     from scipy.spatial import cKDTree
 
-    diagonal = float(np.linalg.norm(np.ptp(surface.vertices, axis=0)))
     distance, _ = cKDTree(surface.vertices[own]).query(vertices[layout_border])
-    return int(np.sum(distance > STRAY_REACH * diagonal))
+    return int(np.sum(distance > STRAY_REACH * surface.diagonal))
 
 
 def decimate_on_border(surface: ScanSurface, target_triangles: int,
@@ -544,12 +543,14 @@ def _on_border(fan: np.ndarray, x: int) -> bool:
 
 def _distance_to(surface: ScanSurface):
     """``distance(points) -> (N,)``: the distance of each point to ``surface`` (``open3d``'s
-    ``RaycastingScene.compute_distance``, single precision, the scene built once)."""
+    ``RaycastingScene.compute_distance``, single precision, the surface's scene shared with
+    the fit's other queries of it: :func:`.measure.mesh_scene`)."""
     import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(surface.vertices, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(surface.faces, np.uint32)))
+    from .measure import mesh_scene
+
+    scene = mesh_scene(np.ascontiguousarray(surface.vertices, np.float32),
+                       np.ascontiguousarray(surface.faces, np.uint32))
 
     def distance(points: np.ndarray) -> np.ndarray:
         query = o3d.core.Tensor(np.ascontiguousarray(points, np.float32))

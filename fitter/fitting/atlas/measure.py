@@ -102,7 +102,7 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray,
     return q
 
 
-SCENES = 2  # meshes whose ray-casting scene (BVH) is kept for the next query (_scene)
+SCENES = 2  # meshes whose ray-casting scene (BVH) is kept for the next query (mesh_scene)
 _scenes: list[tuple[np.ndarray, np.ndarray, object]] = []  # (vertices, faces, scene), newest first
 _scenes_lock = threading.Lock()
 
@@ -112,7 +112,7 @@ def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     return a.shape == b.shape and np.array_equal(a.view(np.uint32), b.view(np.uint32))
 
 
-def _scene(vertices: np.ndarray, faces: np.ndarray):
+def mesh_scene(vertices: np.ndarray, faces: np.ndarray):
     """``open3d``'s ``RaycastingScene`` of the mesh ``vertices (V, 3) float32, faces (T, 3)
     uint32``, kept for the :data:`SCENES` meshes queried last.
 
@@ -146,10 +146,10 @@ def nearest_triangles(points: np.ndarray, vertices: np.ndarray, faces: np.ndarra
     """The index of the triangle nearest to each point, shape (N,): ``open3d``'s
     ``RaycastingScene.compute_closest_points`` (a BVH over every triangle, Embree, in
     single precision, on every core; the scene kept for the next query of the same mesh,
-    :func:`_scene`), in chunks of ``CHUNK`` points."""
+    :func:`mesh_scene`), in chunks of ``CHUNK`` points."""
     import open3d as o3d
 
-    scene = _scene(np.ascontiguousarray(vertices, np.float32),
+    scene = mesh_scene(np.ascontiguousarray(vertices, np.float32),
                    np.ascontiguousarray(faces, np.uint32))
     out = np.empty(len(points), np.int64)
     for start in range(0, len(points), CHUNK):
