@@ -8,14 +8,15 @@ of the patches in group ``g`` travel together in one *pack*, ``detail/K/G.tsdp``
 screen whose error it must refine; ``tessera tessellate --level L`` reads every pack of
 levels ``0..L``.
 
-Version 4 (written; docs/format.md, "Atlas detail packs") codes the whole pack as ONE
-stream of the adaptive binary range coder (``client_py.rangecoder``) after a 24-byte
-header that holds what every tile of an atlas level shares (level, degree, spans, the
-level's quantisation step, the drawn-mask side) and the pack's patch range::
+Version 4 (written when no tile has a walls mask; version 5 when one does:
+docs/format.md, "Atlas detail packs") codes the whole pack as ONE stream of the adaptive
+binary range coder (``client_py.rangecoder``) after a 24-byte header that holds what every
+tile of an atlas level shares (level, degree, spans, the level's quantisation step, the
+drawn and walls masks' sides) and the pack's patch range::
 
     offset  size  field
     0       4     magic  b"TSDP"
-    4       1     version 4 (3, 2 and 1 still read)
+    4       1     version 4, or 5 with walls masks (3, 2 and 1 still read)
     5       1     level k (0..7)
     6       1     degree p (1..3)
     7       1     spans per tile m (1..64)
@@ -24,7 +25,8 @@ level's quantisation step, the drawn-mask side) and the pack's patch range::
     16      4     u32 count: patches first..first+count-1 (>= 1)
     20      1     drawn mask side w (0: no tile has a mask; else 1..64)
     21      1     flags: bit 0 PACK_FLAG_WELDED (version 2: 0)
-    22      2     reserved, 0
+    22      1     version 5: walls mask side s (0: no tile has one; else 1..255); before: 0
+    23      1     reserved, 0
     24      ...   range-coded stream
     end-4   4     CRC-32 of everything before it
 
@@ -52,7 +54,14 @@ pack, except that
   rows; 0 for an absent tile) is first a bit "equal to it", then the value only when it is
   not (a quarter to a third of a level's values from level 1 on);
 
-then, with ``w > 0``, a bit whether the tile has a drawn mask and its ``w²`` cells.
+then, with ``w > 0``, a bit whether the tile has a drawn mask and its ``w²`` cells, and
+(version 5) with ``s > 0`` a bit whether the tile has a *walls mask* and its ``s²`` cells
+(the ``.tsd`` walls mask's cells and contexts, its side in the header instead of the
+stream): the cells that level, when it is the finest applied tile carrying one, leaves
+out (``client_py.layers.DetailTile``, ``walls``: the single patch's rule), where the
+fitter found the mesh drawn at that level with no scan point within reach
+(``fitter.fitting.atlas.detail``, "Drawn cells"). A pack without walls masks is written
+as version 4, byte for byte as before.
 Version 3 is version 4 with the ``.tsd`` v2 tile's contexts; version 2 is version 3 with
 the flags 0. Version 1 packs (an index of per-tile ``.tsd``
 files, 30 bytes of framing per tile: half the bytes of a bunny's level 0) are still read
@@ -88,10 +97,13 @@ from .rangecoder import HALF, RangeDecodeError, RangeDecoder, RangeEncoder
 from .trim import TrimMask
 
 PACK_MAGIC = b"TSDP"
-PACK_VERSION = 4
-READ_VERSIONS = (1, 2, 3, 4)
-# magic version level degree spans step first count drawn_side flags(u8) reserved(u16)
-PACK_HEADER = struct.Struct("<4sBBBBfIIBBH")
+PACK_VERSION = 5  # the newest written: a pack with walls masks (without: WALLS_FREE_VERSION)
+WALLS_FREE_VERSION = 4  # a pack no tile of which has a walls mask, coded as before version 5
+READ_VERSIONS = (1, 2, 3, 4, 5)
+# magic version level degree spans step first count drawn_side flags(u8) walls_side(u8)
+# reserved(u8); before version 5 the walls side is part of a reserved u16, 0
+PACK_HEADER = struct.Struct("<4sBBBBfIIBBBB")
+MAX_PACK_WALLS_SIDE = 255  # cells per side of a pack's walls masks (one byte)
 PACK_FLAG_WELDED = 0x1  # from version 3: a border slot an earlier patch carried is not coded
 PACK_HEADER_SIZE = PACK_HEADER.size  # 24
 PACK_V1_HEADER = struct.Struct("<4sBBHI")  # magic version level reserved count
@@ -110,12 +122,14 @@ def pack_name(level: int, group: int) -> str:
     return f"detail/{level}/{group}.tsdp"
 
 
-def pack_capacity(level: int, patches: int, degree: int, spans: int, side: int = 0) -> int:
-    """The most values (coefficients and drawn cells) a version 2 or 3 pack of ``patches``
-    patches of level ``level`` can hold, ``patches 4^level ((spans + degree)^2 + side^2)``:
-    a writer keeps it within ``MAX_PACK_VALUES`` (and ``patches 4^level`` within
+def pack_capacity(level: int, patches: int, degree: int, spans: int, side: int = 0,
+                  walls: int = 0) -> int:
+    """The most values (coefficients, drawn and walls cells) a version 2..5 pack of
+    ``patches`` patches of level ``level`` can hold, ``patches 4^level ((spans + degree)^2 +
+    side^2 + walls^2)`` (``side``, ``walls``: the drawn and walls masks' sides): a writer
+    keeps it within ``MAX_PACK_VALUES`` (and ``patches 4^level`` within
     ``MAX_PACK_TILES``), which bounds a reader's work whatever the bytes claim."""
-    return patches * (1 << 2 * level) * ((spans + degree) ** 2 + side * side)
+    return patches * (1 << 2 * level) * ((spans + degree) ** 2 + side * side + walls * walls)
 
 
 def _overlap_values(done: Mapping[tuple[int, int], Sequence[int]], i: int, j: int,
@@ -182,7 +196,7 @@ def _carry(carried: dict[int, tuple[int, int]], ring: Sequence[tuple[int, int]],
 
 
 def _model(version: int) -> _TileModel:
-    """The adaptive contexts of a version 2..4 pack's stream: from version 4 the zero flag,
+    """The adaptive contexts of a version 2..5 pack's stream: from version 4 the zero flag,
     the unary bins and the sign by the neighbours' magnitudes and signs
     (``client_py.format._NeighbourTileModel``), before it those of a ``.tsd`` v2 tile."""
     return _NeighbourTileModel() if version >= 4 else _TileModel()
@@ -197,10 +211,12 @@ def _shared(tiles: Sequence[DetailTile], name: str) -> object:
 
 def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
                atlas: AtlasSurface | None = None) -> bytes:
-    """The version 4 pack of ``tiles`` (patch -> its level-``level`` tiles).
+    """The pack of ``tiles`` (patch -> its level-``level`` tiles): version 5 when a tile
+    has a walls mask, else version 4 (the same bytes as before version 5).
 
     Every tile shares the pack's degree, spans and quantisation step (an atlas level has
-    one step: ``fitter.fitting.atlas.detail``) and, when it has one, its drawn mask's side.
+    one step: ``fitter.fitting.atlas.detail``) and, when it has them, its drawn and walls
+    masks' sides.
     With ``atlas`` (the layout the patches lie on) the pack is *welded* (module docstring):
     a border coefficient whose shared slot an earlier patch of the pack carried is not
     coded again, and reading it needs the same atlas.
@@ -209,7 +225,7 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
     ------
     ValueError
         An empty pack, a tile of another level, a patch index out of range (of the atlas
-        too), a repeated tile, tiles that differ in degree, spans, step or mask side, more
+        too), a repeated tile, tiles that differ in degree, spans, step or a mask's side, more
         than ``MAX_PACK_TILES`` tiles / ``MAX_PACK_VALUES`` coefficients in the patch range,
         or, welded, a border coefficient that differs from the value an earlier patch of
         the pack holds in the same shared slot (neighbours share their border integers).
@@ -234,32 +250,25 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
         raise ValueError("a pack holds at least one tile, got none")
     every = list(by_node.values())
     degree, spans, step = (_shared(every, name) for name in ("degree", "spans", "step"))
-    if any(t.walls is not None for t in every):
-        raise ValueError("a pack holds no walls masks (a single patch's .tsd tiles do)")
-    masks = {t.drawn.rows for t in every if t.drawn is not None}
-    if len(masks) > 1 or any(t.drawn.cols != t.drawn.rows for t in every
-                             if t.drawn is not None):
-        raise ValueError(f"every drawn mask of a pack is square with one side; got "
-                         f"{sorted(masks)}")
-    side = masks.pop() if masks else 0
-    if side > MAX_DRAWN_SIDE:
-        raise ValueError(f"a drawn mask has 1..{MAX_DRAWN_SIDE} cells per side, got {side}")
+    side = _mask_side(every, "drawn", MAX_DRAWN_SIDE)
+    walls = _mask_side(every, "walls", MAX_PACK_WALLS_SIDE)
+    version = PACK_VERSION if walls else WALLS_FREE_VERSION
     if any(abs(q) > MAX_TILE_VALUE for t in every for q in t.values):
         raise ValueError(f"tile values must lie within +-{MAX_TILE_VALUE}: raise the step")
     first = min(p for p, _, _ in by_node)
     count = max(p for p, _, _ in by_node) - first + 1
     per_side = 1 << level
     if count * per_side * per_side > MAX_PACK_TILES \
-            or pack_capacity(level, count, degree, spans, side) > MAX_PACK_VALUES:
+            or pack_capacity(level, count, degree, spans, side, walls) > MAX_PACK_VALUES:
         raise ValueError(f"patches {first}..{first + count - 1} of level {level} hold up to "
                          f"{count * per_side * per_side} tiles of {(spans + degree) ** 2} "
-                         f"values (and {side}² drawn cells); a pack holds at most "
+                         f"values (and {side}² drawn, {walls}² walls cells); a pack holds at most "
                          f"{MAX_PACK_TILES} tiles and {MAX_PACK_VALUES} values: split the group")
     if atlas is not None and first + count > len(atlas.quads):
         raise ValueError(f"patch {first + count - 1} is not one of the atlas's "
                          f"{len(atlas.quads)} patches")
-    enc, model = RangeEncoder(), _model(PACK_VERSION)
-    presence, has_mask = [HALF, HALF], [HALF]
+    enc, model = RangeEncoder(), _model(version)
+    presence, has_mask, has_walls = [HALF, HALF], [HALF], [HALF]
     size, before = spans + degree, 0
     carried: dict[int, tuple[int, int]] = {}  # welded: slot -> (first patch, its value)
     for patch in range(first, first + count):
@@ -290,10 +299,28 @@ def write_pack(level: int, tiles: Mapping[int, Sequence[DetailTile]],
                     enc.bit(has_mask, 0, tile.drawn is not None)
                     if tile.drawn is not None:
                         _code_mask(enc, model, side, tile.drawn.flat)
+                if walls:
+                    enc.bit(has_walls, 0, tile.walls is not None)
+                    if tile.walls is not None:
+                        _code_mask(enc, model, walls, tile.walls.flat, model.walls)
     flags = PACK_FLAG_WELDED if atlas is not None else 0
-    body = PACK_HEADER.pack(PACK_MAGIC, PACK_VERSION, level, degree, spans, step, first,
-                            count, side, flags, 0) + enc.finish()
+    body = PACK_HEADER.pack(PACK_MAGIC, version, level, degree, spans, step, first,
+                            count, side, flags, walls, 0) + enc.finish()
     return body + struct.pack("<I", zlib.crc32(body))
+
+
+def _mask_side(tiles: Sequence[DetailTile], name: str, largest: int) -> int:
+    """The one side of the tiles' ``name`` masks (``drawn`` or ``walls``), 0 without any;
+    ``ValueError`` for masks that are not square with one side in ``1..largest``."""
+    masks = [getattr(t, name) for t in tiles if getattr(t, name) is not None]
+    sides = {m.rows for m in masks}
+    if len(sides) > 1 or any(m.cols != m.rows for m in masks):
+        raise ValueError(f"every {name} mask of a pack is square with one side; got "
+                         f"{sorted((m.rows, m.cols) for m in masks)[:4]}")
+    side = sides.pop() if sides else 0
+    if side > largest:
+        raise ValueError(f"a {name} mask has 1..{largest} cells per side, got {side}")
+    return side
 
 
 def pack_is_welded(data: bytes) -> bool:
@@ -305,7 +332,7 @@ def pack_is_welded(data: bytes) -> bool:
 
 def read_pack(data: bytes, atlas: AtlasSurface | None = None
               ) -> tuple[int, dict[int, list[DetailTile]]]:
-    """``(level, {patch: [tiles]})`` of a pack's bytes, version 4, 3, 2 or 1 (module
+    """``(level, {patch: [tiles]})`` of a pack's bytes, version 5, 4, 3, 2 or 1 (module
     docstring).
 
     ``atlas``: the layout the pack's patches lie on, needed by a welded pack (version 3 or
@@ -341,12 +368,13 @@ def read_pack(data: bytes, atlas: AtlasSurface | None = None
 
 def _read_pack_stream(data: bytes, level: int, version: int,
                       atlas: AtlasSurface | None) -> dict[int, list[DetailTile]]:
-    """Versions 2, 3 and 4: the header and ONE range-coded stream (version 2 is version 3
-    with every flag 0; version 4 is version 3 with the contexts of :func:`_model`)."""
+    """Versions 2..5: the header and ONE range-coded stream (version 2 is version 3 with
+    every flag 0; version 4 is version 3 with the contexts of :func:`_model`; version 5 is
+    version 4 with walls masks)."""
     if len(data) < PACK_HEADER_SIZE + CRC_SIZE:
         raise PatchFormatError(len(data), f"a version {version} pack has at least "
                                f"{PACK_HEADER_SIZE + CRC_SIZE} bytes, got {len(data)}")
-    _, _, _, degree, spans, step, first, count, side, flags, reserved = \
+    _, _, _, degree, spans, step, first, count, side, flags, walls, reserved = \
         PACK_HEADER.unpack_from(data)
     if not 1 <= degree <= MAX_DETAIL_DEGREE:
         raise PatchFormatError(6, f"degree {degree} outside 1..{MAX_DETAIL_DEGREE}")
@@ -356,10 +384,12 @@ def _read_pack_stream(data: bytes, level: int, version: int,
         raise PatchFormatError(8, f"quantisation step {step} is not a positive finite number")
     if side > MAX_DRAWN_SIDE:
         raise PatchFormatError(20, f"drawn mask side {side} outside 0..{MAX_DRAWN_SIDE}")
+    if walls and version < 5:
+        raise PatchFormatError(22, "reserved bytes are not 0")
     per_side = 1 << level
     if not 1 <= count or first + count > MAX_PACK_PATCH \
             or count * per_side * per_side > MAX_PACK_TILES \
-            or pack_capacity(level, count, degree, spans, side) > MAX_PACK_VALUES:
+            or pack_capacity(level, count, degree, spans, side, walls) > MAX_PACK_VALUES:
         raise PatchFormatError(12, f"patches {first}..{first + count - 1} of level {level}: "
                                f"a pack holds 1..{MAX_PACK_TILES} tiles, at most "
                                f"{MAX_PACK_VALUES} values, patches below {MAX_PACK_PATCH}")
@@ -368,7 +398,7 @@ def _read_pack_stream(data: bytes, level: int, version: int,
         raise PatchFormatError(21, f"unknown flags 0x{flags:02x} (version {version})"
                                if version >= 3 else "reserved bytes are not 0")
     if reserved:
-        raise PatchFormatError(22, "reserved bytes are not 0")
+        raise PatchFormatError(23, "reserved bytes are not 0")
     welded = bool(flags & PACK_FLAG_WELDED)
     if welded and atlas is None:
         raise ValueError("a welded pack (version 3 or 4, flag 0x1) codes each shared border "
@@ -378,7 +408,7 @@ def _read_pack_stream(data: bytes, level: int, version: int,
                                f"{len(atlas.quads)}")
     size = spans + degree
     model = _model(version)
-    presence, has_mask = [HALF, HALF], [HALF]
+    presence, has_mask, has_walls = [HALF, HALF], [HALF], [HALF]
     tiles: dict[int, list[DetailTile]] = {}
     carried: dict[int, tuple[int, int]] = {}
     rings = _ring_template(level, spans, degree) if welded else {}
@@ -403,11 +433,16 @@ def _read_pack_stream(data: bytes, level: int, version: int,
                     drawn = None
                     if side and dec.bit(has_mask, 0):
                         drawn = TrimMask.from_flat(side, side, _code_mask(dec, model, side))
+                    wall = None
+                    if walls and dec.bit(has_walls, 0):
+                        wall = TrimMask.from_flat(walls, walls, _code_mask(dec, model, walls,
+                                                                           None, model.walls))
                     if any(abs(q) > MAX_TILE_VALUE for q in values):
                         raise PatchFormatError(PACK_HEADER_SIZE, f"patch {patch} tile {i}_{j}: "
                                                f"decoded values beyond +-{MAX_TILE_VALUE}")
                     tiles.setdefault(patch, []).append(
-                        DetailTile(level, i, j, degree, spans, step, tuple(values), drawn))
+                        DetailTile(level, i, j, degree, spans, step, tuple(values), drawn,
+                                   wall))
     except RangeDecodeError as exc:
         raise PatchFormatError(len(data) - CRC_SIZE, f"coded tiles end early: {exc}") from None
     return tiles

@@ -38,6 +38,14 @@ Detail: ``X = C_f + D_f n_f`` with ``D_f`` the sum of patch ``f``'s tiles
 normal; a border vertex that several patches sample takes the mean of their
 displacements along the normalised mean of their unit normals, so the mesh stays welded
 and watertight at every level.
+
+Drawn cells (docs/format.md, "Atlas detail packs", version 5): a patch's tiles may carry
+*walls masks*, the single patch's rule (``client_py.layers.drawn_cell_indices``): a cell
+whose centre the walls mask of the finest applied tile carrying one covers is not drawn
+(the fitter marks the cells of a level with no scan point within reach, where the atlas
+was extrapolated over a part the scan lacks). Only triangles are left out: every vertex
+stays where it is, so the patches left drawn on either side of a border still share its
+vertices (no crack), and the mesh is open only around the cells left out.
 """
 
 from __future__ import annotations
@@ -55,7 +63,7 @@ from operator import itemgetter
 from . import _kernel, _kernel_python
 from .atlas import AtlasSurface, atlas_edges
 from .basis import basis_table
-from .layers import DetailTile, displacement_grid
+from .layers import DetailTile, displacement_grid, drawn_cell_indices
 from .ply import write_ply
 from .surface import NORMAL_TOLERANCE
 from .tessellate import MAX_GRID, Mesh, _samples, grid_indices
@@ -669,10 +677,12 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         for f in patches:
             r, local = res[f], ids[f]
             finer = layout.finer_sides(f)
+            kept = _drawn_cells(tiles.get(f), r, kernel)
             if not any(finer):
-                indices.extend(map(local.__getitem__, grid_indices(r, r, kernel=kernel)))
+                cells = grid_indices(r, r, kernel=kernel) if kept is None else kept
+                indices.extend(map(local.__getitem__, cells))
                 continue
-            indices.extend(_patch_triangles(layout, f, r, local, finer, centres.add))
+            indices.extend(_patch_triangles(layout, f, r, local, finer, centres.add, kept))
         triangles.append(indices)
     if centres.owners:
         positions.extend(centres.positions)
@@ -724,7 +734,8 @@ class _WeldPlan:
     the layout (``n_border`` of them on corners and edges), the groups of patches by
     resolution, the in-between vertices (``_Layout.in_between``), whether normals are taken
     by differences of the displaced surface (any detail), the triangles of the patches with
-    finer neighbours (``{f: triangles}``, :func:`_patch_triangles`), the centre vertices
+    finer neighbours or walls masks (``{f: triangles}``, :func:`_patch_triangles`,
+    :func:`_drawn_cells`), the centre vertices
     these add (``positions, normals, uvs, owners``, :class:`_Centres`), and whether shading
     normals are wanted at all (``shading``: :func:`tessellate_atlas`'s ``normals``)."""
 
@@ -788,12 +799,15 @@ def _weld_plan(atlas: AtlasSurface, layout: _Layout, comps: list[list[float]],
         group.displacements.append(displacement_grid(tiles[f], params, params, kernel)
                                    if f in tiles else None)
     centres = _Centres(surface, tiles, kernel, layout.count)
-    fans = {}
+    fans = {}  # the patches whose triangles are not the whole grid's
     for f, r in enumerate(res):
         finer = layout.finer_sides(f)
+        kept = _drawn_cells(tiles.get(f), r, kernel)
         if any(finer):
             fans[f] = array("I", _patch_triangles(layout, f, r, layout.patch_vertices(f)[0],
-                                                  finer, centres.add))
+                                                  finer, centres.add, kept))
+        elif kept is not None:
+            fans[f] = array("I", map(layout.patch_vertices(f)[0].__getitem__, kept))
     return _WeldPlan(layout.count, layout.border_count, groups, layout.in_between(),
                      bool(tiles), fans,
                      (centres.positions, centres.normals, centres.uvs, centres.owners),
@@ -840,16 +854,32 @@ class _Centres:
         return self.count + len(self.owners) - 1
 
 
+def _drawn_cells(tiles: Sequence[DetailTile] | None, r: int, kernel: str | None
+                 ) -> array | None:
+    """The triangles (grid slots ``i r + j``) of the cells of a patch's ``r x r`` grid that
+    its tiles' walls masks leave drawn (``client_py.layers.drawn_cell_indices``); ``None``
+    when no tile has a walls mask (every cell is drawn)."""
+    if not tiles or all(tile.walls is None for tile in tiles):
+        return None
+    params = _samples(0.0, 1.0, r)
+    return drawn_cell_indices(None, tiles, params, params, kernel)
+
+
 def _patch_triangles(layout: _Layout, f: int, r: int, local: list[int], finer: list[bool],
-                     centre) -> list[int]:
+                     centre, kept: array | None = None) -> list[int]:
     """Triangles of a patch with finer neighbours on the sides ``finer[k]``: whole cells
     as two triangles, border cells as a fan through the neighbour's extra vertices from a
     corner whose own two sides have none (or from the cell's centre, a new vertex, when no
-    corner has: a 2-sample patch between finer neighbours)."""
+    corner has: a 2-sample patch between finer neighbours). ``kept``: the drawn cells'
+    triangles (:func:`_drawn_cells`; ``None``: every cell), whose first slots ``i r + j``
+    name the cells drawn."""
     out: list[int] = []
     last = r - 2
+    drawn = None if kept is None else set(kept[0::6])
     for i in range(r - 1):
         for j in range(r - 1):
+            if drawn is not None and i * r + j not in drawn:
+                continue
             a, b = local[i * r + j], local[(i + 1) * r + j]
             c, d = local[(i + 1) * r + j + 1], local[i * r + j + 1]
             # CCW in (u, v): a(i, j) -> b(i+1, j) -> c(i+1, j+1) -> d(i, j+1)

@@ -419,6 +419,26 @@ def walls_vetoes(tiles: Sequence[DetailTile], us: Sequence[float],
     return _mask_covers(tiles, cu, cv, "walls")
 
 
+def drawn_cell_indices(trim: TrimMask | None, tiles: Sequence[DetailTile], us: Sequence[float],
+                       vs: Sequence[float], kernel: str | None = None) -> array:
+    """Triangles of the cells of the grid ``us x vs`` (normalised parameters, vertex ``k =
+    i len(vs) + j``) a tessellation draws: the one rule of a single patch's region and of
+    an atlas's patch (``client_py.atlas_mesh``). A cell is drawn where ``trim`` (``None``:
+    every cell) or a given tile's ``drawn`` mask covers its centre (:func:`drawn_covers`),
+    unless the ``walls`` mask of the finest given tile carrying one covers it
+    (:func:`walls_vetoes`); the two triangles of a drawn cell as :func:`grid_indices`."""
+    nu, nv = len(us), len(vs)
+    vetoes = walls_vetoes(tiles, us, vs)
+    if trim is None and vetoes is None:
+        return grid_indices(nu, nv, kernel=kernel)
+    backend = _kernel.backend(kernel)
+    if vetoes is None:
+        return backend.cell_indices(nu, nv, drawn_covers(trim, tiles, us, vs))
+    # without a trim, every cell is drawn but for the walls
+    trim = TrimMask.from_flat(1, 1, b"\x01") if trim is None else trim
+    return backend.cell_indices(nu, nv, drawn_covers(trim, tiles, us, vs), vetoes)
+
+
 @dataclass(frozen=True)
 class RegionSamples:
     """The base patch and the detail levels sampled for one region: what its mesh
@@ -499,7 +519,6 @@ def mesh_of_region(surface: NurbsSurface, samples: RegionSamples, tiles: Sequenc
                    kernel: str | None = None, textures: Iterable[TextureImage] = ()) -> Mesh:
     """The mesh :func:`tessellate_region` returns, from the region's samples and its tiles."""
     us, vs = samples.us, samples.vs
-    nu, nv = len(us), len(vs)
     backend = _kernel.backend(kernel)
     if samples.levels:
         n_i, n_j = len(samples.ext_u), len(samples.ext_v)
@@ -511,18 +530,10 @@ def mesh_of_region(surface: NurbsSurface, samples: RegionSamples, tiles: Sequenc
     else:  # no ring: the sampled grid is the region's
         positions, normals = array("f", samples.positions), array("f", samples.normals)
     uvs = grid_uvs(us, vs)
-    vetoes = walls_vetoes(tiles, us, vs)
-    if surface.trim is None and vetoes is None:
-        indices = grid_indices(nu, nv, kernel=kernel)
-    elif vetoes is None:
-        indices = backend.cell_indices(nu, nv, drawn_covers(surface.trim, tiles, us, vs))
-    else:  # without a trim, every cell is drawn but for the walls
-        trim = TrimMask.from_flat(1, 1, b"\x01") if surface.trim is None else surface.trim
-        indices = backend.cell_indices(nu, nv, drawn_covers(trim, tiles, us, vs), vetoes)
-    mesh = Mesh(positions, normals, uvs, indices)
+    mesh = Mesh(positions, normals, uvs, drawn_cell_indices(surface.trim, tiles, us, vs, kernel))
     textures = list(textures)
     if textures:
-        mesh.colors = vertex_colours(uvs, textures, kernel, nv)
+        mesh.colors = vertex_colours(uvs, textures, kernel, len(vs))
     return mesh
 
 

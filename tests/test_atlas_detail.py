@@ -9,6 +9,7 @@ import random
 import struct
 import time
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,7 @@ from client_py.atlas_detail import (
     PACK_HEADER,
     PACK_HEADER_SIZE,
     PACK_VERSION,
+    WALLS_FREE_VERSION,
     pack_is_welded,
     pack_name,
     read_pack,
@@ -59,7 +61,7 @@ def test_round_trip():
     level, tiles = read_pack(data)
     assert level == 1
     assert _as_table(tiles) == _as_table(_tiles())
-    assert data[4] == PACK_VERSION == 4 and data[21] == 0 and not pack_is_welded(data)
+    assert data[4] == WALLS_FREE_VERSION == 4 and data[21] == 0 and not pack_is_welded(data)
     assert len(data) == PACK_HEADER_SIZE + len(data[PACK_HEADER_SIZE:-4]) + 4
 
 
@@ -83,6 +85,56 @@ def test_round_trip_against_an_independent_reference():
     level, tiles = read_pack(write_pack(2, reference))
     assert level == 2
     assert _as_table(tiles) == _as_table(reference)
+
+
+def _walls_table(tiles: dict) -> dict:
+    return {p: [(t.i, t.j, None if t.walls is None else (t.walls.rows, t.walls.flat))
+                for t in sorted(ts, key=lambda t: (t.i, t.j))] for p, ts in tiles.items()}
+
+
+@pytest.mark.parametrize("welded", [False, True])
+def test_walls_masks_round_trip_as_version_5(welded):
+    """Tiles with walls masks (some without, some with drawn masks too, one with all-zero
+    values and an all-clear mask) come back exactly from a version 5 pack, welded or
+    not; the same tiles without their walls masks are written as version 4, byte for byte
+    the pack of before."""
+    rnd = random.Random(11)
+    atlas = sphere_atlas(2, noise=0.0) if welded else None
+    reference = {}
+    for patch in range(6):
+        for i in range(2):
+            for j in range(2):
+                values = tuple(0 if welded else rnd.randint(-5, 5) for _ in range(36))
+                walls = TrimMask.from_flat(8, 8, bytes(rnd.random() < 0.3 for _ in range(64))) \
+                    if rnd.random() < 0.6 else None
+                if (patch, i, j) == (2, 1, 1):
+                    walls = TrimMask.from_flat(8, 8, bytes(64))  # all clear
+                drawn = TrimMask.from_flat(4, 4, bytes(rnd.random() < 0.5 for _ in range(16))) \
+                    if rnd.random() < 0.3 else None
+                reference.setdefault(patch, []).append(
+                    DetailTile(1, i, j, 2, 4, 0.01, values, drawn, walls))
+    data = write_pack(1, reference, atlas)
+    assert data[4] == PACK_VERSION == 5 and data[22] == 8 and data[23] == 0
+    level, tiles = read_pack(data, atlas)
+    assert level == 1
+    assert _as_table(tiles) == _as_table(reference)
+    assert _walls_table(tiles) == _walls_table(reference)
+    bare = {p: [replace(t, walls=None) for t in ts] for p, ts in reference.items()}
+    old = write_pack(1, bare, atlas)
+    assert old[4] == WALLS_FREE_VERSION and old[22] == 0
+    assert _walls_table(read_pack(old, atlas)[1]) == _walls_table(bare)
+    # the walls masks add their bits, nothing else changes but the version and side bytes
+    assert old[:4] + old[5:22] == data[:4] + data[5:22] and len(old) < len(data)
+
+
+def test_walls_masks_of_a_pack_share_one_side():
+    tiles = {0: [replace(_tile(1, 0, 0, 1), walls=TrimMask.from_flat(4, 4, bytes(16))),
+                 replace(_tile(1, 0, 1, 2), walls=TrimMask.from_flat(8, 8, bytes(64)))]}
+    with pytest.raises(ValueError, match="every walls mask of a pack is square with one side"):
+        write_pack(1, tiles)
+    big = TrimMask.from_flat(256, 256, bytes(256 * 256))
+    with pytest.raises(ValueError, match="a walls mask has 1..255 cells per side, got 256"):
+        write_pack(0, {0: [replace(_tile(0, 0, 0, 1), walls=big)]})
 
 
 @pytest.mark.parametrize("fixture,version", [(V1_FIXTURE, 1), (V2_FIXTURE, 2),
@@ -136,7 +188,7 @@ def _reframe(body: bytes) -> bytes:
 
 def _with_header(data: bytes, **fields) -> bytes:
     names = ("magic", "version", "level", "degree", "spans", "step", "first", "count", "side",
-             "flags", "reserved2")
+             "flags", "walls", "reserved")
     head = dict(zip(names, PACK_HEADER.unpack_from(data), strict=True)) | fields
     return _reframe(PACK_HEADER.pack(*head.values()) + data[PACK_HEADER_SIZE:-4])
 
@@ -145,7 +197,7 @@ def _with_header(data: bytes, **fields) -> bytes:
     (lambda b: b[:10], "at least"),
     (lambda b: b[:-5] + bytes([b[-5] ^ 1]) + b[-4:], "CRC"),
     (lambda b: _reframe(b"TSDX" + b[4:-4]), "magic"),
-    (lambda b: _with_header(b, version=5), "version 5"),
+    (lambda b: _with_header(b, version=6), "version 6"),
     (lambda b: _with_header(b, flags=2), "unknown flags 0x02"),
     (lambda b: _with_header(b, version=2, flags=1), "reserved"),
     (lambda b: _with_header(b, level=9), "level 9"),
@@ -157,7 +209,8 @@ def _with_header(data: bytes, **fields) -> bytes:
     (lambda b: _with_header(b, first=65_535), "patches"),
     (lambda b: _with_header(b, count=50_000), "values"),
     (lambda b: _with_header(b, side=65), "drawn mask side 65"),
-    (lambda b: _with_header(b, reserved2=1), "reserved"),
+    (lambda b: _with_header(b, reserved=1), "reserved"),
+    (lambda b: _with_header(b, walls=1), "reserved"),  # a version 4 pack has no walls
     (lambda b: _reframe(b[:PACK_HEADER_SIZE + 3]), "end early"),
     (lambda b: _with_header(b, count=40), "end early"),
 ])

@@ -486,3 +486,106 @@ def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeyp
         np.testing.assert_array_equal(x, y)
     for name in ("u", "v", "weight", "target", "node", "node_patch", "node_u", "node_v"):
         np.testing.assert_array_equal(getattr(model_1, name), getattr(model_4, name))
+
+
+# ------------------------------------------------------------------ drawn cells
+CAP = 0.6  # the capped scan has no point above z = CAP
+
+
+def _capped_sphere_fit():
+    """The bumpy sphere as a CLOUD without its cap ``z > CAP`` (a part the scan lacks),
+    fitted on the plain sphere atlas, whose cap then lies over no scan point (its stand-in
+    surface, as a cloud's Poisson surface, is the whole icosphere)."""
+    fit, mesh_scan = _bumpy_sphere_fit()
+    rng = np.random.default_rng(2)
+    # a cloud: points of the bumpy sphere's triangles, none above the cap's plane
+    tri = mesh_scan.points[mesh_scan.faces]
+    w = rng.dirichlet(np.ones(3), size=len(tri) * 3)
+    points = np.einsum("nk,nkc->nc", w, np.repeat(tri, 3, axis=0))
+    points = points[points[:, 2] <= CAP]
+    scan = make_scan("capped", points, source={"name": "capped"})
+    surface = ScanSurface(mesh_scan.points, mesh_scan.faces, "cloud", 1)
+    return replace(fit, surface=surface), scan
+
+
+@pytest.fixture(scope="module")
+def capped():
+    fit, scan = _capped_sphere_fit()
+    return scan, atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4, pack_bytes=1000)
+
+
+def _cell_triangles(mesh, F, r):
+    """The drawn mesh's triangles as ``(F, r - 1, r - 1, 2, 3)`` vertex indices (whole grids)."""
+    return np.frombuffer(mesh.indices, np.uint32).reshape(F, r - 1, r - 1, 2, 3)
+
+
+def test_levels_stop_drawing_the_cells_over_no_scan_and_only_those(capped):
+    """Read back from the packs, each level's walls masks leave out exactly the cells of
+    its drawn grid with every point farther than DRAWN_REACH of the diagonal from the scan
+    (checked on dense samples of each cell, a brute-force measure independent of the
+    fitter's corner-ball rule): none where a scan point is within reach, all well inside
+    the missing cap; the rest of the mesh is the mesh drawn without masks, and it is open
+    only around the cells left out (no edge of three triangles)."""
+    from scipy.spatial import cKDTree
+
+    scan, det = capped
+    F = len(det.atlas.quads)
+    points = np.asarray(scan.points)
+    reach = atlas_detail.DRAWN_REACH * np.linalg.norm(np.ptp(points, axis=0))
+    tree = cKDTree(points)
+    read: dict = {}
+    for p in det.tree["packs"]:
+        data = det.files[pack_name(p["level"], p["group"])]
+        assert data[4] == 5  # walls masks: version 5
+        level, tiles = read_pack(data, det.atlas)
+        for f, got in tiles.items():
+            read.setdefault(level, {})[f] = got
+    assert det.tree["format_version"] == 5
+    for k, row in enumerate(det.tree["levels"]):
+        r = row["resolution"]
+        upto = {}
+        for j in range(k + 1):
+            for f, got in read.get(j, {}).items():
+                upto.setdefault(f, []).extend(got)
+        walled = tessellate_atlas(det.atlas, r, upto, kernel="python")
+        plain = tessellate_atlas(det.atlas, r, {f: [replace(t, walls=None) for t in ts]
+                                                for f, ts in upto.items()}, kernel="numpy")
+        assert walled.positions.tobytes() == plain.positions.tobytes()
+        cells = _cell_triangles(plain, F, r).reshape(-1, 2, 3)
+        kept = {tuple(t) for t in np.frombuffer(walled.indices, np.uint32).reshape(-1, 3)[::2]}
+        left_out = np.array([tuple(c[0]) not in kept for c in cells])
+        assert row["walls"] == left_out.sum() > 0
+        assert len(walled.indices) == 6 * (len(cells) - left_out.sum())
+        x = np.frombuffer(plain.positions, np.float32).reshape(-1, 3).astype(float)
+        # dense samples of every cell's two triangles (barycentric grid, corners included)
+        s = np.linspace(0, 1, 7)
+        bary = np.array([(a, b, 1 - a - b) for a in s for b in s if a + b <= 1 + 1e-12])
+        near = np.zeros(len(cells), bool)
+        for t in range(2):
+            corners = x[cells[:, t]]  # (C, 3, 3)
+            samples = np.einsum("sk,ckd->csd", bary, corners)
+            d, _ = tree.query(samples.reshape(-1, 3))
+            near |= (d.reshape(len(cells), -1) <= reach).any(axis=1)
+        assert not (left_out & near).any()  # never a hole where the scan is present
+        centre = x[cells[:, 0, 0]] * 0.5 + x[cells[:, 1, 2]] * 0.5
+        assert left_out[centre[:, 2] > 0.9].all()  # deep in the cap: nothing drawn
+        assert centre[left_out, 2].min() > CAP  # only over the missing cap
+        undirected, _ = _edge_counts(walled)
+        assert max(undirected) == 2 and min(undirected) == 1
+
+
+def _edge_counts(mesh):
+    tri = np.frombuffer(mesh.indices, np.uint32).reshape(-1, 3).astype(np.int64)
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return counts, None
+
+
+def test_a_closed_scan_has_no_walls_masks_and_version_4_packs(fitted):
+    """The bumpy sphere's mesh is within reach everywhere: no level leaves a cell out, and
+    every pack is version 4 (the bytes of before)."""
+    _, _, det = fitted
+    assert det.tree["format_version"] == 4
+    assert all(data[4] == 4 for data in det.files.values())
+    assert all("walls" not in row for row in det.tree["levels"])
+    assert all(t.walls is None for level in det.tiles for ts in level.values() for t in ts)

@@ -9,6 +9,7 @@ import io
 import math
 import random
 from collections import Counter
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from client_py.atlas_mesh import (
     tessellate_atlas_parts,
 )
 from client_py.layers import DetailTile
+from client_py.trim import TrimMask
 
 MIXED = [3, 5, 9, 3, 5, 2]  # the cube's six patches: 2, 4 and 8 segments a side
 
@@ -385,6 +387,115 @@ def test_a_mesh_without_normals_is_the_drawn_mesh_bit_for_bit(case, weld):
     if case == 1:  # the public function passes it on
         mesh = tessellate_atlas(atlas, resolution, detail, kernel=kernel, normals=False)
         assert mesh.positions.tobytes() == full.positions.tobytes() and not mesh.normals
+
+
+# ------------------------------------------------------------------ walls masks
+def walled_tiles(seed: int, levels: int = 2, side: int = 8, share: float = 0.3
+                 ) -> list[DetailTile]:
+    """:func:`random_tiles` with random walls masks (``side`` cells a side) on about half
+    the tiles of each level, the rest without one (a coarser level's then decides)."""
+    rnd = random.Random(1000 + seed)
+    return [replace(tile, walls=TrimMask.from_flat(
+                side, side, bytes(rnd.random() < share for _ in range(side * side))))
+            if rnd.random() < 0.5 else tile for tile in random_tiles(seed, levels)]
+
+
+def _left_out(tiles: list[DetailTile], r: int) -> set[tuple[int, int]]:
+    """Reference: the cells ``(i, j)`` of an ``r x r`` grid whose centre the walls mask of
+    the finest tile carrying one and holding it covers (docs/format.md, walls masks)."""
+    out = set()
+    for i in range(r - 1):
+        for j in range(r - 1):
+            u, v = (i + 0.5) / (r - 1), (j + 0.5) / (r - 1)
+            finest = None
+            for tile in tiles:
+                n = 1 << tile.level
+                if tile.walls is not None and (tile.i, tile.j) == (min(int(u * n), n - 1),
+                                                                   min(int(v * n), n - 1)):
+                    if finest is None or tile.level > finest.level:
+                        finest = tile
+            if finest is not None:
+                n, w = 1 << finest.level, finest.walls.rows
+                a = min(int((u * n - finest.i) * w), w - 1)
+                b = min(int((v * n - finest.j) * w), w - 1)
+                if finest.walls.flat[a * w + b]:
+                    out.add((i, j))
+    return out
+
+
+@pytest.mark.parametrize("kernel", ["python", "numpy"])
+@pytest.mark.parametrize("r", [5, 9, 17])
+def test_walls_masks_leave_out_their_cells_and_nothing_else(kernel, r):
+    """With walls masks on the tiles, the welded mesh has the same vertices bit for bit
+    and exactly the triangles of the mesh without them less the two of every cell the
+    reference (:func:`_left_out`) leaves out; no edge is used by more than two
+    triangles, and one used by one borders a left-out cell."""
+    if kernel == "numpy":
+        pytest.importorskip("numpy")
+    atlas = random_cube_atlas(3, 2)
+    walled = {f: walled_tiles(f) for f in range(len(atlas.quads))}
+    plain = {f: [replace(t, walls=None) for t in tiles] for f, tiles in walled.items()}
+    full = tessellate_atlas(atlas, r, plain, kernel=kernel)
+    cut = tessellate_atlas(atlas, r, walled, kernel=kernel)
+    for name in ("positions", "normals", "uvs", "patches"):
+        assert getattr(cut, name).tobytes() == getattr(full, name).tobytes(), name
+    cells = (r - 1) ** 2
+    tris = np.asarray(full.indices).reshape(len(atlas.quads), cells, 2, 3)
+    expected, dropped = [], 0
+    for f in range(len(atlas.quads)):
+        out = _left_out(walled[f], r)
+        dropped += len(out)
+        expected += [tris[f, i * (r - 1) + j] for i in range(r - 1) for j in range(r - 1)
+                     if (i, j) not in out]
+    assert 0 < dropped < len(atlas.quads) * cells
+    assert np.array_equal(np.asarray(cut.indices).reshape(-1, 2, 3), np.array(expected))
+    undirected, _ = edge_uses(cut)
+    assert max(undirected.values()) == 2 and min(undirected.values()) == 1
+
+
+def test_a_finer_walls_mask_gives_back_what_a_coarser_one_took():
+    """Level 0 leaves out every cell; an all-clear level-1 mask on one tile draws that
+    quarter again (the finest applied walls mask decides)."""
+    atlas = random_cube_atlas(3, 2)
+    tiles = random_tiles(0)
+    every = TrimMask.from_flat(8, 8, b"\x01" * 64)
+    clear = TrimMask.from_flat(8, 8, bytes(64))
+    walled = [replace(t, walls=every) if t.level == 0 else
+              replace(t, walls=clear) if (t.level, t.i, t.j) == (1, 1, 0) else t for t in tiles]
+    mesh = tessellate_atlas(atlas, 9, {0: walled}, kernel="python")
+    full = np.asarray(tessellate_atlas(atlas, 9, {0: tiles}, kernel="python").indices)
+    cells = full.reshape(6, 8, 8, 6)  # patch, cell row i (u), cell column j (v), triangles
+    expected = np.concatenate([cells[0, 4:, :4].reshape(-1), cells[1:].reshape(-1)])
+    assert np.array_equal(np.asarray(mesh.indices), expected)
+
+
+@pytest.mark.parametrize("kernel", ["python", "numpy"])
+def test_walled_parts_are_the_walled_welded_mesh_bit_for_bit(kernel):
+    """Groups drawn apart at mixed levels with walls masks are the whole welded mesh's
+    triangles (the viewer's parts honour the masks as the download does), fans at
+    resolution changes included."""
+    if kernel == "numpy":
+        pytest.importorskip("numpy")
+    atlas = sphere_atlas(2, noise=0.02, seed=4)
+    groups = _groups_of(atlas, 1)
+    rnd = random.Random(3)
+    resolution, detail = [], {}
+    for group in groups:
+        level = rnd.randrange(-1, 2)
+        resolution += [(5, 9, 17)[level + 1]] * len(group)
+        if level >= 0:
+            detail.update({f: walled_tiles(f, levels=level + 1, side=4, share=0.4)
+                           for f in group})
+    whole = tessellate_atlas(atlas, resolution, detail, kernel=kernel)
+    plain = tessellate_atlas(atlas, resolution,
+                             {f: [replace(t, walls=None) for t in ts] for f, ts in detail.items()},
+                             kernel=kernel)
+    assert 0 < whole.triangle_count < plain.triangle_count
+    apart = [tessellate_atlas_parts(atlas_parts(atlas, [group]), resolution, detail,
+                                    kernel=kernel)[0] for group in groups]
+    for name, width in (("positions", 3), ("normals", 3), ("uvs", 2), ("patches", 1)):
+        joined = np.concatenate([_drawn(m, name, width) for m in apart])
+        assert joined.tobytes() == _drawn(whole, name, width).tobytes(), name
 
 
 # ------------------------------------------------------------------ one group's share of it

@@ -77,8 +77,9 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
 def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
     """Whether ``bundle`` was fitted from this input (same SHA-256) with these options, and
     its detail tiles (if any) are in the ``.tsd`` version this code reads (of an atlas,
-    manifest version 2: its packs' tiles, ``tile_format_version``, and the ``.tsdp`` version)."""
-    from client_py.atlas_detail import PACK_VERSION
+    manifest version 2: its packs' tiles, ``tile_format_version``, and the ``.tsdp`` version
+    the code writes: 4, or 5 with walls masks)."""
+    from client_py.atlas_detail import PACK_VERSION, WALLS_FREE_VERSION
     from client_py.format import TILE_VERSION
 
     try:
@@ -90,7 +91,8 @@ def is_up_to_date(bundle: Path, sha256: str, options: FitOptions) -> bool:
     detail = (manifest.get("tiles") or {}).get("detail") or {}
     if manifest.get("format_version") == 2:
         tiles_current = not detail or (detail.get("tile_format_version") == TILE_VERSION
-                                       and detail.get("format_version") == PACK_VERSION)
+                                       and detail.get("format_version")
+                                       in (WALLS_FREE_VERSION, PACK_VERSION))
     else:
         tiles_current = not detail.get("nodes") or detail.get("format_version") == TILE_VERSION
     return (manifest.get("provenance", {}).get("sha256") == sha256

@@ -642,13 +642,13 @@ def level_walls(redraw: Redraw, fields: list[np.ndarray], degree: int, spans: in
         count = 1 << k
         keep = np.zeros((count, count), bool)
         for w in taken:
-            keep |= _coarsened(w, count)
+            keep |= coarsened(w, count)
         out.append((cells, keep))
         taken.append(cells)
     return out
 
 
-def _coarsened(cells: np.ndarray, size: int) -> np.ndarray:
+def coarsened(cells: np.ndarray, size: int) -> np.ndarray:
     """``(size, size)`` booleans: which blocks of ``cells (R, R)`` (``size`` divides ``R``,
     or ``R`` divides ``size``: each cell then repeated) hold a true cell."""
     r = len(cells)

@@ -89,6 +89,28 @@ checked so: its triangles are the surface its makers published, its edge length 
 resolution they chose, and every vertex is a scan point that a held-out share would leave
 unfitted (the bunny's finest RMS of all points rose 7 %).
 
+Drawn cells. Where the scan lacks a part (a registration's rims, the unscanned tunnel under
+the 15-scan Happy Buddha's sleeve and the gap under its robe) the base is extrapolated over
+it, and no level can bring that surface back to a scan that is not there: at those places
+level -1 and level 0 were as far (1.5-2.3 % of the diagonal; docs/benchmarks.md, session
+14). So each level stops drawing them, by the single patch's rule for a range image's walls
+(``client_py.layers.DetailTile``, ``walls``: the finest applied tile's walls mask leaves
+cells out), written in the level's packs (``client_py.atlas_detail``, version 5): after
+level ``k`` is fitted, the mesh a client draws of it (levels ``0..k`` at the level's
+resolution ``R_k``, :func:`.measure.drawn_mesh`) is cut into its cells, and a cell whose
+whole surface lies farther than ``DRAWN_REACH`` of the scan points' diagonal from the
+scan's surface (a mesh's triangles, a cloud's points: what bench.scoring measures a drawn
+mesh against) is left out (:func:`far_cells`). A cell's two triangles lie within ``rho``,
+the largest distance of its four corners from their mean ``c``, of ``c`` (the distance to
+``c`` is convex, so its largest on a triangle is at a corner), so ``dist(c) - rho >
+reach`` holds only where no point of the cell is within ``reach`` of the scan: a cell is
+never left out where the scan is present, and no scan point within ``reach`` of the drawn
+mesh gets farther from it. Every tile over a cell a coarser level left out carries a walls
+mask too, all clear if need be, so that each level decides its own cells. Only triangles
+go: the vertices, and so the borders patches share where both sides are drawn, stay as
+they were (``client_py.atlas_mesh``), and a level without such cells writes its packs as
+before, byte for byte (version 4).
+
 Groups and packs. Patches are renumbered along the Morton (Z-order) curve of their centres,
 so that a contiguous range of patch indices is a compact piece of the object, and cut into
 groups whose finest-level pack stays within ``PACK_BYTES``; every level's tiles of a group
@@ -118,7 +140,8 @@ from client_py import layers
 from client_py.atlas import AtlasSurface, ring_positions
 from client_py.atlas_detail import (
     MAX_PACK_VALUES,
-    PACK_VERSION,
+    PACK_HEADER,
+    WALLS_FREE_VERSION,
     pack_capacity,
     pack_name,
     write_pack,
@@ -129,6 +152,7 @@ from client_py.format import CRC_SIZE, TILE_HEADER_SIZE, TILE_VERSION, write_det
 from ..detail import (
     STEP_FACTOR,
     DetailSamples,
+    coarsened,
     collocation_matrix,
     level_tiles,
     normal_split,
@@ -202,6 +226,11 @@ MIN_GAIN = 0.02
 # bounded_by_residual also reaching the pulls' |target| 1.453 %, 0.100 %, 1.0584e-4.
 PULL_REACH = 0.0075
 PULL_WEIGHT = 10.0
+# Drawn cells (module docstring): a level leaves out a cell of its drawn mesh whose every
+# point lies farther than DRAWN_REACH of the scan points' bounding-box diagonal from the
+# scan's surface (0: off). 1 % is the issue's bound on the largest distance from the drawn
+# mesh to the scan, and the manifest's "uncovered" distance.
+DRAWN_REACH = 0.01
 
 
 # ------------------------------------------------------------------ patch order
@@ -661,6 +690,70 @@ def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spa
     target = np.einsum("kc,kc->k", q[far] - x[far], d[far])
     return PullRows(f[far], u[far], v[far], target, np.searchsorted(f[far], np.arange(F + 1)),
                     weight)
+
+
+# ------------------------------------------------------------------ drawn cells
+def scan_distance(scan: Scan) -> Callable[[np.ndarray], np.ndarray]:
+    """``distance(positions (m, 3)) -> (m,)``: each position's distance to the scan's
+    surface, a mesh's triangles (:func:`.measure.closest_points_on_mesh`) or a cloud's
+    nearest point (a KD-tree of all its points)."""
+    from .measure import closest_points_on_mesh
+
+    points = np.asarray(scan.points, dtype=float)
+    if scan.faces is not None and len(scan.faces):
+        faces = np.asarray(scan.faces)
+        return lambda x: closest_points_on_mesh(x, points, faces)[0]
+    tree = cKDTree(points)
+    return lambda x: tree.query(x, workers=-1)[0]
+
+
+def far_cells(vertices: np.ndarray, faces: np.ndarray, patches: int, resolution: int,
+              distance: Callable[[np.ndarray], np.ndarray], reach: float) -> np.ndarray:
+    """``(F, r - 1, r - 1)`` booleans: the cells of an atlas mesh drawn at ``r =
+    resolution`` samples per patch side with every cell (``client_py.atlas_mesh``: patch
+    after patch, cell ``(i, j)`` row-major in ``u``, its triangles ``(a, b, d)``, ``(d, b,
+    c)`` with ``a = (i, j)``, ``b = (i + 1, j)``, ``c = (i + 1, j + 1)``, ``d = (i, j +
+    1)``) whose two triangles lie wholly farther than ``reach`` from the scan:
+    ``distance(c) - rho > reach``, ``c`` the mean of the four corners and ``rho`` their
+    largest distance from it (module docstring, "Drawn cells"). ``vertices (V, 3)``,
+    ``faces (T, 3)``: the drawn mesh; ``distance``: :func:`scan_distance`.
+
+    Raises
+    ------
+    ValueError
+        A mesh that is not ``F`` whole grids of ``r x r`` samples.
+    """
+    cells = resolution - 1
+    if len(faces) != 2 * patches * cells * cells:
+        raise ValueError(f"a mesh of {len(faces)} triangles is not {patches} patches of "
+                         f"{cells}x{cells} whole cells")
+    tri = np.asarray(faces).reshape(-1, 2, 3)
+    corners = vertices[np.stack([tri[:, 0, 0], tri[:, 0, 1], tri[:, 1, 2], tri[:, 0, 2]], 1)]
+    centre = corners.mean(axis=1)
+    rho = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1)
+    far = np.zeros(len(centre), bool)
+    for lo in range(0, len(centre), CHUNK):  # memory O(CHUNK) for a mesh's closest points
+        part = slice(lo, lo + CHUNK)
+        far[part] = distance(centre[part]) - rho[part] > reach
+    return far.reshape(patches, cells, cells)
+
+
+def level_far_cells(atlas: AtlasSurface, tiles: list[dict], level: int, spans: int,
+                    distance: Callable[[np.ndarray], np.ndarray], reach: float) -> np.ndarray:
+    """:func:`far_cells` of the mesh drawn at level ``level`` (``tiles``: per level ``0..
+    level``, ``{patch: [(tile, bytes, error)]}``, drawn with every cell: walls masks put
+    aside) at its resolution (``client_py.bundle.atlas_level_resolution``)."""
+    from dataclasses import replace
+
+    from .measure import drawn_mesh
+
+    detail: dict = {}
+    for made in tiles[: level + 1]:
+        for f, some in made.items():
+            detail.setdefault(f, []).extend(replace(t, walls=None) for t, _, _ in some)
+    r = atlas_level_resolution(spans, level)
+    mesh = drawn_mesh(atlas, r, detail)
+    return far_cells(mesh.vertices, mesh.faces, len(atlas.quads), r, distance, reach)
 
 
 # ------------------------------------------------------------------ depth
@@ -1208,6 +1301,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     feet = DrawnModel.feet(atlas, samples)
     scan_mesh = (fit.surface.vertices, fit.surface.faces)
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(fit.surface.vertices, float), axis=0)))
+    reach = DRAWN_REACH * float(np.linalg.norm(np.ptp(np.asarray(scan.points, float), axis=0)))
+    distance = scan_distance(scan) if DRAWN_REACH > 0 else None
+    taken: list[np.ndarray] = []  # per level, the cells it leaves out (F, W_k, W_k)
     # per patch: the fitted samples' weight, shared by the r^2 nodes of each level below
     pull_weight = PULL_WEIGHT * float(np.sum(fit_weight)) / F
     for k in range(levels):
@@ -1263,10 +1359,27 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
             if made:
                 tiles[f] = made
         per_level_tiles.append(tiles)
+        clock = _tick(timings, "tiles", clock)
+        walls = 0
+        if distance is not None:  # module docstring, "Drawn cells"
+            far = level_far_cells(atlas, per_level_tiles, k, spans, distance, reach)
+            keep = np.zeros((F, 1 << k, 1 << k), bool)  # tiles over a coarser level's walls
+            for cells in taken:
+                for f in np.flatnonzero(cells.any(axis=(1, 2))):
+                    keep[f] |= coarsened(cells[f], 1 << k)
+            for f in map(int, np.flatnonzero(far.any(axis=(1, 2)) | keep.any(axis=(1, 2)))):
+                lo, hi = samples.offsets[f], samples.offsets[f + 1]
+                tiles[f] = level_tiles(q[f], step, k, DEGREE, spans, samples.u[lo:hi],
+                                       samples.v[lo:hi], e[lo:hi], encode=False,
+                                       walls=(far[f], keep[f]))
+            taken.append(far)
+            walls = int(far.sum())
+            clock = _tick(timings, "cells", clock)
         level_rows.append({"level": k, "rms": float(np.sqrt(np.mean(e ** 2))),
                            "max": float(e.max(initial=0.0)), "step": step,
                            "resolution": atlas_level_resolution(spans, k),
-                           "border_jump": border_jump(atlas, fields, spans)})
+                           "border_jump": border_jump(atlas, fields, spans),
+                           "walls": walls})
         report(0.4 + 0.5 * (k + 1) / max(levels, 1))
         clock = _tick(timings, "tiles", clock)
     if per_level_tiles:  # the finest level's own .tsd bytes size the groups (_groups) alone
@@ -1303,12 +1416,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         group_rows.append({"first": int(first), "count": int(size),
                            "center": [_rounded(float(x)) for x in centre],
                            "radius": _rounded(radius)})
-    tree = {"format": "tsdp", "format_version": PACK_VERSION,
+    versions = {PACK_HEADER.unpack_from(data)[1] for data in files.values()}
+    tree = {"format": "tsdp", "format_version": max(versions, default=WALLS_FREE_VERSION),
             "tile_format_version": TILE_VERSION, "degree": DEGREE, "spans_per_tile": spans,
             "base": {"rms": _rounded(base_rms), "max": _rounded(base_max)},
             "levels": [{"level": r["level"], "rms": _rounded(r["rms"]),
                         "max": _rounded(r["max"]), "bytes_total": r["bytes"],
-                        "packs": r["packs"], "resolution": r["resolution"]}
+                        "packs": r["packs"], "resolution": r["resolution"],
+                        **({"walls": r["walls"]} if r["walls"] else {})}
                        for r in level_rows],
             "groups": group_rows, "packs": packs}
     if held_rms:
