@@ -67,10 +67,22 @@ def folded_pairs(vertices: np.ndarray, faces: np.ndarray, triangle_patch: np.nda
 
 def turned_share(base: tuple[np.ndarray, np.ndarray], level: tuple[np.ndarray, np.ndarray]
                  ) -> float:
-    """Share of ``level``'s area whose triangles face against ``base``'s same triangles."""
+    """Share of ``level``'s area whose triangles face against ``base``'s same triangles.
+
+    A level whose walls masks leave cells out (docs/format.md, "Atlas detail packs",
+    version 5) draws a subset of the base's triangles, with the same vertex numbers at the
+    same resolution: each is matched to the base's triangle of the same three vertices."""
     if base[1].shape != level[1].shape:
-        raise ValueError(f"the base has {len(base[1])} triangles, the level {len(level[1])}: "
-                         "draw both at the same resolution")
+        width = int(max(base[1].max(initial=0), level[1].max(initial=0))) + 1
+        keys = [(f[:, 0] * width + f[:, 1]) * width + f[:, 2] for f in (base[1], level[1])]
+        order = np.argsort(keys[0])
+        at = np.searchsorted(keys[0], keys[1], sorter=order)
+        found = order[np.minimum(at, len(order) - 1)]
+        if len(base[1]) < len(level[1]) or not np.array_equal(keys[0][found], keys[1]):
+            raise ValueError(f"the base has {len(base[1])} triangles, the level "
+                             f"{len(level[1])}, not all of them the base's: draw both at the "
+                             "same resolution")
+        base = (base[0], base[1][found])
     nb, _ = unit_normals(*base)
     nl, area = unit_normals(*level)
     return float(area[np.einsum("ij,ij->i", nb, nl) < 0].sum() / area.sum())

@@ -520,13 +520,16 @@ def _cell_triangles(mesh, F, r):
 
 
 def test_levels_stop_drawing_the_cells_over_no_scan_and_only_those(capped):
-    """Read back from the packs, each level's walls masks leave out exactly the cells of
-    its drawn grid with every point farther than DRAWN_REACH of the diagonal from the scan
-    (checked on dense samples of each cell, a brute-force measure independent of the
-    fitter's corner-ball rule): none where a scan point is within reach, all well inside
-    the missing cap; the rest of the mesh is the mesh drawn without masks, and it is open
-    only around the cells left out (no edge of three triangles)."""
+    """Read back from the packs, each level's walls masks leave out cells of its drawn grid
+    that reach farther than DRAWN_REACH of the diagonal from the scan (checked on a finer
+    lattice of each cell than the fitter's, with a KD-tree of the points), all of them over
+    the missing cap and every cell deep inside it; every scan point's distance to the drawn
+    mesh is what it was without the masks (no cell a scan point is drawn by goes); the
+    rest of the mesh is the mesh drawn without masks, open only around the cells left out
+    (no edge of three triangles)."""
     from scipy.spatial import cKDTree
+
+    from fitter.fitting.atlas.measure import signed_point_mesh_distance
 
     scan, det = capped
     F = len(det.atlas.quads)
@@ -541,6 +544,8 @@ def test_levels_stop_drawing_the_cells_over_no_scan_and_only_those(capped):
         for f, got in tiles.items():
             read.setdefault(level, {})[f] = got
     assert det.tree["format_version"] == 5
+    n = 12  # holds the fitter's lattice of 4 steps
+    bary = np.array([(a, b, n - a - b) for a in range(n + 1) for b in range(n + 1 - a)]) / n
     for k, row in enumerate(det.tree["levels"]):
         r = row["resolution"]
         upto = {}
@@ -557,21 +562,20 @@ def test_levels_stop_drawing_the_cells_over_no_scan_and_only_those(capped):
         assert row["walls"] == left_out.sum() > 0
         assert len(walled.indices) == 6 * (len(cells) - left_out.sum())
         x = np.frombuffer(plain.positions, np.float32).reshape(-1, 3).astype(float)
-        # dense samples of every cell's two triangles (barycentric grid, corners included)
-        s = np.linspace(0, 1, 7)
-        bary = np.array([(a, b, 1 - a - b) for a in s for b in s if a + b <= 1 + 1e-12])
-        near = np.zeros(len(cells), bool)
+        reaches = np.zeros(len(cells), bool)
         for t in range(2):
-            corners = x[cells[:, t]]  # (C, 3, 3)
-            samples = np.einsum("sk,ckd->csd", bary, corners)
-            d, _ = tree.query(samples.reshape(-1, 3))
-            near |= (d.reshape(len(cells), -1) <= reach).any(axis=1)
-        assert not (left_out & near).any()  # never a hole where the scan is present
+            d, _ = tree.query(np.einsum("sk,ckd->csd", bary, x[cells[:, t]]).reshape(-1, 3))
+            reaches |= (d.reshape(len(cells), -1) > reach).any(axis=1)
+        assert reaches[left_out].all()
         centre = x[cells[:, 0, 0]] * 0.5 + x[cells[:, 1, 2]] * 0.5
         assert left_out[centre[:, 2] > 0.9].all()  # deep in the cap: nothing drawn
         assert centre[left_out, 2].min() > CAP  # only over the missing cap
-        undirected, _ = _edge_counts(walled)
-        assert max(undirected) == 2 and min(undirected) == 1
+        faces = [np.frombuffer(m.indices, np.uint32).reshape(-1, 3).astype(np.int64)
+                 for m in (walled, plain)]
+        before, after = (np.abs(signed_point_mesh_distance(points, x, f)[0]) for f in faces)
+        assert np.array_equal(before, after)
+        counts, _ = _edge_counts(walled)
+        assert counts.max() == 2 and counts.min() == 1
 
 
 def _edge_counts(mesh):
