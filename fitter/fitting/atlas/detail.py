@@ -728,8 +728,8 @@ def far_cells(vertices: np.ndarray, faces: np.ndarray, patches: int, resolution:
               lattice: int = CELL_LATTICE) -> np.ndarray:
     """``(F, r - 1, r - 1)`` booleans: the cells of an atlas mesh drawn at ``r =
     resolution`` samples per patch side with every cell that reach farther than ``reach``
-    from the scan and hold no scan point's closest point on the mesh (module docstring,
-    "Drawn cells").
+    from the scan and hold no near scan point's closest point on the mesh (module
+    docstring, "Drawn cells").
 
     The mesh, ``vertices (V, 3)`` and ``faces (T, 3)``: patch after patch, cell ``(i, j)``
     row-major in ``u``, its triangles ``(a, b, d)``, ``(d, b, c)`` with ``a = (i, j)``, ``b
@@ -741,10 +741,12 @@ def far_cells(vertices: np.ndarray, faces: np.ndarray, patches: int, resolution:
     ``lattice`` steps a side (``(a A + b B + c C) / n``, ``a + b + c = n``: corners, edges'
     points, inner points) does; only cells with ``dist(c) + rho > reach`` are sampled so
     (``c`` the mean of the four corners, ``rho`` their largest distance from it: every point
-    of the cell is within ``rho`` of ``c``). A scan point's closest point on the mesh lies
-    in a cell only if ``dist(p, c) - rho`` is at most ``p``'s distance to its nearest mesh
-    vertex; the closest points (:func:`.measure.closest_points_on_mesh`) are found for the
-    points within that of a far cell's centre (with the far cells' largest ``rho``).
+    of the cell is within ``rho`` of ``c``). The closest point on the mesh of a scan point
+    ``p`` within ``reach`` of it lies in a cell only if ``dist(p, c) <= rho + reach``; the
+    closest points (:func:`.measure.closest_points_on_mesh`) are found for the points that
+    near a far cell's centre (with the far cells' largest ``rho``): every scan point within
+    ``reach`` of the mesh keeps its closest point (a farther one, such as an outlier left
+    out of the fit, may lose it).
 
     Raises
     ------
@@ -763,18 +765,23 @@ def far_cells(vertices: np.ndarray, faces: np.ndarray, patches: int, resolution:
     rho = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1)
     far = np.zeros(len(centre), bool)
     maybe = np.flatnonzero(distance(centre) + rho > reach)
+    if len(maybe):  # the corners first (shared by neighbours), then the lattices' others
+        ends, at = np.unique(tri[maybe][:, [0, 1], :].reshape(len(maybe), -1),
+                             return_inverse=True)
+        far[maybe] = (distance(vertices[ends]) > reach)[at.reshape(len(maybe), -1)].any(axis=1)
+        maybe = maybe[~far[maybe]]
     if len(maybe):
         n = lattice
-        weights = np.array([(a, b, n - a - b) for a in range(n + 1) for b in range(n + 1 - a)],
-                           float) / n
+        weights = np.array([(a, b, n - a - b) for a in range(n + 1) for b in range(n + 1 - a)
+                            if max(a, b, n - a - b) < n], float) / n  # corners measured
         for t in range(2):
             x = np.einsum("sk,mkc->msc", weights, vertices[tri[maybe, t]]).reshape(-1, 3)
             far[maybe] |= (distance(x) > reach).reshape(len(maybe), -1).any(axis=1)
     stray = np.flatnonzero(far)
-    if len(stray):  # those holding a scan point's closest point on the mesh stay
-        beside, _ = cKDTree(vertices).query(points, workers=-1)
-        gap, _ = cKDTree(centre[stray]).query(points, workers=-1)
-        near = np.flatnonzero(gap - rho[stray].max() <= beside)
+    if len(stray):  # those holding a near scan point's closest point on the mesh stay
+        bound = float(rho[stray].max()) + reach
+        gap, _ = cKDTree(centre[stray]).query(points, distance_upper_bound=bound, workers=-1)
+        near = np.flatnonzero(gap <= bound)
         for lo in range(0, len(near), CHUNK):
             _, hit, _ = closest_points_on_mesh(points[near[lo:lo + CHUNK]], vertices, faces)
             far[hit // 2] = False
