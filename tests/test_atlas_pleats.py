@@ -31,5 +31,8 @@ def test_turned_share_is_the_area_facing_against_the_base():
     level[3] = [0.9, 0.1, 0]  # (0, 2, 3) turned over: area 0.4, against 0.5 kept
     assert turned_share((SQUARE, faces), (level, faces)) == pytest.approx(0.4 / 0.9)
     assert turned_share((SQUARE, faces), (SQUARE, faces)) == 0.0
+    # a level whose walls masks leave cells out draws some of the base's triangles
+    assert turned_share((SQUARE, faces), (level, faces[1:])) == 1.0
+    assert turned_share((SQUARE, faces), (level, faces[:1])) == 0.0
     with pytest.raises(ValueError, match="same resolution"):
-        turned_share((SQUARE, faces), (SQUARE, faces[:1]))
+        turned_share((SQUARE, faces), (SQUARE, np.array([[0, 1, 3]])))
