@@ -95,8 +95,10 @@ it, and no level can bring that surface back to a scan that is not there: at tho
 level -1 and level 0 were as far (1.5-2.3 % of the diagonal; docs/benchmarks.md, session
 14). So each level stops drawing them, by the single patch's rule for a range image's walls
 (``client_py.layers.DetailTile``, ``walls``: the finest applied tile's walls mask leaves
-cells out), written in the level's packs (``client_py.atlas_detail``, version 5). After
-level ``k`` is fitted, the mesh a client draws of it (levels ``0..k`` at the level's
+cells out), written in the level's packs (``client_py.atlas_detail``, version 5). A
+cloud's only (a registration, a point cloud: its surface, the Poisson stand-in, closes
+every gap; ``DRAWN_MESHES`` says why not a mesh's). After level ``k`` is fitted, the mesh
+a client draws of it (levels ``0..k`` at the level's
 resolution ``R_k``, :func:`.measure.drawn_mesh`) is cut into its cells, and a cell is left
 out (:func:`far_cells`) when
 
@@ -242,6 +244,14 @@ PULL_WEIGHT = 10.0
 # largest distance from the drawn mesh to the scan, and the manifest's "uncovered" distance.
 DRAWN_REACH = 0.01
 CELL_LATTICE = 4  # steps a side of the lattice far_cells samples a cell's triangles on
+# Whether a mesh's levels leave cells out too (module docstring, "Drawn cells"): no. A
+# mesh's triangles are the surface its makers published, holes and borders included, and
+# its layout follows its border (layout.decimate_on_border); a closed one must stay
+# watertight. With it on, the Bali mask's level 0 (its scan closed) left out the 4 cells
+# around one drawn vertex 1.07 % of the diagonal off the scan, a spike at a patch corner
+# that no vertex of the scan is drawn by: a hole in a closed mesh; the bunny's none
+# (session 15).
+DRAWN_MESHES = False
 
 
 # ------------------------------------------------------------------ patch order
@@ -1356,7 +1366,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(fit.surface.vertices, float), axis=0)))
     scan_points = np.asarray(scan.points, dtype=float)
     reach = DRAWN_REACH * float(np.linalg.norm(np.ptp(scan_points, axis=0)))
-    distance = scan_distance(scan) if DRAWN_REACH > 0 else None
+    is_mesh = scan.faces is not None and len(scan.faces) > 0
+    distance = scan_distance(scan) if DRAWN_REACH > 0 and (DRAWN_MESHES or not is_mesh) \
+        else None
     taken: list[np.ndarray] = []  # per level, the cells it leaves out (F, W_k, W_k)
     # per patch: the fitted samples' weight, shared by the r^2 nodes of each level below
     pull_weight = PULL_WEIGHT * float(np.sum(fit_weight)) / F
