@@ -595,9 +595,10 @@ def test_a_closed_scan_has_no_walls_masks_and_version_4_packs(fitted):
     assert all(t.walls is None for level in det.tiles for ts in level.values() for t in ts)
 
 
-def test_a_mesh_scan_leaves_no_cell_out_even_without_its_cap():
+def test_a_mesh_scan_leaves_no_cell_out_even_without_its_cap(monkeypatch):
     """DRAWN_MESHES is off: a mesh's triangles say where its surface ends, so a mesh with a
-    part missing (the capped bumpy sphere as a mesh) is drawn whole, version 4 packs."""
+    part missing (the capped bumpy sphere as a mesh) is drawn whole, version 4 packs; with
+    it on, the cap's cells go (measured against the mesh's triangles)."""
     fit, mesh_scan = _bumpy_sphere_fit()
     keep = mesh_scan.points[mesh_scan.faces][:, :, 2].max(axis=1) <= CAP
     scan = make_scan("capped mesh", mesh_scan.points, faces=mesh_scan.faces[keep],
@@ -606,3 +607,6 @@ def test_a_mesh_scan_leaves_no_cell_out_even_without_its_cap():
     assert not atlas_detail.DRAWN_MESHES
     assert det.tree["format_version"] == 4 and all(d[4] == 4 for d in det.files.values())
     assert all(t.walls is None for level in det.tiles for ts in level.values() for t in ts)
+    monkeypatch.setattr(atlas_detail, "DRAWN_MESHES", True)
+    det = atlas_detail.fit_atlas_detail(fit, scan, levels=1, spans=4, pack_bytes=1000)
+    assert det.tree["format_version"] == 5 and det.tree["levels"][0]["walls"] > 0
