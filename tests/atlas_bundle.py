@@ -20,16 +20,18 @@ import math
 import random
 import zlib
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 from atlas_cases import sphere_atlas
 
 from client_py.atlas import ring_positions
-from client_py.atlas_detail import PACK_VERSION, pack_name, write_pack
+from client_py.atlas_detail import PACK_VERSION, WALLS_FREE_VERSION, pack_name, write_pack
 from client_py.atlas_format import write_atlas
 from client_py.atlas_mesh import tessellate_atlas
 from client_py.atlas_texture import colour_pack_name, pack_shape
 from client_py.layers import DetailTile
+from client_py.trim import TrimMask
 
 DEGREE, SPANS_PER_TILE = 2, 2
 
@@ -63,12 +65,14 @@ def welded_tiles(atlas, level: int, rnd: random.Random, amplitude: float
 
 
 def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolution: int = 5,
-                       seed: int = 0, title: str = "Atlas sphere", welded: bool = False
-                       ) -> dict:
+                       seed: int = 0, title: str = "Atlas sphere", welded: bool = False,
+                       walls: float = 0.0) -> dict:
     """Write an atlas bundle of ``6 k^2`` patches and ``levels`` detail levels into
     ``folder``; returns its manifest. ``welded``: tiles whose neighbours share their border
     coefficients (:func:`welded_tiles`), in welded packs (``write_pack(..., atlas)``), as the
-    fitter writes them; else independent random tiles in packs without an atlas."""
+    fitter writes them; else independent random tiles in packs without an atlas. ``walls``:
+    the share of random cells each tile's walls mask leaves out (docs/format.md, version 5
+    packs; its side the level's cells a tile side), 0 for none."""
     folder.mkdir(parents=True, exist_ok=True)
     rnd = random.Random(seed)
     atlas = sphere_atlas(k, noise=0.02, seed=seed)
@@ -93,11 +97,16 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
         for g in range(6):
             patches = range(g * per_face, (g + 1) * per_face)
             if welded:
-                data = write_pack(level, {f: every[f] for f in patches}, atlas)
+                tiles = {f: every[f] for f in patches}
             else:
-                data = write_pack(level, {f: [random_tile(level, i, j, rnd, amplitude)
-                                              for i in range(1 << level)
-                                              for j in range(1 << level)] for f in patches})
+                tiles = {f: [random_tile(level, i, j, rnd, amplitude) for i in range(1 << level)
+                             for j in range(1 << level)] for f in patches}
+            if walls:
+                side = 2 * SPANS_PER_TILE  # the level's drawn cells a tile side
+                tiles = {f: [replace(t, walls=TrimMask.from_flat(
+                    side, side, bytes(rnd.random() < walls for _ in range(side * side))))
+                    for t in ts] for f, ts in tiles.items()}
+            data = write_pack(level, tiles, atlas if welded else None)
             name = pack_name(level, g)
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             (folder / name).write_bytes(data)
@@ -125,7 +134,8 @@ def write_atlas_bundle(folder: Path, k: int = 1, levels: int = 2, base_resolutio
         "stats": {"rms": 0.004, "max": 0.02, "units": "mm"},
         "error_raster": raster,
         "tiles": {"version": 2, "texture": None, "detail": {
-            "format": "tsdp", "format_version": PACK_VERSION, "tile_format_version": 2,
+            "format": "tsdp", "format_version": PACK_VERSION if walls else WALLS_FREE_VERSION,
+            "tile_format_version": 2,
             "degree": DEGREE, "spans_per_tile": SPANS_PER_TILE,
             "base": {"rms": 0.008, "max": 0.03}, "levels": level_entries,
             "groups": groups, "packs": packs}},

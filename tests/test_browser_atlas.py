@@ -26,6 +26,8 @@ BASE_VERTICES = 6 * 9 * 9
 def atlas_collection(tmp_path_factory):
     root = tmp_path_factory.mktemp("atlas-collection")
     write_atlas_bundle(root / "sphere", k=2, levels=3, base_resolution=5)
+    write_atlas_bundle(root / "walled", k=2, levels=3, base_resolution=5, welded=True,
+                       walls=0.3, title="Walled sphere")
     return root
 
 
@@ -163,6 +165,44 @@ def test_download_ply_is_the_cli_s_welded_mesh(atlas_page, atlas_collection, tmp
     mesh.merge_vertices()
     assert mesh.is_watertight
     assert atlas_page.errors == []
+
+
+def test_walls_masks_leave_cells_out_in_the_viewer_and_its_ply(browser, atlas_server,
+                                                              atlas_collection, tmp_path):
+    """A bundle whose version 5 packs carry walls masks: the viewer refines it with no
+    error and draws fewer triangles than the full grids, and its "Download PLY" at level 2
+    is `tessera tessellate`'s mesh, which leaves out the masks' cells (docs/format.md,
+    "Atlas detail packs")."""
+    from client_py.bundle import tessellate_bundle
+    from fitter.cli import main
+
+    folder = atlas_collection / "walled"
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["tiles"]["detail"]["format_version"] == 5
+    assert all((folder / f"detail/{p['level']}/{p['group']}.tsdp").read_bytes()[4] == 5
+               for p in manifest["tiles"]["detail"]["packs"])
+    with open_viewer(browser, f"{atlas_server.url}/objects/walled/", 30_000) as page:
+        centre = np.array(manifest["tiles"]["detail"]["groups"][0]["center"])
+        position = (centre + 0.6 * centre / np.linalg.norm(centre)).tolist()
+        stats = page.evaluate("([p, t]) => window.tessera.atlasView(p, t)",
+                              [position, centre.tolist()])
+        assert stats["atlas_levels"][0] == 2
+        page.select_option("#ply-level", "2")
+        with page.expect_download() as info:
+            page.click("#download-ply")
+        path = tmp_path / info.value.suggested_filename
+        info.value.save_as(path)
+        page.wait_for_function("!document.body.dataset.plyBusy", timeout=60_000)
+        assert page.evaluate("document.body.dataset.tileError") is None
+        assert page.errors == []
+    out = tmp_path / "cli.ply"
+    assert main(["tessellate", str(folder), "--level", "2", "-o", str(out)]) == 0
+    assert path.read_bytes().replace(b"source base.tsa", b"source walled") == out.read_bytes()
+    mesh = tessellate_bundle(manifest, lambda name: (folder / name).read_bytes(), level=2)
+    cells = 24 * (manifest["tiles"]["detail"]["levels"][2]["resolution"] - 1) ** 2
+    assert 0 < mesh.triangle_count < 2 * cells
+    ply = trimesh.load(path, process=False)
+    assert len(ply.faces) == mesh.triangle_count and not ply.is_watertight
 
 
 def test_the_3dhop_page_loads_the_atlas_ply(page, atlas_server):
