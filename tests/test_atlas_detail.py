@@ -39,6 +39,10 @@ V2_WELDED_FIXTURE = Path(__file__).parent / "data" / "pack_v2_welded.tsdp"
 # version 3's write_pack (main 732fe1f) of _tiles(), and of _welded_tiles() with its atlas
 V3_FIXTURE = Path(__file__).parent / "data" / "pack_v3.tsdp"
 V3_WELDED_FIXTURE = Path(__file__).parent / "data" / "pack_v3_welded.tsdp"
+# version 4's write_pack (main 90503fb, before walls masks) of _tiles(), and of
+# _welded_tiles() with its atlas
+V4_FIXTURE = Path(__file__).parent / "data" / "pack_v4.tsdp"
+V4_WELDED_FIXTURE = Path(__file__).parent / "data" / "pack_v4_welded.tsdp"
 
 
 def _tile(level: int, i: int, j: int, seed: int) -> DetailTile:
@@ -448,3 +452,12 @@ def test_border_slots_number_the_points_neighbours_share(n):
     assert len({tuple(round(x, 6) for x in p) for p in at.values()}) == len(at)
     with pytest.raises(ValueError, match="n >= 2"):
         atlas.border_slots(0, 1)
+
+
+def test_packs_without_walls_masks_are_version_4_byte_for_byte():
+    """Tiles without walls masks are written as the writer before version 5 wrote them
+    (its bytes kept as fixtures, plain and welded), and those bytes read back."""
+    assert write_pack(1, _tiles()) == V4_FIXTURE.read_bytes()
+    atlas, tiles = _welded_tiles()
+    assert write_pack(WELD_LEVEL, tiles, atlas) == V4_WELDED_FIXTURE.read_bytes()
+    assert _as_table(read_pack(V4_WELDED_FIXTURE.read_bytes(), atlas)[1]) == _as_table(tiles)
