@@ -184,37 +184,6 @@ def test_auto_rule_keeps_one_patch_for_a_height_field_and_an_atlas_for_a_closed_
     assert wants_atlas(Scan.from_array(relief), 30)
 
 
-def _relief_mesh(n: int, holes_every: int | None) -> Scan:
-    """A relief ``z = 0.05 sin(6x) y`` over the unit square as a grid of ``n x n`` points,
-    two triangles per cell, without the cells ``(i, j)`` with ``i, j = 3 mod holes_every``
-    (one-cell holes, as a range scan's drop-outs)."""
-    g = np.linspace(0.0, 1.0, n)
-    x, y = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
-    points = np.column_stack([x, y, 0.05 * np.sin(6 * x) * y])
-    i, j = (a.ravel() for a in np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij"))
-    if holes_every:
-        keep = ~((i % holes_every == 3) & (j % holes_every == 3))
-        i, j = i[keep], j[keep]
-    a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
-    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-    return make_scan("relief", points, faces=faces,
-                     source=new_source("relief", None, "array", compression=None,
-                                       reader="array"))
-
-
-def test_auto_rule_takes_an_atlas_for_a_height_field_mesh_with_more_border_than_twice_its_rectangle():
-    """The relief as a mesh: its open border is its square's perimeter (4), one patch; with
-    a one-cell hole every 6 cells (100 holes of 4 / 59 each: 6.8 more) 2.7 perimeters, an
-    atlas; every 12 cells (25 holes: 1.7 more) 1.4 perimeters, one patch."""
-    from fitter.fitting.atlas.pipeline import HEIGHT_FIELD_BORDER
-
-    assert HEIGHT_FIELD_BORDER == 2.0
-    assert not wants_atlas(_relief_mesh(60, None), None)
-    assert wants_atlas(_relief_mesh(60, 6), None)
-    assert not wants_atlas(_relief_mesh(60, 12), None)
-    assert not wants_atlas(_relief_mesh(60, 6), 1)  # one patch when asked for
-
-
 def test_patches_option_spells_auto_and_counts():
     assert OPTION["patches"].parse("auto") is None
     assert OPTION["patches"].parse("120") == 120

@@ -153,7 +153,7 @@ def test_real_scan_rms_falls_with_levels(shared_data, tmp_path):
 
     scan = load_scan(shared_data / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz")
     m = fit_scan(scan, tmp_path / "b", FitOptions(grid=(16, 16), detail_levels=3,
-                                                  texture=False, patches=1)).manifest
+                                                  texture=False)).manifest
     tree = m["tiles"]["detail"]
     rms = [tree["base"]["rms"]] + [lev["rms"] for lev in tree["levels"]]
     assert all(b < a for a, b in zip(rms, rms[1:], strict=False)), rms
@@ -514,7 +514,7 @@ def test_a_meshs_redraw_strays_beyond_the_walls_limit(mesh):
 @pytest.mark.realdata
 def test_buddha_range_scan_0s_coarse_levels_hold_the_scan_as_the_base_alone(shared_data,
                                                                             tmp_path):
-    """Buddha range scan 0 (one patch, asked for: by default an atlas): every level a visitor is drawn
+    """Buddha range scan 0 (one patch, default options): every level a visitor is drawn
     (``client_py.bundle.plan_level``'s grid, at least 256 cells across) holds ALL scan points
     at least as well as the base alone on its 256 x 256 grid, within a margin: on the 33 x
     33 grid of two vertices per knot span level 0 held 80.0 % of them within 0.5 % of the
@@ -531,7 +531,7 @@ def test_buddha_range_scan_0s_coarse_levels_hold_the_scan_as_the_base_alone(shar
     scan = load_scan(shared_data / "happy-buddha-rangescans" / "happyStandRight_0.ply.gz")
     points = np.asarray(scan.points, float)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    manifest = fit_scan(scan, tmp_path / "b", FitOptions(patches=1)).manifest
+    manifest = fit_scan(scan, tmp_path / "b", FitOptions()).manifest
     read = lambda name: (tmp_path / "b" / name).read_bytes()  # noqa: E731
     from scipy.spatial import KDTree
 

@@ -169,9 +169,6 @@ AUTO_FIRST_TRIANGLES = 48
 AUTO_MAX_TRIANGLES = 4096
 AUTO_MIN_GAIN = 0.95  # a doubling must bring the RMS below 95 % of the previous to be taken
 AUTO_TRIAL_POINTS = 20_000
-# once the doubling overshoots the budget, one trial halfway between the last size within
-# it and the first over it (fit_atlas)
-AUTO_BETWEEN = True
 BASE_BITS = (8, 16)  # base.tsa's automatic quantisation bits (base_bits)
 BASE_STEP_OVER_RMS = 1.2  # its quantisation step over the fit's RMS (base_bits)
 # budget_bits gives up at most this many bits to meet the byte budget. 3 since .tsa v3
@@ -1549,11 +1546,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     best = None
     accepted: list[tuple] = []  # every trial taken as the best, the smallest first
     cache = {} if trial_cache is None else trial_cache
-    queue, between = list(plan), False  # 'auto' may try one size between two (below)
-    for step in range(len(plan) + 1):
-        if not queue:
-            break
-        target = queue.pop(0)
+    for step, target in enumerate(plan):
         if ("layouts", target) not in cache:
             cache["layouts", target] = layout_candidates(coarse, max(4, target), thin_parts,
                                                       border is not None)
@@ -1604,16 +1597,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
                        "rms_by_layout": {c[1]: c[0] for c in fitted},
                        "seconds_by_layout": {c[1]: sum(c[7].values()) for c in fitted},
                        "seconds": sum(sum(c[7].values()) for c in fitted)})
-        report(0.2 + 0.7 * min(1.0, (step + 1) / len(plan)))
+        report(0.2 + 0.7 * (step + 1) / len(plan))
         if patches == "auto" and best is not None and size > byte_budget:
-            # the doubling overshot: once, the size halfway between the best and this one
-            # (Buddha range scan 0: 359 triangles 19,039 bytes, 727 over the budget at any
-            # bits; 590 fit it at 8 bits)
-            half = (best[2].n_triangles + layout.n_triangles) // 2
-            if patches == "auto" and not between and AUTO_BETWEEN \
-                    and best[2].n_triangles < half < layout.n_triangles:
-                queue, between = [half], True
-                continue
             break
         if best is None or rms <= AUTO_MIN_GAIN * best[0]:
             best = (rms, size, layout, atlas, f, u, v, trial_timings, trial_bits)

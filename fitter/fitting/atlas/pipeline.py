@@ -58,7 +58,6 @@ from .surface import (
     MAX_LAYOUT_HANDLES,
     ScanSurface,
     area_samples,
-    border_edges,
     handle_count,
     layout_stand_in,
     scan_surface,
@@ -73,7 +72,6 @@ OUTLIER_DISTANCE = UNCOVERED  # a cloud's point this far from its surface is not
 STRAY_BUDGET_FACTOR = 2  # an atlas refused for strays is refitted once with this x the bytes
 HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
-HEIGHT_FIELD_BORDER = 2.0  # a mesh's open border over the perimeter of its rectangle
 RASTER_CELLS = (2, 8)  # least and most cells per patch side of the error raster
 RASTER_FILE = "error_raster.bin"  # the bundle's file of an atlas's error raster
 #: triangles of the finest drawn level from which it is measured in a worker process
@@ -89,33 +87,20 @@ def _unit(rows: np.ndarray) -> np.ndarray:
 
 def wants_atlas(scan: Scan, patches: int | None) -> bool:
     """``--patches``' rule: ``1`` a single patch, another count an atlas; ``None`` (auto) an
-    atlas unless the scan is a height field over the plane of its least variance that fills
-    its rectangle there.
+    atlas unless the scan is a height field over the plane of its least variance.
 
     A height field: of the surface's area (a mesh's triangles, else one unit per point with a
     normal), under :data:`HEIGHT_FIELD_BACK` faces away from the plane's dominant side and
     under :data:`HEIGHT_FIELD_EDGE_ON` is seen edge-on. A cloud without normals is a height
     field when every point is within the plane's band of a one-valued surface: it is judged
     by the points' unoriented local normals (``|n . axis|``) alone.
-
-    Filling its rectangle: a mesh's open border (edges of one triangle) is at most
-    :data:`HEIGHT_FIELD_BORDER` times the perimeter ``2 (a + b)`` of the rectangle of its
-    points' extents ``a, b`` along the plane's axes. The single patch is that rectangle,
-    trimmed by a raster of cells; every rim it trims is drawn as cell-wide steps off the
-    scan in depth, where the atlas's layout follows the border (a relief's outline is about
-    the perimeter, a round medallion's ``π/4`` of it). Buddha range scan 0 (78,056 points,
-    96 border loops) has 7.8 perimeters of border; as one patch its finest level's RMS of
-    all points was 3.3x that of decimation + Draco at equal bytes, as an atlas 1.0x at the
-    base and 2.2x at level 0 (main 90503fb, 2,181 patches). A cloud has no border to count
-    and keeps the height-field rule alone.
     """
     if patches is not None:
         return patches != 1
     points = np.asarray(scan.points, dtype=float)
     centred = points - points.mean(axis=0)
     sample = centred[:: max(1, len(centred) // 200_000)]
-    frame = np.linalg.eigh(sample.T @ sample)[1]
-    axis = frame[:, 0]  # least variance
+    axis = np.linalg.eigh(sample.T @ sample)[1][:, 0]  # least variance
     if scan.faces is not None and len(scan.faces):
         tri = points[np.asarray(scan.faces)]
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -135,14 +120,7 @@ def wants_atlas(scan: Scan, patches: int | None) -> bool:
         return bool(edge_on >= HEIGHT_FIELD_EDGE_ON)
     side = 1.0 if (weights * facing).sum() >= 0 else -1.0
     back = weights[side * facing < -0.1].sum() / total
-    if back >= HEIGHT_FIELD_BACK or edge_on >= HEIGHT_FIELD_EDGE_ON:
-        return True
-    if scan.faces is None or not len(scan.faces):
-        return False
-    extent = np.ptp(centred @ frame[:, 1:], axis=0)  # along the plane's axes
-    ends = points[border_edges(scan.faces)]
-    border = float(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1).sum())
-    return bool(border > HEIGHT_FIELD_BORDER * 2.0 * float(extent.sum()))
+    return bool(back >= HEIGHT_FIELD_BACK or edge_on >= HEIGHT_FIELD_EDGE_ON)
 
 
 def _cloud_normals(points: np.ndarray, k: int = 12, count: int = 20_000) -> np.ndarray:
