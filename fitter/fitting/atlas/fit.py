@@ -1434,11 +1434,9 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         ``AUTO_FIRST_TRIANGLES`` while the file stays within ``byte_budget``, and the
         largest ``T`` whose working points' RMS is below ``AUTO_MIN_GAIN`` of the best of
         the smaller ones is taken (trials: ``AUTO_TRIAL_POINTS`` of the points, two rounds;
-        one doubling that gains nothing does not end the search: the next may; once a
-        doubling overshoots the budget, the size halfway between it and the best is tried
-        too, :data:`AUTO_BETWEEN`); the chosen layout is then fitted with all working points
-        and ``rounds``, within the budget (:func:`final_within_budget`: else the layout
-        taken before it).
+        one doubling that gains nothing does not end the search: the next may); the chosen
+        layout is then fitted with all working points and ``rounds``, within the budget
+        (:func:`final_within_budget`: else the layout taken before it).
     degree, spans : int
         Per patch side (``n = spans + degree`` control points).
     bits : int or None
