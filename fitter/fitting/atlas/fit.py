@@ -829,7 +829,9 @@ class AtlasFit:
         Seconds per step (``surface``, ``layout``, ``points``, ``solve``, ``correct``, ...).
     trials : list of dict
         Every ``T`` tried: its RMS and bytes, the layout kept (``'plain'`` or
-        ``'weighted'``) and each candidate's RMS and seconds.
+        ``'weighted'``) and each candidate's RMS and seconds; ``final_bytes`` and
+        ``final_bits`` where its final fit was over the budget and refused
+        (:func:`final_within_budget`).
     """
 
     atlas: AtlasSurface
