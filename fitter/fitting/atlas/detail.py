@@ -208,6 +208,7 @@ PULL_WEIGHT = 10.0
 # FOLD_PASSES times (0: off); each row weighs as a far node's (PULL_WEIGHT).
 FOLD_PASSES = 1
 FOLD_KEEP = 0.1
+FOLD_WEIGHT = 10.0
 
 
 # ------------------------------------------------------------------ patch order
@@ -630,7 +631,7 @@ class PullRows:
         the levels before) nearest to ``q`` along its direction ``d``.
     offsets : ndarray, shape (F + 1,)
         Patch ``f``'s rows are ``offsets[f]:offsets[f + 1]``.
-    weight : float
+    weight : float or ndarray, shape (R,)
         Each row's weight in the sum of squares.
     """
 
@@ -639,7 +640,7 @@ class PullRows:
     v: np.ndarray
     target: np.ndarray
     offsets: np.ndarray
-    weight: float
+    weight: float | np.ndarray
 
 
 def all_nodes(patches: int, resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -733,18 +734,19 @@ def fold_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], coefficients: 
 
 
 def merged_rows(first: PullRows | None, second: PullRows) -> PullRows:
-    """The rows of both (of one weight), sorted by patch (stable: ``first``'s before)."""
+    """The rows of both, sorted by patch (stable: ``first``'s before), each keeping its
+    weight."""
     if first is None:
         return second
-    if first.weight != second.weight:
-        raise ValueError(f"rows of weights {first.weight} and {second.weight} cannot merge")
     patch = np.concatenate([first.patch, second.patch])
     order = np.argsort(patch, kind="stable")
     patch = patch[order]
+    weight = np.concatenate([np.broadcast_to(first.weight, first.target.shape),
+                             np.broadcast_to(second.weight, second.target.shape)])
     return PullRows(patch, np.concatenate([first.u, second.u])[order],
                     np.concatenate([first.v, second.v])[order],
                     np.concatenate([first.target, second.target])[order],
-                    np.searchsorted(patch, np.arange(len(first.offsets))), first.weight)
+                    np.searchsorted(patch, np.arange(len(first.offsets))), weight[order])
 
 
 def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
@@ -911,8 +913,8 @@ class _BatchSystem:
             pull = self.pull
             if pull is not None and pull.offsets[last] > pull.offsets[first]:
                 plo, phi = pull.offsets[first], pull.offsets[last]
-                root = math.sqrt(pull.weight)
-                A = sp.vstack([A, root * collocation_matrix(
+                root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[plo:phi])
+                A = sp.vstack([A, sp.diags(root) @ collocation_matrix(
                     DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
                     block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
                 r = np.concatenate([r, root * pull.target[plo:phi]])
@@ -1339,7 +1341,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     scan_mesh = (fit.surface.vertices, fit.surface.faces)
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(fit.surface.vertices, float), axis=0)))
     # per patch: the fitted samples' weight, shared by the r^2 nodes of each level below
-    pull_weight = PULL_WEIGHT * float(np.sum(fit_weight)) / F
+    per_patch = float(np.sum(fit_weight)) / F
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
@@ -1347,14 +1349,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         residual = model.target - sum((model.drawn(c, j, spans)
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
-        node_weight = pull_weight / atlas_level_resolution(spans, k) ** 2
+        per_node = per_patch / atlas_level_resolution(spans, k) ** 2
         pull = (far_node_rows(atlas, fields, k, spans, scan_mesh, PULL_REACH * diagonal,
-                              node_weight)
+                              PULL_WEIGHT * per_node)
                 if PULL_WEIGHT > 0 else None)
 
         c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
-        for _ in range(FOLD_PASSES):  # module docstring, "Folds"
-            fold = fold_node_rows(atlas, fields, c, k, spans, node_weight)
+        for _ in range(FOLD_PASSES if FOLD_WEIGHT > 0 else 0):  # module docstring, "Folds"
+            fold = fold_node_rows(atlas, fields, c, k, spans, FOLD_WEIGHT * per_node)
             if not len(fold.patch):
                 break
             pull = merged_rows(pull, fold)
