@@ -208,7 +208,7 @@ PULL_WEIGHT = 10.0
 # FOLD_PASSES times (0: off); each row weighs as a far node's (PULL_WEIGHT).
 FOLD_PASSES = 1
 FOLD_KEEP = 0.1
-FOLD_WEIGHT = 10.0
+FOLD_WEIGHT = 1.0
 
 
 # ------------------------------------------------------------------ patch order
