@@ -50,6 +50,28 @@ but the mask's RMS +15 %; a reach of 0.5 % with weight 1: Lucy 1.00 % at RMS +0.
 mask 1.44 % at +1.9 %; clipping coefficients at once the residual (``COEFFICIENT_REACH``)
 changed nothing.
 
+Folds. The client draws node ``i`` at ``C_i + D_i d_i``: ``d_i`` the patch's unit normal
+inside it, the mean of its patches' normals on a border. Where the base creases between
+patches (its joins are C0), the directions turn by half the crease within one drawn cell and
+cross at about a cell's width on the crease's hollow side, and a larger displacement
+there turns the drawn triangle over against the base (the pleats of ``bench.pleats``):
+on main 90503fb's level 0 (drawn at 17, every object's base as the benchmark fits it)
+82-97 % of the area turned over lies in the patches' border ring of cells (23-27 % of all
+triangles), its triangles' corner directions 39-55 degrees apart (median; 2-9 over all), at
+0.7-0.8 cells of displacement (docs/benchmarks.md, "Pleats (session 15)"). So after a
+level's welded solve, :func:`fold_node_rows` finds the drawn triangles that keep less than
+``FOLD_KEEP`` of their base triangle's facing area (a base triangle turned against its own
+patch, a pleat of the base, is left alone) and gives each of their nodes the row
+``D_k(node) = s D_k(node)``, ``s`` the share of the level's displacement with which the
+triangle keeps ``FOLD_KEEP`` (:func:`fold_shrink`; a node's smallest over its triangles),
+weighing ``FOLD_WEIGHT`` times the fitted samples' mean weight per node; the level is
+solved again with them, ``FOLD_PASSES`` times. Level 0 turned over, main -> these rows (the
+same bases, load 6-12): Lucy 1.93 -> 0.37 %, Laurana 0.159 -> 0.017 %, Nefertiti 0.28 ->
+0.04 %, the 15-scan Happy Buddha 5.2 -> 1.8 %, the bunny 0.10 -> 0.015 %, the Bali mask 0.73
+-> 0.15 %, at RMS of all points +1.4, +0.2, +0.3, +3.1, -0.2 and +1.0 %; at a weight of 10,
+Lucy's 0.30 % cost +7.9 %. What stays turned is mostly a pleat of the base (27 % on Lucy)
+and triangles turned by the slope of the field between oblique directions (37 %).
+
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
 leave a crease. A clamped field's value on a side depends only on its border row of
@@ -202,10 +224,12 @@ MIN_GAIN = 0.02
 # bounded_by_residual also reaching the pulls' |target| 1.453 %, 0.100 %, 1.0584e-4.
 PULL_REACH = 0.0075
 PULL_WEIGHT = 10.0
-# Fold rows (module docstring, "Folds"): after a level's solve, the drawn triangles that turn
-# over against the base's at the same place get rows shrinking the level's displacement at
-# their nodes to FOLD_KEEP of the base triangle's facing area, and the level is solved again,
-# FOLD_PASSES times (0: off); each row weighs as a far node's (PULL_WEIGHT).
+# Fold rows (module docstring, "Folds"): after a level's solve, the drawn triangles that keep
+# less than FOLD_KEEP of their base triangle's facing area get rows shrinking the level's
+# displacement at their nodes until they keep it, each weighing FOLD_WEIGHT times the fitted
+# samples' mean weight per node, and the level is solved again, FOLD_PASSES times (0: off).
+# Lucy level 0 (main 90503fb's base), turned over / RMS of all points: without 1.93 % /
+# 0.1998; weight 1: 0.37 % / 0.2026; weight 10: 0.30 % / 0.2156.
 FOLD_PASSES = 1
 FOLD_KEEP = 0.1
 FOLD_WEIGHT = 1.0
@@ -701,12 +725,14 @@ def fold_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], coefficients: 
     """Rows against the drawn triangles that turn over (module docstring, "Folds").
 
     The mesh drawn at level ``level``'s resolution with the levels before it (``fields``)
-    and this level's ``coefficients (F, n, n)``; a drawn triangle whose area vector faces
-    against the base's drawn triangle at the same nodes (``N_k . N_b < 0``), where the
-    base triangle faces its patch's way (``N_b . a_f > 0``, ``a_f = Σ N_b`` over the
+    and this level's ``coefficients (F, n, n)``; a drawn triangle that keeps less than
+    ``keep`` of the base's drawn triangle at the same nodes (area vectors ``N_k . N_b <
+    keep |N_b|²``: turned over, or nearly, so that rounding the level may turn it), where
+    the base triangle faces its patch's way (``N_b . a_f > 0``, ``a_f = Σ N_b`` over the
     patch: a pleat of the base itself is left to the base), gets rows ``D_k(node) = s
-    D_k(node)`` at its three nodes, ``s`` from :func:`fold_shrink` (the smallest of the
-    node's turned triangles), each weighing ``weight``."""
+    D_k(node)`` at its three nodes, ``s`` from :func:`fold_shrink` with the base and the
+    levels before as ``before`` (at level 0 the base itself; the smallest ``s`` of the
+    node's triangles), each weighing ``weight``."""
     F, r = len(atlas.quads), atlas_level_resolution(spans, level)
     f, a, b = all_nodes(F, r)
     c, d = node_frames(atlas, r, f, a, b, chunk)
