@@ -23,15 +23,10 @@ def bump(unit: np.ndarray) -> np.ndarray:
     return AMPLITUDE * np.sin(3 * x) * np.sin(3 * y + 0.5) * np.cos(2 * z)
 
 
-def _bumpy_sphere_fit():
-    """A fake base fit: the 24-patch sphere atlas and, as the scan, the icosphere displaced
-    radially by :func:`bump`; the working points are exact points of the base."""
-    atlas = sphere_atlas(2)
-    ico = trimesh.creation.icosphere(subdivisions=5)
-    unit = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
-    vertices = unit * (1.0 + bump(unit))[:, None]
-    faces = np.asarray(ico.faces, np.int64)
-    scan = make_scan("bumpy", vertices, faces=faces, source={"name": "bumpy"})
+def _fake_fit(atlas, name: str, vertices: np.ndarray, faces: np.ndarray):
+    """A fake base fit of ``atlas`` to the scan mesh ``(vertices, faces)``: the working
+    points are exact points of the base (12 x 12 a patch)."""
+    scan = make_scan(name, vertices, faces=faces, source={"name": name})
     surface = ScanSurface(vertices, faces, "mesh", 1)
     F = len(atlas.quads)
     t = np.linspace(0.02, 0.98, 12)
@@ -43,6 +38,15 @@ def _bumpy_sphere_fit():
     fit = AtlasFit(atlas, None, surface, F // 3, F, points, patch, u, v, np.zeros(len(u)), 0.0,
                    0)
     return fit, scan
+
+
+def _bumpy_sphere_fit():
+    """A fake base fit: the 24-patch sphere atlas and, as the scan, the icosphere displaced
+    radially by :func:`bump`."""
+    ico = trimesh.creation.icosphere(subdivisions=5)
+    unit = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    vertices = unit * (1.0 + bump(unit))[:, None]
+    return _fake_fit(sphere_atlas(2), "bumpy", vertices, np.asarray(ico.faces, np.int64))
 
 
 @pytest.fixture(scope="module")
@@ -582,23 +586,9 @@ def _ball_in_a_cube_fit(radius: float):
     creases, as the real bases' patch borders) and, as the scan, a ball of ``radius``:
     beyond the faces' middles and under the corners, so the detail drawn at a corner moves
     along the corner's averaged direction (toward the cube's centre) farther than a cell."""
-    from tests.atlas_cases import sphere_atlas as cube_or_sphere
-
-    atlas = cube_or_sphere(1, cube=True)
     ico = trimesh.creation.icosphere(subdivisions=5)
-    vertices = np.asarray(ico.vertices) * radius
-    faces = np.asarray(ico.faces, np.int64)
-    scan = make_scan("ball", vertices, faces=faces, source={"name": "ball"})
-    F = len(atlas.quads)
-    t = np.linspace(0.02, 0.98, 12)
-    uu, vv = np.meshgrid(t, t, indexing="ij")
-    patch = np.repeat(np.arange(F), uu.size)
-    u, v = np.tile(uu.ravel(), F), np.tile(vv.ravel(), F)
-    (points,) = evaluate_patches(index_table(atlas), control_points(atlas), atlas.degree,
-                                 atlas.spans, patch, u, v)
-    fit = AtlasFit(atlas, None, ScanSurface(vertices, faces, "mesh", 1), F // 3, F, points,
-                   patch, u, v, np.zeros(len(u)), 0.0, 0)
-    return fit, scan
+    return _fake_fit(sphere_atlas(1, cube=True), "ball", np.asarray(ico.vertices) * radius,
+                     np.asarray(ico.faces, np.int64))
 
 
 def _drawn(atlas, resolution, tiles):

@@ -57,8 +57,9 @@ cross at about a cell's width on the crease's hollow side, and a larger displace
 there turns the drawn triangle over against the base (the pleats of ``bench.pleats``):
 on main 90503fb's level 0 (drawn at 17, every object's base as the benchmark fits it)
 82-97 % of the area turned over lies in the patches' border ring of cells (23-27 % of all
-triangles), its triangles' corner directions 39-55 degrees apart (median; 2-9 over all), at
-0.7-0.8 cells of displacement (docs/benchmarks.md, "Pleats (session 15)"). So after a
+triangles); on Lucy, Laurana and the 15-scan Happy Buddha its triangles' corner directions
+are 39-55 degrees apart (median; 2-9 over all triangles) and its displacement 0.66-0.82 of a
+drawn edge (docs/benchmarks.md, "Pleats (session 15, w25-pleats)"). So after a
 level's welded solve, :func:`fold_node_rows` finds the drawn triangles that keep less than
 ``FOLD_KEEP`` of their base triangle's facing area (a base triangle turned against its own
 patch, a pleat of the base, is left alone) and gives each of their nodes the row
