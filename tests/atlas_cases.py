@@ -46,15 +46,16 @@ def _on_sphere(p, k: int) -> tuple[float, float, float]:
 
 
 def sphere_atlas(k: int, degree: int = 3, spans: int = 2, noise: float = 0.0,
-                 seed: int = 0, rational: bool = False) -> AtlasSurface:
-    """``6 k^2`` patches on the unit sphere (control points on it; ``noise`` jitters them)."""
+                 seed: int = 0, rational: bool = False, cube: bool = False) -> AtlasSurface:
+    """``6 k^2`` patches on the unit sphere (control points on it; ``noise`` jitters them);
+    with ``cube``, on the cube ``[-1, 1]^3`` instead (flat faces meeting at right angles)."""
     rnd = random.Random(seed)
     lattice, quads = cube_layout(k)
     table = atlas_edges(quads)
     m = spans + degree - 1
 
     def put(p):
-        x, y, z = _on_sphere(p, k)
+        x, y, z = (tuple(2.0 * c / k - 1.0 for c in p) if cube else _on_sphere(p, k))
         return (x + noise * rnd.uniform(-1, 1), y + noise * rnd.uniform(-1, 1),
                 z + noise * rnd.uniform(-1, 1))
 

@@ -23,15 +23,10 @@ def bump(unit: np.ndarray) -> np.ndarray:
     return AMPLITUDE * np.sin(3 * x) * np.sin(3 * y + 0.5) * np.cos(2 * z)
 
 
-def _bumpy_sphere_fit():
-    """A fake base fit: the 24-patch sphere atlas and, as the scan, the icosphere displaced
-    radially by :func:`bump`; the working points are exact points of the base."""
-    atlas = sphere_atlas(2)
-    ico = trimesh.creation.icosphere(subdivisions=5)
-    unit = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
-    vertices = unit * (1.0 + bump(unit))[:, None]
-    faces = np.asarray(ico.faces, np.int64)
-    scan = make_scan("bumpy", vertices, faces=faces, source={"name": "bumpy"})
+def _fake_fit(atlas, name: str, vertices: np.ndarray, faces: np.ndarray):
+    """A fake base fit of ``atlas`` to the scan mesh ``(vertices, faces)``: the working
+    points are exact points of the base (12 x 12 a patch)."""
+    scan = make_scan(name, vertices, faces=faces, source={"name": name})
     surface = ScanSurface(vertices, faces, "mesh", 1)
     F = len(atlas.quads)
     t = np.linspace(0.02, 0.98, 12)
@@ -43,6 +38,15 @@ def _bumpy_sphere_fit():
     fit = AtlasFit(atlas, None, surface, F // 3, F, points, patch, u, v, np.zeros(len(u)), 0.0,
                    0)
     return fit, scan
+
+
+def _bumpy_sphere_fit():
+    """A fake base fit: the 24-patch sphere atlas and, as the scan, the icosphere displaced
+    radially by :func:`bump`."""
+    ico = trimesh.creation.icosphere(subdivisions=5)
+    unit = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    vertices = unit * (1.0 + bump(unit))[:, None]
+    return _fake_fit(sphere_atlas(2), "bumpy", vertices, np.asarray(ico.faces, np.int64))
 
 
 @pytest.fixture(scope="module")
@@ -611,3 +615,137 @@ def test_a_mesh_scan_leaves_no_cell_out_even_without_its_cap(monkeypatch):
     monkeypatch.setattr(atlas_detail, "DRAWN_MESHES", True)
     det = atlas_detail.fit_atlas_detail(fit, scan, levels=1, spans=4, pack_bytes=1000)
     assert det.tree["format_version"] == 5 and det.tree["levels"][0]["walls"] > 0
+
+
+# ------------------------------------------------------------------ folds
+def test_grid_triangles_are_the_clients_grid_triangles():
+    """``grid_triangles`` numbers every patch's drawn triangles as the client cuts them
+    (``client_py.tessellate.grid_indices`` over one patch's ``r x r`` grid), patch after
+    patch at ``f r²``."""
+    from client_py.tessellate import grid_indices
+
+    for r in (2, 5, 9):
+        one = np.asarray(grid_indices(r, r, kernel="python"), np.int64).reshape(-1, 3)
+        expected = np.concatenate([one + f * r * r for f in range(3)])
+        assert np.array_equal(atlas_detail.grid_triangles(3, r), expected)
+        f, a, b = atlas_detail.all_nodes(3, r)
+        assert np.array_equal((f * r + a) * r + b, np.arange(3 * r * r))
+
+
+def _facing(before, step, s):
+    """``N(s) . N(0)`` of the triangles ``before + s step`` by their cross products."""
+    n0 = np.cross(before[:, 1] - before[:, 0], before[:, 2] - before[:, 0])
+    x = before + s[:, None, None] * step
+    return np.einsum("tc,tc->t", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), n0), \
+        np.einsum("tc,tc->t", n0, n0)
+
+
+def test_fold_shrink_is_the_first_share_that_keeps_the_area():
+    """Against a dense scan of ``s`` over ``[0, 1]`` (10,001 steps, cross products): where
+    the whole step leaves the triangle ``keep`` of its facing area, 1 (the facing may dip
+    below it on the way: the drawn mesh is the end, not the path); else the first ``s``
+    where it falls to that, found to the scan's step, and the facing there is
+    ``keep |N(0)|²``."""
+    rng = np.random.default_rng(4)
+    before = rng.normal(size=(400, 3, 3))
+    step = 2.0 * rng.normal(size=(400, 3, 3))
+    keep = 0.1
+    s = atlas_detail.fold_shrink(before, step, keep)
+    grid = np.linspace(0.0, 1.0, 10_001)
+    facing = np.stack([_facing(before, step, np.full(400, t))[0] for t in grid], axis=1)
+    _, alpha = _facing(before, step, s)
+    low = facing < keep * alpha[:, None]
+    kept = ~low[:, -1]
+    assert kept.any() and (~kept).any()  # both kinds are tested
+    assert np.all(s[kept] == 1.0)
+    first = grid[np.argmax(low, axis=1)]
+    assert np.allclose(s[~kept], first[~kept], atol=2e-4)
+    at, _ = _facing(before, step, s)
+    assert np.allclose(at[~kept], keep * alpha[~kept], rtol=1e-6, atol=1e-9 * alpha.max())
+
+
+def test_merged_rows_sort_by_patch_and_keep_each_rows_weight():
+    one = atlas_detail.PullRows(np.array([0, 2]), np.array([0.1, 0.2]), np.zeros(2),
+                                np.array([1.0, 2.0]), np.array([0, 1, 1, 2]), 3.0)
+    two = atlas_detail.PullRows(np.array([1, 2]), np.array([0.3, 0.4]), np.zeros(2),
+                                np.array([3.0, 4.0]), np.array([0, 0, 1, 2]), 5.0)
+    both = atlas_detail.merged_rows(one, two)
+    assert np.array_equal(both.patch, [0, 1, 2, 2])
+    assert np.array_equal(both.target, [1.0, 3.0, 2.0, 4.0])
+    assert np.array_equal(both.u, [0.1, 0.3, 0.2, 0.4])
+    assert np.array_equal(both.weight, [3.0, 5.0, 3.0, 5.0])
+    assert np.array_equal(both.offsets, [0, 1, 2, 4])
+    assert atlas_detail.merged_rows(None, two) is two
+
+
+def test_a_row_of_weight_two_is_that_row_twice():
+    """``PullRows.weight`` per row: the normal equations (``_BatchSystem``, which every
+    solve and the quantisation share) with a row weighing ``2`` are those with that row
+    twice at weight 1 (the sum of squares)."""
+    rng = np.random.default_rng(2)
+    count = 40
+    patch = np.repeat([0, 1], count // 2)
+    samples = atlas_detail.AtlasSamples(
+        patch, rng.random(count), rng.random(count), rng.normal(size=count),
+        np.zeros(count), np.array([0, count // 2, count]), np.ones(count), np.ones(count),
+        np.ones(count))
+    at, u, v, target = np.array([0, 0, 1]), rng.random(3), rng.random(3), rng.normal(size=3)
+    once = atlas_detail.PullRows(at, u, v, target, np.array([0, 2, 3]),
+                                 np.array([1.0, 2.0, 1.0]))
+    twice = atlas_detail.merged_rows(
+        atlas_detail.PullRows(at, u, v, target, np.array([0, 2, 3]), 1.0),
+        atlas_detail.PullRows(at[1:2], u[1:2], v[1:2], target[1:2], np.array([0, 1, 1]), 1.0))
+    found = []
+    for rows in (once, twice):
+        system = atlas_detail._BatchSystem(samples, samples.s, 0, 2, None, None, None, rows)
+        M, rhs, _ = system.normal(0)
+        found.append((M.toarray(), rhs))
+    assert np.allclose(found[0][0], found[1][0]) and np.allclose(found[0][1], found[1][1])
+    # and the rows count: without them the equations differ
+    plain = atlas_detail._BatchSystem(samples, samples.s, 0, 2, None, None, None, None)
+    assert not np.allclose(plain.normal(0)[0].toarray(), found[0][0])
+
+
+def _ball_in_a_cube_fit(radius: float):
+    """A fake base fit: the cube ``[-1, 1]³`` (6 flat patches meeting at right angles, C0
+    creases, as the real bases' patch borders) and, as the scan, a ball of ``radius``:
+    beyond the faces' middles and under the corners, so the detail drawn at a corner moves
+    along the corner's averaged direction (toward the cube's centre) farther than a cell."""
+    ico = trimesh.creation.icosphere(subdivisions=5)
+    return _fake_fit(sphere_atlas(1, cube=True), "ball", np.asarray(ico.vertices) * radius,
+                     np.asarray(ico.faces, np.int64))
+
+
+def _drawn(atlas, resolution, tiles):
+    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy")
+    return (np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float),
+            np.frombuffer(mesh.indices, np.uint32).reshape(-1, 3).astype(np.int64))
+
+
+@pytest.mark.parametrize("radius", [1.0, 1.3])
+def test_fold_rows_keep_the_drawn_level_from_turning_over_at_creases(radius, monkeypatch):
+    """A ball in a cube: without the fold rows (``FOLD_PASSES`` 0), level 0 drawn by the
+    client (``tessellate_atlas``) has triangles at the cube's corners facing against the
+    base's (``bench.pleats.turned_share``); with them none, the radial error of the drawn
+    vertices within 30 % of the unconstrained fit's (radius 1.3: the ball's sides,
+    2 % more; 1.0: the ball far under the corners, where a fold-free mesh cannot follow).
+    The rows weigh 10 here: a corner where three faces meet at right angles is the worst
+    case, and at the default :data:`FOLD_WEIGHT` (1, chosen on the scans: Lucy's RMS) the
+    data still turn half of them (docs/benchmarks.md, "Pleats")."""
+    from bench.pleats import turned_share
+
+    fit, scan = _ball_in_a_cube_fit(radius)
+    monkeypatch.setattr(atlas_detail, "FOLD_WEIGHT", 10.0)
+    found = {}
+    for passes in (0, atlas_detail.FOLD_PASSES):
+        monkeypatch.setattr(atlas_detail, "FOLD_PASSES", passes)
+        det = atlas_detail.fit_atlas_detail(fit, scan, levels=1, spans=4)
+        r = det.levels[0]["resolution"]
+        level = _drawn(det.atlas, r, det.detail_up_to(0))
+        error = np.linalg.norm(level[0], axis=1) - radius
+        found[passes] = (turned_share(_drawn(det.atlas, r, None), level),
+                         float(np.sqrt(np.mean(error ** 2))))
+    assert atlas_detail.FOLD_PASSES > 0
+    assert found[0][0] > 0.004, found  # the corners turn over without the rows
+    assert found[atlas_detail.FOLD_PASSES][0] == 0.0, found
+    assert found[atlas_detail.FOLD_PASSES][1] < 1.3 * found[0][1], found

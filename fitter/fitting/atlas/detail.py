@@ -50,6 +50,29 @@ but the mask's RMS +15 %; a reach of 0.5 % with weight 1: Lucy 1.00 % at RMS +0.
 mask 1.44 % at +1.9 %; clipping coefficients at once the residual (``COEFFICIENT_REACH``)
 changed nothing.
 
+Folds. The client draws node ``i`` at ``C_i + D_i d_i``: ``d_i`` the patch's unit normal
+inside it, the mean of its patches' normals on a border. Where the base creases between
+patches (its joins are C0), the directions turn by half the crease within one drawn cell and
+cross at about a cell's width on the crease's hollow side, and a larger displacement
+there turns the drawn triangle over against the base (the pleats of ``bench.pleats``):
+on main 90503fb's level 0 (drawn at 17, every object's base as the benchmark fits it)
+82-97 % of the area turned over lies in the patches' border ring of cells (23-27 % of all
+triangles); on Lucy, Laurana and the 15-scan Happy Buddha its triangles' corner directions
+are 39-55 degrees apart (median; 2-9 over all triangles) and its displacement 0.66-0.82 of a
+drawn edge (docs/benchmarks.md, "Pleats (session 15, w25-pleats)"). So after a
+level's welded solve, :func:`fold_node_rows` finds the drawn triangles that keep less than
+``FOLD_KEEP`` of their base triangle's facing area (a base triangle turned against its own
+patch, a pleat of the base, is left alone) and gives each of their nodes the row
+``D_k(node) = s D_k(node)``, ``s`` the share of the level's displacement with which the
+triangle keeps ``FOLD_KEEP`` (:func:`fold_shrink`; a node's smallest over its triangles),
+weighing ``FOLD_WEIGHT`` times the fitted samples' mean weight per node; the level is
+solved again with them, ``FOLD_PASSES`` times. Level 0 turned over, main -> these rows (the
+same bases, load 6-12): Lucy 1.93 -> 0.37 %, Laurana 0.159 -> 0.017 %, Nefertiti 0.28 ->
+0.04 %, the 15-scan Happy Buddha 5.2 -> 1.8 %, the bunny 0.10 -> 0.015 %, the Bali mask 0.73
+-> 0.15 %, at RMS of all points +1.4, +0.2, +0.3, +3.1, -0.2 and +1.0 %; at a weight of 10,
+Lucy's 0.30 % cost +7.9 %. What stays turned is mostly a pleat of the base (27 % on Lucy)
+and triangles turned by the slope of the field between oblique directions (37 %).
+
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
 leave a crease. A clamped field's value on a side depends only on its border row of
@@ -252,6 +275,15 @@ CELL_LATTICE = 4  # steps a side of the lattice far_cells samples a cell's trian
 # that no vertex of the scan is drawn by: a hole in a closed mesh; the bunny's none
 # (session 15).
 DRAWN_MESHES = False
+# Fold rows (module docstring, "Folds"): after a level's solve, the drawn triangles that keep
+# less than FOLD_KEEP of their base triangle's facing area get rows shrinking the level's
+# displacement at their nodes until they keep it, each weighing FOLD_WEIGHT times the fitted
+# samples' mean weight per node, and the level is solved again, FOLD_PASSES times (0: off).
+# Lucy level 0 (main 90503fb's base), turned over / RMS of all points: without 1.93 % /
+# 0.1998; weight 1: 0.37 % / 0.2026; weight 10: 0.30 % / 0.2156.
+FOLD_PASSES = 1
+FOLD_KEEP = 0.1
+FOLD_WEIGHT = 1.0
 
 
 # ------------------------------------------------------------------ patch order
@@ -674,7 +706,7 @@ class PullRows:
         the levels before) nearest to ``q`` along its direction ``d``.
     offsets : ndarray, shape (F + 1,)
         Patch ``f``'s rows are ``offsets[f]:offsets[f + 1]``.
-    weight : float
+    weight : float or ndarray, shape (R,)
         Each row's weight in the sum of squares.
     """
 
@@ -683,7 +715,115 @@ class PullRows:
     v: np.ndarray
     target: np.ndarray
     offsets: np.ndarray
-    weight: float
+    weight: float | np.ndarray
+
+
+def all_nodes(patches: int, resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every node ``(f, a, b)`` of the ``r x r`` grids of ``patches`` patches
+    (``r = resolution``), node ``(f, a, b)`` at index ``(f r + a) r + b``; each ``(F r²,)``."""
+    r = resolution
+    return (np.repeat(np.arange(patches), r * r), np.tile(np.repeat(np.arange(r), r), patches),
+            np.tile(np.arange(r), patches * r))
+
+
+def grid_triangles(patches: int, resolution: int) -> np.ndarray:
+    """The client's triangles over :func:`all_nodes` (``client_py.tessellate.grid_indices``:
+    cell ``(i, j)`` gives ``(k, k + r, k + 1)`` and ``(k + 1, k + r, k + r + 1)``, ``k = i r
+    + j``), patch after patch, shape ``(2 F (r - 1)², 3)``."""
+    r = resolution
+    i, j = np.meshgrid(np.arange(r - 1), np.arange(r - 1), indexing="ij")
+    k = (i * r + j).reshape(-1)
+    cell = np.stack([k, k + r, k + 1, k + 1, k + r, k + r + 1], axis=1).reshape(-1, 3)
+    return (np.arange(patches)[:, None, None] * r * r + cell[None]).reshape(-1, 3)
+
+
+def fold_shrink(before: np.ndarray, step: np.ndarray, keep: float) -> np.ndarray:
+    """The largest share ``s`` in ``[0, 1]`` of a level's displacement ``step (T, 3, 3)``
+    (per triangle, per corner) with which each triangle ``before + s step`` (corners
+    ``before (T, 3, 3)``: the base and the levels before) keeps ``keep`` of its facing
+    area: ``g(s) = N(s) . N(0) >= keep |N(0)|²``, ``N(s)`` the triangle's area vector.
+
+    ``g(s) = α + β s + γ s²`` with ``E_i`` the edges of ``before`` and ``e_i`` those of
+    ``step`` (``i = 1, 2``): ``α = |N(0)|²``, ``β = (E_1 × e_2 + e_1 × E_2) . N(0)``,
+    ``γ = (e_1 × e_2) . N(0)``. ``s = 1`` where ``g(1) >= keep α`` (or ``α = 0``), else the
+    smallest root of ``g(s) = keep α`` in ``(0, 1)``: ``g`` starts above it and ends below,
+    so one exists. Returns ``(T,)``."""
+    E1, E2 = before[:, 1] - before[:, 0], before[:, 2] - before[:, 0]
+    e1, e2 = step[:, 1] - step[:, 0], step[:, 2] - step[:, 0]
+    n0 = np.cross(E1, E2)
+    alpha = np.einsum("tc,tc->t", n0, n0)
+    beta = np.einsum("tc,tc->t", np.cross(E1, e2) + np.cross(e1, E2), n0)
+    gamma = np.einsum("tc,tc->t", np.cross(e1, e2), n0)
+    c0 = (1.0 - keep) * alpha  # g(s) - keep α = c0 + β s + γ s²
+    s = np.ones(len(alpha))
+    low = (c0 + beta + gamma < 0) & (alpha > 0)
+    b, g, c = beta[low], gamma[low], c0[low]
+    disc = np.sqrt(np.maximum(b * b - 4.0 * g * c, 0.0))
+    flat = np.abs(g) <= 1e-12 * (np.abs(b) + c)
+    # the smaller positive root: for γ ≠ 0, 2c / (-b ± disc) (stable form), c > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r1 = np.where(flat, -c / b, 2.0 * c / (-b + disc))
+        r2 = np.where(flat, np.inf, 2.0 * c / (-b - disc))
+    roots = np.where((r1 > 0) & np.isfinite(r1), r1, np.inf)
+    roots = np.minimum(roots, np.where((r2 > 0) & np.isfinite(r2), r2, np.inf))
+    s[low] = np.clip(roots, 0.0, 1.0)
+    return s
+
+
+def fold_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], coefficients: np.ndarray,
+                   level: int, spans: int, weight: float, keep: float = FOLD_KEEP,
+                   chunk: int = CHUNK) -> PullRows:
+    """Rows against the drawn triangles that turn over (module docstring, "Folds").
+
+    The mesh drawn at level ``level``'s resolution with the levels before it (``fields``)
+    and this level's ``coefficients (F, n, n)``; a drawn triangle that keeps less than
+    ``keep`` of the base's drawn triangle at the same nodes (area vectors ``N_k . N_b <
+    keep |N_b|²``: turned over, or nearly, so that rounding the level may turn it), where
+    the base triangle faces its patch's way (``N_b . a_f > 0``, ``a_f = Σ N_b`` over the
+    patch: a pleat of the base itself is left to the base), gets rows ``D_k(node) = s
+    D_k(node)`` at its three nodes, ``s`` from :func:`fold_shrink` with the base and the
+    levels before as ``before`` (at level 0 the base itself; the smallest ``s`` of the
+    node's triangles), each weighing ``weight``."""
+    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
+    f, a, b = all_nodes(F, r)
+    c, d = node_frames(atlas, r, f, a, b, chunk)
+    u, v = a / (r - 1), b / (r - 1)
+    before = sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
+                 np.zeros(len(f)))
+    own = evaluate_fields(coefficients, level, spans, f, u, v)
+    tri = grid_triangles(F, r)
+    base_area = np.cross(c[tri[:, 1]] - c[tri[:, 0]], c[tri[:, 2]] - c[tri[:, 0]])
+    patch_area = np.zeros((F, 3))
+    np.add.at(patch_area, f[tri[:, 0]], base_area)
+    x = c + before[:, None] * d
+    y = x + own[:, None] * d
+    drawn_area = np.cross(y[tri[:, 1]] - y[tri[:, 0]], y[tri[:, 2]] - y[tri[:, 0]])
+    kept = np.einsum("tc,tc->t", drawn_area, base_area)
+    turned = ((kept < keep * np.einsum("tc,tc->t", base_area, base_area))
+              & (np.einsum("tc,tc->t", base_area, patch_area[f[tri[:, 0]]]) > 0))
+    tri = tri[turned]
+    s = fold_shrink(x[tri], (own[:, None] * d)[tri], keep)
+    share = np.ones(len(f))
+    np.minimum.at(share, tri.reshape(-1), np.repeat(s, 3))
+    at = np.flatnonzero(share < 1.0)
+    return PullRows(f[at], u[at], v[at], share[at] * own[at],
+                    np.searchsorted(f[at], np.arange(F + 1)), weight)
+
+
+def merged_rows(first: PullRows | None, second: PullRows) -> PullRows:
+    """The rows of both, sorted by patch (stable: ``first``'s before), each keeping its
+    weight."""
+    if first is None:
+        return second
+    patch = np.concatenate([first.patch, second.patch])
+    order = np.argsort(patch, kind="stable")
+    patch = patch[order]
+    weight = np.concatenate([np.broadcast_to(first.weight, first.target.shape),
+                             np.broadcast_to(second.weight, second.target.shape)])
+    return PullRows(patch, np.concatenate([first.u, second.u])[order],
+                    np.concatenate([first.v, second.v])[order],
+                    np.concatenate([first.target, second.target])[order],
+                    np.searchsorted(patch, np.arange(len(first.offsets))), weight[order])
 
 
 def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
@@ -698,9 +838,7 @@ def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spa
     from .measure import closest_points_on_mesh
 
     F, r = len(atlas.quads), atlas_level_resolution(spans, level)
-    f = np.repeat(np.arange(F), r * r)
-    a = np.tile(np.repeat(np.arange(r), r), F)
-    b = np.tile(np.arange(r), F * r)
+    f, a, b = all_nodes(F, r)
     c, d = node_frames(atlas, r, f, a, b, chunk)
     u, v = a / (r - 1), b / (r - 1)
     x = c + d * sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
@@ -958,8 +1096,8 @@ class _BatchSystem:
             pull = self.pull
             if pull is not None and pull.offsets[last] > pull.offsets[first]:
                 plo, phi = pull.offsets[first], pull.offsets[last]
-                root = math.sqrt(pull.weight)
-                A = sp.vstack([A, root * collocation_matrix(
+                root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[plo:phi])
+                A = sp.vstack([A, sp.diags(root) @ collocation_matrix(
                     DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
                     block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
                 r = np.concatenate([r, root * pull.target[plo:phi]])
@@ -1267,6 +1405,27 @@ class AtlasDetail:
         return out
 
 
+def _solve_level(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
+                 fit_weight: np.ndarray, use: np.ndarray, model: DrawnModel, G: np.ndarray,
+                 pull: PullRows | None) -> tuple[np.ndarray, dict]:
+    """One level's welded coefficients ``(F, n, n)`` before quantisation and the batches'
+    rows (module docstring, "Welded borders"): the independent solve, its border
+    coefficients bounded and shared (``G``: :func:`shared_index`), the interior solved again
+    with the border ring held."""
+    rows: dict = {}  # the batches' rows, made once for both solves
+    free, weight = _solve_blocks(samples, residual, level, spans, weights=fit_weight,
+                                 model=model, rows=rows, pull=pull)
+    shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
+    c, _ = _solve_blocks(samples, residual, level, spans, fixed=shared, weights=fit_weight,
+                         model=model, rows=rows, pull=pull)
+    # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
+    # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border ring kept
+    # (shared, bounded already, and equal on both sides of a border)
+    inner = ~border_ring(c.shape[1])
+    c[:, inner] = bounded_by_residual(c, samples, residual, use)[:, inner]
+    return c, rows
+
+
 def _tick(timings: dict, name: str, clock: float) -> float:
     """Add the seconds since ``clock`` to ``timings[name]``; returns the time now."""
     now = time.perf_counter()
@@ -1371,7 +1530,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         else None
     taken: list[np.ndarray] = []  # per level, the cells it leaves out (F, W_k, W_k)
     # per patch: the fitted samples' weight, shared by the r^2 nodes of each level below
-    pull_weight = PULL_WEIGHT * float(np.sum(fit_weight)) / F
+    per_patch = float(np.sum(fit_weight)) / F
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
@@ -1379,20 +1538,18 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         residual = model.target - sum((model.drawn(c, j, spans)
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
+        per_node = per_patch / atlas_level_resolution(spans, k) ** 2
         pull = (far_node_rows(atlas, fields, k, spans, scan_mesh, PULL_REACH * diagonal,
-                              pull_weight / atlas_level_resolution(spans, k) ** 2)
+                              PULL_WEIGHT * per_node)
                 if PULL_WEIGHT > 0 else None)
-        rows: dict = {}  # the batches' rows, made once for both solves
-        free, weight = _solve_blocks(samples, residual, k, spans, weights=fit_weight,
-                                     model=model, rows=rows, pull=pull)
-        shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
-        c, _ = _solve_blocks(samples, residual, k, spans, fixed=shared,
-                             weights=fit_weight, model=model, rows=rows, pull=pull)
-        # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
-        # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border
-        # ring kept (shared, bounded already, and equal on both sides of a border)
-        inner = ~border_ring(n)
-        c[:, inner] = bounded_by_residual(c, samples, residual, use)[:, inner]
+
+        c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+        for _ in range(FOLD_PASSES if FOLD_WEIGHT > 0 else 0):  # module docstring, "Folds"
+            fold = fold_node_rows(atlas, fields, c, k, spans, FOLD_WEIGHT * per_node)
+            if not len(fold.patch):
+                break
+            pull = merged_rows(pull, fold)
+            c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
         clock = _tick(timings, "solve", clock)
         fitted = residual - model.drawn(c, k, spans)
         rms_fit = float(np.sqrt(np.average(fitted[use] ** 2 + samples.t2[use],
