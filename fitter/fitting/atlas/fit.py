@@ -889,6 +889,44 @@ def cloud_warm() -> dict:
             "warm_smoothing": float(WARM_SMOOTHING) ** (stages / WARM_STAGES)}
 
 
+def round_rows(table: np.ndarray, current: np.ndarray, degree: int, spans: int,
+               nb: np.ndarray, points: np.ndarray, f: np.ndarray, u: np.ndarray,
+               v: np.ndarray, border: np.ndarray, reach: float,
+               scan_mesh: tuple[np.ndarray, np.ndarray] | None, reverse_weight: float,
+               held: np.ndarray | None = None
+               ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray | None]:
+    """The data rows of one round of :func:`fit_layout` on the atlas ``current (N_cp, 3)``:
+    ``(A, X, held)`` of ``|A P - X|²``.
+
+    The working points at their foot points ``(f, u, v)`` (the first ``len(points)``
+    rows); the scan's ``border`` points within ``reach`` of an open border curve at their
+    foot points there, each weighing ``w = BORDER_WEIGHT (K / F) / (B / S)``
+    (:func:`fit_layout`); and with ``scan_mesh`` and ``reverse_weight > 0`` the
+    :func:`reverse_rows` of the far samples (``held``: theirs), each weighing ``w_r =
+    reverse_weight (K / F) / r²``. ``held`` returned: the samples with a reverse row
+    (``None`` without ``scan_mesh``).
+    """
+    n_cp = len(current)
+    A, targets = design_matrix(table, n_cp, degree, spans, f, u, v), points
+    open_sides = int(np.sum(nb[:, :, 0] < 0))
+    if len(border) and open_sides:
+        bf, bu, bv, bd = border_foot_points(table, current, degree, spans, nb, border)
+        near = bd <= reach
+        if near.any():
+            weight = BORDER_WEIGHT * (len(points) / len(table)) / (near.sum() / open_sides)
+            A_border = design_matrix(table, n_cp, degree, spans, bf[near], bu[near], bv[near])
+            A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
+            targets = np.concatenate([targets, math.sqrt(weight) * border[near]])
+    if scan_mesh is None or reverse_weight <= 0:
+        return A, targets, None
+    A_rev, y_rev, held = reverse_rows(table, current, degree, spans, scan_mesh, held)
+    weight = reverse_weight * (len(points) / len(table)) / REVERSE_SAMPLES ** 2
+    if len(y_rev):
+        A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
+        targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
+    return A, targets, held
+
+
 def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                degree: int = 3, spans: int = 1, rounds: int = 4, smoothing: float = 0.1,
                anchor: float = 1e-3, border: np.ndarray | None = None,
@@ -942,7 +980,6 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
     if border.ndim != 2 or border.shape[1] != 3 or not np.all(np.isfinite(border)):
         raise ValueError(f"border must be finite points of shape (B, 3), got {border.shape}")
-    open_sides = int(np.sum(nb[:, :, 0] < 0))
     reach = BORDER_REACH * float(np.linalg.norm(np.ptp(points, axis=0)))
     timings["foot_points"] = timings.get("foot_points", 0.0) + time.perf_counter() - clock
     current = prior
@@ -952,24 +989,10 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     weights = None
     for round_index in range(max(1, rounds)):
         clock = time.perf_counter()
-        A, targets = design_matrix(table, len(prior), degree, spans, f, u, v), points
-        if len(border) and open_sides:
-            bf, bu, bv, bd = border_foot_points(table, current, degree, spans, nb, border)
-            near = bd <= reach
-            if near.any():
-                weight = BORDER_WEIGHT * (len(points) / len(table)) / (near.sum() / open_sides)
-                A_border = design_matrix(table, len(prior), degree, spans, bf[near], bu[near],
-                                         bv[near])
-                A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
-                targets = np.concatenate([targets, math.sqrt(weight) * border[near]])
-        if scan_mesh is not None and reverse_weight > 0 and round_index > 0:
-            A_rev, y_rev, rows_held = reverse_rows(table, current, degree, spans, scan_mesh,
-                                                   held)
-            held = rows_held if hold else None
-            weight = reverse_weight * (len(points) / len(table)) / REVERSE_SAMPLES ** 2
-            if len(y_rev):
-                A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
-                targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
+        A, targets, held = round_rows(
+            table, current, degree, spans, nb, points, f, u, v, border, reach,
+            scan_mesh if round_index > 0 else None, reverse_weight, held)
+        held = held if hold else None
         # a stiff first solve when later rounds follow (the folds paragraph of the module)
         warm = warm_factor(round_index, rounds, warm_smoothing, warm_stages)
         current = solve_control_points(A, targets, L, prior, warm * smoothing, anchor,
@@ -1360,6 +1383,178 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     return chosen, size
 
 
+ROUND_SWEEPS = 4  # Gauss-Seidel sweeps of grid_codes (fewer once none moves)
+ROUND_RATE = 0.0  # grid_codes' weight on moving a code, in step² times the median H_ii
+
+
+def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
+    """A colouring of the unknowns of ``H (N, N)``: no two of one colour share a non-zero
+    ``H_ij`` (``i != j``), so coordinate descent on one colour at once is exactly one at a
+    time. Greedy, in order of decreasing degree (Welsh and Powell, The Computer Journal
+    1967): at most ``1 +`` the largest degree colours. Returns ``colour (N,)`` of int."""
+    H = sp.csr_matrix(H)
+    indptr, indices = H.indptr, H.indices
+    colour = np.full(H.shape[0], -1, np.int64)
+    for i in np.argsort(-np.diff(indptr), kind="stable"):
+        used = set(colour[indices[indptr[i]:indptr[i + 1]]].tolist())
+        c = 0
+        while c in used:
+            c += 1
+        colour[i] = c
+    return colour
+
+
+def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarray,
+               lo: np.ndarray, step: np.ndarray, fixed: np.ndarray | None = None,
+               sweeps: int = ROUND_SWEEPS, rate: float = 0.0) -> np.ndarray:
+    """Integer codes ``q (N, 3)`` of the points ``lo + step q`` that lower the quadratic
+    ``J(P) = tr(Pᵀ H P) - 2 tr(rhsᵀ P)`` from its value at ``codes``, each code within
+    ``[floor, ceil]`` of ``(x - lo) / step`` (or at its own ``codes`` value, when that is
+    outside: a corner the writer rounded apart).
+
+    Gauss-Seidel on the lattice (iterated conditional modes): with ``G = H P - rhs``,
+    coordinate ``(i, k)`` alone is best at ``t = (P_ik - G_ik / H_ii - lo_k) / step_k``, and
+    the integer minimiser of a convex quadratic of one integer within a box is ``rint(t)``
+    clipped to it. One colour of :func:`coupling_colours` at a time (its unknowns share no
+    term); each move lowers ``J`` or keeps it, so the result is never worse than ``codes``.
+    The three coordinates are independent (``J`` is a sum over them). ``fixed (N, 3)`` of
+    bool: codes not moved. At most ``sweeps`` sweeps, fewer once none moves. Rounding each
+    coordinate to nearest on its own is the ``sweeps = 0`` answer; fed back, a value is
+    rounded the way the others, already rounded, leave least error, as a least-squares fit
+    is quantised column by column with the error fed back (GPTQ, Frantar et al., ICLR
+    2023; noise feedback in sigma-delta coding); ``atlas.detail.quantised_blocks`` does the
+    same for the detail coefficients.
+    """
+    H = sp.csr_matrix(H)
+    q = np.asarray(codes, np.int64).copy()
+    t = (x - lo) / step
+    low = np.minimum(np.floor(t), q)
+    high = np.maximum(np.ceil(t), q)
+    if fixed is not None:
+        low = np.where(fixed, q, low)
+        high = np.where(fixed, q, high)
+    diag = H.diagonal()
+    colour = coupling_colours(H)
+    blocks = [(at, H[at]) for at in (np.flatnonzero((colour == c) & (diag > 0))
+                                     for c in range(int(colour.max()) + 1)) if len(at)]
+    p = lo + step * q
+    start = q.copy()
+    inside = diag[diag > 0]
+    lam = rate * float(np.median(inside)) if len(inside) else 0.0
+    shrink = lam / (2.0 * np.maximum(diag, 1e-300))
+    for _ in range(sweeps):
+        moved = 0
+        for at, rows in blocks:
+            best = (p[at] - (rows @ p - rhs[at]) / diag[at, None] - lo) / step
+            if rate > 0:  # the soft threshold toward the code it started from
+                off = best - start[at]
+                best = start[at] + np.sign(off) * np.maximum(
+                    np.abs(off) - shrink[at, None], 0.0)
+            new = np.clip(np.rint(best), low[at], high[at]).astype(np.int64)
+            moved += int(np.count_nonzero(new != q[at]))
+            q[at] = new
+            p[at] = lo + step * new
+        if not moved:
+            break
+    return q
+
+
+def _apart_corners(q: np.ndarray, plain: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """``q`` with both corners of every patch side or diagonal that ``q`` codes as one
+    point on all three axes put back to their ``plain`` codes (which the writer kept apart,
+    ``client_py.atlas_format.keep_corners_apart``), until no two corners of a patch are
+    one point."""
+    q = q.copy()
+    pairs = np.array([(a, b) for a in range(4) for b in range(a + 1, 4)])
+    ends = np.asarray(quads)[:, pairs].reshape(-1, 2)
+    for _ in range(len(q)):
+        same = np.all(q[ends[:, 0]] == q[ends[:, 1]], axis=1) & (ends[:, 0] != ends[:, 1])
+        back = np.unique(ends[same])
+        back = back[np.any(q[back] != plain[back], axis=1)]
+        if not len(back):
+            break
+        q[back] = plain[back]
+    return q
+
+
+def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: np.ndarray,
+                   f: np.ndarray, u: np.ndarray, v: np.ndarray, *, smoothing: float,
+                   anchor: float, border: np.ndarray | None = None,
+                   scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
+                   reverse_weight: float = REVERSE_WEIGHT, sweeps: int = ROUND_SWEEPS,
+                   rate: float | None = None) -> AtlasSurface:
+    """``atlas`` with its control points on ``base.tsa``'s grid at ``bits``, rounded with
+    the error fed back: the file's codes of the points (``write_atlas``: to nearest, a
+    patch's corners kept apart) moved by :func:`grid_codes` to lower the last round's
+    objective of :func:`fit_layout`, ``|A P - X|² + λ |L P|² + μ |P - P_0|²`` with the rows
+    of :func:`round_rows` at the final foot points ``(f, u, v)`` (``smoothing``, ``anchor``,
+    ``border``, ``scan_mesh``, ``reverse_weight``: the fit's). ``write_atlas(result, bits)``
+    writes these codes (the grid is the points' bounds over ``2^bits - 1`` steps, and the
+    points at the bounds are not moved). No format change. When the moved codes would
+    collapse a patch the client draws (:func:`keeps_every_normal`), the file's codes."""
+    from client_py.atlas_format import read_atlas, write_atlas
+
+    degree, spans = atlas.degree, atlas.spans
+    table = index_table(atlas)
+    x = control_points(atlas)
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    top = (1 << bits) - 1
+    step = np.where(hi > lo, (hi - lo) / top, 1.0)
+    decoded, _ = read_atlas(write_atlas(atlas, bits))
+    plain_points = np.empty_like(x)
+    plain_points[table.reshape(-1)] = control_points(decoded)[index_table(decoded).reshape(-1)]
+    plain = np.clip(np.rint((plain_points - lo) / step), 0, top).astype(np.int64)
+    initial = bilinear_atlas(layout, degree, spans)
+    nb = neighbour_table(atlas)
+    border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
+    reach = BORDER_REACH * float(np.linalg.norm(np.ptp(points, axis=0)))
+    A, targets, _ = round_rows(table, x, degree, spans, nb, points, f, u, v, border, reach,
+                               scan_mesh, reverse_weight)
+    L = smoothing_matrix(atlas, table)
+    lam, mu = regularisation_weights(A[:len(points)], L, smoothing, anchor)
+    H = (A.T @ A + lam * (L.T @ L) + mu * sp.identity(len(x), format="csr")).tocsr()
+    rhs = A.T @ targets + mu * control_points(initial)
+    fixed = np.zeros_like(plain, bool)
+    fixed[x.argmin(axis=0), np.arange(3)] = True
+    fixed[x.argmax(axis=0), np.arange(3)] = True
+    q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
+                   ROUND_RATE if rate is None else rate)
+    q = _apart_corners(q, plain, np.asarray(atlas.quads))
+    result = with_control_points(atlas, lo + step * q)
+    if not keeps_every_normal(result, bits):
+        return with_control_points(atlas, lo + step * plain)
+    return result
+
+
+ROUND_RATES = (0.0, 1.0, 4.0)  # within_budget_fed_back's rates, tried in turn
+
+
+def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budget: int | None,
+                           layout: QuadLayout, points: np.ndarray, f: np.ndarray,
+                           u: np.ndarray, v: np.ndarray, **options) -> tuple[AtlasSurface, int]:
+    """The fitted base rounded for ``base.tsa`` with the error fed back
+    (:func:`fed_back_atlas`, ``options`` its keywords) and that file's bytes: at the first
+    rate of :data:`ROUND_RATES` whose file stays within ``byte_budget`` (``None``: no
+    budget) or within ``size``, the bytes of the file rounded to nearest; else ``atlas``
+    and ``size`` as they were (``write_atlas`` rounds it to nearest).
+
+    Fed back, the codes are less smooth than rounded ones and their residuals cost more:
+    on the default bases (9, 8 and 9 bits) Nefertiti's, Lucy's and Laurana's ``base.tsa``
+    grew 4.3 %, 4.5 % and 5.2 % (RMS of all points 0.1919 -> 0.1784, 1.038 -> 0.977, 0.2298
+    -> 0.2182, w25-baserd), less than a bit more costs for the same (docs/benchmarks.md,
+    session 15); a base the fit filled up to the budget takes a rate instead.
+    """
+    from client_py.atlas_format import write_atlas
+
+    limit = max(size, byte_budget) if byte_budget is not None else None
+    for rate in ROUND_RATES:
+        rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, rate=rate, **options)
+        rounded_size = len(write_atlas(rounded, bits))
+        if limit is None or rounded_size <= limit:
+            return rounded, rounded_size
+    return atlas, size
+
+
 def _check_arguments(patches: object, degree: object, spans: object, bits: object,
                      byte_budget: object, working_count: object, rounds: object) -> None:
     if not (patches == "auto" or (isinstance(patches, int) and not isinstance(patches, bool)
@@ -1589,6 +1784,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             break
         rms, size, layout, atlas, f, u, v, chosen_bits = refined
     timings["refine_far"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    atlas, size = within_budget_fed_back(
+        atlas, size, chosen_bits, byte_budget if patches == "auto" else None, layout, points,
+        f, u, v, smoothing=smoothing, anchor=anchor, border=border, scan_mesh=scan_mesh)
+    timings["round"] = time.perf_counter() - clock
     timings.update(trial_timings)
     table = index_table(atlas)
     distance = signed_distances(table, control_points(atlas), degree, spans, points, f, u, v)
