@@ -1,0 +1,171 @@
+"""The base's control points rounded for ``base.tsa`` with the error fed back
+(``fitter.fitting.atlas.fit``: ``grid_codes``, ``coupling_colours``, ``fed_back_atlas``)."""
+
+import itertools
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import trimesh
+
+from client_py.atlas_format import read_atlas, write_atlas
+from fitter.fitting.atlas import fit_atlas
+from fitter.fitting.atlas.fit import (
+    control_points,
+    coupling_colours,
+    fed_back_atlas,
+    grid_codes,
+    index_table,
+    neighbour_table,
+    regularisation_weights,
+    round_rows,
+    smoothing_matrix,
+)
+from fitter.fitting.atlas.layout import bilinear_atlas
+from fitter.fitting.io.scan import make_scan, new_source
+
+
+def _objective(A: np.ndarray, X: np.ndarray, P: np.ndarray) -> float:
+    return float(np.sum((A @ P - X) ** 2))
+
+
+def _random_problem(rng: np.random.Generator, k: int, n: int, density: float):
+    """A sparse least-squares problem ``|A P - X|²`` with coupled unknowns, its dense
+    ``numpy.linalg.lstsq`` minimiser and a grid whose step is comparable to the fit's
+    error (where rounding matters)."""
+    A = rng.normal(size=(k, n)) * (rng.random((k, n)) < density)
+    A[np.arange(k), rng.integers(0, n, k)] += 1.0  # no empty row
+    A[rng.integers(0, k, n), np.arange(n)] += 1.0  # no empty column
+    X = rng.normal(size=(k, 3)) * 3.0
+    x = np.linalg.lstsq(A, X, rcond=None)[0]
+    lo = x.min(axis=0) - 0.1
+    step = np.array([0.7, 1.1, 0.9])
+    return A, X, x, lo, step
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fed_back_codes_never_fit_worse_than_rounding_and_stay_within_a_step(seed):
+    rng = np.random.default_rng(seed)
+    A, X, x, lo, step = _random_problem(rng, 60, 24, 0.15)
+    plain = np.rint((x - lo) / step).astype(np.int64)
+    H = sp.csr_matrix(A.T @ A)
+    q = grid_codes(H, A.T @ X, x, plain, lo, step)
+    t = (x - lo) / step
+    assert np.all(q >= np.floor(t)) and np.all(q <= np.ceil(t))
+    got, rounded = _objective(A, X, lo + step * q), _objective(A, X, lo + step * plain)
+    assert got <= rounded + 1e-9
+    # and it is a coordinate-wise minimum: no single code moved by one lowers it
+    for i, c in itertools.product(range(len(q)), range(3)):
+        for d in (-1, 1):
+            if np.floor(t[i, c]) <= q[i, c] + d <= np.ceil(t[i, c]):
+                moved = q.copy()
+                moved[i, c] += d
+                assert _objective(A, X, lo + step * moved) >= got - 1e-9
+
+
+def test_fed_back_codes_reach_the_best_codes_of_a_small_problem_more_often_than_rounding():
+    """On problems small enough to try every code in the box (``2^n`` per axis), the fed
+    back codes are the exhaustive optimum or near it, and on the sum far nearer than
+    rounding to nearest."""
+    rng = np.random.default_rng(7)
+    excess_fed, excess_plain = 0.0, 0.0
+    for _ in range(8):
+        A, X, x, lo, step = _random_problem(rng, 20, 8, 0.5)
+        t = (x - lo) / step
+        plain = np.rint(t).astype(np.int64)
+        q = grid_codes(sp.csr_matrix(A.T @ A), A.T @ X, x, plain, lo, step)
+        for c in range(3):
+            best = min(_objective(A[:, :], X[:, [c]], (lo[c] + step[c] * np.array(bits))[:, None])
+                       for bits in itertools.product(*[(np.floor(v), np.ceil(v))
+                                                        for v in t[:, c]]))
+            fed = _objective(A, X[:, [c]], (lo[c] + step[c] * q[:, c])[:, None])
+            rounded = _objective(A, X[:, [c]], (lo[c] + step[c] * plain[:, c])[:, None])
+            assert best - 1e-9 <= fed <= rounded + 1e-9
+            excess_fed += fed - best
+            excess_plain += rounded - best
+    assert excess_fed < 0.5 * excess_plain
+
+
+def test_fixed_codes_are_not_moved_and_a_rate_keeps_more_codes():
+    rng = np.random.default_rng(3)
+    A, X, x, lo, step = _random_problem(rng, 80, 30, 0.1)
+    plain = np.rint((x - lo) / step).astype(np.int64)
+    H, rhs = sp.csr_matrix(A.T @ A), A.T @ X
+    fixed = rng.random(plain.shape) < 0.3
+    q = grid_codes(H, rhs, x, plain, lo, step, fixed)
+    assert np.array_equal(q[fixed], plain[fixed])
+    free = grid_codes(H, rhs, x, plain, lo, step)
+    taxed = grid_codes(H, rhs, x, plain, lo, step, rate=50.0)
+    assert np.count_nonzero(taxed != plain) < np.count_nonzero(free != plain)
+    assert np.array_equal(grid_codes(H, rhs, x, plain, lo, step, sweeps=0), plain)
+
+
+def test_coupling_colours_never_give_two_coupled_unknowns_one_colour():
+    rng = np.random.default_rng(1)
+    B = sp.random(300, 300, density=0.02, random_state=np.random.RandomState(1))
+    H = (B @ B.T + sp.identity(300)).tocsr()
+    colour = coupling_colours(H)
+    rows, cols = H.nonzero()
+    off = rows != cols
+    assert np.all(colour[rows[off]] != colour[cols[off]])
+    degree = np.diff(H.indptr) - 1
+    assert colour.max() <= degree.max()
+    assert rng is not None
+
+
+def _sphere_scan():
+    m = trimesh.creation.icosphere(subdivisions=4)
+    return make_scan("sphere", np.asarray(m.vertices, np.float64), faces=np.asarray(m.faces),
+                     source=new_source("sphere", None, "array", None, "array"))
+
+
+def test_the_fed_back_base_is_on_its_files_grid_and_fits_its_points_better():
+    """``fit_atlas`` writes its base fed back: the file holds exactly its control points,
+    and the last round's objective of the fit is lower than with the file of the fit rounded
+    to nearest (the sphere at 8 bits, where a step is a sixth of the fit's RMS)."""
+    from fitter.fitting.atlas.fit import fit_layout, working_points
+    from fitter.fitting.atlas.layout import decimate, quad_layout
+    from fitter.fitting.atlas.surface import scan_surface
+
+    scan = _sphere_scan()
+    surface = scan_surface(scan)
+    layout = quad_layout(*decimate(surface, 40))
+    points, normals = working_points(scan, surface, 3000)
+    atlas, f, u, v, _ = fit_layout(layout, points, normals, rounds=3)
+    bits = 8
+    rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, smoothing=0.1,
+                             anchor=1e-3)
+    decoded, _ = read_atlas(write_atlas(rounded, bits))
+    table, table_d = index_table(rounded), index_table(decoded)
+    np.testing.assert_allclose(control_points(decoded)[table_d], control_points(rounded)[table],
+                               rtol=0, atol=1e-12)
+    plain, _ = read_atlas(write_atlas(atlas, bits))
+    plain_points = np.empty_like(control_points(atlas))
+    plain_points[table.reshape(-1)] = control_points(plain)[index_table(plain).reshape(-1)]
+
+    nb = neighbour_table(atlas)
+    A, X, _ = round_rows(table, control_points(atlas), 3, 1, nb, points, f, u, v,
+                         np.empty((0, 3)), 0.0, None, 0.0)
+    L = smoothing_matrix(atlas, table)
+    lam, mu = regularisation_weights(A, L, 0.1, 1e-3)
+    prior = control_points(bilinear_atlas(layout, 3, 1))
+
+    def objective(P):
+        return (float(np.sum((A @ P - X) ** 2)) + lam * float(np.sum((L @ P) ** 2))
+                + mu * float(np.sum((P - prior) ** 2)))
+
+    fed, near = objective(control_points(rounded)), objective(plain_points)
+    best = objective(control_points(atlas))
+    assert best < fed < near
+    assert fed - best < 0.7 * (near - best)  # at least 30 % of the rounding's excess gone
+    step = np.ptp(control_points(atlas), axis=0) / 255
+    assert np.all(np.abs(control_points(rounded) - control_points(atlas)) <= step + 1e-12)
+
+
+def test_fit_atlas_returns_its_base_on_the_grid_it_is_written_at():
+    fit = fit_atlas(_sphere_scan(), 60, working_count=3000, rounds=2, bits=9)
+    decoded, _ = read_atlas(write_atlas(fit.atlas, 9))
+    np.testing.assert_allclose(np.sort(control_points(decoded), axis=0),
+                               np.sort(control_points(fit.atlas), axis=0), rtol=0, atol=1e-12)
+    assert fit.bytes == len(write_atlas(fit.atlas, 9))
+    assert "round" in fit.timings
