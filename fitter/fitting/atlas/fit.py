@@ -1317,9 +1317,21 @@ def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
     return len(write_atlas(atlas, bits or base_bits(atlas, rms)))
 
 
+# The base alone is drawn with this many samples per knot span (base_resolution). 8, not 4
+# (w25-baserd): the drawn base is the patches' chords between samples, and on the default
+# bases (main 90503fb, grid_mesh of the file as written, ALL scan points) 4 left RMS
+# 0.1919 (Nefertiti), 1.038 (Lucy), 0.2298 (Laurana) where 8 leaves 0.1830, 0.9605, 0.2119
+# (16: 0.1818, 0.9502, 0.2093), for no byte: four times the base's triangles (Lucy 72,576
+# -> 290,304; level 0 draws 1.16 M) and its pure-Python tessellation 0.31 -> 0.68 s of CPU
+# (numpy 0.09 -> 0.13 s, load 8). 8 s + 1 and level 0's 16 m + 1 still weld (client_py's
+# power-of-2 rule).
+BASE_SAMPLES_PER_SPAN = 8
+
+
 def base_resolution(spans: int) -> int:
-    """Samples per patch side of the base alone: ``4 s + 1`` (four per knot span)."""
-    return 4 * spans + 1
+    """Samples per patch side of the base alone: ``k s + 1``, ``k =``
+    :data:`BASE_SAMPLES_PER_SPAN` per knot span."""
+    return BASE_SAMPLES_PER_SPAN * spans + 1
 
 
 def keeps_every_normal(atlas: AtlasSurface, bits: int, data: bytes | None = None) -> bool:
