@@ -1489,6 +1489,52 @@ def _apart_corners(q: np.ndarray, plain: np.ndarray, quads: np.ndarray) -> np.nd
     return q
 
 
+PLEAT_RESOLUTION = 5  # samples a patch side of pleated_patches (the base's drawn grid)
+PLEAT_COSINE = -0.5  # ... two triangles of a patch folded over each other: n1 . n2 below this
+
+
+def pleated_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
+                    resolution: int = PLEAT_RESOLUTION) -> np.ndarray:
+    """Patches of which two triangles sharing an edge fold over each other,
+    ``n_1 · n_2 <`` :data:`PLEAT_COSINE` (more than 120° apart), with the patch drawn on a
+    ``resolution²`` grid cut as :func:`grid_mesh` cuts it: the pleats ``bench.pleats``
+    counts on the drawn base. Returns ``pleated (F,)`` of bool."""
+    r, n_f = resolution, len(table)
+    t = np.linspace(0.0, 1.0, r)
+    f = np.repeat(np.arange(n_f), r * r)
+    (c,) = evaluate_patches(table, points, degree, spans, f, np.tile(np.repeat(t, r), n_f),
+                            np.tile(np.tile(t, r), n_f))
+    g = c.reshape(n_f, r, r, 3)  # g[f, a, b]: a along u
+    p00, p10, p01, p11 = g[:, :-1, :-1], g[:, 1:, :-1], g[:, :-1, 1:], g[:, 1:, 1:]
+    n0 = np.cross(p10 - p00, p11 - p00)  # grid_mesh's triangles (p00, p10, p11), (p00, p11, p01)
+    n1 = np.cross(p11 - p00, p01 - p00)
+    n0 /= np.maximum(np.linalg.norm(n0, axis=-1, keepdims=True), 1e-300)
+    n1 /= np.maximum(np.linalg.norm(n1, axis=-1, keepdims=True), 1e-300)
+
+    def folded(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return (np.einsum("f...c,f...c->f...", a, b) < PLEAT_COSINE).reshape(n_f, -1).any(axis=1)
+
+    # the cell's diagonal, its side along v (t0 of cell a, t1 of cell a + 1) and along u
+    return folded(n0, n1) | folded(n0[:, :-1], n1[:, 1:]) | folded(n1[:, :, :-1], n0[:, :, 1:])
+
+
+def _unfolded(q: np.ndarray, plain: np.ndarray, table: np.ndarray, lo: np.ndarray,
+              step: np.ndarray, degree: int, spans: int) -> np.ndarray:
+    """``q`` with the control nets of the patches pleated with its codes and not with the
+    ``plain`` ones (:func:`pleated_patches`) put back to ``plain``, until none is left
+    (a net put back shares its border rows, so a neighbour is tested again)."""
+    q = q.copy()
+    before = pleated_patches(table, lo + step * plain, degree, spans)
+    for _ in range(len(table)):
+        new = pleated_patches(table, lo + step * q, degree, spans) & ~before
+        back = np.unique(table[new])
+        back = back[np.any(q[back] != plain[back], axis=1)]
+        if not len(back):
+            break
+        q[back] = plain[back]
+    return q
+
+
 def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: np.ndarray,
                    f: np.ndarray, u: np.ndarray, v: np.ndarray, *, smoothing: float,
                    anchor: float, border: np.ndarray | None = None,
@@ -1532,6 +1578,7 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
                    ROUND_RATE if rate is None else rate)
     q = _apart_corners(q, plain, np.asarray(atlas.quads))
+    q = _unfolded(q, plain, table, lo, step, degree, spans)
     result = with_control_points(atlas, lo + step * q)
     if not keeps_every_normal(result, bits):
         return with_control_points(atlas, lo + step * plain)
