@@ -1554,9 +1554,8 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     of :func:`round_rows` at the final foot points ``(f, u, v)`` (``smoothing``, ``anchor``,
     ``border``, ``scan_mesh``, ``reverse_weight``: the fit's). ``write_atlas(result, bits)``
     writes these codes (the grid is the points' bounds over ``2^bits - 1`` steps, and the
-    points at the bounds are not moved). No format change. When the moved codes would
-    collapse a patch the client draws (:func:`keeps_every_normal`), the file's codes."""
-    from client_py.atlas_format import read_atlas, write_atlas
+    points at the bounds are not moved). No format change."""
+    from client_py.atlas_format import keep_corners_apart
 
     degree, spans = atlas.degree, atlas.spans
     table = index_table(atlas)
@@ -1564,10 +1563,12 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     lo, hi = x.min(axis=0), x.max(axis=0)
     top = (1 << bits) - 1
     step = np.where(hi > lo, (hi - lo) / top, 1.0)
-    decoded, _ = read_atlas(write_atlas(atlas, bits))
-    plain_points = np.empty_like(x)
-    plain_points[table.reshape(-1)] = control_points(decoded)[index_table(decoded).reshape(-1)]
-    plain = np.clip(np.rint((plain_points - lo) / step), 0, top).astype(np.int64)
+    # the writer's codes (client_py.format._quantise, then keep_corners_apart), which do
+    # not depend on the file's numbering of the points
+    scale = np.where(hi > lo, top / np.where(hi > lo, hi - lo, 1.0), 0.0)
+    codes = np.clip(np.rint((x - lo) * scale), 0, top).astype(np.int64).T.tolist()
+    keep_corners_apart(codes, x.T.tolist(), lo.tolist(), hi.tolist(), bits, atlas.quads)
+    plain = np.array(codes, np.int64).T
     initial = bilinear_atlas(layout, degree, spans)
     nb = neighbour_table(atlas)
     border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
@@ -1585,10 +1586,7 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
                    ROUND_RATE if rate is None else rate)
     q = _apart_corners(q, plain, np.asarray(atlas.quads))
     q = _unfolded(q, plain, table, lo, step, degree, spans)
-    result = with_control_points(atlas, lo + step * q)
-    if not keeps_every_normal(result, bits):
-        return with_control_points(atlas, lo + step * plain)
-    return result
+    return with_control_points(atlas, lo + step * q)
 
 
 ROUND_RATES = (0.0, 1.0, 4.0)  # within_budget_fed_back's rates, tried in turn
@@ -1600,8 +1598,9 @@ def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budge
     """The fitted base rounded for ``base.tsa`` with the error fed back
     (:func:`fed_back_atlas`, ``options`` its keywords) and that file's bytes: at the first
     rate of :data:`ROUND_RATES` whose file stays within ``byte_budget`` (``None``: no
-    budget) or within ``size``, the bytes of the file rounded to nearest; else ``atlas``
-    and ``size`` as they were (``write_atlas`` rounds it to nearest).
+    budget) or within ``size``, the bytes of the file rounded to nearest; else, or when
+    the moved codes collapse a patch the client draws (:func:`keeps_every_normal`),
+    ``atlas`` and ``size`` as they were (``write_atlas`` rounds it to nearest).
 
     Fed back, the codes are less smooth than rounded ones and their residuals cost more:
     on the default bases (9, 8 and 9 bits) Nefertiti's, Lucy's and Laurana's ``base.tsa``
@@ -1614,9 +1613,11 @@ def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budge
     limit = max(size, byte_budget) if byte_budget is not None else None
     for rate in ROUND_RATES:
         rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, rate=rate, **options)
-        rounded_size = len(write_atlas(rounded, bits))
-        if limit is None or rounded_size <= limit:
-            return rounded, rounded_size
+        data = write_atlas(rounded, bits)
+        if limit is not None and len(data) > limit:
+            continue
+        # moved codes must not collapse a patch the client draws, as budget_bits' do not
+        return (rounded, len(data)) if keeps_every_normal(rounded, bits, data) else (atlas, size)
     return atlas, size
 
 
