@@ -1503,8 +1503,10 @@ def pleated_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: i
                     resolution: int = PLEAT_RESOLUTION) -> np.ndarray:
     """Patches of which two triangles sharing an edge fold over each other,
     ``n_1 · n_2 <`` :data:`PLEAT_COSINE` (more than 120° apart), with the patch drawn on a
-    ``resolution²`` grid cut as :func:`grid_mesh` cuts it: the pleats ``bench.pleats``
-    counts on the drawn base. Returns ``pleated (F,)`` of bool."""
+    ``resolution²`` grid whose cells are cut as the client cuts them
+    (``client_py.tessellate.grid_indices``: along the diagonal from ``(u + h, v)`` to
+    ``(u, v + h)``): the pleats ``bench.pleats`` counts on the drawn base. Returns
+    ``pleated (F,)`` of bool."""
     r, n_f = resolution, len(table)
     t = np.linspace(0.0, 1.0, r)
     f = np.repeat(np.arange(n_f), r * r)
@@ -1512,16 +1514,17 @@ def pleated_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: i
                             np.tile(np.tile(t, r), n_f))
     g = c.reshape(n_f, r, r, 3)  # g[f, a, b]: a along u
     p00, p10, p01, p11 = g[:, :-1, :-1], g[:, 1:, :-1], g[:, :-1, 1:], g[:, 1:, 1:]
-    n0 = np.cross(p10 - p00, p11 - p00)  # grid_mesh's triangles (p00, p10, p11), (p00, p11, p01)
-    n1 = np.cross(p11 - p00, p01 - p00)
+    n0 = np.cross(p10 - p00, p01 - p00)  # the cell's triangles (p00, p10, p01), (p01, p10, p11)
+    n1 = np.cross(p10 - p01, p11 - p01)
     n0 /= np.maximum(np.linalg.norm(n0, axis=-1, keepdims=True), 1e-300)
     n1 /= np.maximum(np.linalg.norm(n1, axis=-1, keepdims=True), 1e-300)
 
     def folded(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return (np.einsum("f...c,f...c->f...", a, b) < PLEAT_COSINE).reshape(n_f, -1).any(axis=1)
 
-    # the cell's diagonal, its side along v (t0 of cell a, t1 of cell a + 1) and along u
-    return folded(n0, n1) | folded(n0[:, :-1], n1[:, 1:]) | folded(n1[:, :, :-1], n0[:, :, 1:])
+    # across the cell's diagonal, and the second triangle's sides p10-p11 and p01-p11 (the
+    # first triangles of the cells after it along u and along v)
+    return folded(n0, n1) | folded(n1[:, :-1], n0[:, 1:]) | folded(n1[:, :, :-1], n0[:, :, 1:])
 
 
 def _unfolded(q: np.ndarray, plain: np.ndarray, table: np.ndarray, lo: np.ndarray,
