@@ -176,12 +176,6 @@ BASE_STEP_OVER_RMS = 1.2  # its quantisation step over the fit's RMS (base_bits)
 # fit's base_bits, and with 2 the Bali mask's accepted 2,304-patch base was then written
 # at 11 bits, 39,324 bytes against the 24,000 budget (at 8 bits: 20,825).
 BUDGET_FEWER_BITS = 3
-# Solve + parameter-correction rounds of the chosen layout's fit (fit_atlas's rounds; the
-# warm_factor schedule 100, 10, then 1). 10, not 6 (w25-baserd): refitted on main 90503fb's
-# layouts, the base's RMS of all points (its file as written, plain rounding) fell 2.8 %
-# (Nefertiti), 3.4 % (Lucy), 1.8 % (Laurana) for the same bits and -0.2..+0.1 % of bytes;
-# patches folded inside (folded_patches) 130 -> 134, 493 -> 523, 55 -> 62.
-BASE_ROUNDS = 10
 PREDECIMATED_TRIANGLES = 20_000
 
 
@@ -1643,7 +1637,7 @@ def _check_arguments(patches: object, degree: object, spans: object, bits: objec
 
 def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans: int = 1,
               bits: int | None = 12, byte_budget: int = DEFAULT_BYTE_BUDGET,
-              working_count: int = 60_000, rounds: int = BASE_ROUNDS, smoothing: float = 0.1,
+              working_count: int = 60_000, rounds: int = 6, smoothing: float = 0.1,
               anchor: float = 1e-3, thin_parts: bool = True,
               progress: Callable[[float], None] | None = None,
               surface: ScanSurface | None = None,
