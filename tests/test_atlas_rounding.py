@@ -169,3 +169,45 @@ def test_fit_atlas_returns_its_base_on_the_grid_it_is_written_at():
                                np.sort(control_points(fit.atlas), axis=0), rtol=0, atol=1e-12)
     assert fit.bytes == len(write_atlas(fit.atlas, 9))
     assert "round" in fit.timings
+
+
+def _client_pleats(atlas, resolution: int) -> np.ndarray:
+    """Reference: each patch's triangles as ``client_py`` draws the atlas (welded, float32),
+    two of one patch sharing an edge with unit normals more than 120° apart."""
+    from client_py.atlas_mesh import tessellate_atlas
+
+    mesh = tessellate_atlas(atlas, resolution, kernel="numpy", normals=False)
+    v = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(np.float64)
+    tri = np.frombuffer(mesh.indices, np.uintc).reshape(-1, 3).astype(np.int64)
+    per = 2 * (resolution - 1) ** 2
+    n = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    pleated = np.zeros(len(tri) // per, bool)
+    for f in range(len(pleated)):
+        edges: dict = {}
+        for t in range(f * per, (f + 1) * per):
+            for a, b in ((0, 1), (1, 2), (2, 0)):
+                edges.setdefault(frozenset((tri[t, a], tri[t, b])), []).append(t)
+        pleated[f] = any(len(ts) == 2 and n[ts[0]] @ n[ts[1]] < -0.5 for ts in edges.values())
+    return pleated
+
+
+def test_pleated_patches_are_those_the_client_draws_folded():
+    """A sphere's base with its interior control points shaken hard enough to fold some
+    patches: the patches found folded are those whose drawn triangles (client_py's own
+    tessellation, an independent cut of the cells) fold over each other."""
+    from fitter.fitting.atlas.fit import pleated_patches, with_control_points
+
+    fit = fit_atlas(_sphere_scan(), 60, working_count=3000, rounds=2)
+    table = index_table(fit.atlas)
+    points = control_points(fit.atlas)
+    assert not pleated_patches(table, points, 3, 1).any()
+    assert not _client_pleats(fit.atlas, 5).any()
+    rng = np.random.default_rng(5)
+    interior = np.unique(table[:, 1:3, 1:3])
+    shaken = points.copy()
+    shaken[interior] += rng.normal(scale=0.5, size=(len(interior), 3))
+    atlas = with_control_points(fit.atlas, shaken)
+    got = pleated_patches(table, shaken, 3, 1)
+    assert 0 < got.sum() < len(got)
+    assert np.array_equal(got, _client_pleats(atlas, 5))
