@@ -118,6 +118,16 @@ lower RMS asked for 12 bits, 28.8 KB): the default (the :func:`warm_factor` sche
 %). A point cloud keeps only the 10-times stage (:func:`cloud_warm`: the 15-scan Buddha's
 fins under its unscanned pedestal bottom).
 
+Rounding. ``base.tsa`` holds every control point on a grid of ``2^bits`` steps per axis
+(:func:`budget_bits` chooses the bits). Rounded to nearest, each coordinate is off by up to
+half a step on its own, and on the default bases that was 20-25 % of the drawn base's
+squared error over all scan points (docs/benchmarks.md, session 15). :func:`fed_back_atlas`
+rounds them with the error fed back instead: each code moved, within a step of the fit, to
+the integer that best fits the last round's least squares given all the others
+(:func:`grid_codes`), with the corners kept apart as the writer keeps them and no patch left
+pleated that plain rounding does not pleat (:func:`pleated_patches`); the file's format and
+reader are unchanged (:func:`within_budget_fed_back` keeps the byte budget).
+
 Weights stay 1 (polynomial patches): the NURBS weight step of the single patch is not
 carried over to the shared control points yet.
 """
@@ -1471,22 +1481,28 @@ def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarr
     return q
 
 
-def _apart_corners(q: np.ndarray, plain: np.ndarray, quads: np.ndarray) -> np.ndarray:
-    """``q`` with both corners of every patch side or diagonal that ``q`` codes as one
-    point on all three axes put back to their ``plain`` codes (which the writer kept apart,
-    ``client_py.atlas_format.keep_corners_apart``), until no two corners of a patch are
-    one point."""
+def _put_back(q: np.ndarray, plain: np.ndarray,
+              offenders: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``q (N, 3)`` with the points ``offenders(q)`` names (indices) put back to their
+    ``plain`` codes, again until it names none that differs from ``plain``."""
     q = q.copy()
-    pairs = np.array([(a, b) for a in range(4) for b in range(a + 1, 4)])
-    ends = np.asarray(quads)[:, pairs].reshape(-1, 2)
     for _ in range(len(q)):
-        same = np.all(q[ends[:, 0]] == q[ends[:, 1]], axis=1) & (ends[:, 0] != ends[:, 1])
-        back = np.unique(ends[same])
+        back = offenders(q)
         back = back[np.any(q[back] != plain[back], axis=1)]
         if not len(back):
             break
         q[back] = plain[back]
     return q
+
+
+def _corners_together(quads: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """``offenders`` of :func:`_put_back`: both corners of every patch side or diagonal
+    that codes ``q`` make one point on all three axes (the writer keeps the plain codes of
+    a patch's corners apart, ``client_py.atlas_format.keep_corners_apart``)."""
+    pairs = np.array([(a, b) for a in range(4) for b in range(a + 1, 4)])
+    ends = np.asarray(quads)[:, pairs].reshape(-1, 2)
+    ends = ends[ends[:, 0] != ends[:, 1]]
+    return lambda q: np.unique(ends[np.all(q[ends[:, 0]] == q[ends[:, 1]], axis=1)])
 
 
 PLEAT_RESOLUTION = 5  # samples a patch side of pleated_patches (the base's drawn grid)
@@ -1521,21 +1537,14 @@ def pleated_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: i
     return folded(n0, n1) | folded(n1[:, :-1], n0[:, 1:]) | folded(n1[:, :, :-1], n0[:, :, 1:])
 
 
-def _unfolded(q: np.ndarray, plain: np.ndarray, table: np.ndarray, lo: np.ndarray,
-              step: np.ndarray, degree: int, spans: int) -> np.ndarray:
-    """``q`` with the control nets of the patches pleated with its codes and not with the
-    ``plain`` ones (:func:`pleated_patches`) put back to ``plain``, until none is left
-    (a net put back shares its border rows, so a neighbour is tested again)."""
-    q = q.copy()
+def _newly_pleated(plain: np.ndarray, table: np.ndarray, lo: np.ndarray, step: np.ndarray,
+                   degree: int, spans: int) -> Callable[[np.ndarray], np.ndarray]:
+    """``offenders`` of :func:`_put_back`: the control nets of the patches that codes ``q``
+    pleat and the ``plain`` ones do not (:func:`pleated_patches`; a net put back shares its
+    border rows, so its neighbours are tested again)."""
     before = pleated_patches(table, lo + step * plain, degree, spans)
-    for _ in range(len(table)):
-        new = pleated_patches(table, lo + step * q, degree, spans) & ~before
-        back = np.unique(table[new])
-        back = back[np.any(q[back] != plain[back], axis=1)]
-        if not len(back):
-            break
-        q[back] = plain[back]
-    return q
+    return lambda q: np.unique(table[pleated_patches(table, lo + step * q, degree, spans)
+                                     & ~before])
 
 
 def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: np.ndarray,
@@ -1581,8 +1590,8 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     fixed[x.argmax(axis=0), np.arange(3)] = True
     q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
                    ROUND_RATE if rate is None else rate)
-    q = _apart_corners(q, plain, np.asarray(atlas.quads))
-    q = _unfolded(q, plain, table, lo, step, degree, spans)
+    q = _put_back(q, plain, _corners_together(np.asarray(atlas.quads)))
+    q = _put_back(q, plain, _newly_pleated(plain, table, lo, step, degree, spans))
     return with_control_points(atlas, lo + step * q)
 
 
