@@ -1407,6 +1407,9 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
 
 ROUND_SWEEPS = 4  # Gauss-Seidel sweeps of grid_codes (fewer once none moves)
 ROUND_RATE = 0.0  # grid_codes' weight on moving a code, in step² times the median H_ii
+# fed_back_atlas's weight on the working points' offsets along the surface, against 1 across
+# it: the drawn distance sees the offset across; a little along keeps the codes near the fit
+ROUND_ALONG = 0.1
 
 
 def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
@@ -1428,57 +1431,65 @@ def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
 
 def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarray,
                lo: np.ndarray, step: np.ndarray, fixed: np.ndarray | None = None,
-               sweeps: int = ROUND_SWEEPS, rate: float = 0.0) -> np.ndarray:
-    """Integer codes ``q (N, 3)`` of the points ``lo + step q`` that lower the quadratic
-    ``J(P) = tr(Pᵀ H P) - 2 tr(rhsᵀ P)`` from its value at ``codes``, each code within
-    ``[floor, ceil]`` of ``(x - lo) / step`` (or at its own ``codes`` value, when that is
-    outside: a corner the writer rounded apart).
+               sweeps: int = ROUND_SWEEPS, rate: float = 0.0,
+               colour: np.ndarray | None = None) -> np.ndarray:
+    """Integer codes ``q`` (the shape of ``x``) of the values ``lo + step q`` that lower
+    the quadratic ``J(p) = pᵀ H p - 2 rhsᵀ p`` of the ``M`` values ``p`` (``x`` and the
+    rest read flat, in C order; ``lo``, ``step`` broadcast to ``x``) from its value at
+    ``codes``, each code within ``[floor, ceil]`` of ``(x - lo) / step`` (or at its own
+    ``codes`` value, when that is outside: a corner the writer rounded apart).
 
-    Gauss-Seidel on the lattice (iterated conditional modes): with ``G = H P - rhs``,
-    coordinate ``(i, k)`` alone is best at ``t = (P_ik - G_ik / H_ii - lo_k) / step_k``, and
-    the integer minimiser of a convex quadratic of one integer within a box is ``rint(t)``
-    clipped to it. One colour of :func:`coupling_colours` at a time (its unknowns share no
-    term); each move lowers ``J`` or keeps it, so the result is never worse than ``codes``.
-    The three coordinates are independent (``J`` is a sum over them). ``fixed (N, 3)`` of
-    bool: codes not moved. At most ``sweeps`` sweeps, fewer once none moves. Rounding each
-    coordinate to nearest on its own is the ``sweeps = 0`` answer; fed back, a value is
-    rounded the way the others, already rounded, leave least error, as a least-squares fit
-    is quantised column by column with the error fed back (GPTQ, Frantar et al., ICLR
-    2023; noise feedback in sigma-delta coding); ``atlas.detail.quantised_blocks`` does the
-    same for the detail coefficients.
+    Gauss-Seidel on the lattice (iterated conditional modes): with ``g = H p - rhs``,
+    value ``i`` alone is best at ``t = (p_i - g_i / H_ii - lo_i) / step_i``, and the integer
+    minimiser of a convex quadratic of one integer within a box is ``rint(t)`` clipped to
+    it. One colour at a time (``colour (M,)``, default :func:`coupling_colours` of ``H``:
+    its values share no term); each move lowers ``J`` or keeps it, so the result is never
+    worse than ``codes``. ``fixed`` of bool: codes not moved. ``rate``: ``J + λ Σ |q -
+    codes|``, ``λ = rate step²`` times the median ``H_ii`` (a soft threshold toward the
+    code a value started from: fewer moves, fewer bytes). At most ``sweeps`` sweeps, fewer once
+    none moves. Rounding each value to nearest on its own is the ``sweeps = 0`` answer;
+    fed back, a value is rounded the way the others, already rounded, leave least error,
+    as a least-squares fit is quantised column by column with the error fed back (GPTQ,
+    Frantar et al., ICLR 2023; noise feedback in sigma-delta coding);
+    ``atlas.detail.quantised_blocks`` does the same for the detail coefficients.
     """
+    shape = np.shape(x)
     H = sp.csr_matrix(H)
-    q = np.asarray(codes, np.int64).copy()
+    x = np.asarray(x, np.float64).reshape(-1)
+    lo = np.broadcast_to(lo, shape).reshape(-1)
+    step = np.broadcast_to(step, shape).reshape(-1)
+    rhs = np.asarray(rhs, np.float64).reshape(-1)
+    q = np.asarray(codes, np.int64).reshape(-1).copy()
     t = (x - lo) / step
     low = np.minimum(np.floor(t), q)
     high = np.maximum(np.ceil(t), q)
     if fixed is not None:
+        fixed = np.asarray(fixed, bool).reshape(-1)
         low = np.where(fixed, q, low)
         high = np.where(fixed, q, high)
     diag = H.diagonal()
-    colour = coupling_colours(H)
+    colour = coupling_colours(H) if colour is None else np.asarray(colour).reshape(-1)
     blocks = [(at, H[at]) for at in (np.flatnonzero((colour == c) & (diag > 0))
                                      for c in range(int(colour.max()) + 1)) if len(at)]
     p = lo + step * q
     start = q.copy()
     inside = diag[diag > 0]
     lam = rate * float(np.median(inside)) if len(inside) else 0.0
-    shrink = lam / (2.0 * np.maximum(diag, 1e-300))
+    shrink = lam / (2.0 * np.maximum(diag, 1e-300))  # in steps: λ = rate step² median H_ii
     for _ in range(sweeps):
         moved = 0
         for at, rows in blocks:
-            best = (p[at] - (rows @ p - rhs[at]) / diag[at, None] - lo) / step
+            best = (p[at] - (rows @ p - rhs[at]) / diag[at] - lo[at]) / step[at]
             if rate > 0:  # the soft threshold toward the code it started from
                 off = best - start[at]
-                best = start[at] + np.sign(off) * np.maximum(
-                    np.abs(off) - shrink[at, None], 0.0)
+                best = start[at] + np.sign(off) * np.maximum(np.abs(off) - shrink[at], 0.0)
             new = np.clip(np.rint(best), low[at], high[at]).astype(np.int64)
             moved += int(np.count_nonzero(new != q[at]))
             q[at] = new
-            p[at] = lo + step * new
+            p[at] = lo[at] + step[at] * new
         if not moved:
             break
-    return q
+    return q.reshape(shape)
 
 
 def _put_back(q: np.ndarray, plain: np.ndarray,
@@ -1582,14 +1593,30 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     A, targets, _ = round_rows(table, x, degree, spans, nb, points, f, u, v, border, reach,
                                scan_mesh, reverse_weight)
     L = smoothing_matrix(atlas, table)
-    lam, mu = regularisation_weights(A[:len(points)], L, smoothing, anchor)
-    H = (A.T @ A + lam * (L.T @ L) + mu * sp.identity(len(x), format="csr")).tocsr()
-    rhs = A.T @ targets + mu * control_points(initial)
+    k = len(points)
+    lam, mu = regularisation_weights(A[:k], L, smoothing, anchor)
+    A_data, A_rest = A[:k], A[k:]
+    # the working points across the surface: n_k · (A P - X)_k, n_k the unit normal at the
+    # foot point, one row over the 3 N values P flattened (3 j + axis)
+    _, du, dv = evaluate_patches(table, x, degree, spans, f, u, v, True)
+    n = np.cross(du, dv)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    coo = A_data.tocoo()
+    across = sp.csr_matrix(((coo.data[:, None] * n[coo.row]).reshape(-1),
+                            (np.repeat(coo.row, 3), (3 * coo.col[:, None] + np.arange(3))
+                             .reshape(-1))), shape=(k, 3 * len(x)))
+    per_axis = (ROUND_ALONG * (A_data.T @ A_data) + A_rest.T @ A_rest + lam * (L.T @ L)
+                + mu * sp.identity(len(x), format="csr")).tocsr()
+    H = (across.T @ across + sp.kron(per_axis, sp.identity(3))).tocsr()
+    rhs = (across.T @ np.einsum("kc,kc->k", n, targets[:k])
+           + (ROUND_ALONG * (A_data.T @ targets[:k]) + A_rest.T @ targets[k:]
+              + mu * control_points(initial)).reshape(-1))
     fixed = np.zeros_like(plain, bool)
     fixed[x.argmin(axis=0), np.arange(3)] = True
     fixed[x.argmax(axis=0), np.arange(3)] = True
+    colour = (3 * coupling_colours(per_axis)[:, None] + np.arange(3)).reshape(-1)
     q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
-                   ROUND_RATE if rate is None else rate)
+                   ROUND_RATE if rate is None else rate, colour)
     q = _put_back(q, plain, _corners_together(np.asarray(atlas.quads)))
     q = _put_back(q, plain, _newly_pleated(plain, table, lo, step, degree, spans))
     return with_control_points(atlas, lo + step * q)
