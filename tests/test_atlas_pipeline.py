@@ -194,6 +194,8 @@ def test_patches_option_spells_auto_and_counts():
 def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
     bundle = fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "sphere", FitOptions(patches=60))
+    from fitter.fitting.atlas import measure
+    assert measure._scenes == []  # the fit let go of its meshes' ray-casting scenes
     manifest = json.loads((bundle.path / "manifest.json").read_text())
     assert manifest["format_version"] == 2
     base = manifest["base"]

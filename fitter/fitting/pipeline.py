@@ -45,6 +45,7 @@ from client_py.format import MAX_CONTROL_POINTS
 
 from . import io as scan_io
 from .atlas import AtlasFitError, AtlasLayoutError, SurfaceError
+from .atlas.measure import forget_scenes
 from .atlas.pipeline import fit_atlas_bundle, wants_atlas
 from .bundle import write_bundle
 from .compact import choose_bits, drawn_cells, settle_hidden
@@ -638,6 +639,8 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
             if options.patches is not None:  # asked for an atlas: say why there is none
                 raise
             atlas_refused = str(exc)  # auto: the single patch, and the manifest says why
+        finally:
+            forget_scenes()  # the fit's meshes are done with: their BVHs need not stay alive
     stages.start("project")
     projected = project_scan(scan, options)
     plan = plan_fit_memory(projected, options, memory_budget)  # before any large solve

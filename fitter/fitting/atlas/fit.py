@@ -840,7 +840,9 @@ class AtlasFit:
         Seconds per step (``surface``, ``layout``, ``points``, ``solve``, ``correct``, ...).
     trials : list of dict
         Every ``T`` tried: its RMS and bytes, the layout kept (``'plain'`` or
-        ``'weighted'``) and each candidate's RMS and seconds.
+        ``'weighted'``) and each candidate's RMS and seconds; ``final_bytes`` and
+        ``final_bits`` where its final fit was over the budget and refused
+        (:func:`final_within_budget`).
     """
 
     atlas: AtlasSurface
@@ -1406,6 +1408,43 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     return chosen, size
 
 
+def final_within_budget(accepted: list[tuple], trials: list[dict], points: np.ndarray,
+                        normals: np.ndarray, *, bits: int | None, byte_budget: int,
+                        **fit_options) -> tuple:
+    """The final fit of ``'auto'``: the chosen trial's layout fitted again with every
+    working point and every round, written within ``byte_budget``; when its file is not, the
+    layout of the trial taken before it, and so on down to the smallest.
+
+    ``accepted``: the tuples ``(rms, bytes, layout, atlas, f, u, v, timings, bits)`` of the
+    trials taken as the best, the smallest layout first; ``trials``: the trials' records,
+    where a refused final fit is noted (``final_bytes``, ``final_bits``) in the record of
+    its layout. The final fit's lower RMS may ask for more bits than its trial had
+    (:func:`base_bits`), more than :data:`BUDGET_FEWER_BITS` can give back, or its control
+    points may simply cost a few bytes more at the same bits: its trial passed the budget,
+    the final base would not. The smaller layout passed its own trial with room to spare
+    (it was taken before a larger one that also passed); the smallest is kept whatever its
+    size (the budget cannot be met by any layout tried).
+
+    Returns
+    -------
+    (rms, bytes, layout, atlas, f, u, v, timings, bits) of the final fit.
+    """
+    for number in range(len(accepted) - 1, -1, -1):
+        layout = accepted[number][2]
+        final_timings: dict = {"layout": accepted[number][7]["layout"]}
+        atlas, f, u, v, dist = fit_layout(layout, points, normals, timings=final_timings,
+                                          **fit_options)
+        rms = float(np.sqrt(np.mean(dist ** 2)))
+        final_bits, size = budget_bits(atlas, rms, bits, byte_budget)
+        if size <= byte_budget or number == 0:
+            return rms, size, layout, atlas, f, u, v, final_timings, final_bits
+        for trial in trials:  # the record of this layout's trial says why it was not kept
+            if trial.get("triangles") == layout.n_triangles and "final_bytes" not in trial:
+                trial.update(final_bytes=size, final_bits=final_bits)
+                break
+    raise AssertionError("unreachable")  # the smallest layout returns
+
+
 ROUND_SWEEPS = 4  # Gauss-Seidel sweeps of grid_codes (fewer once none moves)
 ROUND_RATE = 0.0  # grid_codes' weight on moving a code, in step² times the median H_ii
 # fed_back_atlas's extra weight on the working points' offsets across the surface (their
@@ -1705,7 +1744,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         largest ``T`` whose working points' RMS is below ``AUTO_MIN_GAIN`` of the best of
         the smaller ones is taken (trials: ``AUTO_TRIAL_POINTS`` of the points, two rounds;
         one doubling that gains nothing does not end the search: the next may); the chosen
-        layout is then fitted with all working points and ``rounds``.
+        layout is then fitted with all working points and ``rounds``, within the budget
+        (:func:`final_within_budget`: else the layout taken before it).
     degree, spans : int
         Per patch side (``n = spans + degree`` control points).
     bits : int or None
@@ -1811,6 +1851,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         trial_points, trial_normals, trial_rounds = points, normals, rounds
     trials: list[dict] = []
     best = None
+    accepted: list[tuple] = []  # every trial taken as the best, the smallest first
     cache = {} if trial_cache is None else trial_cache
     for step, target in enumerate(plan):
         if ("layouts", target) not in cache:
@@ -1868,22 +1909,18 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             break
         if best is None or rms <= AUTO_MIN_GAIN * best[0]:
             best = (rms, size, layout, atlas, f, u, v, trial_timings, trial_bits)
+            accepted.append(best)
         if patches == "auto" and size > byte_budget:
             break
     if best is None:
         raise AtlasLayoutError(f"no layout of {plan} triangles is an oriented 2-manifold: "
                                + "; ".join(trial["error"] for trial in trials))
     if patches == "auto":
-        layout = best[2]
-        final_timings: dict = {"layout": best[7]["layout"]}
-        atlas, f, u, v, dist = fit_layout(layout, points, normals, degree=degree, spans=spans,
-                                          rounds=rounds, smoothing=smoothing, anchor=anchor,
-                                          border=border, scan_mesh=scan_mesh,
-                                          timings=final_timings, **warm)
         timings["trials"] = sum(trial.get("seconds", 0.0) for trial in trials)
-        rms = float(np.sqrt(np.mean(dist ** 2)))
-        final_bits, size = budget_bits(atlas, rms, bits, byte_budget)
-        best = (rms, size, layout, atlas, f, u, v, final_timings, final_bits)
+        best = final_within_budget(accepted, trials, points, normals, bits=bits,
+                                   byte_budget=byte_budget, degree=degree, spans=spans,
+                                   rounds=rounds, smoothing=smoothing, anchor=anchor,
+                                   border=border, scan_mesh=scan_mesh, **warm)
     rms, size, layout, atlas, f, u, v, trial_timings, chosen_bits = best
     clock = time.perf_counter()
     for _ in range(FAR_PASSES):

@@ -141,6 +141,14 @@ def mesh_scene(vertices: np.ndarray, faces: np.ndarray):
         return scene
 
 
+def forget_scenes() -> None:
+    """Drop the kept scenes (:func:`mesh_scene`), and with them their meshes and
+    hierarchies: called when a fit ends, so a server process that fits many scans holds
+    none of the last fit's meshes."""
+    with _scenes_lock:
+        _scenes.clear()
+
+
 def nearest_triangles(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
                       ) -> np.ndarray:
     """The index of the triangle nearest to each point, shape (N,): ``open3d``'s
