@@ -118,6 +118,17 @@ lower RMS asked for 12 bits, 28.8 KB): the default (the :func:`warm_factor` sche
 %). A point cloud keeps only the 10-times stage (:func:`cloud_warm`: the 15-scan Buddha's
 fins under its unscanned pedestal bottom).
 
+Rounding. ``base.tsa`` holds every control point on a grid of ``2^bits`` steps per axis
+(:func:`budget_bits` chooses the bits). Rounded to nearest, each coordinate is off by up to
+half a step on its own, and on the default bases that was 20-25 % of the drawn base's
+squared error over all scan points (docs/benchmarks.md, session 15). :func:`fed_back_atlas`
+rounds them with the error fed back instead: each code moved, within a step of the fit, to
+the integer that best fits the last round's least squares given all the others
+(:func:`grid_codes`), with the corners kept apart as the
+writer keeps them and no patch left pleated that plain rounding does not pleat
+(:func:`pleated_patches`); the file's format and reader are unchanged
+(:func:`within_budget_fed_back` keeps the byte budget).
+
 Weights stay 1 (polynomial patches): the NURBS weight step of the single patch is not
 carried over to the shared control points yet.
 """
@@ -891,6 +902,44 @@ def cloud_warm() -> dict:
             "warm_smoothing": float(WARM_SMOOTHING) ** (stages / WARM_STAGES)}
 
 
+def round_rows(table: np.ndarray, current: np.ndarray, degree: int, spans: int,
+               nb: np.ndarray, points: np.ndarray, f: np.ndarray, u: np.ndarray,
+               v: np.ndarray, border: np.ndarray, reach: float,
+               scan_mesh: tuple[np.ndarray, np.ndarray] | None, reverse_weight: float,
+               held: np.ndarray | None = None
+               ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray | None]:
+    """The data rows of one round of :func:`fit_layout` on the atlas ``current (N_cp, 3)``:
+    ``(A, X, held)`` of ``|A P - X|²``.
+
+    The working points at their foot points ``(f, u, v)`` (the first ``len(points)``
+    rows); the scan's ``border`` points within ``reach`` of an open border curve at their
+    foot points there, each weighing ``w = BORDER_WEIGHT (K / F) / (B / S)``
+    (:func:`fit_layout`); and with ``scan_mesh`` and ``reverse_weight > 0`` the
+    :func:`reverse_rows` of the far samples (``held``: theirs), each weighing ``w_r =
+    reverse_weight (K / F) / r²``. ``held`` returned: the samples with a reverse row
+    (``None`` without ``scan_mesh``).
+    """
+    n_cp = len(current)
+    A, targets = design_matrix(table, n_cp, degree, spans, f, u, v), points
+    open_sides = int(np.sum(nb[:, :, 0] < 0))
+    if len(border) and open_sides:
+        bf, bu, bv, bd = border_foot_points(table, current, degree, spans, nb, border)
+        near = bd <= reach
+        if near.any():
+            weight = BORDER_WEIGHT * (len(points) / len(table)) / (near.sum() / open_sides)
+            A_border = design_matrix(table, n_cp, degree, spans, bf[near], bu[near], bv[near])
+            A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
+            targets = np.concatenate([targets, math.sqrt(weight) * border[near]])
+    if scan_mesh is None or reverse_weight <= 0:
+        return A, targets, None
+    A_rev, y_rev, held = reverse_rows(table, current, degree, spans, scan_mesh, held)
+    weight = reverse_weight * (len(points) / len(table)) / REVERSE_SAMPLES ** 2
+    if len(y_rev):
+        A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
+        targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
+    return A, targets, held
+
+
 def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
                degree: int = 3, spans: int = 1, rounds: int = 4, smoothing: float = 0.1,
                anchor: float = 1e-3, border: np.ndarray | None = None,
@@ -944,7 +993,6 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
     if border.ndim != 2 or border.shape[1] != 3 or not np.all(np.isfinite(border)):
         raise ValueError(f"border must be finite points of shape (B, 3), got {border.shape}")
-    open_sides = int(np.sum(nb[:, :, 0] < 0))
     reach = BORDER_REACH * float(np.linalg.norm(np.ptp(points, axis=0)))
     timings["foot_points"] = timings.get("foot_points", 0.0) + time.perf_counter() - clock
     current = prior
@@ -954,24 +1002,10 @@ def fit_layout(layout: QuadLayout, points: np.ndarray, normals: np.ndarray, *,
     weights = None
     for round_index in range(max(1, rounds)):
         clock = time.perf_counter()
-        A, targets = design_matrix(table, len(prior), degree, spans, f, u, v), points
-        if len(border) and open_sides:
-            bf, bu, bv, bd = border_foot_points(table, current, degree, spans, nb, border)
-            near = bd <= reach
-            if near.any():
-                weight = BORDER_WEIGHT * (len(points) / len(table)) / (near.sum() / open_sides)
-                A_border = design_matrix(table, len(prior), degree, spans, bf[near], bu[near],
-                                         bv[near])
-                A = sp.vstack([A, math.sqrt(weight) * A_border]).tocsr()
-                targets = np.concatenate([targets, math.sqrt(weight) * border[near]])
-        if scan_mesh is not None and reverse_weight > 0 and round_index > 0:
-            A_rev, y_rev, rows_held = reverse_rows(table, current, degree, spans, scan_mesh,
-                                                   held)
-            held = rows_held if hold else None
-            weight = reverse_weight * (len(points) / len(table)) / REVERSE_SAMPLES ** 2
-            if len(y_rev):
-                A = sp.vstack([A, math.sqrt(weight) * A_rev]).tocsr()
-                targets = np.concatenate([targets, math.sqrt(weight) * y_rev])
+        A, targets, held = round_rows(
+            table, current, degree, spans, nb, points, f, u, v, border, reach,
+            scan_mesh if round_index > 0 else None, reverse_weight, held)
+        held = held if hold else None
         # a stiff first solve when later rounds follow (the folds paragraph of the module)
         warm = warm_factor(round_index, rounds, warm_smoothing, warm_stages)
         current = solve_control_points(A, targets, L, prior, warm * smoothing, anchor,
@@ -1296,9 +1330,21 @@ def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
     return len(write_atlas(atlas, bits or base_bits(atlas, rms)))
 
 
+# The base alone is drawn with this many samples per knot span (base_resolution). 8, not 4
+# (w25-baserd): the drawn base is the patches' chords between samples, and on the default
+# bases (main 90503fb, grid_mesh of the file as written, ALL scan points) 4 left RMS
+# 0.1919 (Nefertiti), 1.038 (Lucy), 0.2298 (Laurana) where 8 leaves 0.1830, 0.9605, 0.2119
+# (16: 0.1818, 0.9502, 0.2093), for no byte: four times the base's triangles (Lucy 72,576
+# -> 290,304; level 0 draws 1.16 M) and its pure-Python tessellation 0.31 -> 0.68 s of CPU
+# (numpy 0.09 -> 0.13 s, load 8). 8 s + 1 and level 0's 16 m + 1 still weld (client_py's
+# power-of-2 rule).
+BASE_SAMPLES_PER_SPAN = 8
+
+
 def base_resolution(spans: int) -> int:
-    """Samples per patch side of the base alone: ``4 s + 1`` (four per knot span)."""
-    return 4 * spans + 1
+    """Samples per patch side of the base alone: ``k s + 1``, ``k =``
+    :data:`BASE_SAMPLES_PER_SPAN` per knot span."""
+    return BASE_SAMPLES_PER_SPAN * spans + 1
 
 
 def keeps_every_normal(atlas: AtlasSurface, bits: int, data: bytes | None = None) -> bool:
@@ -1397,6 +1443,267 @@ def final_within_budget(accepted: list[tuple], trials: list[dict], points: np.nd
                 trial.update(final_bytes=size, final_bits=final_bits)
                 break
     raise AssertionError("unreachable")  # the smallest layout returns
+
+
+ROUND_SWEEPS = 4  # Gauss-Seidel sweeps of grid_codes (fewer once none moves)
+ROUND_RATE = 0.0  # grid_codes' weight on moving a code, in step² times the median H_ii
+# fed_back_atlas's extra weight on the working points' offsets across the surface (their
+# full offsets weigh 1). 0: point to point, the fit's own objective. Across the surface
+# alone, with a tenth of the offset along it (10 here, scaled), the base came out 2-6 %
+# nearer its scan points than point to point on all five objects, but level 0 drew Lucy's
+# and the Bali mask's largest distance beyond 1 % of the diagonal (1.00 and 1.16 %;
+# docs/benchmarks.md, session 15): not the default.
+ROUND_ACROSS = 0.0
+
+
+def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
+    """A colouring of the unknowns of ``H (N, N)``: no two of one colour share a non-zero
+    ``H_ij`` (``i != j``), so coordinate descent on one colour at once is exactly one at a
+    time. Greedy, in order of decreasing degree (Welsh and Powell, The Computer Journal
+    1967): at most ``1 +`` the largest degree colours. Returns ``colour (N,)`` of int."""
+    H = sp.csr_matrix(H)
+    indptr, indices = H.indptr, H.indices
+    colour = np.full(H.shape[0], -1, np.int64)
+    for i in np.argsort(-np.diff(indptr), kind="stable"):
+        used = set(colour[indices[indptr[i]:indptr[i + 1]]].tolist())
+        c = 0
+        while c in used:
+            c += 1
+        colour[i] = c
+    return colour
+
+
+def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarray,
+               lo: np.ndarray, step: np.ndarray, fixed: np.ndarray | None = None,
+               sweeps: int = ROUND_SWEEPS, rate: float = 0.0,
+               colour: np.ndarray | None = None) -> np.ndarray:
+    """Integer codes ``q`` (the shape of ``x``) of the values ``lo + step q`` that lower
+    the quadratic ``J(p) = pᵀ H p - 2 rhsᵀ p`` of the ``M`` values ``p`` (``x`` and the
+    rest read flat, in C order; ``lo``, ``step`` broadcast to ``x``) from its value at
+    ``codes``, each code within ``[floor, ceil]`` of ``(x - lo) / step`` (or at its own
+    ``codes`` value, when that is outside: a corner the writer rounded apart).
+
+    Gauss-Seidel on the lattice (iterated conditional modes): with ``g = H p - rhs``,
+    value ``i`` alone is best at ``t = (p_i - g_i / H_ii - lo_i) / step_i``, and the integer
+    minimiser of a convex quadratic of one integer within a box is ``rint(t)`` clipped to
+    it. One colour at a time (``colour (M,)``, default :func:`coupling_colours` of ``H``:
+    its values share no term); each move lowers ``J`` or keeps it, so the result is never
+    worse than ``codes``. ``fixed`` of bool: codes not moved. ``rate``: ``J + λ Σ |q -
+    codes|``, ``λ = rate step²`` times the median ``H_ii`` (a soft threshold toward the
+    code a value started from: fewer moves, fewer bytes). At most ``sweeps`` sweeps, fewer once
+    none moves. Rounding each value to nearest on its own is the ``sweeps = 0`` answer;
+    fed back, a value is rounded the way the others, already rounded, leave least error,
+    as a least-squares fit is quantised column by column with the error fed back (GPTQ,
+    Frantar et al., ICLR 2023; noise feedback in sigma-delta coding);
+    ``atlas.detail.quantised_blocks`` does the same for the detail coefficients.
+    """
+    shape = np.shape(x)
+    H = sp.csr_matrix(H)
+    x = np.asarray(x, np.float64).reshape(-1)
+    lo = np.broadcast_to(lo, shape).reshape(-1)
+    step = np.broadcast_to(step, shape).reshape(-1)
+    rhs = np.asarray(rhs, np.float64).reshape(-1)
+    q = np.asarray(codes, np.int64).reshape(-1).copy()
+    t = (x - lo) / step
+    low = np.minimum(np.floor(t), q)
+    high = np.maximum(np.ceil(t), q)
+    if fixed is not None:
+        fixed = np.asarray(fixed, bool).reshape(-1)
+        low = np.where(fixed, q, low)
+        high = np.where(fixed, q, high)
+    diag = H.diagonal()
+    colour = coupling_colours(H) if colour is None else np.asarray(colour).reshape(-1)
+    blocks = [(at, H[at]) for at in (np.flatnonzero((colour == c) & (diag > 0))
+                                     for c in range(int(colour.max()) + 1)) if len(at)]
+    p = lo + step * q
+    start = q.copy()
+    inside = diag[diag > 0]
+    lam = rate * float(np.median(inside)) if len(inside) else 0.0
+    shrink = lam / (2.0 * np.maximum(diag, 1e-300))  # in steps: λ = rate step² median H_ii
+    for _ in range(sweeps):
+        moved = 0
+        for at, rows in blocks:
+            best = (p[at] - (rows @ p - rhs[at]) / diag[at] - lo[at]) / step[at]
+            if rate > 0:  # the soft threshold toward the code it started from
+                off = best - start[at]
+                best = start[at] + np.sign(off) * np.maximum(np.abs(off) - shrink[at], 0.0)
+            new = np.clip(np.rint(best), low[at], high[at]).astype(np.int64)
+            moved += int(np.count_nonzero(new != q[at]))
+            q[at] = new
+            p[at] = lo[at] + step[at] * new
+        if not moved:
+            break
+    return q.reshape(shape)
+
+
+def _put_back(q: np.ndarray, plain: np.ndarray,
+              offenders: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``q (N, 3)`` with the points ``offenders(q)`` names (indices) put back to their
+    ``plain`` codes, again until it names none that differs from ``plain``."""
+    q = q.copy()
+    for _ in range(len(q)):
+        back = offenders(q)
+        back = back[np.any(q[back] != plain[back], axis=1)]
+        if not len(back):
+            break
+        q[back] = plain[back]
+    return q
+
+
+def _corners_together(quads: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """``offenders`` of :func:`_put_back`: both corners of every patch side or diagonal
+    that codes ``q`` make one point on all three axes (the writer keeps the plain codes of
+    a patch's corners apart, ``client_py.atlas_format.keep_corners_apart``)."""
+    pairs = np.array([(a, b) for a in range(4) for b in range(a + 1, 4)])
+    ends = np.asarray(quads)[:, pairs].reshape(-1, 2)
+    ends = ends[ends[:, 0] != ends[:, 1]]
+    return lambda q: np.unique(ends[np.all(q[ends[:, 0]] == q[ends[:, 1]], axis=1)])
+
+
+PLEAT_RESOLUTION = 5  # samples a patch side of pleated_patches (the base's drawn grid)
+PLEAT_COSINE = -0.5  # ... two triangles of a patch folded over each other: n1 . n2 below this
+
+
+def pleated_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
+                    resolution: int = PLEAT_RESOLUTION) -> np.ndarray:
+    """Patches of which two triangles sharing an edge fold over each other,
+    ``n_1 · n_2 <`` :data:`PLEAT_COSINE` (more than 120° apart), with the patch drawn on a
+    ``resolution²`` grid whose cells are cut as the client cuts them
+    (``client_py.tessellate.grid_indices``: along the diagonal from ``(u + h, v)`` to
+    ``(u, v + h)``): the pleats ``bench.pleats`` counts on the drawn base. Returns
+    ``pleated (F,)`` of bool."""
+    r, n_f = resolution, len(table)
+    t = np.linspace(0.0, 1.0, r)
+    f = np.repeat(np.arange(n_f), r * r)
+    (c,) = evaluate_patches(table, points, degree, spans, f, np.tile(np.repeat(t, r), n_f),
+                            np.tile(np.tile(t, r), n_f))
+    g = c.reshape(n_f, r, r, 3)  # g[f, a, b]: a along u
+    p00, p10, p01, p11 = g[:, :-1, :-1], g[:, 1:, :-1], g[:, :-1, 1:], g[:, 1:, 1:]
+    n0 = np.cross(p10 - p00, p01 - p00)  # the cell's triangles (p00, p10, p01), (p01, p10, p11)
+    n1 = np.cross(p10 - p01, p11 - p01)
+    n0 /= np.maximum(np.linalg.norm(n0, axis=-1, keepdims=True), 1e-300)
+    n1 /= np.maximum(np.linalg.norm(n1, axis=-1, keepdims=True), 1e-300)
+
+    def folded(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return (np.einsum("f...c,f...c->f...", a, b) < PLEAT_COSINE).reshape(n_f, -1).any(axis=1)
+
+    # across the cell's diagonal, and the second triangle's sides p10-p11 and p01-p11 (the
+    # first triangles of the cells after it along u and along v)
+    return folded(n0, n1) | folded(n1[:, :-1], n0[:, 1:]) | folded(n1[:, :, :-1], n0[:, :, 1:])
+
+
+def _newly_pleated(plain: np.ndarray, table: np.ndarray, lo: np.ndarray, step: np.ndarray,
+                   degree: int, spans: int) -> Callable[[np.ndarray], np.ndarray]:
+    """``offenders`` of :func:`_put_back`: the control nets of the patches that codes ``q``
+    pleat and the ``plain`` ones do not (:func:`pleated_patches`; a net put back shares its
+    border rows, so its neighbours are tested again)."""
+    before = pleated_patches(table, lo + step * plain, degree, spans)
+    return lambda q: np.unique(table[pleated_patches(table, lo + step * q, degree, spans)
+                                     & ~before])
+
+
+def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: np.ndarray,
+                   f: np.ndarray, u: np.ndarray, v: np.ndarray, *, smoothing: float,
+                   anchor: float, border: np.ndarray | None = None,
+                   scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
+                   reverse_weight: float = REVERSE_WEIGHT, sweeps: int = ROUND_SWEEPS,
+                   rate: float | None = None) -> AtlasSurface:
+    """``atlas`` with its control points on ``base.tsa``'s grid at ``bits``, rounded with
+    the error fed back: the file's codes of the points (``write_atlas``: to nearest, a
+    patch's corners kept apart) moved by :func:`grid_codes` to lower the last round's
+    objective of :func:`fit_layout`, ``|A P - X|² + λ |L P|² + μ |P - P_0|²`` with the rows
+    of :func:`round_rows` at the final foot points ``(f, u, v)`` (``smoothing``, ``anchor``,
+    ``border``, ``scan_mesh``, ``reverse_weight``: the fit's), plus ``c Σ_k (n_k · r_k)²``
+    over the working points, ``r_k = (A P - X)_k``, ``n_k`` the unit normal at the foot
+    point, ``c =`` :data:`ROUND_ACROSS` (0 by default): the drawn distance sees the offset
+    across the surface, not the foot point's slide along it (Pottmann and Hofer's
+    squared-distance approximation with the curvature term dropped). The ``3 N`` values
+    are one vector (the three axes of a point are coupled when ``c > 0``), coloured by the
+    points' colours times the axis. On main 90503fb's Nefertiti: rounded to nearest 0.1919
+    at 21,877 bytes (unrounded 0.1659), ``c = 0`` 0.1784 at 22,810, ``c = 10`` with
+    ``0.1 |r|²`` in place of ``|r|²`` 0.1697 at 22,207 (RMS of all points).
+    ``write_atlas(result, bits)`` writes these codes (the grid is the points' bounds over
+    ``2^bits - 1`` steps, and the points at the bounds are not moved). No format change."""
+    from client_py.atlas_format import keep_corners_apart
+
+    degree, spans = atlas.degree, atlas.spans
+    table = index_table(atlas)
+    x = control_points(atlas)
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    top = (1 << bits) - 1
+    step = np.where(hi > lo, (hi - lo) / top, 1.0)
+    # the writer's codes (client_py.format._quantise, then keep_corners_apart), which do
+    # not depend on the file's numbering of the points
+    scale = np.where(hi > lo, top / np.where(hi > lo, hi - lo, 1.0), 0.0)
+    codes = np.clip(np.rint((x - lo) * scale), 0, top).astype(np.int64).T.tolist()
+    keep_corners_apart(codes, x.T.tolist(), lo.tolist(), hi.tolist(), bits, atlas.quads)
+    plain = np.array(codes, np.int64).T
+    initial = bilinear_atlas(layout, degree, spans)
+    nb = neighbour_table(atlas)
+    border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
+    reach = BORDER_REACH * float(np.linalg.norm(np.ptp(points, axis=0)))
+    A, targets, _ = round_rows(table, x, degree, spans, nb, points, f, u, v, border, reach,
+                               scan_mesh, reverse_weight)
+    L = smoothing_matrix(atlas, table)
+    k = len(points)
+    lam, mu = regularisation_weights(A[:k], L, smoothing, anchor)
+    per_axis = (A.T @ A + lam * (L.T @ L) + mu * sp.identity(len(x), format="csr")).tocsr()
+    H = sp.kron(per_axis, sp.identity(3)).tocsr()
+    rhs = (A.T @ targets + mu * control_points(initial)).reshape(-1)
+    if ROUND_ACROSS > 0:
+        # the working points across the surface: n_k · (A P - X)_k, n_k the unit normal at
+        # the foot point, one row over the 3 N values P flattened (3 j + axis)
+        _, du, dv = evaluate_patches(table, x, degree, spans, f, u, v, True)
+        n = np.cross(du, dv)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        coo = A[:k].tocoo()
+        across = sp.csr_matrix(((coo.data[:, None] * n[coo.row]).reshape(-1),
+                                (np.repeat(coo.row, 3), (3 * coo.col[:, None] + np.arange(3))
+                                 .reshape(-1))), shape=(k, 3 * len(x)))
+        H = (H + ROUND_ACROSS * (across.T @ across)).tocsr()
+        rhs = rhs + ROUND_ACROSS * (across.T @ np.einsum("kc,kc->k", n, targets[:k]))
+    fixed = np.zeros_like(plain, bool)
+    fixed[x.argmin(axis=0), np.arange(3)] = True
+    fixed[x.argmax(axis=0), np.arange(3)] = True
+    colour = (3 * coupling_colours(per_axis)[:, None] + np.arange(3)).reshape(-1)
+    q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
+                   ROUND_RATE if rate is None else rate, colour)
+    q = _put_back(q, plain, _corners_together(np.asarray(atlas.quads)))
+    q = _put_back(q, plain, _newly_pleated(plain, table, lo, step, degree, spans))
+    return with_control_points(atlas, lo + step * q)
+
+
+ROUND_RATES = (0.0, 1.0, 4.0)  # within_budget_fed_back's rates, tried in turn
+
+
+def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budget: int | None,
+                           layout: QuadLayout, points: np.ndarray, f: np.ndarray,
+                           u: np.ndarray, v: np.ndarray, **options) -> tuple[AtlasSurface, int]:
+    """The fitted base rounded for ``base.tsa`` with the error fed back
+    (:func:`fed_back_atlas`, ``options`` its keywords) and that file's bytes: at the first
+    rate of :data:`ROUND_RATES` whose file stays within ``byte_budget`` (``None``: no
+    budget) or within ``size``, the bytes of the file rounded to nearest; else, or when
+    the moved codes collapse a patch the client draws (:func:`keeps_every_normal`),
+    ``atlas`` and ``size`` as they were (``write_atlas`` rounds it to nearest).
+
+    Fed back, the codes are less smooth than rounded ones and their residuals cost more:
+    on main 90503fb's bases (9, 8 and 9 bits) Nefertiti's, Lucy's and Laurana's
+    ``base.tsa`` grew 1.5 %, 1.0 % and 2.2 % (RMS of all points 0.1919 -> 0.1697, 1.038 ->
+    0.931, 0.2298 -> 0.2079; unrounded 0.1659, 0.930, 0.2048: w25-baserd), where a bit more
+    costs 24 % for less (docs/benchmarks.md, session 15); a base the fit filled up to the
+    budget takes a rate instead.
+    """
+    from client_py.atlas_format import write_atlas
+
+    limit = max(size, byte_budget) if byte_budget is not None else None
+    for rate in ROUND_RATES:
+        rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, rate=rate, **options)
+        data = write_atlas(rounded, bits)
+        if limit is not None and len(data) > limit:
+            continue
+        # moved codes must not collapse a patch the client draws, as budget_bits' do not
+        return (rounded, len(data)) if keeps_every_normal(rounded, bits, data) else (atlas, size)
+    return atlas, size
 
 
 def _check_arguments(patches: object, degree: object, spans: object, bits: object,
@@ -1626,6 +1933,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             break
         rms, size, layout, atlas, f, u, v, chosen_bits = refined
     timings["refine_far"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    atlas, size = within_budget_fed_back(
+        atlas, size, chosen_bits, byte_budget if patches == "auto" else None, layout, points,
+        f, u, v, smoothing=smoothing, anchor=anchor, border=border, scan_mesh=scan_mesh)
+    timings["round"] = time.perf_counter() - clock
     timings.update(trial_timings)
     table = index_table(atlas)
     distance = signed_distances(table, control_points(atlas), degree, spans, points, f, u, v)
