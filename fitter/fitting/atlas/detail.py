@@ -106,8 +106,11 @@ validation, as in choosing a smoothing spline's parameter by cross-validation: H
 Tibshirani & Friedman, *The Elements of Statistical Learning*, §7.10): a pseudo-random one
 in ``HELD_OUT`` of the fitted samples is left out of every solve, and the pyramid stops
 before the first level that does not bring their RMS ``sqrt(mean(e^2))`` below
-``(1 - MIN_GAIN)`` times that of the levels before it (the base, for level 0). The
-manifest's ``tiles.detail.held_out`` gives the RMS after each level tried. A mesh is not
+``(1 - MIN_GAIN)`` times that of the levels before it (the base, for level 0): judged
+first on the level's unrounded solve (a level refused there costs no fold rows and no
+rounding; rounding only adds to the held-out error), then on its rounded coefficients. The
+manifest's ``tiles.detail.held_out`` gives the RMS after each level tried (unrounded for a
+level refused before rounding). A mesh is not
 checked so: its triangles are the surface its makers published, its edge length the
 resolution they chose, and every vertex is a scan point that a held-out share would leave
 unfitted (the bunny's finest RMS of all points rose 7 %).
@@ -1544,6 +1547,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                 if PULL_WEIGHT > 0 else None)
 
         c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+        if held.any():  # refused before its fold rows and rounding ("Depth"): their cost spared
+            unrounded = residual - model.drawn(c, k, spans)
+            held_rms.append(float(np.sqrt(np.mean(unrounded[held] ** 2 + samples.t2[held]))))
+            if held_rms[-1] > (1.0 - MIN_GAIN) * held_rms[-2]:
+                levels = k
+                _tick(timings, "solve", clock)
+                break
+            held_rms.pop()
         for _ in range(FOLD_PASSES if FOLD_WEIGHT > 0 else 0):  # module docstring, "Folds"
             fold = fold_node_rows(atlas, fields, c, k, spans, FOLD_WEIGHT * per_node)
             if not len(fold.patch):
