@@ -114,3 +114,15 @@ def open_viewer(browser, url: str, refined_timeout_ms: float = 90_000) -> Iterat
         yield page
     finally:
         context.close()
+
+
+def download_ply(page, level: int, folder: Path) -> Path:
+    """The viewer's "Download PLY" of ``level`` on ``page``, saved in ``folder`` once the
+    page says its tessellation is done; returns the file."""
+    page.select_option("#ply-level", str(level))
+    with page.expect_download() as info:
+        page.click("#download-ply")
+    path = folder / info.value.suggested_filename
+    info.value.save_as(path)
+    page.wait_for_function("!document.body.dataset.plyBusy", timeout=60_000)
+    return path

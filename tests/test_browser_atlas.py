@@ -13,7 +13,7 @@ import pytest
 import trimesh
 from atlas_bundle import write_atlas_bundle
 from live import VIEWER_READY as READY
-from live import open_viewer, serve_collection
+from live import download_ply, open_viewer, serve_collection
 
 pytestmark = pytest.mark.browser
 
@@ -148,12 +148,7 @@ def test_zooming_refines_the_groups_in_view(atlas_page, atlas_collection):
 def test_download_ply_is_the_cli_s_welded_mesh(atlas_page, atlas_collection, tmp_path, level):
     from fitter.cli import main
 
-    atlas_page.select_option("#ply-level", str(level))
-    with atlas_page.expect_download() as info:
-        atlas_page.click("#download-ply")
-    path = tmp_path / info.value.suggested_filename
-    info.value.save_as(path)
-    atlas_page.wait_for_function("!document.body.dataset.plyBusy", timeout=60_000)
+    path = download_ply(atlas_page, level, tmp_path)
     out = tmp_path / "cli.ply"
     assert main(["tessellate", str(atlas_collection / "sphere"), "--level", str(level),
                  "-o", str(out)]) == 0
@@ -187,12 +182,7 @@ def test_walls_masks_leave_cells_out_in_the_viewer_and_its_ply(browser, atlas_se
         stats = page.evaluate("([p, t]) => window.tessera.atlasView(p, t)",
                               [position, centre.tolist()])
         assert stats["atlas_levels"][0] == 2
-        page.select_option("#ply-level", "2")
-        with page.expect_download() as info:
-            page.click("#download-ply")
-        path = tmp_path / info.value.suggested_filename
-        info.value.save_as(path)
-        page.wait_for_function("!document.body.dataset.plyBusy", timeout=60_000)
+        path = download_ply(page, 2, tmp_path)
         assert page.evaluate("document.body.dataset.tileError") is None
         assert page.errors == []
     out = tmp_path / "cli.ply"

@@ -14,7 +14,7 @@ import pytest
 import trimesh
 from atlas_bundle import add_colour_packs, write_atlas_bundle
 from live import VIEWER_READY as READY
-from live import open_viewer, serve_collection
+from live import download_ply, open_viewer, serve_collection
 from PIL import Image
 
 pytestmark = pytest.mark.browser
@@ -123,12 +123,7 @@ def test_group_meshes_kept_come_back_in_their_colours(colour_page, colour_collec
 def test_download_ply_has_the_cli_s_colours(colour_page, colour_collection, tmp_path):
     from fitter.cli import main
 
-    colour_page.select_option("#ply-level", "1")
-    with colour_page.expect_download() as info:
-        colour_page.click("#download-ply")
-    path = tmp_path / info.value.suggested_filename
-    info.value.save_as(path)
-    colour_page.wait_for_function("!document.body.dataset.plyBusy", timeout=60_000)
+    path = download_ply(colour_page, 1, tmp_path)
     out = tmp_path / "cli.ply"
     assert main(["tessellate", str(colour_collection / "sphere"), "--level", "1",
                  "-o", str(out)]) == 0
