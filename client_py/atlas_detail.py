@@ -324,7 +324,7 @@ def _mask_side(tiles: Sequence[DetailTile], name: str, largest: int) -> int:
 
 
 def pack_is_welded(data: bytes) -> bool:
-    """Whether ``data`` looks like a welded pack (version 3 or 4, flag ``PACK_FLAG_WELDED``),
+    """Whether ``data`` looks like a welded pack (version 3 to 5, flag ``PACK_FLAG_WELDED``),
     which :func:`read_pack` reads only with its atlas; nothing else is checked here."""
     return len(data) > 21 and bytes(data[:4]) == PACK_MAGIC and data[4] >= 3 \
         and bool(data[21] & PACK_FLAG_WELDED)
@@ -335,8 +335,8 @@ def read_pack(data: bytes, atlas: AtlasSurface | None = None
     """``(level, {patch: [tiles]})`` of a pack's bytes, version 5, 4, 3, 2 or 1 (module
     docstring).
 
-    ``atlas``: the layout the pack's patches lie on, needed by a welded pack (version 3 or
-    4 with flag ``PACK_FLAG_WELDED``) and unused by any other.
+    ``atlas``: the layout the pack's patches lie on, needed by a welded pack (version 3 to
+    5 with flag ``PACK_FLAG_WELDED``) and unused by any other.
 
     Raises
     ------
@@ -401,7 +401,7 @@ def _read_pack_stream(data: bytes, level: int, version: int,
         raise PatchFormatError(23, "reserved bytes are not 0")
     welded = bool(flags & PACK_FLAG_WELDED)
     if welded and atlas is None:
-        raise ValueError("a welded pack (version 3 or 4, flag 0x1) codes each shared border "
+        raise ValueError("a welded pack (version 3 to 5, flag 0x1) codes each shared border "
                          "coefficient once: reading it needs the atlas (read_pack(data, atlas))")
     if welded and first + count > len(atlas.quads):
         raise PatchFormatError(12, f"patches {first}..{first + count - 1}: the atlas has "

@@ -433,7 +433,8 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
     AtlasMesh
         ``V_used + sum_e (R_e - 2) + sum_f (r_f - 2)^2`` vertices (and one more per cell of
         a 2-sample patch bordered by finer neighbours on opposite sides) and
-        ``2 sum_f (r_f - 1)^2`` triangles plus the fans at resolution changes.
+        ``2 sum_f (r_f - 1)^2`` triangles plus the fans at resolution changes, less the
+        cells the tiles' walls masks leave out (their vertices stay).
     """
     if not isinstance(atlas, AtlasSurface):
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
@@ -693,6 +694,9 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         return [_packed(positions, normals, uvs, owners, triangles[0])]
     meshes = []
     for indices in triangles:  # the vertices a part's triangles use, renumbered in order
+        if not indices:  # every cell of the part left out (walls): an empty mesh
+            meshes.append(_packed(array("d"), array("d"), array("d"), array("I"), indices))
+            continue
         keep = sorted(set(indices))
         number = {old: new for new, old in enumerate(keep)}
         take3 = itemgetter(*[3 * k + c for k in keep for c in range(3)])

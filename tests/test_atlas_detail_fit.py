@@ -749,3 +749,18 @@ def test_fold_rows_keep_the_drawn_level_from_turning_over_at_creases(radius, mon
     assert found[0][0] > 0.004, found  # the corners turn over without the rows
     assert found[atlas_detail.FOLD_PASSES][0] == 0.0, found
     assert found[atlas_detail.FOLD_PASSES][1] < 1.3 * found[0][1], found
+
+
+def test_groups_leave_room_for_walls_masks():
+    """A level-3 pack of 200 patches holds 1.28 M coefficients (within the 2^21 values a
+    pack may hold): one group; with walls masks of 16 cells a side it would hold 4.56 M, so
+    the ranges are split until each pack, masks counted, is within the bound."""
+    from client_py.atlas_detail import MAX_PACK_VALUES, pack_capacity
+
+    finest = {f: [(None, b"x" * 40, 0)] for f in range(200)}
+    deg, spans = atlas_detail.DEGREE, atlas_detail.SPANS
+    plain = atlas_detail._groups(finest, 200, 10**9, 3, spans)
+    walled = atlas_detail._groups(finest, 200, 10**9, 3, spans, 16)
+    assert plain == [(0, 200)]
+    assert len(walled) > 1 and sum(n for _, n in walled) == 200
+    assert all(pack_capacity(3, n, deg, spans, walls=16) <= MAX_PACK_VALUES for _, n in walled)

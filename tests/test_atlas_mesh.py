@@ -613,3 +613,23 @@ def test_progress_reports_rise_to_the_end_and_change_nothing(kernel):
     assert len(reports) == batches + len(atlas.quads) // PROGRESS_BATCH
     assert reports == sorted(reports) and 0 < reports[0] and reports[-1] <= 1
     assert reports[batches - 1] == pytest.approx(0.5) and reports[-1] > 0.9
+
+
+@pytest.mark.parametrize("kernel", ["python", "numpy"])
+def test_a_part_whose_every_cell_is_left_out_is_an_empty_mesh(kernel):
+    """A detail group over a part the scan lacks can have every cell walled: the viewer's
+    part is then an empty mesh (it raised TypeError from an empty itemgetter), and the
+    other parts are drawn as before."""
+    if kernel == "numpy":
+        pytest.importorskip("numpy")
+    atlas = sphere_atlas(2, noise=0.02, seed=4)
+    walled = TrimMask.from_flat(4, 4, bytes([1] * 16))
+    detail = {0: [replace(t, walls=walled) for t in random_tiles(0, 1)]}
+    resolution = [9] * len(atlas.quads)
+    rest = range(1, len(atlas.quads))
+    empty, other = tessellate_atlas_parts(atlas_parts(atlas, [range(1), rest]), resolution,
+                                          detail, kernel=kernel)
+    assert empty.triangle_count == 0 and len(empty.patches) == 0
+    alone = tessellate_atlas_parts(atlas_parts(atlas, [rest]), resolution, detail,
+                                   kernel=kernel)[0]
+    assert other.triangle_count == alone.triangle_count > 0

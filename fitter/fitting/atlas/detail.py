@@ -146,8 +146,8 @@ brings it from 2.10 % to 1.52 % and the drawn area beyond 1 % from 1.2 % to 0.02
 KB of masks (docs/benchmarks.md, session 15). Every tile over a cell a coarser level left
 out carries a walls mask too, all clear if need be, so that each level decides its own
 cells. Only triangles go: the vertices, and so the borders patches share where both sides
-are drawn, stay as they were (``client_py.atlas_mesh``), and a level without such cells
-writes its packs as before, byte for byte (version 4).
+are drawn, stay as they were (``client_py.atlas_mesh``), and a pack none of whose tiles
+carries a mask is written as before, byte for byte (version 4).
 
 Groups and packs. Patches are renumbered along the Morton (Z-order) curve of their centres,
 so that a contiguous range of patch indices is a compact piece of the object, and cut into
@@ -1498,7 +1498,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     sides = patch_sides(atlas)
     side = float(np.median(sides))
     spacing = median_spacing(scan, fit)
-    validate = levels is None and fit.surface.origin != "mesh"  # see "Depth"
+    is_mesh = fit.surface.origin == "mesh"  # the scan's own triangles (not a cloud's stand-in)
+    validate = levels is None and not is_mesh  # see "Depth"
     if levels is None:
         levels = auto_levels(side, spacing, F, spans)
     finest_cells = F * (spans << max(levels - 1, 0)) ** 2
@@ -1528,7 +1529,6 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     diagonal = float(np.linalg.norm(np.ptp(np.asarray(fit.surface.vertices, float), axis=0)))
     scan_points = np.asarray(scan.points, dtype=float)
     reach = DRAWN_REACH * float(np.linalg.norm(np.ptp(scan_points, axis=0)))
-    is_mesh = scan.faces is not None and len(scan.faces) > 0
     distance = scan_distance(scan) if DRAWN_REACH > 0 and (DRAWN_MESHES or not is_mesh) \
         else None
     taken: list[np.ndarray] = []  # per level, the cells it leaves out (F, W_k, W_k)
@@ -1620,8 +1620,10 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     if per_level_tiles:  # the finest level's own .tsd bytes size the groups (_groups) alone
         per_level_tiles[-1] = {f: [(t, write_detail_tile(t), g) for t, _, g in made]
                                for f, made in per_level_tiles[-1].items()}
+    walls_side = max((t.walls.rows for tiles in per_level_tiles for made in tiles.values()
+                      for t, _, _ in made if t.walls is not None), default=0)
     groups = _groups(per_level_tiles[-1] if levels else {}, F, pack_bytes,
-                     max(levels - 1, 0), spans)
+                     max(levels - 1, 0), spans, walls_side)
     files: dict[str, bytes] = {}
     packs = []
     for k, tiles in enumerate(per_level_tiles):
@@ -1673,19 +1675,22 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
 
 
 def _groups(finest: dict, patches: int, pack_bytes: int, level: int = 0,
-            spans: int = SPANS) -> list[tuple[int, int]]:
+            spans: int = SPANS, walls: int = 0) -> list[tuple[int, int]]:
     """Contiguous ``(first, count)`` ranges of patches whose finest-level (``level``) tiles
     stay within ``pack_bytes`` in a pack (``client_py.atlas_detail``: one range-coded
     stream, so a tile costs about its ``.tsd`` coded bytes without the tile's own header and
     CRC, less the border slots a welded pack does not repeat, which this bound does not
     count; 28 bytes of pack framing) and within the values a pack may hold
-    (:func:`client_py.atlas_detail.pack_capacity` <= ``MAX_PACK_VALUES``)."""
+    (:func:`client_py.atlas_detail.pack_capacity` <= ``MAX_PACK_VALUES``, its walls
+    masks ``walls`` cells a side: the largest of any level, so that no level's pack of
+    the range, at ``4^k`` tiles a patch, holds more)."""
     framing = TILE_HEADER_SIZE + CRC_SIZE
     groups = []
     first, size = 0, 28
     for f in range(patches):
         cost = sum(len(data) - framing for _, data, _ in finest.get(f, []))
-        full = pack_capacity(level, f - first + 1, DEGREE, spans) > MAX_PACK_VALUES
+        full = pack_capacity(level, f - first + 1, DEGREE, spans, walls=walls) \
+            > MAX_PACK_VALUES
         if f > first and (size + cost > pack_bytes or full):
             groups.append((first, f - first))
             first, size = f, 28

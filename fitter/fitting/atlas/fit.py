@@ -831,7 +831,8 @@ class AtlasFit:
         Each working point's foot point and signed distance (positive on the side of
         ``C_u × C_v``, outward on a closed piece).
     rms : float
-        RMS of ``distance``.
+        The fit's RMS before its control points were rounded to ``base.tsa``'s grid (the
+        trials' measure, comparable with theirs); ``distance`` is of the rounded base.
     bytes : int
         ``len(client_py.atlas_format.write_atlas(atlas, bits))``.
     bits : int
@@ -1439,7 +1440,8 @@ def final_within_budget(accepted: list[tuple], trials: list[dict], points: np.nd
         if size <= byte_budget or number == 0:
             return rms, size, layout, atlas, f, u, v, final_timings, final_bits
         for trial in trials:  # the record of this layout's trial says why it was not kept
-            if trial.get("triangles") == layout.n_triangles and "final_bytes" not in trial:
+            if trial.get("triangles") == layout.n_triangles and "bytes" in trial \
+                    and "final_bytes" not in trial:
                 trial.update(final_bytes=size, final_bits=final_bits)
                 break
     raise AssertionError("unreachable")  # the smallest layout returns
@@ -1476,7 +1478,7 @@ def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
 def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarray,
                lo: np.ndarray, step: np.ndarray, fixed: np.ndarray | None = None,
                sweeps: int = ROUND_SWEEPS, rate: float = 0.0,
-               colour: np.ndarray | None = None) -> np.ndarray:
+               colour: np.ndarray | None = None, top: int | None = None) -> np.ndarray:
     """Integer codes ``q`` (the shape of ``x``) of the values ``lo + step q`` that lower
     the quadratic ``J(p) = pᵀ H p - 2 rhsᵀ p`` of the ``M`` values ``p`` (``x`` and the
     rest read flat, in C order; ``lo``, ``step`` broadcast to ``x``) from its value at
@@ -1488,7 +1490,8 @@ def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarr
     minimiser of a convex quadratic of one integer within a box is ``rint(t)`` clipped to
     it. One colour at a time (``colour (M,)``, default :func:`coupling_colours` of ``H``:
     its values share no term); each move lowers ``J`` or keeps it, so the result is never
-    worse than ``codes``. ``fixed`` of bool: codes not moved. ``rate``: ``J + λ Σ |q -
+    worse than ``codes``. ``fixed`` of bool: codes not moved. ``top``: codes stay within
+    ``0..top`` (the file's grid). ``rate``: ``J + λ Σ |q -
     codes|``, ``λ = rate step²`` times the median ``H_ii`` (a soft threshold toward the
     code a value started from: fewer moves, fewer bytes). At most ``sweeps`` sweeps, fewer once
     none moves. Rounding each value to nearest on its own is the ``sweeps = 0`` answer;
@@ -1507,6 +1510,8 @@ def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarr
     t = (x - lo) / step
     low = np.minimum(np.floor(t), q)
     high = np.maximum(np.ceil(t), q)
+    if top is not None:  # the grid's codes: a value at its top bound can be top + 3e-14 steps
+        low, high = np.clip(low, 0, top), np.clip(high, 0, top)
     if fixed is not None:
         fixed = np.asarray(fixed, bool).reshape(-1)
         low = np.where(fixed, q, low)
@@ -1560,19 +1565,19 @@ def _corners_together(quads: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     return lambda q: np.unique(ends[np.all(q[ends[:, 0]] == q[ends[:, 1]], axis=1)])
 
 
-PLEAT_RESOLUTION = 5  # samples a patch side of pleated_patches (the base's drawn grid)
 PLEAT_COSINE = -0.5  # ... two triangles of a patch folded over each other: n1 . n2 below this
 
 
 def pleated_patches(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
-                    resolution: int = PLEAT_RESOLUTION) -> np.ndarray:
+                    resolution: int | None = None) -> np.ndarray:
     """Patches of which two triangles sharing an edge fold over each other,
     ``n_1 · n_2 <`` :data:`PLEAT_COSINE` (more than 120° apart), with the patch drawn on a
-    ``resolution²`` grid whose cells are cut as the client cuts them
+    ``resolution²`` grid (default :func:`base_resolution`, the grid the base is drawn on)
+    whose cells are cut as the client cuts them
     (``client_py.tessellate.grid_indices``: along the diagonal from ``(u + h, v)`` to
     ``(u, v + h)``): the pleats ``bench.pleats`` counts on the drawn base. Returns
     ``pleated (F,)`` of bool."""
-    r, n_f = resolution, len(table)
+    r, n_f = resolution or base_resolution(spans), len(table)
     t = np.linspace(0.0, 1.0, r)
     f = np.repeat(np.arange(n_f), r * r)
     (c,) = evaluate_patches(table, points, degree, spans, f, np.tile(np.repeat(t, r), n_f),
@@ -1667,9 +1672,10 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     fixed[x.argmax(axis=0), np.arange(3)] = True
     colour = (3 * coupling_colours(per_axis)[:, None] + np.arange(3)).reshape(-1)
     q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
-                   ROUND_RATE if rate is None else rate, colour)
-    q = _put_back(q, plain, _corners_together(np.asarray(atlas.quads)))
-    q = _put_back(q, plain, _newly_pleated(plain, table, lo, step, degree, spans))
+                   ROUND_RATE if rate is None else rate, colour, top)
+    together = _corners_together(np.asarray(atlas.quads))
+    pleated = _newly_pleated(plain, table, lo, step, degree, spans)
+    q = _put_back(q, plain, lambda q: np.union1d(together(q), pleated(q)))
     return with_control_points(atlas, lo + step * q)
 
 
