@@ -580,6 +580,20 @@ def _code_quads(coder: RangeEncoder | RangeDecoder, n_quads: int, n_vertices: in
 APART_PASSES = 3
 
 
+def file_codes(axes: Sequence[Sequence[float]], lows: Sequence[float],
+               highs: Sequence[float], bits: int, quads: Sequence[Sequence[int]]
+               ) -> list[list[int]]:
+    """The integer codes ``base.tsa`` holds for the control points whose coordinates are
+    ``axes`` (three sequences) within the bounds ``lows``, ``highs``: each value rounded to
+    the nearest of ``2^bits`` steps of its axis's bounds (``client_py.format``'s rule), then
+    :func:`keep_corners_apart` over ``quads``. The writer's rule, and the fitter's start
+    when it rounds with the error fed back (``fitter.fitting.atlas.fit.fed_back_atlas``)."""
+    codes = [_quantise(axis, lo, hi, bits) for axis, lo, hi in zip(axes, lows, highs,
+                                                                     strict=True)]
+    keep_corners_apart(codes, axes, lows, highs, bits, quads)
+    return codes
+
+
 def keep_corners_apart(codes: list[list[int]], axes: Sequence[Sequence[float]],
                        lows: Sequence[float], highs: Sequence[float], bits: int,
                        quads: Sequence[Sequence[int]]) -> int:
@@ -708,9 +722,7 @@ class AtlasWriter:
         predictor = copy.copy(self._predictor)
         predictor.top = (1 << bits) - 1
         classes = self._classes
-        codes = [_quantise(axis, lo, hi, bits) for axis, lo, hi in zip(axes, lows, highs,
-                                                                         strict=True)]
-        keep_corners_apart(codes, axes, lows, highs, bits, quads)
+        codes = file_codes(axes, lows, highs, bits, quads)
         model, before = _ResidualModel(), None
         for axis_codes in codes:
             residuals = predictor.residuals(axis_codes)

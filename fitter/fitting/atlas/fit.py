@@ -1629,7 +1629,7 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     ``0.1 |r|²`` in place of ``|r|²`` 0.1697 at 22,207 (RMS of all points).
     ``write_atlas(result, bits)`` writes these codes (the grid is the points' bounds over
     ``2^bits - 1`` steps, and the points at the bounds are not moved). No format change."""
-    from client_py.atlas_format import keep_corners_apart
+    from client_py.atlas_format import file_codes
 
     degree, spans = atlas.degree, atlas.spans
     table = index_table(atlas)
@@ -1637,12 +1637,9 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     lo, hi = x.min(axis=0), x.max(axis=0)
     top = (1 << bits) - 1
     step = np.where(hi > lo, (hi - lo) / top, 1.0)
-    # the writer's codes (client_py.format._quantise, then keep_corners_apart), which do
-    # not depend on the file's numbering of the points
-    scale = np.where(hi > lo, top / np.where(hi > lo, hi - lo, 1.0), 0.0)
-    codes = np.clip(np.rint((x - lo) * scale), 0, top).astype(np.int64).T.tolist()
-    keep_corners_apart(codes, x.T.tolist(), lo.tolist(), hi.tolist(), bits, atlas.quads)
-    plain = np.array(codes, np.int64).T
+    # the writer's codes, which do not depend on the file's numbering of the points
+    plain = np.array(file_codes(x.T.tolist(), lo.tolist(), hi.tolist(), bits, atlas.quads),
+                     np.int64).T
     initial = bilinear_atlas(layout, degree, spans)
     nb = neighbour_table(atlas)
     border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
