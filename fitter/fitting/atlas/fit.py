@@ -1473,8 +1473,8 @@ def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarr
     is never worse than ``codes``. ``fixed`` of bool: codes not moved. ``rate``: ``J + λ Σ
     |q - codes|``, ``λ = rate step²`` times the median ``H_ii`` (a soft threshold toward
     the code a value started from: fewer moves, fewer bytes). At most ``sweeps`` sweeps,
-    fewer once none moves; ``sweeps = 0`` returns ``codes``.
-    ``atlas.detail.quantised_blocks`` does the same for the detail coefficients.
+    fewer once none moves; ``sweeps = 0`` returns ``codes``. The detail coefficients are
+    rounded by the same descent (``atlas.detail.quantised_blocks``).
     """
     shape = np.shape(x)
     x = np.asarray(x, np.float64).reshape(-1)
