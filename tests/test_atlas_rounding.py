@@ -109,6 +109,48 @@ def test_coupling_colours_never_give_two_coupled_unknowns_one_colour():
     assert colour.max() <= degree.max()
 
 
+@pytest.mark.parametrize("anchored", [False, True])
+def test_lattice_descent_leaves_no_better_single_move(anchored):
+    """``atlas.lattice.lattice_descent`` on a small dense quadratic, against its objective
+    written out here: ``J(p) + sum_i lambda_i |q_i - a_i|`` with ``p = lo + step q``,
+    ``lambda_i = 2 H_ii step_i^2 shrink_i``; after converged sweeps no single move by one
+    step within the box lowers it, it is below its value at the start, and the values of
+    colour ``-1`` are not moved."""
+    from fitter.fitting.atlas.lattice import lattice_descent
+
+    rng = np.random.default_rng(4)
+    m = 40
+    B = rng.normal(size=(60, m)) * (rng.random((60, m)) < 0.15)
+    H = B.T @ B + 0.05 * np.eye(m)
+    rhs = rng.normal(size=m) * 3.0
+    lo, step = rng.normal(size=m), rng.uniform(0.5, 1.5, m)
+    start = np.rint((np.linalg.solve(H, rhs) - lo) / step).astype(np.int64)
+    low, high = start - 3, start + 3
+    colour = coupling_colours(sp.csr_matrix(H))
+    colour[:4] = -1
+    shrink = rng.uniform(0.0, 0.6, m) if anchored else None
+    a = np.zeros(m, np.int64) if anchored else start
+
+    def objective(q):
+        p = lo + step * q
+        tax = 0.0 if shrink is None else float(np.sum(2 * np.diag(H) * step ** 2 * shrink
+                                                      * np.abs(q - a)))
+        return float(p @ H @ p - 2 * rhs @ p) + tax
+
+    q = lattice_descent(sp.csr_matrix(H), rhs, start, lo, step, low, high, colour, 200,
+                        shrink, a if anchored else None)
+    assert np.array_equal(q[:4], start[:4])
+    assert np.all((q >= low) & (q <= high))
+    best = objective(q)
+    assert best <= objective(start)
+    for i in range(4, m):
+        for move in (-1, 1):
+            other = q.copy()
+            other[i] += move
+            if low[i] <= other[i] <= high[i]:
+                assert objective(other) >= best - 1e-9 * abs(best)
+
+
 def _sphere_scan():
     m = trimesh.creation.icosphere(subdivisions=4)
     return make_scan("sphere", np.asarray(m.vertices, np.float64), faces=np.asarray(m.faces),

@@ -209,6 +209,7 @@ from .fit import (
     neighbour_table,
     spd_lu,
 )
+from .lattice import lattice_descent
 
 DEGREE = 2
 SPANS = 8  # spans per tile side: on the bunny, 8 reached 0.27 mm RMS in 49 KB, 4 in 112 KB
@@ -478,15 +479,9 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
         facing = np.einsum("kc,kc->k", n, nx) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
         return f, u, v, off, t2, dist, facing
 
-    starts = range(0, len(points), chunk)
-    parts = []
     # the chunks are independent and their work is numpy on whole arrays, which releases
-    # the GIL: one thread per core (as fitter.fitting.error.deviations); map keeps the order
-    with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
-        for done, part in enumerate(pool.map(one_chunk, starts), start=1):
-            parts.append(part)
-            if progress is not None:
-                progress(done / len(starts))
+    # the GIL: one thread per core (as fitter.fitting.error.deviations), in order
+    parts = on_threads(one_chunk, len(points), chunk, threads, progress)
     f, u, v, off, t2, dist, facing = (np.concatenate(c) for c in zip(*parts, strict=True))
     order = np.argsort(f, kind="stable")
     f = f[order]
@@ -528,15 +523,24 @@ def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-300)
 
 
-def on_threads(work: Callable[[int], None], count: int, chunk: int) -> None:
-    """``work(lo)`` for every ``lo`` in ``range(0, count, chunk)``, one thread per core.
+def on_threads(work: Callable[[int], object], count: int, chunk: int, threads: int | None = None,
+               progress: Callable[[float], None] | None = None) -> list:
+    """``[work(lo) for lo in range(0, count, chunk)]``, on ``threads`` threads (default:
+    one per core), in that order.
 
     For loops whose chunks each write their own rows ``lo:lo + chunk`` of arrays made
-    beforehand, with numpy's array operations (which release the GIL): the numbers do not
-    depend on the thread count. A chunk's error is raised here."""
+    beforehand or return their own part, with numpy's array operations, SuperLU and the
+    sparse products (which release the GIL): the numbers do not depend on the thread
+    count. A chunk's error is raised here. ``progress(share done)`` after each chunk, in
+    order."""
     starts = range(0, count, chunk)
-    with ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, len(starts)))) as pool:
-        list(pool.map(work, starts))
+    out = []
+    with ThreadPoolExecutor(max(1, min(threads or os.cpu_count() or 1, len(starts)))) as pool:
+        for done, part in enumerate(pool.map(work, starts), start=1):
+            out.append(part)
+            if progress is not None:
+                progress(done / len(starts))
+    return out
 
 
 def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
@@ -1169,9 +1173,7 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         c[cols_held] = c_held
         out[first:last] = c.reshape(count, n, n)
 
-    starts = range(0, F, system.per_batch)
-    with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
-        list(pool.map(one_batch, starts))  # list(): re-raise a batch's error here
+    on_threads(one_batch, F, system.per_batch, threads)
     return out, weight
 
 
@@ -1191,28 +1193,19 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     """The level's integer coefficients ``q (F, n, n)``: ``rint(c / step)`` of the fitted
     ``coefficients``, then each interior value moved to the integer that minimises the
     level's own objective (:func:`_solve_blocks`, :class:`_BatchSystem`) given all the
-    others: Gauss-Seidel on the lattice ``step Z`` (iterated conditional modes).
+    others: :func:`atlas.lattice.lattice_descent` on the lattice ``step Z`` (the formulas
+    and references are there), ``J(c) = c^T M c - 2 b^T c``.
 
-    With ``J(c) = c^T M c - 2 b^T c`` and ``g = M c - b``, coefficient ``i`` alone is best at
-    ``t_i = (c_i - g_i / M_ii) / step``. The sweeps minimise ``J + lambda sum |q|``, ``|q|``
-    standing for the integer's bits (the packs code a zero flag and the magnitude in unary
-    bins, ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with ``m`` the median
-    ``M_ii`` of the batch's interior (``rate`` in units of a typical coefficient's data
-    weight; one median per batch of :data:`BATCH_UNKNOWNS`, so a level of several batches
-    has a ``lambda`` each): the exact integer minimiser for ``i`` alone, within the patch's
-    bound ``|q_i| <= Q_f = rint(limit_f / step)`` (:func:`bounded_by_residual`, ``limit
-    (F,)``, the bound plain rounding of a bounded value keeps), is the rounded soft
-    threshold clipped to it, ``q_i = sign(t_i) min(rint(max(|t_i| - lambda / (2 M_ii
-    step^2), 0)), Q_f)``. One ``lambda`` for all is the rate-distortion optimum's equal
-    slope (Shoham and Gersho, IEEE Trans. ASSP 1988; rate-distortion optimised quantisation
-    in video coding): a coefficient the samples hardly see (small ``M_ii``) is zeroed
-    sooner. Each move lowers the penalised objective or keeps it. Rounding
-    alone adds ``step^2 / 12`` of noise to every coefficient, which the drawn surface shows
-    where the samples are (Laurana level 0: 28 % of the squared error of all points, Lucy
-    26 %, docs/benchmarks.md session 14); here a value is rounded the way that the others,
-    already rounded, leave least error, as a least-squares fit is quantised column by column
-    with the error fed back (the idea of GPTQ, Frantar et al., ICLR 2023, and of noise
-    feedback in sigma-delta coding).
+    The sweeps minimise ``J + lambda sum |q|`` (anchored at 0), ``|q|`` standing for the
+    integer's bits (the packs code a zero flag and the magnitude in unary bins,
+    ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with ``m`` the median ``M_ii``
+    of the batch's interior (one median per batch of :data:`BATCH_UNKNOWNS`, so a level of
+    several batches has a ``lambda`` each), within the patch's bound ``|q_i| <= Q_f =
+    rint(limit_f / step)`` (:func:`bounded_by_residual`, ``limit (F,)``, the bound plain
+    rounding of a bounded value keeps): a coefficient the samples hardly see (small
+    ``M_ii``) is zeroed sooner. Rounding alone adds ``step^2 / 12`` of noise to every
+    coefficient, which the drawn surface shows where the samples are (Laurana level 0: 28 %
+    of the squared error of all points, Lucy 26 %, docs/benchmarks.md session 14).
 
     The border ring is not moved: its values are the shared slots' means, equal on both
     sides of a border (:func:`_share_borders`), and their integers stay equal. Coefficients
@@ -1231,44 +1224,26 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     system = _BatchSystem(samples, residual, level, spans, weights, model, rows, pull)
     stride = coupling_stride()
     a, b = np.divmod(np.arange(n * n), n)
-    interior = ~border_ring(n).reshape(-1)
-    colour = (a % stride) * stride + b % stride
+    # the border ring not moved: colour -1
+    colour = np.where(border_ring(n).reshape(-1), -1, (a % stride) * stride + b % stride)
 
     def one_batch(first: int) -> None:
         last = min(F, first + system.per_batch)
         count = last - first
         M, rhs, _ = system.normal(first)
         diag = M.diagonal()
-        x = q[first:last].reshape(-1) * step
-        bound = np.repeat(limit[first:last], n * n)
-        parts = []
-        for k in range(stride * stride):
-            mine = np.flatnonzero(interior & (colour == k))
-            at = (np.arange(count)[:, None] * n * n + mine[None, :]).reshape(-1)
-            at = at[diag[at] > 0]
-            parts.append((at, M[at]))
-        # the rate's weight: lambda = rate * step^2 * the median data weight of a coefficient
-        inside = np.concatenate([at for at, _ in parts])
+        at = np.tile(colour, count)
+        inside = np.flatnonzero((at >= 0) & (diag > 0))
+        bound = np.rint(np.repeat(limit[first:last], n * n) / step)
+        # the rate's weight: lambda = rate * step^2 * the median data weight of a coefficient,
+        # in steps lambda / (2 M_ii step^2) (this order of operations kept: the bytes)
         lam = rate * step * step * float(np.median(diag[inside])) if len(inside) else 0.0
-        for _ in range(sweeps):
-            moved = 0
-            for at, rows_at in parts:
-                g = rows_at @ x - rhs[at]
-                best = (x[at] - g / diag[at]) / step
-                shrink = lam / (2.0 * diag[at] * step * step)
-                # the rounded soft threshold, then the box: the integer minimiser of a
-                # convex function of one integer within [-Q, Q] is the clipped free one
-                new = np.sign(best) * np.minimum(np.rint(np.maximum(np.abs(best) - shrink, 0.0)),
-                                                 np.rint(bound[at] / step)) * step
-                moved += int(np.count_nonzero(new != x[at]))
-                x[at] = new
-            if not moved:
-                break
-        q[first:last] = np.rint(x / step).reshape(count, n, n)
+        shrink = np.zeros(len(diag))
+        shrink[inside] = lam / (2.0 * diag[inside] * step * step)
+        q[first:last] = lattice_descent(M, rhs, q[first:last].reshape(-1), 0.0, step, -bound,
+                                        bound, at, sweeps, shrink, 0).reshape(count, n, n)
 
-    starts = range(0, F, system.per_batch)
-    with ThreadPoolExecutor(min(threads or os.cpu_count() or 1, len(starts)) or 1) as pool:
-        list(pool.map(one_batch, starts))
+    on_threads(one_batch, F, system.per_batch, threads)
     return q.astype(np.int64)
 
 

@@ -153,6 +153,7 @@ from client_py.atlas import AtlasSurface
 
 from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
+from .lattice import coupling_colours, lattice_descent
 from .layout import (
     AtlasLayoutError,
     QuadLayout,
@@ -1458,23 +1459,6 @@ ROUND_RATE = 0.0  # grid_codes' weight on moving a code, in step² times the med
 ROUND_ACROSS = 0.0
 
 
-def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
-    """A colouring of the unknowns of ``H (N, N)``: no two of one colour share a non-zero
-    ``H_ij`` (``i != j``), so coordinate descent on one colour at once is exactly one at a
-    time. Greedy, in order of decreasing degree (Welsh and Powell, The Computer Journal
-    1967): at most ``1 +`` the largest degree colours. Returns ``colour (N,)`` of int."""
-    H = sp.csr_matrix(H)
-    indptr, indices = H.indptr, H.indices
-    colour = np.full(H.shape[0], -1, np.int64)
-    for i in np.argsort(-np.diff(indptr), kind="stable"):
-        used = set(colour[indices[indptr[i]:indptr[i + 1]]].tolist())
-        c = 0
-        while c in used:
-            c += 1
-        colour[i] = c
-    return colour
-
-
 def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarray,
                lo: np.ndarray, step: np.ndarray, fixed: np.ndarray | None = None,
                sweeps: int = ROUND_SWEEPS, rate: float = 0.0,
@@ -1485,28 +1469,21 @@ def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarr
     ``codes``, each code within ``[floor, ceil]`` of ``(x - lo) / step`` (or at its own
     ``codes`` value, when that is outside: a corner the writer rounded apart).
 
-    Gauss-Seidel on the lattice (iterated conditional modes): with ``g = H p - rhs``,
-    value ``i`` alone is best at ``t = (p_i - g_i / H_ii - lo_i) / step_i``, and the integer
-    minimiser of a convex quadratic of one integer within a box is ``rint(t)`` clipped to
-    it. One colour at a time (``colour (M,)``, default :func:`coupling_colours` of ``H``:
-    its values share no term); each move lowers ``J`` or keeps it, so the result is never
-    worse than ``codes``. ``fixed`` of bool: codes not moved. ``top``: codes stay within
-    ``0..top`` (the file's grid). ``rate``: ``J + λ Σ |q -
-    codes|``, ``λ = rate step²`` times the median ``H_ii`` (a soft threshold toward the
-    code a value started from: fewer moves, fewer bytes). At most ``sweeps`` sweeps, fewer once
-    none moves. Rounding each value to nearest on its own is the ``sweeps = 0`` answer;
-    fed back, a value is rounded the way the others, already rounded, leave least error,
-    as a least-squares fit is quantised column by column with the error fed back (GPTQ,
-    Frantar et al., ICLR 2023; noise feedback in sigma-delta coding);
-    ``atlas.detail.quantised_blocks`` does the same for the detail coefficients.
+    Fed back by :func:`atlas.lattice.lattice_descent` (Gauss-Seidel on the lattice, one
+    colour at a time, ``colour (M,)`` default :func:`coupling_colours` of ``H``; the
+    formulas and references are there): each move lowers ``J`` or keeps it, so the result
+    is never worse than ``codes``. ``fixed`` of bool: codes not moved. ``top``: codes
+    stay within ``0..top`` (the file's grid). ``rate``: ``J + λ Σ
+    |q - codes|``, ``λ = rate step²`` times the median ``H_ii`` (a soft threshold toward
+    the code a value started from: fewer moves, fewer bytes). At most ``sweeps`` sweeps,
+    fewer once none moves; ``sweeps = 0`` returns ``codes``. The detail coefficients are
+    rounded by the same descent (``atlas.detail.quantised_blocks``).
     """
     shape = np.shape(x)
-    H = sp.csr_matrix(H)
     x = np.asarray(x, np.float64).reshape(-1)
     lo = np.broadcast_to(lo, shape).reshape(-1)
     step = np.broadcast_to(step, shape).reshape(-1)
-    rhs = np.asarray(rhs, np.float64).reshape(-1)
-    q = np.asarray(codes, np.int64).reshape(-1).copy()
+    q = np.asarray(codes, np.int64).reshape(-1)
     t = (x - lo) / step
     low = np.minimum(np.floor(t), q)
     high = np.maximum(np.ceil(t), q)
@@ -1516,29 +1493,16 @@ def grid_codes(H: sp.csr_matrix, rhs: np.ndarray, x: np.ndarray, codes: np.ndarr
         fixed = np.asarray(fixed, bool).reshape(-1)
         low = np.where(fixed, q, low)
         high = np.where(fixed, q, high)
+    H = sp.csr_matrix(H)
     diag = H.diagonal()
-    colour = coupling_colours(H) if colour is None else np.asarray(colour).reshape(-1)
-    blocks = [(at, H[at]) for at in (np.flatnonzero((colour == c) & (diag > 0))
-                                     for c in range(int(colour.max()) + 1)) if len(at)]
-    p = lo + step * q
-    start = q.copy()
-    inside = diag[diag > 0]
-    lam = rate * float(np.median(inside)) if len(inside) else 0.0
-    shrink = lam / (2.0 * np.maximum(diag, 1e-300))  # in steps: λ = rate step² median H_ii
-    for _ in range(sweeps):
-        moved = 0
-        for at, rows in blocks:
-            best = (p[at] - (rows @ p - rhs[at]) / diag[at] - lo[at]) / step[at]
-            if rate > 0:  # the soft threshold toward the code it started from
-                off = best - start[at]
-                best = start[at] + np.sign(off) * np.maximum(np.abs(off) - shrink[at], 0.0)
-            new = np.clip(np.rint(best), low[at], high[at]).astype(np.int64)
-            moved += int(np.count_nonzero(new != q[at]))
-            q[at] = new
-            p[at] = lo[at] + step[at] * new
-        if not moved:
-            break
-    return q.reshape(shape)
+    colour = coupling_colours(H) if colour is None else colour
+    shrink = None
+    if rate > 0:  # λ = rate step² median H_ii, in steps λ / (2 H_ii step²)
+        inside = diag[diag > 0]
+        lam = rate * float(np.median(inside)) if len(inside) else 0.0
+        shrink = lam / (2.0 * np.maximum(diag, 1e-300))
+    return lattice_descent(H, rhs, q, lo, step, low, high, colour, sweeps,
+                           shrink).reshape(shape)
 
 
 def _put_back(q: np.ndarray, plain: np.ndarray,
