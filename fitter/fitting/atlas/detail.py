@@ -734,13 +734,13 @@ def all_nodes(patches: int, resolution: int) -> tuple[np.ndarray, np.ndarray, np
 
 
 def grid_triangles(patches: int, resolution: int) -> np.ndarray:
-    """The client's triangles over :func:`all_nodes` (``client_py.tessellate.grid_indices``:
-    cell ``(i, j)`` gives ``(k, k + r, k + 1)`` and ``(k + 1, k + r, k + r + 1)``, ``k = i r
-    + j``), patch after patch, shape ``(2 F (r - 1)², 3)``."""
+    """The client's triangles over :func:`all_nodes` (``client_py.tessellate.grid_indices``
+    of one patch's ``r x r`` grid, the client's own cut), patch after patch, shape
+    ``(2 F (r - 1)², 3)``."""
+    from client_py.tessellate import grid_indices
+
     r = resolution
-    i, j = np.meshgrid(np.arange(r - 1), np.arange(r - 1), indexing="ij")
-    k = (i * r + j).reshape(-1)
-    cell = np.stack([k, k + r, k + 1, k + 1, k + r, k + r + 1], axis=1).reshape(-1, 3)
+    cell = np.asarray(grid_indices(r, r, kernel="python"), np.int64).reshape(-1, 3)
     return (np.arange(patches)[:, None, None] * r * r + cell[None]).reshape(-1, 3)
 
 
