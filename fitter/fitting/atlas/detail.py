@@ -137,31 +137,29 @@ out (:func:`far_cells`) when
   the cells left out: its closest point is handed over to a cell that stays.
 
 So every such scan point keeps its distance to the drawn mesh (the panel's measure, the
-benchmark's every-point RMS and share within 0.5 %) within 0.05 % of the diagonal: no cell
-a scan point is drawn by goes unless another draws it as near, only what reaches out past
-the scan with no scan point to show (a cloud's outliers, farther, are not fitted either).
-On the 15-scan
-Buddha (default fit, seed 0, session 15, load 4-16) level 0's cells at the far places are
-large (the largest distance from a corner to their centre 0.5-1.7 % of the diagonal at the
-farthest ones), and half of those reaching beyond 1 % also come within 1 % of the scan at
-one end: a cell left out only where all of it is farther than a reach (1 %: 3,118 cells;
-0.5 %: 16,567) kept the largest distance at 2.00 % (1.71 %), where this rule (7,501 cells)
-brings it from 2.10 % to 1.52 % and the drawn area beyond 1 % from 1.2 % to 0.02 %, for 1.4
-KB of masks (docs/benchmarks.md, session 15). On main 5dba071's level 0 (max 1.06 %), 53
-cells still reached past 1 % (a lattice of 8 steps a side measured, 7,168 left out): 45
-only between the points of the one lattice of 4 then sampled (1.00-1.05 %), and 8 holding
-scan points, at 1.03-1.14 %: fins, webs of the Poisson surface across a thin gap standing
-on a scanned sheet (or pointing at a stray cluster of points 0.8-1.1 % off the rest),
-their far end a node 1.1 % off the scan beside its drawn direction (where the pull rows
-cannot bring it in: ``(q - X) . d`` small), their holders at their root, 0.00-0.14 % from
-them and at most 0.036 % farther from the sheet's own cells. With both rules, 88 more
-cells go and no drawn point reaches past 1 % (a lattice of 12 steps measured), the RMS
-of all points +0.001 %, the share within 0.5 % the same (docs/benchmarks.md, session
-16). Every tile over a cell a coarser level left
-out carries a walls mask too, all clear if need be, so that each level decides its own
-cells. Only triangles go: the vertices, and so the borders patches share where both sides
-are drawn, stay as they were (``client_py.atlas_mesh``), and a pack none of whose tiles
-carries a mask is written as before, byte for byte (version 4).
+benchmark's every-point RMS and share within 0.5 %) within 0.05 % of the diagonal: no cell a
+scan point is drawn by goes unless another draws it as near, only what reaches out past the
+scan with no scan point to show (a cloud's outliers, farther, are not fitted either). On the
+15-scan Buddha (default fit, seed 0, session 15, load 4-16) level 0's cells at the far
+places are large (the largest distance from a corner to their centre 0.5-1.7 % of the
+diagonal at the farthest ones), and half of those reaching beyond 1 % also come within 1 %
+of the scan at one end: a cell left out only where all of it is farther than a reach (1 %:
+3,118 cells; 0.5 %: 16,567) kept the largest distance at 2.00 % (1.71 %), where this rule
+(7,501 cells) brings it from 2.10 % to 1.52 % and the drawn area beyond 1 % from 1.2 % to
+0.02 %, for 1.4 KB of masks (docs/benchmarks.md, session 15). On main 5dba071's level 0 (max
+1.06 %), 53 cells still reached past 1 % (a lattice of 8 steps a side measured, 7,168 left
+out): 44 only between the points of the one lattice of 4 then sampled (1.00-1.05 %), and 9
+holding scan points, at 1.03-1.14 %: fins, webs of the Poisson surface across a thin gap
+standing on a scanned sheet (or pointing at a stray cluster of points 0.8-1.1 % off the
+rest), their far end mostly a node 1.1 % off the scan beside its drawn direction (where the
+pull rows cannot bring it in: ``(q - X) . d`` small), their holders at their root, 0.00-0.14
+% from them and at most 0.036 % farther from the sheet's own cells. With both rules, 88 more
+cells go and no drawn point reaches past 1 % (a lattice of 12 steps measured), the RMS of
+all points +0.001 %, the share within 0.5 % the same (docs/benchmarks.md, session 16). Every
+tile over a cell a coarser level left out carries a walls mask too, all clear if need be, so
+that each level decides its own cells. Only triangles go: the vertices, and so the borders
+patches share where both sides are drawn, stay as they were (``client_py.atlas_mesh``), and
+a pack none of whose tiles carries a mask is written as before, byte for byte (version 4).
 
 Groups and packs. Patches are renumbered along the Morton (Z-order) curve of their centres,
 so that a contiguous range of patch indices is a compact piece of the object, and cut into
@@ -924,7 +922,7 @@ def reaching_cells(cells: np.ndarray, distance: Callable[[np.ndarray], np.ndarra
     stays within ``reach`` but not within ``reach - h`` is sampled again on a lattice twice
     as fine, until ``finest`` steps (then taken as within ``reach``, by at most
     ``e / (finest sqrt 3)``). On the 15-scan Happy Buddha's level 0 (main 5dba071), the
-    lattice of 4 alone left 45 cells reaching 1.00-1.05 % of the diagonal (a lattice of 8
+    lattice of 4 alone left 44 cells reaching 1.00-1.05 % of the diagonal (a lattice of 8
     a side measured), one of them the third farthest place of the drawn mesh (1.01 %)."""
     out = np.zeros(len(cells), bool)
     corners = np.asarray(cells, dtype=float).reshape(-1, 3, 3)  # triangle after triangle
