@@ -550,7 +550,7 @@ def on_threads(work: Callable[[int], object], count: int, chunk: int, threads: i
 
 
 def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
-                b: np.ndarray, chunk: int = CHUNK, band: float = DIRECTION_BAND
+                b: np.ndarray, chunk: int = CHUNK, band: float | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
     """The base position ``C_f(node)`` and the displacement direction ``d`` the client
     draws node ``(a, b)`` of patch ``f``'s ``r x r`` grid with (``r = resolution``;
@@ -559,7 +559,9 @@ def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.n
     side from its border, the base's unit normal ``n`` blended toward the borders' ``m``
     (``client_py.atlas_mesh``, "Directions": its weights and its blend,
     ``client_py._kernel_numpy.blended_directions``), beyond it ``n`` (``band = 0``: ``n``
-    everywhere inside, the rule of bundles before the band; :class:`DrawnModel`)."""
+    everywhere inside, the rule of bundles before the band; default
+    :data:`DIRECTION_BAND`, what the fitter writes; :class:`DrawnModel`)."""
+    band = DIRECTION_BAND if band is None else band
     table, cps = index_table(atlas), control_points(atlas)
     d, spans = atlas.degree, atlas.spans
     F, r = len(atlas.quads), resolution
