@@ -33,11 +33,45 @@ central differences within the patch (one-sided on its border), as
 either is the normalised sum of the unit normals of the patches that sample it: the
 welded vertex has ONE normal, so shading is smooth across patch borders.
 
-Detail: ``X = C_f + D_f n_f`` with ``D_f`` the sum of patch ``f``'s tiles
-(``client_py.layers.displacement_grid`` over its own ``[0, 1]^2``) and ``n_f`` its unit
-normal; a border vertex that several patches sample takes the mean of their
-displacements along the normalised mean of their unit normals, so the mesh stays welded
-and watertight at every level.
+Detail: ``X = C_f + D_f d_f`` with ``D_f`` the sum of patch ``f``'s tiles
+(``client_py.layers.displacement_grid`` over its own ``[0, 1]^2``) and ``d_f`` its
+displacement direction; a border vertex that several patches sample takes the mean of
+their displacements along the normalised mean ``m`` of their unit normals, so the mesh
+stays welded and watertight at every level.
+
+Directions. Inside a patch, ``d_f`` is its unit normal ``n_f`` (bundles before the band:
+``band = 0``), or, with a band ``w`` (the manifest's ``tiles.detail.direction_band``, a
+share of the patch side, at most :data:`MAX_DIRECTION_BAND`), ``n_f`` blended toward the
+borders' ``m`` near them: the base's patches join with C0 creases, where ``n_f`` jumps to
+the neighbour's across the border, so the old rule turns the direction by half the crease
+within one cell and a displacement of about a cell turns the drawn triangles over (the
+pleats of ``bench.pleats``). Displaced subdivision surfaces displace along the normal of a
+smooth base (Lee, Moreton, Hoppe, SIGGRAPH 2000) so that the displaced surface is as smooth
+as the displacement; here the direction field is made continuous instead, turning over the
+band: with the border offsets ``delta = m - n_f`` on the patch's border samples (between two
+evaluated samples of a coarser neighbour's side, their linear blend) and the weight
+``phi(t / w)`` of a sample ``t = k / (r - 1)`` from a side, ``phi(s) = 1 - s^2 (3 - 2 s)``
+for ``s < 1`` and 0 beyond (the cubic Hermite step: 1 with slope 0 at the border, 0 with
+slope 0 at the band's inner edge, so the direction joins ``n_f`` smoothly), ``d_f =
+normalise(n_f + E)`` with ``E`` the Boolean sum of the four sides' offsets (Gordon,
+*Blending-function methods of bivariate and multivariate interpolation*, SIAM J. Numer.
+Anal. 1971; Coons patches: the four sides' terms less the four corners' products)
+
+    ``E(i, j) = phi_j delta(i, 0) + phi_{r-1-i} delta(r-1, j) + phi_{r-1-j} delta(i, r-1)
+    + phi_i delta(0, j) - (phi_i phi_j delta_00 + phi_{r-1-i} phi_j delta_10
+    + phi_{r-1-i} phi_{r-1-j} delta_11 + phi_i phi_{r-1-j} delta_01)``,
+
+which is ``delta`` on the border (so ``d_f = m`` there, the neighbour's too) and 0 beyond
+the band (``d_f = n_f`` exactly: the sum is skipped there). With ``w <= 1/2`` the four
+sides' bands overlap only at the corners, the cell centres of 2-sample patches keep
+``n_f``, and the band reaches no sample of a patch beyond its own border's: a part's mesh
+(:func:`tessellate_atlas_parts`) is still decided by its ring. The border vertices keep
+their rule (an open border's last vertex before a shared corner still turns from ``n_f`` to
+the corner's mean within its cell). ``w`` is a share of the side, not cells, so a level's
+directions are the same function of ``(u, v)`` at every resolution; the fitter's model
+(``fitter.fitting.atlas.detail.node_frames``) takes the same weights
+(:func:`direction_weights`) and the numpy kernel's sum
+(``client_py._kernel_numpy.blended_directions``).
 
 Drawn cells (docs/format.md, "Atlas detail packs", version 5): a patch's tiles may carry
 *walls masks*, the single patch's rule (``client_py.layers.drawn_cell_indices``): a cell
