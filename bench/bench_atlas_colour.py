@@ -40,12 +40,11 @@ def _decode(data: bytes) -> tuple[int, int, bytes]:
         return rgb.width, rgb.height, rgb.tobytes()
 
 
-def _drawn(atlas, resolution: int, tiles: dict, packs, band: float
-           ) -> tuple[np.ndarray, ...]:
+def _drawn(atlas, resolution: int, tiles: dict, packs) -> tuple[np.ndarray, ...]:
     from client_py.atlas_mesh import tessellate_atlas
     from client_py.atlas_texture import atlas_vertex_colours, colours_by_patch
 
-    mesh = tessellate_atlas(atlas, resolution, tiles or None, kernel="numpy", band=band)
+    mesh = tessellate_atlas(atlas, resolution, tiles or None, kernel="numpy")
     rgb = atlas_vertex_colours(mesh.patches, mesh.uvs, colours_by_patch(packs, len(atlas.quads)))
     return (np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float),
             np.frombuffer(mesh.indices, np.uintc).reshape(-1, 3).astype(np.int64),
@@ -174,8 +173,7 @@ def score_object(name: str, path: Path, work: Path) -> dict:
                              ("unencoded", _packs_of(raw[c], groups, cell, c)),
                              *[(f"q{q}", _packs_of(None, groups, cell, c, by_quality[q][0]))
                                for q in QUALITIES]]:
-            vertices, faces, rgb = _drawn(atlas, spec.resolution(level), tiles, packs,
-                                          spec.direction_band)
+            vertices, faces, rgb = _drawn(atlas, spec.resolution(level), tiles, packs)
             row[label] = colour_error(scan, vertices, faces, rgb)
         for q in QUALITIES:
             row[f"q{q}"]["bytes"] = by_quality[q][1][c]
@@ -183,8 +181,7 @@ def score_object(name: str, path: Path, work: Path) -> dict:
         if level == levels - 1:
             scan_rgb = scan_vertex_colours(scan)
             bundle_packs = _packs_of(None, groups, cell, c, files)
-            vertices, faces, rgb = _drawn(atlas, spec.resolution(level), tiles, bundle_packs,
-                                          spec.direction_band)
+            vertices, faces, rgb = _drawn(atlas, spec.resolution(level), tiles, bundle_packs)
             view = manifest["view"]
             for face in (False, True):
                 picture((np.asarray(scan.points, float), np.asarray(scan.faces), scan_rgb),

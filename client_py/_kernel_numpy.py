@@ -343,52 +343,6 @@ def _unit_rows(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def blended_directions(normal: np.ndarray, wu0, wu1, wv0, wv1, sides: Sequence[np.ndarray],
-                       corners: Sequence[np.ndarray]) -> np.ndarray:
-    """``client_py.atlas_mesh._blended_interior``'s directions, operation for operation:
-    ``normalise(n + E)`` where a weight is not 0, ``n`` where all four are. ``normal (..., 3)``
-    the unit normals; the weights ``w_u0 = phi_i``, ``w_u1 = phi_{r-1-i}``, ``w_v0 = phi_j``,
-    ``w_v1 = phi_{r-1-j}`` (``client_py.atlas_mesh.direction_weights``) broadcastable to
-    ``normal[..., 0]``; ``sides``: the border offsets ``delta`` at ``(i, 0)``, ``(r-1, j)``,
-    ``(i, r-1)``, ``(0, j)``; ``corners``: at ``(0, 0)``, ``(r-1, 0)``, ``(r-1, r-1)``,
-    ``(0, r-1)``, each broadcastable to ``normal``. The fitter's model
-    (``fitter.fitting.atlas.detail.node_frames``) calls it too."""
-    wu0, wu1, wv0, wv1 = (np.asarray(w, dtype=float)[..., None] for w in (wu0, wu1, wv0, wv1))
-    s0, s1, s2, s3 = sides
-    c00, c10, c11, c01 = corners
-    x = normal + ((wv0 * s0 + wu1 * s1 + wv1 * s2 + wu0 * s3)
-                  - ((wu0 * wv0) * c00 + (wu1 * wv0) * c10 + (wu1 * wv1) * c11
-                     + (wu0 * wv1) * c01))
-    length = np.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])
-    zero = length == 0.0
-    out = x / np.where(zero, 1.0, length)[..., None]
-    out[zero] = 0.0
-    inside = (wu0 != 0.0) | (wu1 != 0.0) | (wv0 != 0.0) | (wv1 != 0.0)
-    return np.where(inside, out, normal)
-
-
-def _border_offsets(means: np.ndarray, sides: np.ndarray, flags: np.ndarray, base: np.ndarray
-                    ) -> np.ndarray:
-    """``client_py.atlas_mesh._border_offsets`` of a group's patches, shape ``(F, 4, r, 3)``
-    (side ``k``, sample ``t``): ``means (n_border, 3)`` the welded vertices' directions,
-    ``sides (F, 4, r)`` their vertices, ``flags (F, 4, r)`` evaluated or not, ``base (F, r,
-    r, 3)`` the unit normals."""
-    count, r = base.shape[0], base.shape[1]
-    t, last = np.arange(r), r - 1
-    slots = np.stack([t * r, last * r + t, t * r + last, t])  # SIDES order
-    delta = means[sides] - base.reshape(count, r * r, 3)[:, slots]
-    if flags.all():
-        return delta
-    t0 = np.maximum.accumulate(np.where(flags, t, -1), axis=2)
-    t1 = np.minimum.accumulate(np.where(flags, t, r)[..., ::-1], axis=2)[..., ::-1]
-    between = ~flags
-    t0, t1, tb = t0[between], t1[between], np.broadcast_to(t, flags.shape)[between]
-    s = ((tb - t0) / (t1 - t0))[:, None]
-    f, k = np.nonzero(between)[:2]
-    delta[between] = (1 - s) * delta[f, k, t0] + s * delta[f, k, t1]
-    return delta
-
-
 def _difference_normals(X: np.ndarray, base: np.ndarray) -> np.ndarray:
     """:func:`displace_grid`'s normals of whole grids ``X (F, r, r, 3)`` with no
     displacement, ``base (F, r, r, 3)`` the normals kept at poles: the same arithmetic on
@@ -423,7 +377,6 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
     samples = []  # per group: the border samples' patch, node, flag, point, normal, shift, u, v
     ids_of = []  # per group: (F, r, r) global vertex of every sample
     bases = []  # per group: the unit normals of its grids, with the limit normal at poles
-    deferred = []  # per group with detail, with blended directions: what its interior needs
     for group in plan.groups:
         r, count_g = group.r, len(group.patches)
         points, base, poles = group.grid
@@ -446,15 +399,11 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
         for g, disp in enumerate(group.displacements):
             if disp is not None:
                 D[g] = np.frombuffer(disp, dtype=float).reshape(r, r)
-        # interior vertices: each patch's own block, displaced along its normal (blended:
-        # below, once the border vertices' directions are known)
+        # interior vertices: each patch's own block, displaced along its normal
         if inner:
             at = ids[:, 1:-1, 1:-1].reshape(-1)
             P, n = points[:, 1:-1, 1:-1], base[:, 1:-1, 1:-1]
-            if plan.band and shifted.any():
-                deferred.append((group, ids, sides, base, points, D, shifted))
-            else:
-                P = np.where(shifted[:, None, None, None], P + D[:, 1:-1, 1:-1, None] * n, P)
+            P = np.where(shifted[:, None, None, None], P + D[:, 1:-1, 1:-1, None] * n, P)
             positions[at] = P.reshape(-1, 3)
             if shade:
                 normals[at] = n.reshape(-1, 3)
@@ -492,30 +441,6 @@ def weld_atlas(plan) -> tuple[array, array, array, array, array]:
     place[moved] = place[moved] + (shifts[moved] / samplers[moved])[:, None] \
         * _unit_rows(direction[moved])
     positions[:n_border][sampled] = place[sampled]
-    if deferred:
-        from .atlas_mesh import direction_weights  # the one rule (imported: atlas_mesh runs us)
-
-        means = _unit_rows(direction)
-        for group, ids, sides, base, points, D, shifted in deferred:
-            r, count_g = group.r, len(group.patches)
-            W = np.asarray(direction_weights(r, plan.band))
-            i = np.arange(1, r - 1)
-            wu0, wu1 = W[i][:, None], W[r - 1 - i][:, None]
-            wv0, wv1 = W[i][None, :], W[r - 1 - i][None, :]
-            flags = np.frombuffer(group.evaluated, dtype=np.uint8).reshape(count_g, 4, r) != 0
-            for first_patch in range(0, count_g, PATCHES_PER_BLOCK):
-                block = slice(first_patch, first_patch + PATCHES_PER_BLOCK)
-                delta = _border_offsets(means, sides[block], flags[block], base[block])
-                d = blended_directions(
-                    base[block, 1:-1, 1:-1], wu0, wu1, wv0, wv1,
-                    (delta[:, 0, 1:-1, None], delta[:, 1, None, 1:-1], delta[:, 2, 1:-1, None],
-                     delta[:, 3, None, 1:-1]),
-                    (delta[:, 0, 0, None, None], delta[:, 0, -1, None, None],
-                     delta[:, 1, -1, None, None], delta[:, 2, 0, None, None]))
-                P = points[block, 1:-1, 1:-1]
-                P = np.where(shifted[block, None, None, None],
-                             P + D[block, 1:-1, 1:-1, None] * d, P)
-                positions[ids[block, 1:-1, 1:-1].reshape(-1)] = P.reshape(-1, 3)
     between, a, b, s = (np.asarray(x) for x in plan.between)
     if len(between):  # on the segment of their coarse side's evaluated neighbours
         s = s.astype(float)[:, None]

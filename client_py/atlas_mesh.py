@@ -33,45 +33,11 @@ central differences within the patch (one-sided on its border), as
 either is the normalised sum of the unit normals of the patches that sample it: the
 welded vertex has ONE normal, so shading is smooth across patch borders.
 
-Detail: ``X = C_f + D_f d_f`` with ``D_f`` the sum of patch ``f``'s tiles
-(``client_py.layers.displacement_grid`` over its own ``[0, 1]^2``) and ``d_f`` its
-displacement direction; a border vertex that several patches sample takes the mean of
-their displacements along the normalised mean ``m`` of their unit normals, so the mesh
-stays welded and watertight at every level.
-
-Directions. Inside a patch, ``d_f`` is its unit normal ``n_f`` (bundles before the band:
-``band = 0``), or, with a band ``w`` (the manifest's ``tiles.detail.direction_band``, a
-share of the patch side, at most :data:`MAX_DIRECTION_BAND`), ``n_f`` blended toward the
-borders' ``m`` near them: the base's patches join with C0 creases, where ``n_f`` jumps to
-the neighbour's across the border, so the old rule turns the direction by half the crease
-within one cell and a displacement of about a cell turns the drawn triangles over (the
-pleats of ``bench.pleats``). Displaced subdivision surfaces displace along the normal of a
-smooth base (Lee, Moreton, Hoppe, SIGGRAPH 2000) so that the displaced surface is as smooth
-as the displacement; here the direction field is made continuous instead, turning over the
-band: with the border offsets ``delta = m - n_f`` on the patch's border samples (between two
-evaluated samples of a coarser neighbour's side, their linear blend) and the weight
-``phi(t / w)`` of a sample ``t = k / (r - 1)`` from a side, ``phi(s) = 1 - s^2 (3 - 2 s)``
-for ``s < 1`` and 0 beyond (the cubic Hermite step: 1 with slope 0 at the border, 0 with
-slope 0 at the band's inner edge, so the direction joins ``n_f`` smoothly), ``d_f =
-normalise(n_f + E)`` with ``E`` the Boolean sum of the four sides' offsets (Gordon,
-*Blending-function methods of bivariate and multivariate interpolation*, SIAM J. Numer.
-Anal. 1971; Coons patches: the four sides' terms less the four corners' products)
-
-    ``E(i, j) = phi_j delta(i, 0) + phi_{r-1-i} delta(r-1, j) + phi_{r-1-j} delta(i, r-1)
-    + phi_i delta(0, j) - (phi_i phi_j delta_00 + phi_{r-1-i} phi_j delta_10
-    + phi_{r-1-i} phi_{r-1-j} delta_11 + phi_i phi_{r-1-j} delta_01)``,
-
-which is ``delta`` on the border (so ``d_f = m`` there, the neighbour's too) and 0 beyond
-the band (``d_f = n_f`` exactly: the sum is skipped there). With ``w <= 1/2`` the four
-sides' bands overlap only at the corners, the cell centres of 2-sample patches keep
-``n_f``, and the band reaches no sample of a patch beyond its own border's: a part's mesh
-(:func:`tessellate_atlas_parts`) is still decided by its ring. The border vertices keep
-their rule (an open border's last vertex before a shared corner still turns from ``n_f`` to
-the corner's mean within its cell). ``w`` is a share of the side, not cells, so a level's
-directions are the same function of ``(u, v)`` at every resolution; the fitter's model
-(``fitter.fitting.atlas.detail.node_frames``) takes the same weights
-(:func:`direction_weights`) and the numpy kernel's sum
-(``client_py._kernel_numpy.blended_directions``).
+Detail: ``X = C_f + D_f n_f`` with ``D_f`` the sum of patch ``f``'s tiles
+(``client_py.layers.displacement_grid`` over its own ``[0, 1]^2``) and ``n_f`` its unit
+normal; a border vertex that several patches sample takes the mean of their
+displacements along the normalised mean of their unit normals, so the mesh stays welded
+and watertight at every level.
 
 Drawn cells (docs/format.md, "Atlas detail packs", version 5): a patch's tiles may carry
 *walls masks*, the single patch's rule (``client_py.layers.drawn_cell_indices``): a cell
@@ -110,9 +76,6 @@ PROGRESS_BATCH = 32
 #: the share of :func:`tessellate_atlas`'s work reported for evaluating the patches' grids
 #: (the rest: displacing them and welding)
 PROGRESS_EVALUATION = 0.5
-#: the widest band of blended directions (module docstring, "Directions"), a share of the
-#: patch side: at most half, so a band reaches no farther than the patch's middle
-MAX_DIRECTION_BAND = 0.5
 
 
 @dataclass
@@ -437,100 +400,11 @@ def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
     return (x / length, y / length, z / length)
 
 
-def _check_band(band: object) -> float:
-    if isinstance(band, bool) or not isinstance(band, int | float) \
-            or not 0.0 <= band <= MAX_DIRECTION_BAND:
-        raise ValueError(f"band = {band!r}; a number in 0..{MAX_DIRECTION_BAND} (of a patch "
-                         "side, the blended directions' band) is needed")
-    return float(band)
-
-
-@lru_cache(maxsize=64)
-def direction_weights(r: int, band: float) -> tuple[float, ...]:
-    """The border's weight ``phi(t_k / band)`` at each sample ``t_k = k / (r - 1)`` of an
-    ``r``-sample side (``client_py.tessellate._samples``) for the blended directions (module
-    docstring, "Directions"): ``phi(s) = 1 - s^2 (3 - 2 s)`` for ``s < 1``, else 0 (and 0
-    everywhere for ``band = 0``). The fitter's model takes the same numbers from here."""
-    out = []
-    for t in _samples(0.0, 1.0, r):
-        s = t / band if band > 0.0 else 1.0
-        out.append(1.0 - s * s * (3.0 - 2.0 * s) if s < 1.0 else 0.0)
-    return tuple(out)
-
-
-def _border_offsets(r: int, sides: Sequence[tuple[list[int], list[bool]]], nrm: Sequence[float],
-                    means: Sequence[float]) -> list[float]:
-    """``delta = m - n_f`` on the border samples of a patch's ``r x r`` grid (``3 r^2``
-    floats, row-major, zero inside): ``m`` the welded vertex's direction (``means``, the
-    normalised sum of its samplers' unit normals, 3 per border vertex) at an evaluated
-    sample, ``n_f`` the patch's own unit normal (``nrm``); a sample between two evaluated
-    ones (a coarser neighbour's side) takes ``(1 - s) delta_0 + s delta_1`` of the evaluated
-    samples ``t_0 < t < t_1`` before and after it on the side, ``s = (t - t_0) / (t_1 -
-    t_0)``. ``sides``: ``_Layout.side_nodes`` of the patch's four sides."""
-    delta = [0.0] * (3 * r * r)
-    for slots, (nodes, evaluated) in zip(_side_slots(r), sides, strict=True):
-        for slot, node, flag in zip(slots, nodes, evaluated, strict=True):
-            if flag:
-                k, g = 3 * slot, 3 * node
-                delta[k] = means[g] - nrm[k]
-                delta[k + 1] = means[g + 1] - nrm[k + 1]
-                delta[k + 2] = means[g + 2] - nrm[k + 2]
-        if all(evaluated):
-            continue
-        t0 = 0
-        for t in range(1, r):
-            if evaluated[t]:
-                a, b = 3 * slots[t0], 3 * slots[t]
-                for m in range(t0 + 1, t):
-                    s = (m - t0) / (t - t0)
-                    k = 3 * slots[m]
-                    for c in range(3):
-                        delta[k + c] = (1 - s) * delta[a + c] + s * delta[b + c]
-                t0 = t
-    return delta
-
-
-def _blended_interior(r: int, band: float, nrm: Sequence[float], delta: Sequence[float]
-                      ) -> list[float]:
-    """The displacement directions of a patch's ``(r - 2)^2`` interior samples, row-major
-    (module docstring, "Directions"): ``normalise(n + E)`` within the band, ``E`` the
-    Boolean sum of the border offsets ``delta`` (:func:`_border_offsets`) blended by
-    :func:`direction_weights`; ``n`` itself (the unit normal ``nrm``) beyond it.
-
-    ``E = w_v0 delta(i, 0) + w_u1 delta(r-1, j) + w_v1 delta(i, r-1) + w_u0 delta(0, j)
-    - (w_u0 w_v0 delta_00 + w_u1 w_v0 delta_10 + w_u1 w_v1 delta_11 + w_u0 w_v1 delta_01)``
-    with ``w_u0 = phi_i``, ``w_u1 = phi_{r-1-i}``, ``w_v0 = phi_j``, ``w_v1 = phi_{r-1-j}``,
-    summed in that order (``client_py._kernel_numpy.blended_directions``, the same
-    arithmetic)."""
-    W = direction_weights(r, band)
-    last = r - 1
-    c00, c10, c11, c01 = (delta[3 * k : 3 * k + 3]
-                          for k in (0, last * r, last * r + last, last))
-    out: list[float] = []
-    for i in range(1, last):
-        wu0, wu1 = W[i], W[last - i]
-        row = 3 * i * r
-        for j in range(1, last):
-            wv0, wv1 = W[j], W[last - j]
-            k = row + 3 * j
-            if not (wu0 or wu1 or wv0 or wv1):
-                out += nrm[k : k + 3]
-                continue
-            a, b, c, d = wu0 * wv0, wu1 * wv0, wu1 * wv1, wu0 * wv1
-            s0, s1, s2, s3 = row, 3 * (last * r + j), row + 3 * last, 3 * j
-            x, y, z = (nrm[k + m] + ((wv0 * delta[s0 + m] + wu1 * delta[s1 + m]
-                                      + wv1 * delta[s2 + m] + wu0 * delta[s3 + m])
-                                     - (a * c00[m] + b * c10[m] + c * c11[m] + d * c01[m]))
-                       for m in range(3))
-            out += _unit(x, y, z)
-    return out
-
-
 def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
                      detail: Mapping[int, Sequence[DetailTile]] | None = None,
                      kernel: str | None = None,
                      progress: Callable[[float], object] | None = None,
-                     normals: bool = True, band: float = 0.0) -> AtlasMesh:
+                     normals: bool = True) -> AtlasMesh:
     """One welded, watertight mesh of ``atlas`` (module docstring for the rules).
 
     Parameters
@@ -553,11 +427,6 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         differences and the border vertices' normalised sums are then skipped; the unit
         base normals the detail displaces along are still computed, so the positions,
         ``(u, v)``, triangles and patches are those of ``normals=True``, bit for bit.
-    band : float, optional
-        The band of blended displacement directions, a share ``0..0.5`` of the patch side
-        (module docstring, "Directions"; the manifest's ``tiles.detail.direction_band``,
-        ``client_py.bundle.direction_band``); 0, the default, displaces a patch's interior
-        along its own normal (bundles before the band).
 
     Returns
     -------
@@ -571,8 +440,7 @@ def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
     res = _check_resolutions(atlas, resolution)
     tiles = _check_detail(atlas, detail)
-    return _welded_mesh(atlas, res, tiles, kernel, progress=progress, normals=normals,
-                        band=_check_band(band))[0]
+    return _welded_mesh(atlas, res, tiles, kernel, progress=progress, normals=normals)[0]
 
 
 class PatchGrids:
@@ -612,16 +480,15 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                  names: Sequence[int] | None = None,
                  cache: PatchGrids | None = None,
                  progress: Callable[[float], object] | None = None,
-                 weld: str | None = None, normals: bool = True,
-                 band: float = 0.0) -> list[AtlasMesh]:
+                 weld: str | None = None, normals: bool = True) -> list[AtlasMesh]:
     """:func:`tessellate_atlas` of checked arguments (one mesh); ``tol``: the
     degenerate-normal tolerance (default :func:`_normal_tolerance` of ``atlas``); ``drawn``:
     instead, one mesh per sequence of patches (in increasing order): their triangles, with
     only the vertices these use, in increasing order of their number in the whole mesh
     (:func:`tessellate_atlas_parts`);
     ``cache``: patch grids kept between calls, under the patches' ``names`` (default their
-    indices); ``progress``, ``normals``, ``band``: :func:`tessellate_atlas`'s
-    (``normals=False`` with ``drawn``: empty normals for every part).
+    indices); ``progress``, ``normals``: :func:`tessellate_atlas`'s (``normals=False``
+    with ``drawn``: empty normals for every part).
 
     The whole mesh (no ``drawn``, no ``cache``) with the numpy kernel is welded by the
     kernel (``_kernel_numpy.weld_atlas`` of :func:`_weld_plan`: the same bytes at array
@@ -643,7 +510,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         raise ValueError(f"weld must be None or 'python', got {weld!r}")
     if backend is not _kernel_python and weld is None and drawn is None and cache is None:
         plan = _weld_plan(atlas, layout, comps, tiles, kernel, backend, tol, surface, progress,
-                          normals, band)
+                          normals)
         positions, shading, uvs, indices, owners = backend.weld_atlas(plan)
         return [AtlasMesh(positions, shading, uvs, indices, patches=owners)]
     shade = normals
@@ -687,7 +554,6 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     shading = [0.0] * (3 * n_border)  # sum of the unit normals of the drawn surface
 
     ids, borders = {}, {}
-    blended = {}  # patch -> its grid and displacements, displaced once the borders' are known
     mine = range(len(res)) if drawn is None else set(chain.from_iterable(drawn))
     for f in range(len(res)):
         ids[f], borders[f] = layout.patch_vertices(f)
@@ -711,9 +577,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         if block and (f in mine or tiles):  # else never read
             take3, take1, block_uvs = _interior(r)
             inner_pos, inner_nrm = take3(pos), take3(nrm)
-            if disp is not None and band:
-                blended[f] = (pos, nrm, disp)
-            elif disp is not None:
+            if disp is not None:
                 d3 = [x for x in take1(disp) for _ in range(3)]
                 inner_pos = [p + d * n for p, d, n in zip(inner_pos, d3, inner_nrm, strict=True)]
             positions[3 * at : 3 * at + block] = array("d", inner_pos)
@@ -739,21 +603,6 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 direction[3 * node + 1] += ny
                 direction[3 * node + 2] += nz
 
-    if blended:  # interior vertices along the blended directions (module docstring)
-        means = [0.0] * (3 * n_border)
-        for node in range(n_border):
-            if samplers[node]:
-                means[3 * node : 3 * node + 3] = _unit(*direction[3 * node : 3 * node + 3])
-        for f, (pos, nrm, disp) in blended.items():
-            r = res[f]
-            take3, take1, _ = _interior(r)
-            delta = _border_offsets(r, [layout.side_nodes(f, k) for k in range(4)], nrm, means)
-            d3 = [x for x in take1(disp) for _ in range(3)]
-            at = layout.face_base[f]
-            positions[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", [
-                p + d * n for p, d, n in zip(take3(pos), d3, _blended_interior(r, band, nrm,
-                                                                               delta),
-                                             strict=True)])
     # welded border positions: evaluated vertices, then the in-between ones on their segment
     for node in range(n_border):
         point = base_at[node]
@@ -892,8 +741,7 @@ class _WeldPlan:
     finer neighbours or walls masks (``{f: triangles}``, :func:`_patch_triangles`,
     :func:`_drawn_cells`), the centre vertices
     these add (``positions, normals, uvs, owners``, :class:`_Centres`), and whether shading
-    normals are wanted at all (``shading``: :func:`tessellate_atlas`'s ``normals``), and the
-    band of blended directions (``band``, :func:`tessellate_atlas`'s)."""
+    normals are wanted at all (``shading``: :func:`tessellate_atlas`'s ``normals``)."""
 
     count: int
     n_border: int
@@ -903,17 +751,16 @@ class _WeldPlan:
     fans: dict[int, array]
     extra: tuple[list, list, list, list]
     shading: bool = True
-    band: float = 0.0
 
 
 def _weld_plan(atlas: AtlasSurface, layout: _Layout, comps: list[list[float]],
                tiles: dict[int, list[DetailTile]], kernel: str | None, backend, tol: float,
                surface: Callable, progress: Callable[[float], object] | None,
-               shading: bool = True, band: float = 0.0) -> _WeldPlan:
+               shading: bool = True) -> _WeldPlan:
     """The :class:`_WeldPlan` of the whole atlas: every patch evaluated by the kernel
     (``atlas_patch_arrays``, by resolution, in :data:`PROGRESS_BATCH` patches when
     ``progress`` is given), its tiles summed on its grid, its sides' vertices numbered; the
-    progress reports are :func:`_welded_mesh`'s; ``shading``, ``band``: :class:`_WeldPlan`'s."""
+    progress reports are :func:`_welded_mesh`'s; ``shading``: :attr:`_WeldPlan.shading`."""
     res = layout.res
     by_res: dict[int, list[int]] = {}
     for f, r in enumerate(res):
@@ -968,7 +815,7 @@ def _weld_plan(atlas: AtlasSurface, layout: _Layout, comps: list[list[float]],
     return _WeldPlan(layout.count, layout.border_count, groups, layout.in_between(),
                      bool(tiles), fans,
                      (centres.positions, centres.normals, centres.uvs, centres.owners),
-                     shading, band)
+                     shading)
 
 
 def _packed(positions: array, normals: array, uvs: array, owners: array,
@@ -1176,8 +1023,8 @@ def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
 
 def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],
                            detail: Mapping[int, Sequence[DetailTile]] | None = None,
-                           kernel: str | None = None, cache: PatchGrids | None = None,
-                           band: float = 0.0) -> list[AtlasMesh]:
+                           kernel: str | None = None, cache: PatchGrids | None = None
+                           ) -> list[AtlasMesh]:
     """Per group of ``part``, its patches' triangles in :func:`tessellate_atlas` ``(atlas,
     resolution, detail)`` of the full atlas, with the vertices they use (renumbered in
     order): the same positions, normals, ``(u, v)`` and patches, bit for bit.
@@ -1210,8 +1057,6 @@ def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],
     cache : PatchGrids, optional
         Patch grids kept between the parts of one atlas (made with one kernel): a patch is
         evaluated, and its tiles summed, once per resolution and tiles.
-    band : float, optional
-        :func:`tessellate_atlas`'s.
 
     Returns
     -------
@@ -1250,7 +1095,7 @@ def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],
         raise ValueError("detail on 2-sample patches needs a part of two rings "
                          "(atlas_parts(..., rings=2))")
     meshes = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn,
-                          part.patches, cache, band=_check_band(band))
+                          part.patches, cache)
     for mesh in meshes:
         mesh.patches = array("I", [part.patches[k] for k in mesh.patches])
     return meshes

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from .atlas import MAX_ATLAS_QUADS, AtlasSurface
 from .atlas_detail import pack_is_welded, pack_name, read_pack
 from .atlas_format import read_atlas
-from .atlas_mesh import MAX_DIRECTION_BAND, tessellate_atlas
+from .atlas_mesh import tessellate_atlas
 from .atlas_texture import (
     MAX_CELL,
     MAX_PACK_SIDE,
@@ -462,8 +462,6 @@ class AtlasTiles:
         Contiguous, in patch order, covering ``0..F - 1`` exactly.
     packs : dict
         ``(level, group) -> {"bytes": n, "geometric_error": e}`` of every pack.
-    direction_band : float
-        ``tiles.detail.direction_band`` (:func:`direction_band`).
     """
 
     patches: int
@@ -472,7 +470,6 @@ class AtlasTiles:
     levels: tuple[dict, ...]
     groups: tuple[AtlasGroup, ...]
     packs: dict[tuple[int, int], dict]
-    direction_band: float = 0.0
 
     def resolution(self, level: int) -> int:
         """Samples per patch side at ``level``: ``base.resolution`` at ``-1``, else
@@ -480,20 +477,6 @@ class AtlasTiles:
         if level < 0:
             return self.base_resolution
         return atlas_level_resolution(self.spans_per_tile, level)
-
-
-def direction_band(detail: dict | None) -> float:
-    """The band of blended displacement directions of an atlas's ``tiles.detail`` entry
-    (``direction_band``, a share ``0..0.5`` of the patch side: ``client_py.atlas_mesh``,
-    "Directions"); 0 when absent (bundles before it: a patch's interior is displaced along
-    its own normal) or without detail. ``ManifestError`` for another value."""
-    if not detail:
-        return 0.0
-    band = detail.get("direction_band", 0.0)
-    if not (_finite(band) and 0.0 <= band <= MAX_DIRECTION_BAND):
-        raise ManifestError("tiles.detail.direction_band", f"must be a number in "
-                            f"0..{MAX_DIRECTION_BAND} (of a patch side), got {_shown(band)}")
-    return float(band)
 
 
 def atlas_level_resolution(spans_per_tile: int, level: int) -> int:
@@ -617,8 +600,7 @@ def atlas_tiles(manifest: dict) -> AtlasTiles:
             raise ManifestError(f"{where}.geometric_error", "must be a finite number >= 0 or "
                                 f"null, got {_shown(error)}")
         packs[level, group] = {"bytes": size, "geometric_error": error}
-    return AtlasTiles(patches, base_res, spans, levels, tuple(groups), packs,
-                      direction_band(detail))
+    return AtlasTiles(patches, base_res, spans, levels, tuple(groups), packs)
 
 
 @dataclass(frozen=True)
@@ -991,11 +973,11 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
     if resolution is None:
         resolution = plan_level(manifest, level).resolution
     if manifest_version(manifest) == 2:
-        spec = atlas_tiles(manifest)  # the manifest is checked before any file is read
+        atlas_tiles(manifest)  # the manifest is checked before any file is read
         atlas, _ = read_atlas(read(base_file(manifest)))
         check_atlas_base(atlas, manifest)
         detail = atlas_level_detail(manifest, read, level, atlas)
-        mesh = tessellate_atlas(atlas, resolution, detail, kernel, band=spec.direction_band)
+        mesh = tessellate_atlas(atlas, resolution, detail, kernel)
         if textures:
             if atlas_colour(manifest) is None:
                 raise ValueError("this atlas bundle has no colour (tiles.texture is null); "
@@ -1029,8 +1011,7 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
                     textures: Iterable[TextureImage] = (), binary: bool = True,
                     texture_file: str | None = None, kernel: str | None = None,
                     units: str | None = None,
-                    progress: Callable[[float], object] | None = None,
-                    band: float = 0.0) -> tuple[bytes, Mesh]:
+                    progress: Callable[[float], object] | None = None) -> tuple[bytes, Mesh]:
     """The PLY of the bundle at detail level ``level``: ``X = S + sum_{k <= L} D_k n``
     over the whole domain on a ``resolution x resolution`` grid, in the scan frame.
 
@@ -1065,9 +1046,6 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
     progress : callable, optional
         An atlas's: called with the share of the tessellation done
         (:func:`client_py.atlas_mesh.tessellate_atlas`).
-    band : float, optional
-        An atlas's band of blended directions (:func:`direction_band` of the manifest's
-        ``tiles.detail``).
 
     Returns
     -------
@@ -1087,7 +1065,7 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
         raise ValueError(f"level must be an integer >= -1, got {level!r}")
     if isinstance(surface, AtlasSurface):
         return _write_atlas_ply(surface, tiles, level, resolution, source, binary, kernel,
-                                units, list(textures), progress, band)
+                                units, list(textures), progress)
     tiles = list(tiles)
     textures = list(textures)
     for tile in tiles:
@@ -1113,8 +1091,7 @@ def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTi
                      level: int, resolution: int | Sequence[int], source: str, binary: bool,
                      kernel: str | None, units: str | None,
                      packs: Sequence[ColourPack] = (),
-                     progress: Callable[[float], object] | None = None,
-                     band: float = 0.0) -> tuple[bytes, Mesh]:
+                     progress: Callable[[float], object] | None = None) -> tuple[bytes, Mesh]:
     """:func:`write_level_ply` of an atlas: one welded mesh, ``detail`` = ``{patch: tiles}``,
     coloured per vertex from ``packs`` (the decoded colour packs of the level's plan, which
     hold every patch's cell once) when given."""
@@ -1128,7 +1105,7 @@ def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTi
             if tile.level > level:
                 raise ValueError(f"patch {patch}: detail tile {tile.level}/{tile.i}_{tile.j} "
                                  f"is of level {tile.level}, finer than level {level}")
-    mesh = tessellate_atlas(atlas, resolution, detail, kernel, progress, band=band)
+    mesh = tessellate_atlas(atlas, resolution, detail, kernel, progress)
     grid = (f"{resolution}x{resolution} grid per patch" if isinstance(resolution, int)
             else f"{min(resolution)}..{max(resolution)} samples per patch side")
     comments = [f"source {source}", f"units {units or 'unknown'}",

@@ -521,8 +521,7 @@ class WorkerSession:
         """
         atlas, spec = self._atlas_loaded()
         resolution, detail = self._atlas_levels(spec, levels, range(len(spec.groups)))
-        mesh = tessellate_atlas(atlas, resolution, detail, self._kernel,
-                                band=spec.direction_band)
+        mesh = tessellate_atlas(atlas, resolution, detail, self._kernel)
         self._colour_groups(mesh, spec, range(len(spec.groups)), levels)
         self._last = (-2, mesh)  # not a base grid: base_ply never reuses it
         return mesh
@@ -595,7 +594,7 @@ class WorkerSession:
                 for g in groups]
         part = atlas_parts(atlas, runs, _ring_depth(spec))
         meshes = tessellate_atlas_parts(part, resolution, detail, self._kernel,
-                                        self._patch_grids, band=spec.direction_band)
+                                        self._patch_grids)
         for g, mesh in zip(groups, meshes, strict=True):
             self._colour_groups(mesh, spec, around[g], [levels[h] for h in around[g]])
         return meshes
@@ -630,8 +629,7 @@ class WorkerSession:
         data, mesh = write_level_ply(atlas, detail, plan.level, plan.resolution, self._source,
                                      packs, kernel=self._kernel,
                                      units=self._manifest_read().get("units")
-                                     or self._atlas_units, progress=progress,
-                                     band=spec.direction_band)
+                                     or self._atlas_units, progress=progress)
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
 
 

@@ -25,7 +25,6 @@ from client_py import (
 from client_py.bundle import (
     BASE_RESOLUTION,
     PLY_MAX_RESOLUTION,
-    atlas_tiles,
     base_file,
     plan_level,
     write_level_ply,
@@ -195,8 +194,7 @@ def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: d
         resolution = plan.resolution if args.resolution is None else args.resolution
         data, mesh = write_level_ply(atlas, detail, plan.level, resolution, bundle.name,
                                      packs, binary=not args.ascii, units=manifest.get("units")
-                                     or metadata.get("units"),
-                                     band=atlas_tiles(manifest).direction_band)
+                                     or metadata.get("units"))
     except PatchFormatError as exc:  # a bad file or manifest (ManifestError)
         raise UserError(f"{bundle}: {exc}") from None
     except (OSError, ValueError) as exc:  # a missing file; a --level the bundle lacks

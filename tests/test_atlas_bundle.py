@@ -150,9 +150,6 @@ MALFORMED = [
     (lambda m: _detail(m)["levels"][0].update(max=[]), r"levels\[0\]\.max must be a finite"),
     (lambda m: _detail(m).update(spans_per_tile=0), "spans_per_tile must be a positive integer"),
     (lambda m: _detail(m).update(levels=[{"level": k} for k in range(9)]), "at most 8 levels"),
-    (lambda m: _detail(m).update(direction_band=0.7),
-     r"tiles\.detail\.direction_band must be a number in 0\.\.0\.5"),
-    (lambda m: _detail(m).update(direction_band="0.2"), r"tiles\.detail\.direction_band"),
 ]
 
 
@@ -216,26 +213,6 @@ def test_tessellate_bundle_is_one_welded_closed_mesh_at_every_level(bundle, kern
     delta = np.abs(np.frombuffer(fine.positions, np.float32) - np.frombuffer(bare.positions,
                                                                               np.float32))
     assert 1e-4 < delta.max() < 0.2
-
-
-@pytest.mark.parametrize("kernel", ["python", "numpy"])
-def test_the_manifest_direction_band_is_the_one_drawn(bundle, kernel):
-    """``tiles.detail.direction_band`` is what the bundle is drawn with: absent (a bundle
-    before it), the interior along each patch's normal, as ``tessellate_atlas`` without a
-    band; 0.25, as ``tessellate_atlas(..., band=0.25)``, a different mesh."""
-    manifest = _manifest(bundle)
-    assert "direction_band" not in manifest["tiles"]["detail"]
-    atlas, _ = read_atlas((bundle / "base.tsa").read_bytes())
-    r = plan_level(manifest, 1).resolution
-    detail = atlas_level_detail(manifest, _reader(bundle), 1)
-    old = tessellate_bundle(manifest, _reader(bundle), 1, kernel=kernel)
-    assert old.positions.tobytes() == tessellate_atlas(atlas, r, detail,
-                                                       kernel=kernel).positions.tobytes()
-    _detail(manifest)["direction_band"] = 0.25
-    new = tessellate_bundle(manifest, _reader(bundle), 1, kernel=kernel)
-    assert new.positions.tobytes() == tessellate_atlas(atlas, r, detail, kernel=kernel,
-                                                       band=0.25).positions.tobytes()
-    assert new.positions.tobytes() != old.positions.tobytes()
 
 
 def test_the_level_detail_is_every_tile_of_the_packs(bundle):

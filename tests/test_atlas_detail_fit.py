@@ -56,8 +56,7 @@ def fitted():
 
 
 def _radial_error(atlas, tiles, resolution):
-    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy",
-                            band=atlas_detail.DIRECTION_BAND)
+    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy")
     x = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float)
     r = np.linalg.norm(x, axis=1)
     return np.sqrt(np.mean((r - 1.0 - bump(x / r[:, None])) ** 2)), mesh
@@ -206,9 +205,7 @@ def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
     predicted = model.target - sum(model.drawn(c, k, det.tree["spans_per_tile"])
                                    for k, c in enumerate(fields))
     base = tessellate_atlas(atlas, r, None, kernel="numpy")
-    band = det.tree["direction_band"]  # the blended directions: those the model takes
-    assert band == atlas_detail.DIRECTION_BAND > 0
-    drawn = tessellate_atlas(atlas, r, det.detail_up_to(level), kernel="numpy", band=band)
+    drawn = tessellate_atlas(atlas, r, det.detail_up_to(level), kernel="numpy")
     plain = np.frombuffer(base.positions, np.float32).reshape(-1, 3).astype(float)
     shown = np.frombuffer(drawn.positions, np.float32).reshape(-1, 3).astype(float)
     table, cps = index_table(atlas), control_points(atlas)
@@ -230,15 +227,13 @@ def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
     np.testing.assert_allclose(predicted, want, atol=2e-6)
 
 
-def test_drawn_model_evaluates_each_node_once_to_the_same_numbers(fitted, monkeypatch):
+def test_drawn_model_evaluates_each_node_once_to_the_same_numbers(fitted):
     """DrawnModel evaluates every drawn node once and gathers it per sample: its target,
     weights and ``drawn`` are those of the per-sample reference (each sample's three nodes
     evaluated on their own, the model as it was written first), to rounding (the same
     numbers on the 15-scan Happy Buddha); and the feet given or computed make the same
-    model, bit for bit. (The old directions, ``band = 0``: the blended ones are the client's
-    in :func:`test_drawn_model_is_the_offset_from_the_clients_drawn_triangle`.)"""
+    model, bit for bit."""
     fit, scan, det = fitted
-    monkeypatch.setattr(atlas_detail, "DIRECTION_BAND", 0.0)
     atlas = det.atlas
     samples = _bump_samples(fit, atlas, 11, 2500)
     spans = det.tree["spans_per_tile"]
@@ -447,8 +442,7 @@ def _farthest(atlas, tiles, resolution: int, diagonal: float) -> float:
     from the exact pitted sphere."""
     from fitter.fitting.atlas.surface import area_samples
 
-    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy",
-                            band=atlas_detail.DIRECTION_BAND)
+    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy")
     x = np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float)
     tri = np.frombuffer(mesh.indices, np.uint32).reshape(-1, 3).astype(np.int64)
     p, _ = area_samples(x, tri, 20_000, np.random.default_rng(0))
@@ -723,8 +717,7 @@ def _ball_in_a_cube_fit(radius: float):
 
 
 def _drawn(atlas, resolution, tiles):
-    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy",
-                            band=atlas_detail.DIRECTION_BAND)
+    mesh = tessellate_atlas(atlas, resolution, tiles, kernel="numpy")
     return (np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float),
             np.frombuffer(mesh.indices, np.uint32).reshape(-1, 3).astype(np.int64))
 
@@ -743,7 +736,6 @@ def test_fold_rows_keep_the_drawn_level_from_turning_over_at_creases(radius, mon
 
     fit, scan = _ball_in_a_cube_fit(radius)
     monkeypatch.setattr(atlas_detail, "FOLD_WEIGHT", 10.0)
-    monkeypatch.setattr(atlas_detail, "DIRECTION_BAND", 0.0)  # the rows alone (below: both)
     found = {}
     for passes in (0, atlas_detail.FOLD_PASSES):
         monkeypatch.setattr(atlas_detail, "FOLD_PASSES", passes)
@@ -757,33 +749,6 @@ def test_fold_rows_keep_the_drawn_level_from_turning_over_at_creases(radius, mon
     assert found[0][0] > 0.004, found  # the corners turn over without the rows
     assert found[atlas_detail.FOLD_PASSES][0] == 0.0, found
     assert found[atlas_detail.FOLD_PASSES][1] < 1.3 * found[0][1], found
-
-
-@pytest.mark.parametrize("radius", [1.0, 1.3])
-def test_blended_directions_keep_the_drawn_level_from_turning_over_at_creases(radius,
-                                                                              monkeypatch):
-    """A ball in a cube, without fold rows: level 0 drawn with the directions blended over
-    a quarter of the side (``DIRECTION_BAND``, the fitter's model and the client alike)
-    turns over less than a tenth of the area the old directions (``band = 0``) turn, at a
-    radial RMS at least a quarter lower (measured: 0.037 -> 0.003 at 0.082 -> 0.050 for
-    radius 1.0; 0.0054 -> 0 at 0.031 -> 0.021 for 1.3)."""
-    from bench.pleats import turned_share
-
-    fit, scan = _ball_in_a_cube_fit(radius)
-    monkeypatch.setattr(atlas_detail, "FOLD_PASSES", 0)
-    found = {}
-    for band in (0.0, 0.25):
-        monkeypatch.setattr(atlas_detail, "DIRECTION_BAND", band)
-        det = atlas_detail.fit_atlas_detail(fit, scan, levels=1, spans=4)
-        assert det.tree.get("direction_band", 0.0) == band
-        r = det.levels[0]["resolution"]
-        level = _drawn(det.atlas, r, det.detail_up_to(0))
-        error = np.linalg.norm(level[0], axis=1) - radius
-        found[band] = (turned_share(_drawn(det.atlas, r, None), level),
-                       float(np.sqrt(np.mean(error ** 2))))
-    assert found[0.0][0] > 0.004, found
-    assert found[0.25][0] < 0.1 * found[0.0][0], found
-    assert found[0.25][1] < 0.75 * found[0.0][1], found
 
 
 def test_groups_leave_room_for_walls_masks():

@@ -21,7 +21,6 @@ from client_py.atlas import AtlasSurface, atlas_edges
 from client_py.atlas_mesh import (
     AtlasMesh,
     PatchGrids,
-    _Layout,
     atlas_parts,
     atlas_ply,
     tessellate_atlas,
@@ -347,19 +346,18 @@ def _weld_cases():
             (pole, 5, None), (pole, [5, 9, 5, 3, 5, 5], random_detail(pole))]
 
 
-@pytest.mark.parametrize("band", [0.0, 0.25, 0.5])
 @pytest.mark.parametrize("case", range(12))
-def test_the_numpy_weld_gives_the_bytes_of_the_pure_python_weld(case, band):
+def test_the_numpy_weld_gives_the_bytes_of_the_pure_python_weld(case):
     """The whole mesh welded by the numpy kernel (``_kernel_numpy.weld_atlas``) and by the
     pure-Python weld from the same evaluated grids: the same positions, normals, ``(u, v)``,
-    triangles and patches, byte for byte, with the old directions and blended ones."""
+    triangles and patches, byte for byte."""
     pytest.importorskip("numpy")
     from client_py.atlas_mesh import _check_detail, _check_resolutions, _welded_mesh
 
     atlas, resolution, detail = _weld_cases()[case]
     res, tiles = _check_resolutions(atlas, resolution), _check_detail(atlas, detail)
-    (fast,) = _welded_mesh(atlas, res, tiles, "numpy", band=band)
-    (slow,) = _welded_mesh(atlas, res, tiles, "numpy", weld="python", band=band)
+    (fast,) = _welded_mesh(atlas, res, tiles, "numpy")
+    (slow,) = _welded_mesh(atlas, res, tiles, "numpy", weld="python")
     assert fast.triangle_count > 0
     for name in ("positions", "normals", "uvs", "indices", "patches"):
         a, b = getattr(fast, name), getattr(slow, name)
@@ -519,18 +517,16 @@ def _drawn(mesh, name, width):
 
 
 @pytest.mark.parametrize("kernel", ["python", "numpy"])
-@pytest.mark.parametrize(("rational", "resolutions", "rings", "band"),
-                         [(False, (5, 9, 17), 1, 0.0), (True, (5, 9, 17), 1, 0.0),
-                          (False, (2, 3, 5), 2, 0.0), (True, (5, 9, 17), 1, 0.25),
-                          (False, (3, 5, 9), 1, 0.5)])
+@pytest.mark.parametrize(("rational", "resolutions", "rings"),
+                         [(False, (5, 9, 17), 1), (True, (5, 9, 17), 1),
+                          (False, (2, 3, 5), 2)])
 def test_the_parts_of_a_partition_are_the_welded_mesh_bit_for_bit(kernel, rational,
-                                                                 resolutions, rings, band):
+                                                                 resolutions, rings):
     """Every group's mesh (:func:`tessellate_atlas_parts`, made alone or all together) at a
     random level vector, with detail, concatenated in group order, is
     :func:`tessellate_atlas` of the same arguments: the same triangles with the same float32
     positions, normals, ``(u, v)`` and patches, bit for bit (so two groups' shared seam
-    vertices are equal, and the GPU draws no crack), with blended directions too (their
-    band reaches a patch's own borders only: the ring decides them)."""
+    vertices are equal, and the GPU draws no crack)."""
     atlas = sphere_atlas(2, noise=0.02, seed=4, rational=rational)
     kept = PatchGrids()  # grids kept between the parts of both level vectors
     for seed in range(2):
@@ -543,14 +539,14 @@ def test_the_parts_of_a_partition_are_the_welded_mesh_bit_for_bit(kernel, ration
             if level >= 0:
                 detail.update({f: random_tiles(f, levels=level + 1, amplitude=0.2)
                                for f in group})
-        whole = tessellate_atlas(atlas, resolution, detail, kernel=kernel, band=band)
+        whole = tessellate_atlas(atlas, resolution, detail, kernel=kernel)
         apart = [tessellate_atlas_parts(atlas_parts(atlas, [group], rings), resolution,
                                         detail, kernel=kernel,
-                                        cache=kept if g % 2 else None, band=band)[0]
+                                        cache=kept if g % 2 else None)[0]
                  for g, group in enumerate(groups)]
         order = [*range(1, len(groups), 2), *range(0, len(groups), 2)]  # any order
         made = tessellate_atlas_parts(atlas_parts(atlas, [groups[g] for g in order], rings),
-                                      resolution, detail, kernel=kernel, band=band)
+                                      resolution, detail, kernel=kernel)
         together = [made[order.index(g)] for g in range(len(groups))]
         for meshes in (apart, together):
             for name, width in (("positions", 3), ("normals", 3), ("uvs", 2), ("patches", 1)):
@@ -637,110 +633,3 @@ def test_a_part_whose_every_cell_is_left_out_is_an_empty_mesh(kernel):
     alone = tessellate_atlas_parts(atlas_parts(atlas, [rest]), resolution, detail,
                                    kernel=kernel)[0]
     assert other.triangle_count == alone.triangle_count > 0
-
-
-# ------------------------------------------------------------------ blended directions
-def folded_sheet_atlas(angle: float = 60.0) -> AtlasSurface:
-    """Two flat patches meeting along ``x = 0`` at a crease of ``angle`` degrees (a valley:
-    their unit normals, ``(0, 0, 1)`` and ``(-sin a, 0, cos a)``, converge above it): the
-    C0 join of a base's patches at its sharpest."""
-    a = math.radians(angle)
-    vertices = [(-1.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), (-1.0, 1.0, 0.0),
-                (math.cos(a), 0.0, math.sin(a)), (math.cos(a), 1.0, math.sin(a))]
-    quads = [(0, 1, 2, 3), (1, 4, 5, 2)]
-    n, inner = 5, 3
-    edge_points = [(0.0, 0.0, 0.0)] * (len(atlas_edges(quads).edges) * inner)
-    face_points = [(0.0, 0.0, 0.0)] * (len(quads) * inner * inner)
-    shell = AtlasSurface(3, 2, vertices, quads, edge_points, face_points)
-    for f, quad in enumerate(quads):  # each patch's control net: its bilinear (flat) quad
-        c00, c10, c11, c01 = (vertices[k] for k in quad)
-        for i, row in enumerate(shell.patch_indices(f)):
-            for j, k in enumerate(row):
-                s, t = i / (n - 1), j / (n - 1)
-                point = tuple((1 - s) * (1 - t) * p + s * (1 - t) * q + s * t * w
-                              + (1 - s) * t * z
-                              for p, q, w, z in zip(c00, c10, c11, c01, strict=True))
-                if len(vertices) <= k < len(vertices) + len(edge_points):
-                    edge_points[k - len(vertices)] = point
-                elif k >= len(vertices) + len(edge_points):
-                    face_points[k - len(vertices) - len(edge_points)] = point
-    return AtlasSurface(3, 2, vertices, quads, edge_points, face_points)
-
-
-def _drawn_directions(atlas, r: int, band: float, kernel: str) -> np.ndarray:
-    """Each vertex's displacement direction: its move under a constant displacement ``h``
-    over ``h``, shape ``(V, 3)``."""
-    h = 0.01
-    flat = DetailTile(0, 0, 0, 2, 4, h / 100, (100,) * 36)  # a constant field: h
-    detail = {f: [flat] for f in range(len(atlas.quads))}
-    base = tessellate_atlas(atlas, r, kernel=kernel)
-    moved = tessellate_atlas(atlas, r, detail, kernel=kernel, band=band)
-    return (np.asarray(moved.positions, float) - np.asarray(base.positions, float)
-            ).reshape(-1, 3) / h
-
-
-def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = np.einsum("kc,kc->k", a, b) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-@pytest.mark.parametrize("kernel", ["python", "numpy"])
-def test_blended_directions_turn_gradually_across_a_crease(kernel):
-    """Across a 60-degree crease between two patches, the old rule (``band = 0``) turns the
-    displacement direction by half the crease between a border vertex (the mean of the two
-    normals) and its neighbour one cell inside either patch; with a band of a quarter of the
-    side (4 cells of 16) the direction turns by under a sixth of that there, by under half
-    of it between any two neighbours along the line through both patches, and is the
-    patch's own normal beyond the band. (The lines ``v = j`` beyond the band of the sheet's
-    open sides ``v = 0, 1``: there the border's own directions, kept as they were, jump from
-    the crease's corner, the mean, to the next border vertex, its patch's normal.)"""
-    atlas = folded_sheet_atlas(60.0)
-    r = 17
-    layout = _Layout(atlas, [r, r])
-    ids = [np.asarray(layout.patch_vertices(f)[0]).reshape(r, r) for f in range(2)]
-    # the lines v = j across the border: patch 0's samples i = 0..r-1, then patch 1's 1..r-1
-    line = np.concatenate([ids[0], ids[1][1:]], axis=0)[:, 5 : r - 5]  # (2r - 1, r - 10)
-    found = {}
-    for band in (0.0, 0.25):
-        d = _drawn_directions(atlas, r, band, kernel)
-        assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4)
-        steps = np.stack([_angle(d[line[k]], d[line[k + 1]]) for k in range(2 * r - 2)])
-        found[band] = steps
-        # beyond the band (and everywhere with band 0): the patch's own unit normal
-        far = ids[0][1 : r - 1 - 4, 5 : r - 5].reshape(-1)
-        assert np.allclose(d[far], (0.0, 0.0, 1.0), atol=1e-5)
-    old, new = found[0.0], found[0.25]
-    border = r - 1  # steps border - 1 and border: into the border vertex and out of it
-    assert np.allclose(old[border - 1 : border + 1], 30.0, atol=0.01)
-    assert new[border - 1 : border + 1].max() < old[border - 1 : border + 1].min() / 6
-    assert new.max() < 0.5 * old.max()
-    assert np.allclose(new.sum(axis=0), 60.0, atol=0.01)  # the whole turn, spread out
-
-
-def test_blended_directions_leave_old_bundles_as_they_were():
-    """``band = 0`` (what a manifest without ``tiles.detail.direction_band`` gives) is the
-    rule before the band: meshes of detail, mixed resolutions and poles have the bytes main
-    5dba071 drew (SHA-256 of positions, normals, ``(u, v)``, triangles and patches), with
-    both kernels; a band changes them."""
-    import hashlib
-
-    want = {1: "670ceebd7dc19e9b", 5: "0456fede01b867af", 9: "dccc36ecacf08f77",
-            11: "f681d55bee877bbd"}
-
-    def digest(mesh):
-        return hashlib.sha256(b"".join(getattr(mesh, name).tobytes() for name in
-                                       ("positions", "normals", "uvs", "indices", "patches"))
-                              ).hexdigest()[:16]
-
-    for case, expected in want.items():
-        atlas, resolution, detail = _weld_cases()[case]
-        for kernel in ("python", "numpy"):
-            assert digest(tessellate_atlas(atlas, resolution, detail, kernel=kernel)) == expected
-        assert digest(tessellate_atlas(atlas, resolution, detail, band=0.25)) != expected
-
-
-def test_a_band_is_checked():
-    atlas = folded_sheet_atlas()
-    for band in (-0.1, 0.6, "0.2", True, math.nan):
-        with pytest.raises(ValueError, match="band"):
-            tessellate_atlas(atlas, 5, band=band)

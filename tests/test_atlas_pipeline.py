@@ -221,7 +221,6 @@ def _check_error_raster(folder, manifest, points, atlas):
     from scipy.spatial import cKDTree
 
     from client_py.atlas_mesh import tessellate_atlas
-    from client_py.bundle import atlas_tiles
 
     raster = manifest["error_raster"]
     stats = manifest["stats"]
@@ -234,8 +233,7 @@ def _check_error_raster(folder, manifest, points, atlas):
     detail = manifest["tiles"]["detail"]
     finest = detail["levels"][-1]
     tiles = _finest_detail(folder, manifest)
-    drawn = tessellate_atlas(atlas, finest_resolution(manifest), tiles, kernel="numpy",
-                             band=atlas_tiles(manifest).direction_band)
+    drawn = tessellate_atlas(atlas, finest_resolution(manifest), tiles, kernel="numpy")
     vertices = np.frombuffer(drawn.positions, np.float32).reshape(-1, 3)
     patch = np.frombuffer(drawn.patches, np.uintc)
     uv = np.frombuffer(drawn.uvs, np.float32).reshape(-1, 2)

@@ -175,7 +175,6 @@ import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
 from client_py import layers
-from client_py._kernel_numpy import blended_directions
 from client_py.atlas import AtlasSurface, ring_positions
 from client_py.atlas_detail import (
     MAX_PACK_VALUES,
@@ -185,7 +184,6 @@ from client_py.atlas_detail import (
     pack_name,
     write_pack,
 )
-from client_py.atlas_mesh import direction_weights
 from client_py.bundle import ATLAS_MAX_RESOLUTION, atlas_level_resolution
 from client_py.format import CRC_SIZE, TILE_HEADER_SIZE, TILE_VERSION, write_detail_tile
 
@@ -290,10 +288,6 @@ DRAWN_MESHES = False
 FOLD_PASSES = 1
 FOLD_KEEP = 0.1
 FOLD_WEIGHT = 1.0
-# Blended directions (module docstring, "Folds"; client_py.atlas_mesh, "Directions"): the band
-# of the patch side over which a node's displacement direction turns from its border's mean
-# normal to its patch's own, written to the manifest as tiles.detail.direction_band.
-DIRECTION_BAND = 0.25
 
 
 # ------------------------------------------------------------------ patch order
@@ -550,18 +544,12 @@ def on_threads(work: Callable[[int], object], count: int, chunk: int, threads: i
 
 
 def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
-                b: np.ndarray, chunk: int = CHUNK, band: float | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+                b: np.ndarray, chunk: int = CHUNK) -> tuple[np.ndarray, np.ndarray]:
     """The base position ``C_f(node)`` and the displacement direction ``d`` the client
     draws node ``(a, b)`` of patch ``f``'s ``r x r`` grid with (``r = resolution``;
-    ``patch, a, b (K,)``), shapes ``(K, 3)``: on a border node the normalised sum ``m`` of
-    the unit normals of every patch that samples it; inside, within ``band`` of the patch
-    side from its border, the base's unit normal ``n`` blended toward the borders' ``m``
-    (``client_py.atlas_mesh``, "Directions": its weights and its blend,
-    ``client_py._kernel_numpy.blended_directions``), beyond it ``n`` (``band = 0``: ``n``
-    everywhere inside, the rule of bundles before the band; default
-    :data:`DIRECTION_BAND`, what the fitter writes; :class:`DrawnModel`)."""
-    band = DIRECTION_BAND if band is None else band
+    ``patch, a, b (K,)``), shapes ``(K, 3)``: ``d`` the base's unit normal there, or on a
+    border node the normalised sum of the unit normals of every patch that samples it
+    (``client_py.atlas_mesh``; :class:`DrawnModel`)."""
     table, cps = index_table(atlas), control_points(atlas)
     d, spans = atlas.degree, atlas.spans
     F, r = len(atlas.quads), resolution
@@ -575,13 +563,9 @@ def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.n
     ra, rb = np.tile(rim_a, F), np.tile(rim_b, F)
     _, cu, cv = evaluate_patches(table, cps, d, spans, rf, ra / (r - 1), rb / (r - 1),
                                  derivatives=True)
-    own = _unit(np.cross(cu, cv))
     total = np.zeros((int(G.max()) + 1, 3))
-    np.add.at(total, G[rf, ra, rb], own)
+    np.add.at(total, G[rf, ra, rb], _unit(np.cross(cu, cv)))
     total = _unit(total)
-    # the border offsets m - n_f per patch, side and sample: rim order v = 0, v = 1, u = 0, u = 1
-    delta = (total[G[rf, ra, rb]] - own).reshape(F, 4, r, 3)
-    W = np.asarray(direction_weights(r, band))
     node_c = np.empty((len(patch), 3))
     node_d = np.empty((len(patch), 3))
 
@@ -592,12 +576,6 @@ def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.n
                                                    bi / (r - 1), derivatives=True)
         di = _unit(np.cross(cui, cvi))
         rim = (ai == 0) | (ai == r - 1) | (bi == 0) | (bi == r - 1)
-        if band:
-            last = r - 1
-            di = blended_directions(
-                di, W[ai], W[last - ai], W[bi], W[last - bi],
-                (delta[fk, 0, ai], delta[fk, 3, bi], delta[fk, 1, ai], delta[fk, 2, bi]),
-                (delta[fk, 0, 0], delta[fk, 0, last], delta[fk, 3, last], delta[fk, 1, 0]))
         di[rim] = total[G[fk[rim], ai[rim], bi[rim]]]
         node_d[lo:hi] = di
 
@@ -982,7 +960,7 @@ def level_far_cells(atlas: AtlasSurface, tiles: list[dict], level: int, spans: i
         for f, some in made.items():
             detail.setdefault(f, []).extend(replace(t, walls=None) for t, _, _ in some)
     r = atlas_level_resolution(spans, level)
-    mesh = drawn_mesh(atlas, r, detail, DIRECTION_BAND)
+    mesh = drawn_mesh(atlas, r, detail)
     return far_cells(mesh.vertices, mesh.faces, len(atlas.quads), r, points, distance, reach)
 
 
@@ -1659,8 +1637,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                         "packs": r["packs"], "resolution": r["resolution"],
                         **({"walls": r["walls"]} if r["walls"] else {})}
                        for r in level_rows],
-            "groups": group_rows, "packs": packs,
-            **({"direction_band": DIRECTION_BAND} if DIRECTION_BAND else {})}
+            "groups": group_rows, "packs": packs}
     if held_rms:
         tree["held_out"] = {"share": _rounded(float(held.sum()) / max(int(use.sum()), 1)),
                             "rms": [_rounded(x) for x in held_rms], "min_gain": MIN_GAIN}

@@ -50,11 +50,9 @@ class DrawnMesh:
     uvs: np.ndarray
 
 
-def drawn_mesh(atlas, resolution: int, detail: dict | None = None, band: float = 0.0
-               ) -> DrawnMesh:
-    """``tessellate_atlas(atlas, resolution, detail, band=band)`` with the numpy kernel, as a
-    :class:`DrawnMesh` (``detail``: ``{patch: [tiles]}``, ``None`` or empty for the base;
-    ``band``: the manifest's ``tiles.detail.direction_band``).
+def drawn_mesh(atlas, resolution: int, detail: dict | None = None) -> DrawnMesh:
+    """``tessellate_atlas(atlas, resolution, detail)`` with the numpy kernel, as a
+    :class:`DrawnMesh` (``detail``: ``{patch: [tiles]}``, ``None`` or empty for the base).
 
     Without shading normals (``normals=False``): nothing here reads them, and the drawn
     positions, triangles, ``(u, v)`` and patches are the same bytes either way
@@ -62,8 +60,7 @@ def drawn_mesh(atlas, resolution: int, detail: dict | None = None, band: float =
     5.5."""
     from client_py.atlas_mesh import tessellate_atlas
 
-    mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy", normals=False,
-                            band=band)
+    mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy", normals=False)
     return DrawnMesh(
         np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float),
         np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64),

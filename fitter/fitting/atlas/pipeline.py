@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 from client_py.atlas_format import read_atlas, write_atlas
-from client_py.bundle import direction_band
 
 from ..bundle import write_bundle
 from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_error_ply
@@ -229,7 +228,7 @@ def measure_levels(atlas, detail, points: np.ndarray
         with ThreadPoolExecutor(1) as measuring, ThreadPoolExecutor(1) as talking:
             for k in range(top, -2, -1):
                 mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k),
-                                  detail.detail_up_to(k), direction_band(detail.tree))
+                                  detail.detail_up_to(k))
                 if k == top:
                     finest = mesh
                 if k == top and far is not None:
