@@ -146,11 +146,11 @@ def _optional_number(value: object, where: str) -> float | int | None:
 def check_file_name(name: object, where: str) -> str:
     """``name`` if it names a file inside the bundle; else :class:`ManifestError`.
 
-    Accepted: ``base.tsp``, ``pieces.tsa``, ``detail/K/I_J.tsd`` and ``texture/K/I_J.webp|png``; of an
-    atlas, ``base.tsa``, ``detail/K/G.tsdp`` and ``texture/K/G.webp`` (decimal ``K, I, J,
-    G`` without leading zeros) — so no absolute path, no ``..``,
-    no backslash or NUL, and a reader that joins the name to the bundle's folder or
-    URL stays inside it.
+    Accepted: ``base.tsp``, ``pieces.tsa``, ``detail/K/I_J.tsd`` and
+    ``texture/K/I_J.webp|png``; of an atlas, ``base.tsa``, ``detail/K/G.tsdp`` and
+    ``texture/K/G.webp`` (decimal ``K, I, J, G`` without leading zeros) — so no absolute
+    path, no ``..``, no backslash or NUL, and a reader that joins the name to the bundle's
+    folder or URL stays inside it.
     """
     if not isinstance(name, str):
         raise ManifestError(where, f"must be a file name (a string), got {_shown(name)}")

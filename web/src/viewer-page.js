@@ -25,7 +25,7 @@ import { BaseMesh, COARSE_RESOLUTION } from "./base-mesh.js";
 import { ErrorMapControl } from "./error-map-control.js";
 import { FactsPanel } from "./facts-panel.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, atlasBaseChoice, loadManifest, startPage, workerInit } from "./page.js";
+import { $, atlasBaseChoice, loadManifest, loadPieces, startPage, workerInit } from "./page.js";
 import { PlyDownload } from "./ply-download.js";
 import { TransferTally } from "./transfer-tally.js";
 
@@ -332,6 +332,10 @@ async function main() {
 
   const { TileLayer } = await tileModule;
   const planned = await planLevels(worker, manifest); // the worker keeps the manifest
+  if (planned.plan) {
+    const pieces = await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
+    if (pieces) viewer.setPieces(pieces);
+  }
   tiles = startTiles(TileLayer, { viewer, worker, manifest, planned, base, facts, transfers });
   settleTiles();
   const errorMap = new ErrorMapControl(manifest, viewer);
