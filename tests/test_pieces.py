@@ -9,6 +9,7 @@ import shutil
 import numpy as np
 import pytest
 import trimesh
+from fragment_scan import FRAGMENT, fragment_scan, grid_mesh
 
 from client_py.atlas_format import read_atlas
 from client_py.bundle import (
@@ -27,37 +28,13 @@ from fitter.fitting.options import FitOptions
 from fitter.fitting.pieces import MIN_PIECE_POINTS, PIECE_REACH, far_pieces, fit_pieces
 from fitter.fitting.pipeline import fit_scan
 
-FRAGMENT = 64  # points of the detached fragment (8 x 8)
-
-
-def _grid(n: int, x: tuple[float, float], y: tuple[float, float], height) -> tuple:
-    """An ``n x n`` grid mesh over ``x x y`` at ``z = height(x, y)``."""
-    gx, gy = np.meshgrid(np.linspace(*x, n), np.linspace(*y, n), indexing="ij")
-    points = np.column_stack([gx.ravel(), gy.ravel(), height(gx, gy).ravel()])
-    k = np.arange(n * n).reshape(n, n)
-    a, b, c, d = k[:-1, :-1].ravel(), k[1:, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, 1:].ravel()
-    return points, np.concatenate([np.column_stack([a, b, c]), np.column_stack([c, b, d])])
-
-
-def _scan(fragment: bool):
-    """A relief (a height field over the plane), with a small curved fragment 0.4 behind it
-    inside its footprint when ``fragment``: a second depth the height field cannot draw."""
-    points, faces = _grid(120, (-1, 1), (-1, 1),
-                          lambda x, y: 0.15 * np.sin(2 * x) * np.cos(1.5 * y))
-    if fragment:
-        more, more_faces = _grid(8, (0.2, 0.35), (-0.1, 0.05),
-                                 lambda x, y: -0.4 + 0.2 * (x - 0.2) ** 2)
-        faces = np.concatenate([faces, more_faces + len(points)])
-        points = np.concatenate([points, more])
-    return make_scan("synthetic", points, faces=faces, source={"name": "synthetic.ply"})
-
 
 @pytest.fixture(scope="module")
 def bundles(tmp_path_factory):
     """The relief fitted with its fragment and without (default options: one patch)."""
     root = tmp_path_factory.mktemp("pieces")
     for fragment in (True, False):
-        fit_scan(_scan(fragment), root / f"fragment-{fragment}", FitOptions())
+        fit_scan(fragment_scan(fragment), root / f"fragment-{fragment}", FitOptions())
     return root
 
 
@@ -80,7 +57,7 @@ def test_the_fragment_is_a_piece_drawn_with_the_patch_and_not_without(bundles):
     assert manifest["files"][PIECES_FILE] == (bundle / PIECES_FILE).stat().st_size > 0
     pieces, _ = read_atlas((bundle / PIECES_FILE).read_bytes())
     assert len(pieces.quads) == entry["patches"]
-    scan = _scan(True)
+    scan = fragment_scan(True)
     fragment = scan.points[-FRAGMENT:]
     diagonal = float(np.linalg.norm(np.ptp(scan.points, axis=0)))
     without = {k: v for k, v in manifest.items() if k != "pieces"}  # what an older reader draws
@@ -185,7 +162,7 @@ def test_far_pieces_joins_far_points_by_far_triangles():
 def test_a_piece_that_cannot_be_fitted_is_left_uncovered_with_the_reason(tmp_path):
     """Every far piece's triangles are degenerate (its points on one line): the atlas fit
     refuses it, the entry says why, no file is written, nothing raises."""
-    points, faces = _grid(30, (-1, 1), (-1, 1), lambda x, y: 0 * x)
+    points, faces = grid_mesh(30, (-1, 1), (-1, 1), lambda x, y: 0 * x)
     line = np.column_stack([np.linspace(0, 0.3, MIN_PIECE_POINTS + 5), np.zeros(25),
                             np.full(25, -0.5)])
     run = np.arange(len(points), len(points) + 23)
@@ -202,7 +179,7 @@ def test_a_piece_that_cannot_be_fitted_is_left_uncovered_with_the_reason(tmp_pat
 
 
 def test_small_pieces_and_clouds_give_no_entry(tmp_path):
-    points, faces = _grid(30, (-1, 1), (-1, 1), lambda x, y: 0 * x)
+    points, faces = grid_mesh(30, (-1, 1), (-1, 1), lambda x, y: 0 * x)
     scan = make_scan("grid", points, faces=faces, source={"name": "grid.ply"})
     small = np.zeros(len(points))
     small[:3] = 1.0  # three far corner points: fewer than MIN_PIECE_POINTS

@@ -4,7 +4,8 @@
 // document.body.dataset.error holds the message on failure; window.tessera.stats =
 // {vertices, triangles, tessellate_ms, pyodide_load_ms, first_frame_ms, bytes_downloaded,
 //  kernel, resolution, tiles_loaded, tile_bytes, tile_tessellate_ms, regions, ...}
-// (vertices/triangles: the base mesh; tile stats: web/src/tile-layer.js). Detail tiles load on
+// (vertices/triangles: the base mesh; tile stats: web/src/tile-layer.js; pieces_triangles: a
+// patch's detached pieces drawn beside it, manifest.pieces). Detail tiles load on
 // zoom (web/src/tile-tree.js); window.tessera.zoomTo(u, v, distance) frames the surface point
 // at normalised (u, v) from `distance` scan units along its normal and resolves once the
 // tiles for that view are on screen; window.tessera.tilesIdle() resolves when no tile update
@@ -334,7 +335,10 @@ async function main() {
   const planned = await planLevels(worker, manifest); // the worker keeps the manifest
   if (planned.plan) {
     const pieces = await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
-    if (pieces) viewer.setPieces(pieces);
+    if (pieces) {
+      viewer.setPieces(pieces);
+      stats.pieces_triangles = pieces.indices.length / 3;
+    }
   }
   tiles = startTiles(TileLayer, { viewer, worker, manifest, planned, base, facts, transfers });
   settleTiles();
