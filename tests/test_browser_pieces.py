@@ -1,6 +1,7 @@
 """A single patch with a detached piece (manifest ``pieces``, ``pieces.tsa``) in headless
 Chromium: the viewer fetches and draws the piece with no error, and its Download PLY of a
-level is `tessera tessellate`'s, piece included; the base PLY carries it too."""
+level is `tessera tessellate`'s, piece included; the base PLY carries it too, and so do
+the 3DHOP page's."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import json
 import pytest
 import trimesh
 from fragment_scan import fragment_scan
+from live import VIEWER_READY as READY
 from live import download_ply, open_viewer, serve_collection
 
 from client_py.bundle import PIECES_FILE, plan_levels
@@ -65,3 +67,24 @@ def test_download_ply_of_a_level_is_the_cli_s_with_the_pieces(pieces_page, piece
     stats = pieces_page.evaluate("window.tessera.stats")
     assert len(mesh.faces) > stats["triangles"]  # the base grid on screen, and the pieces
     assert pieces_page.errors == []
+
+
+def test_the_3dhop_page_shows_the_pieces(page, pieces_collection):
+    """The 3DHOP page's PLY of a level and of the base hold the pieces (the worker has them
+    before it writes either)."""
+    with serve_collection(pieces_collection) as live:
+        if page.request.get(f"{live.url}/vendor/3dhop/js/presenter.js").status != 200:
+            pytest.skip("3DHOP is not configured (../shared/vendor/3dhop-4.3 absent)")
+        errors: list[str] = []
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        for query in ("?level=0", ""):
+            page.goto(f"{live.url}/objects/fragment/3dhop{query}")
+            page.wait_for_function(READY, timeout=90_000)
+            assert page.evaluate("document.body.dataset.error") is None
+            header = bytes(page.evaluate("""async () => {
+                const buffer = await (await fetch(window.tessera.plyUrl)).arrayBuffer();
+                return Array.from(new Uint8Array(buffer.slice(0, 600)));
+            }""")).split(b"end_header", 1)[0].decode()
+            assert "detached pieces" in header, query
+        assert errors == []
