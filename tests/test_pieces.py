@@ -25,7 +25,13 @@ from fitter.cli import main as tessera
 from fitter.fitting.atlas.measure import point_mesh_distance
 from fitter.fitting.io.scan import make_scan
 from fitter.fitting.options import FitOptions
-from fitter.fitting.pieces import MIN_PIECE_POINTS, PIECE_REACH, far_pieces, fit_pieces
+from fitter.fitting.pieces import (
+    MAX_PIECES_SHARE,
+    MIN_PIECE_POINTS,
+    PIECE_REACH,
+    far_pieces,
+    fit_pieces,
+)
 from fitter.fitting.pipeline import fit_scan
 
 
@@ -186,4 +192,19 @@ def test_small_pieces_and_clouds_give_no_entry(tmp_path):
     assert fit_pieces(scan, tmp_path, {}, distances=lambda *_: small) is None
     cloud = make_scan("cloud", points, source={"name": "cloud.xyz"})
     assert fit_pieces(cloud, tmp_path, {}, distances=lambda *_: np.ones(len(points))) is None
+    assert not (tmp_path / PIECES_FILE).exists()
+
+
+def test_pieces_over_the_share_are_left_to_an_atlas(tmp_path):
+    """Far pieces holding over MAX_PIECES_SHARE of the points: no fit, the reason names the
+    share (a scan that is no height field with a few fragments)."""
+    points, faces = grid_mesh(30, (-1, 1), (-1, 1), lambda x, y: 0 * x)
+    scan = make_scan("grid", points, faces=faces, source={"name": "grid.ply"})
+    far = np.zeros(len(points))
+    far[:10 * 30] = 1.0  # ten rows of the grid: one piece of a third of the points
+    entry = fit_pieces(scan, tmp_path, {}, distances=lambda *_: far)
+    assert entry["file"] is None and entry["pieces"] == 0
+    assert entry["uncovered"] == [{"pieces": 1, "points": 300, "reason": (
+        f"not fitted: 33.3 % of the scan's points, over {100 * MAX_PIECES_SHARE:g} %: an "
+        "atlas draws them (--patches auto or N)")}]
     assert not (tmp_path / PIECES_FILE).exists()

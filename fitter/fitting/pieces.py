@@ -9,13 +9,15 @@ After the single patch's fit, :func:`fit_pieces` measures every scan point again
 the client draws at the finest level (``client_py.bundle.tessellate_bundle`` of the staged
 bundle); the points farther than :data:`PIECE_REACH` of the diagonal, joined by the scan's
 triangles whose three corners are all that far (``atlas.surface.face_pieces``), are the
-pieces. Those of at least :data:`MIN_PIECE_POINTS` points are fitted together as one atlas
-(``atlas.fit.fit_atlas``, about one layout triangle per piece, its bits by its RMS, on
-:data:`PIECE_WORKING_POINTS` working points), written as ``pieces.tsa``
-(``client_py.atlas_format``) and drawn with the patch at every level, without detail
-(``client_py.bundle.pieces_mesh``). Smaller pieces, points on no
-such triangle, and every piece when the atlas fit refuses them stay uncovered: the
-manifest's ``pieces.uncovered`` counts them with the reason (docs/format.md, "Pieces").
+pieces. Those of at least :data:`MIN_PIECE_POINTS` points, when they hold at most
+:data:`MAX_PIECES_SHARE` of the scan's points, are fitted together as one atlas
+(``atlas.fit.fit_atlas``, about one layout triangle per piece, its bits by its RMS, on as
+many working points as the pieces have, at least :data:`PIECE_WORKING_POINTS`), written
+as ``pieces.tsa`` (``client_py.atlas_format``) and drawn with the patch at every level,
+without detail (``client_py.bundle.pieces_mesh``). Smaller pieces, points on no such
+triangle, and every piece when they are too many or the atlas fit refuses them stay
+uncovered: the manifest's ``pieces.uncovered`` counts them with the reason
+(docs/format.md, "Pieces").
 A point cloud or a scan fitted out of core has no triangles to join its points: it gets
 no pieces.
 """
@@ -42,10 +44,15 @@ PIECE_REACH = 0.005
 #: the fewest points of a piece fitted: on Buddha range scan 0 the pieces of 20-80 points
 #: cost 100-150 bytes each in ``pieces.tsa``, the smaller ones held 0.3 % of its error
 MIN_PIECE_POINTS = 20
-#: the atlas fit's working points (``fit_atlas``'s ``working_count``, its least): pieces of a
-#: few hundred points need no 60,000 (Buddha range scan 0's five: 2.2 s against 10.4 s at
-#: load 16, the same patches, 696 against 699 bytes, the same RMS over all points)
+#: the least working points of the pieces' atlas fit (``fit_atlas``'s ``working_count``, its
+#: least allowed), else as many as the pieces' points: pieces of a few hundred points need
+#: no 60,000 (Buddha range scan 0's five: 2.2 s against 10.4 s at load 16, the same
+#: patches, 696 against 699 bytes, the same RMS over all points)
 PIECE_WORKING_POINTS = 1000
+#: pieces holding more than this share of the scan's points are not fitted: the scan is no
+#: height field with a few fragments but an object for an atlas (the Bali mask forced to one
+#: patch: 31 pieces, 20 % of its points, 486 patches, 121 s more at load 16)
+MAX_PIECES_SHARE = 0.05
 
 
 def far_pieces(faces: np.ndarray, far: np.ndarray) -> tuple[list[np.ndarray], int]:
@@ -99,10 +106,11 @@ def fit_pieces(scan: Scan, folder: Path, manifest: dict,
     ``None`` (no entry, no file: the bundle as before) when no piece has
     :data:`MIN_PIECE_POINTS` points, or the scan has no triangles.
 
-    The entry: ``file`` (``pieces.tsa``, or ``None`` when the atlas fit refused the
-    pieces), ``patches``, ``resolution`` (samples per patch side, drawn at every level),
-    ``bits``, ``pieces`` and ``points`` fitted, ``reach`` (:data:`PIECE_REACH`), and
-    ``uncovered``: the pieces and points left out, each group with its ``reason``.
+    The entry: ``file`` (``pieces.tsa``, or ``None`` when the pieces were not fitted: over
+    :data:`MAX_PIECES_SHARE` of the points, or refused by the atlas fit), ``patches``,
+    ``resolution`` (samples per patch side, drawn at every level), ``bits``, ``pieces`` and
+    ``points`` fitted, ``reach`` (:data:`PIECE_REACH`), and ``uncovered``: the pieces and
+    points left out, each group with its ``reason``.
     """
     if scan.faces is None or not len(scan.faces):
         return None
@@ -116,15 +124,21 @@ def fit_pieces(scan: Scan, folder: Path, manifest: dict,
     small = _uncovered(pieces[len(fitted):], loose,
                        f"under {MIN_PIECE_POINTS} points each")
     chosen = np.concatenate(fitted)
-    entry = {"reach": PIECE_REACH, "pieces": len(fitted), "points": int(len(chosen))}
+    entry = {"reach": PIECE_REACH, "file": None, "pieces": 0, "points": 0}
+    share = len(chosen) / len(points)
+    if share > MAX_PIECES_SHARE:
+        return {**entry, "uncovered": _uncovered(fitted, 0, (
+            f"not fitted: {100 * share:.1f} % of the scan's points, over "
+            f"{100 * MAX_PIECES_SHARE:g} %: an atlas draws them (--patches auto or N)"))
+            + small}
     try:
         fit = fit_atlas(_piece_scan(scan, chosen), 3 * min(len(fitted), AUTO_MAX_TRIANGLES),
-                        bits=None, working_count=PIECE_WORKING_POINTS)
+                        bits=None, working_count=max(PIECE_WORKING_POINTS, len(chosen)))
     except ScanError as exc:  # SurfaceError, AtlasLayoutError, AtlasFitError: named
-        return {**entry, "file": None, "pieces": 0, "points": 0,
-                "uncovered": _uncovered(fitted, 0, f"not fitted: {exc}") + small}
+        return {**entry, "uncovered": _uncovered(fitted, 0, f"not fitted: {exc}") + small}
     data = write_atlas(fit.atlas, fit.bits, {"units": scan.units})
     (folder / PIECES_FILE).write_bytes(data)
-    return {**entry, "file": PIECES_FILE, "patches": len(read_atlas(data)[0].quads),
+    return {**entry, "file": PIECES_FILE, "pieces": len(fitted), "points": int(len(chosen)),
+            "patches": len(read_atlas(data)[0].quads),
             "resolution": base_resolution(fit.atlas.spans), "bits": fit.bits,
             "uncovered": small}
