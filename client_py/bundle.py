@@ -262,11 +262,12 @@ def pieces_entry(manifest: dict) -> dict | None:
     if check_file_name(entry["file"], "pieces.file") != PIECES_FILE:
         raise ManifestError("pieces.file", f"{entry['file']!r} is not {PIECES_FILE!r}, the "
                             "pieces' one name")
-    for key, top in (("patches", MAX_ATLAS_QUADS), ("resolution", ATLAS_MAX_RESOLUTION)):
+    for key, low, top in (("patches", 1, MAX_ATLAS_QUADS), ("resolution", 2,
+                                                            ATLAS_MAX_RESOLUTION)):
         value = entry.get(key)
-        if not (_is_int(value) and (1 if key == "patches" else 2) <= value <= top):
-            raise ManifestError(f"pieces.{key}", f"must be an integer in "
-                                f"{1 if key == 'patches' else 2}..{top}, got {_shown(value)}")
+        if not (_is_int(value) and low <= value <= top):
+            raise ManifestError(f"pieces.{key}", f"must be an integer in {low}..{top}, got "
+                                f"{_shown(value)}")
     return entry
 
 

@@ -300,6 +300,7 @@ class WorkerSession:
             raise ManifestError("manifest.json", "must be a JSON object, got "
                                 f"{type(manifest).__name__}")
         plan_levels(manifest)  # a manifest the level methods cannot plan from fails here
+        pieces_entry(manifest)  # and one whose pieces load_pieces could not read
         self._manifest = manifest
 
     def load_pieces(self, data: bytes) -> Mesh:
@@ -310,7 +311,9 @@ class WorkerSession:
         Raises
         ------
         ValueError
-            A manifest without pieces, or an atlas loaded.
+            A manifest without pieces.
+        RuntimeError
+            No patch loaded (:meth:`load_patch`), or no manifest read.
         PatchFormatError
             A bad file, or one that is not the manifest's pieces.
         """
