@@ -88,3 +88,19 @@ def test_the_3dhop_page_shows_the_pieces(page, pieces_collection):
             }""")).split(b"end_header", 1)[0].decode()
             assert "detached pieces" in header, query
         assert errors == []
+
+
+def test_a_bad_pieces_file_leaves_the_patch_drawn_and_says_why(browser, pieces_collection,
+                                                               tmp_path):
+    """pieces.tsa corrupt: the viewer still shows the patch, the reason in
+    document.body.dataset.piecesError (the worker's PatchFormatError)."""
+    import shutil
+
+    collection = tmp_path / "collection"
+    shutil.copytree(pieces_collection, collection)
+    (collection / "fragment" / PIECES_FILE).write_bytes(b"not an atlas")
+    with serve_collection(collection) as live, \
+            open_viewer(browser, f"{live.url}/objects/fragment/") as page:
+        assert page.evaluate("document.body.dataset.error") is None
+        assert "PatchFormatError" in page.evaluate("document.body.dataset.piecesError")
+        assert "pieces_triangles" not in page.evaluate("window.tessera.stats")

@@ -11,7 +11,8 @@
 // tiles for that view are on screen; window.tessera.tilesIdle() resolves when no tile update
 // is due; window.tessera.view() gives the camera's projection and view matrices (column-major)
 // and window.tessera.regionMeshes() the regions on screen ({level, i, j, grid, positions, uvs}
-// of their grid vertices, skirts left out), for tests. A tile that fails to load sets document.body.dataset.tileError (the base stays).
+// of their grid vertices, skirts left out), for tests. A tile that fails to load sets document.body.dataset.tileError (the base stays);
+// pieces that fail to load set document.body.dataset.piecesError (the patch stays).
 // "Download PLY" and its level choice: web/src/ply-download.js (its stats and
 // document.body.dataset.plyBusy are described there). The page's parts: BaseMesh
 // (base-mesh.js), FactsPanel (facts-panel.js), ErrorMapControl (error-map-control.js),
@@ -334,10 +335,14 @@ async function main() {
   const { TileLayer } = await tileModule;
   const planned = await planLevels(worker, manifest); // the worker keeps the manifest
   if (planned.plan) {
-    const pieces = await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
-    if (pieces) {
-      viewer.setPieces(pieces);
-      stats.pieces_triangles = pieces.indices.length / 3;
+    try {
+      const pieces = await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
+      if (pieces) {
+        viewer.setPieces(pieces);
+        stats.pieces_triangles = pieces.indices.length / 3;
+      }
+    } catch (error) { // a missing or bad pieces.tsa: the patch stays, the reason is kept
+      document.body.dataset.piecesError = error.message;
     }
   }
   tiles = startTiles(TileLayer, { viewer, worker, manifest, planned, base, facts, transfers });
