@@ -283,7 +283,11 @@ def read_pieces(manifest: dict, read: Callable[[str], bytes]) -> AtlasSurface | 
     entry = pieces_entry(manifest)
     if entry is None:
         return None
-    pieces, _ = read_atlas(read(entry["file"]))
+    try:
+        pieces, _ = read_atlas(read(entry["file"]))
+    except PatchFormatError as exc:  # named: the base may be fine
+        raise PatchFormatError(exc.offset, f"{exc.reason} ({PIECES_FILE})", exc.section) \
+            from None
     if len(pieces.quads) != entry["patches"]:
         raise ManifestError("pieces.patches", f"is {entry['patches']} but {PIECES_FILE} holds "
                             f"{len(pieces.quads)} patches")

@@ -138,6 +138,7 @@ def test_pieces_that_are_not_the_manifests_are_refused(bundles, tmp_path):
     with pytest.raises(Exception) as caught:  # the format's own error, not a crash elsewhere
         tessellate_bundle(manifest, _read(copy))
     assert type(caught.value).__name__ == "PatchFormatError"
+    assert str(caught.value).endswith(f"({PIECES_FILE})")  # the file named
     atlas_manifest = {**manifest, "format_version": 2}
     with pytest.raises(ManifestError, match="version-1"):
         pieces_entry(atlas_manifest)
