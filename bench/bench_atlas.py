@@ -4,8 +4,9 @@ For each object of ``../shared/data`` (a closed bust, statues, a mask, a range s
 registration of 15 range scans), fit with the DEFAULT options (as ``tessera fit SCAN OUT``
 does), then for every level the bundle offers (the base alone, then each detail level):
 
-* the bytes a visitor downloads to see it: the manifest as served (gzip) + the base + the
-  detail tiles of levels ``0..L`` (:func:`client_py.bundle.plan_level`);
+* the bytes a visitor downloads to see it: the manifest as served (gzip) + the base (with
+  a single patch's ``pieces.tsa``, drawn at every level) + the detail tiles of levels
+  ``0..L`` (:func:`client_py.bundle.plan_level`);
 * the distance of ALL scan points to the drawn mesh (``client_py``'s tessellation of that
   level in the scan frame, at the resolution ``tessera tessellate --level L`` uses):
   RMS, max, and the share within 0.5 % of the bounding-box diagonal;
@@ -83,10 +84,18 @@ def served_manifest_bytes(bundle: Path) -> int:
 def drawn_levels(bundle: Path) -> list[dict]:
     """Every level a visitor can see (``-1`` the base alone, then each detail level): its
     drawn mesh in the scan frame and the bytes downloaded to see it."""
-    from client_py.bundle import base_file, plan_level, plan_levels, tessellate_bundle
+    from client_py.bundle import (
+        base_file,
+        pieces_entry,
+        plan_level,
+        plan_levels,
+        tessellate_bundle,
+    )
 
     manifest = json.loads((bundle / "manifest.json").read_text())
-    base_bytes = (bundle / base_file(manifest)).stat().st_size
+    pieces = pieces_entry(manifest)  # a single patch's pieces are drawn at every level
+    base_bytes = sum((bundle / name).stat().st_size
+                     for name in [base_file(manifest)] + ([pieces["file"]] if pieces else []))
     manifest_bytes = served_manifest_bytes(bundle)
     plans = [plan_level(manifest, -1)] + plan_levels(manifest)
     out = []
@@ -158,6 +167,7 @@ def score_object(name: str, path: Path, work: Path) -> dict:
             "format_version": manifest.get("format_version"),
             "patches": (manifest.get("base") or {}).get("patches", 1),
             "layout": _chosen_layout(manifest), "trials": (manifest.get("fit") or {}).get("trials"),
+            "pieces": manifest.get("pieces"),
             "levels": rows, "silhouette_iou": iou, "draco": draco,
             "pleats": pleat_stats(bundle) if atlas else None}
 

@@ -13,7 +13,10 @@ quadtree of ``.tsd`` tiles; version 2, an *atlas* (``client_py.atlas``) ``base.t
 whose detail tiles travel in packs ``detail/K/G.tsdp``, one per level ``K`` and group
 ``G`` of neighbouring patches (``client_py.atlas_detail``; docs/format.md, "Bundle
 manifest, version 2"). Level ``L`` of an atlas is every pack of levels ``0..L`` on
-:func:`atlas_resolution` samples per patch side, the one rule of its grid.
+:func:`atlas_resolution` samples per patch side, the one rule of its grid. A version-1
+bundle may also carry ``pieces.tsa``: the scan's detached pieces its height field cannot
+draw, a small atlas drawn with the patch at every level (:func:`read_pieces`,
+:func:`pieces_mesh`, :func:`with_pieces`; docs/format.md, "Pieces").
 :func:`write_level_ply` makes that PLY from the decoded patch, tiles and
 texture images, for ``tessera tessellate BUNDLE --level L`` and for the
 browser's worker session (:mod:`client_py.session`) alike, so both write the
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import math
 import reprlib
+from array import array
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -61,6 +65,9 @@ PLY_MAX_RESOLUTION = 1025  # a level-L PLY's grid is capped here (about a millio
 BASE_RESOLUTION = 256  # the grid of the base alone (level -1), as ``tessera tessellate`` makes it
 BASE_FILE = "base.tsp"  # the one name a version-1 manifest's ``base.file`` may give
 ATLAS_BASE_FILE = "base.tsa"  # the one name a version-2 (atlas) manifest's ``base.file`` may give
+PIECES_FILE = "pieces.tsa"  # the one name a version-1 manifest's ``pieces.file`` may give
+#: RGB of the pieces' vertices in a mesh coloured from the patch's texture (no tile maps them)
+PIECE_COLOUR = (160, 160, 160)
 MANIFEST_VERSIONS = (1, 2)  # 1: one patch; 2: an atlas
 #: samples per patch side of an atlas level: ``min(129, 2 m 2^k + 1)`` (atlas_resolution)
 ATLAS_MAX_RESOLUTION = 129
@@ -75,7 +82,7 @@ ATLAS_MAX_RESOLUTION = 129
 MIN_LEVEL_CELLS = 256
 TEXTURE_EXTENSIONS = ("webp", "png")
 _NAMING = ("relative POSIX paths inside the bundle, as the fitter writes them: base.tsp, "
-           "detail/K/I_J.tsd, texture/K/I_J.webp or .png; in an atlas base.tsa, "
+           "pieces.tsa, detail/K/I_J.tsd, texture/K/I_J.webp or .png; in an atlas base.tsa, "
            "detail/K/G.tsdp and texture/K/G.webp")
 
 
@@ -139,11 +146,11 @@ def _optional_number(value: object, where: str) -> float | int | None:
 def check_file_name(name: object, where: str) -> str:
     """``name`` if it names a file inside the bundle; else :class:`ManifestError`.
 
-    Accepted: ``base.tsp``, ``detail/K/I_J.tsd`` and ``texture/K/I_J.webp|png``; of an
-    atlas, ``base.tsa``, ``detail/K/G.tsdp`` and ``texture/K/G.webp`` (decimal ``K, I, J,
-    G`` without leading zeros) — so no absolute path, no ``..``,
-    no backslash or NUL, and a reader that joins the name to the bundle's folder or
-    URL stays inside it.
+    Accepted: ``base.tsp``, ``pieces.tsa``, ``detail/K/I_J.tsd`` and
+    ``texture/K/I_J.webp|png``; of an atlas, ``base.tsa``, ``detail/K/G.tsdp`` and
+    ``texture/K/G.webp`` (decimal ``K, I, J, G`` without leading zeros) — so no absolute
+    path, no ``..``, no backslash or NUL, and a reader that joins the name to the bundle's
+    folder or URL stays inside it.
     """
     if not isinstance(name, str):
         raise ManifestError(where, f"must be a file name (a string), got {_shown(name)}")
@@ -154,7 +161,7 @@ def check_file_name(name: object, where: str) -> str:
         problem = "climbs out of the bundle ('..')"
     elif "\\" in name or "\0" in name:
         problem = "holds a backslash or NUL"
-    elif name in (BASE_FILE, ATLAS_BASE_FILE) or _tile_name_parts(name) is not None \
+    elif name in (BASE_FILE, ATLAS_BASE_FILE, PIECES_FILE) or _tile_name_parts(name) is not None \
             or pack_name_parts(name) is not None or colour_pack_name_parts(name) is not None:
         return name
     else:
@@ -231,6 +238,87 @@ def base_file(manifest: dict) -> str:
         raise ManifestError("base.file", f"{name!r} is not {expected!r}, the base's one name "
                             f"in a version-{manifest_version(manifest)} manifest")
     return name
+
+
+def pieces_entry(manifest: dict) -> dict | None:
+    """A version-1 manifest's ``pieces``, checked: the scan's detached pieces that the height
+    field cannot draw, fitted as a small atlas of their own (docs/format.md, "Pieces");
+    ``None`` when none is drawn (no entry, or ``file`` null: every piece left uncovered).
+
+    Raises
+    ------
+    ManifestError
+        ``pieces`` in an atlas manifest (an atlas draws every piece itself), a ``file`` that
+        is not ``pieces.tsa``, or ``patches`` / ``resolution`` out of range.
+    """
+    if "pieces" not in manifest:
+        return None
+    if manifest_version(manifest) != 1:
+        raise ManifestError("pieces", "is only read in a version-1 manifest (one patch); an "
+                            "atlas draws every piece of the scan itself")
+    entry = _mapping(manifest["pieces"], "pieces", optional=False)
+    if entry.get("file") is None:
+        return None
+    if check_file_name(entry["file"], "pieces.file") != PIECES_FILE:
+        raise ManifestError("pieces.file", f"{entry['file']!r} is not {PIECES_FILE!r}, the "
+                            "pieces' one name")
+    for key, low, top in (("patches", 1, MAX_ATLAS_QUADS), ("resolution", 2,
+                                                            ATLAS_MAX_RESOLUTION)):
+        value = entry.get(key)
+        if not (_is_int(value) and low <= value <= top):
+            raise ManifestError(f"pieces.{key}", f"must be an integer in {low}..{top}, got "
+                                f"{_shown(value)}")
+    return entry
+
+
+def read_pieces(manifest: dict, read: Callable[[str], bytes]) -> AtlasSurface | None:
+    """The bundle's pieces (``pieces.tsa``, an atlas in the scan frame), checked to hold the
+    manifest's ``pieces.patches``; ``None`` when it has none drawn (:func:`pieces_entry`).
+
+    Raises
+    ------
+    PatchFormatError
+        A bad file, or a bad entry (:class:`ManifestError`).
+    """
+    entry = pieces_entry(manifest)
+    if entry is None:
+        return None
+    try:
+        pieces, _ = read_atlas(read(entry["file"]))
+    except PatchFormatError as exc:  # named: the base may be fine
+        raise PatchFormatError(exc.offset, f"{exc.reason} ({PIECES_FILE})", exc.section) \
+            from None
+    if len(pieces.quads) != entry["patches"]:
+        raise ManifestError("pieces.patches", f"is {entry['patches']} but {PIECES_FILE} holds "
+                            f"{len(pieces.quads)} patches")
+    return pieces
+
+
+def pieces_mesh(manifest: dict, pieces: AtlasSurface | None, kernel: str | None = None
+                ) -> Mesh | None:
+    """The pieces as drawn at every level: ``pieces`` (:func:`read_pieces`) tessellated on
+    the manifest's ``pieces.resolution`` samples per patch side, without detail; ``None``
+    without pieces."""
+    if pieces is None:
+        return None
+    return tessellate_atlas(pieces, pieces_entry(manifest)["resolution"], None, kernel)
+
+
+def with_pieces(mesh: Mesh, pieces: Mesh | None) -> Mesh:
+    """``mesh`` (the patch's, scan frame) with the pieces' mesh appended: its vertices after
+    the patch's, its triangles renumbered. The pieces' ``uvs`` are their own patches' (no
+    texture tile maps them); in a coloured mesh their vertices are :data:`PIECE_COLOUR`."""
+    if pieces is None:
+        return mesh
+    offset = mesh.vertex_count
+    colors = None
+    if mesh.colors is not None:
+        colors = array("B", mesh.colors)
+        colors.extend(PIECE_COLOUR * pieces.vertex_count)
+    return Mesh(array("f", mesh.positions) + pieces.positions,
+                array("f", mesh.normals) + pieces.normals, array("f", mesh.uvs) + pieces.uvs,
+                array("I", mesh.indices) + array("I", (k + offset for k in pieces.indices)),
+                colors)
 
 
 def _nodes(manifest: dict, kind: str) -> list[dict]:
@@ -955,7 +1043,8 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
         plan's ``texture_nodes`` (:func:`colour_packs_of`).
     scan_frame : bool
         Map the mesh into the scan's coordinates by the patch's ``transform`` (an atlas is
-        in the scan frame already).
+        in the scan frame already); only then are a patch's pieces drawn
+        (:func:`pieces_mesh`, appended by :func:`with_pieces`).
 
     Returns
     -------
@@ -993,7 +1082,10 @@ def tessellate_bundle(manifest: dict, read: Callable[[str], bytes], level: int |
             raise PatchFormatError(6, f"{node['file']} holds tile {tile.level}/{tile.i}_"
                                    f"{tile.j}, not the manifest node's")
         tiles.append(tile)
-    return _level_mesh(surface, tiles, resolution, textures, kernel, scan_frame)
+    mesh = _level_mesh(surface, tiles, resolution, textures, kernel, scan_frame)
+    if not scan_frame:  # the pieces are drawn in the scan frame only
+        return mesh
+    return with_pieces(mesh, pieces_mesh(manifest, read_pieces(manifest, read), kernel))
 
 
 def check_atlas_base(atlas: AtlasSurface, manifest: dict) -> None:
@@ -1011,7 +1103,8 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
                     textures: Iterable[TextureImage] = (), binary: bool = True,
                     texture_file: str | None = None, kernel: str | None = None,
                     units: str | None = None,
-                    progress: Callable[[float], object] | None = None) -> tuple[bytes, Mesh]:
+                    progress: Callable[[float], object] | None = None,
+                    pieces: Mesh | None = None) -> tuple[bytes, Mesh]:
     """The PLY of the bundle at detail level ``level``: ``X = S + sum_{k <= L} D_k n``
     over the whole domain on a ``resolution x resolution`` grid, in the scan frame.
 
@@ -1046,6 +1139,8 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
     progress : callable, optional
         An atlas's: called with the share of the tessellation done
         (:func:`client_py.atlas_mesh.tessellate_atlas`).
+    pieces : Mesh, optional
+        A patch's pieces as drawn (:func:`pieces_mesh`), appended (:func:`with_pieces`).
 
     Returns
     -------
@@ -1064,6 +1159,8 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
     if isinstance(level, bool) or not isinstance(level, int) or level < -1:
         raise ValueError(f"level must be an integer >= -1, got {level!r}")
     if isinstance(surface, AtlasSurface):
+        if pieces is not None:
+            raise ValueError("pieces are a patch bundle's; an atlas draws every piece itself")
         return _write_atlas_ply(surface, tiles, level, resolution, source, binary, kernel,
                                 units, list(textures), progress)
     tiles = list(tiles)
@@ -1072,13 +1169,16 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
         if tile.level > level:
             raise ValueError(f"detail tile {tile.level}/{tile.i}_{tile.j} is of level "
                              f"{tile.level}, finer than level {level}")
-    mesh = _level_mesh(surface, tiles, resolution, textures, kernel)
+    mesh = with_pieces(_level_mesh(surface, tiles, resolution, textures, kernel), pieces)
     units = surface.metadata.get("units", "unknown") if units is None else units
     comments = [f"source {source}", f"units {units}",
                 f"detail level {level}: " + (
                     f"base patch + {len(tiles)} detail tiles of levels 0..{level}" if level >= 0
                     else "the base patch alone"),
                 f"tessellated by client_py on a {resolution}x{resolution} grid"]
+    if pieces is not None:
+        comments.append(f"with the scan's detached pieces ({PIECES_FILE}): "
+                        f"{pieces.triangle_count} triangles")
     if textures:
         levels = sorted({t.level for t in textures})
         comments.append(f"vertex colours sampled from {len(textures)} texture tiles of levels "

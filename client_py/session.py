@@ -57,8 +57,12 @@ from .bundle import (
     colour_packs_of,
     detail_spans,
     pack_name_parts,
+    pieces_entry,
+    pieces_mesh,
     plan_level,
     plan_levels,
+    read_pieces,
+    with_pieces,
     write_level_ply,
 )
 from .errors import PatchFormatError
@@ -124,6 +128,7 @@ class WorkerSession:
         self._tiles: dict[str, DetailTile] = {}  # bundle file name -> tile handed over
         self._manifest: dict | None = None
         self._last: tuple[int, Mesh] | None = None  # (resolution, base mesh) last tessellated
+        self._pieces: Mesh | None = None  # the patch's detached pieces drawn (load_pieces)
         self._atlas: AtlasSurface | None = None  # an atlas bundle's base (load_atlas), scan frame
         self._atlas_units = "unknown"
         self._packs: dict[str, tuple[int, int, dict[int, list[DetailTile]]]] = {}  # by name
@@ -175,6 +180,7 @@ class WorkerSession:
         self._patch_grids = PatchGrids()
         self._tiles.clear()
         self._last = None
+        self._pieces = None
         return {"degree": list(patch.degree), "shape": list(patch.shape),
                 "rational": patch.is_rational, "domain": [u0, u1, v0, v1],
                 "trimmed": patch.trim is not None,
@@ -207,6 +213,10 @@ class WorkerSession:
         comments = [f"source {self._source}",
                     f"units {self._scan.metadata.get('units', 'unknown')}",
                     f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
+        if self._pieces is not None:
+            mesh = with_pieces(mesh, self._pieces)
+            comments.append(f"with the scan's detached pieces: {self._pieces.triangle_count} "
+                            "triangles")
         data = write_ply(mesh, binary=True, comments=comments)
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, resolution, -1)
 
@@ -290,7 +300,31 @@ class WorkerSession:
             raise ManifestError("manifest.json", "must be a JSON object, got "
                                 f"{type(manifest).__name__}")
         plan_levels(manifest)  # a manifest the level methods cannot plan from fails here
+        pieces_entry(manifest)  # and one whose pieces load_pieces could not read
         self._manifest = manifest
+
+    def load_pieces(self, data: bytes) -> Mesh:
+        """Decode the patch bundle's ``pieces.tsa`` (the manifest's ``pieces``, read by
+        :meth:`read_manifest`) and keep its mesh, drawn at every level and appended to the
+        PLYs (:func:`client_py.bundle.with_pieces`); returns that mesh (scan frame).
+
+        Raises
+        ------
+        ValueError
+            A manifest without pieces.
+        RuntimeError
+            No patch loaded (:meth:`load_patch`), or no manifest read.
+        PatchFormatError
+            A bad file, or one that is not the manifest's pieces.
+        """
+        self._loaded()
+        manifest = self._manifest_read()
+        entry = pieces_entry(manifest)
+        if entry is None:
+            raise ValueError("this bundle's manifest draws no pieces (no pieces.file)")
+        self._pieces = pieces_mesh(manifest, read_pieces(manifest, lambda _: bytes(data)),
+                                   self._kernel)
+        return self._pieces
 
     def _manifest_read(self) -> dict:
         if self._manifest is None:
@@ -381,7 +415,8 @@ class WorkerSession:
             raise ValueError(f"the texture tiles sent must be those of level {level}'s plan: "
                              f"missing [{missing}], not in the plan [{extra}]")
         data, mesh = write_level_ply(patch, tiles, plan.level, plan.resolution, self._source,
-                                     [images[key] for key in wanted], kernel=self._kernel)
+                                     [images[key] for key in wanted], kernel=self._kernel,
+                                     pieces=self._pieces)
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
 
     # ------------------------------------------------------------------ an atlas bundle

@@ -26,7 +26,9 @@ from client_py.bundle import (
     BASE_RESOLUTION,
     PLY_MAX_RESOLUTION,
     base_file,
+    pieces_mesh,
     plan_level,
+    read_pieces,
     write_level_ply,
 )
 from client_py.errors import TesseraError
@@ -98,7 +100,8 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
 
 def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     """A bundle at ``--level``, as the viewer's "Download PLY" writes it: the files and grid
-    of ``client_py.bundle.plan_level`` (``--resolution`` overrides the grid), written by
+    of ``client_py.bundle.plan_level`` (``--resolution`` overrides the grid) and the
+    detached pieces (``client_py.bundle.read_pieces``, drawn at every level), written by
     ``client_py.bundle.write_level_ply`` with per-vertex colours from the texture tiles, or
     (``--texture``) texture uvs and the level's texture as one PNG beside the PLY."""
     import json
@@ -121,6 +124,8 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
         plan = plan_level(manifest, args.level)
         surface = read_patch((bundle / base_file(manifest)).read_bytes())
         tiles = [read_detail_tile((bundle / name).read_bytes()) for name in plan.detail_files]
+        pieces = pieces_mesh(manifest, read_pieces(manifest, lambda name: (bundle / name)
+                                                   .read_bytes()))
     except PatchFormatError as exc:  # a bad file or manifest (ManifestError)
         raise UserError(f"{bundle}: {exc}") from None
     except (OSError, ValueError) as exc:  # a missing file; a --level the bundle lacks
@@ -146,7 +151,7 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     resolution = plan.resolution if args.resolution is None else args.resolution
     data, mesh = write_level_ply(surface, tiles, plan.level, resolution, bundle.name,
                                  () if args.texture else images, binary=not args.ascii,
-                                 texture_file=texture_file)
+                                 texture_file=texture_file, pieces=pieces)
     out.write_bytes(data)
     print(f"{out}: level {plan.level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
           f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))

@@ -41,6 +41,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from client_py import TrimMask, read_patch, write_patch
+from client_py.bundle import PIECES_FILE
 from client_py.format import MAX_CONTROL_POINTS
 
 from . import io as scan_io
@@ -75,6 +76,7 @@ from .nurbs import PatchModel
 from .options import FitOptions
 from .orient import find_view
 from .parameterize import Coverage, choose_projection, trim_cells
+from .pieces import fit_pieces
 from .sections import section_matrix, section_shape
 from .stages import check_stage
 from .stream import (
@@ -658,9 +660,17 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
     stages.start("report")
     with write_bundle(out_dir) as folder:
         tiles, files = _write_files(folder, projected, best, pyramid, textures, options)
+        pieces = None
+        if large is None and scan.faces is not None:  # pieces are joined by the triangles
+            pieces = fit_pieces(scan, folder, build_manifest(projected, options, best, tiles,
+                                                             files, {}, plan))
+            if pieces is not None and pieces["file"] is not None:
+                files[PIECES_FILE] = (folder / PIECES_FILE).stat().st_size
         stages.stop()
         manifest = build_manifest(projected, options, best, tiles, files, stages.timings,
                                   plan)
+        if pieces is not None:
+            manifest["pieces"] = pieces
         if large is not None:
             _amend_out_of_core(manifest, projected, best.full, large)
         if atlas_refused is not None:

@@ -61,7 +61,8 @@ STAGES: tuple[Stage, ...] = (
     Stage("error", 0.075, "foot-point deviation of every scan point"),
     Stage("detail", 0.250, "the residual displacement pyramid"),
     Stage("texture", 0.050, "the colour pyramid (when the scan has colour)"),
-    Stage("report", 0.090, "tiles, error.png, error.ply and manifest.json written"),
+    Stage("report", 0.090, "tiles, error.png, error.ply, the detached pieces "
+          "(fitter.fitting.pieces) and manifest.json written"),
 )
 
 #: the stage names in order

@@ -18,6 +18,8 @@ from typing import Any
 from flask import Blueprint, abort, current_app, jsonify, url_for
 from flask.typing import ResponseReturnValue
 
+from client_py.bundle import PIECES_FILE
+
 from ..collection.bundles import Bundle, BundleError
 
 bp = Blueprint("api", __name__, url_prefix="/api")
@@ -57,8 +59,9 @@ def object_summary(bundle: Bundle) -> dict[str, Any]:
                                 filename="manifest.json"),
         "bytes": sum(sizes.values()),
         "base_bytes": sizes.get(bundle.base_file, 0),
-        # what a visitor's viewer downloads: the manifest and the base patch
-        "view_bytes": sizes.get("manifest.json", 0) + sizes.get(bundle.base_file, 0),
+        # what a visitor's viewer downloads: the manifest, the base and a patch's pieces
+        "view_bytes": sizes.get("manifest.json", 0) + sizes.get(bundle.base_file, 0)
+        + sizes.get(PIECES_FILE, 0),
         "files": sizes,
         "units": bundle.units,
         "grid": base.get("grid"),

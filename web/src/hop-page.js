@@ -17,7 +17,9 @@
 
 import { ErrorMap } from "./error-map.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, atlasBaseChoice, levelOption, levelPly, loadManifest, startPage, workerInit } from "./page.js";
+import {
+  $, atlasBaseChoice, levelOption, levelPly, loadManifest, loadPieces, startPage, workerInit,
+} from "./page.js";
 
 const RESOLUTION = 192; // 36,864 vertices: one 3DHOP chunk (its limit is 65,535 per chunk)
 const FRAME_RESOLUTION = 64; // base grid the framing is computed from at a detail level
@@ -140,6 +142,8 @@ async function main() {
   } catch (error) {
     levelsError = error;
   }
+  // a patch's detached pieces: in every PLY the worker writes from now on
+  if (!levelsError) await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
   const units = manifest.units || "unknown";
   for (const choice of levels) select.append(levelOption(choice, units));
   select.value = String(level);

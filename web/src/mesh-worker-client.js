@@ -81,6 +81,15 @@ export class MeshWorkerClient {
     return this._request({ type: "plan", manifest: JSON.stringify(manifest) });
   }
 
+  /** A patch bundle's detached pieces (after plan(): the manifest's pieces.file, fetched by
+   *  the worker from `url` and kept for the PLYs): resolves with their mesh {positions,
+   *  normals, uvs, indices, bytes, resources, tessellate_ms} in the scan frame. */
+  async pieces(url) {
+    const reply = await this._request({ type: "pieces", url });
+    this.onResources(reply.resources); // the fetch counts in the visit's transfers
+    return reply;
+  }
+
   /** PLY of the whole patch at detail level choice.level (an entry of plan().levels), on its
    *  grid, as `tessera tessellate BUNDLE --level L` writes it: its detail_files that the
    *  worker holds (see holds()) are used as they are, the others must be in `fresh` (a Map

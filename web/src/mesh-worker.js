@@ -51,6 +51,9 @@
 //           the meshes made from now on; bytes null: the colour packs again)
 //   page -> {type: "ply", level >= -1, fresh?} -> as above (level_ply: the packs of 0..L);
 //           meanwhile {type: "plyProgress", id, fraction} (the share of the atlas tessellated)
+//   page -> {type: "pieces", url} -> {type: "pieces", positions, normals, uvs, indices, bytes,
+//           resources}  (after "plan": the worker fetches the manifest's pieces.tsa at `url`,
+//           WorkerSession.load_pieces keeps its mesh for the PLYs and it is sent to be drawn)
 //   page -> {type: "tile", name, bytes}  -> {type: "tile", name, level, i, j}   (add_tile, kept)
 //   page -> {type: "fetchTiles", tiles: [{name, url}, ...]}
 //        -> {type: "fetchedTiles", tiles: [{name, bytes, level, i, j}, ...], resources}
@@ -296,6 +299,14 @@ function ply({ id, resolution, colors, level, fresh, textures }) {
   }
 }
 
+async function pieces({ id, url }) {
+  const bytes = await fetchBytes(url, "the detached pieces");
+  const t0 = performance.now();
+  const mesh = session.load_pieces(bytes);
+  postMesh(mesh, performance.now() - t0, { type: "pieces", id, bytes: bytes.length,
+                                          resources: resourceEntries() });
+}
+
 function tile({ id, name, bytes }) {
   const [level, i, j] = toPlain(session.add_tile(name, bytes));
   post({ type: "tile", id, name, level, i, j });
@@ -391,7 +402,7 @@ function resources({ id }) {
   post({ type: "resources", id, resources: resourceEntries() });
 }
 
-const handlers = { init, tessellate, plan, ply, tile, fetchTiles, drop, region, regions,
+const handlers = { init, tessellate, plan, ply, pieces, tile, fetchTiles, drop, region, regions,
                    resources };
 
 async function run(request) {

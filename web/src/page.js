@@ -190,6 +190,18 @@ export async function decodeTextureRgb(bytes, node) {
   return { level: node.level, i: node.i, j: node.j, file: node.file, width, height, rgb };
 }
 
+/** A patch bundle's detached pieces (manifest.pieces.file, docs/format.md "Pieces"), fetched
+ *  by the worker after plan() and kept for every PLY it writes: resolves with their mesh
+ *  (MeshWorkerClient.pieces), or null when the bundle draws none; adds their bytes to
+ *  stats.bytes_downloaded. */
+export async function loadPieces(worker, manifest, { manifestUrl, stats }) {
+  if (!manifest.pieces || !manifest.pieces.file) return null;
+  const url = new URL(manifest.pieces.file, new URL(manifestUrl, window.location.href));
+  const mesh = await worker.pieces(url.href);
+  stats.bytes_downloaded += mesh.bytes;
+  return mesh;
+}
+
 /**
  * The PLY of the bundle at detail level choice.level (an entry of MeshWorkerClient.plan's
  * levels): the detail tiles the worker does not hold are fetched, the texture tiles fetched

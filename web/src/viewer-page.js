@@ -4,13 +4,15 @@
 // document.body.dataset.error holds the message on failure; window.tessera.stats =
 // {vertices, triangles, tessellate_ms, pyodide_load_ms, first_frame_ms, bytes_downloaded,
 //  kernel, resolution, tiles_loaded, tile_bytes, tile_tessellate_ms, regions, ...}
-// (vertices/triangles: the base mesh; tile stats: web/src/tile-layer.js). Detail tiles load on
+// (vertices/triangles: the base mesh; tile stats: web/src/tile-layer.js; pieces_triangles: a
+// patch's detached pieces drawn beside it, manifest.pieces). Detail tiles load on
 // zoom (web/src/tile-tree.js); window.tessera.zoomTo(u, v, distance) frames the surface point
 // at normalised (u, v) from `distance` scan units along its normal and resolves once the
 // tiles for that view are on screen; window.tessera.tilesIdle() resolves when no tile update
 // is due; window.tessera.view() gives the camera's projection and view matrices (column-major)
 // and window.tessera.regionMeshes() the regions on screen ({level, i, j, grid, positions, uvs}
-// of their grid vertices, skirts left out), for tests. A tile that fails to load sets document.body.dataset.tileError (the base stays).
+// of their grid vertices, skirts left out), for tests. A tile that fails to load sets document.body.dataset.tileError (the base stays);
+// pieces that fail to load set document.body.dataset.piecesError (the patch stays).
 // "Download PLY" and its level choice: web/src/ply-download.js (its stats and
 // document.body.dataset.plyBusy are described there). The page's parts: BaseMesh
 // (base-mesh.js), FactsPanel (facts-panel.js), ErrorMapControl (error-map-control.js),
@@ -25,7 +27,7 @@ import { BaseMesh, COARSE_RESOLUTION } from "./base-mesh.js";
 import { ErrorMapControl } from "./error-map-control.js";
 import { FactsPanel } from "./facts-panel.js";
 import { MeshWorkerClient } from "./mesh-worker-client.js";
-import { $, atlasBaseChoice, loadManifest, startPage, workerInit } from "./page.js";
+import { $, atlasBaseChoice, loadManifest, loadPieces, startPage, workerInit } from "./page.js";
 import { PlyDownload } from "./ply-download.js";
 import { TransferTally } from "./transfer-tally.js";
 
@@ -332,6 +334,17 @@ async function main() {
 
   const { TileLayer } = await tileModule;
   const planned = await planLevels(worker, manifest); // the worker keeps the manifest
+  if (planned.plan) {
+    try {
+      const pieces = await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
+      if (pieces) {
+        viewer.setPieces(pieces);
+        stats.pieces_triangles = pieces.indices.length / 3;
+      }
+    } catch (error) { // a missing or bad pieces.tsa: the patch stays, the reason is kept
+      document.body.dataset.piecesError = error.message;
+    }
+  }
   tiles = startTiles(TileLayer, { viewer, worker, manifest, planned, base, facts, transfers });
   settleTiles();
   const errorMap = new ErrorMapControl(manifest, viewer);

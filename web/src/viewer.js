@@ -106,6 +106,9 @@ export class Viewer {
     this.regionGroup = new THREE.Group();
     this.scene.add(this.regionGroup);
     this.regionMaterial = this.material.clone();
+    // A patch's detached pieces (setPieces): stone, never masked, textured nor error-mapped.
+    this.pieces = null;
+    this.piecesMaterial = this.material.clone();
     // An atlas's groups (setAtlasParts): key -> THREE.Mesh, drawn instead of this.mesh.
     this.atlasParts = new Map();
     this.atlasGroup = new THREE.Group();
@@ -399,6 +402,28 @@ export class Viewer {
     for (const mesh of this.regions.values()) {
       if (mesh.material !== this.regionMaterial) assign(mesh.material, mesh.userData.texture);
     }
+  }
+
+  /**
+   * Show a patch bundle's detached pieces (the worker's pieces mesh, scan frame: the scan's
+   * fragments the height field cannot hold, docs/format.md "Pieces") beside the patch, at
+   * every level; a second call replaces them.
+   * @param {{positions: Float32Array, normals: Float32Array, indices: Uint32Array}} data
+   */
+  setPieces(data) {
+    const geometry = new THREE.BufferGeometry();
+    geometry.setAttribute("position", new THREE.BufferAttribute(data.positions, 3));
+    geometry.setAttribute("normal", new THREE.BufferAttribute(data.normals, 3));
+    geometry.setIndex(new THREE.BufferAttribute(data.indices, 1));
+    geometry.computeBoundingSphere();
+    if (this.pieces) {
+      this.pieces.geometry.dispose();
+      this.pieces.geometry = geometry;
+    } else {
+      this.pieces = new THREE.Mesh(geometry, this.piecesMaterial);
+      this.scene.add(this.pieces);
+    }
+    this.render();
   }
 
   /**
