@@ -764,3 +764,36 @@ def test_groups_leave_room_for_walls_masks():
     assert plain == [(0, 200)]
     assert len(walled) > 1 and sum(n for _, n in walled) == 200
     assert all(pack_capacity(3, n, deg, spans, walls=16) <= MAX_PACK_VALUES for _, n in walled)
+
+
+def test_the_fold_re_solve_of_the_changed_patches_is_the_full_re_solve(monkeypatch):
+    """After the fold rows, ``_solve_level(again=..., changed=...)`` solves only the patches
+    with new rows (and the interiors whose shared ring moved): its coefficients, the
+    independent solve's and the data weights are those of solving every patch again, to
+    the bit, and so are the packs (quantised with the batches' rows it leaves)."""
+    ico = trimesh.creation.icosphere(subdivisions=5)
+    fit, scan = _fake_fit(sphere_atlas(3, cube=True), "ball", np.asarray(ico.vertices) * 1.3,
+                          np.asarray(ico.faces, np.int64))
+    monkeypatch.setattr(atlas_detail, "FOLD_WEIGHT", 10.0)  # fold rows at both levels
+    solve_level = atlas_detail._solve_level
+    compared = []
+
+    def both(*args, again=None, changed=None):
+        reduced = solve_level(*args, again=again, changed=changed)
+        if again is not None:
+            full = solve_level(*args)
+            for name in ("coefficients", "free", "weight", "shared"):
+                assert np.array_equal(getattr(reduced, name), getattr(full, name)), name
+            compared.append((int(changed.sum()), len(changed)))
+        return reduced
+
+    monkeypatch.setattr(atlas_detail, "_solve_level", both)
+    reduced = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4)
+    assert len(compared) == 2 and any(0 < c < F for c, F in compared), compared
+
+    def full_only(*args, again=None, changed=None):
+        return solve_level(*args)
+
+    monkeypatch.setattr(atlas_detail, "_solve_level", full_only)
+    full = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4)
+    assert reduced.files == full.files and reduced.files

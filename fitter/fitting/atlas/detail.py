@@ -1083,33 +1083,91 @@ class _BatchSystem:
 
     def normal(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
         """Patches ``first:first + per_batch``'s ``M``, ``A^T r`` and ``diag(A^T A)``."""
+        last = min(self.F, first + self.per_batch)
+        A, r = self._batch_rows(first)
+        return self._equations(A, r, last - first)
+
+    def normal_of(self, patches: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+        """:meth:`normal` of the patches ``patches`` (ascending, within :attr:`per_batch`),
+        block ``i`` patch ``patches[i]``: each block's rows are those it has in its own batch,
+        in the same order (the weighted data rows kept in ``rows``, then its ``pull`` rows),
+        so each block's ``M``, ``A^T r`` and solution are the full batch's, to the bit."""
+        nn = self.n * self.n
+        offsets = self.samples.offsets
+        spans, values = [], []
+        for first in np.unique(patches // self.per_batch * self.per_batch):
+            mine = patches[(patches >= first) & (patches < first + self.per_batch)]
+            A, r, _ = self._data_rows(int(first))
+            lo = offsets[first]
+            take = np.concatenate([np.arange(offsets[f], offsets[f + 1]) for f in mine]) - lo
+            part = A[take]
+            block = np.searchsorted(patches, first + part.indices // nn)
+            spans.append(sp.csr_matrix((part.data, block * nn + part.indices % nn,
+                                        part.indptr), shape=(len(take), len(patches) * nn)))
+            values.append(r[take])
+        pull = self.pull
+        if pull is not None:
+            take = np.concatenate([np.arange(pull.offsets[f], pull.offsets[f + 1])
+                                   for f in patches])
+            if len(take):
+                root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[take])
+                spans.append(sp.diags(root) @ collocation_matrix(
+                    DEGREE, self.knots, self.n, pull.u[take], pull.v[take],
+                    block=np.searchsorted(patches, pull.patch[take]), blocks=len(patches)))
+                values.append(root * pull.target[take])
+        return self._equations(sp.vstack(spans).tocsr(), np.concatenate(values), len(patches))
+
+    def _data_rows(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, int]:
+        """Patches ``first:first + per_batch``'s weighted sample rows and residual, and their
+        count ``m``: the batch's rows kept in ``rows`` (:meth:`_batch_rows`: the first ``m``
+        are the samples'), or made."""
+        entry = None if self.rows is None else self.rows.get(first)
+        if entry is not None:
+            return entry[0], entry[1], entry[2]
         samples, n, knots = self.samples, self.n, self.knots
         last = min(self.F, first + self.per_batch)
         lo, hi = samples.offsets[first], samples.offsets[last]
         count = last - first
-        if self.rows is not None and first in self.rows:
-            A, r = self.rows[first]
+        if self.model is None:
+            A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
+                                   block=samples.patch[lo:hi] - first, blocks=count)
         else:
-            if self.model is None:
-                A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
-                                       block=samples.patch[lo:hi] - first, blocks=count)
-            else:
-                A = self.model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first,
-                                    count)
-            r = self.residual[lo:hi]
-            if self.weights is not None:
-                root = np.sqrt(self.weights[lo:hi])
-                A, r = sp.diags(root) @ A, root * r
-            pull = self.pull
-            if pull is not None and pull.offsets[last] > pull.offsets[first]:
-                plo, phi = pull.offsets[first], pull.offsets[last]
-                root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[plo:phi])
-                A = sp.vstack([A, sp.diags(root) @ collocation_matrix(
-                    DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
-                    block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
-                r = np.concatenate([r, root * pull.target[plo:phi]])
-            if self.rows is not None:
-                self.rows[first] = A, r
+            A = self.model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first, count)
+        r = self.residual[lo:hi]
+        if self.weights is not None:
+            root = np.sqrt(self.weights[lo:hi])
+            A, r = sp.diags(root) @ A, root * r
+        return A, r, hi - lo
+
+    def _batch_rows(self, first: int) -> tuple[sp.csr_matrix, np.ndarray]:
+        """Patches ``first:first + per_batch``'s rows ``A`` and right-hand side ``r``: the
+        weighted samples' rows, then ``pull``'s rows of these patches. Kept in ``rows`` with
+        the ``pull`` they were made with; a later ``pull`` (more rows: the fold rows) keeps
+        the sample rows and appends its own."""
+        entry = None if self.rows is None else self.rows.get(first)
+        if entry is not None and entry[3] is self.pull:
+            return entry[0], entry[1]
+        A, r, data = self._data_rows(first)
+        if A.shape[0] > data:  # the rows of an earlier pull after them
+            A, r = A[:data], r[:data]
+        last = min(self.F, first + self.per_batch)
+        count = last - first
+        pull = self.pull
+        if pull is not None and pull.offsets[last] > pull.offsets[first]:
+            plo, phi = pull.offsets[first], pull.offsets[last]
+            root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[plo:phi])
+            A = sp.vstack([A, sp.diags(root) @ collocation_matrix(
+                DEGREE, self.knots, self.n, pull.u[plo:phi], pull.v[plo:phi],
+                block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
+            r = np.concatenate([r, root * pull.target[plo:phi]])
+        if self.rows is not None:
+            self.rows[first] = A, r, data, pull
+        return A, r
+
+    def _equations(self, A: sp.csr_matrix, r: np.ndarray, count: int
+                   ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+        """``M``, ``A^T r`` and ``diag(A^T A)`` of ``count`` patches' rows ``A``."""
+        n = self.n
         AtA = (A.T @ A).tocsr()
         diag = AtA.diagonal()
         mu = np.maximum(diag.reshape(count, n * n).sum(axis=1) / (n * n), self.mu_floor)
@@ -1120,8 +1178,8 @@ class _BatchSystem:
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                   fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
                   threads: int | None = None, model: DrawnModel | None = None,
-                  rows: dict | None = None, pull: PullRows | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  rows: dict | None = None, pull: PullRows | None = None,
+                  patches: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
@@ -1143,6 +1201,12 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     of the solves' CPU time); the same numbers either way. ``pull``: the far drawn nodes'
     rows (:func:`far_node_rows`), appended to their patch's, each weighing
     ``pull.weight``.
+
+    ``patches`` (ascending): only these patches are solved, the results' rows in that
+    order, shapes ``(len(patches), n, n)``; ``rows`` must hold their batches' rows (a
+    solve of every patch given the same ``rows`` made them): each patch's numbers are those
+    of the solve of every patch, to the bit (:meth:`_BatchSystem.normal_of`; the re-solve
+    after the fold rows, :func:`_solve_level`).
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
@@ -1150,21 +1214,23 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     free = np.flatnonzero(~ring) if fixed is not None else np.arange(n * n)
     held = np.flatnonzero(ring)
     order = block_order(n, fixed is not None)
-    out = np.zeros((F, n, n))
-    weight = np.zeros((F, n, n))
+    chosen = np.arange(F) if patches is None else np.asarray(patches, np.int64)
+    out = np.zeros((len(chosen), n, n))
+    weight = np.zeros((len(chosen), n, n))
     system = _BatchSystem(samples, residual, level, spans, weights, model, rows, pull)
 
     def one_batch(first: int) -> None:
-        last = min(F, first + system.per_batch)
+        last = min(len(chosen), first + system.per_batch)
         count = last - first
-        M, rhs, diag = system.normal(first)
+        M, rhs, diag = (system.normal(first) if patches is None
+                        else system.normal_of(chosen[first:last]))
         weight[first:last] = diag.reshape(count, n, n)
         if fixed is None:
             out[first:last] = solve_spd_blocks(M, rhs, order).reshape(count, n, n)
             return
         cols_free = (np.arange(count)[:, None] * n * n + free[None, :]).reshape(-1)
         cols_held = (np.arange(count)[:, None] * n * n + held[None, :]).reshape(-1)
-        c_held = fixed[first:last].reshape(count, n * n)[:, held].reshape(-1)
+        c_held = fixed[chosen[first:last]].reshape(count, n * n)[:, held].reshape(-1)
         M_rows = M[cols_free]  # taken once for both column sets
         M_free = M_rows[:, cols_free]
         b = rhs[cols_free] - M_rows[:, cols_held] @ c_held
@@ -1173,7 +1239,7 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         c[cols_held] = c_held
         out[first:last] = c.reshape(count, n, n)
 
-    on_threads(one_batch, F, system.per_batch, threads)
+    on_threads(one_batch, len(chosen), system.per_batch, threads)
     return out, weight
 
 
@@ -1383,25 +1449,70 @@ class AtlasDetail:
         return out
 
 
+@dataclass
+class WeldedSolve:
+    """One level's welded solve (:func:`_solve_level`), kept for a re-solve with more rows.
+
+    Attributes
+    ----------
+    coefficients : ndarray, shape (F, n, n)
+        The welded coefficients, before quantisation.
+    free, weight : ndarray, shape (F, n, n)
+        The independent solve's coefficients and data weights ``diag(A_f^T A_f)``.
+    shared : ndarray, shape (F, n, n)
+        The border ring's shared values the interior was solved with.
+    rows : dict
+        The batches' rows (:class:`_BatchSystem`), for the quantisation and a re-solve.
+    """
+
+    coefficients: np.ndarray
+    free: np.ndarray
+    weight: np.ndarray
+    shared: np.ndarray
+    rows: dict
+
+
 def _solve_level(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                  fit_weight: np.ndarray, use: np.ndarray, model: DrawnModel, G: np.ndarray,
-                 pull: PullRows | None) -> tuple[np.ndarray, dict]:
+                 pull: PullRows | None, again: WeldedSolve | None = None,
+                 changed: np.ndarray | None = None) -> WeldedSolve:
     """One level's welded coefficients ``(F, n, n)`` before quantisation and the batches'
     rows (module docstring, "Welded borders"): the independent solve, its border
     coefficients bounded and shared (``G``: :func:`shared_index`), the interior solved again
-    with the border ring held."""
-    rows: dict = {}  # the batches' rows, made once for both solves
-    free, weight = _solve_blocks(samples, residual, level, spans, weights=fit_weight,
-                                 model=model, rows=rows, pull=pull)
+    with the border ring held.
+
+    ``again``: the solve before ``pull`` gained rows at the patches ``changed`` (``(F,)``
+    booleans: the fold rows). Each patch's independent solve is its own block, so only
+    the ``changed`` patches are solved again; the border slots are shared again, and only the
+    patches whose shared ring moved (the ``changed`` and their neighbours across the slots
+    their ring shares) have their interior solved again. Every other patch's numbers are
+    ``again``'s, which a solve of every patch would give again: the same coefficients, to
+    the bit (``tests/test_atlas_solve.py``)."""
+    rows = {} if again is None else again.rows  # the batches' rows, made once for all solves
+    solve = functools.partial(_solve_blocks, samples, residual, level, spans,
+                              weights=fit_weight, model=model, rows=rows, pull=pull)
+    if again is None:
+        free, weight = solve()
+    else:
+        redo = np.flatnonzero(changed)
+        free, weight = again.free.copy(), again.weight.copy()
+        if len(redo):
+            free[redo], weight[redo] = solve(patches=redo)
     shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
-    c, _ = _solve_blocks(samples, residual, level, spans, fixed=shared, weights=fit_weight,
-                         model=model, rows=rows, pull=pull)
+    if again is None:
+        c, _ = solve(fixed=shared)
+    else:
+        ring = border_ring(shared.shape[1])
+        redo = np.flatnonzero(changed | (shared[:, ring] != again.shared[:, ring]).any(axis=1))
+        c = again.coefficients.copy()
+        if len(redo):
+            c[redo], _ = solve(fixed=shared, patches=redo)
     # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
     # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border ring kept
     # (shared, bounded already, and equal on both sides of a border)
     inner = ~border_ring(c.shape[1])
     c[:, inner] = bounded_by_residual(c, samples, residual, use)[:, inner]
-    return c, rows
+    return WeldedSolve(c, free, weight, shared, rows)
 
 
 def _tick(timings: dict, name: str, clock: float) -> float:
@@ -1521,7 +1632,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                               PULL_WEIGHT * per_node)
                 if PULL_WEIGHT > 0 else None)
 
-        c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+        solved = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+        c = solved.coefficients
         if held.any():  # refused before its fold rows and rounding ("Depth"): their cost spared
             unrounded = residual - model.drawn(c, k, spans)
             held_rms.append(float(np.sqrt(np.mean(unrounded[held] ** 2 + samples.t2[held]))))
@@ -1535,7 +1647,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
             if not len(fold.patch):
                 break
             pull = merged_rows(pull, fold)
-            c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+            solved = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull,
+                                  again=solved, changed=np.diff(fold.offsets) > 0)
+            c = solved.coefficients
         clock = _tick(timings, "solve", clock)
         fitted = residual - model.drawn(c, k, spans)
         rms_fit = float(np.sqrt(np.average(fitted[use] ** 2 + samples.t2[use],
@@ -1544,8 +1658,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                  float(np.abs(residual[use]).max(initial=0.0)), step_factor)
         limit = COEFFICIENT_REACH * _largest_residual(samples, residual, use)
         q = quantised_blocks(samples, residual, k, spans, c, step, limit, weights=fit_weight,
-                             model=model, rows=rows, pull=pull)
-        del rows
+                             model=model, rows=solved.rows, pull=pull)
+        del solved
         clock = _tick(timings, "quantise", clock)
         fields.append(q * step)
         residual = residual - model.drawn(fields[-1], k, spans)
