@@ -777,13 +777,53 @@ def fold_shrink(before: np.ndarray, step: np.ndarray, keep: float) -> np.ndarray
     return s
 
 
-def fold_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], coefficients: np.ndarray,
-                   level: int, spans: int, weight: float, keep: float = FOLD_KEEP,
-                   chunk: int = CHUNK) -> PullRows:
+@dataclass
+class LevelNodes:
+    """Every node of the mesh drawn at one level's resolution (:func:`all_nodes` order),
+    made once per level for its far rows and its fold rows (:func:`level_nodes`).
+
+    Attributes
+    ----------
+    patches, resolution : int
+        ``F`` and ``r``.
+    patch, u, v : ndarray, shape (F r²,)
+        The node's patch and its parameters ``a / (r - 1)``, ``b / (r - 1)``.
+    position, direction : ndarray, shape (F r², 3)
+        ``C_f(node)`` and the direction ``d`` the client draws it with (:func:`node_frames`).
+    before : ndarray, shape (F r²,)
+        The levels before's displacement there, ``sum_j D_j(node)``.
+    """
+
+    patches: int
+    resolution: int
+    patch: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    position: np.ndarray
+    direction: np.ndarray
+    before: np.ndarray
+
+
+def level_nodes(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
+                chunk: int = CHUNK) -> LevelNodes:
+    """:class:`LevelNodes` of the mesh drawn at level ``level``'s resolution with the levels
+    before it (``fields``)."""
+    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
+    f, a, b = all_nodes(F, r)
+    c, d = node_frames(atlas, r, f, a, b, chunk)
+    u, v = a / (r - 1), b / (r - 1)
+    before = sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
+                 np.zeros(len(f)))
+    return LevelNodes(F, r, f, u, v, c, d, before)
+
+
+def fold_node_rows(nodes: LevelNodes, coefficients: np.ndarray, level: int, spans: int,
+                   weight: float, keep: float = FOLD_KEEP) -> PullRows:
     """Rows against the drawn triangles that turn over (module docstring, "Folds").
 
-    The mesh drawn at level ``level``'s resolution with the levels before it (``fields``)
-    and this level's ``coefficients (F, n, n)``; a drawn triangle that keeps less than
+    The mesh drawn at level ``level``'s resolution with the levels before it (``nodes``:
+    :func:`level_nodes`) and this level's ``coefficients (F, n, n)``; a drawn triangle that
+    keeps less than
     ``keep`` of the base's drawn triangle at the same nodes (area vectors ``N_k . N_b <
     keep |N_b|²``: turned over, or nearly, so that rounding the level may turn it), where
     the base triangle faces its patch's way (``N_b . a_f > 0``, ``a_f = Σ N_b`` over the
@@ -791,18 +831,14 @@ def fold_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], coefficients: 
     D_k(node)`` at its three nodes, ``s`` from :func:`fold_shrink` with the base and the
     levels before as ``before`` (at level 0 the base itself; the smallest ``s`` of the
     node's triangles), each weighing ``weight``."""
-    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
-    f, a, b = all_nodes(F, r)
-    c, d = node_frames(atlas, r, f, a, b, chunk)
-    u, v = a / (r - 1), b / (r - 1)
-    before = sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
-                 np.zeros(len(f)))
+    F, r = nodes.patches, nodes.resolution
+    f, u, v, c, d = nodes.patch, nodes.u, nodes.v, nodes.position, nodes.direction
     own = evaluate_fields(coefficients, level, spans, f, u, v)
     tri = grid_triangles(F, r)
     base_area = np.cross(c[tri[:, 1]] - c[tri[:, 0]], c[tri[:, 2]] - c[tri[:, 0]])
     patch_area = np.zeros((F, 3))
     np.add.at(patch_area, f[tri[:, 0]], base_area)
-    x = c + before[:, None] * d
+    x = c + nodes.before[:, None] * d
     y = x + own[:, None] * d
     drawn_area = np.cross(y[tri[:, 1]] - y[tri[:, 0]], y[tri[:, 2]] - y[tri[:, 0]])
     kept = np.einsum("tc,tc->t", drawn_area, base_area)
@@ -833,29 +869,24 @@ def merged_rows(first: PullRows | None, second: PullRows) -> PullRows:
                     np.searchsorted(patch, np.arange(len(first.offsets))), weight[order])
 
 
-def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
-                  scan_mesh: tuple[np.ndarray, np.ndarray], reach: float, weight: float,
-                  chunk: int = CHUNK) -> PullRows:
-    """The nodes of the mesh drawn at level ``level``'s resolution, with the levels before
-    it (``fields``), that lie farther than ``reach`` from the scan's surface ``scan_mesh
-    (vertices, faces)``, each with the row ``D_f(node) = (q - X) . d`` (module docstring,
-    "Far nodes"): ``X = C + sum_j D_j d`` the drawn node, ``q`` its closest point on the
-    scan's triangles (:func:`.measure.closest_points_on_mesh`), ``d`` its direction
-    (:func:`node_frames`)."""
+def far_node_rows(nodes: LevelNodes, scan_mesh: tuple[np.ndarray, np.ndarray], reach: float,
+                  weight: float) -> PullRows:
+    """The nodes of the mesh drawn at a level's resolution with the levels before it
+    (``nodes``: :func:`level_nodes`) that lie farther than ``reach`` from the scan's
+    surface ``scan_mesh (vertices, faces)``, each with the row ``D_f(node) = (q - X) . d``
+    (module docstring, "Far nodes"): ``X = C + sum_j D_j d`` the drawn node, ``q`` its
+    closest point on the scan's triangles (:func:`.measure.closest_points_on_mesh`), ``d``
+    its direction (:func:`node_frames`)."""
     from .measure import closest_points_on_mesh
 
-    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
-    f, a, b = all_nodes(F, r)
-    c, d = node_frames(atlas, r, f, a, b, chunk)
-    u, v = a / (r - 1), b / (r - 1)
-    x = c + d * sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
-                    np.zeros(len(f)))[:, None]
+    f, d = nodes.patch, nodes.direction
+    x = nodes.position + d * nodes.before[:, None]
     vertices, faces = scan_mesh
     dist, _, q = closest_points_on_mesh(x, vertices, faces)
     far = np.flatnonzero(dist > reach)
     target = np.einsum("kc,kc->k", q[far] - x[far], d[far])
-    return PullRows(f[far], u[far], v[far], target, np.searchsorted(f[far], np.arange(F + 1)),
-                    weight)
+    return PullRows(f[far], nodes.u[far], nodes.v[far], target,
+                    np.searchsorted(f[far], np.arange(nodes.patches + 1)), weight)
 
 
 # ------------------------------------------------------------------ drawn cells
@@ -1608,7 +1639,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     per_level_tiles: list[dict] = []
     level_rows: list[dict] = []
     worst_of_patch: list[np.ndarray] = []  # per level: max e of each patch's samples
-    timings.update(model=0.0, solve=0.0, quantise=0.0, tiles=0.0)  # the levels' steps, summed
+    timings.update(model=0.0, far_rows=0.0, solve=0.0, fold_rows=0.0, quantise=0.0,
+                   tiles=0.0)  # the levels' steps, summed
     clock = time.perf_counter()
     feet = DrawnModel.feet(atlas, samples)
     scan_mesh = (fit.surface.vertices, fit.surface.faces)
@@ -1628,9 +1660,10 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
         per_node = per_patch / atlas_level_resolution(spans, k) ** 2
-        pull = (far_node_rows(atlas, fields, k, spans, scan_mesh, PULL_REACH * diagonal,
-                              PULL_WEIGHT * per_node)
+        nodes = level_nodes(atlas, fields, k, spans) if PULL_WEIGHT > 0 or FOLD_PASSES else None
+        pull = (far_node_rows(nodes, scan_mesh, PULL_REACH * diagonal, PULL_WEIGHT * per_node)
                 if PULL_WEIGHT > 0 else None)
+        clock = _tick(timings, "far_rows", clock)
 
         solved = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
         c = solved.coefficients
@@ -1643,7 +1676,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                 break
             held_rms.pop()
         for _ in range(FOLD_PASSES if FOLD_WEIGHT > 0 else 0):  # module docstring, "Folds"
-            fold = fold_node_rows(atlas, fields, c, k, spans, FOLD_WEIGHT * per_node)
+            clock = _tick(timings, "solve", clock)
+            fold = fold_node_rows(nodes, c, k, spans, FOLD_WEIGHT * per_node)
+            clock = _tick(timings, "fold_rows", clock)
             if not len(fold.patch):
                 break
             pull = merged_rows(pull, fold)
@@ -1659,7 +1694,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         limit = COEFFICIENT_REACH * _largest_residual(samples, residual, use)
         q = quantised_blocks(samples, residual, k, spans, c, step, limit, weights=fit_weight,
                              model=model, rows=solved.rows, pull=pull)
-        del solved
+        del solved, nodes
         clock = _tick(timings, "quantise", clock)
         fields.append(q * step)
         residual = residual - model.drawn(fields[-1], k, spans)
