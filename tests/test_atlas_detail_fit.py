@@ -9,6 +9,7 @@ import trimesh
 from client_py.atlas_detail import pack_name, read_pack
 from client_py.atlas_mesh import tessellate_atlas
 from fitter.fitting.atlas import detail as atlas_detail
+from fitter.fitting.atlas import threads as atlas_threads
 from fitter.fitting.atlas.fit import AtlasFit, control_points, evaluate_patches, index_table
 from fitter.fitting.atlas.surface import ScanSurface
 from fitter.fitting.io.scan import make_scan
@@ -470,7 +471,7 @@ def test_far_drawn_nodes_are_pulled_toward_the_scan_not_pushed_away(monkeypatch)
 
 def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeypatch):
     """node_frames, DrawnModel.feet and DrawnModel.of run their chunks on one thread per
-    core (atlas.detail.on_threads); each chunk writes its own rows, so many small chunks on
+    core (atlas.threads.on_threads); each chunk writes its own rows, so many small chunks on
     four threads give the numbers of one thread, bit for bit."""
     fit, scan, det = fitted
     atlas = det.atlas
@@ -482,7 +483,7 @@ def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeyp
     b = np.tile(np.arange(r), F * r)
     made = {}
     for cores in (1, 4):
-        monkeypatch.setattr(atlas_detail.os, "cpu_count", lambda cores=cores: cores)
+        monkeypatch.setattr(atlas_threads.os, "cpu_count", lambda cores=cores: cores)
         made[cores] = (atlas_detail.node_frames(atlas, r, f, a, b, chunk=333),
                        atlas_detail.DrawnModel.of(atlas, samples, r, chunk=97))
     (frames_1, model_1), (frames_4, model_4) = made[1], made[4]

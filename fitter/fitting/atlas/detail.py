@@ -166,7 +166,6 @@ import math
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -210,6 +209,7 @@ from .fit import (
     spd_lu,
 )
 from .lattice import lattice_descent
+from .threads import on_threads
 
 DEGREE = 2
 SPANS = 8  # spans per tile side: on the bunny, 8 reached 0.27 mm RMS in 49 KB, 4 in 112 KB
@@ -521,26 +521,6 @@ def drawn_triangles(u: np.ndarray, v: np.ndarray, resolution: int
 
 def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-300)
-
-
-def on_threads(work: Callable[[int], object], count: int, chunk: int, threads: int | None = None,
-               progress: Callable[[float], None] | None = None) -> list:
-    """``[work(lo) for lo in range(0, count, chunk)]``, on ``threads`` threads (default:
-    one per core), in that order.
-
-    For loops whose chunks each write their own rows ``lo:lo + chunk`` of arrays made
-    beforehand or return their own part, with numpy's array operations, SuperLU and the
-    sparse products (which release the GIL): the numbers do not depend on the thread
-    count. A chunk's error is raised here. ``progress(share done)`` after each chunk, in
-    order."""
-    starts = range(0, count, chunk)
-    out = []
-    with ThreadPoolExecutor(max(1, min(threads or os.cpu_count() or 1, len(starts)))) as pool:
-        for done, part in enumerate(pool.map(work, starts), start=1):
-            out.append(part)
-            if progress is not None:
-                progress(done / len(starts))
-    return out
 
 
 def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
@@ -1110,7 +1090,13 @@ class _BatchSystem:
         total = float(np.sum(weights)) if weights is not None else float(len(samples.u))
         per_sample = total / max(F, 1) / (n * n)
         self.mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
-        self.per_batch = max(1, BATCH_UNKNOWNS // (n * n))
+        # batches of BATCH_UNKNOWNS; a level within one (every level 0 of the benchmark's
+        # objects) in one batch per core, so that its solves run on all of them: each
+        # patch's block is solved alone, the same numbers in any batch (quantised_blocks
+        # keeps one lambda for the level)
+        self.rate_batch = max(1, BATCH_UNKNOWNS // (n * n))
+        self.per_batch = (self.rate_batch if F > self.rate_batch
+                          else max(1, -(-F // (os.cpu_count() or 1))))
 
     def normal(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
         """Patches ``first:first + per_batch``'s ``M``, ``A^T r`` and ``diag(A^T A)``."""
@@ -1297,7 +1283,9 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     integer's bits (the packs code a zero flag and the magnitude in unary bins,
     ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with ``m`` the median ``M_ii``
     of the batch's interior (one median per batch of :data:`BATCH_UNKNOWNS`, so a level of
-    several batches has a ``lambda`` each), within the patch's bound ``|q_i| <= Q_f =
+    several batches has a ``lambda`` each; a level within one batch, solved in one batch
+    per core, :class:`_BatchSystem`, has the median of them all), within the patch's bound
+    ``|q_i| <= Q_f =
     rint(limit_f / step)`` (:func:`bounded_by_residual`, ``limit (F,)``, the bound plain
     rounding of a bounded value keeps): a coefficient the samples hardly see (small
     ``M_ii``) is zeroed sooner. Rounding alone adds ``step^2 / 12`` of noise to every
@@ -1324,23 +1312,40 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     # the border ring not moved: colour -1
     colour = np.where(border_ring(n).reshape(-1), -1, (a % stride) * stride + b % stride)
 
-    def one_batch(first: int) -> None:
-        last = min(F, first + system.per_batch)
-        count = last - first
+    def equations(first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray, np.ndarray]:
+        """The batch's ``M``, ``A^T r``, ``diag(M)`` and its interior values moved."""
+        count = min(F, first + system.per_batch) - first
         M, rhs, _ = system.normal(first)
         diag = M.diagonal()
-        at = np.tile(colour, count)
-        inside = np.flatnonzero((at >= 0) & (diag > 0))
+        return M, rhs, diag, np.flatnonzero((np.tile(colour, count) >= 0) & (diag > 0))
+
+    def weight_of(diag: np.ndarray) -> float:
+        # the rate's weight: lambda = rate * step^2 * the median data weight of a coefficient
+        return rate * step * step * float(np.median(diag)) if len(diag) else 0.0
+
+    def descend(first: int, M: sp.csr_matrix, rhs: np.ndarray, diag: np.ndarray,
+                inside: np.ndarray, lam: float) -> None:
+        last = min(F, first + system.per_batch)
+        count = last - first
         bound = np.rint(np.repeat(limit[first:last], n * n) / step)
-        # the rate's weight: lambda = rate * step^2 * the median data weight of a coefficient,
-        # in steps lambda / (2 M_ii step^2) (this order of operations kept: the bytes)
-        lam = rate * step * step * float(np.median(diag[inside])) if len(inside) else 0.0
+        # lambda in steps, lambda / (2 M_ii step^2) (this order of operations kept: the bytes)
         shrink = np.zeros(len(diag))
         shrink[inside] = lam / (2.0 * diag[inside] * step * step)
         q[first:last] = lattice_descent(M, rhs, q[first:last].reshape(-1), 0.0, step, -bound,
-                                        bound, at, sweeps, shrink, 0).reshape(count, n, n)
+                                        bound, np.tile(colour, count), sweeps, shrink,
+                                        0).reshape(count, n, n)
 
-    on_threads(one_batch, F, system.per_batch, threads)
+    if system.per_batch < system.rate_batch:  # one lambda over the level's batches
+        made = on_threads(equations, F, system.per_batch, threads)
+        lam = weight_of(np.concatenate([diag[inside] for _, _, diag, inside in made]))
+        on_threads(lambda first: descend(first, *made[first // system.per_batch], lam), F,
+                   system.per_batch, threads)
+    else:
+        def one_batch(first: int) -> None:
+            M, rhs, diag, inside = equations(first)
+            descend(first, M, rhs, diag, inside, weight_of(diag[inside]))
+
+        on_threads(one_batch, F, system.per_batch, threads)
     return q.astype(np.int64)
 
 
