@@ -798,3 +798,24 @@ def test_the_fold_re_solve_of_the_changed_patches_is_the_full_re_solve(monkeypat
     monkeypatch.setattr(atlas_detail, "_solve_level", full_only)
     full = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4)
     assert reduced.files == full.files and reduced.files
+
+
+def test_a_level_solved_in_one_batch_per_core_gives_the_packs_of_one_batch(monkeypatch):
+    """A level within one batch of ``BATCH_UNKNOWNS`` is solved and quantised in one batch
+    per core (``_BatchSystem.per_batch``), with one ``lambda`` for the level: the packs of
+    one batch, byte for byte, on 1 and 3 cores (3 batches of the 24 patches)."""
+    fit, scan = _bumpy_sphere_fit()
+    descent = atlas_detail.lattice_descent
+    files, calls = {}, {}
+    for cores in (1, 3):
+        monkeypatch.setattr(atlas_threads.os, "cpu_count", lambda cores=cores: cores)
+        calls[cores] = 0
+
+        def counted(*args, cores=cores):
+            calls[cores] += 1
+            return descent(*args)
+
+        monkeypatch.setattr(atlas_detail, "lattice_descent", counted)
+        files[cores] = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4).files
+    assert calls == {1: 2, 3: 6}
+    assert files[1] == files[3] and files[1]
