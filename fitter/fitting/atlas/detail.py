@@ -66,12 +66,15 @@ patch, a pleat of the base, is left alone) and gives each of their nodes the row
 ``D_k(node) = s D_k(node)``, ``s`` the share of the level's displacement with which the
 triangle keeps ``FOLD_KEEP`` (:func:`fold_shrink`; a node's smallest over its triangles),
 weighing ``FOLD_WEIGHT`` times the fitted samples' mean weight per node; the level is
-solved again with them, ``FOLD_PASSES`` times. Level 0 turned over, main -> these rows (the
-same bases, load 6-12): Lucy 1.93 -> 0.37 %, Laurana 0.159 -> 0.017 %, Nefertiti 0.28 ->
-0.04 %, the 15-scan Happy Buddha 5.2 -> 1.8 %, the bunny 0.10 -> 0.015 %, the Bali mask 0.73
--> 0.15 %, at RMS of all points +1.4, +0.2, +0.3, +3.1, -0.2 and +1.0 %; at a weight of 10,
-Lucy's 0.30 % cost +7.9 %. What stays turned is mostly a pleat of the base (27 % on Lucy)
-and triangles turned by the slope of the field between oblique directions (37 %).
+solved again with them, ``FOLD_PASSES`` times: only the patches given rows, and the
+interiors whose shared border ring moved (:func:`_solve_level`; each patch is its own block,
+so the others' numbers are the first solve's, to the bit). Level 0 turned over, main ->
+these rows (the same bases, load 6-12): Lucy 1.93 -> 0.37 %, Laurana 0.159 -> 0.017 %,
+Nefertiti 0.28 -> 0.04 %, the 15-scan Happy Buddha 5.2 -> 1.8 %, the bunny 0.10 -> 0.015 %,
+the Bali mask 0.73 -> 0.15 %, at RMS of all points +1.4, +0.2, +0.3, +3.1, -0.2 and +1.0 %;
+at a weight of 10, Lucy's 0.30 % cost +7.9 %. What stays turned is mostly a pleat of the
+base (27 % on Lucy) and triangles turned by the slope of the field between oblique
+directions (37 %).
 
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
