@@ -73,8 +73,11 @@ def turned_share(base: tuple[np.ndarray, np.ndarray], level: tuple[np.ndarray, n
     version 5) draws a subset of the base's triangles, with the same vertex numbers at the
     same resolution: each is matched to the base's triangle of the same three vertices."""
     if base[1].shape != level[1].shape:
-        width = int(max(base[1].max(initial=0), level[1].max(initial=0))) + 1
-        keys = [(f[:, 0] * width + f[:, 1]) * width + f[:, 2] for f in (base[1], level[1])]
+        # each triangle's key: its row's rank among the distinct rows of both (exact at any
+        # vertex count, where a key (f0 w + f1) w + f2 wraps int64 past 2^21 vertices)
+        _, key = np.unique(np.concatenate([base[1], level[1]]), axis=0, return_inverse=True)
+        key = key.reshape(-1)
+        keys = [key[:len(base[1])], key[len(base[1]):]]
         order = np.argsort(keys[0])
         at = np.searchsorted(keys[0], keys[1], sorter=order)
         found = order[np.minimum(at, len(order) - 1)]

@@ -9,6 +9,7 @@ import trimesh
 from client_py.atlas_detail import pack_name, read_pack
 from client_py.atlas_mesh import tessellate_atlas
 from fitter.fitting.atlas import detail as atlas_detail
+from fitter.fitting.atlas import threads as atlas_threads
 from fitter.fitting.atlas.fit import AtlasFit, control_points, evaluate_patches, index_table
 from fitter.fitting.atlas.surface import ScanSurface
 from fitter.fitting.io.scan import make_scan
@@ -470,7 +471,7 @@ def test_far_drawn_nodes_are_pulled_toward_the_scan_not_pushed_away(monkeypatch)
 
 def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeypatch):
     """node_frames, DrawnModel.feet and DrawnModel.of run their chunks on one thread per
-    core (atlas.detail.on_threads); each chunk writes its own rows, so many small chunks on
+    core (atlas.threads.on_threads); each chunk writes its own rows, so many small chunks on
     four threads give the numbers of one thread, bit for bit."""
     fit, scan, det = fitted
     atlas = det.atlas
@@ -482,7 +483,7 @@ def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeyp
     b = np.tile(np.arange(r), F * r)
     made = {}
     for cores in (1, 4):
-        monkeypatch.setattr(atlas_detail.os, "cpu_count", lambda cores=cores: cores)
+        monkeypatch.setattr(atlas_threads.os, "cpu_count", lambda cores=cores: cores)
         made[cores] = (atlas_detail.node_frames(atlas, r, f, a, b, chunk=333),
                        atlas_detail.DrawnModel.of(atlas, samples, r, chunk=97))
     (frames_1, model_1), (frames_4, model_4) = made[1], made[4]
@@ -844,3 +845,57 @@ def test_groups_leave_room_for_walls_masks():
     assert plain == [(0, 200)]
     assert len(walled) > 1 and sum(n for _, n in walled) == 200
     assert all(pack_capacity(3, n, deg, spans, walls=16) <= MAX_PACK_VALUES for _, n in walled)
+
+
+def test_the_fold_re_solve_of_the_changed_patches_is_the_full_re_solve(monkeypatch):
+    """After the fold rows, ``_solve_level(again=..., changed=...)`` solves only the patches
+    with new rows (and the interiors whose shared ring moved): its coefficients, the
+    independent solve's and the data weights are those of solving every patch again, to
+    the bit, and so are the packs (quantised with the batches' rows it leaves)."""
+    ico = trimesh.creation.icosphere(subdivisions=5)
+    fit, scan = _fake_fit(sphere_atlas(3, cube=True), "ball", np.asarray(ico.vertices) * 1.3,
+                          np.asarray(ico.faces, np.int64))
+    monkeypatch.setattr(atlas_detail, "FOLD_WEIGHT", 10.0)  # fold rows at both levels
+    solve_level = atlas_detail._solve_level
+    compared = []
+
+    def both(*args, again=None, changed=None):
+        reduced = solve_level(*args, again=again, changed=changed)
+        if again is not None:
+            full = solve_level(*args)
+            for name in ("coefficients", "free", "weight", "shared"):
+                assert np.array_equal(getattr(reduced, name), getattr(full, name)), name
+            compared.append((int(changed.sum()), len(changed)))
+        return reduced
+
+    monkeypatch.setattr(atlas_detail, "_solve_level", both)
+    reduced = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4)
+    assert len(compared) == 2 and any(0 < c < F for c, F in compared), compared
+
+    def full_only(*args, again=None, changed=None):
+        return solve_level(*args)
+
+    monkeypatch.setattr(atlas_detail, "_solve_level", full_only)
+    full = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4)
+    assert reduced.files == full.files and reduced.files
+
+
+def test_a_level_solved_in_one_batch_per_core_gives_the_packs_of_one_batch(monkeypatch):
+    """A level within one batch of ``BATCH_UNKNOWNS`` is solved and quantised in one batch
+    per core (``_BatchSystem.per_batch``), with one ``lambda`` for the level: the packs of
+    one batch, byte for byte, on 1 and 3 cores (3 batches of the 24 patches)."""
+    fit, scan = _bumpy_sphere_fit()
+    descent = atlas_detail.lattice_descent
+    files, calls = {}, {}
+    for cores in (1, 3):
+        monkeypatch.setattr(atlas_threads.os, "cpu_count", lambda cores=cores: cores)
+        calls[cores] = 0
+
+        def counted(*args, cores=cores):
+            calls[cores] += 1
+            return descent(*args)
+
+        monkeypatch.setattr(atlas_detail, "lattice_descent", counted)
+        files[cores] = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4).files
+    assert calls == {1: 2, 3: 6}
+    assert files[1] == files[3] and files[1]

@@ -36,3 +36,16 @@ def test_turned_share_is_the_area_facing_against_the_base():
     assert turned_share((SQUARE, faces), (level, faces[:1])) == 0.0
     with pytest.raises(ValueError, match="same resolution"):
         turned_share((SQUARE, faces), (SQUARE, np.array([[0, 1, 3]])))
+
+
+def test_turned_share_matches_triangles_past_two_million_vertices():
+    # vertex numbers up to 2^22 - 1: a key (f0 w + f1) w + f2 with w = 2^22 wraps int64 and
+    # (a, b, c), (a + 2^20, b, c) collide; the second faces -z in both, the first +z
+    a, b, c = 1 << 19, 7, (1 << 22) - 1
+    vertices = np.zeros((1 << 22, 3))  # pages untouched but these rows
+    vertices[[b, c, a + (1 << 20)]] = [[1, 0, 0], [0, 1, 0], [1, 1, 0]]
+    faces = np.array([[a, b, c], [a + (1 << 20), b, c]])
+    assert turned_share((vertices, faces), (vertices, faces[1:])) == 0.0
+    flipped = vertices.copy()
+    flipped[a + (1 << 20)] = [-1, -1, 0]  # now it faces +z, against the base's -z
+    assert turned_share((vertices, faces), (flipped, faces[1:])) == 1.0

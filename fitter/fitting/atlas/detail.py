@@ -66,12 +66,15 @@ patch, a pleat of the base, is left alone) and gives each of their nodes the row
 ``D_k(node) = s D_k(node)``, ``s`` the share of the level's displacement with which the
 triangle keeps ``FOLD_KEEP`` (:func:`fold_shrink`; a node's smallest over its triangles),
 weighing ``FOLD_WEIGHT`` times the fitted samples' mean weight per node; the level is
-solved again with them, ``FOLD_PASSES`` times. Level 0 turned over, main -> these rows (the
-same bases, load 6-12): Lucy 1.93 -> 0.37 %, Laurana 0.159 -> 0.017 %, Nefertiti 0.28 ->
-0.04 %, the 15-scan Happy Buddha 5.2 -> 1.8 %, the bunny 0.10 -> 0.015 %, the Bali mask 0.73
--> 0.15 %, at RMS of all points +1.4, +0.2, +0.3, +3.1, -0.2 and +1.0 %; at a weight of 10,
-Lucy's 0.30 % cost +7.9 %. What stays turned is mostly a pleat of the base (27 % on Lucy)
-and triangles turned by the slope of the field between oblique directions (37 %).
+solved again with them, ``FOLD_PASSES`` times: only the patches given rows, and the
+interiors whose shared border ring moved (:func:`_solve_level`; each patch is its own block,
+so the others' numbers are the first solve's, to the bit). Level 0 turned over, main ->
+these rows (the same bases, load 6-12): Lucy 1.93 -> 0.37 %, Laurana 0.159 -> 0.017 %,
+Nefertiti 0.28 -> 0.04 %, the 15-scan Happy Buddha 5.2 -> 1.8 %, the bunny 0.10 -> 0.015 %,
+the Bali mask 0.73 -> 0.15 %, at RMS of all points +1.4, +0.2, +0.3, +3.1, -0.2 and +1.0 %;
+at a weight of 10, Lucy's 0.30 % cost +7.9 %. What stays turned is mostly a pleat of the
+base (27 % on Lucy) and triangles turned by the slope of the field between oblique
+directions (37 %).
 
 Welded borders. The client draws a border vertex at the mean of its patches'
 displacements (``client_py.atlas_mesh``); two independent fields would differ there and
@@ -178,7 +181,6 @@ import math
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -222,6 +224,7 @@ from .fit import (
     spd_lu,
 )
 from .lattice import lattice_descent
+from .threads import on_threads
 
 DEGREE = 2
 SPANS = 8  # spans per tile side: on the bunny, 8 reached 0.27 mm RMS in 49 KB, 4 in 112 KB
@@ -540,26 +543,6 @@ def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-300)
 
 
-def on_threads(work: Callable[[int], object], count: int, chunk: int, threads: int | None = None,
-               progress: Callable[[float], None] | None = None) -> list:
-    """``[work(lo) for lo in range(0, count, chunk)]``, on ``threads`` threads (default:
-    one per core), in that order.
-
-    For loops whose chunks each write their own rows ``lo:lo + chunk`` of arrays made
-    beforehand or return their own part, with numpy's array operations, SuperLU and the
-    sparse products (which release the GIL): the numbers do not depend on the thread
-    count. A chunk's error is raised here. ``progress(share done)`` after each chunk, in
-    order."""
-    starts = range(0, count, chunk)
-    out = []
-    with ThreadPoolExecutor(max(1, min(threads or os.cpu_count() or 1, len(starts)))) as pool:
-        for done, part in enumerate(pool.map(work, starts), start=1):
-            out.append(part)
-            if progress is not None:
-                progress(done / len(starts))
-    return out
-
-
 def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
                 b: np.ndarray, chunk: int = CHUNK) -> tuple[np.ndarray, np.ndarray]:
     """The base position ``C_f(node)`` and the displacement direction ``d`` the client
@@ -794,13 +777,53 @@ def fold_shrink(before: np.ndarray, step: np.ndarray, keep: float) -> np.ndarray
     return s
 
 
-def fold_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], coefficients: np.ndarray,
-                   level: int, spans: int, weight: float, keep: float = FOLD_KEEP,
-                   chunk: int = CHUNK) -> PullRows:
+@dataclass
+class LevelNodes:
+    """Every node of the mesh drawn at one level's resolution (:func:`all_nodes` order),
+    made once per level for its far rows and its fold rows (:func:`level_nodes`).
+
+    Attributes
+    ----------
+    patches, resolution : int
+        ``F`` and ``r``.
+    patch, u, v : ndarray, shape (F r²,)
+        The node's patch and its parameters ``a / (r - 1)``, ``b / (r - 1)``.
+    position, direction : ndarray, shape (F r², 3)
+        ``C_f(node)`` and the direction ``d`` the client draws it with (:func:`node_frames`).
+    before : ndarray, shape (F r²,)
+        The levels before's displacement there, ``sum_j D_j(node)``.
+    """
+
+    patches: int
+    resolution: int
+    patch: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    position: np.ndarray
+    direction: np.ndarray
+    before: np.ndarray
+
+
+def level_nodes(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
+                chunk: int = CHUNK) -> LevelNodes:
+    """:class:`LevelNodes` of the mesh drawn at level ``level``'s resolution with the levels
+    before it (``fields``)."""
+    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
+    f, a, b = all_nodes(F, r)
+    c, d = node_frames(atlas, r, f, a, b, chunk)
+    u, v = a / (r - 1), b / (r - 1)
+    before = sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
+                 np.zeros(len(f)))
+    return LevelNodes(F, r, f, u, v, c, d, before)
+
+
+def fold_node_rows(nodes: LevelNodes, coefficients: np.ndarray, level: int, spans: int,
+                   weight: float, keep: float = FOLD_KEEP) -> PullRows:
     """Rows against the drawn triangles that turn over (module docstring, "Folds").
 
-    The mesh drawn at level ``level``'s resolution with the levels before it (``fields``)
-    and this level's ``coefficients (F, n, n)``; a drawn triangle that keeps less than
+    The mesh drawn at level ``level``'s resolution with the levels before it (``nodes``:
+    :func:`level_nodes`) and this level's ``coefficients (F, n, n)``; a drawn triangle that
+    keeps less than
     ``keep`` of the base's drawn triangle at the same nodes (area vectors ``N_k . N_b <
     keep |N_b|²``: turned over, or nearly, so that rounding the level may turn it), where
     the base triangle faces its patch's way (``N_b . a_f > 0``, ``a_f = Σ N_b`` over the
@@ -808,18 +831,14 @@ def fold_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], coefficients: 
     D_k(node)`` at its three nodes, ``s`` from :func:`fold_shrink` with the base and the
     levels before as ``before`` (at level 0 the base itself; the smallest ``s`` of the
     node's triangles), each weighing ``weight``."""
-    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
-    f, a, b = all_nodes(F, r)
-    c, d = node_frames(atlas, r, f, a, b, chunk)
-    u, v = a / (r - 1), b / (r - 1)
-    before = sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
-                 np.zeros(len(f)))
+    F, r = nodes.patches, nodes.resolution
+    f, u, v, c, d = nodes.patch, nodes.u, nodes.v, nodes.position, nodes.direction
     own = evaluate_fields(coefficients, level, spans, f, u, v)
     tri = grid_triangles(F, r)
     base_area = np.cross(c[tri[:, 1]] - c[tri[:, 0]], c[tri[:, 2]] - c[tri[:, 0]])
     patch_area = np.zeros((F, 3))
     np.add.at(patch_area, f[tri[:, 0]], base_area)
-    x = c + before[:, None] * d
+    x = c + nodes.before[:, None] * d
     y = x + own[:, None] * d
     drawn_area = np.cross(y[tri[:, 1]] - y[tri[:, 0]], y[tri[:, 2]] - y[tri[:, 0]])
     kept = np.einsum("tc,tc->t", drawn_area, base_area)
@@ -850,29 +869,24 @@ def merged_rows(first: PullRows | None, second: PullRows) -> PullRows:
                     np.searchsorted(patch, np.arange(len(first.offsets))), weight[order])
 
 
-def far_node_rows(atlas: AtlasSurface, fields: list[np.ndarray], level: int, spans: int,
-                  scan_mesh: tuple[np.ndarray, np.ndarray], reach: float, weight: float,
-                  chunk: int = CHUNK) -> PullRows:
-    """The nodes of the mesh drawn at level ``level``'s resolution, with the levels before
-    it (``fields``), that lie farther than ``reach`` from the scan's surface ``scan_mesh
-    (vertices, faces)``, each with the row ``D_f(node) = (q - X) . d`` (module docstring,
-    "Far nodes"): ``X = C + sum_j D_j d`` the drawn node, ``q`` its closest point on the
-    scan's triangles (:func:`.measure.closest_points_on_mesh`), ``d`` its direction
-    (:func:`node_frames`)."""
+def far_node_rows(nodes: LevelNodes, scan_mesh: tuple[np.ndarray, np.ndarray], reach: float,
+                  weight: float) -> PullRows:
+    """The nodes of the mesh drawn at a level's resolution with the levels before it
+    (``nodes``: :func:`level_nodes`) that lie farther than ``reach`` from the scan's
+    surface ``scan_mesh (vertices, faces)``, each with the row ``D_f(node) = (q - X) . d``
+    (module docstring, "Far nodes"): ``X = C + sum_j D_j d`` the drawn node, ``q`` its
+    closest point on the scan's triangles (:func:`.measure.closest_points_on_mesh`), ``d``
+    its direction (:func:`node_frames`)."""
     from .measure import closest_points_on_mesh
 
-    F, r = len(atlas.quads), atlas_level_resolution(spans, level)
-    f, a, b = all_nodes(F, r)
-    c, d = node_frames(atlas, r, f, a, b, chunk)
-    u, v = a / (r - 1), b / (r - 1)
-    x = c + d * sum((evaluate_fields(q, j, spans, f, u, v) for j, q in enumerate(fields)),
-                    np.zeros(len(f)))[:, None]
+    f, d = nodes.patch, nodes.direction
+    x = nodes.position + d * nodes.before[:, None]
     vertices, faces = scan_mesh
     dist, _, q = closest_points_on_mesh(x, vertices, faces)
     far = np.flatnonzero(dist > reach)
     target = np.einsum("kc,kc->k", q[far] - x[far], d[far])
-    return PullRows(f[far], u[far], v[far], target, np.searchsorted(f[far], np.arange(F + 1)),
-                    weight)
+    return PullRows(f[far], nodes.u[far], nodes.v[far], target,
+                    np.searchsorted(f[far], np.arange(nodes.patches + 1)), weight)
 
 
 # ------------------------------------------------------------------ drawn cells
@@ -1157,37 +1171,101 @@ class _BatchSystem:
         total = float(np.sum(weights)) if weights is not None else float(len(samples.u))
         per_sample = total / max(F, 1) / (n * n)
         self.mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
-        self.per_batch = max(1, BATCH_UNKNOWNS // (n * n))
+        # batches of BATCH_UNKNOWNS; a level within one (every level 0 of the benchmark's
+        # objects) in one batch per core, so that its solves run on all of them: each
+        # patch's block is solved alone, the same numbers in any batch (quantised_blocks
+        # keeps one lambda for the level)
+        self.rate_batch = max(1, BATCH_UNKNOWNS // (n * n))
+        self.per_batch = (self.rate_batch if F > self.rate_batch
+                          else max(1, -(-F // (os.cpu_count() or 1))))
 
     def normal(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
         """Patches ``first:first + per_batch``'s ``M``, ``A^T r`` and ``diag(A^T A)``."""
+        last = min(self.F, first + self.per_batch)
+        A, r = self._batch_rows(first)
+        return self._equations(A, r, last - first)
+
+    def normal_of(self, patches: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+        """:meth:`normal` of the patches ``patches`` (ascending, within :attr:`per_batch`),
+        block ``i`` patch ``patches[i]``: each block's rows are those it has in its own batch,
+        in the same order (the weighted data rows kept in ``rows``, then its ``pull`` rows),
+        so each block's ``M``, ``A^T r`` and solution are the full batch's, to the bit."""
+        nn = self.n * self.n
+        offsets = self.samples.offsets
+        spans, values = [], []
+        for first in np.unique(patches // self.per_batch * self.per_batch):
+            mine = patches[(patches >= first) & (patches < first + self.per_batch)]
+            A, r, _ = self._data_rows(int(first))
+            lo = offsets[first]
+            take = np.concatenate([np.arange(offsets[f], offsets[f + 1]) for f in mine]) - lo
+            part = A[take]
+            block = np.searchsorted(patches, first + part.indices // nn)
+            spans.append(sp.csr_matrix((part.data, block * nn + part.indices % nn,
+                                        part.indptr), shape=(len(take), len(patches) * nn)))
+            values.append(r[take])
+        pull = self.pull
+        if pull is not None:
+            take = np.concatenate([np.arange(pull.offsets[f], pull.offsets[f + 1])
+                                   for f in patches])
+            if len(take):
+                root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[take])
+                spans.append(sp.diags(root) @ collocation_matrix(
+                    DEGREE, self.knots, self.n, pull.u[take], pull.v[take],
+                    block=np.searchsorted(patches, pull.patch[take]), blocks=len(patches)))
+                values.append(root * pull.target[take])
+        return self._equations(sp.vstack(spans).tocsr(), np.concatenate(values), len(patches))
+
+    def _data_rows(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, int]:
+        """Patches ``first:first + per_batch``'s weighted sample rows and residual, and their
+        count ``m``: the batch's rows kept in ``rows`` (:meth:`_batch_rows`: the first ``m``
+        are the samples'), or made."""
+        entry = None if self.rows is None else self.rows.get(first)
+        if entry is not None:
+            return entry[0], entry[1], entry[2]
         samples, n, knots = self.samples, self.n, self.knots
         last = min(self.F, first + self.per_batch)
         lo, hi = samples.offsets[first], samples.offsets[last]
         count = last - first
-        if self.rows is not None and first in self.rows:
-            A, r = self.rows[first]
+        if self.model is None:
+            A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
+                                   block=samples.patch[lo:hi] - first, blocks=count)
         else:
-            if self.model is None:
-                A = collocation_matrix(DEGREE, knots, n, samples.u[lo:hi], samples.v[lo:hi],
-                                       block=samples.patch[lo:hi] - first, blocks=count)
-            else:
-                A = self.model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first,
-                                    count)
-            r = self.residual[lo:hi]
-            if self.weights is not None:
-                root = np.sqrt(self.weights[lo:hi])
-                A, r = sp.diags(root) @ A, root * r
-            pull = self.pull
-            if pull is not None and pull.offsets[last] > pull.offsets[first]:
-                plo, phi = pull.offsets[first], pull.offsets[last]
-                root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[plo:phi])
-                A = sp.vstack([A, sp.diags(root) @ collocation_matrix(
-                    DEGREE, knots, n, pull.u[plo:phi], pull.v[plo:phi],
-                    block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
-                r = np.concatenate([r, root * pull.target[plo:phi]])
-            if self.rows is not None:
-                self.rows[first] = A, r
+            A = self.model.rows(DEGREE, knots, n, lo, hi, samples.patch[lo:hi] - first, count)
+        r = self.residual[lo:hi]
+        if self.weights is not None:
+            root = np.sqrt(self.weights[lo:hi])
+            A, r = sp.diags(root) @ A, root * r
+        return A, r, hi - lo
+
+    def _batch_rows(self, first: int) -> tuple[sp.csr_matrix, np.ndarray]:
+        """Patches ``first:first + per_batch``'s rows ``A`` and right-hand side ``r``: the
+        weighted samples' rows, then ``pull``'s rows of these patches. Kept in ``rows`` with
+        the ``pull`` they were made with; a later ``pull`` (more rows: the fold rows) keeps
+        the sample rows and appends its own."""
+        entry = None if self.rows is None else self.rows.get(first)
+        if entry is not None and entry[3] is self.pull:
+            return entry[0], entry[1]
+        A, r, data = self._data_rows(first)
+        if A.shape[0] > data:  # the rows of an earlier pull after them
+            A, r = A[:data], r[:data]
+        last = min(self.F, first + self.per_batch)
+        count = last - first
+        pull = self.pull
+        if pull is not None and pull.offsets[last] > pull.offsets[first]:
+            plo, phi = pull.offsets[first], pull.offsets[last]
+            root = np.sqrt(np.broadcast_to(pull.weight, pull.target.shape)[plo:phi])
+            A = sp.vstack([A, sp.diags(root) @ collocation_matrix(
+                DEGREE, self.knots, self.n, pull.u[plo:phi], pull.v[plo:phi],
+                block=pull.patch[plo:phi] - first, blocks=count)]).tocsr()
+            r = np.concatenate([r, root * pull.target[plo:phi]])
+        if self.rows is not None:
+            self.rows[first] = A, r, data, pull
+        return A, r
+
+    def _equations(self, A: sp.csr_matrix, r: np.ndarray, count: int
+                   ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+        """``M``, ``A^T r`` and ``diag(A^T A)`` of ``count`` patches' rows ``A``."""
+        n = self.n
         AtA = (A.T @ A).tocsr()
         diag = AtA.diagonal()
         mu = np.maximum(diag.reshape(count, n * n).sum(axis=1) / (n * n), self.mu_floor)
@@ -1198,8 +1276,8 @@ class _BatchSystem:
 def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                   fixed: np.ndarray | None = None, weights: np.ndarray | None = None,
                   threads: int | None = None, model: DrawnModel | None = None,
-                  rows: dict | None = None, pull: PullRows | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  rows: dict | None = None, pull: PullRows | None = None,
+                  patches: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Every patch's level-``level`` coefficients ``(F, n, n)`` fitted to ``residual``
     (``fitter.fitting.detail.fit_level``'s objective per patch), and the data weight
     ``diag(A_f^T A_f)`` of each coefficient, ``(F, n, n)``.
@@ -1221,6 +1299,12 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     of the solves' CPU time); the same numbers either way. ``pull``: the far drawn nodes'
     rows (:func:`far_node_rows`), appended to their patch's, each weighing
     ``pull.weight``.
+
+    ``patches`` (ascending): only these patches are solved, the results' rows in that
+    order, shapes ``(len(patches), n, n)``; ``rows`` must hold their batches' rows (a
+    solve of every patch given the same ``rows`` made them): each patch's numbers are those
+    of the solve of every patch, to the bit (:meth:`_BatchSystem.normal_of`; the re-solve
+    after the fold rows, :func:`_solve_level`).
     """
     F = len(samples.offsets) - 1
     n = (spans << level) + DEGREE
@@ -1228,21 +1312,23 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     free = np.flatnonzero(~ring) if fixed is not None else np.arange(n * n)
     held = np.flatnonzero(ring)
     order = block_order(n, fixed is not None)
-    out = np.zeros((F, n, n))
-    weight = np.zeros((F, n, n))
+    chosen = np.arange(F) if patches is None else np.asarray(patches, np.int64)
+    out = np.zeros((len(chosen), n, n))
+    weight = np.zeros((len(chosen), n, n))
     system = _BatchSystem(samples, residual, level, spans, weights, model, rows, pull)
 
     def one_batch(first: int) -> None:
-        last = min(F, first + system.per_batch)
+        last = min(len(chosen), first + system.per_batch)
         count = last - first
-        M, rhs, diag = system.normal(first)
+        M, rhs, diag = (system.normal(first) if patches is None
+                        else system.normal_of(chosen[first:last]))
         weight[first:last] = diag.reshape(count, n, n)
         if fixed is None:
             out[first:last] = solve_spd_blocks(M, rhs, order).reshape(count, n, n)
             return
         cols_free = (np.arange(count)[:, None] * n * n + free[None, :]).reshape(-1)
         cols_held = (np.arange(count)[:, None] * n * n + held[None, :]).reshape(-1)
-        c_held = fixed[first:last].reshape(count, n * n)[:, held].reshape(-1)
+        c_held = fixed[chosen[first:last]].reshape(count, n * n)[:, held].reshape(-1)
         M_rows = M[cols_free]  # taken once for both column sets
         M_free = M_rows[:, cols_free]
         b = rhs[cols_free] - M_rows[:, cols_held] @ c_held
@@ -1251,7 +1337,7 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         c[cols_held] = c_held
         out[first:last] = c.reshape(count, n, n)
 
-    on_threads(one_batch, F, system.per_batch, threads)
+    on_threads(one_batch, len(chosen), system.per_batch, threads)
     return out, weight
 
 
@@ -1278,7 +1364,9 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     integer's bits (the packs code a zero flag and the magnitude in unary bins,
     ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with ``m`` the median ``M_ii``
     of the batch's interior (one median per batch of :data:`BATCH_UNKNOWNS`, so a level of
-    several batches has a ``lambda`` each), within the patch's bound ``|q_i| <= Q_f =
+    several batches has a ``lambda`` each; a level within one batch, solved in one batch
+    per core, :class:`_BatchSystem`, has the median of them all), within the patch's bound
+    ``|q_i| <= Q_f =
     rint(limit_f / step)`` (:func:`bounded_by_residual`, ``limit (F,)``, the bound plain
     rounding of a bounded value keeps): a coefficient the samples hardly see (small
     ``M_ii``) is zeroed sooner. Rounding alone adds ``step^2 / 12`` of noise to every
@@ -1305,23 +1393,40 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     # the border ring not moved: colour -1
     colour = np.where(border_ring(n).reshape(-1), -1, (a % stride) * stride + b % stride)
 
-    def one_batch(first: int) -> None:
-        last = min(F, first + system.per_batch)
-        count = last - first
+    def equations(first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray, np.ndarray]:
+        """The batch's ``M``, ``A^T r``, ``diag(M)`` and its interior values moved."""
+        count = min(F, first + system.per_batch) - first
         M, rhs, _ = system.normal(first)
         diag = M.diagonal()
-        at = np.tile(colour, count)
-        inside = np.flatnonzero((at >= 0) & (diag > 0))
+        return M, rhs, diag, np.flatnonzero((np.tile(colour, count) >= 0) & (diag > 0))
+
+    def weight_of(diag: np.ndarray) -> float:
+        # the rate's weight: lambda = rate * step^2 * the median data weight of a coefficient
+        return rate * step * step * float(np.median(diag)) if len(diag) else 0.0
+
+    def descend(first: int, M: sp.csr_matrix, rhs: np.ndarray, diag: np.ndarray,
+                inside: np.ndarray, lam: float) -> None:
+        last = min(F, first + system.per_batch)
+        count = last - first
         bound = np.rint(np.repeat(limit[first:last], n * n) / step)
-        # the rate's weight: lambda = rate * step^2 * the median data weight of a coefficient,
-        # in steps lambda / (2 M_ii step^2) (this order of operations kept: the bytes)
-        lam = rate * step * step * float(np.median(diag[inside])) if len(inside) else 0.0
+        # lambda in steps, lambda / (2 M_ii step^2) (this order of operations kept: the bytes)
         shrink = np.zeros(len(diag))
         shrink[inside] = lam / (2.0 * diag[inside] * step * step)
         q[first:last] = lattice_descent(M, rhs, q[first:last].reshape(-1), 0.0, step, -bound,
-                                        bound, at, sweeps, shrink, 0).reshape(count, n, n)
+                                        bound, np.tile(colour, count), sweeps, shrink,
+                                        0).reshape(count, n, n)
 
-    on_threads(one_batch, F, system.per_batch, threads)
+    if system.per_batch < system.rate_batch:  # one lambda over the level's batches
+        made = on_threads(equations, F, system.per_batch, threads)
+        lam = weight_of(np.concatenate([diag[inside] for _, _, diag, inside in made]))
+        on_threads(lambda first: descend(first, *made[first // system.per_batch], lam), F,
+                   system.per_batch, threads)
+    else:
+        def one_batch(first: int) -> None:
+            M, rhs, diag, inside = equations(first)
+            descend(first, M, rhs, diag, inside, weight_of(diag[inside]))
+
+        on_threads(one_batch, F, system.per_batch, threads)
     return q.astype(np.int64)
 
 
@@ -1461,25 +1566,70 @@ class AtlasDetail:
         return out
 
 
+@dataclass
+class WeldedSolve:
+    """One level's welded solve (:func:`_solve_level`), kept for a re-solve with more rows.
+
+    Attributes
+    ----------
+    coefficients : ndarray, shape (F, n, n)
+        The welded coefficients, before quantisation.
+    free, weight : ndarray, shape (F, n, n)
+        The independent solve's coefficients and data weights ``diag(A_f^T A_f)``.
+    shared : ndarray, shape (F, n, n)
+        The border ring's shared values the interior was solved with.
+    rows : dict
+        The batches' rows (:class:`_BatchSystem`), for the quantisation and a re-solve.
+    """
+
+    coefficients: np.ndarray
+    free: np.ndarray
+    weight: np.ndarray
+    shared: np.ndarray
+    rows: dict
+
+
 def _solve_level(samples: AtlasSamples, residual: np.ndarray, level: int, spans: int,
                  fit_weight: np.ndarray, use: np.ndarray, model: DrawnModel, G: np.ndarray,
-                 pull: PullRows | None) -> tuple[np.ndarray, dict]:
+                 pull: PullRows | None, again: WeldedSolve | None = None,
+                 changed: np.ndarray | None = None) -> WeldedSolve:
     """One level's welded coefficients ``(F, n, n)`` before quantisation and the batches'
     rows (module docstring, "Welded borders"): the independent solve, its border
     coefficients bounded and shared (``G``: :func:`shared_index`), the interior solved again
-    with the border ring held."""
-    rows: dict = {}  # the batches' rows, made once for both solves
-    free, weight = _solve_blocks(samples, residual, level, spans, weights=fit_weight,
-                                 model=model, rows=rows, pull=pull)
+    with the border ring held.
+
+    ``again``: the solve before ``pull`` gained rows at the patches ``changed`` (``(F,)``
+    booleans: the fold rows). Each patch's independent solve is its own block, so only
+    the ``changed`` patches are solved again; the border slots are shared again, and only the
+    patches whose shared ring moved (the ``changed`` and their neighbours across the slots
+    their ring shares) have their interior solved again. Every other patch's numbers are
+    ``again``'s, which a solve of every patch would give again: the same coefficients, to
+    the bit (``tests/test_atlas_solve.py``)."""
+    rows = {} if again is None else again.rows  # the batches' rows, made once for all solves
+    solve = functools.partial(_solve_blocks, samples, residual, level, spans,
+                              weights=fit_weight, model=model, rows=rows, pull=pull)
+    if again is None:
+        free, weight = solve()
+    else:
+        redo = np.flatnonzero(changed)
+        free, weight = again.free.copy(), again.weight.copy()
+        if len(redo):
+            free[redo], weight[redo] = solve(patches=redo)
     shared = _share_borders(bounded_by_residual(free, samples, residual, use), weight, G)
-    c, _ = _solve_blocks(samples, residual, level, spans, fixed=shared, weights=fit_weight,
-                         model=model, rows=rows, pull=pull)
+    if again is None:
+        c, _ = solve(fixed=shared)
+    else:
+        ring = border_ring(shared.shape[1])
+        redo = np.flatnonzero(changed | (shared[:, ring] != again.shared[:, ring]).any(axis=1))
+        c = again.coefficients.copy()
+        if len(redo):
+            c[redo], _ = solve(fixed=shared, patches=redo)
     # the interior's re-solve can overshoot as the independent fit did (the bunny: an 8 mm
     # spike from 0.7 mm offsets at a corner of a patch): the same bound, the border ring kept
     # (shared, bounded already, and equal on both sides of a border)
     inner = ~border_ring(c.shape[1])
     c[:, inner] = bounded_by_residual(c, samples, residual, use)[:, inner]
-    return c, rows
+    return WeldedSolve(c, free, weight, shared, rows)
 
 
 def _tick(timings: dict, name: str, clock: float) -> float:
@@ -1575,7 +1725,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     per_level_tiles: list[dict] = []
     level_rows: list[dict] = []
     worst_of_patch: list[np.ndarray] = []  # per level: max e of each patch's samples
-    timings.update(model=0.0, solve=0.0, quantise=0.0, tiles=0.0)  # the levels' steps, summed
+    timings.update(model=0.0, far_rows=0.0, solve=0.0, fold_rows=0.0, quantise=0.0,
+                   tiles=0.0)  # the levels' steps, summed
     clock = time.perf_counter()
     feet = DrawnModel.feet(atlas, samples)
     scan_mesh = (fit.surface.vertices, fit.surface.faces)
@@ -1595,11 +1746,13 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
         per_node = per_patch / atlas_level_resolution(spans, k) ** 2
-        pull = (far_node_rows(atlas, fields, k, spans, scan_mesh, PULL_REACH * diagonal,
-                              PULL_WEIGHT * per_node)
+        nodes = level_nodes(atlas, fields, k, spans) if PULL_WEIGHT > 0 or FOLD_PASSES else None
+        pull = (far_node_rows(nodes, scan_mesh, PULL_REACH * diagonal, PULL_WEIGHT * per_node)
                 if PULL_WEIGHT > 0 else None)
+        clock = _tick(timings, "far_rows", clock)
 
-        c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+        solved = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+        c = solved.coefficients
         if held.any():  # refused before its fold rows and rounding ("Depth"): their cost spared
             unrounded = residual - model.drawn(c, k, spans)
             held_rms.append(float(np.sqrt(np.mean(unrounded[held] ** 2 + samples.t2[held]))))
@@ -1609,11 +1762,15 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                 break
             held_rms.pop()
         for _ in range(FOLD_PASSES if FOLD_WEIGHT > 0 else 0):  # module docstring, "Folds"
-            fold = fold_node_rows(atlas, fields, c, k, spans, FOLD_WEIGHT * per_node)
+            clock = _tick(timings, "solve", clock)
+            fold = fold_node_rows(nodes, c, k, spans, FOLD_WEIGHT * per_node)
+            clock = _tick(timings, "fold_rows", clock)
             if not len(fold.patch):
                 break
             pull = merged_rows(pull, fold)
-            c, rows = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull)
+            solved = _solve_level(samples, residual, k, spans, fit_weight, use, model, G, pull,
+                                  again=solved, changed=np.diff(fold.offsets) > 0)
+            c = solved.coefficients
         clock = _tick(timings, "solve", clock)
         fitted = residual - model.drawn(c, k, spans)
         rms_fit = float(np.sqrt(np.average(fitted[use] ** 2 + samples.t2[use],
@@ -1622,8 +1779,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                  float(np.abs(residual[use]).max(initial=0.0)), step_factor)
         limit = COEFFICIENT_REACH * _largest_residual(samples, residual, use)
         q = quantised_blocks(samples, residual, k, spans, c, step, limit, weights=fit_weight,
-                             model=model, rows=rows, pull=pull)
-        del rows
+                             model=model, rows=solved.rows, pull=pull)
+        del solved, nodes
         clock = _tick(timings, "quantise", clock)
         fields.append(q * step)
         residual = residual - model.drawn(fields[-1], k, spans)

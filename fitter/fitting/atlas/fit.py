@@ -140,7 +140,6 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -175,6 +174,7 @@ from .surface import (
     scan_surface,
     surface_beside,
 )
+from .threads import on_threads
 
 DEFAULT_BYTE_BUDGET = 24_000
 AUTO_FIRST_TRIANGLES = 48
@@ -505,12 +505,9 @@ def correct_parameters(table: np.ndarray, points: np.ndarray, degree: int, spans
     threads = min(CORRECT_THREADS, os.cpu_count() or 1, len(x) // CORRECT_RUN_POINTS)
     if threads <= 1:
         return _correct_run(table, points, degree, spans, nb, x, normals, f, u, v, iterations)
-    bounds = np.linspace(0, len(x), threads + 1).astype(np.int64)
-    with ThreadPoolExecutor(threads) as pool:
-        runs = list(pool.map(
-            lambda ab: _correct_run(table, points, degree, spans, nb, *(
-                a[ab[0]:ab[1]] for a in (x, normals, f, u, v)), iterations),
-            zip(bounds[:-1], bounds[1:], strict=True)))
+    run = -(-len(x) // threads)
+    runs = on_threads(lambda lo: _correct_run(table, points, degree, spans, nb, *(
+        a[lo:lo + run] for a in (x, normals, f, u, v)), iterations), len(x), run, threads)
     return tuple(np.concatenate([run[i] for run in runs]) for i in range(4))
 
 
@@ -1302,8 +1299,8 @@ def layout_candidates(surface: ScanSurface, target: int, thin_parts: bool,
         return name, quad_layout(tri_vertices, triangles), time.perf_counter() - clock
 
     names = ("plain", "weighted") if thin_parts else ("plain",)
-    with ThreadPoolExecutor(min(LAYOUT_THREADS, len(names))) as pool:
-        made = [m for m in pool.map(one, names) if m is not None]  # a thread's error raised
+    made = [m for m in on_threads(lambda i: one(names[i]), len(names), 1, LAYOUT_THREADS)
+            if m is not None]  # a thread's error raised
     return ([m for m in made if len(m) == 3], [m for m in made if len(m) == 2])
 
 
@@ -1848,9 +1845,9 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         # the candidates' fits are independent: fitted at once (fit_layout's solves and
         # closest points release the GIL), the same numbers as one after the other
         new = [c for c in judged if ("fit", target, c[0]) not in cache]
-        with ThreadPoolExecutor(max(1, min(LAYOUT_THREADS, len(new)))) as pool:
-            for c, done in zip(new, pool.map(fit_trial, new), strict=True):
-                cache["fit", target, c[0]] = done
+        done = on_threads(lambda i, new=new: fit_trial(new[i]), len(new), 1, LAYOUT_THREADS)
+        for c, made in zip(new, done, strict=True):
+            cache["fit", target, c[0]] = made
         fitted = []
         for name, layout, _ in judged:
             atlas, f, u, v, dist, trial_timings = cache["fit", target, name]
