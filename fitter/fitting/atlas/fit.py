@@ -1593,17 +1593,44 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     ``0.1 |r|²`` in place of ``|r|²`` 0.1697 at 22,207 (RMS of all points).
     ``write_atlas(result, bits)`` writes these codes (the grid is the points' bounds over
     ``2^bits - 1`` steps, and the points at the bounds are not moved). No format change."""
-    from client_py.atlas_format import file_codes
+    from client_py.atlas_format import TANGENT_FACTOR, file_codes
 
     degree, spans = atlas.degree, atlas.spans
     table = index_table(atlas)
     x = control_points(atlas)
+    H, rhs, per_axis = _rounding_objective(atlas, table, x, layout, points, f, u, v,
+                                           smoothing, anchor, border, scan_mesh,
+                                           reverse_weight)
+    rate = ROUND_RATE if rate is None else rate
+    if TANGENT_FACTOR is not None:
+        return frame_fed_back(atlas, bits, TANGENT_FACTOR, H, rhs, sweeps, rate)
     lo, hi = x.min(axis=0), x.max(axis=0)
     top = (1 << bits) - 1
     step = np.where(hi > lo, (hi - lo) / top, 1.0)
     # the writer's codes, which do not depend on the file's numbering of the points
     plain = np.array(file_codes(x.T.tolist(), lo.tolist(), hi.tolist(), bits, atlas.quads),
                      np.int64).T
+    fixed = np.zeros_like(plain, bool)
+    fixed[x.argmin(axis=0), np.arange(3)] = True
+    fixed[x.argmax(axis=0), np.arange(3)] = True
+    colour = (3 * coupling_colours(per_axis)[:, None] + np.arange(3)).reshape(-1)
+    q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps, rate, colour, top)
+    together = _corners_together(np.asarray(atlas.quads))
+    pleated = _newly_pleated(plain, table, lo, step, degree, spans)
+    q = _put_back(q, plain, lambda q: np.union1d(together(q), pleated(q)))
+    return with_control_points(atlas, lo + step * q)
+
+
+def _rounding_objective(atlas: AtlasSurface, table: np.ndarray, x: np.ndarray,
+                        layout: QuadLayout, points: np.ndarray, f: np.ndarray,
+                        u: np.ndarray, v: np.ndarray, smoothing: float, anchor: float,
+                        border: np.ndarray | None, scan_mesh: tuple | None,
+                        reverse_weight: float) -> tuple[sp.csr_matrix, np.ndarray,
+                                                        sp.csr_matrix]:
+    """:func:`fed_back_atlas`'s quadratic ``J(p) = pᵀ H p - 2 rhsᵀ p`` over the ``3 N``
+    values ``p`` (point ``j``'s axis ``a`` at ``3 j + a``): ``(H, rhs, per_axis)``, the
+    last the ``N × N`` matrix each axis has alone."""
+    degree, spans = atlas.degree, atlas.spans
     initial = bilinear_atlas(layout, degree, spans)
     nb = neighbour_table(atlas)
     border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
@@ -1628,16 +1655,104 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
                                  .reshape(-1))), shape=(k, 3 * len(x)))
         H = (H + ROUND_ACROSS * (across.T @ across)).tocsr()
         rhs = rhs + ROUND_ACROSS * (across.T @ np.einsum("kc,kc->k", n, targets[:k]))
-    fixed = np.zeros_like(plain, bool)
-    fixed[x.argmin(axis=0), np.arange(3)] = True
-    fixed[x.argmax(axis=0), np.arange(3)] = True
-    colour = (3 * coupling_colours(per_axis)[:, None] + np.arange(3)).reshape(-1)
-    q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
-                   ROUND_RATE if rate is None else rate, colour, top)
+    return H, rhs, per_axis
+
+
+def _block_codes(H: sp.csr_matrix, rhs: np.ndarray, p: np.ndarray, at: np.ndarray,
+                 offset: np.ndarray, frame: np.ndarray, start: np.ndarray,
+                 fixed: np.ndarray, sweeps: int, rate: float,
+                 top: int | None = None) -> np.ndarray:
+    """:func:`grid_codes` of the points ``at`` alone, every other point held at ``p (N,
+    3)``: point ``k = at[i]`` is ``offset_i + frame_i c_i`` (``frame (n, 3, 3)``, its
+    columns the steps of the codes ``c_i``), so ``J`` restricted to them is ``cᵀ (Mᵀ
+    H_II M) c - 2 (Mᵀ (rhs_I - H_I· p' - H_II offset))ᵀ c`` with ``M`` the block
+    diagonal of the frames, ``I`` their values and ``p'`` the others. ``start (n, 3)``:
+    the codes to start from, ``fixed (n, 3)`` of bool not moved; ``x`` of the descent the
+    points' ``p`` in codes, ``M⁻¹ (p_I - offset)``. Returns the codes ``(n, 3)``."""
+    values = (3 * at[:, None] + np.arange(3)).reshape(-1)
+    rows = H[values]
+    held = p.reshape(-1).copy()
+    held[values] = 0.0
+    m = len(at)
+    M = sp.csr_matrix((frame.reshape(-1), (np.repeat(np.arange(3 * m), 3),
+                                           np.tile(np.arange(3), 3 * m)
+                                           + 3 * np.repeat(np.arange(m), 9))),
+                      shape=(3 * m, 3 * m))
+    H_II = rows[:, values]
+    Hc = (M.T @ H_II @ M).tocsr()
+    rc = M.T @ (rhs[values] - rows @ held - H_II @ offset.reshape(-1))
+    x = np.linalg.solve(frame, (p[at] - offset)[..., None])[..., 0]
+    return grid_codes(Hc, rc, x, start, 0.0, 1.0, fixed, sweeps, rate, None, top)
+
+
+def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matrix,
+                   rhs: np.ndarray, sweeps: int = ROUND_SWEEPS, rate: float = 0.0
+                   ) -> AtlasSurface:
+    """:func:`fed_back_atlas` for a version 4 ``base.tsa`` (``client_py.atlas_format.
+    FrameCoder``, tangential step ``factor`` times the normal one): the codes chosen as
+    the file decodes them, the layout vertices on the grid first (the extremes held, a
+    patch's corners kept apart as :func:`_corners_together`), then the edge points'
+    frame codes given the decoded vertices (their frames and predictions are made from
+    them), then the patch interiors' given the decoded borders, each stage by
+    :func:`_block_codes` with the points after it at their fitted place. A patch the
+    codes pleat (:func:`pleated_patches`) and the writer's own codes (nearest) do not has
+    all its points held at nearest, and the stages run again, until none is left."""
+    from client_py.atlas_format import FrameCoder, _Predictor, frame_codes, frame_steps
+
+    x = control_points(atlas)
+    n_v, n_e = len(atlas.vertices), len(atlas.vertices) + len(atlas.edge_points)
+    lo, hi = x[:n_v].min(axis=0), x[:n_v].max(axis=0)
+    top = (1 << bits) - 1
+    step = (hi - lo) / top
+    predictor = _Predictor(atlas.quads, atlas.edges, atlas.side, n_v, bits)
+    steps = frame_steps(lo.tolist(), hi.tolist(), bits, factor)
+    coder = FrameCoder(predictor, atlas.quads, atlas.edges, steps)
+    scale = np.array([steps[0], steps[1], steps[1]])
+    plain = np.array(frame_codes(predictor, atlas.quads, atlas.edges, x.T.tolist(),
+                                 lo.tolist(), hi.tolist(), bits, factor), np.int64).T
+    table = index_table(atlas)
     together = _corners_together(np.asarray(atlas.quads))
-    pleated = _newly_pleated(plain, table, lo, step, degree, spans)
-    q = _put_back(q, plain, lambda q: np.union1d(together(q), pleated(q)))
-    return with_control_points(atlas, lo + step * q)
+
+    def decoded(codes: np.ndarray) -> np.ndarray:
+        vertex_axes = (lo + step * codes[:n_v]).T.tolist()
+        return np.array(coder.decode(vertex_axes, codes.T.tolist())).T
+
+    before = pleated_patches(table, decoded(plain), atlas.degree, atlas.spans)
+    extremes = np.zeros((n_v, 3), bool)
+    extremes[x[:n_v].argmin(axis=0), np.arange(3)] = True
+    extremes[x[:n_v].argmax(axis=0), np.arange(3)] = True
+    held = np.zeros(len(x), bool)
+    for _ in range(len(atlas.quads)):
+        p = x.copy()
+        at = np.arange(n_v)
+        q = np.empty_like(plain)
+        q[:n_v] = _block_codes(H, rhs, p, at, np.broadcast_to(lo, (n_v, 3)),
+                               np.broadcast_to(np.diag(step), (n_v, 3, 3)), plain[:n_v],
+                               extremes | held[:n_v, None], sweeps, rate, top)
+        q[:n_v] = _put_back(q[:n_v], plain[:n_v], together)
+        p[:n_v] = lo + step * q[:n_v]
+        axes = p.T.tolist()
+        frame_rows = coder.frames(p[:n_v].tolist())
+        frames = np.array(frame_rows).reshape(-1, 3, 3)  # frames[k, j]: axis j (n, t1, t2)
+        for start, stop in ((n_v, n_e), (n_e, len(x))):
+            pred = np.array(coder.predictions(axes, start >= n_e)).T
+            frame = frames[start - n_v:stop - n_v].transpose(0, 2, 1) * scale
+            # nearest in the frame, as the writer rounds (FrameCoder.place)
+            d = x[start:stop] - pred
+            f = frames[start - n_v:stop - n_v]
+            near = np.floor((d[:, None, 0] * f[:, :, 0] + d[:, None, 1] * f[:, :, 1]
+                             + d[:, None, 2] * f[:, :, 2]) / scale + 0.5).astype(np.int64)
+            keep = np.broadcast_to(held[start:stop, None], near.shape)
+            q[start:stop] = _block_codes(H, rhs, p, np.arange(start, stop), pred, frame,
+                                         near, keep, sweeps, rate)
+            coder.place(axes, frame_rows, start, stop, q.T.tolist())
+            p[start:stop] = np.array(axes).T[start:stop]
+        pleats = np.flatnonzero(pleated_patches(table, p, atlas.degree, atlas.spans)
+                                & ~before)
+        if not len(pleats) or held[np.unique(table[pleats])].all():
+            break
+        held[np.unique(table[pleats])] = True
+    return with_control_points(atlas, p)
 
 
 ROUND_RATES = (0.0, 1.0, 4.0)  # within_budget_fed_back's rates, tried in turn
