@@ -223,3 +223,47 @@ def test_corrupt_coded_stream_with_valid_crc(blob, at):
 def test_random_header_with_valid_crc(head):
     body = b"TSPA\x04\x00" + head + cube_file()[HEADER_SIZE:-4]
     _read_or_none(body + struct.pack("<I", zlib.crc32(body)))
+
+
+# ------------------------------------------------------------------ the fitter's rounding
+def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkeypatch):
+    """``fed_back_atlas`` with version 4 written (``frame_fed_back``): the file holds
+    exactly its control points, and the working points lie nearer the surface drawn from
+    them than from the file of the fit rounded to nearest in the same frames (the sphere
+    at 8 bits, factor 2; distances to a fine drawing)."""
+    from test_atlas_rounding import _sphere_scan
+
+    import client_py.atlas_format as atlas_format
+    from fitter.fitting.atlas.fit import (
+        control_points,
+        fed_back_atlas,
+        fit_layout,
+        grid_mesh,
+        index_table,
+        working_points,
+    )
+    from fitter.fitting.atlas.layout import decimate, quad_layout
+    from fitter.fitting.atlas.measure import point_mesh_distance
+    from fitter.fitting.atlas.surface import scan_surface
+
+    scan = _sphere_scan()
+    surface = scan_surface(scan)
+    layout = quad_layout(*decimate(surface, 40))
+    points, normals = working_points(scan, surface, 3000)
+    atlas, f, u, v, _ = fit_layout(layout, points, normals, rounds=3)
+    monkeypatch.setattr(atlas_format, "TANGENT_FACTOR", 2.0)
+    bits = 8
+    rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, smoothing=0.1,
+                             anchor=1e-3)
+    decoded, _ = read_atlas(write_atlas(rounded, bits, tangent_factor=2.0))
+    np.testing.assert_allclose(control_points(decoded)[index_table(decoded)],
+                               control_points(rounded)[index_table(rounded)], rtol=0,
+                               atol=1e-12)
+    plain, _ = read_atlas(write_atlas(atlas, bits, tangent_factor=2.0))
+
+    def rms(a):
+        return float(np.sqrt(np.mean(point_mesh_distance(points, *grid_mesh(a, 17)) ** 2)))
+
+    fit, fed, near = rms(atlas), rms(rounded), rms(plain)
+    assert fed < near
+    assert fed ** 2 - fit ** 2 < 0.75 * (near ** 2 - fit ** 2)

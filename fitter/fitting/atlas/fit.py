@@ -1576,7 +1576,7 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
                    anchor: float, border: np.ndarray | None = None,
                    scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
                    reverse_weight: float = REVERSE_WEIGHT, sweeps: int = ROUND_SWEEPS,
-                   rate: float | None = None) -> AtlasSurface:
+                   rate: float | None = None, tangential: bool = True) -> AtlasSurface:
     """``atlas`` with its control points on ``base.tsa``'s grid at ``bits``, rounded with
     the error fed back: the file's codes of the points (``write_atlas``: to nearest, a
     patch's corners kept apart) moved by :func:`grid_codes` to lower the last round's
@@ -1603,7 +1603,7 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
                                            reverse_weight)
     rate = ROUND_RATE if rate is None else rate
     if TANGENT_FACTOR is not None:
-        return frame_fed_back(atlas, bits, TANGENT_FACTOR, H, rhs, sweeps, rate)
+        return frame_fed_back(atlas, bits, TANGENT_FACTOR, H, rhs, sweeps, rate, tangential)
     lo, hi = x.min(axis=0), x.max(axis=0)
     top = (1 << bits) - 1
     step = np.where(hi > lo, (hi - lo) / top, 1.0)
@@ -1686,8 +1686,8 @@ def _block_codes(H: sp.csr_matrix, rhs: np.ndarray, p: np.ndarray, at: np.ndarra
 
 
 def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matrix,
-                   rhs: np.ndarray, sweeps: int = ROUND_SWEEPS, rate: float = 0.0
-                   ) -> AtlasSurface:
+                   rhs: np.ndarray, sweeps: int = ROUND_SWEEPS, rate: float = 0.0,
+                   tangential: bool = True) -> AtlasSurface:
     """:func:`fed_back_atlas` for a version 4 ``base.tsa`` (``client_py.atlas_format.
     FrameCoder``, tangential step ``factor`` times the normal one): the codes chosen as
     the file decodes them, the layout vertices on the grid first (the extremes held, a
@@ -1742,7 +1742,7 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
             f = frames[start - n_v:stop - n_v]
             near = np.floor((d[:, None, 0] * f[:, :, 0] + d[:, None, 1] * f[:, :, 1]
                              + d[:, None, 2] * f[:, :, 2]) / scale + 0.5).astype(np.int64)
-            keep = np.broadcast_to(held[start:stop, None], near.shape)
+            keep = held[start:stop, None] | np.array([False, not tangential, not tangential])
             q[start:stop] = _block_codes(H, rhs, p, np.arange(start, stop), pred, frame,
                                          near, keep, sweeps, rate)
             coder.place(axes, frame_rows, start, stop, q.T.tolist())
@@ -1775,11 +1775,15 @@ def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budge
     costs 24 % for less (docs/benchmarks.md, session 15); a base the fit filled up to the
     budget takes a rate instead.
     """
-    from client_py.atlas_format import write_atlas
+    from client_py.atlas_format import TANGENT_FACTOR, write_atlas
 
     limit = max(size, byte_budget) if byte_budget is not None else None
-    for rate in ROUND_RATES:
-        rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, rate=rate, **options)
+    # version 4: every frame code fed back, else the codes across the surface alone (a
+    # rate spends the error where v4's tangential codes would spare it: docs/benchmarks.md)
+    modes = ([{"rate": rate} for rate in ROUND_RATES] if TANGENT_FACTOR is None
+             else [{"rate": 0.0}, {"rate": 0.0, "tangential": False}])
+    for mode in modes:
+        rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, **mode, **options)
         data = write_atlas(rounded, bits)
         if limit is not None and len(data) > limit:
             continue
