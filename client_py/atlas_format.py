@@ -82,8 +82,6 @@ from .rangecoder import (
 MAGIC = b"TSPA"
 VERSION = 3  # written; versions 1 and 2 are still read
 FRAME_VERSION = 4  # written with a tangent_factor (local frames)
-#: the tangent factor written by default (version 4); None: version 3
-TANGENT_FACTOR: float | None = None
 READ_VERSIONS = (1, 2, 3, 4)
 # magic version flags degree spans bits reserved V F payload_size raw_size
 HEADER = struct.Struct("<4sHHBBBBIIII")
@@ -861,7 +859,7 @@ def _frame_residuals(predictor: _Predictor, codes: Sequence[list[int]], bits: in
 
 
 def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = None,
-                tangent_factor: float | None = TANGENT_FACTOR) -> bytes:
+                tangent_factor: float | None = None) -> bytes:
     """Encode ``atlas`` as a ``.tsa`` v3 file (docs/format.md): its layout numbered by
     :func:`canonical_atlas` and range-coded (:func:`_code_quads`), then the residuals of
     the control points (and log-weights) in the same range-coded stream.
@@ -931,7 +929,7 @@ class AtlasWriter:
         self._tangential = _classes(len(atlas.vertices), n_edge, len(points), True)
 
     def write(self, bits: int = 16, metadata: dict | None = None,
-              tangent_factor: float | None = TANGENT_FACTOR) -> bytes:
+              tangent_factor: float | None = None) -> bytes:
         """The ``.tsa`` file at ``bits``: ``write_atlas(atlas, bits, metadata,
         tangent_factor)``."""
         check_bits(bits)

@@ -233,7 +233,7 @@ def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkey
     at 8 bits, factor 2; distances to a fine drawing)."""
     from test_atlas_rounding import _sphere_scan
 
-    import client_py.atlas_format as atlas_format
+    from fitter.fitting.atlas import fit as atlas_fit
     from fitter.fitting.atlas.fit import (
         control_points,
         fed_back_atlas,
@@ -251,7 +251,7 @@ def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkey
     layout = quad_layout(*decimate(surface, 40))
     points, normals = working_points(scan, surface, 3000)
     atlas, f, u, v, _ = fit_layout(layout, points, normals, rounds=3)
-    monkeypatch.setattr(atlas_format, "TANGENT_FACTOR", 2.0)
+    monkeypatch.setattr(atlas_fit, "BASE_TANGENT_FACTOR", 2.0)
     bits = 8
     rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, smoothing=0.1,
                              anchor=1e-3)

@@ -1324,12 +1324,26 @@ def base_bits(atlas: AtlasSurface, rms: float) -> int:
     return BASE_BITS[1]
 
 
-def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
-    """Bytes of the ``.tsa`` file (``client_py.atlas_format.write_atlas``) at ``bits``, or
-    with ``bits=None`` at :func:`base_bits` of the fit's ``rms``."""
+# base.tsa's tangential factor (client_py.atlas_format, version 4): its edge and patch
+# interior points coded in local frames, the step along the surface 3 times the step
+# across it. On the fixed layouts of main 5dba071 (base only, RMS of all points), one bit
+# more at 3 gave Lucy 0.858 at 22,332 bytes and Nefertiti 0.158 at 22,333 where version 3
+# gave 0.896 at 23,359 and 0.169 at 22,784 (docs/benchmarks.md, session 16). None: v3.
+BASE_TANGENT_FACTOR: float | None = 3.0
+
+
+def base_file(atlas: AtlasSurface, bits: int, metadata: dict | None = None) -> bytes:
+    """``base.tsa``: ``client_py.atlas_format.write_atlas`` at ``bits`` with
+    :data:`BASE_TANGENT_FACTOR`."""
     from client_py.atlas_format import write_atlas
 
-    return len(write_atlas(atlas, bits or base_bits(atlas, rms)))
+    return write_atlas(atlas, bits, metadata, BASE_TANGENT_FACTOR)
+
+
+def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
+    """Bytes of the ``.tsa`` file (:func:`base_file`) at ``bits``, or with ``bits=None``
+    at :func:`base_bits` of the fit's ``rms``."""
+    return len(base_file(atlas, bits or base_bits(atlas, rms)))
 
 
 # The base alone is drawn with this many samples per knot span (base_resolution). 8, not 4
@@ -1355,10 +1369,10 @@ def keeps_every_normal(atlas: AtlasSurface, bits: int, data: bytes | None = None
     that the rounding collapsed to a line or a point: a tiny patch, such as a small piece
     of a range scan, whose extent is a few quantisation steps). ``data``: that file when
     already written (``write_atlas(atlas, bits)``, not written again)."""
-    from client_py.atlas_format import read_atlas, write_atlas
+    from client_py.atlas_format import read_atlas
     from client_py.atlas_mesh import tessellate_atlas
 
-    decoded, _ = read_atlas(write_atlas(atlas, bits) if data is None else data)
+    decoded, _ = read_atlas(base_file(atlas, bits) if data is None else data)
     try:
         tessellate_atlas(decoded, base_resolution(atlas.spans), kernel="numpy")
     except ValueError:
@@ -1394,7 +1408,7 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
 
     def file(b: int) -> bytes:
         if b not in written:
-            written[b] = writer.write(b)
+            written[b] = writer.write(b, None, BASE_TANGENT_FACTOR)
         return written[b]
 
     chosen = base_bits(atlas, rms)
@@ -1593,7 +1607,7 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     ``0.1 |r|²`` in place of ``|r|²`` 0.1697 at 22,207 (RMS of all points).
     ``write_atlas(result, bits)`` writes these codes (the grid is the points' bounds over
     ``2^bits - 1`` steps, and the points at the bounds are not moved). No format change."""
-    from client_py.atlas_format import TANGENT_FACTOR, file_codes
+    from client_py.atlas_format import file_codes
 
     degree, spans = atlas.degree, atlas.spans
     table = index_table(atlas)
@@ -1602,8 +1616,9 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
                                            smoothing, anchor, border, scan_mesh,
                                            reverse_weight)
     rate = ROUND_RATE if rate is None else rate
-    if TANGENT_FACTOR is not None:
-        return frame_fed_back(atlas, bits, TANGENT_FACTOR, H, rhs, sweeps, rate, tangential)
+    if BASE_TANGENT_FACTOR is not None:
+        return frame_fed_back(atlas, bits, BASE_TANGENT_FACTOR, H, rhs, sweeps, rate,
+                              tangential)
     lo, hi = x.min(axis=0), x.max(axis=0)
     top = (1 << bits) - 1
     step = np.where(hi > lo, (hi - lo) / top, 1.0)
@@ -1775,16 +1790,14 @@ def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budge
     costs 24 % for less (docs/benchmarks.md, session 15); a base the fit filled up to the
     budget takes a rate instead.
     """
-    from client_py.atlas_format import TANGENT_FACTOR, write_atlas
-
     limit = max(size, byte_budget) if byte_budget is not None else None
     # version 4: every frame code fed back, else the codes across the surface alone (a
     # rate spends the error where v4's tangential codes would spare it: docs/benchmarks.md)
-    modes = ([{"rate": rate} for rate in ROUND_RATES] if TANGENT_FACTOR is None
+    modes = ([{"rate": rate} for rate in ROUND_RATES] if BASE_TANGENT_FACTOR is None
              else [{"rate": 0.0}, {"rate": 0.0, "tangential": False}])
     for mode in modes:
         rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, **mode, **options)
-        data = write_atlas(rounded, bits)
+        data = base_file(rounded, bits)
         if limit is not None and len(data) > limit:
             continue
         # moved codes must not collapse a patch the client draws, as budget_bits' do not
