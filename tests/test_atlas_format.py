@@ -293,7 +293,8 @@ def refused_quickly(data: bytes, match: str, seconds: float = 1.0, megabytes: fl
 
 @pytest.mark.parametrize(("fields", "offset", "match"), [
     ({"magic": b"TSPF"}, 0, "not a Tessera atlas"),
-    ({"version": 4}, 4, "atlas format version 4 is not supported"),
+    ({"version": 5}, 4, "atlas format version 5 is not supported"),
+    ({"version": 4, "reserved": 3}, 11, "tangential factor 3/4 is below 1"),
     ({"flags": 2}, 6, "unknown flags 0x0002"),
     ({"degree": 4}, 8, "degree 4 outside 1..3"),
     ({"degree": 0}, 8, "degree 0 outside 1..3"),
