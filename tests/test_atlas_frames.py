@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import struct
 import zlib
-from functools import cache
 
 import numpy as np
 import pytest
@@ -19,6 +18,7 @@ from atlas_cases import random_atlas, sphere_atlas
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_atlas import random_cube_atlas
+from test_atlas_format import frame_cube_file
 
 from client_py.atlas import AtlasSurface
 from client_py.atlas_format import (
@@ -36,9 +36,8 @@ FUZZ = settings(max_examples=120, deadline=2000, derandomize=True, database=None
                 suppress_health_check=[HealthCheck.too_slow])
 
 
-@cache
 def cube_file() -> bytes:
-    return write_atlas(random_cube_atlas(), 12, {"title": "cube"}, tangent_factor=2.5)
+    return frame_cube_file()
 
 
 def _points(atlas: AtlasSurface) -> np.ndarray:
@@ -178,29 +177,12 @@ def test_the_factor_byte_is_checked_and_version_3_keeps_its_reserved_byte():
 
 
 # ------------------------------------------------------------------ fuzzing
+# (truncation and bit flips of this file: tests/test_atlas_format.py, frame_cube_file)
 def _read_or_none(data: bytes):
     try:
         return read_atlas(data)
     except PatchFormatError:
         return None
-
-
-@FUZZ
-@given(st.data())
-def test_truncation_is_detected(data):
-    file = cube_file()
-    with pytest.raises(PatchFormatError):
-        read_atlas(file[: data.draw(st.integers(0, len(file) - 1))])
-
-
-@FUZZ
-@given(st.lists(st.integers(0, 8 * len(cube_file()) - 1), min_size=1, max_size=8, unique=True))
-def test_bit_flips_are_detected(bits):
-    data = bytearray(cube_file())
-    for bit in bits:
-        data[bit // 8] ^= 1 << (bit % 8)
-    with pytest.raises(PatchFormatError):
-        read_atlas(bytes(data))
 
 
 @FUZZ
