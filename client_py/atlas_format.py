@@ -1,4 +1,4 @@
-"""Read and write atlas files (``.tsa``, version 1): an :class:`~client_py.atlas.AtlasSurface`
+"""Read and write atlas files (``.tsa``, versions 1 to 4): an :class:`~client_py.atlas.AtlasSurface`
 in bytes, in the manner of the ``.tsp`` patch (``client_py.format``, whose pieces it reuses).
 
 The layout is specified in ``docs/format.md`` ("Atlas patch file ``.tsa``"). In short: a
@@ -8,7 +8,9 @@ vertex indices, the global bounds of the control points, every control point *on
 quantised over those bounds (to the nearest grid point, but for a patch's corners that
 would fall on one: :func:`keep_corners_apart`) and coded as the residual from a
 prediction made from integers decoded before it, the log-weights coded the same way,
-metadata JSON) and a CRC32 of all that precedes it.
+metadata JSON) and a CRC32 of all that precedes it. Version 4 (written with a
+``tangent_factor``) codes the edge and patch interior points in local frames made from
+the decoded vertices instead (:class:`FrameCoder`).
 
 Prediction (all in integers, so reader and writer agree bit for bit): a layout vertex
 from the vertex before it; an edge's interior point ``t`` (``1..n-2``, ``m = n - 1``) from

@@ -1606,7 +1606,10 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     at 21,877 bytes (unrounded 0.1659), ``c = 0`` 0.1784 at 22,810, ``c = 10`` with
     ``0.1 |r|²`` in place of ``|r|²`` 0.1697 at 22,207 (RMS of all points).
     ``write_atlas(result, bits)`` writes these codes (the grid is the points' bounds over
-    ``2^bits - 1`` steps, and the points at the bounds are not moved). No format change."""
+    ``2^bits - 1`` steps, and the points at the bounds are not moved). With
+    :data:`BASE_TANGENT_FACTOR` (version 4) the codes are chosen in the file's local frames
+    instead (:func:`frame_fed_back`; ``tangential=False``: the codes along the surface
+    held at nearest), and :func:`base_file` writes them."""
     from client_py.atlas_format import file_codes
 
     degree, spans = atlas.degree, atlas.spans
