@@ -1714,14 +1714,15 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
     them), then the patch interiors' given the decoded borders, each stage by
     :func:`_block_codes` with the points after it at their fitted place. A patch the
     codes pleat (:func:`pleated_patches`) and the writer's own codes (nearest) do not has
-    all its points held at nearest, and the stages run again, until none is left."""
+    all its points held at nearest, and the stages run again, until none is left (or
+    each is held already: its neighbours' vertices still shape its edges' frames)."""
     from client_py.atlas_format import FrameCoder, _Predictor, frame_codes, frame_steps
 
     x = control_points(atlas)
     n_v, n_e = len(atlas.vertices), len(atlas.vertices) + len(atlas.edge_points)
     lo, hi = x[:n_v].min(axis=0), x[:n_v].max(axis=0)
     top = (1 << bits) - 1
-    step = (hi - lo) / top
+    step = np.where(hi > lo, (hi - lo) / top, 1.0)  # a flat axis: every code 0
     predictor = _Predictor(atlas.quads, atlas.edges, atlas.side, n_v, bits)
     steps = frame_steps(lo.tolist(), hi.tolist(), bits, factor)
     coder = FrameCoder(predictor, atlas.quads, atlas.edges, steps)
@@ -1742,9 +1743,8 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
     held = np.zeros(len(x), bool)
     for _ in range(len(atlas.quads)):
         p = x.copy()
-        at = np.arange(n_v)
         q = np.empty_like(plain)
-        q[:n_v] = _block_codes(H, rhs, p, at, np.broadcast_to(lo, (n_v, 3)),
+        q[:n_v] = _block_codes(H, rhs, p, np.arange(n_v), np.broadcast_to(lo, (n_v, 3)),
                                np.broadcast_to(np.diag(step), (n_v, 3, 3)), plain[:n_v],
                                extremes | held[:n_v, None], sweeps, rate, top)
         q[:n_v] = _put_back(q[:n_v], plain[:n_v], together)
