@@ -15,10 +15,10 @@ import zlib
 import numpy as np
 import pytest
 from atlas_cases import random_atlas, sphere_atlas
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 from test_atlas import random_cube_atlas
-from test_atlas_format import frame_cube_file
+from test_atlas_format import FUZZ, frame_cube_file
 
 from client_py.atlas import AtlasSurface
 from client_py.atlas_format import (
@@ -31,9 +31,6 @@ from client_py.atlas_format import (
     write_atlas,
 )
 from client_py.errors import PatchFormatError
-
-FUZZ = settings(max_examples=120, deadline=2000, derandomize=True, database=None,
-                suppress_health_check=[HealthCheck.too_slow])
 
 
 def cube_file() -> bytes:
