@@ -1,4 +1,4 @@
-"""Read and write atlas files (``.tsa``, version 1): an :class:`~client_py.atlas.AtlasSurface`
+"""Read and write atlas files (``.tsa``, versions 1 to 4): an :class:`~client_py.atlas.AtlasSurface`
 in bytes, in the manner of the ``.tsp`` patch (``client_py.format``, whose pieces it reuses).
 
 The layout is specified in ``docs/format.md`` ("Atlas patch file ``.tsa``"). In short: a
@@ -8,7 +8,9 @@ vertex indices, the global bounds of the control points, every control point *on
 quantised over those bounds (to the nearest grid point, but for a patch's corners that
 would fall on one: :func:`keep_corners_apart`) and coded as the residual from a
 prediction made from integers decoded before it, the log-weights coded the same way,
-metadata JSON) and a CRC32 of all that precedes it.
+metadata JSON) and a CRC32 of all that precedes it. Version 4 (written with a
+``tangent_factor``) codes the edge and patch interior points in local frames made from
+the decoded vertices instead (:class:`FrameCoder`).
 
 Prediction (all in integers, so reader and writer agree bit for bit): a layout vertex
 from the vertex before it; an edge's interior point ``t`` (``1..n-2``, ``m = n - 1``) from
@@ -81,7 +83,8 @@ from .rangecoder import (
 
 MAGIC = b"TSPA"
 VERSION = 3  # written; versions 1 and 2 are still read
-READ_VERSIONS = (1, 2, 3)
+FRAME_VERSION = 4  # written with a tangent_factor (local frames)
+READ_VERSIONS = (1, 2, 3, 4)
 # magic version flags degree spans bits reserved V F payload_size raw_size
 HEADER = struct.Struct("<4sHHBBBBIIII")
 HEADER_SIZE = HEADER.size  # 28
@@ -280,9 +283,36 @@ class _Predictor:
             out = [top if p > top else 0 if p < 0 else p for p in out]
         return out
 
+    def edge_blend(self, x: Sequence[float]) -> list[float]:
+        """Version 4: :meth:`edge_points` in floats, ``((m-t) a + t b) / m``, unrounded."""
+        m = self.side - 1
+        return [((m - t) * x[a] + t * x[b]) / m for a, b in self.edges for t in range(1, m)]
+
+    def face_blend(self, x: Sequence[float]) -> list[float]:
+        """Version 4: :meth:`face_points` in floats (the same terms in the same order, over
+        ``m^2``), unrounded and unclamped."""
+        m2 = (self.side - 1) ** 2
+        per_patch = len(self.coons)
+        out = [0.0] * (per_patch * self.n_quads)
+        get = x.__getitem__
+        for at, ((w0, w1, w2, w3, w4, w5, w6, w7), index) in enumerate(self.coons):
+            out[at::per_patch] = [
+                (w0 * a + w1 * b + w2 * c + w3 * d + w4 * e + w5 * f + w6 * g + w7 * h) / m2
+                for a, b, c, d, e, f, g, h in zip(*[map(get, k) for k in index], strict=True)]
+        return out
+
     def vertices(self, q: Sequence[int]) -> list[int]:
         """Predicted layout vertices (version 2) from ``q[:V]`` (:func:`_vertex_prediction`)."""
         return [_vertex_prediction(q, k, earlier) for k, earlier in enumerate(self.earlier)]
+
+    def undo_vertices(self, residuals: Sequence[int]) -> list[int]:
+        """The layout vertices' codes from their residuals (run sums already undone)."""
+        if self.earlier is None:
+            return list(accumulate(residuals[:self.n_vertices]))
+        q: list[int] = []  # one vertex at a time: each prediction needs the vertices before it
+        for k, earlier in enumerate(self.earlier):
+            q.append(residuals[k] + _vertex_prediction(q, k, earlier))
+        return q
 
     def residuals(self, q: Sequence[int]) -> list[int]:
         """``q`` (every control point of one axis, global order) minus its prediction."""
@@ -300,12 +330,7 @@ class _Predictor:
         n_v, n_e = self.n_vertices, self.n_vertices + self.n_edge_points
         if self.runs is not None:
             residuals = _run_sums(residuals, self.runs)
-        if self.earlier is None:
-            q = list(accumulate(residuals[:n_v]))
-        else:  # one vertex at a time: each prediction needs the vertices before it
-            q = []
-            for k, earlier in enumerate(self.earlier):
-                q.append(residuals[k] + _vertex_prediction(q, k, earlier))
+        q = self.undo_vertices(residuals)
         q += map(add, residuals[n_v:n_e], self.edge_points(q))
         q += map(add, residuals[n_e:], self.face_points(q))
         return q
@@ -323,11 +348,11 @@ class _ResidualModel:
     ``b'`` of the residual of its source point (:class:`_Predictor`'s ``sources``; 0 in
     version 2, whose contexts are these with ``b' = 0``)."""
 
-    def __init__(self) -> None:
-        self.zero = [HALF] * (3 * RESIDUAL_BUCKETS * RESIDUAL_BUCKETS)
-        self.sign = [HALF] * 3
-        self.prefix = [HALF] * (3 * RESIDUAL_BUCKETS * RESIDUAL_BUCKETS * PREFIX_LIMIT)
-        self.mantissa = [HALF] * (3 * PREFIX_LIMIT)
+    def __init__(self, classes: int = 3) -> None:
+        self.zero = [HALF] * (classes * RESIDUAL_BUCKETS * RESIDUAL_BUCKETS)
+        self.sign = [HALF] * classes
+        self.prefix = [HALF] * (classes * RESIDUAL_BUCKETS * RESIDUAL_BUCKETS * PREFIX_LIMIT)
+        self.mantissa = [HALF] * (classes * PREFIX_LIMIT)
 
 
 def _bucket(r: int) -> int:
@@ -335,8 +360,11 @@ def _bucket(r: int) -> int:
     return m if m < RESIDUAL_BUCKETS else RESIDUAL_BUCKETS - 1
 
 
-def _classes(n_v: int, n_e: int, count: int) -> list[int]:
-    return [0] * n_v + [1] * (n_e - n_v) + [2] * (count - n_e)
+def _classes(n_v: int, n_e: int, count: int, tangential: bool = False) -> list[int]:
+    """Per point its class: 0 layout vertex, 1 edge point, 2 patch interior; version 4's
+    tangential codes (its second and third passes) 3 and 4 for the latter two."""
+    edge, face = (3, 4) if tangential else (1, 2)
+    return [0] * n_v + [edge] * (n_e - n_v) + [face] * (count - n_e)
 
 
 def _encode_residuals(enc: RangeEncoder, residuals: Sequence[int], classes: Sequence[int],
@@ -398,6 +426,152 @@ def _decode_residuals(dec: RangeDecoder, classes: Sequence[int], before: Sequenc
 
 def _all_points(atlas: AtlasSurface) -> list[tuple[float, float, float]]:
     return [*atlas.vertices, *atlas.edge_points, *atlas.face_points]
+
+
+# ------------------------------------------------------------------ local frames (v4)
+#: version 4's tangential factor is stored in quarters (header byte 11): 1..63.75
+FACTOR_QUARTERS = 4
+_TINY = 1e-12  # squared length below which a frame candidate is no direction
+
+
+def _unit(v: Sequence[float]) -> tuple[float, float, float] | None:
+    """``v / |v|``, or ``None`` when ``|v|² <=`` :data:`_TINY` (no direction)."""
+    x, y, z = v
+    n2 = x * x + y * y + z * z
+    if n2 <= _TINY:
+        return None
+    n = math.sqrt(n2)
+    return (x / n, y / n, z / n)
+
+
+def _frame(normal: Sequence[float], along: Sequence[float]) -> tuple[float, ...]:
+    """The orthonormal frame ``(n, t1, t2)`` (9 floats) of a normal and a direction along
+    the surface: ``n`` the first of ``normal``, ``x``, ``y``, ``z`` with a direction
+    (:func:`_unit`); ``t1`` the first of ``along``, ``x``, ``y``, ``z`` whose part
+    across ``n``, ``a - (a·n) n``, has one; ``t2 = n × t1``. Defined for any input
+    (a degenerate normal or a direction along it falls through to the axes)."""
+    axes = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    n = _unit(normal)
+    if n is None:
+        n = axes[0]
+    for a in (along, *axes):
+        d = a[0] * n[0] + a[1] * n[1] + a[2] * n[2]
+        t = _unit((a[0] - d * n[0], a[1] - d * n[1], a[2] - d * n[2]))
+        if t is not None:
+            break
+    return (*n, *t, n[1] * t[2] - n[2] * t[1], n[2] * t[0] - n[0] * t[2],
+            n[0] * t[1] - n[1] * t[0])
+
+
+def point_frames(vertices: Sequence[Sequence[float]], quads: Sequence[Sequence[int]],
+                 table: EdgeTable) -> tuple[list[tuple[float, ...]], list[tuple[float, ...]]]:
+    """Version 4's frames from the decoded layout vertices: ``(per edge, per patch)``.
+
+    A patch's normal is the unit cross product of its diagonals, ``(c - a) × (d - b)`` for
+    quad ``(a, b, c, d)`` (0 when that vanishes); an edge's normal the sum of its patches'.
+    The direction along: an edge's ``hi - lo``, a patch's ``(b - a) + (c - d)`` (along
+    ``u``). Each made a frame by :func:`_frame`."""
+    normals = []
+    for a, b, c, d in quads:
+        pa, pb, pc, pd = vertices[a], vertices[b], vertices[c], vertices[d]
+        e = (pc[0] - pa[0], pc[1] - pa[1], pc[2] - pa[2])
+        f = (pd[0] - pb[0], pd[1] - pb[1], pd[2] - pb[2])
+        normals.append(_unit((e[1] * f[2] - e[2] * f[1], e[2] * f[0] - e[0] * f[2],
+                              e[0] * f[1] - e[1] * f[0])) or (0.0, 0.0, 0.0))
+    edge_frames = []
+    for (lo, hi), pairs in zip(table.edges, table.faces, strict=True):
+        n = [0.0, 0.0, 0.0]
+        for patch, _ in pairs:
+            m = normals[patch]
+            n = [n[0] + m[0], n[1] + m[1], n[2] + m[2]]
+        p, q = vertices[lo], vertices[hi]
+        edge_frames.append(_frame(n, (q[0] - p[0], q[1] - p[1], q[2] - p[2])))
+    face_frames = []
+    for (a, b, c, d), n in zip(quads, normals, strict=True):
+        pa, pb, pc, pd = vertices[a], vertices[b], vertices[c], vertices[d]
+        face_frames.append(_frame(n, tuple(pb[k] - pa[k] + pc[k] - pd[k] for k in range(3))))
+    return edge_frames, face_frames
+
+
+def frame_steps(lows: Sequence[float], highs: Sequence[float], bits: int,
+                factor: float) -> tuple[float, float]:
+    """Version 4's steps ``(normal, tangential)``: the mean of the three axes' grid steps
+    ``(hi - lo) / (2^bits - 1)`` (1 when all three are 0), and ``factor`` times that."""
+    top = (1 << bits) - 1
+    s = ((highs[0] - lows[0]) / top + (highs[1] - lows[1]) / top
+         + (highs[2] - lows[2]) / top) / 3
+    if not s > 0:
+        s = 1.0
+    return s, s * factor
+
+
+class FrameCoder:
+    """Version 4's edge and patch-interior points (docs/format.md, "Local frames (version
+    4)"): point ``k`` is ``P_k = C_k + s_n a_k n + s_t (b_k t1 + c_k t2)`` with ``C_k`` the
+    prediction from the decoded points before it (an edge point's linear interpolation of
+    its end vertices, a patch interior point's Coons blend of its border, in floats), ``(n,
+    t1, t2)`` its edge's or patch's :func:`point_frames` frame, ``(s_n, s_t)`` the
+    :func:`frame_steps` and ``(a_k, b_k, c_k)`` its integer codes. One rule for the reader,
+    the writer (codes rounded to nearest) and the fitter's rounding with the error fed back.
+    """
+
+    def __init__(self, predictor: _Predictor, quads: Sequence[Sequence[int]],
+                 table: EdgeTable, steps: tuple[float, float]) -> None:
+        self.predictor, self.quads, self.table = predictor, quads, table
+        self.steps = steps
+        self.n_vertices = predictor.n_vertices
+        self.n_edge = predictor.n_vertices + predictor.n_edge_points
+        self.inner = predictor.side - 2
+
+    def frames(self, vertices: Sequence[Sequence[float]]) -> list[tuple[float, ...]]:
+        """Per edge and patch-interior point (global order from ``V``), its frame."""
+        edge_frames, face_frames = point_frames(vertices, self.quads, self.table)
+        inner = self.inner
+        return ([f for f in edge_frames for _ in range(inner)]
+                + [f for f in face_frames for _ in range(inner * inner)])
+
+    def predictions(self, axes: Sequence[list[float]], faces: bool) -> list[list[float]]:
+        """The predictions ``C_k`` of the edge points (``faces=False``, from ``axes[:V]``)
+        or of the patch interior points (from ``axes[:V + E (n-2)]``), one list per axis."""
+        predictor = self.predictor
+        return [predictor.face_blend(a) if faces else predictor.edge_blend(a) for a in axes]
+
+    def place(self, axes: list[list[float]], frames: Sequence[tuple[float, ...]],
+              start: int, stop: int, codes: Sequence[list[int]] | None = None,
+              targets: Sequence[Sequence[float]] | None = None) -> None:
+        """Fill ``axes[a][start:stop]`` (the edge points, or the interior points, after the
+        points they are predicted from) from ``codes`` (three lists over all points), or,
+        with ``targets`` (the points' coordinates, three lists), first set those codes to
+        the nearest, ``floor(d · e / s + 1/2)`` of ``d = target - C`` per frame axis."""
+        sn, st = self.steps
+        n_v = self.n_vertices
+        pred = self.predictions(axes, start >= self.n_edge)
+        at = start - (n_v if start < self.n_edge else self.n_edge)
+        x, y, z = axes
+        for k in range(start, stop):
+            cx, cy, cz = pred[0][at], pred[1][at], pred[2][at]
+            nx, ny, nz, ux, uy, uz, vx, vy, vz = frames[k - n_v]
+            if targets is not None:
+                dx, dy, dz = targets[0][k] - cx, targets[1][k] - cy, targets[2][k] - cz
+                codes[0][k] = math.floor((dx * nx + dy * ny + dz * nz) / sn + 0.5)
+                codes[1][k] = math.floor((dx * ux + dy * uy + dz * uz) / st + 0.5)
+                codes[2][k] = math.floor((dx * vx + dy * vy + dz * vz) / st + 0.5)
+            a, b, c = sn * codes[0][k], st * codes[1][k], st * codes[2][k]
+            x[k] = cx + a * nx + b * ux + c * vx
+            y[k] = cy + a * ny + b * uy + c * vy
+            z[k] = cz + a * nz + b * uz + c * vz
+            at += 1
+
+    def decode(self, vertex_axes: Sequence[Sequence[float]], codes: Sequence[list[int]],
+               targets: Sequence[Sequence[float]] | None = None) -> list[list[float]]:
+        """Every point's coordinates (three lists) from the decoded vertices and the codes
+        of the rest (or, with ``targets``, those codes set first: :meth:`place`)."""
+        count = len(codes[0])
+        axes = [list(a) + [0.0] * (count - self.n_vertices) for a in vertex_axes]
+        frames = self.frames(list(zip(*vertex_axes, strict=True)))
+        self.place(axes, frames, self.n_vertices, self.n_edge, codes, targets)
+        self.place(axes, frames, self.n_edge, count, codes, targets)
+        return axes
 
 
 # ------------------------------------------------------------------ layout coding (v3)
@@ -640,7 +814,54 @@ def keep_corners_apart(codes: list[list[int]], axes: Sequence[Sequence[float]],
     return total
 
 
-def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = None) -> bytes:
+def check_tangent_factor(factor: object) -> int:
+    """Version 4's header byte for ``factor`` (its quarters, ``4..255``; 0 for ``None``,
+    version 3); ``ValueError`` for any other value."""
+    if factor is None:
+        return 0
+    quarters = factor * FACTOR_QUARTERS if isinstance(factor, int | float) \
+        and not isinstance(factor, bool) else -1.0
+    if not (4 <= quarters <= 255 and quarters == int(quarters)):
+        raise ValueError(f"tangent_factor must be a multiple of 1/4 in 1..63.75 or None, "
+                         f"got {factor!r}")
+    return int(quarters)
+
+
+def frame_codes(predictor: _Predictor, quads: Sequence[Sequence[int]], table: EdgeTable,
+                axes: Sequence[Sequence[float]], lows: Sequence[float],
+                highs: Sequence[float], bits: int, factor: float) -> list[list[int]]:
+    """Version 4's codes of the points ``axes`` (three lists, global order): the layout
+    vertices' as :func:`file_codes`, the others' :class:`FrameCoder` frame codes rounded
+    to nearest, each point given the decoded points before it."""
+    n_v = predictor.n_vertices
+    codes = file_codes([a[:n_v] for a in axes], lows, highs, bits, quads)
+    count = len(axes[0])
+    codes = [c + [0] * (count - n_v) for c in codes]
+    vertex_axes = [_dequantise(c[:n_v], lo, hi, bits)
+                   for c, lo, hi in zip(codes, lows, highs, strict=True)]
+    coder = FrameCoder(predictor, quads, table, frame_steps(lows, highs, bits, factor))
+    coder.decode(vertex_axes, codes, axes)
+    return codes
+
+
+def _frame_residuals(predictor: _Predictor, codes: Sequence[list[int]], bits: int
+                     ) -> list[list[int]]:
+    """Version 4's three passes: the vertices' residuals (version 3's prediction), the
+    other points' frame codes as they are, then version 3's run differences."""
+    n_v, limit = predictor.n_vertices, 1 << (bits + 3)
+    out = []
+    for q in codes:
+        tail = q[n_v:]
+        if tail and max(max(tail), -min(tail)) >= limit:
+            raise ValueError(f"a frame code of {max(max(tail), -min(tail))} needs more than "
+                             f"{bits + 3} bits")
+        out.append(_run_differences([*map(sub, q[:n_v], predictor.vertices(q[:n_v])), *tail],
+                                    predictor.runs))
+    return out
+
+
+def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = None,
+                tangent_factor: float | None = None) -> bytes:
     """Encode ``atlas`` as a ``.tsa`` v3 file (docs/format.md): its layout numbered by
     :func:`canonical_atlas` and range-coded (:func:`_code_quads`), then the residuals of
     the control points (and log-weights) in the same range-coded stream.
@@ -656,6 +877,10 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
         the same patch (:func:`keep_corners_apart`).
     metadata : dict, optional
         JSON-serialisable object (strict JSON: finite numbers), at most 1 MiB.
+    tangent_factor : float, optional
+        Version 4 (:func:`frame_codes`): the edge and patch interior points coded in their
+        local frames, the step along the surface this factor (a multiple of 1/4 in
+        ``1..63.75``) times the step across it. ``None``: version 3.
 
     Returns
     -------
@@ -668,7 +893,7 @@ def write_atlas(atlas: AtlasSurface, bits: int = 16, metadata: dict | None = Non
     if not isinstance(atlas, AtlasSurface):
         raise ValueError(f"atlas must be an AtlasSurface, got {type(atlas).__name__}")
     check_bits(bits)
-    return AtlasWriter(atlas).write(bits, metadata)
+    return AtlasWriter(atlas).write(bits, metadata, tangent_factor)
 
 
 class AtlasWriter:
@@ -695,16 +920,22 @@ class AtlasWriter:
         self._axes = [[p[a] for p in points] for a in range(3)]
         self._lows = [min(a) for a in self._axes]
         self._highs = [max(a) for a in self._axes]
+        n_v = len(atlas.vertices)  # version 4's bounds: the layout vertices'
+        self._vertex_bounds = ([min(a[:n_v]) for a in self._axes],
+                               [max(a[:n_v]) for a in self._axes])
         # its clamp (``top``) is set per bits on a copy; the rest is the layout's
         self._predictor = _Predictor(atlas.quads, atlas.edges, atlas.side,
                                      len(atlas.vertices), 16)
-        self._classes = _classes(len(atlas.vertices),
-                                 len(atlas.vertices) + self._predictor.n_edge_points,
-                                 len(points))
+        n_edge = len(atlas.vertices) + self._predictor.n_edge_points
+        self._classes = _classes(len(atlas.vertices), n_edge, len(points))
+        self._tangential = _classes(len(atlas.vertices), n_edge, len(points), True)
 
-    def write(self, bits: int = 16, metadata: dict | None = None) -> bytes:
-        """The ``.tsa`` file at ``bits``: ``write_atlas(atlas, bits, metadata)``."""
+    def write(self, bits: int = 16, metadata: dict | None = None,
+              tangent_factor: float | None = None) -> bytes:
+        """The ``.tsa`` file at ``bits``: ``write_atlas(atlas, bits, metadata,
+        tangent_factor)``."""
         check_bits(bits)
+        quarters = check_tangent_factor(tangent_factor)
         if metadata is not None and not isinstance(metadata, dict):
             raise ValueError(f"metadata must be a dict, got {type(metadata).__name__}")
         try:
@@ -716,18 +947,30 @@ class AtlasWriter:
             raise ValueError(f"metadata is {len(meta_bytes)} bytes of JSON; at most 1 MiB fits")
 
         atlas, axes, lows, highs = self.atlas, self._axes, self._lows, self._highs
+        if quarters:
+            lows, highs = self._vertex_bounds
         n_vertices, quads = len(atlas.vertices), atlas.quads
         enc = copy.deepcopy(self._layout)
         parts = [struct.pack("<6d", *lows, *highs)]
         predictor = copy.copy(self._predictor)
         predictor.top = (1 << bits) - 1
         classes = self._classes
-        codes = file_codes(axes, lows, highs, bits, quads)
-        model, before = _ResidualModel(), None
-        for axis_codes in codes:
-            residuals = predictor.residuals(axis_codes)
-            _encode_residuals(enc, residuals, classes, before, model, predictor.sources)
-            before = residuals
+        if quarters:
+            codes = frame_codes(predictor, quads, atlas.edges, axes, lows, highs, bits,
+                                tangent_factor)
+            passes = _frame_residuals(predictor, codes, bits)
+            model, before = _ResidualModel(5), None
+            for axis, residuals in enumerate(passes):
+                _encode_residuals(enc, residuals, self._tangential if axis else classes,
+                                  before, model, predictor.sources)
+                before = residuals
+        else:
+            codes = file_codes(axes, lows, highs, bits, quads)
+            model, before = _ResidualModel(), None
+            for axis_codes in codes:
+                residuals = predictor.residuals(axis_codes)
+                _encode_residuals(enc, residuals, classes, before, model, predictor.sources)
+                before = residuals
         flags = 0
         if atlas.weights is not None:
             flags |= FLAG_RATIONAL
@@ -740,8 +983,9 @@ class AtlasWriter:
 
         raw = b"".join(parts)
         payload = zlib.compress(raw, 9)
-        header = HEADER.pack(MAGIC, VERSION, flags, atlas.degree, atlas.spans, bits, 0,
-                             n_vertices, len(quads), len(payload), len(raw))
+        header = HEADER.pack(MAGIC, FRAME_VERSION if quarters else VERSION, flags,
+                             atlas.degree, atlas.spans, bits, quarters, n_vertices,
+                             len(quads), len(payload), len(raw))
         body = header + payload + enc.finish()
         return body + struct.pack("<I", zlib.crc32(body))
 
@@ -773,8 +1017,10 @@ def read_atlas_header(data: bytes) -> dict:
         raise PatchFormatError(9, f"spans = {spans} outside 1..{MAX_ATLAS_SPANS}")
     if not MIN_BITS <= bits <= MAX_BITS:
         raise PatchFormatError(10, f"bits = {bits} outside {MIN_BITS}..{MAX_BITS}")
-    if reserved:
+    if version < FRAME_VERSION and reserved:
         raise PatchFormatError(11, f"reserved byte is {reserved}, must be 0")
+    if version >= FRAME_VERSION and reserved < FACTOR_QUARTERS:
+        raise PatchFormatError(11, f"tangential factor {reserved}/4 is below 1")
     if not 4 <= n_vertices <= MAX_ATLAS_VERTICES:
         raise PatchFormatError(12, f"{n_vertices} vertices; 4..{MAX_ATLAS_VERTICES} accepted")
     if not 1 <= n_quads <= MAX_ATLAS_QUADS:
@@ -800,7 +1046,8 @@ def read_atlas_header(data: bytes) -> dict:
                                f"residuals in {len(data)} bytes")
     return {"version": version, "flags": flags, "degree": degree, "spans": spans,
             "bits": bits, "vertices": n_vertices, "quads": n_quads, "payload_size": size,
-            "raw_size": raw_size, "data": data}
+            "raw_size": raw_size, "data": data,
+            "tangent_factor": reserved / FACTOR_QUARTERS if version >= FRAME_VERSION else None}
 
 
 def _in_range(values: list[int], top: int, start: int, what: str) -> list[int]:
@@ -865,9 +1112,19 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
     else:
         log_bounds = _log_weight_bounds(cur) if flags & FLAG_RATIONAL else None
         grids = _read_coded_axes(head["data"], HEADER_SIZE + head["payload_size"], predictor,
-                                 n_vertices, count, bits, log_bounds is not None, dec)
+                                 n_vertices, count, bits, log_bounds is not None, dec,
+                                 version >= FRAME_VERSION)
     metadata = _read_metadata(cur, raw)
-    axes = [_dequantise(grids[a], bounds[a], bounds[a + 3], bits) for a in range(3)]
+    if version >= FRAME_VERSION:
+        vertex_axes = [_dequantise(grids[a][:n_vertices], bounds[a], bounds[a + 3], bits)
+                       for a in range(3)]
+        coder = FrameCoder(predictor, quads, table,
+                           frame_steps(bounds[:3], bounds[3:], bits, head["tangent_factor"]))
+        axes = coder.decode(vertex_axes, grids[:3])
+        if not all(map(math.isfinite, (x for a in axes for x in a))):
+            raise PatchFormatError(HEADER_SIZE, "decoded control points are not finite")
+    else:
+        axes = [_dequantise(grids[a], bounds[a], bounds[a + 3], bits) for a in range(3)]
     weights = None
     if flags & FLAG_RATIONAL:
         weights = [math.exp(x) for x in _dequantise(grids[3], *log_bounds, bits)]
@@ -903,30 +1160,44 @@ def _read_quads(cur: _Cursor, n_quads: int, n_vertices: int) -> list[tuple[int, 
 
 def _read_coded_axes(data: bytes, start: int, predictor: _Predictor, n_vertices: int,
                      count: int, bits: int, rational: bool,
-                     dec: RangeDecoder | None = None) -> list[list[int]]:
-    """Versions 2 and 3: the range-coded residuals of x, y, z (and the log-weights), each
+                     dec: RangeDecoder | None = None, frames: bool = False
+                     ) -> list[list[int]]:
+    """Versions 2 to 4: the range-coded residuals of x, y, z (and the log-weights), each
     undone and checked to lie in ``0..2^bits - 1``; from ``data[start:-4]`` (version 2) or
-    where ``dec`` left off after the layout (version 3)."""
-    classes = _classes(n_vertices, n_vertices + predictor.n_edge_points, count)
-    grids, before, model = [], None, _ResidualModel()
+    where ``dec`` left off after the layout (versions 3, 4). Version 4 (``frames``): the
+    three passes' layout vertices undone and checked so, the other points' frame codes
+    as they are (:class:`FrameCoder` places them)."""
+    n_edge = n_vertices + predictor.n_edge_points
+    classes = _classes(n_vertices, n_edge, count)
+    tangential = _classes(n_vertices, n_edge, count, True)
+    grids, before, model = [], None, _ResidualModel(5 if frames else 3)
+    longest = bits if predictor.runs is None else bits + 4 if frames else bits + 1
     names = ["control points axis x", "control points axis y", "control points axis z"]
     try:  # the decoder reads its first bytes when it is made: inside the try too
         if dec is None:
             dec = RangeDecoder(data[start:len(data) - CRC_SIZE])
         for what in names + (["weights"] if rational else []):
             if what == "weights":
-                before, model = None, _ResidualModel()
-            residuals = _decode_residuals(dec, classes, before, model,
-                                          bits if predictor.runs is None else bits + 1, what,
+                before, model, longest = None, _ResidualModel(), bits + 1
+            residuals = _decode_residuals(dec, tangential if frames and len(grids) in (1, 2)
+                                          else classes, before, model, longest, what,
                                           predictor.sources)
-            grids.append(_in_range(predictor.undo(residuals), predictor.top, start, what))
             before = residuals
+            if frames and what != "weights":
+                summed = _run_sums(residuals, predictor.runs)
+                vertices = _in_range(predictor.undo_vertices(summed), predictor.top, start,
+                                     what)
+                grids.append(vertices + summed[n_vertices:])
+                continue
+            grids.append(_in_range(predictor.undo(residuals), predictor.top, start, what))
     except RangeDecodeError as exc:
         raise PatchFormatError(len(data) - CRC_SIZE, f"coded residuals end early: {exc}") \
             from None
     return grids
 
 
-__all__ = ["ATLAS_LIMITS", "HEADER", "HEADER_SIZE", "MAGIC", "READ_VERSIONS", "VERSION",
-           "CRC_SIZE", "canonical_atlas", "index_width", "payload_size_range", "read_atlas",
-           "read_atlas_header", "write_atlas"]
+__all__ = ["ATLAS_LIMITS", "FRAME_VERSION", "HEADER", "HEADER_SIZE", "MAGIC",
+           "READ_VERSIONS", "VERSION", "CRC_SIZE", "FrameCoder", "canonical_atlas",
+           "check_tangent_factor", "frame_codes", "frame_steps", "index_width",
+           "payload_size_range", "point_frames", "read_atlas", "read_atlas_header",
+           "write_atlas"]

@@ -9,6 +9,7 @@ import trimesh
 from fitter.fitting.atlas import AtlasFit, SurfaceError, fit_atlas, quad_layout, scan_surface
 from fitter.fitting.atlas import fit as atlas_fit
 from fitter.fitting.atlas.fit import (
+    base_file,
     border_foot_points,
     border_outward,
     border_points,
@@ -1072,7 +1073,7 @@ def test_a_fitted_base_at_the_first_levels_resolution_welds_to_a_manifold():
     0's resolution (17 samples a side), welded at 1e-6 of the diagonal as the benchmark
     welds, has no collapsed triangle and no edge in more than two triangles; its one open
     border is the hole's and its Euler characteristic the torus's."""
-    from client_py.atlas_format import read_atlas, write_atlas
+    from client_py.atlas_format import read_atlas
     from client_py.atlas_mesh import tessellate_atlas
     from client_py.bundle import atlas_level_resolution
     from fitter.fitting.atlas.detail import SPANS
@@ -1089,7 +1090,7 @@ def test_a_fitted_base_at_the_first_levels_resolution_welds_to_a_manifold():
         >= MIN_WIDTH_SHARE * fitted_median
     assert _topology(layout.triangle_vertices, layout.triangles) == _topology(v, f) \
         == (-1, 1, 0, 0)
-    decoded, _ = read_atlas(write_atlas(fit.atlas, 8))
+    decoded, _ = read_atlas(base_file(fit.atlas, 8))
     mesh = tessellate_atlas(decoded, atlas_level_resolution(SPANS, 0), kernel="numpy",
                             normals=False)
     points = np.asarray(mesh.positions, np.float64).reshape(-1, 3)

@@ -293,7 +293,8 @@ def refused_quickly(data: bytes, match: str, seconds: float = 1.0, megabytes: fl
 
 @pytest.mark.parametrize(("fields", "offset", "match"), [
     ({"magic": b"TSPF"}, 0, "not a Tessera atlas"),
-    ({"version": 4}, 4, "atlas format version 4 is not supported"),
+    ({"version": 5}, 4, "atlas format version 5 is not supported"),
+    ({"version": 4, "reserved": 3}, 11, "tangential factor 3/4 is below 1"),
     ({"flags": 2}, 6, "unknown flags 0x0002"),
     ({"degree": 4}, 8, "degree 4 outside 1..3"),
     ({"degree": 0}, 8, "degree 0 outside 1..3"),
@@ -434,19 +435,28 @@ def read_or_format_error(data: bytes):
         return None
 
 
+@cache
+def frame_cube_file() -> bytes:
+    """The cube as version 4 (tests/test_atlas_frames.py)."""
+    return write_atlas(random_cube_atlas(), 12, {"title": "cube"}, tangent_factor=2.5)
+
+
+@pytest.mark.parametrize("make", [cube_file, frame_cube_file])
 @FUZZ
 @given(st.data())
-def test_truncation_is_detected(data):
-    file = cube_file()
+def test_truncation_is_detected(make, data):
+    file = make()
     with pytest.raises(PatchFormatError):
         read_atlas(file[: data.draw(st.integers(0, len(file) - 1))])
 
 
+@pytest.mark.parametrize("make", [cube_file, frame_cube_file])
 @FUZZ
-@given(st.lists(st.integers(0, 8 * len(cube_file()) - 1), min_size=1, max_size=8, unique=True))
-def test_bit_flips_are_detected(bits):
-    data = bytearray(cube_file())
-    for bit in bits:
+@given(st.data())
+def test_bit_flips_are_detected(make, draw):
+    data = bytearray(make())
+    for bit in draw.draw(st.lists(st.integers(0, 8 * len(data) - 1), min_size=1, max_size=8,
+                                  unique=True)):
         data[bit // 8] ^= 1 << (bit % 8)
     with pytest.raises(PatchFormatError):
         read_atlas(bytes(data))

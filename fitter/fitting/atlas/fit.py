@@ -1321,12 +1321,26 @@ def base_bits(atlas: AtlasSurface, rms: float) -> int:
     return BASE_BITS[1]
 
 
-def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
-    """Bytes of the ``.tsa`` file (``client_py.atlas_format.write_atlas``) at ``bits``, or
-    with ``bits=None`` at :func:`base_bits` of the fit's ``rms``."""
+# base.tsa's tangential factor (client_py.atlas_format, version 4): its edge and patch
+# interior points coded in local frames, the step along the surface 3 times the step
+# across it. On the fixed layouts of main 5dba071 (base only, RMS of all points), one bit
+# more at 3 gave Lucy 0.858 at 22,332 bytes and Nefertiti 0.158 at 22,333 where version 3
+# gave 0.896 at 23,359 and 0.169 at 22,784 (docs/benchmarks.md, session 16). None: v3.
+BASE_TANGENT_FACTOR: float | None = 3.0
+
+
+def base_file(atlas: AtlasSurface, bits: int, metadata: dict | None = None) -> bytes:
+    """``base.tsa``: ``client_py.atlas_format.write_atlas`` at ``bits`` with
+    :data:`BASE_TANGENT_FACTOR`."""
     from client_py.atlas_format import write_atlas
 
-    return len(write_atlas(atlas, bits or base_bits(atlas, rms)))
+    return write_atlas(atlas, bits, metadata, BASE_TANGENT_FACTOR)
+
+
+def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
+    """Bytes of the ``.tsa`` file (:func:`base_file`) at ``bits``, or with ``bits=None``
+    at :func:`base_bits` of the fit's ``rms``."""
+    return len(base_file(atlas, bits or base_bits(atlas, rms)))
 
 
 # The base alone is drawn with this many samples per knot span (base_resolution). 8, not 4
@@ -1352,10 +1366,10 @@ def keeps_every_normal(atlas: AtlasSurface, bits: int, data: bytes | None = None
     that the rounding collapsed to a line or a point: a tiny patch, such as a small piece
     of a range scan, whose extent is a few quantisation steps). ``data``: that file when
     already written (``write_atlas(atlas, bits)``, not written again)."""
-    from client_py.atlas_format import read_atlas, write_atlas
+    from client_py.atlas_format import read_atlas
     from client_py.atlas_mesh import tessellate_atlas
 
-    decoded, _ = read_atlas(write_atlas(atlas, bits) if data is None else data)
+    decoded, _ = read_atlas(base_file(atlas, bits) if data is None else data)
     try:
         tessellate_atlas(decoded, base_resolution(atlas.spans), kernel="numpy")
     except ValueError:
@@ -1391,7 +1405,7 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
 
     def file(b: int) -> bytes:
         if b not in written:
-            written[b] = writer.write(b)
+            written[b] = writer.write(b, None, BASE_TANGENT_FACTOR)
         return written[b]
 
     chosen = base_bits(atlas, rms)
@@ -1573,7 +1587,7 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
                    anchor: float, border: np.ndarray | None = None,
                    scan_mesh: tuple[np.ndarray, np.ndarray] | None = None,
                    reverse_weight: float = REVERSE_WEIGHT, sweeps: int = ROUND_SWEEPS,
-                   rate: float | None = None) -> AtlasSurface:
+                   rate: float | None = None, tangential: bool = True) -> AtlasSurface:
     """``atlas`` with its control points on ``base.tsa``'s grid at ``bits``, rounded with
     the error fed back: the file's codes of the points (``write_atlas``: to nearest, a
     patch's corners kept apart) moved by :func:`grid_codes` to lower the last round's
@@ -1589,18 +1603,49 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
     at 21,877 bytes (unrounded 0.1659), ``c = 0`` 0.1784 at 22,810, ``c = 10`` with
     ``0.1 |r|²`` in place of ``|r|²`` 0.1697 at 22,207 (RMS of all points).
     ``write_atlas(result, bits)`` writes these codes (the grid is the points' bounds over
-    ``2^bits - 1`` steps, and the points at the bounds are not moved). No format change."""
+    ``2^bits - 1`` steps, and the points at the bounds are not moved). With
+    :data:`BASE_TANGENT_FACTOR` (version 4) the codes are chosen in the file's local frames
+    instead (:func:`frame_fed_back`; ``tangential=False``: the codes along the surface
+    held at nearest), and :func:`base_file` writes them."""
     from client_py.atlas_format import file_codes
 
     degree, spans = atlas.degree, atlas.spans
     table = index_table(atlas)
     x = control_points(atlas)
+    H, rhs, per_axis = _rounding_objective(atlas, table, x, layout, points, f, u, v,
+                                           smoothing, anchor, border, scan_mesh,
+                                           reverse_weight)
+    rate = ROUND_RATE if rate is None else rate
+    if BASE_TANGENT_FACTOR is not None:
+        return frame_fed_back(atlas, bits, BASE_TANGENT_FACTOR, H, rhs, sweeps, rate,
+                              tangential)
     lo, hi = x.min(axis=0), x.max(axis=0)
     top = (1 << bits) - 1
     step = np.where(hi > lo, (hi - lo) / top, 1.0)
     # the writer's codes, which do not depend on the file's numbering of the points
     plain = np.array(file_codes(x.T.tolist(), lo.tolist(), hi.tolist(), bits, atlas.quads),
                      np.int64).T
+    fixed = np.zeros_like(plain, bool)
+    fixed[x.argmin(axis=0), np.arange(3)] = True
+    fixed[x.argmax(axis=0), np.arange(3)] = True
+    colour = (3 * coupling_colours(per_axis)[:, None] + np.arange(3)).reshape(-1)
+    q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps, rate, colour, top)
+    together = _corners_together(np.asarray(atlas.quads))
+    pleated = _newly_pleated(plain, table, lo, step, degree, spans)
+    q = _put_back(q, plain, lambda q: np.union1d(together(q), pleated(q)))
+    return with_control_points(atlas, lo + step * q)
+
+
+def _rounding_objective(atlas: AtlasSurface, table: np.ndarray, x: np.ndarray,
+                        layout: QuadLayout, points: np.ndarray, f: np.ndarray,
+                        u: np.ndarray, v: np.ndarray, smoothing: float, anchor: float,
+                        border: np.ndarray | None, scan_mesh: tuple | None,
+                        reverse_weight: float) -> tuple[sp.csr_matrix, np.ndarray,
+                                                        sp.csr_matrix]:
+    """:func:`fed_back_atlas`'s quadratic ``J(p) = pᵀ H p - 2 rhsᵀ p`` over the ``3 N``
+    values ``p`` (point ``j``'s axis ``a`` at ``3 j + a``): ``(H, rhs, per_axis)``, the
+    last the ``N × N`` matrix each axis has alone."""
+    degree, spans = atlas.degree, atlas.spans
     initial = bilinear_atlas(layout, degree, spans)
     nb = neighbour_table(atlas)
     border = np.empty((0, 3)) if border is None else np.asarray(border, np.float64)
@@ -1625,16 +1670,104 @@ def fed_back_atlas(atlas: AtlasSurface, bits: int, layout: QuadLayout, points: n
                                  .reshape(-1))), shape=(k, 3 * len(x)))
         H = (H + ROUND_ACROSS * (across.T @ across)).tocsr()
         rhs = rhs + ROUND_ACROSS * (across.T @ np.einsum("kc,kc->k", n, targets[:k]))
-    fixed = np.zeros_like(plain, bool)
-    fixed[x.argmin(axis=0), np.arange(3)] = True
-    fixed[x.argmax(axis=0), np.arange(3)] = True
-    colour = (3 * coupling_colours(per_axis)[:, None] + np.arange(3)).reshape(-1)
-    q = grid_codes(H, rhs, x, plain, lo, step, fixed, sweeps,
-                   ROUND_RATE if rate is None else rate, colour, top)
+    return H, rhs, per_axis
+
+
+def _block_codes(H: sp.csr_matrix, rhs: np.ndarray, p: np.ndarray, at: np.ndarray,
+                 offset: np.ndarray, frame: np.ndarray, start: np.ndarray,
+                 fixed: np.ndarray, sweeps: int, rate: float,
+                 top: int | None = None) -> np.ndarray:
+    """:func:`grid_codes` of the points ``at`` alone, every other point held at ``p (N,
+    3)``: point ``k = at[i]`` is ``offset_i + frame_i c_i`` (``frame (n, 3, 3)``, its
+    columns the steps of the codes ``c_i``), so ``J`` restricted to them is ``cᵀ (Mᵀ
+    H_II M) c - 2 (Mᵀ (rhs_I - H_I· p' - H_II offset))ᵀ c`` with ``M`` the block
+    diagonal of the frames, ``I`` their values and ``p'`` the others. ``start (n, 3)``:
+    the codes to start from, ``fixed (n, 3)`` of bool not moved; ``x`` of the descent the
+    points' ``p`` in codes, ``M⁻¹ (p_I - offset)``. Returns the codes ``(n, 3)``."""
+    values = (3 * at[:, None] + np.arange(3)).reshape(-1)
+    rows = H[values]
+    held = p.reshape(-1).copy()
+    held[values] = 0.0
+    m = len(at)
+    M = sp.csr_matrix((frame.reshape(-1), (np.repeat(np.arange(3 * m), 3),
+                                           np.tile(np.arange(3), 3 * m)
+                                           + 3 * np.repeat(np.arange(m), 9))),
+                      shape=(3 * m, 3 * m))
+    H_II = rows[:, values]
+    Hc = (M.T @ H_II @ M).tocsr()
+    rc = M.T @ (rhs[values] - rows @ held - H_II @ offset.reshape(-1))
+    x = np.linalg.solve(frame, (p[at] - offset)[..., None])[..., 0]
+    return grid_codes(Hc, rc, x, start, 0.0, 1.0, fixed, sweeps, rate, None, top)
+
+
+def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matrix,
+                   rhs: np.ndarray, sweeps: int = ROUND_SWEEPS, rate: float = 0.0,
+                   tangential: bool = True) -> AtlasSurface:
+    """:func:`fed_back_atlas` for a version 4 ``base.tsa`` (``client_py.atlas_format.
+    FrameCoder``, tangential step ``factor`` times the normal one): the codes chosen as
+    the file decodes them, the layout vertices on the grid first (the extremes held, a
+    patch's corners kept apart as :func:`_corners_together`), then the edge points'
+    frame codes given the decoded vertices (their frames and predictions are made from
+    them), then the patch interiors' given the decoded borders, each stage by
+    :func:`_block_codes` with the points after it at their fitted place. A patch the
+    codes pleat (:func:`pleated_patches`) and the writer's own codes (nearest) do not has
+    all its points held at nearest, and the stages run again, until none is left (or
+    each is held already: its neighbours' vertices still shape its edges' frames)."""
+    from client_py.atlas_format import FrameCoder, _Predictor, frame_codes, frame_steps
+
+    x = control_points(atlas)
+    n_v, n_e = len(atlas.vertices), len(atlas.vertices) + len(atlas.edge_points)
+    lo, hi = x[:n_v].min(axis=0), x[:n_v].max(axis=0)
+    top = (1 << bits) - 1
+    step = np.where(hi > lo, (hi - lo) / top, 1.0)  # a flat axis: every code 0
+    predictor = _Predictor(atlas.quads, atlas.edges, atlas.side, n_v, bits)
+    steps = frame_steps(lo.tolist(), hi.tolist(), bits, factor)
+    coder = FrameCoder(predictor, atlas.quads, atlas.edges, steps)
+    scale = np.array([steps[0], steps[1], steps[1]])
+    plain = np.array(frame_codes(predictor, atlas.quads, atlas.edges, x.T.tolist(),
+                                 lo.tolist(), hi.tolist(), bits, factor), np.int64).T
+    table = index_table(atlas)
     together = _corners_together(np.asarray(atlas.quads))
-    pleated = _newly_pleated(plain, table, lo, step, degree, spans)
-    q = _put_back(q, plain, lambda q: np.union1d(together(q), pleated(q)))
-    return with_control_points(atlas, lo + step * q)
+
+    def decoded(codes: np.ndarray) -> np.ndarray:
+        vertex_axes = (lo + step * codes[:n_v]).T.tolist()
+        return np.array(coder.decode(vertex_axes, codes.T.tolist())).T
+
+    before = pleated_patches(table, decoded(plain), atlas.degree, atlas.spans)
+    extremes = np.zeros((n_v, 3), bool)
+    extremes[x[:n_v].argmin(axis=0), np.arange(3)] = True
+    extremes[x[:n_v].argmax(axis=0), np.arange(3)] = True
+    held = np.zeros(len(x), bool)
+    for _ in range(len(atlas.quads)):
+        p = x.copy()
+        q = np.empty_like(plain)
+        q[:n_v] = _block_codes(H, rhs, p, np.arange(n_v), np.broadcast_to(lo, (n_v, 3)),
+                               np.broadcast_to(np.diag(step), (n_v, 3, 3)), plain[:n_v],
+                               extremes | held[:n_v, None], sweeps, rate, top)
+        q[:n_v] = _put_back(q[:n_v], plain[:n_v], together)
+        p[:n_v] = lo + step * q[:n_v]
+        axes = p.T.tolist()
+        frame_rows = coder.frames(p[:n_v].tolist())
+        frames = np.array(frame_rows).reshape(-1, 3, 3)  # frames[k, j]: axis j (n, t1, t2)
+        for start, stop in ((n_v, n_e), (n_e, len(x))):
+            pred = np.array(coder.predictions(axes, start >= n_e)).T
+            frame = frames[start - n_v:stop - n_v].transpose(0, 2, 1) * scale
+            # nearest in the frame, as the writer rounds (FrameCoder.place)
+            d = x[start:stop] - pred
+            f = frames[start - n_v:stop - n_v]
+            near = np.floor((d[:, None, 0] * f[:, :, 0] + d[:, None, 1] * f[:, :, 1]
+                             + d[:, None, 2] * f[:, :, 2]) / scale + 0.5).astype(np.int64)
+            keep = held[start:stop, None] | np.array([False, not tangential, not tangential])
+            q[start:stop] = _block_codes(H, rhs, p, np.arange(start, stop), pred, frame,
+                                         near, keep, sweeps, rate)
+            coder.place(axes, frame_rows, start, stop, q.T.tolist())
+            p[start:stop] = np.array(axes).T[start:stop]
+        pleats = np.flatnonzero(pleated_patches(table, p, atlas.degree, atlas.spans)
+                                & ~before)
+        if not len(pleats) or held[np.unique(table[pleats])].all():
+            break
+        held[np.unique(table[pleats])] = True
+    return with_control_points(atlas, p)
 
 
 ROUND_RATES = (0.0, 1.0, 4.0)  # within_budget_fed_back's rates, tried in turn
@@ -1657,12 +1790,14 @@ def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budge
     costs 24 % for less (docs/benchmarks.md, session 15); a base the fit filled up to the
     budget takes a rate instead.
     """
-    from client_py.atlas_format import write_atlas
-
     limit = max(size, byte_budget) if byte_budget is not None else None
-    for rate in ROUND_RATES:
-        rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, rate=rate, **options)
-        data = write_atlas(rounded, bits)
+    # version 4: every frame code fed back, else the codes across the surface alone (a
+    # rate spends the error where v4's tangential codes would spare it: docs/benchmarks.md)
+    modes = ([{"rate": rate} for rate in ROUND_RATES] if BASE_TANGENT_FACTOR is None
+             else [{"rate": 0.0}, {"rate": 0.0, "tangential": False}])
+    for mode in modes:
+        rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, **mode, **options)
+        data = base_file(rounded, bits)
         if limit is not None and len(data) > limit:
             continue
         # moved codes must not collapse a patch the client draws, as budget_bits' do not

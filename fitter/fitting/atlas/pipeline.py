@@ -37,14 +37,21 @@ from pathlib import Path
 
 import numpy as np
 
-from client_py.atlas_format import read_atlas, write_atlas
+from client_py.atlas_format import read_atlas
 
 from ..bundle import write_bundle
 from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_error_ply
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
-from .fit import DEFAULT_BYTE_BUDGET, AtlasFit, AtlasFitError, base_resolution, fit_atlas
+from .fit import (
+    DEFAULT_BYTE_BUDGET,
+    AtlasFit,
+    AtlasFitError,
+    base_file,
+    base_resolution,
+    fit_atlas,
+)
 from .layout import AtlasLayoutError
 from .measure import (
     DrawnMesh,
@@ -334,7 +341,7 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
     Returns
     -------
     fit, decoded, layout
-        The fit, its base as read back from ``write_atlas(fit.atlas, bits)``, and the
+        The fit, its base as read back from ``base_file(fit.atlas, bits)``, and the
         manifest's ``fit.layout`` record (``source``, handles, ``byte_budget``, the
         refusals that led to it, and the ``bits`` of ``base.tsa``).
     """
@@ -363,7 +370,7 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
                             trial_cache=trials[source])
             stages.start("encode")
             record["bits"] = fit.bits
-            decoded, _ = read_atlas(write_atlas(fit.atlas, record["bits"]))
+            decoded, _ = read_atlas(base_file(fit.atlas, record["bits"]))
             record["stray_share"] = check_base_follows_surface(decoded, surface)
             return fit, decoded, record
         except (AtlasLayoutError, AtlasFitError) as exc:
@@ -446,7 +453,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
                               progress=stages.report)
     atlas = detail.atlas  # renumbered so that every group of patches is a range
-    data = write_atlas(atlas, bits, {"units": scan.units})
+    data = base_file(atlas, bits, {"units": scan.units})
     resolution = base_resolution(atlas.spans)
     stages.start("error")
     points = np.asarray(scan.points, dtype=float)
