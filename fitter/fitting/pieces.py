@@ -13,8 +13,8 @@ pieces. Those of at least :data:`MIN_PIECE_POINTS` points, when they hold at mos
 :data:`MAX_PIECES_SHARE` of the scan's points, are fitted together as one atlas
 (``atlas.fit.fit_atlas``, about one layout triangle per piece, its bits by its RMS, on as
 many working points as the pieces have, at least :data:`PIECE_WORKING_POINTS`), written
-as ``pieces.tsa`` (``client_py.atlas_format``) and drawn with the patch at every level,
-without detail (``client_py.bundle.pieces_mesh``). Smaller pieces, points on no such
+as ``pieces.tsa`` (``atlas.fit.base_file``, as a base is) and drawn with the patch at
+every level, without detail (``client_py.bundle.pieces_mesh``). Smaller pieces, points on no such
 triangle, and every piece when they are too many or the atlas fit refuses them stay
 uncovered: the manifest's ``pieces.uncovered`` counts them with the reason
 (docs/format.md, "Pieces").
@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from client_py.atlas_format import read_atlas, write_atlas
+from client_py.atlas_format import read_atlas
 from client_py.bundle import PIECES_FILE, tessellate_bundle
 
-from .atlas.fit import AUTO_MAX_TRIANGLES, base_resolution, fit_atlas
+from .atlas.fit import AUTO_MAX_TRIANGLES, base_file, base_resolution, fit_atlas
 from .atlas.measure import point_mesh_distance
 from .atlas.surface import face_pieces
 from .io.scan import Scan, ScanError
@@ -136,7 +136,7 @@ def fit_pieces(scan: Scan, folder: Path, manifest: dict,
                         bits=None, working_count=max(PIECE_WORKING_POINTS, len(chosen)))
     except ScanError as exc:  # SurfaceError, AtlasLayoutError, AtlasFitError: named
         return {**entry, "uncovered": _uncovered(fitted, 0, f"not fitted: {exc}") + small}
-    data = write_atlas(fit.atlas, fit.bits, {"units": scan.units})
+    data = base_file(fit.atlas, fit.bits, {"units": scan.units})  # as the fit rounded it
     (folder / PIECES_FILE).write_bytes(data)
     return {**entry, "file": PIECES_FILE, "pieces": len(fitted), "points": int(len(chosen)),
             "patches": len(read_atlas(data)[0].quads),
