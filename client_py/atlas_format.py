@@ -338,7 +338,10 @@ class _Predictor:
 
 # ------------------------------------------------------------------ residual coding (v2)
 RESIDUAL_BUCKETS = 5  # context: bit length of a neighbouring residual, 0..4+
-PREFIX_LIMIT = MAX_BITS + 2  # |r| < 2^bits: its bit length never reaches this
+#: a residual's bit length never reaches this: versions 2-3 code ``|r| < 2^(bits + 1)``,
+#: version 4 frame codes of up to ``bits + 3`` bits whose run differences take ``bits + 4``
+#: (:func:`_frame_residuals`, ``longest`` in :func:`_read_coded_axes`)
+PREFIX_LIMIT = MAX_BITS + 5
 
 
 class _ResidualModel:

@@ -246,3 +246,17 @@ def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkey
     fit, fed, near = rms(atlas), rms(rounded), rms(plain)
     assert fed < near
     assert fed ** 2 - fit ** 2 < 0.75 * (near ** 2 - fit ** 2)
+
+
+def test_thirty_bit_frame_codes_far_from_their_prediction_round_trip():
+    """Version 4 at the format's largest bits with points far off their prediction: codes of
+    up to ``bits + 3`` bits and run differences of ``bits + 4`` keep contexts of their own
+    (``PREFIX_LIMIT``; 32 slots raised IndexError writing this)."""
+    atlas = random_cube_atlas(3, 2)
+    centre = np.array(atlas.vertices).mean(axis=0)
+    far = canonical_atlas(AtlasSurface(
+        atlas.degree, atlas.spans, atlas.vertices, atlas.quads,
+        [tuple(centre + 3 * (np.array(p) - centre)) for p in atlas.edge_points],
+        [tuple(centre + 3 * (np.array(p) - centre)) for p in atlas.face_points]))
+    back, _ = read_atlas(write_atlas(far, 30, tangent_factor=1.0))
+    np.testing.assert_allclose(_points(back), _points(far), rtol=0, atol=1e-6)

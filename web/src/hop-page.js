@@ -143,7 +143,13 @@ async function main() {
     levelsError = error;
   }
   // a patch's detached pieces: in every PLY the worker writes from now on
-  if (!levelsError) await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
+  if (!levelsError) {
+    try {
+      await loadPieces(worker, manifest, { manifestUrl: config.manifest_url, stats });
+    } catch (error) { // a missing or bad pieces.tsa: the patch's PLYs, the reason kept
+      document.body.dataset.piecesError = error.message;
+    }
+  }
   const units = manifest.units || "unknown";
   for (const choice of levels) select.append(levelOption(choice, units));
   select.value = String(level);

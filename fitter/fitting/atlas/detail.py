@@ -1604,7 +1604,7 @@ def _solve_level(samples: AtlasSamples, residual: np.ndarray, level: int, spans:
     patches whose shared ring moved (the ``changed`` and their neighbours across the slots
     their ring shares) have their interior solved again. Every other patch's numbers are
     ``again``'s, which a solve of every patch would give again: the same coefficients, to
-    the bit (``tests/test_atlas_solve.py``)."""
+    the bit (``tests/test_atlas_detail_fit.py``)."""
     rows = {} if again is None else again.rows  # the batches' rows, made once for all solves
     solve = functools.partial(_solve_blocks, samples, residual, level, spans,
                               weights=fit_weight, model=model, rows=rows, pull=pull)

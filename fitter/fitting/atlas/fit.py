@@ -149,6 +149,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from client_py.atlas import AtlasSurface
+from client_py.atlas_format import AtlasWriter
 
 from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
@@ -1329,12 +1330,19 @@ def base_bits(atlas: AtlasSurface, rms: float) -> int:
 BASE_TANGENT_FACTOR: float | None = 3.0
 
 
-def base_file(atlas: AtlasSurface, bits: int, metadata: dict | None = None) -> bytes:
-    """``base.tsa``: ``client_py.atlas_format.write_atlas`` at ``bits`` with
-    :data:`BASE_TANGENT_FACTOR`."""
-    from client_py.atlas_format import write_atlas
-
-    return write_atlas(atlas, bits, metadata, BASE_TANGENT_FACTOR)
+def base_file(atlas: AtlasSurface, bits: int, metadata: dict | None = None,
+              writer: AtlasWriter | None = None) -> bytes:
+    """``base.tsa``: ``client_py.atlas_format``'s writer (``writer``, made for ``atlas`` if
+    not given) at ``bits`` with :data:`BASE_TANGENT_FACTOR`; version 3 when a point lies so
+    far from its prediction that its frame code would pass the format's ``bits + 3`` bits
+    (the writer's ``ValueError``: a net many times its corners' box, never seen on a fit)."""
+    writer = writer or AtlasWriter(atlas)
+    try:
+        return writer.write(bits, metadata, BASE_TANGENT_FACTOR)
+    except ValueError:
+        if BASE_TANGENT_FACTOR is None:
+            raise
+        return writer.write(bits, metadata)
 
 
 def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
@@ -1365,7 +1373,7 @@ def keeps_every_normal(atlas: AtlasSurface, bits: int, data: bytes | None = None
     client draws the base at (``client_py.atlas_mesh.tessellate_atlas`` refuses a patch
     that the rounding collapsed to a line or a point: a tiny patch, such as a small piece
     of a range scan, whose extent is a few quantisation steps). ``data``: that file when
-    already written (``write_atlas(atlas, bits)``, not written again)."""
+    already written (:func:`base_file` at ``bits``, not written again)."""
     from client_py.atlas_format import read_atlas
     from client_py.atlas_mesh import tessellate_atlas
 
@@ -1398,14 +1406,12 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     """
     if bits is not None:
         return bits, atlas_bytes(atlas, bits)
-    from client_py.atlas_format import AtlasWriter
-
     # each bits encoded once (the 15-scan Buddha: 0.4 s each), the layout once for all
     writer, written = AtlasWriter(atlas), {}
 
     def file(b: int) -> bytes:
         if b not in written:
-            written[b] = writer.write(b, None, BASE_TANGENT_FACTOR)
+            written[b] = base_file(atlas, b, None, writer)
         return written[b]
 
     chosen = base_bits(atlas, rms)
