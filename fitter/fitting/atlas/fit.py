@@ -1744,6 +1744,7 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
     extremes[x[:n_v].argmin(axis=0), np.arange(3)] = True
     extremes[x[:n_v].argmax(axis=0), np.arange(3)] = True
     held = np.zeros(len(x), bool)
+    fitted = x.T.tolist()
     for _ in range(len(atlas.quads)):
         p = x.copy()
         q = np.empty_like(plain)
@@ -1758,11 +1759,9 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
         for start, stop in ((n_v, n_e), (n_e, len(x))):
             pred = np.array(coder.predictions(axes, start >= n_e)).T
             frame = frames[start - n_v:stop - n_v].transpose(0, 2, 1) * scale
-            # nearest in the frame, as the writer rounds (FrameCoder.place)
-            d = x[start:stop] - pred
-            f = frames[start - n_v:stop - n_v]
-            near = np.floor((d[:, None, 0] * f[:, :, 0] + d[:, None, 1] * f[:, :, 1]
-                             + d[:, None, 2] * f[:, :, 2]) / scale + 0.5).astype(np.int64)
+            nearest = [list(c) for c in q.T.tolist()]  # as the writer rounds: its own rule
+            coder.place([list(a) for a in axes], frame_rows, start, stop, nearest, fitted)
+            near = np.array(nearest, np.int64).T[start:stop]
             keep = held[start:stop, None] | np.array([False, not tangential, not tangential])
             q[start:stop] = _block_codes(H, rhs, p, np.arange(start, stop), pred, frame,
                                          near, keep, sweeps, rate)
