@@ -26,6 +26,19 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session")
+def laurana_bundle(shared_data: Path, tmp_path_factory: pytest.TempPathFactory):
+    """The Laurana bust fitted once with default options (an atlas bundle with colour): the
+    one real default fit of a bust that several tests read (its colour, its recorded view)."""
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
+
+    path = shared_data / "laurana-bust" / "laurana.ply"
+    if not path.is_file():
+        pytest.skip(f"{path} is absent")
+    return fit_scan(path, tmp_path_factory.mktemp("laurana") / "laurana", FitOptions())
+
+
 # ------------------------------------------------------------- web server and browser (issue 5)
 @pytest.fixture(scope="session")
 def web_collection(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -35,8 +35,6 @@ from fitter.fitting.io.scan import make_scan, new_source
 from fitter.fitting.options import FitOptions
 from fitter.fitting.pipeline import fit_scan
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-
 
 def _colour_of(points: np.ndarray) -> np.ndarray:
     """A smooth colour field over the sphere of radius 50: RGB in 28..228."""
@@ -387,13 +385,8 @@ def test_barycentric_coordinates_rebuild_the_point():
 
 
 @pytest.mark.realdata
-def test_laurana_atlas_keeps_the_scan_colour(tmp_path):
-    path = DATA / "laurana-bust" / "laurana.ply"
-    if not path.is_file():
-        pytest.skip(f"{path} is absent (../shared/data not mounted)")
-    from fitter.fitting.io import load_scan
-
-    bundle = fit_scan(load_scan(path), tmp_path / "laurana", FitOptions())
+def test_laurana_atlas_keeps_the_scan_colour(laurana_bundle):
+    bundle = laurana_bundle
     manifest = json.loads((bundle.path / "manifest.json").read_text())
     texture = manifest["tiles"]["texture"]
     assert manifest["format_version"] == 2 and texture is not None

@@ -135,11 +135,8 @@ def test_real_scans_stand_upright(shared_data, name):
     assert abs(np.dot(view.up, view.front)) < 1e-6
 
 
-def test_a_real_fit_records_the_busts_up(shared_data, tmp_path):
-    bundle = fit_scan(shared_data / "laurana-bust" / "laurana.ply", tmp_path / "laurana",
-                      FitOptions(grid=(12, 12), method="linear", detail_levels=0,
-                                 texture=False))
-    view = bundle.manifest["view"]
+def test_a_real_fit_records_the_busts_up(laurana_bundle):
+    view = laurana_bundle.manifest["view"]
     assert angle_deg(view["up"], REAL_UP["laurana-bust/laurana.ply"]) < 15
     assert view["up_source"] == "base plane"
     assert angle_deg(view["front"], (0, 0, 1)) < 30  # her face, seen in the renders
