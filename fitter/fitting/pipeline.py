@@ -484,7 +484,7 @@ def _write_drawn(folder: Path, best: FitResult, pyramid: DetailPyramid,
     return tiles, {"base.tsp": len(best.data)} | tile_files
 
 
-def _with_pieces(folder: Path, projected: ProjectedScan, best: FitResult, pieces: dict
+def _with_pieces(folder: Path, projected: ProjectedScan, best: FitResult, pieces: dict | None
                  ) -> tuple[FitResult, np.ndarray]:
     """``best`` measured against the patch with the pieces written in ``folder`` (their
     manifest entry ``pieces``, drawn with the patch at every level): each point's deviation,
