@@ -1707,9 +1707,10 @@ def _block_codes(H: sp.csr_matrix, rhs: np.ndarray, p: np.ndarray, at: np.ndarra
 
 
 #: :func:`frame_fed_back`'s passes at most. Each pass holds at least one more patch, so the
-#: patch count bounds them too, but each costs the three stages' Gauss-Seidel sweeps over
-#: every point (XXX s on the 15-scan Buddha's 2,346 patches): bounded by the passes the
-#: benchmark's objects take (XXX at most), not by the patches
+#: patch count bounds them too (2,000-2,300 on the benchmark's objects), but each costs the
+#: three stages' Gauss-Seidel sweeps over every point (1-8 s a pass on those bases at load
+#: 13-20): twice the most the benchmark's objects take (2-4 passes on main c092ebc,
+#: docs/benchmarks.md, session 17, w27-tidy)
 PLEAT_PASSES = 8
 
 
