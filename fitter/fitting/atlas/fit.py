@@ -1707,7 +1707,7 @@ def _block_codes(H: sp.csr_matrix, rhs: np.ndarray, p: np.ndarray, at: np.ndarra
 
 
 #: :func:`frame_fed_back`'s passes at most. Each pass holds at least one more patch, so the
-#: patch count bounds them too (2,000-2,300 on the benchmark's objects), but each costs the
+#: patch count bounds them too (2,082-2,346 on the benchmark's objects), but each costs the
 #: three stages' Gauss-Seidel sweeps over every point (1-8 s a pass on those bases at load
 #: 13-20): twice the most the benchmark's objects take (2-4 passes on main c092ebc,
 #: docs/benchmarks.md, session 17, w27-tidy)
