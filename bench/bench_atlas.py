@@ -49,6 +49,7 @@ from bench.scoring import (
     save_picture,
 )
 from fitter.fitting.io import ScanError
+from fitter.fitting.mesh_arrays import mesh_arrays
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
@@ -102,8 +103,7 @@ def drawn_levels(bundle: Path) -> list[dict]:
     for plan in plans:
         mesh = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(),
                                  level=plan.level, resolution=plan.resolution, kernel="numpy")
-        vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
-        faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
+        vertices, faces = mesh_arrays(mesh)
         out.append({"level": plan.level, "bytes": manifest_bytes + base_bytes
                     + plan.detail_bytes, "vertices": vertices, "faces": faces,
                     "resolution": plan.resolution})

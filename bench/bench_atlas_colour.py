@@ -25,6 +25,7 @@ import numpy as np
 
 from bench import RESULTS, print_table, write_results
 from bench.scoring import _camera, diagonal, view_directions
+from fitter.fitting.mesh_arrays import mesh_arrays
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 PICTURES = RESULTS / "atlas_colour"
@@ -46,9 +47,7 @@ def _drawn(atlas, resolution: int, tiles: dict, packs) -> tuple[np.ndarray, ...]
 
     mesh = tessellate_atlas(atlas, resolution, tiles or None, kernel="numpy")
     rgb = atlas_vertex_colours(mesh.patches, mesh.uvs, colours_by_patch(packs, len(atlas.quads)))
-    return (np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(float),
-            np.frombuffer(mesh.indices, np.uintc).reshape(-1, 3).astype(np.int64),
-            np.frombuffer(rgb, np.uint8).reshape(-1, 3).astype(float))
+    return (*mesh_arrays(mesh), np.frombuffer(rgb, np.uint8).reshape(-1, 3).astype(float))
 
 
 def _packs_of(cells, groups, cell, level, files=None):

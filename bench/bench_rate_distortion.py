@@ -65,6 +65,7 @@ import numpy as np
 
 from bench import RESULTS, print_table, write_results
 from fitter.fitting.atlas.measure import point_mesh_distance as mesh_distance
+from fitter.fitting.mesh_arrays import mesh_arrays
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
@@ -161,8 +162,7 @@ def _bundle_mesh_error(points: np.ndarray, bundle: str, level: int, resolution: 
 
     start = time.perf_counter()
     mesh = tessellate_bundle(manifest, read, level=level, resolution=resolution, kernel="numpy")
-    vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
-    faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
+    vertices, faces = mesh_arrays(mesh)
     d = mesh_distance(points, vertices, faces)
     return {"rms": float(np.sqrt(np.mean(d**2))), "max": float(d.max()),
             "resolution": resolution, "triangles": int(len(faces)),

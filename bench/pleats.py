@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fitter.fitting.mesh_arrays import mesh_arrays
+
 PAIR_RESOLUTION = 5  # samples a patch side of the base for the folded pairs
 FOLD_COSINE = -0.5  # cos 120°
 
@@ -33,8 +35,7 @@ def _drawn(manifest: dict, bundle: Path, level: int, resolution: int
 
     mesh = tessellate_bundle(manifest, lambda name: (bundle / name).read_bytes(), level=level,
                              resolution=resolution, kernel="numpy")
-    return (np.frombuffer(mesh.positions, np.float32).reshape(-1, 3).astype(np.float64),
-            np.frombuffer(mesh.indices, np.uintc).reshape(-1, 3).astype(np.int64))
+    return mesh_arrays(mesh)
 
 
 def unit_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -33,6 +32,7 @@ from client_py.bundle import (
 )
 from client_py.errors import TesseraError
 
+from .fitting.cores import usable_cores
 from .fitting.options import OptionError
 from .fitting.options import add_arguments as add_fit_arguments
 from .fitting.options import from_args as fit_options_from_args
@@ -344,7 +344,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             snapshot.start_background_build()  # the viewer's fast start, made once with node
     runner = _start_job_runner(app, args.fit_workers)
     count = len(app.extensions["tessera_collection"].bundles())
-    server = (f"gunicorn ({args.processes or os.cpu_count()} processes x {args.threads} "
+    server = (f"gunicorn ({args.processes or usable_cores()} processes x {args.threads} "
               "threads)" if args.production else "the development server")
     print(f"serving {count} object(s) from {collection} at http://{args.host}:{args.port}/ "
           f"with {server}{'; admin at /admin/' if runner is not None else ''} (Ctrl-C to stop)",
@@ -373,7 +373,7 @@ def _serve_gunicorn(app, args: argparse.Namespace) -> None:  # noqa: ANN001 - a 
     class Application(BaseApplication):
         def load_config(self) -> None:
             settings = {"bind": f"{args.host}:{args.port}",
-                        "workers": args.processes or os.cpu_count() or 1,
+                        "workers": args.processes or usable_cores(),
                         "worker_class": WORKER_CLASS, "threads": args.threads,
                         "accesslog": None, "errorlog": "-", "loglevel": "warning",
                         "proc_name": "tessera-serve"}

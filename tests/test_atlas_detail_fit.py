@@ -1,5 +1,6 @@
 """The atlas's detail pyramid (fitter.fitting.atlas.detail) on a bumpy sphere with a known field."""
 
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -9,7 +10,6 @@ import trimesh
 from client_py.atlas_detail import pack_name, read_pack
 from client_py.atlas_mesh import tessellate_atlas
 from fitter.fitting.atlas import detail as atlas_detail
-from fitter.fitting.atlas import threads as atlas_threads
 from fitter.fitting.atlas.fit import AtlasFit, control_points, evaluate_patches, index_table
 from fitter.fitting.atlas.surface import ScanSurface
 from fitter.fitting.io.scan import make_scan
@@ -483,7 +483,8 @@ def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeyp
     b = np.tile(np.arange(r), F * r)
     made = {}
     for cores in (1, 4):
-        monkeypatch.setattr(atlas_threads.os, "cpu_count", lambda cores=cores: cores)
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid, cores=cores: set(range(cores)),
+                            raising=False)  # the cores it may run on (fitting.cores)
         made[cores] = (atlas_detail.node_frames(atlas, r, f, a, b, chunk=333),
                        atlas_detail.DrawnModel.of(atlas, samples, r, chunk=97))
     (frames_1, model_1), (frames_4, model_4) = made[1], made[4]
@@ -883,12 +884,15 @@ def test_the_fold_re_solve_of_the_changed_patches_is_the_full_re_solve(monkeypat
 def test_a_level_solved_in_one_batch_per_core_gives_the_packs_of_one_batch(monkeypatch):
     """A level within one batch of ``BATCH_UNKNOWNS`` is solved and quantised in one batch
     per core (``_BatchSystem.per_batch``), with one ``lambda`` for the level: the packs of
-    one batch, byte for byte, on 1 and 3 cores (3 batches of the 24 patches)."""
+    one batch, byte for byte, on 1 and 3 cores (3 batches of the 24 patches). The cores are
+    those the process may run on (its affinity mask, ``fitting.cores.usable_cores``), not
+    the machine's."""
     fit, scan = _bumpy_sphere_fit()
     descent = atlas_detail.lattice_descent
     files, calls = {}, {}
     for cores in (1, 3):
-        monkeypatch.setattr(atlas_threads.os, "cpu_count", lambda cores=cores: cores)
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid, cores=cores: set(range(cores)),
+                            raising=False)  # the cores it may run on (fitting.cores)
         calls[cores] = 0
 
         def counted(*args, cores=cores):

@@ -1,5 +1,6 @@
 """The atlas fit (fitter.fitting.atlas): surface, layout, shared-border solve, watertightness."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -967,7 +968,7 @@ def test_foot_point_corrections_on_threads_equal_one_run(sphere_fit, monkeypatch
     one = atlas_fit.correct_parameters(*args)
     monkeypatch.setattr(atlas_fit, "CORRECT_RUN_POINTS", 1_000)
     monkeypatch.setattr(atlas_fit, "CORRECT_THREADS", 3)  # uneven runs
-    monkeypatch.setattr(atlas_fit.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(4)), raising=False)
     split = atlas_fit.correct_parameters(*args)
     assert np.any(one[0] != f)  # some points hopped to another patch
     for a, b in zip(one, split, strict=True):

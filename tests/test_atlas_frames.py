@@ -205,24 +205,14 @@ def test_random_header_with_valid_crc(head):
 
 
 # ------------------------------------------------------------------ the fitter's rounding
-def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkeypatch):
-    """``fed_back_atlas`` with version 4 written (``frame_fed_back``): the file holds
-    exactly its control points, and the working points lie nearer the surface drawn from
-    them than from the file of the fit rounded to nearest in the same frames (the sphere
-    at 8 bits, factor 2; distances to a fine drawing)."""
+def _sphere_rounding_case(monkeypatch):
+    """The sphere's 40-triangle layout fitted to 3,000 working points, version 4 written
+    (``BASE_TANGENT_FACTOR`` 2): ``layout, points, atlas, f, u, v``."""
     from test_atlas_rounding import _sphere_scan
 
     from fitter.fitting.atlas import fit as atlas_fit
-    from fitter.fitting.atlas.fit import (
-        control_points,
-        fed_back_atlas,
-        fit_layout,
-        grid_mesh,
-        index_table,
-        working_points,
-    )
+    from fitter.fitting.atlas.fit import fit_layout, working_points
     from fitter.fitting.atlas.layout import decimate, quad_layout
-    from fitter.fitting.atlas.measure import point_mesh_distance
     from fitter.fitting.atlas.surface import scan_surface
 
     scan = _sphere_scan()
@@ -231,6 +221,18 @@ def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkey
     points, normals = working_points(scan, surface, 3000)
     atlas, f, u, v, _ = fit_layout(layout, points, normals, rounds=3)
     monkeypatch.setattr(atlas_fit, "BASE_TANGENT_FACTOR", 2.0)
+    return layout, points, atlas, f, u, v
+
+
+def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkeypatch):
+    """``fed_back_atlas`` with version 4 written (``frame_fed_back``): the file holds
+    exactly its control points, and the working points lie nearer the surface drawn from
+    them than from the file of the fit rounded to nearest in the same frames (the sphere
+    at 8 bits, factor 2; distances to a fine drawing)."""
+    from fitter.fitting.atlas.fit import control_points, fed_back_atlas, grid_mesh, index_table
+    from fitter.fitting.atlas.measure import point_mesh_distance
+
+    layout, points, atlas, f, u, v = _sphere_rounding_case(monkeypatch)
     bits = 8
     rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, smoothing=0.1,
                              anchor=1e-3)
@@ -246,6 +248,34 @@ def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkey
     fit, fed, near = rms(atlas), rms(rounded), rms(plain)
     assert fed < near
     assert fed ** 2 - fit ** 2 < 0.75 * (near ** 2 - fit ** 2)
+
+
+def test_the_pleat_guard_stops_after_its_passes_with_the_atlas_as_it_was(monkeypatch):
+    """``frame_fed_back`` against a base whose codes pleat one more patch at every pass
+    (``pleated_patches`` made so): it runs :data:`PLEAT_PASSES` passes, not one per patch
+    (the sphere's 120), and returns the atlas as it was (the writer's nearest codes)."""
+    from fitter.fitting.atlas import fit as atlas_fit
+    from fitter.fitting.atlas.fit import PLEAT_PASSES, control_points, fed_back_atlas
+
+    layout, points, atlas, f, u, v = _sphere_rounding_case(monkeypatch)
+    assert len(atlas.quads) > 2 * PLEAT_PASSES
+    calls = []
+
+    def one_more_each_pass(table, *_):
+        pleated = np.zeros(len(table), bool)
+        pleated[:len(calls)] = True  # the first call (the nearest codes): none
+        calls.append(1)
+        return pleated
+
+    monkeypatch.setattr(atlas_fit, "pleated_patches", one_more_each_pass)
+    rounded = fed_back_atlas(atlas, 8, layout, points, f, u, v, smoothing=0.1, anchor=1e-3)
+    assert len(calls) == 1 + PLEAT_PASSES
+    assert rounded is atlas
+    calls.clear()
+    monkeypatch.setattr(atlas_fit, "pleated_patches",
+                        lambda table, *_: np.zeros(len(table), bool))
+    fed = fed_back_atlas(atlas, 8, layout, points, f, u, v, smoothing=0.1, anchor=1e-3)
+    assert fed is not atlas and not np.array_equal(control_points(fed), control_points(atlas))
 
 
 def test_thirty_bit_frame_codes_far_from_their_prediction_round_trip():

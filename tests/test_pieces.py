@@ -24,6 +24,7 @@ from client_py.session import WorkerSession
 from fitter.cli import main as tessera
 from fitter.fitting.atlas.measure import point_mesh_distance
 from fitter.fitting.io.scan import make_scan
+from fitter.fitting.mesh_arrays import mesh_arrays
 from fitter.fitting.options import FitOptions
 from fitter.fitting.pieces import (
     MAX_PIECES_SHARE,
@@ -48,11 +49,6 @@ def _read(bundle):
     return lambda name: (bundle / name).read_bytes()
 
 
-def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
-    vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
-    return vertices, np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
-
-
 def test_the_fragment_is_a_piece_drawn_with_the_patch_and_not_without(bundles):
     bundle = bundles / "fragment-True"
     manifest = json.loads((bundle / "manifest.json").read_text())
@@ -67,14 +63,73 @@ def test_the_fragment_is_a_piece_drawn_with_the_patch_and_not_without(bundles):
     fragment = scan.points[-FRAGMENT:]
     diagonal = float(np.linalg.norm(np.ptp(scan.points, axis=0)))
     without = {k: v for k, v in manifest.items() if k != "pieces"}  # what an older reader draws
-    before = point_mesh_distance(fragment, *_mesh_arrays(tessellate_bundle(without, _read(bundle))))
-    after = point_mesh_distance(fragment, *_mesh_arrays(tessellate_bundle(manifest, _read(bundle))))
+    before = point_mesh_distance(fragment, *mesh_arrays(tessellate_bundle(without, _read(bundle))))
+    after = point_mesh_distance(fragment, *mesh_arrays(tessellate_bundle(manifest, _read(bundle))))
     assert before.min() > 0.1 * diagonal  # the height field does not reach it
     assert after.max() < 0.002 * diagonal  # the piece does
     drawn, patch = (tessellate_bundle(m, _read(bundle)) for m in (manifest, without))
     n, m = len(patch.positions), len(patch.indices)  # the patch as before, the pieces after it
     assert drawn.positions[:n] == patch.positions and drawn.indices[:m] == patch.indices
     assert min(drawn.indices[m:]) == len(patch.positions) // 3
+
+
+def _quality(path) -> np.ndarray:
+    """``error.ply``'s per-point ``quality`` (the signed deviation written)."""
+    return np.asarray(trimesh.load(path, process=False).metadata["_ply_raw"]["vertex"]
+                      ["data"]["quality"], dtype=float)
+
+
+def test_the_figures_are_of_the_patch_with_its_pieces(bundles):
+    """With pieces the manifest's figures, ``error.ply`` and the raster are of what is drawn:
+    the fragment's points measured against the pieces (near), not the patch (0.4 away), and
+    counted as represented; the patch's own points as without pieces."""
+    bundle = bundles / "fragment-True"
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    scan = fragment_scan(True)
+    n, diagonal = scan.n_points, float(np.linalg.norm(np.ptp(scan.points, axis=0)))
+    d = _quality(bundle / "error.ply")  # float32, as written
+    drawn = tessellate_bundle(manifest, _read(bundle), level=-1)  # patch + pieces, base level
+    reference = point_mesh_distance(scan.points, *mesh_arrays(drawn))
+    assert np.abs(np.abs(d) - reference).max() < 0.002 * diagonal  # foot point vs. triangles
+    assert np.abs(d[-FRAGMENT:]).max() < 0.002 * diagonal  # the pieces draw the fragment
+    every = manifest["stats_all_points"]
+    assert every["points"] == n and every["max"] < 0.01 * diagonal
+    assert np.isclose(every["rms"], np.sqrt(np.mean(d**2)), rtol=1e-5)
+    stats, projection = manifest["stats"], manifest["projection"]
+    assert projection["uncovered_points"] == n - stats["points"] < FRAGMENT  # drawn: covered
+    assert stats["max"] <= every["max"] and manifest["error_raster"]["max"] == stats["max"]
+    assert projection["uncovered_bbox"] is None or (
+        np.asarray(projection["uncovered_bbox"])[:, 2] > -0.3).all()  # not the fragment
+
+
+def test_the_thumbnail_draws_the_pieces(bundles):
+    """The gallery's card holds the pieces as the viewer draws them: from the front the
+    fragment is hidden behind the relief (the same card), from behind it is in front."""
+    import io
+
+    from PIL import Image
+
+    from fitter.collection.bundles import Collection
+    from fitter.server.thumbnail import pieces_of, render_thumbnail, thumbnail_of
+
+    bundle = Collection(bundles).get("fragment-True")
+    pieces = pieces_of(bundle)
+    assert pieces is not None and len(pieces.positions) // 3 > 0
+    patch = (bundle.path / "base.tsp").read_bytes()
+    front = {"up": [0, 1, 0], "front": [0, 0, 1]}
+    back = {"up": [0, 1, 0], "front": [0, 0, -1]}
+    assert render_thumbnail(patch, front, pieces) == render_thumbnail(patch, front)
+    assert thumbnail_of(bundle).png == render_thumbnail(patch, bundle.manifest["view"], pieces)
+
+    def card(png):
+        return np.asarray(Image.open(io.BytesIO(png))).astype(float)
+
+    seen, alone = card(render_thumbnail(patch, back, pieces)), card(render_thumbnail(patch, back))
+    changed = np.argwhere(np.abs(seen - alone).max(axis=2) > 8)
+    assert len(changed) > 20
+    # seen from behind, x is mirrored: the fragment (x in 0.2..0.35 of -1..1) is left of centre
+    assert (changed[:, 1] < 160).all() and (changed[:, 1] > 100).all()
+    assert pieces_of(Collection(bundles).get("fragment-False")) is None
 
 
 def test_no_piece_no_entry_and_no_file(bundles):
@@ -92,7 +147,7 @@ def test_cli_and_worker_plys_hold_the_pieces(bundles, tmp_path):
     assert tessera(["tessellate", str(bundle), "-o", str(tmp_path / "m.ply")]) == 0
     cli = trimesh.load(tmp_path / "m.ply", process=False)
     assert len(cli.faces) == drawn.triangle_count
-    np.testing.assert_allclose(cli.vertices, _mesh_arrays(drawn)[0], atol=1e-6)
+    np.testing.assert_allclose(cli.vertices, mesh_arrays(drawn)[0], atol=1e-6)
     session = WorkerSession(kernel="numpy")
     session.load_patch((bundle / "base.tsp").read_bytes(), "base.tsp")
     session.read_manifest((bundle / "manifest.json").read_text())

@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from ..fitting.cores import usable_cores
 from ..fitting.options import FitOptions, OptionError, fit_options, stored_options
 
 STATES = ("done", "skipped", "failed")
@@ -204,7 +205,7 @@ def fit_collection(scans: Sequence[str | os.PathLike], out: str | os.PathLike,
             if scheduler:
                 client = Client(scheduler)
             else:
-                n = workers or os.cpu_count() or 1
+                n = workers or usable_cores()
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
                                        dashboard_address=None)
                 client = Client(cluster)

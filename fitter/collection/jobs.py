@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..fitting.bundle import publish
+from ..fitting.cores import usable_cores
 from ..fitting.options import OptionError, fit_options
 from ..fitting.stages import overall_progress
 from .catalog import Catalog, CatalogError, state_dir
@@ -174,7 +175,8 @@ class JobRunner:
     collection : path
         A managed collection (its catalog must exist).
     workers : int, optional
-        Fits running at once; default ``os.cpu_count()``.
+        Fits running at once; default the cores this process may run on
+        (``fitter.fitting.cores.usable_cores``).
     poll_interval : float
         Seconds between looks at the catalog.
     limits : InputLimits, optional
@@ -186,7 +188,7 @@ class JobRunner:
                  poll_interval: float = 0.2, limits: InputLimits | None = None) -> None:
         self.collection = Path(collection).resolve()
         self.limits = limits
-        self.workers = workers or os.cpu_count() or 1
+        self.workers = workers or usable_cores()
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
         self.poll_interval = poll_interval

@@ -15,7 +15,6 @@ domain and over a render of the object, with a colour bar in scan units) and
 from __future__ import annotations
 
 import base64
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 from client_py.ply import write_points_ply
 
 from .closest import ClosestPoints
+from .cores import usable_cores
 from .nurbs import PatchModel
 
 CHUNK = 1 << 16  # points per task of the foot-point search (fewer numpy calls than 2^14)
@@ -73,7 +73,7 @@ def deviations(model: PatchModel | ClosestPoints, points: np.ndarray, u0: np.nda
         us[s:s + chunk], vs[s:s + chunk] = u, v
 
     starts = range(0, len(points), chunk)
-    workers = min(threads or os.cpu_count() or 1, len(starts))
+    workers = min(threads or usable_cores(), len(starts))
     if workers <= 1:
         for s in starts:
             one_chunk(s)

@@ -19,7 +19,10 @@ triangle, and every piece when they are too many or the atlas fit refuses them s
 uncovered: the manifest's ``pieces.uncovered`` counts them with the reason
 (docs/format.md, "Pieces").
 A point cloud or a scan fitted out of core has no triangles to join its points: it gets
-no pieces.
+no pieces. The bundle's figures are then of what the browser draws, the patch with its
+pieces (:func:`with_pieces_deviations`: ``stats``, ``stats_all_points``, the uncovered
+points, ``error_raster``, ``error.ply``, ``error.png``; the gallery's thumbnail draws
+them too, ``fitter.server.thumbnail.pieces_of``).
 """
 
 from __future__ import annotations
@@ -34,9 +37,10 @@ from client_py.atlas_format import read_atlas
 from client_py.bundle import PIECES_FILE, tessellate_bundle
 
 from .atlas.fit import AUTO_MAX_TRIANGLES, base_file, base_resolution, fit_atlas
-from .atlas.measure import point_mesh_distance
+from .atlas.measure import drawn_mesh, point_mesh_distance
 from .atlas.surface import face_pieces
 from .io.scan import Scan, ScanError
+from .mesh_arrays import mesh_arrays
 
 #: a scan point farther than this share of the diagonal from the drawn patch is uncovered:
 #: the issue's tolerance for "within" (13: >= 99.5 % of all points within 0.5 %)
@@ -84,9 +88,23 @@ def drawn_distances(folder: Path, manifest: dict, points: np.ndarray) -> np.ndar
     level, from the bundle files staged in ``folder`` and their ``manifest``."""
     mesh = tessellate_bundle(manifest, lambda name: (folder / name).read_bytes(),
                              kernel="numpy")
-    vertices = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
-    faces = np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64)
-    return point_mesh_distance(points, vertices, faces)
+    return point_mesh_distance(points, *mesh_arrays(mesh))
+
+
+def with_pieces_deviations(d: np.ndarray, points: np.ndarray, data: bytes, resolution: int
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Every scan point's signed distance to what the browser draws of a patch with its
+    pieces: ``d (N,)``, its deviation from the patch (``fitter.fitting.error.deviations``),
+    or, where nearer, its signed distance to the pieces' mesh (``pieces.tsa``'s bytes
+    ``data`` tessellated on ``resolution`` samples per patch side, as
+    ``client_py.bundle.pieces_mesh`` draws it at every level: the same positions,
+    ``atlas.measure.drawn_mesh``). ``points (N, 3)`` in scan coordinates (the patch frame
+    is a rotation and a shift of them: the same distances). Returns the distances and the
+    mask of the points nearer the pieces (the points the pieces draw)."""
+    mesh = drawn_mesh(read_atlas(data)[0], resolution)
+    to_pieces = point_mesh_distance(points, mesh.vertices, mesh.faces, signed=True)
+    nearer = np.abs(to_pieces) < np.abs(d)
+    return np.where(nearer, to_pieces, d), nearer
 
 
 def _uncovered(pieces: list[np.ndarray], loose: int, reason: str) -> list[dict]:

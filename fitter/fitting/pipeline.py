@@ -76,7 +76,7 @@ from .nurbs import PatchModel
 from .options import FitOptions
 from .orient import find_view
 from .parameterize import Coverage, choose_projection, trim_cells
-from .pieces import fit_pieces
+from .pieces import fit_pieces, with_pieces_deviations
 from .sections import section_matrix, section_shape
 from .stages import check_stage
 from .stream import (
@@ -475,14 +475,40 @@ def object_title(scan: Scan, options: FitOptions) -> str:
     return options.title or Path(scan.source.get("name", "scan")).name
 
 
-def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
-                 pyramid: DetailPyramid, textures: list[TextureTile],
-                 options: FitOptions) -> tuple[dict, dict]:
-    """Write ``base.tsp``, the tiles, ``error.ply`` and ``error.png`` into ``folder``;
-    returns the manifest's ``tiles`` tree and ``files`` (name -> bytes)."""
-    scan, units, stats = projected.scan, projected.scan.units, best.stats
+def _write_drawn(folder: Path, best: FitResult, pyramid: DetailPyramid,
+                 textures: list[TextureTile]) -> tuple[dict, dict]:
+    """Write ``base.tsp`` and the tiles into ``folder``; returns the manifest's ``tiles``
+    tree and ``files`` (name -> bytes)."""
     (folder / "base.tsp").write_bytes(best.data)
     tiles, tile_files = write_layers(folder, pyramid, textures)
+    return tiles, {"base.tsp": len(best.data)} | tile_files
+
+
+def _with_pieces(folder: Path, projected: ProjectedScan, best: FitResult, pieces: dict | None
+                 ) -> tuple[FitResult, np.ndarray]:
+    """``best`` measured against the patch with the pieces written in ``folder`` (their
+    manifest entry ``pieces``, drawn with the patch at every level): each point's deviation,
+    or its distance to the pieces where nearer (``pieces.with_pieces_deviations``), and the
+    statistics of the points the bundle represents: the projection's covered points and
+    those nearer the pieces, returned as a mask. ``best`` and the covered points as they
+    are when no pieces are drawn."""
+    covered = projected.coverage.covered
+    if pieces is None or pieces["file"] is None:
+        return best, covered
+    d, nearer = with_pieces_deviations(best.dev.d, projected.scan.points,
+                                       (folder / pieces["file"]).read_bytes(),
+                                       pieces["resolution"])
+    covered = covered | nearer
+    return replace(best, dev=Deviations(d, best.dev.u, best.dev.v),
+                   stats=error_stats(d[covered], projected.diagonal,
+                                     projected.scan.units)), covered
+
+
+def _write_reports(folder: Path, projected: ProjectedScan, best: FitResult,
+                   pyramid: DetailPyramid, options: FitOptions) -> dict:
+    """Write ``error.ply`` and ``error.png`` of ``best``'s deviations into ``folder``;
+    returns their ``files`` (name -> bytes)."""
+    scan, units, stats = projected.scan, projected.scan.units, best.stats
     write_error_ply(folder / "error.ply", scan.points, best.dev.d)
     write_error_png(folder / "error.png", best.dev, projected.local, units,
                     f"{object_title(projected.scan, options)}: RMS {stats['rms']:.4g} "
@@ -490,14 +516,12 @@ def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
                     f"max {stats['max']:.4g} {units}"
                     + "".join(f"; level {lev.level}: RMS {lev.rms:.3g}"
                               for lev in pyramid.levels[-2:]))
-    files = {name: (folder / name).stat().st_size
-             for name in ("base.tsp", "error.png", "error.ply")}
-    return tiles, files | tile_files
+    return {name: (folder / name).stat().st_size for name in ("error.png", "error.ply")}
 
 
 def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResult,
                    tiles: dict, files: dict, timings: dict,
-                   plan: MemoryPlan | None = None) -> dict:
+                   plan: MemoryPlan | None = None, covered: np.ndarray | None = None) -> dict:
     """The bundle's ``manifest.json`` (``docs/format.md``, "Bundle manifest").
 
     Keys: ``format`` (``"tessera-bundle"``), ``format_version``
@@ -522,13 +546,18 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     solves, the detail levels kept and the depth they would have had); ``view`` (the
     object's ``up`` and ``front`` in scan coordinates and the rules that chose them,
     ``fitter.fitting.orient.find_view``).
+
+    ``covered``: the points the bundle represents, of which ``stats``, ``error_raster`` and
+    ``projection.uncovered_*`` are; default the projection's covered points (with detached
+    pieces, also those the pieces draw: :func:`_with_pieces`).
     """
     scan, cov, points = projected.scan, projected.coverage, projected.scan.points
     proj = cov.projection
-    uncovered = ~cov.covered
+    covered = cov.covered if covered is None else covered
+    uncovered = ~covered
     covered_dev = (best.full.covered_dev() if best.full is not None  # every original point
-                   else Deviations(best.dev.d[cov.covered], best.dev.u[cov.covered],
-                                   best.dev.v[cov.covered]))
+                   else Deviations(best.dev.d[covered], best.dev.u[covered],
+                                   best.dev.v[covered]))
     return {
         **object_fields(scan, options),
         "format": "tessera-bundle",
@@ -659,16 +688,18 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
         best = _retrimmed(best, pyramid)
     stages.start("report")
     with write_bundle(out_dir) as folder:
-        tiles, files = _write_files(folder, projected, best, pyramid, textures, options)
+        tiles, files = _write_drawn(folder, best, pyramid, textures)
         pieces = None
         if large is None and scan.faces is not None:  # pieces are joined by the triangles
             pieces = fit_pieces(scan, folder, build_manifest(projected, options, best, tiles,
                                                              files, {}, plan))
             if pieces is not None and pieces["file"] is not None:
                 files[PIECES_FILE] = (folder / PIECES_FILE).stat().st_size
+        best, covered = _with_pieces(folder, projected, best, pieces)  # what is drawn
+        files |= _write_reports(folder, projected, best, pyramid, options)
         stages.stop()
         manifest = build_manifest(projected, options, best, tiles, files, stages.timings,
-                                  plan)
+                                  plan, covered)
         if pieces is not None:
             manifest["pieces"] = pieces
         if large is not None:

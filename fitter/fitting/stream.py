@@ -34,7 +34,6 @@ order-free, per-point outputs land at their index. So the bundle is byte-identic
 from __future__ import annotations
 
 import copy
-import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -46,6 +45,7 @@ import numpy as np
 from client_py import read_patch
 
 from .closest import ClosestPoints
+from .cores import usable_cores
 from .error import Deviations, deviations
 from .io.limits import InputBudget, InputLimits
 from .io.points import PointStream, ReaderStream, file_sha256
@@ -80,7 +80,7 @@ class LocalBlocks:
     binary PLY of 10^8 points would otherwise hold 1.2 GB of it until the fit ends)."""
 
     def __init__(self, threads: int | None = None) -> None:
-        self.threads = max(1, threads or os.cpu_count() or 1)
+        self.threads = max(1, threads or usable_cores())
 
     def map(self, function: Callable, blocks: Sequence[tuple[int, int]],
             *shared: object) -> Iterator:

@@ -1,7 +1,9 @@
 """Gallery thumbnails: the base patch rendered on the server, small and shaded, and cached.
 
 An atlas bundle (manifest version 2, ``base.tsa``) is drawn the same way from its welded
-mesh (:func:`render_atlas_thumbnail`), the splats sized by the mesh's edges.
+mesh (:func:`render_atlas_thumbnail`), the splats sized by the mesh's edges; a patch's
+detached pieces (``pieces.tsa``, docs/format.md "Pieces") are drawn with it as the viewer
+draws them (:func:`pieces_of`), so the card shows what the visitor's browser draws.
 
 The patch is tessellated by ``client_py`` (the same evaluator as the browser) and viewed
 orthographically from the front the viewer starts at: along the manifest's ``view.front``
@@ -40,10 +42,11 @@ from PIL import Image
 from client_py import PatchFormatError, read_patch, tessellate_grid
 from client_py.atlas_format import read_atlas
 from client_py.atlas_mesh import tessellate_atlas
-from client_py.bundle import ATLAS_MAX_RESOLUTION
+from client_py.bundle import ATLAS_MAX_RESOLUTION, Mesh, pieces_entry, read_pieces
 from client_py.format import read_header
 
 from ..collection.bundles import Bundle, BundleError
+from ..fitting.mesh_arrays import mesh_arrays
 
 WIDTH, HEIGHT = 320, 240
 GRID = 400  # vertices per side: about two per pixel across the card (fixed: bounds the work)
@@ -129,11 +132,14 @@ def _edge_splat_radius(px: np.ndarray, py: np.ndarray, triangles: np.ndarray) ->
 
 
 def _shade(positions: np.ndarray, normals: np.ndarray, drawn: np.ndarray, grid: int,
-           view: dict | None = None, triangles: np.ndarray | None = None) -> Image.Image:
+           view: dict | None = None, triangles: np.ndarray | None = None,
+           pieces: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Image.Image:
     """The card: the ``grid x grid`` tessellation's ``positions`` and ``normals`` of shape
     ``(grid^2, 3)``, of which the vertices ``drawn`` (indices) are splatted as described above.
     With ``triangles`` (``(T, 3)`` indices into ``positions``: a mesh that is no grid, of
     which every vertex is drawn) the splats are sized by the triangles' edges instead.
+    ``pieces``: the ``positions``, ``normals`` and ``triangles`` of a mesh drawn with it (a
+    patch's detached pieces), every vertex splatted, sized by its triangles' edges.
 
     Raises
     ------
@@ -142,6 +148,10 @@ def _shade(positions: np.ndarray, normals: np.ndarray, drawn: np.ndarray, grid: 
         invalid (:func:`_view_axes`).
     """
     positions, normals = positions[drawn], normals[drawn]  # checked where drawn only
+    own = len(positions)  # the vertices after these are the pieces'
+    if pieces is not None:
+        positions, normals = (np.concatenate([a, b]) for a, b in zip((positions, normals),
+                                                                     pieces[:2], strict=True))
     if not np.isfinite(positions).all() or not np.isfinite(normals).all():
         raise ValueError("the surface has non-finite vertices or normals")
     e1, e2, e3 = _view_axes(positions, normals, view)
@@ -154,13 +164,15 @@ def _shade(positions: np.ndarray, normals: np.ndarray, drawn: np.ndarray, grid: 
     px = np.rint((x - 0.5 * (x.max() + x.min())) / span + width / 2).astype(int)
     py = np.rint(height / 2 - (y - 0.5 * (y.max() + y.min())) / span).astype(int)
     if triangles is not None:
-        radius = _edge_splat_radius(px, py, triangles)
+        radius = _edge_splat_radius(px[:own], py[:own], triangles)
     else:
         # the splat sizes come from the whole grid (neighbours of drawn vertices may be trimmed)
         full_x = np.zeros(grid * grid)
         full_y = np.zeros(grid * grid)
-        full_x[drawn], full_y[drawn] = px, py
+        full_x[drawn], full_y[drawn] = px[:own], py[:own]
         radius = _splat_radius(full_x.reshape(grid, grid), full_y.reshape(grid, grid))[drawn]
+    if pieces is not None:
+        radius = np.concatenate([radius, _edge_splat_radius(px[own:], py[own:], pieces[2])])
     # A raking key light from the upper left (how reliefs are photographed) and a soft fill.
     key = -0.6 * e1 + 0.6 * e2 + 0.53 * e3
     key /= np.linalg.norm(key)
@@ -188,9 +200,15 @@ def _shade(positions: np.ndarray, normals: np.ndarray, drawn: np.ndarray, grid: 
     return Image.fromarray(np.clip(np.rint(card), 0, 255).astype(np.uint8), "RGBA")
 
 
-def render_thumbnail(patch: bytes, view: dict | None = None) -> bytes:
+def _normals(mesh) -> np.ndarray:
+    return np.frombuffer(mesh.normals, dtype=np.float32).reshape(-1, 3).astype(float)
+
+
+def render_thumbnail(patch: bytes, view: dict | None = None, pieces: Mesh | None = None
+                     ) -> bytes:
     """PNG bytes (``WIDTH`` x ``HEIGHT``, RGBA) of the patch file's bytes ``patch``, seen from
-    the manifest's ``view`` (``None``: a bundle without one, see the module's docstring).
+    the manifest's ``view`` (``None``: a bundle without one, see the module's docstring), with
+    its detached ``pieces`` as drawn (:func:`pieces_of`) when it has some.
 
     Raises
     ------
@@ -206,15 +224,41 @@ def render_thumbnail(patch: bytes, view: dict | None = None) -> bytes:
                                    "control points a thumbnail is drawn for")
     surface = read_patch(patch).to_scan_frame()
     mesh = tessellate_grid(surface, GRID, GRID)
-    positions = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
-    normals = np.frombuffer(mesh.normals, dtype=np.float32).reshape(-1, 3).astype(float)
-    drawn = np.unique(np.frombuffer(mesh.indices, dtype=np.uint32)).astype(np.int64)
+    positions, triangles = mesh_arrays(mesh)
+    drawn = np.unique(triangles)
     if len(drawn) == 0:
         raise ValueError("the patch draws no triangles: nothing to draw")
-    image = _shade(positions, normals, drawn, GRID, view)
+    shown = None
+    if pieces is not None:
+        piece_positions, piece_triangles = mesh_arrays(pieces)
+        shown = (piece_positions, _normals(pieces), piece_triangles)
+    image = _shade(positions, _normals(mesh), drawn, GRID, view, pieces=shown)
     out = io.BytesIO()
     image.save(out, format="PNG", optimize=True)
     return out.getvalue()
+
+
+def _atlas_resolution(patches: int, drawn: int = ATLAS_MAX_RESOLUTION) -> int:
+    """Samples per patch side of an atlas of ``patches`` drawn for a card: about ``GRID^2``
+    vertices in all, as a patch's grid, at least 2 a side and at most ``drawn`` (what the
+    viewer draws it at)."""
+    return min(drawn, max(2, int(math.sqrt(GRID * GRID / patches))))
+
+
+def pieces_of(bundle: Bundle) -> Mesh | None:
+    """A patch bundle's detached pieces as the viewer draws them (``client_py.bundle.
+    read_pieces``, docs/format.md "Pieces"), at most :func:`_atlas_resolution`'s samples a
+    patch side (the work bounded as an atlas's); ``None`` without pieces, or when their
+    entry or file cannot be read: the patch is then drawn alone, as the viewer does."""
+    try:
+        pieces = read_pieces(bundle.manifest,
+                             lambda name: bundle.read_file(name, MAX_PATCH_BYTES)[0])
+        if pieces is None:
+            return None
+        drawn = pieces_entry(bundle.manifest)["resolution"]
+        return tessellate_atlas(pieces, _atlas_resolution(len(pieces.quads), drawn))
+    except (BundleError, PatchFormatError, ValueError):  # ValueError: a collapsed patch
+        return None
 
 
 def render_atlas_thumbnail(data: bytes, view: dict | None = None) -> bytes:
@@ -231,12 +275,9 @@ def render_atlas_thumbnail(data: bytes, view: dict | None = None) -> bytes:
         When the surface is degenerate or ``view`` invalid (see :func:`_shade`).
     """
     atlas, _ = read_atlas(data)
-    per_side = int(math.sqrt(GRID * GRID / len(atlas.quads)))
-    mesh = tessellate_atlas(atlas, min(ATLAS_MAX_RESOLUTION, max(2, per_side)))
-    positions = np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float)
-    normals = np.frombuffer(mesh.normals, dtype=np.float32).reshape(-1, 3).astype(float)
-    triangles = np.frombuffer(mesh.indices, dtype=np.uint32).reshape(-1, 3).astype(np.int64)
-    image = _shade(positions, normals, np.arange(len(positions)), 0, view, triangles)
+    mesh = tessellate_atlas(atlas, _atlas_resolution(len(atlas.quads)))
+    positions, triangles = mesh_arrays(mesh)
+    image = _shade(positions, _normals(mesh), np.arange(len(positions)), 0, view, triangles)
     out = io.BytesIO()
     image.save(out, format="PNG", optimize=True)
     return out.getvalue()
@@ -255,13 +296,15 @@ class Thumbnail:
 
 
 def thumbnail_of(bundle: Bundle) -> Thumbnail:
-    """The thumbnail of ``bundle``'s base patch, or the reason it has none (bad, unsafe or
-    too large a file, a degenerate surface: each a message naming the file, never its bytes)."""
+    """The thumbnail of ``bundle``'s base (a patch with its detached pieces, an atlas), or
+    the reason it has none (bad, unsafe or too large a file, a degenerate surface: each a
+    message naming the file, never its bytes)."""
     try:
         patch, _ = bundle.read_file(bundle.base_file, MAX_PATCH_BYTES)
-        render = render_atlas_thumbnail if bundle.base_file.endswith(".tsa") \
-            else render_thumbnail
-        return Thumbnail(render(patch, bundle.manifest.get("view")))
+        view = bundle.manifest.get("view")
+        if bundle.base_file.endswith(".tsa"):
+            return Thumbnail(render_atlas_thumbnail(patch, view))
+        return Thumbnail(render_thumbnail(patch, view, pieces_of(bundle)))
     except BundleError as exc:
         return Thumbnail(None, str(exc))
     except PatchFormatError as exc:

@@ -178,7 +178,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -201,6 +200,7 @@ from client_py.atlas_detail import (
 from client_py.bundle import ATLAS_MAX_RESOLUTION, atlas_level_resolution
 from client_py.format import CRC_SIZE, TILE_HEADER_SIZE, TILE_VERSION, write_detail_tile
 
+from ..cores import usable_cores
 from ..detail import (
     STEP_FACTOR,
     DetailSamples,
@@ -1172,12 +1172,12 @@ class _BatchSystem:
         per_sample = total / max(F, 1) / (n * n)
         self.mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
         # batches of BATCH_UNKNOWNS; a level within one (every level 0 of the benchmark's
-        # objects) in one batch per core, so that its solves run on all of them: each
-        # patch's block is solved alone, the same numbers in any batch (quantised_blocks
-        # keeps one lambda for the level)
+        # objects) in one batch per core this process may run on (cores.usable_cores), so
+        # that its solves run on all of them: each patch's block is solved alone, the same
+        # numbers in any batch (quantised_blocks keeps one lambda for the level)
         self.rate_batch = max(1, BATCH_UNKNOWNS // (n * n))
         self.per_batch = (self.rate_batch if F > self.rate_batch
-                          else max(1, -(-F // (os.cpu_count() or 1))))
+                          else max(1, -(-F // usable_cores())))
 
     def normal(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
         """Patches ``first:first + per_batch``'s ``M``, ``A^T r`` and ``diag(A^T A)``."""

@@ -136,7 +136,6 @@ carried over to the shared control points yet.
 from __future__ import annotations
 
 import math
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -151,6 +150,7 @@ from scipy.spatial import cKDTree
 from client_py.atlas import AtlasSurface
 from client_py.atlas_format import AtlasWriter
 
+from ..cores import usable_cores
 from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
 from .lattice import coupling_colours, lattice_descent
@@ -503,7 +503,7 @@ def correct_parameters(table: np.ndarray, points: np.ndarray, degree: int, spans
     -------
     f, u, v, distance : ndarray, each (K,)
     """
-    threads = min(CORRECT_THREADS, os.cpu_count() or 1, len(x) // CORRECT_RUN_POINTS)
+    threads = min(CORRECT_THREADS, usable_cores(), len(x) // CORRECT_RUN_POINTS)
     if threads <= 1:
         return _correct_run(table, points, degree, spans, nb, x, normals, f, u, v, iterations)
     run = -(-len(x) // threads)
@@ -1706,6 +1706,14 @@ def _block_codes(H: sp.csr_matrix, rhs: np.ndarray, p: np.ndarray, at: np.ndarra
     return grid_codes(Hc, rc, x, start, 0.0, 1.0, fixed, sweeps, rate, None, top)
 
 
+#: :func:`frame_fed_back`'s passes at most. Each pass holds at least one more patch, so the
+#: patch count bounds them too (2,082-2,346 on the benchmark's objects), but each costs the
+#: three stages' Gauss-Seidel sweeps over every point (1-8 s a pass on those bases at load
+#: 13-20): twice the most the benchmark's objects take (2-4 passes on main c092ebc,
+#: docs/benchmarks.md, session 17, w27-tidy)
+PLEAT_PASSES = 8
+
+
 def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matrix,
                    rhs: np.ndarray, sweeps: int = ROUND_SWEEPS, rate: float = 0.0,
                    tangential: bool = True) -> AtlasSurface:
@@ -1718,7 +1726,9 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
     :func:`_block_codes` with the points after it at their fitted place. A patch the
     codes pleat (:func:`pleated_patches`) and the writer's own codes (nearest) do not has
     all its points held at nearest, and the stages run again, until none is left (or
-    each is held already: its neighbours' vertices still shape its edges' frames)."""
+    each is held already: its neighbours' vertices still shape its edges' frames), for
+    at most :data:`PLEAT_PASSES` passes: a base still pleated after them is returned as
+    it was (``atlas``: the writer rounds it to nearest, which adds no pleat)."""
     from client_py.atlas_format import FrameCoder, _Predictor, frame_codes, frame_steps
 
     x = control_points(atlas)
@@ -1745,7 +1755,7 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
     extremes[x[:n_v].argmax(axis=0), np.arange(3)] = True
     held = np.zeros(len(x), bool)
     fitted = x.T.tolist()
-    for _ in range(len(atlas.quads)):
+    for _ in range(PLEAT_PASSES):
         p = x.copy()
         q = np.empty_like(plain)
         q[:n_v] = _block_codes(H, rhs, p, np.arange(n_v), np.broadcast_to(lo, (n_v, 3)),
@@ -1770,9 +1780,9 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
         pleats = np.flatnonzero(pleated_patches(table, p, atlas.degree, atlas.spans)
                                 & ~before)
         if not len(pleats) or held[np.unique(table[pleats])].all():
-            break
+            return with_control_points(atlas, p)
         held[np.unique(table[pleats])] = True
-    return with_control_points(atlas, p)
+    return atlas  # still pleated: rounded to nearest by the writer, as before the feedback
 
 
 ROUND_RATES = (0.0, 1.0, 4.0)  # within_budget_fed_back's rates, tried in turn

@@ -25,6 +25,8 @@ import numpy as np
 
 from client_py.errors import TesseraError
 
+from ..mesh_arrays import mesh_arrays
+
 CHUNK = 200_000
 
 
@@ -62,9 +64,7 @@ def drawn_mesh(atlas, resolution: int, detail: dict | None = None) -> DrawnMesh:
 
     mesh = tessellate_atlas(atlas, resolution, detail or None, kernel="numpy", normals=False)
     return DrawnMesh(
-        np.frombuffer(mesh.positions, dtype=np.float32).reshape(-1, 3).astype(float),
-        np.frombuffer(mesh.indices, dtype=np.uintc).reshape(-1, 3).astype(np.int64),
-        np.frombuffer(mesh.patches, dtype=np.uintc).astype(np.int64),
+        *mesh_arrays(mesh), np.frombuffer(mesh.patches, dtype=np.uintc).astype(np.int64),
         np.frombuffer(mesh.uvs, dtype=np.float32).reshape(-1, 2).astype(float))
 
 

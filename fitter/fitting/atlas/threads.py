@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+
+from ..cores import usable_cores
 
 
 def on_threads(work: Callable[[int], object], count: int, chunk: int, threads: int | None = None,
                progress: Callable[[float], None] | None = None) -> list:
     """``[work(lo) for lo in range(0, count, chunk)]``, on ``threads`` threads (default:
-    one per core), in that order.
+    one per core this process may run on, ``cores.usable_cores``), in that order.
 
     For loops whose chunks each write their own rows ``lo:lo + chunk`` of arrays made
     beforehand or return their own part, with numpy's array operations, SuperLU and the
@@ -19,7 +20,7 @@ def on_threads(work: Callable[[int], object], count: int, chunk: int, threads: i
     order."""
     starts = range(0, count, chunk)
     out = []
-    with ThreadPoolExecutor(max(1, min(threads or os.cpu_count() or 1, len(starts)))) as pool:
+    with ThreadPoolExecutor(max(1, min(threads or usable_cores(), len(starts)))) as pool:
         for done, part in enumerate(pool.map(work, starts), start=1):
             out.append(part)
             if progress is not None:

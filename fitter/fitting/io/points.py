@@ -34,7 +34,6 @@ and the window are not pickled: each process (a Dask worker) opens the file itse
 from __future__ import annotations
 
 import hashlib
-import os
 import threading
 from collections import deque
 from collections.abc import Iterator
@@ -43,12 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cores import usable_cores
 from .scan import ScanError
 from .source import CHUNK_BYTES
 
 #: requests of the largest size seen that a ReaderStream's window of decoded blocks holds:
 #: one per thread that may read a block ahead of another
-WINDOW_REQUESTS = max(2, os.cpu_count() or 1)
+WINDOW_REQUESTS = max(2, usable_cores())
 #: points of the reads :meth:`ReaderStream.take` makes
 TAKE_BLOCK = 1 << 20
 #: a seekable segment is re-opened at the point asked for when the cursor is more than
