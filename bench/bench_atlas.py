@@ -48,8 +48,8 @@ from bench.scoring import (
     reverse_errors,
     save_picture,
 )
+from client_py.mesh_arrays import mesh_arrays
 from fitter.fitting.io import ScanError
-from fitter.fitting.mesh_arrays import mesh_arrays
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"

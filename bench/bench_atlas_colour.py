@@ -25,7 +25,7 @@ import numpy as np
 
 from bench import RESULTS, print_table, write_results
 from bench.scoring import _camera, diagonal, view_directions
-from fitter.fitting.mesh_arrays import mesh_arrays
+from client_py.mesh_arrays import mesh_arrays
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 PICTURES = RESULTS / "atlas_colour"

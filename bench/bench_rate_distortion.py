@@ -64,8 +64,8 @@ from pathlib import Path
 import numpy as np
 
 from bench import RESULTS, print_table, write_results
+from client_py.mesh_arrays import mesh_arrays
 from fitter.fitting.atlas.measure import point_mesh_distance as mesh_distance
-from fitter.fitting.mesh_arrays import mesh_arrays
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"

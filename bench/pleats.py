@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fitter.fitting.mesh_arrays import mesh_arrays
+from client_py.mesh_arrays import mesh_arrays
 
 PAIR_RESOLUTION = 5  # samples a patch side of the base for the folded pairs
 FOLD_COSINE = -0.5  # cos 120°

@@ -20,11 +20,11 @@ from client_py.bundle import (
     read_pieces,
     tessellate_bundle,
 )
+from client_py.mesh_arrays import mesh_arrays
 from client_py.session import WorkerSession
 from fitter.cli import main as tessera
 from fitter.fitting.atlas.measure import point_mesh_distance
 from fitter.fitting.io.scan import make_scan
-from fitter.fitting.mesh_arrays import mesh_arrays
 from fitter.fitting.options import FitOptions
 from fitter.fitting.pieces import (
     MAX_PIECES_SHARE,

@@ -14,7 +14,6 @@ so ``fitter.fitting.options`` stays cheap for the server's admin form.
 ``detail``         the displacement pyramid; ``texture``: the colour pyramid
 ``error``          deviation of every scan point, heat maps
 ``pieces``         a single patch's detached pieces, a small atlas drawn with it
-``mesh_arrays``    a ``client_py`` mesh as numpy arrays (also the server's); numpy only
 ``cores``          the cores this process may run on: threads and batches; stdlib only
 ``options``        THE table of fit options (``FitOptions``, CLI, admin form); no numpy
 ``stages``         the fit's stages in order, with their progress weights; no numpy

@@ -35,12 +35,12 @@ import numpy as np
 
 from client_py.atlas_format import read_atlas
 from client_py.bundle import PIECES_FILE, tessellate_bundle
+from client_py.mesh_arrays import mesh_arrays
 
 from .atlas.fit import AUTO_MAX_TRIANGLES, base_file, base_resolution, fit_atlas
 from .atlas.measure import drawn_mesh, point_mesh_distance
 from .atlas.surface import face_pieces
 from .io.scan import Scan, ScanError
-from .mesh_arrays import mesh_arrays
 
 #: a scan point farther than this share of the diagonal from the drawn patch is uncovered:
 #: the issue's tolerance for "within" (13: >= 99.5 % of all points within 0.5 %)

@@ -44,9 +44,9 @@ from client_py.atlas_format import read_atlas
 from client_py.atlas_mesh import tessellate_atlas
 from client_py.bundle import ATLAS_MAX_RESOLUTION, Mesh, pieces_entry, read_pieces
 from client_py.format import read_header
+from client_py.mesh_arrays import mesh_arrays
 
 from ..collection.bundles import Bundle, BundleError
-from ..fitting.mesh_arrays import mesh_arrays
 
 WIDTH, HEIGHT = 320, 240
 GRID = 400  # vertices per side: about two per pixel across the card (fixed: bounds the work)

@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from client_py.errors import TesseraError
-
-from ..mesh_arrays import mesh_arrays
+from client_py.mesh_arrays import mesh_arrays
 
 CHUNK = 200_000
 
