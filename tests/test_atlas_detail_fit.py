@@ -326,6 +326,15 @@ def test_drawn_model_of_the_levels_node_frames_is_the_model_it_evaluates(fitted)
         given = atlas_detail.DrawnModel.of(atlas, samples, r, frames=frames)
         for name in ("weight", "target", "node", "node_u", "node_v", "node_patch"):
             assert getattr(plain, name).tobytes() == getattr(given, name).tobytes(), name
+        # drawn keeps its own level's collocation matrix: the plain evaluation, each time
+        for k in range(level + 1):
+            field = _coefficients(det, k)
+            at_nodes = atlas_detail.evaluate_fields(field, k, spans, given.node_patch,
+                                                    given.node_u, given.node_v, chunk=333)
+            want = sum(given.weight[:, i] * at_nodes[given.node[:, i]] for i in range(3))
+            for _ in range(2):
+                assert given.drawn(field, k, spans).tobytes() == want.tobytes()
+            assert given.drawn(2 * field, k, spans).tobytes() == (2 * want).tobytes()
     with pytest.raises(ValueError, match="nodes a side"):
         atlas_detail.DrawnModel.of(atlas, samples, det.levels[0]["resolution"],
                                    frames=atlas_detail.level_nodes(atlas, [], 1, spans))
