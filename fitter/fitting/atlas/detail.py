@@ -678,8 +678,12 @@ class DrawnModel:
         r = resolution
         a, b, beta = drawn_triangles(samples.u, samples.v, r)
         # the nodes the samples' triangles use, each once: position and displacement direction
-        nodes, node = np.unique((samples.patch[:, None] * r + a) * r + b, return_inverse=True)
-        node = node.reshape(-1, 3)
+        # np.unique(keys, return_inverse=True) of keys below F r²: a mark per node, O(N)
+        keys = (samples.patch[:, None] * r + a) * r + b
+        used = np.zeros(len(atlas.quads) * r * r, bool)
+        used[keys] = True
+        nodes = np.flatnonzero(used)
+        node = (np.cumsum(used) - 1)[keys]
         nf, na, nb = nodes // (r * r), nodes // r % r, nodes % r
         if frames is not None:  # all_nodes' order: node (f, a, b) at index (f r + a) r + b
             if frames.resolution != r or frames.patches != len(atlas.quads):
