@@ -190,6 +190,31 @@ def _bump_samples(fit, atlas, seed: int, count: int):
     return atlas_detail.project_samples(atlas, fit, points, unit)
 
 
+def test_projection_along_the_morton_curve_is_each_samples_own(fitted):
+    """project_samples takes its chunks along the Morton curve of the samples: every field
+    is that of each sample projected alone (chunks of one sample), and of the samples given
+    in another order, bit for bit."""
+    fit, _, det = fitted
+    rng = np.random.default_rng(5)
+    unit = rng.normal(size=(600, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    points = unit * (1.0 + bump(unit))[:, None]
+    weights = rng.uniform(0.5, 2.0, len(points))
+    chunked = atlas_detail.project_samples(det.atlas, fit, points, unit, chunk=97,
+                                           weights=weights)
+    alone = atlas_detail.project_samples(det.atlas, fit, points, unit, chunk=1, threads=1,
+                                         weights=weights)
+    names = ("patch", "u", "v", "s", "t2", "offsets", "distance", "facing", "weight")
+    for name in names:
+        assert getattr(chunked, name).tobytes() == getattr(alone, name).tobytes(), name
+    turn = rng.permutation(len(points))
+    turned = atlas_detail.project_samples(det.atlas, fit, points[turn], unit[turn], chunk=97,
+                                          weights=weights[turn])
+    a, b = np.argsort(chunked.weight), np.argsort(turned.weight)  # the weights name them
+    for name in names[:5] + names[6:]:
+        assert getattr(chunked, name)[a].tobytes() == getattr(turned, name)[b].tobytes(), name
+
+
 def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
     """``target - sum_levels drawn`` of a sample is ``(x - sum_i beta_i X_i) . n`` with
     ``X_i`` the vertices of ``client_py.atlas_mesh``'s welded, displaced mesh (border
@@ -284,6 +309,35 @@ def test_drawn_model_evaluates_each_node_once_to_the_same_numbers(fitted):
                                atol=1e-15)
     for name in ("weight", "target", "node", "node_u", "node_v"):
         assert getattr(model, name).tobytes() == getattr(again, name).tobytes(), name
+
+
+def test_drawn_model_of_the_levels_node_frames_is_the_model_it_evaluates(fitted):
+    """DrawnModel.of given the level's LevelNodes (every node's frame, evaluated once for
+    the level's far and fold rows) takes its nodes' positions and directions from them:
+    the model it evaluates itself, bit for bit; frames of another resolution are refused."""
+    fit, scan, det = fitted
+    atlas = det.atlas
+    samples = _bump_samples(fit, atlas, 11, 2500)
+    spans = det.tree["spans_per_tile"]
+    for level in (0, 1):
+        r = det.levels[level]["resolution"]
+        frames = atlas_detail.level_nodes(atlas, [], level, spans)
+        plain = atlas_detail.DrawnModel.of(atlas, samples, r, chunk=700)
+        given = atlas_detail.DrawnModel.of(atlas, samples, r, frames=frames)
+        for name in ("weight", "target", "node", "node_u", "node_v", "node_patch"):
+            assert getattr(plain, name).tobytes() == getattr(given, name).tobytes(), name
+        # drawn keeps its own level's collocation matrix: the plain evaluation, each time
+        for k in range(level + 1):
+            field = _coefficients(det, k)
+            at_nodes = atlas_detail.evaluate_fields(field, k, spans, given.node_patch,
+                                                    given.node_u, given.node_v, chunk=333)
+            want = sum(given.weight[:, i] * at_nodes[given.node[:, i]] for i in range(3))
+            for _ in range(2):
+                assert given.drawn(field, k, spans).tobytes() == want.tobytes()
+            assert given.drawn(2 * field, k, spans).tobytes() == (2 * want).tobytes()
+    with pytest.raises(ValueError, match="nodes a side"):
+        atlas_detail.DrawnModel.of(atlas, samples, det.levels[0]["resolution"],
+                                   frames=atlas_detail.level_nodes(atlas, [], 1, spans))
 
 
 def _coefficients(det, level):

@@ -12,8 +12,10 @@ from client_py.atlas_format import read_atlas
 from fitter.fitting.atlas.measure import (
     MeasuringProcess,
     MeasuringProcessError,
+    closest_points_on_mesh,
     closest_points_on_triangles,
     far_places,
+    farther_than,
     point_mesh_distance,
     signed_point_mesh_distance,
 )
@@ -48,6 +50,38 @@ def test_point_mesh_distance_equals_brute_force():
     inside = np.linalg.norm(points, axis=1) < 0.9
     assert np.all(signed[inside] < 0) and np.all(signed[np.linalg.norm(points, axis=1) > 1.1] > 0)
 
+
+
+def test_farther_than_is_the_threshold_of_every_points_closest_point():
+    """farther_than lets the points near a mesh vertex go unmeasured: the points it keeps,
+    their distances and closest points are those of closest_points_on_mesh of every point
+    beyond the reach, bit for bit, points at the reach itself included; a vertex no
+    triangle uses lets no point go; bad input is named."""
+    rng = np.random.default_rng(1)
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    vertices, faces = np.asarray(mesh.vertices) + 40.0, np.asarray(mesh.faces)
+    direction = rng.normal(size=(4000, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    points = 40.0 + direction * rng.uniform(0.7, 1.3, size=(4000, 1))
+    reach = 0.15
+    dist, _, closest = closest_points_on_mesh(points, vertices, faces)
+    points[:200] = closest[:200] + (points[:200] - closest[:200]) / dist[:200, None] * reach
+    stray = np.vstack([vertices, points[200:260] + 1e-4])  # unused vertices beside points
+    for verts in (vertices, stray):
+        dist, _, closest = closest_points_on_mesh(points, verts, faces)
+        want = np.flatnonzero(dist > reach)
+        assert 100 < len(want) < len(points) - 1000
+        got, got_dist, got_closest = farther_than(points, verts, faces, reach)
+        assert got.tobytes() == want.tobytes()
+        assert got_dist.tobytes() == dist[want].tobytes()
+        assert got_closest.tobytes() == closest[want].tobytes()
+    assert len(farther_than(points, vertices, faces, 0.0)[0]) == len(points)
+    assert len(farther_than(np.zeros((0, 3)), vertices, faces, reach)[0]) == 0
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="reach"):
+            farther_than(points, vertices, faces, bad)
+    with pytest.raises(ValueError, match="triangles"):
+        farther_than(points, vertices, np.zeros((0, 3), np.int64), reach)
 
 
 def test_a_kept_scene_answers_as_a_new_one():

@@ -468,6 +468,13 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     of a thin wing does not start on its back; the nearest when none agrees). Then
     ``NEWTON_ITERATIONS`` Gauss-Newton steps with hops (:func:`.fit.correct_parameters`).
     ``atlas`` is ``fit.atlas`` or a :func:`renumber_patches` of it (matched by its quads).
+
+    The chunks take the samples along the Morton curve of their positions
+    (:func:`morton_order`), and each result goes back to its sample's place: every
+    sample's foot point is its own computation, the same numbers in any order, but
+    neighbours then query the k-d tree one after another (a mesh's triangle samples come
+    in random order: on 870,000 such samples of a sphere against 80,000 working points,
+    the queries took 1.2 CPU-s instead of 3.1, the ordering 0.4).
     """
     old_index = {tuple(q): f for f, q in enumerate(fit.atlas.quads)}
     new_of_old = np.empty(len(atlas.quads), np.int64)
@@ -484,8 +491,11 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     tree = cKDTree(fit.points)
     k = min(candidates, len(fit.points))
 
+    walk = morton_order(points) if len(points) else np.zeros(0, np.int64)
+
     def one_chunk(start: int) -> tuple[np.ndarray, ...]:
-        x, nx = points[start:start + chunk], normals[start:start + chunk]
+        at = walk[start:start + chunk]
+        x, nx = points[at], normals[at]
         _, near = tree.query(x, k=k)
         near = near.reshape(len(x), k)
         agree = np.einsum("kc,kjc->kj", nx, seed_n[near]) > 0.5
@@ -502,7 +512,10 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     # the chunks are independent and their work is numpy on whole arrays, which releases
     # the GIL: one thread per core (as fitter.fitting.error.deviations), in order
     parts = on_threads(one_chunk, len(points), chunk, threads, progress)
-    f, u, v, off, t2, dist, facing = (np.concatenate(c) for c in zip(*parts, strict=True))
+    place = np.empty_like(walk)
+    place[walk] = np.arange(len(walk))  # sample i's results are at place[i]
+    f, u, v, off, t2, dist, facing = (np.concatenate(c)[place]
+                                      for c in zip(*parts, strict=True))
     order = np.argsort(f, kind="stable")
     f = f[order]
     offsets = np.searchsorted(f, np.arange(len(atlas.quads) + 1))
@@ -626,6 +639,9 @@ class DrawnModel:
     node_patch: np.ndarray
     node_u: np.ndarray
     node_v: np.ndarray
+    #: the collocation matrix of the level drawn at :attr:`resolution` over the nodes
+    #: (:meth:`drawn`), made at its first use
+    _own_level: sp.csr_matrix | None = field(default=None, repr=False, compare=False)
 
     @staticmethod
     def feet(atlas: AtlasSurface, samples: AtlasSamples, chunk: int = CHUNK
@@ -648,21 +664,34 @@ class DrawnModel:
 
     @classmethod
     def of(cls, atlas: AtlasSurface, samples: AtlasSamples, resolution: int,
-           chunk: int = CHUNK, feet: tuple[np.ndarray, np.ndarray] | None = None
-           ) -> DrawnModel:
+           chunk: int = CHUNK, feet: tuple[np.ndarray, np.ndarray] | None = None,
+           frames: LevelNodes | None = None) -> DrawnModel:
         """The model of ``atlas``'s mesh drawn at ``resolution`` nodes per patch side
         (``feet``: :meth:`feet`, computed here when not given).
 
         Each node some sample's triangle uses is evaluated once (``node``: the index of
         sample ``k``'s node ``i`` among them), not once per sample that uses it: the same
-        numbers, a third of the evaluations at the finest level and far fewer below."""
+        numbers, a third of the evaluations at the finest level and far fewer below.
+        ``frames``: the level's :class:`LevelNodes` at this resolution, whose positions and
+        directions (:func:`node_frames` of every node) are taken instead of evaluating the
+        samples' nodes again: the same numbers (each node's frame is its own)."""
         r = resolution
         a, b, beta = drawn_triangles(samples.u, samples.v, r)
         # the nodes the samples' triangles use, each once: position and displacement direction
-        nodes, node = np.unique((samples.patch[:, None] * r + a) * r + b, return_inverse=True)
-        node = node.reshape(-1, 3)
+        # np.unique(keys, return_inverse=True) of keys below F r²: a mark per node, O(N)
+        keys = (samples.patch[:, None] * r + a) * r + b
+        used = np.zeros(len(atlas.quads) * r * r, bool)
+        used[keys] = True
+        nodes = np.flatnonzero(used)
+        node = (np.cumsum(used) - 1)[keys]
         nf, na, nb = nodes // (r * r), nodes // r % r, nodes % r
-        node_c, node_d = node_frames(atlas, r, nf, na, nb, chunk)
+        if frames is not None:  # all_nodes' order: node (f, a, b) at index (f r + a) r + b
+            if frames.resolution != r or frames.patches != len(atlas.quads):
+                raise ValueError(f"frames of {frames.patches} patches at {frames.resolution} "
+                                 f"nodes a side for a model at {r} of {len(atlas.quads)}")
+            node_c, node_d = frames.position[nodes], frames.direction[nodes]
+        else:
+            node_c, node_d = node_frames(atlas, r, nf, na, nb, chunk)
         foot, normal = feet if feet is not None else cls.feet(atlas, samples, chunk)
         weight = np.empty_like(beta)
         target = samples.s.copy()
@@ -693,9 +722,21 @@ class DrawnModel:
 
     def drawn(self, coefficients: np.ndarray, level: int, spans: int) -> np.ndarray:
         """``sum_i w_i D(node_i)`` of level ``level``'s field ``coefficients (F, n, n)``
-        (``D`` evaluated once per node)."""
-        at_nodes = evaluate_fields(coefficients, level, spans, self.node_patch, self.node_u,
-                                   self.node_v)
+        (``D`` evaluated once per node).
+
+        The level drawn at this model's resolution is evaluated three times or more (its
+        solve, the held-out check, its rounded field): its collocation matrix over the
+        nodes (:func:`evaluate_fields`' rows, the same numbers) is kept for the next."""
+        if atlas_level_resolution(spans, level) != self.resolution:
+            at_nodes = evaluate_fields(coefficients, level, spans, self.node_patch,
+                                       self.node_u, self.node_v)
+        else:
+            F, n, _ = coefficients.shape
+            if self._own_level is None or self._own_level.shape[1] != F * n * n:
+                self._own_level = collocation_matrix(
+                    DEGREE, np.array(layers.level_knots(DEGREE, spans, level)), n,
+                    self.node_u, self.node_v, block=self.node_patch, blocks=F)
+            at_nodes = self._own_level @ coefficients.reshape(-1)
         return sum(self.weight[:, i] * at_nodes[self.node[:, i]] for i in range(3))
 
 
@@ -875,16 +916,15 @@ def far_node_rows(nodes: LevelNodes, scan_mesh: tuple[np.ndarray, np.ndarray], r
     (``nodes``: :func:`level_nodes`) that lie farther than ``reach`` from the scan's
     surface ``scan_mesh (vertices, faces)``, each with the row ``D_f(node) = (q - X) . d``
     (module docstring, "Far nodes"): ``X = C + sum_j D_j d`` the drawn node, ``q`` its
-    closest point on the scan's triangles (:func:`.measure.closest_points_on_mesh`), ``d``
-    its direction (:func:`node_frames`)."""
-    from .measure import closest_points_on_mesh
+    closest point on the scan's triangles, ``d`` its direction (:func:`node_frames`). Only
+    the nodes farther than ``reach`` are measured exactly (:func:`.measure.farther_than`)."""
+    from .measure import farther_than
 
     f, d = nodes.patch, nodes.direction
     x = nodes.position + d * nodes.before[:, None]
     vertices, faces = scan_mesh
-    dist, _, q = closest_points_on_mesh(x, vertices, faces)
-    far = np.flatnonzero(dist > reach)
-    target = np.einsum("kc,kc->k", q[far] - x[far], d[far])
+    far, _, q = farther_than(x, vertices, faces, reach)
+    target = np.einsum("kc,kc->k", q - x[far], d[far])
     return PullRows(f[far], nodes.u[far], nodes.v[far], target,
                     np.searchsorted(f[far], np.arange(nodes.patches + 1)), weight)
 
@@ -1725,7 +1765,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     per_level_tiles: list[dict] = []
     level_rows: list[dict] = []
     worst_of_patch: list[np.ndarray] = []  # per level: max e of each patch's samples
-    timings.update(model=0.0, far_rows=0.0, solve=0.0, fold_rows=0.0, quantise=0.0,
+    timings.update(nodes=0.0, model=0.0, far_rows=0.0, solve=0.0, fold_rows=0.0, quantise=0.0,
                    tiles=0.0)  # the levels' steps, summed
     clock = time.perf_counter()
     feet = DrawnModel.feet(atlas, samples)
@@ -1741,12 +1781,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     for k in range(levels):
         n = (spans << k) + DEGREE
         G = shared_index(atlas, n)
-        model = DrawnModel.of(atlas, samples, atlas_level_resolution(spans, k), feet=feet)
+        nodes = level_nodes(atlas, fields, k, spans) if PULL_WEIGHT > 0 or FOLD_PASSES else None
+        clock = _tick(timings, "nodes", clock)
+        model = DrawnModel.of(atlas, samples, atlas_level_resolution(spans, k), feet=feet,
+                              frames=nodes)
         residual = model.target - sum((model.drawn(c, j, spans)
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
         per_node = per_patch / atlas_level_resolution(spans, k) ** 2
-        nodes = level_nodes(atlas, fields, k, spans) if PULL_WEIGHT > 0 or FOLD_PASSES else None
         pull = (far_node_rows(nodes, scan_mesh, PULL_REACH * diagonal, PULL_WEIGHT * per_node)
                 if PULL_WEIGHT > 0 else None)
         clock = _tick(timings, "far_rows", clock)
@@ -1758,7 +1800,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
             held_rms.append(float(np.sqrt(np.mean(unrounded[held] ** 2 + samples.t2[held]))))
             if held_rms[-1] > (1.0 - MIN_GAIN) * held_rms[-2]:
                 levels = k
-                _tick(timings, "solve", clock)
+                clock = _tick(timings, "solve", clock)
                 break
             held_rms.pop()
         for _ in range(FOLD_PASSES if FOLD_WEIGHT > 0 else 0):  # module docstring, "Folds"

@@ -197,6 +197,59 @@ def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.n
     return out, nearest, out_q
 
 
+#: :func:`farther_than`'s margin, a share of the largest ``|coordinate|``: far above
+#: ``open3d``'s single-precision rounding of the points and triangles (``2^-24``, a few
+#: times over), which can make :func:`closest_points_on_mesh` choose a triangle whose
+#: distance passes the nearest one's by that much
+FLOAT32_MARGIN = 1e-6
+
+
+def farther_than(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, reach: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points of ``points (N, 3)`` farther than ``reach`` from the mesh ``(vertices
+    (V, 3), faces (T, 3))``: their indices (ascending), distances and closest points, each
+    as :func:`closest_points_on_mesh` of every point gives it, shapes ``(K,)``, ``(K,)``,
+    ``(K, 3)``.
+
+    A distance to a set is at most that to any of its members, so a point within ``reach``
+    of a vertex of a triangle is within ``reach`` of the mesh: a k-d tree of the triangles'
+    vertices (nearest-neighbour queries bounded by ``reach``, which stop early) lets those
+    go, and only the others are measured (the BVH of every triangle, per point: the same
+    numbers as for all points). A vertex must be within ``reach - m`` to let its point go,
+    ``m`` = :data:`FLOAT32_MARGIN` of the largest ``|coordinate|``: the BVH compares
+    distances in single precision. Where the mesh follows the points (a detail level's
+    drawn nodes against the scan, a cloud against its own surface) nearly every point goes:
+    the 15-scan Happy Buddha's 2.55 M level-1 nodes, its 1.10 M points.
+
+    Raises
+    ------
+    ValueError
+        An empty mesh, or ``reach`` not a finite number >= 0.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=float)
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64)
+    if len(faces) == 0:
+        raise ValueError("a point-to-mesh distance needs triangles, got none")
+    if isinstance(reach, bool) or not isinstance(reach, (int, float)) \
+            or not math.isfinite(reach) or reach < 0:
+        raise ValueError(f"reach must be a finite number >= 0, got {reach!r}")
+    corners = vertices[np.unique(faces)]
+    scale = max(float(np.abs(corners).max()), float(np.abs(points).max(initial=0.0)))
+    bound = reach - FLOAT32_MARGIN * (scale + reach)
+    unsure = np.arange(len(points))
+    if bound > 0 and len(points):
+        gap, _ = cKDTree(corners).query(points, distance_upper_bound=bound, workers=-1)
+        unsure = np.flatnonzero(~(gap <= bound))
+    if not len(unsure):
+        return unsure, np.zeros(0), np.zeros((0, 3))
+    dist, _, closest = closest_points_on_mesh(points[unsure], vertices, faces)
+    far = dist > reach
+    return unsure[far], dist[far], closest[far]
+
+
 def signed_point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`closest_points_on_mesh` with the distance signed: positive on the side the

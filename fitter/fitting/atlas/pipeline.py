@@ -58,7 +58,7 @@ from .measure import (
     MeasuringProcess,
     MeasuringProcessError,
     drawn_mesh,
-    point_mesh_distance,
+    farther_than,
     signed_point_mesh_distance,
 )
 from .surface import (
@@ -286,8 +286,9 @@ def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
                             f"line or a point ({exc}); its layout has a sliver") from exc
     points, _ = area_samples(base.vertices, base.faces, samples, np.random.default_rng(0))
     diagonal = surface.diagonal
-    d = point_mesh_distance(points, surface.vertices, surface.faces)
-    share = float(np.mean(d > STRAY_DISTANCE * diagonal))
+    strayed, _, _ = farther_than(points, surface.vertices, surface.faces,
+                                 STRAY_DISTANCE * diagonal)
+    share = len(strayed) / len(points)
     if share > MAX_STRAY_SHARE:
         raise AtlasFitError(
             f"the atlas base strays from the scan: {100 * share:.1f}% of its area lies "
@@ -309,8 +310,9 @@ def without_outliers(scan: Scan, surface: ScanSurface) -> tuple[Scan, int]:
     if scan.faces is not None and len(scan.faces):
         return scan, 0
     points = np.asarray(scan.points, dtype=float)
-    near = point_mesh_distance(points, surface.vertices, surface.faces) \
-        <= OUTLIER_DISTANCE * surface.diagonal
+    near = np.ones(len(points), bool)
+    near[farther_than(points, surface.vertices, surface.faces,
+                      OUTLIER_DISTANCE * surface.diagonal)[0]] = False
     if near.all():
         return scan, 0
 
