@@ -1493,15 +1493,17 @@ def predicted_trial_bytes(smaller: tuple, larger: tuple, triangles: int,
 
 
 def between_target(smaller: tuple, larger: tuple, byte_budget: int,
-                   bits: int | None) -> int | None:
+                   bits: int | None, encoded: dict | None = None) -> int | None:
     """The layout size of ``'auto'``'s last trial, between the largest trial within
     ``byte_budget`` and twice its triangles (the first over the budget, fitted or
     predicted): the largest whose predicted file (:func:`predicted_trial_bytes` of the two
-    largest trials fitted) is at most :data:`AUTO_BETWEEN_SHARE` of the budget, ``None``
-    when that is less than :data:`AUTO_BETWEEN_LEAST` times the triangles.
+    largest trials fitted) is at most :data:`AUTO_BETWEEN_SHARE` of the budget at no fewer
+    bits than that trial's (fewer bits trade the patches' RMS for the quantisation's),
+    ``None`` when that is less than :data:`AUTO_BETWEEN_LEAST` times the triangles.
+    ``encoded``: as :func:`predicted_trial_bytes`'.
     """
     within = smaller if larger[1] > byte_budget else larger
-    least, encoded = within[2].n_triangles, {}
+    least, encoded = within[2].n_triangles, {} if encoded is None else encoded
     for factor in np.geomspace(2.0, AUTO_BETWEEN_LEAST, 16)[1:]:
         target = round(least * factor)
         predicted = predicted_trial_bytes(smaller, larger, target, bits, encoded)
@@ -2101,10 +2103,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         within the budget and the first over it: ``(records, accepted, best)``."""
         trials: list[dict] = []
         accepted: list[tuple] = []  # every trial taken as the best, the smallest first
-        best, fitted, over = None, [], False
+        best, fitted, over, encoded = None, [], False, {}
         for step, target in enumerate(plan[first:], first):
             if auto and len(fitted) >= 2:
-                predicted = predicted_trial_bytes(fitted[-2], fitted[-1], target, bits)
+                predicted = predicted_trial_bytes(fitted[-2], fitted[-1], target, bits,
+                                                  encoded)
                 if predicted is not None and predicted[1] > AUTO_SKIP_OVER_BUDGET * byte_budget:
                     trials.append({"triangles": target, "skipped": "predicted over the budget",
                                    "predicted_bits": predicted[0],
@@ -2130,7 +2133,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
                 break
         within = [made for made in fitted if made[1] <= byte_budget]
         if over and len(fitted) >= 2 and within and best is within[-1]:
-            target = between_target(fitted[-2], fitted[-1], byte_budget, bits)
+            target = between_target(fitted[-2], fitted[-1], byte_budget, bits, encoded)
             if target is not None:
                 record, made = run_trial(target, best)
                 if record is not None:
