@@ -269,15 +269,19 @@ def test_the_bunny_layout_keeps_its_topology_and_holes():
     assert problems["border_edges"] > 0  # the scan's holes stay holes
 
 
-def test_auto_grows_the_layout_within_the_byte_budget():
+@pytest.mark.parametrize("between", [None, 0.92])
+def test_auto_grows_the_layout_within_the_byte_budget(monkeypatch, between):
+    monkeypatch.setattr(atlas_fit, "AUTO_BETWEEN_SHARE", between)
     fit = fit_atlas(_sphere_scan(3), "auto", byte_budget=9000, working_count=2000, rounds=1)
     sizes = [trial["bytes"] for trial in fit.trials if "bytes" in trial
              and not trial.get("between")]
     assert len(sizes) >= 2 and sizes == sorted(sizes)
-    for between in (trial for trial in fit.trials if trial.get("between")):
+    betweens = [trial for trial in fit.trials if trial.get("between")]
+    assert len(betweens) == (between is not None)  # 192 triangles over: one between
+    for trial in betweens:
         smaller = [t["triangles"] for t in fit.trials if t.get("bytes", 9001) <= 9000
                    and not t.get("between")]
-        assert max(smaller) < between["triangles"] < 2 * max(smaller)
+        assert max(smaller) < trial["triangles"] < 2 * max(smaller)
     assert fit.bytes <= 9000  # the final fit of the chosen layout, all points
     assert fit.patches == 3 * fit.triangles
     assert fit.triangles in [trial["triangles"] for trial in fit.trials]
@@ -1181,7 +1185,6 @@ def test_a_doubling_predicted_over_the_budget_is_not_fitted_and_the_choice_is_th
     layout, fitted to the same control points."""
     scan = _sphere_scan(3)
     options = {"bits": None, "byte_budget": 12_000, "working_count": 2000, "rounds": 1}
-    monkeypatch.setattr(atlas_fit, "AUTO_BETWEEN_SHARE", 0.0)  # the doublings only
     calls = _counted_fit_layout(monkeypatch)
     fit = fit_atlas(scan, "auto", **options)
     (skipped,) = [t for t in fit.trials if "skipped" in t]
@@ -1224,7 +1227,6 @@ def test_auto_falls_back_to_the_smaller_layout_when_the_final_base_is_over_the_b
     the budget its trial passed at (a subdivided box: the 96-triangle trial 5,413 bytes at 11
     bits, its final fit 5,982 at 12), and the layout taken before it is fitted instead."""
     monkeypatch.setattr(atlas_fit, "BUDGET_FEWER_BITS", 0)
-    monkeypatch.setattr(atlas_fit, "AUTO_BETWEEN_SHARE", 0.0)  # the doublings only
     box = trimesh.creation.box(extents=(40, 30, 20)).subdivide_to_size(1.5)
     scan = _mesh_scan(box.vertices, box.faces, "box")
     cache: dict = {}
