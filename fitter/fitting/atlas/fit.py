@@ -1941,7 +1941,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         the smaller ones is taken (trials: ``AUTO_TRIAL_POINTS`` of the points, two rounds;
         one doubling that gains nothing does not end the search: the next may); the chosen
         layout is then fitted with all working points and ``rounds``, within the budget
-        (:func:`final_within_budget`: else the layout taken before it).
+        (:func:`final_within_budget`: else the layout taken before it). The ladder starts
+        at :func:`ladder_start` (from ``AUTO_FIRST_TRIANGLES`` again when that start is
+        over the budget or the next doubling gains nothing on it), and a doubling
+        predicted over ``AUTO_SKIP_OVER_BUDGET`` budgets (:func:`predicted_trial_bytes`)
+        is not fitted: ``trials`` records it as ``skipped``.
     degree, spans : int
         Per patch side (``n = spans + degree`` control points).
     bits : int or None
