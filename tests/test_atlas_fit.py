@@ -270,10 +270,19 @@ def test_the_bunny_layout_keeps_its_topology_and_holes():
     assert problems["border_edges"] > 0  # the scan's holes stay holes
 
 
-def test_auto_grows_the_layout_within_the_byte_budget():
+@pytest.mark.parametrize("between", [None, 0.92])
+def test_auto_grows_the_layout_within_the_byte_budget(monkeypatch, between):
+    monkeypatch.setattr(atlas_fit, "AUTO_BETWEEN_SHARE", between)
     fit = fit_atlas(_sphere_scan(3), "auto", byte_budget=9000, working_count=2000, rounds=1)
-    sizes = [trial["bytes"] for trial in fit.trials if "bytes" in trial]
+    sizes = [trial["bytes"] for trial in fit.trials if "bytes" in trial
+             and not trial.get("between")]
     assert len(sizes) >= 2 and sizes == sorted(sizes)
+    betweens = [trial for trial in fit.trials if trial.get("between")]
+    assert len(betweens) == (between is not None)  # 192 triangles over: one between
+    for trial in betweens:
+        smaller = [t["triangles"] for t in fit.trials if t.get("bytes", 9001) <= 9000
+                   and not t.get("between")]
+        assert max(smaller) < trial["triangles"] < 2 * max(smaller)
     assert fit.bytes <= 9000  # the final fit of the chosen layout, all points
     assert fit.patches == 3 * fit.triangles
     assert fit.triangles in [trial["triangles"] for trial in fit.trials]
@@ -1146,6 +1155,70 @@ def test_layout_candidates_and_their_fits_on_threads_equal_one_after_the_other(m
             np.testing.assert_array_equal(getattr(a[1], name), getattr(b[1], name))
     assert fit_one.trials[0]["rms_by_layout"] == fit_two.trials[0]["rms_by_layout"]
     np.testing.assert_array_equal(control_points(fit_one.atlas), control_points(fit_two.atlas))
+
+
+def test_the_ladder_starts_at_the_largest_size_within_half_the_budget():
+    plan = [48, 96, 192, 384, 768, 1536, 3072]
+    # 2 x 60 bytes per triangle: 96 -> 11,520 and 192 -> 23,040 bytes
+    assert atlas_fit.AUTO_START_BYTES_PER_TRIANGLE == 60
+    assert [atlas_fit.ladder_start(plan, budget) for budget in (6000, 11_519, 11_520, 24_000)
+            ] == [0, 0, 1, 2]
+    assert atlas_fit.ladder_start([30], 24_000) == 0
+
+
+def _counted_fit_layout(monkeypatch) -> list[int]:
+    calls: list[int] = []
+    real_fit_layout = atlas_fit.fit_layout
+
+    def counted(layout, *args, **kwargs):
+        calls.append(layout.n_triangles)
+        return real_fit_layout(layout, *args, **kwargs)
+
+    monkeypatch.setattr(atlas_fit, "fit_layout", counted)
+    return calls
+
+
+def test_a_doubling_predicted_over_the_budget_is_not_fitted_and_the_choice_is_the_full_ladders(
+        monkeypatch):
+    """A sphere with a 12,000-byte budget: the ladder starts at 96 triangles, and 384 is
+    predicted over 1.15 budgets (predicted_trial_bytes) and not fitted. The full ladder
+    (from 48, every doubling fitted) finds that trial over the budget and chooses the same
+    layout, fitted to the same control points."""
+    scan = _sphere_scan(3)
+    options = {"bits": None, "byte_budget": 12_000, "working_count": 2000, "rounds": 1}
+    calls = _counted_fit_layout(monkeypatch)
+    fit = fit_atlas(scan, "auto", **options)
+    (skipped,) = [t for t in fit.trials if "skipped" in t]
+    assert skipped["predicted_bytes"] > atlas_fit.AUTO_SKIP_OVER_BUDGET * 12_000
+    assert max(calls) < 0.8 * skipped["triangles"]  # nothing near its size was fitted
+    assert fit.trials[0]["triangles"] > atlas_fit.AUTO_FIRST_TRIANGLES  # started higher
+
+    monkeypatch.setattr(atlas_fit, "ladder_start", lambda plan, budget: 0)
+    monkeypatch.setattr(atlas_fit, "AUTO_SKIP_OVER_BUDGET", float("inf"))
+    full = fit_atlas(scan, "auto", **options)
+    assert full.trials[0]["triangles"] == atlas_fit.AUTO_FIRST_TRIANGLES
+    over = [t for t in full.trials if t["triangles"] > fit.triangles]
+    assert over and over[0]["bytes"] > 12_000  # the prediction was right
+    assert full.triangles == fit.triangles
+    np.testing.assert_array_equal(control_points(full.atlas), control_points(fit.atlas))
+
+
+def test_a_ladder_start_over_the_budget_climbs_the_full_ladder(monkeypatch):
+    """When the start's trial is over the budget, the smaller layouts are tried from
+    ``AUTO_FIRST_TRIANGLES``: the choice is the full ladder's, and the start's trial, from
+    the cache, is not fitted twice."""
+    scan = _sphere_scan(3)
+    options = {"bits": None, "byte_budget": 9000, "working_count": 2000, "rounds": 1}
+    full = fit_atlas(scan, "auto", **options)
+    assert full.trials[0]["triangles"] == atlas_fit.AUTO_FIRST_TRIANGLES  # 9000: from 48
+    monkeypatch.setattr(atlas_fit, "AUTO_START_BYTES_PER_TRIANGLE", 1)  # start at the top
+    calls = _counted_fit_layout(monkeypatch)
+    fit = fit_atlas(scan, "auto", **options)
+    assert calls[0] == max(calls) > 2 * fit.triangles  # the top was tried first, once
+    assert calls.count(calls[0]) == 1
+    assert [t["triangles"] for t in fit.trials] == [t["triangles"] for t in full.trials]
+    assert fit.triangles == full.triangles
+    np.testing.assert_array_equal(control_points(full.atlas), control_points(fit.atlas))
 
 
 def test_auto_falls_back_to_the_smaller_layout_when_the_final_base_is_over_the_budget(

@@ -182,6 +182,21 @@ AUTO_FIRST_TRIANGLES = 48
 AUTO_MAX_TRIANGLES = 4096
 AUTO_MIN_GAIN = 0.95  # a doubling must bring the RMS below 95 % of the previous to be taken
 AUTO_TRIAL_POINTS = 20_000
+# The ladder starts at the largest doubling of AUTO_FIRST_TRIANGLES whose file, at this many
+# bytes per layout triangle, is at most half the budget (ladder_start). The trials' bytes
+# per triangle fall as the layout grows (.tsa's predicted control points): 53 and 57 on
+# Lucy's and the 15-scan Buddha's smallest trials, 27 at 756 triangles.
+AUTO_START_BYTES_PER_TRIANGLE = 60
+# a doubling predicted over this many budgets is not fitted (predicted_trial_bytes)
+AUTO_SKIP_OVER_BUDGET = 1.15
+# the trial between the largest within the budget and the first over it aims at this share
+# of the budget (the final fit's lower RMS may ask for more bits), and is fitted only when it
+# has at least AUTO_BETWEEN_LEAST times the triangles (between_target). None: no such trial.
+# Off: at 0.92 (session 17, w27-ladder) it took the Bali mask from 746 to 916 triangles,
+# base RMS 2.50e-4 -> 2.22e-4 but its largest mesh->scan distance 0.89 -> 1.46 % of the
+# diagonal (level 0: 0.86 -> 1.39 %), over issue 13's 1 % (docs/benchmarks.md).
+AUTO_BETWEEN_SHARE: float | None = None
+AUTO_BETWEEN_LEAST = 1.1
 BASE_BITS = (8, 16)  # base.tsa's automatic quantisation bits (base_bits)
 BASE_STEP_OVER_RMS = 1.2  # its quantisation step over the fit's RMS (base_bits)
 # budget_bits gives up at most this many bits to meet the byte budget. 3 since .tsa v3
@@ -1427,6 +1442,83 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
     return chosen, size
 
 
+def ladder_start(plan: list[int], byte_budget: int) -> int:
+    """Where ``'auto'``'s ladder of layout sizes ``plan`` starts: the index of the largest
+    size whose trial's file is at most half of ``byte_budget`` at
+    :data:`AUTO_START_BYTES_PER_TRIANGLE` (an over-estimate of the small trials' bytes), 0
+    when none is.
+
+    A smaller layout is chosen by the full ladder only when the start's trial is over the
+    budget, or gains less than ``AUTO_MIN_GAIN`` on the smaller ones; ``fit_atlas`` keeps
+    the start only when it is within the budget and the next doubling gains on it (two
+    trials taken), and otherwise climbs the full ladder (the trials fitted come from its
+    cache). The two smallest doublings of Lucy's ladder (48 and 96 triangles: 2,531 and
+    4,187 bytes) took 14.6 of its trials' 60 s of CPU.
+    """
+    fit = [i for i, size in enumerate(plan)
+           if 2 * AUTO_START_BYTES_PER_TRIANGLE * size <= byte_budget]
+    return fit[-1] if fit else 0
+
+
+def predicted_trial_bytes(smaller: tuple, larger: tuple, triangles: int,
+                          bits: int | None, encoded: dict | None = None
+                          ) -> tuple[int, int] | None:
+    """The bits and bytes :func:`budget_bits` would give a trial of ``triangles`` layout
+    triangles, from two trials fitted (``(rms, bytes, layout, atlas, ...)``, the smaller
+    layout first); ``None`` when they have the same size.
+
+    Each is a power of the triangle count ``T`` through the two trials: the RMS ``r(T)``
+    (two rounds of a fit whose error falls as ``T^-a``), and the bytes per control point
+    at the bits asked for (a finer layout's control points are predicted closer by
+    ``.tsa``'s coder: Lucy's 0.76 times as many bytes each at 9 bits per doubling from 382
+    to 756 triangles, 0.75 from 756 to 1,506); the control points scale with ``T``. The
+    bits are :func:`base_bits` of ``r(T)`` less :data:`BUDGET_FEWER_BITS` (the fewest
+    ``budget_bits`` may give), or ``bits`` when fixed. On Lucy's 1,506-triangle trial
+    (from 382 and 756): 9 bits, 32,187 bytes predicted where it was 31,534 at 9 bits.
+    ``encoded``: the two files' sizes by ``(atlas id, bits)``, kept between calls (an
+    encoding of Lucy's 20,000 control points takes about a second at load 10).
+    """
+    (rms_a, _, layout_a, atlas_a, *_), (rms_b, _, layout_b, atlas_b, *_) = smaller, larger
+    t_a, t_b = layout_a.n_triangles, layout_b.n_triangles
+    if t_a == t_b or min(rms_a, rms_b) <= 0:
+        return None
+    power = math.log(triangles / t_b) / math.log(t_b / t_a)
+    rms = rms_b * (rms_b / rms_a) ** power
+    if bits is None:
+        bits = max(BASE_BITS[0], base_bits(atlas_b, rms) - BUDGET_FEWER_BITS)
+    encoded = {} if encoded is None else encoded
+    for atlas in (atlas_a, atlas_b):
+        if (id(atlas), bits) not in encoded:
+            encoded[id(atlas), bits] = atlas_bytes(atlas, bits)
+    each_a, each_b = (encoded[id(a), bits] / a.control_point_count for a in (atlas_a, atlas_b))
+    count = atlas_b.control_point_count * triangles / t_b
+    return bits, round(count * each_b * (each_b / each_a) ** power)
+
+
+def between_target(smaller: tuple, larger: tuple, byte_budget: int,
+                   bits: int | None, encoded: dict | None = None) -> int | None:
+    """The layout size of ``'auto'``'s last trial, between the largest trial within
+    ``byte_budget`` and twice its triangles (the first over the budget, fitted or
+    predicted): the largest whose predicted file (:func:`predicted_trial_bytes` of the two
+    largest trials fitted) is at most :data:`AUTO_BETWEEN_SHARE` of the budget at no fewer
+    bits than that trial's (fewer bits trade the patches' RMS for the quantisation's),
+    ``None`` when that is less than :data:`AUTO_BETWEEN_LEAST` times the triangles.
+    ``encoded``: as :func:`predicted_trial_bytes`'.
+    """
+    within = smaller if larger[1] > byte_budget else larger
+    least, encoded = within[2].n_triangles, {} if encoded is None else encoded
+    for factor in np.geomspace(2.0, AUTO_BETWEEN_LEAST, 16)[1:]:
+        target = round(least * factor)
+        predicted = predicted_trial_bytes(smaller, larger, target, bits, encoded)
+        if predicted is not None and predicted[0] < within[8]:
+            predicted = predicted_trial_bytes(smaller, larger, target, within[8], encoded)
+        if predicted is None:
+            return None
+        if predicted[1] <= AUTO_BETWEEN_SHARE * byte_budget:
+            return target
+    return None
+
+
 def final_within_budget(accepted: list[tuple], trials: list[dict], points: np.ndarray,
                         normals: np.ndarray, *, bits: int | None, byte_budget: int,
                         **fit_options) -> tuple:
@@ -1859,7 +1951,11 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         the smaller ones is taken (trials: ``AUTO_TRIAL_POINTS`` of the points, two rounds;
         one doubling that gains nothing does not end the search: the next may); the chosen
         layout is then fitted with all working points and ``rounds``, within the budget
-        (:func:`final_within_budget`: else the layout taken before it).
+        (:func:`final_within_budget`: else the layout taken before it). The ladder starts
+        at :func:`ladder_start` (from ``AUTO_FIRST_TRIANGLES`` again when that start is
+        over the budget or the next doubling gains nothing on it), and a doubling
+        predicted over ``AUTO_SKIP_OVER_BUDGET`` budgets (:func:`predicted_trial_bytes`)
+        is not fitted: ``trials`` records it as ``skipped``.
     degree, spans : int
         Per patch side (``n = spans + degree`` control points).
     bits : int or None
@@ -1950,7 +2046,8 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         except (AtlasLayoutError, SurfaceError):
             coarse = source  # every trial decimates from the full surface instead
     timings["predecimate"] = time.perf_counter() - clock
-    if patches == "auto":
+    auto = patches == "auto"
+    if auto:
         plan = []
         t = AUTO_FIRST_TRIANGLES
         while t <= min(AUTO_MAX_TRIANGLES, len(coarse.faces)):
@@ -1963,11 +2060,12 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     else:
         plan = [max(1, round(int(patches) / 3))]
         trial_points, trial_normals, trial_rounds = points, normals, rounds
-    trials: list[dict] = []
-    best = None
-    accepted: list[tuple] = []  # every trial taken as the best, the smallest first
     cache = {} if trial_cache is None else trial_cache
-    for step, target in enumerate(plan):
+
+    def run_trial(target: int, best: tuple | None) -> tuple[dict | None, tuple | None]:
+        """The trial of ``target`` triangles: its record (``None``: the decimation stopped
+        at the best's size, nothing new to judge) and ``(rms, bytes, layout, atlas, f, u,
+        v, timings, bits)`` of its lower-RMS layout (``None``: no layout decimated)."""
         if ("layouts", target) not in cache:
             cache["layouts", target] = layout_candidates(coarse, max(4, target), thin_parts,
                                                       border is not None)
@@ -1975,11 +2073,10 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         if not candidates:
             # a coarse target may not decimate to a manifold (a range scan's many borders);
             # 'auto' tries the next size, an explicit count is refused
-            if patches != "auto":
+            if not auto:
                 raise failures[0][1]
-            trials.append({"triangles": target,
-                           "error": "; ".join(str(exc) for _, exc in failures)})
-            continue
+            return {"triangles": target,
+                    "error": "; ".join(str(exc) for _, exc in failures)}, None
         # the decimation may stop short of the target: no new size to judge then
         judged = [c for c in candidates
                   if best is None or c[1].n_triangles > best[2].n_triangles]
@@ -2004,32 +2101,78 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             fitted.append((float(np.sqrt(np.mean(dist ** 2))), name, layout, atlas, f, u, v,
                            trial_timings))
         if not fitted:
-            continue
+            return None, None
         # one rule for the layout: of the plain and the thin-part-weighted decimation, the
         # one whose trial RMS is lower (the weights help a thin sheet, the bunny's ears, and
         # can starve the rest where few vertices are thin, Laurana's cut base)
         rms, name, layout, atlas, f, u, v, trial_timings = min(fitted, key=lambda c: c[0])
-        trial_bits, size = budget_bits(atlas, rms, bits,
-                                       byte_budget if patches == "auto" else None)
-        trials.append({"triangles": layout.n_triangles, "patches": len(atlas.quads),
-                       "control_points": atlas.control_point_count, "bytes": size,
-                       "bits": trial_bits,
-                       "rms": rms, "layout": name,
-                       "rms_by_layout": {c[1]: c[0] for c in fitted},
-                       "seconds_by_layout": {c[1]: sum(c[7].values()) for c in fitted},
-                       "seconds": sum(sum(c[7].values()) for c in fitted)})
-        report(0.2 + 0.7 * (step + 1) / len(plan))
-        if patches == "auto" and best is not None and size > byte_budget:
-            break
-        if best is None or rms <= AUTO_MIN_GAIN * best[0]:
-            best = (rms, size, layout, atlas, f, u, v, trial_timings, trial_bits)
-            accepted.append(best)
-        if patches == "auto" and size > byte_budget:
-            break
+        trial_bits, size = budget_bits(atlas, rms, bits, byte_budget if auto else None)
+        record = {"triangles": layout.n_triangles, "patches": len(atlas.quads),
+                  "control_points": atlas.control_point_count, "bytes": size,
+                  "bits": trial_bits, "rms": rms, "layout": name,
+                  "rms_by_layout": {c[1]: c[0] for c in fitted},
+                  "seconds_by_layout": {c[1]: sum(c[7].values()) for c in fitted},
+                  "seconds": sum(sum(c[7].values()) for c in fitted)}
+        return record, (rms, size, layout, atlas, f, u, v, trial_timings, trial_bits)
+
+    def ladder(first: int) -> tuple[list[dict], list[tuple], tuple | None]:
+        """The trials from ``plan[first]`` up, then (``'auto'``) one between the largest
+        within the budget and the first over it: ``(records, accepted, best)``."""
+        trials: list[dict] = []
+        accepted: list[tuple] = []  # every trial taken as the best, the smallest first
+        best, fitted, over, encoded = None, [], False, {}
+        for step, target in enumerate(plan[first:], first):
+            if auto and len(fitted) >= 2:
+                predicted = predicted_trial_bytes(fitted[-2], fitted[-1], target, bits,
+                                                  encoded)
+                if predicted is not None and predicted[1] > AUTO_SKIP_OVER_BUDGET * byte_budget:
+                    trials.append({"triangles": target, "skipped": "predicted over the budget",
+                                   "predicted_bits": predicted[0],
+                                   "predicted_bytes": predicted[1]})
+                    over = True
+                    break
+            record, made = run_trial(target, best)
+            report(0.2 + 0.7 * (step + 1) / len(plan))
+            if record is not None:
+                trials.append(record)
+            if made is None:
+                continue
+            fitted.append(made)
+            rms, size = made[:2]
+            if auto and best is not None and size > byte_budget:
+                over = True
+                break
+            if best is None or rms <= AUTO_MIN_GAIN * best[0]:
+                best = made
+                accepted.append(best)
+            if auto and size > byte_budget:
+                over = True
+                break
+        within = [made for made in fitted if made[1] <= byte_budget]
+        if AUTO_BETWEEN_SHARE and over and len(fitted) >= 2 and within \
+                and best is within[-1]:
+            target = between_target(fitted[-2], fitted[-1], byte_budget, bits, encoded)
+            if target is not None:
+                record, made = run_trial(target, best)
+                if record is not None:
+                    trials.append({**record, "between": True})
+                if made is not None and made[1] <= byte_budget and made[0] <= (
+                        AUTO_MIN_GAIN ** math.log2(made[2].n_triangles / best[2].n_triangles)
+                        * best[0]):
+                    best = made
+                    accepted.append(best)
+        return trials, accepted, best
+
+    first = ladder_start(plan, byte_budget) if auto else 0
+    trials, accepted, best = ladder(first)
+    if first > 0 and len(accepted) < 2:
+        # the start's own gain over the smaller layouts is judged only by the full ladder
+        # (the trials already fitted come from the cache)
+        trials, accepted, best = ladder(0)
     if best is None:
         raise AtlasLayoutError(f"no layout of {plan} triangles is an oriented 2-manifold: "
                                + "; ".join(trial["error"] for trial in trials))
-    if patches == "auto":
+    if auto:
         timings["trials"] = sum(trial.get("seconds", 0.0) for trial in trials)
         best = final_within_budget(accepted, trials, points, normals, bits=bits,
                                    byte_budget=byte_budget, degree=degree, spans=spans,
