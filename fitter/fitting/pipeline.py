@@ -54,6 +54,7 @@ from .degenerate import check_patch, check_scan_shape
 from .detail import DEGREE as DETAIL_DEGREE
 from .detail import DetailPyramid, auto_levels, fit_detail, write_layers
 from .error import (
+    RASTER_FILE,
     Deviations,
     deviations,
     error_raster,
@@ -475,13 +476,24 @@ def object_title(scan: Scan, options: FitOptions) -> str:
     return options.title or Path(scan.source.get("name", "scan")).name
 
 
+def _covered_deviations(projected: ProjectedScan, best: FitResult) -> Deviations:
+    """The deviations of the covered points (of every original point, out of core)."""
+    if best.full is not None:
+        return best.full.covered_dev()
+    covered = projected.coverage.covered
+    return Deviations(best.dev.d[covered], best.dev.u[covered], best.dev.v[covered])
+
+
 def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
                  pyramid: DetailPyramid, textures: list[TextureTile],
-                 options: FitOptions) -> tuple[dict, dict]:
-    """Write ``base.tsp``, the tiles, ``error.ply`` and ``error.png`` into ``folder``;
-    returns the manifest's ``tiles`` tree and ``files`` (name -> bytes)."""
+                 options: FitOptions) -> tuple[dict, dict, dict]:
+    """Write ``base.tsp``, the tiles, ``error_raster.bin``, ``error.ply`` and ``error.png``
+    into ``folder``; returns the manifest's ``tiles`` tree, ``files`` (name -> bytes) and
+    ``error_raster`` (``fitter.fitting.error.error_raster``)."""
     scan, units, stats = projected.scan, projected.scan.units, best.stats
     (folder / "base.tsp").write_bytes(best.data)
+    raster, raster_data = error_raster(_covered_deviations(projected, best), stats["max"])
+    (folder / RASTER_FILE).write_bytes(raster_data)
     tiles, tile_files = write_layers(folder, pyramid, textures)
     write_error_ply(folder / "error.ply", scan.points, best.dev.d)
     write_error_png(folder / "error.png", best.dev, projected.local, units,
@@ -491,12 +503,12 @@ def _write_files(folder: Path, projected: ProjectedScan, best: FitResult,
                     + "".join(f"; level {lev.level}: RMS {lev.rms:.3g}"
                               for lev in pyramid.levels[-2:]))
     files = {name: (folder / name).stat().st_size
-             for name in ("base.tsp", "error.png", "error.ply")}
-    return tiles, files | tile_files
+             for name in ("base.tsp", RASTER_FILE, "error.png", "error.ply")}
+    return tiles, files | tile_files, raster
 
 
 def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResult,
-                   tiles: dict, files: dict, timings: dict,
+                   tiles: dict, files: dict, timings: dict, raster: dict,
                    plan: MemoryPlan | None = None) -> dict:
     """The bundle's ``manifest.json`` (``docs/format.md``, "Bundle manifest").
 
@@ -515,8 +527,9 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     and ``wall_cells`` when the finest level's walls were trimmed, ``level_wall_cells``
     with them when a coarser level has walls); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
-    -> seconds); ``error_raster`` (max ``|d|`` per ``(u, v)`` cell, one byte each,
-    ``fitter.fitting.error.error_raster``, its ``max`` = ``stats.max``); ``memory``, only
+    -> seconds); ``error_raster`` (``raster``: the file of the max ``|d|`` per ``(u, v)``
+    cell, one byte each, ``fitter.fitting.error.error_raster``, its ``max`` =
+    ``stats.max``); ``memory``, only
     when the memory budget capped the automatic detail depth
     (``fitter.fitting.memory.MemoryPlan``: the budget, the estimates of the two largest
     solves, the detail levels kept and the depth they would have had); ``view`` (the
@@ -526,9 +539,6 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     scan, cov, points = projected.scan, projected.coverage, projected.scan.points
     proj = cov.projection
     uncovered = ~cov.covered
-    covered_dev = (best.full.covered_dev() if best.full is not None  # every original point
-                   else Deviations(best.dev.d[cov.covered], best.dev.u[cov.covered],
-                                   best.dev.v[cov.covered]))
     return {
         **object_fields(scan, options),
         "format": "tessera-bundle",
@@ -551,7 +561,7 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
         "fit": best.history,
         "tiles": tiles,
         "timings": dict(timings),
-        "error_raster": error_raster(covered_dev, best.stats["max"]),
+        "error_raster": raster,
         # only when the budget changed the plan, so that an unchanged fit's manifest is too
         **({"memory": plan.manifest()}
            if plan is not None and plan.detail_levels_uncapped is not None else {}),
@@ -659,16 +669,17 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
         best = _retrimmed(best, pyramid)
     stages.start("report")
     with write_bundle(out_dir) as folder:
-        tiles, files = _write_files(folder, projected, best, pyramid, textures, options)
+        tiles, files, raster = _write_files(folder, projected, best, pyramid, textures,
+                                            options)
         pieces = None
         if large is None and scan.faces is not None:  # pieces are joined by the triangles
             pieces = fit_pieces(scan, folder, build_manifest(projected, options, best, tiles,
-                                                             files, {}, plan))
+                                                             files, {}, raster, plan))
             if pieces is not None and pieces["file"] is not None:
                 files[PIECES_FILE] = (folder / PIECES_FILE).stat().st_size
         stages.stop()
         manifest = build_manifest(projected, options, best, tiles, files, stages.timings,
-                                  plan)
+                                  raster, plan)
         if pieces is not None:
             manifest["pieces"] = pieces
         if large is not None:
