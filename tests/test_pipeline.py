@@ -20,7 +20,7 @@ from fitter.fitting.error import RASTER_FILE
 from fitter.fitting.examples import relief_scan
 from fitter.fitting.io import ScanError, load_scan
 from fitter.fitting.options import FitOptions
-from fitter.fitting.pipeline import fit_scan
+from fitter.fitting.pipeline import RATIONAL_GAIN, fit_scan
 
 
 @pytest.fixture(scope="module")
@@ -294,6 +294,28 @@ def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
                          if k not in ("error.ply", RASTER_FILE)}
     assert _sha(json.dumps(manifest, sort_keys=True).encode()) == manifest_digest
     assert on_disk["files"]["error.ply"] == len(ply)
+
+
+def test_weights_that_buy_nothing_are_not_coded(tmp_path):
+    """A paraboloid (which a degree-2 B-spline draws exactly) plus noise: the refined weights
+    only chase the noise (E lower by about 0.03 %, under RATIONAL_GAIN), so the base is the
+    B-spline, coded without weights, its RMS the noise's; the relief's weights lower E by
+    about 1 % and are kept."""
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-100, 100, 3000), rng.uniform(-70, 70, 3000)
+    noise = 0.05
+    bowl = np.column_stack([x, y, 0.002 * (x**2 + y**2) + rng.normal(0, noise, 3000)])
+    options = FitOptions(grid=(8, 8), detail_levels=0)
+    flat = fit_scan(bowl, tmp_path / "bowl", options).manifest
+    energy = flat["fit"]["energy"]
+    assert energy[-1] > (1 - RATIONAL_GAIN) * energy[0]
+    assert flat["fit"]["weights_dropped"] is True and flat["base"]["rational"] is False
+    assert not read_patch((tmp_path / "bowl" / "base.tsp").read_bytes()).is_rational
+    assert 0.9 * noise < flat["stats"]["rms"] < 1.05 * noise
+    relief = fit_scan(relief_scan(3000, seed=3), tmp_path / "relief", options).manifest
+    energy = relief["fit"]["energy"]
+    assert energy[-1] <= (1 - RATIONAL_GAIN) * energy[0]
+    assert "weights_dropped" not in relief["fit"] and relief["base"]["rational"] is True
 
 
 def test_a_failed_fit_leaves_the_old_bundle_and_nothing_half_written(tmp_path, monkeypatch):
