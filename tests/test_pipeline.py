@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import base64
 import hashlib
 import json
 import re
+import zlib
 from dataclasses import asdict
 
 import numpy as np
@@ -16,10 +16,11 @@ from scipy.spatial import cKDTree
 from client_py import read_patch, tessellate_grid
 from fitter.cli import main as tessera
 from fitter.demo import write_scan_ply
+from fitter.fitting.error import RASTER_FILE
 from fitter.fitting.examples import relief_scan
 from fitter.fitting.io import ScanError, load_scan
 from fitter.fitting.options import FitOptions
-from fitter.fitting.pipeline import fit_scan
+from fitter.fitting.pipeline import RATIONAL_GAIN, fit_scan
 
 
 @pytest.fixture(scope="module")
@@ -45,9 +46,12 @@ def test_bundle_contents_and_manifest(relief_bundle):
     stats = manifest["stats"]
     assert 0 < stats["rms"] <= stats["p99"] <= stats["max"]
     assert stats["rms"] < 0.003 * stats["bbox_diagonal"]
-    # error_raster (it replaced error_grid): one byte per cell, its max the panel's max
+    # error_raster (it replaced error_grid): one byte per cell in its file (session 17: out
+    # of the manifest every visitor downloads), its max the panel's max
     raster = manifest["error_raster"]
-    assert len(base64.b64decode(raster["data"])) == raster["rows"] * raster["cols"]
+    cells = (bundle / raster["file"]).read_bytes()
+    assert manifest["files"][raster["file"]] == raster["bytes"] == len(cells)
+    assert len(zlib.decompress(cells)) == raster["rows"] * raster["cols"]
     assert raster["max"] == stats["max"]
     error_ply = trimesh.load(bundle / "error.ply", process=False)
     assert len(error_ply.vertices) == 20_000
@@ -262,7 +266,7 @@ def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
     ply = (path / "error.ply").read_bytes()
     assert _sha(ply[ply.index(b"end_header\n") + len(b"end_header\n"):]) == error_body
     files = {str(p.relative_to(path)): _sha(p.read_bytes()) for p in sorted(path.rglob("*"))
-             if p.is_file() and p.name not in ("manifest.json", "error.ply")}
+             if p.is_file() and p.name not in ("manifest.json", "error.ply", RASTER_FILE)}
     assert _sha(json.dumps(files, sort_keys=True).encode()) == other_files
     on_disk = json.loads((path / "manifest.json").read_text())
     assert on_disk == json.loads(json.dumps(bundle.manifest))
@@ -273,7 +277,8 @@ def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
     assert set(view) == {"up", "front", "up_source", "front_source"}
     assert manifest.pop("description") == ""  # added after the reference (issue 14)
     # error_raster replaced error_grid (issue 14: 5.5 KB of base64 at most instead of 13 KB
-    # of decimals), so the manifest's digest below is the one without either
+    # of decimals), so the manifest's digest below is the one without either; its codes left
+    # the manifest for the file RASTER_FILE (session 17), not in the digests either
     raster = manifest.pop("error_raster")  # checked in tests/test_metadata.py
     assert raster["max"] == manifest["stats"]["max"]
     # each level's grid (session 13: client_py.bundle.level_resolution, stated so a reader
@@ -287,9 +292,32 @@ def test_the_output_is_the_same_as_before_the_steps_were_named(tmp_path, case):
     timings = manifest.pop("timings")
     assert set(timings) <= {"load", "project", "features", "sections", "linear", "refine",
                             "encode", "error", "detail", "texture", "report"}
-    manifest["files"] = {k: v for k, v in manifest["files"].items() if k != "error.ply"}
+    manifest["files"] = {k: v for k, v in manifest["files"].items()
+                         if k not in ("error.ply", RASTER_FILE)}
     assert _sha(json.dumps(manifest, sort_keys=True).encode()) == manifest_digest
     assert on_disk["files"]["error.ply"] == len(ply)
+
+
+def test_weights_that_buy_nothing_are_not_coded(tmp_path):
+    """A paraboloid (which a degree-2 B-spline draws exactly) plus noise: the refined weights
+    only chase the noise (E lower by about 0.03 %, under RATIONAL_GAIN), so the base is the
+    B-spline, coded without weights, its RMS the noise's; the relief's weights lower E by
+    about 1 % and are kept."""
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-100, 100, 3000), rng.uniform(-70, 70, 3000)
+    noise = 0.05
+    bowl = np.column_stack([x, y, 0.002 * (x**2 + y**2) + rng.normal(0, noise, 3000)])
+    options = FitOptions(grid=(8, 8), detail_levels=0)
+    flat = fit_scan(bowl, tmp_path / "bowl", options).manifest
+    energy = flat["fit"]["energy"]
+    assert energy[-1] > (1 - RATIONAL_GAIN) * energy[0]
+    assert flat["fit"]["weights_dropped"] is True and flat["base"]["rational"] is False
+    assert not read_patch((tmp_path / "bowl" / "base.tsp").read_bytes()).is_rational
+    assert 0.9 * noise < flat["stats"]["rms"] < 1.05 * noise
+    relief = fit_scan(relief_scan(3000, seed=3), tmp_path / "relief", options).manifest
+    energy = relief["fit"]["energy"]
+    assert energy[-1] <= (1 - RATIONAL_GAIN) * energy[0]
+    assert "weights_dropped" not in relief["fit"] and relief["base"]["rational"] is True
 
 
 def test_a_failed_fit_leaves_the_old_bundle_and_nothing_half_written(tmp_path, monkeypatch):

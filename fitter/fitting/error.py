@@ -14,7 +14,7 @@ domain and over a render of the object, with a colour bar in scan units) and
 
 from __future__ import annotations
 
-import base64
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +28,8 @@ from .cores import usable_cores
 from .nurbs import PatchModel
 
 CHUNK = 1 << 16  # points per task of the foot-point search (fewer numpy calls than 2^14)
-RASTER_SIDE = (8, 64)  # least and most cells per side of the manifest's error raster
+RASTER_FILE = "error_raster.bin"  # the bundle's file of its error raster (one patch or an atlas)
+RASTER_SIDE = (8, 64)  # least and most cells per side of a single patch's error raster
 RASTER_POINTS_PER_CELL = 4  # about this many covered points per cell, within RASTER_SIDE
 RASTER_EMPTY = 255  # the raster's code of a cell without a scan point
 RASTER_CHUNK = 1 << 22  # points per chunk of the raster's cell maxima
@@ -105,27 +106,33 @@ def error_stats(d: np.ndarray, bbox_diagonal: float, units: str) -> dict:
     return stats
 
 
-def error_raster(dev: Deviations, max_deviation: float) -> dict:
-    """The manifest's ``error_raster``: the largest ``|d|`` of the covered points in each of
-    ``rows x cols`` cells of the ``(u, v)`` domain (row ``i`` = ``u`` in ``[i/rows,
-    (i+1)/rows)``, row-major), quantised to one byte of ``max_deviation``.
+def error_raster(dev: Deviations, max_deviation: float) -> tuple[dict, bytes]:
+    """The manifest's ``error_raster`` and the bundle's file :data:`RASTER_FILE`: the largest
+    ``|d|`` of the covered points in each of ``rows x cols`` cells of the ``(u, v)`` domain
+    (row ``i`` = ``u`` in ``[i/rows, (i+1)/rows)``, row-major), quantised to one byte of
+    ``max_deviation``.
 
     ``code = round(254 |d|_cell / max_deviation)`` in ``0..254``, ``255`` for a cell no
     covered point falls in (a hole of the scan, or a part of the patch the scan does not
-    cover); ``data`` is the ``rows cols`` codes in base64. ``max_deviation`` is the
-    statistics' ``max`` (``error_stats``), so the cell holding the worst point decodes to
-    exactly that value and a viewer's colour scale ends where its panel's ``max`` does.
-    ``rows = cols = clip(floor(sqrt(N / 4)), 8, 64)`` for ``N`` covered points: at most 4 KiB
-    (5.5 KB of base64, less than a 32 x 32 grid of decimal numbers) and about four points per
-    cell, so a cell's value is a measurement, not an interpolation. A viewer interpolates the
-    cell values bilinearly at its vertices (``web/src/error-map.js``).
+    cover); the file is the zlib stream (RFC 1950) of the ``rows cols`` codes, fetched by a
+    viewer only when its error map is shown (until session 17 the codes were the manifest's
+    ``data``, base64: 3.6 KB of Buddha range scan 0's 8.0 KB manifest as served, downloaded
+    before any level was drawn). ``max_deviation`` is the statistics' ``max``
+    (``error_stats``), so the cell holding the worst point decodes to exactly that value and
+    a viewer's colour scale ends where its panel's ``max`` does. ``rows = cols =
+    clip(floor(sqrt(N / 4)), 8, 64)`` for ``N`` covered points: about four points per cell, so
+    a cell's value is a measurement, not an interpolation. A viewer interpolates the cell
+    values bilinearly at its vertices (``web/src/error-map.js``). Returns the manifest entry
+    and the file's bytes.
     """
     n = len(dev.d)
     side = int(np.clip(int(np.sqrt(n / RASTER_POINTS_PER_CELL)), *RASTER_SIDE))
     codes = raster_codes(None, dev.u, dev.v, dev.d, 1, side, max_deviation)
-    return {"rows": side, "cols": side, "statistic": "max |d|", "max": float(max_deviation),
-            "encoding": "uint8 base64; code k < 255: k / 254 max; 255: no scan point",
-            "data": base64.b64encode(codes.tobytes()).decode("ascii")}
+    data = zlib.compress(codes.tobytes(), 9)
+    return ({"file": RASTER_FILE, "rows": side, "cols": side, "statistic": "max |d|",
+             "max": float(max_deviation), "bytes": len(data),
+             "encoding": "zlib of uint8 codes, rows x cols (row = u); code k < 255: "
+                         "k / 254 max; 255: no scan point"}, data)
 
 
 def raster_codes(patch: np.ndarray | None, u: np.ndarray, v: np.ndarray, d: np.ndarray,

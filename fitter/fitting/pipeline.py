@@ -13,7 +13,8 @@ shares of the time are ``fitter.fitting.stages.STAGES``, the options ``fitter.fi
 5. refine — ``paper``: Levenberg-Marquardt over ``Q`` and ``W`` on the section
    matrix (eq. 5); ``tessera``: rounds of parameter correction (foot points of
    a feature-adaptive sample of the scan itself) and linear re-fits, then the
-   weights by Levenberg-Marquardt on the same orthogonal residuals;
+   weights by Levenberg-Marquardt on the same orthogonal residuals, kept only when they
+   lower its energy by ``RATIONAL_GAIN`` (else the B-spline, coded without weights);
 6. encode — ``base.tsp`` written and read back: the error is measured on the
    quantised patch a visitor downloads;
 7. error — foot-point deviation of every scan point, statistics, ``error.png``,
@@ -54,6 +55,7 @@ from .degenerate import check_patch, check_scan_shape
 from .detail import DEGREE as DETAIL_DEGREE
 from .detail import DetailPyramid, auto_levels, fit_detail, write_layers
 from .error import (
+    RASTER_FILE,
     Deviations,
     deviations,
     error_raster,
@@ -101,6 +103,12 @@ CORRECTION_ROUNDS = 3
 # by under 0.5 % on every scan of ../shared/data and the generated relief.
 TESSERA_SMOOTHING = 1e-4
 BITS_PROBE = 10_000  # covered points whose fit RMS sets the quantisation bits
+# A tessera fit keeps its weights only when they lower the refinement's energy by at least this
+# share (``_weights_kept``): weights are a fourth coded coordinate per control point. Buddha
+# range scan 0's (in [0.9978, 1.0023]) lowered it by 0.04 % for 1.95 KB of its 9.2 KB base.tsp
+# (the RMS of all points at level 3 1.126e-4 -> 1.131e-4); the 20,000-point generated relief's
+# lower it by 14.9 %, the 6,000-point one's on a 12 x 12 grid (tests/test_pipeline.py) by 0.87 %.
+RATIONAL_GAIN = 0.005
 
 Progress = Callable[[str, float], None]
 
@@ -356,9 +364,20 @@ def _fit_one(grid: tuple[int, int], options: FitOptions, projected: ProjectedSca
         stages.report((k + 1) / (CORRECTION_ROUNDS + 1))
     if not periodic:  # weights change the seam's derivatives: periodic patches stay B-splines
         su, sv = project_points(model, pts, su, sv, periodic)
-        model, energy = refine_nurbs(model, su, sv, pts, iterations=8, smoothing=smoothing)
+        rational, energy = refine_nurbs(model, su, sv, pts, iterations=8, smoothing=smoothing)
         history["energy"] = energy
+        if _weights_kept(energy):
+            model = rational
+        else:  # the B-spline refine_nurbs started from (its energy[0]): W = 1, no weights coded
+            model = fit_points_linear(model, su, sv, pts, periodic, smoothing)
+            history["weights_dropped"] = True
     return model, history
+
+
+def _weights_kept(energy: list[float]) -> bool:
+    """Whether the refined weights lower ``E(Q, W)`` (``refine_nurbs``'s history: the
+    B-spline's first, the rational patch's last) by at least :data:`RATIONAL_GAIN`."""
+    return energy[-1] <= (1.0 - RATIONAL_GAIN) * energy[0]
 
 
 def _encode_and_measure(model: PatchModel, history: dict, grid: tuple[int, int],
@@ -504,11 +523,22 @@ def _with_pieces(folder: Path, projected: ProjectedScan, best: FitResult, pieces
                                      projected.scan.units)), covered
 
 
+def _covered_deviations(best: FitResult, covered: np.ndarray) -> Deviations:
+    """The deviations of the ``covered`` points (of every original point, out of core)."""
+    if best.full is not None:
+        return best.full.covered_dev()
+    return Deviations(best.dev.d[covered], best.dev.u[covered], best.dev.v[covered])
+
+
 def _write_reports(folder: Path, projected: ProjectedScan, best: FitResult,
-                   pyramid: DetailPyramid, options: FitOptions) -> dict:
-    """Write ``error.ply`` and ``error.png`` of ``best``'s deviations into ``folder``;
-    returns their ``files`` (name -> bytes)."""
+                   covered: np.ndarray, pyramid: DetailPyramid, options: FitOptions
+                   ) -> tuple[dict, dict]:
+    """Write ``error_raster.bin`` of the ``covered`` points' deviations, ``error.ply`` and
+    ``error.png`` of ``best``'s into ``folder``; returns their ``files`` (name -> bytes) and
+    the manifest's ``error_raster`` (``fitter.fitting.error.error_raster``)."""
     scan, units, stats = projected.scan, projected.scan.units, best.stats
+    raster, raster_data = error_raster(_covered_deviations(best, covered), stats["max"])
+    (folder / RASTER_FILE).write_bytes(raster_data)
     write_error_ply(folder / "error.ply", scan.points, best.dev.d)
     write_error_png(folder / "error.png", best.dev, projected.local, units,
                     f"{object_title(projected.scan, options)}: RMS {stats['rms']:.4g} "
@@ -516,11 +546,13 @@ def _write_reports(folder: Path, projected: ProjectedScan, best: FitResult,
                     f"max {stats['max']:.4g} {units}"
                     + "".join(f"; level {lev.level}: RMS {lev.rms:.3g}"
                               for lev in pyramid.levels[-2:]))
-    return {name: (folder / name).stat().st_size for name in ("error.png", "error.ply")}
+    files = {name: (folder / name).stat().st_size
+             for name in (RASTER_FILE, "error.png", "error.ply")}
+    return files, raster
 
 
 def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResult,
-                   tiles: dict, files: dict, timings: dict,
+                   tiles: dict, files: dict, timings: dict, raster: dict | None,
                    plan: MemoryPlan | None = None, covered: np.ndarray | None = None) -> dict:
     """The bundle's ``manifest.json`` (``docs/format.md``, "Bundle manifest").
 
@@ -535,12 +567,15 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     ``files`` for a multi-file input); ``options`` (the ``FitOptions``); ``stats``
     (deviation statistics of the covered points, ``fitter.fitting.error.error_stats``)
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
-    ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``; ``finest_trim``
+    ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``, ``weights_dropped``
+    when the weights were not kept (``_weights_kept``); ``finest_trim``
     and ``wall_cells`` when the finest level's walls were trimmed, ``level_wall_cells``
     with them when a coarser level has walls); ``tiles`` (the
     detail and texture tree, ``docs/format.md`` "Manifest tiles"); ``timings`` (stage
-    -> seconds); ``error_raster`` (max ``|d|`` per ``(u, v)`` cell, one byte each,
-    ``fitter.fitting.error.error_raster``, its ``max`` = ``stats.max``); ``memory``, only
+    -> seconds); ``error_raster`` (``raster``: the file of the max ``|d|`` per ``(u, v)``
+    cell, one byte each, ``fitter.fitting.error.error_raster``, its ``max`` =
+    ``stats.max``; ``None`` in the staged manifest the pieces are fitted against, before
+    the raster is written); ``memory``, only
     when the memory budget capped the automatic detail depth
     (``fitter.fitting.memory.MemoryPlan``: the budget, the estimates of the two largest
     solves, the detail levels kept and the depth they would have had); ``view`` (the
@@ -555,9 +590,6 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     proj = cov.projection
     covered = cov.covered if covered is None else covered
     uncovered = ~covered
-    covered_dev = (best.full.covered_dev() if best.full is not None  # every original point
-                   else Deviations(best.dev.d[covered], best.dev.u[covered],
-                                   best.dev.v[covered]))
     return {
         **object_fields(scan, options),
         "format": "tessera-bundle",
@@ -580,7 +612,7 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
         "fit": best.history,
         "tiles": tiles,
         "timings": dict(timings),
-        "error_raster": error_raster(covered_dev, best.stats["max"]),
+        "error_raster": raster,
         # only when the budget changed the plan, so that an unchanged fit's manifest is too
         **({"memory": plan.manifest()}
            if plan is not None and plan.detail_levels_uncapped is not None else {}),
@@ -692,14 +724,15 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
         pieces = None
         if large is None and scan.faces is not None:  # pieces are joined by the triangles
             pieces = fit_pieces(scan, folder, build_manifest(projected, options, best, tiles,
-                                                             files, {}, plan))
+                                                             files, {}, None, plan))
             if pieces is not None and pieces["file"] is not None:
                 files[PIECES_FILE] = (folder / PIECES_FILE).stat().st_size
         best, covered = _with_pieces(folder, projected, best, pieces)  # what is drawn
-        files |= _write_reports(folder, projected, best, pyramid, options)
+        reports, raster = _write_reports(folder, projected, best, covered, pyramid, options)
+        files |= reports
         stages.stop()
         manifest = build_manifest(projected, options, best, tiles, files, stages.timings,
-                                  plan, covered)
+                                  raster, plan, covered)
         if pieces is not None:
             manifest["pieces"] = pieces
         if large is not None:

@@ -6,7 +6,8 @@
 // writes the statistics' max there, so the legend ends at the panel's "max" (FactsPanel, the
 // same formatLength) — and the colour of no scan point (holes, uncovered parts). A base PLY
 // written while it is shown takes its colours. An atlas's map is shown by the `show` given
-// (AtlasLayer.showErrorMap: the worker colours its meshes per vertex), not by the overlay.
+// (AtlasLayer.showErrorMap: the worker colours its meshes per vertex), not by the overlay. A
+// single patch's cells in a file (ErrorMap.load) are fetched when the map is first pressed.
 
 import { cssColor, ErrorMap, HOLE_COLOR } from "./error-map.js";
 import { $, formatLength } from "./page.js";
@@ -17,9 +18,12 @@ export class ErrorMapControl {
    * @param {import("./viewer.js").Viewer} viewer
    * @param {{show?: (errorMap: ErrorMap|null) => Promise<void>}} [options]  how the map is
    *   shown (default: the viewer's overlay over the single patch's (u, v))
+   * @param {URL|string} [options.baseUrl]  the manifest's URL, against which the map's file
+   *   is fetched (default: the page's)
    */
-  constructor(manifest, viewer, { show = null } = {}) {
+  constructor(manifest, viewer, { show = null, baseUrl = null } = {}) {
     this.viewer = viewer;
+    this.baseUrl = baseUrl;
     this.show = show ?? (async (map) => viewer.setErrorOverlay(map ? map.rgba() : null));
     this.button = $("toggle-error");
     this.errorMap = null;
@@ -51,6 +55,7 @@ export class ErrorMapControl {
     this.button.disabled = true;
     document.body.dataset.errorMapBusy = "1";
     try {
+      if (on) await this.errorMap.load(this.baseUrl ?? globalThis.location?.href);
       await this.show(on ? this.errorMap : null);
       $("legend").hidden = !on;
       // the panel scrolls: below a long title and the facts the legend may start out of sight

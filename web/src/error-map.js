@@ -4,6 +4,9 @@
 // cells of the normalised domain, rows over u, row-major, each the largest |d| of the covered
 // scan points in the cell, one byte of `max` (code k < 255: k / 254 max; 255: no scan point),
 // base64. `max` is the manifest's stats.max, the panel's "max": the colour scale ends there.
+// A single patch's error_raster (bundles since session 17) names a file of its codes instead
+// of holding them (zlib of the rows x cols bytes, docs/format.md): load() fetches it the first
+// time the map is shown, so the codes are not downloaded before a level is drawn.
 // An atlas bundle's error_raster names a file instead of holding data (docs/format.md: per
 // patch rows x cols cells of its (u, v), zlib, one byte per cell as above): the worker colours
 // its meshes per vertex from it (WorkerSession.set_error_map, through the atlas's one
@@ -19,6 +22,8 @@
 // value and takes HOLE_COLOR. Interpolating never exceeds the largest cell value, so no vertex
 // is brighter than the legend's end. Colours follow viridis (perceptually uniform,
 // colour-blind safe) from 0 to max.
+
+import { fetchBytes } from "./fetch-bytes.js";
 
 const VIRIDIS = [
   [68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142], [38, 130, 142],
@@ -64,8 +69,31 @@ function decodeRaster(raster) {
     throw new Error(`manifest error_raster is malformed: ${rows}x${cols} cells but ` +
                     `${bytes.length} bytes of data`);
   }
-  const values = Float64Array.from(bytes, (code) => (code === EMPTY_CODE ? NaN : (code / 254) * max));
-  return { rows, cols, max, values, statistic: "largest distance to the scan" };
+  return { rows, cols, max, values: cellValues(bytes, max), statistic: "largest distance to the scan" };
+}
+
+/** The value of each one-byte code (NaN: no scan point). */
+function cellValues(codes, max) {
+  return Float64Array.from(codes, (code) => (code === EMPTY_CODE ? NaN : (code / 254) * max));
+}
+
+/** The shape and max of a single patch's error_raster whose codes are in a file (read by
+ *  ErrorMap.load); values null. */
+function decodeFileRaster(raster) {
+  const { rows, cols, max, file } = raster;
+  checkShape("error_raster", rows, cols);
+  if (!(Number.isFinite(max) && max >= 0) || typeof file !== "string") {
+    throw new Error(`manifest error_raster is malformed: a file of codes needs max >= 0 and ` +
+                    `a file name, got max ${max} and file ${file}`);
+  }
+  return { rows, cols, max, values: null, statistic: "largest distance to the scan",
+           cellsFile: file };
+}
+
+/** The bytes of a zlib stream (RFC 1950), by the platform's DecompressionStream. */
+async function inflate(bytes) {
+  const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("deflate"));
+  return new Uint8Array(await new Response(stream).arrayBuffer());
 }
 
 /** The shape and max of an atlas's error_raster (its cells are in its file, read by the
@@ -104,6 +132,9 @@ export class ErrorMap {
    */
   static fromManifest(manifest) {
     const raster = manifest.error_raster;
+    if (raster && raster.file !== undefined && raster.patches === undefined) {
+      return new ErrorMap(decodeFileRaster(raster), manifest.units || "");
+    }
     if (raster && raster.file !== undefined) return new ErrorMap(decodeAtlasRaster(raster), manifest.units || "");
     if (raster) return new ErrorMap(decodeRaster(raster), manifest.units || "");
     if (manifest.error_grid) return new ErrorMap(decodeGrid(manifest.error_grid), manifest.units || "");
@@ -115,15 +146,34 @@ export class ErrorMap {
    *          statistic: string}} cells  values per cell, rows over u, NaN where no point
    * @param {string} units
    */
-  constructor({ rows, cols, max, values, statistic, file = null, patches = 1 }, units = "") {
+  constructor({ rows, cols, max, values, statistic, file = null, patches = 1, cellsFile = null },
+              units = "") {
     this.rows = rows;
     this.file = file; // an atlas's: the bundle's file of the cells (values null)
+    this.cellsFile = cellsFile; // a single patch's file of its cells, read by load()
     this.patches = patches;
     this.cols = cols;
     this.values = values;
     this.max = max;
     this.statistic = statistic;
     this.units = units;
+  }
+
+  /**
+   * Read a single patch's cells from its file the first time (values are null until then);
+   * nothing to do for a raster held in the manifest, or an atlas's (its worker reads it).
+   * @param {URL|string} baseUrl  the manifest's URL: the file's name is relative to it
+   * @throws {Error} the fetch failed, or the file does not hold rows x cols codes
+   */
+  async load(baseUrl) {
+    if (this.values !== null || this.cellsFile === null) return;
+    const what = `error map ${this.cellsFile}`;
+    const codes = await inflate(await fetchBytes(new URL(this.cellsFile, baseUrl).href, what));
+    if (codes.length !== this.rows * this.cols) {
+      throw new Error(`${what} is malformed: ${this.rows}x${this.cols} cells but ` +
+                      `${codes.length} codes`);
+    }
+    this.values = cellValues(codes, this.max);
   }
 
   /** The map's value at (s, t) of the normalised domain (s along u), NaN where no scan

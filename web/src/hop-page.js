@@ -210,6 +210,7 @@ async function main() {
     if (useColors) {
       const errorMap = ErrorMap.fromManifest(manifest);
       if (!errorMap) throw new Error("this bundle has no error data to colour the mesh with");
+      await errorMap.load(new URL(config.manifest_url, window.location.href));
       colors = errorMap.vertexColors(frame.uvs, ready.patch.domain);
     }
     ply = await worker.ply(resolution, colors);

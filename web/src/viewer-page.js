@@ -347,7 +347,8 @@ async function main() {
   }
   tiles = startTiles(TileLayer, { viewer, worker, manifest, planned, base, facts, transfers });
   settleTiles();
-  const errorMap = new ErrorMapControl(manifest, viewer);
+  const errorMap = new ErrorMapControl(manifest, viewer, {
+    baseUrl: new URL(config.manifest_url, window.location.href) });
   $("fit-view").addEventListener("click", () => viewer.fitView());
   $("front-view").addEventListener("click", () => viewer.showFront());
 

@@ -3,6 +3,7 @@
 
 import assert from "node:assert/strict";
 import { test } from "node:test";
+import { deflateSync } from "node:zlib";
 
 import { ErrorMap, HOLE_COLOR, viridis } from "../src/error-map.js";
 
@@ -63,6 +64,43 @@ test("the legend ends at the panel's max, in the bundle's units", async () => {
   const image = overlays[0];
   assert.ok(image.rows >= 256 && image.cols >= 256, "finer than the cells: no blocks");
   assert.equal(image.rgba.length, 4 * image.rows * image.cols);
+});
+
+test("a single patch's codes in a file: fetched when the map is first pressed, then the same map", async () => {
+  const element = fakeDocument();
+  const { ErrorMapControl } = await import("../src/error-map-control.js");
+  const zipped = deflateSync(Uint8Array.from(CODES)); // zlib (RFC 1950), as the fitter writes
+  const fetched = [];
+  globalThis.fetch = async (url) => {
+    fetched.push(String(url));
+    return new Response(url.endsWith("error_raster.bin") ? zipped : new Uint8Array(3));
+  };
+  try {
+    const manifest = { units: "mm", stats: { max: MAX },
+                       error_raster: { file: "error_raster.bin", rows: 4, cols: 4, max: MAX,
+                                       statistic: "max |d|", bytes: zipped.length } };
+    const overlays = [];
+    const control = new ErrorMapControl(manifest, { setErrorOverlay: (image) => overlays.push(image) },
+                                        { baseUrl: "http://host/b/manifest.json" });
+    assert.equal(control.errorMap.values, null, "nothing fetched before the map is pressed");
+    assert.equal(element("legend-max").textContent, "6.68 mm");
+    await control.toggle();
+    assert.equal(element("toggle-error").title, "");
+    assert.deepEqual(fetched, ["http://host/b/error_raster.bin"]);
+    assert.equal(control.shown, true);
+    assert.equal(overlays.length, 1);
+    const inline = ErrorMap.fromManifest(MANIFEST); // the same codes held in the manifest
+    assert.deepEqual([...control.errorMap.values], [...inline.values]);
+    await control.toggle();
+    await control.toggle();
+    assert.equal(overlays.length, 3);
+    assert.equal(fetched.length, 1, "fetched once");
+    const short = new ErrorMap({ rows: 4, cols: 5, max: MAX, values: null, statistic: "",
+                                 cellsFile: "error_raster.bin" });
+    await assert.rejects(short.load("http://host/b/manifest.json"), /4x5 cells but 16 codes/);
+  } finally {
+    delete globalThis.fetch;
+  }
 });
 
 test("a malformed raster leaves the button disabled and says why", async () => {

@@ -40,7 +40,13 @@ import numpy as np
 from client_py.atlas_format import read_atlas
 
 from ..bundle import write_bundle
-from ..error import RASTER_POINTS_PER_CELL, error_stats, raster_codes, write_error_ply
+from ..error import (
+    RASTER_FILE,
+    RASTER_POINTS_PER_CELL,
+    error_stats,
+    raster_codes,
+    write_error_ply,
+)
 from ..io import Scan
 from ..options import FitOptions
 from .detail import fit_atlas_detail
@@ -80,7 +86,6 @@ STRAY_BUDGET_FACTOR = 2  # an atlas refused for strays is refitted once with thi
 HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
 RASTER_CELLS = (2, 8)  # least and most cells per patch side of the error raster
-RASTER_FILE = "error_raster.bin"  # the bundle's file of an atlas's error raster
 #: triangles of the finest drawn level from which it is measured in a worker process
 #: (:func:`measure_levels`): its BVH then builds beside the coarser levels' (the Happy
 #: Buddha's 9.4 M: 6 s of one core, under the GIL)
