@@ -8,8 +8,8 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from fitter.fitting import spd
 from fitter.fitting.atlas import detail as atlas_detail
-from fitter.fitting.atlas import fit as fit_module
 
 
 def _patch_rows(n: int, count: int, rng: np.random.Generator) -> sp.csr_matrix:
@@ -73,9 +73,9 @@ def test_spd_lu_solves_like_superlus_defaults_and_names_a_singular_matrix():
     B = sp.random(400, 400, density=0.01, random_state=rng, format="csr")
     M = (B.T @ B + 1e-2 * sp.identity(400)).tocsc()
     b = rng.normal(size=(400, 3))
-    got = fit_module.spd_lu(M).solve(b)
+    got = spd.spd_lu(M).solve(b)
     want = spla.spsolve(M, b)
     assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
     singular = sp.diags(np.r_[np.ones(399), 0.0]).tocsc()
     with pytest.raises(RuntimeError):
-        fit_module.spd_lu(singular)
+        spd.spd_lu(singular)

@@ -10,8 +10,8 @@ A fit's peak memory is set by one of two solves, each freed before the next begi
       B_base(n_u, n_v, p, m) = 12 (b + 1) n + 64 (p + 1)^2 m    bytes
 
   (the band array and LAPACK's copy of it, and the rows with their sparse copies);
-* a detail level (``fitter.fitting.detail.fit_level``): a sparse solve (SuperLU,
-  ``scipy.sparse.linalg.spsolve`` with its COLAMD ordering) over the ``n^2`` coefficients
+* a detail level (``fitter.fitting.detail.fit_level``): a sparse solve (SuperLU as a
+  Cholesky factorisation, ``fitter.fitting.spd.spd_lu``) over the ``n^2`` coefficients
   of the level's ``n x n`` grid, ``n = s 2^k + p``:
 
       B_detail(k, s) = 7168 n^2    bytes.
@@ -25,7 +25,9 @@ large scan keeps its detail levels.
 Both constants were measured (peak RSS, ``resource.getrusage``, numpy 2.4 / scipy 1.17):
 the base at grids 64..384 with 6 x 10^4 and 6 x 10^5 rows (the formula over-states by
 up to 30 %), the detail levels at ``n = 66..514`` with 4 x 10^4 and 3 x 10^5 points
-(6.2-7.0 KiB a coefficient: SuperLU's fill grows about linearly on these grids). A level
+(6.2-7.0 KiB a coefficient: SuperLU's fill grows about linearly on these grids; measured
+with partial pivoting, which the solve no longer does: the same order and fill, so an upper
+bound). A level
 of ``n = 514``
 (16 spans, level 5) needs 1.8 GB; ``--detail-levels 8 --detail-spans 64`` asks for
 ``n = 8194``, 481 GB — the solve that a memory cap turns into a segfault inside SuperLU.

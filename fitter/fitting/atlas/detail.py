@@ -213,6 +213,7 @@ from ..detail import (
 )
 from ..io.scan import Scan
 from ..io.thin import thin_to_count
+from ..spd import spd_lu
 from .fit import (
     AtlasFit,
     control_points,
@@ -221,7 +222,6 @@ from .fit import (
     index_table,
     median_edge,
     neighbour_table,
-    spd_lu,
 )
 from .lattice import lattice_descent
 from .threads import on_threads
@@ -1178,8 +1178,9 @@ def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np
     without pivoting (an SPD matrix needs none: this is a Cholesky factorisation in LU
     form). On 216 level-2 patches (250,000 unknowns) 1.0 s against 3.0 s for SuperLU's
     default column ordering (COLAMD) with partial pivoting, to 1e-12 of it; with
-    single-column supernodes (:func:`.fit.spd_lu`), on the 15-scan Happy Buddha's level-2
-    batches 0.66 s against 0.94 s with SuperLU's default supernodes, to 2e-14 of it;
+    single-column supernodes (:func:`fitter.fitting.spd.spd_lu`), on the 15-scan Happy
+    Buddha's level-2 batches 0.66 s against 0.94 s with SuperLU's default supernodes, to
+    2e-14 of it;
     ``tests/test_atlas_solve.py`` holds it to each patch's dense least squares."""
     m = len(order)
     blocks = M.shape[0] // m

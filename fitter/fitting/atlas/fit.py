@@ -144,7 +144,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.interpolate import BSpline
-from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from client_py.atlas import AtlasSurface
@@ -153,6 +152,7 @@ from client_py.atlas_format import AtlasWriter
 from ..cores import usable_cores
 from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
+from ..spd import spd_lu
 from .lattice import coupling_colours, lattice_descent
 from .layout import (
     AtlasLayoutError,
@@ -346,30 +346,6 @@ def regularisation_weights(A: sp.csr_matrix, L: sp.csr_matrix, smoothing: float,
     trace_a = float(A.multiply(A).sum())
     trace_l = float(L.multiply(L).sum())
     return smoothing * trace_a / max(trace_l, 1e-300), anchor * trace_a / A.shape[1]
-
-
-SUPERNODE_COLUMNS = 1  # SuperLU's relax and panel size in spd_lu: single-column supernodes
-
-
-def spd_lu(M: sp.spmatrix, permc_spec: str = "MMD_AT_PLUS_A"):
-    """SuperLU of a symmetric positive definite ``M`` as a Cholesky factorisation in LU
-    form: a symmetric fill-reducing order (minimum degree on ``M^T + M``, or ``"NATURAL"``
-    for a matrix already permuted) and no pivoting, which an SPD matrix does not need
-    (Golub & Van Loan, *Matrix Computations*, 4th ed., 4.2).
-
-    Supernodes are kept to single columns (``relax = panel_size =``
-    :data:`SUPERNODE_COLUMNS`): these factors have some 50 non-zeros a column, too few
-    for SuperLU's dense supernode updates to pay for their bookkeeping. Measured on the
-    15-scan Happy Buddha: a 21,412-control-point base system 0.36 s with SuperLU's
-    defaults (COLAMD, partial pivoting), 0.12 s here with default supernodes, 0.10 s
-    with single columns; a level-2 detail batch (216 patches, 250,000 unknowns, natural
-    order) 0.94 -> 0.66 s. The solutions agree to 4e-15 and 2e-14 relative.
-
-    Raises ``RuntimeError`` (SuperLU's) on an exactly singular matrix.
-    """
-    return splu(M.tocsc(), permc_spec=permc_spec, diag_pivot_thresh=0.0,
-                relax=SUPERNODE_COLUMNS, panel_size=SUPERNODE_COLUMNS,
-                options={"SymmetricMode": True})
 
 
 def solve_control_points(A: sp.csr_matrix, targets: np.ndarray, L: sp.csr_matrix,
