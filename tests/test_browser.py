@@ -81,7 +81,8 @@ def test_viewer_error_overlay_recolours_the_object(viewer):
     before = _canvas_rgb(viewer, "#view")
     viewer.click("#toggle-error")
     viewer.wait_for_function("document.getElementById('toggle-error')"
-                             ".getAttribute('aria-pressed') === 'true'")
+                             ".getAttribute('aria-pressed') === 'true'"
+                             " && !document.body.dataset.errorMapBusy")
     after = _canvas_rgb(viewer, "#view")
     viewer.click("#toggle-error")
     assert viewer.locator("#legend").is_hidden()

@@ -51,11 +51,12 @@ export class ErrorMapControl {
    *  is "1" meanwhile; a failure goes to the button's title and hides the map again). */
   async toggle() {
     const on = !this.shown && this.errorMap !== null;
-    this.button.setAttribute("aria-pressed", String(on));
     this.button.disabled = true;
     document.body.dataset.errorMapBusy = "1";
     try {
+      // pressed only once the cells are here: vertexColors (a PLY written meanwhile) reads them
       if (on) await this.errorMap.load(this.baseUrl ?? globalThis.location?.href);
+      this.button.setAttribute("aria-pressed", String(on));
       await this.show(on ? this.errorMap : null);
       $("legend").hidden = !on;
       // the panel scrolls: below a long title and the facts the legend may start out of sight

@@ -84,7 +84,11 @@ test("a single patch's codes in a file: fetched when the map is first pressed, t
                                         { baseUrl: "http://host/b/manifest.json" });
     assert.equal(control.errorMap.values, null, "nothing fetched before the map is pressed");
     assert.equal(element("legend-max").textContent, "6.68 mm");
-    await control.toggle();
+    const pressing = control.toggle();
+    // while the file is on its way the map is not shown: a PLY written now has no colours
+    assert.equal(control.shown, false);
+    assert.equal(control.vertexColors(new Float32Array([0.5, 0.5]), [0, 1, 0, 1]), null);
+    await pressing;
     assert.equal(element("toggle-error").title, "");
     assert.deepEqual(fetched, ["http://host/b/error_raster.bin"]);
     assert.equal(control.shown, true);
