@@ -8,7 +8,6 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from fitter.fitting import spd
 from fitter.fitting.atlas import detail as atlas_detail
 
 
@@ -62,20 +61,3 @@ def test_single_column_supernodes_are_superlus_default_solve():
     got = atlas_detail.solve_spd_blocks(M, b, atlas_detail.block_order(n, False))
     want = spla.spsolve(M.tocsc(), b)
     assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
-
-
-
-def test_spd_lu_solves_like_superlus_defaults_and_names_a_singular_matrix():
-    """``spd_lu`` (minimum degree, no pivoting, single-column supernodes) on a random
-    sparse SPD matrix: the solution of ``spsolve``; an exactly singular one raises, as the
-    default factorisation does (``solve_control_points`` names it ``AtlasFitError``)."""
-    rng = np.random.default_rng(5)
-    B = sp.random(400, 400, density=0.01, random_state=rng, format="csr")
-    M = (B.T @ B + 1e-2 * sp.identity(400)).tocsc()
-    b = rng.normal(size=(400, 3))
-    got = spd.spd_lu(M).solve(b)
-    want = spla.spsolve(M, b)
-    assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
-    singular = sp.diags(np.r_[np.ones(399), 0.0]).tocsc()
-    with pytest.raises(RuntimeError):
-        spd.spd_lu(singular)

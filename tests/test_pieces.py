@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import zlib
 
 import numpy as np
 import pytest
@@ -97,7 +98,11 @@ def test_the_figures_are_of_the_patch_with_its_pieces(bundles):
     assert np.isclose(every["rms"], np.sqrt(np.mean(d**2)), rtol=1e-5)
     stats, projection = manifest["stats"], manifest["projection"]
     assert projection["uncovered_points"] == n - stats["points"] < FRAGMENT  # drawn: covered
-    assert stats["max"] <= every["max"] and manifest["error_raster"]["max"] == stats["max"]
+    raster = manifest["error_raster"]
+    assert stats["max"] <= every["max"] and raster["max"] == stats["max"]
+    # the raster is of the points patch and pieces represent: the worst one's cell is its max
+    codes = np.frombuffer(zlib.decompress((bundle / raster["file"]).read_bytes()), np.uint8)
+    assert codes[codes < 255].max() == 254
     assert projection["uncovered_bbox"] is None or (
         np.asarray(projection["uncovered_bbox"])[:, 2] > -0.3).all()  # not the fragment
 

@@ -435,10 +435,10 @@ def fit_level(samples: DetailSamples, residual: np.ndarray, level: int, degree: 
 
     The normal equations are symmetric positive definite: SuperLU factors them as a
     Cholesky factorisation (:func:`fitter.fitting.spd.spd_lu`: minimum degree on
-    ``M^T + M``, no pivoting). With partial pivoting, as ``spsolve`` does, the generated
-    relief's level 3 (40,000 points, 16,900 unknowns) took 37-47 s: its pivots left the
-    diagonal where few points hold the coefficients; without, 0.5 s, the solution the same
-    to 3e-15 relative (session 18)."""
+    ``M^T + M``, no pivoting, SuperLU's own supernodes). With partial pivoting, as
+    ``spsolve`` does, the generated relief's level 3 (40,000 points, 16,900 unknowns)
+    took 37-47 s: its pivots left the diagonal where few points hold the coefficients;
+    without, 0.5 s, the solution the same to 3e-15 relative (session 18)."""
     n = (spans << level) + degree
     if A is None:
         knots = np.array(layers.level_knots(degree, spans, level))
@@ -447,7 +447,7 @@ def fit_level(samples: DetailSamples, residual: np.ndarray, level: int, degree: 
         AtA = normal_matrix(A)
     mu = AtA.diagonal().sum() / (n * n)
     M = AtA + mu * regularisation(n)
-    c = spd_lu(M).solve(A.T @ residual).reshape(n, n)
+    c = spd_lu(M, single_columns=False).solve(A.T @ residual).reshape(n, n)
     if periodic_u:
         c[n - 1] = c[0]
     return c

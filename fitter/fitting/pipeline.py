@@ -17,13 +17,14 @@ shares of the time are ``fitter.fitting.stages.STAGES``, the options ``fitter.fi
    lower its energy by ``RATIONAL_GAIN`` (else the B-spline, coded without weights);
 6. encode — ``base.tsp`` written and read back: the error is measured on the
    quantised patch a visitor downloads;
-7. error — foot-point deviation of every scan point, statistics, ``error.png``,
-   ``error.ply``;
+7. error — foot-point deviation of every scan point and its statistics;
 7b. detail, texture — the residual pyramid along the base normal and the colour
    pyramid in ``(u, v)`` (``fitter.fitting.detail``, ``fitter.fitting.texture``):
    ``detail/K/I_J.tsd``, ``texture/K/I_J.webp`` and the manifest's ``tiles`` tree;
-8. report — the tiles, ``manifest.json``; the bundle directory appears by an atomic
-   rename once complete.
+8. report — ``base.tsp`` and the tiles; ``pieces.tsa``, the scan's detached pieces the
+   patch cannot hold (``fitter.fitting.pieces``); the deviations of patch and pieces in
+   ``error_raster.bin``, ``error.png`` and ``error.ply``; ``manifest.json``. The bundle
+   directory appears by an atomic rename once complete.
 
 With ``max_error`` the control grid grows (x1.25 per side) from ``grid`` until
 the RMS deviation is at most ``max_error`` or ``FitOptions.largest_grid`` is reached.
@@ -659,7 +660,9 @@ def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | Non
              memory_budget: int = DEFAULT_MEMORY_BUDGET,
              blocks: LocalBlocks | DaskBlocks | None = None) -> Bundle:
     """Fit ``scan`` (a path, a ``Scan`` or an ``(N, 3)`` array) and write the bundle
-    ``out_dir`` (``manifest.json``, ``base.tsp``, ``error.png``, ``error.ply``, tiles),
+    ``out_dir`` (``manifest.json``, ``base.tsp``, ``error_raster.bin``, ``error.png``,
+    ``error.ply``, tiles, ``pieces.tsa`` when the scan has detached pieces; an atlas's
+    files, ``fitter.fitting.atlas.pipeline``),
     replacing a bundle there; it appears whole or not at all (``fitter.fitting.bundle``).
 
     ``limits`` bounds the read of a path (``fitter.fitting.io.limits``, default

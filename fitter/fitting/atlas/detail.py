@@ -184,7 +184,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
 from client_py import layers
@@ -1166,9 +1165,7 @@ def block_order(n: int, interior: bool) -> np.ndarray:
         inside = np.flatnonzero(~border_ring(n).reshape(-1))
         pattern = pattern[inside][:, inside]
     dominant = pattern + sp.diags(np.asarray(pattern.sum(axis=1)).ravel())  # SPD values
-    lu = spla.splu(dominant.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
-    return np.argsort(lu.perm_c)
+    return np.argsort(spd_lu(dominant).perm_c)
 
 
 def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np.ndarray:
