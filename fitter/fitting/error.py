@@ -128,11 +128,22 @@ def error_raster(dev: Deviations, max_deviation: float) -> tuple[dict, bytes]:
     n = len(dev.d)
     side = int(np.clip(int(np.sqrt(n / RASTER_POINTS_PER_CELL)), *RASTER_SIDE))
     codes = raster_codes(None, dev.u, dev.v, dev.d, 1, side, max_deviation)
+    return raster_file(codes, side, max_deviation)
+
+
+def raster_file(codes: np.ndarray, side: int, max_deviation: float,
+                patches: int | None = None) -> tuple[dict, bytes]:
+    """The manifest's ``error_raster`` and the bytes of :data:`RASTER_FILE` for the codes of
+    :func:`raster_codes`: their zlib stream (RFC 1950), and with ``patches`` (an atlas's,
+    ``fitter.fitting.atlas.pipeline.atlas_error_raster``) the patch count, the codes patch
+    after patch."""
     data = zlib.compress(codes.tobytes(), 9)
-    return ({"file": RASTER_FILE, "rows": side, "cols": side, "statistic": "max |d|",
+    order = "patch after patch, rows x cols each" if patches is not None else "rows x cols"
+    entry = {"file": RASTER_FILE, "rows": side, "cols": side, "statistic": "max |d|",
              "max": float(max_deviation), "bytes": len(data),
-             "encoding": "zlib of uint8 codes, rows x cols (row = u); code k < 255: "
-                         "k / 254 max; 255: no scan point"}, data)
+             "encoding": f"zlib of uint8 codes, {order} (row = u); code k < 255: "
+                         "k / 254 max; 255: no scan point"}
+    return (entry if patches is None else {**entry, "patches": int(patches)}), data
 
 
 def raster_codes(patch: np.ndarray | None, u: np.ndarray, v: np.ndarray, d: np.ndarray,

@@ -77,37 +77,26 @@ function cellValues(codes, max) {
   return Float64Array.from(codes, (code) => (code === EMPTY_CODE ? NaN : (code / 254) * max));
 }
 
-/** The shape and max of a single patch's error_raster whose codes are in a file (read by
- *  ErrorMap.load); values null. */
-function decodeFileRaster(raster) {
-  const { rows, cols, max, file } = raster;
+/** The shape and max of an error_raster whose codes are in the bundle's file (values null):
+ *  a single patch's, read by ErrorMap.load, or with `atlas` an atlas's, patch after patch,
+ *  read by its worker (AtlasLayer.showErrorMap). */
+function decodeFileRaster(raster, atlas) {
+  const { rows, cols, max, file, patches } = raster;
   checkShape("error_raster", rows, cols);
-  if (!(Number.isFinite(max) && max >= 0) || typeof file !== "string") {
-    throw new Error(`manifest error_raster is malformed: a file of codes needs max >= 0 and ` +
-                    `a file name, got max ${max} and file ${file}`);
+  const patchesOk = !atlas || (Number.isInteger(patches) && patches >= 1);
+  if (!(Number.isFinite(max) && max >= 0) || typeof file !== "string" || !patchesOk) {
+    throw new Error(`manifest error_raster is malformed: ${atlas ? "an atlas's" : "a single patch's"} ` +
+                    `needs max >= 0 and a file${atlas ? " and patches >= 1" : ""}, got max ${max}, ` +
+                    `file ${file}${atlas ? `, patches ${patches}` : ""}`);
   }
-  return { rows, cols, max, values: null, statistic: "largest distance to the scan",
-           cellsFile: file };
+  return { rows, cols, max, values: null, statistic: "largest distance to the scan", file,
+           patches: atlas ? patches : 1, atlas };
 }
 
 /** The bytes of a zlib stream (RFC 1950), by the platform's DecompressionStream. */
 async function inflate(bytes) {
   const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("deflate"));
   return new Uint8Array(await new Response(stream).arrayBuffer());
-}
-
-/** The shape and max of an atlas's error_raster (its cells are in its file, read by the
- *  worker); values null. */
-function decodeAtlasRaster(raster) {
-  const { rows, cols, max, file, patches } = raster;
-  checkShape("error_raster", rows, cols);
-  if (!(Number.isFinite(max) && max >= 0) || typeof file !== "string" ||
-      !Number.isInteger(patches) || patches < 1) {
-    throw new Error(`manifest error_raster is malformed: an atlas's needs max >= 0, a file ` +
-                    `and patches >= 1, got max ${max}, file ${file}, patches ${patches}`);
-  }
-  return { rows, cols, max, values: null, statistic: "largest distance to the scan", file,
-           patches };
 }
 
 /** The cell values (NaN: no point) and max of a manifest error_grid (older bundles). */
@@ -132,10 +121,10 @@ export class ErrorMap {
    */
   static fromManifest(manifest) {
     const raster = manifest.error_raster;
-    if (raster && raster.file !== undefined && raster.patches === undefined) {
-      return new ErrorMap(decodeFileRaster(raster), manifest.units || "");
+    if (raster && raster.file !== undefined) {
+      return new ErrorMap(decodeFileRaster(raster, manifest.format_version === 2),
+                          manifest.units || "");
     }
-    if (raster && raster.file !== undefined) return new ErrorMap(decodeAtlasRaster(raster), manifest.units || "");
     if (raster) return new ErrorMap(decodeRaster(raster), manifest.units || "");
     if (manifest.error_grid) return new ErrorMap(decodeGrid(manifest.error_grid), manifest.units || "");
     return null;
@@ -146,11 +135,11 @@ export class ErrorMap {
    *          statistic: string}} cells  values per cell, rows over u, NaN where no point
    * @param {string} units
    */
-  constructor({ rows, cols, max, values, statistic, file = null, patches = 1, cellsFile = null },
+  constructor({ rows, cols, max, values, statistic, file = null, patches = 1, atlas = false },
               units = "") {
     this.rows = rows;
-    this.file = file; // an atlas's: the bundle's file of the cells (values null)
-    this.cellsFile = cellsFile; // a single patch's file of its cells, read by load()
+    this.file = file; // the bundle's file of the cells (values null until read)
+    this.atlas = atlas; // an atlas's file is read by its worker, a single patch's by load()
     this.patches = patches;
     this.cols = cols;
     this.values = values;
@@ -166,9 +155,9 @@ export class ErrorMap {
    * @throws {Error} the fetch failed, or the file does not hold rows x cols codes
    */
   async load(baseUrl) {
-    if (this.values !== null || this.cellsFile === null) return;
-    const what = `error map ${this.cellsFile}`;
-    const codes = await inflate(await fetchBytes(new URL(this.cellsFile, baseUrl).href, what));
+    if (this.values !== null || this.file === null || this.atlas) return;
+    const what = `error map ${this.file}`;
+    const codes = await inflate(await fetchBytes(new URL(this.file, baseUrl).href, what));
     if (codes.length !== this.rows * this.cols) {
       throw new Error(`${what} is malformed: ${this.rows}x${this.cols} cells but ` +
                       `${codes.length} codes`);

@@ -100,7 +100,7 @@ test("a single patch's codes in a file: fetched when the map is first pressed, t
     assert.equal(overlays.length, 3);
     assert.equal(fetched.length, 1, "fetched once");
     const short = new ErrorMap({ rows: 4, cols: 5, max: MAX, values: null, statistic: "",
-                                 cellsFile: "error_raster.bin" });
+                                 file: "error_raster.bin" });
     await assert.rejects(short.load("http://host/b/manifest.json"), /4x5 cells but 16 codes/);
   } finally {
     delete globalThis.fetch;
@@ -166,7 +166,7 @@ test("older bundles' error_grid (RMS per cell, null where empty) is still read",
 test("an atlas's raster: the same legend, its file and a palette of every code for the worker", async () => {
   const element = fakeDocument();
   const { ErrorMapControl } = await import("../src/error-map-control.js");
-  const manifest = { units: "mm", stats: { max: MAX },
+  const manifest = { units: "mm", format_version: 2, stats: { max: MAX },
                      error_raster: { file: "error_raster.bin", patches: 576, rows: 8, cols: 8,
                                      max: MAX, statistic: "max |d|", bytes: 900 } };
   const shown = [];
@@ -186,6 +186,12 @@ test("an atlas's raster: the same legend, its file and a palette of every code f
   await new Promise((resolve) => setTimeout(resolve, 0));
   assert.deepEqual(shown, [shown[0], null]);
   assert.equal(element("legend").hidden, true);
-  assert.throws(() => ErrorMap.fromManifest({ error_raster: { ...manifest.error_raster, patches: 0 } }),
-                /needs max >= 0, a file and patches >= 1/);
+  assert.throws(() => ErrorMap.fromManifest({ ...manifest,
+                                              error_raster: { ...manifest.error_raster, patches: 0 } }),
+                /an atlas's needs max >= 0 and a file and patches >= 1/);
+  // an atlas's raster without its patch count is refused, not read as a single patch's
+  const { patches, ...withoutPatches } = manifest.error_raster;
+  assert.equal(patches, 576);
+  assert.throws(() => ErrorMap.fromManifest({ ...manifest, error_raster: withoutPatches }),
+                /patches undefined/);
 });

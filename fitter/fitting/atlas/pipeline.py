@@ -29,7 +29,6 @@ over its best plane, where a single patch already covers the object; an atlas fo
 from __future__ import annotations
 
 import json
-import zlib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -45,6 +44,7 @@ from ..error import (
     RASTER_POINTS_PER_CELL,
     error_stats,
     raster_codes,
+    raster_file,
     write_error_ply,
 )
 from ..io import Scan
@@ -188,13 +188,8 @@ def atlas_error_raster(patch: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.nd
     entry and the file."""
     side = int(np.clip(int(np.sqrt(len(d) / (RASTER_POINTS_PER_CELL * patches))),
                        *RASTER_CELLS))
-    codes = raster_codes(patch, u, v, d, patches, side, max_deviation)
-    data = zlib.compress(codes.tobytes(), 9)
-    return ({"file": RASTER_FILE, "patches": int(patches), "rows": side, "cols": side,
-             "statistic": "max |d|", "max": float(max_deviation),
-             "bytes": len(data),
-             "encoding": "zlib of uint8 codes, patch after patch, rows x cols each (row = "
-                         "u); code k < 255: k / 254 max; 255: no scan point"}, data)
+    return raster_file(raster_codes(patch, u, v, d, patches, side, max_deviation), side,
+                       max_deviation, patches)
 
 
 def level_resolution(atlas, detail, level: int) -> int:
