@@ -971,9 +971,10 @@ class AtlasWriter:
     def decoded(self, bits: int = 16, tangent_factor: float | None = None) -> AtlasSurface:
         """The atlas :func:`read_atlas` gives back from ``write(bits, ...,
         tangent_factor)`` (the canonical layout, every control point and weight as
-        decoded), from the writer's own codes: no range coding either way. On the 15-scan
-        Happy Buddha's 2,346-patch base (8 bits) 0.2 s where writing and reading took
-        about 1 s (``fitter``'s check that every patch keeps its normal)."""
+        decoded), from the writer's own codes (made once for it and the file): no range
+        coding either way. ``fitter``'s check that every patch keeps its normal, on the
+        15-scan Happy Buddha's 2,346-patch base at 8 bits (writer, file and check, in turns,
+        load 2.4): 0.78 s of CPU where writing the file and reading it back took 1.12 s."""
         check_bits(bits)
         quarters = check_tangent_factor(tangent_factor)
         codes, axes = self._codes(bits, quarters, tangent_factor)
