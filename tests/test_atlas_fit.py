@@ -676,6 +676,24 @@ def test_automatic_bits_never_collapse_a_small_piece():
     assert budget_bits(atlas, 1.0, 8, None)[0] == 8  # bits asked for are kept
 
 
+def test_decoded_base_is_what_a_reader_reads_from_base_file(sphere_fit, monkeypatch):
+    """``decoded_base`` (the writer's own decoded atlas, no file read back) is
+    ``read_atlas(base_file(...))``'s atlas, at the default tangential factor and in
+    version 3 (the fallback when a frame code is too long)."""
+    from client_py.atlas_format import read_atlas
+    from fitter.fitting.atlas import fit as atlas_fit
+
+    atlas = sphere_fit.atlas
+    for factor in (atlas_fit.BASE_TANGENT_FACTOR, None):
+        monkeypatch.setattr(atlas_fit, "BASE_TANGENT_FACTOR", factor)
+        for bits in (8, 11):
+            decoded = atlas_fit.decoded_base(atlas, bits)
+            back, _ = read_atlas(atlas_fit.base_file(atlas, bits))
+            assert decoded.vertices == back.vertices and decoded.quads == back.quads
+            assert decoded.edge_points == back.edge_points
+            assert decoded.face_points == back.face_points
+
+
 # ------------------------------------------------------------------ folds
 def _bezier_jacobian(net: np.ndarray, t: np.ndarray) -> np.ndarray:
     """``det [C_u C_v]`` of a planar bicubic Bézier patch (net ``(4, 4, 2)``) on the grid

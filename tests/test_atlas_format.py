@@ -636,3 +636,30 @@ def test_one_writer_at_many_bits_writes_each_file_as_a_new_one(make):
         writer.write(1)
     with pytest.raises(ValueError):
         writer.write(12, {"x": float("nan")})
+
+
+@pytest.mark.parametrize("make", [
+    lambda: random_cube_atlas(3, 2), lambda: sphere_atlas(3, 2, 3, rational=True),
+    lambda: random_atlas(2, 3, 2, rational=False),
+])
+def test_a_writer_decodes_what_a_reader_reads_from_its_file(make):
+    """``AtlasWriter.decoded`` is the atlas ``read_atlas`` gives back from ``write``, every
+    control point and weight to the bit, in version 4 (frames) and 3, before or after the
+    file is written (its codes made once); a frame code ``write`` refuses, it refuses."""
+    atlas = make()
+    for factor in (3.0, None):
+        for bits in (8, 13):
+            writer = AtlasWriter(atlas)
+            decoded = writer.decoded(bits, factor)
+            back, _ = read_atlas(writer.write(bits, None, factor))
+            assert writer.decoded(bits, factor) == decoded  # after the file: the same
+            assert decoded.quads == back.quads
+            assert _points(decoded) == _points(back) and decoded.weights == back.weights
+    # a net a thousand times its corners' box: frame codes past version 4's bits + 3
+    centre = np.array(atlas.vertices).mean(axis=0)
+    far = AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, atlas.quads,
+                       [tuple(centre + 1000 * (np.array(p) - centre)) for p in atlas.edge_points],
+                       atlas.face_points, atlas.weights)
+    for call in (AtlasWriter(far).write, AtlasWriter(far).decoded):
+        with pytest.raises(ValueError, match="frame code"):
+            call(8, None, 3.0) if call.__name__ == "write" else call(8, 3.0)

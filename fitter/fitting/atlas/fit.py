@@ -1328,12 +1328,27 @@ def base_file(atlas: AtlasSurface, bits: int, metadata: dict | None = None,
     far from its prediction that its frame code would pass the format's ``bits + 3`` bits
     (the writer's ``ValueError``: a net many times its corners' box, never seen on a fit)."""
     writer = writer or AtlasWriter(atlas)
+    return _at_base_factor(lambda factor: writer.write(bits, metadata, factor))
+
+
+def decoded_base(atlas: AtlasSurface, bits: int, writer: AtlasWriter | None = None
+                 ) -> AtlasSurface:
+    """The atlas a reader decodes from :func:`base_file` of ``atlas`` at ``bits``
+    (``AtlasWriter.decoded``: from the writer's own codes, the file neither range-coded
+    nor read)."""
+    writer = writer or AtlasWriter(atlas)
+    return _at_base_factor(lambda factor: writer.decoded(bits, factor))
+
+
+def _at_base_factor(code: Callable[[float | None], object]):
+    """``code(BASE_TANGENT_FACTOR)``, or ``code(None)`` (version 3) when that raises
+    ``ValueError`` (:func:`base_file`)."""
     try:
-        return writer.write(bits, metadata, BASE_TANGENT_FACTOR)
+        return code(BASE_TANGENT_FACTOR)
     except ValueError:
         if BASE_TANGENT_FACTOR is None:
             raise
-        return writer.write(bits, metadata)
+        return code(None)
 
 
 def atlas_bytes(atlas: AtlasSurface, bits: int | None, rms: float = 0.0) -> int:
@@ -1359,18 +1374,18 @@ def base_resolution(spans: int) -> int:
     return BASE_SAMPLES_PER_SPAN * spans + 1
 
 
-def keeps_every_normal(atlas: AtlasSurface, bits: int, data: bytes | None = None) -> bool:
+def keeps_every_normal(atlas: AtlasSurface, bits: int, writer: AtlasWriter | None = None
+                       ) -> bool:
     """Whether ``base.tsa`` at ``bits``, decoded, still has a normal at every sample the
     client draws the base at (``client_py.atlas_mesh.tessellate_atlas`` refuses a patch
     that the rounding collapsed to a line or a point: a tiny patch, such as a small piece
-    of a range scan, whose extent is a few quantisation steps). ``data``: that file when
-    already written (:func:`base_file` at ``bits``, not written again)."""
-    from client_py.atlas_format import read_atlas
+    of a range scan, whose extent is a few quantisation steps). ``writer``: ``atlas``'s
+    when already made (:func:`decoded_base`; its codes at ``bits`` not made again)."""
     from client_py.atlas_mesh import tessellate_atlas
 
-    decoded, _ = read_atlas(base_file(atlas, bits) if data is None else data)
     try:
-        tessellate_atlas(decoded, base_resolution(atlas.spans), kernel="numpy")
+        tessellate_atlas(decoded_base(atlas, bits, writer), base_resolution(atlas.spans),
+                         kernel="numpy")
     except ValueError:
         return False
     return True
@@ -1406,14 +1421,14 @@ def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: 
         return written[b]
 
     chosen = base_bits(atlas, rms)
-    while chosen < BASE_BITS[1] and not keeps_every_normal(atlas, chosen, file(chosen)):
+    while chosen < BASE_BITS[1] and not keeps_every_normal(atlas, chosen, writer):
         chosen += 1
     size = len(file(chosen))
     if byte_budget is None or size <= byte_budget:
         return chosen, size
     for fewer in range(chosen - 1, max(BASE_BITS[0], chosen - BUDGET_FEWER_BITS) - 1, -1):
         coarser = len(file(fewer))
-        if coarser <= byte_budget and keeps_every_normal(atlas, fewer, file(fewer)):
+        if coarser <= byte_budget and keeps_every_normal(atlas, fewer, writer):
             return fewer, coarser
     return chosen, size
 
@@ -1880,11 +1895,13 @@ def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budge
              else [{"rate": 0.0}, {"rate": 0.0, "tangential": False}])
     for mode in modes:
         rounded = fed_back_atlas(atlas, bits, layout, points, f, u, v, **mode, **options)
-        data = base_file(rounded, bits)
+        writer = AtlasWriter(rounded)
+        data = base_file(rounded, bits, None, writer)
         if limit is not None and len(data) > limit:
             continue
         # moved codes must not collapse a patch the client draws, as budget_bits' do not
-        return (rounded, len(data)) if keeps_every_normal(rounded, bits, data) else (atlas, size)
+        return ((rounded, len(data)) if keeps_every_normal(rounded, bits, writer)
+                else (atlas, size))
     return atlas, size
 
 
@@ -2114,6 +2131,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             if made is None:
                 continue
             fitted.append(made)
+            encoded[id(made[3]), made[8]] = made[1]  # its file's bytes, not encoded again
             rms, size = made[:2]
             if auto and best is not None and size > byte_budget:
                 over = True
