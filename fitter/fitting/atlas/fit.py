@@ -189,14 +189,6 @@ AUTO_TRIAL_POINTS = 20_000
 AUTO_START_BYTES_PER_TRIANGLE = 60
 # a doubling predicted over this many budgets is not fitted (predicted_trial_bytes)
 AUTO_SKIP_OVER_BUDGET = 1.15
-# the trial between the largest within the budget and the first over it aims at this share
-# of the budget (the final fit's lower RMS may ask for more bits), and is fitted only when it
-# has at least AUTO_BETWEEN_LEAST times the triangles (between_target). None: no such trial.
-# Off: at 0.92 (session 17, w27-ladder) it took the Bali mask from 746 to 916 triangles,
-# base RMS 2.50e-4 -> 2.22e-4 but its largest mesh->scan distance 0.89 -> 1.46 % of the
-# diagonal (level 0: 0.86 -> 1.39 %), over issue 13's 1 % (docs/benchmarks.md).
-AUTO_BETWEEN_SHARE: float | None = None
-AUTO_BETWEEN_LEAST = 1.1
 BASE_BITS = (8, 16)  # base.tsa's automatic quantisation bits (base_bits)
 BASE_STEP_OVER_RMS = 1.2  # its quantisation step over the fit's RMS (base_bits)
 # budget_bits gives up at most this many bits to meet the byte budget. 3 since .tsa v3
@@ -1486,30 +1478,6 @@ def predicted_trial_bytes(smaller: tuple, larger: tuple, triangles: int,
     return bits, round(count * each_b * (each_b / each_a) ** power)
 
 
-def between_target(smaller: tuple, larger: tuple, byte_budget: int,
-                   bits: int | None, encoded: dict | None = None) -> int | None:
-    """The layout size of ``'auto'``'s last trial, between the largest trial within
-    ``byte_budget`` and twice its triangles (the first over the budget, fitted or
-    predicted): the largest whose predicted file (:func:`predicted_trial_bytes` of the two
-    largest trials fitted) is at most :data:`AUTO_BETWEEN_SHARE` of the budget at no fewer
-    bits than that trial's (fewer bits trade the patches' RMS for the quantisation's),
-    ``None`` when that is less than :data:`AUTO_BETWEEN_LEAST` times the triangles.
-    ``encoded``: as :func:`predicted_trial_bytes`'.
-    """
-    within = smaller if larger[1] > byte_budget else larger
-    least, encoded = within[2].n_triangles, {} if encoded is None else encoded
-    for factor in np.geomspace(2.0, AUTO_BETWEEN_LEAST, 16)[1:]:
-        target = round(least * factor)
-        predicted = predicted_trial_bytes(smaller, larger, target, bits, encoded)
-        if predicted is not None and predicted[0] < within[8]:
-            predicted = predicted_trial_bytes(smaller, larger, target, within[8], encoded)
-        if predicted is None:
-            return None
-        if predicted[1] <= AUTO_BETWEEN_SHARE * byte_budget:
-            return target
-    return None
-
-
 def final_within_budget(accepted: list[tuple], trials: list[dict], points: np.ndarray,
                         normals: np.ndarray, *, bits: int | None, byte_budget: int,
                         **fit_options) -> tuple:
@@ -2109,11 +2077,14 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
         return record, (rms, size, layout, atlas, f, u, v, trial_timings, trial_bits)
 
     def ladder(first: int) -> tuple[list[dict], list[tuple], tuple | None]:
-        """The trials from ``plan[first]`` up, then (``'auto'``) one between the largest
-        within the budget and the first over it: ``(records, accepted, best)``."""
+        """The trials from ``plan[first]`` up (``'auto'``: to the first over the budget,
+        fitted or predicted): ``(records, accepted, best)``. (A further trial between the
+        largest within the budget and the first over it was measured in session 17 and
+        dropped: it took the Bali mask's largest mesh->scan distance from 0.89 to 1.46 %
+        of the diagonal, docs/benchmarks.md.)"""
         trials: list[dict] = []
         accepted: list[tuple] = []  # every trial taken as the best, the smallest first
-        best, fitted, over, encoded = None, [], False, {}
+        best, fitted, encoded = None, [], {}
         for step, target in enumerate(plan[first:], first):
             if auto and len(fitted) >= 2:
                 predicted = predicted_trial_bytes(fitted[-2], fitted[-1], target, bits,
@@ -2122,7 +2093,6 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
                     trials.append({"triangles": target, "skipped": "predicted over the budget",
                                    "predicted_bits": predicted[0],
                                    "predicted_bytes": predicted[1]})
-                    over = True
                     break
             record, made = run_trial(target, best)
             report(0.2 + 0.7 * (step + 1) / len(plan))
@@ -2134,27 +2104,12 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
             encoded[id(made[3]), made[8]] = made[1]  # its file's bytes, not encoded again
             rms, size = made[:2]
             if auto and best is not None and size > byte_budget:
-                over = True
                 break
             if best is None or rms <= AUTO_MIN_GAIN * best[0]:
                 best = made
                 accepted.append(best)
             if auto and size > byte_budget:
-                over = True
                 break
-        within = [made for made in fitted if made[1] <= byte_budget]
-        if AUTO_BETWEEN_SHARE and over and len(fitted) >= 2 and within \
-                and best is within[-1]:
-            target = between_target(fitted[-2], fitted[-1], byte_budget, bits, encoded)
-            if target is not None:
-                record, made = run_trial(target, best)
-                if record is not None:
-                    trials.append({**record, "between": True})
-                if made is not None and made[1] <= byte_budget and made[0] <= (
-                        AUTO_MIN_GAIN ** math.log2(made[2].n_triangles / best[2].n_triangles)
-                        * best[0]):
-                    best = made
-                    accepted.append(best)
         return trials, accepted, best
 
     first = ladder_start(plan, byte_budget) if auto else 0
