@@ -39,6 +39,23 @@ def laurana_bundle(shared_data: Path, tmp_path_factory: pytest.TempPathFactory):
     return fit_scan(path, tmp_path_factory.mktemp("laurana") / "laurana", FitOptions())
 
 
+@pytest.fixture
+def fit_layout_calls(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The layout triangle counts ``fitter.fitting.atlas.fit.fit_layout`` is called with,
+    in order, while the test runs (the atlas fit's trials and refits, counted)."""
+    from fitter.fitting.atlas import fit as atlas_fit
+
+    calls: list[int] = []
+    real_fit_layout = atlas_fit.fit_layout
+
+    def counted(layout, *args, **kwargs):
+        calls.append(layout.n_triangles)
+        return real_fit_layout(layout, *args, **kwargs)
+
+    monkeypatch.setattr(atlas_fit, "fit_layout", counted)
+    return calls
+
+
 # ------------------------------------------------------------- web server and browser (issue 5)
 @pytest.fixture(scope="session")
 def web_collection(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -1175,27 +1175,15 @@ def test_the_ladder_starts_at_the_largest_size_within_half_the_budget():
     assert atlas_fit.ladder_start([30], 24_000) == 0
 
 
-def _counted_fit_layout(monkeypatch) -> list[int]:
-    calls: list[int] = []
-    real_fit_layout = atlas_fit.fit_layout
-
-    def counted(layout, *args, **kwargs):
-        calls.append(layout.n_triangles)
-        return real_fit_layout(layout, *args, **kwargs)
-
-    monkeypatch.setattr(atlas_fit, "fit_layout", counted)
-    return calls
-
-
 def test_a_doubling_predicted_over_the_budget_is_not_fitted_and_the_choice_is_the_full_ladders(
-        monkeypatch):
+        monkeypatch, fit_layout_calls):
     """A sphere with a 12,000-byte budget: the ladder starts at 96 triangles, and 384 is
     predicted over 1.15 budgets (predicted_trial_bytes) and not fitted. The full ladder
     (from 48, every doubling fitted) finds that trial over the budget and chooses the same
     layout, fitted to the same control points."""
     scan = _sphere_scan(3)
     options = {"bits": None, "byte_budget": 12_000, "working_count": 2000, "rounds": 1}
-    calls = _counted_fit_layout(monkeypatch)
+    calls = fit_layout_calls
     fit = fit_atlas(scan, "auto", **options)
     (skipped,) = [t for t in fit.trials if "skipped" in t]
     assert skipped["predicted_bytes"] > atlas_fit.AUTO_SKIP_OVER_BUDGET * 12_000
@@ -1212,7 +1200,7 @@ def test_a_doubling_predicted_over_the_budget_is_not_fitted_and_the_choice_is_th
     np.testing.assert_array_equal(control_points(full.atlas), control_points(fit.atlas))
 
 
-def test_a_ladder_start_over_the_budget_climbs_the_full_ladder(monkeypatch):
+def test_a_ladder_start_over_the_budget_climbs_the_full_ladder(monkeypatch, fit_layout_calls):
     """When the start's trial is over the budget, the smaller layouts are tried from
     ``AUTO_FIRST_TRIANGLES``: the choice is the full ladder's, and the start's trial, from
     the cache, is not fitted twice."""
@@ -1221,8 +1209,9 @@ def test_a_ladder_start_over_the_budget_climbs_the_full_ladder(monkeypatch):
     full = fit_atlas(scan, "auto", **options)
     assert full.trials[0]["triangles"] == atlas_fit.AUTO_FIRST_TRIANGLES  # 9000: from 48
     monkeypatch.setattr(atlas_fit, "AUTO_START_BYTES_PER_TRIANGLE", 1)  # start at the top
-    calls = _counted_fit_layout(monkeypatch)
+    start = len(fit_layout_calls)
     fit = fit_atlas(scan, "auto", **options)
+    calls = fit_layout_calls[start:]
     assert calls[0] == max(calls) > 2 * fit.triangles  # the top was tried first, once
     assert calls.count(calls[0]) == 1
     assert [t["triangles"] for t in fit.trials] == [t["triangles"] for t in full.trials]

@@ -625,7 +625,7 @@ def test_cloud_outliers_are_not_fitted_and_are_reported_uncovered(tmp_path):
     assert coverage["within_0.5%"] > 0.98
 
 
-def test_a_refit_with_a_larger_budget_reuses_the_trials_and_fits_the_same_atlas(monkeypatch):
+def test_a_refit_with_a_larger_budget_reuses_the_trials_and_fits_the_same_atlas(fit_layout_calls):
     """``fit_checked_base``'s refit after a stray refusal passes the first fit's trials
     (``fit_atlas(trial_cache=)``): only the targets the smaller budget did not reach are
     fitted again, and the atlas is the one a fit from scratch gives."""
@@ -633,14 +633,7 @@ def test_a_refit_with_a_larger_budget_reuses_the_trials_and_fits_the_same_atlas(
 
     scan = _mesh_scan(trimesh.creation.icosphere(subdivisions=3), "sphere")
     options = {"working_count": 1000, "rounds": 1}
-    calls = []
-    real_fit_layout = fit_module.fit_layout
-
-    def counted(layout, *args, **kwargs):
-        calls.append(layout.n_triangles)
-        return real_fit_layout(layout, *args, **kwargs)
-
-    monkeypatch.setattr(fit_module, "fit_layout", counted)
+    calls = fit_layout_calls
     cache: dict = {}
     small = fit_module.fit_atlas(scan, "auto", byte_budget=6000, trial_cache=cache, **options)
     first = len(calls)

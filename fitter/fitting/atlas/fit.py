@@ -1448,7 +1448,8 @@ def predicted_trial_bytes(smaller: tuple, larger: tuple, triangles: int,
                           ) -> tuple[int, int] | None:
     """The bits and bytes :func:`budget_bits` would give a trial of ``triangles`` layout
     triangles, from two trials fitted (``(rms, bytes, layout, atlas, ...)``, the smaller
-    layout first); ``None`` when they have the same size.
+    layout first); ``None`` when they have the same size or an RMS of zero (no power law
+    through them).
 
     Each is a power of the triangle count ``T`` through the two trials: the RMS ``r(T)``
     (two rounds of a fit whose error falls as ``T^-a``), and the bytes per control point
@@ -2132,7 +2133,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     for _ in range(FAR_PASSES):
         refined = refined_within_budget(
             (atlas, layout, size), coarse, points, normals, bits=bits,
-            byte_budget=byte_budget if patches == "auto" else None, degree=degree,
+            byte_budget=byte_budget if auto else None, degree=degree,
             spans=spans, rounds=rounds, smoothing=smoothing, anchor=anchor, border=border,
             scan_mesh=scan_mesh, **warm)
         if refined is None:
@@ -2141,7 +2142,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     timings["refine_far"] = time.perf_counter() - clock
     clock = time.perf_counter()
     atlas, size = within_budget_fed_back(
-        atlas, size, chosen_bits, byte_budget if patches == "auto" else None, layout, points,
+        atlas, size, chosen_bits, byte_budget if auto else None, layout, points,
         f, u, v, smoothing=smoothing, anchor=anchor, border=border, scan_mesh=scan_mesh)
     timings["round"] = time.perf_counter() - clock
     timings.update(trial_timings)
