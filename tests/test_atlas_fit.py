@@ -864,10 +864,10 @@ def test_a_far_base_over_the_budget_is_refined_where_farthest_within_it():
     size = budget_bits(atlas, 0.0, 8, None)[1]
     full = refine_far_base(atlas, layout, surface, points, normals, **options)
     full_size = budget_bits(full[0], 0.0, 8, None)[1]
-    assert full[1].n_triangles >= layout.n_triangles + 6 and full_size > size
-    # a budget with room for about half the full refinement's triangles: the full refit is
+    assert full[1].n_triangles >= layout.n_triangles + 4 and full_size > size
+    # a budget with room for about 3/4 of the full refinement's triangles: the full refit is
     # over it, and the farthest triangles' splits that fit are fitted instead
-    budget = (size + full_size) // 2
+    budget = size + 3 * (full_size - size) // 4
     rms, kept_size, kept_layout, kept_atlas, *_ , kept_bits = refined_within_budget(
         (atlas, layout, size), surface, points, normals, bits=8, byte_budget=budget,
         **options)
@@ -992,6 +992,53 @@ def test_foot_point_corrections_on_threads_equal_one_run(sphere_fit, monkeypatch
     for a, b in zip(one, split, strict=True):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3, 5])
+def test_one_span_basis_is_scipys_bspline(degree):
+    """The Bernstein tables of one span equal scipy's ``BSpline`` of the clamped knots
+    ``0^{d+1} 1^{d+1}`` (values and every derivative, parameters clamped to [0, 1])."""
+    from scipy.interpolate import BSpline
+
+    t = np.r_[np.random.default_rng(degree).random(500), 0.0, 1.0, -0.3, 1.2]
+    knots = np.r_[np.zeros(degree + 1), np.ones(degree + 1)]
+    for derivative in range(degree + 2):
+        reference = BSpline(knots, np.eye(degree + 1), degree, extrapolate=False)(
+            np.clip(t, 0.0, 1.0), nu=derivative)
+        got = atlas_fit.basis_matrix(t, degree, 1, derivative)
+        assert got.shape == (len(t), degree + 1)
+        np.testing.assert_allclose(got, reference, rtol=0, atol=1e-12 * 10.0 ** derivative)
+
+
+def test_converged_foot_points_stop_stepping_and_land_where_every_step_would(sphere_fit,
+                                                                             monkeypatch):
+    """Points whose step fell under CONVERGED_STEP take no more steps: their foot points and
+    distances are those of all the iterations taken by every point."""
+    atlas = sphere_fit.atlas
+    rng = np.random.default_rng(8)
+    n = 5_000
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    x *= 1.0 + 0.02 * rng.normal(size=(n, 1))
+    f = rng.integers(0, len(atlas.quads), n)
+    fixed = (index_table(atlas), control_points(atlas), 3, 1, neighbour_table(atlas), x, x)
+    # from the foot points of a few steps, as each round of a fit starts from the last's
+    f, u, v, _ = atlas_fit._correct_run(*fixed, f, rng.random(n), rng.random(n), 6)
+    args = (*fixed, f, u, v, 12)
+    calls = []
+    evaluate = atlas_fit.evaluate_patches
+    monkeypatch.setattr(atlas_fit, "evaluate_patches",
+                        lambda *a, **k: calls.append(len(a[4])) or evaluate(*a, **k))
+    monkeypatch.setattr(atlas_fit, "CONVERGED_STEP", -1.0)  # every point, every step
+    every = atlas_fit._correct_run(*args)
+    assert calls[1:-1] == [n] * 12
+    calls.clear()
+    monkeypatch.setattr(atlas_fit, "CONVERGED_STEP", 1e-7)
+    stopped = atlas_fit._correct_run(*args)
+    assert sum(calls[1:-1]) < 0.6 * 12 * n  # fewer points stepped
+    np.testing.assert_array_equal(stopped[0], every[0])
+    np.testing.assert_allclose(stopped[1:3], every[1:3], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(stopped[3], every[3], rtol=0, atol=1e-9)
 
 
 # ------------------------------------------------------------------ narrow layout triangles

