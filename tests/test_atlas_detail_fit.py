@@ -378,6 +378,35 @@ def test_drawn_model_rows_are_the_weighted_collocation_rows(fitted, level):
         (0, F * n * n)
 
 
+def test_fields_at_nodes_are_evaluate_fields_and_node_frames_each_nodes_own(fitted):
+    """evaluate_at_nodes gives evaluate_fields' numbers at drawn nodes, bit for bit (a
+    level at its own resolution, at a finer one, in chunks); node_frames of a shuffled
+    subset of the nodes (border sums then evaluating the border nodes not asked for) is
+    that of every node at those nodes, bit for bit."""
+    fit, scan, det = fitted
+    atlas = det.atlas
+    spans = det.tree["spans_per_tile"]
+    F = len(atlas.quads)
+    rng = np.random.default_rng(3)
+    for level, r in ((0, 9), (0, 17), (1, 17), (2, 33)):
+        n = (spans << level) + atlas_detail.DEGREE
+        field = rng.normal(size=(F, n, n))
+        f, a, b = atlas_detail.all_nodes(F, r)
+        want = atlas_detail.evaluate_fields(field, level, spans, f, a / (r - 1), b / (r - 1))
+        got = atlas_detail.evaluate_at_nodes(field, level, spans, f, a / (r - 1), b / (r - 1),
+                                             r, chunk=1000)
+        assert got.tobytes() == want.tobytes()
+    r = 17
+    f, a, b = atlas_detail.all_nodes(F, r)
+    every = atlas_detail.node_frames(atlas, r, f, a, b)
+    some = rng.permutation(len(f))[: len(f) // 5]
+    part = atlas_detail.node_frames(atlas, r, f[some], a[some], b[some], chunk=301)
+    for whole, mine in zip(every, part, strict=True):
+        assert mine.tobytes() == whole[some].tobytes()
+    border = (a == 0) | (b == r - 1)
+    assert np.abs(np.linalg.norm(every[1][border], axis=1) - 1.0).max() < 1e-12
+
+
 def _coefficients(det, level):
     """Level ``level``'s field ``(F, n, n)`` (times its step) read back from its tiles."""
     spans = det.tree["spans_per_tile"]
