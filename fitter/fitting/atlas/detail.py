@@ -1295,13 +1295,17 @@ class _BatchSystem:
         total = float(np.sum(weights)) if weights is not None else float(len(samples.u))
         per_sample = total / max(F, 1) / (n * n)
         self.mu_floor = max(MU_FLOOR * per_sample / ((DEGREE + 1) ** 2), 1e-12)
-        # batches of BATCH_UNKNOWNS; a level within one (every level 0 of the benchmark's
-        # objects) in one batch per core this process may run on (cores.usable_cores), so
-        # that its solves run on all of them: each patch's block is solved alone, the same
-        # numbers in any batch (quantised_blocks keeps one lambda for the level)
+        # batches of at most BATCH_UNKNOWNS, as many as a multiple of the cores this process
+        # may run on (cores.usable_cores), of equal size, so that the solves keep every core
+        # busy to the end (the 15-scan Happy Buddha's level 1, 2,346 patches of 771 a batch
+        # at most: 4 of 587, not 3 of 771 and one of 33, which one core solved alone); a
+        # level within one (every level 0 of the benchmark's objects) in one batch per core.
+        # Each patch's block is solved alone, the same numbers in any batch
+        # (quantised_blocks keeps one lambda for a level within one, one per batch beyond)
         self.rate_batch = max(1, BATCH_UNKNOWNS // (n * n))
-        self.per_batch = (self.rate_batch if F > self.rate_batch
-                          else max(1, -(-F // usable_cores())))
+        cores = usable_cores()
+        rounds = -(-F // (self.rate_batch * cores))  # batches per core
+        self.per_batch = max(1, -(-F // (rounds * cores)))
 
     def normal(self, first: int) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
         """Patches ``first:first + per_batch``'s ``M``, ``A^T r`` and ``diag(A^T A)``."""
@@ -1487,9 +1491,10 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     The sweeps minimise ``J + lambda sum |q|`` (anchored at 0), ``|q|`` standing for the
     integer's bits (the packs code a zero flag and the magnitude in unary bins,
     ``client_py.atlas_detail``), ``lambda = rate step^2 m`` with ``m`` the median ``M_ii``
-    of the batch's interior (one median per batch of :data:`BATCH_UNKNOWNS`, so a level of
-    several batches has a ``lambda`` each; a level within one batch, solved in one batch
-    per core, :class:`_BatchSystem`, has the median of them all), within the patch's bound
+    of the batch's interior (one median per batch of at most :data:`BATCH_UNKNOWNS`,
+    :class:`_BatchSystem`, so a level of several such batches has a ``lambda`` each; a
+    level within one, solved in one batch per core, has the median of them all), within
+    the patch's bound
     ``|q_i| <= Q_f =
     rint(limit_f / step)`` (:func:`bounded_by_residual`, ``limit (F,)``, the bound plain
     rounding of a bounded value keeps): a coefficient the samples hardly see (small
@@ -1540,7 +1545,7 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
                                         bound, np.tile(colour, count), sweeps, shrink,
                                         0).reshape(count, n, n)
 
-    if system.per_batch < system.rate_batch:  # one lambda over the level's batches
+    if F <= system.rate_batch:  # one lambda over the level's batches
         made = on_threads(equations, F, system.per_batch, threads)
         lam = weight_of(np.concatenate([diag[inside] for _, _, diag, inside in made]))
         on_threads(lambda first: descend(first, *made[first // system.per_batch], lam), F,
