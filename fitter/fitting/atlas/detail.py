@@ -419,7 +419,7 @@ def median_spacing(scan: Scan, fit: AtlasFit) -> float:
     points = scan.points
     if len(points) > 200_000:
         points = points[np.random.default_rng(0).choice(len(points), 200_000, replace=False)]
-    d, _ = cKDTree(points).query(points, k=2)
+    d, _ = cKDTree(points).query(points, k=2, workers=-1)
     return float(np.median(d[:, 1]))
 
 
@@ -449,7 +449,7 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
     points = scan.points
     if len(points) > count:
         points = points[thin_to_count(points, count, slack=1.2)]
-    _, nearest = cKDTree(surface.vertices).query(points)
+    _, nearest = cKDTree(surface.vertices).query(points, workers=-1)
     return points, surface.vertex_normals[nearest], np.ones(len(points))
 
 
