@@ -327,7 +327,7 @@ def test_drawn_model_of_the_levels_node_frames_is_the_model_it_evaluates(fitted)
         given = atlas_detail.DrawnModel.of(atlas, samples, r, frames=frames)
         for name in ("weight", "target", "node", "node_u", "node_v", "node_patch"):
             assert getattr(plain, name).tobytes() == getattr(given, name).tobytes(), name
-        # drawn keeps its own level's collocation matrix: the plain evaluation, each time
+        # drawn evaluates each node once (evaluate_at_nodes): the plain evaluation, each time
         for k in range(level + 1):
             field = _coefficients(det, k)
             at_nodes = atlas_detail.evaluate_fields(field, k, spans, given.node_patch,

@@ -697,9 +697,6 @@ class DrawnModel:
     node_patch: np.ndarray
     node_u: np.ndarray
     node_v: np.ndarray
-    #: the collocation matrix of the level drawn at :attr:`resolution` over the nodes
-    #: (:meth:`drawn`), made at its first use
-    _own_level: sp.csr_matrix | None = field(default=None, repr=False, compare=False)
 
     @staticmethod
     def feet(atlas: AtlasSurface, samples: AtlasSamples, chunk: int = CHUNK
@@ -807,21 +804,9 @@ class DrawnModel:
 
     def drawn(self, coefficients: np.ndarray, level: int, spans: int) -> np.ndarray:
         """``sum_i w_i D(node_i)`` of level ``level``'s field ``coefficients (F, n, n)``
-        (``D`` evaluated once per node).
-
-        The level drawn at this model's resolution is evaluated three times or more (its
-        solve, the held-out check, its rounded field): its collocation matrix over the
-        nodes (:func:`evaluate_fields`' rows, the same numbers) is kept for the next."""
-        if atlas_level_resolution(spans, level) != self.resolution:
-            at_nodes = evaluate_at_nodes(coefficients, level, spans, self.node_patch,
-                                         self.node_u, self.node_v, self.resolution)
-        else:
-            F, n, _ = coefficients.shape
-            if self._own_level is None or self._own_level.shape[1] != F * n * n:
-                self._own_level = collocation_matrix(
-                    DEGREE, np.array(layers.level_knots(DEGREE, spans, level)), n,
-                    self.node_u, self.node_v, block=self.node_patch, blocks=F)
-            at_nodes = self._own_level @ coefficients.reshape(-1)
+        (``D`` evaluated once per node, :func:`evaluate_at_nodes`)."""
+        at_nodes = evaluate_at_nodes(coefficients, level, spans, self.node_patch, self.node_u,
+                                     self.node_v, self.resolution)
         return sum(self.weight[:, i] * at_nodes[self.node[:, i]] for i in range(3))
 
 
