@@ -254,6 +254,27 @@ def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
     np.testing.assert_allclose(predicted, want, atol=2e-6)
 
 
+def test_projection_keeps_the_feet_drawn_model_feet_would_evaluate(fitted):
+    """project_samples keeps each sample's base point and unit normal (AtlasSamples.foot,
+    normal): DrawnModel.feet returns them, equal bit for bit to its own evaluation of the
+    samples without them, and the model made of either is the same."""
+    fit, scan, det = fitted
+    atlas = det.atlas
+    samples = _bump_samples(fit, atlas, 11, 2500)
+    assert samples.foot.shape == samples.normal.shape == (len(samples.u), 3)
+    bare = replace(samples, foot=None, normal=None)
+    kept, made = atlas_detail.DrawnModel.feet(atlas, samples), atlas_detail.DrawnModel.feet(
+        atlas, bare, chunk=333)
+    assert kept[0] is samples.foot
+    for a, b in zip(kept, made, strict=True):
+        assert a.tobytes() == b.tobytes()
+    r = det.levels[1]["resolution"]
+    one, two = atlas_detail.DrawnModel.of(atlas, samples, r), atlas_detail.DrawnModel.of(atlas,
+                                                                                         bare, r)
+    assert one.target.tobytes() == two.target.tobytes()
+    assert one.weight.tobytes() == two.weight.tobytes()
+
+
 def test_drawn_model_evaluates_each_node_once_to_the_same_numbers(fitted):
     """DrawnModel evaluates every drawn node once and gathers it per sample: its target,
     weights and ``drawn`` are those of the per-sample reference (each sample's three nodes
