@@ -783,14 +783,14 @@ class DrawnModel:
         ``blocks``, weighted and summed).
 
         The nodes' basis products are computed once per node (:func:`node_basis`). A row's
-        three nodes are at most
-        ``g`` spans apart (``g = 1`` at two nodes per span), so its entries lie in a window
-        of ``(p + 1 + g)^2`` coefficients: each node's ``w_i N_a(u_i) N_b(v_i)`` is added
-        into it, node after node (``(w_0 x_0 + w_1 x_1) + w_2 x_2``, as the sum of the three
-        weighted collocation matrices adds them), and the window's non-zeros are the row's
-        entries, in ascending columns. On a 15-scan Happy Buddha level-0 batch (1,173
-        patches, 408,505 rows) 0.53 CPU-s instead of 1.10 for the three matrices' weighted
-        sum; the same matrix, bit for bit (``tests/test_atlas_detail_fit.py``)."""
+        three nodes are at most ``g`` spans apart (``g = 1`` at two nodes per span), so its
+        entries lie in a window of ``(p + 1 + g)^2`` coefficients: each node's
+        ``w_i N_a(u_i) N_b(v_i)`` is added into it, node after node (``(w_0 x_0 + w_1 x_1) +
+        w_2 x_2``, as the sum of the three weighted collocation matrices adds them), and the
+        window's non-zeros are the row's entries, in ascending columns. On a 15-scan Happy
+        Buddha level-0 batch (1,173 patches, 408,505 rows) 0.53 CPU-s instead of 1.10 for
+        the three matrices' weighted sum; the same matrix, bit for bit
+        (``tests/test_atlas_detail_fit.py``)."""
         r, m, p = self.resolution, hi - lo, degree
         span, products = node_basis(p, knots, n, r)
         a, b = node_index(self.u[lo:hi], r), node_index(self.v[lo:hi], r)  # (m, 3)
