@@ -5,6 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import trimesh
 
 from client_py.atlas_detail import pack_name, read_pack
@@ -253,6 +254,27 @@ def test_drawn_model_is_the_offset_from_the_clients_drawn_triangle(fitted):
     np.testing.assert_allclose(predicted, want, atol=2e-6)
 
 
+def test_projection_keeps_the_feet_drawn_model_feet_would_evaluate(fitted):
+    """project_samples keeps each sample's base point and unit normal (AtlasSamples.foot,
+    normal): DrawnModel.feet returns them, equal bit for bit to its own evaluation of the
+    samples without them, and the model made of either is the same."""
+    fit, scan, det = fitted
+    atlas = det.atlas
+    samples = _bump_samples(fit, atlas, 11, 2500)
+    assert samples.foot.shape == samples.normal.shape == (len(samples.u), 3)
+    bare = replace(samples, foot=None, normal=None)
+    kept, made = atlas_detail.DrawnModel.feet(atlas, samples), atlas_detail.DrawnModel.feet(
+        atlas, bare, chunk=333)
+    assert kept[0] is samples.foot
+    for a, b in zip(kept, made, strict=True):
+        assert a.tobytes() == b.tobytes()
+    r = det.levels[1]["resolution"]
+    one, two = atlas_detail.DrawnModel.of(atlas, samples, r), atlas_detail.DrawnModel.of(atlas,
+                                                                                         bare, r)
+    assert one.target.tobytes() == two.target.tobytes()
+    assert one.weight.tobytes() == two.weight.tobytes()
+
+
 def test_drawn_model_evaluates_each_node_once_to_the_same_numbers(fitted):
     """DrawnModel evaluates every drawn node once and gathers it per sample: its target,
     weights and ``drawn`` are those of the per-sample reference (each sample's three nodes
@@ -326,7 +348,7 @@ def test_drawn_model_of_the_levels_node_frames_is_the_model_it_evaluates(fitted)
         given = atlas_detail.DrawnModel.of(atlas, samples, r, frames=frames)
         for name in ("weight", "target", "node", "node_u", "node_v", "node_patch"):
             assert getattr(plain, name).tobytes() == getattr(given, name).tobytes(), name
-        # drawn keeps its own level's collocation matrix: the plain evaluation, each time
+        # drawn evaluates each node once (evaluate_at_nodes): the plain evaluation, each time
         for k in range(level + 1):
             field = _coefficients(det, k)
             at_nodes = atlas_detail.evaluate_fields(field, k, spans, given.node_patch,
@@ -338,6 +360,72 @@ def test_drawn_model_of_the_levels_node_frames_is_the_model_it_evaluates(fitted)
     with pytest.raises(ValueError, match="nodes a side"):
         atlas_detail.DrawnModel.of(atlas, samples, det.levels[0]["resolution"],
                                    frames=atlas_detail.level_nodes(atlas, [], 1, spans))
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_drawn_model_rows_are_the_weighted_collocation_rows(fitted, level):
+    """DrawnModel.rows (each node's basis once per parameter, the three nodes added into a
+    window) holds the entries of ``sum_i diag(w_i) A_i``, ``A_i`` the collocation matrix at
+    the samples' node ``i`` (the sum scipy forms, node after node), bit for bit; a patch
+    block's offset moves its columns; an empty range has no rows."""
+    from fitter.fitting.detail import collocation_matrix
+
+    fit, scan, det = fitted
+    atlas = det.atlas
+    samples = _bump_samples(fit, atlas, 11, 2500)
+    spans = det.tree["spans_per_tile"]
+    r = det.levels[level]["resolution"]
+    n = (spans << level) + atlas_detail.DEGREE
+    knots = np.array(atlas_detail.layers.level_knots(atlas_detail.DEGREE, spans, level))
+    model = atlas_detail.DrawnModel.of(atlas, samples, r)
+    F = len(atlas.quads)
+    lo, hi = samples.offsets[3], samples.offsets[9]
+    block = samples.patch[lo:hi] - 3
+    want = sp.csr_matrix((hi - lo, 6 * n * n))
+    for i in range(3):
+        want = want + sp.diags(model.weight[lo:hi, i]) @ collocation_matrix(
+            atlas_detail.DEGREE, knots, n, model.u[lo:hi, i], model.v[lo:hi, i], block=block,
+            blocks=6)
+    want = want.tocsr()
+    want.sort_indices()
+    got = model.rows(atlas_detail.DEGREE, knots, n, lo, hi, block, 6)
+    assert got.shape == want.shape and got.has_sorted_indices
+    for name in ("indptr", "indices", "data"):
+        assert getattr(got, name).tobytes() == getattr(want, name).tobytes(), name
+    moved = model.rows(atlas_detail.DEGREE, knots, n, lo, hi, block + 1, 7)
+    assert (moved.indices == got.indices + n * n).all() and moved.data.tobytes() == \
+        got.data.tobytes()
+    assert model.rows(atlas_detail.DEGREE, knots, n, lo, lo, block[:0], F).shape == \
+        (0, F * n * n)
+
+
+def test_fields_at_nodes_are_evaluate_fields_and_node_frames_each_nodes_own(fitted):
+    """evaluate_at_nodes gives evaluate_fields' numbers at drawn nodes, bit for bit (a
+    level at its own resolution, at a finer one, in chunks); node_frames of a shuffled
+    subset of the nodes (border sums then evaluating the border nodes not asked for) is
+    that of every node at those nodes, bit for bit."""
+    fit, scan, det = fitted
+    atlas = det.atlas
+    spans = det.tree["spans_per_tile"]
+    F = len(atlas.quads)
+    rng = np.random.default_rng(3)
+    for level, r in ((0, 9), (0, 17), (1, 17), (2, 33)):
+        n = (spans << level) + atlas_detail.DEGREE
+        field = rng.normal(size=(F, n, n))
+        f, a, b = atlas_detail.all_nodes(F, r)
+        want = atlas_detail.evaluate_fields(field, level, spans, f, a / (r - 1), b / (r - 1))
+        got = atlas_detail.evaluate_at_nodes(field, level, spans, f, a / (r - 1), b / (r - 1),
+                                             r, chunk=1000)
+        assert got.tobytes() == want.tobytes()
+    r = 17
+    f, a, b = atlas_detail.all_nodes(F, r)
+    every = atlas_detail.node_frames(atlas, r, f, a, b)
+    some = rng.permutation(len(f))[: len(f) // 5]
+    part = atlas_detail.node_frames(atlas, r, f[some], a[some], b[some], chunk=301)
+    for whole, mine in zip(every, part, strict=True):
+        assert mine.tobytes() == whole[some].tobytes()
+    border = (a == 0) | (b == r - 1)
+    assert np.abs(np.linalg.norm(every[1][border], axis=1) - 1.0).max() < 1e-12
 
 
 def _coefficients(det, level):
