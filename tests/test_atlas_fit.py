@@ -968,19 +968,24 @@ def test_a_layout_spanning_a_hole_of_the_scan_is_opened_there():
     assert far_patch_samples(r_atlas, options["scan_mesh"]).max() < far
 
 
+def _points_by_the_sphere(n: int, patches: int, seed: int) -> tuple[np.ndarray, ...]:
+    """``n`` points 2 % about the unit sphere, each with a random patch and ``(u, v)`` in
+    ``patches``: foot points to correct (``x, f, u, v``)."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    x *= 1.0 + 0.02 * rng.normal(size=(n, 1))
+    return x, rng.integers(0, patches, n), rng.random(n), rng.random(n)
+
+
 def test_foot_point_corrections_on_threads_equal_one_run(sphere_fit, monkeypatch):
     """correct_parameters split over threads gives exactly the numbers of one run."""
     from fitter.fitting.atlas import fit as atlas_fit
 
     atlas = sphere_fit.atlas
     table = index_table(atlas)
-    rng = np.random.default_rng(5)
     n = 30_000
-    x = rng.normal(size=(n, 3))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    x *= 1.0 + 0.02 * rng.normal(size=(n, 1))
-    f = rng.integers(0, len(atlas.quads), n)
-    u, v = rng.random(n), rng.random(n)
+    x, f, u, v = _points_by_the_sphere(n, len(atlas.quads), 5)
     args = (table, control_points(atlas), 3, 1, neighbour_table(atlas), x, x, f, u, v)
     monkeypatch.setattr(atlas_fit, "CORRECT_RUN_POINTS", n + 1)  # one run
     one = atlas_fit.correct_parameters(*args)
@@ -1015,15 +1020,11 @@ def test_converged_foot_points_stop_stepping_and_land_where_every_step_would(sph
     """Points whose step fell under CONVERGED_STEP take no more steps: their foot points and
     distances are those of all the iterations taken by every point."""
     atlas = sphere_fit.atlas
-    rng = np.random.default_rng(8)
     n = 5_000
-    x = rng.normal(size=(n, 3))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    x *= 1.0 + 0.02 * rng.normal(size=(n, 1))
-    f = rng.integers(0, len(atlas.quads), n)
+    x, f, u, v = _points_by_the_sphere(n, len(atlas.quads), 8)
     fixed = (index_table(atlas), control_points(atlas), 3, 1, neighbour_table(atlas), x, x)
     # from the foot points of a few steps, as each round of a fit starts from the last's
-    f, u, v, _ = atlas_fit._correct_run(*fixed, f, rng.random(n), rng.random(n), 6)
+    f, u, v, _ = atlas_fit._correct_run(*fixed, f, u, v, 6)
     args = (*fixed, f, u, v, 12)
     calls = []
     evaluate = atlas_fit.evaluate_patches
