@@ -525,6 +525,27 @@ def test_automatic_depth_stops_before_levels_that_draw_the_noise():
     assert sum(len(d) for d in auto.files.values()) < sum(len(d) for d in forced.files.values())
 
 
+def test_a_level_with_too_few_samples_per_unknown_is_not_tried(monkeypatch):
+    """A cloud's level whose coefficients are too many for its fitted samples is not
+    fitted: the pyramid stops before it and the manifest's tree names it."""
+    fit, scan = _noisy_sphere_cloud(count=20_000)
+    monkeypatch.setattr(atlas_detail, "MIN_SAMPLES_PER_UNKNOWN", 1e9)
+    none = atlas_detail.fit_atlas_detail(fit, scan, spans=4)
+    untried = none.tree["held_out"]["not_tried"]
+    F = len(none.atlas.quads)
+    assert none.levels == [] and untried["level"] == 0 and untried["unknowns"] == F * 6 * 6
+    fitted = untried["fitted_samples"]
+    assert 0.85 * 0.9 * 20_000 < fitted <= 0.9 * 20_000  # all but the held-out tenth...
+    # a threshold between level 0's samples per unknown (n = 6) and level 1's (n = 10)
+    monkeypatch.setattr(atlas_detail, "MIN_SAMPLES_PER_UNKNOWN", fitted / (F * 8 * 8))
+    one = atlas_detail.fit_atlas_detail(fit, scan, spans=4, levels=None)
+    assert len(one.levels) == 1
+    assert one.tree["held_out"]["not_tried"] == {"level": 1, "unknowns": F * 10 * 10,
+                                                 "fitted_samples": fitted}
+    assert len(one.tree["held_out"]["rms"]) == 2  # the base and level 0: level 1 not fitted
+    assert one.tree["held_out"]["rms"][1] < one.tree["held_out"]["rms"][0]
+
+
 def test_a_mesh_keeps_every_sample_and_its_automatic_depth():
     fit, scan = _bumpy_sphere_fit()
     det = atlas_detail.fit_atlas_detail(fit, scan, spans=4)

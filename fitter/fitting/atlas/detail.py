@@ -111,9 +111,12 @@ in ``HELD_OUT`` of the fitted samples is left out of every solve, and the pyrami
 before the first level that does not bring their RMS ``sqrt(mean(e^2))`` below
 ``(1 - MIN_GAIN)`` times that of the levels before it (the base, for level 0): judged
 first on the level's unrounded solve (a level refused there costs no fold rows and no
-rounding; rounding only adds to the held-out error), then on its rounded coefficients. The
+rounding; rounding only adds to the held-out error), then on its rounded coefficients. A
+level is not tried at all when its coefficients are more than ``1 / MIN_SAMPLES_PER_UNKNOWN``
+of the fitted samples: a least squares with about as many unknowns as equations draws
+the noise, whatever the held-out samples would say. The
 manifest's ``tiles.detail.held_out`` gives the RMS after each level tried (unrounded for a
-level refused before rounding). A mesh is not
+level refused before rounding) and the level ``not_tried``, if any. A mesh is not
 checked so: its triangles are the surface its makers published, its edge length the
 resolution they chose, and every vertex is a scan point that a held-out share would leave
 unfitted (the bunny's finest RMS of all points rose 7 %).
@@ -266,6 +269,11 @@ QUANTISE_RATE = 1.0  # quantised_blocks' weight of |q| (a rate proxy), in median
 HELD_OUT = 10
 MIN_HELD = 1000  # fewer held-out samples decide nothing: every auto level is kept
 MIN_GAIN = 0.02
+# ... and a level with fewer than this many fitted samples per coefficient is not tried: its
+# least squares has almost as many unknowns as equations and follows the noise. The 15-scan
+# Happy Buddha's level 0 had 3.7 (held-out RMS -27 %), its level 1 1.1 (+30 %, refused after
+# its nodes, far rows and solve: about 12 s of the fit's wall on 2 cores).
+MIN_SAMPLES_PER_UNKNOWN = 2.0
 # Far drawn nodes (module docstring, "Far nodes"): those farther than PULL_REACH of the
 # diagonal from the scan are pulled toward it, each row weighing PULL_WEIGHT times the fitted
 # samples' mean weight per node (0: off). Lucy level 0, max / RMS of all points: 0.5 % and 1:
@@ -1847,6 +1855,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     e = samples.error(np.zeros_like(samples.s))
     base_rms, base_max = float(np.sqrt(np.mean(e ** 2))), float(e.max(initial=0.0))
     held_rms = [float(np.sqrt(np.mean(e[held] ** 2)))] if held.any() else []
+    untried = None  # the level not tried for want of samples, if any
     fields: list[np.ndarray] = []
     per_level_tiles: list[dict] = []
     level_rows: list[dict] = []
@@ -1864,8 +1873,13 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     taken: list[np.ndarray] = []  # per level, the cells it leaves out (F, W_k, W_k)
     # per patch: the fitted samples' weight, shared by the r^2 nodes of each level below
     per_patch = float(np.sum(fit_weight)) / F
+    fitted_count = int(np.count_nonzero(use & ~held))
     for k in range(levels):
         n = (spans << k) + DEGREE
+        if held.any() and F * n * n * MIN_SAMPLES_PER_UNKNOWN > fitted_count:
+            levels = k  # too few samples to fit it ("Depth"): not tried
+            untried = {"level": k, "unknowns": F * n * n, "fitted_samples": fitted_count}
+            break
         G = shared_index(atlas, n)
         nodes = level_nodes(atlas, fields, k, spans) if PULL_WEIGHT > 0 or FOLD_PASSES else None
         clock = _tick(timings, "nodes", clock)
@@ -2003,7 +2017,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
             "groups": group_rows, "packs": packs}
     if held_rms:
         tree["held_out"] = {"share": _rounded(float(held.sum()) / max(int(use.sum()), 1)),
-                            "rms": [_rounded(x) for x in held_rms], "min_gain": MIN_GAIN}
+                            "rms": [_rounded(x) for x in held_rms], "min_gain": MIN_GAIN,
+                            **({"not_tried": untried} if untried else {})}
     timings["packs"] = time.perf_counter() - clock
     report(1.0)
     tiles_only = [{f: [t for t, _, _ in made] for f, made in tiles.items()}
