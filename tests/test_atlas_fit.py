@@ -47,7 +47,7 @@ from fitter.fitting.atlas.layout import (
     triangle_fidelity,
 )
 from fitter.fitting.atlas.surface import border_edges as border_edges_of
-from fitter.fitting.atlas.surface import clean_mesh, manifold_problems
+from fitter.fitting.atlas.surface import clean_mesh, manifold_problems, unique_pairs
 from fitter.fitting.io.scan import Scan, make_scan, new_source
 from tests.test_atlas import random_cube_atlas
 
@@ -73,6 +73,21 @@ def _welded_border_edges(vertices: np.ndarray, faces: np.ndarray, tolerance: flo
                     & (welded[:, 2] != welded[:, 0])]
     return manifold_problems(welded)["border_edges"]
 
+
+
+@pytest.mark.parametrize("options", [{}, {"return_counts": True}, {"return_index": True},
+                                     {"return_inverse": True, "return_counts": True}])
+def test_unique_pairs_is_numpys_unique_of_the_rows(options):
+    rng = np.random.default_rng(3)
+    for pairs in (rng.integers(0, 40, (2_000, 2)), rng.integers(0, 5, (7, 2)),
+                  np.array([[0, 0]]), np.zeros((0, 2), np.int64)):
+        ours = unique_pairs(pairs, **options)
+        numpys = np.unique(pairs, axis=0, **options)
+        ours, numpys = ((x if isinstance(x, tuple) else (x,)) for x in (ours, numpys))
+        assert len(ours) == len(numpys)
+        for a, b in zip(ours, numpys, strict=True):
+            np.testing.assert_array_equal(a.reshape(-1), b.reshape(-1))
+        assert ours[0].shape == (len(numpys[0]), 2)
 
 def test_evaluation_and_grid_agree_with_the_reference_evaluator():
     rnd = random_cube_atlas(degree=3, spans=2, seed=4)

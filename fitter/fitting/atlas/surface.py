@@ -147,13 +147,27 @@ def face_pieces(faces: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
     return int(face_labels.max() + 1) if m else 0, face_labels
 
 
+def unique_pairs(pairs: np.ndarray, **options) -> np.ndarray | tuple:
+    """``np.unique(pairs, axis=0, **options)`` of integer pairs ``(M, 2)`` with values in
+    ``0..n-1`` (edges: vertex indices): the same rows, in the same lexicographic order, and
+    the same ``return_index``/``return_inverse``/``return_counts`` arrays, from the 1-D keys
+    ``a n + b``, whose sort is several times faster than the rows' (a 205,000-face Poisson
+    surface's edges: 0.2 s instead of 1.1 s)."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    n = int(pairs.max(initial=-1)) + 1
+    found = np.unique(pairs[:, 0] * n + pairs[:, 1], **options)
+    keys, rest = (found[0], found[1:]) if isinstance(found, tuple) else (found, ())
+    rows = np.stack([keys // n, keys % n], axis=1) if n else np.zeros((0, 2), np.int64)
+    return (rows, *rest) if rest else rows
+
+
 def border_edges(faces: np.ndarray) -> np.ndarray:
     """The open border of a triangle surface: its undirected edges (``(B, 2)``, each sorted,
     in lexicographic order) that exactly one triangle uses."""
     faces = np.asarray(faces, np.int64)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
                     axis=1)
-    unique, count = np.unique(edges, axis=0, return_counts=True)
+    unique, count = unique_pairs(edges, return_counts=True)
     return unique[count == 1]
 
 
@@ -168,8 +182,8 @@ def manifold_problems(faces: np.ndarray) -> dict:
         one face.
     """
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    _, dcount = np.unique(directed, axis=0, return_counts=True)
-    undirected, ucount = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    _, dcount = unique_pairs(directed, return_counts=True)
+    undirected, ucount = unique_pairs(np.sort(directed, axis=1), return_counts=True)
     return {"nonmanifold_edges": int(np.sum(ucount > 2)),
             "misoriented_edges": int(np.sum(dcount > 1)),
             "border_edges": int(np.sum(ucount == 1)), "edges": int(len(undirected))}
@@ -188,8 +202,8 @@ def _orient_outward(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
     count, labels = face_pieces(faces, len(vertices))
     volume = _signed_volumes(vertices, faces, labels, count)
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    _, inverse, ucount = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True,
-                                   return_counts=True)
+    _, inverse, ucount = unique_pairs(np.sort(directed, axis=1), return_inverse=True,
+                                      return_counts=True)
     open_edge = ucount[inverse.reshape(-1)] == 1
     open_piece = np.zeros(count, bool)
     np.logical_or.at(open_piece, np.tile(labels, 3), open_edge)
@@ -522,7 +536,7 @@ def handle_count(vertices: np.ndarray, faces: np.ndarray) -> int:
     vertex_piece = np.full(len(vertices), -1, np.int64)
     vertex_piece[faces.reshape(-1)] = np.repeat(labels, 3)  # pieces share no vertex
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    undirected, ucount = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    undirected, ucount = unique_pairs(np.sort(directed, axis=1), return_counts=True)
     border = undirected[ucount == 1]
     loops = np.zeros(count, np.int64)
     if len(border):
