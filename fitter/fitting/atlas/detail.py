@@ -271,8 +271,8 @@ MIN_HELD = 1000  # fewer held-out samples decide nothing: every auto level is ke
 MIN_GAIN = 0.02
 # ... and a level with fewer than this many fitted samples per coefficient is not tried: its
 # least squares has almost as many unknowns as equations and follows the noise. The 15-scan
-# Happy Buddha's level 0 had 3.7 (held-out RMS -27 %), its level 1 1.1 (+30 %, refused after
-# its nodes, far rows and solve: about 12 s of the fit's wall on 2 cores).
+# Happy Buddha's level 0 had 2.9 (held-out RMS -27 %), its level 1 0.89 (+30 %, refused after
+# its nodes, far rows and solve: about 13 s of the fit's wall on 2 cores).
 MIN_SAMPLES_PER_UNKNOWN = 2.0
 # Far drawn nodes (module docstring, "Far nodes"): those farther than PULL_REACH of the
 # diagonal from the scan are pulled toward it, each row weighing PULL_WEIGHT times the fitted
