@@ -151,8 +151,8 @@ def unique_pairs(pairs: np.ndarray, **options) -> np.ndarray | tuple:
     """``np.unique(pairs, axis=0, **options)`` of integer pairs ``(M, 2)`` with values in
     ``0..n-1`` (edges: vertex indices): the same rows, in the same lexicographic order, and
     the same ``return_index``/``return_inverse``/``return_counts`` arrays, from the 1-D keys
-    ``a n + b``, whose sort is several times faster than the rows' (a 205,000-face Poisson
-    surface's edges: 0.2 s instead of 1.1 s)."""
+    ``a n + b``, whose sort is many times faster than the rows' (:func:`manifold_problems`'
+    two on the 15-scan Happy Buddha's 205,170-face Poisson surface: 0.10 s, not 2.22 s)."""
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     n = int(pairs.max(initial=-1)) + 1
     found = np.unique(pairs[:, 0] * n + pairs[:, 1], **options)
