@@ -74,7 +74,6 @@ def _welded_border_edges(vertices: np.ndarray, faces: np.ndarray, tolerance: flo
     return manifold_problems(welded)["border_edges"]
 
 
-
 @pytest.mark.parametrize("options", [{}, {"return_counts": True}, {"return_index": True},
                                      {"return_inverse": True, "return_counts": True}])
 def test_unique_pairs_is_numpys_unique_of_the_rows(options):
@@ -88,6 +87,7 @@ def test_unique_pairs_is_numpys_unique_of_the_rows(options):
         for a, b in zip(ours, numpys, strict=True):
             np.testing.assert_array_equal(a.reshape(-1), b.reshape(-1))
         assert ours[0].shape == (len(numpys[0]), 2)
+
 
 def test_evaluation_and_grid_agree_with_the_reference_evaluator():
     rnd = random_cube_atlas(degree=3, spans=2, seed=4)
