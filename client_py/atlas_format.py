@@ -393,7 +393,8 @@ def _encode_residuals(enc: RangeEncoder, residuals: Sequence[int], classes: Sequ
     n_b = RESIDUAL_BUCKETS
     bit, zero, sign, prefix, mantissa = enc.bit, model.zero, model.sign, model.prefix, \
         model.mantissa
-    for r, c, b, s in zip(residuals, classes, prior, sources, strict=True):
+    # classes and sources read by the residuals' index: they may run on past them
+    for r, c, b, s in zip(residuals, classes, prior, sources, strict=False):
         ctx = (c * n_b + b) * n_b + (own[s] if s >= 0 else 0)
         bit(zero, ctx, r != 0)
         if not r:
