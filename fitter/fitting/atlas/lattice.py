@@ -28,8 +28,8 @@ def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
     unknowns are coloured in rounds, all those whose earlier unknowns are coloured at once
     (the same colours as one at a time, in any such order): a bit mask per unknown of the
     colours taken before it, its colour the lowest bit not set. The 15-scan Happy Buddha's
-    rounding (70 k unknowns, 1.7 M couplings a pass, 25 colours, 100 rounds) took 0.16 s
-    a pass instead of 0.43 one at a time. One at a time (:func:`_colours_in_turn`) when an
+    rounding (70 k unknowns, 1.7 M couplings a pass, 25 colours, 100 rounds) took 0.17 s
+    a pass instead of 0.39 one at a time (load 3). One at a time (:func:`_colours_in_turn`) when an
     unknown has 63 or more earlier ones (its colour might pass a 64-bit mask)."""
     H = sp.csr_matrix(H)
     n = H.shape[0]
