@@ -559,7 +559,8 @@ class FrameCoder:
         depend on the points before ``start`` alone)."""
         sn, st = self.steps
         n_v = self.n_vertices
-        pred = predictions or self.predictions(axes, start >= self.n_edge)
+        pred = (self.predictions(axes, start >= self.n_edge) if predictions is None
+                else predictions)
         at = start - (n_v if start < self.n_edge else self.n_edge)
         x, y, z = axes
         for k in range(start, stop):

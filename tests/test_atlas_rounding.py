@@ -120,7 +120,8 @@ def _greedy_colours(H: sp.csr_matrix) -> np.ndarray:
     return np.array(colour)
 
 
-@pytest.mark.parametrize("case", ["symmetric", "asymmetric", "a clique of 70"])
+@pytest.mark.parametrize("case", ["symmetric", "asymmetric", "a clique of 70",
+                                  "entries stored twice"])
 def test_coupling_colours_in_rounds_are_the_greedy_ones_in_turn(case):
     """The rounds of ``coupling_colours`` give the colours of the greedy order one at a time,
     on symmetric and asymmetric patterns, and (one at a time) where colours pass what a
@@ -133,6 +134,10 @@ def test_coupling_colours_in_rounds_are_the_greedy_ones_in_turn(case):
         clique = np.zeros((400, 400))
         clique[100:170, 100:170] = 1.0
         H = (H + sp.csr_matrix(clique)).tocsr()
+    if case == "entries stored twice":  # each row's entries twice over, not summed
+        rows = [np.tile(H.indices[H.indptr[i]:H.indptr[i + 1]], 2) for i in range(400)]
+        H = sp.csr_matrix((np.ones(sum(map(len, rows))), np.concatenate(rows),
+                           np.r_[0, np.cumsum([len(r) for r in rows])]), shape=H.shape)
     expected = _greedy_colours(H)
     assert expected.max() >= (69 if case == "a clique of 70" else 3)
     assert np.array_equal(coupling_colours(H), expected)
