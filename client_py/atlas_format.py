@@ -363,6 +363,12 @@ def _bucket(r: int) -> int:
     return m if m < RESIDUAL_BUCKETS else RESIDUAL_BUCKETS - 1
 
 
+def _buckets(residuals: Sequence[int]) -> list[int]:
+    """:func:`_bucket` of every residual, in one pass."""
+    top = RESIDUAL_BUCKETS - 1
+    return [m if m < top else top for m in map(int.bit_length, map(abs, residuals))]
+
+
 def _classes(n_v: int, n_e: int, count: int, tangential: bool = False) -> list[int]:
     """Per point its class: 0 layout vertex, 1 edge point, 2 patch interior; version 4's
     tangential codes (its second and third passes) 3 and 4 for the latter two."""
@@ -378,21 +384,23 @@ def _encode_residuals(enc: RangeEncoder, residuals: Sequence[int], classes: Sequ
     axis) and ``b'`` (of this axis's residual at ``sources[k]``; 0 without ``sources`` or
     for ``-1``), a zero bit (context ``c, b, b'``); then a sign bit (``c``), then ``n =
     bitlen(|r|) - 1`` in unary (``c, b, b'``, position), then the ``n`` bits of ``|r|``
-    below its leading one, most significant first (``c``, position)."""
-    previous = 0
-    for k, r in enumerate(residuals):
-        c = classes[k]
-        b = _bucket(before[k] if before is not None else previous)
-        s = sources[k] if sources is not None else -1
-        ctx = (c * RESIDUAL_BUCKETS + b) * RESIDUAL_BUCKETS + (_bucket(residuals[s]) if s >= 0
-                                                               else 0)
-        previous = r
-        enc.bit(model.zero, ctx, r != 0)
+    below its leading one, most significant first (``c``, position). The buckets are made
+    once per run (:func:`_buckets`), each context from them."""
+    own = _buckets(residuals)
+    prior = _buckets(before) if before is not None else [0, *own][:len(own)]
+    if sources is None:
+        sources = [-1] * len(residuals)
+    n_b = RESIDUAL_BUCKETS
+    bit, zero, sign, prefix, mantissa = enc.bit, model.zero, model.sign, model.prefix, \
+        model.mantissa
+    # classes and sources read by the residuals' index: they may run on past them
+    for r, c, b, s in zip(residuals, classes, prior, sources, strict=False):
+        ctx = (c * n_b + b) * n_b + (own[s] if s >= 0 else 0)
+        bit(zero, ctx, r != 0)
         if not r:
             continue
-        enc.bit(model.sign, c, r < 0)
-        encode_exp_golomb(enc, abs(r), model.prefix, ctx * PREFIX_LIMIT,
-                          model.mantissa, c * PREFIX_LIMIT)
+        bit(sign, c, r < 0)
+        encode_exp_golomb(enc, abs(r), prefix, ctx * PREFIX_LIMIT, mantissa, c * PREFIX_LIMIT)
 
 
 def _decode_residuals(dec: RangeDecoder, classes: Sequence[int], before: Sequence[int] | None,
@@ -541,14 +549,18 @@ class FrameCoder:
 
     def place(self, axes: list[list[float]], frames: Sequence[tuple[float, ...]],
               start: int, stop: int, codes: Sequence[list[int]] | None = None,
-              targets: Sequence[Sequence[float]] | None = None) -> None:
+              targets: Sequence[Sequence[float]] | None = None,
+              predictions: Sequence[Sequence[float]] | None = None) -> None:
         """Fill ``axes[a][start:stop]`` (the edge points, or the interior points, after the
         points they are predicted from) from ``codes`` (three lists over all points), or,
         with ``targets`` (the points' coordinates, three lists), first set those codes to
-        the nearest, ``floor(d · e / s + 1/2)`` of ``d = target - C`` per frame axis."""
+        the nearest, ``floor(d · e / s + 1/2)`` of ``d = target - C`` per frame axis.
+        ``predictions``: :meth:`predictions` of these ``axes`` when already made (they
+        depend on the points before ``start`` alone)."""
         sn, st = self.steps
         n_v = self.n_vertices
-        pred = self.predictions(axes, start >= self.n_edge)
+        pred = (self.predictions(axes, start >= self.n_edge) if predictions is None
+                else predictions)
         at = start - (n_v if start < self.n_edge else self.n_edge)
         x, y, z = axes
         for k in range(start, stop):

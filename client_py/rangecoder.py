@@ -55,17 +55,19 @@ class RangeEncoder:
     def bit(self, model: list[int], context: int, bit: int) -> None:
         """Code ``bit`` (0 or 1) with the adaptive probability ``model[context]``."""
         p = model[context]
-        bound = (self.range >> PROB_BITS) * p
+        width = self.range
+        bound = (width >> PROB_BITS) * p
         if bit:
             self.low += bound
-            self.range -= bound
+            width -= bound
             model[context] = p - (p >> SHIFT)
         else:
-            self.range = bound
+            width = bound
             model[context] = p + (((1 << PROB_BITS) - p) >> SHIFT)
-        while self.range < TOP:
-            self.range <<= 8
+        while width < TOP:  # _shift_low reads low alone
+            width <<= 8
             self._shift_low()
+        self.range = width
 
     def finish(self) -> bytes:
         """Flush the interval and return every coded byte (the first is always 0 and
@@ -119,12 +121,13 @@ def encode_exp_golomb(enc: RangeEncoder, x: int, prefix: list[int], prefix_at: i
     zero (the ``t``-th with context ``prefix[prefix_at + t]``), then the ``n`` bits of
     ``x`` below its leading one, most significant first (the bit of weight ``2^t`` with
     context ``suffix[suffix_at + t]``)."""
+    bit = enc.bit
     n = x.bit_length() - 1
     for t in range(n):
-        enc.bit(prefix, prefix_at + t, 1)
-    enc.bit(prefix, prefix_at + n, 0)
+        bit(prefix, prefix_at + t, 1)
+    bit(prefix, prefix_at + n, 0)
     for t in range(n - 1, -1, -1):
-        enc.bit(suffix, suffix_at + t, (x >> t) & 1)
+        bit(suffix, suffix_at + t, (x >> t) & 1)
 
 
 def decode_exp_golomb(dec: RangeDecoder, prefix: list[int], prefix_at: int,

@@ -663,3 +663,47 @@ def test_a_writer_decodes_what_a_reader_reads_from_its_file(make):
     for call in (AtlasWriter(far).write, AtlasWriter(far).decoded):
         with pytest.raises(ValueError, match="frame code"):
             call(8, None, 3.0) if call.__name__ == "write" else call(8, 3.0)
+
+
+def _reference_residuals(enc, residuals, classes, before, model, sources):
+    """``_encode_residuals``'s rule value by value (docs/format.md, "Atlas residuals"): the
+    bucket of the same point's residual on the axis before (else of the previous residual)
+    and of the source point's residual, capped at ``RESIDUAL_BUCKETS - 1``."""
+    from client_py.atlas_format import PREFIX_LIMIT, RESIDUAL_BUCKETS
+    from client_py.rangecoder import encode_exp_golomb
+
+    def bucket(r):
+        return min(abs(r).bit_length(), RESIDUAL_BUCKETS - 1)
+
+    for k, r in enumerate(residuals):
+        c = classes[k]
+        b = bucket(before[k] if before is not None else (residuals[k - 1] if k else 0))
+        s = sources[k] if sources is not None else -1
+        ctx = (c * RESIDUAL_BUCKETS + b) * RESIDUAL_BUCKETS + (bucket(residuals[s]) if s >= 0
+                                                               else 0)
+        enc.bit(model.zero, ctx, r != 0)
+        if r:
+            enc.bit(model.sign, c, r < 0)
+            encode_exp_golomb(enc, abs(r), model.prefix, ctx * PREFIX_LIMIT, model.mantissa,
+                              c * PREFIX_LIMIT)
+
+
+@pytest.mark.parametrize("with_before", [False, True])
+@pytest.mark.parametrize("with_sources", [False, True])
+def test_residuals_are_coded_as_the_rule_reads_value_by_value(with_before, with_sources):
+    rng = np.random.default_rng(5)
+    n = 3000
+    runs = [rng.geometric(0.3, n) * rng.choice([-1, 0, 0, 1], n) for _ in range(3)]
+    classes = rng.integers(0, 5, n).tolist()
+    sources = rng.integers(-1, n, n).tolist() if with_sources else None
+    coded = []
+    for encode in (_encode_residuals, _reference_residuals):
+        enc, model, before = RangeEncoder(), _ResidualModel(5), None
+        for residuals in runs:
+            encode(enc, residuals.tolist(), classes, before, model, sources)
+            before = residuals.tolist() if with_before else None
+        coded.append(enc.finish())
+    assert coded[0] == coded[1]
+    enc = RangeEncoder()
+    _encode_residuals(enc, [], [], None, _ResidualModel(), None)  # an empty run codes nothing
+    assert enc.finish() == RangeEncoder().finish()

@@ -290,3 +290,27 @@ def test_thirty_bit_frame_codes_far_from_their_prediction_round_trip():
         [tuple(centre + 3 * (np.array(p) - centre)) for p in atlas.face_points]))
     back, _ = read_atlas(write_atlas(far, 30, tangent_factor=1.0))
     np.testing.assert_allclose(_points(back), _points(far), rtol=0, atol=1e-6)
+
+
+def test_placing_with_the_predictions_given_is_placing_without():
+    """``FrameCoder.place`` with ``predictions`` made beforehand (the fitter makes them once
+    for its three placements of a stage) fills the same points and nearest codes."""
+    from client_py.atlas_format import FrameCoder, _Predictor, frame_steps
+
+    atlas = sphere_atlas(3, 2, 3, noise=1e-3)
+    axes = [list(a) for a in zip(*_points(atlas), strict=True)]
+    n_v = len(atlas.vertices)
+    lows, highs = [min(a[:n_v]) for a in axes], [max(a[:n_v]) for a in axes]
+    predictor = _Predictor(atlas.quads, atlas.edges, atlas.side, n_v, 10)
+    coder = FrameCoder(predictor, atlas.quads, atlas.edges, frame_steps(lows, highs, 10, 2.0))
+    frames = coder.frames(list(zip(*[a[:n_v] for a in axes], strict=True)))
+    count, n_e = len(axes[0]), coder.n_edge
+    for start, stop in ((n_v, n_e), (n_e, count)):
+        placed = []
+        for made in (False, True):
+            out, codes = [list(a) for a in axes], [[0] * count for _ in range(3)]
+            predictions = coder.predictions(out, start >= n_e) if made else None
+            coder.place(out, frames, start, stop, codes, axes, predictions)
+            placed.append((out, codes))
+        assert placed[0] == placed[1]
+        assert any(c != 0 for c in placed[0][1][1][start:stop])

@@ -23,6 +23,7 @@ from client_py.atlas_mesh import (
     PatchGrids,
     atlas_parts,
     atlas_ply,
+    patches_without_normal,
     tessellate_atlas,
     tessellate_atlas_parts,
 )
@@ -633,3 +634,37 @@ def test_a_part_whose_every_cell_is_left_out_is_an_empty_mesh(kernel):
     alone = tessellate_atlas_parts(atlas_parts(atlas, [rest]), resolution, detail,
                                    kernel=kernel)[0]
     assert other.triangle_count == alone.triangle_count > 0
+
+
+def _refused(atlas, resolution, kernel) -> bool:
+    try:
+        tessellate_atlas(atlas, resolution, kernel=kernel)
+    except ValueError:
+        return True
+    return False
+
+
+@pytest.mark.parametrize("kernel", ["python", "numpy"])
+def test_patches_without_normal_are_what_the_tessellation_refuses(kernel):
+    """Bases that draw (a random cube, a sphere; a pole of the sphere has its normal as a
+    limit) give no patch, and a base whose rounding collapsed patches (a tetrahedron 2e-4
+    the size of another, written at 8 bits) gives those patches, where the tessellation
+    raises (on patches of the small one alone)."""
+    from client_py.atlas_format import AtlasWriter
+    from fitter.fitting.atlas.layout import bilinear_atlas, quad_layout
+
+    tetra = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float64)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    both = bilinear_atlas(quad_layout(np.concatenate([tetra, 0.5 + 2e-4 * tetra]),
+                                      np.concatenate([faces, faces + 4])), spans=1)
+    collapsed = AtlasWriter(both).decoded(8, 3.0)
+    for atlas, resolution in ((random_cube_atlas(3, 2), 9), (sphere_atlas(3, 2, 3), 5),
+                              (random_cube_atlas(2, 1), [3, 5, 9, 3, 5, 2]),
+                              (AtlasWriter(both).decoded(12, 3.0), 9)):
+        assert patches_without_normal(atlas, resolution, kernel) == []
+        assert not _refused(atlas, resolution, kernel)
+    refused = patches_without_normal(collapsed, 9, kernel)
+    assert refused and _refused(collapsed, 9, kernel)
+    small = [f for f, quad in enumerate(collapsed.quads)
+             if all(abs(c - 0.5) < 0.01 for k in quad for c in collapsed.vertices[k])]
+    assert set(refused) <= set(small) and len(small) == 12  # the small one's 4 x 3 quads

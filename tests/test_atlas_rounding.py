@@ -109,6 +109,40 @@ def test_coupling_colours_never_give_two_coupled_unknowns_one_colour():
     assert colour.max() <= degree.max()
 
 
+def _greedy_colours(H: sp.csr_matrix) -> np.ndarray:
+    """Welsh and Powell one unknown at a time: in order of decreasing row length (ties by
+    index), the smallest colour that no unknown of its row has yet."""
+    H = sp.csr_matrix(H)
+    colour = [-1] * H.shape[0]
+    for i in sorted(range(H.shape[0]), key=lambda i: (-(H.indptr[i + 1] - H.indptr[i]), i)):
+        used = {colour[j] for j in H.indices[H.indptr[i]:H.indptr[i + 1]]}
+        colour[i] = min(c for c in range(len(used) + 1) if c not in used)
+    return np.array(colour)
+
+
+@pytest.mark.parametrize("case", ["symmetric", "asymmetric", "a clique of 70",
+                                  "entries stored twice"])
+def test_coupling_colours_in_rounds_are_the_greedy_ones_in_turn(case):
+    """The rounds of ``coupling_colours`` give the colours of the greedy order one at a time,
+    on symmetric and asymmetric patterns, and (one at a time) where colours pass what a
+    64-bit mask holds (70 unknowns all coupled: colours 0..69)."""
+    rng = np.random.RandomState(3)
+    B = sp.random(400, 400, density=0.015, random_state=rng)
+    H = (B @ B.T + sp.identity(400)).tocsr() if case == "symmetric" else \
+        (B + sp.identity(400)).tocsr()
+    if case == "a clique of 70":
+        clique = np.zeros((400, 400))
+        clique[100:170, 100:170] = 1.0
+        H = (H + sp.csr_matrix(clique)).tocsr()
+    if case == "entries stored twice":  # each row's entries twice over, not summed
+        rows = [np.tile(H.indices[H.indptr[i]:H.indptr[i + 1]], 2) for i in range(400)]
+        H = sp.csr_matrix((np.ones(sum(map(len, rows))), np.concatenate(rows),
+                           np.r_[0, np.cumsum([len(r) for r in rows])]), shape=H.shape)
+    expected = _greedy_colours(H)
+    assert expected.max() >= (69 if case == "a clique of 70" else 3)
+    assert np.array_equal(coupling_colours(H), expected)
+
+
 @pytest.mark.parametrize("anchored", [False, True])
 def test_lattice_descent_leaves_no_better_single_move(anchored):
     """``atlas.lattice.lattice_descent`` on a small dense quadratic, against its objective

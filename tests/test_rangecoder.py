@@ -34,3 +34,59 @@ def test_exp_golomb_prefix_limit():
     encode_exp_golomb(enc, 1 << 20, [HALF] * 40, 0, [HALF] * 40, 0)
     dec = RangeDecoder(enc.finish())
     assert decode_exp_golomb(dec, [HALF] * 40, 0, [HALF] * 40, 0, 20) is None
+
+
+class _ReferenceEncoder:
+    """The LZMA SDK's range encoder (``lzma-specification``: ``RangeEnc_EncodeBit``,
+    ``RangeEnc_ShiftLow``) written out plainly, with this coder's shift of 4."""
+
+    def __init__(self):
+        self.low, self.range, self.cache, self.cache_size = 0, 0xFFFFFFFF, 0, 1
+        self.out = bytearray()
+
+    def shift_low(self):
+        if self.low < 0xFF000000 or self.low >= 1 << 32:
+            temp = self.cache
+            while True:
+                self.out.append((temp + (self.low >> 32)) & 0xFF)
+                temp = 0xFF
+                self.cache_size -= 1
+                if self.cache_size == 0:
+                    break
+            self.cache = (self.low >> 24) & 0xFF
+        self.cache_size += 1
+        self.low = (self.low & 0x00FFFFFF) << 8
+
+    def encode(self, probs, i, bit):
+        bound = (self.range >> 11) * probs[i]
+        if bit == 0:
+            self.range = bound
+            probs[i] += (2048 - probs[i]) >> 4
+        else:
+            self.low += bound
+            self.range -= bound
+            probs[i] -= probs[i] >> 4
+        while self.range < 1 << 24:
+            self.range <<= 8
+            self.shift_low()
+
+    def finish(self):
+        for _ in range(5):
+            self.shift_low()
+        return bytes(self.out[1:])
+
+
+def test_the_encoder_writes_the_reference_coders_bytes():
+    """Skewed and even bits in a few contexts, long runs of one bit (carries through runs
+    of 0xFF bytes): byte for byte the plain reference's output."""
+    rnd = random.Random(7)
+    bits = ([rnd.random() < 0.03 for _ in range(20000)] + [1] * 3000
+            + [rnd.random() < 0.5 for _ in range(20000)] + [0] * 3000)
+    contexts = [rnd.randrange(3) for _ in bits]
+    enc, ref = RangeEncoder(), _ReferenceEncoder()
+    mine, theirs = [HALF] * 3, [HALF] * 3
+    for bit, c in zip(bits, contexts, strict=True):
+        enc.bit(mine, c, int(bit))
+        ref.encode(theirs, c, int(bit))
+    assert enc.finish() == ref.finish()
+    assert mine == theirs

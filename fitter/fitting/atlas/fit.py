@@ -1425,15 +1425,13 @@ def keeps_every_normal(atlas: AtlasSurface, bits: int, writer: AtlasWriter | Non
     client draws the base at (``client_py.atlas_mesh.tessellate_atlas`` refuses a patch
     that the rounding collapsed to a line or a point: a tiny patch, such as a small piece
     of a range scan, whose extent is a few quantisation steps). ``writer``: ``atlas``'s
-    when already made (:func:`decoded_base`; its codes at ``bits`` not made again)."""
-    from client_py.atlas_mesh import tessellate_atlas
+    when already made (:func:`decoded_base`; its codes at ``bits`` not made again). The
+    tessellation's own evaluation and rule without its mesh
+    (``client_py.atlas_mesh.patches_without_normal``)."""
+    from client_py.atlas_mesh import patches_without_normal
 
-    try:
-        tessellate_atlas(decoded_base(atlas, bits, writer), base_resolution(atlas.spans),
-                         kernel="numpy")
-    except ValueError:
-        return False
-    return True
+    return not patches_without_normal(decoded_base(atlas, bits, writer),
+                                      base_resolution(atlas.spans), kernel="numpy")
 
 
 def budget_bits(atlas: AtlasSurface, rms: float, bits: int | None, byte_budget: int | None
@@ -1872,15 +1870,17 @@ def frame_fed_back(atlas: AtlasSurface, bits: int, factor: float, H: sp.csr_matr
         frame_rows = coder.frames(p[:n_v].tolist())
         frames = np.array(frame_rows).reshape(-1, 3, 3)  # frames[k, j]: axis j (n, t1, t2)
         for start, stop in ((n_v, n_e), (n_e, len(x))):
-            pred = np.array(coder.predictions(axes, start >= n_e)).T
+            predicted = coder.predictions(axes, start >= n_e)  # from the points before start
+            pred = np.array(predicted).T
             frame = frames[start - n_v:stop - n_v].transpose(0, 2, 1) * scale
             nearest = [list(c) for c in q.T.tolist()]  # as the writer rounds: its own rule
-            coder.place([list(a) for a in axes], frame_rows, start, stop, nearest, fitted)
+            coder.place([list(a) for a in axes], frame_rows, start, stop, nearest, fitted,
+                        predicted)
             near = np.array(nearest, np.int64).T[start:stop]
             keep = held[start:stop, None] | np.array([False, not tangential, not tangential])
             q[start:stop] = _block_codes(H, rhs, p, np.arange(start, stop), pred, frame,
                                          near, keep, sweeps, rate)
-            coder.place(axes, frame_rows, start, stop, q.T.tolist())
+            coder.place(axes, frame_rows, start, stop, q.T.tolist(), None, predicted)
             p[start:stop] = np.array(axes).T[start:stop]
         pleats = np.flatnonzero(pleated_patches(table, p, atlas.degree, atlas.spans)
                                 & ~before)

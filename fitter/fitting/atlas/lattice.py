@@ -20,17 +20,60 @@ def coupling_colours(H: sp.csr_matrix) -> np.ndarray:
     """A colouring of the unknowns of ``H (N, N)``: no two of one colour share a non-zero
     ``H_ij`` (``i != j``), so coordinate descent on one colour at once is exactly one at a
     time. Greedy, in order of decreasing degree (Welsh and Powell, The Computer Journal
-    1967): at most ``1 +`` the largest degree colours. Returns ``colour (N,)`` of int."""
+    1967): each unknown in turn takes the smallest colour none of the unknowns of its row
+    before it in that order took; at most ``1 +`` the largest degree colours. Returns
+    ``colour (N,)`` of int.
+
+    An unknown's colour depends on those of its row's earlier unknowns alone, so the
+    unknowns are coloured in rounds, all those whose earlier unknowns are coloured at once
+    (the same colours as one at a time, in any such order): a bit mask per unknown of the
+    colours taken before it, its colour the lowest bit not set. The 15-scan Happy Buddha's
+    rounding (70 k unknowns, 1.7 M couplings a pass, 25 colours, 100 rounds) took 0.17 s
+    a pass instead of 0.39 one at a time (load 3). One at a time (:func:`_colours_in_turn`)
+    when an unknown has 63 or more earlier ones (its colour might pass a 64-bit mask)."""
     H = sp.csr_matrix(H)
-    indptr, indices = H.indptr, H.indices
-    colour = np.full(H.shape[0], -1, np.int64)
-    for i in np.argsort(-np.diff(indptr), kind="stable"):
-        used = set(colour[indices[indptr[i]:indptr[i + 1]]].tolist())
+    n = H.shape[0]
+    degree = np.diff(H.indptr)
+    order = np.argsort(-degree, kind="stable")
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    rows = np.repeat(np.arange(n), degree)
+    earlier = rank[H.indices] < rank[rows]
+    first, then = H.indices[earlier], rows[earlier]  # first is coloured before then
+    # one arc per pair (an entry stored twice is summed), out of first
+    arcs = sp.csr_matrix((np.ones(len(first), np.int8), (first, then)), shape=(n, n))
+    pending = np.bincount(arcs.indices, minlength=n)  # earlier unknowns not coloured yet
+    if n and pending.max() >= 63:
+        return _colours_in_turn(H, order)
+    out_start, out_count = arcs.indptr[:-1], np.diff(arcs.indptr)
+    taken = np.zeros(n, np.uint64)  # bit c: an earlier unknown took colour c
+    colour = np.full(n, -1, np.int64)
+    ready = np.flatnonzero(pending == 0)
+    while len(ready):
+        lowest = ~taken[ready] & (taken[ready] + np.uint64(1))  # the lowest bit not set
+        colour[ready] = np.log2(lowest.astype(np.float64)).astype(np.int64)
+        counts = out_count[ready]
+        to = arcs.indices[np.arange(int(counts.sum()))
+                          + np.repeat(out_start[ready] - (np.cumsum(counts) - counts), counts)]
+        np.bitwise_or.at(taken, to, np.repeat(lowest, counts))
+        done = np.bincount(to, minlength=n)
+        pending -= done
+        ready = np.flatnonzero((pending == 0) & (done > 0))
+    return colour
+
+
+def _colours_in_turn(H: sp.csr_matrix, order: np.ndarray) -> np.ndarray:
+    """:func:`coupling_colours` one unknown at a time, in ``order``."""
+    indptr, indices = H.indptr.tolist(), H.indices.tolist()
+    colour = [-1] * H.shape[0]
+    of = colour.__getitem__
+    for i in order.tolist():
+        used = set(map(of, indices[indptr[i]:indptr[i + 1]]))
         c = 0
         while c in used:
             c += 1
         colour[i] = c
-    return colour
+    return np.array(colour, np.int64)
 
 
 def lattice_descent(H: sp.csr_matrix, rhs: np.ndarray, codes: np.ndarray, lo: np.ndarray,
