@@ -223,7 +223,6 @@ def test_measure_levels_gives_the_same_distances_with_levels_measured_aside(monk
     fit = fit_atlas(scan, 24)
     points = np.asarray(mesh.vertices, dtype=float)
     monkeypatch.setattr(pipeline, "PROCESS_TRIANGLES", 0)
-    monkeypatch.setattr(pipeline, "ASIDE_POINTS", 0)
     for levels, keys, feet in ((1, {-1, 0}, False), (0, {-1}, True), (0, {-1}, False)):
         with pipeline.measuring_process(points) as process:
             base = pipeline.measure_base_aside(fit.atlas, points, process, feet)
@@ -243,9 +242,9 @@ def test_measure_levels_gives_the_same_distances_with_levels_measured_aside(monk
 
 
 def test_a_fit_whose_measuring_process_cannot_start_measures_here(monkeypatch, tmp_path):
-    """No process to measure in (MeasuringProcess raising OSError, or fewer points than
-    ASIDE_POINTS) or a process that dies at once: the bundle is the same, byte for byte;
-    no process is left running, when the detail stage fails too."""
+    """No process to measure in (MeasuringProcess raising OSError) or a process that dies
+    at once: the bundle is the same, byte for byte; no process is left running, when the
+    detail stage fails too."""
     from fitter.fitting.atlas import measure, pipeline
 
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
@@ -262,17 +261,14 @@ def test_a_fit_whose_measuring_process_cannot_start_measures_here(monkeypatch, t
             super().__init__(points)
             self.process.kill()
 
-    monkeypatch.setattr(pipeline, "ASIDE_POINTS", 0)
     monkeypatch.setattr(pipeline, "MeasuringProcess", Recorded)
     fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "aside", options)
 
     def refused(points):
         raise OSError("no process here")
 
-    for name, make, least in (("dying", Dying, 0), ("none", refused, 0),
-                              ("few", Recorded, len(mesh.vertices) + 1)):
+    for name, make in (("dying", Dying), ("none", refused)):
         monkeypatch.setattr(pipeline, "MeasuringProcess", make)
-        monkeypatch.setattr(pipeline, "ASIDE_POINTS", least)
         fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / name, options)
         for file in ("base.tsa", "error_raster.bin", "error.ply"):
             assert (tmp_path / name / file).read_bytes() == (tmp_path / "aside" / file
@@ -281,14 +277,12 @@ def test_a_fit_whose_measuring_process_cannot_start_measures_here(monkeypatch, t
                        for x in ("aside", name))
         for key in ("stats", "coverage", "error_raster", "tiles", "base"):  # not the seconds
             assert first[key] == then[key]
-    assert len(started) == 2 and all(p.poll() is not None for p in started)  # none left,
-    # and none started for fewer points than ASIDE_POINTS
+    assert len(started) == 2 and all(p.poll() is not None for p in started)  # none left
 
     def failing(*args, **kwargs):
         raise RuntimeError("the detail stage failed")
 
     monkeypatch.setattr(pipeline, "MeasuringProcess", Recorded)
-    monkeypatch.setattr(pipeline, "ASIDE_POINTS", 0)
     monkeypatch.setattr(pipeline, "fit_atlas_detail", failing)
     with pytest.raises(RuntimeError, match="detail stage failed"):
         fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "failed", options)

@@ -93,12 +93,6 @@ RASTER_CELLS = (2, 8)  # least and most cells per patch side of the error raster
 #: (:func:`measure_levels`): its BVH then builds beside the coarser levels' (the Happy
 #: Buddha's 9.4 M: 6 s of one core, under the GIL)
 PROCESS_TRIANGLES = 2_000_000
-#: scan points from which the base is measured in a measuring process during the detail
-#: stage (:func:`measuring_process`): starting one (Python and ``open3d`` imported) costs
-#: about 1.5 CPU-s, more than measuring a small scan's base here (the bunny's 35,947
-#: points, under 0.1 s); the 15-scan Happy Buddha's 1.10 M points took 3-5 s of the error
-#: stage (docs/benchmarks.md, session 21)
-ASIDE_POINTS = 200_000
 
 
 def _unit(rows: np.ndarray) -> np.ndarray:
@@ -283,11 +277,7 @@ def measure_base_aside(decoded, points: np.ndarray, process: MeasuringProcess | 
 @contextmanager
 def measuring_process(points: np.ndarray) -> Iterator[MeasuringProcess | None]:
     """A :class:`~.measure.MeasuringProcess` of ``points``, or ``None`` where none can be
-    started or there are fewer than :data:`ASIDE_POINTS`; ended (killed if still
-    measuring) when the block ends, by an error too."""
-    if len(points) < ASIDE_POINTS:
-        yield None
-        return
+    started; ended (killed if still measuring) when the block ends, by an error too."""
     try:
         process = MeasuringProcess(points)
     except OSError:
