@@ -180,17 +180,11 @@ def test_the_measuring_process_gives_the_distances_measured_here():
     meshes = [trimesh.creation.icosphere(subdivisions=3),
               trimesh.creation.box(extents=(1.5, 1.0, 2.0))]
     with MeasuringProcess(points) as process:
-        jobs = [process.submit(m.vertices, m.faces, feet) for m in meshes
-                for feet in (True, False)]
-        for k, job in enumerate(jobs):
-            mesh = meshes[k // 2]
+        jobs = [process.submit(m.vertices, m.faces) for m in meshes]
+        for mesh, job in zip(meshes, jobs, strict=True):
             vertices = mesh.vertices.astype(np.float32).astype(float)  # drawn: float32
             here = signed_point_mesh_distance(points, vertices, mesh.faces)
-            there = job.result()
-            if k % 2:  # the distances alone
-                assert there[1] is None and there[2] is None
-                here, there = here[:1], there[:1]
-            for a, b in zip(here, there, strict=True):
+            for a, b in zip(here, job.result(), strict=True):
                 assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
     mesh = DrawnMesh(meshes[0].vertices.astype(np.float32).astype(float),
                      np.asarray(meshes[0].faces), np.zeros(0), np.zeros((0, 2)))
@@ -204,16 +198,13 @@ def test_the_measuring_process_gives_the_distances_measured_here():
         here = signed_point_mesh_distance(points, mesh.vertices, mesh.faces)
         for a, b in zip(here, fallen_back.result(), strict=True):
             assert a.tobytes() == b.tobytes()
-        d, triangle, closest = MeasuredAside(points, mesh, broken, feet=False).result()
-        assert d.tobytes() == here[0].tobytes() and triangle is None and closest is None
 
 
 def test_measure_levels_gives_the_same_distances_with_levels_measured_aside(monkeypatch):
     """The base measured aside (renumbered from the detail stage's input, before it runs:
     measure_base_aside) and the finest level in the same MeasuringProcess
     (PROCESS_TRIANGLES lowered to 0), or everything here: the same distances at every
-    level, the same feet, the same finest mesh; likewise without detail levels, the base's
-    feet asked for or not (then measured here)."""
+    level, the same feet, the same finest mesh; likewise without detail levels."""
     from fitter.fitting.atlas import pipeline
     from fitter.fitting.atlas.detail import fit_atlas_detail
     from fitter.fitting.atlas.fit import fit_atlas
@@ -223,9 +214,9 @@ def test_measure_levels_gives_the_same_distances_with_levels_measured_aside(monk
     fit = fit_atlas(scan, 24)
     points = np.asarray(mesh.vertices, dtype=float)
     monkeypatch.setattr(pipeline, "PROCESS_TRIANGLES", 0)
-    for levels, keys, feet in ((1, {-1, 0}, False), (0, {-1}, True), (0, {-1}, False)):
+    for levels, keys in ((1, {-1, 0}), (0, {-1})):
         with pipeline.measuring_process(points) as process:
-            base = pipeline.measure_base_aside(fit.atlas, points, process, feet)
+            base = pipeline.measure_base_aside(fit.atlas, points, process)
             detail = fit_atlas_detail(fit, scan, levels)
             assert (detail.order != np.arange(len(detail.order))).any()  # renumbered
             there = pipeline.measure_levels(detail.atlas, detail, points, base, process)

@@ -393,26 +393,25 @@ class MeasuringProcess:
         self.points: np.ndarray | None = np.asarray(points, dtype=float)  # until sent
         self._talking = ThreadPoolExecutor(1)
 
-    def submit(self, vertices: np.ndarray, faces: np.ndarray, feet: bool = True) -> Future:
+    def submit(self, vertices: np.ndarray, faces: np.ndarray) -> Future:
         """Queue the mesh ``(vertices (V, 3) float32, faces (T, 3) uint32)`` (other types are
         converted, as :class:`DrawnMesh`'s values exactly): a future of
-        :func:`signed_distance_to_drawn` ``(points, vertices, faces)`` (``feet=False``: of
-        ``(d, None, None)``, 8 bytes a point where the feet take 32 more), or of a
+        :func:`signed_distance_to_drawn` ``(points, vertices, faces)``, or of a
         :class:`MeasuringProcessError` when the process failed, died or answered short."""
         return self._talking.submit(self._measure, np.asarray(vertices, dtype=np.float32),
-                                    np.asarray(faces, dtype=np.uint32), feet)
+                                    np.asarray(faces, dtype=np.uint32))
 
-    def _measure(self, vertices: np.ndarray, faces: np.ndarray, feet: bool
-                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    def _measure(self, vertices: np.ndarray, faces: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         try:
             if self.points is not None:
                 _write_arrays(self.process.stdin, [self.points])
                 self.points = None
-            _write_arrays(self.process.stdin, [vertices, faces, np.array([feet], np.uint8)])
-            out = _read_arrays(self.process.stdout, 3 if feet else 1)
+            _write_arrays(self.process.stdin, [vertices, faces])
+            out = _read_arrays(self.process.stdout, 3)
         except (OSError, ValueError) as exc:
             raise MeasuringProcessError(f"the measuring process failed: {exc}") from exc
-        return out[0], *(out[1:] if feet else (None, None))
+        return out[0], out[1], out[2]
 
     def close(self) -> None:
         """End the process (killed if a mesh is still being measured: an error elsewhere),
@@ -438,25 +437,21 @@ class MeasuredAside:
     """:func:`signed_distance_to_drawn` of ``points`` to ``mesh`` (a :class:`DrawnMesh`),
     started in ``process`` (a :class:`MeasuringProcess` holding these points), or measured
     here by :meth:`result` where there is no process or it failed (the same function on
-    the same numbers: the same distances). ``feet=False``: the distances alone (the
-    triangles and closest points ``None``)."""
+    the same numbers: the same distances)."""
 
     def __init__(self, points: np.ndarray, mesh: DrawnMesh,
-                 process: MeasuringProcess | None, feet: bool = True) -> None:
-        self.points, self.mesh, self.feet = points, mesh, feet
-        self.job = None if process is None else process.submit(mesh.vertices, mesh.faces,
-                                                                  feet)
+                 process: MeasuringProcess | None) -> None:
+        self.points, self.mesh = points, mesh
+        self.job = None if process is None else process.submit(mesh.vertices, mesh.faces)
 
-    def result(self) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(d (N,), triangle (N,), closest (N, 3))``, waiting for the process."""
         if self.job is not None:
             try:
                 return self.job.result()
             except MeasuringProcessError:  # killed, out of memory...: measured here then
                 self.job = None
-        d, triangle, closest = signed_distance_to_drawn(self.points, self.mesh.vertices,
-                                                        self.mesh.faces)
-        return (d, triangle, closest) if self.feet else (d, None, None)
+        return signed_distance_to_drawn(self.points, self.mesh.vertices, self.mesh.faces)
 
 
 def _write_arrays(stream, arrays: list[np.ndarray]) -> None:
@@ -480,9 +475,8 @@ def _read_arrays(stream, count: int) -> list[np.ndarray]:
 
 
 def _serve() -> None:
-    """The :class:`MeasuringProcess` side: the points on stdin, then one mesh after
-    another until stdin ends (its vertices, faces and whether its feet are wanted); out on
-    the original stdout for each, the distances and, if wanted, the triangles and feet
+    """The :class:`MeasuringProcess` side: the points on stdin, then a mesh's two arrays
+    after another until stdin ends, three arrays out on the original stdout for each
     (anything a library prints goes to stderr)."""
     import open3d  # noqa: F401  (imported while the caller still tessellates)
 
@@ -491,9 +485,8 @@ def _serve() -> None:
     stdin = sys.stdin.buffer
     (points,) = _read_arrays(stdin, 1)
     while stdin.peek(1):
-        vertices, faces, feet = _read_arrays(stdin, 3)
-        answer_arrays = signed_distance_to_drawn(points, vertices, faces)
-        _write_arrays(answer, list(answer_arrays if feet[0] else answer_arrays[:1]))
+        vertices, faces = _read_arrays(stdin, 2)
+        _write_arrays(answer, list(signed_distance_to_drawn(points, vertices, faces)))
     answer.close()
 
 

@@ -16,9 +16,7 @@ The steps, each a stage of ``fitter.fitting.stages`` (the bar skips the single p
              tiles of levels ``0..L``), by
              exact point-to-triangle distances (``atlas.measure``): ``stats`` and
              ``stats_all_points`` are the same set here, and ``coverage`` counts the points
-             farther than 1 % of the diagonal as not represented (the base alone,
-             level ``-1``, is measured in another process while the detail is fitted:
-             :func:`measure_base_aside`);
+             farther than 1 % of the diagonal as not represented;
 ``texture``  with a coloured scan, the colour packs ``texture/C/G.webp`` (``atlas.texture``)
              and the colour error of every scan point on the finest drawn mesh;
 ``report``   ``error.ply``, ``error.png`` and ``manifest.json`` (docs/format.md, "Bundle
@@ -209,8 +207,7 @@ def measure_levels(atlas, detail, points: np.ndarray, base: MeasuredAside | None
     the panel's measure for each level (:func:`restate_level_errors`).
 
     ``base``: the base's measurement started before the detail was fitted
-    (:func:`measure_base_aside`), collected here; without it, or when it has no feet and
-    no detail level was kept (the base is the finest), the base is measured here.
+    (:func:`measure_base_aside`), collected here; without it the base is measured here.
     The detail levels' meshes are tessellated here, finest first, and measured by one
     worker thread in that order. ``open3d`` holds the GIL while it builds its BVH (one
     core) and queries it, so no thread overlaps it; a finest level of at least
@@ -229,8 +226,6 @@ def measure_levels(atlas, detail, points: np.ndarray, base: MeasuredAside | None
         Each point's nearest triangle of ``finest`` and its closest point on it.
     """
     top = len(detail.levels) - 1
-    if base is not None and top < 0 and not base.feet:
-        base = None  # its feet are wanted: measured here (the same numbers)
     r = level_resolution(atlas, detail, top)
     aside = process if 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES else None
     jobs: dict = {}
@@ -256,8 +251,8 @@ def measure_levels(atlas, detail, points: np.ndarray, base: MeasuredAside | None
     return {top: d, **distances}, finest, triangle, closest
 
 
-def measure_base_aside(decoded, points: np.ndarray, process: MeasuringProcess | None,
-                       feet: bool) -> MeasuredAside:
+def measure_base_aside(decoded, points: np.ndarray, process: MeasuringProcess | None
+                       ) -> MeasuredAside:
     """The measurement of ``points`` against the base drawn alone (level ``-1``), started
     in ``process`` before the detail stage so that it runs on another core meanwhile
     (``open3d`` holds this process's GIL while it measures), collected by
@@ -265,13 +260,9 @@ def measure_base_aside(decoded, points: np.ndarray, process: MeasuringProcess | 
 
     The base is ``decoded`` (``base.tsa`` as read back) renumbered as the detail stage
     will renumber it (:func:`.detail.grouped_patches`): the same atlas, hence the same
-    drawn mesh, triangle for triangle, as the bundle's ``base.tsa`` draws. ``feet``: its
-    triangles and closest points are wanted too (no detail level is asked for: the base
-    is the finest level); else the distances alone come back, 32 of every 40 bytes a point
-    not held through the detail stage."""
+    drawn mesh, triangle for triangle, as the bundle's ``base.tsa`` draws."""
     atlas, _ = grouped_patches(decoded)
-    return MeasuredAside(points, drawn_mesh(atlas, base_resolution(atlas.spans)), process,
-                         feet)
+    return MeasuredAside(points, drawn_mesh(atlas, base_resolution(atlas.spans)), process)
 
 
 @contextmanager
@@ -484,7 +475,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     bits = layout_record["bits"]
     points = np.asarray(scan.points, dtype=float)
     with measuring_process(points) as process:
-        base = measure_base_aside(decoded, points, process, options.detail_levels == 0)
+        base = measure_base_aside(decoded, points, process)
         stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
         detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
                                   progress=stages.report)
