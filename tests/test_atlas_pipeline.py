@@ -10,8 +10,6 @@ import trimesh
 
 from client_py.atlas_format import read_atlas
 from fitter.fitting.atlas.measure import (
-    DrawnMesh,
-    MeasuredAside,
     MeasuringProcess,
     MeasuringProcessError,
     closest_points_on_mesh,
@@ -171,40 +169,28 @@ def test_far_places_refuses_bad_input():
         far_places(good, good, good, 0.1, float("nan"))
 
 def test_the_measuring_process_gives_the_distances_measured_here():
-    """MeasuringProcess (a fresh Python process, arrays through pipes, the points sent
-    once) returns the signed distances, triangles and feet of signed_point_mesh_distance
-    here, bit for bit, for one mesh after another; a process that dies says so, and a
-    MeasuredAside then measures here."""
+    """MeasuringProcess (a fresh Python process, arrays through pipes) returns the signed
+    distances, triangles and feet of signed_point_mesh_distance here, bit for bit; a
+    process that dies says so."""
     rng = np.random.default_rng(1)
+    mesh = trimesh.creation.icosphere(subdivisions=3)
     points = rng.normal(size=(2000, 3))
-    meshes = [trimesh.creation.icosphere(subdivisions=3),
-              trimesh.creation.box(extents=(1.5, 1.0, 2.0))]
-    with MeasuringProcess(points) as process:
-        jobs = [process.submit(m.vertices, m.faces) for m in meshes]
-        for mesh, job in zip(meshes, jobs, strict=True):
-            vertices = mesh.vertices.astype(np.float32).astype(float)  # drawn: float32
-            here = signed_point_mesh_distance(points, vertices, mesh.faces)
-            for a, b in zip(here, job.result(), strict=True):
-                assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
-    mesh = DrawnMesh(meshes[0].vertices.astype(np.float32).astype(float),
-                     np.asarray(meshes[0].faces), np.zeros(0), np.zeros((0, 2)))
-    with MeasuringProcess(points) as broken:
-        broken.process.kill()
-        with pytest.raises(MeasuringProcessError):
-            broken.submit(mesh.vertices, mesh.faces).result()
-        fallen_back = MeasuredAside(points, mesh, broken)
-        with pytest.raises(MeasuringProcessError):
-            fallen_back.job.result()
-        here = signed_point_mesh_distance(points, mesh.vertices, mesh.faces)
-        for a, b in zip(here, fallen_back.result(), strict=True):
-            assert a.tobytes() == b.tobytes()
+    vertices = mesh.vertices.astype(np.float32).astype(float)  # drawn meshes are float32
+    here = signed_point_mesh_distance(points, vertices, mesh.faces)
+    there = MeasuringProcess().measure(points, vertices, mesh.faces)
+    for a, b in zip(here, there, strict=True):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    broken = MeasuringProcess()
+    broken.process.kill()
+    with pytest.raises(MeasuringProcessError):
+        broken.measure(points, vertices, mesh.faces)
+    broken.close()
 
 
-def test_measure_levels_gives_the_same_distances_with_levels_measured_aside(monkeypatch):
-    """The base measured aside (renumbered from the detail stage's input, before it runs:
-    measure_base_aside) and the finest level in the same MeasuringProcess
-    (PROCESS_TRIANGLES lowered to 0), or everything here: the same distances at every
-    level, the same feet, the same finest mesh; likewise without detail levels."""
+def test_measure_levels_gives_the_same_distances_with_the_finest_level_in_a_process(
+        monkeypatch):
+    """The finest level measured in a MeasuringProcess (PROCESS_TRIANGLES lowered to 0) or
+    here: the same distances at every level, the same feet."""
     from fitter.fitting.atlas import pipeline
     from fitter.fitting.atlas.detail import fit_atlas_detail
     from fitter.fitting.atlas.fit import fit_atlas
@@ -212,72 +198,15 @@ def test_measure_levels_gives_the_same_distances_with_levels_measured_aside(monk
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
     scan = _mesh_scan(mesh, "sphere")
     fit = fit_atlas(scan, 24)
+    detail = fit_atlas_detail(fit, scan, 1)
     points = np.asarray(mesh.vertices, dtype=float)
+    here = pipeline.measure_levels(detail.atlas, detail, points)
     monkeypatch.setattr(pipeline, "PROCESS_TRIANGLES", 0)
-    for levels, keys in ((1, {-1, 0}), (0, {-1})):
-        with pipeline.measuring_process(points) as process:
-            base = pipeline.measure_base_aside(fit.atlas, points, process)
-            detail = fit_atlas_detail(fit, scan, levels)
-            assert (detail.order != np.arange(len(detail.order))).any()  # renumbered
-            there = pipeline.measure_levels(detail.atlas, detail, points, base, process)
-        here = pipeline.measure_levels(detail.atlas, detail, points)
-        assert here[0].keys() == there[0].keys() == keys
-        for k in keys:
-            assert here[0][k].tobytes() == there[0][k].tobytes()
-        for a, b in zip(here[1:], there[1:], strict=True):
-            if isinstance(a, DrawnMesh):
-                assert a.vertices.tobytes() == b.vertices.tobytes()
-                assert a.faces.tobytes() == b.faces.tobytes()
-            else:
-                assert a.tobytes() == b.tobytes()
-
-
-def test_a_fit_whose_measuring_process_cannot_start_measures_here(monkeypatch, tmp_path):
-    """No process to measure in (MeasuringProcess raising OSError) or a process that dies
-    at once: the bundle is the same, byte for byte; no process is left running, when the
-    detail stage fails too."""
-    from fitter.fitting.atlas import measure, pipeline
-
-    mesh = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
-    options = FitOptions(patches=24, detail_levels=1)
-    started = []
-
-    class Recorded(measure.MeasuringProcess):
-        def __init__(self, points):
-            super().__init__(points)
-            started.append(self.process)
-
-    class Dying(Recorded):
-        def __init__(self, points):
-            super().__init__(points)
-            self.process.kill()
-
-    monkeypatch.setattr(pipeline, "MeasuringProcess", Recorded)
-    fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "aside", options)
-
-    def refused(points):
-        raise OSError("no process here")
-
-    for name, make in (("dying", Dying), ("none", refused)):
-        monkeypatch.setattr(pipeline, "MeasuringProcess", make)
-        fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / name, options)
-        for file in ("base.tsa", "error_raster.bin", "error.ply"):
-            assert (tmp_path / name / file).read_bytes() == (tmp_path / "aside" / file
-                                                              ).read_bytes()
-        first, then = (json.loads((tmp_path / x / "manifest.json").read_text())
-                       for x in ("aside", name))
-        for key in ("stats", "coverage", "error_raster", "tiles", "base"):  # not the seconds
-            assert first[key] == then[key]
-    assert len(started) == 2 and all(p.poll() is not None for p in started)  # none left
-
-    def failing(*args, **kwargs):
-        raise RuntimeError("the detail stage failed")
-
-    monkeypatch.setattr(pipeline, "MeasuringProcess", Recorded)
-    monkeypatch.setattr(pipeline, "fit_atlas_detail", failing)
-    with pytest.raises(RuntimeError, match="detail stage failed"):
-        fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "failed", options)
-    assert len(started) == 3 and started[2].poll() is not None  # ended, not leaked
+    there = pipeline.measure_levels(detail.atlas, detail, points)
+    assert here[0].keys() == there[0].keys() == {-1, 0}
+    for k in here[0]:
+        assert here[0][k].tobytes() == there[0][k].tobytes()
+    assert here[2].tobytes() == there[2].tobytes() and here[3].tobytes() == there[3].tobytes()
 
 
 def test_auto_rule_keeps_one_patch_for_a_height_field_and_an_atlas_for_a_closed_object():

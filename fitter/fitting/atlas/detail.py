@@ -355,18 +355,6 @@ def renumber_patches(atlas: AtlasSurface, order: np.ndarray) -> AtlasSurface:
                         face_points, weights)
 
 
-def grouped_patches(base: AtlasSurface) -> tuple[AtlasSurface, np.ndarray]:
-    """``base`` renumbered for the packs' groups (module docstring, "Groups and packs"):
-    :func:`renumber_patches` by the :func:`morton_order` of its patches' centres (the mean
-    of each patch's control points). Returns the renumbered atlas (:class:`AtlasDetail`'s
-    ``atlas``, the bundle's ``base.tsa``) and ``order``: its patch ``k`` is ``base``'s
-    ``order[k]``. Known before the detail is fitted: the error stage's base is measured
-    from it meanwhile (``atlas.pipeline``)."""
-    table, cps = index_table(base), control_points(base)
-    order = morton_order(cps[table].reshape(len(base.quads), -1, 3).mean(axis=1))
-    return renumber_patches(base, order), order
-
-
 # ------------------------------------------------------------------ shared coefficients
 def shared_index(atlas: AtlasSurface, n: int) -> np.ndarray:
     """``G[f, a, b]``: the shared slot of coefficient ``(a, b)`` of patch ``f``'s ``(n, n)``
@@ -1838,7 +1826,11 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     report = progress or (lambda fraction: None)
     timings: dict = {}
     clock = time.perf_counter()
-    atlas, order = grouped_patches(fit.atlas)
+    base = fit.atlas
+    table0, cps0 = index_table(base), control_points(base)
+    centres = cps0[table0].reshape(len(base.quads), -1, 3).mean(axis=1)
+    order = morton_order(centres)
+    atlas = renumber_patches(base, order)
     F = len(atlas.quads)
     sides = patch_sides(atlas)
     side = float(np.median(sides))

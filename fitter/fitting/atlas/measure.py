@@ -18,7 +18,6 @@ import os
 import subprocess
 import sys
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -363,18 +362,16 @@ class MeasuringProcessError(TesseraError, RuntimeError):
 
 
 class MeasuringProcess:
-    """:func:`signed_distance_to_drawn` of ``points`` to one drawn mesh after another in a
-    fresh Python process (``python -m fitter.fitting.atlas.measure``), which imports
-    ``open3d`` as soon as it starts.
+    """:func:`signed_distance_to_drawn` of one mesh in a fresh Python process
+    (``python -m fitter.fitting.atlas.measure``), which imports ``open3d`` as soon as it
+    starts.
 
     ``open3d`` holds the GIL while it builds its BVH (one core: 6 s for the 9.4 M triangles
     of the Happy Buddha's finest level) and queries it, so no thread of this process runs
     beside it; another process does. The arrays travel through pipes as raw bytes
     (``dtype`` and shape on a line, then the data): no pickle, and no re-import of the
-    caller's ``__main__`` (as ``multiprocessing``'s spawn would). The points are sent
-    once, with the first mesh; the meshes are measured in the order given. A thread of
-    this object talks to the process (pipe I/O releases the GIL), so :meth:`submit`
-    returns at once. Use it as a context manager, or call :meth:`close`.
+    caller's ``__main__`` (as ``multiprocessing``'s spawn would). :meth:`measure` blocks
+    in pipe I/O, which releases the GIL: call it from a thread.
 
     Raises
     ------
@@ -382,7 +379,7 @@ class MeasuringProcess:
         When no process can be started.
     """
 
-    def __init__(self, points: np.ndarray) -> None:
+    def __init__(self) -> None:
         if not sys.executable:  # an embedded interpreter: no Python to start
             raise OSError("no Python executable to start a measuring process with")
         root = str(Path(__file__).resolve().parents[3])  # the folder holding fitter/
@@ -390,68 +387,35 @@ class MeasuringProcess:
             x for x in (root, os.environ.get("PYTHONPATH")) if x)}
         self.process = subprocess.Popen([sys.executable, "-m", "fitter.fitting.atlas.measure"],
                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
-        self.points: np.ndarray | None = np.asarray(points, dtype=float)  # until sent
-        self._talking = ThreadPoolExecutor(1)
 
-    def submit(self, vertices: np.ndarray, faces: np.ndarray) -> Future:
-        """Queue the mesh ``(vertices (V, 3) float32, faces (T, 3) uint32)`` (other types are
-        converted, as :class:`DrawnMesh`'s values exactly): a future of
-        :func:`signed_distance_to_drawn` ``(points, vertices, faces)``, or of a
-        :class:`MeasuringProcessError` when the process failed, died or answered short."""
-        return self._talking.submit(self._measure, np.asarray(vertices, dtype=np.float32),
-                                    np.asarray(faces, dtype=np.uint32))
-
-    def _measure(self, vertices: np.ndarray, faces: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def measure(self, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`signed_distance_to_drawn` ``(points, vertices, faces)`` in the process,
+        which then exits."""
         try:
-            if self.points is not None:
-                _write_arrays(self.process.stdin, [self.points])
-                self.points = None
-            _write_arrays(self.process.stdin, [vertices, faces])
+            _write_arrays(self.process.stdin, [np.asarray(points, dtype=float),
+                                               np.asarray(vertices, dtype=np.float32),
+                                               np.asarray(faces, dtype=np.uint32)])
+            self.process.stdin.close()
             out = _read_arrays(self.process.stdout, 3)
         except (OSError, ValueError) as exc:
             raise MeasuringProcessError(f"the measuring process failed: {exc}") from exc
+        finally:
+            code = self.process.wait()
+        if code != 0:
+            raise MeasuringProcessError(f"the measuring process exited with {code}")
         return out[0], out[1], out[2]
 
     def close(self) -> None:
-        """End the process (killed if a mesh is still being measured: an error elsewhere),
-        after the queued meshes' futures are settled."""
+        """End the process if it still runs (an error elsewhere)."""
         if self.process.poll() is None:
             self.process.kill()
-        self._talking.shutdown()  # the killed process's pipes end the thread's I/O
-        self.process.wait()
+            self.process.wait()
         for stream in (self.process.stdin, self.process.stdout):
             try:
                 stream.close()
             except BrokenPipeError:  # bytes still buffered for a process that died: moot
                 pass
-
-    def __enter__(self) -> MeasuringProcess:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-class MeasuredAside:
-    """:func:`signed_distance_to_drawn` of ``points`` to ``mesh`` (a :class:`DrawnMesh`),
-    started in ``process`` (a :class:`MeasuringProcess` holding these points), or measured
-    here by :meth:`result` where there is no process or it failed (the same function on
-    the same numbers: the same distances)."""
-
-    def __init__(self, points: np.ndarray, mesh: DrawnMesh,
-                 process: MeasuringProcess | None) -> None:
-        self.points, self.mesh = points, mesh
-        self.job = None if process is None else process.submit(mesh.vertices, mesh.faces)
-
-    def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(d (N,), triangle (N,), closest (N, 3))``, waiting for the process."""
-        if self.job is not None:
-            try:
-                return self.job.result()
-            except MeasuringProcessError:  # killed, out of memory...: measured here then
-                self.job = None
-        return signed_distance_to_drawn(self.points, self.mesh.vertices, self.mesh.faces)
 
 
 def _write_arrays(stream, arrays: list[np.ndarray]) -> None:
@@ -475,18 +439,14 @@ def _read_arrays(stream, count: int) -> list[np.ndarray]:
 
 
 def _serve() -> None:
-    """The :class:`MeasuringProcess` side: the points on stdin, then a mesh's two arrays
-    after another until stdin ends, three arrays out on the original stdout for each
-    (anything a library prints goes to stderr)."""
+    """The :class:`MeasuringProcess` side: three arrays in on stdin, three out on the
+    original stdout (anything a library prints goes to stderr)."""
     import open3d  # noqa: F401  (imported while the caller still tessellates)
 
     answer = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
-    stdin = sys.stdin.buffer
-    (points,) = _read_arrays(stdin, 1)
-    while stdin.peek(1):
-        vertices, faces = _read_arrays(stdin, 2)
-        _write_arrays(answer, list(signed_distance_to_drawn(points, vertices, faces)))
+    points, vertices, faces = _read_arrays(sys.stdin.buffer, 3)
+    _write_arrays(answer, list(signed_distance_to_drawn(points, vertices, faces)))
     answer.close()
 
 

@@ -29,9 +29,8 @@ over its best plane, where a single patch already covers the object; an atlas fo
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -50,7 +49,7 @@ from ..error import (
 )
 from ..io import Scan
 from ..options import FitOptions
-from .detail import fit_atlas_detail, grouped_patches
+from .detail import fit_atlas_detail
 from .fit import (
     DEFAULT_BYTE_BUDGET,
     AtlasFit,
@@ -62,8 +61,8 @@ from .fit import (
 from .layout import AtlasLayoutError
 from .measure import (
     DrawnMesh,
-    MeasuredAside,
     MeasuringProcess,
+    MeasuringProcessError,
     drawn_mesh,
     farther_than,
     signed_point_mesh_distance,
@@ -199,22 +198,20 @@ def level_resolution(atlas, detail, level: int) -> int:
     return base_resolution(atlas.spans) if level < 0 else detail.levels[level]["resolution"]
 
 
-def measure_levels(atlas, detail, points: np.ndarray, base: MeasuredAside | None = None,
-                   process: MeasuringProcess | None = None
+def measure_levels(atlas, detail, points: np.ndarray
                    ) -> tuple[dict[int, np.ndarray], DrawnMesh, np.ndarray, np.ndarray]:
     """Every scan point's signed distance to the welded mesh drawn at each level (``-1``
     the base, ``k`` with the packs of levels ``0..k``, each at :func:`level_resolution`),
     the panel's measure for each level (:func:`restate_level_errors`).
 
-    ``base``: the base's measurement started before the detail was fitted
-    (:func:`measure_base_aside`), collected here; without it the base is measured here.
-    The detail levels' meshes are tessellated here, finest first, and measured by one
-    worker thread in that order. ``open3d`` holds the GIL while it builds its BVH (one
-    core) and queries it, so no thread overlaps it; a finest level of at least
-    :data:`PROCESS_TRIANGLES` triangles is therefore measured in ``process`` (a
-    :class:`~.measure.MeasuringProcess` of these points, after the base), and the coarser
-    levels here meanwhile. Where there is no process, or it fails, every level is measured
-    here. The distances are the same either way (the same function on the same numbers).
+    The meshes are tessellated here, finest first, and measured by one worker thread in
+    that order. ``open3d`` holds the GIL while it builds its BVH (one core) and queries
+    it, so no thread overlaps it; a finest level of at least :data:`PROCESS_TRIANGLES`
+    triangles is therefore measured in a :class:`~.measure.MeasuringProcess`, started
+    first so that it imports ``open3d`` while the mesh is tessellated, and the coarser
+    levels here meanwhile. Where no process can be started, or it fails, the finest level
+    is measured here. The distances are the same either way (the same function on the
+    same numbers).
 
     Returns
     -------
@@ -227,55 +224,36 @@ def measure_levels(atlas, detail, points: np.ndarray, base: MeasuredAside | None
     """
     top = len(detail.levels) - 1
     r = level_resolution(atlas, detail, top)
-    aside = process if 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES else None
-    jobs: dict = {}
-    with ThreadPoolExecutor(1) as measuring:
-        for k in range(top, -1 if base is not None else -2, -1):
-            mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k),
-                              detail.detail_up_to(k))
-            if k == top:
-                finest = mesh
-            if k == top and aside is not None:
-                jobs[k] = MeasuredAside(points, mesh, aside)
-            else:
-                jobs[k] = measuring.submit(signed_point_mesh_distance, points,
-                                           mesh.vertices, mesh.faces)
-            del mesh  # the job holds it until measured
-        distances = {k: job.result()[0] for k, job in jobs.items() if k != top}
-    if base is not None:
-        if top < 0:
-            finest, jobs[top] = base.mesh, base
-        else:
-            distances[-1] = base.result()[0]
-    d, triangle, closest = jobs[top].result()
-    return {top: d, **distances}, finest, triangle, closest
-
-
-def measure_base_aside(decoded, points: np.ndarray, process: MeasuringProcess | None
-                       ) -> MeasuredAside:
-    """The measurement of ``points`` against the base drawn alone (level ``-1``), started
-    in ``process`` before the detail stage so that it runs on another core meanwhile
-    (``open3d`` holds this process's GIL while it measures), collected by
-    :func:`measure_levels`.
-
-    The base is ``decoded`` (``base.tsa`` as read back) renumbered as the detail stage
-    will renumber it (:func:`.detail.grouped_patches`): the same atlas, hence the same
-    drawn mesh, triangle for triangle, as the bundle's ``base.tsa`` draws."""
-    atlas, _ = grouped_patches(decoded)
-    return MeasuredAside(points, drawn_mesh(atlas, base_resolution(atlas.spans)), process)
-
-
-@contextmanager
-def measuring_process(points: np.ndarray) -> Iterator[MeasuringProcess | None]:
-    """A :class:`~.measure.MeasuringProcess` of ``points``, or ``None`` where none can be
-    started; ended (killed if still measuring) when the block ends, by an error too."""
+    far = None
+    if 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES:
+        try:
+            far = MeasuringProcess()
+        except OSError:
+            far = None
+    jobs = {}
     try:
-        process = MeasuringProcess(points)
-    except OSError:
-        yield None
-        return
-    with process:
-        yield process
+        with ThreadPoolExecutor(1) as measuring, ThreadPoolExecutor(1) as talking:
+            for k in range(top, -2, -1):
+                mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k),
+                                  detail.detail_up_to(k))
+                if k == top:
+                    finest = mesh
+                if k == top and far is not None:
+                    jobs[k] = talking.submit(far.measure, points, mesh.vertices, mesh.faces)
+                else:
+                    jobs[k] = measuring.submit(signed_point_mesh_distance, points,
+                                               mesh.vertices, mesh.faces)
+                del mesh  # the job holds it until measured
+            distances = {k: job.result()[0] for k, job in jobs.items() if k != top}
+            try:
+                d, triangle, closest = jobs[top].result()
+            except MeasuringProcessError:  # killed, out of memory...: measured here then
+                d, triangle, closest = signed_point_mesh_distance(points, finest.vertices,
+                                                                  finest.faces)
+    finally:
+        if far is not None:
+            far.close()
+    return {top: d, **distances}, finest, triangle, closest
 
 
 def restate_level_errors(tree: dict, errors: dict) -> None:
@@ -473,20 +451,16 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     fit, decoded, layout_record = fit_checked_base(fitted, surface, options, stages,
                                                    options.bits)
     bits = layout_record["bits"]
+    stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
+    detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
+                              progress=stages.report)
+    atlas = detail.atlas  # renumbered so that every group of patches is a range
+    data = base_file(atlas, bits, {"units": scan.units})
+    resolution = base_resolution(atlas.spans)
+    stages.start("error")
     points = np.asarray(scan.points, dtype=float)
-    with measuring_process(points) as process:
-        base = measure_base_aside(decoded, points, process)
-        stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
-        detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
-                                  progress=stages.report)
-        atlas = detail.atlas  # renumbered so that every group of patches is a range
-        data = base_file(atlas, bits, {"units": scan.units})
-        resolution = base_resolution(atlas.spans)
-        stages.start("error")
-        distances, drawn, triangle, closest = measure_levels(atlas, detail, points, base,
-                                                             process)
-    del base
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    distances, drawn, triangle, closest = measure_levels(atlas, detail, points)
     d = distances[len(detail.levels) - 1]
     stats = error_stats(d, diagonal, scan.units)
     raster, raster_data = atlas_error_raster(
