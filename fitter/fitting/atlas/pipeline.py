@@ -36,8 +36,6 @@ from pathlib import Path
 
 import numpy as np
 
-from client_py.atlas_format import read_atlas
-
 from ..bundle import write_bundle
 from ..error import (
     RASTER_FILE,
@@ -56,6 +54,7 @@ from .fit import (
     AtlasFitError,
     base_file,
     base_resolution,
+    decoded_base,
     fit_atlas,
 )
 from .layout import AtlasLayoutError
@@ -343,9 +342,11 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
     Returns
     -------
     fit, decoded, layout
-        The fit, its base as read back from ``base_file(fit.atlas, bits)``, and the
-        manifest's ``fit.layout`` record (``source``, handles, ``byte_budget``, the
-        refusals that led to it, and the ``bits`` of ``base.tsa``).
+        The fit, its base as a reader decodes ``base_file(fit.atlas, bits)``
+        (:func:`.fit.decoded_base`: from the writer's own codes, the file not range-coded
+        and read back again), and the manifest's ``fit.layout`` record (``source``,
+        handles, ``byte_budget``, the refusals that led to it, and the ``bits`` of
+        ``base.tsa``).
     """
     handles = handle_count(surface.vertices, surface.faces)
     attempts = [("surface", DEFAULT_BYTE_BUDGET), ("stand-in", DEFAULT_BYTE_BUDGET)]
@@ -372,7 +373,7 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
                             trial_cache=trials[source])
             stages.start("encode")
             record["bits"] = fit.bits
-            decoded, _ = read_atlas(base_file(fit.atlas, record["bits"]))
+            decoded = decoded_base(fit.atlas, record["bits"])
             record["stray_share"] = check_base_follows_surface(decoded, surface)
             return fit, decoded, record
         except (AtlasLayoutError, AtlasFitError) as exc:
