@@ -30,7 +30,8 @@ lint: setup
 test: setup chromium
 	$(BIN)/ruff check .
 	cd web && node --test test/
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadfile -m "not timing"
+	$(BIN)/python -m pytest -m timing
 
 demo: setup
 	$(BIN)/python -m fitter.demo

@@ -534,11 +534,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     fit = sub.add_parser(
         "fit",
-        help="fit a scan with a NURBS patch and write a bundle",
+        help="fit a scan with NURBS patches and write a bundle",
         description="Fit a scan (PLY, OBJ, STL, OFF, GLB/glTF, XYZ/PTS/ASC, .gz, Stanford .conf, "
-        "E57, LAS/LAZ) "
-        "with one NURBS patch following Curkovic, Vucina et al., and write OUTDIR: "
-        "manifest.json, base.tsp, error.png, error.ply.",
+        "E57, LAS/LAZ) with NURBS patches following Curkovic, Vucina et al.: an atlas of "
+        "patches over a whole object, or one patch where one covers it (a relief, a single "
+        "range scan; --patches). Writes OUTDIR: manifest.json, the base (base.tsa "
+        "for an atlas, base.tsp for one patch), detail/ (the zoom levels), error_raster.bin, "
+        "error.png and error.ply.",
     )
     fit.add_argument("scan", help="the scan file")
     fit.add_argument("-o", "--output", required=True, help="bundle directory to write")
@@ -558,12 +560,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     tess = sub.add_parser(
         "tessellate",
-        help="tessellate a patch (or a bundle's base.tsp) into a PLY mesh",
-        description="Tessellate a .tsp patch into a triangle mesh in the scan's own "
-        "coordinates and units (the bundle's stored transform applied), written as "
-        "PLY that 3DHOP, MeshLab and trimesh read.",
+        help="tessellate a bundle (or a .tsp patch) into a PLY mesh",
+        description="Tessellate a bundle at a detail level (an atlas: one welded mesh) or "
+        "a .tsp patch into a triangle mesh in the scan's own coordinates and units (the "
+        "bundle's stored transform applied), written as PLY that 3DHOP, MeshLab and "
+        "trimesh read: the viewer's Download PLY.",
     )
-    tess.add_argument("input", help="a .tsp patch file or a bundle directory (uses base.tsp)")
+    tess.add_argument("input", help="a bundle directory (with manifest.json; a folder "
+                      "without one: its base.tsp) or a .tsp patch file")
     tess.add_argument("-o", "--output", required=True, help="output .ply path")
     tess.add_argument("--resolution", type=_resolution, default=None,
                       help=f"vertices per side of the parameter grid (default "

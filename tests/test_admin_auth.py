@@ -24,6 +24,9 @@ from fitter.collection.tokens import MAX_TOKEN_LENGTH, check_token_strength
 from fitter.server.admin import auth
 from fitter.server.admin.auth import FREE_FAILURES, HASH_POOL_SIZE, FailureLimiter
 
+#: wall-clock bounds below: `make test` runs this file alone, after the parallel part
+pytestmark = pytest.mark.timing
+
 OBJECTS = "/admin/api/objects"
 
 

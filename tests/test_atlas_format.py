@@ -42,6 +42,9 @@ from client_py.errors import PatchFormatError
 from client_py.format import MAX_CONTROL_POINTS
 from client_py.rangecoder import RangeEncoder
 
+#: wall-clock bounds below: `make test` runs this file alone, after the parallel part
+pytestmark = pytest.mark.timing
+
 V1_FIXTURE = Path(__file__).parent / "data" / "atlas_v1.tsa"  # the v1 writer's cube_file()
 V2_FIXTURE = Path(__file__).parent / "data" / "atlas_v2.tsa"  # the v2 writer's cube_file()
 

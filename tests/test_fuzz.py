@@ -54,6 +54,9 @@ from client_py.format import (
 from client_py.layers import DetailTile, level_knots
 from client_py.session import WorkerSession
 
+#: wall-clock bounds below: `make test` runs this file alone, after the parallel part
+pytestmark = pytest.mark.timing
+
 DOCS = Path(__file__).resolve().parent.parent / "docs" / "format.md"
 FUZZ = settings(max_examples=150, deadline=1000, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow])

@@ -32,6 +32,9 @@ from fitter.fitting.memory import (
 from fitter.fitting.options import FitOptions, OptionError
 from fitter.fitting.pipeline import fit_scan
 
+#: wall-clock bounds below: `make test` runs this file alone, after the parallel part
+pytestmark = pytest.mark.timing
+
 ROOT = Path(__file__).resolve().parents[1]
 RNG = np.random.default_rng(15)
 IDENTITY = "0 0 0 0 0 0 1"

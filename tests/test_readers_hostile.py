@@ -25,6 +25,9 @@ from hypothesis import strategies as st
 
 from fitter.fitting.io import Scan, ScanError, load_scan
 
+#: wall-clock bounds below: `make test` runs this file alone, after the parallel part
+pytestmark = pytest.mark.timing
+
 FUZZ_EXAMPLES = int(os.environ.get("TESSERA_FUZZ_EXAMPLES", "150"))
 FUZZ = settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

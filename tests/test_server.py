@@ -295,6 +295,37 @@ def test_an_unwritable_snapshot_cache_is_a_logged_failure(web_collection, tmp_pa
     assert '"pyodide_snapshot_url": null' in html
 
 
+
+def test_builds_sharing_a_cache_folder_at_once_all_get_the_snapshot(tmp_path):
+    """Several server processes (WSGI workers) may build the same snapshot at once: each
+    builds in a folder of its own and the atomic replace leaves one whole file."""
+    import threading
+
+    from fitter.server.snapshot import SnapshotBuilder
+
+    fake_node = tmp_path / "node"  # writes its output slowly, as the real build does
+    fake_node.write_text("#!/usr/bin/env python3\nimport sys, time\n"
+                         "out = open(sys.argv[4], 'wb')\nout.write(b'half ')\n"
+                         "time.sleep(0.3)\nout.write(b'snapshot')\n")
+    fake_node.chmod(0o755)
+    cache = tmp_path / "cache"
+    builders = [SnapshotBuilder(tmp_path / "pyodide", {"sha256": "0" * 64}, cache,
+                                node=str(fake_node)) for _ in range(3)]
+    found: list = [None] * len(builders)
+
+    def build(i: int) -> None:
+        found[i] = builders[i].ensure()
+
+    threads = [threading.Thread(target=build, args=(i,)) for i in range(len(builders))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert [b.failure for b in builders] == [None] * len(builders)
+    assert found == [builders[0].path] * len(builders)
+    assert builders[0].path.read_bytes() == b"half snapshot"
+    assert [p.name for p in cache.iterdir()] == [builders[0].path.name]  # nothing left over
+
 def test_a_checkout_serves_its_own_web_folder():
     checkout = Path(__file__).resolve().parent.parent
     assert SOURCE_CHECKOUT == checkout and WEB_ROOT == checkout / "web"

@@ -25,6 +25,9 @@ from fitter.server import WEB_ROOT, create_app
 from fitter.server import thumbnail as thumbnail_module
 from fitter.server.thumbnail import Thumbnail, ThumbnailCache
 
+#: wall-clock bounds below: `make test` runs this file alone, after the parallel part
+pytestmark = pytest.mark.timing
+
 #: manifest text edits (applied to relief's manifest) and what parse_manifest says of each
 BROKEN_MANIFESTS = {
     "stats-max-text": (lambda m: m["stats"].update(max="x"), "stats.max must be a number"),

@@ -25,6 +25,7 @@ import json
 import logging
 import shutil
 import subprocess
+import tempfile
 import threading
 from pathlib import Path
 
@@ -101,24 +102,25 @@ class SnapshotBuilder:
             return self.path
 
     def _build(self) -> str | None:
-        tmp = self.path.with_suffix(".tmp")
-        sources = self.path.with_suffix(".sources.json")
         try:
             self.cache_dir.mkdir(parents=True, exist_ok=True)
+            # a folder of this build's own: server processes sharing a cache folder (several
+            # WSGI workers) may build at once; the last atomic replace wins, with equal bytes
+            work = tempfile.TemporaryDirectory(prefix=f"{self.key}.", dir=self.cache_dir)
         except OSError as exc:  # e.g. an instance folder this server may not write
             return f"cannot write in the cache folder {self.cache_dir}: {exc}"
-        try:
-            sources.write_text(json.dumps(self.sources))
-            subprocess.run([self.node, str(SCRIPT), str(self.pyodide_dir), str(sources), str(tmp)],
-                           check=True, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-            tmp.replace(self.path)
-        except subprocess.CalledProcessError as exc:
-            return f"make-pyodide-snapshot.mjs failed: {exc.stderr.strip()[-500:]}"
-        except (OSError, subprocess.SubprocessError) as exc:
-            return f"make-pyodide-snapshot.mjs could not run: {exc}"
-        finally:
-            sources.unlink(missing_ok=True)
-            tmp.unlink(missing_ok=True)
+        with work:
+            tmp, sources = Path(work.name) / "snapshot.bin", Path(work.name) / "sources.json"
+            try:
+                sources.write_text(json.dumps(self.sources))
+                subprocess.run([self.node, str(SCRIPT), str(self.pyodide_dir), str(sources),
+                                str(tmp)], check=True, capture_output=True, text=True,
+                               timeout=BUILD_TIMEOUT_S)
+                tmp.replace(self.path)
+            except subprocess.CalledProcessError as exc:
+                return f"make-pyodide-snapshot.mjs failed: {exc.stderr.strip()[-500:]}"
+            except (OSError, subprocess.SubprocessError) as exc:
+                return f"make-pyodide-snapshot.mjs could not run: {exc}"
         for old in self.cache_dir.glob("pyodide-*.bin*"):
             if not old.name.startswith(self.key):  # snapshots of older client_py versions
                 old.unlink(missing_ok=True)
