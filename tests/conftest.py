@@ -30,13 +30,27 @@ def shared_data() -> Path:
 def laurana_bundle(shared_data: Path, tmp_path_factory: pytest.TempPathFactory):
     """The Laurana bust fitted once with default options (an atlas bundle with colour): the
     one real default fit of a bust that several tests read (its colour, its recorded view)."""
+    import fcntl
+    import json
+    import os
+
     from fitter.fitting.options import FitOptions
-    from fitter.fitting.pipeline import fit_scan
+    from fitter.fitting.pipeline import Bundle, fit_scan
 
     path = shared_data / "laurana-bust" / "laurana.ply"
     if not path.is_file():
         pytest.skip(f"{path} is absent")
-    return fit_scan(path, tmp_path_factory.mktemp("laurana") / "laurana", FitOptions())
+    # made once per run: pytest-xdist's workers share their base folder's parent, and the
+    # first to take the lock fits (a worker whose fit failed leaves no manifest: refitted)
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent
+    bundle = shared / "laurana-default-fit"
+    with open(shared / "laurana-default-fit.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (bundle / "manifest.json").is_file():
+            return fit_scan(path, bundle, FitOptions())
+    return Bundle(bundle, json.loads((bundle / "manifest.json").read_text()))
 
 
 @pytest.fixture
