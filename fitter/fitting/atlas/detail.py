@@ -13,9 +13,9 @@ and area-weighted samples of its triangles (Turk, *Generating random points in t
 Graphics Gems 1990), as many as ``SAMPLES_PER_CELL`` per knot cell of the finest level,
 together weighing ``TRIANGLE_SHARE`` of the vertices; for a cloud, its points. Each
 sample ``x`` gets a foot point ``(f, u, v)`` on the base by
-the base fit's own projection (:func:`.patches.assign_triangles`, :func:`.patches.triangle_to_quad`,
-then Newton point inversion with hops across borders, :func:`.patches.correct_parameters`), in
-chunks of ``CHUNK`` samples, and splits into its normal offset
+the base fit's own projection (:func:`.patches.assign_triangles`,
+:func:`.patches.triangle_to_quad`, then Newton point inversion with hops across borders,
+:func:`.patches.correct_parameters`), in chunks of ``CHUNK`` samples, and splits into its normal offset
 ``s = (x - C) . n`` and squared tangential remainder ``t^2 = |x - C|^2 - s^2``
 (``fitter.fitting.detail.DetailSamples``).
 
