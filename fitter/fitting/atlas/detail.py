@@ -15,8 +15,8 @@ together weighing ``TRIANGLE_SHARE`` of the vertices; for a cloud, its points. E
 sample ``x`` gets a foot point ``(f, u, v)`` on the base by
 the base fit's own projection (:func:`.patches.assign_triangles`,
 :func:`.patches.triangle_to_quad`, then Newton point inversion with hops across borders,
-:func:`.patches.correct_parameters`), in chunks of ``CHUNK`` samples, and splits into its normal offset
-``s = (x - C) . n`` and squared tangential remainder ``t^2 = |x - C|^2 - s^2``
+:func:`.patches.correct_parameters`), in chunks of ``CHUNK`` samples, and splits into its
+normal offset ``s = (x - C) . n`` and squared tangential remainder ``t^2 = |x - C|^2 - s^2``
 (``fitter.fitting.detail.DetailSamples``).
 
 Levels. Level ``k`` is fitted to what levels ``0..k-1`` left OF THE DRAWN MESH, with the
