@@ -11,7 +11,8 @@ import trimesh
 from client_py.atlas_detail import pack_name, read_pack
 from client_py.atlas_mesh import tessellate_atlas
 from fitter.fitting.atlas import detail as atlas_detail
-from fitter.fitting.atlas.fit import AtlasFit, control_points, evaluate_patches, index_table
+from fitter.fitting.atlas.fit import AtlasFit
+from fitter.fitting.atlas.patches import control_points, evaluate_patches, index_table
 from fitter.fitting.atlas.surface import ScanSurface
 from fitter.fitting.io.scan import make_scan
 from tests.atlas_cases import sphere_atlas

@@ -9,25 +9,20 @@ import trimesh
 
 from fitter.fitting.atlas import AtlasFit, SurfaceError, fit_atlas, quad_layout, scan_surface
 from fitter.fitting.atlas import fit as atlas_fit
+from fitter.fitting.atlas import patches as atlas_patches
 from fitter.fitting.atlas.fit import (
     base_file,
     border_foot_points,
     border_outward,
     border_points,
     cloud_warm,
-    control_points,
-    design_matrix,
-    evaluate_patches,
     fit_layout,
     fold_row_weights,
     folded_patches,
     grid_mesh,
-    index_table,
-    neighbour_table,
     regularisation_weights,
     smoothing_matrix,
     solve_control_points,
-    triangle_to_quad,
     warm_factor,
     working_points,
 )
@@ -45,6 +40,14 @@ from fitter.fitting.atlas.layout import (
     thickness,
     thin_part_weights,
     triangle_fidelity,
+)
+from fitter.fitting.atlas.patches import (
+    control_points,
+    design_matrix,
+    evaluate_patches,
+    index_table,
+    neighbour_table,
+    triangle_to_quad,
 )
 from fitter.fitting.atlas.surface import border_edges as border_edges_of
 from fitter.fitting.atlas.surface import clean_mesh, manifold_problems, unique_pairs
@@ -635,7 +638,8 @@ def test_split_longest_edges_drops_a_layout_bridging_a_valley_onto_its_floor():
 
 
 def test_far_patch_samples_measure_the_drawn_base_against_the_scan():
-    from fitter.fitting.atlas.fit import FAR_SAMPLES, far_patch_samples, with_control_points
+    from fitter.fitting.atlas.fit import FAR_SAMPLES, far_patch_samples
+    from fitter.fitting.atlas.patches import with_control_points
 
     plane = _valley_surface()
     flat = type(plane)(plane.vertices * [1.0, 1.0, 0.0], plane.faces, "mesh", 1, {})
@@ -910,12 +914,8 @@ def _plate_with_hole(n: int = 30, hole: float = 0.5):
 
 
 def test_membrane_shares_are_the_area_spanning_the_hole_and_not_a_lifted_sheet():
-    from fitter.fitting.atlas.fit import (
-        MEMBRANE_REACH,
-        MEMBRANE_SHARE,
-        membrane_shares,
-        with_control_points,
-    )
+    from fitter.fitting.atlas.fit import MEMBRANE_REACH, MEMBRANE_SHARE, membrane_shares
+    from fitter.fitting.atlas.patches import with_control_points
 
     plate = _plate_with_hole()
     mesh = (plate.vertices, plate.faces)
@@ -995,19 +995,17 @@ def _points_by_the_sphere(n: int, patches: int, seed: int) -> tuple[np.ndarray, 
 
 def test_foot_point_corrections_on_threads_equal_one_run(sphere_fit, monkeypatch):
     """correct_parameters split over threads gives exactly the numbers of one run."""
-    from fitter.fitting.atlas import fit as atlas_fit
-
     atlas = sphere_fit.atlas
     table = index_table(atlas)
     n = 30_000
     x, f, u, v = _points_by_the_sphere(n, len(atlas.quads), 5)
     args = (table, control_points(atlas), 3, 1, neighbour_table(atlas), x, x, f, u, v)
-    monkeypatch.setattr(atlas_fit, "CORRECT_RUN_POINTS", n + 1)  # one run
-    one = atlas_fit.correct_parameters(*args)
-    monkeypatch.setattr(atlas_fit, "CORRECT_RUN_POINTS", 1_000)
-    monkeypatch.setattr(atlas_fit, "CORRECT_THREADS", 3)  # uneven runs
+    monkeypatch.setattr(atlas_patches, "CORRECT_RUN_POINTS", n + 1)  # one run
+    one = atlas_patches.correct_parameters(*args)
+    monkeypatch.setattr(atlas_patches, "CORRECT_RUN_POINTS", 1_000)
+    monkeypatch.setattr(atlas_patches, "CORRECT_THREADS", 3)  # uneven runs
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(4)), raising=False)
-    split = atlas_fit.correct_parameters(*args)
+    split = atlas_patches.correct_parameters(*args)
     assert np.any(one[0] != f)  # some points hopped to another patch
     for a, b in zip(one, split, strict=True):
         assert a.dtype == b.dtype
@@ -1025,7 +1023,7 @@ def test_one_span_basis_is_scipys_bspline(degree):
     for derivative in range(degree + 2):
         reference = BSpline(knots, np.eye(degree + 1), degree, extrapolate=False)(
             np.clip(t, 0.0, 1.0), nu=derivative)
-        got = atlas_fit.basis_matrix(t, degree, 1, derivative)
+        got = atlas_patches.basis_matrix(t, degree, 1, derivative)
         assert got.shape == (len(t), degree + 1)
         np.testing.assert_allclose(got, reference, rtol=0, atol=1e-12 * 10.0 ** derivative)
 
@@ -1039,18 +1037,18 @@ def test_converged_foot_points_stop_stepping_and_land_where_every_step_would(sph
     x, f, u, v = _points_by_the_sphere(n, len(atlas.quads), 8)
     fixed = (index_table(atlas), control_points(atlas), 3, 1, neighbour_table(atlas), x, x)
     # from the foot points of a few steps, as each round of a fit starts from the last's
-    f, u, v, _ = atlas_fit._correct_run(*fixed, f, u, v, 6)
+    f, u, v, _ = atlas_patches._correct_run(*fixed, f, u, v, 6)
     args = (*fixed, f, u, v, 12)
     calls = []
-    evaluate = atlas_fit.evaluate_patches
-    monkeypatch.setattr(atlas_fit, "evaluate_patches",
+    evaluate = atlas_patches.evaluate_patches
+    monkeypatch.setattr(atlas_patches, "evaluate_patches",
                         lambda *a, **k: calls.append(len(a[4])) or evaluate(*a, **k))
-    monkeypatch.setattr(atlas_fit, "CONVERGED_STEP", -1.0)  # every point, every step
-    every = atlas_fit._correct_run(*args)
+    monkeypatch.setattr(atlas_patches, "CONVERGED_STEP", -1.0)  # every point, every step
+    every = atlas_patches._correct_run(*args)
     assert calls[1:-1] == [n] * 12
     calls.clear()
-    monkeypatch.setattr(atlas_fit, "CONVERGED_STEP", 1e-7)
-    stopped = atlas_fit._correct_run(*args)
+    monkeypatch.setattr(atlas_patches, "CONVERGED_STEP", 1e-7)
+    stopped = atlas_patches._correct_run(*args)
     assert sum(calls[1:-1]) < 0.6 * 12 * n  # fewer points stepped
     np.testing.assert_array_equal(stopped[0], every[0])
     np.testing.assert_allclose(stopped[1:3], every[1:3], rtol=0, atol=1e-6)
@@ -1199,13 +1197,13 @@ def test_point_nets_equal_each_points_own_gather(spans):
     for k in (1, 2, 5_000):  # 4 k < F = 6 patches: each point's own gather; else whole nets
         f = rng.integers(0, len(table), k)
         plain = np.stack([[points[i] for i in table[g].reshape(-1)] for g in f])
-        nets = atlas_fit.point_nets(table, points, f)
+        nets = atlas_patches.point_nets(table, points, f)
         assert nets.shape == (k, n2, 3)
         np.testing.assert_array_equal(nets, plain)
     u, v = rng.random(len(f)), rng.random(len(f))
-    bu, bv = atlas_fit.basis_matrix(u, 3, spans), atlas_fit.basis_matrix(v, 3, spans)
+    bu, bv = atlas_patches.basis_matrix(u, 3, spans), atlas_patches.basis_matrix(v, 3, spans)
     plain = np.matmul((bu[:, :, None] * bv[:, None, :]).reshape(len(f), 1, n2), plain)[:, 0]
-    (c,) = atlas_fit.evaluate_patches(table, points, 3, spans, f, u, v)
+    (c,) = atlas_patches.evaluate_patches(table, points, 3, spans, f, u, v)
     np.testing.assert_array_equal(c, plain)
 
 

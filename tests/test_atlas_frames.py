@@ -229,8 +229,9 @@ def test_the_fitters_rounding_in_frames_is_what_the_file_holds_and_nearer(monkey
     exactly its control points, and the working points lie nearer the surface drawn from
     them than from the file of the fit rounded to nearest in the same frames (the sphere
     at 8 bits, factor 2; distances to a fine drawing)."""
-    from fitter.fitting.atlas.fit import control_points, fed_back_atlas, grid_mesh, index_table
+    from fitter.fitting.atlas.fit import fed_back_atlas, grid_mesh
     from fitter.fitting.atlas.measure import point_mesh_distance
+    from fitter.fitting.atlas.patches import control_points, index_table
 
     layout, points, atlas, f, u, v = _sphere_rounding_case(monkeypatch)
     bits = 8
@@ -255,7 +256,8 @@ def test_the_pleat_guard_stops_after_its_passes_with_the_atlas_as_it_was(monkeyp
     (``pleated_patches`` made so): it runs :data:`PLEAT_PASSES` passes, not one per patch
     (the sphere's 120), and returns the atlas as it was (the writer's nearest codes)."""
     from fitter.fitting.atlas import fit as atlas_fit
-    from fitter.fitting.atlas.fit import PLEAT_PASSES, control_points, fed_back_atlas
+    from fitter.fitting.atlas.fit import PLEAT_PASSES, fed_back_atlas
+    from fitter.fitting.atlas.patches import control_points
 
     layout, points, atlas, f, u, v = _sphere_rounding_case(monkeypatch)
     assert len(atlas.quads) > 2 * PLEAT_PASSES

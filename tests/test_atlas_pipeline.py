@@ -338,8 +338,8 @@ def test_an_atlas_that_strays_from_the_surface_is_refused():
 
 def test_a_base_with_a_patch_collapsed_to_a_point_is_refused_by_name():
     from fitter.fitting.atlas import AtlasFitError, quad_layout
-    from fitter.fitting.atlas.fit import control_points, with_control_points
     from fitter.fitting.atlas.layout import bilinear_atlas
+    from fitter.fitting.atlas.patches import control_points, with_control_points
     from fitter.fitting.atlas.pipeline import check_base_follows_surface
     from fitter.fitting.atlas.surface import ScanSurface
 

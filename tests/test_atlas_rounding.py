@@ -11,14 +11,8 @@ import trimesh
 from client_py.atlas_format import read_atlas, write_atlas
 from fitter.fitting.atlas import fit as atlas_fit
 from fitter.fitting.atlas import fit_atlas
-from fitter.fitting.atlas.fit import (
-    base_resolution,
-    control_points,
-    coupling_colours,
-    fed_back_atlas,
-    grid_codes,
-    index_table,
-)
+from fitter.fitting.atlas.fit import base_resolution, coupling_colours, fed_back_atlas, grid_codes
+from fitter.fitting.atlas.patches import control_points, index_table
 from fitter.fitting.io.scan import make_scan, new_source
 
 
@@ -264,7 +258,8 @@ def test_pleated_patches_are_those_the_client_draws_folded():
     """A sphere's base with its interior control points shaken hard enough to fold some
     patches: the patches found folded are those whose drawn triangles (client_py's own
     tessellation, an independent cut of the cells) fold over each other."""
-    from fitter.fitting.atlas.fit import pleated_patches, with_control_points
+    from fitter.fitting.atlas.fit import pleated_patches
+    from fitter.fitting.atlas.patches import with_control_points
 
     fit = fit_atlas(_sphere_scan(), 60, working_count=3000, rounds=2)
     table = index_table(fit.atlas)

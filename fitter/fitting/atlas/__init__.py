@@ -9,9 +9,15 @@ The pipeline, one module per step:
 * :mod:`.layout` — quadric decimation (Garland & Heckbert 1997) preserving topology, each
   triangle split into three quads: the patch layout, with bilinear initial control points
   (a :class:`client_py.atlas.AtlasSurface`);
-* :mod:`.fit` — the base fit: foot points on the layout, one sparse least-squares solve for
-  every shared control point, Newton parameter correction across patch borders, and the
-  choice of the patch count (:func:`fit_atlas`).
+* :mod:`.patches` — the patches as arrays: batched evaluation, the design matrix, and the
+  foot points of points in space (the layout triangle, then Newton point inversion across
+  patch borders), shared by the fit, the detail and the colour;
+* :mod:`.fit` — the base fit: one sparse least-squares solve for every shared control point
+  over foot points corrected each round, the rounding of the codes, and the choice of the
+  patch count within the byte budget (:func:`fit_atlas`);
+* :mod:`.detail`, :mod:`.texture` — the detail and colour pyramids per patch;
+  :mod:`.measure` — every scan point against the drawn mesh; :mod:`.pipeline` — the stages
+  of an atlas bundle.
 """
 
 from .fit import AtlasFit, AtlasFitError, fit_atlas

@@ -13,10 +13,10 @@ and area-weighted samples of its triangles (Turk, *Generating random points in t
 Graphics Gems 1990), as many as ``SAMPLES_PER_CELL`` per knot cell of the finest level,
 together weighing ``TRIANGLE_SHARE`` of the vertices; for a cloud, its points. Each
 sample ``x`` gets a foot point ``(f, u, v)`` on the base by
-the base fit's own projection (:func:`.fit.assign_triangles`, :func:`.fit.triangle_to_quad`,
-then Newton point inversion with hops across borders, :func:`.fit.correct_parameters`), in
-chunks of ``CHUNK`` samples, and splits into its normal offset
-``s = (x - C) . n`` and squared tangential remainder ``t^2 = |x - C|^2 - s^2``
+the base fit's own projection (:func:`.patches.assign_triangles`,
+:func:`.patches.triangle_to_quad`, then Newton point inversion with hops across borders,
+:func:`.patches.correct_parameters`), in chunks of ``CHUNK`` samples, and splits into its
+normal offset ``s = (x - C) . n`` and squared tangential remainder ``t^2 = |x - C|^2 - s^2``
 (``fitter.fitting.detail.DetailSamples``).
 
 Levels. Level ``k`` is fitted to what levels ``0..k-1`` left OF THE DRAWN MESH, with the
@@ -217,16 +217,15 @@ from ..detail import (
 from ..io.scan import Scan
 from ..io.thin import thin_to_count
 from ..spd import spd_lu
-from .fit import (
-    AtlasFit,
+from .fit import AtlasFit, median_edge
+from .lattice import lattice_descent
+from .patches import (
     control_points,
     correct_parameters,
     evaluate_patches,
     index_table,
-    median_edge,
     neighbour_table,
 )
-from .lattice import lattice_descent
 from .threads import on_threads
 
 DEGREE = 2
@@ -479,7 +478,7 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     with their converged ``fit.patch, u, v``): among the ``candidates`` nearest, the nearest
     whose base normal agrees with the sample's (``n . n_x > 0.5``, so a sample on the front
     of a thin wing does not start on its back; the nearest when none agrees). Then
-    ``NEWTON_ITERATIONS`` Gauss-Newton steps with hops (:func:`.fit.correct_parameters`).
+    ``NEWTON_ITERATIONS`` Gauss-Newton steps with hops (:func:`.patches.correct_parameters`).
     The base's point and unit normal at each foot point, evaluated for the split, are kept
     (``AtlasSamples.foot``, ``normal``: :meth:`DrawnModel.feet` needs no evaluation of its
     own, 0.8-1.7 CPU-s of the 15-scan Happy Buddha's 834,718 samples).

@@ -44,8 +44,8 @@ from ..texture import (
     texel_levels,
     uv_picture,
 )
-from .fit import control_points, evaluate_patches, index_table
 from .measure import DrawnMesh, closest_points_on_mesh
+from .patches import control_points, evaluate_patches, index_table
 
 TEXELS_PER_PACK = 512 * 512  # an image grows by whole groups until it passes this
 CHUNK_TEXELS = 200_000  # texels projected at once (memory ~ 1 KB each)
