@@ -1,9 +1,11 @@
-"""``make demo``: fit the built-in example and serve the viewer.
+"""``make demo``: fit the built-in examples and serve the viewer.
 
-Generates the synthetic example relief scan (``fitter.fitting.examples.relief_scan``,
-labelled as generated in its title), writes it as a PLY file like a scanner's,
-fits it with ``tessera fit`` defaults into ``demo-out/collection/``, prints the
-fit summary and serves the collection at the printed URL.
+Generates the two synthetic examples of ``fitter.fitting.examples`` (labelled as
+generated in their titles): the carved relief (``relief_scan``, a point cloud, fitted
+as one patch) and the fluted vase (``vase_mesh``, a closed mesh, fitted as an atlas of
+patches over the whole object), writes each as a PLY file like a scanner's, fits them
+with ``tessera fit`` defaults into ``demo-out/collection/``, prints the fit summaries and
+serves the collection at the printed URL.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 
 from client_py.ply import write_points_ply
 
-from .fitting.examples import relief_scan
+from .fitting.examples import relief_scan, vase_mesh
 
 
 def write_scan_ply(path: Path, points: np.ndarray) -> None:
@@ -28,8 +30,16 @@ def write_scan_ply(path: Path, points: np.ndarray) -> None:
     Path(path).write_bytes(data)
 
 
+def write_mesh_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """A binary triangle-mesh PLY (``x y z`` and ``vertex_indices``), as a scanner's
+    reconstruction software writes one (by trimesh)."""
+    import trimesh
+
+    trimesh.Trimesh(vertices, faces, process=False).export(path, file_type="ply")
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Fit the built-in example and serve it.")
+    parser = argparse.ArgumentParser(description="Fit the built-in examples and serve them.")
     parser.add_argument("--out", default="demo-out", help="working folder (default demo-out)")
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", default="8000")
@@ -45,6 +55,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"generated the example scan {scan} (synthetic carved relief, 80,000 points)")
     status = tessera(["fit", str(scan), "-o", str(out / "collection" / "example-relief"),
                       "--title", "Example relief (generated)"])
+    if status:
+        return status
+    vase = out / "scans" / "example-vase.ply"
+    vertices, faces = vase_mesh()
+    write_mesh_ply(vase, vertices, faces)
+    print(f"generated the example scan {vase} (synthetic fluted vase, a closed mesh of "
+          f"{len(faces):,} triangles)")
+    status = tessera(["fit", str(vase), "-o", str(out / "collection" / "example-vase"),
+                      "--units", "mm", "--title", "Example vase (generated)"])
     if status or args.no_serve:
         return status
     return tessera(["serve", str(out / "collection"), "--host", args.host, "--port", args.port])
