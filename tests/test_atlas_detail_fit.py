@@ -1061,3 +1061,14 @@ def test_a_level_solved_in_one_batch_per_core_gives_the_packs_of_one_batch(monke
         files[cores] = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4).files
     assert calls == {1: 2, 3: 6}
     assert files[1] == files[3] and files[1]
+
+
+def test_the_detail_cross_product_is_numpys_to_the_bit():
+    from fitter.fitting.atlas.detail import _cross
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(1000, 3)) * 1e3, rng.normal(size=(1000, 3))
+    for x, y in ((a, b), (a[:, None, :], b[None, :5, :]), (a[0], b), (a.astype(np.int64), b)):
+        expected = np.cross(x, y)
+        got = _cross(x, y)
+        assert got.dtype == expected.dtype and np.array_equal(got, expected)

@@ -530,6 +530,81 @@ def test_edge_flips_keep_a_decimated_layout_an_oriented_manifold_of_its_topology
     assert after[0].sum() < before[0].sum()
 
 
+def _wavy_torus_surface(major: int = 96, minor: int = 48):
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.35, major_sections=major,
+                                   minor_sections=minor)
+    v = torus.vertices
+    torus.vertices = v * (1 + 0.06 * np.sin(7 * v[:, :1]) * np.cos(5 * v[:, 1:2]))
+    return scan_surface(_mesh_scan(torus.vertices, torus.faces, "wavy torus"))
+
+
+def test_a_large_surface_is_reduced_fast_first_and_keeps_its_topology(monkeypatch):
+    """Above PRE_REDUCE_FACES (lowered here) MeshLab decimates the fast pass's reduction:
+    the same genus, the target's triangle count, and as near the surface as MeshLab alone."""
+    from fitter.fitting.atlas import layout as atlas_layout
+    from fitter.fitting.atlas.measure import closest_points_on_mesh
+
+    surface = _wavy_torus_surface()  # 9,216 triangles
+    alone = decimate(surface, 200)
+    monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACES", 1_000)
+    monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACTOR", 2)
+    pre_vertices, pre_faces = atlas_layout._pre_reduced(surface, 200)
+    assert len(pre_faces) == 1_000  # max(1,000, 2 x 200)
+    assert euler_characteristics(pre_vertices, pre_faces) == [0]
+    vertices, triangles = decimate(surface, 200)
+    assert abs(len(triangles) - 200) <= 2
+    problems = manifold_problems(triangles)
+    assert problems["nonmanifold_edges"] == problems["misoriented_edges"] == 0
+    assert euler_characteristics(vertices, triangles) == [0]
+    probe = surface.vertices[::7]
+
+    def rms(mesh):
+        return float(np.sqrt(np.mean(closest_points_on_mesh(probe, *mesh)[0] ** 2)))
+
+    assert rms((vertices, triangles)) < 1.5 * rms(alone)
+
+
+def test_euler_characteristics_of_all_pieces_at_once_are_each_pieces_own():
+    from fitter.fitting.atlas.surface import face_pieces
+
+    def piece_by_piece(vertices, triangles):  # V - E + F of each piece on its own
+        count, labels = face_pieces(triangles, len(vertices))
+        out = []
+        for piece in range(count):
+            tri = triangles[labels == piece]
+            edges = {tuple(sorted(e)) for t in tri.tolist()
+                     for e in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
+            out.append(len(set(tri.reshape(-1).tolist())) - len(edges) + len(tri))
+        return sorted(out)
+
+    mesh = trimesh.util.concatenate([trimesh.creation.torus(1.0, 0.3),
+                                     trimesh.creation.icosphere(2), trimesh.creation.box()])
+    holed = mesh.faces[np.random.default_rng(0).permutation(len(mesh.faces))[:-40]]
+    for faces in (mesh.faces, holed):
+        assert euler_characteristics(mesh.vertices, faces) == piece_by_piece(
+            mesh.vertices, np.asarray(faces))
+    assert euler_characteristics(mesh.vertices, mesh.faces) == [0, 2, 2]
+    assert euler_characteristics(mesh.vertices, mesh.faces[:0]) == []
+
+
+def test_a_fast_reduction_that_changes_the_topology_is_not_used(monkeypatch):
+    import fast_simplification
+
+    from fitter.fitting.atlas import layout as atlas_layout
+
+    surface = _wavy_torus_surface()
+    monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACES", 1_000)
+    monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACTOR", 2)
+    sphere = trimesh.creation.icosphere(3)  # genus 0 where the torus has genus 1
+    monkeypatch.setattr(fast_simplification, "simplify",
+                        lambda *a, **k: (sphere.vertices, sphere.faces))
+    vertices, faces = atlas_layout._pre_reduced(surface, 200)
+    assert vertices is surface.vertices and faces is surface.faces
+    # and below the threshold the surface is MeshLab's input as it is
+    monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACES", 5_000)
+    assert atlas_layout._pre_reduced(surface, 200)[1] is surface.faces
+
+
 def test_reverse_rows_pull_only_far_samples_straight_onto_the_surface():
     from fitter.fitting.atlas.fit import REVERSE_SAMPLES, reverse_rows
 

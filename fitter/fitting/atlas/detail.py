@@ -501,7 +501,7 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
     seed_f = new_of_old[np.asarray(fit.patch, np.int64)]
     seed_u, seed_v = np.asarray(fit.u, float), np.asarray(fit.v, float)
     _, su, sv = evaluate_patches(table, cps, d, s, seed_f, seed_u, seed_v, derivatives=True)
-    seed_n = np.cross(su, sv)
+    seed_n = _cross(su, sv)
     seed_n /= np.maximum(np.linalg.norm(seed_n, axis=1, keepdims=True), 1e-300)
     tree = cKDTree(fit.points)
     k = min(candidates, len(fit.points))
@@ -520,7 +520,7 @@ def project_samples(atlas: AtlasSurface, fit: AtlasFit, points: np.ndarray,
                                            iterations=NEWTON_ITERATIONS)
         c, cu, cv = evaluate_patches(table, cps, d, s, f, u, v, derivatives=True)
         off, t2 = normal_split(x, c, cu, cv)
-        n = np.cross(cu, cv)
+        n = _cross(cu, cv)
         facing = np.einsum("kc,kc->k", n, nx) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
         return f, u, v, off, t2, dist, facing, c, _unit(n)
 
@@ -617,6 +617,17 @@ def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-300)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` of 3-vectors along the last axis: ``np.cross``'s numbers to the bit
+    (``a_y b_z - a_z b_y``, ...), in a sixth to an eighth of its time on millions of
+    rows (the detail of a 2.24 M-triangle scan spent 8.5 s in ``np.cross``)."""
+    a, b = np.asarray(a), np.asarray(b)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.subtract(a[..., i] * b[..., j], a[..., j] * b[..., i], out=out[..., k])
+    return out
+
+
 def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.ndarray,
                 b: np.ndarray, chunk: int = CHUNK) -> tuple[np.ndarray, np.ndarray]:
     """The base position ``C_f(node)`` and the displacement direction ``d`` the client
@@ -640,7 +651,7 @@ def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.n
         node_c[lo:hi], cu, cv = evaluate_patches(table, cps, d, spans, patch[lo:hi],
                                                  a[lo:hi] / (r - 1), b[lo:hi] / (r - 1),
                                                  derivatives=True)
-        node_d[lo:hi] = _unit(np.cross(cu, cv))
+        node_d[lo:hi] = _unit(_cross(cu, cv))
 
     on_threads(frames, len(patch), chunk)
     # border nodes' directions: the sum of every sampling patch's unit normal per slot
@@ -660,7 +671,7 @@ def node_frames(atlas: AtlasSurface, resolution: int, patch: np.ndarray, a: np.n
     if not known.all():
         _, cu, cv = evaluate_patches(table, cps, d, spans, rf[~known], ra[~known] / (r - 1),
                                      rb[~known] / (r - 1), derivatives=True)
-        normal[~known] = _unit(np.cross(cu, cv))
+        normal[~known] = _unit(_cross(cu, cv))
     total = np.zeros((int(G.max()) + 1, 3))
     np.add.at(total, G[rf, ra, rb], normal)
     total = _unit(total)
@@ -731,7 +742,7 @@ class DrawnModel:
             foot[lo:hi], cu, cv = evaluate_patches(table, cps, atlas.degree, atlas.spans,
                                                    samples.patch[lo:hi], samples.u[lo:hi],
                                                    samples.v[lo:hi], derivatives=True)
-            normal[lo:hi] = _unit(np.cross(cu, cv))
+            normal[lo:hi] = _unit(_cross(cu, cv))
 
         on_threads(one, len(samples.u), chunk)
         return foot, normal
@@ -887,10 +898,10 @@ def fold_shrink(before: np.ndarray, step: np.ndarray, keep: float) -> np.ndarray
     so one exists. Returns ``(T,)``."""
     E1, E2 = before[:, 1] - before[:, 0], before[:, 2] - before[:, 0]
     e1, e2 = step[:, 1] - step[:, 0], step[:, 2] - step[:, 0]
-    n0 = np.cross(E1, E2)
+    n0 = _cross(E1, E2)
     alpha = np.einsum("tc,tc->t", n0, n0)
-    beta = np.einsum("tc,tc->t", np.cross(E1, e2) + np.cross(e1, E2), n0)
-    gamma = np.einsum("tc,tc->t", np.cross(e1, e2), n0)
+    beta = np.einsum("tc,tc->t", _cross(E1, e2) + _cross(e1, E2), n0)
+    gamma = np.einsum("tc,tc->t", _cross(e1, e2), n0)
     c0 = (1.0 - keep) * alpha  # g(s) - keep α = c0 + β s + γ s²
     s = np.ones(len(alpha))
     low = (c0 + beta + gamma < 0) & (alpha > 0)
@@ -965,12 +976,13 @@ def fold_node_rows(nodes: LevelNodes, coefficients: np.ndarray, level: int, span
     f, u, v, c, d = nodes.patch, nodes.u, nodes.v, nodes.position, nodes.direction
     own = evaluate_at_nodes(coefficients, level, spans, f, u, v, r)
     tri = grid_triangles(F, r)
-    base_area = np.cross(c[tri[:, 1]] - c[tri[:, 0]], c[tri[:, 2]] - c[tri[:, 0]])
-    patch_area = np.zeros((F, 3))
-    np.add.at(patch_area, f[tri[:, 0]], base_area)
+    base_area = _cross(c[tri[:, 1]] - c[tri[:, 0]], c[tri[:, 2]] - c[tri[:, 0]])
+    owner = f[tri[:, 0]]  # bincount: np.add.at's sums, in the same order, 5 times faster
+    patch_area = np.column_stack([np.bincount(owner, base_area[:, k], minlength=F)
+                                  for k in range(3)])
     x = c + nodes.before[:, None] * d
     y = x + own[:, None] * d
-    drawn_area = np.cross(y[tri[:, 1]] - y[tri[:, 0]], y[tri[:, 2]] - y[tri[:, 0]])
+    drawn_area = _cross(y[tri[:, 1]] - y[tri[:, 0]], y[tri[:, 2]] - y[tri[:, 0]])
     kept = np.einsum("tc,tc->t", drawn_area, base_area)
     turned = ((kept < keep * np.einsum("tc,tc->t", base_area, base_area))
               & (np.einsum("tc,tc->t", base_area, patch_area[f[tri[:, 0]]]) > 0))
