@@ -587,7 +587,7 @@ def test_euler_characteristics_of_all_pieces_at_once_are_each_pieces_own():
     assert euler_characteristics(mesh.vertices, mesh.faces[:0]) == []
 
 
-def test_a_fast_reduction_that_changes_the_topology_is_not_used(monkeypatch):
+def test_a_fast_reduction_that_changes_the_topology_or_fails_is_not_used(monkeypatch):
     import fast_simplification
 
     from fitter.fitting.atlas import layout as atlas_layout
@@ -600,6 +600,12 @@ def test_a_fast_reduction_that_changes_the_topology_is_not_used(monkeypatch):
                         lambda *a, **k: (sphere.vertices, sphere.faces))
     vertices, faces = atlas_layout._pre_reduced(surface, 200)
     assert vertices is surface.vertices and faces is surface.faces
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("the fast pass gave up")
+
+    monkeypatch.setattr(fast_simplification, "simplify", fails)  # nor one that fails
+    assert atlas_layout._pre_reduced(surface, 200)[1] is surface.faces
     # and below the threshold the surface is MeshLab's input as it is
     monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACES", 5_000)
     assert atlas_layout._pre_reduced(surface, 200)[1] is surface.faces

@@ -165,9 +165,12 @@ def _pre_reduced(surface: ScanSurface, target_triangles: int
         return surface.vertices, faces
     import fast_simplification
 
-    vertices, reduced = fast_simplification.simplify(
-        np.ascontiguousarray(surface.vertices, np.float64),
-        np.ascontiguousarray(faces, np.int64), target_count=goal)
+    try:
+        vertices, reduced = fast_simplification.simplify(
+            np.ascontiguousarray(surface.vertices, np.float64),
+            np.ascontiguousarray(faces, np.int64), target_count=goal)
+    except (ValueError, RuntimeError, MemoryError):  # a shortcut only: MeshLab takes it all
+        return surface.vertices, faces
     vertices, reduced = np.asarray(vertices, np.float64), np.asarray(reduced, np.int64)
     if len(reduced) < 4 or not _same_topology(surface, vertices, reduced):
         return surface.vertices, faces
