@@ -155,10 +155,10 @@ def _pre_reduced(surface: ScanSurface, target_triangles: int
     MeshLab's collapse costs about 30 µs a face removed here: a scan mesh of 2.24 M
     triangles (the example vase of 1.12 M vertices) took 65-73 s to reach the 20,000 of
     ``fit.PREDECIMATED_TRIANGLES``; reduced first to 200,000 in 2.8 s, MeshLab took 5.1 s
-    more (docs/benchmarks.md, session 22). Only the first tenth of the collapses is left
-    to the fast pass's cruder choice, and MeshLab's topology-checked decimation does the
-    rest, as for any smaller surface; its border check (:func:`decimate_on_border`) is
-    still against the surface itself."""
+    more (docs/benchmarks.md, session 22). The fast pass makes the first nine tenths of
+    the collapses, of edges far below the layout's scale; MeshLab's topology-checked
+    decimation makes the rest, as for any smaller surface, and the border check
+    (:func:`decimate_on_border`) is still against the surface itself."""
     faces = surface.faces
     goal = max(PRE_REDUCE_FACES, PRE_REDUCE_FACTOR * target_triangles)
     if len(faces) <= 2 * goal:
