@@ -17,6 +17,7 @@ from client_py.ply import write_points_ply
 from fitter.fitting.error import deviations, error_stats
 from fitter.fitting.examples import relief_scan
 from fitter.fitting.io import load_scan, voxel_thin_indices
+from fitter.fitting.io.scan import make_scan
 from fitter.fitting.io.ply import open_ply_stream
 from fitter.fitting.io.points import PointStream
 from fitter.fitting.io.thin import VoxelGrid, VoxelSums, unique_inverse, voxel_size_for
@@ -199,3 +200,108 @@ def test_a_dask_cluster_of_two_workers_writes_the_same_bundle(tmp_path, small_ou
             assert a[name] == b[name], name
     # the manifest differs only in the clocks (stage timings, the thinning's seconds)
     assert _without_clocks(a["manifest.json"]) == _without_clocks(b["manifest.json"])
+
+
+def _bumpy_sphere(subdivisions: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """A closed, genus-0 mesh with relief: an icosphere of radius 50 whose radius swells
+    by up to 4 along three waves (40,962 vertices at 6 subdivisions)."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    v = np.asarray(sphere.vertices)
+    r = 50.0 + 4.0 * np.sin(5 * v[:, 0]) * np.cos(4 * v[:, 1]) + 2.0 * v[:, 2] ** 2
+    return v * r[:, None], np.asarray(sphere.faces, np.int64)
+
+
+def _drawn_distances(folder: Path, manifest: dict, points: np.ndarray, level: int) -> np.ndarray:
+    """Every point's distance to the mesh client_py draws of the bundle at ``level``."""
+    from client_py.bundle import tessellate_bundle
+    from fitter.fitting.atlas.measure import point_mesh_distance
+
+    mesh = tessellate_bundle(manifest, lambda name: (folder / name).read_bytes(), level,
+                             kernel="numpy")
+    return point_mesh_distance(points, np.frombuffer(mesh.positions, np.float32).reshape(-1, 3),
+                               np.frombuffer(mesh.indices, np.uintc).reshape(-1, 3))
+
+
+def _check_every_point(folder: Path, manifest: dict, points: np.ndarray) -> None:
+    """The manifest's figures are those of EVERY original point against the drawn levels,
+    not of the working set the atlas was fitted to."""
+    stats = manifest["stats_all_points"]
+    assert manifest["stats"] == stats and stats["points"] == len(points)
+    assert manifest["provenance"]["points"] == len(points)
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
+    assert stats["bbox_diagonal"] == pytest.approx(diagonal, rel=1e-12)
+    levels = manifest["tiles"]["detail"]["levels"]
+    for level, entry in ((-1, manifest["tiles"]["detail"]["base"]), (len(levels) - 1,
+                                                                     levels[-1])):
+        d = _drawn_distances(folder, manifest, points, level)
+        assert entry["rms"] == pytest.approx(np.sqrt(np.mean(d ** 2)), rel=1e-4)
+        assert entry["max"] == pytest.approx(d.max(), rel=1e-4)
+    assert stats["rms"] == pytest.approx(np.sqrt(np.mean(d ** 2)), rel=1e-4)
+    coverage = manifest["coverage"]
+    assert coverage["points"] == len(points)
+    assert coverage["within_0.5%"] == pytest.approx(np.mean(d <= 0.005 * diagonal), abs=1e-4)
+    assert coverage["uncovered_points"] == np.sum(d > 0.01 * diagonal)
+
+
+def test_a_large_closed_mesh_is_fitted_as_an_atlas_of_its_working_mesh(tmp_path,
+                                                                       small_out_of_core):
+    """A mesh over ``STREAM_ABOVE`` vertices is an atlas (it was a single height field, with
+    ``--patches`` ignored): fitted to the mesh reduced to about ``WORKING_SET_POINTS``
+    vertices, its figures of every original vertex."""
+    vertices, faces = _bumpy_sphere()
+    colours = np.clip(vertices[:, :3] * 2 + 128, 0, 255).astype(np.uint8)
+    scan = make_scan("bumpy", vertices, faces=faces, colors=colours, units="mm",
+                     source={"name": "bumpy"})
+    working = stream.working_mesh(scan)
+    assert 7_000 <= working.n_points <= 9_000 and len(working.faces) <= 16_000
+    record = working.source["working_set"]
+    assert record["points_before"] == len(vertices) and record["points_after"] == \
+        working.n_points and record["triangles_before"] == len(faces)
+    # a working vertex's colour is its nearest original vertex's
+    from scipy.spatial import cKDTree
+    _, nearest = cKDTree(vertices).query(working.points[:50])
+    np.testing.assert_array_equal(working.colors[:50], colours[nearest])
+    # within the reduction's error of the surface (far below the relief's 4 mm)
+    from fitter.fitting.atlas.measure import point_mesh_distance
+    assert point_mesh_distance(working.points, vertices, faces).max() < 0.5
+
+    bundle = fit_scan(scan, tmp_path / "b", FitOptions(patches=60, texture=False))
+    m = bundle.manifest
+    assert m["format_version"] == 2 and m["base"]["kind"] == "atlas"
+    assert m["base"]["border_edges"] == 0 and "atlas_refused" not in m
+    assert m["provenance"]["working_set"]["points_after"] == working.n_points
+    assert m["fit"]["surface"] == "mesh"
+    _check_every_point(bundle.path, m, vertices)
+    assert m["coverage"]["uncovered_points"] == 0 and m["stats"]["rms_relative"] < 0.002
+
+
+def test_a_large_closed_cloud_is_fitted_as_an_atlas_of_its_working_set(tmp_path,
+                                                                       small_out_of_core):
+    """A point cloud of a closed object over ``STREAM_ABOVE`` points (a binary PLY, streamed
+    from its memory map) is an atlas of its voxel-thinned working set; every point scored."""
+    import trimesh
+
+    vertices, faces = _bumpy_sphere(5)
+    points, _ = trimesh.sample.sample_surface(trimesh.Trimesh(vertices, faces), 40_000, seed=2)
+    (tmp_path / "cloud.ply").write_bytes(write_points_ply(points.astype(np.float32)))
+    points = points.astype(np.float32).astype(np.float64)
+    bundle = fit_scan(tmp_path / "cloud.ply", tmp_path / "b", FitOptions(patches=60))
+    m = bundle.manifest
+    assert m["base"]["kind"] == "atlas" and m["fit"]["surface"] != "mesh"
+    assert m["provenance"]["working_set"]["points_before"] == len(points)
+    assert m["fit"]["working_points"] < 10_000
+    _check_every_point(bundle.path, m, points)
+    assert m["coverage"]["within_0.5%"] > 0.99
+
+
+def test_a_large_height_field_stays_one_patch_and_one_patch_can_be_asked_for(tmp_path,
+                                                                            small_out_of_core):
+    vertices, faces = _bumpy_sphere()
+    scan = make_scan("bumpy", vertices, faces=faces, units="mm", source={"name": "bumpy"})
+    m = fit_scan(scan, tmp_path / "one", FitOptions(patches=1, **OPTIONS)).manifest
+    assert m["base"].get("kind") != "atlas" and m["provenance"]["points"] == len(vertices)
+    points = _relief_ply(tmp_path / "cloud.ply")
+    m = fit_scan(tmp_path / "cloud.ply", tmp_path / "relief", FitOptions(**OPTIONS)).manifest
+    assert m["base"].get("kind") != "atlas" and m["provenance"]["points"] == len(points)

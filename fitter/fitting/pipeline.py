@@ -184,16 +184,18 @@ def _load(scan: object, limits: InputLimits | None, blocks: LocalBlocks | DaskBl
           stages: _Stages) -> tuple[Scan, LargeScan | None]:
     """The scan to fit and, for one over ``fitter.fitting.stream.STREAM_ABOVE`` points, its
     out-of-core record (the scan is then the voxel-thinned working set): a binary PLY is
-    streamed from its memory map, any other large input loaded and then streamed."""
+    streamed from its memory map, any other large input loaded and then streamed (a mesh
+    loaded so is kept whole: ``LargeScan.whole``, for an atlas's working mesh)."""
     opened = open_stream(Path(scan), limits) if isinstance(scan, str | os.PathLike) else None
+    whole = None
     if opened is None:
         scan = _as_scan(scan, limits)
         if not fits_out_of_core(scan.n_points):
             return scan, None
-        opened = stream_of_scan(scan)
+        opened, whole = stream_of_scan(scan), scan
     large = load_working_set(*opened, blocks=blocks,
                              progress=lambda f, p: stages.report(f, p))
-    return large.working, large
+    return large.working, replace(large, whole=whole)
 
 
 def _as_scan(scan: object, limits: InputLimits | None = None) -> Scan:
@@ -670,7 +672,9 @@ def fit_scan(scan: object, out_dir: str | os.PathLike, options: FitOptions | Non
     (``fitter.fitting.memory``). A scan over ``fitter.fitting.stream.STREAM_ABOVE`` points
     is fitted out of core (``fitter.fitting.stream``), its block passes run by ``blocks``
     (default: threads of this process; ``DaskBlocks(client)`` for a Dask cluster; the
-    bundle is the same bytes either way).
+    bundle is the same bytes either way); an atlas of such a scan is fitted to its working
+    set (``LargeScan.atlas_scan``) and measured on every point
+    (``fitter.fitting.atlas.pipeline.measure_every_point``).
 
     Raises
     ------
@@ -695,12 +699,17 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
     scan, large = _load(scan, limits, blocks, stages)
     if options.units:  # the option overrides what the file says (fitter.fitting.io)
         scan = replace(scan, units=options.units)
+        if large is not None:
+            large = replace(large, working=scan, units=options.units, whole=None
+                            if large.whole is None else replace(large.whole, units=options.units))
     atlas_refused = None
-    if large is None and wants_atlas(scan, options.patches):
+    whole = scan if large is None or large.whole is None else large.whole
+    if wants_atlas(whole, options.patches):
         _check_scan(scan, options.projection)  # degenerate scans are refused alike
         try:
-            return Bundle(out_dir, fit_atlas_bundle(scan, out_dir, options, stages,
-                                                    object_fields))
+            fitted = scan if large is None else large.atlas_scan()
+            return Bundle(out_dir, fit_atlas_bundle(fitted, out_dir, options, stages,
+                                                    object_fields, large))
         except (SurfaceError, AtlasLayoutError, AtlasFitError) as exc:
             if options.patches is not None:  # asked for an atlas: say why there is none
                 raise

@@ -47,6 +47,7 @@ from ..error import (
 )
 from ..io import Scan
 from ..options import FitOptions
+from ..stream import LargeScan
 from .detail import fit_atlas_detail
 from .fit import (
     DEFAULT_BYTE_BUDGET,
@@ -255,6 +256,57 @@ def measure_levels(atlas, detail, points: np.ndarray
     return {top: d, **distances}, finest, triangle, closest
 
 
+def coverage_of(d: np.ndarray, diagonal: float, far_box: list | None = None) -> dict:
+    """The manifest's ``coverage`` of the distances ``d (N,)`` of every scan point to the
+    finest drawn level: the share within 0.5 % of the diagonal, the points farther than
+    :data:`UNCOVERED` of it (not represented) and their box ``far_box``."""
+    far = np.abs(d) > UNCOVERED * diagonal
+    return {"points": int(len(d)), "within_0.5%": float(np.mean(np.abs(d) <= 0.005 * diagonal)),
+            "uncovered_points": int(far.sum()), "uncovered_share": float(np.mean(far)),
+            "uncovered_bbox": far_box if far.any() else None}
+
+
+def measure_every_point(atlas, detail, large: LargeScan, units: str,
+                        progress: Callable[[float], None]) -> tuple[dict[int, dict], dict]:
+    """A scan fitted out of core (``fitter.fitting.stream.LargeScan``: its atlas fitted to
+    the working set): EVERY original point's distance to the welded mesh drawn at each level,
+    as :func:`measure_levels` measures the working set, streamed in blocks of
+    ``stream.BLOCK_POINTS``. Returns ``({level: error_stats}, coverage)`` over all ``N``
+    points (:func:`coverage_of`), the diagonal that of their box.
+
+    Memory: one level's float32 distances (4 bytes a point) and a block's temporaries
+    beside the drawn mesh; each point is read once for its box and once per level."""
+    from ..stream import BLOCK_POINTS
+
+    stream = large.stream
+    spans = stream.blocks(BLOCK_POINTS)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for start, stop in spans:
+        points, _ = stream.read(start, stop)
+        lo, hi = np.minimum(lo, points.min(axis=0)), np.maximum(hi, points.max(axis=0))
+    diagonal = float(np.linalg.norm(hi - lo))
+    top = len(detail.levels) - 1
+    levels = list(range(top, -2, -1))  # the finest first: its coverage, then the others
+    errors, coverage = {}, {}
+    for i, k in enumerate(levels):
+        mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k), detail.detail_up_to(k))
+        d = np.empty(stream.count, np.float32)
+        far_lo, far_hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for j, (start, stop) in enumerate(spans):
+            points, _ = stream.read(start, stop)
+            d[start:stop] = signed_point_mesh_distance(points, mesh.vertices, mesh.faces)[0]
+            far = np.abs(d[start:stop]) > UNCOVERED * diagonal
+            if k == top and far.any():
+                far_lo = np.minimum(far_lo, points[far].min(axis=0))
+                far_hi = np.maximum(far_hi, points[far].max(axis=0))
+            progress((i + (j + 1) / len(spans)) / len(levels))
+        del mesh
+        errors[k] = error_stats(d, diagonal, units)
+        if k == top:
+            coverage = coverage_of(d, diagonal, [far_lo.tolist(), far_hi.tolist()])
+    return errors, coverage
+
+
 def restate_level_errors(tree: dict, errors: dict) -> None:
     """Put each level's every-point ``rms``/``max`` (``errors``: ``{level: error_stats}`` of
     :func:`measure_levels`' distances) in the
@@ -432,13 +484,22 @@ def _atlas_colour(scan: Scan, detail, options: FitOptions, stages, drawn: DrawnM
 
 
 def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
-                     object_fields: Callable[[Scan, FitOptions], dict]) -> dict:
+                     object_fields: Callable[[Scan, FitOptions], dict],
+                     large: LargeScan | None = None) -> dict:
     """Fit ``scan`` as an atlas and write the bundle ``out_dir``; returns its manifest.
 
     ``stages`` is ``fit_scan``'s stage timer (``start(name)``, ``report(fraction)``,
     ``stop()``, ``timings``); ``object_fields(scan, options)`` gives the manifest's fields
     of the object itself (title, description, units, provenance, options, view), shared
     with the single patch's manifest.
+
+    ``large``: a scan over ``fitter.fitting.stream.STREAM_ABOVE`` points, of which ``scan``
+    is the working set (``LargeScan.atlas_scan``: a mesh reduced, a cloud thinned). The
+    atlas is fitted to ``scan``; ``stats``, ``stats_all_points``, ``coverage`` and the
+    levels' figures are then of every original point (:func:`measure_every_point`), and
+    ``error.ply``, ``error.png`` and the error raster show the working set (as the single
+    patch's out-of-core bundle: a picture of 10^8 points would be 1.6 GB of PLY);
+    ``provenance`` gives both counts and how the working set was made.
 
     Raises
     ------
@@ -462,18 +523,30 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     points = np.asarray(scan.points, dtype=float)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     distances, drawn, triangle, closest = measure_levels(atlas, detail, points)
-    d = distances[len(detail.levels) - 1]
-    stats = error_stats(d, diagonal, scan.units)
+    top = len(detail.levels) - 1
+    d = distances[top]
     raster, raster_data = atlas_error_raster(
         *foot_parameters(drawn.vertices, drawn.faces, drawn.patches, drawn.uvs, triangle,
-                         closest), d, len(atlas.quads), stats["max"])
+                         closest), d, len(atlas.quads), float(np.abs(d).max()))
+    if large is None:
+        errors = {k: error_stats(dk, diagonal, scan.units) for k, dk in distances.items()}
+        far = np.abs(d) > UNCOVERED * diagonal
+        coverage = coverage_of(d, diagonal, [points[far].min(axis=0).tolist(),
+                                             points[far].max(axis=0).tolist()]
+                               if far.any() else None)
+    else:
+        errors, coverage = measure_every_point(atlas, detail, large, scan.units,
+                                               stages.report)
+    stats = errors[top]
     if detail.levels:
-        restate_level_errors(detail.tree, {k: error_stats(dk, diagonal, scan.units)
-                                           for k, dk in distances.items()})
-    far = np.abs(d) > UNCOVERED * diagonal
+        restate_level_errors(detail.tree, errors)
     texture = _atlas_colour(scan, detail, options, stages, drawn, triangle, closest)
     del drawn, triangle, closest
     fields = object_fields(scan, options)
+    if large is not None:
+        fields["provenance"].update(
+            points=large.n_points, working_set=scan.source.get("working_set",
+                                                               large.source["thinning"]))
     stages.start("report")
     with write_bundle(out_dir) as folder:
         (folder / "base.tsa").write_bytes(data)
@@ -486,7 +559,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
         write_atlas_error_png(folder / "error.png", points, d, np.asarray(view["front"]),
                               np.asarray(view["up"]), scan.units,
                               f"{fields['title']}: RMS {stats['rms']:.4g} {scan.units} over "
-                              f"all {len(points):,} points, max {stats['max']:.4g}")
+                              f"all {stats['points']:,} points, max {stats['max']:.4g}")
         files = {name: (folder / name).stat().st_size
                  for name in ("base.tsa", RASTER_FILE, "error.png", "error.ply", *detail.files,
                               *(texture.files if texture else ()))}
@@ -505,13 +578,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
             "stats": stats,
             "stats_all_points": stats,
             "error_raster": raster,
-            "coverage": {"points": int(len(points)),
-                         "within_0.5%": float(np.mean(np.abs(d) <= 0.005 * diagonal)),
-                         "uncovered_points": int(far.sum()),
-                         "uncovered_share": float(np.mean(far)),
-                         "uncovered_bbox": ([points[far].min(axis=0).tolist(),
-                                             points[far].max(axis=0).tolist()]
-                                            if far.any() else None)},
+            "coverage": coverage,
             "fit": rounded_floats({"triangles": fit.triangles, "patches": fit.patches,
                     "surface": surface.origin, "surface_pieces": surface.pieces,
                     "layout": layout_record, "outliers_not_fitted": outliers,
