@@ -29,13 +29,15 @@ benchmark (issue 16, :func:`run_large`) instead: generated float32 binary PLYs o
 sizes, each fitted with default options in a subprocess under ``/usr/bin/time -v`` (wall,
 CPU, peak resident memory, stage times, load average), the same cloud written as E57
 (``--e57-points``: same ``base.tsp`` bytes? time against the PLY's) and fitted on
-LocalClusters of 1 and 2 workers (``--cluster-points``); writes
-``bench/results/fit_large.json``.
+LocalClusters of 1 and 2 workers (``--cluster-points``); with ``--vase-vertices 4.5e6``
+also (alone, without ``--points``) the example vase as a closed mesh of that size, an atlas
+of its working mesh with every vertex measured; writes ``bench/results/fit_large.json``.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import resource
 import shutil
@@ -328,7 +330,10 @@ print(json.dumps({"wall_s": wall, "timings": m["timings"], "rms": m["stats"]["rm
                   "points": m["provenance"]["points"],
                   "working_set": m["provenance"].get("working_set"),
                   "detail_levels": len(m["tiles"]["detail"]["levels"]),
-                  "base_bytes": m["files"]["base.tsp"]}))
+                  "base_bytes": m["files"].get("base.tsp", m["files"].get("base.tsa")),
+                  "patches": m["base"].get("patches", 1),
+                  "within_0.5%": (m.get("coverage") or {}).get("within_0.5%"),
+                  "max_relative": m["stats"]["max_relative"]}))
 """
 
 
@@ -413,18 +418,34 @@ def _base_digest(bundle: Path) -> str | None:
     return hashlib.sha256(base.read_bytes()).hexdigest() if base.exists() else None
 
 
+def write_vase_ply(path: Path, vertices: int) -> int:
+    """The example vase (``fitter.fitting.examples.vase_mesh``, a closed fluted vase in mm)
+    as a binary mesh PLY of about ``vertices`` vertices (``rings`` x ``1.75 rings``); returns
+    its vertex count."""
+    from fitter.demo import write_mesh_ply
+    from fitter.fitting.examples import vase_mesh
+
+    rings = max(4, round(math.sqrt(vertices / 1.75)))
+    v, f = vase_mesh(round(1.75 * rings), rings)
+    write_mesh_ply(path, v, f)
+    return len(v)
+
+
 def run_large(sizes: tuple[int, ...] = (10_000_000, 100_000_000),
               cluster_points: int | None = None, e57_points: int | None = None,
-              scratch: Path | None = None) -> dict:
+              scratch: Path | None = None, vase_vertices: int | None = None) -> dict:
     """The out-of-core fit (``fitter.fitting.stream``) of generated float32 binary PLYs of
     ``sizes`` points, default options, each in a subprocess under ``/usr/bin/time -v``;
     for ``e57_points`` (default: the largest size) the same cloud as E57 (``base.tsp``
     compared byte for byte, time against the PLY's), for ``cluster_points`` (default: the
-    largest size) LocalClusters of 1 and 2 workers. The load average is taken before and
-    after each fit. Writes ``bench/results/fit_large.json``; the files are deleted."""
+    largest size) LocalClusters of 1 and 2 workers; with ``vase_vertices``, the example vase
+    as a closed mesh of about that many vertices (an atlas of its working mesh, every vertex
+    measured: the ``vase`` rows). The load average is taken before and after each fit.
+    Writes ``bench/results/fit_large.json``; the files are deleted."""
     sizes = tuple(sorted(int(n) for n in sizes))
-    cluster_points = sizes[-1] if cluster_points is None else int(cluster_points)
-    e57_points = sizes[-1] if e57_points is None else int(e57_points)
+    largest = sizes[-1] if sizes else 0
+    cluster_points = largest if cluster_points is None else int(cluster_points)
+    e57_points = largest if e57_points is None else int(e57_points)
     scratch = Path(scratch or tempfile.mkdtemp(prefix="tessera-bench-large-"))
     scratch.mkdir(parents=True, exist_ok=True)
     rows, cluster, e57 = [], [], []
@@ -466,6 +487,17 @@ def run_large(sizes: tuple[int, ...] = (10_000_000, 100_000_000),
             if len(cluster) == 2:
                 cluster[1]["wall_vs_1_worker"] = cluster[1]["wall_s"] / cluster[0]["wall_s"]
         ply.unlink()
+    vase = []
+    if vase_vertices:
+        ply = scratch / "vase.ply"
+        start = time.perf_counter()
+        count = write_vase_ply(ply, int(vase_vertices))
+        generated = time.perf_counter() - start
+        row = fit(ply, scratch / "bundle-vase")
+        if row:
+            row.update(generate_s=generated, vertices=count)
+            vase.append(row)
+        ply.unlink()
 
     def stages(r: dict) -> str:
         return " ".join(f"{k} {v:.1f}" for k, v in r["timings"].items())
@@ -493,12 +525,21 @@ def run_large(sizes: tuple[int, ...] = (10_000_000, 100_000_000),
                       f"{r.get('wall_vs_1_worker', 1.0):.2f}", f"{r['peak_mb']:.0f}",
                       r["same_base_as_ply"], r["load_before"][0], stages(r)]
                      for r in cluster])
-    result = {"rows": rows, "e57": e57, "cluster": cluster, "load_before": load_before,
-              "load_after": _load_average()}
+    if vase:
+        print_table("the example vase as a closed mesh (an atlas of its working mesh)",
+                    ["vertices", "wall s", "CPU s", "peak MB", "patches", "levels",
+                     "RMS (mm)", "within 0.5 %", "max % diag", "load", "stages (wall s)"],
+                    [[r["vertices"], f"{r['wall_s']:.1f}", f"{r['user_s'] + r['sys_s']:.0f}",
+                      f"{r['peak_mb']:.0f}", r["patches"], r["detail_levels"],
+                      f"{r['rms']:.4g}", f"{100 * r['within_0.5%']:.2f}",
+                      f"{100 * r['max_relative']:.3f}", r["load_before"][0], stages(r)]
+                     for r in vase])
+    result = {"rows": rows, "e57": e57, "cluster": cluster, "vase": vase,
+              "load_before": load_before, "load_after": _load_average()}
     earlier = ROOT / "bench" / "results" / "fit_large.json"
     if earlier.exists():  # a run of other sizes keeps the figures of the sizes it did not run
         before = json.loads(earlier.read_text())
-        for key in ("rows", "e57", "cluster"):
+        for key in ("rows", "e57", "cluster", "vase"):
             ran = {r["points"] for r in result[key]}
             result[key] = [r for r in before.get(key, []) if r.get("points") not in ran] \
                 + result[key]
@@ -516,14 +557,19 @@ def add_arguments(parser) -> None:
     parser.add_argument("--cluster-points", type=float, default=None,
                         help="the size also fitted on LocalClusters of 1 and 2 workers "
                              "(default: the largest; 0: none)")
+    parser.add_argument("--vase-vertices", type=float, default=None,
+                        help="also (without --points: only) fit the example vase as a closed "
+                             "mesh of about this many vertices (e.g. 4.5e6: an atlas of its "
+                             "working mesh)")
     parser.add_argument("--scratch", type=Path, default=None,
                         help="directory of the generated files (default: a new temporary one)")
 
 
 def run(points: list[float] | None = None, e57_points: float | None = None,
         cluster_points: float | None = None, scratch: Path | None = None,
-        big_points: int = 10_000_000) -> dict:
+        big_points: int = 10_000_000, vase_vertices: float | None = None) -> dict:
     """The method comparison (module docstring), or with ``points`` :func:`run_large`."""
-    if points:
-        return run_large(tuple(int(p) for p in points), cluster_points, e57_points, scratch)
+    if points or vase_vertices:
+        return run_large(tuple(int(p) for p in points or ()), cluster_points, e57_points, scratch,
+                         None if vase_vertices is None else int(vase_vertices))
     return run_methods(big_points)

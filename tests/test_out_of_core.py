@@ -17,9 +17,9 @@ from client_py.ply import write_points_ply
 from fitter.fitting.error import deviations, error_stats
 from fitter.fitting.examples import relief_scan
 from fitter.fitting.io import load_scan, voxel_thin_indices
-from fitter.fitting.io.scan import make_scan
 from fitter.fitting.io.ply import open_ply_stream
 from fitter.fitting.io.points import PointStream
+from fitter.fitting.io.scan import make_scan
 from fitter.fitting.io.thin import VoxelGrid, VoxelSums, unique_inverse, voxel_size_for
 from fitter.fitting.nurbs import PatchModel
 from fitter.fitting.options import FitOptions

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import stream as out_of_core
 from ..bundle import write_bundle
 from ..error import (
     RASTER_FILE,
@@ -47,7 +48,6 @@ from ..error import (
 )
 from ..io import Scan
 from ..options import FitOptions
-from ..stream import LargeScan
 from .detail import fit_atlas_detail
 from .fit import (
     DEFAULT_BYTE_BUDGET,
@@ -266,7 +266,7 @@ def coverage_of(d: np.ndarray, diagonal: float, far_box: list | None = None) -> 
             "uncovered_bbox": far_box if far.any() else None}
 
 
-def measure_every_point(atlas, detail, large: LargeScan, units: str,
+def measure_every_point(atlas, detail, large: out_of_core.LargeScan, units: str,
                         progress: Callable[[float], None]) -> tuple[dict[int, dict], dict]:
     """A scan fitted out of core (``fitter.fitting.stream.LargeScan``: its atlas fitted to
     the working set): EVERY original point's distance to the welded mesh drawn at each level,
@@ -276,10 +276,8 @@ def measure_every_point(atlas, detail, large: LargeScan, units: str,
 
     Memory: one level's float32 distances (4 bytes a point) and a block's temporaries
     beside the drawn mesh; each point is read once for its box and once per level."""
-    from ..stream import BLOCK_POINTS
-
     stream = large.stream
-    spans = stream.blocks(BLOCK_POINTS)
+    spans = stream.blocks(out_of_core.BLOCK_POINTS)
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     for start, stop in spans:
         points, _ = stream.read(start, stop)
@@ -485,7 +483,7 @@ def _atlas_colour(scan: Scan, detail, options: FitOptions, stages, drawn: DrawnM
 
 def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                      object_fields: Callable[[Scan, FitOptions], dict],
-                     large: LargeScan | None = None) -> dict:
+                     large: out_of_core.LargeScan | None = None) -> dict:
     """Fit ``scan`` as an atlas and write the bundle ``out_dir``; returns its manifest.
 
     ``stages`` is ``fit_scan``'s stage timer (``start(name)``, ``report(fraction)``,
