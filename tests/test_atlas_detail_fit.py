@@ -468,17 +468,6 @@ def test_mesh_samples_weigh_vertices_one_and_triangles_their_share():
     assert len(points) == len(normals) == len(weights) == 3 * V
     np.testing.assert_array_equal(weights[:V], 1.0)
     assert weights[V:].sum() == pytest.approx(atlas_detail.TRIANGLE_SHARE * V)
-    # more vertices than samples (the memory bound): an even subset of the vertices
-    points, normals, weights = atlas_detail.surface_samples(scan, fit, V // 4)
-    assert V // 5 <= len(points) <= 1.2 * V // 4 and len(normals) == len(points)
-    np.testing.assert_array_equal(weights, 1.0)
-    index = {tuple(x): i for i, x in enumerate(fit.surface.vertices)}
-    kept = [index[tuple(x)] for x in points]  # each sample is a vertex, with its own normal
-    np.testing.assert_array_equal(normals, fit.surface.vertex_normals[kept])
-    # spread over the whole surface: every vertex within a few spacings of a sample
-    from scipy.spatial import cKDTree
-    gap, _ = cKDTree(points).query(fit.surface.vertices)
-    assert gap.max() < 4 * np.sqrt(4 * np.pi * 1.1 ** 2 / len(points))
 
 
 def test_coefficients_are_bounded_by_twice_their_patchs_residual():

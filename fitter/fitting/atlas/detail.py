@@ -441,20 +441,14 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
 
     A mesh: its (cleaned) vertices, weight 1, and ``count - V`` area-weighted samples of
     its triangles, together weighing ``TRIANGLE_SHARE`` of the vertices (each
-    ``TRIANGLE_SHARE V / (count - V)``: :data:`TRIANGLE_SHARE` says why); a mesh of more
-    than ``count`` vertices gives a voxel thinning of them to about ``count`` (``count`` is
-    at most :data:`MAX_SAMPLES`, the memory bound: the example vase of 1.12 M vertices, all
-    of them fitted, took 6.3 GB at its finest level). A cloud: its points, voxel-thinned to
-    about ``count`` when more, weight 1. A point's normal is that of the surface vertex
-    nearest to it (a mesh vertex's own; a triangle sample's is its triangle's). Shapes
-    ``(N, 3)``, ``(N, 3)``, ``(N,)``.
+    ``TRIANGLE_SHARE V / (count - V)``: :data:`TRIANGLE_SHARE` says why); a cloud: its
+    points, voxel-thinned to about ``count`` when more, weight 1. A point's normal is that
+    of the surface vertex nearest to it (a mesh vertex's own; a triangle sample's is its
+    triangle's). Shapes ``(N, 3)``, ``(N, 3)``, ``(N,)``.
     """
     surface = fit.surface
     if surface.origin == "mesh":
         points, normals = surface.vertices, surface.vertex_normals
-        if len(points) > count:
-            keep = thin_to_count(points, count, slack=1.2)
-            points, normals = points[keep], normals[keep]
         weights = np.ones(len(points))
         extra = count - len(points)
         if extra > 0:
