@@ -273,6 +273,10 @@ def test_a_large_closed_mesh_is_fitted_as_an_atlas_of_its_working_mesh(tmp_path,
     assert m["base"]["border_edges"] == 0 and "atlas_refused" not in m
     assert m["provenance"]["working_set"]["points_after"] == working.n_points
     assert m["fit"]["surface"] == "mesh"
+    # the detail is fitted to the scan's own vertices, its depth set by the scan's edges
+    from fitter.fitting.atlas.fit import median_edge
+    assert m["fit"]["detail"]["samples"] == len(vertices)
+    assert m["fit"]["detail"]["spacing"] == pytest.approx(median_edge(vertices, faces), rel=1e-3)
     _check_every_point(bundle.path, m, vertices)
     assert m["coverage"]["uncovered_points"] == 0 and m["stats"]["rms_relative"] < 0.002
 

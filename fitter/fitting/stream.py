@@ -58,6 +58,9 @@ from .parameterize import Projection
 STREAM_ABOVE = 3_000_000
 #: the working set's size the voxel edge aims at
 WORKING_SET_POINTS = 800_000
+#: most of a large mesh's own vertices its atlas's detail levels are fitted to
+#: (``fitter.fitting.atlas.detail.fit_atlas_detail``'s ``original``)
+DETAIL_POINTS = 4_000_000
 #: the voxel sums are taken again with a larger voxel when more voxels than this are
 #: occupied (noise makes a scan thicker than a surface at a fine voxel): below 4 x 512^2
 #: points the detail pyramid keeps five levels (``fitter.fitting.detail.auto_levels``), whose
@@ -234,14 +237,13 @@ def working_mesh(scan: Scan, vertices: int | None = None) -> Scan:
     """A large mesh's working set: the mesh reduced to about ``vertices`` (default
     :data:`WORKING_SET_POINTS`) vertices by ``fast_simplification`` (Garland & Heckbert's
     quadric error metric, *Surface simplification using quadric error metrics*, SIGGRAPH
-    1997, collapsed by Forstmann's threshold sweep), a mesh an atlas is fitted to in memory
-    (its layout, base and detail pyramid; the detail's samples are capped below this
-    anyway, ``fitter.fitting.atlas.detail.MAX_SAMPLES``), while every original vertex is
-    measured against the drawn levels in a streamed pass. A collapse keeps the quadric's
-    best position, so the working vertices lie within the collapse's error of the scan, far
-    below the detail pyramid's finest spacing at this size (4.5 M vertices of the example
-    vase to 0.8 M: 9.5 s). Per-vertex colours (a texture's, sampled at each vertex's
-    ``uv``) go to each working vertex from the original vertex nearest to it.
+    1997, collapsed by Forstmann's threshold sweep): the surface an atlas's layout and base
+    are fitted to in memory; its detail levels are fitted to the scan's own vertices (up to
+    :data:`DETAIL_POINTS`), and every original vertex is measured against the drawn levels
+    in a streamed pass. A collapse keeps the quadric's best position: the example vase's
+    4.48 M vertices lie 0.0009 mm RMS (largest 0.0047 mm, its height 300 mm) from the 0.8 M
+    of its working mesh, made in 9.5 s. Per-vertex colours (a texture's, sampled at each
+    vertex's ``uv``) go to each working vertex from the original vertex nearest to it.
 
     Raises
     ------

@@ -422,10 +422,13 @@ class AtlasSamples:
         return np.sqrt((self.s - displacement) ** 2 + self.t2)
 
 
-def median_spacing(scan: Scan, fit: AtlasFit) -> float:
-    """The scan's resolution: median edge length of its surface (a mesh), or the median
-    distance of a point to its nearest neighbour (a cloud)."""
+def median_spacing(scan: Scan, fit: AtlasFit, original: Scan | None = None) -> float:
+    """The scan's resolution: median edge length of its surface (a mesh; of ``original``,
+    the mesh ``scan`` was reduced from, when given), or the median distance of a point to
+    its nearest neighbour (a cloud)."""
     surface = fit.surface
+    if original is not None:
+        return median_edge(np.asarray(original.points, float), np.asarray(original.faces))
     if surface.origin == "mesh":
         return median_edge(surface.vertices, surface.faces)
     points = scan.points
@@ -435,8 +438,8 @@ def median_spacing(scan: Scan, fit: AtlasFit) -> float:
     return float(np.median(d[:, 1]))
 
 
-def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0,
+                    original: Scan | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points of the scan's surface to fit the detail to, their unit normals and weights.
 
     A mesh: its (cleaned) vertices, weight 1, and ``count - V`` area-weighted samples of
@@ -445,9 +448,13 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
     points, voxel-thinned to about ``count`` when more, weight 1. A point's normal is that
     of the surface vertex nearest to it (a mesh vertex's own; a triangle sample's is its
     triangle's). Shapes ``(N, 3)``, ``(N, 3)``, ``(N,)``.
+
+    ``original``: the mesh ``scan`` was reduced from (a large scan's working mesh,
+    ``fitter.fitting.stream.working_mesh``), whose vertices are then taken as a cloud's
+    points are: the samples are the scan's own vertices, not the working mesh's.
     """
     surface = fit.surface
-    if surface.origin == "mesh":
+    if surface.origin == "mesh" and original is None:
         points, normals = surface.vertices, surface.vertex_normals
         weights = np.ones(len(points))
         extra = count - len(points)
@@ -458,7 +465,7 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0
             weights = np.concatenate([weights, np.full(extra, TRIANGLE_SHARE * len(weights)
                                                        / extra)])
         return points, normals, weights
-    points = scan.points
+    points = scan.points if original is None else np.asarray(original.points, float)
     if len(points) > count:
         points = points[thin_to_count(points, count, slack=1.2)]
     _, nearest = cKDTree(surface.vertices).query(points, workers=-1)
@@ -1803,7 +1810,8 @@ def _check_arguments(levels: object, spans: object, step_factor: object) -> None
 def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                      spans: int = SPANS, step_factor: float = STEP_FACTOR,
                      max_samples: int = MAX_SAMPLES, pack_bytes: int = PACK_BYTES,
-                     progress: Callable[[float], None] | None = None) -> AtlasDetail:
+                     progress: Callable[[float], None] | None = None,
+                     original: Scan | None = None) -> AtlasDetail:
     """Fit the detail pyramid of ``fit``'s atlas to ``scan``'s surface (module docstring).
 
     Parameters
@@ -1824,6 +1832,10 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         A group's finest-level pack stays within this (a group of one patch may exceed it).
     progress : callable(float), optional
         The fraction done, 0..1.
+    original : Scan, optional
+        The mesh ``scan`` was reduced from (``fitter.fitting.stream.working_mesh``): the
+        levels are fitted to its vertices (thinned to about ``max_samples``), and their
+        depth reaches its median edge, not the working mesh's.
 
     Returns
     -------
@@ -1845,14 +1857,15 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     F = len(atlas.quads)
     sides = patch_sides(atlas)
     side = float(np.median(sides))
-    spacing = median_spacing(scan, fit)
+    spacing = median_spacing(scan, fit, original)
     is_mesh = fit.surface.origin == "mesh"  # the scan's own triangles (not a cloud's stand-in)
     validate = levels is None and not is_mesh  # see "Depth"
     if levels is None:
         levels = auto_levels(side, spacing, F, spans)
     finest_cells = F * (spans << max(levels - 1, 0)) ** 2
-    count = int(min(max_samples, max(SAMPLES_PER_CELL * finest_cells, len(scan.points))))
-    points, normals, weights = surface_samples(scan, fit, count)
+    source = scan if original is None else original
+    count = int(min(max_samples, max(SAMPLES_PER_CELL * finest_cells, len(source.points))))
+    points, normals, weights = surface_samples(scan, fit, count, original=original)
     timings["setup"] = time.perf_counter() - clock
     clock = time.perf_counter()
     samples = project_samples(atlas, fit, points, normals,
