@@ -309,3 +309,56 @@ def test_a_large_height_field_stays_one_patch_and_one_patch_can_be_asked_for(tmp
     points = _relief_ply(tmp_path / "cloud.ply")
     m = fit_scan(tmp_path / "cloud.ply", tmp_path / "relief", FitOptions(**OPTIONS)).manifest
     assert m["base"].get("kind") != "atlas" and m["provenance"]["points"] == len(points)
+
+
+def test_welding_joins_a_triangle_soup_and_drops_what_collapses():
+    vertices, faces = _bumpy_sphere(3)
+    soup = vertices[faces].reshape(-1, 3)  # every triangle with vertices of its own
+    soup_faces = np.arange(len(soup)).reshape(-1, 3)
+    soup_faces = np.concatenate([soup_faces, [[0, 0, 1]]])  # and one degenerate triangle
+    points, joined = stream.welded(soup, soup_faces)
+    assert len(points) == len(vertices) and len(joined) == len(faces)
+    np.testing.assert_array_equal(points[joined], vertices[faces])  # the same triangles
+    same, same_faces = stream.welded(vertices, faces)
+    assert same is vertices and same_faces is faces
+
+
+def test_a_working_mesh_welds_a_soup_and_takes_a_textures_colours():
+    """A large STL-like soup is reduced as one closed surface (collapsed triangle by triangle
+    it fell apart); a textured mesh's working vertices take the texture's colour at their
+    nearest original vertex's ``uv``."""
+    from PIL import Image
+
+    from fitter.fitting.atlas.layout import border_edges
+    from fitter.fitting.texture import sample_image
+
+    vertices, faces = _bumpy_sphere(5)
+    soup = make_scan("soup", vertices[faces].reshape(-1, 3),
+                     faces=np.arange(3 * len(faces)).reshape(-1, 3), source={"name": "soup"})
+    working = stream.working_mesh(soup, 2_000)
+    assert len(border_edges(working.faces)) == 0 and len(working.faces) <= 4_000
+    small = stream.working_mesh(soup, 20_000)  # few enough triangles: the welded mesh itself
+    assert len(small.faces) == len(faces) and small.n_points == len(vertices)
+    image = np.random.default_rng(3).integers(0, 256, (64, 64, 3)).astype(np.uint8)
+    uv = (vertices[:, :2] - vertices[:, :2].min(axis=0)) / np.ptp(vertices[:, :2], axis=0)
+    textured = make_scan("tex", vertices, faces=faces, uv=uv, texture=Image.fromarray(image),
+                         colors=np.zeros((len(vertices), 3), np.uint8), source={"name": "tex"})
+    working = stream.working_mesh(textured, 2_000)
+    from scipy.spatial import cKDTree
+    _, nearest = cKDTree(vertices).query(working.points)
+    expected = np.clip(np.rint(sample_image(image, uv[nearest])), 0, 255)
+    np.testing.assert_array_equal(working.colors, expected)
+    assert working.colors.any()  # the texture's, not the (black) vertex colours
+
+
+def test_a_large_cloud_given_as_an_array_is_an_atlas(tmp_path, small_out_of_core):
+    """A cloud loaded whole (an array, a ``Scan``, a format not streamed) over the threshold:
+    its working set is the atlas's scan (it is not kept whole as a mesh is)."""
+    import trimesh
+
+    vertices, faces = _bumpy_sphere(5)
+    points, _ = trimesh.sample.sample_surface(trimesh.Trimesh(vertices, faces), 30_000, seed=4)
+    m = fit_scan(points, tmp_path / "b", FitOptions(patches=60)).manifest
+    assert m["base"]["kind"] == "atlas" and m["provenance"]["points"] == len(points)
+    assert m["stats"]["points"] == len(points) and m["coverage"]["within_0.5%"] > 0.99
+    assert m["error_raster"]["max"] >= m["stats"]["max"]

@@ -87,6 +87,7 @@ from .stream import (
     LargeScan,
     LocalBlocks,
     StreamedError,
+    WorkingMeshError,
     fits_out_of_core,
     load_working_set,
     open_stream,
@@ -185,14 +186,16 @@ def _load(scan: object, limits: InputLimits | None, blocks: LocalBlocks | DaskBl
     """The scan to fit and, for one over ``fitter.fitting.stream.STREAM_ABOVE`` points, its
     out-of-core record (the scan is then the voxel-thinned working set): a binary PLY is
     streamed from its memory map, any other large input loaded and then streamed (a mesh
-    loaded so is kept whole: ``LargeScan.whole``, for an atlas's working mesh)."""
+    loaded so is kept whole, ``LargeScan.whole``, for an atlas's working mesh; a cloud is
+    not: its working set is the atlas's)."""
     opened = open_stream(Path(scan), limits) if isinstance(scan, str | os.PathLike) else None
     whole = None
     if opened is None:
         scan = _as_scan(scan, limits)
         if not fits_out_of_core(scan.n_points):
             return scan, None
-        opened, whole = stream_of_scan(scan), scan
+        opened = stream_of_scan(scan)
+        whole = scan if scan.faces is not None and len(scan.faces) else None
     large = load_working_set(*opened, blocks=blocks,
                              progress=lambda f, p: stages.report(f, p))
     return large.working, replace(large, whole=whole)
@@ -710,12 +713,14 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
             fitted = scan if large is None else large.atlas_scan()
             return Bundle(out_dir, fit_atlas_bundle(fitted, out_dir, options, stages,
                                                     object_fields, large))
-        except (SurfaceError, AtlasLayoutError, AtlasFitError) as exc:
+        except (SurfaceError, AtlasLayoutError, AtlasFitError, WorkingMeshError) as exc:
             if options.patches is not None:  # asked for an atlas: say why there is none
                 raise
             atlas_refused = str(exc)  # auto: the single patch, and the manifest says why
         finally:
             forget_scenes()  # the fit's meshes are done with: their BVHs need not stay alive
+    if large is not None:  # one patch: the mesh held for a working mesh is done with
+        large = replace(large, whole=None)
     stages.start("project")
     projected = project_scan(scan, options)
     plan = plan_fit_memory(projected, options, memory_budget)  # before any large solve

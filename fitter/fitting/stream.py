@@ -87,12 +87,12 @@ class LocalBlocks:
 
     def map(self, function: Callable, blocks: Sequence[tuple[int, int]],
             *shared: object) -> Iterator:
-        shared = tuple(_unmapped(x) if isinstance(x, PointStream) else x for x in shared)
+        shared = tuple(unmapped(x) if isinstance(x, PointStream) else x for x in shared)
         with ThreadPoolExecutor(self.threads) as pool:
             yield from pool.map(lambda block: function(*block, *shared), blocks)
 
 
-def _unmapped(stream: PointStream) -> PointStream:
+def unmapped(stream: PointStream) -> PointStream:
     """A copy of ``stream`` without its file map (it maps the file again when read)."""
     return copy.copy(stream)  # PointStream.__getstate__ leaves the map behind
 
@@ -178,8 +178,10 @@ class LargeScan:
         The working set (float64, ``K`` points).
     blocks : LocalBlocks or DaskBlocks
     whole : Scan or None
-        The scan itself when a reader loaded it whole (a mesh: its triangles are what
-        :meth:`atlas_scan` reduces), else ``None`` (streamed from its file).
+        The scan itself when a reader loaded a mesh whole (its triangles are what
+        :meth:`atlas_scan` reduces), else ``None`` (a cloud, or streamed from its file).
+    bounds : tuple of ndarray, shape (3,), or None
+        The box ``lo, hi`` of every point (pass 1).
     """
 
     stream: PointStream
@@ -191,6 +193,7 @@ class LargeScan:
     working: Scan
     blocks: LocalBlocks | DaskBlocks
     whole: Scan | None = None
+    bounds: tuple[np.ndarray, np.ndarray] | None = None
 
     def atlas_scan(self) -> Scan:
         """The scan an atlas is fitted to (``fitter.fitting.atlas.pipeline``): a mesh's
@@ -233,6 +236,29 @@ class LargeScan:
         return StreamedError(Deviations(d, u, v), covered, outside, bbox)
 
 
+class WorkingMeshError(ScanError):
+    """A large mesh that cannot be reduced to a working mesh (:func:`working_mesh`): ``fit
+    --patches auto`` then fits one patch and the manifest's ``atlas_refused`` says why."""
+
+
+def welded(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with its coincident vertices (equal coordinates, to the bit) made one and its
+    triangles that then repeat a vertex dropped: a triangle soup (STL, an unwelded export)
+    becomes a connected surface. The same arrays when nothing coincides."""
+    rows = np.ascontiguousarray(points, np.float64)
+    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * 3))).ravel()
+    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    if len(unique) == len(rows):
+        return points, faces
+    order = np.argsort(first)  # the kept vertices in their first appearance's order
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    faces = rank[inverse.ravel()][faces]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) \
+        & (faces[:, 2] != faces[:, 0])
+    return rows[np.sort(first)], faces[keep]
+
+
 def working_mesh(scan: Scan, vertices: int | None = None) -> Scan:
     """A large mesh's working set: the mesh reduced to about ``vertices`` (default
     :data:`WORKING_SET_POINTS`) vertices by ``fast_simplification`` (Garland & Heckbert's
@@ -242,31 +268,40 @@ def working_mesh(scan: Scan, vertices: int | None = None) -> Scan:
     :data:`DETAIL_POINTS`), and every original vertex is measured against the drawn levels
     in a streamed pass. A collapse keeps the quadric's best position: the example vase's
     4.48 M vertices lie 0.0009 mm RMS (largest 0.0047 mm, its height 300 mm) from the 0.8 M
-    of its working mesh, made in 9.5 s. Per-vertex colours (a texture's, sampled at each
-    vertex's ``uv``) go to each working vertex from the original vertex nearest to it.
+    of its working mesh, made in 9.5 s. Coincident vertices are welded first
+    (:func:`welded`: a triangle soup would be collapsed triangle by triangle), and a mesh
+    with no more than twice ``vertices`` triangles is its own working mesh. Per-vertex
+    colours (a texture's, sampled at each vertex's ``uv``, first, as the atlas's colour
+    stage takes it; else the scan's RGB) go to each working vertex from the original
+    vertex nearest to it.
 
     Raises
     ------
-    ScanError
+    WorkingMeshError
         A mesh the reduction cannot take (its message).
     """
     import fast_simplification
     from scipy.spatial import cKDTree
 
     target = int(WORKING_SET_POINTS if vertices is None else vertices)
-    faces = np.asarray(scan.faces, np.int64)
     name = scan.source.get("name", "scan")
     started = time.perf_counter()
-    try:
-        reduced_vertices, reduced = fast_simplification.simplify(
-            np.ascontiguousarray(scan.points, np.float64), np.ascontiguousarray(faces),
-            target_count=max(4, 2 * target))
-    except (ValueError, RuntimeError, MemoryError) as exc:
-        raise ScanError(f"{name}: its {len(faces):,} triangles could not be reduced to a "
-                        f"working mesh ({exc})") from exc
+    reduced_vertices, reduced = welded(scan.points, np.asarray(scan.faces, np.int64))
+    if len(reduced) > 2 * target:
+        try:
+            reduced_vertices, reduced = fast_simplification.simplify(
+                np.ascontiguousarray(reduced_vertices, np.float64),
+                np.ascontiguousarray(reduced), target_count=2 * target)
+        except (ValueError, RuntimeError, MemoryError) as exc:
+            raise WorkingMeshError(f"{name}: its {len(reduced):,} triangles could not be "
+                                   f"reduced to a working mesh ({exc})") from exc
     reduced_vertices = np.asarray(reduced_vertices, np.float64)
+    reduced = np.asarray(reduced, np.int64)
+    if len(reduced) == 0:
+        raise WorkingMeshError(f"{name}: no triangle is left of its {len(scan.faces):,} once "
+                               "its coincident vertices are welded")
     colours = scan.colors
-    if colours is None and scan.uv is not None and scan.texture is not None:
+    if scan.uv is not None and scan.texture is not None:
         from .texture import sample_image
 
         colours = np.clip(np.rint(sample_image(np.asarray(scan.texture.convert("RGB")),
@@ -278,10 +313,10 @@ def working_mesh(scan: Scan, vertices: int | None = None) -> Scan:
         "rule": "quadric edge collapse to about twice as many triangles as WORKING_SET_POINTS "
                 "(fitter.fitting.stream.working_mesh)",
         "points_before": int(scan.n_points), "points_after": int(len(reduced_vertices)),
-        "triangles_before": int(len(faces)), "triangles_after": int(len(reduced)),
+        "triangles_before": int(len(scan.faces)), "triangles_after": int(len(reduced)),
         "seconds": round(time.perf_counter() - started, 3)})
-    return make_scan(name, reduced_vertices, colors=colours, faces=np.asarray(reduced, np.int64),
-                     units=scan.units, source=source)
+    return make_scan(name, reduced_vertices, colors=colours, faces=reduced, units=scan.units,
+                     source=source)
 
 
 def fits_out_of_core(n_points: int) -> bool:
@@ -388,7 +423,7 @@ def load_working_set(stream: PointStream, source: dict, units: str,
         blocks, None if progress is None else lambda f, p: progress(0.2 + 0.8 * f, p),
         WORKING_SET_MOST)
     grid, size = index.grid, index.grid.size
-    points, normals = _unmapped(stream).take(kept)
+    points, normals = unmapped(stream).take(kept)
     representative = np.empty(len(sums.keys), np.int64)  # the working set's point of a voxel
     representative[index.positions(points)] = np.arange(len(kept))
     source = dict(source, thinning={
@@ -396,5 +431,6 @@ def load_working_set(stream: PointStream, source: dict, units: str,
         "rule": "one point per voxel, the nearest to its centroid (fitter.fitting.stream)",
         "seconds": round(time.perf_counter() - started, 3)})
     working = make_scan(name, points, normals=normals, units=units, source=source)
-    return LargeScan(stream, source, units, grid, sums, representative, working, blocks)
+    return LargeScan(stream, source, units, grid, sums, representative, working, blocks,
+                     bounds=(lo, hi))
 

@@ -237,6 +237,7 @@ SAMPLES_PER_CELL = 6.0  # surface samples per knot cell of the finest level
 # 3.03e-5 at 0.05, 3.17e-5 at 0.2, 3.38e-5 at 0.5, 3.01e-5 vertices alone); the triangles
 # still hold the field where vertices are sparse, as the issue asks of a mesh.
 TRIANGLE_SHARE = 0.2
+MEDIAN_TRIANGLES = 1_000_000  # a large mesh's median edge is taken over about this many
 MAX_SAMPLES = 1_000_000  # ~100 bytes each while fitted; projection runs in chunks
 CHUNK = 100_000
 NEWTON_ITERATIONS = 8
@@ -427,8 +428,10 @@ def median_spacing(scan: Scan, fit: AtlasFit, original: Scan | None = None) -> f
     the mesh ``scan`` was reduced from, when given), or the median distance of a point to
     its nearest neighbour (a cloud)."""
     surface = fit.surface
-    if original is not None:
-        return median_edge(np.asarray(original.points, float), np.asarray(original.faces))
+    if original is not None:  # an even subset of a large mesh's triangles says as much
+        faces = np.asarray(original.faces)
+        return median_edge(np.asarray(original.points, float),
+                           faces[:: max(1, len(faces) // MEDIAN_TRIANGLES)])
     if surface.origin == "mesh":
         return median_edge(surface.vertices, surface.faces)
     points = scan.points

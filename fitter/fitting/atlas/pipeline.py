@@ -85,6 +85,7 @@ OUTLIER_DISTANCE = UNCOVERED  # a cloud's point this far from its surface is not
 STRAY_BUDGET_FACTOR = 2  # an atlas refused for strays is refitted once with this x the bytes
 HEIGHT_FIELD_BACK = 0.005  # area share facing away from the plane a height field may have
 HEIGHT_FIELD_EDGE_ON = 0.02  # ... and seen edge-on (|n . axis| < 0.1)
+AUTO_TRIANGLES = 2_000_000  # wants_atlas judges a larger mesh by an even subset of this many
 RASTER_CELLS = (2, 8)  # least and most cells per patch side of the error raster
 #: triangles of the finest drawn level from which it is measured in a worker process
 #: (:func:`measure_levels`): its BVH then builds beside the coarser levels' (the Happy
@@ -101,8 +102,8 @@ def wants_atlas(scan: Scan, patches: int | None) -> bool:
     """``--patches``' rule: ``1`` a single patch, another count an atlas; ``None`` (auto) an
     atlas unless the scan is a height field over the plane of its least variance.
 
-    A height field: of the surface's area (a mesh's triangles, else one unit per point with a
-    normal), under :data:`HEIGHT_FIELD_BACK` faces away from the plane's dominant side and
+    A height field: of the surface's area (a mesh's triangles, an even subset of
+    :data:`AUTO_TRIANGLES` of a larger mesh's; else one unit per point with a normal), under :data:`HEIGHT_FIELD_BACK` faces away from the plane's dominant side and
     under :data:`HEIGHT_FIELD_EDGE_ON` is seen edge-on. A cloud without normals is a height
     field when every point is within the plane's band of a one-valued surface: it is judged
     by the points' unoriented local normals (``|n . axis|``) alone.
@@ -114,7 +115,8 @@ def wants_atlas(scan: Scan, patches: int | None) -> bool:
     sample = centred[:: max(1, len(centred) // 200_000)]
     axis = np.linalg.eigh(sample.T @ sample)[1][:, 0]  # least variance
     if scan.faces is not None and len(scan.faces):
-        tri = points[np.asarray(scan.faces)]
+        faces = np.asarray(scan.faces)  # a large mesh: an even subset of its triangles
+        tri = points[faces[:: max(1, len(faces) // AUTO_TRIANGLES)]]
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         area = np.linalg.norm(cross, axis=1)
         facing = _unit(cross) @ axis
@@ -275,14 +277,18 @@ def measure_every_point(atlas, detail, large: out_of_core.LargeScan, units: str,
     points (:func:`coverage_of`), the diagonal that of their box.
 
     Memory: one level's float32 distances (4 bytes a point) and a block's temporaries
-    beside the drawn mesh; each point is read once for its box and once per level."""
-    stream = large.stream
+    beside the drawn mesh; each point is read once per level (by a copy of the stream that
+    maps its file only while read), its box taken from the out-of-core load's first pass."""
+    stream = out_of_core.unmapped(large.stream)
     spans = stream.blocks(out_of_core.BLOCK_POINTS)
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for start, stop in spans:
-        points, _ = stream.read(start, stop)
-        lo, hi = np.minimum(lo, points.min(axis=0)), np.maximum(hi, points.max(axis=0))
-    diagonal = float(np.linalg.norm(hi - lo))
+    if large.bounds is not None:
+        lo, hi = large.bounds
+    else:
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for start, stop in spans:
+            points, _ = stream.read(start, stop)
+            lo, hi = np.minimum(lo, points.min(axis=0)), np.maximum(hi, points.max(axis=0))
+    diagonal = float(np.linalg.norm(np.asarray(hi, float) - np.asarray(lo, float)))
     top = len(detail.levels) - 1
     levels = list(range(top, -2, -1))  # the finest first: its coverage, then the others
     errors, coverage = {}, {}
@@ -526,9 +532,6 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     distances, drawn, triangle, closest = measure_levels(atlas, detail, points)
     top = len(detail.levels) - 1
     d = distances[top]
-    raster, raster_data = atlas_error_raster(
-        *foot_parameters(drawn.vertices, drawn.faces, drawn.patches, drawn.uvs, triangle,
-                         closest), d, len(atlas.quads), float(np.abs(d).max()))
     if large is None:
         errors = {k: error_stats(dk, diagonal, scan.units) for k, dk in distances.items()}
         far = np.abs(d) > UNCOVERED * diagonal
@@ -539,6 +542,12 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
         errors, coverage = measure_every_point(atlas, detail, large, scan.units,
                                                stages.report)
     stats = errors[top]
+    # the raster's cells hold the points measured here (of a large scan, its working set),
+    # on the panel's scale: stats.max (every point), the larger if a working point is farther
+    raster, raster_data = atlas_error_raster(
+        *foot_parameters(drawn.vertices, drawn.faces, drawn.patches, drawn.uvs, triangle,
+                         closest), d, len(atlas.quads), max(stats["max"],
+                                                            float(np.abs(d).max())))
     if detail.levels:
         restate_level_errors(detail.tree, errors)
     texture = _atlas_colour(scan, detail, options, stages, drawn, triangle, closest)
