@@ -103,8 +103,9 @@ def wants_atlas(scan: Scan, patches: int | None) -> bool:
     atlas unless the scan is a height field over the plane of its least variance.
 
     A height field: of the surface's area (a mesh's triangles, an even subset of
-    :data:`AUTO_TRIANGLES` of a larger mesh's; else one unit per point with a normal), under :data:`HEIGHT_FIELD_BACK` faces away from the plane's dominant side and
-    under :data:`HEIGHT_FIELD_EDGE_ON` is seen edge-on. A cloud without normals is a height
+    :data:`AUTO_TRIANGLES` of a larger mesh's; else one unit per point with a normal),
+    under :data:`HEIGHT_FIELD_BACK` faces away from the plane's dominant side and under
+    :data:`HEIGHT_FIELD_EDGE_ON` is seen edge-on. A cloud without normals is a height
     field when every point is within the plane's band of a one-valued surface: it is judged
     by the points' unoriented local normals (``|n . axis|``) alone.
     """
