@@ -21,6 +21,8 @@ beside the code that raises them, each a subclass of :class:`TesseraError`
                                            2-manifold
 ``fitter.fitting.atlas.AtlasFitError``     an atlas fit without working points or
                                            with a singular system
+``fitter.fitting.stream.WorkingMeshError`` (a ``ScanError``) a large mesh that cannot be
+                                           reduced to an atlas's working mesh
 ``fitter.collection.bundles.BundleError``  a bundle the server cannot serve: no or a
                                            malformed manifest, an unreadable file
 ``fitter.collection.catalog.CatalogError`` a catalog this code cannot use

@@ -362,3 +362,17 @@ def test_a_large_cloud_given_as_an_array_is_an_atlas(tmp_path, small_out_of_core
     assert m["base"]["kind"] == "atlas" and m["provenance"]["points"] == len(points)
     assert m["stats"]["points"] == len(points) and m["coverage"]["within_0.5%"] > 0.99
     assert m["error_raster"]["max"] >= m["stats"]["max"]
+
+
+def test_a_mesh_that_cannot_be_reduced_is_one_patch_under_auto(tmp_path, small_out_of_core,
+                                                              monkeypatch):
+    def refuse(scan, vertices=None):
+        raise stream.WorkingMeshError("bumpy: its triangles could not be reduced (test)")
+
+    monkeypatch.setattr(stream, "working_mesh", refuse)
+    vertices, faces = _bumpy_sphere()
+    scan = make_scan("bumpy", vertices, faces=faces, units="mm", source={"name": "bumpy"})
+    m = fit_scan(scan, tmp_path / "auto", FitOptions(**OPTIONS)).manifest
+    assert m["base"].get("kind") != "atlas" and "could not be reduced" in m["atlas_refused"]
+    with pytest.raises(stream.WorkingMeshError, match="could not be reduced"):
+        fit_scan(scan, tmp_path / "asked", FitOptions(patches=60, **OPTIONS))
