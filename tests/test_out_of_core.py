@@ -296,8 +296,21 @@ def test_a_large_closed_cloud_is_fitted_as_an_atlas_of_its_working_set(tmp_path,
     assert m["base"]["kind"] == "atlas" and m["fit"]["surface"] != "mesh"
     assert m["provenance"]["working_set"]["points_before"] == len(points)
     assert m["fit"]["working_points"] < 10_000
+    assert m["fit"]["detail"]["samples"] == len(points)  # the detail: its own points
     _check_every_point(bundle.path, m, points)
     assert m["coverage"]["within_0.5%"] > 0.99
+
+
+def test_a_large_clouds_detail_points_are_its_own_thinned_by_the_working_sets_rule(
+        tmp_path, small_out_of_core, monkeypatch):
+    points = _relief_ply(tmp_path / "cloud.ply")
+    large = stream.load_working_set(*stream.open_stream(tmp_path / "cloud.ply"))
+    assert large.whole is None and large.detail_scan().n_points == N_POINTS  # all of them
+    monkeypatch.setattr(stream, "DETAIL_POINTS", 20_000)
+    own = large.detail_scan()
+    assert 14_000 <= own.n_points <= 24_000 and own.n_points > large.working.n_points
+    rows = {tuple(x) for x in points.astype(np.float32).astype(np.float64)}
+    assert all(tuple(x) in rows for x in own.points)  # the cloud's own points, none made up
 
 
 def test_a_large_height_field_stays_one_patch_and_one_patch_can_be_asked_for(tmp_path,

@@ -58,8 +58,8 @@ from .parameterize import Projection
 STREAM_ABOVE = 3_000_000
 #: the working set's size the voxel edge aims at
 WORKING_SET_POINTS = 800_000
-#: most of a large mesh's own vertices its atlas's detail levels are fitted to
-#: (``fitter.fitting.atlas.detail.fit_atlas_detail``'s ``original``)
+#: about as many of a large scan's own points its atlas's detail levels are fitted to
+#: (``LargeScan.detail_scan``, ``fitter.fitting.atlas.detail.fit_atlas_detail``'s ``original``)
 DETAIL_POINTS = 4_000_000
 #: the voxel sums are taken again with a larger voxel when more voxels than this are
 #: occupied (noise makes a scan thicker than a surface at a fine voxel): below 4 x 512^2
@@ -202,6 +202,29 @@ class LargeScan:
         if self.whole is not None and self.whole.faces is not None and len(self.whole.faces):
             return working_mesh(self.whole)
         return self.working
+
+    def detail_scan(self, count: int | None = None) -> Scan:
+        """The points an atlas's detail levels are fitted to (``fit_atlas_detail``'s
+        ``original``): a mesh's own vertices (:attr:`whole`; the detail thins them to its
+        sample bound), a cloud's points thinned by the rule of the working set to about
+        ``count`` (default :data:`DETAIL_POINTS`): two more streamed passes, at a voxel edge
+        ``sqrt(K / count)`` times the working set's (a surface's occupied voxels go as
+        ``h^-2``), larger while more than ``1.2 count`` voxels are occupied; all of them
+        when there are no more than ``count``."""
+        if self.whole is not None and self.whole.faces is not None and len(self.whole.faces):
+            return self.whole
+        count = int(DETAIL_POINTS if count is None else count)
+        stream = self.stream
+        if stream.count <= count:
+            points, normals = unmapped(stream).read(0, stream.count)
+        else:
+            lo, hi = self.bounds if self.bounds is not None else (
+                self.grid.lo, self.grid.lo + self.grid.dims * self.grid.size)
+            size = self.grid.size * float(np.sqrt(len(self.sums.keys) / count))
+            _, _, kept = thin_stream(stream, lo, hi, size, self.blocks, most=int(1.2 * count))
+            points, normals = unmapped(stream).take(kept)
+        return make_scan(self.working.source.get("name", "scan"), np.asarray(points, float),
+                         normals=normals, units=self.units, source=dict(self.source))
 
     @property
     def n_points(self) -> int:

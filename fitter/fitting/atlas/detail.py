@@ -424,14 +424,24 @@ class AtlasSamples:
 
 
 def median_spacing(scan: Scan, fit: AtlasFit, original: Scan | None = None) -> float:
-    """The scan's resolution: median edge length of its surface (a mesh; of ``original``,
-    the mesh ``scan`` was reduced from, when given), or the median distance of a point to
-    its nearest neighbour (a cloud)."""
+    """The scan's resolution: median edge length of its surface (a mesh), or the median
+    distance of a point to its nearest neighbour (a cloud, on a subset of 200,000 of them).
+
+    ``original``: the points the detail is fitted to when they are not ``scan``'s (a large
+    scan's, ``fitter.fitting.stream.LargeScan.detail_scan``): a mesh's median edge, over an
+    even subset of :data:`MEDIAN_TRIANGLES` of its triangles; a cloud's median distance from
+    200,000 of its points to their nearest other point among all of them."""
     surface = fit.surface
-    if original is not None:  # an even subset of a large mesh's triangles says as much
+    if original is not None and original.faces is not None and len(original.faces):
         faces = np.asarray(original.faces)
         return median_edge(np.asarray(original.points, float),
                            faces[:: max(1, len(faces) // MEDIAN_TRIANGLES)])
+    if original is not None:
+        points = np.asarray(original.points, float)
+        probe = points[np.random.default_rng(0).choice(len(points), min(len(points), 200_000),
+                                                       replace=False)]
+        d, _ = cKDTree(points).query(probe, k=2, workers=-1)
+        return float(np.median(d[:, 1]))
     if surface.origin == "mesh":
         return median_edge(surface.vertices, surface.faces)
     points = scan.points
@@ -452,9 +462,10 @@ def surface_samples(scan: Scan, fit: AtlasFit, count: int, seed: int = 0,
     of the surface vertex nearest to it (a mesh vertex's own; a triangle sample's is its
     triangle's). Shapes ``(N, 3)``, ``(N, 3)``, ``(N,)``.
 
-    ``original``: the mesh ``scan`` was reduced from (a large scan's working mesh,
-    ``fitter.fitting.stream.working_mesh``), whose vertices are then taken as a cloud's
-    points are: the samples are the scan's own vertices, not the working mesh's.
+    ``original``: a large scan's own points (``fitter.fitting.stream.LargeScan.detail_scan``:
+    a mesh's vertices, of which ``scan`` is the reduced working mesh; a cloud's points,
+    thinned less than its working set), taken as a cloud's points are: the samples are then
+    the scan's own points, not the working set's.
     """
     surface = fit.surface
     if surface.origin == "mesh" and original is None:
@@ -1836,9 +1847,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     progress : callable(float), optional
         The fraction done, 0..1.
     original : Scan, optional
-        The mesh ``scan`` was reduced from (``fitter.fitting.stream.working_mesh``): the
-        levels are fitted to its vertices (thinned to about ``max_samples``), and their
-        depth reaches its median edge, not the working mesh's.
+        A large scan's own points (``fitter.fitting.stream.LargeScan.detail_scan``), of
+        which ``scan`` is the working set: the levels are fitted to them (thinned to about
+        ``max_samples``), and their depth reaches their spacing, not the working set's.
 
     Returns
     -------

@@ -519,11 +519,12 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                                                    options.bits)
     bits = layout_record["bits"]
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
-    whole = None if large is None else large.whole  # a large mesh: its own vertices
+    own = None if large is None else large.detail_scan()  # a large scan: its own points
     detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
-                              progress=stages.report, original=whole, **(
-                                  {} if whole is None
+                              progress=stages.report, original=own, **(
+                                  {} if own is None
                                   else {"max_samples": out_of_core.DETAIL_POINTS}))
+    del own
     atlas = detail.atlas  # renumbered so that every group of patches is a range
     data = base_file(atlas, bits, {"units": scan.units})
     resolution = base_resolution(atlas.spans)
