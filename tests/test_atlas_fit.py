@@ -538,6 +538,30 @@ def _wavy_torus_surface(major: int = 96, minor: int = 48):
     return scan_surface(_mesh_scan(torus.vertices, torus.faces, "wavy torus"))
 
 
+def test_a_weighted_decimation_of_a_large_surface_is_reduced_fast_first_too(monkeypatch):
+    """The thin-part weights (``fit``'s weighted layouts) went to MeshLab with the whole
+    surface: minutes for a statue of 10^6 vertices. Above the threshold MeshLab now gets the
+    fast pass's reduction, each of its vertices weighted as its nearest surface vertex."""
+    from fitter.fitting.atlas import layout as atlas_layout
+
+    surface = _wavy_torus_surface()  # 9,216 triangles
+    weights = 1.0 + (surface.vertices[:, 2] > 0)  # 2 on the upper half, 1 below
+    monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACES", 1_000)
+    monkeypatch.setattr(atlas_layout, "PRE_REDUCE_FACTOR", 2)
+    given = []
+    weighted = atlas_layout._weighted_meshset
+    monkeypatch.setattr(atlas_layout, "_weighted_meshset",
+                        lambda v, f, w: given.append((v, f, w)) or weighted(v, f, w))
+    vertices, triangles = decimate(surface, 200, weights)
+    assert abs(len(triangles) - 200) <= 2
+    assert euler_characteristics(vertices, triangles) == [0]
+    v, f, w = given[0]
+    assert len(f) == 1_000 and len(w) == len(v)  # the reduction, one weight a vertex
+    upper = v[:, 2] > 0.05 * np.ptp(surface.vertices[:, 2])
+    lower = v[:, 2] < -0.05 * np.ptp(surface.vertices[:, 2])
+    assert np.all(w[upper] == 2.0) and np.all(w[lower] == 1.0)
+
+
 def test_a_large_surface_is_reduced_fast_first_and_keeps_its_topology(monkeypatch):
     """Above PRE_REDUCE_FACES (lowered here) MeshLab decimates the fast pass's reduction:
     the same genus, the target's triangle count, and as near the surface as MeshLab alone."""

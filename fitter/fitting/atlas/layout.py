@@ -110,16 +110,21 @@ def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | 
             weights = None
     if len(surface.faces) <= target_triangles:
         return _checked(surface, surface.vertices.copy(), surface.faces.copy())
-    source = (surface.vertices, surface.faces)
-    if weights is None:
-        source = _pre_reduced(surface, target_triangles)
+    source = _pre_reduced(surface, target_triangles)
+    if weights is not None and source[1] is not surface.faces:
+        # reduced: each vertex takes the weight of the surface vertex nearest to it (the
+        # weights are a smooth thickness field, far coarser than the fast pass's collapses)
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(surface.vertices).query(source[0], workers=-1)
+        weights = weights[nearest]
     # MeshLab's topology check also refuses every collapse of a border edge, so a scan with
     # holes (the bunny's base: 223 border edges) keeps its border at full resolution and the
     # coarse mesh becomes slivers fanned to it. Collapse freely first; keep the result when
     # it is an oriented 2-manifold with the input's pieces and Euler characteristics (its
     # topology), else decimate again with the topology check on.
     for preserve in (False, True):
-        ms = _meshset(*source) if weights is None else _weighted_meshset(surface, weights)
+        ms = _meshset(*source) if weights is None else _weighted_meshset(*source, weights)
         ms.meshing_decimation_quadric_edge_collapse(
             targetfacenum=target_triangles, preservetopology=preserve,
             preserveboundary=False, boundaryweight=boundary_weight, preservenormal=True,
@@ -158,7 +163,11 @@ def _pre_reduced(surface: ScanSurface, target_triangles: int
     more (docs/benchmarks.md, session 22). The fast pass makes the first nine tenths of
     the collapses, of edges far below the layout's scale; MeshLab's topology-checked
     decimation makes the rest, as for any smaller surface, and the border check
-    (:func:`decimate_on_border`) is still against the surface itself."""
+    (:func:`decimate_on_border`) is still against the surface itself. A weighted
+    decimation (the thin parts' layouts) takes the reduction too, each of its vertices
+    weighted as the surface vertex nearest to it: with the whole surface, MeshLab spent
+    several minutes on each weighted layout of Stanford Lucy subdivided to 3.2 M vertices.
+    """
     faces = surface.faces
     goal = max(PRE_REDUCE_FACES, PRE_REDUCE_FACTOR * target_triangles)
     if len(faces) <= 2 * goal:
@@ -280,8 +289,8 @@ def thin_part_weights(surface: ScanSurface, target_triangles: int) -> np.ndarray
     return np.clip(ratio ** THIN_POWER, 1.0, THIN_CAP)
 
 
-def _weighted_meshset(surface: ScanSurface, weights: np.ndarray):
-    """``_meshset`` of the surface with ``weights`` as its vertex quality.
+def _weighted_meshset(vertices: np.ndarray, faces: np.ndarray, weights: np.ndarray):
+    """``_meshset`` of the mesh with ``weights`` (one per vertex) as its vertex quality.
 
     MeshLab's weighted simplification maps the quality range ``[min, max]`` affinely onto
     ``[1, 100]`` (vcglib's ``QualityWeightFactor``), so only the weights' ratios matter: the
@@ -292,8 +301,8 @@ def _weighted_meshset(surface: ScanSurface, weights: np.ndarray):
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(surface.vertices, np.float64),
-                               face_matrix=np.ascontiguousarray(surface.faces, np.int32),
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(vertices, np.float64),
+                               face_matrix=np.ascontiguousarray(faces, np.int32),
                                v_scalar_array=np.ascontiguousarray(weights)))
     return ms
 
