@@ -199,7 +199,7 @@ class LargeScan:
         """The scan an atlas is fitted to (``fitter.fitting.atlas.pipeline``): a mesh's
         :func:`working_mesh`, a cloud's working set (its surface is then the atlas's
         Poisson stand-in, as for any cloud)."""
-        if self.whole is not None and self.whole.faces is not None and len(self.whole.faces):
+        if self.whole is not None:  # a mesh (_load keeps no cloud whole)
             return working_mesh(self.whole)
         return self.working
 
@@ -211,7 +211,7 @@ class LargeScan:
         ``sqrt(K / count)`` times the working set's (a surface's occupied voxels go as
         ``h^-2``), larger while more than ``1.2 count`` voxels are occupied; all of them
         when there are no more than ``count``."""
-        if self.whole is not None and self.whole.faces is not None and len(self.whole.faces):
+        if self.whole is not None:  # a mesh (_load keeps no cloud whole)
             return self.whole
         count = int(DETAIL_POINTS if count is None else count)
         stream = self.stream
