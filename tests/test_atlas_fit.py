@@ -232,6 +232,41 @@ def test_a_folded_flap_that_splitting_leaves_is_removed():
     assert gone == [on_edge[int(np.argmin(area))]]
 
 
+def test_a_folded_pair_of_faces_without_area_is_dropped_and_the_surface_lays_out():
+    # what Forstmann's fast collapse made of Stanford Lucy subdivided (stream.working_mesh):
+    # two opposite faces on the same three almost collinear vertices of a closed surface.
+    # MeshLab keeps one of the pair and splits it off; alone, with no area, it made every
+    # layout of the surface fail ("triangles without area")
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    vertices, faces = sphere.vertices.copy(), sphere.faces.copy()
+    a, b = faces[0, 0], faces[0, 1]
+    around = [k for k, face in enumerate(faces) if {a, b} <= set(face.tolist())]
+    middle = len(vertices)
+    off_line = np.cross(vertices[b] - vertices[a], vertices[a])
+    vertices = np.vstack([vertices, 0.5 * (vertices[a] + vertices[b])
+                          + 1e-12 * off_line / np.linalg.norm(off_line)])
+    split = []
+    for k in around:  # each face on edge (a, b) split at its middle, orientation kept
+        face = faces[k].tolist()
+        i = face.index(a)
+        j = (i + 1) % 3 if face[(i + 1) % 3] == b else (i + 2) % 3
+        for end in (i, j):
+            half = list(face)
+            half[j if end == i else i] = middle
+            split.append(half)
+    faces = np.vstack([np.delete(faces, around, axis=0), split,
+                       [[a, middle, b], [a, b, middle]]])
+    assert manifold_problems(faces)["nonmanifold_edges"] > 0
+    v, f, repairs = clean_mesh(vertices, faces, "folded pair")
+    assert repairs["pieces_without_area_dropped"] == 1
+    assert manifold_problems(f)["border_edges"] == 0
+    assert euler_characteristics(v, f) == [2]
+    surface = scan_surface(_mesh_scan(vertices, faces, "folded pair"))
+    assert surface.pieces == 1
+    layout_vertices, layout = decimate(surface, 60)
+    assert manifold_problems(layout)["border_edges"] == 0
+
+
 def test_a_point_cloud_is_reconstructed_and_fitted():
     rng = np.random.default_rng(3)
     p = rng.normal(size=(6000, 3))

@@ -41,6 +41,7 @@ from .surface import (
     face_pieces,
     manifold_problems,
     unique_pairs,
+    without_area,
 )
 
 
@@ -697,11 +698,9 @@ def _checked(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
             f"the surface decimated to {len(triangles)} triangles has "
             f"{problems['nonmanifold_edges']} non-manifold and {problems['misoriented_edges']} "
             "misoriented edges; the layout needs an oriented 2-manifold")
-    area = np.linalg.norm(np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
-                                   vertices[triangles[:, 2]] - vertices[triangles[:, 0]]), axis=1)
-    keep = area > 1e-12 * surface.diagonal ** 2
-    if not keep.all():
-        raise AtlasLayoutError(f"the decimated surface has {int(np.sum(~keep))} triangles "
+    flat = without_area(vertices, triangles, surface.diagonal)
+    if flat.any():
+        raise AtlasLayoutError(f"the decimated surface has {int(np.sum(flat))} triangles "
                                "without area; the layout needs every triangle to have area")
     return vertices, triangles
 

@@ -3,8 +3,8 @@
 A mesh scan is used as it is after cleaning (MeshLab's filters through ``pymeshlab``):
 duplicate vertices merged, null and duplicate faces dropped, non-manifold edges and vertices
 split (their faces kept, never removed), faces oriented coherently per connected piece and
-each closed piece turned outward (positive signed volume). Every piece is kept; a piece
-becomes patches of its own.
+each closed piece turned outward (positive signed volume). Every piece with area is kept; a
+piece becomes patches of its own.
 
 A point cloud (a range scan, a ``.conf`` registration) gets a surface by screened Poisson
 reconstruction (Kazhdan & Hoppe, *Screened Poisson surface reconstruction*, ToG 2013)
@@ -38,6 +38,7 @@ BESIDE_COS = 0.7  # "beside": the offset to the surface at over acos(0.7) = 45.6
 MAX_LAYOUT_HANDLES = 8  # more handles than this: the layout is decimated from the stand-in
 NORMAL_NEIGHBOURS = 20  # points of a cloud's local PCA normal
 ORIENT_NEIGHBOURS = 10  # neighbours of a point in the orientation graph (orient_normals)
+NO_AREA = 1e-12  # a triangle whose |(b - a) x (c - a)| is at most this x diagonal^2 has no area
 
 
 class SurfaceError(ScanError):
@@ -161,6 +162,38 @@ def unique_pairs(pairs: np.ndarray, **options) -> np.ndarray | tuple:
     return (rows, *rest) if rest else rows
 
 
+def without_area(vertices: np.ndarray, faces: np.ndarray, diagonal: float) -> np.ndarray:
+    """Which triangles have no area: ``|(b - a) × (c - a)| <= NO_AREA · diagonal²``, shape
+    ``(M,)`` bool (``diagonal``: the surface's, so that the rule does not depend on the
+    units)."""
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return np.linalg.norm(cross, axis=1) <= NO_AREA * diagonal ** 2
+
+
+def _without_arealess_pieces(vertices: np.ndarray, faces: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The mesh without its pieces whose every triangle has no area (:func:`without_area`),
+    and without the vertices no face uses; with the count of pieces dropped.
+
+    Such a piece is what splitting leaves of a folded pair of faces: Forstmann's fast
+    quadric collapse (``stream.working_mesh``) of Stanford Lucy subdivided to 3.2 M vertices
+    made two pairs of opposite faces on the same three vertices, 10⁻¹⁶ of the diagonal²
+    in area; MeshLab keeps one face of each, splits it off its neighbours, and the lone
+    face, with no area, made every layout of the surface fail."""
+    count, labels = face_pieces(faces, len(vertices))
+    diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+    flat = without_area(vertices, faces, diagonal)
+    arealess = np.bincount(labels, weights=~flat, minlength=count) == 0
+    if not arealess.any():
+        return vertices, faces, 0
+    faces = faces[~arealess[labels]]
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return vertices[used], remap[faces], int(arealess.sum())
+
+
 def border_edges(faces: np.ndarray) -> np.ndarray:
     """The open border of a triangle surface: its undirected edges (``(B, 2)``, each sorted,
     in lexicographic order) that exactly one triangle uses."""
@@ -253,7 +286,9 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
     (:func:`_orient_outward`). What ``SPLIT_ROUNDS`` rounds of splitting leave (a flap
     folded onto its neighbour, a third face on an edge, as quadric decimation makes near a
     trimmed stand-in's borders) loses the smallest faces of its edges (``Remove Faces``,
-    counted in ``repairs['nonmanifold_faces_removed']``) before one more round.
+    counted in ``repairs['nonmanifold_faces_removed']``) before one more round. A piece
+    left with no area at all (:func:`_without_arealess_pieces`) is dropped last and
+    counted in ``repairs['pieces_without_area_dropped']``.
 
     Raises
     ------
@@ -303,11 +338,16 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
             f"{name}: after repair {problems['nonmanifold_edges']} edges still join more than "
             f"two faces and {problems['misoriented_edges']} edges have neighbours of opposite "
             "orientation (a non-orientable surface); a 2-manifold, orientable mesh is needed")
+    split_faces = len(f)
+    v, f, arealess = _without_arealess_pieces(v, f)
+    if len(f) == 0:
+        raise SurfaceError(f"{name}: none of the {n_faces} faces has area")
     f, flipped = _orient_outward(v, f)
     repairs = {"vertices_merged": int(n_vertices - len(v)),
                "faces_dropped": int(n_faces - after_dedup),
-               "faces_added_by_splits": int(len(f) + removed - after_dedup),
-               "nonmanifold_faces_removed": int(removed), "pieces_flipped": flipped}
+               "faces_added_by_splits": int(split_faces + removed - after_dedup),
+               "nonmanifold_faces_removed": int(removed), "pieces_flipped": flipped,
+               "pieces_without_area_dropped": arealess}
     return v, f, repairs
 
 
