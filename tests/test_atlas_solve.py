@@ -1,6 +1,6 @@
 """The atlas fit's speed-ups give the numbers of their slow references.
 
-``solve_spd_blocks`` (SuperLU without pivoting, single-column supernodes) against a dense
+``solve_spd_blocks`` (a band Cholesky factorisation of each patch's block) against a dense
 least-squares solve of each patch, and against SuperLU's own defaults.
 """
 import numpy as np
@@ -25,8 +25,8 @@ def _patch_rows(n: int, count: int, rng: np.random.Generator) -> sp.csr_matrix:
 
 @pytest.mark.parametrize("n, interior", [(10, False), (10, True), (18, False), (18, True)])
 def test_block_solve_is_each_patchs_dense_least_squares(n, interior):
-    """``M = A^T A + mu R`` per patch, block-diagonal over 7 patches: the batched solve in
-    the patch order of ``block_order`` equals ``numpy.linalg.lstsq`` of the stacked
+    """``M = A^T A + mu R`` per patch, block-diagonal over 7 patches: the batched solve
+    equals ``numpy.linalg.lstsq`` of the stacked
     ``[A; sqrt(mu) R^(1/2)]`` system, patch by patch (the regularisation's Cholesky factor
     gives the square root)."""
     rng = np.random.default_rng(n + interior)
@@ -44,20 +44,43 @@ def test_block_solve_is_each_patchs_dense_least_squares(n, interior):
         stacked = np.vstack([A.toarray(), np.sqrt(mu) * np.linalg.cholesky(R).T])
         dense.append(np.linalg.lstsq(stacked, np.r_[r, np.zeros(m)], rcond=None)[0])
     M = sp.block_diag(blocks, format="csr")
-    got = atlas_detail.solve_spd_blocks(M, np.concatenate(rhs),
-                                        atlas_detail.block_order(n, interior))
+    got = atlas_detail.solve_spd_blocks(M, np.concatenate(rhs), m)
     want = np.concatenate(dense)
     assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
 
 
-def test_single_column_supernodes_are_superlus_default_solve():
-    """``SUPERNODE_COLUMNS`` changes how SuperLU groups its work, not the solution: the
-    same system through ``spsolve`` (COLAMD, partial pivoting, default supernodes)."""
+def test_the_band_solve_is_superlus_default_solve():
+    """The same block-diagonal system through ``spsolve`` (COLAMD, partial pivoting)."""
     rng = np.random.default_rng(3)
     n = 18
     A = sp.block_diag([_patch_rows(n, 5 * n * n, rng) for _ in range(5)], format="csr")
     M = (A.T @ A + 1e-3 * sp.identity(A.shape[1])).tocsr()
     b = rng.normal(size=M.shape[0])
-    got = atlas_detail.solve_spd_blocks(M, b, atlas_detail.block_order(n, False))
+    got = atlas_detail.solve_spd_blocks(M, b, n * n)
     want = spla.spsolve(M.tocsc(), b)
     assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
+
+
+def test_a_block_that_is_not_positive_definite_gets_its_least_squares_solution():
+    """A patch whose block is singular (no data, no regularisation: all zero but one
+    coefficient) is solved by dense least squares, its neighbours in the batch as usual;
+    a matrix that is not block-diagonal in the given blocks is refused by name."""
+    rng = np.random.default_rng(5)
+    n = 6
+    good = _patch_rows(n, 4 * n * n, rng)
+    good = (good.T @ good + 1e-3 * sp.identity(n * n)).tocsr()
+    singular = sp.csr_matrix(([2.0], ([4], [4])), shape=(n * n, n * n))
+    M = sp.block_diag([good, singular, good], format="csr")
+    b = rng.normal(size=3 * n * n)
+    got = atlas_detail.solve_spd_blocks(M, b, n * n)
+    assert np.allclose(got[:n * n], spla.spsolve(good.tocsc(), b[:n * n]), rtol=1e-9)
+    middle = np.zeros(n * n)
+    middle[4] = b[n * n + 4] / 2.0
+    assert np.allclose(got[n * n:2 * n * n], middle)
+    assert np.allclose(got[2 * n * n:], spla.spsolve(good.tocsc(), b[2 * n * n:]), rtol=1e-9)
+    coupled = M.tolil()
+    coupled[0, n * n] = coupled[n * n, 0] = 1.0
+    with pytest.raises(ValueError, match="not block-diagonal"):
+        atlas_detail.solve_spd_blocks(coupled.tocsr(), b, n * n)
+    with pytest.raises(ValueError, match="blocks of 7 unknowns"):
+        atlas_detail.solve_spd_blocks(M, b, 7)

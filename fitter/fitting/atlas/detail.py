@@ -216,7 +216,6 @@ from ..detail import (
 )
 from ..io.scan import Scan
 from ..io.thin import thin_to_count
-from ..spd import spd_lu
 from .fit import AtlasFit, median_edge
 from .lattice import lattice_descent
 from .patches import (
@@ -257,7 +256,7 @@ MIN_FACING = 0.5  # least n . n_x of a fitted sample (its base normal against it
 # 0.644; these three measured with a coarser quantisation step, 3 times the RMS).
 MIN_DIRECTION = 0.8
 COEFFICIENT_REACH = 2.0  # an independent fit's coefficients within this times its residual
-BATCH_UNKNOWNS = 250_000  # unknowns per block-diagonal SuperLU solve
+BATCH_UNKNOWNS = 250_000  # unknowns per batch of the block-diagonal solves
 QUANTISE_SWEEPS = 4  # Gauss-Seidel sweeps of quantised_blocks (0: plain rounding)
 QUANTISE_RATE = 1.0  # quantised_blocks' weight of |q| (a rate proxy), in median data weights
 # Held-out samples (a cloud's automatic depth only): one in HELD_OUT of the fitted samples
@@ -996,21 +995,32 @@ def fold_node_rows(nodes: LevelNodes, coefficients: np.ndarray, level: int, span
     F, r = nodes.patches, nodes.resolution
     f, u, v, c, d = nodes.patch, nodes.u, nodes.v, nodes.position, nodes.direction
     own = evaluate_at_nodes(coefficients, level, spans, f, u, v, r)
-    tri = grid_triangles(F, r)
-    base_area = _cross(c[tri[:, 1]] - c[tri[:, 0]], c[tri[:, 2]] - c[tri[:, 0]])
-    owner = f[tri[:, 0]]  # bincount: np.add.at's sums, in the same order, 5 times faster
-    patch_area = np.column_stack([np.bincount(owner, base_area[:, k], minlength=F)
-                                  for k in range(3)])
-    x = c + nodes.before[:, None] * d
-    y = x + own[:, None] * d
-    drawn_area = _cross(y[tri[:, 1]] - y[tri[:, 0]], y[tri[:, 2]] - y[tri[:, 0]])
-    kept = np.einsum("tc,tc->t", drawn_area, base_area)
-    turned = ((kept < keep * np.einsum("tc,tc->t", base_area, base_area))
-              & (np.einsum("tc,tc->t", base_area, patch_area[f[tri[:, 0]]]) > 0))
-    tri = tri[turned]
-    s = fold_shrink(x[tri], (own[:, None] * d)[tri], keep)
+    cell = grid_triangles(1, r)
     share = np.ones(len(f))
-    np.minimum.at(share, tri.reshape(-1), np.repeat(s, 3))
+    per_chunk = max(1, CHUNK // (r * r))  # patches a chunk: their nodes are theirs alone
+
+    def chunk(first: int) -> None:
+        last = min(F, first + per_chunk)
+        lo, hi = first * r * r, last * r * r
+        tri = grid_triangles(last - first, r)  # this chunk's nodes, from lo
+        pc = c[lo:hi]
+        base_area = _cross(pc[tri[:, 1]] - pc[tri[:, 0]], pc[tri[:, 2]] - pc[tri[:, 0]])
+        owner = np.repeat(np.arange(last - first), len(cell))
+        # bincount: np.add.at's sums, in the same order, 5 times faster
+        patch_area = np.column_stack([np.bincount(owner, base_area[:, k],
+                                                  minlength=last - first) for k in range(3)])
+        x = pc + nodes.before[lo:hi, None] * d[lo:hi]
+        step = own[lo:hi, None] * d[lo:hi]
+        y = x + step
+        drawn_area = _cross(y[tri[:, 1]] - y[tri[:, 0]], y[tri[:, 2]] - y[tri[:, 0]])
+        kept = np.einsum("tc,tc->t", drawn_area, base_area)
+        turned = ((kept < keep * np.einsum("tc,tc->t", base_area, base_area))
+                  & (np.einsum("tc,tc->t", base_area, patch_area[owner]) > 0))
+        tri = tri[turned]
+        s = fold_shrink(x[tri], step[tri], keep)
+        np.minimum.at(share[lo:hi], tri.reshape(-1), np.repeat(s, 3))
+
+    on_threads(chunk, F, per_chunk)
     at = np.flatnonzero(share < 1.0)
     return PullRows(f[at], u[at], v[at], share[at] * own[at],
                     np.searchsorted(f[at], np.arange(F + 1)), weight)
@@ -1269,46 +1279,54 @@ def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarra
 
 
 # ------------------------------------------------------------------ one level
-@functools.lru_cache(maxsize=16)
-def block_order(n: int, interior: bool) -> np.ndarray:
-    """A fill-reducing order of one patch's unknowns (its ``(n, n)`` grid, or with
-    ``interior`` the ``(n - 2)^2`` inside the border ring), shape ``(m,)``: SuperLU's
-    minimum degree on ``M^T + M``
-    (``MMD_AT_PLUS_A``, as ``fitter.fitting.detail.fit_level``) of the widest pattern a
-    patch's normal matrix can have: every pair of coefficients within ``max(p + 1, 2)`` of
-    each other along both ``u`` and ``v`` (a drawn triangle's three nodes' supports,
-    :class:`DrawnModel`, and the second differences of the smoothing). Every patch's
-    matrix has (part of) this pattern, so one order serves them all.
-    """
-    width = max(DEGREE + 1, 2)
-    band = sp.diags([np.ones(n - abs(k)) for k in range(-width, width + 1)],
-                    list(range(-width, width + 1)))
-    pattern = sp.kron(band, band).tocsr()
-    if interior:
-        inside = np.flatnonzero(~border_ring(n).reshape(-1))
-        pattern = pattern[inside][:, inside]
-    dominant = pattern + sp.diags(np.asarray(pattern.sum(axis=1)).ravel())  # SPD values
-    return np.argsort(spd_lu(dominant).perm_c)
-
-
-def solve_spd_blocks(M: sp.csr_matrix, rhs: np.ndarray, order: np.ndarray) -> np.ndarray:
+def solve_spd_blocks(M: sp.spmatrix, rhs: np.ndarray, size: int) -> np.ndarray:
     """``M^-1 rhs`` for a block-diagonal symmetric positive definite ``M`` of equal blocks
-    of ``m = len(order)`` unknowns, each block's unknowns taken in ``order``
-    (:func:`block_order`): SuperLU on the permuted matrix in its natural column order and
-    without pivoting (an SPD matrix needs none: this is a Cholesky factorisation in LU
-    form). On 216 level-2 patches (250,000 unknowns) 1.0 s against 3.0 s for SuperLU's
-    default column ordering (COLAMD) with partial pivoting, to 1e-12 of it; with
-    single-column supernodes (:func:`fitter.fitting.spd.spd_lu`), on the 15-scan Happy
-    Buddha's level-2 batches 0.66 s against 0.94 s with SuperLU's default supernodes, to
-    2e-14 of it;
+    of ``size`` unknowns: each block's band Cholesky factorisation ``M_b = U^T U`` and two
+    triangular solves in the block's own order (LAPACK ``dpbtrf``/``dpbtrs``; Golub & Van
+    Loan, *Matrix Computations*, 4th ed., 4.3.5).
+
+    A patch's unknowns are its ``(n, n)`` grid row by row (or the inside of its border
+    ring, row by row), and a coefficient meets only those within ``max(p + 1, 2)`` of it
+    along ``u`` and ``v`` (a drawn triangle's three nodes' supports, :class:`DrawnModel`,
+    and the smoothing's second differences), so a block is a band of half-width about
+    ``3 n``: 105 at level 2 (``n = 34``). Dense band kernels on that band beat SuperLU's
+    sparse factorisation of the same blocks under a minimum-degree order (session 24,
+    216 level-2 patches of random rows: 0.30 s against 1.1 s; 771 level-1 patches 0.35 s
+    against 1.0 s), and each block is solved alone, so its numbers do not depend on the
+    batch it is in. A block that is not numerically positive definite (``dpbtrf`` stops
+    at a pivot <= 0: no patch's ``A^T A + mu R`` with ``mu > 0`` should be) is solved by
+    dense least squares, its minimum-norm solution.
     ``tests/test_atlas_solve.py`` holds it to each patch's dense least squares."""
-    m = len(order)
-    blocks = M.shape[0] // m
-    perm = (np.arange(blocks)[:, None] * m + order[None, :]).reshape(-1)
-    lu = spd_lu(M[perm][:, perm], "NATURAL")
-    out = np.empty_like(rhs)
-    out[perm] = lu.solve(rhs[perm])
-    return out
+    from scipy.linalg import lapack
+
+    M = sp.csr_matrix(M)
+    M.sum_duplicates()
+    blocks = M.shape[0] // size
+    if blocks * size != M.shape[0] or M.shape[0] != M.shape[1] or len(rhs) != M.shape[0]:
+        raise ValueError(f"a block-diagonal system of blocks of {size} unknowns was expected, "
+                         f"got a matrix {M.shape} and {len(rhs)} right-hand sides")
+    coo = M.tocoo()
+    upper = coo.col >= coo.row
+    row, col, data = coo.row[upper], coo.col[upper], coo.data[upper]
+    block = row // size
+    if np.any(col // size != block):
+        raise ValueError(f"the matrix is not block-diagonal in blocks of {size} unknowns")
+    local_row, local_col = row - block * size, col - block * size
+    width = int((local_col - local_row).max(initial=0))
+    bounds = np.searchsorted(block, np.arange(blocks + 1))  # row-sorted: each block's run
+    out = np.empty((blocks, size))
+    right = np.asarray(rhs, np.float64).reshape(blocks, size)
+    for b in range(blocks):
+        lo, hi = bounds[b], bounds[b + 1]
+        band = np.zeros((width + 1, size))  # LAPACK's upper band storage: ab[w + i - j, j]
+        band[width + local_row[lo:hi] - local_col[lo:hi], local_col[lo:hi]] = data[lo:hi]
+        factor, info = lapack.dpbtrf(band, lower=0, overwrite_ab=1)
+        if info == 0:
+            out[b], info = lapack.dpbtrs(factor, right[b], lower=0)
+        if info != 0:
+            dense = M[b * size:(b + 1) * size, b * size:(b + 1) * size].toarray()
+            out[b] = np.linalg.lstsq(dense, right[b], rcond=None)[0]
+    return out.reshape(-1)
 
 
 class _BatchSystem:
@@ -1457,7 +1475,7 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     smoothest field through its border, or zero, rather than one swinging between them).
     The patches are solved in batches of about ``BATCH_UNKNOWNS`` unknowns
     (:func:`solve_spd_blocks`), the batches on ``threads`` threads (default: one per
-    core; SuperLU and the sparse products release the GIL); the result does not depend
+    core; LAPACK and the sparse products release the GIL); the result does not depend
     on the thread count. ``rows``: a dict that keeps each batch's weighted rows and
     residual, filled by the first call given it and read by the next (the border-held
     solve has the independent solve's rows: on the 15-scan Happy Buddha they were a third
@@ -1476,7 +1494,6 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
     ring = border_ring(n).reshape(-1)
     free = np.flatnonzero(~ring) if fixed is not None else np.arange(n * n)
     held = np.flatnonzero(ring)
-    order = block_order(n, fixed is not None)
     chosen = np.arange(F) if patches is None else np.asarray(patches, np.int64)
     out = np.zeros((len(chosen), n, n))
     weight = np.zeros((len(chosen), n, n))
@@ -1489,7 +1506,7 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
                         else system.normal_of(chosen[first:last]))
         weight[first:last] = diag.reshape(count, n, n)
         if fixed is None:
-            out[first:last] = solve_spd_blocks(M, rhs, order).reshape(count, n, n)
+            out[first:last] = solve_spd_blocks(M, rhs, n * n).reshape(count, n, n)
             return
         cols_free = (np.arange(count)[:, None] * n * n + free[None, :]).reshape(-1)
         cols_held = (np.arange(count)[:, None] * n * n + held[None, :]).reshape(-1)
@@ -1498,7 +1515,7 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
         M_free = M_rows[:, cols_free]
         b = rhs[cols_free] - M_rows[:, cols_held] @ c_held
         c = np.zeros(count * n * n)
-        c[cols_free] = solve_spd_blocks(M_free, b, order)
+        c[cols_free] = solve_spd_blocks(M_free, b, len(free))
         c[cols_held] = c_held
         out[first:last] = c.reshape(count, n, n)
 
@@ -1508,8 +1525,10 @@ def _solve_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, spans
 
 def coupling_stride(degree: int = DEGREE) -> int:
     """The least index distance (along ``u`` or ``v``) at which two coefficients of one
-    patch share no term of the level's objective: ``max(p + 1, 2) + 1`` (the pattern of
-    :func:`block_order`)."""
+    patch share no term of the level's objective: ``max(p + 1, 2) + 1`` (a patch's normal
+    matrix couples coefficients within ``max(p + 1, 2)`` of each other along ``u`` and
+    ``v``: a drawn triangle's three nodes' supports and the smoothing's second
+    differences)."""
     return max(degree + 1, 2) + 1
 
 
