@@ -236,7 +236,9 @@ def farther_than(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, re
     if isinstance(reach, bool) or not isinstance(reach, (int, float)) \
             or not math.isfinite(reach) or reach < 0:
         raise ValueError(f"reach must be a finite number >= 0, got {reach!r}")
-    corners = vertices[np.unique(faces)]
+    used = np.zeros(len(vertices), bool)
+    used[faces.reshape(-1)] = True  # np.unique(faces)'s set, without its sort
+    corners = vertices[used]
     scale = max(float(np.abs(corners).max()), float(np.abs(points).max(initial=0.0)))
     bound = reach - FLOAT32_MARGIN * (scale + reach)
     unsure = np.arange(len(points))
