@@ -29,6 +29,7 @@ from fitter.fitting.atlas.fit import (
 from fitter.fitting.atlas.layout import (
     STRAY_REACH,
     THIN_CAP,
+    AtlasLayoutError,
     bilinear_atlas,
     border_strays,
     decimate,
@@ -49,8 +50,13 @@ from fitter.fitting.atlas.patches import (
     neighbour_table,
     triangle_to_quad,
 )
+from fitter.fitting.atlas.surface import (
+    ScanSurface,
+    clean_mesh,
+    manifold_problems,
+    unique_pairs,
+)
 from fitter.fitting.atlas.surface import border_edges as border_edges_of
-from fitter.fitting.atlas.surface import clean_mesh, manifold_problems, unique_pairs
 from fitter.fitting.io.scan import Scan, make_scan, new_source
 from tests.test_atlas import random_cube_atlas
 
@@ -265,6 +271,21 @@ def test_a_folded_pair_of_faces_without_area_is_dropped_and_the_surface_lays_out
     assert surface.pieces == 1
     layout_vertices, layout = decimate(surface, 60)
     assert manifold_problems(layout)["border_edges"] == 0
+
+
+def test_an_intermediate_decimation_may_keep_a_triangle_without_area_a_layout_may_not():
+    # a flat quad (A, B, D, E) with C 1e-13 off the edge AB: the sliver (B, C, A) has a
+    # twice-area of 1e-13, under NO_AREA x diagonal^2 = 5e-12, in a piece that has area
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1e-13, 0], [0.5, 1, 0], [0.5, -1, 0.0]])
+    faces = np.array([[0, 2, 3], [2, 1, 3], [1, 2, 0], [1, 0, 4]])
+    assert manifold_problems(faces)["misoriented_edges"] == 0
+    surface = ScanSurface(vertices, faces, "mesh", 1, {})
+    with pytest.raises(AtlasLayoutError, match="1 triangles without area"):
+        decimate(surface, 10)
+    v, f = decimate(surface, 10, require_area=False)
+    assert len(f) == 4
+    v, f = decimate_on_border(surface, 10, require_area=False)
+    assert len(f) == 4
 
 
 def test_a_point_cloud_is_reconstructed_and_fitted():

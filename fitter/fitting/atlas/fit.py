@@ -1759,7 +1759,10 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     report(0.2)
     clock = time.perf_counter()
     # every trial decimates from one intermediate mesh, not from the full scan (MeshLab's
-    # collapse of 10^5 faces takes seconds each time)
+    # collapse of 10^5 faces takes seconds each time). It may keep triangles without area,
+    # which the trials' layouts may not: a working mesh of Stanford Lucy subdivided to
+    # 3.2 M vertices left 2 at 20,000 triangles, and each of its trials then decimated the
+    # whole 1.6 M triangles again, 52-56 s a trial
     source = surface if layout_surface is None else layout_surface
     # the open border curves follow the scan's border; a stand-in's borders are its own
     overshoot = (BORDER_OVERSHOOT * median_edge(surface.vertices, surface.faces)
@@ -1771,7 +1774,7 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
     if len(source.faces) > PREDECIMATED_TRIANGLES:
         try:
             vertices, triangles = (decimate_on_border if border is not None else decimate)(
-                source, PREDECIMATED_TRIANGLES)
+                source, PREDECIMATED_TRIANGLES, require_area=False)
             coarse = ScanSurface(vertices, triangles, source.origin, source.pieces,
                                  source.repairs)
         except (AtlasLayoutError, SurfaceError):

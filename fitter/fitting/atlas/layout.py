@@ -80,7 +80,8 @@ class QuadLayout:
 
 
 def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | None = None,
-             boundary_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+             boundary_weight: float = 1.0, require_area: bool = True
+             ) -> tuple[np.ndarray, np.ndarray]:
     """The surface decimated to about ``target_triangles`` (topology and borders preserved).
 
     ``weights (V,)``, optional: per-vertex factors >= 1 on the quadric error of a collapse
@@ -89,7 +90,10 @@ def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | 
     weights (no thin part) are the plain decimation: MeshLab stretches the weights' range
     onto 1..100 and would divide by an empty one. ``boundary_weight``: MeshLab's weight of
     the quadric of the planes through each border edge, perpendicular to its triangle
-    (``boundaryweight``; :func:`decimate_on_border` raises it).
+    (``boundaryweight``; :func:`decimate_on_border` raises it). ``require_area=False``:
+    triangles without area (:func:`.surface.without_area`) are let through, for an
+    intermediate surface that is decimated again (``fit.PREDECIMATED_TRIANGLES``), not a
+    layout.
 
     Raises
     ------
@@ -110,7 +114,7 @@ def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | 
         if np.ptp(weights) == 0:
             weights = None
     if len(surface.faces) <= target_triangles:
-        return _checked(surface, surface.vertices.copy(), surface.faces.copy())
+        return _checked(surface, surface.vertices.copy(), surface.faces.copy(), require_area)
     source = _pre_reduced(surface, target_triangles)
     if weights is not None and source[1] is not surface.faces:
         # reduced: each vertex takes the weight of the surface vertex nearest to it (the
@@ -141,7 +145,7 @@ def decimate(surface: ScanSurface, target_triangles: int, weights: np.ndarray | 
         # the topology check on (Buddha scan 0: 7 non-manifold edges at 144 triangles);
         # the same repair as the scan's (split, re-orient) makes it a layout again
         vertices, triangles, _ = clean_mesh(vertices, triangles, "the decimated surface")
-    return _checked(surface, vertices, triangles)
+    return _checked(surface, vertices, triangles, require_area)
 
 
 #: a surface of more than PRE_REDUCE_FACES faces, and PRE_REDUCE_FACTOR times the target,
@@ -210,7 +214,8 @@ def border_strays(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndar
 
 
 def decimate_on_border(surface: ScanSurface, target_triangles: int,
-                       weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       weights: np.ndarray | None = None, require_area: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`decimate`, done again with the border's quadric weighted
     ``BORDER_QUADRIC_WEIGHT`` when a vertex of the layout's open border is left off the
     scan's border (:func:`border_strays`).
@@ -227,10 +232,11 @@ def decimate_on_border(surface: ScanSurface, target_triangles: int,
     of slivers at its base's holes (84 triangles with an edge under a tenth of the median
     against 33), whose control points 9 bits no longer keep apart.
     """
-    vertices, triangles = decimate(surface, target_triangles, weights)
+    vertices, triangles = decimate(surface, target_triangles, weights,
+                                   require_area=require_area)
     if border_strays(surface, vertices, triangles):
         vertices, triangles = decimate(surface, target_triangles, weights,
-                                       BORDER_QUADRIC_WEIGHT)
+                                       BORDER_QUADRIC_WEIGHT, require_area)
     return vertices, triangles
 
 
@@ -690,16 +696,16 @@ def _same_topology(surface: ScanSurface, vertices: np.ndarray, triangles: np.nda
         surface.vertices, surface.faces)
 
 
-def _checked(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray]:
+def _checked(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
+             require_area: bool = True) -> tuple[np.ndarray, np.ndarray]:
     problems = manifold_problems(triangles)
     if problems["nonmanifold_edges"] or problems["misoriented_edges"]:
         raise AtlasLayoutError(
             f"the surface decimated to {len(triangles)} triangles has "
             f"{problems['nonmanifold_edges']} non-manifold and {problems['misoriented_edges']} "
             "misoriented edges; the layout needs an oriented 2-manifold")
-    flat = without_area(vertices, triangles, surface.diagonal)
-    if flat.any():
+    flat = without_area(vertices, triangles, surface.diagonal) if require_area else [False]
+    if np.any(flat):
         raise AtlasLayoutError(f"the decimated surface has {int(np.sum(flat))} triangles "
                                "without area; the layout needs every triangle to have area")
     return vertices, triangles
