@@ -207,6 +207,12 @@ def test_measure_levels_gives_the_same_distances_with_the_finest_level_in_a_proc
     for k in here[0]:
         assert here[0][k].tobytes() == there[0][k].tobytes()
     assert here[2].tobytes() == there[2].tobytes() and here[3].tobytes() == there[3].tobytes()
+    # a large scan's working set: the finest level alone, the same numbers
+    finest = pipeline.measure_levels(detail.atlas, detail, points, coarser=False)
+    assert finest[0].keys() == {0}
+    assert finest[0][0].tobytes() == here[0][0].tobytes()
+    assert finest[1].vertices.tobytes() == here[1].vertices.tobytes()
+    assert finest[2].tobytes() == here[2].tobytes() and finest[3].tobytes() == here[3].tobytes()
 
 
 def test_auto_rule_keeps_one_patch_for_a_height_field_and_an_atlas_for_a_closed_object():

@@ -201,11 +201,13 @@ def level_resolution(atlas, detail, level: int) -> int:
     return base_resolution(atlas.spans) if level < 0 else detail.levels[level]["resolution"]
 
 
-def measure_levels(atlas, detail, points: np.ndarray
+def measure_levels(atlas, detail, points: np.ndarray, coarser: bool = True
                    ) -> tuple[dict[int, np.ndarray], DrawnMesh, np.ndarray, np.ndarray]:
     """Every scan point's signed distance to the welded mesh drawn at each level (``-1``
     the base, ``k`` with the packs of levels ``0..k``, each at :func:`level_resolution`),
-    the panel's measure for each level (:func:`restate_level_errors`).
+    the panel's measure for each level (:func:`restate_level_errors`); with ``coarser``
+    false, at the finest level only (a large scan's working set, whose levels' figures
+    :func:`measure_every_point` gives).
 
     The meshes are tessellated here, finest first, and measured by one worker thread in
     that order. ``open3d`` holds the GIL while it builds its BVH (one core) and queries
@@ -219,7 +221,8 @@ def measure_levels(atlas, detail, points: np.ndarray
     Returns
     -------
     distances : dict of int to ndarray, shape (N,)
-        ``{level: d}`` for ``-1`` and every detail level.
+        ``{level: d}`` for ``-1`` and every detail level (the finest only without
+        ``coarser``).
     finest : DrawnMesh
         The mesh of the finest level (the base without detail levels).
     triangle, closest : ndarray, shapes (N,), (N, 3)
@@ -236,7 +239,7 @@ def measure_levels(atlas, detail, points: np.ndarray
     jobs = {}
     try:
         with ThreadPoolExecutor(1) as measuring, ThreadPoolExecutor(1) as talking:
-            for k in range(top, -2, -1):
+            for k in range(top, -2 if coarser else top - 1, -1):
                 mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k),
                                   detail.detail_up_to(k))
                 if k == top:
@@ -270,12 +273,14 @@ def coverage_of(d: np.ndarray, diagonal: float, far_box: list | None = None) -> 
 
 
 def measure_every_point(atlas, detail, large: out_of_core.LargeScan, units: str,
-                        progress: Callable[[float], None]) -> tuple[dict[int, dict], dict]:
+                        progress: Callable[[float], None], finest: DrawnMesh | None = None
+                        ) -> tuple[dict[int, dict], dict]:
     """A scan fitted out of core (``fitter.fitting.stream.LargeScan``: its atlas fitted to
     the working set): EVERY original point's distance to the welded mesh drawn at each level,
     as :func:`measure_levels` measures the working set, streamed in blocks of
     ``stream.BLOCK_POINTS``. Returns ``({level: error_stats}, coverage)`` over all ``N``
-    points (:func:`coverage_of`), the diagonal that of their box.
+    points (:func:`coverage_of`), the diagonal that of their box. ``finest``: the finest
+    level's drawn mesh, when :func:`measure_levels` made it already.
 
     Memory: one level's float32 distances (4 bytes a point) and a block's temporaries
     beside the drawn mesh; each point is read once per level (by a copy of the stream that
@@ -294,7 +299,8 @@ def measure_every_point(atlas, detail, large: out_of_core.LargeScan, units: str,
     levels = list(range(top, -2, -1))  # the finest first: its coverage, then the others
     errors, coverage = {}, {}
     for i, k in enumerate(levels):
-        mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k), detail.detail_up_to(k))
+        mesh = finest if k == top and finest is not None else drawn_mesh(
+            atlas, level_resolution(atlas, detail, k), detail.detail_up_to(k))
         d = np.empty(stream.count, np.float32)
         far_lo, far_hi = np.full(3, np.inf), np.full(3, -np.inf)
         for j, (start, stop) in enumerate(spans):
@@ -531,7 +537,8 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     stages.start("error")
     points = np.asarray(scan.points, dtype=float)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    distances, drawn, triangle, closest = measure_levels(atlas, detail, points)
+    distances, drawn, triangle, closest = measure_levels(atlas, detail, points,
+                                                        coarser=large is None)
     top = len(detail.levels) - 1
     d = distances[top]
     if large is None:
@@ -542,7 +549,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                                if far.any() else None)
     else:
         errors, coverage = measure_every_point(atlas, detail, large, scan.units,
-                                               stages.report)
+                                               stages.report, drawn)
     stats = errors[top]
     # the raster's cells hold the points measured here (of a large scan, its working set),
     # on the panel's scale: stats.max (every point), the larger if a working point is farther
