@@ -991,6 +991,24 @@ def test_fold_rows_keep_the_drawn_level_from_turning_over_at_creases(radius, mon
     assert found[atlas_detail.FOLD_PASSES][1] < 1.3 * found[0][1], found
 
 
+def test_fold_rows_made_a_few_patches_at_a_time_are_those_made_at_once(monkeypatch):
+    """``fold_node_rows`` works a chunk of patches at a time on threads (``CHUNK`` nodes):
+    with one patch a chunk, the same rows to the bit as with every patch in one chunk, and
+    rows there are (random coefficients large enough to turn triangles over)."""
+    fit, _ = _ball_in_a_cube_fit(1.3)
+    atlas = fit.atlas
+    spans, n = 4, 4 + atlas_detail.DEGREE
+    nodes = atlas_detail.level_nodes(atlas, [], 0, spans)
+    c = np.random.default_rng(7).normal(scale=0.4, size=(len(atlas.quads), n, n))
+    monkeypatch.setattr(atlas_detail, "CHUNK", 10 ** 9)
+    whole = atlas_detail.fold_node_rows(nodes, c, 0, spans, 1.0)
+    monkeypatch.setattr(atlas_detail, "CHUNK", 1)
+    parts = atlas_detail.fold_node_rows(nodes, c, 0, spans, 1.0)
+    assert len(whole.patch) > 20 and len(np.unique(whole.patch)) > 1
+    for name in ("patch", "u", "v", "target", "offsets"):
+        assert getattr(whole, name).tobytes() == getattr(parts, name).tobytes(), name
+
+
 def test_groups_leave_room_for_walls_masks():
     """A level-3 pack of 200 patches holds 1.28 M coefficients (within the 2^21 values a
     pack may hold): one group; with walls masks of 16 cells a side it would hold 4.56 M, so

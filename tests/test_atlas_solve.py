@@ -61,6 +61,27 @@ def test_the_band_solve_is_superlus_default_solve():
     assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
 
 
+def test_a_blocks_solution_does_not_depend_on_the_blocks_beside_it():
+    """Each block is factored in its own band: a narrow block (the regularisation alone,
+    a patch with no samples: half-width 2 n + 2) solved beside a wider one (coupled 3 n
+    apart) gives the bytes it gives alone, and the caller's matrix is left as it was
+    (duplicates summed on a copy)."""
+    rng = np.random.default_rng(11)
+    n = 10
+    wide = _patch_rows(n, 4 * n * n, rng)
+    far = 0.1 * (sp.eye(n * n, k=3 * n) + sp.eye(n * n, k=-3 * n))
+    wide = (wide.T @ wide + far + sp.identity(n * n)).tocsr()
+    narrow = (0.37 * atlas_detail.regularisation(n)).tocsr()
+    b = rng.normal(size=2 * n * n)
+    alone = atlas_detail.solve_spd_blocks(narrow, b[n * n:], n * n)
+    pair = sp.block_diag([wide, narrow], format="csr")
+    before = (pair.indptr.copy(), pair.indices.copy(), pair.data.copy())
+    beside = atlas_detail.solve_spd_blocks(pair, b, n * n)
+    assert beside[n * n:].tobytes() == alone.tobytes()
+    assert all(np.array_equal(x, y) for x, y in zip(before, (pair.indptr, pair.indices,
+                                                            pair.data), strict=True))
+
+
 def test_a_block_that_is_not_positive_definite_gets_its_least_squares_solution():
     """A patch whose block is singular (no data, no regularisation: all zero but one
     coefficient) is solved by dense least squares, its neighbours in the batch as usual;
@@ -79,7 +100,7 @@ def test_a_block_that_is_not_positive_definite_gets_its_least_squares_solution()
     assert np.allclose(got[n * n:2 * n * n], middle)
     assert np.allclose(got[2 * n * n:], spla.spsolve(good.tocsc(), b[2 * n * n:]), rtol=1e-9)
     coupled = M.tolil()
-    coupled[0, n * n] = coupled[n * n, 0] = 1.0
+    coupled[n * n, 0] = 1.0  # below the diagonal only
     with pytest.raises(ValueError, match="not block-diagonal"):
         atlas_detail.solve_spd_blocks(coupled.tocsr(), b, n * n)
     with pytest.raises(ValueError, match="blocks of 7 unknowns"):

@@ -26,8 +26,9 @@ def spd_lu(M: sp.spmatrix, permc_spec: str = "MMD_AT_PLUS_A", single_columns: bo
     for SuperLU's dense supernode updates to pay for their bookkeeping. Measured on the
     15-scan Happy Buddha: a 21,412-control-point base system 0.36 s with SuperLU's
     defaults (COLAMD, partial pivoting), 0.12 s here with default supernodes, 0.10 s
-    with single columns; a level-2 detail batch (216 patches, 250,000 unknowns, natural
-    order) 0.94 -> 0.66 s. The solutions agree to 4e-15 and 2e-14 relative. A single
+    with single columns (an atlas's detail batches, which were solved so too until
+    session 24, now take a band Cholesky per patch: ``atlas.detail.solve_spd_blocks``).
+    The solutions agree to 4e-15 relative. A single
     patch's detail level is one 2-D grid with some 365 non-zeros a factor column, where
     SuperLU's own supernodes pay: ``single_columns=False`` keeps them (level 4, 66,564
     unknowns: 3.1 CPU-s against 5.0; level 3 the same, 0.42 against 0.46; session 18).

@@ -1299,27 +1299,29 @@ def solve_spd_blocks(M: sp.spmatrix, rhs: np.ndarray, size: int) -> np.ndarray:
     ``tests/test_atlas_solve.py`` holds it to each patch's dense least squares."""
     from scipy.linalg import lapack
 
-    M = sp.csr_matrix(M)
+    M = sp.csr_matrix(M, copy=True)  # summing duplicates must not change the caller's
     M.sum_duplicates()
     blocks = M.shape[0] // size
     if blocks * size != M.shape[0] or M.shape[0] != M.shape[1] or len(rhs) != M.shape[0]:
         raise ValueError(f"a block-diagonal system of blocks of {size} unknowns was expected, "
                          f"got a matrix {M.shape} and {len(rhs)} right-hand sides")
     coo = M.tocoo()
+    if np.any(coo.row // size != coo.col // size):
+        raise ValueError(f"the matrix is not block-diagonal in blocks of {size} unknowns")
     upper = coo.col >= coo.row
     row, col, data = coo.row[upper], coo.col[upper], coo.data[upper]
     block = row // size
-    if np.any(col // size != block):
-        raise ValueError(f"the matrix is not block-diagonal in blocks of {size} unknowns")
     local_row, local_col = row - block * size, col - block * size
-    width = int((local_col - local_row).max(initial=0))
     bounds = np.searchsorted(block, np.arange(blocks + 1))  # row-sorted: each block's run
     out = np.empty((blocks, size))
     right = np.asarray(rhs, np.float64).reshape(blocks, size)
     for b in range(blocks):
         lo, hi = bounds[b], bounds[b + 1]
-        band = np.zeros((width + 1, size))  # LAPACK's upper band storage: ab[w + i - j, j]
-        band[width + local_row[lo:hi] - local_col[lo:hi], local_col[lo:hi]] = data[lo:hi]
+        i, j = local_row[lo:hi], local_col[lo:hi]
+        width = int((j - i).max(initial=0))  # the block's own: its numbers are its own
+        # LAPACK's upper band storage, ab[w + i - j, j], in Fortran order (factored in place)
+        band = np.zeros((width + 1, size), order="F")
+        band[width + i - j, j] = data[lo:hi]
         factor, info = lapack.dpbtrf(band, lower=0, overwrite_ab=1)
         if info == 0:
             out[b], info = lapack.dpbtrs(factor, right[b], lower=0)

@@ -704,8 +704,7 @@ def _checked(surface: ScanSurface, vertices: np.ndarray, triangles: np.ndarray,
             f"the surface decimated to {len(triangles)} triangles has "
             f"{problems['nonmanifold_edges']} non-manifold and {problems['misoriented_edges']} "
             "misoriented edges; the layout needs an oriented 2-manifold")
-    flat = without_area(vertices, triangles, surface.diagonal) if require_area else [False]
-    if np.any(flat):
+    if require_area and (flat := without_area(vertices, triangles, surface.diagonal)).any():
         raise AtlasLayoutError(f"the decimated surface has {int(np.sum(flat))} triangles "
                                "without area; the layout needs every triangle to have area")
     return vertices, triangles

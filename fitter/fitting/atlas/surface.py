@@ -338,12 +338,12 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
             f"{name}: after repair {problems['nonmanifold_edges']} edges still join more than "
             f"two faces and {problems['misoriented_edges']} edges have neighbours of opposite "
             "orientation (a non-orientable surface); a 2-manifold, orientable mesh is needed")
-    split_faces = len(f)
+    split_faces, split_vertices = len(f), len(v)
     v, f, arealess = _without_arealess_pieces(v, f)
     if len(f) == 0:
         raise SurfaceError(f"{name}: none of the {n_faces} faces has area")
     f, flipped = _orient_outward(v, f)
-    repairs = {"vertices_merged": int(n_vertices - len(v)),
+    repairs = {"vertices_merged": int(n_vertices - split_vertices),
                "faces_dropped": int(n_faces - after_dedup),
                "faces_added_by_splits": int(split_faces + removed - after_dedup),
                "nonmanifold_faces_removed": int(removed), "pieces_flipped": flipped,
