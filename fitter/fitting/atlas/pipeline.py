@@ -216,7 +216,10 @@ def measure_levels(atlas, detail, points: np.ndarray, coarser: bool = True
     first so that it imports ``open3d`` while the mesh is tessellated, and the coarser
     levels here meanwhile. Where no process can be started, or it fails, the finest level
     is measured here. The distances are the same either way (the same function on the
-    same numbers).
+    same numbers). Without ``coarser`` there is nothing to overlap, and the finest level
+    is measured here: its scene (``measure.mesh_scene``) is then kept for the pass over
+    every point (:func:`measure_every_point`), not built twice (Stanford Lucy subdivided:
+    a 19 M-triangle level).
 
     Returns
     -------
@@ -231,7 +234,7 @@ def measure_levels(atlas, detail, points: np.ndarray, coarser: bool = True
     top = len(detail.levels) - 1
     r = level_resolution(atlas, detail, top)
     far = None
-    if 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES:
+    if coarser and 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES:
         try:
             far = MeasuringProcess()
         except OSError:
