@@ -207,8 +207,18 @@ def test_measure_levels_gives_the_same_distances_with_the_finest_level_in_a_proc
     for k in here[0]:
         assert here[0][k].tobytes() == there[0][k].tobytes()
     assert here[2].tobytes() == there[2].tobytes() and here[3].tobytes() == there[3].tobytes()
-    # a large scan's working set: the finest level alone, the same numbers
+    # a large scan's working set: the finest level alone, the same numbers, measured here
+    # (no process, however many triangles) so that its scene stays for the every-point pass
+    from fitter.fitting.atlas import measure
+
+    monkeypatch.setattr(pipeline, "MeasuringProcess",
+                        lambda: pytest.fail("a process for the finest level alone"))
+    measure.forget_scenes()
     finest = pipeline.measure_levels(detail.atlas, detail, points, coarser=False)
+    kept = measure.mesh_scene(finest[1].vertices.astype(np.float32),
+                              finest[1].faces.astype(np.uint32))
+    assert any(scene is kept for _, _, scene in measure._scenes[1:] + measure._scenes[:1])
+    assert len(measure._scenes) == 1  # the query above found it: none was built
     assert finest[0].keys() == {0}
     assert finest[0][0].tobytes() == here[0][0].tobytes()
     assert finest[1].vertices.tobytes() == here[1].vertices.tobytes()
