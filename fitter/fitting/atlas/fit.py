@@ -185,6 +185,7 @@ from .surface import (
     border_edges,
     scan_surface,
     surface_beside,
+    without_triangles,
 )
 from .threads import on_threads
 
@@ -858,17 +859,6 @@ def membrane_shares(atlas: AtlasSurface, scan_mesh: tuple[np.ndarray, np.ndarray
     n_t = len(atlas.quads) // 3
     total = np.bincount(triangle, area, n_t)
     return np.bincount(triangle, area * gap, n_t) / np.maximum(total, 1e-300)
-
-
-def without_triangles(vertices: np.ndarray, triangles: np.ndarray, drop: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """The layout without the triangles ``drop (T,)`` of bool and the vertices no triangle
-    left uses (renumbered in order)."""
-    kept = np.asarray(triangles, np.int64)[~np.asarray(drop, bool)]
-    used = np.unique(kept)
-    remap = np.full(len(vertices), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return np.asarray(vertices, np.float64)[used], remap[kept]
 
 
 def refine_far_base(atlas: AtlasSurface, layout: QuadLayout, surface: ScanSurface,

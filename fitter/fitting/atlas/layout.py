@@ -42,6 +42,7 @@ from .surface import (
     manifold_problems,
     unique_pairs,
     without_area,
+    without_triangles,
 )
 
 
@@ -577,10 +578,7 @@ def collapse_narrow_triangles(surface: ScanSurface, vertices: np.ndarray,
                 break
         else:
             refused.add(t)
-    used = np.unique(triangles[alive])
-    renumber = np.full(len(vertices), -1, np.int64)
-    renumber[used] = np.arange(len(used))
-    return vertices[used], renumber[triangles[alive]], collapses
+    return (*without_triangles(vertices, triangles, ~alive), collapses)
 
 
 def _same_pieces(vertices: np.ndarray, triangles: np.ndarray, before: list[int]) -> bool:

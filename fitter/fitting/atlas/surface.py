@@ -162,6 +162,17 @@ def unique_pairs(pairs: np.ndarray, **options) -> np.ndarray | tuple:
     return (rows, *rest) if rest else rows
 
 
+def without_triangles(vertices: np.ndarray, triangles: np.ndarray, drop: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without the triangles ``drop (T,)`` of bool and the vertices no triangle
+    left uses (renumbered in order)."""
+    kept = np.asarray(triangles, np.int64)[~np.asarray(drop, bool)]
+    used = np.zeros(len(vertices), bool)
+    used[kept.reshape(-1)] = True
+    remap = np.cumsum(used) - 1
+    return np.asarray(vertices, np.float64)[used], remap[kept]
+
+
 def without_area(vertices: np.ndarray, faces: np.ndarray, diagonal: float) -> np.ndarray:
     """Which triangles have no area: ``|(b - a) × (c - a)| <= NO_AREA · diagonal²``, shape
     ``(M,)`` bool (``diagonal``: the surface's, so that the rule does not depend on the
@@ -181,17 +192,15 @@ def _without_arealess_pieces(vertices: np.ndarray, faces: np.ndarray
     made two pairs of opposite faces on the same three vertices, 10⁻¹⁶ of the diagonal²
     in area; MeshLab keeps one face of each, splits it off its neighbours, and the lone
     face, with no area, made every layout of the surface fail."""
-    count, labels = face_pieces(faces, len(vertices))
     diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
     flat = without_area(vertices, faces, diagonal)
+    if not flat.any():  # then every piece has area
+        return vertices, faces, 0
+    count, labels = face_pieces(faces, len(vertices))
     arealess = np.bincount(labels, weights=~flat, minlength=count) == 0
     if not arealess.any():
         return vertices, faces, 0
-    faces = faces[~arealess[labels]]
-    used = np.unique(faces)
-    remap = np.full(len(vertices), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return vertices[used], remap[faces], int(arealess.sum())
+    return (*without_triangles(vertices, faces, arealess[labels]), int(arealess.sum()))
 
 
 def border_edges(faces: np.ndarray) -> np.ndarray:
@@ -524,11 +533,8 @@ def without_islands(vertices: np.ndarray, faces: np.ndarray
     count, labels = face_pieces(faces, len(vertices))
     sizes = np.bincount(labels, minlength=count)
     big = sizes >= max(4, MIN_ISLAND_SHARE * len(faces))
-    faces = faces[big[labels]]
-    used = np.unique(faces)
-    remap = np.full(len(vertices), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return vertices[used], remap[faces], int(np.sum(~big)), int(sizes[~big].sum())
+    return (*without_triangles(vertices, faces, ~big[labels]), int(np.sum(~big)),
+            int(sizes[~big].sum()))
 
 
 def scan_surface(scan: Scan, *, poisson_depth: int = 8, trim_spacings: float = 2.0,
