@@ -298,7 +298,10 @@ def _base_rows(m: dict) -> list[tuple[str, str]]:
                           f"edges: {m['files']['base.tsa']:,} bytes"),
                 ("coverage", f"{100 * c['within_0.5%']:.2f}% of all points within 0.5% of the "
                              f"diagonal of the finest drawn level; {c['uncovered_points']:,} "
-                             "farther than 1%")]
+                             "farther than 1%"),
+                *[("not used", ", ".join("--" + n.replace("_", "-") for n in unused)
+                   + ": a single patch's options")
+                  for unused in [m.get("options_unused")] if unused]]
     return [("projection", f"{m['projection']['kind']}, covers "
                            f"{100 * m['projection']['coverage']:.1f}% of the points"),
             ("patch", f"{base['grid'][0]}x{base['grid'][1]} degree {base['degree'][0]}"

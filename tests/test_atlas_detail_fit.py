@@ -140,6 +140,41 @@ def test_bad_arguments_are_named():
         atlas_detail.renumber_patches(fit.atlas, np.zeros(len(fit.atlas.quads), int))
 
 
+def test_levels_an_atlas_cannot_hold_are_refused_before_any_is_fitted(monkeypatch):
+    """The most levels: the viewer draws a patch side at most ``ATLAS_MAX_RESOLUTION``
+    samples (two a span) and the finest level holds at most ``MAX_COEFFICIENTS``; an
+    explicit depth past them is an ``OptionError`` naming why, before the samples are
+    projected (it once ran for ten minutes toward 10^9 coefficients)."""
+    from client_py.bundle import ATLAS_MAX_RESOLUTION
+    from fitter.fitting.options import OptionError
+
+    # 8 spans: levels 0..3 are drawn at 17, 33, 65, 129 samples a side; level 4 at 257
+    assert atlas_detail.most_levels(1, 8)[0] == 4 and ATLAS_MAX_RESOLUTION == 129
+    assert atlas_detail.most_levels(1, 4)[0] == 5
+    # 2,274 patches (the vase's): level 3 has 2,274 * (64 + 2)^2 = 9,905,544 coefficients
+    most, why = atlas_detail.most_levels(2274, 8)
+    assert most == 3 and "9,905,544 coefficients, over 6,000,000" in why
+    assert atlas_detail.most_levels(1377, 8)[0] == 4  # 1,377 * 66^2 = 5,998,212
+    # the automatic depth is the spacing's, within the same caps
+    assert atlas_detail.auto_levels(1.0, 1e-9, 2274, 8) == 3
+    assert atlas_detail.auto_levels(1.0, 1e-9, 1, 8) == 4
+    # knot spacing 1/8, 1/16, 1/32 at levels 0, 1, 2
+    assert atlas_detail.auto_levels(1.0, 1.0 / 10, 1, 8) == 2
+    assert atlas_detail.auto_levels(1.0, 1.0 / 20, 1, 8) == 3
+    assert atlas_detail.auto_levels(1.0, 1.0, 1, 8) == 1
+    with pytest.raises(OptionError, match=r"detail_levels 5: an atlas with 8 spans a tile "
+                                          r"holds at most 4 levels \(level 4 would be drawn "
+                                          r"at 257 samples a patch side"):
+        atlas_detail.check_levels(5, None, 8)
+    atlas_detail.check_levels(4, None, 8)
+    fit, scan = _bumpy_sphere_fit()
+    monkeypatch.setattr(atlas_detail, "surface_samples", lambda *a, **k: pytest.fail(
+        "sampled before the depth was checked"))
+    with pytest.raises(OptionError, match=f"an atlas of {len(fit.atlas.quads)} patches with "
+                                          "4 spans a tile holds at most 5 levels"):
+        atlas_detail.fit_atlas_detail(fit, scan, levels=6, spans=4)
+
+
 def test_a_sample_from_the_other_sheet_is_not_fitted():
     """A sample whose own normal opposes the base's at its foot point (the back of a thin
     part matched to its front) is left out of the fit; one that agrees is fitted."""

@@ -241,13 +241,24 @@ def test_patches_option_spells_auto_and_counts():
         OPTION["patches"].parse("0")
 
 
+def test_more_detail_levels_than_an_atlas_holds_are_refused_before_it_is_fitted(tmp_path):
+    stages = []
+    with pytest.raises(OptionError, match=r"detail_levels 5: an atlas with 8 spans a tile "
+                                          r"holds at most 4 levels"):
+        fit_scan(_mesh_scan(trimesh.creation.icosphere(subdivisions=3), "sphere"),
+                 tmp_path / "b", FitOptions(detail_levels=5),
+                 lambda stage, fraction, points=None: stages.append(stage))
+    assert "project" not in stages and not (tmp_path / "b").exists()
+
+
 def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
-    bundle = fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "sphere", FitOptions(patches=60))
+    bundle = fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "sphere",
+                      FitOptions(patches=60, grid=(12, 12)))  # a grid is a single patch's
     from fitter.fitting.atlas import measure
     assert measure._scenes == []  # the fit let go of its meshes' ray-casting scenes
     manifest = json.loads((bundle.path / "manifest.json").read_text())
-    assert manifest["format_version"] == 2
+    assert manifest["format_version"] == 2 and manifest["options_unused"] == ["grid"]
     base = manifest["base"]
     assert base["kind"] == "atlas" and base["border_edges"] == 0
     atlas, _ = read_atlas((bundle.path / "base.tsa").read_bytes())

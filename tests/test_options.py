@@ -17,6 +17,7 @@ from fitter.collection.jobs import _ProgressWriter
 from fitter.collection.uploads import UploadError
 from fitter.fitting.examples import relief_scan
 from fitter.fitting.options import (
+    MAX_PATCHES,
     OPTION,
     OPTIONS,
     FitOptions,
@@ -25,6 +26,7 @@ from fitter.fitting.options import (
     from_args,
     parse_form,
     stored_options,
+    unused_by_atlas,
 )
 from fitter.fitting.pipeline import _Stages, fit_scan
 from fitter.fitting.stages import STAGE_NAMES, STAGES, overall_progress
@@ -53,11 +55,28 @@ def test_fit_options_fields_are_the_table_in_its_order():
 
 
 def test_the_table_agrees_with_the_fit_modules_that_need_numpy():
+    from client_py.atlas import MAX_ATLAS_QUADS
+    from fitter.fitting.atlas.fit import AUTO_MAX_TRIANGLES
     from fitter.fitting.detail import SPANS
     from fitter.fitting.parameterize import KINDS
 
     assert OPTION["projection"].choices == ("auto", *KINDS)
     assert OPTION["detail_spans"].default == SPANS
+    # the most patches: three quads per layout triangle of the largest layout, in a bundle
+    assert OPTION["patches"].maximum == MAX_PATCHES == 3 * AUTO_MAX_TRIANGLES <= MAX_ATLAS_QUADS
+
+
+def test_the_options_an_atlas_does_not_use_are_named_when_set():
+    assert unused_by_atlas(FitOptions()) == []
+    given = FitOptions(grid=(80, 80), seed=3, detail_spans=8, detail_levels=2, bits=10,
+                       patches=300, texture=False, title="x")
+    assert unused_by_atlas(given) == ["grid", "seed", "detail_spans"]
+    # the form and the command line say so in the option's help
+    shown = {f["name"]: f["help"] for f in form_fields()}
+    assert shown["grid"].endswith("(a single patch; not an atlas)")
+    assert not shown["patches"].endswith("(a single patch; not an atlas)")
+    cli_help = build_parser()._subparsers._group_actions[0].choices["fit"].format_help()
+    assert " ".join(cli_help.split()).count("(a single patch; not an atlas)") == 10
 
 
 def test_cli_python_and_form_defaults_are_the_same_for_every_option():
@@ -105,6 +124,9 @@ BAD = [
     ("max_error", "inf", float("inf")),
     ("max_grid", "1025", 1025),
     ("max_grid", "20", 20),  # below the grid's largest side (40)
+    ("patches", "0", 0),
+    ("patches", "2", 2),  # 1 is a single patch, an atlas has 3 or more: a rule of its own
+    ("patches", "12289", 12_289),  # more than the fitter's largest layout makes
     ("projection", "torus", "torus"),
     ("feature_strength", "101", 101.0),
     ("feature_strength", "-0.5", -0.5),

@@ -27,7 +27,6 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from client_py.atlas import MAX_ATLAS_QUADS
 from client_py.errors import TesseraError
 from client_py.format import MAX_CONTROL_POINTS, MAX_GRID_SIDE
 
@@ -42,6 +41,10 @@ GRID_SIDE_LIMIT = MAX_GRID_SIDE  # what a .tsp holds (client_py.format.LIMITS), 
 DEFAULT_MAX_GRID = 128  # max_grid = None: the grid grows to max(128, its largest side)
 FIT_SAMPLE = 60_000  # default of samples
 DETAIL_SPANS = 16  # default of detail_spans (= fitter.fitting.detail.SPANS, checked by a test)
+#: the most patches of an atlas the fitter makes: three quads per layout triangle, of at most
+#: ``fitter.fitting.atlas.fit.AUTO_MAX_TRIANGLES = MAX_PATCHES // 3`` triangles (a bundle
+#: holds up to ``client_py.atlas.MAX_ATLAS_QUADS``)
+MAX_PATCHES = 3 * 4096
 KINDS = ("grid", "int", "float", "choice", "bool", "text")
 #: the upload form's groups of fields, in order: (group, legend)
 FORM_GROUPS = (("object", "Object"), ("base", "Fit options"), ("layers", "Detail and texture"),
@@ -73,7 +76,9 @@ class Option:
     per_object : an option of one object (its title, its description): on ``tessera fit``
     and in the upload form, not on ``tessera fit-collection``, whose options every object
     shares; multiline : a ``text`` the form edits in a text area (else one line, no control
-    characters). The ``maximum`` of a ``text`` is its longest length in characters.
+    characters). The ``maximum`` of a ``text`` is its longest length in characters;
+    atlas : the atlas fit uses it (``False``: an option of the single patch's fit alone,
+    which a whole object fitted as an atlas does not use: :func:`unused_by_atlas`).
     """
 
     name: str
@@ -91,6 +96,12 @@ class Option:
     group: str = "base"
     per_object: bool = False
     multiline: bool = False
+    atlas: bool = True
+
+    @property
+    def described(self) -> str:
+        """``help`` as both entry points show it: saying so when an atlas does not use it."""
+        return self.help if self.atlas else f"{self.help} (a single patch; not an atlas)"
 
     def accepted(self, none: bool = True) -> str:
         """What values are accepted, as the refusal messages say it (with what ``None``
@@ -204,13 +215,13 @@ def _is_int(value: Any) -> bool:
 OPTIONS: tuple[Option, ...] = (
     Option("grid", "grid", (40, 40), "Control grid",
            "control points per side, N or NxM (each side at least degree + 1)",
-           minimum=2, maximum=GRID_SIDE_LIMIT, cli="--grid", form="grid"),
+           minimum=2, maximum=GRID_SIDE_LIMIT, cli="--grid", form="grid", atlas=False),
     Option("degree", "int", 2, "Degree", "B-spline degree of the patch",
-           minimum=1, maximum=5, cli="--degree", form="degree"),
+           minimum=1, maximum=5, cli="--degree", form="degree", atlas=False),
     Option("method", "choice", "tessera", "Method",
            "tessera: parameter correction on the scan itself, then weights; paper: the "
            "published method, a baseline; linear: the paper's initial linear fit alone",
-           choices=METHODS, cli="--method", form="method"),
+           choices=METHODS, cli="--method", form="method", atlas=False),
     Option("bits", "int", None, "Bits",
            "quantisation bits per control-point axis (automatic: the fewest that keep a single "
            "patch's RMS within 0.5%; an atlas's step at 1.2x its RMS)",
@@ -218,19 +229,21 @@ OPTIONS: tuple[Option, ...] = (
     Option("max_error", "float", None, "Target RMS (scan units)",
            "grow the control grid (x1.25 per side) until the RMS deviation in scan units is "
            "at most this", minimum=0, exclusive_minimum=True, none="no target",
-           cli="--max-error", form="max_error"),
+           cli="--max-error", form="max_error", atlas=False),
     Option("max_grid", "int", None, "Largest grid",
            "the largest control grid side the target RMS may grow to (at least the grid's "
            "largest side)", minimum=2, maximum=GRID_SIDE_LIMIT,
            none=f"max({DEFAULT_MAX_GRID}, largest grid side)",
-           cli="--max-grid", form="max_grid"),
+           cli="--max-grid", form="max_grid", atlas=False),
     Option("patches", "int", None, "Patches",
            "NURBS patches of the atlas that covers the whole object (about; 1: a single "
-           "height-field patch, bundle format 1)", minimum=1, maximum=MAX_ATLAS_QUADS,
+           "height-field patch, bundle format 1; an atlas has at least 3)", minimum=1,
+           maximum=MAX_PATCHES,
            none="auto: one patch for a height field, else an atlas sized for the object",
            cli="--patches", form="patches"),
     Option("projection", "choice", "auto", "Projection", "map to the parameter domain",
-           choices=PROJECTIONS, cli="--projection", form="projection"),
+           choices=PROJECTIONS, cli="--projection", form="projection",
+           atlas=False),
     Option("up", "choice", "auto", "Up direction",
            "the object's up axis in scan coordinates for the first view and the thumbnail "
            "(auto: the format's axis, else a flat base, else +y)", choices=UP_AXES,
@@ -249,19 +262,21 @@ OPTIONS: tuple[Option, ...] = (
     Option("feature_strength", "float", 4.0, "Feature strength",
            "how much denser the tessera method samples where local PCA finds features "
            "(0: uniform)", minimum=0, maximum=100, cli="--feature-strength",
-           form="feature_strength", group="sampling"),
+           form="feature_strength", group="sampling", atlas=False),
     Option("seed", "int", 0, "Seed", "seed of the tessera method's sample",
-           minimum=0, maximum=2**32 - 1, cli="--seed", form="seed", group="sampling"),
+           minimum=0, maximum=2**32 - 1, cli="--seed", form="seed", group="sampling",
+           atlas=False),
     Option("samples", "int", FIT_SAMPLE, "Samples",
            "scan points the tessera refinement fits", minimum=1000, maximum=10_000_000,
-           cli="--samples", form="samples", group="sampling"),
-    Option("detail_levels", "int", None, "Detail levels", "levels of the detail pyramid",
+           cli="--samples", form="samples", group="sampling", atlas=False),
+    Option("detail_levels", "int", None, "Detail levels",
+           "levels of the detail pyramid (an atlas holds at most 4, fewer of many patches)",
            minimum=0, maximum=8, none="as the point density allows",
            cli="--detail-levels", form="detail_levels", group="layers"),
     Option("detail_spans", "int", DETAIL_SPANS, "Detail spans",
            "knot spans per detail tile side (level k has this times 2^k spans across the "
-           "object)", minimum=4, maximum=64, cli="--detail-spans", form="detail_spans",
-           group="layers"),
+           "object; an atlas's tiles have 8 a patch side)", minimum=4, maximum=64,
+           cli="--detail-spans", form="detail_spans", group="layers", atlas=False),
     Option("texture", "bool", True, "Texture",
            "write the texture pyramid when the scan has colour", cli="--texture",
            form="texture", group="layers"),
@@ -329,7 +344,9 @@ class FitOptions:
         return max(DEFAULT_MAX_GRID, *self.grid)
 
     def validate(self) -> None:
-        """Check every option against :data:`OPTIONS`, then the two rules that join two.
+        """Check every option against :data:`OPTIONS`, then the rules no one range says: the
+        grid against the degree and the patch file's size, ``max_grid`` against the grid, and
+        no atlas of 2 patches.
 
         Raises
         ------
@@ -346,10 +363,21 @@ class FitOptions:
             raise OptionError(f"grid {self.grid[0]}x{self.grid[1]} has "
                               f"{self.grid[0] * self.grid[1]} control points; a patch holds at "
                               f"most {MAX_CONTROL_POINTS} (client_py.format.LIMITS)")
+        if self.patches == 2:
+            raise OptionError(f"patches 2: 1 is a single height-field patch; an atlas has "
+                              f"3..{MAX_PATCHES} (three quads per layout triangle)")
         if self.max_grid is not None and self.max_grid < max(self.grid):
             raise OptionError(f"max_grid must be an integer in {max(self.grid)}.."
                              f"{GRID_SIDE_LIMIT} (at least the grid's largest side), "
                              f"got {self.max_grid!r}")
+
+
+def unused_by_atlas(options: FitOptions) -> list[str]:
+    """The options ``options`` sets (not to their defaults) that a whole object fitted as an
+    atlas does not use (``Option.atlas`` false: the single patch's grid, map, sampling and
+    tile spans), by name in table order; the atlas manifest's ``options_unused``."""
+    return [o.name for o in OPTIONS
+            if not o.atlas and getattr(options, o.name) != o.default]
 
 
 def stored_options(options: FitOptions) -> dict[str, Any]:
@@ -384,7 +412,7 @@ def _help(option: Option) -> str:
     else:
         default = option.text(option.default)
     accepted = (f"; {option.minimum}..{option.maximum}" if option.kind == "int" else "")
-    return f"{option.help}{accepted} (default: {default})".replace("%", "%%")
+    return f"{option.described}{accepted} (default: {default})".replace("%", "%%")
 
 
 def _argument_type(option: Option):  # noqa: ANN202 - an argparse type function
@@ -445,7 +473,7 @@ def form_fields() -> list[dict[str, Any]]:
         if option.form is None:
             continue
         entry: dict[str, Any] = {
-            "name": option.form, "label": option.label, "help": option.help,
+            "name": option.form, "label": option.label, "help": option.described,
             "group": option.group, "value": option.text(option.default),
             "placeholder": option.none or "", "choices": (), "min": None, "max": None,
             "step": None, "pattern": None, "maxlength": None, "input": "number"}

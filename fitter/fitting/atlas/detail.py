@@ -216,6 +216,7 @@ from ..detail import (
 )
 from ..io.scan import Scan
 from ..io.thin import thin_to_count
+from ..options import OptionError
 from .fit import AtlasFit, median_edge
 from .lattice import lattice_descent
 from .patches import (
@@ -1246,15 +1247,29 @@ def patch_sides(atlas: AtlasSurface, samples: int = 9) -> np.ndarray:
     return total / 4
 
 
+def most_levels(patches: int, spans: int = SPANS) -> tuple[int, str]:
+    """The most levels ``L`` an atlas of ``patches`` patches holds (module docstring,
+    "Depth"): each level's knots drawn at two vertices a span within the client's
+    ``ATLAS_MAX_RESOLUTION`` samples per patch side, at most ``MAX_LEVEL + 1`` levels, and
+    the finest level's ``patches (m 2^(L-1) + p)^2`` coefficients within
+    ``MAX_COEFFICIENTS``; with why level ``L`` is not held."""
+    for level in range(layers.MAX_LEVEL + 1):
+        finer = spans << level
+        if 2 * finer + 1 > ATLAS_MAX_RESOLUTION:
+            return level, (f"level {level} would be drawn at {2 * finer + 1} samples a patch "
+                           f"side, over the viewer's {ATLAS_MAX_RESOLUTION}")
+        if patches * (finer + DEGREE) ** 2 > MAX_COEFFICIENTS:
+            return level, (f"level {level} would have {patches * (finer + DEGREE) ** 2:,} "
+                           f"coefficients, over {MAX_COEFFICIENTS:,}")
+    return layers.MAX_LEVEL + 1, f"a pyramid has at most {layers.MAX_LEVEL + 1} levels"
+
+
 def auto_levels(side: float, spacing: float, patches: int, spans: int = SPANS) -> int:
     """Levels ``0..L-1``: the fewest whose finest knot spacing ``side / (m 2^(L-1))``
-    reaches ``spacing``, within the caps of the module docstring (at least 1)."""
+    reaches ``spacing``, within :func:`most_levels` (at least 1)."""
+    most = max(1, most_levels(patches, spans)[0])
     levels = 1
-    while side / (spans << (levels - 1)) > spacing and levels < layers.MAX_LEVEL + 1:
-        finer = spans << levels
-        if (2 * finer + 1 > ATLAS_MAX_RESOLUTION
-                or patches * (finer + DEGREE) ** 2 > MAX_COEFFICIENTS):
-            break
+    while side / (spans << (levels - 1)) > spacing and levels < most:
         levels += 1
     return levels
 
@@ -1830,6 +1845,23 @@ def _rounded(x: float) -> float:
     return float(f"{x:.6g}")
 
 
+def check_levels(levels: int, patches: int | None, spans: int = SPANS) -> None:
+    """Refuse ``levels`` detail levels that an atlas of ``patches`` patches cannot hold
+    (:func:`most_levels`; ``None``: any atlas, before its patches are known): before the
+    first level is fitted, not after memory runs out.
+
+    Raises
+    ------
+    OptionError
+        Naming ``detail_levels``, the most levels this atlas holds and why.
+    """
+    most, why = most_levels(1 if patches is None else patches, spans)
+    if levels > most:
+        atlas = "an atlas" if patches is None else f"an atlas of {patches:,} patches"
+        raise OptionError(f"detail_levels {levels}: {atlas} with {spans} spans a tile holds "
+                          f"at most {most} levels ({why})")
+
+
 def _check_arguments(levels: object, spans: object, step_factor: object) -> None:
     if levels is not None and (isinstance(levels, bool) or not isinstance(levels, int)
                                or not 0 <= levels <= layers.MAX_LEVEL + 1):
@@ -1897,6 +1929,7 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     validate = levels is None and not is_mesh  # see "Depth"
     if levels is None:
         levels = auto_levels(side, spacing, F, spans)
+    check_levels(levels, F, spans)
     finest_cells = F * (spans << max(levels - 1, 0)) ** 2
     source = scan if original is None else original
     count = int(min(max_samples, max(SAMPLES_PER_CELL * finest_cells, len(source.points))))

@@ -151,6 +151,7 @@ from client_py.atlas_format import AtlasWriter
 
 from ..io.scan import Scan, ScanError
 from ..io.thin import thin_to_count
+from ..options import MAX_PATCHES
 from ..spd import spd_lu
 from .lattice import coupling_colours, lattice_descent
 from .layout import (
@@ -191,7 +192,7 @@ from .threads import on_threads
 
 DEFAULT_BYTE_BUDGET = 24_000
 AUTO_FIRST_TRIANGLES = 48
-AUTO_MAX_TRIANGLES = 4096
+AUTO_MAX_TRIANGLES = MAX_PATCHES // 3  # three quads per layout triangle
 AUTO_MIN_GAIN = 0.95  # a doubling must bring the RMS below 95 % of the previous to be taken
 AUTO_TRIAL_POINTS = 20_000
 # The ladder starts at the largest doubling of AUTO_FIRST_TRIANGLES whose file, at this many

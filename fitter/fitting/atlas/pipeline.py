@@ -47,8 +47,8 @@ from ..error import (
     write_error_ply,
 )
 from ..io import Scan
-from ..options import FitOptions
-from .detail import fit_atlas_detail
+from ..options import FitOptions, unused_by_atlas
+from .detail import check_levels, fit_atlas_detail
 from .fit import (
     DEFAULT_BYTE_BUDGET,
     AtlasFit,
@@ -520,7 +520,11 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     ScanError
         (``SurfaceError``, ``AtlasLayoutError``, ``AtlasFitError``) a scan no atlas can be
         made of, with the problem named.
+    OptionError
+        ``detail_levels`` more than the atlas holds (``.detail.check_levels``).
     """
+    if options.detail_levels is not None:  # refused before any work, not when memory runs out
+        check_levels(options.detail_levels, None)
     stages.start("project")
     surface = scan_surface(scan)
     fitted, outliers = without_outliers(scan, surface)
@@ -590,6 +594,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
             **fields,
             "format": "tessera-bundle",
             "format_version": BUNDLE_FORMAT_VERSION,
+            "options_unused": unused_by_atlas(options),
             "files": files,
             "base": {"file": "base.tsa", "kind": "atlas", "degree": atlas.degree,
                      "spans": atlas.spans, "patches": len(atlas.quads),
