@@ -251,6 +251,29 @@ def test_more_detail_levels_than_an_atlas_holds_are_refused_before_it_is_fitted(
     assert "project" not in stages and not (tmp_path / "b").exists()
 
 
+def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):
+    """A sphere 5,000 km from the origin (a scan registered to a map) is fitted moved by
+    its rounded centre, recorded as ``provenance.origin``: as near its surface as the same
+    sphere at the origin. In the file's coordinates single-precision searches and drawing
+    lose it (a float32 step there is 0.5 for a radius of 1): the atlas was refused and one
+    height-field patch drew part of it."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    offset = np.array([5e6, 4e6, 300.0])
+    options = FitOptions(patches=60, detail_levels=0)
+    far = fit_scan(_mesh_scan(trimesh.Trimesh(mesh.vertices + offset, mesh.faces,
+                                              process=False), "far"),
+                   tmp_path / "far", options).manifest
+    near = fit_scan(_mesh_scan(mesh, "near"), tmp_path / "near", options).manifest
+    assert far["provenance"]["origin"] == offset.tolist()
+    assert "origin" not in near["provenance"]
+    assert far["base"]["kind"] == "atlas" and far["base"]["border_edges"] == 0
+    assert far["coverage"]["uncovered_points"] == 0
+    rms = far["stats_all_points"]["rms"], near["stats_all_points"]["rms"]
+    assert rms[0] < 1.5 * rms[1], rms
+    atlas, _ = read_atlas((tmp_path / "far" / "base.tsa").read_bytes())
+    assert np.abs(np.asarray(atlas.vertices)).max() < 2  # the bundle is near the origin
+
+
 def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
     bundle = fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "sphere",

@@ -301,6 +301,28 @@ def test_a_large_closed_cloud_is_fitted_as_an_atlas_of_its_working_set(tmp_path,
     assert m["coverage"]["within_0.5%"] > 0.99
 
 
+def test_a_large_cloud_far_from_the_origin_is_streamed_moved_near_it(tmp_path,
+                                                                     small_out_of_core):
+    """A streamed cloud in map coordinates (float64, 1,000 km out): every pass reads it
+    moved by ``provenance.origin``, and every point is scored in that frame."""
+    import trimesh
+
+    vertices, faces = _bumpy_sphere(5)
+    points, _ = trimesh.sample.sample_surface(trimesh.Trimesh(vertices, faces), 40_000, seed=2)
+    offset = np.array([1e6, -2e6, 150.0])
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+              "property double x\nproperty double y\nproperty double z\nend_header\n")
+    (tmp_path / "far.ply").write_bytes(header.encode() + (points + offset).astype("<f8").tobytes())
+    bundle = fit_scan(tmp_path / "far.ply", tmp_path / "b", FitOptions(patches=60))
+    m = bundle.manifest
+    origin = np.asarray(m["provenance"]["origin"])
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
+    assert np.abs(origin - offset).max() <= diagonal and m["base"]["kind"] == "atlas"
+    assert m["provenance"]["working_set"]["points_before"] == len(points)
+    _check_every_point(bundle.path, m, points + offset - origin)
+    assert m["coverage"]["within_0.5%"] > 0.99
+
+
 def test_a_large_clouds_detail_points_are_its_own_thinned_by_the_working_sets_rule(
         tmp_path, small_out_of_core, monkeypatch):
     points = _relief_ply(tmp_path / "cloud.ply")

@@ -72,6 +72,7 @@ from .fit import (
     project_points,
     refine_nurbs,
 )
+from .io.frame import near_origin
 from .io.limits import InputLimits
 from .io.scan import Scan, ScanError
 from .memory import DEFAULT_MEMORY_BUDGET, MemoryPlan, plan_memory
@@ -191,7 +192,7 @@ def _load(scan: object, limits: InputLimits | None, blocks: LocalBlocks | DaskBl
     opened = open_stream(Path(scan), limits) if isinstance(scan, str | os.PathLike) else None
     whole = None
     if opened is None:
-        scan = _as_scan(scan, limits)
+        scan = near_origin(_as_scan(scan, limits))  # far from the origin: moved near it
         if not fits_out_of_core(scan.n_points):
             return scan, None
         opened = stream_of_scan(scan)
@@ -637,6 +638,9 @@ def object_fields(scan: Scan, options: FitOptions) -> dict:
         "provenance": {"input": name, "bytes": scan.source.get("bytes"),
                        "sha256": scan.source.get("sha256"), "points": int(scan.n_points),
                        "format": scan.source.get("format"),
+                       # a scan moved near the origin (fitter.fitting.io.frame): by how much
+                       **({"origin": scan.source["origin"]} if "origin" in scan.source
+                          else {}),
                        # a .conf registration: each file it read, with its own digest
                        **({"files": scan.source["files"]} if "files" in scan.source
                           else {})},

@@ -83,6 +83,9 @@ class PointStream:
         The record fields of the coordinates and (``()`` when absent) of the normals.
     points, normals : ndarray or None
         The arrays of an in-memory stream (``(N, 3)`` each; ``normals`` may be None).
+    origin : ndarray, shape (3,), or None
+        Subtracted from every point read (``fitter.fitting.io.frame``: a scan far from the
+        origin is fitted moved near it); None: the file's coordinates.
     """
 
     name: str
@@ -94,6 +97,7 @@ class PointStream:
     normal_fields: tuple[str, ...] = ()
     points: np.ndarray | None = None
     normals: np.ndarray | None = None
+    origin: np.ndarray | None = None
     _records: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @classmethod
@@ -129,23 +133,24 @@ class PointStream:
         ``(m, 3)``, None when the scan has none)."""
         if self.points is not None:
             normals = None if self.normals is None else self.normals[start:stop]
-            return np.asarray(self.points[start:stop], np.float64), normals
-        records = self._mapped()[start:stop]
+            return self._moved(np.asarray(self.points[start:stop], np.float64)), normals
+        return self._of_records(self._mapped()[start:stop])
+
+    def _of_records(self, records: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         points = np.column_stack([records[n] for n in self.xyz]).astype(np.float64)
         normals = (np.column_stack([records[n] for n in self.normal_fields])
                    .astype(np.float32) if self.normal_fields else None)
-        return points, normals
+        return self._moved(points), normals
+
+    def _moved(self, points: np.ndarray) -> np.ndarray:
+        return points if self.origin is None else points - self.origin
 
     def take(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Points (float64 ``(K, 3)``) and normals of the ascending indices ``index (K,)``."""
         if self.points is not None:
             normals = None if self.normals is None else self.normals[index]
-            return np.asarray(self.points[index], np.float64), normals
-        records = self._mapped()[index]
-        points = np.column_stack([records[n] for n in self.xyz]).astype(np.float64)
-        normals = (np.column_stack([records[n] for n in self.normal_fields])
-                   .astype(np.float32) if self.normal_fields else None)
-        return points, normals
+            return self._moved(np.asarray(self.points[index], np.float64)), normals
+        return self._of_records(self._mapped()[index])
 
     def blocks(self, size: int) -> list[tuple[int, int]]:
         """``[start, stop)`` of consecutive blocks of ``size`` points covering ``0..N``."""
@@ -200,6 +205,8 @@ class ReaderStream:
         first point, and the points before are decoded and passed over).
     decoded : int
         Points decoded in this process so far (what a read order costs).
+    origin : ndarray, shape (3,), or None
+        Subtracted from every point read, as :attr:`PointStream.origin`.
     """
 
     seekable = False
@@ -207,6 +214,7 @@ class ReaderStream:
 
     def __init__(self, name: str, path: Path, segments: list[int]) -> None:
         self.name, self.path = name, Path(path)
+        self.origin: np.ndarray | None = None
         self.segments = tuple(int(c) for c in segments)
         self.starts = np.concatenate([[0], np.cumsum(self.segments, dtype=np.int64)])
         self.count = int(self.starts[-1])
@@ -278,7 +286,7 @@ class ReaderStream:
                     self._window.remove(hit)
                 position = end
             points = np.concatenate(parts) if parts else np.empty((0, 3))
-        return points, None
+        return (points if self.origin is None else points - self.origin), None
 
     def take(self, index: np.ndarray) -> tuple[np.ndarray, None]:
         """Points (float64 ``(K, 3)``) of the ascending indices ``index (K,)``: one forward

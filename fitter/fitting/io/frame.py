@@ -1,0 +1,83 @@
+"""The frame a scan is fitted in: its own, or moved near the origin when it lies far away.
+
+Scanners that register to a site or a map (a terrestrial laser scanner's E57, a LAS file in
+UTM coordinates) give an object of a metre some 10^6 m from the origin. Part of a fit runs
+in single precision: the nearest-triangle searches (``open3d``'s Embree BVH,
+``fitter.fitting.atlas.measure``) and the mesh the viewer draws (``client_py``'s float32
+positions, three.js). A float32 coordinate near ``c`` is exact to about ``|c| 2^-24``
+(6 x 10^-8 |c|), so an object of diagonal ``D`` at ``|c| = 10^4 D`` is drawn 6 x 10^-4 D
+off (a sphere's atlas there: RMS 80 times that of the same sphere at the origin) and at
+``10^6 D`` it falls apart (its atlas refused: patches collapsed to points).
+
+So a scan whose box centre is more than :data:`FAR` diagonals from the origin is moved by
+``-origin`` (its box centre rounded to the power of ten at or below its diagonal, a number
+a person reads back: ``[5000000, 4000000, 300]``, not ``[5000000.0213, …]``; the moved
+scan then lies within about one diagonal of the origin), every stage then works in that frame,
+and the manifest's ``provenance.origin`` records ``origin``: a bundle coordinate plus
+``origin`` is the file's. A scan nearer than that is not moved (its bundle as before).
+
+The size of a scan is bounded too (:data:`SIZES`): far below a micrometre or above 10^10
+units, the fit's absolute tolerances and single-precision squares under- or overflow (a
+sphere of radius 10^-30 left the layout search running; one of 10^30 raised an IndexError
+from the BVH); such a scan is refused naming its diagonal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .scan import Scan, ScanError
+
+#: a scan whose box centre is more than this many diagonals from the origin is moved
+FAR = 10.0
+#: the diagonals (in the scan's units) a fit accepts
+SIZES = (1e-6, 1e10)
+
+
+def scan_origin(name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """The origin a scan of box ``lo, hi`` (each ``(3,)``) is moved by (module docstring),
+    ``None`` when it is not moved.
+
+    Raises
+    ------
+    ScanError
+        A diagonal outside :data:`SIZES`, naming it.
+    """
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    diagonal = float(np.linalg.norm(hi - lo))
+    if diagonal == 0:
+        return None  # coincident points: refused as such (fitter.fitting.degenerate)
+    if not SIZES[0] <= diagonal <= SIZES[1]:
+        raise ScanError(f"{name}: the scan's bounding box has a diagonal of {diagonal:.3g} "
+                        f"units; a fit takes {SIZES[0]:g}..{SIZES[1]:g} (rescale the scan, "
+                        "e.g. to millimetres or metres)")
+    centre = (lo + hi) / 2
+    if float(np.abs(centre).max()) <= FAR * diagonal:
+        return None
+    step = 10.0 ** np.floor(np.log10(diagonal))
+    return np.round(centre / step) * step
+
+
+def moved(scan: Scan, origin: np.ndarray | None) -> Scan:
+    """``scan`` in the frame of ``origin`` (its points minus ``origin``, recorded in
+    ``source["origin"]``); ``scan`` itself when ``origin`` is None."""
+    if origin is None:
+        return scan
+    return replace(scan, points=scan.points - origin,
+                   source=dict(scan.source, origin=[float(x) for x in origin]))
+
+
+def near_origin(scan: Scan) -> Scan:
+    """``scan`` checked for its size and moved near the origin when it lies far away
+    (:func:`scan_origin`, :func:`moved`).
+
+    Raises
+    ------
+    ScanError
+        A diagonal outside :data:`SIZES`.
+    """
+    points = scan.points
+    return moved(scan, scan_origin(scan.source.get("name", "scan"), points.min(axis=0),
+                                   points.max(axis=0)))

@@ -1,0 +1,58 @@
+"""A scan far from the origin is fitted moved near it; one too small or too large is refused
+(``fitter.fitting.io.frame``)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from fitter.fitting.io.frame import FAR, SIZES, moved, near_origin, scan_origin
+from fitter.fitting.io.points import PointStream
+from fitter.fitting.io.scan import Scan, ScanError
+
+
+def test_a_scan_near_the_origin_is_not_moved():
+    lo, hi = np.array([-1.0, 2.0, 0.0]), np.array([1.0, 4.0, 1.0])
+    assert scan_origin("s", lo, hi) is None
+    diagonal = np.linalg.norm(hi - lo)
+    assert scan_origin("s", lo + FAR * diagonal / 2, hi + FAR * diagonal / 2) is None
+    assert scan_origin("s", np.zeros(3), np.zeros(3)) is None  # refused as coincident later
+    scan = Scan.from_array(np.random.default_rng(0).random((100, 3)))
+    assert near_origin(scan) is scan
+
+
+def test_a_far_scan_is_moved_by_its_centre_rounded_to_a_readable_number():
+    # a unit sphere's box in UTM coordinates: diagonal 3.46, rounded to units
+    lo = np.array([5e6 - 1.0 + 0.0213, 4e6 - 1.0, 299.0])
+    hi = lo + 2.0
+    assert scan_origin("s", lo, hi).tolist() == [5000000.0, 4000000.0, 300.0]
+    # a 30 cm object in millimetres 20 km from the origin: rounded to 100 mm
+    origin = scan_origin("s", np.array([2e7 + 11.0, 0.0, 0.0]),
+                         np.array([2e7 + 311.0, 290.0, 280.0]))
+    assert origin.tolist() == [20000200.0, 100.0, 100.0]
+    points = np.array([[5e6 + 0.5, 4e6 - 0.25, 300.125], [5e6 - 0.5, 4e6 + 0.75, 299.0]])
+    scan = Scan.from_array(points)
+    near = near_origin(scan)
+    assert near.source["origin"] == [5e6, 4e6, 300.0]
+    assert np.array_equal(near.points, [[0.5, -0.25, 0.125], [-0.5, 0.75, -1.0]])
+    assert "origin" not in scan.source and moved(scan, None) is scan
+
+
+@pytest.mark.parametrize("size", [1e-30, 1e-7, 1e11, 1e30])
+def test_a_scan_too_small_or_too_large_is_refused_naming_its_diagonal(size):
+    with pytest.raises(ScanError, match=re.escape(
+            f"s: the scan's bounding box has a diagonal of {size * 3 ** 0.5:.3g} units; a fit "
+            "takes 1e-06..1e+10")):
+        scan_origin("s", np.zeros(3), np.full(3, size))
+    assert SIZES == (1e-6, 1e10)
+
+
+def test_a_stream_reads_its_points_moved():
+    points = np.array([[1e6, 0.0, 0.0], [1e6 + 1.0, 2.0, 3.0], [1e6 + 0.5, 1.0, 1.0]])
+    stream = PointStream.from_arrays("s", points)
+    stream.origin = np.array([1e6, 1.0, 0.0])
+    expected = points - stream.origin
+    assert np.array_equal(stream.read(0, 3)[0], expected)
+    assert np.array_equal(stream.take(np.array([0, 2]))[0], expected[[0, 2]])
