@@ -368,6 +368,35 @@ def detail_levels(manifest: dict) -> int:
     return len(_levels(manifest))
 
 
+def scan_origin(manifest: dict) -> list[float] | None:
+    """``provenance.origin``: what a scan fitted far from the origin was moved by (a bundle
+    coordinate plus it is the scan file's; docs/format.md), ``None`` when it was not moved.
+
+    Raises
+    ------
+    ManifestError
+        An ``origin`` that is not three finite numbers.
+    """
+    provenance = manifest.get("provenance")
+    origin = provenance.get("origin") if isinstance(provenance, dict) else None
+    if origin is None:
+        return None
+    if not (isinstance(origin, list) and len(origin) == 3 and all(
+            isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+            for x in origin)):
+        raise ManifestError("provenance.origin", f"must be three finite numbers, got "
+                            f"{_shown(origin)}")
+    return [float(x) for x in origin]
+
+
+def _origin_comments(origin: Sequence[float] | None) -> list[str]:
+    """A PLY's header comment giving :func:`scan_origin` (none when not moved)."""
+    if origin is None:
+        return []
+    return ["origin " + " ".join(repr(float(x)) for x in origin)
+            + ": add it to every vertex for the scan file's coordinates"]
+
+
 def detail_spans(manifest: dict) -> int | None:
     """``tiles.detail.spans_per_tile``, the knot spans per tile side ``m`` in
     ``1..MAX_SPANS`` (``None`` when absent from a bundle without detail levels)."""
@@ -1104,7 +1133,8 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
                     texture_file: str | None = None, kernel: str | None = None,
                     units: str | None = None,
                     progress: Callable[[float], object] | None = None,
-                    pieces: Mesh | None = None) -> tuple[bytes, Mesh]:
+                    pieces: Mesh | None = None,
+                    origin: Sequence[float] | None = None) -> tuple[bytes, Mesh]:
     """The PLY of the bundle at detail level ``level``: ``X = S + sum_{k <= L} D_k n``
     over the whole domain on a ``resolution x resolution`` grid, in the scan frame.
 
@@ -1141,6 +1171,9 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
         (:func:`client_py.atlas_mesh.tessellate_atlas`).
     pieces : Mesh, optional
         A patch's pieces as drawn (:func:`pieces_mesh`), appended (:func:`with_pieces`).
+    origin : sequence of 3 floats, optional
+        The manifest's :func:`scan_origin`, named in a header comment: the mesh is in the
+        bundle's frame, and a vertex plus ``origin`` is in the scan file's.
 
     Returns
     -------
@@ -1162,7 +1195,7 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
         if pieces is not None:
             raise ValueError("pieces are a patch bundle's; an atlas draws every piece itself")
         return _write_atlas_ply(surface, tiles, level, resolution, source, binary, kernel,
-                                units, list(textures), progress)
+                                units, list(textures), progress, origin)
     tiles = list(tiles)
     textures = list(textures)
     for tile in tiles:
@@ -1175,7 +1208,8 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
                 f"detail level {level}: " + (
                     f"base patch + {len(tiles)} detail tiles of levels 0..{level}" if level >= 0
                     else "the base patch alone"),
-                f"tessellated by client_py on a {resolution}x{resolution} grid"]
+                f"tessellated by client_py on a {resolution}x{resolution} grid",
+                *_origin_comments(origin)]
     if pieces is not None:
         comments.append(f"with the scan's detached pieces ({PIECES_FILE}): "
                         f"{pieces.triangle_count} triangles")
@@ -1191,7 +1225,8 @@ def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTi
                      level: int, resolution: int | Sequence[int], source: str, binary: bool,
                      kernel: str | None, units: str | None,
                      packs: Sequence[ColourPack] = (),
-                     progress: Callable[[float], object] | None = None) -> tuple[bytes, Mesh]:
+                     progress: Callable[[float], object] | None = None,
+                     origin: Sequence[float] | None = None) -> tuple[bytes, Mesh]:
     """:func:`write_level_ply` of an atlas: one welded mesh, ``detail`` = ``{patch: tiles}``,
     coloured per vertex from ``packs`` (the decoded colour packs of the level's plan, which
     hold every patch's cell once) when given."""
@@ -1213,7 +1248,8 @@ def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTi
                     f"atlas of {len(atlas.quads)} patches + {count} detail tiles of levels "
                     f"0..{level}" if level >= 0 else
                     f"the atlas of {len(atlas.quads)} patches alone"),
-                f"tessellated by client_py, one welded mesh, {grid}"]
+                f"tessellated by client_py, one welded mesh, {grid}",
+                *_origin_comments(origin)]
     if packs:
         of_patch = colours_by_patch(packs, len(atlas.quads))
         mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, of_patch)

@@ -62,6 +62,7 @@ from .bundle import (
     plan_level,
     plan_levels,
     read_pieces,
+    scan_origin,
     with_pieces,
     write_level_ply,
 )
@@ -416,7 +417,8 @@ class WorkerSession:
                              f"missing [{missing}], not in the plan [{extra}]")
         data, mesh = write_level_ply(patch, tiles, plan.level, plan.resolution, self._source,
                                      [images[key] for key in wanted], kernel=self._kernel,
-                                     pieces=self._pieces)
+                                     pieces=self._pieces,
+                                     origin=scan_origin(self._manifest_read()))
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
 
     # ------------------------------------------------------------------ an atlas bundle
@@ -664,7 +666,8 @@ class WorkerSession:
         data, mesh = write_level_ply(atlas, detail, plan.level, plan.resolution, self._source,
                                      packs, kernel=self._kernel,
                                      units=self._manifest_read().get("units")
-                                     or self._atlas_units, progress=progress)
+                                     or self._atlas_units, progress=progress,
+                                     origin=scan_origin(self._manifest_read()))
         return PlyFile(data, mesh.vertex_count, mesh.triangle_count, plan.resolution, plan.level)
 
 

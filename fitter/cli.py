@@ -28,6 +28,7 @@ from client_py.bundle import (
     pieces_mesh,
     plan_level,
     read_pieces,
+    scan_origin,
     write_level_ply,
 )
 from client_py.errors import TesseraError
@@ -151,7 +152,8 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     resolution = plan.resolution if args.resolution is None else args.resolution
     data, mesh = write_level_ply(surface, tiles, plan.level, resolution, bundle.name,
                                  () if args.texture else images, binary=not args.ascii,
-                                 texture_file=texture_file, pieces=pieces)
+                                 texture_file=texture_file, pieces=pieces,
+                                 origin=scan_origin(manifest))
     out.write_bytes(data)
     print(f"{out}: level {plan.level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
           f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))
@@ -199,7 +201,7 @@ def _tessellate_atlas_bundle(args: argparse.Namespace, bundle: Path, manifest: d
         resolution = plan.resolution if args.resolution is None else args.resolution
         data, mesh = write_level_ply(atlas, detail, plan.level, resolution, bundle.name,
                                      packs, binary=not args.ascii, units=manifest.get("units")
-                                     or metadata.get("units"))
+                                     or metadata.get("units"), origin=scan_origin(manifest))
     except PatchFormatError as exc:  # a bad file or manifest (ManifestError)
         raise UserError(f"{bundle}: {exc}") from None
     except (OSError, ValueError) as exc:  # a missing file; a --level the bundle lacks
@@ -566,8 +568,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="tessellate a bundle (or a .tsp patch) into a PLY mesh",
         description="Tessellate a bundle at a detail level (an atlas: one welded mesh) or "
         "a .tsp patch into a triangle mesh in the scan's own coordinates and units (the "
-        "bundle's stored transform applied), written as PLY that 3DHOP, MeshLab and "
-        "trimesh read: the viewer's Download PLY.",
+        "bundle's stored transform applied; a scan fitted far from the origin stays moved "
+        "near it, a header comment giving the origin to add), written as PLY that 3DHOP, "
+        "MeshLab and trimesh read: the viewer's Download PLY.",
     )
     tess.add_argument("input", help="a bundle directory (with manifest.json; a folder "
                       "without one: its base.tsp) or a .tsp patch file")

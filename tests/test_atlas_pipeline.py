@@ -272,6 +272,14 @@ def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):
     assert rms[0] < 1.5 * rms[1], rms
     atlas, _ = read_atlas((tmp_path / "far" / "base.tsa").read_bytes())
     assert np.abs(np.asarray(atlas.vertices)).max() < 2  # the bundle is near the origin
+    # its PLY (the viewer's Download PLY) says what to add for the file's coordinates
+    from fitter.cli import main
+    assert main(["tessellate", str(tmp_path / "far"), "-o", str(tmp_path / "far.ply"),
+                 "--level", "-1"]) == 0
+    ply = trimesh.load(tmp_path / "far.ply", process=False)
+    assert "comment origin 5000000.0 4000000.0 300.0: add it to every vertex" in (
+        tmp_path / "far.ply").read_bytes()[:2000].decode("latin-1")
+    assert np.allclose(np.linalg.norm(ply.vertices, axis=1), 1.0, atol=0.01)
 
 
 def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):

@@ -56,3 +56,14 @@ def test_a_stream_reads_its_points_moved():
     expected = points - stream.origin
     assert np.array_equal(stream.read(0, 3)[0], expected)
     assert np.array_equal(stream.take(np.array([0, 2]))[0], expected[[0, 2]])
+
+
+def test_the_clients_origin_is_the_manifests_and_a_bad_one_is_named():
+    from client_py.bundle import ManifestError, scan_origin
+
+    assert scan_origin({"provenance": {"points": 3}}) is None
+    assert scan_origin({}) is None
+    assert scan_origin({"provenance": {"origin": [5e6, 4e6, 300]}}) == [5e6, 4e6, 300.0]
+    for bad in ([1, 2], [1, 2, float("nan")], "0 0 0", [1, 2, True]):
+        with pytest.raises(ManifestError, match="provenance.origin"):
+            scan_origin({"provenance": {"origin": bad}})
