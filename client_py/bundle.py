@@ -389,12 +389,13 @@ def scan_origin(manifest: dict) -> list[float] | None:
     return [float(x) for x in origin]
 
 
-def _origin_comments(origin: Sequence[float] | None) -> list[str]:
-    """A PLY's header comment giving :func:`scan_origin` (none when not moved)."""
+def origin_comments(origin: Sequence[float] | None) -> list[str]:
+    """A PLY's header comments giving :func:`scan_origin` (none when not moved): ``origin X
+    Y Z`` (three numbers a reader splits off), then what to do with it."""
     if origin is None:
         return []
-    return ["origin " + " ".join(repr(float(x)) for x in origin)
-            + ": add it to every vertex for the scan file's coordinates"]
+    return ["origin " + " ".join(repr(float(x)) for x in origin),
+            "the scan file's coordinates are each vertex plus the origin"]
 
 
 def detail_spans(manifest: dict) -> int | None:
@@ -1209,7 +1210,7 @@ def write_level_ply(surface: NurbsSurface | AtlasSurface,
                     f"base patch + {len(tiles)} detail tiles of levels 0..{level}" if level >= 0
                     else "the base patch alone"),
                 f"tessellated by client_py on a {resolution}x{resolution} grid",
-                *_origin_comments(origin)]
+                *origin_comments(origin)]
     if pieces is not None:
         comments.append(f"with the scan's detached pieces ({PIECES_FILE}): "
                         f"{pieces.triangle_count} triangles")
@@ -1249,7 +1250,7 @@ def _write_atlas_ply(atlas: AtlasSurface, detail: Mapping[int, Sequence[DetailTi
                     f"0..{level}" if level >= 0 else
                     f"the atlas of {len(atlas.quads)} patches alone"),
                 f"tessellated by client_py, one welded mesh, {grid}",
-                *_origin_comments(origin)]
+                *origin_comments(origin)]
     if packs:
         of_patch = colours_by_patch(packs, len(atlas.quads))
         mesh.colors = atlas_vertex_colours(mesh.patches, mesh.uvs, of_patch)

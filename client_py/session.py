@@ -56,6 +56,7 @@ from .bundle import (
     check_atlas_base,
     colour_packs_of,
     detail_spans,
+    origin_comments,
     pack_name_parts,
     pieces_entry,
     pieces_mesh,
@@ -213,7 +214,9 @@ class WorkerSession:
             mesh = replace(mesh, colors=rgb)
         comments = [f"source {self._source}",
                     f"units {self._scan.metadata.get('units', 'unknown')}",
-                    f"tessellated by client_py in the browser, {resolution}x{resolution} grid"]
+                    f"tessellated by client_py in the browser, {resolution}x{resolution} grid",
+                    *origin_comments(None if self._manifest is None
+                                     else scan_origin(self._manifest))]
         if self._pieces is not None:
             mesh = with_pieces(mesh, self._pieces)
             comments.append(f"with the scan's detached pieces: {self._pieces.triangle_count} "

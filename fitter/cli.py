@@ -34,7 +34,7 @@ from client_py.bundle import (
 from client_py.errors import TesseraError
 
 from .fitting.cores import usable_cores
-from .fitting.options import OptionError
+from .fitting.options import OPTION, OptionError
 from .fitting.options import add_arguments as add_fit_arguments
 from .fitting.options import from_args as fit_options_from_args
 
@@ -127,6 +127,7 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
         tiles = [read_detail_tile((bundle / name).read_bytes()) for name in plan.detail_files]
         pieces = pieces_mesh(manifest, read_pieces(manifest, lambda name: (bundle / name)
                                                    .read_bytes()))
+        origin = scan_origin(manifest)
     except PatchFormatError as exc:  # a bad file or manifest (ManifestError)
         raise UserError(f"{bundle}: {exc}") from None
     except (OSError, ValueError) as exc:  # a missing file; a --level the bundle lacks
@@ -152,8 +153,7 @@ def _tessellate_bundle(args: argparse.Namespace, bundle: Path) -> int:
     resolution = plan.resolution if args.resolution is None else args.resolution
     data, mesh = write_level_ply(surface, tiles, plan.level, resolution, bundle.name,
                                  () if args.texture else images, binary=not args.ascii,
-                                 texture_file=texture_file, pieces=pieces,
-                                 origin=scan_origin(manifest))
+                                 texture_file=texture_file, pieces=pieces, origin=origin)
     out.write_bytes(data)
     print(f"{out}: level {plan.level}, {mesh.vertex_count} vertices, {mesh.triangle_count} "
           f"triangles, {len(data)} bytes" + (f", texture {texture_file}" if texture_file else ""))
@@ -301,7 +301,7 @@ def _base_rows(m: dict) -> list[tuple[str, str]]:
                 ("coverage", f"{100 * c['within_0.5%']:.2f}% of all points within 0.5% of the "
                              f"diagonal of the finest drawn level; {c['uncovered_points']:,} "
                              "farther than 1%"),
-                *[("not used", ", ".join("--" + n.replace("_", "-") for n in unused)
+                *[("not used", ", ".join(OPTION[n].cli for n in unused)
                    + ": a single patch's options")
                   for unused in [m.get("options_unused")] if unused]]
     return [("projection", f"{m['projection']['kind']}, covers "

@@ -241,14 +241,37 @@ def test_patches_option_spells_auto_and_counts():
         OPTION["patches"].parse("0")
 
 
-def test_more_detail_levels_than_an_atlas_holds_are_refused_before_it_is_fitted(tmp_path):
+def test_more_detail_levels_than_an_atlas_holds_are_refused_before_the_scan_is_read(
+        tmp_path):
     stages = []
     with pytest.raises(OptionError, match=r"detail_levels 5: an atlas with 8 spans a tile "
                                           r"holds at most 4 levels"):
-        fit_scan(_mesh_scan(trimesh.creation.icosphere(subdivisions=3), "sphere"),
-                 tmp_path / "b", FitOptions(detail_levels=5),
+        fit_scan(tmp_path / "no such scan.ply", tmp_path / "b",
+                 FitOptions(patches=60, detail_levels=5),
                  lambda stage, fraction, points=None: stages.append(stage))
-    assert "project" not in stages and not (tmp_path / "b").exists()
+    assert stages == [] and not (tmp_path / "b").exists()
+    # the option's help says the same most
+    from fitter.fitting.atlas.detail import most_levels
+    assert f"an atlas holds at most {most_levels(1)[0]}," in OPTION["detail_levels"].help
+
+
+def test_more_detail_levels_than_an_atlas_not_asked_for_holds_are_capped(tmp_path,
+                                                                          monkeypatch):
+    """With ``patches`` automatic, ``detail_levels`` may be meant for the single patches of
+    a collection: a closed object gets the most its atlas holds, and the manifest says so."""
+    from fitter.fitting.atlas import detail as atlas_detail
+
+    monkeypatch.setattr(atlas_detail, "MAX_COEFFICIENTS", 200_000)
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    manifest = fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "b",
+                        FitOptions(detail_levels=3)).manifest
+    patches = manifest["base"]["patches"]
+    # level 0 has (8 + 2)^2 coefficients a patch, within the cap; level 1 (16 + 2)^2, over
+    assert 200_000 // 18 ** 2 < patches <= 200_000 // 10 ** 2
+    assert manifest["fit"]["detail_levels_capped"] == {
+        "asked": 3, "held": 1, "why": f"level 1 would have {patches * 18 ** 2:,} "
+                                      "coefficients, over 200,000"}
+    assert len(manifest["tiles"]["detail"]["levels"]) == 1
 
 
 def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):
@@ -277,8 +300,9 @@ def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):
     assert main(["tessellate", str(tmp_path / "far"), "-o", str(tmp_path / "far.ply"),
                  "--level", "-1"]) == 0
     ply = trimesh.load(tmp_path / "far.ply", process=False)
-    assert "comment origin 5000000.0 4000000.0 300.0: add it to every vertex" in (
-        tmp_path / "far.ply").read_bytes()[:2000].decode("latin-1")
+    header = (tmp_path / "far.ply").read_bytes()[:2000].decode("latin-1")
+    assert ("comment origin 5000000.0 4000000.0 300.0\ncomment the scan file's coordinates "
+            "are each vertex plus the origin\n") in header
     assert np.allclose(np.linalg.norm(ply.vertices, axis=1), 1.0, atol=0.01)
 
 

@@ -3,13 +3,17 @@
 
 from __future__ import annotations
 
+import copy
+import io
+import pickle
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fitter.fitting.io.frame import FAR, SIZES, moved, near_origin, scan_origin
-from fitter.fitting.io.points import PointStream
+from fitter.fitting.io.points import PointStream, ReaderStream
 from fitter.fitting.io.scan import Scan, ScanError
 
 
@@ -32,6 +36,10 @@ def test_a_far_scan_is_moved_by_its_centre_rounded_to_a_readable_number():
     origin = scan_origin("s", np.array([2e7 + 11.0, 0.0, 0.0]),
                          np.array([2e7 + 311.0, 290.0, 280.0]))
     assert origin.tolist() == [20000200.0, 100.0, 100.0]
+    # a 30 cm object in metres, 1,235 km out: to the decimetre, as written
+    origin = scan_origin("s", np.array([1234567.891 - 0.1, 0.0, 0.0]),
+                         np.array([1234567.891 + 0.1, 0.2, 0.1]))
+    assert [repr(float(x)) for x in origin] == ["1234567.9", "0.1", "0.0"]
     points = np.array([[5e6 + 0.5, 4e6 - 0.25, 300.125], [5e6 - 0.5, 4e6 + 0.75, 299.0]])
     scan = Scan.from_array(points)
     near = near_origin(scan)
@@ -56,6 +64,30 @@ def test_a_stream_reads_its_points_moved():
     expected = points - stream.origin
     assert np.array_equal(stream.read(0, 3)[0], expected)
     assert np.array_equal(stream.take(np.array([0, 2]))[0], expected[[0, 2]])
+
+
+class _Blocks(ReaderStream):
+    """A reader stream (as an E57's or a LAS file's) decoding blocks of 7 points."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = points
+        super().__init__("blocks", Path("blocks"), [len(points)])
+
+    def open_file(self) -> object:
+        return io.BytesIO()
+
+    def open_segment(self, segment: int, first: int):  # noqa: ANN201 - (int, iterator)
+        return 0, iter([self.points[i:i + 7] for i in range(0, len(self.points), 7)])
+
+
+def test_a_reader_stream_reads_its_points_moved_in_every_process():
+    points = np.random.default_rng(0).random((50, 3)) + 1e6
+    stream = _Blocks(points)
+    stream.origin = np.array([1e6, 1e6, 1e6])
+    expected = points - stream.origin
+    for copied in (stream, copy.copy(stream), pickle.loads(pickle.dumps(stream))):  # Dask's
+        assert np.array_equal(copied.read(0, 50)[0], expected)
+        assert np.array_equal(copied.take(np.array([3, 30]))[0], expected[[3, 30]])
 
 
 def test_the_clients_origin_is_the_manifests_and_a_bad_one_is_named():

@@ -310,9 +310,7 @@ def test_a_large_cloud_far_from_the_origin_is_streamed_moved_near_it(tmp_path,
     vertices, faces = _bumpy_sphere(5)
     points, _ = trimesh.sample.sample_surface(trimesh.Trimesh(vertices, faces), 40_000, seed=2)
     offset = np.array([1e6, -2e6, 150.0])
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
-              "property double x\nproperty double y\nproperty double z\nend_header\n")
-    (tmp_path / "far.ply").write_bytes(header.encode() + (points + offset).astype("<f8").tobytes())
+    _float64_ply(tmp_path / "far.ply", points + offset)
     bundle = fit_scan(tmp_path / "far.ply", tmp_path / "b", FitOptions(patches=60))
     m = bundle.manifest
     origin = np.asarray(m["provenance"]["origin"])
@@ -321,6 +319,36 @@ def test_a_large_cloud_far_from_the_origin_is_streamed_moved_near_it(tmp_path,
     assert m["provenance"]["working_set"]["points_before"] == len(points)
     _check_every_point(bundle.path, m, points + offset - origin)
     assert m["coverage"]["within_0.5%"] > 0.99
+
+
+def _float64_ply(path: Path, points: np.ndarray) -> None:
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+              "property double x\nproperty double y\nproperty double z\nend_header\n")
+    path.write_bytes(header.encode() + points.astype("<f8").tobytes())
+
+
+def test_a_large_height_field_far_from_the_origin_is_one_patch_as_near_it(tmp_path,
+                                                                        small_out_of_core):
+    """One patch out of core (``LargeScan.measure`` streams every point against it) of a
+    relief 10^6 diagonals out: the same RMS as the relief at the origin; its PLYs (the
+    viewer's base download, error.ply) name the origin."""
+    from client_py.session import WorkerSession
+
+    points = relief_scan(N_POINTS, seed=3)
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
+    _float64_ply(tmp_path / "near.ply", points)
+    _float64_ply(tmp_path / "far.ply", points + np.array([3e5, -7e5, 40.0]) * diagonal)
+    near = fit_scan(tmp_path / "near.ply", tmp_path / "bn", FitOptions(patches=1)).manifest
+    far = fit_scan(tmp_path / "far.ply", tmp_path / "bf", FitOptions(patches=1)).manifest
+    assert "origin" not in near["provenance"] and "origin" in far["provenance"]
+    assert far["stats"]["points"] == N_POINTS
+    assert far["stats"]["rms"] == pytest.approx(near["stats"]["rms"], rel=0.05)
+    comment = "comment origin " + " ".join(repr(x) for x in far["provenance"]["origin"])
+    assert comment in (tmp_path / "bf" / "error.ply").read_bytes()[:1000].decode("latin-1")
+    session = WorkerSession()
+    session.load_patch((tmp_path / "bf" / "base.tsp").read_bytes(), "base.tsp")
+    session.read_manifest((tmp_path / "bf" / "manifest.json").read_text())
+    assert comment in session.base_ply(12).data[:1000].decode("latin-1")
 
 
 def test_a_large_clouds_detail_points_are_its_own_thinned_by_the_working_sets_rule(

@@ -15,12 +15,14 @@ domain and over a render of the object, with a colour bar in scan units) and
 from __future__ import annotations
 
 import zlib
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from client_py.bundle import origin_comments
 from client_py.ply import write_points_ply
 
 from .closest import ClosestPoints
@@ -184,10 +186,12 @@ def _colour_limit(d: np.ndarray) -> float:
     return limit if limit > 0 else 1.0
 
 
-def write_error_ply(path: Path, points_scan: np.ndarray, d: np.ndarray) -> None:
+def write_error_ply(path: Path, points_scan: np.ndarray, d: np.ndarray,
+                    origin: Sequence[float] | None = None) -> None:
     """Binary PLY of the scan points ``(N, 3)`` coloured by signed deviation ``d (N,)``
     (blue - white - red at +-P99), with the deviation as float ``quality`` (no faces;
-    written by :func:`client_py.ply.write_points_ply`)."""
+    written by :func:`client_py.ply.write_points_ply`); ``origin``: what the scan was moved
+    by (``fitter.fitting.io.frame``), named in the header as the bundle's PLY names it."""
     import matplotlib
 
     lut = (matplotlib.colormaps["coolwarm"](np.linspace(0.0, 1.0, 256))[:, :3] * 255).round()
@@ -199,7 +203,8 @@ def write_error_ply(path: Path, points_scan: np.ndarray, d: np.ndarray) -> None:
         properties={"quality": np.ascontiguousarray(d, dtype=np.float32)},
         comments=["Tessera error report: quality = signed deviation from the patch, "
                   "scan units",
-                  f"colour scale: blue -{limit:.6g} .. white 0 .. red +{limit:.6g}"])
+                  f"colour scale: blue -{limit:.6g} .. white 0 .. red +{limit:.6g}",
+                  *origin_comments(origin)])
     Path(path).write_bytes(data)
 
 

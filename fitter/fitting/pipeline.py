@@ -49,7 +49,7 @@ from client_py.format import MAX_CONTROL_POINTS
 from . import io as scan_io
 from .atlas import AtlasFitError, AtlasLayoutError, SurfaceError
 from .atlas.measure import forget_scenes
-from .atlas.pipeline import fit_atlas_bundle, wants_atlas
+from .atlas.pipeline import check_atlas_options, fit_atlas_bundle, wants_atlas
 from .bundle import write_bundle
 from .compact import choose_bits, drawn_cells, settle_hidden
 from .degenerate import check_patch, check_scan_shape
@@ -546,7 +546,7 @@ def _write_reports(folder: Path, projected: ProjectedScan, best: FitResult,
     scan, units, stats = projected.scan, projected.scan.units, best.stats
     raster, raster_data = error_raster(_covered_deviations(best, covered), stats["max"])
     (folder / RASTER_FILE).write_bytes(raster_data)
-    write_error_ply(folder / "error.ply", scan.points, best.dev.d)
+    write_error_ply(folder / "error.ply", scan.points, best.dev.d, scan.source.get("origin"))
     write_error_png(folder / "error.png", best.dev, projected.local, units,
                     f"{object_title(projected.scan, options)}: RMS {stats['rms']:.4g} "
                     f"{units}, "
@@ -570,8 +570,9 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     n_v]``, ``bits``, ``rational``, ``trimmed``); ``transform`` (patch frame -> scan
     frame, 4x4 row-major); ``projection`` (``kind``, ``requested``, ``coverage``,
     ``uncovered_points``, ``uncovered_bbox [[x, y, z], [x, y, z]]`` or None);
-    ``provenance`` (``input``, ``bytes``, ``sha256``, ``points``, ``format``, and
-    ``files`` for a multi-file input); ``options`` (the ``FitOptions``); ``stats``
+    ``provenance`` (``input``, ``bytes``, ``sha256``, ``points``, ``format``, ``files``
+    for a multi-file input, and ``origin`` for a scan moved near the origin,
+    ``fitter.fitting.io.frame``); ``options`` (the ``FitOptions``); ``stats``
     (deviation statistics of the covered points, ``fitter.fitting.error.error_stats``)
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
     ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``, ``weights_dropped``
@@ -701,6 +702,7 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
               blocks: LocalBlocks | DaskBlocks | None = None) -> Bundle:
     options.grid = tuple(options.grid)
     options.validate()
+    check_atlas_options(options)  # an atlas asked for: before the scan is read
     stages = _Stages(progress)
     stages.start("load")
     scan, large = _load(scan, limits, blocks, stages)

@@ -1929,7 +1929,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     validate = levels is None and not is_mesh  # see "Depth"
     if levels is None:
         levels = auto_levels(side, spacing, F, spans)
-    check_levels(levels, F, spans)
+    else:
+        check_levels(levels, F, spans)
     finest_cells = F * (spans << max(levels - 1, 0)) ** 2
     source = scan if original is None else original
     count = int(min(max_samples, max(SAMPLES_PER_CELL * finest_cells, len(source.points))))

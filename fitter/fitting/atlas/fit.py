@@ -1637,8 +1637,8 @@ def within_budget_fed_back(atlas: AtlasSurface, size: int, bits: int, byte_budge
 def _check_arguments(patches: object, degree: object, spans: object, bits: object,
                      byte_budget: object, working_count: object, rounds: object) -> None:
     if not (patches == "auto" or (isinstance(patches, int) and not isinstance(patches, bool)
-                                  and 3 <= patches <= 3 * AUTO_MAX_TRIANGLES)):
-        raise ValueError(f"patches must be 'auto' or an int in 3..{3 * AUTO_MAX_TRIANGLES} "
+                                  and 3 <= patches <= MAX_PATCHES)):
+        raise ValueError(f"patches must be 'auto' or an int in 3..{MAX_PATCHES} "
                          f"(three quads per layout triangle), got {patches!r}; one patch is "
                          "the single-patch fit (fit_scan)")
     for name, value, lo, hi in (("degree", degree, 1, 3), ("spans", spans, 1, 4),

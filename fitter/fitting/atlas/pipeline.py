@@ -48,7 +48,7 @@ from ..error import (
 )
 from ..io import Scan
 from ..options import FitOptions, unused_by_atlas
-from .detail import check_levels, fit_atlas_detail
+from .detail import check_levels, fit_atlas_detail, most_levels
 from .fit import (
     DEFAULT_BYTE_BUDGET,
     AtlasFit,
@@ -98,6 +98,12 @@ def _unit(rows: np.ndarray) -> np.ndarray:
     return rows / np.where(length > 0, length, 1.0)[:, None]
 
 
+def asked_for_atlas(patches: int | None) -> bool:
+    """Whether ``--patches`` asks for an atlas: any count but 1 (one patch); ``None`` lets
+    :func:`wants_atlas` decide by the scan."""
+    return patches is not None and patches != 1
+
+
 def wants_atlas(scan: Scan, patches: int | None) -> bool:
     """``--patches``' rule: ``1`` a single patch, another count an atlas; ``None`` (auto) an
     atlas unless the scan is a height field over the plane of its least variance.
@@ -110,7 +116,7 @@ def wants_atlas(scan: Scan, patches: int | None) -> bool:
     by the points' unoriented local normals (``|n . axis|``) alone.
     """
     if patches is not None:
-        return patches != 1
+        return asked_for_atlas(patches)
     points = np.asarray(scan.points, dtype=float)
     centred = points - points.mean(axis=0)
     sample = centred[:: max(1, len(centred) // 200_000)]
@@ -497,6 +503,35 @@ def _atlas_colour(scan: Scan, detail, options: FitOptions, stages, drawn: DrawnM
     return texture
 
 
+def check_atlas_options(options: FitOptions) -> None:
+    """Refuse, before any work, an explicit ``detail_levels`` that no atlas holds when an
+    atlas was asked for (``patches`` given): over :func:`.detail.most_levels`' drawing cap,
+    whatever its patches (``fit_scan`` calls it before the scan is read).
+
+    Raises
+    ------
+    OptionError
+        Naming ``detail_levels`` and the most an atlas holds.
+    """
+    if options.detail_levels is not None and asked_for_atlas(options.patches):
+        check_levels(options.detail_levels, None)
+
+
+def held_levels(options: FitOptions, patches: int) -> tuple[int | None, dict | None]:
+    """The detail levels to fit on an atlas of ``patches`` patches, and the record of a cap:
+    ``options.detail_levels``; when the atlas was not asked for (``patches`` automatic, so
+    the option may be meant for the single patches of a collection), more than the atlas
+    holds is capped at :func:`.detail.most_levels` (``{"asked", "held", "why"}``, the
+    manifest's ``fit.detail_levels_capped``); when it was, ``fit_atlas_detail`` refuses it."""
+    levels = options.detail_levels
+    if levels is None or asked_for_atlas(options.patches):
+        return levels, None
+    most, why = most_levels(patches)
+    if levels <= most:
+        return levels, None
+    return most, {"asked": levels, "held": most, "why": why}
+
+
 def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                      object_fields: Callable[[Scan, FitOptions], dict],
                      large: out_of_core.LargeScan | None = None) -> dict:
@@ -521,19 +556,19 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
         (``SurfaceError``, ``AtlasLayoutError``, ``AtlasFitError``) a scan no atlas can be
         made of, with the problem named.
     OptionError
-        ``detail_levels`` more than the atlas holds (``.detail.check_levels``).
+        ``detail_levels`` more than an atlas asked for (``patches``) holds
+        (:func:`check_atlas_options`, ``.detail.check_levels``).
     """
-    if options.detail_levels is not None:  # refused before any work, not when memory runs out
-        check_levels(options.detail_levels, None)
     stages.start("project")
     surface = scan_surface(scan)
     fitted, outliers = without_outliers(scan, surface)
     fit, decoded, layout_record = fit_checked_base(fitted, surface, options, stages,
                                                    options.bits)
     bits = layout_record["bits"]
+    levels, capped = held_levels(options, len(decoded.quads))
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
     own = None if large is None else large.detail_scan()  # a large scan: its own points
-    detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, options.detail_levels,
+    detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, levels,
                               progress=stages.report, original=own, **(
                                   {} if own is None
                                   else {"max_samples": out_of_core.DETAIL_POINTS}))
@@ -580,7 +615,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
         for name, pack in {**detail.files, **(texture.files if texture else {})}.items():
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             (folder / name).write_bytes(pack)
-        write_error_ply(folder / "error.ply", points, d)
+        write_error_ply(folder / "error.ply", points, d, scan.source.get("origin"))
         view = fields["view"]
         write_atlas_error_png(folder / "error.png", points, d, np.asarray(view["front"]),
                               np.asarray(view["up"]), scan.units,
@@ -609,6 +644,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
             "fit": rounded_floats({"triangles": fit.triangles, "patches": fit.patches,
                     "surface": surface.origin, "surface_pieces": surface.pieces,
                     "layout": layout_record, "outliers_not_fitted": outliers,
+                    **({"detail_levels_capped": capped} if capped else {}),
                     "repairs": surface.repairs, "working_points": int(len(fit.points)),
                     "working_rms": fit.rms, "trials": fit.trials,
                     "steps": {k: round(v, 3) for k, v in fit.timings.items()},

@@ -9,11 +9,11 @@ positions, three.js). A float32 coordinate near ``c`` is exact to about ``|c| 2^
 off (a sphere's atlas there: RMS 80 times that of the same sphere at the origin) and at
 ``10^6 D`` it falls apart (its atlas refused: patches collapsed to points).
 
-So a scan whose box centre is more than :data:`FAR` diagonals from the origin is moved by
-``-origin`` (its box centre rounded to the power of ten at or below its diagonal, a number
-a person reads back: ``[5000000, 4000000, 300]``, not ``[5000000.0213, …]``; the moved
-scan then lies within about one diagonal of the origin), every stage then works in that frame,
-and the manifest's ``provenance.origin`` records ``origin``: a bundle coordinate plus
+So a scan whose box centre has a coordinate more than :data:`FAR` diagonals from 0 is
+moved by ``-origin`` (its box centre rounded to the power of ten at or below its diagonal,
+a number a person reads back: ``[5000000, 4000000, 300]``, not ``[5000000.0213, …]``; the
+moved scan then lies within about one diagonal of the origin), every stage then works in
+that frame, and the manifest's ``provenance.origin`` records ``origin``: a bundle coordinate plus
 ``origin`` is the file's. A scan nearer than that is not moved (its bundle as before).
 
 The size of a scan is bounded too (:data:`SIZES`): far below a micrometre or above 10^10
@@ -54,10 +54,10 @@ def scan_origin(name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
                         f"units; a fit takes {SIZES[0]:g}..{SIZES[1]:g} (rescale the scan, "
                         "e.g. to millimetres or metres)")
     centre = (lo + hi) / 2
-    if float(np.abs(centre).max()) <= FAR * diagonal:
+    if float(np.abs(centre).max()) <= FAR * diagonal:  # every coordinate within FAR D of 0
         return None
-    step = 10.0 ** np.floor(np.log10(diagonal))
-    return np.round(centre / step) * step
+    # to -e decimals, e = floor(log10(D)): 1234567.9, not 1234567.9000000001 (x / 0.1 * 0.1)
+    return np.round(centre, -int(np.floor(np.log10(diagonal))))
 
 
 def moved(scan: Scan, origin: np.ndarray | None) -> Scan:
