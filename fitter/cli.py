@@ -303,7 +303,10 @@ def _base_rows(m: dict) -> list[tuple[str, str]]:
                              "farther than 1%"),
                 *[("not used", ", ".join(OPTION[n].cli for n in unused)
                    + ": a single patch's options")
-                  for unused in [m.get("options_unused")] if unused]]
+                  for unused in [m.get("options_unused")] if unused],
+                *[("capped", f"--detail-levels {capped['asked']}: the atlas holds "
+                             f"{capped['held']} ({capped['why']})")
+                  for capped in [m["fit"].get("detail_levels_capped")] if capped]]
     return [("projection", f"{m['projection']['kind']}, covers "
                            f"{100 * m['projection']['coverage']:.1f}% of the points"),
             ("patch", f"{base['grid'][0]}x{base['grid'][1]} degree {base['degree'][0]}"
