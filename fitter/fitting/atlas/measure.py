@@ -364,16 +364,16 @@ class MeasuringProcessError(TesseraError, RuntimeError):
 
 
 class MeasuringProcess:
-    """:func:`signed_distance_to_drawn` of one mesh in a fresh Python process
-    (``python -m fitter.fitting.atlas.measure``), which imports ``open3d`` as soon as it
-    starts.
+    """:func:`signed_distance_to_drawn` of one point set against one or more meshes in a
+    fresh Python process (``python -m fitter.fitting.atlas.measure``), which imports
+    ``open3d`` as soon as it starts.
 
     ``open3d`` holds the GIL while it builds its BVH (one core: 6 s for the 9.4 M triangles
     of the Happy Buddha's finest level) and queries it, so no thread of this process runs
     beside it; another process does. The arrays travel through pipes as raw bytes
     (``dtype`` and shape on a line, then the data): no pickle, and no re-import of the
-    caller's ``__main__`` (as ``multiprocessing``'s spawn would). :meth:`measure` blocks
-    in pipe I/O, which releases the GIL: call it from a thread.
+    caller's ``__main__`` (as ``multiprocessing``'s spawn would). :meth:`measure` and
+    :meth:`measure_all` block in pipe I/O, which releases the GIL: call them from a thread.
 
     Raises
     ------
@@ -394,19 +394,30 @@ class MeasuringProcess:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`signed_distance_to_drawn` ``(points, vertices, faces)`` in the process,
         which then exits."""
+        return self.measure_all(points, [(vertices, faces)])[0]
+
+    def measure_all(self, points: np.ndarray, meshes: list[tuple[np.ndarray, np.ndarray]]
+                    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """:func:`signed_distance_to_drawn` ``(points, vertices, faces)`` of each ``(vertices,
+        faces)`` of ``meshes``, in order, in the process, which then exits.
+
+        The process measures each mesh as it arrives and answers once its input has ended:
+        an answer written while this side still writes the next mesh would fill the one
+        pipe while this side fills the other, each waiting for the other to read."""
         try:
-            _write_arrays(self.process.stdin, [np.asarray(points, dtype=float),
-                                               np.asarray(vertices, dtype=np.float32),
-                                               np.asarray(faces, dtype=np.uint32)])
+            _write_arrays(self.process.stdin, [np.asarray(points, dtype=float)])
+            for vertices, faces in meshes:
+                _write_arrays(self.process.stdin, [np.asarray(vertices, dtype=np.float32),
+                                                   np.asarray(faces, dtype=np.uint32)])
             self.process.stdin.close()
-            out = _read_arrays(self.process.stdout, 3)
+            out = [tuple(_read_arrays(self.process.stdout, 3)) for _ in meshes]
         except (OSError, ValueError) as exc:
             raise MeasuringProcessError(f"the measuring process failed: {exc}") from exc
         finally:
             code = self.process.wait()
         if code != 0:
             raise MeasuringProcessError(f"the measuring process exited with {code}")
-        return out[0], out[1], out[2]
+        return out
 
     def close(self) -> None:
         """End the process if it still runs (an error elsewhere)."""
@@ -428,10 +439,15 @@ def _write_arrays(stream, arrays: list[np.ndarray]) -> None:
     stream.flush()
 
 
-def _read_arrays(stream, count: int) -> list[np.ndarray]:
+def _read_arrays(stream, count: int, at_end: bool = False) -> list[np.ndarray] | None:
+    """``count`` arrays from ``stream``; with ``at_end``, ``None`` when the stream ends
+    before the first (else that is an error)."""
     out = []
     for _ in range(count):
-        dtype, *shape = stream.readline().decode().split()
+        line = stream.readline()
+        if not line and at_end and not out:
+            return None
+        dtype, *shape = line.decode().split()
         size = np.dtype(dtype).itemsize * math.prod(int(x) for x in shape)
         data = stream.read(size)
         if len(data) != size:
@@ -441,14 +457,19 @@ def _read_arrays(stream, count: int) -> list[np.ndarray]:
 
 
 def _serve() -> None:
-    """The :class:`MeasuringProcess` side: three arrays in on stdin, three out on the
-    original stdout (anything a library prints goes to stderr)."""
+    """The :class:`MeasuringProcess` side: the points on stdin, then each mesh's two
+    arrays until stdin ends; three arrays per mesh out on the original stdout once it has
+    (anything a library prints goes to stderr)."""
     import open3d  # noqa: F401  (imported while the caller still tessellates)
 
     answer = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
-    points, vertices, faces = _read_arrays(sys.stdin.buffer, 3)
-    _write_arrays(answer, list(signed_distance_to_drawn(points, vertices, faces)))
+    points, = _read_arrays(sys.stdin.buffer, 1)
+    answers = []
+    while (mesh := _read_arrays(sys.stdin.buffer, 2, at_end=True)) is not None:
+        answers.append(signed_distance_to_drawn(points, *mesh))
+    for arrays in answers:
+        _write_arrays(answer, list(arrays))
     answer.close()
 
 
