@@ -275,8 +275,8 @@ def signed_distance_to_drawn(points: np.ndarray, vertices: np.ndarray, faces: np
     and uint32 faces (exactly the :class:`DrawnMesh`'s values, half the bytes to send to
     a :class:`MeasuringProcess`). They are measured as they are: the scene takes them
     without a copy, and only the points' nearest triangles are made float64 (exactly: the
-    same numbers as the whole mesh converted, which for the dense vase's 18.7 M-triangle
-    finest level was 1 s and 1 GB more, and as much again to convert it back)."""
+    same numbers as the whole mesh converted to float64 and int64 and back for the scene,
+    which for the dense vase's 18.7 M-triangle finest level took 1 s and 1 GB)."""
     return signed_point_mesh_distance(points, vertices, faces)
 
 
