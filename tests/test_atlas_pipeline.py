@@ -180,6 +180,13 @@ def test_the_measuring_process_gives_the_distances_measured_here():
     there = MeasuringProcess().measure(points, vertices, mesh.faces)
     for a, b in zip(here, there, strict=True):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    # several meshes against the same points, in order (the coarser levels' process)
+    other = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    meshes = [(other.vertices, other.faces), (vertices, mesh.faces)]
+    for (v, f), answer in zip(meshes, MeasuringProcess().measure_all(points, meshes),
+                              strict=True):
+        for a, b in zip(signed_point_mesh_distance(points, v, f), answer, strict=True):
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
     broken = MeasuringProcess()
     broken.process.kill()
     with pytest.raises(MeasuringProcessError):
@@ -223,6 +230,56 @@ def test_measure_levels_gives_the_same_distances_with_the_finest_level_in_a_proc
     assert finest[0][0].tobytes() == here[0][0].tobytes()
     assert finest[1].vertices.tobytes() == here[1].vertices.tobytes()
     assert finest[2].tobytes() == here[2].tobytes() and finest[3].tobytes() == here[3].tobytes()
+
+
+def test_packs_coded_while_the_levels_are_measured_are_those_coded_before(monkeypatch):
+    """fit_atlas_bundle codes the detail packs while the levels' meshes are measured
+    (levels_measured: by a worker thread here or, PROCESS_TRIANGLES lowered to 0, by two
+    MeasuringProcesses): the same packs, tree and distances as pack_pyramid and
+    measure_levels one after the other, and fit_atlas_detail's; a coarser levels' process
+    that fails leaves its levels to be measured here, the same numbers again."""
+    from fitter.fitting.atlas import pipeline
+    from fitter.fitting.atlas.detail import fit_atlas_detail, fit_detail_pyramid, pack_pyramid
+    from fitter.fitting.atlas.fit import fit_atlas
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    scan = _mesh_scan(mesh, "sphere")
+    fit = fit_atlas(scan, 24)
+    pyramid = fit_detail_pyramid(fit, scan, 2, spans=4)
+    points = np.asarray(mesh.vertices, dtype=float)
+    packed = pack_pyramid(pyramid)
+    assert packed.files == fit_atlas_detail(fit, scan, 2, spans=4).files and packed.files
+    serial = pipeline.measure_levels(pyramid.atlas, pyramid, points)
+    assert serial[0].keys() == {-1, 0, 1}
+    started = []
+
+    class Counted(MeasuringProcess):
+        def __init__(self):
+            super().__init__()
+            started.append(self)
+
+    class Failing(Counted):
+        def measure_all(self, points, meshes):
+            if len(started) == 2 and self is started[1]:  # the coarser levels' process
+                self.process.kill()
+            return super().measure_all(points, meshes)
+
+    for triangles, process in ((pipeline.PROCESS_TRIANGLES, Counted), (0, Counted),
+                               (0, Failing)):
+        monkeypatch.setattr(pipeline, "PROCESS_TRIANGLES", triangles)
+        monkeypatch.setattr(pipeline, "MeasuringProcess", process)
+        started.clear()
+        with pipeline.levels_measured(pyramid.atlas, pyramid, points) as measured:
+            detail = pack_pyramid(pyramid)
+            together = measured()
+        assert len(started) == (0 if triangles else 2)
+        assert detail.files == packed.files and detail.tree == packed.tree
+        assert list(together[0]) == list(serial[0]) == [1, 0, -1]
+        for k in serial[0]:
+            assert together[0][k].tobytes() == serial[0][k].tobytes()
+        assert together[1].vertices.tobytes() == serial[1].vertices.tobytes()
+        assert together[2].tobytes() == serial[2].tobytes()
+        assert together[3].tobytes() == serial[3].tobytes()
 
 
 def test_auto_rule_keeps_one_patch_for_a_height_field_and_an_atlas_for_a_closed_object():

@@ -184,6 +184,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from dataclasses import fields as data_fields
 
 import numpy as np
 import scipy.sparse as sp
@@ -1719,8 +1720,14 @@ def border_jump(atlas: AtlasSurface, fields: list[np.ndarray], spans: int,
 
 # ------------------------------------------------------------------ the pyramid
 @dataclass
-class AtlasDetail:
-    """The atlas's detail pyramid, ready for the bundle.
+class DetailPyramid:
+    """The atlas's detail pyramid as fitted, before its packs are coded
+    (:func:`fit_detail_pyramid`; :func:`pack_pyramid` codes them).
+
+    Everything a drawn mesh needs is here (``atlas``, ``tiles``, ``levels[k]["resolution"]``,
+    :meth:`detail_up_to`), so the error report can tessellate and measure the levels while
+    the packs, pure-Python range coding under the GIL, are written beside it
+    (``atlas.pipeline.fit_atlas_bundle``).
 
     Attributes
     ----------
@@ -1729,16 +1736,13 @@ class AtlasDetail:
         ``base.tsa``; the tiles' patch indices refer to it.
     order : ndarray, shape (F,)
         ``atlas``'s patch ``k`` is ``fit.atlas``'s patch ``order[k]``.
-    tree : dict
-        The manifest's ``tiles.detail`` (docs: the module docstring and the manifest spec).
-    files : dict of str to bytes
-        ``pack_name(k, g)`` -> the pack's bytes.
     tiles : list of dict of int to list of DetailTile
         ``tiles[k][f]``: patch ``f``'s level-``k`` tiles (for ``client_py.atlas_mesh``).
     levels : list of dict
         Per level ``level``, ``rms``, ``max`` (sample errors after levels ``0..k``),
-        ``bytes`` (its packs), ``packs``, ``resolution``, ``step`` and ``border_jump``
-        (``{rms, max}`` of ``|D_f - D_g|`` on shared borders after levels ``0..k``).
+        ``resolution``, ``step``, ``walls`` and ``border_jump`` (``{rms, max}`` of
+        ``|D_f - D_g|`` on shared borders after levels ``0..k``); :class:`AtlasDetail`'s
+        also ``bytes`` (its packs) and ``packs``.
     samples : int
     spacing : float
         The scan's median edge length / point spacing the depth aims at.
@@ -1746,18 +1750,31 @@ class AtlasDetail:
         Median patch side length.
     timings : dict
         Seconds per step.
+    spans : int
+        Spans per tile side.
+    base : tuple of float
+        The samples' RMS and max error over the base alone.
+    worst : list of ndarray, shape (F,)
+        Per level, the largest sample error of each patch after levels ``0..k``.
+    reach : ndarray, shape (F,)
+        Each patch's largest displacement, ``sum_k max |D_k|`` (its group's bounding sphere).
+    held_out : dict or None
+        The manifest's ``tiles.detail.held_out`` (module docstring, "Depth").
     """
 
     atlas: AtlasSurface
     order: np.ndarray
-    tree: dict
-    files: dict
     tiles: list
     levels: list
     samples: int
     spacing: float
     patch_side: float
-    timings: dict = field(default_factory=dict)
+    timings: dict
+    spans: int
+    base: tuple[float, float]
+    worst: list
+    reach: np.ndarray
+    held_out: dict | None
 
     def detail_up_to(self, level: int) -> dict:
         """``{patch: [tiles of levels 0..level]}`` for ``client_py.atlas_mesh``."""
@@ -1766,6 +1783,23 @@ class AtlasDetail:
             for f, tiles in self.tiles[k].items():
                 out.setdefault(f, []).extend(tiles)
         return out
+
+
+@dataclass
+class AtlasDetail(DetailPyramid):
+    """The atlas's detail pyramid, ready for the bundle: a :class:`DetailPyramid` with its
+    packs (:func:`pack_pyramid`).
+
+    Attributes
+    ----------
+    tree : dict
+        The manifest's ``tiles.detail`` (docs: the module docstring and the manifest spec).
+    files : dict of str to bytes
+        ``pack_name(k, g)`` -> the pack's bytes.
+    """
+
+    tree: dict = field(default_factory=dict)
+    files: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -1874,12 +1908,18 @@ def _check_arguments(levels: object, spans: object, step_factor: object) -> None
         raise ValueError(f"step_factor must be a finite number > 0, got {step_factor!r}")
 
 
+def _check_pack_bytes(pack_bytes: object) -> None:
+    if isinstance(pack_bytes, bool) or not isinstance(pack_bytes, int) or pack_bytes < 1000:
+        raise ValueError(f"pack_bytes must be an int >= 1000, got {pack_bytes!r}")
+
+
 def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                      spans: int = SPANS, step_factor: float = STEP_FACTOR,
                      max_samples: int = MAX_SAMPLES, pack_bytes: int = PACK_BYTES,
                      progress: Callable[[float], None] | None = None,
                      original: Scan | None = None) -> AtlasDetail:
-    """Fit the detail pyramid of ``fit``'s atlas to ``scan``'s surface (module docstring).
+    """Fit the detail pyramid of ``fit``'s atlas to ``scan``'s surface (module docstring)
+    and code its packs: :func:`pack_pyramid` of :func:`fit_detail_pyramid`.
 
     Parameters
     ----------
@@ -1908,11 +1948,22 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     -------
     AtlasDetail
     """
+    _check_pack_bytes(pack_bytes)
+    return pack_pyramid(fit_detail_pyramid(fit, scan, levels, spans=spans,
+                                           step_factor=step_factor, max_samples=max_samples,
+                                           progress=progress, original=original), pack_bytes)
+
+
+def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
+                       spans: int = SPANS, step_factor: float = STEP_FACTOR,
+                       max_samples: int = MAX_SAMPLES,
+                       progress: Callable[[float], None] | None = None,
+                       original: Scan | None = None) -> DetailPyramid:
+    """:func:`fit_atlas_detail`'s pyramid (the same parameters but ``pack_bytes``), its
+    packs not yet coded (:func:`pack_pyramid`)."""
     _check_arguments(levels, spans, step_factor)
     if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1000:
         raise ValueError(f"max_samples must be an int >= 1000, got {max_samples!r}")
-    if isinstance(pack_bytes, bool) or not isinstance(pack_bytes, int) or pack_bytes < 1000:
-        raise ValueError(f"pack_bytes must be an int >= 1000, got {pack_bytes!r}")
     report = progress or (lambda fraction: None)
     timings: dict = {}
     clock = time.perf_counter()
@@ -2062,20 +2113,43 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                            "walls": walls})
         report(0.4 + 0.5 * (k + 1) / max(levels, 1))
         clock = _tick(timings, "tiles", clock)
-    if per_level_tiles:  # the finest level's own .tsd bytes size the groups (_groups) alone
-        per_level_tiles[-1] = {f: [(t, write_detail_tile(t), g) for t, _, g in made]
-                               for f, made in per_level_tiles[-1].items()}
-    walls_side = max((t.walls.rows for tiles in per_level_tiles for made in tiles.values()
-                      for t, _, _ in made if t.walls is not None), default=0)
-    groups = _groups(per_level_tiles[-1] if levels else {}, F, pack_bytes,
-                     max(levels - 1, 0), spans, walls_side)
+    reach = sum(np.abs(c).max(axis=(1, 2)) for c in fields) if fields else np.zeros(F)
+    held_record = None
+    if held_rms:
+        held_record = {"share": _rounded(float(held.sum()) / max(int(use.sum()), 1)),
+                       "rms": [_rounded(x) for x in held_rms], "min_gain": MIN_GAIN,
+                       **({"not_tried": untried} if untried else {})}
+    report(1.0)
+    return DetailPyramid(atlas, order, [{f: [t for t, _, _ in made] for f, made in
+                                         tiles.items()} for tiles in per_level_tiles],
+                         level_rows, len(samples.u), spacing, side, timings, spans,
+                         (base_rms, base_max), worst_of_patch, reach, held_record)
+
+
+def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasDetail:
+    """``pyramid`` with its packs (module docstring, "Groups and packs"): the patches cut
+    into groups whose finest-level pack stays within ``pack_bytes`` (:func:`_groups`, by
+    the finest tiles' own ``.tsd`` bytes), every level's tiles of a group coded as one
+    welded pack (``client_py.atlas_detail.write_pack``), and the manifest's
+    ``tiles.detail`` (``tree``). Pure Python (the client's coder) and a deterministic
+    function of ``pyramid``: the same bytes whenever and on whichever thread it runs."""
+    _check_pack_bytes(pack_bytes)
+    clock = time.perf_counter()
+    atlas, spans, tiles_of = pyramid.atlas, pyramid.spans, pyramid.tiles
+    F, levels = len(atlas.quads), len(pyramid.tiles)
+    # the finest level's own .tsd bytes size the groups (_groups) alone
+    finest = ({f: [(t, write_detail_tile(t), None) for t in made]
+               for f, made in tiles_of[-1].items()} if levels else {})
+    walls_side = max((t.walls.rows for tiles in tiles_of for made in tiles.values()
+                      for t in made if t.walls is not None), default=0)
+    groups = _groups(finest, F, pack_bytes, max(levels - 1, 0), spans, walls_side)
     files: dict[str, bytes] = {}
     packs = []
-    for k, tiles in enumerate(per_level_tiles):
+    level_rows = [dict(row) for row in pyramid.levels]
+    for k, tiles in enumerate(tiles_of):
         total, count_k = 0, 0
         for g, (first, size) in enumerate(groups):
-            mine = {f: [t for t, _, _ in tiles[f]] for f in range(first, first + size)
-                    if f in tiles}
+            mine = {f: tiles[f] for f in range(first, first + size) if f in tiles}
             if not mine:
                 continue
             data = write_pack(k, mine, atlas)
@@ -2084,21 +2158,21 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
             total += len(data)
             count_k += 1
             packs.append({"level": k, "group": g, "bytes": len(data), "geometric_error":
-                          _rounded(float(worst_of_patch[k][first:first + size].max()))})
+                          _rounded(float(pyramid.worst[k][first:first + size].max()))})
         level_rows[k]["bytes"] = total
         level_rows[k]["packs"] = count_k
-    reach = sum(np.abs(c).max(axis=(1, 2)) for c in fields) if fields else np.zeros(F)
     table, cps = index_table(atlas), control_points(atlas)
     group_rows = []
     for first, size in groups:
         pts = cps[table[first:first + size]].reshape(-1, 3)
         centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
         radius = float(np.linalg.norm(pts - centre, axis=1).max()) \
-            + float(np.max(reach[first:first + size]))
+            + float(np.max(pyramid.reach[first:first + size]))
         group_rows.append({"first": int(first), "count": int(size),
                            "center": [_rounded(float(x)) for x in centre],
                            "radius": _rounded(radius)})
     versions = {PACK_HEADER.unpack_from(data)[1] for data in files.values()}
+    base_rms, base_max = pyramid.base
     tree = {"format": "tsdp", "format_version": max(versions, default=WALLS_FREE_VERSION),
             "tile_format_version": TILE_VERSION, "degree": DEGREE, "spans_per_tile": spans,
             "base": {"rms": _rounded(base_rms), "max": _rounded(base_max)},
@@ -2108,16 +2182,12 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                         **({"walls": r["walls"]} if r["walls"] else {})}
                        for r in level_rows],
             "groups": group_rows, "packs": packs}
-    if held_rms:
-        tree["held_out"] = {"share": _rounded(float(held.sum()) / max(int(use.sum()), 1)),
-                            "rms": [_rounded(x) for x in held_rms], "min_gain": MIN_GAIN,
-                            **({"not_tried": untried} if untried else {})}
-    timings["packs"] = time.perf_counter() - clock
-    report(1.0)
-    tiles_only = [{f: [t for t, _, _ in made] for f, made in tiles.items()}
-                  for tiles in per_level_tiles]
-    return AtlasDetail(atlas, order, tree, files, tiles_only, level_rows, len(samples.u),
-                       spacing, side, timings)
+    if pyramid.held_out:
+        tree["held_out"] = pyramid.held_out
+    timings = {**pyramid.timings, "packs": time.perf_counter() - clock}
+    fitted = {f.name: getattr(pyramid, f.name) for f in data_fields(DetailPyramid)}
+    return AtlasDetail(**{**fitted, "levels": level_rows, "timings": timings}, tree=tree,
+                       files=files)
 
 
 def _groups(finest: dict, patches: int, pack_bytes: int, level: int = 0,

@@ -326,10 +326,28 @@ BORDER_SIDE_SAMPLES = 17  # samples per open patch side for the first border foo
 BORDER_OVERSHOOT = 0.0
 
 
+#: triangles per chunk of :func:`median_edge`
+EDGE_CHUNK = 400_000
+
+
 def median_edge(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """The median edge length of a triangle surface (its resolution)."""
-    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]
-    return float(np.median(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)))
+    """The median edge length of a triangle surface (its resolution).
+
+    Each triangle's three edges are measured in chunks of :data:`EDGE_CHUNK` triangles on
+    the cores (``on_threads``: numpy releases the GIL), the median taken over all of them
+    in order: the same lengths, the same median, as one pass over every triangle, which
+    took 0.6-1.2 s for the dense vase's 2.24 M triangles (its 200 MB of corners allocated
+    at once) against 0.3 s so."""
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+
+    def lengths(lo: int) -> np.ndarray:
+        tri = vertices[faces[lo:lo + EDGE_CHUNK]]
+        return np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+
+    if not len(faces):
+        return float(np.median(np.zeros((0, 3))))
+    return float(np.median(np.concatenate(on_threads(lengths, len(faces), EDGE_CHUNK))))
 
 
 def border_points(vertices: np.ndarray, faces: np.ndarray, overshoot: float = 0.0

@@ -10,8 +10,10 @@ The steps, each a stage of ``fitter.fitting.stages`` (the bar skips the single p
 ``encode``   ``base.tsa`` written (``client_py.atlas_format``) and read back: every figure
              below is of the decoded bytes;
 ``detail``   the displacement pyramid of every patch over the decoded base (``atlas.detail``),
-             its patches renumbered into groups, written as ``detail/K/G.tsdp`` packs;
-``error``    EVERY scan point against the mesh a visitor is drawn at the finest level
+             its patches renumbered into groups;
+``error``    its ``detail/K/G.tsdp`` packs coded (``atlas.detail.pack_pyramid``: pure
+             Python) while EVERY scan point is measured, mostly by other processes
+             (:func:`levels_measured`), against the mesh a visitor is drawn at the finest level
              (``client_py.atlas_mesh.tessellate_atlas`` at that level's resolution with the
              tiles of levels ``0..L``), by
              exact point-to-triangle distances (``atlas.measure``): ``stats`` and
@@ -28,9 +30,11 @@ over its best plane, where a single patch already covers the object; an atlas fo
 
 from __future__ import annotations
 
+import functools
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -48,7 +52,7 @@ from ..error import (
 )
 from ..io import Scan
 from ..options import FitOptions, unused_by_atlas
-from .detail import check_levels, fit_atlas_detail, most_levels
+from .detail import check_levels, fit_detail_pyramid, most_levels, pack_pyramid
 from .fit import (
     DEFAULT_BYTE_BUDGET,
     AtlasFit,
@@ -213,19 +217,7 @@ def measure_levels(atlas, detail, points: np.ndarray, coarser: bool = True
     the base, ``k`` with the packs of levels ``0..k``, each at :func:`level_resolution`),
     the panel's measure for each level (:func:`restate_level_errors`); with ``coarser``
     false, at the finest level only (a large scan's working set, whose levels' figures
-    :func:`measure_every_point` gives).
-
-    The meshes are tessellated here, finest first, and measured by one worker thread in
-    that order. ``open3d`` holds the GIL while it builds its BVH (one core) and queries
-    it, so no thread overlaps it; a finest level of at least :data:`PROCESS_TRIANGLES`
-    triangles is therefore measured in a :class:`~.measure.MeasuringProcess`, started
-    first so that it imports ``open3d`` while the mesh is tessellated, and the coarser
-    levels here meanwhile. Where no process can be started, or it fails, the finest level
-    is measured here. The distances are the same either way (the same function on the
-    same numbers). Without ``coarser`` there is nothing to overlap, and the finest level
-    is measured here: its scene (``measure.mesh_scene``) is then kept for the pass over
-    every point (:func:`measure_every_point`), not built twice (Stanford Lucy subdivided:
-    a 19 M-triangle level).
+    :func:`measure_every_point` gives): :func:`levels_measured`'s results, waited for.
 
     Returns
     -------
@@ -237,38 +229,85 @@ def measure_levels(atlas, detail, points: np.ndarray, coarser: bool = True
     triangle, closest : ndarray, shapes (N,), (N, 3)
         Each point's nearest triangle of ``finest`` and its closest point on it.
     """
+    with levels_measured(atlas, detail, points, coarser) as measured:
+        return measured()
+
+
+@contextmanager
+def levels_measured(atlas, detail, points: np.ndarray, coarser: bool = True
+                    ) -> Iterator[Callable[[], tuple[dict[int, np.ndarray], DrawnMesh,
+                                                     np.ndarray, np.ndarray]]]:
+    """:func:`measure_levels`, begun: on entry the levels' meshes are tessellated and each
+    handed to what measures it; the ``with`` body runs while they are measured, and the
+    function it is given returns :func:`measure_levels`'s results once they are.
+
+    The meshes are tessellated here, finest first. ``open3d`` holds the GIL while it
+    builds its BVH (one core) and queries it, so no thread overlaps it; a finest level of
+    at least :data:`PROCESS_TRIANGLES` triangles is therefore measured in a
+    :class:`~.measure.MeasuringProcess`, and the coarser levels in a second one, each
+    started first so that it imports ``open3d`` while the meshes are tessellated: the
+    finest level's BVH builds beside the coarser levels' (the dense vase's 18.7 M
+    triangles: about 12 s of one core), and this process's GIL is left to the body (the
+    fit's detail packs, pure Python: ``fit_atlas_bundle``). Smaller meshes are measured
+    here, by one worker thread, in that order. Where no process can be started, or it
+    fails, its levels are measured here. The distances are the same either way (the same
+    function on the same numbers). Without ``coarser`` there is nothing to overlap, and
+    the finest level is measured here: its scene (``measure.mesh_scene``) is then kept for
+    the pass over every point (:func:`measure_every_point`), not built twice (Stanford Lucy
+    subdivided: a 19 M-triangle level).
+
+    The body starts once every mesh is tessellated: a thread coding pure Python beside the
+    tessellation (numpy calls, each of which must take the GIL back) made it 1.8 times as
+    long (the vase's finest level, 8.7 -> 15.3 s, load 3).
+    """
     top = len(detail.levels) - 1
     r = level_resolution(atlas, detail, top)
-    far = None
+    far = near = None  # the finest level's process, the coarser levels'
     if coarser and 2 * len(atlas.quads) * (r - 1) ** 2 >= PROCESS_TRIANGLES:
         try:
             far = MeasuringProcess()
+            near = MeasuringProcess()
         except OSError:
-            far = None
-    jobs = {}
+            pass
     try:
-        with ThreadPoolExecutor(1) as measuring, ThreadPoolExecutor(1) as talking:
-            for k in range(top, -2 if coarser else top - 1, -1):
+        with ThreadPoolExecutor(1) as measuring, ThreadPoolExecutor(2) as talking:
+            finest = drawn_mesh(atlas, r, detail.detail_up_to(top))
+            here = functools.partial(signed_point_mesh_distance, points)
+            top_job = (talking.submit(far.measure, points, finest.vertices, finest.faces)
+                       if far is not None
+                       else measuring.submit(here, finest.vertices, finest.faces))
+            jobs, kept = {}, {}  # the coarser levels measured here / kept for the process
+            for k in range(top - 1, -2 if coarser else top - 1, -1):
                 mesh = drawn_mesh(atlas, level_resolution(atlas, detail, k),
                                   detail.detail_up_to(k))
-                if k == top:
-                    finest = mesh
-                if k == top and far is not None:
-                    jobs[k] = talking.submit(far.measure, points, mesh.vertices, mesh.faces)
+                if near is None:
+                    jobs[k] = measuring.submit(here, mesh.vertices, mesh.faces)
                 else:
-                    jobs[k] = measuring.submit(signed_point_mesh_distance, points,
-                                               mesh.vertices, mesh.faces)
+                    kept[k] = mesh.vertices, mesh.faces
                 del mesh  # the job holds it until measured
-            distances = {k: job.result()[0] for k, job in jobs.items() if k != top}
-            try:
-                d, triangle, closest = jobs[top].result()
-            except MeasuringProcessError:  # killed, out of memory...: measured here then
-                d, triangle, closest = signed_point_mesh_distance(points, finest.vertices,
-                                                                  finest.faces)
+            rest_job = talking.submit(near.measure_all, points, list(kept.values())) \
+                if kept else None
+
+            def results() -> tuple[dict[int, np.ndarray], DrawnMesh, np.ndarray, np.ndarray]:
+                distances = {k: job.result()[0] for k, job in jobs.items()}
+                if rest_job is not None:
+                    try:
+                        answers = rest_job.result()
+                    except MeasuringProcessError:  # killed, out of memory...: measured here
+                        answers = [here(*mesh) for mesh in kept.values()]
+                    distances.update((k, a[0]) for k, a in zip(kept, answers, strict=True))
+                try:
+                    d, triangle, closest = top_job.result()
+                except MeasuringProcessError:
+                    d, triangle, closest = here(finest.vertices, finest.faces)
+                return {top: d, **dict(sorted(distances.items(), reverse=True))}, finest, \
+                    triangle, closest
+
+            yield results
     finally:
-        if far is not None:
-            far.close()
-    return {top: d, **distances}, finest, triangle, closest
+        for process in (far, near):
+            if process is not None:
+                process.close()
 
 
 def coverage_of(d: np.ndarray, diagonal: float, far_box: list | None = None) -> dict:
@@ -522,7 +561,7 @@ def held_levels(options: FitOptions, patches: int) -> tuple[int | None, dict | N
     ``options.detail_levels``; when the atlas was not asked for (``patches`` automatic, so
     the option may be meant for the single patches of a collection), more than the atlas
     holds is capped at :func:`.detail.most_levels` (``{"asked", "held", "why"}``, the
-    manifest's ``fit.detail_levels_capped``); when it was, ``fit_atlas_detail`` refuses it."""
+    manifest's ``fit.detail_levels_capped``); when it was, ``fit_detail_pyramid`` refuses it."""
     levels = options.detail_levels
     if levels is None or asked_for_atlas(options.patches):
         return levels, None
@@ -568,19 +607,23 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     levels, capped = held_levels(options, len(decoded.quads))
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
     own = None if large is None else large.detail_scan()  # a large scan: its own points
-    detail = fit_atlas_detail(replace(fit, atlas=decoded), fitted, levels,
-                              progress=stages.report, original=own, **(
-                                  {} if own is None
-                                  else {"max_samples": out_of_core.DETAIL_POINTS}))
+    pyramid = fit_detail_pyramid(replace(fit, atlas=decoded), fitted, levels,
+                                 progress=stages.report, original=own, **(
+                                     {} if own is None
+                                     else {"max_samples": out_of_core.DETAIL_POINTS}))
     del own
-    atlas = detail.atlas  # renumbered so that every group of patches is a range
+    atlas = pyramid.atlas  # renumbered so that every group of patches is a range
     data = base_file(atlas, bits, {"units": scan.units})
     resolution = base_resolution(atlas.spans)
     stages.start("error")
     points = np.asarray(scan.points, dtype=float)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-    distances, drawn, triangle, closest = measure_levels(atlas, detail, points,
-                                                        coarser=large is None)
+    # the packs (pure Python) are coded while the levels' meshes are measured, mostly by
+    # other processes: the same bytes and distances as one after the other
+    with levels_measured(atlas, pyramid, points, coarser=large is None) as measured:
+        detail = pack_pyramid(pyramid)
+        distances, drawn, triangle, closest = measured()
+    del pyramid
     top = len(detail.levels) - 1
     d = distances[top]
     if large is None:
