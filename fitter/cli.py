@@ -282,6 +282,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         ("P95 / P99", f"{s['p95']:.4g} / {s['p99']:.4g} {units}"),
         ("max", f"{s['max']:.4g} {units} ({100 * s['max_relative']:.3f}% of the diagonal)"),
         *_layer_rows(m),
+        *(("warning", text) for text in m["provenance"].get("warnings", [])),
         ("time", f"{sum(m['timings'].values()):.2f} s"),
     ]
     width = max(len(k) for k, _ in rows)

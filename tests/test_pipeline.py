@@ -373,3 +373,26 @@ def test_docs_list_every_manifest_key(tmp_path):
     for key in manifest:
         assert re.search(rf"(^\* |; )`{key}`", section, re.M), key
     assert set(re.findall(r"^\* `(\w+)`", section, re.M)) <= set(manifest)
+
+
+def test_what_the_reader_did_not_use_is_said_in_the_manifest_and_the_summary(tmp_path,
+                                                                               capsys):
+    """A reader's warnings (here: the intensity and an unrecognised column of an .xyz
+    file, not kept) reach the manifest's ``provenance.warnings`` and ``tessera fit``'s
+    summary; a scan without any has no such key."""
+    points = relief_scan(3000)
+    path = tmp_path / "relief.xyz"
+    np.savetxt(path, np.column_stack([points, np.arange(len(points)), np.ones(len(points))]),
+               fmt="%.9g")
+    out = tmp_path / "b"
+    assert tessera(["fit", str(path), "-o", str(out), "--grid", "8", "--method", "linear",
+                    "-q"]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["provenance"]["warnings"] == ["2 unrecognised columns were not kept"]
+    assert re.search(r"^ *warning  2 unrecognised columns were not kept$",
+                     capsys.readouterr().out, re.M)
+    np.savetxt(path, np.column_stack([points, np.arange(len(points))]), fmt="%.9g")
+    assert load_scan(path).source["warnings"] == [
+        "intensity read but not kept (Scan has no intensity channel)"]
+    plain = fit_scan(points, tmp_path / "c", FitOptions(grid=(8, 8), method="linear"))
+    assert "warnings" not in plain.manifest["provenance"]

@@ -571,8 +571,9 @@ def build_manifest(projected: ProjectedScan, options: FitOptions, best: FitResul
     frame, 4x4 row-major); ``projection`` (``kind``, ``requested``, ``coverage``,
     ``uncovered_points``, ``uncovered_bbox [[x, y, z], [x, y, z]]`` or None);
     ``provenance`` (``input``, ``bytes``, ``sha256``, ``points``, ``format``, ``files``
-    for a multi-file input, and ``origin`` for a scan moved near the origin,
-    ``fitter.fitting.io.frame``); ``options`` (the ``FitOptions``); ``stats``
+    for a multi-file input, ``origin`` for a scan moved near the origin,
+    ``fitter.fitting.io.frame``, and ``warnings``, what the reader read and did not use);
+    ``options`` (the ``FitOptions``); ``stats``
     (deviation statistics of the covered points, ``fitter.fitting.error.error_stats``)
     and ``stats_all_points``; ``fit`` (the base fit's history: ``grid``, ``bits``,
     ``section_matrix``, ``section_holes``, ``stray_cells``, ``energy``, ``weights_dropped``
@@ -642,6 +643,9 @@ def object_fields(scan: Scan, options: FitOptions) -> dict:
                        # a scan moved near the origin (fitter.fitting.io.frame): by how much
                        **({"origin": scan.source["origin"]} if "origin" in scan.source
                           else {}),
+                       # what the reader read and did not use (a texture not found, ...)
+                       **({"warnings": list(scan.source["warnings"])}
+                          if scan.source.get("warnings") else {}),
                        # a .conf registration: each file it read, with its own digest
                        **({"files": scan.source["files"]} if "files" in scan.source
                           else {})},

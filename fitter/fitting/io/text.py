@@ -141,6 +141,9 @@ def load_text(path: Path, gzipped: bool, budget: InputBudget | None = None, *,
     source.update(bytes=record["bytes"], sha256=record["sha256"], files=[record],
                   hash_method="sha256 of the stored file, streamed in chunks while parsing",
                   columns=names, columns_named_by="header" if header else "layout")
+    if "intensity" in names:  # as the E57 and LAS readers say it
+        source["warnings"].append("intensity read but not kept (Scan has no intensity "
+                                  "channel)")
     if "extra" in names:
         source["warnings"].append(f"{names.count('extra')} unrecognised columns were not kept")
     return make_scan(name, pick(("x", "y", "z")), normals=pick(("nx", "ny", "nz")),
