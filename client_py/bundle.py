@@ -389,6 +389,30 @@ def scan_origin(manifest: dict) -> list[float] | None:
     return [float(x) for x in origin]
 
 
+def fit_notes(manifest: dict) -> list[tuple[str, str]]:
+    """What the fit says its admin should know, as ``(label, sentence)`` pairs (``tessera
+    fit``'s summary, the admin's object page): each reader warning
+    (``provenance.warnings``), why no atlas was made (``atlas_refused``), the options an
+    atlas did not use (``options_unused``) and a capped depth (``fit.detail_levels_capped``).
+    Entries of a shape this reader does not know are left out (a note is never an error)."""
+    notes: list[tuple[str, str]] = []
+    provenance = manifest.get("provenance")
+    warnings = provenance.get("warnings") if isinstance(provenance, dict) else None
+    notes += [("warning", text) for text in (warnings if isinstance(warnings, list) else [])
+              if isinstance(text, str)]
+    if isinstance(manifest.get("atlas_refused"), str):
+        notes.append(("no atlas", manifest["atlas_refused"]))
+    unused = manifest.get("options_unused")
+    if isinstance(unused, list) and unused and all(isinstance(n, str) for n in unused):
+        notes.append(("not used", ", ".join(unused) + ": a single patch's options"))
+    fit = manifest.get("fit")
+    capped = fit.get("detail_levels_capped") if isinstance(fit, dict) else None
+    if isinstance(capped, dict) and {"asked", "held", "why"} <= set(capped):
+        notes.append(("capped", f"detail_levels {capped['asked']}: the atlas holds "
+                                f"{capped['held']} ({capped['why']})"))
+    return notes
+
+
 def origin_comments(origin: Sequence[float] | None) -> list[str]:
     """A PLY's header comments giving :func:`scan_origin` (none when not moved): ``origin X
     Y Z`` (three numbers a reader splits off), then what to do with it."""

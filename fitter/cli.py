@@ -25,6 +25,7 @@ from client_py.bundle import (
     BASE_RESOLUTION,
     PLY_MAX_RESOLUTION,
     base_file,
+    fit_notes,
     pieces_mesh,
     plan_level,
     read_pieces,
@@ -34,7 +35,7 @@ from client_py.bundle import (
 from client_py.errors import TesseraError
 
 from .fitting.cores import usable_cores
-from .fitting.options import OPTION, OptionError
+from .fitting.options import OptionError
 from .fitting.options import add_arguments as add_fit_arguments
 from .fitting.options import from_args as fit_options_from_args
 
@@ -282,7 +283,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         ("P95 / P99", f"{s['p95']:.4g} / {s['p99']:.4g} {units}"),
         ("max", f"{s['max']:.4g} {units} ({100 * s['max_relative']:.3f}% of the diagonal)"),
         *_layer_rows(m),
-        *(("warning", text) for text in m["provenance"].get("warnings", [])),
+        *fit_notes(m),
         ("time", f"{sum(m['timings'].values()):.2f} s"),
     ]
     width = max(len(k) for k, _ in rows)
@@ -301,13 +302,7 @@ def _base_rows(m: dict) -> list[tuple[str, str]]:
                           f"edges: {m['files']['base.tsa']:,} bytes"),
                 ("coverage", f"{100 * c['within_0.5%']:.2f}% of all points within 0.5% of the "
                              f"diagonal of the finest drawn level; {c['uncovered_points']:,} "
-                             "farther than 1%"),
-                *[("not used", ", ".join(OPTION[n].cli for n in unused)
-                   + ": a single patch's options")
-                  for unused in [m.get("options_unused")] if unused],
-                *[("capped", f"--detail-levels {capped['asked']}: the atlas holds "
-                             f"{capped['held']} ({capped['why']})")
-                  for capped in [m["fit"].get("detail_levels_capped")] if capped]]
+                             "farther than 1%")]
     return [("projection", f"{m['projection']['kind']}, covers "
                            f"{100 * m['projection']['coverage']:.1f}% of the points"),
             ("patch", f"{base['grid'][0]}x{base['grid'][1]} degree {base['degree'][0]}"

@@ -242,6 +242,8 @@ def test_the_admin_pages_upload_follow_and_publish(admin_app, client, runner, re
     page = client.get(job_url).get_data(as_text=True)
     assert 'id="admin-config"' in page and f"/admin/api/jobs/{job_id}" in page
     object_id = client.get(f"/admin/api/jobs/{job_id}").get_json()["object"]
+    assert 'id="fit-notes"' not in client.get(f"/admin/objects/{object_id}").get_data(
+        as_text=True)  # nothing to say of this fit
     assert client.post(f"/admin/objects/{object_id}/publish",
                        data={"csrf_token": token}).status_code == 302
     assert [o["id"] for o in client.get("/api/objects").get_json()] == [object_id]
@@ -256,6 +258,24 @@ def test_the_admin_pages_upload_follow_and_publish(admin_app, client, runner, re
     assert refused.status_code == 400 and b"CSRF" in refused.data
     uploads = Path(admin_app.config["TESSERA_COLLECTION"]) / ".tessera" / "uploads"
     assert len(list(uploads.iterdir())) == 1
+
+
+def test_the_object_page_gives_the_fits_notes(admin_app, client, runner):
+    """What the reader did not use (two unknown columns of an .xyz upload) is on the
+    object's page; an object without notes has none."""
+    from fitter.fitting.examples import relief_scan
+
+    login(client)
+    points = relief_scan(3000)
+    text = "\n".join(" ".join(f"{x:.9g}" for x in (*p, 1, 2)) for p in points) + "\n"
+    response = upload(client, text.encode(), "relief.xyz", **FAST)
+    assert response.status_code == 202, response.get_data(as_text=True)
+    job = response.get_json()["job"]
+    assert wait_for_job(client, job)["state"] == "done"
+    object_id = client.get(f"/admin/api/jobs/{job}").get_json()["object"]
+    page = client.get(f"/admin/objects/{object_id}").get_data(as_text=True)
+    assert '<ul class="fit-notes" id="fit-notes">' in page
+    assert "<strong>warning</strong>: 2 unrecognised columns were not kept" in page
 
 
 # ----------------------------------------------------------------------- refusals

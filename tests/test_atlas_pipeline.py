@@ -329,9 +329,9 @@ def test_more_detail_levels_than_an_atlas_not_asked_for_holds_are_capped(tmp_pat
         "asked": 3, "held": 1, "why": f"level 1 would have {patches * 18 ** 2:,} "
                                       "coefficients, over 200,000"}
     assert len(manifest["tiles"]["detail"]["levels"]) == 1
-    from fitter.cli import _base_rows  # tessera fit's summary says so
-    assert ("capped", f"--detail-levels 3: the atlas holds 1 (level 1 would have "
-                      f"{patches * 18 ** 2:,} coefficients, over 200,000)") in _base_rows(manifest)
+    from client_py.bundle import fit_notes  # tessera fit's summary, the admin's page
+    assert ("capped", f"detail_levels 3: the atlas holds 1 (level 1 would have "
+                      f"{patches * 18 ** 2:,} coefficients, over 200,000)") in fit_notes(manifest)
 
 
 def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):

@@ -396,3 +396,18 @@ def test_what_the_reader_did_not_use_is_said_in_the_manifest_and_the_summary(tmp
         "intensity read but not kept (Scan has no intensity channel)"]
     plain = fit_scan(points, tmp_path / "c", FitOptions(grid=(8, 8), method="linear"))
     assert "warnings" not in plain.manifest["provenance"]
+
+
+def test_fit_notes_read_what_they_know_and_leave_the_rest():
+    from client_py.bundle import fit_notes
+
+    manifest = {"provenance": {"warnings": ["texture.png not found", 3]},
+                "atlas_refused": "no layout", "options_unused": ["grid", "seed"],
+                "fit": {"detail_levels_capped": {"asked": 6, "held": 3, "why": "w"}}}
+    assert fit_notes(manifest) == [
+        ("warning", "texture.png not found"), ("no atlas", "no layout"),
+        ("not used", "grid, seed: a single patch's options"),
+        ("capped", "detail_levels 6: the atlas holds 3 (w)")]
+    for odd in ({}, {"provenance": "x", "fit": [], "options_unused": [1]},
+                {"provenance": {"warnings": "x"}, "fit": {"detail_levels_capped": {"a": 1}}}):
+        assert fit_notes(odd) == []

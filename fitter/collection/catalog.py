@@ -493,14 +493,18 @@ class Catalog:
         bundle manifest's ``view``, else None (no bundle, or one without a view)."""
         if row.get("view"):
             return admin_view(row)
+        view = (self.object_manifest(row) or {}).get("view")
+        return view if isinstance(view, dict) else None
+
+    def object_manifest(self, row: Mapping[str, Any]) -> dict[str, Any] | None:
+        """The bundle manifest of the object ``row`` (a row of :meth:`get_object`), None
+        when it has no bundle or its bundle cannot be read."""
         if not row.get("bundle_path"):
             return None
         try:
-            bundle = Collection(self.collection).get(row["bundle_path"])
+            return Collection(self.collection).get(row["bundle_path"]).manifest
         except (KeyError, BundleError):
             return None
-        view = bundle.manifest.get("view")
-        return view if isinstance(view, dict) else None
 
     def set_trash(self, object_id: str, trash_path: str | None) -> None:
         """Mark an object trashed (unpublishing it) or, with None, restored."""

@@ -20,6 +20,8 @@ from flask import (
 )
 from flask.typing import ResponseReturnValue
 
+from client_py.bundle import fit_notes
+
 from ...collection.catalog import VIEW_FIELDS, ConflictError, FieldError, adopt_bundles
 from ...collection.trash import restore_object, trash_object
 from ...collection.uploads import UploadError
@@ -190,9 +192,11 @@ def edit_object(object_id: str) -> ResponseReturnValue:
             return redirect(url_for("admin.edit_object", object_id=object_id))
     jobs = [j.public() for j in state().catalog().jobs_of(object_id)]
     viewer_url = url_for("objects.viewer", object_id=object_id) if obj["published"] else None
+    catalog = state().catalog()
+    notes = fit_notes(catalog.object_manifest(catalog.get_object(object_id) or {}) or {})
     return render_template("admin_object.html", obj=obj, jobs=jobs, error=error,
-                           viewer_url=viewer_url, view=_view_texts(object_id),
-                           limits=state().catalog().EDITABLE), (400 if error else 200)
+                           viewer_url=viewer_url, view=_view_texts(object_id), notes=notes,
+                           limits=catalog.EDITABLE), (400 if error else 200)
 
 
 @bp.post("/objects/<object_id>/publish")
