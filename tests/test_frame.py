@@ -99,3 +99,25 @@ def test_the_clients_origin_is_the_manifests_and_a_bad_one_is_named():
     for bad in ([1, 2], [1, 2, float("nan")], "0 0 0", [1, 2, True]):
         with pytest.raises(ManifestError, match="provenance.origin"):
             scan_origin({"provenance": {"origin": bad}})
+
+
+def test_a_far_scan_in_single_precision_is_warned_of():
+    """Moving cannot restore bits the file lost: far float32 coordinates are named, with
+    the step they hold; double, whole-number or near coordinates are not."""
+    from fitter.fitting.io.frame import single_precision_warning
+
+    unit = np.random.default_rng(1).normal(size=(500, 3))
+    unit /= np.linalg.norm(unit, axis=1)[:, None]
+    offset = np.array([5e6, 4e6, 300.0])
+    single = (unit + offset).astype(np.float32).astype(np.float64)
+    scan = near_origin(Scan.from_array(single))
+    assert scan.source["origin"] == [5e6, 4e6, 300.0]
+    assert scan.source["warnings"] == [
+        "the coordinates are single precision 5e+06 units from 0: the file holds them to "
+        f"about 0.5 units, {100 * 0.5 / np.linalg.norm(np.ptp(single, axis=0)):.2g} % of "
+        "the scan's diagonal (write them in double precision, or nearer the origin)"]
+    assert near_origin(Scan.from_array(unit + offset)).source["warnings"] == []  # double
+    whole = np.round(unit * 1000) + offset  # millimetres on a whole-number grid
+    assert single_precision_warning(whole, offset, 3464.0) is None
+    near = (unit + 50.0).astype(np.float32).astype(np.float64)  # a step of 4e-6: fine
+    assert single_precision_warning(near, np.full(3, 50.0), 3.46) is None

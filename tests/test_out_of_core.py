@@ -319,6 +319,12 @@ def test_a_large_cloud_far_from_the_origin_is_streamed_moved_near_it(tmp_path,
     assert m["provenance"]["working_set"]["points_before"] == len(points)
     _check_every_point(bundle.path, m, points + offset - origin)
     assert m["coverage"]["within_0.5%"] > 0.99
+    assert "warnings" not in m["provenance"]  # double precision: nothing lost
+    # the same cloud written in single precision: its file lost what the move cannot restore
+    (tmp_path / "far32.ply").write_bytes(write_points_ply((points + offset)
+                                                          .astype(np.float32)))
+    large = stream.load_working_set(*stream.open_stream(tmp_path / "far32.ply"))
+    assert [w for w in large.working.source["warnings"] if "single precision" in w]
 
 
 def _float64_ply(path: Path, points: np.ndarray) -> None:

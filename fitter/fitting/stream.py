@@ -47,7 +47,7 @@ from client_py import read_patch
 from .closest import ClosestPoints
 from .cores import usable_cores
 from .error import Deviations, deviations
-from .io.frame import scan_origin
+from .io.frame import scan_origin, single_precision_warning
 from .io.limits import InputBudget, InputLimits
 from .io.points import PointStream, ReaderStream, file_sha256
 from .io.scan import Scan, ScanError, make_scan
@@ -444,6 +444,8 @@ def load_working_set(stream: PointStream, source: dict, units: str,
         raise ScanError(f"{name}: all {stream.count} points coincide; there is no surface to fit")
     origin = scan_origin(name, lo, hi)  # far from the origin: every later pass reads it moved
     if origin is not None:
+        lost = single_precision_warning(sample, origin, float(np.linalg.norm(hi - lo)))
+        source["warnings"] = [*source.get("warnings", []), *([lost] if lost else [])]
         stream.origin = origin if stream.origin is None else stream.origin + origin
         lo, hi, sample = lo - origin, hi - origin, sample - origin
         source["origin"] = [float(x) for x in stream.origin]

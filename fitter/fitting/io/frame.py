@@ -16,6 +16,10 @@ moved scan then lies within about one diagonal of the origin), every stage then 
 that frame, and the manifest's ``provenance.origin`` records ``origin``: a bundle coordinate plus
 ``origin`` is the file's. A scan nearer than that is not moved (its bundle as before).
 
+Moving cannot restore what the file lost: a far scan written in single precision (a
+float32 PLY of a unit sphere at 5 x 10^6: steps of 0.5) is fitted as well as its file
+allows, and its source's ``warnings`` say so (:func:`single_precision_warning`).
+
 The size of a scan is bounded too (:data:`SIZES`): far below a micrometre or above 10^10
 units, the fit's absolute tolerances and single-precision squares under- or overflow (a
 sphere of radius 10^-30 left the layout search running; one of 10^30 raised an IndexError
@@ -34,6 +38,9 @@ from .scan import Scan, ScanError
 FAR = 10.0
 #: the diagonals (in the scan's units) a fit accepts
 SIZES = (1e-6, 1e10)
+#: a far scan whose coordinates are single precision is warned of when a float32 step
+#: there is more than this share of its diagonal
+FLOAT32_SHARE = 1e-4
 
 
 def scan_origin(name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
@@ -60,13 +67,35 @@ def scan_origin(name: str, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
     return np.round(centre, -int(np.floor(np.log10(diagonal))))
 
 
+def single_precision_warning(points: np.ndarray, origin: np.ndarray, diagonal: float
+                             ) -> str | None:
+    """The warning for a far scan whose coordinates (an even sample of ``points (N, 3)``,
+    in the file's frame) all lie on the float32 grid, not all whole numbers, when that
+    grid's step at ``origin`` is over :data:`FLOAT32_SHARE` of ``diagonal``; else None."""
+    sample = np.asarray(points[:: max(1, len(points) // 100_000)], np.float64)
+    if (not np.array_equal(sample, sample.astype(np.float32))
+            or np.array_equal(sample, np.round(sample))):
+        return None
+    far = float(np.abs(origin).max())
+    step = float(np.spacing(np.float32(far)))
+    if step <= FLOAT32_SHARE * diagonal:
+        return None
+    return (f"the coordinates are single precision {far:.3g} units from 0: the file holds "
+            f"them to about {step:.3g} units, {100 * step / diagonal:.2g} % of the scan's "
+            "diagonal (write them in double precision, or nearer the origin)")
+
+
 def moved(scan: Scan, origin: np.ndarray | None) -> Scan:
     """``scan`` in the frame of ``origin`` (its points minus ``origin``, recorded in
     ``source["origin"]``); ``scan`` itself when ``origin`` is None."""
     if origin is None:
         return scan
-    return replace(scan, points=scan.points - origin,
-                   source=dict(scan.source, origin=[float(x) for x in origin]))
+    points = scan.points
+    lost = single_precision_warning(points, origin, float(np.linalg.norm(np.ptp(points, axis=0))))
+    return replace(scan, points=points - origin,
+                   source=dict(scan.source, origin=[float(x) for x in origin],
+                               warnings=[*scan.source.get("warnings", []),
+                                         *([lost] if lost else [])]))
 
 
 def near_origin(scan: Scan) -> Scan:
