@@ -47,7 +47,7 @@ from client_py import read_patch
 from .closest import ClosestPoints
 from .cores import usable_cores
 from .error import Deviations, deviations
-from .io.frame import scan_origin, single_precision_warning
+from .io.frame import moved_source, scan_origin
 from .io.limits import InputBudget, InputLimits
 from .io.points import PointStream, ReaderStream, file_sha256
 from .io.scan import Scan, ScanError, make_scan
@@ -444,11 +444,9 @@ def load_working_set(stream: PointStream, source: dict, units: str,
         raise ScanError(f"{name}: all {stream.count} points coincide; there is no surface to fit")
     origin = scan_origin(name, lo, hi)  # far from the origin: every later pass reads it moved
     if origin is not None:
-        lost = single_precision_warning(sample, origin, float(np.linalg.norm(hi - lo)))
-        source["warnings"] = [*source.get("warnings", []), *([lost] if lost else [])]
-        stream.origin = origin if stream.origin is None else stream.origin + origin
+        source = moved_source(source, origin, sample, float(np.linalg.norm(hi - lo)))
+        stream.origin = origin
         lo, hi, sample = lo - origin, hi - origin, sample - origin
-        source["origin"] = [float(x) for x in stream.origin]
     index, sums, kept = thin_stream(
         stream, lo, hi, voxel_size_for(sample, stream.count, WORKING_SET_POINTS, lo, hi),
         blocks, None if progress is None else lambda f, p: progress(0.2 + 0.8 * f, p),

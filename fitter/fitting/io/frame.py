@@ -85,17 +85,24 @@ def single_precision_warning(points: np.ndarray, origin: np.ndarray, diagonal: f
             "diagonal (write them in double precision, or nearer the origin)")
 
 
+def moved_source(source: dict, origin: np.ndarray, points: np.ndarray, diagonal: float
+                 ) -> dict:
+    """A copy of a scan's ``source`` moved by ``origin``: ``origin`` recorded, and
+    :func:`single_precision_warning` of ``points`` (in the file's frame) added to its
+    ``warnings`` when it applies."""
+    lost = single_precision_warning(points, origin, diagonal)
+    return dict(source, origin=[float(x) for x in origin],
+                warnings=[*source.get("warnings", []), *([lost] if lost else [])])
+
+
 def moved(scan: Scan, origin: np.ndarray | None) -> Scan:
-    """``scan`` in the frame of ``origin`` (its points minus ``origin``, recorded in
-    ``source["origin"]``); ``scan`` itself when ``origin`` is None."""
+    """``scan`` in the frame of ``origin`` (its points minus ``origin``, its source
+    :func:`moved_source`); ``scan`` itself when ``origin`` is None."""
     if origin is None:
         return scan
     points = scan.points
-    lost = single_precision_warning(points, origin, float(np.linalg.norm(np.ptp(points, axis=0))))
-    return replace(scan, points=points - origin,
-                   source=dict(scan.source, origin=[float(x) for x in origin],
-                               warnings=[*scan.source.get("warnings", []),
-                                         *([lost] if lost else [])]))
+    return replace(scan, points=points - origin, source=moved_source(
+        scan.source, origin, points, float(np.linalg.norm(np.ptp(points, axis=0)))))
 
 
 def near_origin(scan: Scan) -> Scan:

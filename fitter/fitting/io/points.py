@@ -63,6 +63,11 @@ def block_ranges(count: int, size: int) -> list[tuple[int, int]]:
     return [(s, min(s + size, count)) for s in range(0, count, size)]
 
 
+def moved_points(points: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
+    """A block of points read, in the frame of a stream's ``origin`` (None: as read)."""
+    return points if origin is None else points - origin
+
+
 @dataclass
 class PointStream:
     """The points ``(N, 3)`` of a scan, read as float64 blocks.
@@ -143,7 +148,7 @@ class PointStream:
         return self._moved(points), normals
 
     def _moved(self, points: np.ndarray) -> np.ndarray:
-        return points if self.origin is None else points - self.origin
+        return moved_points(points, self.origin)
 
     def take(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Points (float64 ``(K, 3)``) and normals of the ascending indices ``index (K,)``."""
@@ -286,7 +291,7 @@ class ReaderStream:
                     self._window.remove(hit)
                 position = end
             points = np.concatenate(parts) if parts else np.empty((0, 3))
-        return (points if self.origin is None else points - self.origin), None
+        return moved_points(points, self.origin), None
 
     def take(self, index: np.ndarray) -> tuple[np.ndarray, None]:
         """Points (float64 ``(K, 3)``) of the ascending indices ``index (K,)``: one forward
