@@ -213,3 +213,31 @@ def test_the_3dhop_page_loads_the_atlas_ply(page, atlas_server):
     }""")).split(b"end_header", 1)[0].decode()
     assert f"element vertex {stats['vertices']}" in header and "one welded mesh" in header
     assert errors == []
+
+
+def test_a_close_view_of_a_real_default_fit_shows_its_detail(browser, laurana_bundle, tmp_path):
+    """The Laurana bust fitted with the default options (about 2,270 patches, whose base
+    alone draws about 184,000 vertices at 9 x 9 samples a patch): a close view of the group
+    at the front of the bust refines it, and only part of the bust. Before the viewer's
+    budget counted only the groups in its frustum and the groups were boxes of the patches'
+    k-d tree (atlas.detail.spatial_order), no group of such a fit was ever refined: the
+    base filled most of the budget and each of its 3 groups spanned the whole object."""
+    manifest = laurana_bundle.manifest
+    groups = manifest["tiles"]["detail"]["groups"]
+    assert len(groups) >= 8
+    front = np.array(manifest["view"]["front"])
+    g = int(np.argmax([np.dot(group["center"], front) for group in groups]))
+    centre, radius = np.array(groups[g]["center"]), groups[g]["radius"]
+    collection = tmp_path / "collection"
+    collection.mkdir()
+    (collection / "laurana").symlink_to(laurana_bundle.path, target_is_directory=True)
+    with serve_collection(collection) as live, \
+            open_viewer(browser, f"{live.url}/objects/laurana/", 120_000) as page:
+        assert page.evaluate("window.tessera.stats")["atlas_levels"] == [-1] * len(groups)
+        stats = page.evaluate("([p, t]) => window.tessera.atlasView(p, t)",
+                              [(centre + 1.5 * radius * front).tolist(), centre.tolist()])
+        levels = stats["atlas_levels"]
+        assert levels[g] >= 0, levels
+        assert min(levels) == -1, levels  # a part of the bust, not all of it
+        assert stats["atlas_packs_loaded"] >= 1
+        assert page.errors == []

@@ -167,9 +167,13 @@ that each level decides its own cells. Only triangles go: the vertices, and so t
 patches share where both sides are drawn, stay as they were (``client_py.atlas_mesh``), and
 a pack none of whose tiles carries a mask is written as before, byte for byte (version 4).
 
-Groups and packs. Patches are renumbered along the Morton (Z-order) curve of their centres,
-so that a contiguous range of patch indices is a compact piece of the object, and cut into
-groups whose finest-level pack stays within ``PACK_BYTES``; every level's tiles of a group
+Groups and packs. Patches are renumbered in the k-d tree order of their centres
+(:func:`spatial_order`), and the order is halved as the tree halves it until each half's
+finest-level pack stays within ``PACK_BYTES`` and its patches drawn at the finest level
+within ``GROUP_VERTICES``: each group is a box of the tree, a compact piece of the object
+(the viewer's unit of refinement; along the Morton curve, which cut Stanford Lucy into runs
+of 226 patches, their bounding spheres were 411-863 units across a 1,924-unit diagonal,
+most of them the statue's height); every level's tiles of a group
 travel in one welded pack (``client_py.atlas_detail``, version 3: a border coefficient that
 an earlier patch of the pack holds in the same shared slot, ``shared_index``, is coded once:
 the bunny's level 0 18 % smaller), with the pack's ``geometric_error`` (max
@@ -185,6 +189,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from dataclasses import fields as data_fields
+from itertools import accumulate
 
 import numpy as np
 import scipy.sparse as sp
@@ -244,6 +249,14 @@ CHUNK = 100_000
 NEWTON_ITERATIONS = 8
 MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
+# ... and the group drawn at the finest level within this many vertices (its patches times
+# the level's samples per patch side squared): the viewer refines group by group within a
+# budget of drawn vertices (MAX_VERTICES in web/src/atlas-layer.js, which a test holds at
+# 4 groups or more), so a close view of one part of the object shows that part's detail.
+# Stanford Lucy (2,268 patches, level 0 at 17 x 17 samples) was 3 groups of 445-925
+# patches, each the height of the statue: its base alone (184 k vertices at 9 x 9) and any
+# one group at level 0 passed the 250 k budget, and no zoom ever showed her detail.
+GROUP_VERTICES = 65_536
 MU_FLOOR = 0.25
 OFFSET_LIMIT = 0.2  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy; 0.1 left
 # out 0.7 % of her points, 27 % of her level-0 squared error: docs/benchmarks.md session 14)
@@ -334,6 +347,28 @@ def morton_order(centres: np.ndarray, bits: int = 10) -> np.ndarray:
         for axis in range(3):
             code = (code << 1) | ((grid[:, axis] >> bit) & 1)
     return np.argsort(code, kind="stable")
+
+
+def spatial_order(centres: np.ndarray, leaf: int = 4) -> np.ndarray:
+    """A permutation of ``centres (F, 3)`` in k-d tree order (Bentley, *Multidimensional
+    binary search trees*, 1975): the run ``[a, b)`` (first the whole) is sorted along its
+    box's longest side and halved at ``(a + b) // 2``, the lower half first, each half
+    again, down to runs of at most ``leaf``, which keep their order. Every run that
+    halving makes is a box of the tree, a compact piece of the object: :func:`_groups`
+    cuts the patches along the same halves. Stable sorts: the same order on every machine."""
+    centres = np.asarray(centres, np.float64)
+    order = np.arange(len(centres))
+    runs = [(0, len(centres))]
+    while runs:
+        start, stop = runs.pop()
+        if stop - start <= leaf:
+            continue
+        run = order[start:stop]
+        axis = int(np.argmax(np.ptp(centres[run], axis=0)))
+        order[start:stop] = run[np.argsort(centres[run, axis], kind="stable")]
+        middle = (start + stop) // 2
+        runs += [(start, middle), (middle, stop)]
+    return order
 
 
 def renumber_patches(atlas: AtlasSurface, order: np.ndarray) -> AtlasSurface:
@@ -1970,7 +2005,7 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     base = fit.atlas
     table0, cps0 = index_table(base), control_points(base)
     centres = cps0[table0].reshape(len(base.quads), -1, 3).mean(axis=1)
-    order = morton_order(centres)
+    order = spatial_order(centres)
     atlas = renumber_patches(base, order)
     F = len(atlas.quads)
     sides = patch_sides(atlas)
@@ -2129,7 +2164,8 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
 def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasDetail:
     """``pyramid`` with its packs (module docstring, "Groups and packs"): the patches cut
     into groups whose finest-level pack stays within ``pack_bytes`` (:func:`_groups`, by
-    the finest tiles' own ``.tsd`` bytes), every level's tiles of a group coded as one
+    the finest tiles' own ``.tsd`` bytes) and whose finest drawn mesh stays within
+    ``GROUP_VERTICES``, every level's tiles of a group coded as one
     welded pack (``client_py.atlas_detail.write_pack``), and the manifest's
     ``tiles.detail`` (``tree``). Pure Python (the client's coder) and a deterministic
     function of ``pyramid``: the same bytes whenever and on whichever thread it runs."""
@@ -2142,7 +2178,9 @@ def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasD
                for f, made in tiles_of[-1].items()} if levels else {})
     walls_side = max((t.walls.rows for tiles in tiles_of for made in tiles.values()
                       for t in made if t.walls is not None), default=0)
-    groups = _groups(finest, F, pack_bytes, max(levels - 1, 0), spans, walls_side)
+    drawn = pyramid.levels[-1]["resolution"] ** 2 if levels else 1
+    groups = _groups(finest, F, pack_bytes, max(levels - 1, 0), spans, walls_side,
+                     max(1, GROUP_VERTICES // drawn))
     files: dict[str, bytes] = {}
     packs = []
     level_rows = [dict(row) for row in pyramid.levels]
@@ -2191,25 +2229,34 @@ def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasD
 
 
 def _groups(finest: dict, patches: int, pack_bytes: int, level: int = 0,
-            spans: int = SPANS, walls: int = 0) -> list[tuple[int, int]]:
-    """Contiguous ``(first, count)`` ranges of patches whose finest-level (``level``) tiles
-    stay within ``pack_bytes`` in a pack (``client_py.atlas_detail``: one range-coded
-    stream, so a tile costs about its ``.tsd`` coded bytes without the tile's own header and
-    CRC, less the border slots a welded pack does not repeat, which this bound does not
-    count; 28 bytes of pack framing) and within the values a pack may hold
-    (:func:`client_py.atlas_detail.pack_capacity` <= ``MAX_PACK_VALUES``, its walls
-    masks ``walls`` cells a side: the largest of any level, so that no level's pack of
-    the range, at ``4^k`` tiles a patch, holds more)."""
+            spans: int = SPANS, walls: int = 0, most: int | None = None
+            ) -> list[tuple[int, int]]:
+    """Contiguous ``(first, count)`` runs of patches: :func:`spatial_order`'s halves (the
+    whole run, halved at ``(a + b) // 2`` while it does not fit), each of at most ``most``
+    patches (default: any number) whose finest-level (``level``) tiles stay within
+    ``pack_bytes`` in a pack (``client_py.atlas_detail``: one range-coded stream, so a tile
+    costs about its ``.tsd`` coded bytes without the tile's own header and CRC, less the
+    border slots a welded pack does not repeat, which this bound does not count; 28 bytes
+    of pack framing) and within the values a pack may hold
+    (:func:`client_py.atlas_detail.pack_capacity` <= ``MAX_PACK_VALUES``, its walls masks
+    ``walls`` cells a side: the largest of any level, so that no level's pack of the run,
+    at ``4^k`` tiles a patch, holds more). A single patch is a group whatever it holds."""
     framing = TILE_HEADER_SIZE + CRC_SIZE
-    groups = []
-    first, size = 0, 28
-    for f in range(patches):
-        cost = sum(len(data) - framing for _, data, _ in finest.get(f, []))
-        full = pack_capacity(level, f - first + 1, DEGREE, spans, walls=walls) \
-            > MAX_PACK_VALUES
-        if f > first and (size + cost > pack_bytes or full):
-            groups.append((first, f - first))
-            first, size = f, 28
-        size += cost
-    groups.append((first, patches - first))
+    cost = [sum(len(data) - framing for _, data, _ in finest.get(f, [])) for f in range(patches)]
+    before = [0, *accumulate(cost)]
+
+    def fits(first: int, stop: int) -> bool:
+        count = stop - first
+        return count == 1 or (28 + before[stop] - before[first] <= pack_bytes
+                              and pack_capacity(level, count, DEGREE, spans, walls=walls)
+                              <= MAX_PACK_VALUES and (most is None or count <= most))
+
+    groups, runs = [], [(0, patches)]
+    while runs:
+        first, stop = runs.pop()
+        if fits(first, stop):
+            groups.append((first, stop - first))
+        else:
+            middle = (first + stop) // 2
+            runs += [(middle, stop), (first, middle)]  # the lower half next
     return groups

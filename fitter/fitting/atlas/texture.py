@@ -4,7 +4,7 @@ Layout (``client_py.atlas_texture``, docs/format.md "Atlas colour"). Colour leve
 gives every patch a cell of ``T_c = T_0 2^c`` texels per side over its own ``[0, 1]^2``,
 with ``T_0 = 2 m`` (``m`` the detail's spans per tile), so that ``T_c = R_c - 1``: as many
 texels per side as the level-``c`` mesh has cells per patch side (the client colours the
-welded mesh per vertex). The cells of a run of whole detail groups (Morton-ordered, so a
+welded mesh per vertex). The cells of a run of whole detail groups (in k-d tree order, so a
 compact piece of the object) share one image, cut where an image would pass
 :data:`TEXELS_PER_PACK` texels: a handful of requests per level instead of one per patch,
 and one pack per group and level for the viewer's per-group refinement. Cells are multiples
