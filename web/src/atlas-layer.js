@@ -16,8 +16,8 @@
 // budget of MAX_VERTICES drawn vertices: a group inside the frustum at level k costs
 // count * R_k^2 (R_k the worker's samples per patch side at that level), a group outside it
 // nothing (three.js culls its mesh: it is not drawn). The fitter keeps a group's finest
-// mesh within a quarter of the budget (fitter.fitting.atlas.detail.GROUP_VERTICES, 65,536),
-// so that a close view refines the part of the object it shows. (Counting every group's
+// mesh within a quarter of the budget (fitter.fitting.atlas.detail.GROUP_VERTICES, 250,000)
+// and its patches within 256, so that a close view refines the part of the object it shows. (Counting every group's
 // base, Stanford Lucy's 2,268 patches at 9 x 9 samples took 184 k of a 250 k budget, and
 // no group of hers could ever be refined.)
 //
@@ -67,7 +67,7 @@ import { fetchBytes } from "./fetch-bytes.js";
 import { decodeTextureRgb, forEachLimited } from "./page.js";
 import { DETAIL_PX, TEXEL_PX } from "./tile-tree.js";
 
-export const MAX_VERTICES = 500000;
+export const MAX_VERTICES = 1000000;
 /** Vertices of the group meshes kept off screen (about 32 bytes each with their triangles). */
 export const CACHE_VERTICES = 1000000;
 const FETCH_PARALLEL = 6;

@@ -169,11 +169,12 @@ a pack none of whose tiles carries a mask is written as before, byte for byte (v
 
 Groups and packs. Patches are renumbered in the k-d tree order of their centres
 (:func:`spatial_order`), and the order is halved as the tree halves it until each half's
-finest-level pack stays within ``PACK_BYTES`` and its patches drawn at the finest level
-within ``GROUP_VERTICES``: each group is a box of the tree, a compact piece of the object
-(the viewer's unit of refinement; along the Morton curve, which cut Stanford Lucy into runs
-of 226 patches, their bounding spheres were 411-863 units across a 1,924-unit diagonal,
-most of them the statue's height); every level's tiles of a group
+finest-level pack stays within ``PACK_BYTES``, its patches drawn at the finest level within
+``GROUP_VERTICES`` and their number within ``GROUP_PATCHES``: each group is a box of the
+tree, a compact piece of the object (the viewer's unit of refinement; along the Morton
+curve, which cut Stanford Lucy into runs of 226 patches, their bounding spheres were
+411-863 units across a 1,924-unit diagonal, most of them the statue's height; now 204-360
+for 16 groups of 141-142); every level's tiles of a group
 travel in one welded pack (``client_py.atlas_detail``, version 3: a border coefficient that
 an earlier patch of the pack holds in the same shared slot, ``shared_index``, is coded once:
 the bunny's level 0 18 % smaller), with the pack's ``geometric_error`` (max
@@ -249,14 +250,18 @@ CHUNK = 100_000
 NEWTON_ITERATIONS = 8
 MAX_COEFFICIENTS = 6_000_000  # of the finest level, all patches
 PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
-# ... and the group drawn at the finest level within this many vertices (its patches times
-# the level's samples per patch side squared): the viewer refines group by group within a
-# budget of drawn vertices (MAX_VERTICES in web/src/atlas-layer.js, which a test holds at
-# 4 groups or more), so a close view of one part of the object shows that part's detail.
-# Stanford Lucy (2,268 patches, level 0 at 17 x 17 samples) was 3 groups of 445-925
-# patches, each the height of the statue: its base alone (184 k vertices at 9 x 9) and any
-# one group at level 0 passed the 250 k budget, and no zoom ever showed her detail.
-GROUP_VERTICES = 65_536
+# ... its patches drawn at the finest level within GROUP_VERTICES vertices (patches times
+# the level's samples per patch side squared), and at most GROUP_PATCHES patches. The
+# viewer refines group by group within a budget of drawn vertices (MAX_VERTICES in
+# web/src/atlas-layer.js, which a test holds at 4 finest groups or more), so that a close
+# view of one part of the object shows that part's detail. Stanford Lucy (2,268 patches,
+# level 0 at 17 x 17 samples) was 3 groups of 445-925 patches, each the height of the
+# statue: her base alone (184 k vertices at 9 x 9) and any one group at level 0 passed the
+# then 250 k budget, and no zoom ever showed her detail. Each group costs the manifest
+# about 22 bytes gzipped and each pack 9 (the dense vase's 2,280 patches cut to 256 groups
+# of 8-9, 65,536 vertices at 65 x 65, made its manifest 16 KB larger and its packs 17 KB).
+GROUP_VERTICES = 250_000
+GROUP_PATCHES = 256
 MU_FLOOR = 0.25
 OFFSET_LIMIT = 0.2  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy; 0.1 left
 # out 0.7 % of her points, 27 % of her level-0 squared error: docs/benchmarks.md session 14)
@@ -1914,6 +1919,27 @@ def _rounded(x: float) -> float:
     return float(f"{x:.6g}")
 
 
+def _rounded_up(x: float, digits: int = 3) -> float:
+    """``x >= 0`` rounded up to ``digits`` significant digits: a bound stays a bound (a
+    group's radius, a pack's ``geometric_error``) in fewer of the manifest's bytes."""
+    if not x > 0:
+        return 0.0
+    step = 10.0 ** (math.floor(math.log10(x)) - digits + 1)
+    return float(f"{math.ceil(x / step) * step:.{digits}g}")
+
+
+def _bounding_sphere(points: np.ndarray, reach: float) -> tuple[list[float], float]:
+    """A sphere holding ``points (n, 3)`` widened by ``reach``, short to write: its centre
+    the box's middle rounded to a hundredth of the radius's order of magnitude, its radius
+    measured from that centre and rounded up to 3 significant digits."""
+    middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    spread = float(np.linalg.norm(points - middle, axis=1).max()) + reach
+    step = 10.0 ** (math.floor(math.log10(spread)) - 2) if spread > 0 else 1.0
+    centre = [float(f"{round(x / step) * step:.12g}") for x in middle]
+    radius = float(np.linalg.norm(points - np.asarray(centre), axis=1).max()) + reach
+    return centre, _rounded_up(radius)
+
+
 def check_levels(levels: int, patches: int | None, spans: int = SPANS) -> None:
     """Refuse ``levels`` detail levels that an atlas of ``patches`` patches cannot hold
     (:func:`most_levels`; ``None``: any atlas, before its patches are known): before the
@@ -2164,9 +2190,9 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
 def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasDetail:
     """``pyramid`` with its packs (module docstring, "Groups and packs"): the patches cut
     into groups whose finest-level pack stays within ``pack_bytes`` (:func:`_groups`, by
-    the finest tiles' own ``.tsd`` bytes) and whose finest drawn mesh stays within
-    ``GROUP_VERTICES``, every level's tiles of a group coded as one
-    welded pack (``client_py.atlas_detail.write_pack``), and the manifest's
+    the finest tiles' own ``.tsd`` bytes), whose finest drawn mesh stays within
+    ``GROUP_VERTICES`` and which hold at most ``GROUP_PATCHES`` patches, every level's
+    tiles of a group coded as one welded pack (``client_py.atlas_detail.write_pack``), and the manifest's
     ``tiles.detail`` (``tree``). Pure Python (the client's coder) and a deterministic
     function of ``pyramid``: the same bytes whenever and on whichever thread it runs."""
     _check_pack_bytes(pack_bytes)
@@ -2180,7 +2206,7 @@ def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasD
                       for t in made if t.walls is not None), default=0)
     drawn = pyramid.levels[-1]["resolution"] ** 2 if levels else 1
     groups = _groups(finest, F, pack_bytes, max(levels - 1, 0), spans, walls_side,
-                     max(1, GROUP_VERTICES // drawn))
+                     max(1, min(GROUP_PATCHES, GROUP_VERTICES // drawn)))
     files: dict[str, bytes] = {}
     packs = []
     level_rows = [dict(row) for row in pyramid.levels]
@@ -2196,19 +2222,16 @@ def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasD
             total += len(data)
             count_k += 1
             packs.append({"level": k, "group": g, "bytes": len(data), "geometric_error":
-                          _rounded(float(pyramid.worst[k][first:first + size].max()))})
+                          _rounded_up(float(pyramid.worst[k][first:first + size].max()))})
         level_rows[k]["bytes"] = total
         level_rows[k]["packs"] = count_k
     table, cps = index_table(atlas), control_points(atlas)
     group_rows = []
     for first, size in groups:
-        pts = cps[table[first:first + size]].reshape(-1, 3)
-        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-        radius = float(np.linalg.norm(pts - centre, axis=1).max()) \
-            + float(np.max(pyramid.reach[first:first + size]))
-        group_rows.append({"first": int(first), "count": int(size),
-                           "center": [_rounded(float(x)) for x in centre],
-                           "radius": _rounded(radius)})
+        centre, radius = _bounding_sphere(cps[table[first:first + size]].reshape(-1, 3),
+                                          float(np.max(pyramid.reach[first:first + size])))
+        group_rows.append({"first": int(first), "count": int(size), "center": centre,
+                           "radius": radius})
     versions = {PACK_HEADER.unpack_from(data)[1] for data in files.values()}
     base_rms, base_max = pyramid.base
     tree = {"format": "tsdp", "format_version": max(versions, default=WALLS_FREE_VERSION),
