@@ -2192,8 +2192,8 @@ def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasD
     into groups whose finest-level pack stays within ``pack_bytes`` (:func:`_groups`, by
     the finest tiles' own ``.tsd`` bytes), whose finest drawn mesh stays within
     ``GROUP_VERTICES`` and which hold at most ``GROUP_PATCHES`` patches, every level's
-    tiles of a group coded as one welded pack (``client_py.atlas_detail.write_pack``), and the manifest's
-    ``tiles.detail`` (``tree``). Pure Python (the client's coder) and a deterministic
+    tiles of a group coded as one welded pack (``client_py.atlas_detail.write_pack``), and
+    the manifest's ``tiles.detail`` (``tree``). Pure Python (the client's coder) and a deterministic
     function of ``pyramid``: the same bytes whenever and on whichever thread it runs."""
     _check_pack_bytes(pack_bytes)
     clock = time.perf_counter()
