@@ -16,6 +16,7 @@ of drawn vertices then holds no refinement. Writes ``bench/results/atlas_zoom.js
 
 from __future__ import annotations
 
+import io
 import json
 import sys
 import tempfile
@@ -29,6 +30,7 @@ from bench.bench_atlas import _objects
 
 DISTANCE = 1.5  # the camera this many group radii in front of the group's centre
 PICTURES = RESULTS / "atlas_zoom"
+PICTURE_WIDTH = 500  # pixels: the canvas's pictures halved
 
 
 def _views(manifest: dict) -> dict[str, int]:
@@ -58,6 +60,15 @@ def _look(page, manifest: dict, group: int) -> dict:
             "wall_s": round(time.perf_counter() - clock, 1)}
 
 
+def _picture(png: bytes, path: Path) -> None:
+    """``png`` scaled to :data:`PICTURE_WIDTH` pixels wide, saved at ``path``."""
+    from PIL import Image
+
+    image = Image.open(io.BytesIO(png)).convert("RGB")
+    height = round(image.height * PICTURE_WIDTH / image.width)
+    image.resize((PICTURE_WIDTH, height), Image.LANCZOS).save(path, optimize=True)
+
+
 def _object(browser, name: str, path: Path, root: Path) -> dict:
     from live import open_viewer, serve_collection
 
@@ -74,7 +85,7 @@ def _object(browser, name: str, path: Path, root: Path) -> dict:
             open_viewer(browser, f"{live.url}/objects/{folder.name}/", 300_000) as page:
         for view, group in _views(manifest).items():
             out["views"][view] = _look(page, manifest, group)
-            page.locator("canvas").screenshot(path=str(PICTURES / f"{folder.name}-{view}.png"))
+            _picture(page.locator("canvas").screenshot(), PICTURES / f"{folder.name}-{view}.png")
         out["errors"] = list(page.errors)
     return out
 
