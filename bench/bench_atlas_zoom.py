@@ -57,7 +57,7 @@ def _look(page, manifest: dict, group: int) -> dict:
             "levels": len(manifest["tiles"]["detail"]["levels"]),
             "refined": sum(k >= 0 for k in levels), "groups": len(levels),
             "pack_bytes": stats["atlas_pack_bytes"], "vertices": stats["vertices"],
-            "batches": stats.get("atlas_batches"),
+            "batches": stats.get("atlas_batches"),  # 0: the levels shown already (no update)
             "first_batch_ms": round(stats.get("atlas_first_batch_ms") or 0),
             "python_ms": round(stats.get("atlas_update_python_ms") or 0),
             "wall_s": round(time.perf_counter() - clock, 1)}

@@ -1094,6 +1094,27 @@ def test_groups_are_boxes_of_the_patches_k_d_tree_and_small_enough_to_draw():
     assert 4 * atlas_detail.GROUP_VERTICES <= budget
 
 
+def test_rounded_bounds_stay_bounds():
+    """A group's sphere and a pack's geometric_error are written short, rounded up: never
+    below what they bound (a value one double above a 3-digit number included), at most
+    1 % above it; a lone point's sphere keeps its centre."""
+    import math
+
+    rng = np.random.default_rng(2)
+    for x in rng.uniform(1, 10, 2000) * 10.0 ** rng.integers(-300, 300, 2000):
+        for y in (float(x), float(f"{x:.3g}"), float(np.nextafter(float(f"{x:.3g}"), np.inf))):
+            up = atlas_detail._rounded_up(y)
+            assert y <= up <= y * 1.0101, (y, up)
+    assert atlas_detail._rounded_up(0.0) == 0.0 and math.isnan(atlas_detail._rounded_up(math.nan))
+    for _ in range(300):
+        points = rng.normal(size=(20, 3)) * 10.0 ** rng.uniform(-4, 4) + rng.uniform(-1e5, 1e5, 3)
+        reach = float(rng.uniform(0, 1))
+        centre, radius = atlas_detail._bounding_sphere(points, reach)
+        assert np.linalg.norm(points - centre, axis=1).max() + reach <= radius
+    assert atlas_detail._bounding_sphere(np.array([[0.123456, 0, 0]]), 0.0) == (
+        [0.123456, 0.0, 0.0], 0.0)
+
+
 def test_the_fold_re_solve_of_the_changed_patches_is_the_full_re_solve(monkeypatch):
     """After the fold rows, ``_solve_level(again=..., changed=...)`` solves only the patches
     with new rows (and the interiors whose shared ring moved): its coefficients, the

@@ -385,10 +385,11 @@ export class AtlasLayer {
   async _updateOnce() {
     const steps = [];
     const levels = this.wanted(steps);
+    Object.assign(this.stats, { atlas_batches: 0, atlas_first_batch_ms: 0,
+                                atlas_update_python_ms: 0 }); // this update's, if any
     if (levels.every((k, g) => k === this.shown[g])) return;
     const batches = this.batches(levels, steps);
     const t0 = performance.now();
-    this.stats.atlas_update_python_ms = 0;
     for (const [k, batch] of batches.entries()) {
       await this._showLevels(batch, k === batches.length - 1);
       if (k === 0) this.stats.atlas_first_batch_ms = performance.now() - t0;

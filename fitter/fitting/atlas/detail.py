@@ -1921,21 +1921,32 @@ def _rounded(x: float) -> float:
 
 def _rounded_up(x: float, digits: int = 3) -> float:
     """``x >= 0`` rounded up to ``digits`` significant digits: a bound stays a bound (a
-    group's radius, a pack's ``geometric_error``) in fewer of the manifest's bytes."""
-    if not x > 0:
-        return 0.0
+    group's radius, a pack's ``geometric_error``) in fewer of the manifest's bytes. ``x``
+    itself where no such number is at least ``x`` (not finite, or beyond the decimal
+    steps of a double); 0 for ``x <= 0``."""
+    if not math.isfinite(x) or x <= 0:
+        return x if not x <= 0 else 0.0
     step = 10.0 ** (math.floor(math.log10(x)) - digits + 1)
-    return float(f"{math.ceil(x / step) * step:.{digits}g}")
+    if not step > 0:
+        return x
+    for extra in (0, 1):  # x / step may round down to a whole number just under x
+        up = float(f"{(math.ceil(x / step) + extra) * step:.{digits}g}")
+        if up >= x:
+            return up
+    return x
 
 
 def _bounding_sphere(points: np.ndarray, reach: float) -> tuple[list[float], float]:
     """A sphere holding ``points (n, 3)`` widened by ``reach``, short to write: its centre
-    the box's middle rounded to a hundredth of the radius's order of magnitude, its radius
-    measured from that centre and rounded up to 3 significant digits."""
+    the box's middle rounded to a hundredth of the radius's order of magnitude (as it is
+    for a radius of 0), its radius measured from that centre and rounded up to 3
+    significant digits."""
     middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
     spread = float(np.linalg.norm(points - middle, axis=1).max()) + reach
-    step = 10.0 ** (math.floor(math.log10(spread)) - 2) if spread > 0 else 1.0
-    centre = [float(f"{round(x / step) * step:.12g}") for x in middle]
+    step = 10.0 ** (math.floor(math.log10(spread)) - 2) if spread > 0 else 0.0
+    centre = [float(x) for x in middle]
+    if step > 0 and all(math.isfinite(x / step) for x in centre):
+        centre = [float(f"{round(x / step) * step:.12g}") for x in centre]
     radius = float(np.linalg.norm(points - np.asarray(centre), axis=1).max()) + reach
     return centre, _rounded_up(radius)
 
