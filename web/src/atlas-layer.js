@@ -63,8 +63,9 @@
 // last update tessellated), atlas_parts_made and atlas_parts_cached (that update's groups
 // tessellated and taken from the cache), atlas_refine_ms (its wall time, from the choice to
 // the swap drawn), atlas_batches, atlas_first_batch_ms and atlas_update_python_ms (the last
-// update's batches, the time from its choice to its first batch drawn, the Python time of
-// all its batches), atlas_updates, vertices, triangles, tessellate_ms,
+// update's batches (0: nothing to change), the time from its start to its first batch
+// drawn, the Python time of all its batches; an update that plans again because the camera
+// moved counts all its passes), atlas_updates, vertices, triangles, tessellate_ms,
 // atlas_colour_packs_loaded, atlas_colour_bytes.
 
 import * as THREE from "three";
@@ -369,10 +370,13 @@ export class AtlasLayer {
       this.again = true;
       return this.running;
     }
+    const t0 = performance.now();
+    Object.assign(this.stats, { atlas_batches: 0, atlas_first_batch_ms: 0,
+                                atlas_update_python_ms: 0 }); // this update's
     this.running = (async () => {
       do {
         this.again = false;
-        await this._updateOnce();
+        await this._updateOnce(t0);
       } while (this.again);
     })();
     try {
@@ -382,18 +386,17 @@ export class AtlasLayer {
     }
   }
 
-  async _updateOnce() {
+  /** One pass of update() (begun at `t0`): plan, then show the batches; its figures are
+   *  added to the update's stats. */
+  async _updateOnce(t0) {
     const steps = [];
     const levels = this.wanted(steps);
-    Object.assign(this.stats, { atlas_batches: 0, atlas_first_batch_ms: 0,
-                                atlas_update_python_ms: 0 }); // this update's, if any
     if (levels.every((k, g) => k === this.shown[g])) return;
     const batches = this.batches(levels, steps);
-    const t0 = performance.now();
     for (const [k, batch] of batches.entries()) {
       await this._showLevels(batch, k === batches.length - 1);
-      if (k === 0) this.stats.atlas_first_batch_ms = performance.now() - t0;
-      this.stats.atlas_batches = k + 1;
+      if (!this.stats.atlas_batches) this.stats.atlas_first_batch_ms = performance.now() - t0;
+      this.stats.atlas_batches += 1;
       this.stats.atlas_update_python_ms += this.stats.atlas_tessellate_ms;
       if (this.again) return; // the camera moved: update() plans again from what is shown
     }
