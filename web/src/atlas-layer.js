@@ -398,7 +398,9 @@ export class AtlasLayer {
       if (!this.stats.atlas_batches) this.stats.atlas_first_batch_ms = performance.now() - t0;
       this.stats.atlas_batches += 1;
       this.stats.atlas_update_python_ms += this.stats.atlas_tessellate_ms;
-      if (this.again) return; // the camera moved: update() plans again from what is shown
+      // the camera moved (the controls' own update of this move sets `again` too: only a
+      // new choice ends the batches early): update() plans again from what is shown
+      if (this.again && this.wanted().some((k, g) => k !== levels[g])) return;
     }
   }
 
