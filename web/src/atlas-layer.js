@@ -17,9 +17,9 @@
 // count * R_k^2 (R_k the worker's samples per patch side at that level), a group outside it
 // nothing (three.js culls its mesh: it is not drawn). The fitter keeps a group's finest
 // mesh within a quarter of the budget (fitter.fitting.atlas.detail.GROUP_VERTICES, 250,000)
-// and its patches within 256, so that a close view refines the part of the object it shows. (Counting every group's
-// base, Stanford Lucy's 2,268 patches at 9 x 9 samples took 184 k of a 250 k budget, and
-// no group of hers could ever be refined.)
+// and its patches within 256, so that a close view refines the part of the object it
+// shows. (Counting every group's base, Stanford Lucy's 2,268 patches at 9 x 9 samples took
+// 184 k of a 250 k budget, and no group of hers could ever be refined.)
 //
 // Only what changed is tessellated: a group's mesh (WorkerSession.atlas_part_meshes, one
 // request for all the groups a batch needs) is its triangles of the whole atlas welded at

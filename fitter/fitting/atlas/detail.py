@@ -354,10 +354,16 @@ def morton_order(centres: np.ndarray, bits: int = 10) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def _middle(start: int, stop: int) -> int:
+    """Where the k-d tree halves the run ``[start, stop)`` of the patches: the one rule of
+    :func:`spatial_order` and :func:`_groups`, so that every group is a box of the tree."""
+    return (start + stop) // 2
+
+
 def spatial_order(centres: np.ndarray, leaf: int = 4) -> np.ndarray:
     """A permutation of ``centres (F, 3)`` in k-d tree order (Bentley, *Multidimensional
     binary search trees*, 1975): the run ``[a, b)`` (first the whole) is sorted along its
-    box's longest side and halved at ``(a + b) // 2``, the lower half first, each half
+    box's longest side and halved at :func:`_middle`, the lower half first, each half
     again, down to runs of at most ``leaf``, which keep their order. Every run that
     halving makes is a box of the tree, a compact piece of the object: :func:`_groups`
     cuts the patches along the same halves. Stable sorts: the same order on every machine."""
@@ -371,7 +377,7 @@ def spatial_order(centres: np.ndarray, leaf: int = 4) -> np.ndarray:
         run = order[start:stop]
         axis = int(np.argmax(np.ptp(centres[run], axis=0)))
         order[start:stop] = run[np.argsort(centres[run, axis], kind="stable")]
-        middle = (start + stop) // 2
+        middle = _middle(start, stop)
         runs += [(start, middle), (middle, stop)]
     return order
 
@@ -1924,8 +1930,10 @@ def _rounded_up(x: float, digits: int = 3) -> float:
     group's radius, a pack's ``geometric_error``) in fewer of the manifest's bytes. ``x``
     itself where no such number is at least ``x`` (not finite, or beyond the decimal
     steps of a double); 0 for ``x <= 0``."""
-    if not math.isfinite(x) or x <= 0:
-        return x if not x <= 0 else 0.0
+    if x <= 0:
+        return 0.0
+    if not math.isfinite(x):
+        return x
     step = 10.0 ** (math.floor(math.log10(x)) - digits + 1)
     if not step > 0:
         return x
@@ -2266,7 +2274,7 @@ def _groups(finest: dict, patches: int, pack_bytes: int, level: int = 0,
             spans: int = SPANS, walls: int = 0, most: int | None = None
             ) -> list[tuple[int, int]]:
     """Contiguous ``(first, count)`` runs of patches: :func:`spatial_order`'s halves (the
-    whole run, halved at ``(a + b) // 2`` while it does not fit), each of at most ``most``
+    whole run, halved at :func:`_middle` while it does not fit), each of at most ``most``
     patches (default: any number) whose finest-level (``level``) tiles stay within
     ``pack_bytes`` in a pack (``client_py.atlas_detail``: one range-coded stream, so a tile
     costs about its ``.tsd`` coded bytes without the tile's own header and CRC, less the
@@ -2291,6 +2299,6 @@ def _groups(finest: dict, patches: int, pack_bytes: int, level: int = 0,
         if fits(first, stop):
             groups.append((first, stop - first))
         else:
-            middle = (first + stop) // 2
+            middle = _middle(first, stop)
             runs += [(middle, stop), (first, middle)]  # the lower half next
     return groups

@@ -323,9 +323,8 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "scan"
     leave (a flap folded onto its neighbour, a third face on an edge, as quadric decimation
     makes near a trimmed stand-in's borders) loses the smallest faces of its edges
     (``Remove Faces``, counted in ``repairs['nonmanifold_faces_removed']``) before one more
-    round. A piece
-    left with no area at all (:func:`_without_arealess_pieces`) is dropped last and
-    counted in ``repairs['pieces_without_area_dropped']``.
+    round. A piece left with no area at all (:func:`_without_arealess_pieces`) is dropped
+    last and counted in ``repairs['pieces_without_area_dropped']``.
 
     Raises
     ------
