@@ -79,7 +79,9 @@ class LiveServer:
 
 
 #: the viewer page's "done loading" condition: ready, or an error shown
-VIEWER_READY = "document.body.dataset.ready === '1' || !!document.body.dataset.error"
+# (null-safe: a page that a click is still navigating away from may have no body yet)
+VIEWER_READY = ("!!document.body && (document.body.dataset.ready === '1' "
+                "|| !!document.body.dataset.error)")
 
 
 @contextmanager

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 from conftest import ADMIN_TOKEN
+from live import VIEWER_READY
 
 from fitter.demo import write_scan_ply
 from fitter.fitting.examples import relief_scan
@@ -194,6 +195,6 @@ def test_admin_uploads_publishes_and_the_viewer_reaches_ready(admin_live, page, 
     cards = page.locator(".card h2")
     assert cards.all_inner_texts() == ["Relief from the admin"]
     page.click(".card a")
-    page.wait_for_function("document.body.dataset.ready === '1' || !!document.body.dataset.error")
+    page.wait_for_function(VIEWER_READY)  # after the click's navigation, not before it
     assert page.evaluate("document.body.dataset.error") is None
     assert page.evaluate("document.body.dataset.ready") == "1"
