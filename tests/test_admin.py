@@ -241,6 +241,8 @@ def test_the_admin_pages_upload_follow_and_publish(admin_app, client, runner, re
     assert wait_for_job(client, job_id)["state"] == "done"
     page = client.get(job_url).get_data(as_text=True)
     assert 'id="admin-config"' in page and f"/admin/api/jobs/{job_id}" in page
+    assert '<section id="job-notes" hidden>' in page  # nothing to say of this fit
+    assert client.get(f"/admin/api/jobs/{job_id}").get_json()["notes"] == []
     object_id = client.get(f"/admin/api/jobs/{job_id}").get_json()["object"]
     assert 'id="fit-notes"' not in client.get(f"/admin/objects/{object_id}").get_data(
         as_text=True)  # nothing to say of this fit
@@ -260,9 +262,10 @@ def test_the_admin_pages_upload_follow_and_publish(admin_app, client, runner, re
     assert len(list(uploads.iterdir())) == 1
 
 
-def test_the_object_page_gives_the_fits_notes(admin_app, client, runner):
+def test_the_object_and_job_pages_give_the_fits_notes(admin_app, client, runner):
     """What the reader did not use (two unknown columns of an .xyz upload) is on the
-    object's page; an object without notes has none."""
+    object's page and on its finished job's page and JSON (which the page shows live); an
+    object without notes has none."""
     from fitter.fitting.examples import relief_scan
 
     login(client)
@@ -276,6 +279,12 @@ def test_the_object_page_gives_the_fits_notes(admin_app, client, runner):
     page = client.get(f"/admin/objects/{object_id}").get_data(as_text=True)
     assert '<ul class="fit-notes" id="fit-notes">' in page
     assert "<strong>warning</strong>: 2 unrecognised columns were not kept" in page
+    notes = client.get(f"/admin/api/jobs/{job}").get_json()["notes"]
+    assert [n["label"] for n in notes] == ["warning"]
+    assert notes[0]["text"].startswith("2 unrecognised columns were not kept")
+    job_page = client.get(f"/admin/jobs/{job}").get_data(as_text=True)
+    assert '<section id="job-notes" >' in job_page or '<section id="job-notes">' in job_page
+    assert "<strong>warning</strong>: 2 unrecognised columns were not kept" in job_page
 
 
 # ----------------------------------------------------------------------- refusals

@@ -20,6 +20,7 @@ import trimesh
 from PIL import Image
 from scipy.spatial import cKDTree
 
+from fitter.collection.bundles import served_manifest
 from fitter.fitting.examples import relief_scan
 
 pytestmark = pytest.mark.browser
@@ -60,8 +61,9 @@ def test_viewer_reaches_ready_with_plausible_stats(viewer, web_collection):
     assert stats["kernel"] in ("python", "numpy")
     assert 0 < stats["pyodide_load_ms"] < stats["first_frame_ms"]
     assert stats["tessellate_ms"] > 0
-    expected = sum((web_collection / "relief" / f).stat().st_size
-                   for f in ("manifest.json", "base.tsp"))
+    manifest = json.loads((web_collection / "relief" / "manifest.json").read_text())
+    expected = len(served_manifest(manifest)) + (web_collection / "relief" / "base.tsp"
+                                                 ).stat().st_size
     # plus the detail tiles the view asked for (tests/test_browser_tiles.py checks which)
     assert stats["bytes_downloaded"] == expected + stats["tile_bytes"]
     assert viewer.errors == []

@@ -18,7 +18,7 @@ from PIL import Image
 
 import client_py
 from fitter.cli import build_parser, main
-from fitter.collection.bundles import Collection
+from fitter.collection.bundles import FIT_RECORDS, Collection, served_manifest
 from fitter.server import DEFAULTS, SOURCE_CHECKOUT, WEB_ROOT, create_app, load_settings
 
 HOP_DIR = Path(DEFAULTS["TESSERA_3DHOP_DIR"][0]) if DEFAULTS["TESSERA_3DHOP_DIR"][0] else None
@@ -152,8 +152,31 @@ def test_bundle_files_serve_http_ranges(client, web_collection):
     assert response.headers["Content-Range"] == f"bytes 4-27/{len(data)}"
 
 
+def test_a_visitor_is_served_the_manifest_without_the_fits_own_records(client, web_collection):
+    on_disk = json.loads((web_collection / "relief" / "manifest.json").read_text())
+    assert {"fit", "timings", "options", "files"} <= set(on_disk)  # kept for the admin
+    response = client.get("/bundles/relief/manifest.json")
+    served = json.loads(response.get_data())
+    assert not set(FIT_RECORDS) & set(served)
+    # everything else as in the file (stats_all_points left out only where it repeats stats)
+    kept = {k: v for k, v in on_disk.items() if k not in FIT_RECORDS}
+    if kept.get("stats_all_points") == kept.get("stats"):
+        del kept["stats_all_points"]
+    assert served == kept
+    assert len(response.data) < 0.8 * len(json.dumps(on_disk).encode())
+    cache = response.headers["Cache-Control"]  # a plain collection's bundles never change
+    assert "immutable" in cache and "max-age=31536000" in cache and "public" in cache
+    again = client.get("/bundles/relief/manifest.json",
+                       headers={"If-None-Match": response.headers["ETag"]})
+    assert again.status_code == 304 and again.data == b""
+    # what the gallery says a visit downloads counts the manifest as served
+    summary = client.get("/api/objects/relief").get_json()
+    assert summary["view_bytes"] == len(response.data) + summary["files"]["base.tsp"]
+
+
 def test_gzip_only_when_accepted_and_when_it_helps(client, web_collection):
-    manifest = (web_collection / "relief" / "manifest.json").read_bytes()
+    manifest = served_manifest(json.loads((web_collection / "relief" / "manifest.json")
+                                          .read_text()))
     zipped = client.get("/bundles/relief/manifest.json", headers={"Accept-Encoding": "gzip"})
     assert zipped.headers.get("Content-Encoding") == "gzip"
     assert gzip.decompress(zipped.data) == manifest

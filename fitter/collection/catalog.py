@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from client_py.bundle import fit_notes
 from client_py.errors import TesseraError
 
 from ..fitting.options import OPTION, UP_AXES
@@ -505,6 +506,12 @@ class Catalog:
             return Collection(self.collection).get(row["bundle_path"]).manifest
         except (KeyError, BundleError):
             return None
+
+    def fit_notes(self, object_id: str) -> list[tuple[str, str]]:
+        """What the fit of the object's current bundle says its admin should know
+        (``client_py.bundle.fit_notes``: reader warnings, why no atlas was made, options an
+        atlas did not use, a capped depth); none without a readable bundle."""
+        return fit_notes(self.object_manifest(self.get_object(object_id) or {}) or {})
 
     def set_trash(self, object_id: str, trash_path: str | None) -> None:
         """Mark an object trashed (unpublishing it) or, with None, restored."""

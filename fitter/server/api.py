@@ -20,7 +20,7 @@ from flask.typing import ResponseReturnValue
 
 from client_py.bundle import PIECES_FILE
 
-from ..collection.bundles import Bundle, BundleError
+from ..collection.bundles import Bundle, BundleError, served_manifest
 
 bp = Blueprint("api", __name__, url_prefix="/api")
 
@@ -59,8 +59,9 @@ def object_summary(bundle: Bundle) -> dict[str, Any]:
                                 filename="manifest.json"),
         "bytes": sum(sizes.values()),
         "base_bytes": sizes.get(bundle.base_file, 0),
-        # what a visitor's viewer downloads: the manifest, the base and a patch's pieces
-        "view_bytes": sizes.get("manifest.json", 0) + sizes.get(bundle.base_file, 0)
+        # what a visitor's viewer downloads: the manifest as served, the base and a patch's
+        # pieces
+        "view_bytes": len(served_manifest(bundle.manifest)) + sizes.get(bundle.base_file, 0)
         + sizes.get(PIECES_FILE, 0),
         "files": sizes,
         "units": bundle.units,

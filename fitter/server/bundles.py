@@ -6,25 +6,26 @@ writes a new bundle), so its files are served with a year-long
 helps (see :mod:`fitter.server.files`). A name leading outside the bundle
 directory is a 404.
 
-One exception: in a managed collection the admin edits an object's title, description,
-units and first view after its fit (``fitter.collection.catalog``), so its
-``manifest.json`` is served as the catalog lays it over the file
-(:class:`~fitter.collection.catalog.CatalogBundle`): the same JSON with those fields
-replaced, revalidated on every visit (``no-cache`` with an ETag of its bytes: a 304 while
-nothing was edited), gzip-compressed when the client accepts it. The viewer reads the
-title, units and ``view`` from this manifest, so an edit reaches the next visit.
+``manifest.json`` is the visitor's manifest (``fitter.collection.bundles.served_manifest``):
+the file without the fit's own records (its trials, timings and options, the file sizes),
+which only the admin's pages and the command line read from the file itself; compact
+JSON, gzip-compressed when the client accepts it, with an ETag of its bytes. In a managed
+collection the admin edits an object's title, description, units and first view after its
+fit (``fitter.collection.catalog``), so there it is made from the manifest as the catalog
+lays it over the file (:class:`~fitter.collection.catalog.CatalogBundle`) and revalidated on
+every visit (``no-cache``: a 304 while nothing was edited). The viewer reads the title,
+units and ``view`` from this manifest, so an edit reaches the next visit.
 """
 
 from __future__ import annotations
 
 import gzip
 import hashlib
-import json
 
 from flask import Blueprint, Response, abort, current_app, request
 from flask.typing import ResponseReturnValue
 
-from ..collection.bundles import MANIFEST
+from ..collection.bundles import MANIFEST, Bundle, served_manifest
 from ..collection.catalog import CatalogBundle
 from .api import get_bundle_or_404
 from .files import COMPRESS_MIN_BYTES, accepted_encodings, send_from
@@ -38,15 +39,16 @@ def bundle_file(object_id: str, filename: str) -> ResponseReturnValue:
     bundle = get_bundle_or_404(object_id)
     if not filename:
         abort(404, description="name a file of the bundle, e.g. manifest.json")
-    if filename == MANIFEST and isinstance(bundle, CatalogBundle):
-        return _edited_manifest(bundle)
+    if filename == MANIFEST:
+        return _visitor_manifest(bundle)
     return send_from(bundle.path, filename, current_app.config["TESSERA_BUNDLE_MAX_AGE"],
                      immutable=True)
 
 
-def _edited_manifest(bundle: CatalogBundle) -> Response:
-    """``bundle.manifest`` as JSON (sorted keys), revalidated each time (module docstring)."""
-    data = json.dumps(bundle.manifest, sort_keys=True, separators=(",", ":")).encode()
+def _visitor_manifest(bundle: Bundle) -> Response:
+    """:func:`served_manifest` of ``bundle.manifest``: immutable as the bundle's other files,
+    or revalidated each time where the admin edits it (module docstring)."""
+    data = served_manifest(bundle.manifest)
     etag = hashlib.sha256(data).hexdigest()[:32]
     compressed = (current_app.config.get("TESSERA_GZIP", True) and len(data) >= COMPRESS_MIN_BYTES
                   and "gzip" in accepted_encodings(request.headers.get("Accept-Encoding", "")))
@@ -57,6 +59,10 @@ def _edited_manifest(bundle: CatalogBundle) -> Response:
     response.headers["Vary"] = "Accept-Encoding"
     response.set_etag(etag + ("-gz" if compressed else ""))
     response.cache_control.public = True
-    response.cache_control.no_cache = True
-    response.cache_control.max_age = 0
+    if isinstance(bundle, CatalogBundle):
+        response.cache_control.no_cache = True
+        response.cache_control.max_age = 0
+    else:
+        response.cache_control.max_age = current_app.config["TESSERA_BUNDLE_MAX_AGE"]
+        response.cache_control.immutable = True
     return response.make_conditional(request)

@@ -18,7 +18,10 @@ export class JobProgress {
       cancel: doc.getElementById('cancel-form'),
       retry: doc.getElementById('retry-form'),
       object: doc.getElementById('job-object-link'),
+      notes: doc.getElementById('job-notes'),
+      noteList: doc.getElementById('fit-notes'),
     };
+    this.doc = doc;
     this.timer = null;
   }
 
@@ -55,6 +58,20 @@ export class JobProgress {
     this.el.cancel.hidden = FINAL.has(job.state);
     this.el.retry.hidden = !RETRYABLE.has(job.state);
     this.el.object.hidden = job.state !== 'done';
+    this.showNotes(job.notes || []);
+  }
+
+  /** The finished fit's notes (reader warnings, why no atlas...), as the object page lists them. */
+  showNotes(notes) {
+    if (!this.el.notes) return;
+    this.el.noteList.replaceChildren(...notes.map(({ label, text }) => {
+      const item = this.doc.createElement('li');
+      const strong = this.doc.createElement('strong');
+      strong.textContent = label;
+      item.append(strong, `: ${text}`);
+      return item;
+    }));
+    this.el.notes.hidden = notes.length === 0;
   }
 }
 

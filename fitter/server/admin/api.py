@@ -230,10 +230,15 @@ def api_jobs() -> ResponseReturnValue:
 
 @bp.get("/api/jobs/<int:job_id>")
 def api_job(job_id: int) -> ResponseReturnValue:
-    job = state().catalog().get_job(job_id)
+    catalog = state().catalog()
+    job = catalog.get_job(job_id)
     if job is None:
         return api_error(f"no job {job_id}", 404)
-    return job.public()
+    if job.state != "done":
+        return job.public()
+    # a finished fit: what it says its admin should know (the job page shows them)
+    return {**job.public(), "notes": [{"label": label, "text": text}
+                                      for label, text in catalog.fit_notes(job.object_id)]}
 
 
 @bp.post("/api/jobs/<int:job_id>/cancel")

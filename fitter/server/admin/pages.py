@@ -20,8 +20,6 @@ from flask import (
 )
 from flask.typing import ResponseReturnValue
 
-from client_py.bundle import fit_notes
-
 from ...collection.catalog import VIEW_FIELDS, ConflictError, FieldError, adopt_bundles
 from ...collection.trash import restore_object, trash_object
 from ...collection.uploads import UploadError
@@ -124,12 +122,14 @@ def jobs() -> ResponseReturnValue:
 
 @bp.get("/jobs/<int:job_id>")
 def job(job_id: int) -> ResponseReturnValue:
-    found = state().catalog().get_job(job_id)
+    catalog = state().catalog()
+    found = catalog.get_job(job_id)
     if found is None:
         abort(404, description=f"no job {job_id}")
     config = {"job_url": url_for("admin.api_job", job_id=job_id),
               "object_url": url_for("admin.edit_object", object_id=found.object_id)}
-    return render_template("admin_job.html", job=found.public(), config=config)
+    notes = catalog.fit_notes(found.object_id) if found.state == "done" else []
+    return render_template("admin_job.html", job=found.public(), config=config, notes=notes)
 
 
 @bp.post("/jobs/<int:job_id>/cancel")
@@ -193,9 +193,9 @@ def edit_object(object_id: str) -> ResponseReturnValue:
     jobs = [j.public() for j in state().catalog().jobs_of(object_id)]
     viewer_url = url_for("objects.viewer", object_id=object_id) if obj["published"] else None
     catalog = state().catalog()
-    notes = fit_notes(catalog.object_manifest(catalog.get_object(object_id) or {}) or {})
     return render_template("admin_object.html", obj=obj, jobs=jobs, error=error,
-                           viewer_url=viewer_url, view=_view_texts(object_id), notes=notes,
+                           viewer_url=viewer_url, view=_view_texts(object_id),
+                           notes=catalog.fit_notes(object_id),
                            limits=catalog.EDITABLE), (400 if error else 200)
 
 
