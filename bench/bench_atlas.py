@@ -43,6 +43,7 @@ from bench.scoring import (
     border_edges,
     boundary_length,
     diagonal,
+    normal_errors,
     point_errors,
     render_views,
     reverse_errors,
@@ -152,9 +153,12 @@ def score_object(name: str, path: Path, work: Path) -> dict:
         back = reverse_errors(level["vertices"], level["faces"], points, scan_faces, diag)
         border = boundary_length(level["vertices"], level["faces"], tolerance, scan_ends,
                                  BORDER_REACH * diag)
+        turn = (normal_errors(level["vertices"], level["faces"], points, scan_faces)
+                if scan_faces is not None else None)
         rows.append({"level": level["level"], "bytes": level["bytes"],
                      "resolution": level["resolution"], "triangles": len(level["faces"]),
-                     "all_points": err, "mesh_to_scan": back, "border": border})
+                     "all_points": err, "mesh_to_scan": back, "normals": turn,
+                     "border": border})
     finest = levels[-1]
     iou = None
     if scan_faces is not None:
@@ -193,11 +197,12 @@ def _chosen_layout(manifest: dict) -> str | None:
 def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
                 budgets: list[int]) -> list[dict]:
     """Quadric decimation + Draco of the scan mesh: for each budget, the lowest RMS (all
-    points) of the encodings at or under it. ``[]`` for a cloud or without the libraries."""
+    points) of the encodings at or under it, and how its surface turns from the scan's
+    (:func:`normal_errors`). ``[]`` for a cloud or without the libraries."""
     if faces is None:
         return []
     try:
-        from bench.bench_rate_distortion import draco_points
+        from bench.bench_rate_distortion import decimated, draco_coded, draco_points
     except ImportError:
         return []
     try:
@@ -208,7 +213,11 @@ def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
     for budget in budgets:
         fits = [e for e in encodings if e["bytes"] <= budget]
         best = min(fits, key=lambda e: e["rms"]) if fits else None
-        out.append({"budget": budget, "best": best,
+        turn = None
+        if best is not None:  # the same encoding again (both steps are deterministic)
+            _, dv, df = draco_coded(*decimated(points, faces, best["target"]), best["bits"])
+            turn = normal_errors(dv, df, points, faces)
+        out.append({"budget": budget, "best": best, "normals": turn,
                     "rms_relative": None if best is None else best["rms"] / diag})
     return out
 
@@ -225,6 +234,14 @@ def _with_earlier(results: list[dict]) -> list[dict]:
             if r.get("object") not in measured]
     now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     return [{"date": now, **r} for r in results] + kept
+
+
+def _turn(ours: dict | None, draco: dict | None) -> str:
+    """A table cell: the mean and p90 angle (:func:`normal_errors`), Draco's in brackets."""
+    if ours is None:
+        return "-"
+    cell = f"{ours['mean']:.1f} / {ours['p90']:.1f}"
+    return cell if draco is None else cell + f" ({draco['mean']:.1f} / {draco['p90']:.1f})"
 
 
 def run() -> dict | None:
@@ -244,7 +261,7 @@ def run() -> dict | None:
     table = []
     for r in results:
         if "error" in r:
-            table.append([r["object"], "-", "-", "-", "-", "-", "-", "-", "-", "-",
+            table.append([r["object"], "-", "-", "-", "-", "-", "-", "-", "-", "-", "-",
                           r["error"][:60]])
             continue
         for level, draco in zip(r["levels"], r["draco"] or [None] * len(r["levels"]),
@@ -254,6 +271,8 @@ def run() -> dict | None:
                           f"{100 * level['all_points']['within_0.5%']:.1f}",
                           f"{level['all_points']['rms']:.3g}",
                           "-" if best is None else f"{best['rms']:.3g}",
+                          _turn(level.get("normals"), None if draco is None
+                                else draco.get("normals")),
                           f"{100 * level['mesh_to_scan']['max_relative']:.2f}",
                           level["border"]["border_edges"],
                           "-" if r["scan_border"] is None else r["scan_border"]["border_edges"],
@@ -261,7 +280,8 @@ def run() -> dict | None:
                           else f"{100 * level['border']['off_share']:.1f}"])
     print_table("atlas: ALL scan points vs the drawn mesh, per level (default fit)",
                 ["object", "patches", "level", "bytes", "% within 0.5%", "RMS all",
-                 "Draco RMS", "max mesh->scan %diag", "border edges", "scan border",
+                 "Draco RMS", "normal turn deg, mean / p90 (Draco's)",
+                 "max mesh->scan %diag", "border edges", "scan border",
                  "% border off scan's"], table)
     for r in results:  # folds: pleats of the base, level 0's area turned over against it
         if r.get("pleats"):

@@ -104,28 +104,41 @@ def _covered_mesh(scan, cov, u, v) -> tuple[np.ndarray, np.ndarray]:
     return scan.points[used], remap[faces]
 
 
-def draco_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> list[dict]:
-    import DracoPy
+def decimated(vertices: np.ndarray, faces: np.ndarray, target: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh quadric-decimated to about ``target`` faces (``fast_simplification``), or
+    itself when it has no more; float32 / int32 for Draco."""
     import fast_simplification
 
+    if target < len(faces):
+        return fast_simplification.simplify(vertices.astype(np.float32), faces.astype(np.int32),
+                                             target_reduction=1.0 - target / len(faces))
+    return vertices.astype(np.float32), faces.astype(np.int32)
+
+
+def draco_coded(vertices: np.ndarray, faces: np.ndarray, bits: int
+                ) -> tuple[int, np.ndarray, np.ndarray]:
+    """The mesh through Draco at ``bits`` (compression level 10): its bytes, and the
+    decoded vertices and faces a reader draws."""
+    import DracoPy
+
+    buf = DracoPy.encode(vertices, faces, quantization_bits=bits, compression_level=10)
+    mesh = DracoPy.decode(buf)
+    return (len(buf), np.asarray(mesh.points, dtype=float),
+            np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3))
+
+
+def draco_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> list[dict]:
     rows = []
     targets = [f for f in (250, 500, 1000, 2000, 4000, 8000, 16000, 32000, 64000)
                if f < len(faces)] + [len(faces)]
     for target in targets:
-        if target < len(faces):
-            v, f = fast_simplification.simplify(vertices.astype(np.float32),
-                                                faces.astype(np.int32),
-                                                target_reduction=1.0 - target / len(faces))
-        else:
-            v, f = vertices.astype(np.float32), faces.astype(np.int32)
+        v, f = decimated(vertices, faces, target)
         for bits in DRACO_BITS:
-            buf = DracoPy.encode(v, f, quantization_bits=bits, compression_level=10)
-            mesh = DracoPy.decode(buf)
-            dv = np.asarray(mesh.points, dtype=float)
-            df = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+            size, dv, df = draco_coded(v, f, bits)
             d = mesh_distance(points, dv, df)
-            rows.append({"method": "draco", "faces": int(len(df)), "bits": bits,
-                         "bytes": len(buf), "rms": float(np.sqrt(np.mean(d**2))),
+            rows.append({"method": "draco", "faces": int(len(df)), "target": target,
+                         "bits": bits, "bytes": size, "rms": float(np.sqrt(np.mean(d**2))),
                          "max": float(d.max())})
     return rows
 

@@ -9,6 +9,9 @@ mesh a visitor's browser draws (``client_py``'s level-L tessellation in the scan
 * :func:`reverse_errors`: dense area-weighted samples of the drawn mesh against the scan
   (the scan's triangles, or its nearest points for a cloud): fins, spikes and skirts that
   hang off the object show here and nowhere else;
+* :func:`normal_errors`: the angle between the drawn surface and the scan's at dense
+  samples of the drawn mesh: wrinkles, ripples and creases that a visitor sees in the
+  shading move the distances by a fraction of the RMS and show here;
 * :func:`boundary_length`: the welded mesh's open border (edges used by one triangle), and
   :func:`border_off_scan`: how much of it lies where the scan is not open;
 * :func:`render_views`: the drawn mesh and the scan rendered from the same orthographic
@@ -23,7 +26,8 @@ from scipy.spatial import cKDTree
 
 from fitter.fitting.atlas.measure import closest_points_on_mesh, far_places
 from fitter.fitting.atlas.measure import point_mesh_distance as mesh_distance
-from fitter.fitting.atlas.surface import area_samples
+from fitter.fitting.atlas.surface import ScanSurface, area_samples
+from fitter.fitting.atlas.texture import barycentric
 
 
 def diagonal(points: np.ndarray) -> float:
@@ -80,6 +84,36 @@ def reverse_errors(vertices: np.ndarray, faces: np.ndarray, scan_points: np.ndar
                      for p in far_places(samples, normals, closest, 0.01 * diag,
                                          FAR_LINK * diag)[:FAR_PLACES]]
     return out
+
+
+NORMAL_SAMPLES = 400_000  # area samples of the drawn mesh normal_errors measures
+STEEP = 20.0  # degrees: normal_errors' share of the drawn area turned this far from the scan's
+
+
+def normal_errors(vertices: np.ndarray, faces: np.ndarray, scan_points: np.ndarray,
+                  scan_faces: np.ndarray, count: int = NORMAL_SAMPLES) -> dict:
+    """How far the drawn surface turns from the scan's: at ``count`` area-weighted samples
+    of the drawn mesh, the angle between its triangle's normal and the scan's normal at
+    the closest point of the scan (its vertex normals, area-weighted, interpolated across
+    the scan triangle: Phong's normal, a smooth reference that a faceted scan's own
+    triangles would not give), in degrees, orientation ignored. ``mean``, ``p50``, ``p90``
+    and ``steep``, the share of the drawn area turned more than :data:`STEEP` degrees.
+
+    A surface can be near the scan in distance and still turn away from it in a ripple or
+    a crease too narrow to raise the RMS much: the shading shows it. A scan without
+    triangles (a cloud) has no normals to compare: measure meshes only."""
+    samples, normals = surface_samples(vertices, faces, count, seed=3)
+    _, triangle, closest = closest_points_on_mesh(samples, scan_points, scan_faces)
+    corners = np.asarray(scan_faces)[triangle]
+    points = np.asarray(scan_points, dtype=float)
+    weights = barycentric(closest, *(points[corners[:, k]] for k in range(3)))
+    vertex_normals = ScanSurface(points, np.asarray(scan_faces), "mesh", 1).vertex_normals
+    reference = np.einsum("ik,ikj->ij", weights, vertex_normals[corners])
+    reference /= np.maximum(np.linalg.norm(reference, axis=1, keepdims=True), 1e-300)
+    cosine = np.abs(np.einsum("ij,ij->i", normals, reference))
+    angle = np.degrees(np.arccos(np.clip(cosine, 0.0, 1.0)))
+    return {"mean": float(angle.mean()), "p50": float(np.median(angle)),
+            "p90": float(np.quantile(angle, 0.9)), "steep": float(np.mean(angle > STEEP))}
 
 
 def weld(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> np.ndarray:

@@ -64,3 +64,55 @@ def test_a_triangle_the_weld_collapses_is_left_out():
     ends, nonmanifold = border_edges(vertices, np.array([[0, 1, 2], [3, 3, 1]]), 1e-9)
     assert len(ends) == 3 and nonmanifold == 0
     assert np.linalg.norm(ends[:, 0] - ends[:, 1], axis=1).sum() == pytest.approx(2 + 2 ** 0.5)
+
+
+def test_normal_errors_against_surfaces_whose_angles_are_known():
+    from bench.scoring import normal_errors
+
+    plane = grid(40)
+    # the same square tilted by 10 degrees about the x axis: every sample turned 10 degrees
+    tilt = np.radians(10.0)
+    turned = plane[0] @ np.array([[1, 0, 0], [0, np.cos(tilt), np.sin(tilt)],
+                                  [0, -np.sin(tilt), np.cos(tilt)]])
+    flat = normal_errors(turned, plane[1], *plane, count=20_000)
+    assert flat["mean"] == pytest.approx(10.0, abs=1e-6)
+    assert flat["p90"] == pytest.approx(10.0, abs=1e-6) and flat["steep"] == 0.0
+    # a ripple z = a sin(k x) over the plane: at x the surface turns atan(a k cos(k x)); its
+    # area-weighted mean by quadrature (an area element grows by sqrt(1 + slope^2))
+    a, k = 0.02, 2 * np.pi * 5
+    n = 400
+    t = np.linspace(0.0, 1.0, n + 1)
+    u, v = np.meshgrid(t, t, indexing="ij")
+    ripple = np.stack([u.ravel(), v.ravel(), a * np.sin(k * u.ravel())], axis=1)
+    _, faces = grid(n)
+    got = normal_errors(ripple, faces, *plane, count=200_000)
+    x = np.linspace(0.0, 1.0, 200_001)
+    slope = a * k * np.cos(k * x)
+    weight = np.sqrt(1 + slope**2)
+    angle = np.degrees(np.arctan(np.abs(slope)))
+    assert got["mean"] == pytest.approx(np.sum(angle * weight) / np.sum(weight), rel=0.02)
+    steep = np.sum((angle > 20) * weight) / np.sum(weight)  # about 0.62
+    assert got["steep"] == pytest.approx(steep, abs=0.01)
+
+
+def test_normal_errors_compare_with_the_scans_smooth_normal_not_its_facets():
+    """A faceted sphere's interpolated vertex normals are nearly radial: the exact sphere
+    turns from them by well under a degree, from its facets by about three."""
+    import trimesh
+
+    from bench.scoring import normal_errors
+
+    coarse = trimesh.creation.icosphere(subdivisions=3)
+    fine = trimesh.creation.icosphere(subdivisions=6)
+    got = normal_errors(np.asarray(fine.vertices), np.asarray(fine.faces),
+                        np.asarray(coarse.vertices), np.asarray(coarse.faces), count=50_000)
+    assert got["mean"] < 0.6 and got["steep"] == 0.0
+    from fitter.fitting.atlas.measure import closest_points_on_mesh
+
+    facet = np.asarray(coarse.face_normals)
+    samples = np.asarray(fine.sample(20_000))
+    _, triangle, _ = closest_points_on_mesh(samples, np.asarray(coarse.vertices),
+                                            np.asarray(coarse.faces))
+    radial = samples / np.linalg.norm(samples, axis=1, keepdims=True)
+    to_facets = np.degrees(np.arccos(np.clip(np.abs((radial * facet[triangle]).sum(1)), 0, 1)))
+    assert to_facets.mean() > 3 * got["mean"]
