@@ -28,7 +28,6 @@ others keep their records from the earlier ``atlas.json`` (with their own ``date
 
 from __future__ import annotations
 
-import gzip
 import json
 import os
 import tempfile
@@ -79,12 +78,14 @@ def _objects() -> dict[str, Path]:
 
 
 def served_manifest_bytes(bundle: Path) -> int:
-    """The manifest as the server sends it to a visitor: gzip level 6 of
-    ``fitter.collection.bundles.served_manifest`` of the file."""
+    """The manifest as the server sends it to a visitor that accepts gzip:
+    ``fitter.collection.bundles.served_manifest`` of the file, compressed as
+    ``fitter.server.files.compress`` does (a browser that accepts brotli gets fewer)."""
     from fitter.collection.bundles import served_manifest
+    from fitter.server.files import compress
 
     manifest = json.loads((bundle / "manifest.json").read_text())
-    return len(gzip.compress(served_manifest(manifest), 6, mtime=0))
+    return len(compress(served_manifest(manifest), "gzip"))
 
 
 def drawn_levels(bundle: Path) -> list[dict]:

@@ -98,6 +98,9 @@ def normal_errors(vertices: np.ndarray, faces: np.ndarray, scan_points: np.ndarr
     the scan triangle: Phong's normal, a smooth reference that a faceted scan's own
     triangles would not give), in degrees, orientation ignored. ``mean``, ``p50``, ``p90``
     and ``steep``, the share of the drawn area turned more than :data:`STEEP` degrees.
+    Where the scan's triangles around a point are wound against each other, their vertex
+    normals cancel; where the interpolated normal has no length, the scan triangle's own
+    normal is the reference.
 
     A surface can be near the scan in distance and still turn away from it in a ripple or
     a crease too narrow to raise the RMS much: the shading shows it. A scan without
@@ -107,9 +110,11 @@ def normal_errors(vertices: np.ndarray, faces: np.ndarray, scan_points: np.ndarr
     corners = np.asarray(scan_faces)[triangle]
     points = np.asarray(scan_points, dtype=float)
     weights = barycentric(closest, *(points[corners[:, k]] for k in range(3)))
-    vertex_normals = ScanSurface(points, np.asarray(scan_faces), "mesh", 1).vertex_normals
-    reference = np.einsum("ik,ikj->ij", weights, vertex_normals[corners])
-    reference /= np.maximum(np.linalg.norm(reference, axis=1, keepdims=True), 1e-300)
+    scan = ScanSurface(points, np.asarray(scan_faces), "mesh", 1)
+    reference = np.einsum("ik,ikj->ij", weights, scan.vertex_normals[corners])
+    length = np.linalg.norm(reference, axis=1, keepdims=True)
+    reference = np.where(length > 1e-6, reference / np.maximum(length, 1e-300),
+                         scan.face_normals[triangle])
     cosine = np.abs(np.einsum("ij,ij->i", normals, reference))
     angle = np.degrees(np.arccos(np.clip(cosine, 0.0, 1.0)))
     return {"mean": float(angle.mean()), "p50": float(np.median(angle)),

@@ -188,6 +188,7 @@ def test_admin_uploads_publishes_and_the_viewer_reaches_ready(admin_live, page, 
     page.wait_for_url("**/admin/jobs/*")
     page.wait_for_selector("#job[data-state=done]")  # the page's own polling shows the end
     assert page.inner_text("#job-percent") == "100%"
+    assert page.locator("#job-notes").is_hidden()  # nothing to say of this fit
     page.click("#job-object-link")
     page.click("#publish-toggle")
     page.wait_for_selector("#viewer-link")

@@ -174,6 +174,23 @@ def test_a_visitor_is_served_the_manifest_without_the_fits_own_records(client, w
     assert summary["view_bytes"] == len(response.data) + summary["files"]["base.tsp"]
 
 
+def test_the_visitors_manifest_in_brotli_and_uncached_when_bundles_are(client, web_collection):
+    served = served_manifest(json.loads((web_collection / "relief" / "manifest.json")
+                                        .read_text()))
+    response = client.get("/bundles/relief/manifest.json",
+                          headers={"Accept-Encoding": "gzip, br"})
+    assert response.headers["Content-Encoding"] == "br"
+    assert brotli.decompress(response.data) == served
+    assert response.headers["ETag"].endswith('-br"')
+    zipped = client.get("/bundles/relief/manifest.json", headers={"Accept-Encoding": "gzip"})
+    assert zipped.headers["ETag"] != response.headers["ETag"]
+    # a server told not to cache bundles revalidates the manifest too
+    app = create_app({"TESSERA_COLLECTION": str(web_collection), "TESTING": True,
+                      "TESSERA_BUNDLE_MAX_AGE": 0})
+    cache = app.test_client().get("/bundles/relief/manifest.json").headers["Cache-Control"]
+    assert "no-cache" in cache and "immutable" not in cache
+
+
 def test_gzip_only_when_accepted_and_when_it_helps(client, web_collection):
     manifest = served_manifest(json.loads((web_collection / "relief" / "manifest.json")
                                           .read_text()))
