@@ -190,9 +190,9 @@ def edit_object(object_id: str) -> ResponseReturnValue:
         else:
             flash("Saved.")
             return redirect(url_for("admin.edit_object", object_id=object_id))
-    jobs = [j.public() for j in state().catalog().jobs_of(object_id)]
-    viewer_url = url_for("objects.viewer", object_id=object_id) if obj["published"] else None
     catalog = state().catalog()
+    jobs = [j.public() for j in catalog.jobs_of(object_id)]
+    viewer_url = url_for("objects.viewer", object_id=object_id) if obj["published"] else None
     return render_template("admin_object.html", obj=obj, jobs=jobs, error=error,
                            viewer_url=viewer_url, view=_view_texts(object_id),
                            notes=catalog.fit_notes(object_id),
