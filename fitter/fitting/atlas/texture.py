@@ -44,7 +44,7 @@ from ..texture import (
     texel_levels,
     uv_picture,
 )
-from .measure import DrawnMesh, closest_points_on_mesh
+from .measure import DrawnMesh, barycentric, closest_points_on_mesh
 from .patches import control_points, evaluate_patches, index_table
 
 TEXELS_PER_PACK = 512 * 512  # an image grows by whole groups until it passes this
@@ -77,22 +77,6 @@ class AtlasTexture:
     files: dict
     cells: list
     groups: list
-
-
-def barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates ``(N, 3)`` of points ``q`` in triangles ``(a, b, c)``, all
-    ``(N, 3)`` (Ericson, *Real-Time Collision Detection*, §3.4; a degenerate triangle gives
-    its first vertex)."""
-    v0, v1, v2 = b - a, c - a, q - a
-    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
-    d20, d21 = np.einsum("ij,ij->i", v2, v0), np.einsum("ij,ij->i", v2, v1)
-    den = d00 * d11 - d01 * d01
-    ok = np.abs(den) > 1e-300
-    safe = np.where(ok, den, 1.0)
-    wb = np.where(ok, (d11 * d20 - d01 * d21) / safe, 0.0)
-    wc = np.where(ok, (d00 * d21 - d01 * d20) / safe, 0.0)
-    w = np.clip(np.stack([1.0 - wb - wc, wb, wc], axis=1), 0.0, 1.0)
-    return w / w.sum(axis=1, keepdims=True)
 
 
 def scan_colour_at(scan, points: np.ndarray) -> np.ndarray:

@@ -1,0 +1,477 @@
+"""Subdivision surfaces as linear maps, and a control mesh fitted to a scan.
+
+A candidate for a smooth base (docs/benchmarks.md, "Session 28: a subdivision base"): today's
+base is bicubic patches that join C0, about nine stored control points a patch. A
+subdivision surface stores one point per control vertex and is smooth by its rules: C2
+where the control mesh is regular, C1 at its extraordinary vertices.
+
+Each step is linear in the control points, so ``k`` steps are one sparse matrix ``S``
+(``S_k ... S_1``) and the drawn mesh is ``S V`` with its own triangles:
+
+* **Catmull-Clark** (Catmull & Clark, *Recursively generated B-spline surfaces on arbitrary
+  topological meshes*, CAD 1978), any polygons (one step makes every face a quad; on a
+  regular quad mesh the steps are the uniform bicubic B-spline's knot insertion, Lane &
+  Riesenfeld 1980):
+
+  - face point: the mean of the face's vertices;
+  - edge point: ``(a + b + F_1 + F_2) / 4`` with ``F_i`` the two face points;
+  - vertex point of valence ``k``: ``(Q + 2 R + (k - 3) v) / k``, ``Q`` the mean of its faces'
+    points, ``R`` the mean of its edges' midpoints.
+
+* **Loop** (Loop, *Smooth subdivision surfaces based on triangles*, MS thesis, Utah 1987),
+  triangles (each into four; on a regular mesh the quartic box spline):
+
+  - edge point: ``3/8 (a + b) + 1/8 (c + d)``, ``c, d`` opposite the edge;
+  - vertex point: ``(1 - k beta) v + beta sum(neighbours)``,
+    ``beta = (5/8 - (3/8 + cos(2 pi / k) / 4)^2) / k``.
+
+Borders (Hoppe et al., *Piecewise smooth surface reconstruction*, SIGGRAPH 1994): an edge
+with one face (or more than two) is a crease; its edge point is its midpoint, and a vertex
+on exactly two such edges follows the cubic B-spline curve, ``(a + 6 v + b) / 8`` of its
+two border neighbours; a vertex on one or more than two is a corner and stays, as does a
+vertex in no face. So the border of the drawn mesh is a curve of the control border alone,
+as a scan's open rim needs.
+
+:func:`fit_control_points` moves the control points so that the drawn surface fits a scan:
+least squares over every scan point's closest point on the drawn mesh (rows ``S``
+interpolated at it), rows pulling every drawn vertex toward its closest scan point (so no
+part of the drawn surface drifts where no scan point holds it) and an umbrella smoothing
+of the control mesh, the closest points found again each round (as the paper's parameter
+correction, Ćurković, Vučina et al., and the atlas's base fit do).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from ..spd import spd_lu
+from .measure import barycentric, closest_points_on_mesh
+from .mesh_edges import mesh_edges
+
+SCHEMES = ("catmull-clark", "loop")
+MAX_LEVELS = 6
+
+
+@dataclass(frozen=True)
+class Corners:
+    """Every corner of a polygon mesh, face after face and in each face's order: its
+    ``vertex``, its ``face``, the ``next`` and ``prev`` corners of its face, and the face
+    sizes (``size``, per face)."""
+
+    vertex: np.ndarray
+    face: np.ndarray
+    next: np.ndarray
+    prev: np.ndarray
+    size: np.ndarray
+
+
+def corners_of(n: int, faces: Sequence[np.ndarray]) -> Corners:
+    """The :class:`Corners` of ``faces``: arrays ``(m, k)`` of ``k``-gons (``k >= 3``; an
+    empty array is no face), numbered array after array, of vertices ``0..n-1``.
+
+    Raises
+    ------
+    ValueError
+        A block that is not ``(m, k)`` with ``k >= 3``, or a vertex index outside ``0..n-1``.
+    """
+    vertex, face, nxt, prev, size = [], [], [], [], []
+    first = corner = 0
+    for block in faces:
+        block = np.asarray(block)
+        if block.ndim != 2 or (block.size and block.shape[1] < 3) or \
+                (block.size and not np.issubdtype(block.dtype, np.integer)):
+            raise ValueError(f"faces must be (m, k) integer arrays with k >= 3, got shape "
+                             f"{block.shape} of {block.dtype}")
+        if not block.size:
+            continue
+        m, k = block.shape
+        if block.min() < 0 or block.max() >= n:
+            raise ValueError(f"faces use vertices {block.min()}..{block.max()}; there are {n}")
+        at = corner + np.arange(m * k).reshape(m, k)
+        vertex.append(block.reshape(-1).astype(np.int64))
+        face.append(np.repeat(np.arange(first, first + m), k))
+        nxt.append(np.roll(at, -1, axis=1).reshape(-1))
+        prev.append(np.roll(at, 1, axis=1).reshape(-1))
+        size.append(np.full(m, k))
+        first, corner = first + m, corner + m * k
+    empty = np.zeros(0, np.int64)
+    return Corners(*(np.concatenate(a) if a else empty for a in (vertex, face, nxt, prev, size)))
+
+
+@dataclass(frozen=True)
+class Edges:
+    """The undirected edges of a polygon mesh of ``size`` vertices, sorted by
+    ``lo * size + hi``: edge ``e`` joins ``lo[e] < hi[e]`` and borders ``uses[e]`` faces;
+    ``of_corner[c]`` is the edge from corner ``c`` to the next corner of its face."""
+
+    size: int
+    lo: np.ndarray
+    hi: np.ndarray
+    of_corner: np.ndarray
+    uses: np.ndarray
+
+    @property
+    def crease(self) -> np.ndarray:
+        """Edges that do not join exactly two faces: a border (or a non-manifold edge)."""
+        return self.uses != 2
+
+    def ends(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each edge from both ends: ``(vertex, other end)``, ``2 E`` of each."""
+        return np.concatenate([self.lo, self.hi]), np.concatenate([self.hi, self.lo])
+
+    def valence(self) -> np.ndarray:
+        """Edges at each vertex, shape ``(size,)``."""
+        return np.bincount(self.ends()[0], minlength=self.size)
+
+    def creases_at(self) -> np.ndarray:
+        """Crease edges at each vertex, shape ``(size,)``."""
+        return np.bincount(self.ends()[0][np.tile(self.crease, 2)], minlength=self.size)
+
+    def endpoint_rows(self, inner: float, crease: float) -> sp.csr_matrix:
+        """``(E, size)``: each edge's two ends weighed ``inner`` (an edge of two faces) or
+        ``crease``."""
+        E = len(self.lo)
+        weight = np.tile(np.where(self.crease, crease, inner), 2)
+        return sp.csr_matrix((weight, (np.tile(np.arange(E), 2), self.ends()[0])),
+                             shape=(E, self.size))
+
+
+def edges_of(n: int, corners: Corners) -> Edges:
+    """The :class:`Edges` of a mesh of ``n`` vertices from its ``corners``."""
+    a, b = corners.vertex, corners.vertex[corners.next]
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    keys, of_corner, uses = np.unique(lo * n + hi, return_inverse=True, return_counts=True)
+    return Edges(n, keys // n, keys % n, of_corner.reshape(-1), uses)
+
+
+def _vertex_rows(edges: Edges, interior: tuple[np.ndarray, np.ndarray]) -> sp.csr_matrix:
+    """The vertex points ``(n, n)``: ``interior = (own weight, each neighbour's weight)``
+    per vertex for a vertex of edges and no crease edge; the cubic B-spline curve's ``(a +
+    6 v + b) / 8`` on exactly two crease edges; kept (weight 1) otherwise."""
+    n = edges.size
+    ends, other = edges.ends()
+    creases, valence = edges.creases_at(), edges.valence()
+    smooth, curve = (creases == 0) & (valence > 0), creases == 2
+    own, weight = interior
+    diagonal = np.where(smooth, own, np.where(curve, 0.75, 1.0))
+    inner = smooth[ends]
+    along = curve[ends] & np.tile(edges.crease, 2)
+    rows = np.concatenate([np.arange(n), ends[inner], ends[along]])
+    cols = np.concatenate([np.arange(n), other[inner], other[along]])
+    vals = np.concatenate([diagonal, weight[ends[inner]], np.full(along.sum(), 0.125)])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+
+
+def catmull_clark_step(n: int, faces: Sequence[np.ndarray]) -> tuple[sp.csr_matrix, np.ndarray]:
+    """One Catmull-Clark step (module docstring).
+
+    Parameters
+    ----------
+    n : int
+        Control points.
+    faces : sequence of ndarray, shape (m, k)
+        Arrays of ``k``-gons, e.g. ``[quads, triangles]`` (:func:`corners_of`).
+
+    Returns
+    -------
+    S : scipy.sparse.csr_matrix, shape (n + E + F, n)
+        The new points from the old: the vertex points, then the edge points (in
+        :func:`edges_of`' order), then the face points (faces numbered array after array).
+    quads : ndarray, shape (C, 4)
+        One quad per corner ``(corner, edge point after it, face point, edge point before
+        it)``, turning as its face did.
+    """
+    corners = corners_of(n, faces)
+    F = len(corners.size)
+    face_points = sp.csr_matrix((1.0 / corners.size[corners.face],
+                                 (corners.face, corners.vertex)), shape=(F, n))
+    edges = edges_of(n, corners)
+    E = len(edges.lo)
+    inner = ~edges.crease[edges.of_corner]  # the corner's edge joins two faces
+    beside = sp.csr_matrix((np.full(inner.sum(), 0.25), (edges.of_corner[inner],
+                                                         corners.face[inner])), shape=(E, F))
+    edge_points = edges.endpoint_rows(0.25, 0.5) + beside @ face_points
+    # a smooth vertex of valence k: (Q + 2 R + (k - 3) v) / k = Q / k + (k - 2) / k v + R' / k
+    # with R' the mean of its neighbours (2 R = v + R')
+    k = np.maximum(edges.valence(), 1).astype(float)
+    vertex_points = _vertex_rows(edges, ((k - 2) / k, 1 / k ** 2))
+    at_vertex = np.bincount(corners.vertex, minlength=n).astype(float)
+    mean_face = sp.csr_matrix((1 / at_vertex[corners.vertex], (corners.vertex, corners.face)),
+                              shape=(n, F))
+    smooth = sp.diags(np.where((edges.creases_at() == 0) & (edges.valence() > 0), 1 / k, 0.0))
+    vertex_points = vertex_points + smooth @ mean_face @ face_points
+    S = sp.vstack([vertex_points, edge_points, face_points]).tocsr()
+    quads = np.stack([corners.vertex, n + edges.of_corner, n + E + corners.face,
+                      n + edges.of_corner[corners.prev]], axis=1)
+    return S, quads
+
+
+def loop_step(n: int, triangles: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """One Loop step (module docstring) of ``n`` control points and ``triangles (m, 3)``.
+
+    Returns
+    -------
+    S : scipy.sparse.csr_matrix, shape (n + E, n)
+        The vertex points, then the edge points (in :func:`edges_of`' order).
+    triangles : ndarray, shape (4 m, 3)
+        Each triangle's four, turning as it did.
+
+    Raises
+    ------
+    ValueError
+        ``triangles`` not of shape ``(m, 3)`` (Loop's rules are for triangles).
+    """
+    triangles = np.asarray(triangles)
+    if triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise ValueError(f"Loop subdivides triangles: an (m, 3) array, got shape "
+                         f"{triangles.shape}")
+    corners = corners_of(n, [triangles])
+    edges = edges_of(n, corners)
+    E = len(edges.lo)
+    inner = ~edges.crease[edges.of_corner]  # corner c's edge c -> next: prev is opposite it
+    opposite = sp.csr_matrix((np.full(inner.sum(), 0.125), (
+        edges.of_corner[inner], corners.vertex[corners.prev][inner])), shape=(E, n))
+    k = np.maximum(edges.valence(), 1).astype(float)
+    beta = (0.625 - (0.375 + np.cos(2 * np.pi / k) / 4) ** 2) / k
+    S = sp.vstack([_vertex_rows(edges, (1 - k * beta, beta)),
+                   edges.endpoint_rows(0.375, 0.5) + opposite]).tocsr()
+    e = (n + edges.of_corner).reshape(-1, 3)  # edges (a, b), (b, c), (c, a)
+    a, b, c = corners.vertex.reshape(-1, 3).T
+    out = [(a, e[:, 0], e[:, 2]), (e[:, 0], b, e[:, 1]), (e[:, 2], e[:, 1], c),
+           (e[:, 0], e[:, 1], e[:, 2])]
+    return S, np.concatenate([np.stack(t, axis=1) for t in out])
+
+
+@dataclass(frozen=True)
+class Subdivided:
+    """``levels`` steps of ``scheme`` from the control mesh ``faces`` of ``control``
+    points: the drawn points are ``matrix @ V`` (``matrix`` of shape ``(points,
+    control)``), its triangles ``triangles`` (a Catmull-Clark quad ``(a, b, c, d)`` as ``(a,
+    b, c), (a, c, d)``)."""
+
+    scheme: str
+    levels: int
+    control: int
+    faces: tuple[np.ndarray, ...]
+    matrix: sp.csr_matrix
+    triangles: np.ndarray
+
+
+def subdivided(n: int, faces: Sequence[np.ndarray], levels: int,
+               scheme: str = "catmull-clark") -> Subdivided:
+    """``levels`` (1..:data:`MAX_LEVELS`) steps of ``scheme`` (:data:`SCHEMES`) of ``n``
+    control points and ``faces`` (for Loop, one array of triangles).
+
+    Raises
+    ------
+    ValueError
+        An unknown scheme, a level count out of range, faces Loop cannot take, or faces
+        :func:`corners_of` refuses.
+    """
+    if scheme not in SCHEMES:
+        raise ValueError(f"scheme must be one of {', '.join(SCHEMES)}, got {scheme!r}")
+    if isinstance(levels, bool) or not isinstance(levels, int | np.integer) or \
+            not 1 <= levels <= MAX_LEVELS:
+        raise ValueError(f"levels must be an int in 1..{MAX_LEVELS}, got {levels!r}")
+    faces = tuple(np.asarray(block) for block in faces)
+    matrix = sp.identity(n, format="csr")
+    if scheme == "loop":
+        if len(faces) != 1:
+            raise ValueError(f"Loop subdivides one array of triangles, got {len(faces)} arrays")
+        current = faces[0]
+        for _ in range(levels):
+            step, current = loop_step(matrix.shape[0], current)
+            matrix = (step @ matrix).tocsr()
+        return Subdivided(scheme, levels, n, faces, matrix, current)
+    current = list(faces)
+    for _ in range(levels):
+        step, quads = catmull_clark_step(matrix.shape[0], current)
+        matrix, current = (step @ matrix).tocsr(), [quads]
+    quads = current[0]
+    return Subdivided(scheme, levels, n, faces, matrix,
+                      np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]))
+
+
+def _quads_of(triangles: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """The quad ``(a, d, b, c)`` of each pair ``(a, b, c)``, ``(b, a, d)`` of ``triangles``
+    (``pairs (P, 2)``), ``-1`` where the two share no edge run opposite ways."""
+    first, second = triangles[pairs[:, 0]], triangles[pairs[:, 1]]
+    quads = np.full((len(pairs), 4), -1, np.int64)
+    for j in range(3):  # the first's edge a -> b (slot j), found run b -> a in the second
+        a, b, c = first[:, j], first[:, (j + 1) % 3], first[:, (j + 2) % 3]
+        for i in range(3):
+            hit = (second[:, i] == b) & (second[:, (i + 1) % 3] == a) & (quads[:, 0] < 0)
+            quads[hit] = np.stack([a, second[:, (i + 2) % 3], b, c], axis=1)[hit]
+    return quads
+
+
+def joined_pairs(triangles: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles joined into quads across a shared edge: ``pairs (P, 2)`` of triangle
+    indices, each triangle in at most one pair, each pair sharing an edge run opposite ways
+    (``a -> b`` in one, ``b -> a`` in the other). Returns ``(quads (P, 4), the other
+    triangles)``, the quad ``(a, d, b, c)`` of ``(a, b, c)`` and ``(b, a, d)``: turning as
+    they did.
+
+    Raises
+    ------
+    ValueError
+        A triangle in two pairs, or a pair without such a shared edge.
+    """
+    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    if len(np.unique(pairs)) != pairs.size:
+        raise ValueError("a triangle is in two pairs")
+    quads = _quads_of(triangles, pairs)
+    if (quads[:, 0] < 0).any():
+        raise ValueError("a pair of triangles shares no edge run opposite ways")
+    alone = np.ones(len(triangles), bool)
+    alone[pairs.reshape(-1)] = False
+    return quads, triangles[alone]
+
+
+def paired_triangles(vertices: np.ndarray, triangles: np.ndarray, worst: float = 60.0
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """A quad-dominant control mesh from triangles: neighbours across an edge of exactly two
+    faces, run opposite ways (:func:`.mesh_edges.mesh_edges`' twins), joined into convex
+    quads, the squarest first (the largest departure of a corner angle from 90 degrees, at
+    most ``worst``; a corner turning against the quad's normal, a reflex or folded corner,
+    is never joined), each triangle at most once.
+
+    Returns
+    -------
+    quads : ndarray, shape (Q, 4)
+    triangles : ndarray, shape (T, 3)
+        Those left, turning as they did (:func:`joined_pairs`).
+    """
+    vertices = np.asarray(vertices, float)
+    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
+    m = len(triangles)
+    table = mesh_edges(triangles)
+    edge = np.flatnonzero((table.twins >= 0) & (np.arange(3 * m) < table.twins))
+    pairs = np.stack([edge % max(m, 1), table.twins[edge] % max(m, 1)], axis=1)
+    corners = vertices[_quads_of(triangles, pairs)]
+    before = np.roll(corners, 1, axis=1) - corners
+    after = np.roll(corners, -1, axis=1) - corners
+    normal = (np.cross(corners[:, 2] - corners[:, 0], corners[:, 3] - corners[:, 1]))
+    turn = np.einsum("qkc,qc->qk", np.cross(after, before), normal)  # > 0: convex, same way
+    cosine = np.einsum("qkc,qkc->qk", before, after) / np.maximum(
+        np.linalg.norm(before, axis=2) * np.linalg.norm(after, axis=2), 1e-300)
+    departure = np.abs(np.degrees(np.arccos(np.clip(cosine, -1, 1))) - 90).max(axis=1)
+    good = (departure <= worst) & (turn > 0).all(axis=1)
+    used = np.zeros(m, bool)
+    kept = []
+    for p in np.flatnonzero(good)[np.argsort(departure[good], kind="stable")]:
+        f, g = pairs[p]
+        if not used[f] and not used[g]:
+            used[f] = used[g] = True
+            kept.append(p)
+    return joined_pairs(triangles, pairs[np.asarray(kept, np.int64)])
+
+
+def umbrella(n: int, faces: Sequence[np.ndarray]) -> sp.csr_matrix:
+    """The umbrella operator ``v - mean(neighbours)`` of a polygon mesh, ``(n, n)`` (a
+    vertex in no face: 0)."""
+    edges = edges_of(n, corners_of(n, faces))
+    ends, other = edges.ends()
+    adjacency = sp.csr_matrix((np.ones(len(ends)), (ends, other)), shape=(n, n))
+    valence = edges.valence()
+    return (sp.diags((valence > 0).astype(float))
+            - sp.diags(1.0 / np.maximum(valence, 1)) @ adjacency).tocsr()
+
+
+def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivided,
+                       scan_faces: np.ndarray | None = None, rounds: int = 10,
+                       smoothing: float = 1e-4, reverse: float = 0.3, tangential: float = 0.1
+                       ) -> tuple[np.ndarray, list[float]]:
+    """Control points whose drawn surface (``surface.matrix @ V``) fits ``points``.
+
+    Each round finds every point's closest point on the drawn mesh, with the unit normal
+    ``n_i`` of its triangle there, and solves for the three coordinates together (``3 n``
+    unknowns, one sparse Cholesky of the normal equations: :func:`..spd.spd_lu`)
+
+        ``min sum_i [(n_i . (B_i V - p_i))^2 + t^2 |B_i V - p_i|^2]
+              + r^2 (N/M) sum_j |S_j V - q_j|^2 + s (N/n) |U V|^2``
+
+    ``B_i`` the row of ``S`` interpolated at point ``i``'s closest point (barycentric):
+    the distance along the normal weighs ``1 + t^2``, along the surface ``t^2``, a squared
+    distance minimisation (Wang, Pottmann & Liu, *Fitting B-spline curves to point clouds by
+    curvature-based squared distance minimization*, ACM TOG 2006) which converges where
+    fitting the closest points alone (``t`` large) slides along the surface; ``q_j`` the
+    scan's closest point to drawn vertex ``j``; ``U`` the control mesh's umbrella operator
+    (:func:`umbrella`), which also holds the combinations of control points the rules
+    cancel (on a mesh whose vertices all have valence 3, the alternating one); ``N``,
+    ``M``, ``n`` the counts of points, drawn vertices and control points.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+    control : ndarray, shape (n, 3)
+        The control points to start from.
+    surface : Subdivided
+        The drawn surface of the control mesh (:func:`subdivided`).
+    scan_faces : ndarray, shape (T, 3), optional
+        The scan's triangles over ``points``: ``q_j`` is the closest point on them; without,
+        the nearest of ``points``.
+    rounds : int
+    smoothing, reverse, tangential : float
+        ``s > 0``, ``r >= 0``, ``t >= 0``.
+
+    Returns
+    -------
+    control : ndarray, shape (n, 3)
+    history : list of float
+        The RMS distance of the points to the drawn mesh before each round and after the
+        last (``rounds + 1`` values).
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not agree, no point, or a weight out of range.
+    """
+    points = np.asarray(points, float)
+    V = np.asarray(control, float).copy()
+    S, triangles = surface.matrix, surface.triangles
+    n, m = len(V), S.shape[0]
+    if V.shape != (surface.control, 3) or points.ndim != 2 or points.shape[1] != 3 or \
+            not len(points):
+        raise ValueError(f"control must be ({surface.control}, 3) and points (N > 0, 3), got "
+                         f"{V.shape} and {points.shape}")
+    if not smoothing > 0 or not reverse >= 0 or not tangential >= 0 or rounds < 1:
+        raise ValueError(f"smoothing must be > 0, reverse and tangential >= 0, rounds >= 1; "
+                         f"got {smoothing}, {reverse}, {tangential}, {rounds}")
+    smooth = umbrella(n, surface.faces) * np.sqrt(smoothing * len(points) / n)
+    pull = np.sqrt(len(points) / m) * reverse
+    nearest = cKDTree(points) if scan_faces is None else None
+    history = []
+
+    def closest(V):
+        drawn = S @ V
+        distance, tri, foot = closest_points_on_mesh(points, drawn, triangles)
+        history.append(float(np.sqrt(np.mean(distance ** 2))))
+        return drawn, tri, foot
+
+    drawn, tri, foot = closest(V)
+    for _ in range(rounds):
+        corners = [drawn[triangles[tri, k]] for k in range(3)]
+        w = barycentric(foot, *corners)
+        rows = sum(sp.diags(w[:, k]) @ S[triangles[tri, k]] for k in range(3)).tocsr()
+        normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        if nearest is None:
+            target = closest_points_on_mesh(drawn, points, scan_faces)[2]
+        else:
+            target = points[nearest.query(drawn)[1]]
+        along = sp.hstack([sp.diags(normal[:, c]) @ rows for c in range(3)])
+        each = sp.block_diag([sp.vstack([rows * tangential, S * pull, smooth])] * 3)
+        A = sp.vstack([along, each]).tocsr()
+        rhs = np.concatenate([np.einsum("ic,ic->i", normal, points)]
+                             + [np.concatenate([points[:, c] * tangential, target[:, c] * pull,
+                                                np.zeros(n)]) for c in range(3)])
+        V = spd_lu(A.T @ A).solve(A.T @ rhs).reshape(3, n).T  # unknowns: all x, all y, all z
+        drawn, tri, foot = closest(V)
+    return V, history
