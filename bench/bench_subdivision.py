@@ -7,26 +7,25 @@ This measures a candidate: the same decimated mesh Draco codes, used instead as 
 (``fitter.fitting.atlas.subdivision``), drawn after ``--levels`` steps:
 
 * ``loop``: Loop's rules on the decimated triangles;
-* ``catmull-clark``: the triangles paired into quads where they make good ones
-  (``paired_triangles``), Catmull-Clark's rules on the quad-dominant mesh (every face a
-  quad after one step, so each control face could carry the atlas's per-patch
+* ``catmull-clark``: Catmull-Clark's rules on the same triangles (each becomes three quads
+  at the first step, so every face after it could carry the atlas's per-patch
   ``[0, 1]^2`` detail tiles).
 
 For each mesh of ``../shared/data`` (a cloud has no Draco row): the budget is the atlas
 base's bytes in ``bench/results/atlas.json`` (24,000 without it); Draco's best decimation
 and bits at or under it (``bench.bench_rate_distortion``); the two control meshes are that
-decimation, fitted, and coded by Draco at the same bits (Catmull-Clark's quads as two
-triangles each, plus two bits a decoded triangle saying which it is joined with). Every
-figure is measured against ALL scan points on the mesh a reader draws from the *decoded*
-control mesh: RMS, the share within 0.5 % of the diagonal, the largest distance from the drawn
-mesh to the scan (200,000 area samples) and how its surface turns from the scan's
-(``bench.scoring.normal_errors``). Six views of the scan, Draco's mesh and both surfaces
-are saved to ``bench/results/subdivision/<object>.png``.
+decimation, fitted, and coded by Draco at the same bits (a control mesh whose file passes
+the budget is made smaller and fitted again). Every figure is measured against ALL scan
+points on the mesh a reader draws from the *decoded* control mesh: RMS, the share within
+0.5 % of the diagonal, the largest distance from the drawn mesh to the scan (200,000 area
+samples) and how its surface turns from the scan's (``bench.scoring.normal_errors``). Six
+views of the scan, Draco's mesh and both surfaces are saved to
+``bench/results/subdivision/<object>.png``.
 
 Not a format: nothing here is written to a bundle, and a browser would need Draco's
 decoder or a coder of our own for the control mesh. It says what a smooth base buys
 (docs/benchmarks.md, "Session 28"). All six meshes take about 25 minutes on the 2-core
-machine (two fits of ten rounds each, 17-101 s apiece); ``--objects nefertiti`` one.
+machine (two fits of ten rounds each, 17-130 s apiece); ``--objects nefertiti`` one.
 """
 
 from __future__ import annotations
@@ -36,7 +35,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from bench import RESULTS, print_table, write_results
 from bench.bench_atlas import OBJECTS, _scan_mesh
@@ -88,46 +86,20 @@ def _subdivision_row(points, faces, diag, target, bits, scheme, levels, rounds):
     """The scan decimated to ``target`` triangles as the control mesh of ``scheme``, fitted,
     coded by Draco at ``bits``: its record and the mesh a reader draws from the file."""
     from bench.bench_rate_distortion import decimated, draco_coded
-    from fitter.fitting.atlas.subdivision import (
-        fit_control_points,
-        joined_pairs,
-        paired_triangles,
-        subdivided,
-    )
+    from fitter.fitting.atlas.subdivision import fit_control_points, subdivided
 
     control, triangles = decimated(points, faces, target)
     control, triangles = control.astype(float), triangles.astype(np.int64)
     start = time.perf_counter()
-    if scheme == "loop":
-        mesh = [triangles]
-    else:
-        mesh = list(paired_triangles(control, triangles))
-    surface = subdivided(len(control), mesh, levels, scheme)
+    surface = subdivided(len(control), [triangles], levels, scheme)
     fitted, history = fit_control_points(points, control, surface, faces, rounds=rounds)
     seconds = time.perf_counter() - start
-    row = {"control_triangles": int(len(triangles)), "control_points": int(len(control)),
-           "fit_s": seconds, "history": history}
-    if scheme == "loop":
-        size, cv, cf = draco_coded(fitted.astype(np.float32), triangles.astype(np.int32), bits)
-        decoded = [cf]
-    else:
-        quads, left = mesh
-        halves = [quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]
-        size, cv, cf = draco_coded(fitted.astype(np.float32),
-                                   np.concatenate(halves + [left]).astype(np.int32), bits)
-        # which decoded triangles make a quad, as the writer tells the reader: 2 bits a
-        # triangle (alone, or the slot of the edge its partner lies across)
-        size += -(-2 * len(cf) // 8)
-        ours = cKDTree(fitted).query(cv)[1]  # the writer knows its points
-        at = {tuple(sorted(t)): k for k, t in enumerate(ours[cf].tolist())}
-        pairs = [(at[a], at[b]) for a, b in zip(map(tuple, np.sort(halves[0], 1).tolist()),
-                                                map(tuple, np.sort(halves[1], 1).tolist()),
-                                                strict=True) if a in at and b in at]
-        decoded = list(joined_pairs(cf, np.asarray(pairs, np.int64).reshape(-1, 2)))
-        row.update(quads=int(len(decoded[0])), triangles=int(len(decoded[1])))
-    drawn = subdivided(len(cv), decoded, levels, scheme)  # what a reader draws from the file
+    size, cv, cf = draco_coded(fitted.astype(np.float32), triangles.astype(np.int32), bits)
+    drawn = subdivided(len(cv), [cf], levels, scheme)  # what a reader draws from the file
     x = drawn.matrix @ cv
-    row.update(bytes=size, **_scored(points, faces, x, drawn.triangles, diag))
+    row = {"control_triangles": int(len(triangles)), "control_points": int(len(control)),
+           "fit_s": seconds, "history": history, "bytes": size,
+           **_scored(points, faces, x, drawn.triangles, diag)}
     return row, (x, drawn.triangles)
 
 

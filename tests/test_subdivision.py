@@ -15,9 +15,7 @@ from fitter.fitting.atlas.subdivision import (
     corners_of,
     edges_of,
     fit_control_points,
-    joined_pairs,
     loop_step,
-    paired_triangles,
     subdivided,
     umbrella,
 )
@@ -149,22 +147,6 @@ def test_loop_border_follows_the_cubic_b_spline_curve():
     assert np.allclose(X[5 + edges_number(edges)(0, 1)], 3 / 8 * (V[0] + V[1]) + (V[2] + V[4]) / 8)
 
 
-def test_paired_triangles_rebuild_a_grid_of_squares():
-    n = 4
-    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-    V = np.stack([i.ravel(), j.ravel(), 0 * i.ravel()], 1).astype(float)
-    a = (np.arange(n)[:, None] * (n + 1) + np.arange(n)).ravel()
-    squares = np.stack([a, a + n + 1, a + n + 2, a + 1], 1)
-    triangles = np.concatenate([squares[:, [0, 1, 2]], squares[:, [0, 2, 3]]])
-    quads, left = paired_triangles(V, triangles)
-    assert len(left) == 0 and len(quads) == n * n
-    assert {frozenset(q) for q in quads} == {frozenset(s) for s in squares}
-    normals = np.cross(V[quads[:, 1]] - V[quads[:, 0]], V[quads[:, 2]] - V[quads[:, 1]])
-    assert (normals[:, 2] > 0).all()  # turning as the triangles did
-    quads, left = paired_triangles(V, triangles[:1])
-    assert len(quads) == 0 and len(left) == 1
-
-
 def test_fit_control_points_recovers_a_surface_drawn_from_its_own_control_mesh():
     # the cube's control net once refined (26 points): a cube's own eight are ambiguous, the
     # alternating mode of a mesh of valence-3 vertices only being annihilated by the rules
@@ -231,22 +213,6 @@ def test_bad_faces_are_refused_with_what_is_wrong():
         subdivided(4, [CUBE_QUADS], 1)
     with pytest.raises(ValueError, match="k >= 3"):
         catmull_clark_step(8, [CUBE_QUADS[:, :2]])
-
-
-def test_paired_triangles_join_only_convex_quads_across_two_face_edges():
-    # an arrow head: (0,0)-(2,0)-(1,0.4) and (0,0)-(1,0.4)-(1,1.5)... made of two triangles
-    # sharing 0-2 whose union has a reflex corner
-    V = np.array([[0, 0, 0], [3, 0, 0], [1, 0.3, 0], [1, 2, 0]], float)
-    tris = np.array([[0, 1, 2], [0, 2, 3]])
-    quads, left = paired_triangles(V, tris, worst=89)
-    assert len(quads) == 0 and len(left) == 2
-    # a fin: three triangles on one edge join none
-    V = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], float)
-    fin = np.array([[0, 1, 2], [1, 0, 3], [1, 0, 4]])
-    quads, left = paired_triangles(V, fin)
-    assert len(quads) == 0 and len(left) == 3
-    with pytest.raises(ValueError, match="two pairs"):
-        joined_pairs(fin, [[0, 1], [1, 2]])
 
 
 def test_one_round_of_the_fit_is_the_least_squares_it_documents():

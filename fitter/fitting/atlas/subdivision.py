@@ -51,7 +51,6 @@ from scipy.spatial import cKDTree
 
 from ..spd import spd_lu
 from .measure import barycentric, closest_points_on_mesh
-from .mesh_edges import mesh_edges
 
 SCHEMES = ("catmull-clark", "loop")
 MAX_LEVELS = 6
@@ -295,82 +294,6 @@ def subdivided(n: int, faces: Sequence[np.ndarray], levels: int,
     quads = current[0]
     return Subdivided(scheme, levels, n, faces, matrix,
                       np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]))
-
-
-def _quads_of(triangles: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """The quad ``(a, d, b, c)`` of each pair ``(a, b, c)``, ``(b, a, d)`` of ``triangles``
-    (``pairs (P, 2)``), ``-1`` where the two share no edge run opposite ways."""
-    first, second = triangles[pairs[:, 0]], triangles[pairs[:, 1]]
-    quads = np.full((len(pairs), 4), -1, np.int64)
-    for j in range(3):  # the first's edge a -> b (slot j), found run b -> a in the second
-        a, b, c = first[:, j], first[:, (j + 1) % 3], first[:, (j + 2) % 3]
-        for i in range(3):
-            hit = (second[:, i] == b) & (second[:, (i + 1) % 3] == a) & (quads[:, 0] < 0)
-            quads[hit] = np.stack([a, second[:, (i + 2) % 3], b, c], axis=1)[hit]
-    return quads
-
-
-def joined_pairs(triangles: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles joined into quads across a shared edge: ``pairs (P, 2)`` of triangle
-    indices, each triangle in at most one pair, each pair sharing an edge run opposite ways
-    (``a -> b`` in one, ``b -> a`` in the other). Returns ``(quads (P, 4), the other
-    triangles)``, the quad ``(a, d, b, c)`` of ``(a, b, c)`` and ``(b, a, d)``: turning as
-    they did.
-
-    Raises
-    ------
-    ValueError
-        A triangle in two pairs, or a pair without such a shared edge.
-    """
-    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
-    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    if len(np.unique(pairs)) != pairs.size:
-        raise ValueError("a triangle is in two pairs")
-    quads = _quads_of(triangles, pairs)
-    if (quads[:, 0] < 0).any():
-        raise ValueError("a pair of triangles shares no edge run opposite ways")
-    alone = np.ones(len(triangles), bool)
-    alone[pairs.reshape(-1)] = False
-    return quads, triangles[alone]
-
-
-def paired_triangles(vertices: np.ndarray, triangles: np.ndarray, worst: float = 60.0
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """A quad-dominant control mesh from triangles: neighbours across an edge of exactly two
-    faces, run opposite ways (:func:`.mesh_edges.mesh_edges`' twins), joined into convex
-    quads, the squarest first (the largest departure of a corner angle from 90 degrees, at
-    most ``worst``; a corner turning against the quad's normal, a reflex or folded corner,
-    is never joined), each triangle at most once.
-
-    Returns
-    -------
-    quads : ndarray, shape (Q, 4)
-    triangles : ndarray, shape (T, 3)
-        Those left, turning as they did (:func:`joined_pairs`).
-    """
-    vertices = np.asarray(vertices, float)
-    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
-    m = len(triangles)
-    table = mesh_edges(triangles)
-    edge = np.flatnonzero((table.twins >= 0) & (np.arange(3 * m) < table.twins))
-    pairs = np.stack([edge % max(m, 1), table.twins[edge] % max(m, 1)], axis=1)
-    corners = vertices[_quads_of(triangles, pairs)]
-    before = np.roll(corners, 1, axis=1) - corners
-    after = np.roll(corners, -1, axis=1) - corners
-    normal = (np.cross(corners[:, 2] - corners[:, 0], corners[:, 3] - corners[:, 1]))
-    turn = np.einsum("qkc,qc->qk", np.cross(after, before), normal)  # > 0: convex, same way
-    cosine = np.einsum("qkc,qkc->qk", before, after) / np.maximum(
-        np.linalg.norm(before, axis=2) * np.linalg.norm(after, axis=2), 1e-300)
-    departure = np.abs(np.degrees(np.arccos(np.clip(cosine, -1, 1))) - 90).max(axis=1)
-    good = (departure <= worst) & (turn > 0).all(axis=1)
-    used = np.zeros(m, bool)
-    kept = []
-    for p in np.flatnonzero(good)[np.argsort(departure[good], kind="stable")]:
-        f, g = pairs[p]
-        if not used[f] and not used[g]:
-            used[f] = used[g] = True
-            kept.append(p)
-    return joined_pairs(triangles, pairs[np.asarray(kept, np.int64)])
 
 
 def umbrella(n: int, faces: Sequence[np.ndarray]) -> sp.csr_matrix:
