@@ -1,9 +1,10 @@
 """Subdivision surfaces as linear maps, and a control mesh fitted to a scan.
 
-A candidate for a smooth base (docs/benchmarks.md, "Session 28: a subdivision base"): today's
-base is bicubic patches that join C0, about nine stored control points a patch. A
-subdivision surface stores one point per control vertex and is smooth by its rules: C2
-where the control mesh is regular, C1 at its extraordinary vertices.
+A candidate for a smooth base, measured by ``python -m bench subdivision`` (docs/benchmarks.md,
+"Session 28: a smooth base, measured"); the fit does not use it yet. Today's base is bicubic
+patches that join C0, about nine stored control points a patch. A subdivision surface
+stores one point per control vertex and is smooth by its rules: C2 where the control mesh
+is regular, C1 at its extraordinary vertices.
 
 Each step is linear in the control points, so ``k`` steps are one sparse matrix ``S``
 (``S_k ... S_1``) and the drawn mesh is ``S V`` with its own triangles:
