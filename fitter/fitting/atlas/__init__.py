@@ -18,6 +18,10 @@ The pipeline, one module per step:
 * :mod:`.detail`, :mod:`.texture` — the detail and colour pyramids per patch;
   :mod:`.measure` — every scan point against the drawn mesh; :mod:`.pipeline` — the stages
   of an atlas bundle.
+
+Beside the pipeline, not used by it yet: :mod:`.subdivision` — Catmull-Clark and Loop
+subdivision as sparse maps and a control mesh fitted to a scan, the smooth base that
+``python -m bench subdivision`` measures against Draco and today's base.
 """
 
 from .fit import AtlasFit, AtlasFitError, fit_atlas
