@@ -132,6 +132,10 @@ class Edges:
         """Crease edges at each vertex, shape ``(size,)``."""
         return np.bincount(self.ends()[0][np.tile(self.crease, 2)], minlength=self.size)
 
+    def smooth_vertices(self) -> np.ndarray:
+        """Vertices with edges and no crease edge, which take a scheme's interior rule."""
+        return (self.creases_at() == 0) & (self.valence() > 0)
+
     def endpoint_rows(self, inner: float, crease: float) -> sp.csr_matrix:
         """``(E, size)``: each edge's two ends weighed ``inner`` (an edge of two faces) or
         ``crease``."""
@@ -155,8 +159,7 @@ def _vertex_rows(edges: Edges, interior: tuple[np.ndarray, np.ndarray]) -> sp.cs
     6 v + b) / 8`` on exactly two crease edges; kept (weight 1) otherwise."""
     n = edges.size
     ends, other = edges.ends()
-    creases, valence = edges.creases_at(), edges.valence()
-    smooth, curve = (creases == 0) & (valence > 0), creases == 2
+    smooth, curve = edges.smooth_vertices(), edges.creases_at() == 2
     own, weight = interior
     diagonal = np.where(smooth, own, np.where(curve, 0.75, 1.0))
     inner = smooth[ends]
@@ -203,7 +206,7 @@ def catmull_clark_step(n: int, faces: Sequence[np.ndarray]) -> tuple[sp.csr_matr
     at_vertex = np.bincount(corners.vertex, minlength=n).astype(float)
     mean_face = sp.csr_matrix((1 / at_vertex[corners.vertex], (corners.vertex, corners.face)),
                               shape=(n, F))
-    smooth = sp.diags(np.where((edges.creases_at() == 0) & (edges.valence() > 0), 1 / k, 0.0))
+    smooth = sp.diags(np.where(edges.smooth_vertices(), 1 / k, 0.0))
     vertex_points = vertex_points + smooth @ mean_face @ face_points
     S = sp.vstack([vertex_points, edge_points, face_points]).tocsr()
     quads = np.stack([corners.vertex, n + edges.of_corner, n + E + corners.face,
