@@ -594,6 +594,9 @@ class FrameCoder:
 QUAD_RECENT = 4
 QUAD_RANK_CONTEXTS = 32  # ranks 0..31 have contexts of their own, later ones share the last
 QUAD_DISTANCE_BITS = 18  # 1 <= distance <= V - 1 < 2^17: its bit length is below this
+#: a control mesh's triangles take their candidates from this many latest neighbours of a
+#: vertex (real control meshes have valences under 20: the same bytes as no limit)
+FACE_REACH = 32
 
 
 def canonical_atlas(atlas: AtlasSurface) -> AtlasSurface:
@@ -639,48 +642,57 @@ def canonical_atlas(atlas: AtlasSurface) -> AtlasSurface:
                         moved[n_vertices:n_edge], moved[n_edge:], weights)
 
 
-class _QuadModel:
-    """Adaptive contexts of the layout (docs/format.md, "Atlas layout (version 3)"), by the
-    corner's slot ``s`` (0..3 in the quad)."""
+class _FaceModel:
+    """Adaptive contexts of a layout of quads (docs/format.md, "Atlas layout (version 3)")
+    or of a control mesh's triangles ("Control mesh (version 5)"), by the corner's slot
+    ``s`` (0..3 in the face; a triangle uses slots 0..2)."""
 
     def __init__(self) -> None:
-        self.new = [HALF] * 8  # s, and whether the corner before it in the quad was new
+        self.new = [HALF] * 8  # s, and whether the corner before it in the face was new
         self.hit = [HALF] * 16  # s, min(candidates, 3)
         self.rank = [HALF] * (4 * QUAD_RANK_CONTEXTS)  # s, min(t, 31)
         self.prefix = [HALF] * (4 * QUAD_DISTANCE_BITS)  # s, t
         self.suffix = [HALF] * (4 * QUAD_DISTANCE_BITS)  # s, t
 
 
-def _candidates(quad: Sequence[int], slot: int, recent: Sequence[Sequence[int]],
-                linked: Sequence[list[int]], directed: set[tuple[int, int]]) -> list[int]:
-    """The vertices corner ``slot`` of a quad most likely reuses, likeliest first, from its
-    corners ``quad[:slot]`` and the quads decoded before it.
+def _candidates(face: Sequence[int], slot: int, recent: Sequence[Sequence[int]],
+                linked: Sequence[list[int]], directed: set[tuple[int, int]],
+                last: int = 3, reach: int | None = None) -> list[int]:
+    """The vertices corner ``slot`` of a face most likely reuses, likeliest first, from its
+    corners ``face[:slot]`` and the faces decoded before it.
 
-    Corner 0: the corners of the last :data:`QUAD_RECENT` quads, the latest first. Corner
-    ``s > 0``: the layout neighbours (in the order their sides were first decoded) of the
-    corner before it, ``x`` of ``p = quad[s - 1]``, and for the last corner also of the
-    first, ``y = quad[0]``, leaving out the quad's corners so far; ranked by a score, ties
-    in that order: 1 per such neighbour relation, 2 more where an earlier quad runs the
-    side the other way and no quad runs it this way yet (an *open* side, ``x -> p`` or
-    ``y -> x``, which only the quad across it still needs: a manifold layout runs each side
-    once each way).
+    Corner 0: the corners of the last :data:`QUAD_RECENT` faces, the latest first. Corner
+    ``s > 0``: the layout neighbours (in the order their sides were first decoded; with
+    ``reach``, only the latest ``reach`` of them) of the corner before it, ``x`` of ``p =
+    face[s - 1]``, and for the ``last`` corner (3 in a quad, 2 in a triangle) also of the
+    first, ``y = face[0]``, leaving out the face's corners so far; ranked by a score, ties
+    in that order: 1 per such neighbour relation, 2 more where an earlier face runs the
+    side the other way and no face runs it this way yet (an *open* side, ``x -> p`` or
+    ``y -> x``, which only the face across it still needs: a manifold layout runs each side
+    once each way). ``x`` and ``p`` are neighbours exactly when a face ran ``x -> p`` or
+    ``p -> x``, so ``directed`` answers that in constant time.
     """
     if slot == 0:
         out: list[int] = []
         for q in reversed(recent):
             out.extend(k for k in q if k not in out)
         return out
-    before, first = quad[slot - 1], quad[0] if slot == 3 else None
-    pool = linked[before] if first is None else linked[before] + linked[first]
+    before, first = face[slot - 1], face[0] if slot == last else None
+    pool = linked[before] if reach is None else linked[before][-reach:]
+    if first is not None:
+        pool = pool + (linked[first] if reach is None else linked[first][-reach:])
     scored: dict[int, int] = {}
     for x in pool:
-        if x in scored or x in quad[:slot]:
+        if x in scored or x in face[:slot]:
             continue
         score = 0
-        if x in linked[before]:
-            score += 1 + 2 * ((x, before) in directed and (before, x) not in directed)
-        if first is not None and x in linked[first]:
-            score += 1 + 2 * ((first, x) in directed and (x, first) not in directed)
+        into, out_of = (x, before) in directed, (before, x) in directed
+        if into or out_of:
+            score += 1 + 2 * (into and not out_of)
+        if first is not None:
+            into, out_of = (first, x) in directed, (x, first) in directed
+            if into or out_of:
+                score += 1 + 2 * (into and not out_of)
         scored[x] = score
     return sorted(scored, key=lambda x: -scored[x])
 
@@ -688,14 +700,26 @@ def _candidates(quad: Sequence[int], slot: int, recent: Sequence[Sequence[int]],
 def _code_quads(coder: RangeEncoder | RangeDecoder, n_quads: int, n_vertices: int,
                 quads: Sequence[Sequence[int]] | None = None) -> list[tuple[int, int, int, int]]:
     """Encode ``quads`` (numbered as :func:`canonical_atlas` numbers them) or, with
-    ``quads=None``, decode ``n_quads`` of them (docs/format.md, "Atlas layout (version 3)").
+    ``quads=None``, decode ``n_quads`` of them (docs/format.md, "Atlas layout (version 3)"):
+    :func:`_code_faces` of 4 corners."""
+    return _code_faces(coder, n_quads, n_vertices, quads, 4)
 
-    Per corner ``v`` in slot ``s`` of each quad, with ``u`` the count of distinct
+
+def _code_faces(coder: RangeEncoder | RangeDecoder, n_faces: int, n_vertices: int,
+                faces: Sequence[Sequence[int]] | None, corners: int) -> list[tuple[int, ...]]:
+    """Encode ``faces`` of ``corners`` (4: a layout's quads; 3: a control mesh's triangles)
+    vertices each, numbered in the order they first use them, or, with ``faces=None``,
+    decode ``n_faces`` of them (docs/format.md, "Atlas layout (version 3)" and "Control
+    mesh (version 5)").
+
+    Per corner ``v`` in slot ``s`` of each face, with ``u`` the count of distinct
     vertices so far: a bit ``v == u`` (a first use; context ``s`` and whether the corner
-    before it in the quad was one); else, with the :func:`_candidates` ``C`` non-empty,
+    before it in the face was one); else, with the :func:`_candidates` ``C`` non-empty,
     a bit ``v in C`` (context ``s, min(|C|, 3)``) and then its rank ``r`` in ``C`` in
     unary (``r`` ones and a zero, none after rank ``|C| - 1``; the ``t``-th with context
     ``s, min(t, 31)``); else ``u - v >= 1`` as adaptive Exp-Golomb (context ``s``).
+    Triangles draw their candidates from a vertex's latest :data:`FACE_REACH` neighbours
+    alone, so that a vertex of any valence costs a bounded time per corner.
 
     Raises
     ------
@@ -705,8 +729,12 @@ def _code_quads(coder: RangeEncoder | RangeDecoder, n_quads: int, n_vertices: in
         (encoding) a corner that is neither a first use nor an earlier vertex: the numbering
         is not canonical.
     """
-    encoding = quads is not None
-    model, out = _QuadModel(), []
+    encoding = faces is not None
+    noun = "quad" if corners == 4 else "triangle"
+    canonical = "canonical_atlas" if corners == 4 else "canonical_control_mesh"
+    reach = None if corners == 4 else FACE_REACH
+    last = corners - 1
+    model, out = _FaceModel(), []
     linked: list[list[int]] = [[] for _ in range(n_vertices)]
     directed: set[tuple[int, int]] = set()
     used = 0
@@ -717,49 +745,50 @@ def _code_quads(coder: RangeEncoder | RangeDecoder, n_quads: int, n_vertices: in
             return bit
         return bool(coder.bit(probs, context))
 
-    for f in range(n_quads):
-        quad: list[int] = []
+    for f in range(n_faces):
+        face: list[int] = []
         was_new = True
-        for slot in range(4):
-            v = quads[f][slot] if encoding else -1
+        for slot in range(corners):
+            v = faces[f][slot] if encoding else -1
             if encoding and v > used:
-                raise ValueError(f"quads[{f}][{slot}] = {v}: a canonical numbering uses vertex "
-                                 f"{used} first (canonical_atlas)")
+                raise ValueError(f"{noun}s[{f}][{slot}] = {v}: a canonical numbering uses "
+                                 f"vertex {used} first ({canonical})")
             was_new = flag(model.new, 2 * slot + was_new, v == used)
             if was_new:
                 if used >= n_vertices:
-                    raise PatchFormatError(HEADER_SIZE, f"quad {f} uses more than the "
+                    raise PatchFormatError(HEADER_SIZE, f"{noun} {f} uses more than the "
                                            f"{n_vertices} vertices")
-                quad.append(used)
+                face.append(used)
                 used += 1
                 continue
-            pool = _candidates(quad, slot, out[-QUAD_RECENT:], linked, directed)
+            pool = _candidates(face, slot, out[-QUAD_RECENT:], linked, directed, last, reach)
             if pool and flag(model.hit, 4 * slot + min(len(pool), 3), v in pool):
                 rank, target = 0, pool.index(v) if encoding else -1
                 while rank < len(pool) - 1 and flag(
                         model.rank, slot * QUAD_RANK_CONTEXTS + min(rank, QUAD_RANK_CONTEXTS - 1),
                         rank < target):
                     rank += 1
-                quad.append(pool[rank])
+                face.append(pool[rank])
                 continue
             at = slot * QUAD_DISTANCE_BITS
             if encoding:
                 encode_exp_golomb(coder, used - v, model.prefix, at, model.suffix, at)
-                quad.append(v)
+                face.append(v)
                 continue
             distance = decode_exp_golomb(coder, model.prefix, at, model.suffix, at,
                                          QUAD_DISTANCE_BITS)
             if distance is None or distance > used:
-                raise PatchFormatError(HEADER_SIZE, f"quad {f}: corner {slot} refers to a "
+                raise PatchFormatError(HEADER_SIZE, f"{noun} {f}: corner {slot} refers to a "
                                        f"vertex before the first")
-            quad.append(used - distance)
-        for k in range(4):
-            a, b = quad[k], quad[(k + 1) % 4]
-            if b not in linked[a]:
+            face.append(used - distance)
+        for k in range(corners):
+            a, b = face[k], face[(k + 1) % corners]
+            # neighbours already exactly when a face ran the side either way
+            if (a, b) not in directed and (b, a) not in directed:
                 linked[a].append(b)
                 linked[b].append(a)
             directed.add((a, b))
-        out.append(tuple(quad))
+        out.append(tuple(face))
     return out
 
 
@@ -1138,7 +1167,9 @@ def _read_axis(cur: _Cursor, predictor: _Predictor, count: int, bits: int,
 
 
 def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
-    """Decode a ``.tsa`` file, version 3, 2 or 1, into ``(AtlasSurface, metadata)``.
+    """Decode a ``.tsa`` file, version 4, 3, 2 or 1, into ``(AtlasSurface, metadata)``;
+    version 5, a smooth base's control mesh, into the atlas it draws
+    (``client_py.control_mesh``).
 
     Raises
     ------
@@ -1146,6 +1177,10 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
         For anything but a valid atlas (truncation, corruption, a foreign file), with the
         byte offset and the reason; never anything else.
     """
+    if isinstance(data, bytes | bytearray | memoryview) and bytes(data[4:6]) == b"\x05\x00":
+        from .control_mesh import read_atlas_file  # version 5: a smooth base's control mesh
+
+        return read_atlas_file(data)
     head = read_atlas_header(data)
     version, flags, bits = head["version"], head["flags"], head["bits"]
     degree, spans = head["degree"], head["spans"]

@@ -35,7 +35,7 @@ from fitter.server.admin.service import parse_fit_options
 #: the documented defaults (README, docs/admin.md), written out independently of the table
 DOCUMENTED_DEFAULTS = {
     "grid": (40, 40), "degree": 2, "method": "tessera", "bits": None, "max_error": None,
-    "max_grid": None, "patches": None, "projection": "auto", "up": "auto", "title": None,
+    "max_grid": None, "patches": None, "base": "smooth", "projection": "auto", "up": "auto", "title": None,
     "description": None, "units": None,
     "feature_strength": 4.0, "seed": 0,
     "samples": 60_000, "detail_levels": None, "detail_spans": 16, "texture": True,
@@ -126,7 +126,8 @@ BAD = [
     ("max_grid", "20", 20),  # below the grid's largest side (40)
     ("patches", "0", 0),
     ("patches", "2", 2),  # 1 is a single patch, an atlas has 3 or more: a rule of its own
-    ("patches", "12289", 12_289),  # more than the fitter's largest layout makes
+    ("patches", "27001", 27_001),  # more than the fitter's largest layout makes
+    ("base", "nurbs", "nurbs"),
     ("projection", "torus", "torus"),
     ("feature_strength", "101", 101.0),
     ("feature_strength", "-0.5", -0.5),

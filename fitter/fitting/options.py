@@ -36,15 +36,18 @@ METHODS = ("tessera", "paper", "linear")
 PROJECTIONS = ("auto", "plane", "cylinder", "sphere")
 #: ``auto`` and the axes of ``fitter.fitting.orient.AXES`` (tests/test_orient.py checks that
 #: the two agree)
+#: an atlas's base (``fitter.fitting.atlas.smooth``, ``fitter.fitting.atlas.fit``)
+ATLAS_BASES = ("smooth", "patches")
 UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 GRID_SIDE_LIMIT = MAX_GRID_SIDE  # what a .tsp holds (client_py.format.LIMITS), per side
 DEFAULT_MAX_GRID = 128  # max_grid = None: the grid grows to max(128, its largest side)
 FIT_SAMPLE = 60_000  # default of samples
 DETAIL_SPANS = 16  # default of detail_spans (= fitter.fitting.detail.SPANS, checked by a test)
-#: the most patches of an atlas the fitter makes: three quads per layout triangle, of at most
-#: ``fitter.fitting.atlas.fit.AUTO_MAX_TRIANGLES = MAX_PATCHES // 3`` triangles (a bundle
-#: holds up to ``client_py.atlas.MAX_ATLAS_QUADS``)
-MAX_PATCHES = 3 * 4096
+#: the most patches of an atlas the fitter makes: three quads per layout (or control)
+#: triangle, of at most ``fitter.fitting.atlas.fit.AUTO_MAX_TRIANGLES = MAX_PATCHES // 3``
+#: triangles (a bundle holds up to ``client_py.atlas.MAX_ATLAS_QUADS``; a patches base of
+#: as many stays within the ``.tsa`` limit of 2^18 control points, 9 a patch)
+MAX_PATCHES = 3 * 9000
 KINDS = ("grid", "int", "float", "choice", "bool", "text")
 #: the upload form's groups of fields, in order: (group, legend)
 FORM_GROUPS = (("object", "Object"), ("base", "Fit options"), ("layers", "Detail and texture"),
@@ -241,6 +244,10 @@ OPTIONS: tuple[Option, ...] = (
            maximum=MAX_PATCHES,
            none="auto: one patch for a height field, else an atlas sized for the object",
            cli="--patches", form="patches"),
+    Option("base", "choice", "smooth", "Atlas base",
+           "the whole object's base: smooth (a triangle control mesh drawn as Catmull-Clark "
+           "patches, the fewest bytes for its error) or patches (bicubic patches stored "
+           "point by point, joined C0)", choices=ATLAS_BASES, cli="--base", form="base"),
     Option("projection", "choice", "auto", "Projection", "map to the parameter domain",
            choices=PROJECTIONS, cli="--projection", form="projection",
            atlas=False),
@@ -299,7 +306,8 @@ class FitOptions:
     ``fitter.fitting.atlas.fit.BASE_STEP_OVER_RMS`` times its RMS); max_error : target
     RMS in scan units (grows the grid);
     max_grid : cap for that growth (``None``: :attr:`largest_grid`); patches : of the atlas
-    (``None``: ``fitter.fitting.atlas.pipeline.wants_atlas`` decides; 1: one patch);
+    (``None``: ``fitter.fitting.atlas.pipeline.wants_atlas`` decides; 1: one patch); base :
+    an atlas's base, ``smooth`` or ``patches`` (:data:`ATLAS_BASES`);
     projection : ``auto`` or a map; up : the object's up axis (``auto``: found by
     ``fitter.fitting.orient``);
     title : the object's title; description : what it is; units : the scan's length unit
@@ -319,6 +327,7 @@ class FitOptions:
     max_error: float | None = _DEFAULT["max_error"]
     max_grid: int | None = _DEFAULT["max_grid"]
     patches: int | None = _DEFAULT["patches"]
+    base: str = _DEFAULT["base"]
     projection: str = _DEFAULT["projection"]
     up: str = _DEFAULT["up"]
     title: str | None = _DEFAULT["title"]

@@ -158,5 +158,5 @@ def fit_pieces(scan: Scan, folder: Path, manifest: dict,
     (folder / PIECES_FILE).write_bytes(data)
     return {**entry, "file": PIECES_FILE, "pieces": len(fitted), "points": int(len(chosen)),
             "patches": len(read_atlas(data)[0].quads),
-            "resolution": base_resolution(fit.atlas.spans), "bits": fit.bits,
+            "resolution": base_resolution(fit.atlas.spans, len(fit.atlas.quads)), "bits": fit.bits,
             "uncovered": small}

@@ -261,6 +261,8 @@ PACK_BYTES = 24_000  # the finest level's pack of a group stays within this
 # about 22 bytes gzipped and each pack 9 (the dense vase's 2,280 patches cut to 256 groups
 # of 8-9, 65,536 vertices at 65 x 65, made its manifest 16 KB larger and its packs 17 KB).
 GROUP_VERTICES = 250_000
+#: the most patches of ``SPANS`` spans a side in a group: of ``m`` spans, ``(SPANS / m)²``
+#: times as many (a smooth base's small patches, ``.smooth``), the same cells of the drawn grid
 GROUP_PATCHES = 256
 MU_FLOOR = 0.25
 OFFSET_LIMIT = 0.2  # largest |s| fitted, in median patch sides (0.5 drew flaps on Lucy; 0.1 left
@@ -2038,9 +2040,13 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                        spans: int = SPANS, step_factor: float = STEP_FACTOR,
                        max_samples: int = MAX_SAMPLES,
                        progress: Callable[[float], None] | None = None,
-                       original: Scan | None = None) -> DetailPyramid:
+                       original: Scan | None = None, keep_order: bool = False
+                       ) -> DetailPyramid:
     """:func:`fit_atlas_detail`'s pyramid (the same parameters but ``pack_bytes``), its
-    packs not yet coded (:func:`pack_pyramid`)."""
+    packs not yet coded (:func:`pack_pyramid`). ``keep_order``: the patches keep their
+    numbers (a smooth base's are its control triangles', which its file fixes: its
+    triangles are put in k-d tree order instead, ``.smooth``), else they are renumbered in
+    :func:`spatial_order`."""
     _check_arguments(levels, spans, step_factor)
     if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1000:
         raise ValueError(f"max_samples must be an int >= 1000, got {max_samples!r}")
@@ -2050,7 +2056,7 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     base = fit.atlas
     table0, cps0 = index_table(base), control_points(base)
     centres = cps0[table0].reshape(len(base.quads), -1, 3).mean(axis=1)
-    order = spatial_order(centres)
+    order = np.arange(len(centres)) if keep_order else spatial_order(centres)
     atlas = renumber_patches(base, order)
     F = len(atlas.quads)
     sides = patch_sides(atlas)
@@ -2225,7 +2231,7 @@ def pack_pyramid(pyramid: DetailPyramid, pack_bytes: int = PACK_BYTES) -> AtlasD
                       for t in made if t.walls is not None), default=0)
     drawn = pyramid.levels[-1]["resolution"] ** 2 if levels else 1
     groups = _groups(finest, F, pack_bytes, max(levels - 1, 0), spans, walls_side,
-                     max(1, min(GROUP_PATCHES, GROUP_VERTICES // drawn)))
+                     max(1, min(GROUP_PATCHES * (SPANS // spans) ** 2, GROUP_VERTICES // drawn)))
     files: dict[str, bytes] = {}
     packs = []
     level_rows = [dict(row) for row in pyramid.levels]

@@ -52,7 +52,7 @@ from ..error import (
 )
 from ..io import Scan
 from ..options import FitOptions, unused_by_atlas
-from .detail import check_levels, fit_detail_pyramid, most_levels, pack_pyramid
+from .detail import SPANS, check_levels, fit_detail_pyramid, most_levels, pack_pyramid
 from .fit import (
     DEFAULT_BYTE_BUDGET,
     AtlasFit,
@@ -71,6 +71,7 @@ from .measure import (
     farther_than,
     signed_point_mesh_distance,
 )
+from .smooth import SMOOTH_BYTE_BUDGET, SMOOTH_DETAIL, fit_smooth_atlas
 from .surface import (
     MAX_LAYOUT_HANDLES,
     ScanSurface,
@@ -208,7 +209,9 @@ def atlas_error_raster(patch: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.nd
 def level_resolution(atlas, detail, level: int) -> int:
     """Samples per patch side of the mesh drawn at ``level``: ``-1`` the base alone
     (:func:`base_resolution`), ``k`` the detail level's own resolution."""
-    return base_resolution(atlas.spans) if level < 0 else detail.levels[level]["resolution"]
+    if level < 0:
+        return base_resolution(atlas.spans, len(atlas.quads))
+    return detail.levels[level]["resolution"]
 
 
 def measure_levels(atlas, detail, points: np.ndarray, coarser: bool = True
@@ -390,7 +393,7 @@ def check_base_follows_surface(atlas, surface, samples: int = 50_000) -> float:
     atlas is refused before its detail is fitted; ``--patches auto`` then fits one patch.
     """
     try:
-        base = drawn_mesh(atlas, base_resolution(atlas.spans))
+        base = drawn_mesh(atlas, base_resolution(atlas.spans, len(atlas.quads)))
     except ValueError as exc:  # client_py's evaluation: a patch without a normal
         raise AtlasFitError(f"the atlas base, as quantised, has a patch collapsed to a "
                             f"line or a point ({exc}); its layout has a sliver") from exc
@@ -460,9 +463,10 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
         ``base.tsa``).
     """
     handles = handle_count(surface.vertices, surface.faces)
-    attempts = [("surface", DEFAULT_BYTE_BUDGET), ("stand-in", DEFAULT_BYTE_BUDGET)]
+    budget = SMOOTH_BYTE_BUDGET if options.base == "smooth" else DEFAULT_BYTE_BUDGET
+    attempts = [("surface", budget), ("stand-in", budget)]
     if options.patches is None:
-        attempts.append(("stand-in", STRAY_BUDGET_FACTOR * DEFAULT_BYTE_BUDGET))
+        attempts.append(("stand-in", STRAY_BUDGET_FACTOR * budget))
     record: dict = {"surface_handles": handles, "refused": []}
     if handles > MAX_LAYOUT_HANDLES:
         attempts = attempts[1:]
@@ -478,6 +482,16 @@ def fit_checked_base(scan: Scan, surface: ScanSurface, options: FitOptions, stag
                           stand_in_faces=int(len(stand_in.faces)))
         record.update(source=source, byte_budget=budget)
         try:
+            if options.base == "smooth":
+                fit = fit_smooth_atlas(
+                    scan, byte_budget=budget, surface=surface,
+                    layout_surface=stand_in if source == "stand-in" else None, bits=bits,
+                    triangles=None if options.patches is None else max(4, options.patches // 3),
+                    progress=stages.report)
+                stages.start("encode")
+                record["bits"] = fit.bits
+                record["stray_share"] = check_base_follows_surface(fit.atlas, surface)
+                return fit, fit.atlas, record
             fit = fit_atlas(scan, "auto" if options.patches is None else options.patches,
                             surface=surface, layout_surface=stand_in if source == "stand-in"
                             else None, progress=stages.report, bits=bits, byte_budget=budget,
@@ -556,7 +570,8 @@ def check_atlas_options(options: FitOptions) -> None:
         check_levels(options.detail_levels, None)
 
 
-def held_levels(options: FitOptions, patches: int) -> tuple[int | None, dict | None]:
+def held_levels(options: FitOptions, patches: int, spans: int = SPANS
+                ) -> tuple[int | None, dict | None]:
     """The detail levels to fit on an atlas of ``patches`` patches, and the record of a cap:
     ``options.detail_levels``; when the atlas was not asked for (``patches`` automatic, so
     the option may be meant for the single patches of a collection), more than the atlas
@@ -565,7 +580,7 @@ def held_levels(options: FitOptions, patches: int) -> tuple[int | None, dict | N
     levels = options.detail_levels
     if levels is None or asked_for_atlas(options.patches):
         return levels, None
-    most, why = most_levels(patches)
+    most, why = most_levels(patches, spans)
     if levels <= most:
         return levels, None
     return most, {"asked": levels, "held": most, "why": why}
@@ -604,17 +619,20 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
     fit, decoded, layout_record = fit_checked_base(fitted, surface, options, stages,
                                                    options.bits)
     bits = layout_record["bits"]
-    levels, capped = held_levels(options, len(decoded.quads))
+    # a smooth base's patches are many and small, in the order its file fixes
+    detail_options = SMOOTH_DETAIL if fit.control_file is not None else {}
+    levels, capped = held_levels(options, len(decoded.quads),
+                                 detail_options.get("spans", SPANS))
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
     own = None if large is None else large.detail_scan()  # a large scan: its own points
     pyramid = fit_detail_pyramid(replace(fit, atlas=decoded), fitted, levels,
-                                 progress=stages.report, original=own, **(
+                                 progress=stages.report, original=own, **detail_options, **(
                                      {} if own is None
                                      else {"max_samples": out_of_core.DETAIL_POINTS}))
     del own
     atlas = pyramid.atlas  # renumbered so that every group of patches is a range
-    data = base_file(atlas, bits, {"units": scan.units})
-    resolution = base_resolution(atlas.spans)
+    data = fit.control_file or base_file(atlas, bits, {"units": scan.units})
+    resolution = base_resolution(atlas.spans, len(atlas.quads))
     stages.start("error")
     points = np.asarray(scan.points, dtype=float)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))

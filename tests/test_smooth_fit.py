@@ -1,0 +1,76 @@
+"""The smooth base's fit (fitter.fitting.atlas.smooth): its matrices against the client's own
+evaluation, and a control mesh fitted to a known surface."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from client_py.smooth_base import smooth_atlas, smooth_base
+from fitter.fitting.atlas.fit import base_resolution, grid_mesh
+from fitter.fitting.atlas.patches import control_points, index_table
+from fitter.fitting.atlas.smooth import (
+    STEP_OVER_RMS,
+    control_bits,
+    fit_control_mesh,
+    sample_matrix,
+    smooth_matrix,
+)
+
+
+def icosphere(subdivisions: int, radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    mesh = trimesh.creation.icosphere(subdivisions, radius)
+    return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+
+
+def test_smooth_matrix_is_the_clients_atlas_stage_by_stage():
+    rng = np.random.default_rng(3)
+    vertices, triangles = icosphere(1)
+    vertices = vertices * (1 + 0.1 * rng.standard_normal((len(vertices), 1)))
+    base = smooth_base(len(vertices), triangles.tolist())
+    atlas = smooth_atlas(vertices.tolist(), triangles.tolist(), base)
+    M = smooth_matrix(len(vertices), base)
+    assert M.shape == (atlas.control_point_count, len(vertices))
+    assert np.allclose(M @ vertices, control_points(atlas), atol=1e-12)
+
+
+def test_sample_matrix_draws_the_patches_as_grid_mesh_does():
+    vertices, triangles = icosphere(1)
+    atlas = smooth_atlas(vertices.tolist(), triangles.tolist())
+    B, faces = sample_matrix(index_table(atlas), atlas.control_point_count, 4)
+    expected_vertices, expected_faces = grid_mesh(atlas, 4)
+    assert np.allclose(B @ control_points(atlas), expected_vertices, atol=1e-12)
+    assert np.array_equal(faces, expected_faces)
+
+
+def test_fit_control_mesh_draws_a_sphere_from_a_coarse_control_mesh():
+    # the control mesh starts on the sphere's inscribed polyhedron, whose drawn surface
+    # shrinks inside it (Catmull-Clark averages); the fit must bring it onto the sphere
+    vertices, triangles = icosphere(1, 2.0)
+    rng = np.random.default_rng(0)
+    points = rng.standard_normal((4000, 3))
+    points *= 2.0 / np.linalg.norm(points, axis=1, keepdims=True)
+    atlas0 = smooth_atlas(vertices.tolist(), triangles.tolist())
+    before = np.abs(np.linalg.norm(grid_mesh(atlas0, 5)[0], axis=1) - 2.0)
+    fitted, history = fit_control_mesh(points, vertices, triangles, rounds=4)
+    after = np.abs(np.linalg.norm(grid_mesh(smooth_atlas(fitted.tolist(),
+                                                        triangles.tolist()), 9)[0], axis=1) - 2.0)
+    assert before.max() > 0.05  # the unfitted control mesh draws a smaller sphere
+    assert after.max() < 0.015 and np.sqrt(np.mean(after ** 2)) < 0.004
+    assert history[-1] < 0.2 * history[0]
+
+
+def test_control_bits_take_the_fewest_with_a_step_within_the_rms():
+    vertices = np.array([[0.0, 0, 0], [1023.0, 0, 0], [0, 1, 0]])
+    assert control_bits(vertices, 1.0 / STEP_OVER_RMS) == 10  # 1023 / (2^10 - 1) = 1
+    assert control_bits(vertices, 0.99 / STEP_OVER_RMS) == 11
+    assert control_bits(vertices, 1e-9) == 16  # the most
+    assert control_bits(vertices, 1e9) == 8  # the fewest
+
+
+@pytest.mark.parametrize(("patches", "expected"), [(1, 9), (3125, 9), (3126, 5), (12_500, 5),
+                                                   (12_501, 3), (60_000, 3)])
+def test_base_resolution_keeps_the_base_within_its_triangles(patches, expected):
+    # 2 F (r - 1)^2 <= 400,000 triangles, r - 1 halved from 8 down to 2
+    assert base_resolution(1, patches) == expected
