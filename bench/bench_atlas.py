@@ -24,6 +24,8 @@ It writes ``bench/results/atlas.json`` and, per object, a picture of the scan an
 finest drawn level from six directions (``bench/results/atlas/<object>.png``) with the
 silhouette IoU of each view. ``TESSERA_ATLAS_OBJECTS=bunny,lucy`` picks objects; the
 others keep their records from the earlier ``atlas.json`` (with their own ``date``).
+``TESSERA_ATLAS_BASE=smooth`` fits the smooth base (``--base smooth``) into
+``atlas-smooth.json`` and ``atlas-smooth/``.
 """
 
 from __future__ import annotations
@@ -62,7 +64,11 @@ OBJECTS = {
     "bali-mask": DATA / "bali-mask" / "mask.obj",
     "happy-buddha 15 scans": DATA / "happy-buddha-rangescans" / "happyStandRight.conf",
 }
-PICTURES = RESULTS / "atlas"
+#: the atlas base fitted (``--base``): ``TESSERA_ATLAS_BASE=smooth`` measures the smooth
+#: base into ``atlas-smooth.json`` and ``atlas-smooth/`` (the default's: ``atlas``)
+BASE = os.environ.get("TESSERA_ATLAS_BASE", "patches")
+NAME = "atlas" if BASE == "patches" else f"atlas-{BASE}"
+PICTURES = RESULTS / NAME
 BORDER_REACH = 0.005  # a drawn border farther than this (x diagonal) from the scan's is off it
 
 
@@ -140,7 +146,7 @@ def score_object(name: str, path: Path, work: Path) -> dict:
     diag = diagonal(points)
     bundle = work / name.replace(" ", "-")
     start = time.perf_counter()
-    fit_scan(scan, bundle, FitOptions())
+    fit_scan(scan, bundle, FitOptions(base=BASE))
     fit_s = time.perf_counter() - start
     manifest = json.loads((bundle / "manifest.json").read_text())
     tolerance = 1e-6 * diag
@@ -170,7 +176,7 @@ def score_object(name: str, path: Path, work: Path) -> dict:
         save_picture(picture, PICTURES / f"{bundle.name}.png", ["scan", "tessera (finest)"])
     draco = _draco_rows(points, scan_faces, diag, [r["bytes"] for r in rows])
     atlas = (manifest.get("base") or {}).get("kind") == "atlas"
-    return {"object": name, "points": int(len(points)), "diagonal": diag,
+    return {"object": name, "base": BASE, "points": int(len(points)), "diagonal": diag,
             "scan_faces": None if scan_faces is None else int(len(scan_faces)),
             "scan_border": scan_border, "fit_s": fit_s,
             "format_version": manifest.get("format_version"),
@@ -226,7 +232,7 @@ def _draco_rows(points: np.ndarray, faces: np.ndarray | None, diag: float,
 def _with_earlier(results: list[dict]) -> list[dict]:
     """``results`` with the earlier ``atlas.json``'s records of the objects not re-run now
     (``TESSERA_ATLAS_OBJECTS``), each keeping the ``date`` of the run that measured it."""
-    path = RESULTS / "atlas.json"
+    path = RESULTS / f"{NAME}.json"
     if not path.exists():
         return results
     earlier = json.loads(path.read_text())
@@ -287,9 +293,10 @@ def run() -> dict | None:
     for r in results:  # folds: pleats of the base, level 0's area turned over against it
         if r.get("pleats"):
             p = r["pleats"]
+            turned = ("no level 0" if p["l0_turned_share"] is None
+                      else f"level 0 turned over on {100 * p['l0_turned_share']:.2f} % of its area")
             print(f"atlas: {r['object']}, pleats: {p['base_pairs_120']} folded triangle pairs "
-                  f"in {p['base_pleated_patches']} base patches, level 0 turned over on "
-                  f"{100 * p['l0_turned_share']:.2f} % of its area")
+                  f"in {p['base_pleated_patches']} base patches, {turned}")
     for r in results:  # where each finest level is farther than 1 % from its scan
         places = [] if "error" in r else r["levels"][-1]["mesh_to_scan"]["places"]
         if places:
@@ -297,5 +304,5 @@ def run() -> dict | None:
                 f"{100 * p['max_relative']:.2f} % (area {100 * p['far_share']:.3f} %, "
                 f"facing {p['facing']:.2f})" for p in places))
     record = {"objects": _with_earlier(results)}
-    write_results("atlas", record)
+    write_results(NAME, record)
     return record

@@ -109,9 +109,9 @@ def pleat_stats(bundle: Path) -> dict:
         raise ValueError(f"the base drawn at {PAIR_RESOLUTION} has {len(faces)} triangles, not "
                          f"{per_patch} for each of its {patches} patches")
     pairs, pleated = folded_pairs(vertices, faces, np.arange(len(faces)) // per_patch)
-    plan = next(p for p in plan_levels(manifest) if p.level == 0)
-    share = turned_share(_drawn(manifest, bundle, -1, plan.resolution),
-                         _drawn(manifest, bundle, 0, plan.resolution))
+    plan = next((p for p in plan_levels(manifest) if p.level == 0), None)
+    share = None if plan is None else turned_share(  # a base with no detail level: none
+        _drawn(manifest, bundle, -1, plan.resolution), _drawn(manifest, bundle, 0, plan.resolution))
     return {"base_pairs_120": pairs, "base_pleated_patches": pleated, "l0_turned_share": share}
 
 

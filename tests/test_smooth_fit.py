@@ -9,6 +9,7 @@ import trimesh
 
 from client_py.smooth_base import smooth_atlas, smooth_base
 from fitter.fitting.atlas.fit import base_resolution, grid_mesh
+from fitter.fitting.atlas.measure import closest_points_on_mesh
 from fitter.fitting.atlas.patches import control_points, index_table
 from fitter.fitting.atlas.smooth import (
     STEP_OVER_RMS,
@@ -74,3 +75,37 @@ def test_control_bits_take_the_fewest_with_a_step_within_the_rms():
 def test_base_resolution_keeps_the_base_within_its_triangles(patches, expected):
     # 2 F (r - 1)^2 <= 400,000 triangles, r - 1 halved from 8 down to 2
     assert base_resolution(1, patches) == expected
+
+
+def test_a_smooth_base_bundle_is_read_and_drawn_as_any_atlas(tmp_path):
+    """``--base smooth`` end to end: ``base.tsa`` is a version-5 control mesh whose derived
+    atlas the manifest describes, and the drawn mesh (base and level 0, welded as a
+    visitor's browser draws it) follows the bumpy sphere it was fitted to."""
+    from client_py.atlas_format import read_atlas
+    from client_py.atlas_mesh import tessellate_atlas
+    from client_py.bundle import atlas_tiles
+    from client_py.control_mesh import read_control_header
+    from fitter.fitting.io.scan import make_scan, new_source
+    from fitter.fitting.options import FitOptions
+    from fitter.fitting.pipeline import fit_scan
+
+    mesh = trimesh.creation.icosphere(4, 10.0)
+    v = np.asarray(mesh.vertices)
+    v = v * (1 + 0.03 * np.sin(3 * v[:, :1]) * np.cos(2 * v[:, 1:2]) / 10)
+    scan = make_scan("bumpy", v, faces=np.asarray(mesh.faces),
+                     source=new_source("bumpy", None, "array", compression=None, reader="array"))
+    manifest = fit_scan(scan, tmp_path / "b", FitOptions(base="smooth", patches=300)).manifest
+    data = (tmp_path / "b" / "base.tsa").read_bytes()
+    head = read_control_header(data)
+    atlas, _ = read_atlas(data)
+    base = manifest["base"]
+    assert base["kind"] == "atlas" and head["triangles"] == 100 and base["patches"] == 300
+    assert len(atlas.quads) == 300 and base["vertices"] == len(atlas.vertices)
+    assert base["border_edges"] == 0 and manifest["coverage"]["uncovered_points"] == 0
+    spec = atlas_tiles(manifest)
+    assert spec.base_resolution == base["resolution"]
+    drawn = tessellate_atlas(atlas, base["resolution"])
+    far = closest_points_on_mesh(np.asarray(drawn.positions, float).reshape(-1, 3), v,
+                                 np.asarray(mesh.faces))[0]
+    assert far.max() < 0.01 * 20  # the base of 100 control triangles: no fin past 1 % (0.67)
+    assert manifest["stats"]["max_relative"] < 0.001  # level 0, every point (0.04 %)

@@ -37,7 +37,7 @@ PROJECTIONS = ("auto", "plane", "cylinder", "sphere")
 #: ``auto`` and the axes of ``fitter.fitting.orient.AXES`` (tests/test_orient.py checks that
 #: the two agree)
 #: an atlas's base (``fitter.fitting.atlas.smooth``, ``fitter.fitting.atlas.fit``)
-ATLAS_BASES = ("smooth", "patches")
+ATLAS_BASES = ("patches", "smooth")
 UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 GRID_SIDE_LIMIT = MAX_GRID_SIDE  # what a .tsp holds (client_py.format.LIMITS), per side
 DEFAULT_MAX_GRID = 128  # max_grid = None: the grid grows to max(128, its largest side)
@@ -244,10 +244,10 @@ OPTIONS: tuple[Option, ...] = (
            maximum=MAX_PATCHES,
            none="auto: one patch for a height field, else an atlas sized for the object",
            cli="--patches", form="patches"),
-    Option("base", "choice", "smooth", "Atlas base",
-           "the whole object's base: smooth (a triangle control mesh drawn as Catmull-Clark "
-           "patches, the fewest bytes for its error) or patches (bicubic patches stored "
-           "point by point, joined C0)", choices=ATLAS_BASES, cli="--base", form="base"),
+    Option("base", "choice", "patches", "Atlas base",
+           "the whole object's base: patches (bicubic patches stored point by point, joined "
+           "C0) or smooth (a triangle control mesh drawn as Catmull-Clark patches: fewer "
+           "bytes for its error)", choices=ATLAS_BASES, cli="--base", form="base"),
     Option("projection", "choice", "auto", "Projection", "map to the parameter domain",
            choices=PROJECTIONS, cli="--projection", form="projection",
            atlas=False),
