@@ -2044,9 +2044,9 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                        ) -> DetailPyramid:
     """:func:`fit_atlas_detail`'s pyramid (the same parameters but ``pack_bytes``), its
     packs not yet coded (:func:`pack_pyramid`). ``keep_order``: the patches keep their
-    numbers (a smooth base's are its control triangles', which its file fixes: its
-    triangles are put in k-d tree order instead, ``.smooth``), else they are renumbered in
-    :func:`spatial_order`."""
+    numbers (a smooth base's are its control triangles', which its file fixes in a walk
+    across their edges: ``client_py.control_mesh.traversal_order``), else they are
+    renumbered in :func:`spatial_order`."""
     _check_arguments(levels, spans, step_factor)
     if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1000:
         raise ValueError(f"max_samples must be an int >= 1000, got {max_samples!r}")

@@ -17,7 +17,11 @@ The control mesh is the scan's surface decimated (:func:`.layout.decimate`: quad
 collapse, the mesh Draco would code), so its vertices are dense where the shape turns. At
 the patches base's bytes it drew Nefertiti, Lucy and Laurana at 0.57-0.75 times the RMS of
 quadric decimation + Draco, where the patches base drew 1.69-2.01 times (``python -m bench
-subdivision``, docs/benchmarks.md, session 28).
+subdivision``, docs/benchmarks.md, session 28). In the product (``tessera fit --base
+smooth``; ``TESSERA_ATLAS_BASE=smooth python -m bench atlas``, session 29) the base drew
+the bunny, Nefertiti, Lucy and the Bali mask at 0.32-0.94 times Draco's RMS at its bytes,
+Laurana at 1.41; it is not the default yet (its colour cells, a cloud's depth, the fit's
+time: docs/benchmarks.md, "Session 29").
 """
 
 from __future__ import annotations
@@ -52,7 +56,7 @@ from .surface import ScanSurface, scan_surface
 #: triangles, 2 (r - 1)^2 a patch, are what the closest points are found on)
 FIT_RESOLUTION = 4
 FIT_ROUNDS = 4
-#: the smooth base's ``.tsa`` bytes by default (``--patches auto``): the most control
+#: the smooth base's ``.tsa`` bytes with ``--patches auto``: the most control
 #: triangles, :data:`MAX_TRIANGLES`, at 12 bits. Manifest included, against quadric
 #: decimation + Draco at the same bytes (session 29, RMS of all points): Nefertiti's base
 #: at 9,000 triangles 0.81 times Draco's RMS, at 4,500 0.96, at 3,000 0.83; Lucy's 0.74 at

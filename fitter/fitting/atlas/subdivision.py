@@ -1,7 +1,8 @@
 """Subdivision surfaces as linear maps, and a control mesh fitted to a scan.
 
-A candidate for a smooth base, measured by ``python -m bench subdivision`` (docs/benchmarks.md,
-"Session 28: a smooth base, measured"); the fit does not use it yet. Today's base is bicubic
+A smooth base, measured by ``python -m bench subdivision`` (docs/benchmarks.md, "Session
+28: a smooth base, measured"); the smooth base (``.smooth``) fits its control points with
+:func:`fit_control_points`. The patches base is bicubic
 patches that join C0, about nine stored control points a patch. A subdivision surface
 stores one point per control vertex and is smooth by its rules: C2 where the control mesh
 is regular, C1 at its extraordinary vertices.
