@@ -33,7 +33,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from client_py.atlas import AtlasSurface
-from client_py.atlas_format import read_atlas
 from client_py.control_mesh import read_control_mesh, write_control_mesh
 from client_py.smooth_base import SmoothBase, smooth_atlas, smooth_base
 
@@ -217,8 +216,7 @@ def fit_smooth_atlas(scan, *, byte_budget: int, surface: ScanSurface | None = No
         fitted, history = fit_control_mesh(points, vertices, faces, rounds=rounds)
         timings["solve"] = time.perf_counter() - clock
         chosen = bits or control_bits(fitted, history[-1])
-        data = write_control_mesh(fitted, faces, chosen,
-                                               {"units": scan.units or "unknown"})
+        data = write_control_mesh(fitted, faces, chosen, {"units": scan.units or "unknown"})
         trials.append({"triangles": int(len(faces)), "control_points": int(len(vertices)),
                        "bits": chosen, "bytes": len(data), "rms": history[-1],
                        "rms_by_round": history, "seconds": timings["layout"] + timings["solve"]})
@@ -230,18 +228,15 @@ def fit_smooth_atlas(scan, *, byte_budget: int, surface: ScanSurface | None = No
                             f"after {BUDGET_ATTEMPTS} attempts: {trials[-1]['bytes']} bytes "
                             f"at {trials[-1]['triangles']} triangles")
     clock = time.perf_counter()
-    atlas, _ = read_atlas(data)
+    decoded, decoded_triangles, _ = read_control_mesh(data)
+    atlas = smooth_atlas(decoded, decoded_triangles)
     f, u, v, distance = foot_points(atlas, points, normals)
     timings["foot_points"] = time.perf_counter() - clock
     report(1.0)
-    layout = quad_layout(*_read_control(data))
+    layout = quad_layout(np.asarray(decoded, np.float64),
+                         np.asarray(decoded_triangles, np.int64))
     return AtlasFit(atlas, layout, surface, len(layout.triangles), len(atlas.quads), points,
                     f, u, v, distance, history[-1], len(data), timings, trials, chosen, data)
-
-
-def _read_control(data: bytes) -> tuple[np.ndarray, np.ndarray]:
-    points, triangles, _ = read_control_mesh(data)
-    return np.asarray(points, np.float64), np.asarray(triangles, np.int64)
 
 
 __all__ = ["fit_smooth_atlas", "fit_control_mesh", "smooth_matrix", "sample_matrix",
