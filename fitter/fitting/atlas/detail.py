@@ -112,8 +112,8 @@ before the first level that does not bring their RMS ``sqrt(mean(e^2))`` below
 ``(1 - MIN_GAIN)`` times that of the levels before it (the base, for level 0): judged
 first on the level's unrounded solve (a level refused there costs no fold rows and no
 rounding; rounding only adds to the held-out error), then on its rounded coefficients. A
-level is not tried at all when its coefficients are more than ``1 / MIN_SAMPLES_PER_UNKNOWN``
-of the fitted samples: a least squares with about as many unknowns as equations draws
+level is not tried at all when its shared coefficients (:func:`shared_count`) are more
+than ``1 / MIN_SAMPLES_PER_UNKNOWN`` of the fitted samples: a least squares with about as many unknowns as equations draws
 the noise, whatever the held-out samples would say. The
 manifest's ``tiles.detail.held_out`` gives the RMS after each level tried (unrounded for a
 level refused before rounding) and the level ``not_tried``, if any. A mesh is not
@@ -405,6 +405,14 @@ def renumber_patches(atlas: AtlasSurface, order: np.ndarray) -> AtlasSurface:
 
 
 # ------------------------------------------------------------------ shared coefficients
+def shared_count(atlas: AtlasSurface, n: int) -> int:
+    """The shared coefficients of a level of ``(n, n)`` per patch (:func:`shared_index`'s
+    slots): ``V + E (n - 2) + F (n - 2)^2`` for the atlas's ``V`` vertices, ``E`` edges and
+    ``F`` patches."""
+    inner = n - 2
+    return len(atlas.vertices) + len(atlas.edges.edges) * inner + len(atlas.quads) * inner ** 2
+
+
 def shared_index(atlas: AtlasSurface, n: int) -> np.ndarray:
     """``G[f, a, b]``: the shared slot of coefficient ``(a, b)`` of patch ``f``'s ``(n, n)``
     grid, by the atlas's own rule for ``n`` per side (the ring: ``AtlasSurface.border_slots``
@@ -413,7 +421,7 @@ def shared_index(atlas: AtlasSurface, n: int) -> np.ndarray:
     patch. Shape ``(F, n, n)``."""
     inner, count = n - 2, len(atlas.quads)
     grid = np.empty((count, n, n), np.int64)
-    first = len(atlas.vertices) + len(atlas.edges.edges) * inner
+    first = shared_count(atlas, n) - count * inner * inner
     grid[:, 1:n - 1, 1:n - 1] = first + np.arange(count * inner * inner).reshape(
         count, inner, inner)
     a, b = np.array(ring_positions(n)).T
@@ -2106,9 +2114,10 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     fitted_count = int(np.count_nonzero(use & ~held))
     for k in range(levels):
         n = (spans << k) + DEGREE
-        if held.any() and F * n * n * MIN_SAMPLES_PER_UNKNOWN > fitted_count:
+        unknowns = shared_count(atlas, n)
+        if held.any() and unknowns * MIN_SAMPLES_PER_UNKNOWN > fitted_count:
             levels = k  # too few samples to fit it ("Depth"): not tried
-            untried = {"level": k, "unknowns": F * n * n, "fitted_samples": fitted_count}
+            untried = {"level": k, "unknowns": unknowns, "fitted_samples": fitted_count}
             break
         G = shared_index(atlas, n)
         nodes = level_nodes(atlas, fields, k, spans) if PULL_WEIGHT > 0 or FOLD_PASSES else None
