@@ -569,16 +569,18 @@ def test_a_level_with_too_few_samples_per_unknown_is_not_tried(monkeypatch):
     monkeypatch.setattr(atlas_detail, "MIN_SAMPLES_PER_UNKNOWN", 1e9)
     none = atlas_detail.fit_atlas_detail(fit, scan, spans=4)
     untried = none.tree["held_out"]["not_tried"]
-    F = len(none.atlas.quads)
-    assert none.levels == [] and untried["level"] == 0 and untried["unknowns"] == F * 6 * 6
+    # the level's shared coefficients: the distinct slots of every patch's (6, 6) grid
+    shared = [len(np.unique(atlas_detail.shared_index(none.atlas, n))) for n in (6, 10)]
+    assert shared == [atlas_detail.shared_count(none.atlas, n) for n in (6, 10)]
+    assert none.levels == [] and untried["level"] == 0 and untried["unknowns"] == shared[0]
     fitted = untried["fitted_samples"]
     # every point but the held-out tenth and the few fit_samples leaves out
     assert 0.85 * 0.9 * 20_000 < fitted <= 0.9 * 20_000
     # a threshold between level 0's samples per unknown (n = 6) and level 1's (n = 10)
-    monkeypatch.setattr(atlas_detail, "MIN_SAMPLES_PER_UNKNOWN", fitted / (F * 8 * 8))
+    monkeypatch.setattr(atlas_detail, "MIN_SAMPLES_PER_UNKNOWN", 2 * fitted / sum(shared))
     one = atlas_detail.fit_atlas_detail(fit, scan, spans=4, levels=None)
     assert len(one.levels) == 1
-    assert one.tree["held_out"]["not_tried"] == {"level": 1, "unknowns": F * 10 * 10,
+    assert one.tree["held_out"]["not_tried"] == {"level": 1, "unknowns": shared[1],
                                                  "fitted_samples": fitted}
     assert len(one.tree["held_out"]["rms"]) == 2  # the base and level 0: level 1 not fitted
     assert one.tree["held_out"]["rms"][1] < one.tree["held_out"]["rms"][0]

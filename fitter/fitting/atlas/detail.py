@@ -113,8 +113,8 @@ before the first level that does not bring their RMS ``sqrt(mean(e^2))`` below
 first on the level's unrounded solve (a level refused there costs no fold rows and no
 rounding; rounding only adds to the held-out error), then on its rounded coefficients. A
 level is not tried at all when its shared coefficients (:func:`shared_count`) are more
-than ``1 / MIN_SAMPLES_PER_UNKNOWN`` of the fitted samples: a least squares with about as many unknowns as equations draws
-the noise, whatever the held-out samples would say. The
+than ``1 / MIN_SAMPLES_PER_UNKNOWN`` of the fitted samples: a least squares with about as
+many unknowns as equations draws the noise, whatever the held-out samples would say. The
 manifest's ``tiles.detail.held_out`` gives the RMS after each level tried (unrounded for a
 level refused before rounding) and the level ``not_tried``, if any. A mesh is not
 checked so: its triangles are the surface its makers published, its edge length the
@@ -292,8 +292,9 @@ MIN_HELD = 1000  # fewer held-out samples decide nothing: every auto level is ke
 MIN_GAIN = 0.02
 # ... and a level with fewer than this many fitted samples per coefficient is not tried: its
 # least squares has almost as many unknowns as equations and follows the noise. The 15-scan
-# Happy Buddha's level 0 had 2.9 (held-out RMS -27 %), its level 1 0.89 (+30 %, refused after
-# its nodes, far rows and solve: about 13 s of the fit's wall on 2 cores).
+# Happy Buddha's level 0 had 2.9 per coefficient counted as F n^2, about 3.5 per shared one
+# (held-out RMS -27 %), its level 1 0.89, about 1.0 (+30 %, refused after its nodes, far rows
+# and solve: about 13 s of the fit's wall on 2 cores).
 MIN_SAMPLES_PER_UNKNOWN = 2.0
 # Far drawn nodes (module docstring, "Far nodes"): those farther than PULL_REACH of the
 # diagonal from the scan are pulled toward it, each row weighing PULL_WEIGHT times the fitted
@@ -1991,8 +1992,8 @@ def _check_arguments(levels: object, spans: object, step_factor: object) -> None
                                or not 0 <= levels <= layers.MAX_LEVEL + 1):
         raise ValueError(f"levels must be None (automatic) or an int in "
                          f"0..{layers.MAX_LEVEL + 1}, got {levels!r}")
-    if isinstance(spans, bool) or not isinstance(spans, int) or spans not in (2, 4, 8, 16):
-        raise ValueError(f"spans must be one of 2, 4, 8, 16 spans per tile side, got {spans!r}")
+    if isinstance(spans, bool) or not isinstance(spans, int) or spans not in (1, 2, 4, 8, 16):
+        raise ValueError(f"spans must be one of 1, 2, 4, 8, 16 spans per tile side, got {spans!r}")
     if not (isinstance(step_factor, int | float) and math.isfinite(step_factor)
             and step_factor > 0):
         raise ValueError(f"step_factor must be a finite number > 0, got {step_factor!r}")

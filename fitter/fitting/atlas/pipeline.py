@@ -71,7 +71,7 @@ from .measure import (
     farther_than,
     signed_point_mesh_distance,
 )
-from .smooth import SMOOTH_BYTE_BUDGET, SMOOTH_DETAIL, fit_smooth_atlas
+from .smooth import SMOOTH_BYTE_BUDGET, fit_smooth_atlas, smooth_detail
 from .surface import (
     MAX_LAYOUT_HANDLES,
     ScanSurface,
@@ -620,7 +620,7 @@ def fit_atlas_bundle(scan: Scan, out_dir: Path, options: FitOptions, stages,
                                                    options.bits)
     bits = layout_record["bits"]
     # a smooth base's patches are many and small, in the order its file fixes
-    detail_options = SMOOTH_DETAIL if fit.control_file is not None else {}
+    detail_options = smooth_detail(fit.surface) if fit.control_file is not None else {}
     levels, capped = held_levels(options, len(decoded.quads),
                                  detail_options.get("spans", SPANS))
     stages.start("detail")  # fitted on the decoded base, as the visitor's browser has it
