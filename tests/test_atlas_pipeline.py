@@ -289,6 +289,14 @@ def test_auto_rule_keeps_one_patch_for_a_height_field_and_an_atlas_for_a_closed_
     assert wants_atlas(_mesh_scan(trimesh.creation.icosphere(subdivisions=3)), None)
     assert not wants_atlas(_mesh_scan(trimesh.creation.icosphere(subdivisions=3)), 1)
     assert wants_atlas(Scan.from_array(relief), 30)
+    # with the smooth base a height-field mesh is an atlas; a height-field cloud stays one patch
+    a = (np.arange(59)[:, None] * 60 + np.arange(59)[None, :]).ravel()  # the grid's cells
+    faces = np.concatenate([np.stack([a, a + 1, a + 61], 1), np.stack([a, a + 61, a + 60], 1)])
+    relief_mesh = Scan(points=relief, faces=faces)
+    assert not wants_atlas(relief_mesh, None)
+    assert wants_atlas(relief_mesh, None, "smooth")
+    assert not wants_atlas(Scan.from_array(relief), None, "smooth")
+    assert not wants_atlas(relief_mesh, 1, "smooth")
 
 
 def test_patches_option_spells_auto_and_counts():

@@ -717,7 +717,7 @@ def _fit_scan(scan: object, out_dir: Path, options: FitOptions, progress: Progre
                             if large.whole is None else replace(large.whole, units=options.units))
     atlas_refused = None
     whole = scan if large is None or large.whole is None else large.whole
-    if wants_atlas(whole, options.patches):
+    if wants_atlas(whole, options.patches, options.base):
         _check_scan(scan, options.projection)  # degenerate scans are refused alike
         try:
             fitted = scan if large is None else large.atlas_scan()
