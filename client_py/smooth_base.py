@@ -179,11 +179,7 @@ def _catmull_clark_rows(n: int, triangles: list[tuple[int, int, int]]
     keys = sorted({(a, b) if a < b else (b, a) for tri in triangles
                    for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))})
     index = {key: e for e, key in enumerate(keys)}
-    E, T = len(keys), len(triangles)
-    if n + E + T > MAX_ATLAS_VERTICES:
-        raise ValueError(f"the smooth atlas of {n} points and {T} triangles would have "
-                         f"n + E + T = {n + E + T} layout vertices; an AtlasSurface takes at "
-                         f"most {MAX_ATLAS_VERTICES} (client_py.atlas.MAX_ATLAS_VERTICES)")
+    E = len(keys)
     third = 1.0 / 3.0
     face_rows: list[Row] = [[(a, third), (b, third), (c, third)] for a, b, c in triangles]
     edge_faces: list[list[int]] = [[] for _ in keys]
@@ -343,6 +339,30 @@ def _mean_near(quad_f: tuple[int, ...], p: int, q: int, quad_g: tuple[int, ...],
     return [(v, n * s), (w, 2.0 * s), (x_f, s), (x_g, s), (o_f, 0.5 * s), (o_g, 0.5 * s)]
 
 
+def check_control_mesh(n_points: int, triangles: Sequence[Sequence[int]]
+                       ) -> tuple[int, list[tuple[int, int, int]]]:
+    """Check that ``n_points`` and ``triangles`` are a control mesh :func:`smooth_base`
+    takes (its Raises, in the same order), without deriving its rows: a reader or writer of
+    a control mesh checks it so (:mod:`client_py.control_mesh`). Returns ``n_points`` as an
+    int and the triangles as int triples."""
+    n_points, checked = _checked_triangles(n_points, triangles)
+    T = len(checked)
+    if 3 * T > MAX_ATLAS_QUADS:
+        raise ValueError(f"the smooth atlas of {T} triangles would have "
+                         f"{3 * T} quads; an AtlasSurface takes at most "
+                         f"{MAX_ATLAS_QUADS} (client_py.atlas.MAX_ATLAS_QUADS), so at most "
+                         f"{MAX_ATLAS_QUADS // 3} triangles")
+    # each directed edge once (checked): an undirected edge is run once or twice
+    E = len({(a, b) if a < b else (b, a) for tri in checked
+             for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))})
+    if n_points + E + T > MAX_ATLAS_VERTICES:
+        raise ValueError(f"the smooth atlas of {n_points} points and {T} triangles would have "
+                         f"n + E + T = {n_points + E + T} layout vertices; an AtlasSurface "
+                         f"takes at most {MAX_ATLAS_VERTICES} "
+                         "(client_py.atlas.MAX_ATLAS_VERTICES)")
+    return n_points, checked
+
+
 def smooth_base(n_points: int, triangles: Sequence[Sequence[int]]) -> SmoothBase:
     """The rows of the smooth atlas of a triangle control mesh (module docstring).
 
@@ -370,12 +390,7 @@ def smooth_base(n_points: int, triangles: Sequence[Sequence[int]]) -> SmoothBase
         :class:`~client_py.atlas.AtlasSurface` takes (``MAX_ATLAS_QUADS``,
         ``MAX_ATLAS_VERTICES``).
     """
-    n_points, checked = _checked_triangles(n_points, triangles)
-    if 3 * len(checked) > MAX_ATLAS_QUADS:
-        raise ValueError(f"the smooth atlas of {len(checked)} triangles would have "
-                         f"{3 * len(checked)} quads; an AtlasSurface takes at most "
-                         f"{MAX_ATLAS_QUADS} (client_py.atlas.MAX_ATLAS_QUADS), so at most "
-                         f"{MAX_ATLAS_QUADS // 3} triangles")
+    n_points, checked = check_control_mesh(n_points, triangles)
     with _without_cyclic_gc():
         step_rows, quads = _catmull_clark_rows(n_points, checked)
         return SmoothBase(quads, step_rows, _acc_rows(len(step_rows), quads))
