@@ -52,7 +52,8 @@ border curve's ``(2 v + w) / 3`` and ``(a + 4 v + b) / 6`` and, inside, the same
 (0.3 % of the control edge length on a bumpy sphere, ``tests/test_smooth_base.py``).
 
 :func:`smooth_base` returns the two stages' rows (:class:`SmoothBase`), :func:`smooth_atlas`
-the :class:`~client_py.atlas.AtlasSurface` of given control points, stage by stage.
+the :class:`~client_py.atlas.AtlasSurface` of given control points, stage by stage (its last
+step, :func:`base_atlas`, from the atlas's control points).
 Standard library only (Pyodide).
 """
 
@@ -470,12 +471,27 @@ def smooth_atlas(points: Sequence[Sequence[float]], triangles: Sequence[Sequence
                 for t, tri in enumerate(checked) for k in range(3)):
             raise ValueError(f"base is not the smooth_base of these {len(rows)} points and "
                              f"{len(checked)} triangles")
-    quads = base.quads
-    V, F = len(base.step_rows), len(quads)
     with _without_cyclic_gc():
         step_x, step_y, step_z = _applied(base.step_rows, xs, ys, zs)
         acc_x, acc_y, acc_z = _applied(base.acc_rows, step_x, step_y, step_z)
-        at = list(zip(acc_x, acc_y, acc_z, strict=True))
-        faces_from = len(at) - 4 * F
-        return AtlasSurface(SMOOTH_DEGREE, SMOOTH_SPANS, at[:V], quads, at[V:faces_from],
-                            at[faces_from:], None)
+        return base_atlas(base, list(zip(acc_x, acc_y, acc_z, strict=True)))
+
+
+def base_atlas(base: SmoothBase, atlas_points: Sequence[Sequence[float]]) -> AtlasSurface:
+    """The :class:`~client_py.atlas.AtlasSurface` on ``base``'s layout whose control points
+    are ``atlas_points``, shape ``(V₁ + 2 E₁ + 4 F, 3)`` in ``base.acc_rows``' order (layout
+    vertices, then 2 points per step-1 edge, then 4 per quad): :func:`smooth_atlas`'s last
+    step, for a caller that has the points another way (the fitter's sparse ``M V``).
+
+    Raises
+    ------
+    ValueError
+        ``atlas_points`` not one point per row of ``base.acc_rows``, or points
+        :class:`~client_py.atlas.AtlasSurface` refuses.
+    """
+    if len(atlas_points) != len(base.acc_rows):
+        raise ValueError(f"atlas_points has {len(atlas_points)} points; the base has "
+                         f"{len(base.acc_rows)} (len(base.acc_rows))")
+    V, faces_from = base.step_vertex_count, len(atlas_points) - 4 * len(base.quads)
+    return AtlasSurface(SMOOTH_DEGREE, SMOOTH_SPANS, atlas_points[:V], base.quads,
+                        atlas_points[V:faces_from], atlas_points[faces_from:], None)

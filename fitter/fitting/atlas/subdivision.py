@@ -51,7 +51,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from ..spd import spd_lu
+from ..spd import node_order, spd_lu
 from .measure import barycentric, closest_points_on_mesh
 
 SCHEMES = ("catmull-clark", "loop")
@@ -406,6 +406,7 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
     # matrix once
     fixed = (pull ** 2 * (S.T @ S) + smooth.T @ smooth).tocsr()
     pull_rows = (pull ** 2 * S.T).tocsr()
+    order = node_order(fixed, 3)  # of the unknowns all x, all y, all z
     nearest = cKDTree(points) if scan_faces is None else None
     history = []
 
@@ -440,9 +441,12 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
         along = np.einsum("ic,ic->i", normal, points)
         rhs = np.concatenate([rows_t @ (normal[:, c] * along + weight * points[:, c])
                               + pull_rows @ target[:, c] for c in range(3)])
-        # unknowns: all x, all y, all z; single-column supernodes are too narrow for these
-        # factors (some 400 non-zeros a column: 1.5 s a round on the bunny against 2.3 s)
-        lu = spd_lu(sp.bmat(blocks, format="csc"), single_columns=False)
-        V = lu.solve(rhs).reshape(3, n).T
+        # single-column supernodes are too narrow for these factors (some 400 non-zeros a
+        # column: 1.5 s a round on the bunny against 2.3 s)
+        lu = spd_lu(sp.bmat(blocks, format="csr")[order][:, order], permc_spec="NATURAL",
+                    single_columns=False)
+        solution = np.empty(3 * n)
+        solution[order] = lu.solve(rhs[order])
+        V = solution.reshape(3, n).T
         drawn, tri, foot = closest(V)
     return V, history
