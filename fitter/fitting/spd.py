@@ -4,7 +4,8 @@ The fits' normal equations (``A^T A`` plus a positive smoothing or ridge term) a
 symmetric positive definite. SuperLU's defaults (COLAMD column order, partial pivoting)
 treat them as general matrices; a symmetric order without pivoting is the same solution
 to rounding and, on the single patch's detail levels, two orders of magnitude faster
-(:func:`spd_lu`).
+(:func:`spd_lu`). Where unknowns come in groups at the same nodes (a control point's
+``x, y, z``), :func:`node_order` orders the nodes.
 """
 
 from __future__ import annotations
@@ -45,9 +46,10 @@ def spd_lu(M: sp.spmatrix, permc_spec: str = "MMD_AT_PLUS_A", single_columns: bo
 def node_order(pattern: sp.spmatrix, unknowns: int) -> np.ndarray:
     """A symmetric fill-reducing order, ``perm`` of shape ``(k m,)``, for a matrix over
     ``k = unknowns`` unknowns at each of ``m`` nodes (unknown ``c m + i``: node ``i``'s
-    ``c``-th) whose node couplings lie in the pattern of ``pattern (m, m)``: minimum degree
-    on the node graph (SuperLU's, as :func:`spd_lu` orders), each node's unknowns kept
-    together. Factor ``M[perm][:, perm]`` with ``permc_spec="NATURAL"``.
+    ``c``-th) whose nodes are coupled as the non-zeros of ``pattern (m, m)``: minimum
+    degree on the node graph (SuperLU's, as :func:`spd_lu` orders), each node's unknowns
+    kept together. Factor ``M[perm][:, perm]`` with ``permc_spec="NATURAL"``; a coupling
+    of ``M`` outside ``pattern`` costs fill, not correctness.
 
     Ordered so, the three coordinates of a control mesh fit's normal equations
     (``atlas.subdivision.fit_control_points``: the bunny's 4,088 control points) have 3 %
