@@ -59,7 +59,7 @@ from .format import (
     check_bits,
 )
 from .rangecoder import RangeDecodeError, RangeDecoder, RangeEncoder
-from .smooth_base import SMOOTH_DEGREE, SMOOTH_SPANS, smooth_atlas, smooth_base
+from .smooth_base import SMOOTH_DEGREE, SMOOTH_SPANS, check_control_mesh, smooth_atlas
 
 VERSION = 5
 #: the most control triangles: the derived atlas's quads (3 a triangle) within
@@ -171,7 +171,7 @@ def write_control_mesh(points: Sequence[Sequence[float]], triangles: Sequence[Se
     if len(pts) > MAX_ATLAS_VERTICES:
         raise ValueError(f"a control mesh has at most {MAX_ATLAS_VERTICES} points, "
                          f"got {len(pts)}")
-    smooth_base(len(pts), tris)  # an oriented 2-manifold whose atlas fits the limits
+    check_control_mesh(len(pts), tris)  # an oriented 2-manifold whose atlas fits the limits
     metadata = {} if metadata is None else metadata
     if not isinstance(metadata, dict):
         raise ValueError(f"metadata must be a dict, got {type(metadata).__name__}")
@@ -260,7 +260,7 @@ def read_control_mesh(data: bytes) -> tuple[list[tuple[float, float, float]],
         dec = RangeDecoder(data[start:end])
         tris = _code_faces(dec, n_tris, n_points, None, 3)
         try:
-            smooth_base(n_points, tris)
+            check_control_mesh(n_points, tris)
         except ValueError as exc:
             raise PatchFormatError(start, f"the triangles are no control mesh: {exc}") \
                 from None

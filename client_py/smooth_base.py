@@ -52,7 +52,8 @@ border curve's ``(2 v + w) / 3`` and ``(a + 4 v + b) / 6`` and, inside, the same
 (0.3 % of the control edge length on a bumpy sphere, ``tests/test_smooth_base.py``).
 
 :func:`smooth_base` returns the two stages' rows (:class:`SmoothBase`), :func:`smooth_atlas`
-the :class:`~client_py.atlas.AtlasSurface` of given control points, stage by stage.
+the :class:`~client_py.atlas.AtlasSurface` of given control points, stage by stage (its last
+step, :func:`base_atlas`, from the atlas's control points).
 Standard library only (Pyodide).
 """
 
@@ -179,11 +180,7 @@ def _catmull_clark_rows(n: int, triangles: list[tuple[int, int, int]]
     keys = sorted({(a, b) if a < b else (b, a) for tri in triangles
                    for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))})
     index = {key: e for e, key in enumerate(keys)}
-    E, T = len(keys), len(triangles)
-    if n + E + T > MAX_ATLAS_VERTICES:
-        raise ValueError(f"the smooth atlas of {n} points and {T} triangles would have "
-                         f"n + E + T = {n + E + T} layout vertices; an AtlasSurface takes at "
-                         f"most {MAX_ATLAS_VERTICES} (client_py.atlas.MAX_ATLAS_VERTICES)")
+    E = len(keys)
     third = 1.0 / 3.0
     face_rows: list[Row] = [[(a, third), (b, third), (c, third)] for a, b, c in triangles]
     edge_faces: list[list[int]] = [[] for _ in keys]
@@ -343,6 +340,30 @@ def _mean_near(quad_f: tuple[int, ...], p: int, q: int, quad_g: tuple[int, ...],
     return [(v, n * s), (w, 2.0 * s), (x_f, s), (x_g, s), (o_f, 0.5 * s), (o_g, 0.5 * s)]
 
 
+def check_control_mesh(n_points: int, triangles: Sequence[Sequence[int]]
+                       ) -> tuple[int, list[tuple[int, int, int]]]:
+    """Check that ``n_points`` and ``triangles`` are a control mesh :func:`smooth_base`
+    takes (its Raises, in the same order), without deriving its rows: a reader or writer of
+    a control mesh checks it so (:mod:`client_py.control_mesh`). Returns ``n_points`` as an
+    int and the triangles as int triples."""
+    n_points, checked = _checked_triangles(n_points, triangles)
+    T = len(checked)
+    if 3 * T > MAX_ATLAS_QUADS:
+        raise ValueError(f"the smooth atlas of {T} triangles would have "
+                         f"{3 * T} quads; an AtlasSurface takes at most "
+                         f"{MAX_ATLAS_QUADS} (client_py.atlas.MAX_ATLAS_QUADS), so at most "
+                         f"{MAX_ATLAS_QUADS // 3} triangles")
+    # each directed edge once (checked): an undirected edge is run once or twice
+    E = len({(a, b) if a < b else (b, a) for tri in checked
+             for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))})
+    if n_points + E + T > MAX_ATLAS_VERTICES:
+        raise ValueError(f"the smooth atlas of {n_points} points and {T} triangles would have "
+                         f"n + E + T = {n_points + E + T} layout vertices; an AtlasSurface "
+                         f"takes at most {MAX_ATLAS_VERTICES} "
+                         "(client_py.atlas.MAX_ATLAS_VERTICES)")
+    return n_points, checked
+
+
 def smooth_base(n_points: int, triangles: Sequence[Sequence[int]]) -> SmoothBase:
     """The rows of the smooth atlas of a triangle control mesh (module docstring).
 
@@ -370,12 +391,7 @@ def smooth_base(n_points: int, triangles: Sequence[Sequence[int]]) -> SmoothBase
         :class:`~client_py.atlas.AtlasSurface` takes (``MAX_ATLAS_QUADS``,
         ``MAX_ATLAS_VERTICES``).
     """
-    n_points, checked = _checked_triangles(n_points, triangles)
-    if 3 * len(checked) > MAX_ATLAS_QUADS:
-        raise ValueError(f"the smooth atlas of {len(checked)} triangles would have "
-                         f"{3 * len(checked)} quads; an AtlasSurface takes at most "
-                         f"{MAX_ATLAS_QUADS} (client_py.atlas.MAX_ATLAS_QUADS), so at most "
-                         f"{MAX_ATLAS_QUADS // 3} triangles")
+    n_points, checked = check_control_mesh(n_points, triangles)
     with _without_cyclic_gc():
         step_rows, quads = _catmull_clark_rows(n_points, checked)
         return SmoothBase(quads, step_rows, _acc_rows(len(step_rows), quads))
@@ -455,12 +471,27 @@ def smooth_atlas(points: Sequence[Sequence[float]], triangles: Sequence[Sequence
                 for t, tri in enumerate(checked) for k in range(3)):
             raise ValueError(f"base is not the smooth_base of these {len(rows)} points and "
                              f"{len(checked)} triangles")
-    quads = base.quads
-    V, F = len(base.step_rows), len(quads)
     with _without_cyclic_gc():
         step_x, step_y, step_z = _applied(base.step_rows, xs, ys, zs)
         acc_x, acc_y, acc_z = _applied(base.acc_rows, step_x, step_y, step_z)
-        at = list(zip(acc_x, acc_y, acc_z, strict=True))
-        faces_from = len(at) - 4 * F
-        return AtlasSurface(SMOOTH_DEGREE, SMOOTH_SPANS, at[:V], quads, at[V:faces_from],
-                            at[faces_from:], None)
+        return base_atlas(base, list(zip(acc_x, acc_y, acc_z, strict=True)))
+
+
+def base_atlas(base: SmoothBase, atlas_points: Sequence[Sequence[float]]) -> AtlasSurface:
+    """The :class:`~client_py.atlas.AtlasSurface` on ``base``'s layout whose control points
+    are ``atlas_points``, shape ``(V₁ + 2 E₁ + 4 F, 3)`` in ``base.acc_rows``' order (layout
+    vertices, then 2 points per step-1 edge, then 4 per quad): :func:`smooth_atlas`'s last
+    step, for a caller that has the points another way (the fitter's sparse ``M V``).
+
+    Raises
+    ------
+    ValueError
+        ``atlas_points`` not one point per row of ``base.acc_rows``, or points
+        :class:`~client_py.atlas.AtlasSurface` refuses.
+    """
+    if len(atlas_points) != len(base.acc_rows):
+        raise ValueError(f"atlas_points has {len(atlas_points)} points; the base has "
+                         f"{len(base.acc_rows)} (len(base.acc_rows))")
+    V, faces_from = base.step_vertex_count, len(atlas_points) - 4 * len(base.quads)
+    return AtlasSurface(SMOOTH_DEGREE, SMOOTH_SPANS, atlas_points[:V], base.quads,
+                        atlas_points[V:faces_from], atlas_points[faces_from:], None)

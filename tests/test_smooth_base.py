@@ -11,7 +11,13 @@ from scipy.interpolate import BSpline
 from scipy.spatial import ConvexHull
 
 from client_py.atlas import MAX_ATLAS_QUADS, MAX_ATLAS_VERTICES, AtlasSurface
-from client_py.smooth_base import SmoothBase, smooth_atlas, smooth_base
+from client_py.smooth_base import (
+    SmoothBase,
+    base_atlas,
+    check_control_mesh,
+    smooth_atlas,
+    smooth_base,
+)
 from fitter.fitting.atlas.layout import quad_layout
 from fitter.fitting.atlas.measure import closest_points_on_mesh
 from fitter.fitting.atlas.subdivision import catmull_clark_step, subdivided
@@ -371,16 +377,35 @@ TRIANGLE = ([(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (2, 2, 2)], [(0, 1, 2)]
     (5, [(0, 1, 2), (1, 0, 3), (4, 0, 1)], r"triangles 0 and 2 both run edge 0->1.*at most 2"),
     (MAX_ATLAS_VERTICES, [(0, 1, 2)], r"n \+ E \+ T = 131076 layout vertices.*at most 131072"),
 ])
-def test_bad_triangles_are_rejected(n_points, triangles, match):
+@pytest.mark.parametrize("check", [smooth_base, check_control_mesh])
+def test_bad_triangles_are_rejected(n_points, triangles, match, check):
     with pytest.raises(ValueError, match=match):
-        smooth_base(n_points, triangles)
+        check(n_points, triangles)
 
 
-def test_too_many_quads_are_rejected():
+@pytest.mark.parametrize("check", [smooth_base, check_control_mesh])
+def test_too_many_quads_are_rejected(check):
     _, triangles = grid(2, MAX_ATLAS_QUADS // 6 + 2)  # 2 (ny - 1) > MAX_ATLAS_QUADS / 3
     assert 3 * len(triangles) > MAX_ATLAS_QUADS
     with pytest.raises(ValueError, match=r"\d+ quads; an AtlasSurface takes at most 65536"):
-        smooth_base(int(triangles.max()) + 1, triangles)
+        check(int(triangles.max()) + 1, triangles)
+
+
+def test_base_atlas_of_the_applied_rows_is_the_smooth_atlas():
+    points, triangles = OCTAHEDRON
+    base = smooth_base(len(points), triangles.tolist())
+    step = [np.sum([w * points[i] for i, w in row], axis=0) for row in base.step_rows]
+    atlas_points = [np.sum([w * step[j] for j, w in row], axis=0).tolist()
+                    for row in base.acc_rows]
+    expected = smooth_atlas(points, triangles, base)
+    atlas = base_atlas(base, atlas_points)
+    assert atlas.quads == expected.quads
+    for got, want in ((atlas.vertices, expected.vertices),
+                      (atlas.edge_points, expected.edge_points),
+                      (atlas.face_points, expected.face_points)):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match=r"atlas_points has \d+ points; the base has \d+"):
+        base_atlas(base, atlas_points[:-1])
 
 
 @pytest.mark.parametrize("points, match", [

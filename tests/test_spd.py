@@ -7,7 +7,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fitter.fitting.detail import regularisation
-from fitter.fitting.spd import spd_lu
+from fitter.fitting.spd import node_order, spd_lu
 
 
 @pytest.mark.parametrize("single_columns", [True, False])
@@ -39,3 +39,24 @@ def test_a_detail_level_with_few_points_is_solved_as_the_dense_system():
     want = np.linalg.solve(M.toarray(), b)
     got = spd_lu(M, single_columns=False).solve(b)
     assert np.max(np.abs(got - want)) <= 1e-8 * np.max(np.abs(want))
+
+
+def test_node_order_keeps_each_nodes_unknowns_together_and_solves_as_spsolve():
+    """Three unknowns at each of 200 nodes, coupled along a random node pattern: the order
+    is a permutation that places a node's three unknowns side by side, and the system
+    permuted by it and factored in natural order has ``spsolve``'s solution."""
+    rng = np.random.default_rng(11)
+    m = 200
+    G = sp.random(m, m, density=0.02, random_state=rng, format="csr")
+    pattern = (G + G.T + sp.identity(m)).tocsr()
+    C = sp.random(3 * m, 3 * m, density=0.002, random_state=rng, format="csr")
+    M = (sp.kron(np.ones((3, 3)), pattern @ pattern.T) + C.T @ C
+         + sp.identity(3 * m)).tocsr()
+    perm = node_order(pattern, 3)
+    assert sorted(perm.tolist()) == list(range(3 * m))
+    assert np.array_equal(perm.reshape(m, 3) % m, np.repeat(perm[::3] % m, 3).reshape(m, 3))
+    b = rng.normal(size=3 * m)
+    got = np.empty(3 * m)
+    got[perm] = spd_lu(M[perm][:, perm], permc_spec="NATURAL").solve(b[perm])
+    want = spla.spsolve(M.tocsc(), b)
+    assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))

@@ -4,11 +4,13 @@ The fits' normal equations (``A^T A`` plus a positive smoothing or ridge term) a
 symmetric positive definite. SuperLU's defaults (COLAMD column order, partial pivoting)
 treat them as general matrices; a symmetric order without pivoting is the same solution
 to rounding and, on the single patch's detail levels, two orders of magnitude faster
-(:func:`spd_lu`).
+(:func:`spd_lu`). Where unknowns come in groups at the same nodes (a control point's
+``x, y, z``), :func:`node_order` orders the nodes.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
@@ -39,3 +41,27 @@ def spd_lu(M: sp.spmatrix, permc_spec: str = "MMD_AT_PLUS_A", single_columns: bo
                   if single_columns else {})
     return splu(M.tocsc(), permc_spec=permc_spec, diag_pivot_thresh=0.0,
                 options={"SymmetricMode": True}, **supernodes)
+
+
+def node_order(pattern: sp.spmatrix, unknowns: int) -> np.ndarray:
+    """A symmetric fill-reducing order, ``perm`` of shape ``(k m,)``, for a matrix over
+    ``k = unknowns`` unknowns at each of ``m`` nodes (unknown ``c m + i``: node ``i``'s
+    ``c``-th) whose nodes are coupled as the non-zeros of ``pattern (m, m)``: minimum
+    degree on the node graph (SuperLU's, as :func:`spd_lu` orders), each node's unknowns
+    kept together. Factor ``M[perm][:, perm]`` with ``permc_spec="NATURAL"``; a coupling
+    of ``M`` outside ``pattern`` costs fill, not correctness.
+
+    Ordered so, the three coordinates of a control mesh fit's normal equations
+    (``atlas.subdivision.fit_control_points``: the bunny's 4,088 control points) have 3 %
+    fewer factor non-zeros than minimum degree on all ``3 m`` unknowns gives, in natural
+    supernodes of three columns and more: a round's factorisation took 0.87 times as long
+    (median of 8, session 30), and the order is found once for all rounds.
+    """
+    graph = sp.csr_matrix(pattern, copy=True)
+    graph.data = np.ones_like(graph.data, dtype=float)
+    # strictly diagonally dominant, hence SPD: only its pattern matters to the order
+    degree = np.asarray(graph.sum(axis=1)).ravel()
+    node = spd_lu(graph + sp.diags(degree + 1.0), single_columns=False)
+    first = np.argsort(node.perm_c)  # perm_c[i]: the place of node i
+    m = len(first)
+    return (first[:, None] + m * np.arange(unknowns)[None, :]).reshape(-1)

@@ -1950,12 +1950,14 @@ def fit_atlas(scan: Scan, patches: int | str = "auto", *, degree: int = 3, spans
                     v, distance, rms, size, timings, trials, chosen_bits)
 
 
-def grid_mesh(atlas: AtlasSurface, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+def grid_mesh(atlas: AtlasSurface, resolution: int, table: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """Every patch sampled on an ``r × r`` grid of ``(u, v)`` and cut into triangles.
 
     Not welded (a border sample appears once per patch that holds it, equal to it up to
     rounding); for measuring the base. Triangles are counter-clockwise seen from the side
-    of ``C_u × C_v``.
+    of ``C_u × C_v``. ``table``: the atlas's :func:`.patches.index_table`, when the caller
+    has it (0.4 s for the bunny's 24,000 smooth-base patches); ``None``: found here.
 
     Returns
     -------
@@ -1967,11 +1969,12 @@ def grid_mesh(atlas: AtlasSurface, resolution: int) -> tuple[np.ndarray, np.ndar
     r, n_f = resolution, len(atlas.quads)
     t = np.linspace(0.0, 1.0, r)
     bu = basis_matrix(t, atlas.degree, atlas.spans)
-    net = control_points(atlas)[index_table(atlas)]  # (F, n, n, 3)
+    table = index_table(atlas) if table is None else table
+    net = control_points(atlas)[table]  # (F, n, n, 3)
     if atlas.weights is None:
         grid = np.einsum("ai,bj,fijc->fabc", bu, bu, net)
     else:
-        w = np.asarray(atlas.weights)[index_table(atlas)]
+        w = np.asarray(atlas.weights)[table]
         hom = np.einsum("ai,bj,fijc->fabc", bu, bu, net * w[..., None])
         grid = hom / np.einsum("ai,bj,fij->fab", bu, bu, w)[..., None]
     vertices = grid.reshape(-1, 3)  # vertex (f, a, b) at f r² + a r + b; a along u

@@ -34,7 +34,7 @@ import scipy.sparse as sp
 
 from client_py.atlas import AtlasSurface
 from client_py.control_mesh import read_control_mesh, write_control_mesh
-from client_py.smooth_base import SmoothBase, smooth_atlas, smooth_base
+from client_py.smooth_base import SmoothBase, base_atlas, smooth_atlas, smooth_base
 
 from ..options import MAX_PATCHES
 from .fit import AtlasFit, AtlasFitError, grid_mesh, working_points
@@ -148,7 +148,8 @@ def fit_control_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.nda
     sampled at ``resolution`` per patch side. Returns the points and the RMS history."""
     base = smooth_base(len(vertices), triangles.tolist())
     M = smooth_matrix(len(vertices), base)
-    table = index_table(smooth_atlas(vertices.tolist(), triangles.tolist(), base))
+    # the layout's numbering is all the fit needs of the atlas: M V is its control points
+    table = index_table(base_atlas(base, (M @ vertices).tolist()))
     B, faces = sample_matrix(table, M.shape[0], resolution)
     drawn = Subdivided("acc", 1, len(vertices), (triangles,), (B @ M).tocsr(), faces)
     return fit_control_points(points, vertices, drawn, rounds=rounds)
@@ -169,7 +170,8 @@ def foot_points(atlas: AtlasSurface, points: np.ndarray, normals: np.ndarray,
     """Each point's foot point on ``atlas``: the closest point of its grid mesh, then
     Gauss-Newton steps (:func:`.patches.correct_parameters`). Returns ``f, u, v`` and the
     signed distance, each (N,)."""
-    vertices, faces = grid_mesh(atlas, resolution)
+    table = index_table(atlas)
+    vertices, faces = grid_mesh(atlas, resolution, table)
     _, tri, foot = closest_points_on_mesh(points, vertices, faces)
     r = resolution
     per_patch = 2 * (r - 1) ** 2
@@ -178,7 +180,7 @@ def foot_points(atlas: AtlasSurface, points: np.ndarray, normals: np.ndarray,
     w = barycentric(foot, *(vertices[faces[tri, k]] for k in range(3)))
     a = sum(w[:, k] * (corners[:, k] // r) for k in range(3)) / (r - 1)
     b = sum(w[:, k] * (corners[:, k] % r) for k in range(3)) / (r - 1)
-    table, cps = index_table(atlas), control_points(atlas)
+    cps = control_points(atlas)
     f, u, v, _ = correct_parameters(table, cps, 3, 1, neighbour_table(atlas), points, normals,
                                     f, np.clip(a, 0, 1), np.clip(b, 0, 1))
     return f, u, v, signed_distances(table, cps, 3, 1, points, f, u, v)
