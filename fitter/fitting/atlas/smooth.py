@@ -18,10 +18,9 @@ collapse, the mesh Draco would code), so its vertices are dense where the shape 
 the patches base's bytes it drew Nefertiti, Lucy and Laurana at 0.57-0.75 times the RMS of
 quadric decimation + Draco, where the patches base drew 1.69-2.01 times (``python -m bench
 subdivision``, docs/benchmarks.md, session 28). In the product (``tessera fit --base
-smooth``; ``TESSERA_ATLAS_BASE=smooth python -m bench atlas``, session 29) the base drew
-the bunny, Nefertiti, Lucy and the Bali mask at 0.32-0.94 times Draco's RMS at its bytes,
-Laurana at 1.41; it is not the default yet (its colour cells, a cloud's depth, the fit's
-time: docs/benchmarks.md, "Session 29").
+smooth``; ``TESSERA_ATLAS_BASE=smooth python -m bench atlas``, session 30) the base drew
+the bunny, Nefertiti, Lucy, the Bali mask and Buddha scan 0 at 0.32-0.94 times Draco's RMS
+at its bytes, Laurana at 1.12; it is not the default yet (docs/benchmarks.md, "Session 30").
 """
 
 from __future__ import annotations
