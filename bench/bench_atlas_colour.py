@@ -1,17 +1,19 @@
 """Atlas colour: the scan's colours against the colours a visitor is drawn, every point.
 
 For each coloured object in ``../shared/data`` that fits as an atlas (the Laurana bust:
-per-vertex RGB), fit with default options, then per detail level ``L`` (``-1`` the base):
-the mesh the browser draws at ``L`` (``client_py.atlas_mesh.tessellate_atlas`` with the
-tiles of levels ``0..L``) coloured per vertex from the colour packs of its colour level,
-decoded from the bundle's WebP bytes (``client_py.atlas_texture``), and for EVERY scan
-vertex its colour against the drawn colour at its foot point on that mesh
-(``fitter.fitting.atlas.texture.colour_error``: mean ``|ΔRGB|`` per channel, RMS and P95
-of the Euclidean ``ΔRGB``, 0..255). Bytes: the colour packs of the level (what a visitor
-downloads for colour at ``L``). The same cells encoded at other WebP qualities and not at
-all (the sampling's own error) show what the encoding costs. The picture
-``bench/results/atlas_colour/<object>.png``: the scan's own colours and Tessera's drawn
-colours from the same cameras (unlit, so only colour differs).
+per-vertex RGB; the Bali mask: a 4096² UV texture), fit with default options, then per
+detail level ``L`` (``-1`` the base): the mesh the browser draws at ``L``
+(``client_py.atlas_mesh.tessellate_atlas`` with the tiles of levels ``0..L``) coloured per
+vertex from the colour packs of its colour level, decoded from the bundle's WebP bytes
+(``client_py.atlas_texture``), and for EVERY scan vertex its colour against the drawn
+colour at its foot point on that mesh (``fitter.fitting.atlas.texture.colour_error``: mean
+``|ΔRGB|`` per channel, RMS and P95 of the Euclidean ``ΔRGB``, 0..255). Bytes: the colour
+packs of the level (what a visitor downloads for colour at ``L``). The same cells encoded
+at other WebP qualities and not at all (the sampling's own error) show what the encoding
+costs. The picture ``bench/results/atlas_colour/<object>.png``: the scan's own colours and
+Tessera's drawn colours from the same cameras (unlit, so only colour differs).
+``TESSERA_ATLAS_BASE=smooth`` (``bench.bench_atlas.BASE``) fits the smooth base (``--base
+smooth``) into ``atlas_colour-smooth.json`` and ``atlas_colour-smooth/``.
 """
 
 from __future__ import annotations
@@ -24,12 +26,17 @@ from pathlib import Path
 import numpy as np
 
 from bench import RESULTS, print_table, write_results
+from bench.bench_atlas import BASE
 from bench.scoring import _camera, diagonal, view_directions
 from client_py.mesh_arrays import mesh_arrays
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-PICTURES = RESULTS / "atlas_colour"
-OBJECTS = {"laurana-bust": DATA / "laurana-bust" / "laurana.ply"}
+OBJECTS = {"laurana-bust": DATA / "laurana-bust" / "laurana.ply",
+           "bali-mask": DATA / "bali-mask" / "mask.obj"}
+#: the results' name: the smooth base's go to ``atlas_colour-smooth.json`` and its pictures
+#: to ``atlas_colour-smooth/``, so the default base's are kept
+NAME = "atlas_colour" if BASE == "patches" else f"atlas_colour-{BASE}"
+PICTURES = RESULTS / NAME
 QUALITIES = (75, 82, 90, 95)
 
 
@@ -143,7 +150,7 @@ def score_object(name: str, path: Path, work: Path) -> dict:
     from fitter.fitting.pipeline import fit_scan
 
     scan = load_scan(path)
-    bundle = fit_scan(scan, work / name, FitOptions()).path
+    bundle = fit_scan(scan, work / name, FitOptions(base=BASE)).path
     manifest = json.loads((bundle / "manifest.json").read_text())
     if manifest.get("format_version") != 2:
         return {"object": name, "skipped": "fitted as a single patch, not an atlas"}
@@ -187,7 +194,8 @@ def score_object(name: str, path: Path, work: Path) -> dict:
                         (vertices, faces, rgb), np.asarray(view["front"]),
                         np.asarray(view["up"]),
                         PICTURES / f"{name}{'-face' if face else ''}.png", face=face)
-    return {"object": name, "points": int(len(scan.points)), "patches": spec.patches,
+    return {"object": name, "base": BASE, "points": int(len(scan.points)),
+            "patches": spec.patches,
             "groups": len(groups), "colour_levels": len(colour.levels),
             "source": manifest["tiles"]["texture"]["source"],
             "packs": [{"file": p["file"], "bytes": p["bytes"], "patches": p["count"],
@@ -218,5 +226,5 @@ def run() -> dict | None:
                  "mean |dRGB|", "RMS dRGB", "P95 dRGB", "unencoded mean |dRGB|",
                  "mean |dRGB| @ bytes, WebP q" + "/".join(map(str, QUALITIES))], table)
     record = {"objects": results}
-    write_results("atlas_colour", record)
+    write_results(NAME, record)
     return record

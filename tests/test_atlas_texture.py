@@ -41,17 +41,40 @@ def _colour_of(points: np.ndarray) -> np.ndarray:
     return np.clip(128 + 2.0 * points, 0, 255)
 
 
-@pytest.fixture(scope="module")
-def coloured_sphere(tmp_path_factory):
+@pytest.fixture(scope="module", params=["patches", "smooth"])
+def coloured_sphere(request, tmp_path_factory):
+    """The coloured sphere fitted as an atlas of 60 patches with two detail levels, on each
+    base (``FitOptions.base``): ``(scan, bundle folder, manifest)``."""
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
     colours = np.rint(_colour_of(np.asarray(mesh.vertices))).astype(np.uint8)
     source = new_source("sphere", None, "array", compression=None, reader="array")
     scan = make_scan("sphere", np.asarray(mesh.vertices), faces=np.asarray(mesh.faces),
                      colors=colours, source=source)
     bundle = fit_scan(scan, tmp_path_factory.mktemp("colour") / "sphere",
-                      FitOptions(patches=60, detail_levels=2))
+                      FitOptions(patches=60, detail_levels=2, base=request.param))
     manifest = json.loads((bundle.path / "manifest.json").read_text())
     return scan, bundle.path, manifest
+
+
+#: the smooth base's WebP bounds over the patches base's: its known gap on this field,
+#: measured 9.26 read back (bound 4.5), 8.69 in the manifest and 8.80 in the PLY (bound 5.0)
+SMOOTH_WEBP_FACTOR = 2.2
+
+
+def _within_webp_bound(request, error: float, bound: float, what: str) -> None:
+    """``error < bound``, a bound set by WebP's loss on this field; on the smooth base
+    :data:`SMOOTH_WEBP_FACTOR` times it, the known gap.
+
+    The smooth base's cells are 4 texels wide (``T_0 = 2 m``, ``m = 2``: as many as its
+    level-0 mesh draws), and WebP codes chroma at half resolution, interpolated with the
+    chroma of the cells beside it in the pack (unrelated patches): on this strongly chromatic
+    field the decoded cells are 9.3 units per channel off. A gutter of 2 texels around each
+    cell (tried in session 30) brought that to 2.8, but at 1.8-2.3 times the bytes, and on
+    the real scans it lost at equal bytes (the Laurana bust, the Bali mask:
+    docs/benchmarks.md, "Session 30"), so the packs keep their layout."""
+    if request.node.callspec.params.get("coloured_sphere") == "smooth":
+        bound *= SMOOTH_WEBP_FACTOR
+    assert error < bound, (what, error, bound)
 
 
 def _decode(folder: Path, nodes) -> list[ColourPack]:
@@ -63,12 +86,15 @@ def _decode(folder: Path, nodes) -> list[ColourPack]:
     return colour_packs_of(nodes, images)
 
 
-def test_a_coloured_closed_mesh_gets_colour_packs_listed_with_their_bytes(coloured_sphere):
+def test_a_coloured_closed_mesh_gets_colour_packs_listed_with_their_bytes(coloured_sphere,
+                                                                          request):
     _, folder, manifest = coloured_sphere
     texture = manifest["tiles"]["texture"]
     colour = atlas_colour(manifest)
     assert texture["format"] == "webp" and texture["source"] == "vertex colours"
-    assert [lv["cell"] for lv in texture["levels"]] == [16 << c for c in range(len(colour.levels))]
+    first = 2 * manifest["tiles"]["detail"]["spans_per_tile"]  # T_0 = 2 m
+    assert [lv["cell"] for lv in texture["levels"]] == [first << c
+                                                         for c in range(len(colour.levels))]
     for pack in colour.packs:
         assert manifest["files"][pack["file"]] == pack["bytes"] == \
             (folder / pack["file"]).stat().st_size
@@ -80,10 +106,11 @@ def test_a_coloured_closed_mesh_gets_colour_packs_listed_with_their_bytes(colour
         assert held == list(range(manifest["base"]["patches"]))
     # the manifest's colour error is of every scan point against the drawn colours (WebP's
     # loss on this strongly chromatic field dominates it: see test_pack_layout_round_trips)
-    assert texture["error"]["points"] == 2562 and texture["error"]["mean_abs"] < 5.0
+    assert texture["error"]["points"] == 2562
+    _within_webp_bound(request, texture["error"]["mean_abs"], 5.0, "the manifest's error")
 
 
-def test_colours_read_back_match_the_colours_written(coloured_sphere):
+def test_colours_read_back_match_the_colours_written(coloured_sphere, request):
     scan, folder, manifest = coloured_sphere
     from client_py.atlas_format import read_atlas
     from client_py.bundle import atlas_level_detail
@@ -100,13 +127,14 @@ def test_colours_read_back_match_the_colours_written(coloured_sphere):
                                len(manifest["tiles"]["detail"]["levels"]) - 1)
     written = coarser_cells(sample_cells(scan, atlas, tiles, colour.levels[-1]["cell"]),
                             len(colour.levels))
+    errors = []
     for level in range(len(colour.levels)):
         packs = decoded_packs(texture, level)
         read = np.stack([np.frombuffer(p.cell_image(f).rgb, np.uint8) for p in packs
                          for f in range(p.first, p.first + p.count)]).astype(float)
         wrote = np.stack([uv_picture(cell).ravel() for cell in written[level]]).astype(float)
         # WebP's quantisation (quality 90) on this strongly chromatic field (q82: 7.3)
-        assert np.abs(read - wrote).mean() < 4.5
+        errors.append((f"level {level} read back", np.abs(read - wrote).mean(), 4.5))
         # each decoded cell against the analytic colour at its texel centres' drawn points:
         # WebP's quantisation (quality 82) and the surface's distance to the sphere apart,
         # the colours written come back
@@ -117,11 +145,13 @@ def test_colours_read_back_match_the_colours_written(coloured_sphere):
         expected = _colour_of(50.0 * positions / np.linalg.norm(positions, axis=1)[:, None])
         error = np.abs(drawn - expected)
         # a pack, cell or orientation mix-up gives 10+ (u and v swapped: 12.7)
-        assert error.mean() < 5.0, (level, error.mean())
-    assert scan.colors is not None
+        errors.append((f"level {level} drawn", error.mean(), 5.0))
+    assert scan.colors is not None and len(errors) == 2 * len(colour.levels)
+    for what, error, bound in errors:
+        _within_webp_bound(request, error, bound, what)
 
 
-def test_the_ply_of_a_coloured_atlas_has_rgb_per_vertex(coloured_sphere, tmp_path):
+def test_the_ply_of_a_coloured_atlas_has_rgb_per_vertex(coloured_sphere, tmp_path, request):
     _, folder, manifest = coloured_sphere
     from fitter.cli import main
 
@@ -141,8 +171,8 @@ def test_the_ply_of_a_coloured_atlas_has_rgb_per_vertex(coloured_sphere, tmp_pat
     rgb = np.asarray(ply.visual.vertex_colors)[:, :3].astype(float)
     points = np.asarray(ply.vertices)
     expected = _colour_of(50.0 * points / np.linalg.norm(points, axis=1)[:, None])
-    assert np.abs(rgb - expected).mean() < 5.0
     assert out.read_bytes()[:800].count(b"property uchar red") == 1
+    _within_webp_bound(request, np.abs(rgb - expected).mean(), 5.0, "the PLY's colours")
 
 
 def test_the_viewer_session_colours_each_group_at_its_level(coloured_sphere):
@@ -263,7 +293,8 @@ def test_a_uv_textured_scan_gives_two_colour_levels_of_its_texture(coloured_sphe
     points = drawn_texel_points(atlas, tiles, np.arange(len(atlas.quads)), top.shape[1])
     expected = np.clip(128 + 2.0 * points[..., :2], 0, 255)
     assert np.abs(top[..., :2] - expected).mean() < 1.0  # the texture's field, bilinear
-    coarse = top.astype(float).reshape(len(top), 16, 2, 16, 2, 3).mean(axis=(2, 4))
+    half = top.shape[1] // 2
+    coarse = top.astype(float).reshape(len(top), half, 2, half, 2, 3).mean(axis=(2, 4))
     assert np.abs(result.cells[0] - coarse).max() <= 0.5  # level 0: 2x2 means, rounded
 
 
