@@ -35,6 +35,8 @@ import time
 import traceback
 from pathlib import Path
 
+from fitter.process_exit import exit_now
+
 PACKAGE_DIR = Path(__file__).resolve().parent
 
 
@@ -96,4 +98,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())

@@ -38,6 +38,7 @@ from .fitting.cores import usable_cores
 from .fitting.options import OptionError
 from .fitting.options import add_arguments as add_fit_arguments
 from .fitting.options import from_args as fit_options_from_args
+from .process_exit import exit_now
 
 
 class UserError(TesseraError):
@@ -662,5 +663,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def console() -> None:
+    """The ``tessera`` command: :func:`main`, its process ended by
+    :func:`fitter.process_exit.exit_now` (which says why)."""
+    exit_now(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

@@ -11,7 +11,6 @@ serves the collection at the printed URL.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ import numpy as np
 from client_py.ply import write_points_ply
 
 from .fitting.examples import relief_scan, vase_mesh
+from .process_exit import exit_now
 
 
 def write_scan_ply(path: Path, points: np.ndarray) -> None:
@@ -70,4 +70,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())
