@@ -137,6 +137,9 @@ def test_bad_arguments_are_named():
         atlas_detail.fit_atlas_detail(fit, scan, spans=5)
     with pytest.raises(ValueError, match="step_factor"):
         atlas_detail.fit_atlas_detail(fit, scan, step_factor=0.0)
+    for bad in (0.0, -1.0, float("nan"), True, "0.6"):
+        with pytest.raises(ValueError, match="offset_limit must be"):
+            atlas_detail.fit_detail_pyramid(fit, scan, offset_limit=bad)
     with pytest.raises(ValueError, match="permutation"):
         atlas_detail.renumber_patches(fit.atlas, np.zeros(len(fit.atlas.quads), int))
 
@@ -190,6 +193,30 @@ def test_a_sample_from_the_other_sheet_is_not_fitted():
     np.testing.assert_allclose(np.abs(samples.facing), 1.0, atol=0.05)
     use = atlas_detail.fit_samples(samples, spacing=0.05, side=1.0)
     np.testing.assert_array_equal(use, samples.facing > 0)
+
+
+def test_the_offset_limit_decides_which_offsets_are_fitted():
+    """A sample farther along the normal than ``offset_limit`` median patch sides is left
+    out (the base missed that part), one within it is fitted: at the default
+    ``OFFSET_LIMIT`` and at a smooth base's wider ``SMOOTH_OFFSET_LIMIT``."""
+    from fitter.fitting.atlas.smooth import SMOOTH_OFFSET_LIMIT
+
+    fit, _ = _bumpy_sphere_fit()
+    rng = np.random.default_rng(4)
+    unit = rng.normal(size=(300, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    side = 0.1
+    offset = np.repeat([0.1, 0.4, 0.8], 100) * side  # in patch sides
+    samples = atlas_detail.project_samples(fit.atlas, fit, unit * (1.0 + offset[:, None]),
+                                           unit)
+    s = np.abs(samples.s)
+    assert atlas_detail.OFFSET_LIMIT == 0.2 and SMOOTH_OFFSET_LIMIT == 0.6
+    for limit in (atlas_detail.OFFSET_LIMIT, SMOOTH_OFFSET_LIMIT):
+        use = atlas_detail.fit_samples(samples, spacing=0.05, side=side, offset_limit=limit)
+        np.testing.assert_array_equal(use, s <= limit * side)
+        assert 0 < use.sum() < len(use)
+    default = atlas_detail.fit_samples(samples, spacing=0.05, side=side)
+    assert default.sum() < atlas_detail.fit_samples(samples, 0.05, side, SMOOTH_OFFSET_LIMIT).sum()
 
 
 def test_drawn_triangles_are_the_clients_grid_triangles():

@@ -109,3 +109,70 @@ def test_a_smooth_base_bundle_is_read_and_drawn_as_any_atlas(tmp_path):
                                  np.asarray(mesh.faces))[0]
     assert far.max() < 0.01 * 20  # the base of 100 control triangles: no fin past 1 % (0.67)
     assert manifest["stats"]["max_relative"] < 0.001  # level 0, every point (0.04 %)
+
+
+def _sheet(n: int, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A wavy ``n x n`` grid sheet over ``[0, 1]^2`` (an open border of ``4 (n - 1)`` edges),
+    its border vertices jittered in the plane when ``rng`` is given (a scanner's ragged rim)."""
+    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    points = np.stack([u, v, 0.05 * np.sin(6 * u) * np.cos(5 * v)], axis=-1).reshape(-1, 3)
+    if rng is not None:
+        rim = (np.isin(u, (0, 1)) | np.isin(v, (0, 1))).ravel()
+        points[rim, :2] += rng.uniform(-0.3, 0.3, (rim.sum(), 2)) / n
+    k = np.arange(n * n).reshape(n, n)
+    a, b, c, d = k[:-1, :-1].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel(), k[:-1, 1:].ravel()
+    return points, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def test_border_weights_weigh_a_short_open_border_of_the_scans_own_mesh():
+    """The open border's vertices get ``BORDER_WEIGHT``, the others 1; none for a closed
+    surface, a cloud's stand-in, or a border of more than ``BORDER_SHARE`` of the control
+    points (a range scan's ragged rim)."""
+    from fitter.fitting.atlas.smooth import BORDER_SHARE, BORDER_WEIGHT, border_weights
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    points, faces = _sheet(41)  # 160 border vertices of 1,681
+    sheet = ScanSurface(points, faces, "mesh", 1)
+    weights = border_weights(sheet, 4000)
+    rim = np.zeros(len(points), bool)
+    rim[np.unique(np.concatenate([np.arange(41), np.arange(41) * 41, np.arange(41) * 41 + 40,
+                                  1640 + np.arange(41)]))] = True
+    np.testing.assert_array_equal(weights, np.where(rim, BORDER_WEIGHT, 1.0))
+    assert 160 <= BORDER_SHARE * 4000 / 2  # 250: weighted
+    assert border_weights(sheet, 2000) is None  # 160 > 125
+    assert border_weights(ScanSurface(points, faces, "poisson", 1), 4000) is None
+    assert border_weights(ScanSurface(*icosphere(3), "mesh", 1), 4000) is None
+
+
+def test_the_control_mesh_is_decimated_with_its_border_weighted(monkeypatch):
+    """``fit_smooth_atlas`` hands :func:`border_weights` of the surface to the decimation:
+    the scan's rim vertices weighted. (On Laurana the
+    plain decimation kept 107 control edges of 318 along the cut base, the weighted 249;
+    a synthetic rim is kept whole by either, so this checks the wiring.)"""
+    from fitter.fitting.atlas import smooth
+    from fitter.fitting.atlas.surface import ScanSurface, border_edges
+    from fitter.fitting.io.scan import make_scan, new_source
+
+    v, f = icosphere(4)
+    keep = v[f][:, :, 2].min(axis=1) > -0.8  # a cut base: an open rim
+    used = np.unique(f[keep])
+    renumber = np.full(len(v), -1)
+    renumber[used] = np.arange(len(used))
+    v, f = v[used], renumber[f[keep]]
+    seen = []
+    real = smooth.decimate
+
+    def recording(source, target, weights=None, *args, **kwargs):
+        seen.append((source, target, weights))
+        return real(source, target, weights, *args, **kwargs)
+
+    monkeypatch.setattr(smooth, "decimate", recording)
+    scan = make_scan("cut", v, faces=f,
+                     source=new_source("cut", None, "array", compression=None, reader="array"))
+    surface = ScanSurface(v, f, "mesh", 1)
+    fit = smooth.fit_smooth_atlas(scan, byte_budget=4000, surface=surface, triangles=1200)
+    source, target, weights = seen[0]
+    np.testing.assert_array_equal(weights, smooth.border_weights(source, target))
+    assert weights is not None and np.count_nonzero(weights > 1) == len(np.unique(
+        border_edges(f)))
+    assert len(seen) == 1 and fit.trials[0]["triangles"] <= 1200

@@ -1337,17 +1337,18 @@ def held_out(count: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).integers(0, HELD_OUT, count) == 0
 
 
-def fit_samples(samples: AtlasSamples, spacing: float, side: float) -> np.ndarray:
+def fit_samples(samples: AtlasSamples, spacing: float, side: float,
+                offset_limit: float = OFFSET_LIMIT) -> np.ndarray:
     """The samples a displacement along the normal can explain, ``(N,)`` booleans: a
     foot point that is an orthogonal projection (tangential remainder ``t`` within the
     scan's ``spacing``: not clamped on an open border or stuck at a fold), an offset
-    ``|s|`` within ``OFFSET_LIMIT`` median patch ``side``s (a larger one would be a spike, not
+    ``|s|`` within ``offset_limit`` median patch ``side``s (a larger one would be a spike, not
     detail: the base missed that part), and a base normal at the foot point that agrees with
     the sample's own (``n . n_x >= MIN_FACING``): a sample of the back of a thin part
     projected onto its front would pull the front through it (on Lucy, 0.5 cut the drawn
     area farther than 1 % of the diagonal from the scan from 4.3 % to 3.0 % at the finest
     level, and the RMS a little). The others still count in every error figure."""
-    return ((samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= OFFSET_LIMIT * side)
+    return ((samples.t2 <= spacing * spacing) & (np.abs(samples.s) <= offset_limit * side)
             & (samples.facing >= MIN_FACING))
 
 
@@ -1987,7 +1988,8 @@ def check_levels(levels: int, patches: int | None, spans: int = SPANS) -> None:
                           f"at most {most} levels ({why})")
 
 
-def _check_arguments(levels: object, spans: object, step_factor: object) -> None:
+def _check_arguments(levels: object, spans: object, step_factor: object,
+                     offset_limit: object = OFFSET_LIMIT) -> None:
     if levels is not None and (isinstance(levels, bool) or not isinstance(levels, int)
                                or not 0 <= levels <= layers.MAX_LEVEL + 1):
         raise ValueError(f"levels must be None (automatic) or an int in "
@@ -1997,6 +1999,10 @@ def _check_arguments(levels: object, spans: object, step_factor: object) -> None
     if not (isinstance(step_factor, int | float) and math.isfinite(step_factor)
             and step_factor > 0):
         raise ValueError(f"step_factor must be a finite number > 0, got {step_factor!r}")
+    if not (isinstance(offset_limit, int | float) and not isinstance(offset_limit, bool)
+            and math.isfinite(offset_limit) and offset_limit > 0):
+        raise ValueError(f"offset_limit must be a finite number > 0 (median patch sides), "
+                         f"got {offset_limit!r}")
 
 
 def _check_pack_bytes(pack_bytes: object) -> None:
@@ -2049,14 +2055,16 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                        spans: int = SPANS, step_factor: float = STEP_FACTOR,
                        max_samples: int = MAX_SAMPLES,
                        progress: Callable[[float], None] | None = None,
-                       original: Scan | None = None, keep_order: bool = False
-                       ) -> DetailPyramid:
+                       original: Scan | None = None, keep_order: bool = False,
+                       offset_limit: float = OFFSET_LIMIT) -> DetailPyramid:
     """:func:`fit_atlas_detail`'s pyramid (the same parameters but ``pack_bytes``), its
     packs not yet coded (:func:`pack_pyramid`). ``keep_order``: the patches keep their
     numbers (a smooth base's are its control triangles', which its file fixes in a walk
     across their edges: ``client_py.control_mesh.traversal_order``), else they are
-    renumbered in :func:`spatial_order`."""
-    _check_arguments(levels, spans, step_factor)
+    renumbered in :func:`spatial_order`. ``offset_limit``: the largest normal offset fitted,
+    in median patch sides (:func:`fit_samples`; a smooth base's patches are smaller:
+    ``.smooth.SMOOTH_OFFSET_LIMIT``)."""
+    _check_arguments(levels, spans, step_factor, offset_limit)
     if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1000:
         raise ValueError(f"max_samples must be an int >= 1000, got {max_samples!r}")
     report = progress or (lambda fraction: None)
@@ -2086,7 +2094,7 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     samples = project_samples(atlas, fit, points, normals,
                               progress=lambda x: report(0.4 * x), weights=weights)
     timings["project"] = time.perf_counter() - clock
-    use = fit_samples(samples, spacing, side)
+    use = fit_samples(samples, spacing, side, offset_limit)
     held = use & held_out(len(use)) if validate else np.zeros(len(use), dtype=bool)
     if held.sum() < MIN_HELD:
         held[:] = False
