@@ -176,3 +176,19 @@ def test_the_control_mesh_is_decimated_with_its_border_weighted(monkeypatch):
     assert weights is not None and np.count_nonzero(weights > 1) == len(np.unique(
         border_edges(f)))
     assert len(seen) == 1 and fit.trials[0]["triangles"] <= 1200
+
+
+def test_smooth_detail_fits_wider_offsets_on_a_mesh_only():
+    """A smooth base's detail on a mesh's own triangles: 2 spans, offsets up to
+    ``SMOOTH_OFFSET_LIMIT``; on a cloud's Poisson stand-in: 1 span, the patches base's
+    ``OFFSET_LIMIT`` (wider drew a point past 1 % of the diagonal on the 15-scan Buddha)."""
+    from fitter.fitting.atlas.detail import OFFSET_LIMIT
+    from fitter.fitting.atlas.smooth import SMOOTH_OFFSET_LIMIT, smooth_detail
+    from fitter.fitting.atlas.surface import ScanSurface
+
+    v, f = icosphere(1)
+    mesh = smooth_detail(ScanSurface(v, f, "mesh", 1))
+    cloud = smooth_detail(ScanSurface(v, f, "poisson", 1))
+    assert (mesh["spans"], mesh["offset_limit"]) == (2, SMOOTH_OFFSET_LIMIT)
+    assert (cloud["spans"], cloud["offset_limit"]) == (1, OFFSET_LIMIT)
+    assert SMOOTH_OFFSET_LIMIT > OFFSET_LIMIT and mesh["keep_order"] and cloud["keep_order"]
