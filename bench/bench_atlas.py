@@ -24,8 +24,9 @@ It writes ``bench/results/atlas.json`` and, per object, a picture of the scan an
 finest drawn level from six directions (``bench/results/atlas/<object>.png``) with the
 silhouette IoU of each view. ``TESSERA_ATLAS_OBJECTS=bunny,lucy`` picks objects; the
 others keep their records from the earlier ``atlas.json`` (with their own ``date``).
-``TESSERA_ATLAS_BASE=smooth`` fits the smooth base (``--base smooth``) into
-``atlas-smooth.json`` and ``atlas-smooth/``.
+The base is the fit's default (``--base smooth`` since session 31);
+``TESSERA_ATLAS_BASE=patches`` fits the patches base (``--base patches``) into
+``atlas-patches.json`` and ``atlas-patches/``.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from bench.scoring import (
 )
 from client_py.mesh_arrays import mesh_arrays
 from fitter.fitting.io import ScanError
+from fitter.fitting.options import OPTION
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
@@ -64,10 +66,12 @@ OBJECTS = {
     "bali-mask": DATA / "bali-mask" / "mask.obj",
     "happy-buddha 15 scans": DATA / "happy-buddha-rangescans" / "happyStandRight.conf",
 }
-#: the atlas base fitted (``--base``): ``TESSERA_ATLAS_BASE=smooth`` measures the smooth
-#: base into ``atlas-smooth.json`` and ``atlas-smooth/`` (the default's: ``atlas``)
-BASE = os.environ.get("TESSERA_ATLAS_BASE", "patches")
-NAME = "atlas" if BASE == "patches" else f"atlas-{BASE}"
+#: the atlas base fitted (``--base``), the fit's default unless ``TESSERA_ATLAS_BASE`` names
+#: another: the default's results are ``atlas.json`` and ``atlas/``, another base's
+#: ``atlas-<base>.json`` and ``atlas-<base>/`` (``atlas-patches``)
+DEFAULT_BASE = OPTION["base"].default
+BASE = os.environ.get("TESSERA_ATLAS_BASE", DEFAULT_BASE)
+NAME = "atlas" if BASE == DEFAULT_BASE else f"atlas-{BASE}"
 PICTURES = RESULTS / NAME
 BORDER_REACH = 0.005  # a drawn border farther than this (x diagonal) from the scan's is off it
 

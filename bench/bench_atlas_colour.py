@@ -12,8 +12,9 @@ packs of the level (what a visitor downloads for colour at ``L``). The same cell
 at other WebP qualities and not at all (the sampling's own error) show what the encoding
 costs. The picture ``bench/results/atlas_colour/<object>.png``: the scan's own colours and
 Tessera's drawn colours from the same cameras (unlit, so only colour differs).
-``TESSERA_ATLAS_BASE=smooth`` (``bench.bench_atlas.BASE``) fits the smooth base (``--base
-smooth``) into ``atlas_colour-smooth.json`` and ``atlas_colour-smooth/``.
+The base is the fit's default (``--base smooth`` since session 31);
+``TESSERA_ATLAS_BASE=patches`` (``bench.bench_atlas.BASE``) fits the patches base (``--base
+patches``) into ``atlas_colour-patches.json`` and ``atlas_colour-patches/``.
 """
 
 from __future__ import annotations
@@ -26,16 +27,17 @@ from pathlib import Path
 import numpy as np
 
 from bench import RESULTS, print_table, write_results
-from bench.bench_atlas import BASE
+from bench.bench_atlas import BASE, DEFAULT_BASE
 from bench.scoring import _camera, diagonal, view_directions
 from client_py.mesh_arrays import mesh_arrays
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 OBJECTS = {"laurana-bust": DATA / "laurana-bust" / "laurana.ply",
            "bali-mask": DATA / "bali-mask" / "mask.obj"}
-#: the results' name: the smooth base's go to ``atlas_colour-smooth.json`` and its pictures
-#: to ``atlas_colour-smooth/``, so the default base's are kept
-NAME = "atlas_colour" if BASE == "patches" else f"atlas_colour-{BASE}"
+#: the results' name: another base than the default's goes to ``atlas_colour-<base>.json``
+#: and its pictures to ``atlas_colour-<base>/`` (``atlas_colour-patches``), so the default
+#: base's are kept
+NAME = "atlas_colour" if BASE == DEFAULT_BASE else f"atlas_colour-{BASE}"
 PICTURES = RESULTS / NAME
 QUALITIES = (75, 82, 90, 95)
 

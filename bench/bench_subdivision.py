@@ -11,8 +11,9 @@ This measures a candidate: the same decimated mesh Draco codes, used instead as 
   at the first step, so every face after it could carry the atlas's per-patch
   ``[0, 1]^2`` detail tiles).
 
-For each mesh of ``../shared/data`` (a cloud has no Draco row): the budget is the atlas
-base's bytes in ``bench/results/atlas.json`` (24,000 without it); Draco's best decimation
+For each mesh of ``../shared/data`` (a cloud has no Draco row): the budget is the patches
+base's bytes in ``bench/results/atlas-patches.json`` (``atlas.json`` until session 31, when
+the smooth base became the default; 24,000 without it); Draco's best decimation
 and bits at or under it (``bench.bench_rate_distortion``); the two control meshes are that
 decimation, fitted, and coded by Draco at the same bits (a control mesh whose file passes
 the budget is made smaller and fitted again). Every figure is measured against ALL scan
@@ -62,8 +63,9 @@ def add_arguments(parser) -> None:
 
 
 def _atlas_bases() -> dict[str, dict]:
-    """Each object's base (level -1) in the last ``bench atlas``: its bytes and RMS."""
-    path = RESULTS / "atlas.json"
+    """Each object's patches base (level -1) in the last ``TESSERA_ATLAS_BASE=patches python
+    -m bench atlas``: its bytes and RMS."""
+    path = RESULTS / "atlas-patches.json"
     if not path.exists():
         return {}
     records = json.loads(path.read_text()).get("objects", [])

@@ -542,8 +542,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="fit a scan with NURBS patches and write a bundle",
         description="Fit a scan (PLY, OBJ, STL, OFF, GLB/glTF, XYZ/PTS/ASC, .gz, Stanford .conf, "
         "E57, LAS/LAZ) with NURBS patches following Curkovic, Vucina et al.: an atlas of "
-        "patches over a whole object, or one patch where one covers it (a relief, a single "
-        "range scan; --patches). Writes OUTDIR: manifest.json, the base (base.tsa "
+        "patches over a whole object, or one patch where one covers it (a relief's point "
+        "cloud; with --base patches a relief or a single range scan's mesh too; --patches). "
+        "Writes OUTDIR: manifest.json, the base (base.tsa "
         "for an atlas, base.tsp for one patch), detail/ (the zoom levels), error_raster.bin, "
         "error.png and error.ply.",
     )

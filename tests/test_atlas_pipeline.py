@@ -22,7 +22,7 @@ from fitter.fitting.atlas.measure import (
 from fitter.fitting.atlas.pipeline import wants_atlas
 from fitter.fitting.io import Scan
 from fitter.fitting.io.scan import make_scan, new_source
-from fitter.fitting.options import OPTION, FitOptions, OptionError
+from fitter.fitting.options import ATLAS_BASES, OPTION, FitOptions, OptionError
 from fitter.fitting.pipeline import fit_scan
 
 
@@ -285,15 +285,17 @@ def test_packs_coded_while_the_levels_are_measured_are_those_coded_before(monkey
 def test_auto_rule_keeps_one_patch_for_a_height_field_and_an_atlas_for_a_closed_object():
     x, y = np.meshgrid(np.linspace(0, 1, 60), np.linspace(0, 1, 60))
     relief = np.column_stack([x.ravel(), y.ravel(), 0.05 * np.sin(6 * x.ravel()) * y.ravel()])
-    assert not wants_atlas(Scan.from_array(relief), None)
-    assert wants_atlas(_mesh_scan(trimesh.creation.icosphere(subdivisions=3)), None)
-    assert not wants_atlas(_mesh_scan(trimesh.creation.icosphere(subdivisions=3)), 1)
-    assert wants_atlas(Scan.from_array(relief), 30)
+    sphere = _mesh_scan(trimesh.creation.icosphere(subdivisions=3))
+    for base in ATLAS_BASES:
+        assert not wants_atlas(Scan.from_array(relief), None, base)
+        assert wants_atlas(sphere, None, base)
+        assert not wants_atlas(sphere, 1, base)
+        assert wants_atlas(Scan.from_array(relief), 30, base)
     # with the smooth base a height-field mesh is an atlas; a height-field cloud stays one patch
     a = (np.arange(59)[:, None] * 60 + np.arange(59)[None, :]).ravel()  # the grid's cells
     faces = np.concatenate([np.stack([a, a + 1, a + 61], 1), np.stack([a, a + 61, a + 60], 1)])
     relief_mesh = Scan(points=relief, faces=faces)
-    assert not wants_atlas(relief_mesh, None)
+    assert not wants_atlas(relief_mesh, None, "patches")
     assert wants_atlas(relief_mesh, None, "smooth")
     assert not wants_atlas(Scan.from_array(relief), None, "smooth")
     assert not wants_atlas(relief_mesh, 1, "smooth")
@@ -323,23 +325,31 @@ def test_more_detail_levels_than_an_atlas_holds_are_refused_before_the_scan_is_r
 def test_more_detail_levels_than_an_atlas_not_asked_for_holds_are_capped(tmp_path,
                                                                           monkeypatch):
     """With ``patches`` automatic, ``detail_levels`` may be meant for the single patches of
-    a collection: a closed object gets the most its atlas holds, and the manifest says so."""
+    a collection: a closed object gets the most its atlas holds, and the manifest says so.
+
+    The default base (smooth: here 3,840 patches of 2 spans a tile side, holding 2 levels;
+    the patches base's fewer patches of 8 spans held 1): the levels held are computed from
+    the patches and the spans the manifest records, so the rule is checked on either base."""
     from fitter.fitting.atlas import detail as atlas_detail
 
     monkeypatch.setattr(atlas_detail, "MAX_COEFFICIENTS", 200_000)
     mesh = trimesh.creation.icosphere(subdivisions=3)
     manifest = fit_scan(_mesh_scan(mesh, "sphere"), tmp_path / "b",
                         FitOptions(detail_levels=3)).manifest
+    assert manifest["options"]["base"] == FitOptions().base
     patches = manifest["base"]["patches"]
-    # level 0 has (8 + 2)^2 coefficients a patch, within the cap; level 1 (16 + 2)^2, over
-    assert 200_000 // 18 ** 2 < patches <= 200_000 // 10 ** 2
+    spans = manifest["tiles"]["detail"]["spans_per_tile"]
+    # level k has (spans 2^k + 2)^2 coefficients a patch (degree 2); held: those within
+    coefficients = [patches * ((spans << k) + 2) ** 2 for k in range(4)]
+    held = next(k for k, n in enumerate(coefficients) if n > 200_000)
+    assert 1 <= held < 3  # the cap keeps level 0 and drops one asked for
     assert manifest["fit"]["detail_levels_capped"] == {
-        "asked": 3, "held": 1, "why": f"level 1 would have {patches * 18 ** 2:,} "
-                                      "coefficients, over 200,000"}
-    assert len(manifest["tiles"]["detail"]["levels"]) == 1
+        "asked": 3, "held": held, "why": f"level {held} would have {coefficients[held]:,} "
+                                         "coefficients, over 200,000"}
+    assert len(manifest["tiles"]["detail"]["levels"]) == held
     from client_py.bundle import fit_notes  # tessera fit's summary, the admin's page
-    assert ("capped", f"detail_levels 3: the atlas holds 1 (level 1 would have "
-                      f"{patches * 18 ** 2:,} coefficients, over 200,000)") in fit_notes(manifest)
+    assert ("capped", f"detail_levels 3: the atlas holds {held} (level {held} would have "
+                      f"{coefficients[held]:,} coefficients, over 200,000)") in fit_notes(manifest)
 
 
 def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):
@@ -347,10 +357,17 @@ def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):
     its rounded centre, recorded as ``provenance.origin``: as near its surface as the same
     sphere at the origin. In the file's coordinates single-precision searches and drawing
     lose it (a float32 step there is 0.5 for a radius of 1): the atlas was refused and one
-    height-field patch drew part of it."""
+    height-field patch drew part of it.
+
+    The default (smooth) base with 120 patches, 40 control triangles: with 60 (20 control
+    triangles) that base is too coarse for this sphere, 15 of its 642 points uncovered here
+    and 9 at the origin (session 31: 90, 120 and 150 patches left none, the RMS 0.8 to 1.0
+    times the origin's). Its drawn base strays up to 2.0 % of the radius from the sphere
+    (1.1 % at 480 patches; the patches base's 60 patches 0.6 %), so the PLY's vertices are
+    checked within 3 %, where the file's coordinates would be 6.4e6 away."""
     mesh = trimesh.creation.icosphere(subdivisions=3)
     offset = np.array([5e6, 4e6, 300.0])
-    options = FitOptions(patches=60, detail_levels=0)
+    options = FitOptions(patches=120, detail_levels=0)
     far = fit_scan(_mesh_scan(trimesh.Trimesh(mesh.vertices + offset, mesh.faces,
                                               process=False), "far"),
                    tmp_path / "far", options).manifest
@@ -371,7 +388,7 @@ def test_a_closed_object_in_map_coordinates_is_fitted_near_the_origin(tmp_path):
     header = (tmp_path / "far.ply").read_bytes()[:2000].decode("latin-1")
     assert ("comment origin 5000000.0 4000000.0 300.0\ncomment the scan file's coordinates "
             "are each vertex plus the origin\n") in header
-    assert np.allclose(np.linalg.norm(ply.vertices, axis=1), 1.0, atol=0.01)
+    assert np.allclose(np.linalg.norm(ply.vertices, axis=1), 1.0, atol=0.03)
 
 
 def test_closed_sphere_becomes_a_watertight_atlas_bundle(tmp_path):

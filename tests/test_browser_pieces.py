@@ -22,8 +22,10 @@ pytestmark = pytest.mark.browser
 
 @pytest.fixture(scope="module")
 def pieces_collection(tmp_path_factory):
+    """The relief with its fragment fitted as one patch (``patches=1``: the pieces are a
+    single patch's; with the smooth base, the default, a mesh is an atlas)."""
     root = tmp_path_factory.mktemp("pieces-collection")
-    fit_scan(fragment_scan(), root / "fragment", FitOptions())
+    fit_scan(fragment_scan(), root / "fragment", FitOptions(patches=1))
     return root
 
 

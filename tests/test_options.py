@@ -35,7 +35,7 @@ from fitter.server.admin.service import parse_fit_options
 #: the documented defaults (README, docs/admin.md), written out independently of the table
 DOCUMENTED_DEFAULTS = {
     "grid": (40, 40), "degree": 2, "method": "tessera", "bits": None, "max_error": None,
-    "max_grid": None, "patches": None, "base": "patches", "projection": "auto", "up": "auto",
+    "max_grid": None, "patches": None, "base": "smooth", "projection": "auto", "up": "auto",
     "title": None, "description": None, "units": None,
     "feature_strength": 4.0, "seed": 0,
     "samples": 60_000, "detail_levels": None, "detail_spans": 16, "texture": True,

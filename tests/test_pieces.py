@@ -39,10 +39,11 @@ from fitter.fitting.pipeline import fit_scan
 
 @pytest.fixture(scope="module")
 def bundles(tmp_path_factory):
-    """The relief fitted with its fragment and without (default options: one patch)."""
+    """The relief fitted with its fragment and without, as one patch (``patches=1``: the
+    pieces are a single patch's; with the smooth base, the default, a mesh is an atlas)."""
     root = tmp_path_factory.mktemp("pieces")
     for fragment in (True, False):
-        fit_scan(fragment_scan(fragment), root / f"fragment-{fragment}", FitOptions())
+        fit_scan(fragment_scan(fragment), root / f"fragment-{fragment}", FitOptions(patches=1))
     return root
 
 

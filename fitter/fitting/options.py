@@ -36,8 +36,9 @@ METHODS = ("tessera", "paper", "linear")
 PROJECTIONS = ("auto", "plane", "cylinder", "sphere")
 #: ``auto`` and the axes of ``fitter.fitting.orient.AXES`` (tests/test_orient.py checks that
 #: the two agree)
-#: an atlas's base (``fitter.fitting.atlas.smooth``, ``fitter.fitting.atlas.fit``)
-ATLAS_BASES = ("patches", "smooth")
+#: an atlas's base (``fitter.fitting.atlas.smooth``, ``fitter.fitting.atlas.fit``); the
+#: default is the ``base`` option's in :data:`OPTIONS`
+ATLAS_BASES = ("smooth", "patches")
 UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 GRID_SIDE_LIMIT = MAX_GRID_SIDE  # what a .tsp holds (client_py.format.LIMITS), per side
 DEFAULT_MAX_GRID = 128  # max_grid = None: the grid grows to max(128, its largest side)
@@ -242,12 +243,14 @@ OPTIONS: tuple[Option, ...] = (
            "NURBS patches of the atlas that covers the whole object (about; 1: a single "
            "height-field patch, bundle format 1; an atlas has at least 3)", minimum=1,
            maximum=MAX_PATCHES,
-           none="auto: one patch for a height field, else an atlas sized for the object",
+           none="auto: one patch for a height field (a cloud's alone on the smooth base), "
+           "else an atlas sized for the object",
            cli="--patches", form="patches"),
-    Option("base", "choice", "patches", "Atlas base",
-           "the whole object's base: patches (bicubic patches stored point by point, joined "
-           "C0) or smooth (a triangle control mesh drawn as Catmull-Clark patches: fewer "
-           "bytes for its error)", choices=ATLAS_BASES, cli="--base", form="base"),
+    Option("base", "choice", "smooth", "Atlas base",
+           "the whole object's base: smooth (a triangle control mesh drawn as Catmull-Clark "
+           "patches: fewer bytes for its error; with patches auto every mesh is an atlas) "
+           "or patches (bicubic patches stored point by point, joined C0)",
+           choices=ATLAS_BASES, cli="--base", form="base"),
     Option("projection", "choice", "auto", "Projection", "map to the parameter domain",
            choices=PROJECTIONS, cli="--projection", form="projection",
            atlas=False),
@@ -307,7 +310,7 @@ class FitOptions:
     RMS in scan units (grows the grid);
     max_grid : cap for that growth (``None``: :attr:`largest_grid`); patches : of the atlas
     (``None``: ``fitter.fitting.atlas.pipeline.wants_atlas`` decides; 1: one patch); base :
-    an atlas's base, ``smooth`` or ``patches`` (:data:`ATLAS_BASES`);
+    an atlas's base, ``smooth`` (default) or ``patches`` (:data:`ATLAS_BASES`);
     projection : ``auto`` or a map; up : the object's up axis (``auto``: found by
     ``fitter.fitting.orient``);
     title : the object's title; description : what it is; units : the scan's length unit

@@ -109,14 +109,15 @@ def asked_for_atlas(patches: int | None) -> bool:
     return patches is not None and patches != 1
 
 
-def wants_atlas(scan: Scan, patches: int | None, base: str = "patches") -> bool:
+def wants_atlas(scan: Scan, patches: int | None, base: str) -> bool:
     """``--patches``' rule: ``1`` a single patch, another count an atlas; ``None`` (auto) an
     atlas unless the scan is a height field over the plane of its least variance, or, with
-    the smooth ``base``, unless it is a height field without triangles (a mesh is an atlas:
-    its control mesh follows a range scan's borders and holes, which the single patch's
-    trimmed rectangle does not; Buddha scan 0's base drew 0.55 times Draco's RMS at 17.1 KB,
-    its level 0 0.46 at 36.7 KB, where the single patch drew 1.69 at 10.9 KB with 43 % of its
-    border off the scan's: ``bench/results/atlas-smooth.json``, session 30).
+    the smooth ``base`` (``--base``; no default here, the option's is the one), unless it is
+    a height field without triangles (a mesh is an atlas: its control mesh follows a range
+    scan's borders and holes, which the single patch's trimmed rectangle does not; Buddha
+    scan 0's base drew 0.55 times Draco's RMS at 17.1 KB, its level 0 0.46 at 36.7 KB, where
+    the single patch drew 1.69 at 10.9 KB with 43 % of its border off the scan's:
+    ``bench/results/atlas.json``, session 30, then ``atlas-smooth.json``).
 
     A height field: of the surface's area (a mesh's triangles, an even subset of
     :data:`AUTO_TRIANGLES` of a larger mesh's; else one unit per point with a normal),

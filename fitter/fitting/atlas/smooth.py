@@ -17,12 +17,13 @@ The control mesh is the scan's surface decimated (:func:`.layout.decimate`: quad
 collapse, the mesh Draco would code), so its vertices are dense where the shape turns. At
 the patches base's bytes it drew Nefertiti, Lucy and Laurana at 0.57-0.75 times the RMS of
 quadric decimation + Draco, where the patches base drew 1.69-2.01 times (``python -m bench
-subdivision``, docs/benchmarks.md, session 28). In the product (``tessera fit --base
-smooth``; ``TESSERA_ATLAS_BASE=smooth python -m bench atlas``, session 30) the base drew
-the bunny, Nefertiti, Lucy, the Bali mask and Buddha scan 0 at 0.32-0.94 times Draco's RMS
-at its bytes, Laurana at 1.12; it is not the default yet (docs/benchmarks.md, "Session 30"),
-not least for its colour on a dense texture: its level-0 mesh draws 4 texels a patch side,
-the Bali mask's colour 6.60 mean against the patches base's 5.35.
+subdivision``, docs/benchmarks.md, session 28). In the product (``tessera fit``; ``python
+-m bench atlas``, ``bench/results/atlas.json``, measured in session 30) the base drew the
+bunny, Nefertiti, Lucy, the Bali mask and Buddha scan 0 at 0.32-0.94 times Draco's RMS at
+its bytes, Laurana at 1.12. It is the default base since session 31 (``--base patches``
+fits the other; docs/benchmarks.md, "Session 31"). Still worse than the patches base: its
+colour on a dense texture (its level-0 mesh draws 4 texels a patch side, the Bali mask's
+colour 6.60 mean against the patches base's 5.35).
 """
 
 from __future__ import annotations
