@@ -67,6 +67,7 @@ from .format import (
 )
 from .rangecoder import HALF, SLOW_SHIFT, RangeDecodeError, RangeDecoder, RangeEncoder
 from .smooth_base import SMOOTH_DEGREE, SMOOTH_SPANS, check_control_mesh, smooth_atlas
+from .triangle_coder import decode_triangles, encode_triangles
 
 VERSION = 6  # written; version 5 is still read (and written on request)
 READ_VERSIONS = CONTROL_MESH_VERSIONS
@@ -473,10 +474,13 @@ def _write(codes: list[tuple[int, ...]], tris: list[tuple[int, int, int]], bits:
     """The file of checked codes and triangles (any numbering, any order)."""
     if version not in READ_VERSIONS:
         raise ValueError(f"version must be one of {READ_VERSIONS}, got {version!r}")
-    order, tris = canonical_control_mesh(len(codes), traversal_order(tris))
-    axes = [[codes[v][a] for v in order] for a in range(3)]
     enc = RangeEncoder()
-    _code_faces(enc, len(tris), len(codes), tris, 3)
+    if version == 5:
+        order, tris = canonical_control_mesh(len(codes), traversal_order(tris))
+        _code_faces(enc, len(tris), len(codes), tris, 3)
+    else:
+        order, tris = encode_triangles(enc, len(codes), tris)
+    axes = [[codes[v][a] for v in order] for a in range(3)]
     weight = 0
     if version == 5:
         earlier, sources = _earlier_neighbours(len(codes), tris)
@@ -561,7 +565,10 @@ def read_control_codes(data: bytes) -> ControlMeshCodes:
     start, end = HEADER_SIZE + head["payload_size"], len(data) - CRC_SIZE
     try:  # the decoder reads its first bytes when it is made: inside the try too
         dec = RangeDecoder(data[start:end])
-        tris = _code_faces(dec, n_tris, n_points, None, 3)
+        if head["version"] == 5:
+            tris = _code_faces(dec, n_tris, n_points, None, 3)
+        else:
+            tris = decode_triangles(dec, n_tris, n_points, start)
         try:
             check_control_mesh(n_points, tris)
         except ValueError as exc:

@@ -31,6 +31,7 @@ from client_py.control_mesh import (
 )
 from client_py.errors import PatchFormatError
 from client_py.smooth_base import smooth_atlas
+from client_py.triangle_coder import encode_triangles
 
 FUZZ = settings(max_examples=120, deadline=2000, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow])
@@ -274,12 +275,11 @@ def test_a_coded_stream_that_decodes_to_no_mesh_is_refused(version):
 def _points_stream(triangles, residuals, bits: int) -> bytes:
     """A version-6 stream of the canonical ``triangles`` and then the three axes'
     ``residuals``, as the writer codes them (whatever they decode to)."""
-    from client_py.atlas_format import _code_faces
     from client_py.control_mesh import _code_point_residuals, _PointModel
     from client_py.rangecoder import RangeEncoder
 
     enc = RangeEncoder()
-    _code_faces(enc, len(triangles), 1 + max(map(max, triangles)), triangles, 3)
+    encode_triangles(enc, 1 + max(map(max, triangles)), triangles)
     model = _PointModel()
     for axis in residuals:
         _code_point_residuals(enc, axis, model)
