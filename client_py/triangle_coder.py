@@ -46,10 +46,10 @@ class _TriangleModel:
     slot."""
 
     def __init__(self) -> None:
-        self.border = [HALF] * 10
-        self.new = [HALF] * 20
-        self.next = [HALF] * 10
-        self.previous = [HALF] * 10
+        self.border = [HALF] * 40
+        self.new = [HALF] * 5 * 64
+        self.next = [HALF] * 5 * 16
+        self.previous = [HALF] * 5 * 16
         self.rank = [HALF] * (2 * RANK_LIMIT)
         self.first = [HALF] * 3
         self.prefix = [HALF] * DISTANCE_BITS
@@ -101,7 +101,10 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
     # so that a point of any valence (a hostile file's) costs a bounded time per edge
     heads: list[dict[int, None]] = [{} for _ in range(n)]
     tails: list[dict[int, None]] = [{} for _ in range(n)]
-    on_border = [False] * n
+    border_in = [False] * n  # a point ends a border edge
+    border_out = [False] * n  # a point starts one
+    fans = [0] * n  # per point its coded triangles
+    was_border = False
     out: list[tuple[int, int, int]] = []
     used = 0
     next_start = 0  # the encoder's next candidate for a piece's first triangle
@@ -124,6 +127,9 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                 del heads[b][a], tails[a][b]
             else:
                 heads[a][b] = tails[b][a] = None
+        fans[p] += 1
+        fans[q] += 1
+        fans[r] += 1
         # (q, r) popped next, then (r, p): the traversal turns as Edgebreaker's does
         stack.append((r, p))
         stack.append((q, r))
@@ -175,17 +181,18 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
             gate = x * n + y
             if y * n + x in run or gate in ends:
                 continue  # closed since it was opened, or a border already
-            context = 2 * symbol + (on_border[x] or on_border[y])
+            context = 8 * symbol + 4 * was_border + 2 * border_in[x] + border_out[y]
             if encoding:
                 c = across.get(y * n + x, -1)
                 put(model.border, context, c < 0)
                 border = c < 0
             else:
                 border = get(model.border, context)
+            was_border = border
             if border:
                 ends.add(gate)
                 del heads[x][y], tails[y][x]
-                on_border[x] = on_border[y] = True
+                border_out[x] = border_in[y] = True
                 continue
             if len(out) >= n_tris:
                 raise fail(f"more than the {n_tris} triangles")
@@ -194,9 +201,9 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
             # a new point?
             if encoding:
                 fresh = number[c] < 0
-                put(model.new, 4 * symbol + 2 * bool(after) + bool(before), fresh)
+                put(model.new, 64 * symbol + 8 * min(fans[x], 7) + min(fans[y], 7), fresh)
             else:
-                fresh = get(model.new, 4 * symbol + 2 * bool(after) + bool(before))
+                fresh = get(model.new, 64 * symbol + 8 * min(fans[x], 7) + min(fans[y], 7))
             if fresh:
                 symbol = NEW
                 if encoding:
@@ -208,16 +215,16 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                 used += 1
             else:
                 last, symbol = symbol, OTHER
-                for pool, hit, base, name, other in (
-                        (after, model.next, 0, NEXT, before),
-                        (before, model.previous, RANK_LIMIT, PREVIOUS, after)):
+                for pool, hit, base, name, other, fan in (
+                        (after, model.next, 0, NEXT, before, fans[y]),
+                        (before, model.previous, RANK_LIMIT, PREVIOUS, after, fans[x])):
                     if not pool:
                         continue
                     if encoding:
                         found = c in pool
-                        put(hit, 2 * last + bool(other), found)
+                        put(hit, 16 * last + 2 * min(fan, 7) + bool(other), found)
                     else:
-                        found = get(hit, 2 * last + bool(other))
+                        found = get(hit, 16 * last + 2 * min(fan, 7) + bool(other))
                     if found:
                         rank, target = 0, pool.index(c) if encoding else -1
                         while rank < len(pool) - 1:
