@@ -18,7 +18,11 @@ pieces need no special symbols. Each decision is an adaptive binary range-coded 
 
 The points are numbered in the order the traversal first uses them (points in no triangle
 last, in their own order) and the triangles listed in the order coded, each from the
-gate's far end ``(y, x, c)`` (a piece's first as it was given).
+gate's far end ``(y, x, c)`` (a piece's first as it was given): the gates are pushed so
+that this is ``client_py.control_mesh.traversal_order`` numbered by
+``canonical_control_mesh``, the order version 5 codes. On the fitted bases of sessions
+30-31 (8,000 triangles) the triangles took 1.3-1.8 bits each, 2.1 on Buddha scan 0's
+ragged rim, against 3.3-3.9 in version 5's coder.
 """
 
 from __future__ import annotations
@@ -40,10 +44,11 @@ START, NEW, NEXT, PREVIOUS, OTHER = range(5)
 
 
 class _TriangleModel:
-    """Adaptive contexts: per previous symbol (5) the border bit (and whether a corner
-    of the gate is on a border already, 2), the new-point bit, the next and previous hits
-    (and ranks), the distance's Exp-Golomb prefix and suffix; a piece's first corners by
-    slot."""
+    """Adaptive contexts, each also by the symbol before (5): the border bit by whether the
+    gate before was a border and whether ``x`` ends and ``y`` starts a border edge (8); the
+    new-point bit by the coded triangles at ``x`` and at ``y`` (each up to 7: 64); the next
+    (previous) hit by those at ``y`` (``x``) and whether the other pool is empty (16); the
+    ranks; a distance's Exp-Golomb prefix and suffix; a piece's first corners by slot."""
 
     def __init__(self) -> None:
         self.border = [HALF] * 40
@@ -176,7 +181,7 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
         add(*corners)
         out.append(tuple(corners))
         symbol = START
-        while stack:
+        while stack and len(out) < n_tris:  # with all coded, the open gates are borders
             x, y = stack.pop()
             gate = x * n + y
             if y * n + x in run or gate in ends:
@@ -194,8 +199,6 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                 del heads[x][y], tails[y][x]
                 border_out[x] = border_in[y] = True
                 continue
-            if len(out) >= n_tris:
-                raise fail(f"more than the {n_tris} triangles")
             after = list(islice(heads[y], RANK_LIMIT))
             before = list(islice(tails[x], RANK_LIMIT))
             # a new point?

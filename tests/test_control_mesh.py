@@ -30,8 +30,9 @@ from client_py.control_mesh import (
     write_control_mesh,
 )
 from client_py.errors import PatchFormatError
+from client_py.rangecoder import RangeDecodeError, RangeDecoder, RangeEncoder
 from client_py.smooth_base import smooth_atlas
-from client_py.triangle_coder import encode_triangles
+from client_py.triangle_coder import decode_triangles, encode_triangles
 
 FUZZ = settings(max_examples=120, deadline=2000, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow])
@@ -276,7 +277,6 @@ def _points_stream(triangles, residuals, bits: int) -> bytes:
     """A version-6 stream of the canonical ``triangles`` and then the three axes'
     ``residuals``, as the writer codes them (whatever they decode to)."""
     from client_py.control_mesh import _code_point_residuals, _PointModel
-    from client_py.rangecoder import RangeEncoder
 
     enc = RangeEncoder()
     encode_triangles(enc, 1 + max(map(max, triangles)), triangles)
@@ -373,3 +373,68 @@ def test_four_triangles_on_one_edge_are_refused():
     triangles = [(0, 1, 2), (1, 0, 3), (0, 1, 4), (1, 0, 5)]
     with pytest.raises(ValueError, match="edge"):
         write_control_mesh(points, triangles)
+
+
+def torus() -> tuple[np.ndarray, np.ndarray]:
+    mesh = trimesh.creation.torus(2.0, 0.5, 16, 8)  # genus 1: Edgebreaker's S with offsets
+    return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
+
+
+def _shared_points() -> list[tuple[int, int, int]]:
+    """A bow tie (two fans at point 0) and a third piece on points of the first two."""
+    return [(0, 1, 2), (0, 3, 4), (2, 5, 3), (1, 6, 7)]
+
+
+def _rotations(triangles) -> set[tuple[int, ...]]:
+    return {tuple(t[r:] + t[:r]) for t in map(list, triangles) for r in range(3)}
+
+
+@pytest.mark.parametrize("triangles", [
+    icosphere()[1], grid()[1], two_pieces()[1], open_caps()[1], torus()[1],
+    np.array(_shared_points()), np.array(_shared_points()[::-1])])
+def test_the_triangle_coder_round_trips_borders_handles_and_shared_points(triangles):
+    """Holes, several pieces, a handle and points shared by fans and pieces: decoded as
+    encoded, the same triangles renumbered, in traversal_order numbered canonically."""
+    n = 1 + int(triangles.max()) + 2  # two points in no triangle, numbered last
+    enc = RangeEncoder()
+    order, coded = encode_triangles(enc, n, triangles.tolist())
+    decoded = decode_triangles(RangeDecoder(enc.finish()), len(triangles), n, 0)
+    assert decoded == coded and sorted(order) == list(range(n)) and order[-2:] == [n - 2, n - 1]
+    renumbered = [tuple(order[v] for v in t) for t in decoded]
+    assert _rotations(renumbered) == _rotations(triangles.tolist())
+    assert (order, coded) == canonical_control_mesh(n, traversal_order(triangles))
+
+
+def test_the_triangle_coder_takes_under_two_bits_a_triangle():
+    """Version 5's coder took 3.3-3.9 bits a triangle on the fitted bases; this one
+    1.3-2.1 (docs/benchmarks.md, session 31)."""
+    mesh = trimesh.creation.icosphere(4)
+    enc = RangeEncoder()
+    encode_triangles(enc, len(mesh.vertices), mesh.faces.tolist())
+    assert 8 * len(enc.finish()) < 1.2 * len(mesh.faces)  # a regular mesh: mostly C and R
+
+
+@pytest.mark.parametrize(("n_points", "match"), [(5, "more than the 5 points")])
+def test_a_triangle_stream_beyond_its_points_is_refused(n_points, match):
+    triangles = icosphere()[1][:10]
+    enc = RangeEncoder()
+    _, coded = encode_triangles(enc, 1 + int(triangles.max()), triangles.tolist())
+    with pytest.raises(PatchFormatError, match=match) as info:
+        decode_triangles(RangeDecoder(enc.finish()), len(coded), n_points, 99)
+    assert info.value.offset == 99
+
+
+@FUZZ
+@given(st.binary(min_size=4, max_size=600), st.integers(1, 400), st.integers(3, 300))
+def test_fuzzed_triangle_streams_decode_or_are_refused(stream, n_tris, n_points):
+    """Any bytes, any counts: triangles with distinct corners in range, each directed edge
+    once, or a PatchFormatError or RangeDecodeError, in bounded time."""
+    try:
+        tris = decode_triangles(RangeDecoder(stream), n_tris, n_points, 7)
+    except (PatchFormatError, RangeDecodeError):
+        return
+    assert len(tris) == n_tris
+    assert all(0 <= v < n_points for t in tris for v in t)
+    assert all(len(set(t)) == 3 for t in tris)
+    edges = [(t[i], t[(i + 1) % 3]) for t in tris for i in range(3)]
+    assert len(set(edges)) == len(edges)
