@@ -11,9 +11,11 @@ the quantisation bits, version 6's parallelogram weight, ``V = n`` points, ``F =
 triangles, the payload sizes), a zlib payload (the points' bounds as 6 f64, the metadata
 JSON), one range-coded stream and a CRC32:
 
-* the triangles, in the file's order, each from its first corner, as version 3 codes a
-  layout's quads (``client_py.atlas_format._code_faces`` with 3 corners): the points are
-  numbered in the order the triangles first use them (:func:`canonical_control_mesh`);
+* the triangles, in :func:`traversal_order`, the points numbered in the order the
+  triangles first use them (:func:`canonical_control_mesh`). Version 5: each from its
+  first corner, as version 3 codes a layout's quads (``client_py.atlas_format._code_faces``
+  with 3 corners). Version 6: by Edgebreaker's symbols (:mod:`client_py.triangle_coder`,
+  whose traversal is that order), 1.3-2.1 bits a triangle against 3.3-3.9;
 * then each axis's quantised coordinates ``q`` (``round((x - lo) (2^bits - 1) / (hi -
   lo))``) as residuals from a prediction made of points decoded before. Version 5: in the
   points' order, from the mean of the point's neighbours (points it shares a triangle edge
@@ -110,8 +112,11 @@ def traversal_order(triangles: Sequence[Sequence[int]]) -> list[tuple[int, int, 
     piece), each triangle reached across an edge rotated to start on that edge's far
     corner, ``(y, x, z)`` from ``(x, y)``. Each triangle then shares an edge with one
     coded shortly before it, whose corners the connectivity coder offers first: on
-    Nefertiti decimated to 6,000 triangles, the triangles took 2,744 bytes in this order,
-    7,183 in k-d tree order of their centres and 10,018 in the decimation's own."""
+    Nefertiti decimated to 6,000 triangles, version 5's triangles took 2,744 bytes in this
+    order, 7,183 in k-d tree order of their centres and 10,018 in the decimation's own.
+    Version 6's coder (:mod:`client_py.triangle_coder`) walks the triangles in this same
+    order and numbers the points as :func:`canonical_control_mesh` does; a change here
+    must be made there too (``tests/test_control_mesh.py`` checks that they agree)."""
     tris = [tuple(int(v) for v in t) for t in triangles]
     by_edge: dict[tuple[int, int], list[int]] = {}
     for t, (a, b, c) in enumerate(tris):

@@ -8,13 +8,14 @@ by its far corner ``c`` alone: a point not used before (Edgebreaker's ``C``), th
 an open edge ``(y, c)`` (``R``, or ``E`` when it closes both sides), the tail of an open
 edge ``(c, x)`` (``L``), or else (``S``, a handle, a point shared by pieces) the distance
 back to its number. This is Edgebreaker's traversal and symbols (Rossignac, *Edgebreaker:
-connectivity compression for triangle meshes*, IEEE TVCG 5(1), 1999), decoded forwards, as
-the cut-border machine does (Gumhold & Straßer, *Real time compression of triangle mesh
-connectivity*, SIGGRAPH 1998), with the boundary it needs kept as open edges per point
-rather than rebuilt (Rossignac & Szymczak's Wrap&Zip; Isenburg & Snoeyink's *Spirale
-Reversi*, 2000): ``S`` carries its point's offset, so borders (holes), handles and several
-pieces need no special symbols. Each decision is an adaptive binary range-coded bit
-(:mod:`client_py.rangecoder`) in the context of the symbol before it.
+connectivity compression for triangle meshes*, IEEE TVCG 5(1), 1999), decoded in one
+forward pass as the cut-border machine does (Gumhold & Straßer, *Real time compression of
+triangle mesh connectivity*, SIGGRAPH 1998), the region's boundary kept as open edges per
+point, instead of Wrap&Zip's (Rossignac & Szymczak 1999) or *Spirale Reversi*'s (Isenburg
+& Snoeyink 2000) second pass: ``S`` carries its point's offset, so borders (holes),
+handles and several pieces need no special symbols. Each decision is an adaptive binary
+range-coded bit (:mod:`client_py.rangecoder`) in the context of the symbol before it and
+of the triangles decoded around the gate's ends.
 
 The points are numbered in the order the traversal first uses them (points in no triangle
 last, in their own order) and the triangles listed in the order coded, each from the
