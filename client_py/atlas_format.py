@@ -85,6 +85,9 @@ MAGIC = b"TSPA"
 VERSION = 3  # written; versions 1 and 2 are still read
 FRAME_VERSION = 4  # written with a tangent_factor (local frames)
 READ_VERSIONS = (1, 2, 3, 4)
+#: versions of a smooth base's control mesh, which ``client_py.control_mesh`` reads (5: points
+#: from their neighbours' mean; 6, written: parallelograms and a coding order of their own)
+CONTROL_MESH_VERSIONS = (5, 6)
 # magic version flags degree spans bits reserved V F payload_size raw_size
 HEADER = struct.Struct("<4sHHBBBBIIII")
 HEADER_SIZE = HEADER.size  # 28
@@ -644,7 +647,7 @@ def canonical_atlas(atlas: AtlasSurface) -> AtlasSurface:
 
 class _FaceModel:
     """Adaptive contexts of a layout of quads (docs/format.md, "Atlas layout (version 3)")
-    or of a control mesh's triangles ("Control mesh (version 5)"), by the corner's slot
+    or of a control mesh's triangles ("Control mesh (versions 5 and 6)"), by the corner's slot
     ``s`` (0..3 in the face; a triangle uses slots 0..2)."""
 
     def __init__(self) -> None:
@@ -710,7 +713,7 @@ def _code_faces(coder: RangeEncoder | RangeDecoder, n_faces: int, n_vertices: in
     """Encode ``faces`` of ``corners`` (4: a layout's quads; 3: a control mesh's triangles)
     vertices each, numbered in the order they first use them, or, with ``faces=None``,
     decode ``n_faces`` of them (docs/format.md, "Atlas layout (version 3)" and "Control
-    mesh (version 5)").
+    mesh (versions 5 and 6)").
 
     Per corner ``v`` in slot ``s`` of each face, with ``u`` the count of distinct
     vertices so far: a bit ``v == u`` (a first use; context ``s`` and whether the corner
@@ -1168,8 +1171,8 @@ def _read_axis(cur: _Cursor, predictor: _Predictor, count: int, bits: int,
 
 def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
     """Decode a ``.tsa`` file, version 4, 3, 2 or 1, into ``(AtlasSurface, metadata)``;
-    version 5, a smooth base's control mesh, into the atlas it draws
-    (``client_py.control_mesh``).
+    version 5 or 6 (:data:`CONTROL_MESH_VERSIONS`), a smooth base's control mesh, into the
+    atlas it draws (``client_py.control_mesh``).
 
     Raises
     ------
@@ -1177,8 +1180,9 @@ def read_atlas(data: bytes) -> tuple[AtlasSurface, dict]:
         For anything but a valid atlas (truncation, corruption, a foreign file), with the
         byte offset and the reason; never anything else.
     """
-    if isinstance(data, bytes | bytearray | memoryview) and bytes(data[4:6]) == b"\x05\x00":
-        from .control_mesh import read_atlas_file  # version 5: a smooth base's control mesh
+    if isinstance(data, bytes | bytearray | memoryview) and len(data) >= 6 \
+            and struct.unpack("<H", bytes(data[4:6]))[0] in CONTROL_MESH_VERSIONS:
+        from .control_mesh import read_atlas_file  # a smooth base's control mesh
 
         return read_atlas_file(data)
     head = read_atlas_header(data)
@@ -1304,8 +1308,8 @@ def _read_coded_axes(data: bytes, start: int, predictor: _Predictor, n_vertices:
     return grids
 
 
-__all__ = ["ATLAS_LIMITS", "FRAME_VERSION", "HEADER", "HEADER_SIZE", "MAGIC",
-           "READ_VERSIONS", "VERSION", "CRC_SIZE", "FrameCoder", "canonical_atlas",
+__all__ = ["ATLAS_LIMITS", "CONTROL_MESH_VERSIONS", "FRAME_VERSION", "HEADER", "HEADER_SIZE",
+           "MAGIC", "READ_VERSIONS", "VERSION", "CRC_SIZE", "FrameCoder", "canonical_atlas",
            "check_tangent_factor", "frame_codes", "frame_steps", "index_width",
            "payload_size_range", "point_frames", "read_atlas", "read_atlas_header",
            "write_atlas"]

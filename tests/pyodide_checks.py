@@ -43,6 +43,7 @@ from client_py._kernel import KERNEL_NAME
 from client_py.atlas import AtlasSurface
 from client_py.atlas_format import canonical_atlas, read_atlas, write_atlas
 from client_py.atlas_mesh import tessellate_atlas
+from client_py.control_mesh import read_control_codes, read_control_header, write_control_mesh
 from client_py.layers import tile_rect, transform_mesh
 from client_py.session import WorkerSession
 
@@ -84,6 +85,45 @@ def _lcg_values(count: int, seed: int, spread: int) -> list[int]:
         x = (1103515245 * x + 12345) % 2**31
         out.append((x % (2 * spread + 1) - spread) // (1 + (x >> 20) % 4))
     return out
+
+
+def _control_mesh_checks(checks: dict, digests: dict, timings: dict) -> None:
+    """A smooth base's control mesh (``.tsa`` versions 5 and 6): CPython's bytes and codes,
+    read back, truncations refused; both versions' pure-Python decoding timed. The mesh: a
+    40 x 40 height field of integers (no libm: the same floats in every interpreter)."""
+    n = 40
+    heights = _lcg_values(n * n, 11, 60)
+    points = [(4.0 * i + h % 3, 3.5 * j, h / 4 + (i - 20) ** 2 / 8)
+              for i in range(n) for j in range(n) for h in (heights[i * n + j],)]
+    triangles = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
+            triangles += [(a, b, c), (a, c, d)]
+    files = {version: write_control_mesh(points, triangles, 11, {"units": "mm"},
+                                         version=version) for version in (5, 6)}
+
+    def both_versions_read_back():
+        decoded = {}
+        for version, data in files.items():
+            digests[f"control_mesh.v{version}"] = _sha(data)
+            _require(read_control_header(data)["version"] == version, "version")
+            clock = time.perf_counter()
+            decoded[version] = read_control_codes(data)
+            timings[f"control mesh v{version} read ({n * n} points)"] = \
+                time.perf_counter() - clock
+            for cut in range(0, len(data), max(1, len(data) // 41)):
+                try:
+                    read_control_codes(data[:cut])
+                except PatchFormatError:
+                    continue
+                raise AssertionError(f"v{version} truncated to {cut} bytes was accepted")
+        _require(decoded[5] == decoded[6], "versions 5 and 6 decode to different meshes")
+        _require(len(files[6]) < len(files[5]), "version 6 is not the smaller")
+        digests["control_mesh.decoded"] = _sha(repr(decoded[6]).encode())
+
+    _check(checks, "control mesh: .tsa v5 and v6 read back alike; truncations refused",
+           both_versions_read_back)
 
 
 def _detail_checks(checks: dict, digests: dict) -> None:
@@ -508,6 +548,7 @@ def run(spec: dict) -> dict:
 
     _check(checks, "invalid input raises ValueError naming it", rejects_bad_input)
     _detail_checks(checks, digests)
+    _control_mesh_checks(checks, digests, timings)
     _session_checks(checks, digests)
     if "atlas" in spec:
         _atlas_checks(checks, digests, timings, spec)

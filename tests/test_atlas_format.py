@@ -296,7 +296,7 @@ def refused_quickly(data: bytes, match: str, seconds: float = 1.0, megabytes: fl
 
 @pytest.mark.parametrize(("fields", "offset", "match"), [
     ({"magic": b"TSPF"}, 0, "not a Tessera atlas"),
-    ({"version": 6}, 4, "atlas format version 6 is not supported"),
+    ({"version": 7}, 4, "atlas format version 7 is not supported"),  # 5, 6: control meshes
     ({"version": 4, "reserved": 3}, 11, "tangential factor 3/4 is below 1"),
     ({"flags": 2}, 6, "unknown flags 0x0002"),
     ({"degree": 4}, 8, "degree 4 outside 1..3"),

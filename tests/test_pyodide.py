@@ -94,8 +94,9 @@ def test_client_py_imports_in_pyodide_without_numpy(in_pyodide):
 def test_checks_pass_in_pyodide(in_pyodide):
     checks = in_pyodide["result"]["checks"]
     # 4 per case, the circle, bad input, detail tiles, 4 of the worker's session (a rigidly
-    # placed region among them), 3 atlas, 1 of the session on an atlas bundle, 1 welded pack
-    assert len(checks) == 3 * 4 + 3 + 4 + 3 + 1 + 1
+    # placed region among them), 3 atlas, 1 of the session on an atlas bundle, 1 welded pack,
+    # 1 control mesh
+    assert len(checks) == 3 * 4 + 3 + 4 + 3 + 1 + 1 + 1
     failed = {name: err for name, err in checks.items() if err is not None}
     assert not failed
 

@@ -7,6 +7,7 @@ import random
 
 from client_py.rangecoder import (
     HALF,
+    SLOW_SHIFT,
     RangeDecoder,
     RangeEncoder,
     decode_exp_golomb,
@@ -40,8 +41,9 @@ class _ReferenceEncoder:
     """The LZMA SDK's range encoder (``lzma-specification``: ``RangeEnc_EncodeBit``,
     ``RangeEnc_ShiftLow``) written out plainly, with this coder's shift of 4."""
 
-    def __init__(self):
+    def __init__(self, shift=4):
         self.low, self.range, self.cache, self.cache_size = 0, 0xFFFFFFFF, 0, 1
+        self.shift = shift
         self.out = bytearray()
 
     def shift_low(self):
@@ -61,11 +63,11 @@ class _ReferenceEncoder:
         bound = (self.range >> 11) * probs[i]
         if bit == 0:
             self.range = bound
-            probs[i] += (2048 - probs[i]) >> 4
+            probs[i] += (2048 - probs[i]) >> self.shift
         else:
             self.low += bound
             self.range -= bound
-            probs[i] -= probs[i] >> 4
+            probs[i] -= probs[i] >> self.shift
         while self.range < 1 << 24:
             self.range <<= 8
             self.shift_low()
@@ -90,3 +92,20 @@ def test_the_encoder_writes_the_reference_coders_bytes():
         ref.encode(theirs, c, int(bit))
     assert enc.finish() == ref.finish()
     assert mine == theirs
+
+
+def test_the_slow_shift_is_the_reference_coders_at_lzmas_shift_and_decodes():
+    """``shift=SLOW_SHIFT`` (LZMA's own 5, the control mesh's points): the reference's bytes
+    and probabilities at that shift, and decoded back with the same shift."""
+    rnd = random.Random(8)
+    bits = [int(rnd.random() < 0.2) for _ in range(20000)] + [1] * 3000
+    contexts = [rnd.randrange(2) for _ in bits]
+    enc, ref = RangeEncoder(), _ReferenceEncoder(SLOW_SHIFT)
+    mine, theirs = [HALF] * 2, [HALF] * 2
+    for bit, c in zip(bits, contexts, strict=True):
+        enc.bit(mine, c, bit, SLOW_SHIFT)
+        ref.encode(theirs, c, bit)
+    data = enc.finish()
+    assert data == ref.finish() and mine == theirs
+    dec, model = RangeDecoder(data), [HALF] * 2
+    assert [dec.bit(model, c, SLOW_SHIFT) for c in contexts] == bits and model == mine

@@ -78,7 +78,7 @@ def test_base_resolution_keeps_the_base_within_its_triangles(patches, expected):
 
 
 def test_a_smooth_base_bundle_is_read_and_drawn_as_any_atlas(tmp_path):
-    """``--base smooth`` end to end: ``base.tsa`` is a version-5 control mesh whose derived
+    """``--base smooth`` end to end: ``base.tsa`` is a version-6 control mesh whose derived
     atlas the manifest describes, and the drawn mesh (base and level 0, welded as a
     visitor's browser draws it) follows the bumpy sphere it was fitted to."""
     from client_py.atlas_format import read_atlas
@@ -100,6 +100,7 @@ def test_a_smooth_base_bundle_is_read_and_drawn_as_any_atlas(tmp_path):
     atlas, _ = read_atlas(data)
     base = manifest["base"]
     assert base["kind"] == "atlas" and head["triangles"] == 100 and base["patches"] == 300
+    assert head["version"] == 6
     assert len(atlas.quads) == 300 and base["vertices"] == len(atlas.vertices)
     assert base["border_edges"] == 0 and manifest["coverage"]["uncovered_points"] == 0
     spec = atlas_tiles(manifest)

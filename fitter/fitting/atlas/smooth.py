@@ -2,7 +2,7 @@
 
 The patches base (:mod:`.fit`) stores every bicubic patch's control net, about nine points a
 patch, and its patches join C0. This base stores only a triangle *control mesh*, ``.tsa``
-version 5 (``client_py.control_mesh``), from which every reader derives
+version 6 (``client_py.control_mesh``), from which every reader derives
 the same atlas (``client_py.smooth_base``): one Catmull-Clark step makes each triangle
 three quads, and each quad is drawn as Loop & Schaefer's bicubic approximation of the
 Catmull-Clark limit surface (*Approximating Catmull-Clark subdivision surfaces with bicubic
@@ -64,8 +64,8 @@ FIT_ROUNDS = 4
 #: at 9,000 triangles 0.81 times Draco's RMS, at 4,500 0.96, at 3,000 0.83; Lucy's 0.74 at
 #: 9,000 and 1.05 at 3,000 (10 bits), where the patches base drew 1.69 and 2.01 times
 SMOOTH_BYTE_BUDGET = 16_000
-#: bytes of ``.tsa`` version 5 per control triangle, to size the first trial (Nefertiti
-#: decimated to 6,000 triangles: 12,006 bytes at 12 bits)
+#: bytes of ``.tsa`` per control triangle, to size the first trial (Nefertiti decimated to
+#: 6,000 triangles: 12,006 bytes at 12 bits in version 5; version 6 is 2-5 % smaller)
 BYTES_PER_TRIANGLE = 2.0
 #: trials of fewer triangles when a fitted control mesh's file is over the byte budget
 BUDGET_ATTEMPTS = 3
@@ -246,7 +246,7 @@ def fit_smooth_atlas(scan, *, byte_budget: int, surface: ScanSurface | None = No
                      triangles: int | None = None, working_count: int = 60_000,
                      rounds: int = FIT_ROUNDS,
                      progress: Callable[[float], None] | None = None) -> AtlasFit:
-    """Fit the smooth base of ``scan`` within ``byte_budget`` bytes of ``.tsa`` version 5.
+    """Fit the smooth base of ``scan`` within ``byte_budget`` bytes of ``.tsa`` version 6.
 
     The control mesh is the surface (or ``layout_surface``, a stand-in with small handles
     closed) decimated to ``T`` triangles, its open border weighted (:func:`border_weights`):
