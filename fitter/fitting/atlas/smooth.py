@@ -65,7 +65,7 @@ FIT_ROUNDS = 4
 #: 9,000 and 1.05 at 3,000 (10 bits), where the patches base drew 1.69 and 2.01 times
 SMOOTH_BYTE_BUDGET = 16_000
 #: bytes of ``.tsa`` per control triangle, to size the first trial (Nefertiti decimated to
-#: 6,000 triangles: 12,006 bytes at 12 bits in version 5; version 6 is 2-5 % smaller)
+#: 6,000 triangles: 12,006 bytes at 12 bits in version 5; version 6 is 8-22 % smaller)
 BYTES_PER_TRIANGLE = 2.0
 #: trials of fewer triangles when a fitted control mesh's file is over the byte budget
 BUDGET_ATTEMPTS = 3
