@@ -114,9 +114,11 @@ def traversal_order(triangles: Sequence[Sequence[int]]) -> list[tuple[int, int, 
     coded shortly before it, whose corners the connectivity coder offers first: on
     Nefertiti decimated to 6,000 triangles, version 5's triangles took 2,744 bytes in this
     order, 7,183 in k-d tree order of their centres and 10,018 in the decimation's own.
-    Version 6's coder (:mod:`client_py.triangle_coder`) walks the triangles in this same
-    order and numbers the points as :func:`canonical_control_mesh` does; a change here
-    must be made there too (``tests/test_control_mesh.py`` checks that they agree)."""
+    Version 6's coder (:mod:`client_py.triangle_coder`), given triangles in any order,
+    codes them in this walk of that order (a piece's first triangle opening all three of
+    its edges, as here) and numbers the points as :func:`canonical_control_mesh` does; a
+    change here must be made there too (``tests/test_control_mesh.py`` checks that they
+    agree on shuffled, rotated and bridge-first triangles)."""
     tris = [tuple(int(v) for v in t) for t in triangles]
     by_edge: dict[tuple[int, int], list[int]] = {}
     for t, (a, b, c) in enumerate(tris):
@@ -424,9 +426,10 @@ def write_control_mesh(points: Sequence[Sequence[float]], triangles: Sequence[Se
     3)``, ``triangles (T, 3)``, quantised to ``bits`` over the points' bounds.
 
     The triangles are put in :func:`traversal_order` and the points renumbered
-    (:func:`canonical_control_mesh`), so :func:`read_control_mesh` gives the same triangles,
-    reordered, rotated and renumbered so, each point within half a quantisation step of
-    its own.
+    (:func:`canonical_control_mesh`), in either version, so :func:`read_control_mesh` gives
+    the same triangles, reordered, rotated and renumbered so (the same for versions 5 and
+    6, whatever the triangles' order), each point within half a quantisation step of its
+    own.
 
     Raises
     ------
@@ -480,11 +483,13 @@ def _write(codes: list[tuple[int, ...]], tris: list[tuple[int, int, int]], bits:
     if version not in READ_VERSIONS:
         raise ValueError(f"version must be one of {READ_VERSIONS}, got {version!r}")
     enc = RangeEncoder()
+    # both versions: the triangles in traversal order, the points numbered canonically
+    order, tris = canonical_control_mesh(len(codes), traversal_order(tris))
     if version == 5:
-        order, tris = canonical_control_mesh(len(codes), traversal_order(tris))
         _code_faces(enc, len(tris), len(codes), tris, 3)
-    else:
-        order, tris = encode_triangles(enc, len(codes), tris)
+    else:  # the coder keeps that order and numbering (its own, composed, if it did not)
+        renumbered, tris = encode_triangles(enc, len(codes), tris)
+        order = [order[v] for v in renumbered]
     axes = [[codes[v][a] for v in order] for a in range(3)]
     weight = 0
     if version == 5:

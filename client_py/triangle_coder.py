@@ -17,13 +17,19 @@ handles and several pieces need no special symbols. Each decision is an adaptive
 range-coded bit (:mod:`client_py.rangecoder`) in the context of the symbol before it and
 of the triangles decoded around the gate's ends.
 
-The points are numbered in the order the traversal first uses them (points in no triangle
-last, in their own order) and the triangles listed in the order coded, each from the
-gate's far end ``(y, x, c)`` (a piece's first as it was given): the gates are pushed so
-that this is ``client_py.control_mesh.traversal_order`` numbered by
-``canonical_control_mesh``, the order version 5 codes. On the fitted bases of sessions
-30-31 (8,000 triangles) the triangles took 1.3-1.8 bits each, 2.1 on Buddha scan 0's
-ragged rim, against 3.3-3.9 in version 5's coder.
+A piece's first triangle ``(p, q, r)`` pushes all three of its edges, ``(p, q)``, ``(r,
+p)``, ``(q, r)`` (``(q, r)`` popped first), as Edgebreaker's first triangle opens its
+whole boundary; each further triangle ``(y, x, c)`` pushes ``(c, y)`` and ``(x, c)``, its
+third edge being the gate it came across. A piece ends when the stack is empty, and the
+next starts at the first given triangle not yet coded. The triangles are listed in the
+order coded, each from the gate's far end ``(y, x, c)`` (a piece's first as it was given),
+and the points numbered in the order the triangles first use them (points in no triangle
+last, in their own order): for triangles in any order, that is
+``client_py.control_mesh.traversal_order`` of them numbered by ``canonical_control_mesh``,
+the order version 5 codes (``tests/test_control_mesh.py`` checks it on shuffled and
+rotated triangles, a piece's first a bridge). On the fitted bases of sessions 30-31 (8,000
+triangles) the triangles took 1.3-1.8 bits each, 2.1 on Buddha scan 0's ragged rim,
+against 3.3-3.9 in version 5's coder.
 """
 
 from __future__ import annotations
@@ -37,7 +43,8 @@ from .rangecoder import HALF, RangeDecoder, RangeEncoder, decode_exp_golomb, enc
 #: ``c`` is ranked among at most this many open edges at ``y`` (or ``x``); beyond, it is
 #: coded by its distance (real control meshes have one or two)
 RANK_LIMIT = 4
-#: a distance back ``1 <= d < 2^17`` has its bit length below this
+#: the Exp-Golomb prefix of a distance back is at most ``DISTANCE_BITS - 1`` ones: ``d`` up
+#: to ``2^18 - 1``, beyond the ``2^17`` points a file may hold
 DISTANCE_BITS = 18
 #: the symbols, each the context of the next: a piece's start, new point, next, previous,
 #: other
@@ -136,7 +143,8 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
         fans[p] += 1
         fans[q] += 1
         fans[r] += 1
-        # (q, r) popped next, then (r, p): the traversal turns as Edgebreaker's does
+        # (q, r) popped next, then (r, p): the traversal turns as Edgebreaker's does (a
+        # piece's first also pushes (p, q), beneath them)
         stack.append((r, p))
         stack.append((q, r))
 
@@ -179,6 +187,7 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                 if v in corners:
                     raise fail(f"corner {v} twice")
             corners.append(v)
+        stack.append((corners[0], corners[1]))  # popped last: the piece's first gate
         add(*corners)
         out.append(tuple(corners))
         symbol = START
