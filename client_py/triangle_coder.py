@@ -55,15 +55,17 @@ class _TriangleModel:
     """Adaptive contexts, each also by the symbol before (5): the border bit by whether the
     gate before was a border and whether ``x`` ends and ``y`` starts a border edge (8); the
     new-point bit by the coded triangles at ``x`` and at ``y`` (each up to 7: 64); the next
-    (previous) hit by those at ``y`` (``x``) and whether the other pool is empty (16); the
-    ranks; a distance's Exp-Golomb prefix and suffix; a piece's first corners by slot."""
+    (previous) hit by those at ``y`` (``x``) and whether the other pool is empty (16); a
+    rank's unary bits, at most ``RANK_LIMIT - 1`` (the last rank needs no stop bit), next's
+    then previous's; a distance's Exp-Golomb prefix and suffix; a piece's first corners by
+    slot."""
 
     def __init__(self) -> None:
         self.border = [HALF] * 40
         self.new = [HALF] * 5 * 64
         self.next = [HALF] * 5 * 16
         self.previous = [HALF] * 5 * 16
-        self.rank = [HALF] * (2 * RANK_LIMIT)
+        self.rank = [HALF] * (2 * (RANK_LIMIT - 1))
         self.first = [HALF] * 3
         self.prefix = [HALF] * DISTANCE_BITS
         self.suffix = [HALF] * DISTANCE_BITS
@@ -93,10 +95,11 @@ def decode_triangles(dec: RangeDecoder, n_tris: int, n_points: int, start: int
 
 def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
           given: list[tuple[int, ...]] | None, start: int
-          ) -> tuple[list[int], list[tuple[int, int, int]]]:
+          ) -> tuple[list[int] | None, list[tuple[int, int, int]]]:
     """Both directions of the traversal (``given`` the triangles to encode, or ``None``).
     The encoder keys its state by the given points, the decoder by the file's numbers;
-    both make the same calls in the same order, so their lists keep the same order."""
+    both make the same calls in the same order, so their lists keep the same order. Returns
+    the encoder's ``order`` (``None`` when decoding) and the triangles."""
     encoding = given is not None
     model = _TriangleModel()
     if encoding:
@@ -111,9 +114,11 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
     run: set[int] = set()  # the directed edges a n + b of the coded triangles
     ends: set[int] = set()  # the gates found to be borders
     # per x the open edges' heads (x, y), per y their tails, in the order opened: dicts,
-    # so that a point of any valence (a hostile file's) costs a bounded time per edge
-    heads: list[dict[int, None]] = [{} for _ in range(n)]
-    tails: list[dict[int, None]] = [{} for _ in range(n)]
+    # so that a point of any valence (a hostile file's) costs a bounded time per edge; the
+    # decoder's points are numbered as first used, and get theirs then (a hostile header's
+    # 2^17 points cost no 2^18 dicts up front)
+    heads: list[dict[int, None]] = [{} for _ in range(n)] if encoding else []
+    tails: list[dict[int, None]] = [{} for _ in range(n)] if encoding else []
     border_in = [False] * n  # a point ends a border edge
     border_out = [False] * n  # a point starts one
     fans = [0] * n  # per point its coded triangles
@@ -178,6 +183,8 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                         raise fail(f"uses more than the {n} points")
                     v = used
                     used += 1
+                    heads.append({})
+                    tails.append({})
                 else:
                     d = decode_exp_golomb(coder, model.prefix, 0, model.suffix, 0,
                                           DISTANCE_BITS)
@@ -225,12 +232,14 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                     raise fail(f"uses more than the {n} points")
                 else:
                     c = used
+                    heads.append({})
+                    tails.append({})
                 used += 1
             else:
                 last, symbol = symbol, OTHER
                 for pool, hit, base, name, other, fan in (
                         (after, model.next, 0, NEXT, before, fans[y]),
-                        (before, model.previous, RANK_LIMIT, PREVIOUS, after, fans[x])):
+                        (before, model.previous, RANK_LIMIT - 1, PREVIOUS, after, fans[x])):
                     if not pool:
                         continue
                     if encoding:
@@ -271,4 +280,4 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
             file_number(v)
         out = [(number[a], number[b], number[c]) for a, b, c in out]
         return order, out
-    return list(range(n)), out
+    return None, out
