@@ -85,8 +85,10 @@ MAGIC = b"TSPA"
 VERSION = 3  # written; versions 1 and 2 are still read
 FRAME_VERSION = 4  # written with a tangent_factor (local frames)
 READ_VERSIONS = (1, 2, 3, 4)
-#: versions of a smooth base's control mesh, which ``client_py.control_mesh`` reads (5: points
-#: from their neighbours' mean; 6, written: parallelograms and a coding order of their own)
+#: versions of a smooth base's control mesh, which ``client_py.control_mesh`` reads (5: the
+#: layout's triangle coder, points from their neighbours' mean; 6, written: Edgebreaker's
+#: triangles, ``client_py.triangle_coder``, and points from parallelograms in an order of
+#: their own)
 CONTROL_MESH_VERSIONS = (5, 6)
 # magic version flags degree spans bits reserved V F payload_size raw_size
 HEADER = struct.Struct("<4sHHBBBBIIII")
@@ -647,8 +649,9 @@ def canonical_atlas(atlas: AtlasSurface) -> AtlasSurface:
 
 class _FaceModel:
     """Adaptive contexts of a layout of quads (docs/format.md, "Atlas layout (version 3)")
-    or of a control mesh's triangles ("Control mesh (versions 5 and 6)"), by the corner's slot
-    ``s`` (0..3 in the face; a triangle uses slots 0..2)."""
+    or of a version-5 control mesh's triangles ("Control mesh (versions 5 and 6)"; version
+    6 codes them with ``client_py.triangle_coder``), by the corner's slot ``s`` (0..3 in the
+    face; a triangle uses slots 0..2)."""
 
     def __init__(self) -> None:
         self.new = [HALF] * 8  # s, and whether the corner before it in the face was new
@@ -710,10 +713,10 @@ def _code_quads(coder: RangeEncoder | RangeDecoder, n_quads: int, n_vertices: in
 
 def _code_faces(coder: RangeEncoder | RangeDecoder, n_faces: int, n_vertices: int,
                 faces: Sequence[Sequence[int]] | None, corners: int) -> list[tuple[int, ...]]:
-    """Encode ``faces`` of ``corners`` (4: a layout's quads; 3: a control mesh's triangles)
-    vertices each, numbered in the order they first use them, or, with ``faces=None``,
-    decode ``n_faces`` of them (docs/format.md, "Atlas layout (version 3)" and "Control
-    mesh (versions 5 and 6)").
+    """Encode ``faces`` of ``corners`` (4: a layout's quads, versions 3 and 4; 3: a version-5
+    control mesh's triangles) vertices each, numbered in the order they first use them, or,
+    with ``faces=None``, decode ``n_faces`` of them (docs/format.md, "Atlas layout (version
+    3)" and "Control mesh (versions 5 and 6)", version 5).
 
     Per corner ``v`` in slot ``s`` of each face, with ``u`` the count of distinct
     vertices so far: a bit ``v == u`` (a first use; context ``s`` and whether the corner

@@ -38,6 +38,7 @@ import struct
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from .atlas import MAX_ATLAS_QUADS, MAX_ATLAS_VERTICES, AtlasSurface
 from .atlas_format import (
@@ -71,8 +72,7 @@ from .rangecoder import HALF, SLOW_SHIFT, RangeDecodeError, RangeDecoder, RangeE
 from .smooth_base import SMOOTH_DEGREE, SMOOTH_SPANS, check_control_mesh, smooth_atlas
 from .triangle_coder import decode_triangles, encode_triangles
 
-VERSION = 6  # written; version 5 is still read (and written on request)
-READ_VERSIONS = CONTROL_MESH_VERSIONS
+VERSION = 6  # written; version 5 (``CONTROL_MESH_VERSIONS``) is still read and written on request
 #: the parallelogram weight ``w`` of version 6 is ``w / WEIGHT_STEPS``, ``w`` in
 #: ``0..WEIGHT_STEPS`` (the header's byte 11)
 WEIGHT_STEPS = 8
@@ -85,7 +85,7 @@ MAX_TRIANGLES = MAX_ATLAS_QUADS // 3
 LEAST_PAYLOAD = 48 + 4 + 2
 
 
-@dataclass(frozen=True)
+@dataclass
 class ControlMeshCodes:
     """A control mesh as a file holds it: the points' quantised coordinates ``codes (n,
     3)``, each ``q`` in ``0..2^bits - 1`` standing for ``lo + q (hi - lo) / (2^bits - 1)``
@@ -105,7 +105,6 @@ class ControlMeshCodes:
         return list(zip(*axes, strict=True))
 
 
-
 def traversal_order(triangles: Sequence[Sequence[int]]) -> list[tuple[int, int, int]]:
     """The triangles in the order the file holds them: a depth-first walk across shared
     edges from the first triangle (and from the first not yet reached, for each further
@@ -114,9 +113,11 @@ def traversal_order(triangles: Sequence[Sequence[int]]) -> list[tuple[int, int, 
     coded shortly before it, whose corners the connectivity coder offers first: on
     Nefertiti decimated to 6,000 triangles, version 5's triangles took 2,744 bytes in this
     order, 7,183 in k-d tree order of their centres and 10,018 in the decimation's own.
-    Version 6's coder (:mod:`client_py.triangle_coder`) walks the triangles in this same
-    order and numbers the points as :func:`canonical_control_mesh` does; a change here
-    must be made there too (``tests/test_control_mesh.py`` checks that they agree)."""
+    Version 6's coder (:mod:`client_py.triangle_coder`), given triangles in any order,
+    codes them in this walk of that order (a piece's first triangle opening all three of
+    its edges, as here) and numbers the points as :func:`canonical_control_mesh` does; a
+    change here must be made there too (``tests/test_control_mesh.py`` checks that they
+    agree on shuffled, rotated and bridge-first triangles)."""
     tris = [tuple(int(v) for v in t) for t in triangles]
     by_edge: dict[tuple[int, int], list[int]] = {}
     for t, (a, b, c) in enumerate(tris):
@@ -192,27 +193,39 @@ def point_order(n_points: int, triangles: Sequence[Sequence[int]]) -> list[int]:
     fitted bases of session 31 (4,000-6,400 points) the points took 0.5-2.0 % fewer bytes in
     it than in the numbering's order.
     """
-    return [step[0] for step in point_predictors(n_points, triangles)]
+    return [step.point for step in point_predictors(n_points, triangles)]
 
 
-#: one coding step of version 6: the point ``v``, its neighbours coded before it, the
-#: corners ``a, b`` (flat) and ``c`` of its parallelograms, the point coded before it (-1)
-Step = tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], int]
+class Step(NamedTuple):
+    """One coding step of version 6 (:func:`point_predictors`)."""
+
+    #: the point ``v`` coded
+    point: int
+    #: its neighbours coded before it, ``N``
+    neighbours: tuple[int, ...]
+    #: its parallelograms' shared edges ``a, b`` (flat: ``a_0, b_0, a_1, b_1, ...``)
+    edge_ends: tuple[int, ...]
+    #: their far corners ``c``, one per parallelogram
+    far_corners: tuple[int, ...]
+    #: the point coded before it (``-1`` for the first)
+    previous: int
 
 
 def point_predictors(n_points: int, triangles: Sequence[Sequence[int]]) -> list[Step]:
-    """Version 6's prediction of each point, in :func:`point_order`: per step ``(v, N, AB,
-    C, prev)``, the neighbours ``N`` of ``v`` coded before it, and for each triangle ``(v,
-    a, b)`` whose far corners are coded, across whose edge ``a -> b`` a triangle ``(b, a,
-    c)`` has its corner ``c`` coded too, the parallelogram ``a + b - c`` (Touma & Gotsman,
-    *Triangle mesh compression*, Graphics Interface 1998), as ``a, b`` in ``AB`` and ``c``
-    in ``C``; all of them are used and averaged, as in *multi-way* prediction (Cohen-Or,
+    """Version 6's prediction of each point, in :func:`point_order`: per :class:`Step`, the
+    point ``v``, its ``neighbours`` coded before it, and for each triangle ``(v, a, b)``
+    whose far corners are coded, across whose edge ``a -> b`` a triangle ``(b, a, c)`` has
+    its corner ``c`` coded too, the parallelogram ``a + b - c`` (Touma & Gotsman, *Triangle
+    mesh compression*, Graphics Interface 1998), as ``a, b`` in ``edge_ends`` and ``c`` in
+    ``far_corners``; all of them are used and averaged, as in *multi-way* prediction (Cohen-Or,
     Cohen & Irony, *Multi-way geometry encoding*, 2002). :func:`_prediction` blends the two
-    means."""
+    means. (Sets and lists per point are made up to the highest point in a triangle only:
+    a hostile header may state ``2^17`` points and one triangle.)"""
     n = n_points
     across: dict[int, int] = {}  # the directed edge a -> b, as a n + b: its triangle's c
-    corners: list[list[int]] = [[] for _ in range(n)]  # per point its triangles' a, b (flat)
-    ring: list[set[int]] = [set() for _ in range(n)]
+    used = 1 + max(map(max, triangles), default=-1)  # points past it are in no triangle
+    corners: list[list[int]] = [[] for _ in range(used)]  # per point its triangles' a, b
+    ring: list[set[int]] = [set() for _ in range(used)]
     for a, b, c in triangles:
         across[a * n + b], across[b * n + c], across[c * n + a] = c, a, b
         corners[a] += (b, c)
@@ -222,6 +235,7 @@ def point_predictors(n_points: int, triangles: Sequence[Sequence[int]]) -> list[
         ring[b].update((a, c))
         ring[c].update((a, b))
     valence = [len(r) for r in ring]
+    no_triangle: tuple[int, ...] = ()
     known = [0] * n
     done = [False] * n
     heap: list[tuple[int, int]] = []
@@ -241,7 +255,7 @@ def point_predictors(n_points: int, triangles: Sequence[Sequence[int]]) -> list[
             v = lowest
         ab: list[int] = []
         c_s: list[int] = []
-        flat = corners[v]
+        flat = corners[v] if v < used else no_triangle
         for i in range(0, len(flat), 2):
             a, b = flat[i], flat[i + 1]
             if done[a] and done[b]:
@@ -250,19 +264,19 @@ def point_predictors(n_points: int, triangles: Sequence[Sequence[int]]) -> list[
                     ab += (a, b)
                     c_s.append(c)
         earlier = []
-        for u in ring[v]:
+        for u in ring[v] if v < used else no_triangle:
             if done[u]:
                 earlier.append(u)
             else:
                 known[u] += 1
                 push(heap, (-(known[u] * RING_SHARE_STEPS // valence[u]), u))
         done[v] = True
-        steps.append((v, tuple(earlier), tuple(ab), tuple(c_s), prev))
+        steps.append(Step(v, tuple(earlier), tuple(ab), tuple(c_s), prev))
         prev = v
     return steps
 
 
-def _weights(steps: Sequence[Step], weight: int) -> list[tuple[int, int, int]]:
+def _blend_coefficients(steps: Sequence[Step], weight: int) -> list[tuple[int, int, int]]:
     """Per step the integers ``(m, p, d)`` of :func:`_prediction` for the parallelogram
     weight ``weight / WEIGHT_STEPS``."""
     out = []
@@ -279,7 +293,7 @@ def _prediction(q: Sequence[int], step: Step, coefficients: tuple[int, int, int]
                 top: int) -> int:
     """``p = M + w (P - M)``, ``M`` the mean of the earlier neighbours' ``q``, ``P`` that of
     the parallelograms, ``w`` the weight: ``floor((2 (m S_M + p S_P) + d) / 2 d)`` with
-    ``S_M``, ``S_P`` their sums (:func:`_weights`), clamped to ``0..top``; without a
+    ``S_M``, ``S_P`` their sums (:func:`_blend_coefficients`), clamped to ``0..top``; without a
     neighbour coded, the point coded before (0 for the first)."""
     _, earlier, ab, c_s, prev = step
     m, p, d = coefficients
@@ -336,8 +350,8 @@ def _encode_points(enc: RangeEncoder, axes: Sequence[Sequence[int]], steps: Sequ
     top = (1 << bits) - 1
     best: tuple[int, int, list[list[int]]] | None = None
     for weight in range(WEIGHT_STEPS + 1):
-        coefficients = _weights(steps, weight)
-        residuals = [[q[s[0]] - _prediction(q, s, f, top)
+        coefficients = _blend_coefficients(steps, weight)
+        residuals = [[q[s.point] - _prediction(q, s, f, top)
                       for s, f in zip(steps, coefficients, strict=True)] for q in axes]
         trial, model = RangeEncoder(), _PointModel()
         for r in residuals:
@@ -359,7 +373,7 @@ def _decode_points(dec: RangeDecoder, steps: Sequence[Step], n_points: int, bits
     codes is that long) or a code outside ``0..2^bits - 1`` is a :class:`PatchFormatError`
     (at ``start``, the coded stream's offset)."""
     top = (1 << bits) - 1
-    coefficients = _weights(steps, weight)
+    coefficients = _blend_coefficients(steps, weight)
     model = _PointModel()
     bit, shift = dec.bit, SLOW_SHIFT
     zero, sign, prefix, mantissa = model.zero, model.sign, model.prefix, model.mantissa
@@ -424,9 +438,10 @@ def write_control_mesh(points: Sequence[Sequence[float]], triangles: Sequence[Se
     3)``, ``triangles (T, 3)``, quantised to ``bits`` over the points' bounds.
 
     The triangles are put in :func:`traversal_order` and the points renumbered
-    (:func:`canonical_control_mesh`), so :func:`read_control_mesh` gives the same triangles,
-    reordered, rotated and renumbered so, each point within half a quantisation step of
-    its own.
+    (:func:`canonical_control_mesh`), in either version, so :func:`read_control_mesh` gives
+    the same triangles, reordered, rotated and renumbered so (the same for versions 5 and
+    6, whatever the triangles' order), each point within half a quantisation step of its
+    own.
 
     Raises
     ------
@@ -434,7 +449,8 @@ def write_control_mesh(points: Sequence[Sequence[float]], triangles: Sequence[Se
         Points not ``n x 3`` finite numbers, triangles not index triples into them, a mesh
         that is not an oriented 2-manifold (``client_py.smooth_base``), more than
         :data:`MAX_TRIANGLES` triangles, ``bits`` outside ``MIN_BITS..MAX_BITS``, metadata
-        that is not a JSON object, or a ``version`` not in :data:`READ_VERSIONS`.
+        that is not a JSON object, or a ``version`` not in
+        ``client_py.atlas_format.CONTROL_MESH_VERSIONS``.
     """
     check_bits(bits)
     pts = [tuple(float(c) for c in p) for p in points]
@@ -477,14 +493,16 @@ def write_control_codes(mesh: ControlMeshCodes, version: int = VERSION) -> bytes
 def _write(codes: list[tuple[int, ...]], tris: list[tuple[int, int, int]], bits: int,
            lows: Sequence[float], highs: Sequence[float], meta: bytes, version: int) -> bytes:
     """The file of checked codes and triangles (any numbering, any order)."""
-    if version not in READ_VERSIONS:
-        raise ValueError(f"version must be one of {READ_VERSIONS}, got {version!r}")
+    if version not in CONTROL_MESH_VERSIONS:
+        raise ValueError(f"version must be one of {CONTROL_MESH_VERSIONS}, got {version!r}")
     enc = RangeEncoder()
+    # both versions: the triangles in traversal order, the points numbered canonically
+    order, tris = canonical_control_mesh(len(codes), traversal_order(tris))
     if version == 5:
-        order, tris = canonical_control_mesh(len(codes), traversal_order(tris))
         _code_faces(enc, len(tris), len(codes), tris, 3)
-    else:
-        order, tris = encode_triangles(enc, len(codes), tris)
+    else:  # the coder keeps that order and numbering (its own, composed, if it did not)
+        renumbered, tris = encode_triangles(enc, len(codes), tris)
+        order = [order[v] for v in renumbered]
     axes = [[codes[v][a] for v in order] for a in range(3)]
     weight = 0
     if version == 5:
@@ -509,12 +527,8 @@ def read_control_header(data: bytes) -> dict:
     order (offsets as in docs/format.md). Returns ``version``, ``bits``, ``weight`` (version
     6's parallelogram weight in :data:`WEIGHT_STEPS` ths; 0 in version 5), ``points``,
     ``triangles``, ``payload_size``, ``raw_size`` and the file's ``data``."""
-    version = VERSION
-    if isinstance(data, bytes | bytearray | memoryview) and len(data) >= 6:
-        (stated,) = struct.unpack("<H", bytes(data[4:6]))
-        version = stated if stated in READ_VERSIONS else VERSION
-    data, fields = _unframe(data, MAGIC, "atlas", HEADER, version, None)
-    _, _, flags, degree, spans, bits, weight, n_points, n_tris, size, raw_size = fields
+    data, fields = _unframe(data, MAGIC, "atlas", HEADER, CONTROL_MESH_VERSIONS, None)
+    _, version, flags, degree, spans, bits, weight, n_points, n_tris, size, raw_size = fields
     if flags:
         raise PatchFormatError(6, f"unknown flags 0x{flags:04x} (a control mesh has none)")
     if degree != SMOOTH_DEGREE:
@@ -628,7 +642,7 @@ def read_atlas_file(data: bytes) -> tuple[AtlasSurface, dict]:
     return smooth_atlas(points, tris), metadata
 
 
-__all__ = ["MAX_TRIANGLES", "READ_VERSIONS", "VERSION", "WEIGHT_STEPS", "ControlMeshCodes",
+__all__ = ["MAX_TRIANGLES", "VERSION", "WEIGHT_STEPS", "ControlMeshCodes",
            "Step", "canonical_control_mesh", "point_order", "point_predictors", "read_atlas_file",
            "read_control_codes", "read_control_header", "read_control_mesh", "traversal_order",
            "write_control_codes", "write_control_mesh"]

@@ -325,11 +325,11 @@ def loads_finite_json(text: str):  # noqa: ANN201 - any JSON value
     return json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float)
 
 
-def _unframe(data: object, magic: bytes, what: str, header: struct.Struct, version: int,
-             size_field: int | None) -> tuple[bytes, tuple]:
-    """Check a container's framing — bytes, magic, header length, version (field 1), total
-    length from the payload size (field ``size_field``; ``None``: the payload runs to the
-    CRC), CRC32 — and return the bytes and the header fields."""
+def _unframe(data: object, magic: bytes, what: str, header: struct.Struct,
+             version: int | tuple[int, ...], size_field: int | None) -> tuple[bytes, tuple]:
+    """Check a container's framing — bytes, magic, header length, version (field 1: ``version``
+    or one of them), total length from the payload size (field ``size_field``; ``None``: the
+    payload runs to the CRC), CRC32 — and return the bytes and the header fields."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise PatchFormatError(0, f"expected bytes, got {type(data).__name__}")
     data = bytes(data)
@@ -339,9 +339,10 @@ def _unframe(data: object, magic: bytes, what: str, header: struct.Struct, versi
         raise PatchFormatError(len(data), f"truncated: {len(data)} bytes, the header alone "
                                f"needs {header.size + CRC_SIZE}")
     fields = header.unpack_from(data)
-    if fields[1] != version:
+    versions = (version,) if isinstance(version, int) else version
+    if fields[1] not in versions:
         raise PatchFormatError(4, f"{what} format version {fields[1]} is not supported "
-                               f"(this reader: {version})")
+                               f"(this reader: {', '.join(map(str, versions))})")
     end = len(data) - CRC_SIZE if size_field is None else header.size + fields[size_field]
     if len(data) < end + CRC_SIZE:
         raise PatchFormatError(len(data), f"truncated: {len(data)} bytes of {end + CRC_SIZE}")

@@ -17,13 +17,19 @@ handles and several pieces need no special symbols. Each decision is an adaptive
 range-coded bit (:mod:`client_py.rangecoder`) in the context of the symbol before it and
 of the triangles decoded around the gate's ends.
 
-The points are numbered in the order the traversal first uses them (points in no triangle
-last, in their own order) and the triangles listed in the order coded, each from the
-gate's far end ``(y, x, c)`` (a piece's first as it was given): the gates are pushed so
-that this is ``client_py.control_mesh.traversal_order`` numbered by
-``canonical_control_mesh``, the order version 5 codes. On the fitted bases of sessions
-30-31 (8,000 triangles) the triangles took 1.3-1.8 bits each, 2.1 on Buddha scan 0's
-ragged rim, against 3.3-3.9 in version 5's coder.
+A piece's first triangle ``(p, q, r)`` pushes all three of its edges, ``(p, q)``, ``(r,
+p)``, ``(q, r)`` (``(q, r)`` popped first), as Edgebreaker's first triangle opens its
+whole boundary; each further triangle ``(y, x, c)`` pushes ``(c, y)`` and ``(x, c)``, its
+third edge being the gate it came across. A piece ends when the stack is empty, and the
+next starts at the first given triangle not yet coded. The triangles are listed in the
+order coded, each from the gate's far end ``(y, x, c)`` (a piece's first as it was given),
+and the points numbered in the order the triangles first use them (points in no triangle
+last, in their own order): for triangles in any order, that is
+``client_py.control_mesh.traversal_order`` of them numbered by ``canonical_control_mesh``,
+the order version 5 codes (``tests/test_control_mesh.py`` checks it on shuffled and
+rotated triangles, a piece's first a bridge). On the fitted bases of sessions 30-31 (8,000
+triangles) the triangles took 1.3-1.8 bits each, 2.1 on Buddha scan 0's ragged rim,
+against 3.3-3.9 in version 5's coder.
 """
 
 from __future__ import annotations
@@ -37,7 +43,8 @@ from .rangecoder import HALF, RangeDecoder, RangeEncoder, decode_exp_golomb, enc
 #: ``c`` is ranked among at most this many open edges at ``y`` (or ``x``); beyond, it is
 #: coded by its distance (real control meshes have one or two)
 RANK_LIMIT = 4
-#: a distance back ``1 <= d < 2^17`` has its bit length below this
+#: the Exp-Golomb prefix of a distance back is at most ``DISTANCE_BITS - 1`` ones: ``d`` up
+#: to ``2^18 - 1``, beyond the ``2^17`` points a file may hold
 DISTANCE_BITS = 18
 #: the symbols, each the context of the next: a piece's start, new point, next, previous,
 #: other
@@ -48,15 +55,17 @@ class _TriangleModel:
     """Adaptive contexts, each also by the symbol before (5): the border bit by whether the
     gate before was a border and whether ``x`` ends and ``y`` starts a border edge (8); the
     new-point bit by the coded triangles at ``x`` and at ``y`` (each up to 7: 64); the next
-    (previous) hit by those at ``y`` (``x``) and whether the other pool is empty (16); the
-    ranks; a distance's Exp-Golomb prefix and suffix; a piece's first corners by slot."""
+    (previous) hit by those at ``y`` (``x``) and whether the other pool is empty (16); a
+    rank's unary bits, at most ``RANK_LIMIT - 1`` (the last rank needs no stop bit), next's
+    then previous's; a distance's Exp-Golomb prefix and suffix; a piece's first corners by
+    slot."""
 
     def __init__(self) -> None:
         self.border = [HALF] * 40
         self.new = [HALF] * 5 * 64
         self.next = [HALF] * 5 * 16
         self.previous = [HALF] * 5 * 16
-        self.rank = [HALF] * (2 * RANK_LIMIT)
+        self.rank = [HALF] * (2 * (RANK_LIMIT - 1))
         self.first = [HALF] * 3
         self.prefix = [HALF] * DISTANCE_BITS
         self.suffix = [HALF] * DISTANCE_BITS
@@ -86,10 +95,11 @@ def decode_triangles(dec: RangeDecoder, n_tris: int, n_points: int, start: int
 
 def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
           given: list[tuple[int, ...]] | None, start: int
-          ) -> tuple[list[int], list[tuple[int, int, int]]]:
+          ) -> tuple[list[int] | None, list[tuple[int, int, int]]]:
     """Both directions of the traversal (``given`` the triangles to encode, or ``None``).
     The encoder keys its state by the given points, the decoder by the file's numbers;
-    both make the same calls in the same order, so their lists keep the same order."""
+    both make the same calls in the same order, so their lists keep the same order. Returns
+    the encoder's ``order`` (``None`` when decoding) and the triangles."""
     encoding = given is not None
     model = _TriangleModel()
     if encoding:
@@ -104,9 +114,11 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
     run: set[int] = set()  # the directed edges a n + b of the coded triangles
     ends: set[int] = set()  # the gates found to be borders
     # per x the open edges' heads (x, y), per y their tails, in the order opened: dicts,
-    # so that a point of any valence (a hostile file's) costs a bounded time per edge
-    heads: list[dict[int, None]] = [{} for _ in range(n)]
-    tails: list[dict[int, None]] = [{} for _ in range(n)]
+    # so that a point of any valence (a hostile file's) costs a bounded time per edge; the
+    # decoder's points are numbered as first used, and get theirs then (a hostile header's
+    # 2^17 points cost no 2^18 dicts up front)
+    heads: list[dict[int, None]] = [{} for _ in range(n)] if encoding else []
+    tails: list[dict[int, None]] = [{} for _ in range(n)] if encoding else []
     border_in = [False] * n  # a point ends a border edge
     border_out = [False] * n  # a point starts one
     fans = [0] * n  # per point its coded triangles
@@ -136,7 +148,8 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
         fans[p] += 1
         fans[q] += 1
         fans[r] += 1
-        # (q, r) popped next, then (r, p): the traversal turns as Edgebreaker's does
+        # (q, r) popped next, then (r, p): the traversal turns as Edgebreaker's does (a
+        # piece's first also pushes (p, q), beneath them)
         stack.append((r, p))
         stack.append((q, r))
 
@@ -170,6 +183,8 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                         raise fail(f"uses more than the {n} points")
                     v = used
                     used += 1
+                    heads.append({})
+                    tails.append({})
                 else:
                     d = decode_exp_golomb(coder, model.prefix, 0, model.suffix, 0,
                                           DISTANCE_BITS)
@@ -179,6 +194,7 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                 if v in corners:
                     raise fail(f"corner {v} twice")
             corners.append(v)
+        stack.append((corners[0], corners[1]))  # popped last: the piece's first gate
         add(*corners)
         out.append(tuple(corners))
         symbol = START
@@ -216,12 +232,14 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                     raise fail(f"uses more than the {n} points")
                 else:
                     c = used
+                    heads.append({})
+                    tails.append({})
                 used += 1
             else:
                 last, symbol = symbol, OTHER
                 for pool, hit, base, name, other, fan in (
                         (after, model.next, 0, NEXT, before, fans[y]),
-                        (before, model.previous, RANK_LIMIT, PREVIOUS, after, fans[x])):
+                        (before, model.previous, RANK_LIMIT - 1, PREVIOUS, after, fans[x])):
                     if not pool:
                         continue
                     if encoding:
@@ -262,4 +280,4 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
             file_number(v)
         out = [(number[a], number[b], number[c]) for a, b, c in out]
         return order, out
-    return list(range(n)), out
+    return None, out

@@ -112,14 +112,10 @@ def test_a_smooth_base_bundle_is_read_and_drawn_as_any_atlas(tmp_path):
     assert manifest["stats"]["max_relative"] < 0.001  # level 0, every point (0.04 %)
 
 
-def _sheet(n: int, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A wavy ``n x n`` grid sheet over ``[0, 1]^2`` (an open border of ``4 (n - 1)`` edges),
-    its border vertices jittered in the plane when ``rng`` is given (a scanner's ragged rim)."""
+def _sheet(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A wavy ``n x n`` grid sheet over ``[0, 1]^2`` (an open border of ``4 (n - 1)`` edges)."""
     u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
     points = np.stack([u, v, 0.05 * np.sin(6 * u) * np.cos(5 * v)], axis=-1).reshape(-1, 3)
-    if rng is not None:
-        rim = (np.isin(u, (0, 1)) | np.isin(v, (0, 1))).ravel()
-        points[rim, :2] += rng.uniform(-0.3, 0.3, (rim.sum(), 2)) / n
     k = np.arange(n * n).reshape(n, n)
     a, b, c, d = k[:-1, :-1].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel(), k[:-1, 1:].ravel()
     return points, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])

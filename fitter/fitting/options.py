@@ -34,11 +34,11 @@ METHODS = ("tessera", "paper", "linear")
 #: ``auto`` and the maps of ``fitter.fitting.parameterize.KINDS`` (tests/test_options.py
 #: checks that the two agree; that module needs numpy, this one must not)
 PROJECTIONS = ("auto", "plane", "cylinder", "sphere")
-#: ``auto`` and the axes of ``fitter.fitting.orient.AXES`` (tests/test_orient.py checks that
-#: the two agree)
 #: an atlas's base (``fitter.fitting.atlas.smooth``, ``fitter.fitting.atlas.fit``); the
 #: default is the ``base`` option's in :data:`OPTIONS`
 ATLAS_BASES = ("smooth", "patches")
+#: ``auto`` and the axes of ``fitter.fitting.orient.AXES`` (tests/test_orient.py checks that
+#: the two agree)
 UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 GRID_SIDE_LIMIT = MAX_GRID_SIDE  # what a .tsp holds (client_py.format.LIMITS), per side
 DEFAULT_MAX_GRID = 128  # max_grid = None: the grid grows to max(128, its largest side)

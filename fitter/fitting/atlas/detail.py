@@ -2014,7 +2014,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                      spans: int = SPANS, step_factor: float = STEP_FACTOR,
                      max_samples: int = MAX_SAMPLES, pack_bytes: int = PACK_BYTES,
                      progress: Callable[[float], None] | None = None,
-                     original: Scan | None = None) -> AtlasDetail:
+                     original: Scan | None = None, keep_order: bool = False,
+                     offset_limit: float = OFFSET_LIMIT) -> AtlasDetail:
     """Fit the detail pyramid of ``fit``'s atlas to ``scan``'s surface (module docstring)
     and code its packs: :func:`pack_pyramid` of :func:`fit_detail_pyramid`.
 
@@ -2040,6 +2041,14 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
         A large scan's own points (``fitter.fitting.stream.LargeScan.detail_scan``), of
         which ``scan`` is the working set: the levels are fitted to them (thinned to about
         ``max_samples``), and their depth reaches their spacing, not the working set's.
+    keep_order : bool
+        The patches keep their numbers (a smooth base's are its control triangles', which
+        its file fixes in a walk across their edges:
+        ``client_py.control_mesh.traversal_order``); else they are renumbered in
+        :func:`spatial_order`.
+    offset_limit : float
+        The largest normal offset fitted, in median patch sides (:func:`fit_samples`; a
+        smooth base's patches are smaller: ``.smooth.SMOOTH_OFFSET_LIMIT``).
 
     Returns
     -------
@@ -2048,7 +2057,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     _check_pack_bytes(pack_bytes)
     return pack_pyramid(fit_detail_pyramid(fit, scan, levels, spans=spans,
                                            step_factor=step_factor, max_samples=max_samples,
-                                           progress=progress, original=original), pack_bytes)
+                                           progress=progress, original=original,
+                                           keep_order=keep_order, offset_limit=offset_limit),
+                        pack_bytes)
 
 
 def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
@@ -2058,12 +2069,7 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                        original: Scan | None = None, keep_order: bool = False,
                        offset_limit: float = OFFSET_LIMIT) -> DetailPyramid:
     """:func:`fit_atlas_detail`'s pyramid (the same parameters but ``pack_bytes``), its
-    packs not yet coded (:func:`pack_pyramid`). ``keep_order``: the patches keep their
-    numbers (a smooth base's are its control triangles', which its file fixes in a walk
-    across their edges: ``client_py.control_mesh.traversal_order``), else they are
-    renumbered in :func:`spatial_order`. ``offset_limit``: the largest normal offset fitted,
-    in median patch sides (:func:`fit_samples`; a smooth base's patches are smaller:
-    ``.smooth.SMOOTH_OFFSET_LIMIT``)."""
+    packs not yet coded (:func:`pack_pyramid`)."""
     _check_arguments(levels, spans, step_factor, offset_limit)
     if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1000:
         raise ValueError(f"max_samples must be an int >= 1000, got {max_samples!r}")

@@ -117,7 +117,8 @@ def wants_atlas(scan: Scan, patches: int | None, base: str) -> bool:
     scan's borders and holes, which the single patch's trimmed rectangle does not; Buddha
     scan 0's base drew 0.55 times Draco's RMS at 17.1 KB, its level 0 0.46 at 36.7 KB, where
     the single patch drew 1.69 at 10.9 KB with 43 % of its border off the scan's:
-    ``bench/results/atlas.json``, session 30, then ``atlas-smooth.json``).
+    ``bench/results/atlas.json``, session 30's ``atlas-smooth.json`` renamed in session 31,
+    and for the single patch ``atlas-patches.json``, then ``atlas.json``).
 
     A height field: of the surface's area (a mesh's triangles, an even subset of
     :data:`AUTO_TRIANGLES` of a larger mesh's; else one unit per point with a normal),

@@ -64,8 +64,11 @@ FIT_ROUNDS = 4
 #: at 9,000 triangles 0.81 times Draco's RMS, at 4,500 0.96, at 3,000 0.83; Lucy's 0.74 at
 #: 9,000 and 1.05 at 3,000 (10 bits), where the patches base drew 1.69 and 2.01 times
 SMOOTH_BYTE_BUDGET = 16_000
-#: bytes of ``.tsa`` per control triangle, to size the first trial (Nefertiti decimated to
-#: 6,000 triangles: 12,006 bytes at 12 bits in version 5; version 6 is 8-22 % smaller)
+#: bytes of ``.tsa`` per control triangle, to size the first trial: version 5's figure
+#: (Nefertiti decimated to 6,000 triangles: 12,006 bytes at 12 bits), which sizes it
+#: conservatively for version 6: the fitted bases of session 31 (8,000 triangles, 10-12
+#: bits) took 1.3-1.6 bytes a triangle in version 6, 2.2 on Buddha scan 0's ragged rim
+#: (docs/benchmarks.md, "Session 31: the control mesh's point and triangle coders")
 BYTES_PER_TRIANGLE = 2.0
 #: trials of fewer triangles when a fitted control mesh's file is over the byte budget
 BUDGET_ATTEMPTS = 3
