@@ -142,6 +142,8 @@ def test_bad_arguments_are_named():
             atlas_detail.fit_detail_pyramid(fit, scan, offset_limit=bad)
         with pytest.raises(ValueError, match="offset_limit must be"):
             atlas_detail.fit_atlas_detail(fit, scan, offset_limit=bad)  # forwarded
+        with pytest.raises(ValueError, match="pull_reach must be"):
+            atlas_detail.fit_atlas_detail(fit, scan, pull_reach=bad)
     with pytest.raises(ValueError, match="permutation"):
         atlas_detail.renumber_patches(fit.atlas, np.zeros(len(fit.atlas.quads), int))
 
@@ -691,6 +693,10 @@ def test_far_drawn_nodes_are_pulled_toward_the_scan_not_pushed_away(monkeypatch)
     # pushed out without the rows (0.0310 against the base's 0.0255 of the diagonal)
     assert found[0.0] > 1.15 * base, (found, base)
     assert found[atlas_detail.PULL_WEIGHT] < base, (found, base)  # and nearer with them
+    # a node is pulled only past pull_reach: past the web's own distance, none is
+    det = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4, pull_reach=0.05)
+    beyond = _farthest(det.atlas, det.detail_up_to(1), det.levels[1]["resolution"], diagonal)
+    assert beyond > 1.15 * base, (beyond, base)
 
 
 def test_drawn_model_and_node_frames_on_threads_equal_one_thread(fitted, monkeypatch):

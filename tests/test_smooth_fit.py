@@ -175,12 +175,13 @@ def test_the_control_mesh_is_decimated_with_its_border_weighted(monkeypatch):
     assert len(seen) == 1 and fit.trials[0]["triangles"] <= 1200
 
 
-def test_smooth_detail_fits_wider_offsets_on_a_mesh_only():
+def test_smooth_detail_reaches_farther_on_a_mesh_only():
     """A smooth base's detail on a mesh's own triangles: 2 spans, offsets up to
     ``SMOOTH_OFFSET_LIMIT``; on a cloud's Poisson stand-in: 1 span, the patches base's
-    ``OFFSET_LIMIT`` (wider drew a point past 1 % of the diagonal on the 15-scan Buddha)."""
-    from fitter.fitting.atlas.detail import OFFSET_LIMIT
-    from fitter.fitting.atlas.smooth import SMOOTH_OFFSET_LIMIT, smooth_detail
+    ``OFFSET_LIMIT`` (wider drew a point past 1 % of the diagonal on the 15-scan Buddha);
+    and far drawn nodes pulled from the nearer ``SMOOTH_PULL_REACH`` on a mesh only."""
+    from fitter.fitting.atlas.detail import OFFSET_LIMIT, PULL_REACH
+    from fitter.fitting.atlas.smooth import SMOOTH_OFFSET_LIMIT, SMOOTH_PULL_REACH, smooth_detail
     from fitter.fitting.atlas.surface import ScanSurface
 
     v, f = icosphere(1)
@@ -189,3 +190,5 @@ def test_smooth_detail_fits_wider_offsets_on_a_mesh_only():
     assert (mesh["spans"], mesh["offset_limit"]) == (2, SMOOTH_OFFSET_LIMIT)
     assert (cloud["spans"], cloud["offset_limit"]) == (1, OFFSET_LIMIT)
     assert SMOOTH_OFFSET_LIMIT > OFFSET_LIMIT and mesh["keep_order"] and cloud["keep_order"]
+    assert (mesh["pull_reach"], cloud["pull_reach"]) == (SMOOTH_PULL_REACH, PULL_REACH)
+    assert SMOOTH_PULL_REACH < PULL_REACH

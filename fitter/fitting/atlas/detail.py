@@ -36,9 +36,9 @@ of level 0 farther than 1 % of the diagonal from the scan by 0.31 % of it (media
 away from the scan), from 0.87 % to 1.02 % (largest 1.00 -> 1.03 %). So, as the base's
 reverse rows (:func:`.fit.reverse_rows`), each level also holds the mesh it draws onto the
 scan: every node of the level's drawn grid whose position ``X`` (the base and the levels
-before) lies farther than ``PULL_REACH`` of the diagonal from the scan's surface gets the
-row ``D_f(node) = (q - X) . d`` (:func:`far_node_rows`: ``q`` its closest scan point,
-``d`` its drawn direction, so the node moves toward ``q`` as far as a displacement along
+before) lies farther than ``PULL_REACH`` (``pull_reach``) of the diagonal from the scan's
+surface gets the row ``D_f(node) = (q - X) . d`` (:func:`far_node_rows`: ``q`` its closest
+scan point, ``d`` its drawn direction, so the node moves toward ``q`` as far as a displacement along
 ``d`` can), weighing ``PULL_WEIGHT`` times the fitted samples' mean weight per node. On
 Lucy the level-0 largest distance is 0.99 % and the far area 0 (was 1.03 %, 0.0015 %),
 the RMS of all points 0.1 % lower; on the mask 1.44 % and 0.063 % (was 1.48 %, 0.091 %);
@@ -1988,21 +1988,24 @@ def check_levels(levels: int, patches: int | None, spans: int = SPANS) -> None:
                           f"at most {most} levels ({why})")
 
 
+def _check_positive(name: str, value: object, unit: str) -> None:
+    if not (isinstance(value, int | float) and not isinstance(value, bool)
+            and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite number > 0{unit}, got {value!r}")
+
+
 def _check_arguments(levels: object, spans: object, step_factor: object,
-                     offset_limit: object = OFFSET_LIMIT) -> None:
+                     offset_limit: object = OFFSET_LIMIT,
+                     pull_reach: object = PULL_REACH) -> None:
     if levels is not None and (isinstance(levels, bool) or not isinstance(levels, int)
                                or not 0 <= levels <= layers.MAX_LEVEL + 1):
         raise ValueError(f"levels must be None (automatic) or an int in "
                          f"0..{layers.MAX_LEVEL + 1}, got {levels!r}")
     if isinstance(spans, bool) or not isinstance(spans, int) or spans not in (1, 2, 4, 8, 16):
         raise ValueError(f"spans must be one of 1, 2, 4, 8, 16 spans per tile side, got {spans!r}")
-    if not (isinstance(step_factor, int | float) and math.isfinite(step_factor)
-            and step_factor > 0):
-        raise ValueError(f"step_factor must be a finite number > 0, got {step_factor!r}")
-    if not (isinstance(offset_limit, int | float) and not isinstance(offset_limit, bool)
-            and math.isfinite(offset_limit) and offset_limit > 0):
-        raise ValueError(f"offset_limit must be a finite number > 0 (median patch sides), "
-                         f"got {offset_limit!r}")
+    _check_positive("step_factor", step_factor, "")
+    _check_positive("offset_limit", offset_limit, " (median patch sides)")
+    _check_positive("pull_reach", pull_reach, " (of the diagonal)")
 
 
 def _check_pack_bytes(pack_bytes: object) -> None:
@@ -2015,7 +2018,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                      max_samples: int = MAX_SAMPLES, pack_bytes: int = PACK_BYTES,
                      progress: Callable[[float], None] | None = None,
                      original: Scan | None = None, keep_order: bool = False,
-                     offset_limit: float = OFFSET_LIMIT) -> AtlasDetail:
+                     offset_limit: float = OFFSET_LIMIT,
+                     pull_reach: float = PULL_REACH) -> AtlasDetail:
     """Fit the detail pyramid of ``fit``'s atlas to ``scan``'s surface (module docstring)
     and code its packs: :func:`pack_pyramid` of :func:`fit_detail_pyramid`.
 
@@ -2049,6 +2053,9 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     offset_limit : float
         The largest normal offset fitted, in median patch sides (:func:`fit_samples`; a
         smooth base's patches are smaller: ``.smooth.SMOOTH_OFFSET_LIMIT``).
+    pull_reach : float
+        A drawn node farther than this share of the diagonal from the scan is pulled toward
+        it (module docstring, "Far nodes"; ``.smooth.SMOOTH_PULL_REACH``).
 
     Returns
     -------
@@ -2058,7 +2065,8 @@ def fit_atlas_detail(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
     return pack_pyramid(fit_detail_pyramid(fit, scan, levels, spans=spans,
                                            step_factor=step_factor, max_samples=max_samples,
                                            progress=progress, original=original,
-                                           keep_order=keep_order, offset_limit=offset_limit),
+                                           keep_order=keep_order, offset_limit=offset_limit,
+                                           pull_reach=pull_reach),
                         pack_bytes)
 
 
@@ -2067,10 +2075,11 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                        max_samples: int = MAX_SAMPLES,
                        progress: Callable[[float], None] | None = None,
                        original: Scan | None = None, keep_order: bool = False,
-                       offset_limit: float = OFFSET_LIMIT) -> DetailPyramid:
+                       offset_limit: float = OFFSET_LIMIT,
+                       pull_reach: float = PULL_REACH) -> DetailPyramid:
     """:func:`fit_atlas_detail`'s pyramid (the same parameters but ``pack_bytes``), its
     packs not yet coded (:func:`pack_pyramid`)."""
-    _check_arguments(levels, spans, step_factor, offset_limit)
+    _check_arguments(levels, spans, step_factor, offset_limit, pull_reach)
     if isinstance(max_samples, bool) or not isinstance(max_samples, int) or max_samples < 1000:
         raise ValueError(f"max_samples must be an int >= 1000, got {max_samples!r}")
     report = progress or (lambda fraction: None)
@@ -2143,7 +2152,7 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                        for j, c in enumerate(fields)), np.zeros(len(e)))
         clock = _tick(timings, "model", clock)
         per_node = per_patch / atlas_level_resolution(spans, k) ** 2
-        pull = (far_node_rows(nodes, scan_mesh, PULL_REACH * diagonal, PULL_WEIGHT * per_node)
+        pull = (far_node_rows(nodes, scan_mesh, pull_reach * diagonal, PULL_WEIGHT * per_node)
                 if PULL_WEIGHT > 0 else None)
         clock = _tick(timings, "far_rows", clock)
 
