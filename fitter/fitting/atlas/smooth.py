@@ -18,12 +18,12 @@ collapse, the mesh Draco would code), so its vertices are dense where the shape 
 the patches base's bytes it drew Nefertiti, Lucy and Laurana at 0.57-0.75 times the RMS of
 quadric decimation + Draco, where the patches base drew 1.69-2.01 times (``python -m bench
 subdivision``, docs/benchmarks.md, session 28). In the product (``tessera fit``; ``python
--m bench atlas``, ``bench/results/atlas.json``, measured in session 30) the base drew the
-bunny, Nefertiti, Lucy, the Bali mask and Buddha scan 0 at 0.32-0.94 times Draco's RMS at
-its bytes, Laurana at 1.12. It is the default base since session 31 (``--base patches``
-fits the other; docs/benchmarks.md, "Session 31"). Still worse than the patches base: its
-colour on a dense texture (its level-0 mesh draws 4 texels a patch side, the Bali mask's
-colour 6.60 mean against the patches base's 5.35).
+-m bench atlas``, ``bench/results/atlas.json``, session 31) the base draws the six meshes of
+the benchmark at 0.32-0.89 times Draco's RMS at its bytes, and their level 0 at 0.33-0.72,
+but the bunny's at 1.01 (a floor of points in no triangle). It is the default base since
+session 31 (``--base patches`` fits the other; docs/benchmarks.md, "Session 31"). Still
+worse than the patches base: its colour on a dense texture (its level-0 mesh draws 4 texels
+a patch side, the Bali mask's colour 6.60 mean against the patches base's 5.35, session 30).
 """
 
 from __future__ import annotations
