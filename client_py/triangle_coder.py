@@ -153,6 +153,13 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
         stack.append((r, p))
         stack.append((q, r))
 
+    def point_back() -> int:
+        # a corner coded as the distance back from the next new point's number
+        d = decode_exp_golomb(coder, model.prefix, 0, model.suffix, 0, DISTANCE_BITS)
+        if d is None or d > used:
+            raise fail("a corner before the first point")
+        return used - d
+
     def file_number(v: int) -> int:
         if number[v] < 0:
             number[v] = len(order)
@@ -186,11 +193,7 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                     heads.append({})
                     tails.append({})
                 else:
-                    d = decode_exp_golomb(coder, model.prefix, 0, model.suffix, 0,
-                                          DISTANCE_BITS)
-                    if d is None or d > used:
-                        raise fail("a corner before the first point")
-                    v = used - d
+                    v = point_back()
                 if v in corners:
                     raise fail(f"corner {v} twice")
             corners.append(v)
@@ -266,11 +269,7 @@ def _code(coder: RangeEncoder | RangeDecoder, n_tris: int, n: int,
                         encode_exp_golomb(coder, used - number[c], model.prefix, 0,
                                           model.suffix, 0)
                     else:
-                        d = decode_exp_golomb(coder, model.prefix, 0, model.suffix, 0,
-                                              DISTANCE_BITS)
-                        if d is None or d > used:
-                            raise fail("a corner before the first point")
-                        c = used - d
+                        c = point_back()
                 if not encoding and c in (x, y):
                     raise fail(f"corner {c} twice")
             add(y, x, c)
