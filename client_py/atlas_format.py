@@ -96,13 +96,20 @@ HEADER_SIZE = HEADER.size  # 28
 FLAG_RATIONAL = 1
 KNOWN_FLAGS = FLAG_RATIONAL
 
+#: most sides at one layout vertex (versions 3 and 4): a quad's corner scans all of its
+#: vertex's neighbours for candidates (:func:`_candidates`), so a reader stops a layout at
+#: a vertex beyond this and a writer refuses one; fitted layouts reach 14 (the 15-scan
+#: Happy Buddha's base), 10 (Laurana's)
+MAX_LAYOUT_VALENCE = 64
+
 #: what a reader accepts (docs/format.md, "Atlas limits"): the layout's limits are the
 #: data model's (client_py.atlas); the control points are the ``.tsp`` limit, which bounds
 #: the decoded grids (2^18 points decode in about a second of pure Python)
 ATLAS_LIMITS = {
     "degree": MAX_ATLAS_DEGREE, "spans": MAX_ATLAS_SPANS, "vertices": MAX_ATLAS_VERTICES,
-    "quads": MAX_ATLAS_QUADS, "control points": MAX_CONTROL_POINTS,
-    "metadata bytes": MAX_METADATA, "inflate ratio": MAX_INFLATE_RATIO,
+    "quads": MAX_ATLAS_QUADS, "layout valence": MAX_LAYOUT_VALENCE,
+    "control points": MAX_CONTROL_POINTS, "metadata bytes": MAX_METADATA,
+    "inflate ratio": MAX_INFLATE_RATIO,
 }
 
 
@@ -725,20 +732,23 @@ def _code_faces(coder: RangeEncoder | RangeDecoder, n_faces: int, n_vertices: in
     unary (``r`` ones and a zero, none after rank ``|C| - 1``; the ``t``-th with context
     ``s, min(t, 31)``); else ``u - v >= 1`` as adaptive Exp-Golomb (context ``s``).
     Triangles draw their candidates from a vertex's latest :data:`FACE_REACH` neighbours
-    alone, so that a vertex of any valence costs a bounded time per corner.
+    alone, quads from all of them, at most :data:`MAX_LAYOUT_VALENCE`: either way a
+    corner costs a bounded time, whatever the faces.
 
     Raises
     ------
     PatchFormatError
-        (decoding) a first use beyond ``n_vertices`` or a distance beyond the vertices so far.
+        (decoding) a first use beyond ``n_vertices``, a distance beyond the vertices so far,
+        or a quad's side that gives a vertex more than :data:`MAX_LAYOUT_VALENCE` neighbours.
     ValueError
         (encoding) a corner that is neither a first use nor an earlier vertex: the numbering
-        is not canonical.
+        is not canonical; a vertex of more than :data:`MAX_LAYOUT_VALENCE` quad sides.
     """
     encoding = faces is not None
     noun = "quad" if corners == 4 else "triangle"
     canonical = "canonical_atlas" if corners == 4 else "canonical_control_mesh"
     reach = None if corners == 4 else FACE_REACH
+    most = MAX_LAYOUT_VALENCE if corners == 4 else n_vertices  # n_vertices: no limit
     last = corners - 1
     model, out = _FaceModel(), []
     linked: list[list[int]] = [[] for _ in range(n_vertices)]
@@ -793,6 +803,15 @@ def _code_faces(coder: RangeEncoder | RangeDecoder, n_faces: int, n_vertices: in
             if (a, b) not in directed and (b, a) not in directed:
                 linked[a].append(b)
                 linked[b].append(a)
+                crowded = a if len(linked[a]) > most else b if len(linked[b]) > most else -1
+                if crowded >= 0 and encoding:
+                    raise ValueError(f"layout vertex {crowded} (first-use numbering) has more "
+                                     f"than {most} sides (MAX_LAYOUT_VALENCE); a reader "
+                                     "refuses it")
+                if crowded >= 0:  # now, before its candidates cost more
+                    raise PatchFormatError(HEADER_SIZE, f"{noun} {f} gives vertex {crowded} "
+                                           f"more than {most} neighbours; at most {most} "
+                                           "accepted (MAX_LAYOUT_VALENCE)")
             directed.add((a, b))
         out.append(tuple(face))
     return out

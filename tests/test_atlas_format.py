@@ -23,11 +23,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_atlas import random_cube_atlas
 
-from client_py.atlas import AtlasSurface
+from client_py import atlas_format
+from client_py.atlas import MAX_ATLAS_QUADS, MAX_ATLAS_VERTICES, AtlasSurface
 from client_py.atlas_format import (
     HEADER,
     HEADER_SIZE,
     MAGIC,
+    MAX_LAYOUT_VALENCE,
     AtlasWriter,
     _code_quads,
     _encode_residuals,
@@ -396,6 +398,50 @@ def test_a_layout_beyond_its_vertices_is_refused():
         read_atlas(bad)
 
 
+def fan_atlas(n_quads: int) -> AtlasSurface:
+    """``n_quads`` bilinear patches around layout vertex 0, quad ``f`` ``(0, 2f+1, 2f+2,
+    2f+3)``: an oriented disc whose vertex 0 has ``n_quads + 1`` sides."""
+    n = 2 * n_quads + 2
+    vertices = [(0.0, 0.0, 0.0)] + [(math.cos(k / n), math.sin(k / n), k / n)
+                                    for k in range(1, n)]
+    quads = [(0, 2 * f + 1, 2 * f + 2, 2 * f + 3) for f in range(n_quads)]
+    return AtlasSurface(1, 1, vertices, quads, [], [], None)
+
+
+def test_a_layout_at_the_valence_limit_round_trips():
+    atlas = fan_atlas(MAX_LAYOUT_VALENCE - 1)
+    back, _ = read_atlas(write_atlas(atlas, 16))
+    assert back.quads == atlas.quads
+    assert len(back.edges.edges) == 3 * len(atlas.quads) + 1
+
+
+def test_a_layout_beyond_the_valence_limit_is_not_written():
+    with pytest.raises(ValueError, match=f"layout vertex 0 \\(first-use numbering\\) has "
+                       f"more than {MAX_LAYOUT_VALENCE} sides"):
+        write_atlas(fan_atlas(MAX_LAYOUT_VALENCE), 16)
+
+
+def test_a_layout_of_one_crowded_vertex_is_refused_at_once(monkeypatch):
+    """The hostile fan (issue 15): every quad of a file claiming the most quads around one
+    vertex. Each corner's candidates are that vertex's neighbours, so with no limit the
+    decode took time quadratic in the quads (8,000 quads: 12 s; 65,535: about 14 min);
+    the reader stops at the side beyond :data:`MAX_LAYOUT_VALENCE`."""
+    n_vertices, fan = MAX_ATLAS_VERTICES, fan_atlas(200).quads
+    with monkeypatch.context() as patched:  # a writer that would store it
+        patched.setattr(atlas_format, "MAX_LAYOUT_VALENCE", len(fan) + 1)
+        enc = RangeEncoder()
+        _code_quads(enc, len(fan), n_vertices, fan)
+    raw = struct.pack("<6d", 0, 0, 0, 1, 1, 1) + struct.pack("<I", 2) + b"{}"
+    blob = zlib.compress(raw, 9)
+    data = _with_crc(HEADER.pack(MAGIC, 3, 0, 1, 1, 16, 0, n_vertices, MAX_ATLAS_QUADS,
+                                 len(blob), len(raw)) + blob + enc.finish() + bytes(64))
+    start = time.perf_counter()
+    with pytest.raises(PatchFormatError, match=f"quad {MAX_LAYOUT_VALENCE - 1} gives vertex 0 "
+                       f"more than {MAX_LAYOUT_VALENCE} neighbours"):
+        read_atlas(data)
+    assert time.perf_counter() - start < 1.0
+
+
 def _coded(*axes: list[int]) -> bytes:
     """The cube's layout, then residuals coded as the writer codes them (classes of the
     cube: 8 vertices, 12 edges of 3 points, 6 patches of 9), for files the writer would
@@ -515,6 +561,7 @@ def test_the_documented_header_is_the_code_s():
         line = next(x for x in section.splitlines() if row in x)
         assert f"..{limit}" in line, line
     assert ATLAS_LIMITS["control points"] == 1 << 18 and "<= 2^18" in section
+    assert f"at most {ATLAS_LIMITS['layout valence']} sides" in section
 
 
 # ------------------------------------------------------------------ corners kept apart
