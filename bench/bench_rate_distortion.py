@@ -79,7 +79,12 @@ DETAIL_SPANS = (16, 24)  # knot spans per detail tile side: level k resolves spa
 LEVELS = {16: 6, 24: 5}  # detail levels 0..L-1 per spans (past 512 KB at the finest)
 STEP_FACTORS = (1.0, 2.0, 4.0)  # detail quantisation step / the level's remaining RMS
 BUDGETS_KB = (8, 16, 32, 64, 128, 256, 512)
-DRACO_BITS = (10, 11, 12, 14)
+DRACO_BITS = (10, 11, 12, 13, 14)
+#: the face counts Draco's meshes are decimated to (then the whole mesh): 250 and up in
+#: steps of sqrt(2). Doubling steps (before session 31, and 13 bits missing) left Draco's
+#: best under a budget up to half the faces the budget would hold: Laurana's base at
+#: 14.4 KB met 8,000 faces at 12 bits (12.8 KB), the next encoding being 16.6 KB
+DRACO_TARGETS = tuple(round(250 * 2 ** (k / 2)) for k in range(17))  # 250 .. 64,000
 MAX_RESOLUTION = 1537  # tessellation vertices per side: 3 per span of detail level 5
 SPAN_VERTICES = 3  # tessellation vertices per span of the finest detail level applied
 BASE_SPAN_VERTICES = 8  # ... and per span of the base
@@ -130,8 +135,7 @@ def draco_coded(vertices: np.ndarray, faces: np.ndarray, bits: int
 
 def draco_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> list[dict]:
     rows = []
-    targets = [f for f in (250, 500, 1000, 2000, 4000, 8000, 16000, 32000, 64000)
-               if f < len(faces)] + [len(faces)]
+    targets = [f for f in DRACO_TARGETS if f < len(faces)] + [len(faces)]
     for target in targets:
         v, f = decimated(vertices, faces, target)
         for bits in DRACO_BITS:
