@@ -19,7 +19,7 @@ the patches base's bytes it drew Nefertiti, Lucy and Laurana at 0.57-0.75 times 
 quadric decimation + Draco, where the patches base drew 1.69-2.01 times (``python -m bench
 subdivision``, docs/benchmarks.md, session 28). In the product (``tessera fit``; ``python
 -m bench atlas``, ``bench/results/atlas.json``, session 31) the base draws the six meshes of
-the benchmark at 0.32-0.89 times Draco's RMS at its bytes, and their level 0 at 0.33-0.72,
+the benchmark at 0.32-0.98 times Draco's RMS at its bytes, and their level 0 at 0.33-0.89,
 but the bunny's at 1.01 (a floor of points in no triangle). It is the default base since
 session 31 (``--base patches`` fits the other; docs/benchmarks.md, "Session 31"). Still
 worse than the patches base: its colour on a dense texture (its level-0 mesh draws 4 texels
