@@ -72,6 +72,17 @@ def _check(checks: dict, name: str, func) -> None:
         checks[name] = f"{type(exc).__name__}: {exc}"
 
 
+def _truncations_refused(read, data: bytes, steps: int, error: type, name: str) -> None:
+    """``read`` of about ``steps`` evenly spaced truncations of ``data`` each raises
+    ``error``."""
+    for cut in range(0, len(data), max(1, len(data) // steps)):
+        try:
+            read(data[:cut])
+        except error:
+            continue
+        raise AssertionError(f"{name} truncated to {cut} bytes was accepted")
+
+
 def _require(condition: bool, message: str) -> None:
     if not condition:
         raise AssertionError(message)
@@ -112,12 +123,8 @@ def _control_mesh_checks(checks: dict, digests: dict, timings: dict) -> None:
             decoded[version] = read_control_codes(data)
             timings[f"control mesh v{version} read ({n * n} points)"] = \
                 time.perf_counter() - clock
-            for cut in range(0, len(data), max(1, len(data) // 41)):
-                try:
-                    read_control_codes(data[:cut])
-                except PatchFormatError:
-                    continue
-                raise AssertionError(f"v{version} truncated to {cut} bytes was accepted")
+            _truncations_refused(read_control_codes, data, 41, PatchFormatError,
+                                 f"v{version}")
         _require(decoded[5] == decoded[6], "versions 5 and 6 decode to different meshes")
         _require(len(files[6]) < len(files[5]), "version 6 is not the smaller")
         digests["control_mesh.decoded"] = _sha(repr(decoded[6]).encode())
@@ -288,12 +295,7 @@ def _atlas_checks(checks: dict, digests: dict, timings: dict, spec: dict) -> Non
             err = max(abs(x - y) for x, y in zip(a, b, strict=True))
             _require(err <= (max(a) - min(a)) / (2 * 4095) * (1 + 1e-9), f"axis {axis}: {err}")
         digests["atlas.tsa_decoded"] = _sha(repr((after, back.weights)).encode())
-        for cut in range(0, len(data), max(1, len(data) // 97)):
-            try:
-                read_atlas(data[:cut])
-            except PatchFormatError:
-                continue
-            raise AssertionError(f"atlas truncated to {cut} bytes was accepted")
+        _truncations_refused(read_atlas, data, 97, PatchFormatError, "atlas")
 
     _check(checks, "atlas: .tsa round trip; truncations raise PatchFormatError",
            atlas_round_trip)

@@ -36,16 +36,17 @@ of level 0 farther than 1 % of the diagonal from the scan by 0.31 % of it (media
 away from the scan), from 0.87 % to 1.02 % (largest 1.00 -> 1.03 %). So, as the base's
 reverse rows (:func:`.fit.reverse_rows`), each level also holds the mesh it draws onto the
 scan: every node of the level's drawn grid whose position ``X`` (the base and the levels
-before) lies farther than ``PULL_REACH`` (``pull_reach``) of the diagonal from the scan's
-surface gets the row ``D_f(node) = (q - X) . d`` (:func:`far_node_rows`: ``q`` its closest
-scan point, ``d`` its drawn direction, so the node moves toward ``q`` as far as a displacement along
-``d`` can), weighing ``PULL_WEIGHT`` times the fitted samples' mean weight per node. On
-Lucy the level-0 largest distance is 0.99 % and the far area 0 (was 1.03 %, 0.0015 %),
-the RMS of all points 0.1 % lower; on the mask 1.44 % and 0.063 % (was 1.48 %, 0.091 %);
-the 15-scan Happy Buddha's 4.14 % and 4.65 % become 4.07 % and 4.26 % (RMS +0.4 %); the
-bunny's, Nefertiti's and Laurana's packs are byte-identical (no node that far). The nodes'
-closest points cost Lucy's detail 1 CPU-s of 9. Leaving out the samples whose foot point
-is farther than 3 times the base's RMS instead (as the base's far patches): Lucy 1.00 %,
+before) lies farther than ``PULL_REACH`` (``pull_reach``) of the diagonal from the
+scan's surface gets the row ``D_f(node) = (q - X) . d`` (:func:`far_node_rows`: ``q``
+its closest scan point, ``d`` its drawn direction, so the node moves toward ``q`` as far
+as a displacement along ``d`` can), weighing ``PULL_WEIGHT`` times the fitted samples'
+mean weight per node. On Lucy the level-0 largest distance is 0.99 % and the far area 0
+(was 1.03 %, 0.0015 %), the RMS of all points 0.1 % lower; on the mask 1.44 % and
+0.063 % (was 1.48 %, 0.091 %); the 15-scan Happy Buddha's 4.14 % and 4.65 % become 4.07 %
+and 4.26 % (RMS +0.4 %); the bunny's, Nefertiti's and Laurana's packs are byte-identical
+(no node that far). The nodes' closest points cost Lucy's detail 1 CPU-s of 9. Leaving
+out the samples whose foot point is farther than 3 times the base's RMS instead (as the
+base's far patches): Lucy 1.00 %,
 but the mask's RMS +15 %; a reach of 0.5 % with weight 1: Lucy 1.00 % at RMS +0.8 %, the
 mask 1.44 % at +1.9 %; clipping coefficients at once the residual (``COEFFICIENT_REACH``)
 changed nothing.

@@ -23,7 +23,8 @@ the benchmark at 0.32-0.98 times Draco's RMS at its bytes, and their level 0 at 
 but the bunny's at 1.01 (a floor of points in no triangle). It is the default base since
 session 31 (``--base patches`` fits the other; docs/benchmarks.md, "Session 31"). Still
 worse than the patches base: its colour on a dense texture (its level-0 mesh draws 4 texels
-a patch side, the Bali mask's colour 6.60 mean against the patches base's 5.35, session 30).
+a patch side; the Bali mask's colour 6.48 mean |dRGB| against the patches base's 5.35,
+``bench/results/atlas_colour.json``, session 31).
 """
 
 from __future__ import annotations
@@ -94,8 +95,9 @@ SMOOTH_CLOUD_SPANS = 1
 #: left 17 % of its points, 38 % of its squared error, at 80 % or more of the base's
 #: distance (the samples in its eyes and mouth were not fitted); at 0.6 its RMS of all
 #: points went 1.16e-4 -> 5.59e-5 at 53.2 KB instead of 63.0 KB, Lucy's 0.145 -> 0.125,
-#: Nefertiti's 0.0220 -> 0.0201, the bunny's 2.04e-5 -> 2.07e-5 at 7 % fewer bytes, with no
-#: drawn point farther than 0.4 % of the diagonal from the scan (session 31). A mesh's only:
+#: Nefertiti's 0.0220 -> 0.0201, the bunny's 2.04e-5 -> 2.07e-5 at 7 % fewer bytes; the
+#: mask's largest mesh -> scan distance 0.92 % -> 1.02 %, brought back by
+#: :data:`SMOOTH_PULL_REACH` (session 31). A mesh's only:
 #: on the 15-scan Happy Buddha's cloud it lowered the RMS 1.85e-4 -> 1.63e-4 but drew a
 #: point 1.05 % of the diagonal off the scan (0.97 % at 0.2), past the 1 % a visitor may see
 SMOOTH_OFFSET_LIMIT = 0.6
