@@ -62,7 +62,7 @@ def _drawn(atlas, resolution: int, tiles: dict, packs) -> tuple[np.ndarray, ...]
 def _packs_of(cells, groups, cell, level, files=None):
     """ColourPacks of one level from raw ``cells`` (no encoding) or decoded ``files``."""
     from client_py.atlas_texture import ColourPack, colour_pack_name
-    from fitter.fitting.atlas.texture import pack_image, pack_runs
+    from fitter.fitting.atlas.texture import cell_block, pack_image, pack_runs
 
     out = []
     for g, count in pack_runs(groups, cell):
@@ -73,7 +73,8 @@ def _packs_of(cells, groups, cell, level, files=None):
             width, height, rgb = image.shape[1], image.shape[0], image.tobytes()
         else:
             width, height, rgb = _decode(files[colour_pack_name(level, g)])
-        out.append(ColourPack(level, first, end - first, cell, width, height, rgb))
+        out.append(ColourPack(level, first, end - first, cell, width, height, rgb,
+                              cell_block(cell)))
     return out
 
 

@@ -41,6 +41,7 @@ from .atlas_texture import (
     MAX_PACK_SIDE,
     ColourPack,
     atlas_vertex_colours,
+    check_block,
     colour_level,
     colour_pack_name,
     colour_pack_name_parts,
@@ -798,7 +799,7 @@ def atlas_colour(manifest: dict) -> AtlasColour | None:
     if not isinstance(levels, list) or not 1 <= len(levels) <= len(spec.levels):
         raise ManifestError("tiles.texture.levels", f"must be a list of 1..{len(spec.levels)} "
                             f"levels (at most the detail levels), got {_shown(levels)}")
-    cells = []
+    cells, blocks = [], []
     for c, entry in enumerate(levels):
         where = f"tiles.texture.levels[{c}]"
         entry = _mapping(entry, where, optional=False)
@@ -810,6 +811,11 @@ def atlas_colour(manifest: dict) -> AtlasColour | None:
                                 f"in 1..{MAX_CELL} texels per patch side"
                                 + (f", {wanted} (twice the previous level's)" if wanted else "")
                                 + f", got {_shown(entry)}")
+        try:  # absent in bundles written before blocks: a row of cells after another
+            blocks.append(check_block(entry.get("block", 1)))
+        except ValueError as error:
+            raise ManifestError(f"{where}.block", f"cells per side of the pack layout's "
+                                f"blocks: {error}") from None
         texel = entry.get("texel")
         if texel is not None and not (_finite(texel) and texel >= 0):
             raise ManifestError(f"{where}.texel", f"must be a finite number >= 0 or null, "
@@ -840,12 +846,13 @@ def atlas_colour(manifest: dict) -> AtlasColour | None:
         first = spec.groups[group].first
         last = spec.groups[group + groups - 1]
         count = last.first + last.count - first
-        width, height = pack_shape(count, cells[c])
+        width, height = pack_shape(count, cells[c], blocks[c])
         if max(width, height) > MAX_PACK_SIDE:
             raise ManifestError(where, f"makes a {width}x{height} image; at most "
                                 f"{MAX_PACK_SIDE} texels per side")
         packs.append({"level": c, "group": group, "groups": groups, "first": first,
-                      "count": count, "cell": cells[c], "width": width, "height": height,
+                      "count": count, "cell": cells[c], "block": blocks[c],
+                      "width": width, "height": height,
                       "file": colour_pack_name(c, group), "bytes": size})
     for c, end in enumerate(reached):
         if end != len(spec.groups):
@@ -867,7 +874,7 @@ def colour_packs_of(nodes: Sequence[Mapping], images: Mapping[str, tuple[int, in
             raise ValueError(f"{node['file']} is {width}x{height}; the manifest's pack is "
                              f"{node['width']}x{node['height']}")
         out.append(ColourPack(node["level"], node["first"], node["count"], node["cell"],
-                              width, height, bytes(rgb)))
+                              width, height, bytes(rgb), node["block"]))
     return out
 
 

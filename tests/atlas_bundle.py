@@ -29,7 +29,7 @@ from client_py.atlas import ring_positions
 from client_py.atlas_detail import PACK_VERSION, WALLS_FREE_VERSION, pack_name, write_pack
 from client_py.atlas_format import write_atlas
 from client_py.atlas_mesh import tessellate_atlas
-from client_py.atlas_texture import colour_pack_name, pack_shape
+from client_py.atlas_texture import cell_origin, colour_pack_name, pack_shape
 from client_py.layers import DetailTile
 from client_py.trim import TrimMask
 
@@ -187,9 +187,8 @@ def add_colour_packs(folder: Path, manifest: dict, paint_cell: Callable, cell: i
             patches = sum(groups[h]["count"] for h in range(g, g + count))
             width, height = pack_shape(patches, side)
             image = np.full((height, width, 3), 128, np.uint8)
-            columns = width // side
-            for s in range(patches):
-                x, y = (s % columns) * side, (s // columns) * side
+            for s in range(patches):  # no "block": rows of cells, as before blocks
+                x, y = cell_origin(s, patches, side)
                 image[y:y + side, x:x + side] = paint_cell(level, first + s, side)
             buffer = io.BytesIO()
             Image.fromarray(image).save(buffer, "WEBP", lossless=True)

@@ -299,17 +299,52 @@ def test_a_uv_textured_scan_gives_two_colour_levels_of_its_texture(coloured_sphe
 
 
 # ------------------------------------------------------------------ client rules, no fitter
-def _pack_of(level: int, first: int, count: int, cell: int) -> ColourPack:
+def _pack_of(level: int, first: int, count: int, cell: int, block: int = 1) -> ColourPack:
     """A pack whose texel (x, y) of patch f's cell is (f, x, y)."""
-    width, height = pack_shape(count, cell)
+    width, height = pack_shape(count, cell, block)
     image = bytearray(3 * width * height)
     for s in range(count):
-        x0, y0 = cell_origin(s, count, cell)
+        x0, y0 = cell_origin(s, count, cell, block)
         for y in range(cell):
             for x in range(cell):
                 k = 3 * ((y0 + y) * width + x0 + x)
                 image[k : k + 3] = bytes((first + s, x, y))
-    return ColourPack(level, first, count, cell, width, height, bytes(image))
+    return ColourPack(level, first, count, cell, width, height, bytes(image), block)
+
+
+def test_cells_in_blocks_sit_in_morton_order_block_after_block():
+    # 4 texels a cell, blocks of 4 x 4 cells (a 16-texel WebP macroblock); 20 cells make
+    # 2 blocks, side by side (ceil(sqrt(2)) = 2 blocks a row)
+    assert pack_shape(20, 4, 4) == (32, 16)
+    expected = {0: (0, 0), 1: (4, 0), 2: (0, 4), 3: (4, 4), 4: (8, 0), 5: (12, 0),
+                8: (0, 8), 10: (0, 12), 15: (12, 12), 16: (16, 0), 19: (20, 4)}
+    assert {s: cell_origin(s, 20, 4, 4) for s in expected} == expected
+    # blocks of one cell are the rows of the format before blocks
+    for count in (1, 5, 17, 100):
+        columns = pack_columns(count)
+        assert pack_shape(count, 8, 1) == pack_shape(count, 8) == (
+            columns * 8, -(-count // columns) * 8)
+        assert [cell_origin(s, count, 8, 1) for s in range(count)] == [
+            ((s % columns) * 8, (s // columns) * 8) for s in range(count)]
+    for count, cell, block in ((1, 4, 4), (37, 4, 4), (300, 2, 8), (9, 6, 2), (64, 1, 8)):
+        width, height = pack_shape(count, cell, block)
+        taken = np.zeros((height, width), int)
+        for s in range(count):
+            x, y = cell_origin(s, count, cell, block)
+            taken[y:y + cell, x:x + cell] += 1
+        assert taken.sum() == count * cell * cell and taken.max() == 1  # inside, no overlap
+    for bad in (0, 3, 6, 128, True, 2.0):
+        with pytest.raises(ValueError, match="power of two"):
+            pack_shape(5, 4, bad)
+
+
+def test_a_vertex_takes_its_own_cell_in_a_pack_of_blocks():
+    pack = _pack_of(1, 7, 37, 4, block=4)
+    patches = list(range(7, 44))
+    of_patch = dict.fromkeys(patches, pack)
+    rgb = atlas_vertex_colours(patches, [0.125, 0.875] * len(patches), of_patch)
+    assert list(rgb) == [c for f in patches for c in (f, 0, 0)]
+    assert pack.cell_image(30) == _pack_of(1, 7, 37, 4).cell_image(30)
 
 
 def test_a_vertex_takes_its_patch_cell_texel_in_the_texture_tiles_orientation():
@@ -340,15 +375,18 @@ def test_a_vertex_takes_its_patch_cell_texel_in_the_texture_tiles_orientation():
 
 
 def test_pack_layout_round_trips_exactly_without_encoding():
-    from fitter.fitting.atlas.texture import pack_image, pack_runs
+    from fitter.fitting.atlas.texture import cell_block, pack_image, pack_runs
     from fitter.fitting.texture import uv_picture
 
     rng = np.random.default_rng(3)
-    cells = rng.integers(0, 256, size=(7, 16, 16, 3), dtype=np.uint8)
-    image = pack_image(cells, 16)
-    pack = ColourPack(1, 10, 7, 16, image.shape[1], image.shape[0], image.tobytes())
-    for s in range(7):  # the writer's cell s is the reader's cell of patch 10 + s
-        assert pack.cell_image(10 + s).rgb == uv_picture(cells[s]).tobytes()
+    assert [cell_block(c) for c in (1, 2, 4, 6, 8, 16, 32)] == [16, 8, 4, 2, 2, 1, 1]
+    for cell in (16, 4, 2):
+        cells = rng.integers(0, 256, size=(70, cell, cell, 3), dtype=np.uint8)
+        image = pack_image(cells, cell)
+        pack = ColourPack(1, 10, 70, cell, image.shape[1], image.shape[0], image.tobytes(),
+                          cell_block(cell))
+        for s in range(70):  # the writer's cell s is the reader's cell of patch 10 + s
+            assert pack.cell_image(10 + s).rgb == uv_picture(cells[s]).tobytes()
     groups = [{"first": 0, "count": 600}, {"first": 600, "count": 500},
               {"first": 1100, "count": 100}]
     assert pack_runs(groups, 16) == [(0, 1), (1, 2)]  # groups 0 and 1 together pass 512^2
@@ -385,6 +423,11 @@ def test_a_manifest_colour_section_is_checked(tmp_path):
                                                  "texture/1/3.webp"]
     assert [n["file"] for n in plan_level(manifest, -1).texture_nodes] == ["texture/0/0.webp"]
     assert plan_level(manifest, 1).texture_bytes == 20
+    assert [(p["block"], p["width"]) for p in colour.packs] == [(1, 48), (1, 64), (1, 64)]
+    blocks = {**good, "levels": [{"level": 0, "cell": 16, "block": 2}, good["levels"][1]]}
+    manifest["tiles"]["texture"] = blocks  # 6 patches in blocks of 2 x 2: 2 blocks a row
+    assert [(p["block"], p["width"], p["height"]) for p in atlas_colour(manifest).packs][0] \
+        == (2, 2 * 32, 32)
     manifest["tiles"]["texture"] = None  # an older v2 bundle: no colour, still planned
     assert atlas_colour(manifest) is None and plan_level(manifest, 1).texture_nodes == ()
     for change, message in (
@@ -394,6 +437,8 @@ def test_a_manifest_colour_section_is_checked(tmp_path):
             ({"levels": [{"level": 0, "cell": 16}, {"level": 1, "cell": 16}]},
              "twice the previous"),
             ({"levels": [{"level": 0, "cell": 16}] * 3}, "at most the detail levels"),
+            ({"levels": [{"level": 0, "cell": 16, "block": 3}, good["levels"][1]]},
+             r"levels\[0\]\.block cells per side .* power of two"),
             ({"packs": good["packs"][:2]}, "every group 0..5 must be in one pack"),
             ({"packs": [{**good["packs"][0], "group": 1}, *good["packs"][1:]]},
              "previous pack ended"),
