@@ -751,7 +751,9 @@ def _code_faces(coder: RangeEncoder | RangeDecoder, n_faces: int, n_vertices: in
     most = MAX_LAYOUT_VALENCE if corners == 4 else n_vertices  # n_vertices: no limit
     last = corners - 1
     model, out = _FaceModel(), []
-    linked: list[list[int]] = [[] for _ in range(n_vertices)]
+    # per vertex its neighbours, each list made when its vertex is first used (any other
+    # corner is a vertex used before): a hostile header's 2^17 vertices cost no lists up front
+    linked: list[list[int]] = []
     directed: set[tuple[int, int]] = set()
     used = 0
 
@@ -775,6 +777,7 @@ def _code_faces(coder: RangeEncoder | RangeDecoder, n_faces: int, n_vertices: in
                     raise PatchFormatError(HEADER_SIZE, f"{noun} {f} uses more than the "
                                            f"{n_vertices} vertices")
                 face.append(used)
+                linked.append([])
                 used += 1
                 continue
             pool = _candidates(face, slot, out[-QUAD_RECENT:], linked, directed, last, reach)

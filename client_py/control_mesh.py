@@ -165,19 +165,25 @@ def canonical_control_mesh(n_points: int, triangles: Sequence[Sequence[int]]
 
 
 def _earlier_neighbours(n_points: int, triangles: Sequence[Sequence[int]]
-                        ) -> tuple[list[list[int]], list[int]]:
+                        ) -> tuple[list[Sequence[int]], list[int]]:
     """Version 5: per point, its neighbours (across a triangle edge) numbered before it,
     whose mean predicts it (version 3's layout vertex rule), and the highest of them (``-1``:
-    none), its *source*, whose residual's size is a context of its own."""
-    sets: list[set[int]] = [set() for _ in range(n_points)]
+    none), its *source*, whose residual's size is a context of its own. (Sets and lists are
+    made up to the highest point in a triangle only, the points past it sharing one empty
+    tuple, as :func:`point_predictors` does: a hostile header may state ``2^17`` points and
+    two triangles.)"""
+    used = 1 + max(map(max, triangles), default=-1)  # points past it are in no triangle
+    sets: list[set[int]] = [set() for _ in range(used)]
     for a, b, c in triangles:
         for x, y in ((a, b), (b, c), (c, a)):
             if x < y:
                 sets[y].add(x)
             else:
                 sets[x].add(y)
-    earlier = [sorted(s) for s in sets]
-    return earlier, [e[-1] if e else -1 for e in earlier]
+    earlier: list[Sequence[int]] = [sorted(s) for s in sets]
+    sources = [e[-1] if e else -1 for e in earlier]
+    rest = n_points - used
+    return earlier + [()] * rest, sources + [-1] * rest
 
 
 def point_order(n_points: int, triangles: Sequence[Sequence[int]]) -> list[int]:
@@ -606,7 +612,9 @@ def read_control_codes(data: bytes) -> ControlMeshCodes:
 
 def _decode_points_v5(dec: RangeDecoder, n_points: int, tris: Sequence[Sequence[int]],
                       bits: int, start: int) -> list[list[int]]:
-    """Version 5's three axes of codes (the module docstring)."""
+    """Version 5's three axes of codes (the module docstring). Objects per point are made
+    for the points in a triangle only (:func:`_earlier_neighbours`); any other point costs
+    slots in lists (8 bytes each) until it is decoded."""
     earlier, sources = _earlier_neighbours(n_points, tris)
     top = (1 << bits) - 1
     model, before, axes = _ResidualModel(), None, []

@@ -33,6 +33,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from client_py import NurbsSurface
+from client_py.atlas import MAX_ATLAS_VERTICES
 from client_py.bundle import (
     ManifestError,
     detail_nodes,
@@ -41,6 +42,7 @@ from client_py.bundle import (
     tessellate_bundle,
     texture_nodes,
 )
+from client_py.control_mesh import ControlMeshCodes, read_control_codes, write_control_codes
 from client_py.errors import PatchFormatError
 from client_py.format import (
     HEADER,
@@ -164,6 +166,46 @@ def test_a_tile_whose_coded_bytes_end_before_the_decoder_starts_is_a_format_erro
     data = _tile_with({"spans": 2, "degree": 1, "level": 0, "i": 0, "j": 0}, coded=b"\x07")
     with pytest.raises(PatchFormatError, match="coded values end early"):
         read_detail_tile(data)
+
+
+# --- .tsa control meshes: per-point state for the points the file holds ----------------------
+#: the most points two triangles (``E = 5`` edges) leave room for: ``n + E + T`` is the smooth
+#: atlas's layout vertices, at most ``MAX_ATLAS_VERTICES`` (client_py.smooth_base)
+MOST_POINTS = MAX_ATLAS_VERTICES - 5 - 2
+
+
+@cache
+def two_triangles(version: int, n_points: int) -> bytes:
+    """A control mesh of two triangles over points 0..3, its other ``n_points - 4`` points
+    in no triangle with codes 0: a valid file, 594 bytes at :data:`MOST_POINTS` in
+    version 5 (a residual of 0 costs about a hundredth of a bit once its context has adapted)."""
+    codes = [(0, 0, 0), (100, 0, 0), (0, 100, 0), (100, 100, 5)] + [(0, 0, 0)] * (n_points - 4)
+    mesh = ControlMeshCodes(codes, [(0, 1, 2), (1, 3, 2)], 12, (0.0,) * 3, (1.0,) * 3, {})
+    return write_control_codes(mesh, version)
+
+
+def test_a_version_5_control_mesh_stating_the_most_points_is_refused_where_its_stream_ends():
+    body = bytearray(two_triangles(5, 4)[:-4])
+    struct.pack_into("<I", body, 12, MOST_POINTS)  # the header's point count
+    data = _with_crc(bytes(body))
+    assert len(data) < 100
+    # 39 MB before: a set, a list and a list of neighbours per stated point, made up front
+    refused_quickly(read_control_codes, data, "coded control mesh ends early", megabytes=10)
+
+
+def test_a_600_byte_version_5_control_mesh_of_the_most_points_costs_only_its_points():
+    data = two_triangles(5, MOST_POINTS)
+    assert len(data) < 1000
+    tracemalloc.start()
+    try:
+        mesh = read_control_codes(data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert mesh.triangles == [(0, 1, 2), (2, 1, 3)]
+    assert mesh.codes[3:] == [(100, 100, 5)] + [(0, 0, 0)] * (MOST_POINTS - 4)
+    # the codes' 131,065 tuples and lists of ints: 12.8 MB; 39 MB before (sets per point)
+    assert peak < 20e6, peak
 
 
 # --- manifests: the one error, names confined ------------------------------------------------
