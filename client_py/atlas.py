@@ -237,6 +237,16 @@ class AtlasSurface:
         """The layout's edge table (``atlas_edges`` of ``quads``)."""
         return self._table  # type: ignore[attr-defined]
 
+    @functools.cached_property
+    def patches_around(self) -> tuple[tuple[int, ...], ...]:
+        """Per layout vertex, the patches that have it as a corner, in increasing order
+        (made once per atlas: the viewer asks for rings of patches at every refinement)."""
+        around: list[list[int]] = [[] for _ in self.vertices]
+        for f, quad in enumerate(self.quads):
+            for k in quad:
+                around[k].append(f)
+        return tuple(map(tuple, around))
+
     @property
     def control_point_count(self) -> int:
         """``V + E (n - 2) + F (n - 2)²``: every control point once."""

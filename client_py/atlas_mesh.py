@@ -1011,13 +1011,10 @@ def atlas_ring(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> l
     """``patches`` and every patch within ``rings`` vertex rings of them (ring 1: the
     patches sharing a layout vertex with one of ``patches``; ring ``k + 1``: those sharing
     one with ring ``k``), in increasing order."""
-    around: dict[int, list[int]] = {}
-    for f, quad in enumerate(atlas.quads):
-        for k in quad:
-            around.setdefault(k, []).append(f)
+    around, quads = atlas.patches_around, atlas.quads
     found = set(patches)
     for _ in range(rings):
-        found.update(g for f in list(found) for k in atlas.quads[f] for g in around[k])
+        found.update(g for f in list(found) for k in quads[f] for g in around[k])
     return sorted(found)
 
 
