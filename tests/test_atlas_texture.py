@@ -57,8 +57,9 @@ def coloured_sphere(request, tmp_path_factory):
 
 
 #: the smooth base's WebP bounds over the patches base's: its known gap on this field,
-#: measured 9.26 read back (bound 4.5), 8.69 in the manifest and 8.80 in the PLY (bound 5.0)
-SMOOTH_WEBP_FACTOR = 2.2
+#: measured 8.57 read back (bound 4.5), 8.37 in the manifest and 8.67 in the PLY (bound 5.0)
+#: with the cells in blocks (9.26, 8.69 and 8.80 in rows, session 30)
+SMOOTH_WEBP_FACTOR = 2.0
 
 
 def _within_webp_bound(request, error: float, bound: float, what: str) -> None:
@@ -71,7 +72,9 @@ def _within_webp_bound(request, error: float, bound: float, what: str) -> None:
     field the decoded cells are 9.3 units per channel off. A gutter of 2 texels around each
     cell (tried in session 30) brought that to 2.8, but at 1.8-2.3 times the bytes, and on
     the real scans it lost at equal bytes (the Laurana bust, the Bali mask:
-    docs/benchmarks.md, "Session 30"), so the packs keep their layout."""
+    docs/benchmarks.md, "Session 30"). The cells' Morton blocks (session 32), which gain on
+    the real scans, change little here: the field's chroma runs smoothly across a patch,
+    and a block's 16 patches still meet at unrelated borders."""
     if request.node.callspec.params.get("coloured_sphere") == "smooth":
         bound *= SMOOTH_WEBP_FACTOR
     assert error < bound, (what, error, bound)

@@ -23,8 +23,8 @@ the benchmark at 0.32-0.98 times Draco's RMS at its bytes, and their level 0 at 
 but the bunny's at 1.01 (a floor of points in no triangle). It is the default base since
 session 31 (``--base patches`` fits the other; docs/benchmarks.md, "Session 31"). Still
 worse than the patches base: its colour on a dense texture (its level-0 mesh draws 4 texels
-a patch side; the Bali mask's colour 6.48 mean |dRGB| against the patches base's 5.35,
-``bench/results/atlas_colour.json``, session 31).
+a patch side; the Bali mask's colour 6.03 mean |dRGB| at 100.1 KB against the patches
+base's 5.35 at 129.0 KB, ``bench/results/atlas_colour.json``, session 32).
 """
 
 from __future__ import annotations
