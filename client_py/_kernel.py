@@ -4,7 +4,7 @@ numpy is an optional accelerator: it is used when importable, unless the
 environment variable ``TESSERA_KERNEL`` is ``python`` (or ``numpy``, which then
 must be importable). Both kernels give the same results to float32 precision;
 the detail-layer and texture operations give the same bits (tests/test_layers.py). A kernel
-module provides ``evaluate_grid``, ``field_grid``, ``add_level``,
+module provides ``evaluate_grid``, ``field_grid``, ``field_grids``, ``add_level``,
 ``displace_grid``, ``cell_indices``, ``map_vectors`` and ``sample_texture``
 (contracts in ``_kernel_python``).
 """

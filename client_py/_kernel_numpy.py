@@ -131,14 +131,23 @@ def field_grid(degree: int, knots_u, knots_v, n_u: int, n_v: int, coefficients,
     return array("d", D.ravel().tobytes())
 
 
+def field_grids(degree: int, knots_u, knots_v, n_u: int, n_v: int, coefficients,
+                us: Sequence[float], vs: Sequence[float]) -> list[array]:
+    """Same contract as :func:`client_py._kernel_python.field_grids`: :func:`field_grid` of
+    each (vectorised per tile already)."""
+    return [field_grid(degree, knots_u, knots_v, n_u, n_v, c, us, vs) for c in coefficients]
+
+
 def displace_grid(positions, normals, displacement, n_rows: int, n_cols: int,
-                  window: tuple[int, int, int, int]) -> tuple[array, array]:
+                  window: tuple[int, int, int, int], panel: int | None = None,
+                  with_positions: bool = True) -> tuple[array, array]:
     """Same contract as :func:`client_py._kernel_python.displace_grid`.
 
     The clamped neighbours ``X_{min(i + 1, R - 1), j}`` etc. are slices of ``X``
     padded by one repeated vertex on every side (no gathers), taken over blocks
-    of :data:`ROWS_PER_BLOCK` rows; the arithmetic is the pure-Python kernel's,
-    term for term, so the results are the same.
+    of :data:`ROWS_PER_BLOCK` rows (with panels, the left and right neighbours
+    are copies with each panel's end columns clamped); the arithmetic is the
+    pure-Python kernel's, term for term, so the results are the same.
     """
     S = np.frombuffer(positions, dtype=float).reshape(n_rows, n_cols, 3)
     n = np.frombuffer(normals, dtype=float).reshape(n_rows, n_cols, 3)
@@ -147,12 +156,17 @@ def displace_grid(positions, normals, displacement, n_rows: int, n_cols: int,
     # component planes (3, rows, cols), padded: P[:, i + 1, j + 1] = X[i, j], edges repeated
     P = np.pad(np.moveaxis(S, -1, 0) + D * np.moveaxis(n, -1, 0), ((0, 0), (1, 1), (1, 1)),
                mode="edge")
+    right, left = P[:, :, 2:], P[:, :, :-2]  # X_{i, j + 1}, X_{i, j - 1}, rows padded
+    if panel is not None and panel < n_cols:  # clamped at each panel's own ends
+        right, left, inner = right.copy(), left.copy(), P[:, :, 1:-1]
+        right[:, :, panel - 1 :: panel] = inner[:, :, panel - 1 :: panel]
+        left[:, :, ::panel] = inner[:, :, ::panel]
     out_pos = np.empty((r1 - r0, c1 - c0, 3), dtype=np.float32)
     out_nrm = np.empty((r1 - r0, c1 - c0, 3), dtype=np.float32)
     for i0 in range(r0, r1, ROWS_PER_BLOCK):
         i1 = min(i0 + ROWS_PER_BLOCK, r1)
         ax, ay, az = P[:, i0 + 2 : i1 + 2, c0 + 1 : c1 + 1] - P[:, i0 : i1, c0 + 1 : c1 + 1]
-        bx, by, bz = P[:, i0 + 1 : i1 + 1, c0 + 2 : c1 + 2] - P[:, i0 + 1 : i1 + 1, c0 : c1]
+        bx, by, bz = right[:, i0 + 1 : i1 + 1, c0:c1] - left[:, i0 + 1 : i1 + 1, c0:c1]
         mx, my, mz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
         length = np.sqrt(mx * mx + my * my + mz * mz)
         ok = length > 0.0
@@ -162,7 +176,8 @@ def displace_grid(positions, normals, displacement, n_rows: int, n_cols: int,
         for c, m in enumerate((mx, my, mz)):
             out_pos[block, :, c] = P[c, i0 + 1 : i1 + 1, c0 + 1 : c1 + 1]
             out_nrm[block, :, c] = np.where(ok, m / length, base[..., c])
-    return array("f", out_pos.tobytes()), array("f", out_nrm.tobytes())
+    return (array("f", out_pos.tobytes() if with_positions else b""),
+            array("f", out_nrm.tobytes()))
 
 
 def add_level(total: array, n_cols: int, blocks) -> None:

@@ -22,7 +22,8 @@ earlier term-by-term list passes: see ``docs/benchmarks.md``.
 
 The other whole-grid operations of a tessellation live here too, each with a
 numpy twin of the same name and contract in ``_kernel_numpy`` that gives the
-same bits: :func:`field_grid` (a detail tile's field), :func:`add_level`
+same bits: :func:`field_grid` (a detail tile's field; :func:`field_grids`
+many tiles' at once), :func:`add_level`
 (summing a level's tiles), :func:`displace_grid` (``S + D n`` and its
 normals), :func:`cell_indices` (the triangles of the drawn cells),
 :func:`map_vectors` (an affine map of positions or normals) and
@@ -38,6 +39,7 @@ import struct
 from array import array
 from collections.abc import Callable, Sequence
 from functools import cache, lru_cache
+from itertools import chain
 from operator import add
 
 from .basis import basis_functions, basis_table, find_span
@@ -269,25 +271,59 @@ def field_grid(degree: int, knots_u: Sequence[float], knots_v: Sequence[float], 
     ``array('d')`` of ``len(us) * len(vs)`` values, row-major in ``i``; the same
     separable scheme as :func:`evaluate_grid` (blend along ``v``, then ``u``).
     """
+    return field_grids(degree, knots_u, knots_v, n_u, n_v, [coefficients], us, vs)[0]
+
+
+def field_grids(degree: int, knots_u: Sequence[float], knots_v: Sequence[float], n_u: int,
+                n_v: int, coefficients: Sequence[Sequence[float]], us: Sequence[float],
+                vs: Sequence[float]) -> list[array]:
+    """:func:`field_grid` of each of several coefficient grids on the same knots and
+    parameters (the detail tiles of many patches), bit for bit: the control rows of all
+    of them blended along ``v`` in one pass, and grid row ``i`` of all of them combined
+    along ``u`` in one pass (a call per tile cost more than its arithmetic)."""
     p = degree
     spans_u, Nu = _value_table(p, tuple(knots_u), n_u, tuple(us))
     spans_v, Nv = _value_table(p, tuple(knots_v), n_v, tuple(vs))
-    gather = [[span - p + k for span in spans_v] for k in range(p + 1)]
-    coeffs = [[row[k] for row in Nv] for k in range(p + 1)]
-    blend = _blend(p + 1)
-    rows: dict[int, list[float]] = {}
-    for a in range(min(spans_u) - p, max(spans_u) + 1):
-        get = coefficients[a * n_v : (a + 1) * n_v].__getitem__
-        rows[a] = blend(coeffs, [list(map(get, index)) for index in gather])
+    count, n_i, n_j = len(coefficients), len(us), len(vs)
+    first = min(spans_u) - p  # the control rows read: first .. first + rows - 1
+    rows = max(spans_u) + 1 - first
+    # along v: control row first + a of grid t, sampled at v_j, at (t rows + a) n_j + j
+    flat = list(chain.from_iterable(c[first * n_v : (first + rows) * n_v]
+                                    for c in coefficients))
+    gathers = [[row * n_v + span - p + k for row in range(count * rows) for span in spans_v]
+               for k in range(p + 1)]
+    coeffs = [[values[k] for values in Nv] * (count * rows) for k in range(p + 1)]
+    blended = _blend(p + 1)(coeffs, [list(map(flat.__getitem__, gather))
+                                     for gather in gathers])
+    if count > 1:  # (grid, row) -> (row, grid): row a of every grid in one slice
+        blended = list(map(blended.__getitem__, _swap_blocks(count, rows, n_j)))
+    width = count * n_j
     combine = _combine(p + 1)
-    out = array("d")
+    out: list[float] = []
     for span, nu_i in zip(spans_u, Nu, strict=True):
-        out.extend(combine(nu_i, [rows[span - p + k] for k in range(p + 1)]))
-    return out
+        lo = span - p - first
+        out += combine(nu_i, [blended[(lo + k) * width : (lo + k + 1) * width]
+                              for k in range(p + 1)])
+    if count > 1:  # (i, grid) -> (grid, i)
+        out = list(map(out.__getitem__, _swap_blocks(n_i, count, n_j)))
+    size = n_i * n_j
+    return [array("d", out[t * size : (t + 1) * size]) for t in range(count)]
+
+
+@lru_cache(maxsize=32)
+def _swap_blocks(outer: int, inner: int, width: int) -> list[int]:
+    """Indices that reorder ``outer x inner`` blocks of ``width`` values, laid ``(x, y)``
+    (block ``(x, y)`` at ``(x inner + y) width``), to the order ``(y, x)``: many small grids
+    from (grid, row) order to (row, grid), so that one pass of arithmetic takes a row of
+    all of them, and back."""
+    return [x * inner * width + y * width + m
+            for y in range(inner) for x in range(outer) for m in range(width)]
 
 
 def displace_grid(positions: array, normals: array, displacement: array, n_rows: int,
-                  n_cols: int, window: tuple[int, int, int, int]) -> tuple[array, array]:
+                  n_cols: int, window: tuple[int, int, int, int],
+                  panel: int | None = None, with_positions: bool = True
+                  ) -> tuple[array, array]:
     """``X = S + D n`` on an ``n_rows x n_cols`` grid and unit normals of ``X`` by differences.
 
     ``positions``/``normals`` hold ``S`` and the unit normal ``n`` of the base per
@@ -297,7 +333,12 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
     normal at ``(i, j)`` is ``(X_{i+1,j} - X_{i-1,j}) x (X_{i,j+1} - X_{i,j-1})``
     normalised, one-sided on the grid's outer rows/columns (which is why the
     caller evaluates one ring beyond its region where the domain allows); where
-    that vanishes (a pole) the base normal is kept.
+    that vanishes (a pole) the base normal is kept. ``panel``: the grid is
+    ``n_cols / panel`` grids of ``panel`` columns side by side, each one-sided on
+    its own outer columns (the same normals as each grid alone): many small
+    grids in one call (``client_py.atlas_mesh``'s patches of one resolution).
+    ``with_positions=False``: the positions are not returned (an empty array),
+    for a caller that only wants the normals.
 
     Per grid row, the rows above and below and the row shifted left and right
     (clamped at its ends) are sliced once per component and zipped, so the
@@ -315,6 +356,9 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
         for xs in comps:
             line = xs[row : row + n_cols]
             right, left = line[1:] + line[-1:], line[:1] + line[:-1]
+            if panel is not None and panel < n_cols:  # clamped at each panel's own ends
+                right[panel - 1 :: panel] = line[panel - 1 :: panel]
+                left[::panel] = line[::panel]
             lists += (xs[up + c0 : up + c1], xs[down + c0 : down + c1], right[c0:c1],
                       left[c0:c1])
         bad = []
@@ -332,8 +376,8 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
             k = 3 * (row + c0 + (at // 3) % (c1 - c0))
             nrm[at : at + 3] = normals[k : k + 3]
     # the window's positions, a component at a time: strided copies of whole rows
-    pos = array("f", bytes(12 * (r1 - r0) * (c1 - c0)))
-    for c, xs in enumerate(comps):
+    pos = array("f", bytes(12 * (r1 - r0) * (c1 - c0) if with_positions else 0))
+    for c, xs in enumerate(comps if with_positions else ()):
         pos[c::3] = array("f", [x for i in range(r0, r1)
                                 for x in xs[i * n_cols + c0 : i * n_cols + c1]])
     return pos, array("f", nrm)

@@ -65,6 +65,13 @@ def ring_positions(n: int) -> tuple[tuple[int, int], ...]:
             *((last, t) for t in run), *((t, last) for t in run), *((0, t) for t in run))
 
 
+@functools.lru_cache(maxsize=16)
+def _ring_slots(n: int) -> tuple[int, ...]:
+    """:func:`ring_positions` as row-major slots ``i n + j`` (once per ``n``: every patch's
+    :meth:`AtlasSurface.patch_indices` reads them)."""
+    return tuple(i * n + j for i, j in ring_positions(n))
+
+
 @dataclass(frozen=True)
 class EdgeTable:
     """The layout's undirected edges and how every patch side maps onto them.
@@ -227,6 +234,28 @@ class AtlasSurface:
             object.__setattr__(self, "weights", None if all(w == 1.0 for w in weights)
                                else weights)
 
+    @classmethod
+    def _of_checked(cls, degree: int, spans: int, vertices: list[Vec3],
+                    quads: list[tuple[int, int, int, int]], edge_points: list[Vec3],
+                    face_points: list[Vec3], weights: list[float] | None,
+                    table: EdgeTable) -> AtlasSurface:
+        """An atlas of parts already checked, without checking them again: ``quads``
+        (tuples of ints), the points (``(x, y, z)`` float tuples) and the weights (finite,
+        positive floats) taken from a checked atlas, ``table`` the ``atlas_edges`` of
+        ``quads``. For ``client_py.atlas_mesh.atlas_parts``, which cuts the patches around
+        the viewer's groups out of the whole atlas at every refinement: its own edge table is
+        what the cut needs anyway, and checking every point again would cost as much. The
+        weights are dropped when all are 1, as the checked constructor drops them."""
+        atlas = object.__new__(cls)
+        if weights is not None and all(w == 1.0 for w in weights):
+            weights = None
+        for name, value in (("degree", degree), ("spans", spans), ("vertices", vertices),
+                            ("quads", quads), ("edge_points", edge_points),
+                            ("face_points", face_points), ("weights", weights),
+                            ("_table", table)):
+            object.__setattr__(atlas, name, value)
+        return atlas
+
     @property
     def side(self) -> int:
         """``n = s + d``, control points per patch side."""
@@ -247,6 +276,12 @@ class AtlasSurface:
                 around[k].append(f)
         return tuple(map(tuple, around))
 
+    @functools.cached_property
+    def edge_numbers(self) -> dict[tuple[int, int], int]:
+        """``{(lo, hi): e}``: the number of each layout edge (made once per atlas, for the
+        parts cut out of it at every refinement, ``client_py.atlas_mesh.atlas_parts``)."""
+        return {key: e for e, key in enumerate(self.edges.edges)}
+
     @property
     def control_point_count(self) -> int:
         """``V + E (n - 2) + F (n - 2)²``: every control point once."""
@@ -266,15 +301,19 @@ class AtlasSurface:
         list of list of int, shape ``(n, n)``
             ``i`` along ``u``, ``j`` along ``v``; the same numbering as ``weights``.
         """
+        n, flat = self.side, self.flat_patch_indices(f)
+        return [flat[i * n : (i + 1) * n] for i in range(n)]
+
+    def flat_patch_indices(self, f: int) -> list[int]:
+        """:meth:`patch_indices` row-major in one list: ``P[i][j]``'s at ``i n + j``."""
         n, inner = self.side, self.side - 2
-        grid = [[-1] * n for _ in range(n)]
-        for (i, j), index in zip(ring_positions(n), self.border_slots(f, n), strict=True):
-            grid[i][j] = index
+        flat = [-1] * (n * n)
+        for slot, index in zip(_ring_slots(n), self.border_slots(f, n), strict=True):
+            flat[slot] = index
         base = len(self.vertices) + len(self.edge_points) + f * inner * inner
         for i in range(1, n - 1):
-            for j in range(1, n - 1):
-                grid[i][j] = base + (i - 1) * inner + (j - 1)
-        return grid
+            flat[i * n + 1 : i * n + n - 1] = range(base + (i - 1) * inner, base + i * inner)
+        return flat
 
     def border_slots(self, f: int, n: int) -> list[int]:
         """The shared slot of each point of the border ring of an ``(n, n)`` grid on patch

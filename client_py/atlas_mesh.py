@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 import struct
+import weakref
 from array import array
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
@@ -61,9 +62,10 @@ from itertools import chain
 from operator import itemgetter
 
 from . import _kernel, _kernel_python
+from ._kernel_python import _swap_blocks
 from .atlas import AtlasSurface, atlas_edges
 from .basis import basis_table
-from .layers import DetailTile, displacement_grid, drawn_cell_indices
+from .layers import DetailTile, displacement_grid, displacement_grids, drawn_cell_indices
 from .ply import write_ply
 from .surface import NORMAL_TOLERANCE
 from .tessellate import MAX_GRID, Mesh, _samples, grid_indices
@@ -200,16 +202,22 @@ def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: lis
     evaluate_row = _kernel_python._row_evaluator(d, rational)
     blend = _kernel_python._blend(d + 1)
     starts = [[span - d + k for span in spans_t] for k in range(d + 1)]
+    # the gathers and coefficients of the largest batch; a smaller one reads their first
+    # n count r entries (they run over the control rows of the batch in order)
+    most = min(len(patches), PATCHES_PER_BATCH)
+    all_gathers = [[row * n + s for row in range(n * most) for s in run] for run in starts]
+    all_coeffs = [[N[j][k] for j in range(r)] * (n * most) for k in range(d + 1)]
+    all_dcoeffs = [[dN[j][k] for j in range(r)] * (n * most) for k in range(d + 1)]
     out = {}
     for first in range(0, len(patches), PATCHES_PER_BATCH):
         batch = patches[first : first + PATCHES_PER_BATCH]
         count = len(batch)
-        grids = [atlas.patch_indices(f) for f in batch]
         # control point (f, a, b) of the batch at (a count + f) n + b: rows a of all patches
-        flat = [k for a in range(n) for grid in grids for k in grid[a]]
-        gathers = [[row * n + s for row in range(n * count) for s in run] for run in starts]
-        coeffs = [[N[j][k] for j in range(r)] * (n * count) for k in range(d + 1)]
-        dcoeffs = [[dN[j][k] for j in range(r)] * (n * count) for k in range(d + 1)]
+        flat = list(chain.from_iterable(map(atlas.flat_patch_indices, batch)))
+        flat = list(map(flat.__getitem__, _swap_blocks(count, n, n)))
+        gathers, coeffs, dcoeffs = ((lists if count == most else
+                                     [values[: n * count * r] for values in lists])
+                                    for lists in (all_gathers, all_coeffs, all_dcoeffs))
         blended = []
         for comp in comps:
             mine = list(map(comp.__getitem__, flat))
@@ -230,10 +238,13 @@ def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: lis
             pos_rows.append(pos)
             nrm_rows.append(nrm)
             bad += [(i, b) for b in row_bad]
+        # the rows (i, patch, j) reordered to (patch, i, j) at once, then cut per patch
+        order, size = _swap_blocks(r, count, 3 * r), 3 * r * r
+        pos_all = list(map(list(chain.from_iterable(pos_rows)).__getitem__, order))
+        nrm_all = list(map(list(chain.from_iterable(nrm_rows)).__getitem__, order))
         for g, f in enumerate(batch):
-            lo, hi = 3 * g * r, 3 * (g + 1) * r
-            out[f] = (list(chain.from_iterable(row[lo:hi] for row in pos_rows)),
-                      list(chain.from_iterable(row[lo:hi] for row in nrm_rows)), [])
+            out[f] = (pos_all[g * size : (g + 1) * size], nrm_all[g * size : (g + 1) * size],
+                      [])
         for i, b in bad:
             g, j = divmod(b, r)
             out[batch[g]][2].append(i * r + j)
@@ -261,6 +272,21 @@ def _normal_tolerance(comps: list[list[float]]) -> float:
     diagonal = math.sqrt(sum((b - a) ** 2 for a, b in zip(lows, highs, strict=True)))
     d = diagonal + max(abs(c) for c in lows + highs)
     return NORMAL_TOLERANCE * d * d
+
+
+#: the last atlas :func:`_atlas_tolerance` was asked for (a weak reference) and its tolerance
+_last_tolerance: list = [None, 0.0]
+
+
+def _atlas_tolerance(atlas: AtlasSurface) -> float:
+    """:func:`_normal_tolerance` of a whole atlas, remembered for the last atlas asked:
+    :func:`atlas_parts` needs it at every refinement of the viewer's one atlas, and it reads
+    every control point (50 ms of the 24,000-patch smooth bases)."""
+    held, tol = _last_tolerance
+    if held is None or held() is not atlas:
+        tol = _normal_tolerance(_homogeneous(atlas))
+        _last_tolerance[:] = [weakref.ref(atlas), tol]
+    return tol
 
 
 # ------------------------------------------------------------------ the welded mesh
@@ -337,12 +363,15 @@ class _Layout:
             ids[i * r + 1 : i * r + r - 1] = range(base + (i - 1) * inner,
                                                    base + i * inner)
         sides = [self.side_nodes(f, k) for k in range(4)]
-        for slots, (nodes, _) in zip(_side_slots(r), sides, strict=True):
-            for slot, node in zip(slots, nodes, strict=True):
-                ids[slot] = node
+        last = r - 1  # the sides' slots (_side_slots) as strided slices
+        for side, (nodes, _) in zip((slice(0, None, r), slice(last * r, None),
+                                     slice(last, None, r), slice(0, r)), sides, strict=True):
+            ids[side] = nodes
         slots, picks = _border_samples(r)
-        border = [(slot, sides[k // r][0][k % r], sides[k // r][1][k % r])
-                  for slot, k in zip(slots, picks, strict=True)]
+        nodes = list(chain.from_iterable(nodes for nodes, _ in sides))  # at k r + t
+        evaluated = list(chain.from_iterable(evaluated for _, evaluated in sides))
+        border = list(zip(slots, map(nodes.__getitem__, picks),
+                          map(evaluated.__getitem__, picks), strict=True))
         return ids, border
 
     def in_between(self) -> tuple[list[int], list[int], list[int], list[float]]:
@@ -391,6 +420,38 @@ def _interior(r: int) -> tuple[itemgetter, itemgetter, array]:
     # itemgetter of one index returns the item, not a 1-tuple: r = 3 has one interior sample
     take1 = itemgetter(*slots) if len(slots) > 1 else itemgetter(slice(4, 5))
     return itemgetter(*[3 * s + c for s in slots for c in range(3)]), take1, uv
+
+
+def _drawn_normals(backend, coords: list[array], ids: Mapping[int, list[int]],
+                   grids: Mapping[int, tuple], res: list[int], patches: list[int]
+                   ) -> dict[int, array]:
+    """``{f: unit normals}`` of the drawn surface (the welded positions, ``coords`` their
+    ``x``, ``y`` and ``z``) by differences on the whole grid of each of ``patches`` (``ids``:
+    its vertices, ``grids``: its unit base normals, kept at a pole): ``array('d')`` in slot
+    order, of the kernel's float32 normals. Per resolution, the patches' grids side by side
+    as the panels of one ``displace_grid`` call (each panel's normals are those of its grid
+    alone): one call per patch cost more than its arithmetic."""
+    by_res: dict[int, list[int]] = {}
+    for f in patches:
+        by_res.setdefault(res[f], []).append(f)
+    out = {}
+    for r, some in by_res.items():
+        count, size = len(some), 3 * r * r
+        # row i of every patch in turn: from (patch, row) order to (row, patch)
+        nodes = list(chain.from_iterable(ids[f] for f in some))
+        nodes = list(map(nodes.__getitem__, _swap_blocks(count, r, r)))
+        grid = array("d", bytes(8 * size * count))
+        for c, xs in enumerate(coords):
+            grid[c::3] = array("d", map(xs.__getitem__, nodes))
+        base = list(chain.from_iterable(grids[f][1] for f in some))
+        base = array("d", map(base.__getitem__, _swap_blocks(count, r, 3 * r)))
+        shaded = array("d", backend.displace_grid(
+            grid, base, array("d", bytes(8 * count * r * r)), r, count * r,
+            (0, r, 0, count * r), r, with_positions=False)[1])
+        shaded = array("d", map(shaded.__getitem__, _swap_blocks(r, count, 3 * r)))
+        for g, f in enumerate(some):
+            out[f] = shaded[g * size : (g + 1) * size]
+    return out
 
 
 def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
@@ -526,6 +587,38 @@ class PatchGrids:
             self._samples -= dropped
 
 
+def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
+                   kernel: str | None, names: Sequence[int], cache: PatchGrids | None
+                   ) -> dict[int, array]:
+    """``{f: the sum of patch f's tiles on its grid}`` (``displacement_grid``) for the patches
+    with tiles; those not held in ``cache`` (under their ``names``, resolution and tiles)
+    are summed :data:`PATCHES_PER_BATCH` patches of one resolution at a time
+    (``displacement_grids``: their tiles that share their knots in one kernel call) and
+    put there."""
+
+    def key(f: int) -> tuple:
+        return ("detail", names[f], res[f], tuple(map(id, tiles[f])))
+
+    out: dict[int, array] = {}
+    wanted: dict[int, list[int]] = {}  # r -> the patches to sum
+    for f in sorted(tiles):
+        held = cache and cache.get(key(f))
+        if held:
+            out[f] = held[1]
+        else:
+            wanted.setdefault(res[f], []).append(f)
+    for r, patches in wanted.items():
+        params = _tables(atlas.degree, atlas.spans, r)[0]
+        for start in range(0, len(patches), PATCHES_PER_BATCH):
+            some = patches[start : start + PATCHES_PER_BATCH]
+            sums = displacement_grids([tiles[f] for f in some], params, params, kernel)
+            for f, disp in zip(some, sums, strict=True):
+                out[f] = disp
+                if cache is not None:  # the tiles stay referenced: their ids stay theirs
+                    cache.put(key(f), (tuple(tiles[f]), array("d", disp)), r * r)
+    return out
+
+
 def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                  kernel: str | None, tol: float | None = None,
                  drawn: Sequence[Sequence[int]] | None = None,
@@ -599,7 +692,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     uvs = array("d", bytes(16 * count))
     owners = array("I", bytes(4 * count))
     n_border = layout.border_count
-    base_at: list = [None] * n_border  # base point of a border vertex (first sampler)
+    first = bytearray(n_border)  # whether a border vertex has had its first sampler
     shift = [0.0] * n_border  # sum of the samplers' displacements
     direction = [0.0] * (3 * n_border)  # sum of their unit base normals
     samplers = [0] * n_border
@@ -609,21 +702,13 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     mine = range(len(res)) if drawn is None else set(chain.from_iterable(drawn))
     for f in range(len(res)):
         ids[f], borders[f] = layout.patch_vertices(f)
+    displacements = _displacements(atlas, res, tiles, kernel, names, cache)
     for f, r in enumerate(res):
         if progress is not None and f % PROGRESS_BATCH == PROGRESS_BATCH - 1:
             progress(PROGRESS_EVALUATION + (1 - PROGRESS_EVALUATION) * f / len(res))
         params = _tables(atlas.degree, atlas.spans, r)[0]
         pos, nrm = grids[f]
-        disp = None
-        if f in tiles:
-            key = ("detail", names[f], r, tuple(map(id, tiles[f])))
-            held = cache and cache.get(key)
-            if held:
-                disp = held[1]
-            else:
-                disp = displacement_grid(tiles[f], params, params, kernel)
-                if cache is not None:  # the tiles stay referenced: their ids stay theirs
-                    cache.put(key, (tuple(tiles[f]), array("d", disp)), r * r)
+        disp = displacements.get(f)
         # interior vertices: one contiguous block of the patch, gathered at C speed
         at, block = layout.face_base[f], 3 * (r - 2) ** 2
         if block and (f in mine or tiles):  # else never read
@@ -636,34 +721,42 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             normals[3 * at : 3 * at + block] = array("d", inner_nrm)
             uvs[2 * at : 2 * at + 2 * block // 3] = block_uvs
             owners[at : at + block // 3] = array("I", [f]) * (block // 3)
-        # border samples: accumulate on the welded vertices
-        for slot, node, evaluated in borders[f]:
-            nx, ny, nz = nrm[3 * slot : 3 * slot + 3]
-            shading[3 * node] += nx
-            shading[3 * node + 1] += ny
-            shading[3 * node + 2] += nz
-            if base_at[node] is None:
-                # the base point of an in-between vertex is its segment's (below)
-                base_at[node] = tuple(pos[3 * slot : 3 * slot + 3]) if evaluated else ()
+        # border samples: the first sampler of a welded vertex gives its (u, v), its patch
+        # and, when evaluated, its base point (an in-between vertex's is its segment's,
+        # below); then each sampler adds to the vertex's sums
+        border = borders[f]
+        for slot, node, evaluated in border:
+            if not first[node]:
+                first[node] = 1
                 owners[node] = f
                 uvs[2 * node], uvs[2 * node + 1] = params[slot // r], params[slot % r]
-            if evaluated:
-                samplers[node] += 1
-                if disp is not None:
-                    shift[node] += disp[slot]
-                direction[3 * node] += nx
-                direction[3 * node + 1] += ny
-                direction[3 * node + 2] += nz
+                if evaluated:
+                    positions[3 * node : 3 * node + 3] = array("d", pos[3 * slot : 3 * slot + 3])
+        if tiles:  # displaced along the mean normal (the drawn normals come by differences)
+            for slot, node, evaluated in border:
+                if evaluated:
+                    k, m = 3 * slot, 3 * node
+                    samplers[node] += 1
+                    if disp is not None:
+                        shift[node] += disp[slot]
+                    direction[m] += nrm[k]
+                    direction[m + 1] += nrm[k + 1]
+                    direction[m + 2] += nrm[k + 2]
+        else:  # not displaced: shaded by the sum of the unit normals
+            for slot, node, _ in border:
+                k, m = 3 * slot, 3 * node
+                shading[m] += nrm[k]
+                shading[m + 1] += nrm[k + 1]
+                shading[m + 2] += nrm[k + 2]
 
-    # welded border positions: evaluated vertices, then the in-between ones on their segment
-    for node in range(n_border):
-        point = base_at[node]
-        if point:
-            if shift[node]:
-                n = _unit(*direction[3 * node : 3 * node + 3])
-                d = shift[node] / samplers[node]
-                point = (point[0] + d * n[0], point[1] + d * n[1], point[2] + d * n[2])
-            positions[3 * node : 3 * node + 3] = array("d", point)
+    # welded border positions: evaluated vertices displaced, then the in-between ones on
+    # their segment
+    for node in range(n_border) if tiles else ():
+        if shift[node]:
+            n = _unit(*direction[3 * node : 3 * node + 3])
+            d = shift[node] / samplers[node]
+            positions[3 * node : 3 * node + 3] = array("d", [
+                positions[3 * node + c] + d * n[c] for c in range(3)])
     for node, a, b, s in zip(*layout.in_between(), strict=True):
         positions[3 * node : 3 * node + 3] = array("d", [
             (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
@@ -674,35 +767,35 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # normals of the drawn (displaced, welded) surface by differences within each patch;
         # of a patch not drawn (drawn's ring), only those at the drawn patches' vertices: on
         # a window of the grid one sample wider, where the differences are the whole grid's
-        backend_displace = backend.displace_grid
         shading = [0.0] * (3 * n_border)
         used = () if drawn is None else set(chain.from_iterable(ids[f] for f in mine))
+        whole: dict[int, array] = {}  # the drawn patches' normals, a chunk of patches at a time
+        coords = [positions[c::3] for c in range(3)]
         for f, r in enumerate(res):
-            local = ids[f]
+            if f % PATCHES_PER_BATCH == 0:
+                whole = _drawn_normals(backend, coords, ids, grids, res, [
+                    g for g in range(f, min(f + PATCHES_PER_BATCH, len(res))) if g in mine])
             i0, i1, j0, j1 = 0, r, 0, r
-            if f not in mine:
+            if f in mine:
+                shaded = whole[f]
+            else:
                 rows_cols = [divmod(slot, r) for slot, g, _ in borders[f] if g in used]
                 if not rows_cols:
                     continue
                 i0, i1 = min(i for i, _ in rows_cols), max(i for i, _ in rows_cols) + 1
                 j0, j1 = min(j for _, j in rows_cols), max(j for _, j in rows_cols) + 1
-            a0, a1, b0, b1 = max(i0 - 1, 0), min(i1 + 1, r), max(j0 - 1, 0), min(j1 + 1, r)
-            height, width = a1 - a0, b1 - b0
-            nrm = grids[f][1]
-            if height == width == r:  # the whole grid, gathered at C speed
-                grid = array("d", itemgetter(*[3 * g + c for g in local for c in range(3)])(
-                    positions))
-                base_normals = array("d", nrm)
-            else:
+                a0, a1 = max(i0 - 1, 0), min(i1 + 1, r)
+                b0, b1 = max(j0 - 1, 0), min(j1 + 1, r)
+                height, width = a1 - a0, b1 - b0
+                local, nrm = ids[f], grids[f][1]
                 slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
                 grid = array("d", bytes(24 * height * width))
                 for c in range(3):
                     grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
                 base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
-            _, shaded = backend_displace(grid, base_normals,
-                                         array("d", bytes(8 * height * width)), height, width,
-                                         (i0 - a0, i1 - a0, j0 - b0, j1 - b0))
-            shaded = array("d", shaded)
+                shaded = array("d", backend.displace_grid(
+                    grid, base_normals, array("d", bytes(8 * height * width)), height, width,
+                    (i0 - a0, i1 - a0, j0 - b0, j1 - b0))[1])
             if f in mine and r > 2:  # the whole grid in slot order: its interior block
                 at = layout.face_base[f]
                 normals[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", _interior(r)[0](shaded))
@@ -720,11 +813,17 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                         k = 3 * ((i - i0) * span + j - j0)
                         for c in range(3):
                             shading[3 * g + c] += shaded[k + c]
-    for node in range(n_border if shade else 0):
-        normals[3 * node : 3 * node + 3] = array("d", _unit(*shading[3 * node : 3 * node + 3]))
+    if shade and n_border:  # the border vertices' sums normalised (_unit's), a component at a time
+        sums = [shading[c::3] for c in range(3)]
+        lengths = [math.sqrt(x * x + y * y + z * z) for x, y, z in zip(*sums, strict=True)]
+        for c, values in enumerate(sums):
+            normals[c : 3 * n_border : 3] = array("d", [
+                a / length if length != 0.0 else 0.0
+                for a, length in zip(values, lengths, strict=True)])
 
     centres = _Centres(surface, tiles, kernel, count)
     triangles = []  # per part: its triangles' vertices (numbered in the whole mesh)
+    whole_grids: dict[int, array] = {}  # r -> the triangles of every cell of an r x r grid
     for patches in [range(len(res))] if drawn is None else drawn:
         indices = array("I")
         for f in patches:
@@ -732,7 +831,9 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             finer = layout.finer_sides(f)
             kept = _drawn_cells(tiles.get(f), r, kernel)
             if not any(finer):
-                cells = grid_indices(r, r, kernel=kernel) if kept is None else kept
+                if kept is None and r not in whole_grids:
+                    whole_grids[r] = grid_indices(r, r, kernel=kernel)
+                cells = whole_grids[r] if kept is None else kept
                 indices.extend(map(local.__getitem__, cells))
                 continue
             indices.extend(_patch_triangles(layout, f, r, local, finer, centres.add, kept))
@@ -745,19 +846,31 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     if drawn is None:
         return [_packed(positions, normals, uvs, owners, triangles[0])]
     meshes = []
+    # x, y, z (u, v) of every vertex apart, so that a part's are gathered at C speed
+    planes = [[values[c::width] for c in range(width)] if values else []
+              for values, width in ((positions, 3), (normals, 3), (uvs, 2))]
     for indices in triangles:  # the vertices a part's triangles use, renumbered in order
         if not indices:  # every cell of the part left out (walls): an empty mesh
             meshes.append(_packed(array("d"), array("d"), array("d"), array("I"), indices))
             continue
         keep = sorted(set(indices))
         number = {old: new for new, old in enumerate(keep)}
-        take3 = itemgetter(*[3 * k + c for k in keep for c in range(3)])
-        take2 = itemgetter(*[2 * k + c for k in keep for c in range(2)])
-        meshes.append(_packed(array("d", take3(positions)),
-                              array("d", take3(normals) if shade else ()),
-                              array("d", take2(uvs)), array("I", [owners[k] for k in keep]),
+        pos, nrm, uv = (_interleaved(comps, keep) if comps else array("d")
+                        for comps in planes)  # no normals: not shaded
+        meshes.append(_packed(pos, nrm, uv,
+                              array("I", map(owners.__getitem__, keep)),
                               array("I", map(number.__getitem__, indices))))
     return meshes
+
+
+def _interleaved(planes: list[array], keep: list[int]) -> array:
+    """The values of ``planes`` (one array per component) at the vertices ``keep``, the
+    components interleaved (``x, y, z`` of each vertex in turn)."""
+    width = len(planes)
+    out = array("d", bytes(8 * width * len(keep)))
+    for c, values in enumerate(planes):
+        out[c::width] = array("d", map(values.__getitem__, keep))
+    return out
 
 
 @dataclass
@@ -1050,8 +1163,7 @@ def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
     ring = atlas_ring(atlas, chosen, rings)
     quads = [atlas.quads[f] for f in ring]
     table = atlas_edges(quads)
-    full_index = {key: e for e, key in enumerate(atlas.edges.edges)}
-    full_edges = [full_index[key] for key in table.edges]
+    full_edges = list(map(atlas.edge_numbers.__getitem__, table.edges))
     inner = atlas.side - 2
     edge_runs = [range(e * inner, (e + 1) * inner) for e in full_edges]
     face_runs = [range(f * inner * inner, (f + 1) * inner * inner) for f in ring]
@@ -1061,13 +1173,14 @@ def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
         face_at = vertex_count + len(atlas.edge_points)
         weights = (w[:vertex_count] + [w[vertex_count + k] for run in edge_runs for k in run]
                    + [w[face_at + k] for run in face_runs for k in run])
-    part = AtlasSurface(atlas.degree, atlas.spans, atlas.vertices, quads,
-                        [atlas.edge_points[k] for run in edge_runs for k in run],
-                        [atlas.face_points[k] for run in face_runs for k in run], weights)
+    part = AtlasSurface._of_checked(atlas.degree, atlas.spans, atlas.vertices, quads,
+                                    [atlas.edge_points[k] for run in edge_runs for k in run],
+                                    [atlas.face_points[k] for run in face_runs for k in run],
+                                    weights, table)
     at = {f: k for k, f in enumerate(ring)}
     return AtlasPart(part, tuple(ring), tuple(tuple(sorted(at[f] for f in group))
                                               for group in groups),
-                     count, rings, _normal_tolerance(_homogeneous(atlas)))
+                     count, rings, _atlas_tolerance(atlas))
 
 
 def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],

@@ -304,32 +304,63 @@ def displacement_levels(tiles: Iterable[DetailTile], us: Sequence[float], vs: Se
     from the first of them in ``(i, j)`` order (they agree there). The kernel
     assembles a level's tile fields as whole blocks (``add_level``).
     """
+    return _displacement_levels([tiles], us, vs, kernel)[0]
+
+
+def _displacement_levels(tile_lists: Sequence[Iterable[DetailTile]], us: Sequence[float],
+                         vs: Sequence[float], kernel: str | None
+                         ) -> list[list[tuple[int, array]]]:
+    """:func:`displacement_levels` of each list of tiles on one grid. The tiles of all the
+    lists that share their knots, size and block of the grid are evaluated in one kernel
+    call (``field_grids``: the same bits as one call per tile), which is what many small
+    patches with a tile each need (``client_py.atlas_mesh``)."""
     us, vs = [float(u) for u in us], [float(v) for v in vs]
     n_j = len(vs)
-    by_level: dict[int, list[DetailTile]] = {}
-    for tile in tiles:
-        if not isinstance(tile, DetailTile):
-            raise ValueError(f"tiles must be DetailTile objects, got {type(tile).__name__}")
-        by_level.setdefault(tile.level, []).append(tile)
     backend = _kernel.backend(kernel)
-    levels = []
-    for level in sorted(by_level):
-        blocks = []
-        seen: set[tuple[int, int]] = set()
-        for tile in sorted(by_level[level], key=lambda t: (t.i, t.j)):
-            if (tile.i, tile.j) in seen:
-                raise ValueError(f"tile {level}/{tile.i}_{tile.j} is given twice")
-            seen.add((tile.i, tile.j))
-            u0, v0, u1, v1 = tile.uv_rect
-            r0, r1 = bisect_left(us, u0), bisect_right(us, u1)
-            c0, c1 = bisect_left(vs, v0), bisect_right(vs, v1)
-            if r0 < r1 and c0 < c1:
-                values = tile.evaluate_grid(us[r0:r1], vs[c0:c1], kernel)
-                blocks.append((r0, r1, c0, c1, values))
-        field = array("d", bytes(8 * len(us) * n_j))
-        backend.add_level(field, n_j, blocks)
-        levels.append((level, field))
-    return levels
+    plans = []  # per list, per level: (level, [(r0, r1, c0, c1, tile), ...])
+    batches: dict[tuple, list[DetailTile]] = {}  # tiles evaluated together
+    for tiles in tile_lists:
+        by_level: dict[int, list[DetailTile]] = {}
+        for tile in tiles:
+            if not isinstance(tile, DetailTile):
+                raise ValueError(f"tiles must be DetailTile objects, got {type(tile).__name__}")
+            by_level.setdefault(tile.level, []).append(tile)
+        plan = []
+        for level in sorted(by_level):
+            blocks = []
+            seen: set[tuple[int, int]] = set()
+            level_tiles = by_level[level]
+            if len(level_tiles) > 1:
+                level_tiles = sorted(level_tiles, key=lambda t: (t.i, t.j))
+            for tile in level_tiles:
+                if (tile.i, tile.j) in seen:
+                    raise ValueError(f"tile {level}/{tile.i}_{tile.j} is given twice")
+                seen.add((tile.i, tile.j))
+                u0, v0, u1, v1 = tile.uv_rect
+                r0, r1 = bisect_left(us, u0), bisect_right(us, u1)
+                c0, c1 = bisect_left(vs, v0), bisect_right(vs, v1)
+                if r0 < r1 and c0 < c1:
+                    blocks.append((r0, r1, c0, c1, tile))
+                    batches.setdefault((tile.degree, tile.size, tile.knots, r0, r1, c0, c1),
+                                       []).append(tile)
+            plan.append((level, blocks))
+        plans.append(plan)
+    fields: dict[int, array] = {}  # id of a tile -> its field on its block
+    for (degree, size, (U, V), r0, r1, c0, c1), tiles in batches.items():
+        values = backend.field_grids(degree, U, V, size, size,
+                                     [tile.coefficients for tile in tiles], us[r0:r1],
+                                     vs[c0:c1])
+        fields.update(zip(map(id, tiles), values, strict=True))
+    out = []
+    for plan in plans:
+        levels = []
+        for level, blocks in plan:
+            field = array("d", bytes(8 * len(us) * n_j))
+            backend.add_level(field, n_j, [(r0, r1, c0, c1, fields[id(tile)])
+                                           for r0, r1, c0, c1, tile in blocks])
+            levels.append((level, field))
+        out.append(levels)
+    return out
 
 
 def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequence[float],
@@ -340,12 +371,23 @@ def displacement_grid(tiles: Iterable[DetailTile], us: Sequence[float], vs: Sequ
     level order (a vertex no tile of a level holds adds ``+0.0``, which changes
     nothing).
     """
+    return displacement_grids([tiles], us, vs, kernel)[0]
+
+
+def displacement_grids(tile_lists: Sequence[Iterable[DetailTile]], us: Sequence[float],
+                       vs: Sequence[float], kernel: str | None = None) -> list[array]:
+    """:func:`displacement_grid` of each list of tiles (one patch's) on one grid, bit for
+    bit, the tiles of all the lists evaluated together where they share their knots
+    (:func:`_displacement_levels`)."""
     n_i, n_j = len(us), len(vs)
-    total = array("d", bytes(8 * n_i * n_j))
     add_level = _kernel.backend(kernel).add_level
-    for _, level_field in displacement_levels(tiles, us, vs, kernel):
-        add_level(total, n_j, [(0, n_i, 0, n_j, level_field)])
-    return total
+    out = []
+    for levels in _displacement_levels(tile_lists, us, vs, kernel):
+        total = array("d", bytes(8 * n_i * n_j))
+        for _, level_field in levels:
+            add_level(total, n_j, [(0, n_i, 0, n_j, level_field)])
+        out.append(total)
+    return out
 
 
 def _tile_blocks(centres: Sequence[float], count: int) -> dict[int, tuple[int, int]]:

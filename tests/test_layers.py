@@ -545,6 +545,41 @@ def test_displace_grid_kernels_agree_exactly_and_keep_the_base_normal_at_a_pole(
     np.testing.assert_allclose(np.array(a[1]).reshape(rows, cols - 1, 3), m, atol=1e-6)
 
 
+def test_displace_grid_panels_are_the_grids_alone_in_both_kernels():
+    """Grids side by side as panels of one call: each panel's normals (one-sided on its own
+    outer columns, the base normal at a pole) and positions are those of the grid alone,
+    bit for bit, in both kernels."""
+    from array import array
+
+    from client_py._kernel import backend
+
+    rng = np.random.default_rng(9)
+    rows, width, count = 5, 4, 3
+    S = rng.normal(size=(count, rows, width, 3))
+    S[1, 2] = S[1, 2, 0]  # a row of panel 1 collapsed to one point: no tangent along it
+    n = rng.normal(size=(count, rows, width, 3))
+    n /= np.linalg.norm(n, axis=3, keepdims=True)
+    D = rng.normal(size=(count, rows, width)) * 0.1
+    D[1, 2] = 0.0
+
+    def side_by_side(x):  # (count, rows, width, ...) -> rows of all panels
+        return array("d", np.ascontiguousarray(np.swapaxes(x, 0, 1)).ravel())
+
+    for name in ("python", "numpy"):
+        kernel = backend(name)
+        pos, nrm = kernel.displace_grid(side_by_side(S), side_by_side(n), side_by_side(D),
+                                        rows, count * width, (0, rows, 0, count * width),
+                                        width)
+        pos = np.array(pos).reshape(rows, count, width, 3)
+        nrm = np.array(nrm).reshape(rows, count, width, 3)
+        for g in range(count):
+            alone = kernel.displace_grid(array("d", S[g].ravel()), array("d", n[g].ravel()),
+                                         array("d", D[g].ravel()), rows, width,
+                                         (0, rows, 0, width))
+            assert pos[:, g].tobytes() == np.array(alone[0]).tobytes()
+            assert nrm[:, g].tobytes() == np.array(alone[1]).tobytes()
+
+
 def test_add_level_takes_each_vertex_from_the_first_block_covering_it():
     """Overlapping blocks of different values: both kernels add, at each vertex, the value
     of the first block that covers it (a numpy loop over the blocks as the reference)."""
