@@ -66,10 +66,15 @@ def ring_positions(n: int) -> tuple[tuple[int, int], ...]:
 
 
 @functools.lru_cache(maxsize=16)
-def _ring_slots(n: int) -> tuple[int, ...]:
-    """:func:`ring_positions` as row-major slots ``i n + j`` (once per ``n``: every patch's
-    :meth:`AtlasSurface.patch_indices` reads them)."""
-    return tuple(i * n + j for i, j in ring_positions(n))
+def _flat_order(n: int) -> tuple[int, ...]:
+    """For each slot ``i n + j`` of an ``(n, n)`` grid, row-major, where its control point is
+    in a patch's border ring (:func:`ring_positions` order) followed by its interior points
+    (row-major): once per ``n``, for :meth:`AtlasSurface.flat_patch_indices`."""
+    ring = {slot: k for k, slot in enumerate(i * n + j for i, j in ring_positions(n))}
+    inner = n - 2
+    return tuple(ring[i * n + j] if (i * n + j) in ring
+                 else len(ring) + (i - 1) * inner + (j - 1)
+                 for i in range(n) for j in range(n))
 
 
 @dataclass(frozen=True)
@@ -307,13 +312,9 @@ class AtlasSurface:
     def flat_patch_indices(self, f: int) -> list[int]:
         """:meth:`patch_indices` row-major in one list: ``P[i][j]``'s at ``i n + j``."""
         n, inner = self.side, self.side - 2
-        flat = [-1] * (n * n)
-        for slot, index in zip(_ring_slots(n), self.border_slots(f, n), strict=True):
-            flat[slot] = index
         base = len(self.vertices) + len(self.edge_points) + f * inner * inner
-        for i in range(1, n - 1):
-            flat[i * n + 1 : i * n + n - 1] = range(base + (i - 1) * inner, base + i * inner)
-        return flat
+        ring_then_inner = self.border_slots(f, n) + list(range(base, base + inner * inner))
+        return list(map(ring_then_inner.__getitem__, _flat_order(n)))
 
     def border_slots(self, f: int, n: int) -> list[int]:
         """The shared slot of each point of the border ring of an ``(n, n)`` grid on patch

@@ -67,6 +67,7 @@ from .atlas import AtlasSurface, atlas_edges
 from .basis import basis_table
 from .layers import DetailTile, displacement_grid, displacement_grids, drawn_cell_indices
 from .ply import write_ply
+from .smooth_base import _without_cyclic_gc
 from .surface import NORMAL_TOLERANCE
 from .tessellate import MAX_GRID, Mesh, _samples, grid_indices
 
@@ -140,6 +141,8 @@ def _edge_resolutions(atlas: AtlasSurface, res: list[int]) -> tuple[list[int], l
     """``(R_e, r_c)`` per edge: vertices along it (the finer side) and its evaluated
     resolution (the coarser); ``ValueError`` where ``(R_e - 1) / (r_c - 1)`` is no power
     of 2."""
+    if len(set(res)) == 1:  # one resolution: every edge at it
+        return [res[0]] * len(atlas.edges.edges), [res[0]] * len(atlas.edges.edges)
     fine, coarse = [], []
     for e, pairs in enumerate(atlas.edges.faces):
         rs = [res[f] for f, _ in pairs]
@@ -302,8 +305,16 @@ class _Layout:
         self.used = used
         count = len(used)
         self.edge_base = []
-        for fine in self.fine:
+        # per edge, its R_e vertices from lo and whether each is evaluated: every side of a
+        # patch on it is a strided slice of these
+        self.edge_nodes: list[list[int]] = []
+        self.edge_evaluated: list[tuple[bool, ...]] = []
+        for (lo, hi), fine, coarse in zip(self.table.edges, self.fine, self.coarse,
+                                          strict=True):
             self.edge_base.append(count)
+            self.edge_nodes.append([self.corner[lo], *range(count, count + fine - 2),
+                                    self.corner[hi]])
+            self.edge_evaluated.append(_evaluated_flags(fine, (fine - 1) // (coarse - 1)))
             count += fine - 2
         self.border_count = count
         self.face_base = []
@@ -314,28 +325,17 @@ class _Layout:
 
     def edge_node(self, e: int, K: int) -> int:
         """Vertex ``K`` (``0..R_e - 1``, from ``lo``) of edge ``e``."""
-        lo, hi = self.table.edges[e]
-        if K == 0:
-            return self.corner[lo]
-        if K == self.fine[e] - 1:
-            return self.corner[hi]
-        return self.edge_base[e] + K - 1
+        return self.edge_nodes[e][K]
 
-    def side_nodes(self, f: int, k: int) -> tuple[list[int], list[bool]]:
+    def side_nodes(self, f: int, k: int) -> tuple[list[int], tuple[bool, ...]]:
         """The vertex of each sample ``t = 0..r_f - 1`` of side ``k`` of patch ``f``, and
         whether it is *evaluated* (at the edge's coarser resolution) or lies between two
         evaluated vertices (a finer neighbour's)."""
         e, reverse = self.table.sides[f][k]
-        fine, (lo, hi) = self.fine[e], self.table.edges[e]
-        step, step_c = (fine - 1) // (self.res[f] - 1), (fine - 1) // (self.coarse[e] - 1)
-        base = self.edge_base[e] - 1  # vertex K of the edge is base + K inside it
-        nodes = [self.corner[lo], *range(base + step, base + fine - 1, step), self.corner[hi]]
-        evaluated = [True] * len(nodes) if step == step_c else \
-            [K % step_c == 0 for K in range(0, fine, step)]
-        if reverse:
-            nodes.reverse()
-            evaluated.reverse()
-        return nodes, evaluated
+        step = (self.fine[e] - 1) // (self.res[f] - 1)
+        if reverse:  # from hi: the edge's last vertex is its hi corner
+            step = -step
+        return self.edge_nodes[e][::step], self.edge_evaluated[e][::step]
 
     def finer_sides(self, f: int) -> list[bool]:
         """Whether each side of patch ``f`` has a finer neighbour (its cells there are fans)."""
@@ -353,9 +353,10 @@ class _Layout:
         way = 1 if K1 > K0 else -1
         return [self.edge_node(e, K) for K in range(K0 + way, K1, way)]
 
-    def patch_vertices(self, f: int) -> tuple[list[int], list[tuple[int, int, bool]]]:
+    def patch_vertices(self, f: int) -> tuple[list[int], tuple[tuple, list[int], list[bool]]]:
         """``(ids, border)``: the global vertex of each sample ``(i, j)`` of patch ``f`` at
-        ``i r + j``, and its border samples ``(slot, vertex, evaluated)``, each corner once."""
+        ``i r + j``, and its border samples, each corner once, as ``(slots, vertices,
+        evaluated)`` lists (``zip`` them: sample ``(slot, vertex, evaluated)``)."""
         r = self.res[f]
         ids = [0] * (r * r)
         base, inner = self.face_base[f], r - 2
@@ -363,16 +364,13 @@ class _Layout:
             ids[i * r + 1 : i * r + r - 1] = range(base + (i - 1) * inner,
                                                    base + i * inner)
         sides = [self.side_nodes(f, k) for k in range(4)]
-        last = r - 1  # the sides' slots (_side_slots) as strided slices
-        for side, (nodes, _) in zip((slice(0, None, r), slice(last * r, None),
-                                     slice(last, None, r), slice(0, r)), sides, strict=True):
+        for side, (nodes, _) in zip(_side_slices(r), sides, strict=True):
             ids[side] = nodes
         slots, picks = _border_samples(r)
-        nodes = list(chain.from_iterable(nodes for nodes, _ in sides))  # at k r + t
-        evaluated = list(chain.from_iterable(evaluated for _, evaluated in sides))
-        border = list(zip(slots, map(nodes.__getitem__, picks),
-                          map(evaluated.__getitem__, picks), strict=True))
-        return ids, border
+        (n0, e0), (n1, e1), (n2, e2), (n3, e3) = sides
+        nodes, evaluated = [*n0, *n1, *n2, *n3], [*e0, *e1, *e2, *e3]  # at k r + t
+        return ids, (slots, list(map(nodes.__getitem__, picks)),
+                     list(map(evaluated.__getitem__, picks)))
 
     def in_between(self) -> tuple[list[int], list[int], list[int], list[float]]:
         """The edge vertices between two evaluated ones (a finer side's, where the edge is
@@ -389,6 +387,20 @@ class _Layout:
                     highs.append(self.edge_node(e, K0 + step))
                     shares.append((K - K0) / step)
         return nodes, lows, highs, shares
+
+
+@lru_cache(maxsize=64)
+def _evaluated_flags(fine: int, step: int) -> tuple[bool, ...]:
+    """Whether each of the ``fine`` vertices of an edge evaluated every ``step`` of them is
+    evaluated (``K % step == 0``)."""
+    return tuple(K % step == 0 for K in range(fine))
+
+
+@lru_cache(maxsize=64)
+def _side_slices(r: int) -> tuple[slice, ...]:
+    """:func:`_side_slots` as slices of the grid's slots."""
+    last = r - 1
+    return slice(0, None, r), slice(last * r, None), slice(last, None, r), slice(0, r)
 
 
 @lru_cache(maxsize=64)
@@ -619,6 +631,7 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
     return out
 
 
+@_without_cyclic_gc()
 def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                  kernel: str | None, tol: float | None = None,
                  drawn: Sequence[Sequence[int]] | None = None,
@@ -638,7 +651,12 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     The whole mesh (no ``drawn``, no ``cache``) with the numpy kernel is welded by the
     kernel (``_kernel_numpy.weld_atlas`` of :func:`_weld_plan`: the same bytes at array
     speed); ``weld='python'`` welds it here whatever the kernel (the two are compared in
-    tests/test_atlas_mesh.py)."""
+    tests/test_atlas_mesh.py).
+
+    The cyclic garbage collector is paused meanwhile (``smooth_base._without_cyclic_gc``):
+    the per-patch lists and tuples of a 24,000-patch smooth base, none in a reference
+    cycle, set off full collections that took a fifth of the time (the bunny's welded base,
+    pure-Python kernel: 1.45 s, 1.13 s with the collector paused)."""
     backend = _kernel.backend(kernel)
     layout = _Layout(atlas, res)
     comps = _homogeneous(atlas)
@@ -725,7 +743,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # and, when evaluated, its base point (an in-between vertex's is its segment's,
         # below); then each sampler adds to the vertex's sums
         border = borders[f]
-        for slot, node, evaluated in border:
+        for slot, node, evaluated in zip(*border, strict=True):
             if not first[node]:
                 first[node] = 1
                 owners[node] = f
@@ -733,7 +751,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 if evaluated:
                     positions[3 * node : 3 * node + 3] = array("d", pos[3 * slot : 3 * slot + 3])
         if tiles:  # displaced along the mean normal (the drawn normals come by differences)
-            for slot, node, evaluated in border:
+            for slot, node, evaluated in zip(*border, strict=True):
                 if evaluated:
                     k, m = 3 * slot, 3 * node
                     samplers[node] += 1
@@ -743,7 +761,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                     direction[m + 1] += nrm[k + 1]
                     direction[m + 2] += nrm[k + 2]
         else:  # not displaced: shaded by the sum of the unit normals
-            for slot, node, _ in border:
+            for slot, node in zip(border[0], border[1], strict=True):
                 k, m = 3 * slot, 3 * node
                 shading[m] += nrm[k]
                 shading[m + 1] += nrm[k + 1]
@@ -779,7 +797,8 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             if f in mine:
                 shaded = whole[f]
             else:
-                rows_cols = [divmod(slot, r) for slot, g, _ in borders[f] if g in used]
+                rows_cols = [divmod(slot, r) for slot, g in zip(*borders[f][:2], strict=True)
+                             if g in used]
                 if not rows_cols:
                     continue
                 i0, i1 = min(i for i, _ in rows_cols), max(i for i, _ in rows_cols) + 1
@@ -801,13 +820,13 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 normals[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", _interior(r)[0](shaded))
             span = j1 - j0
             if span * (i1 - i0) == r * r:  # the whole grid: every border sample, at its slot
-                for slot, g, _ in borders[f]:
+                for slot, g in zip(*borders[f][:2], strict=True):
                     k, g = 3 * slot, 3 * g
                     shading[g] += shaded[k]
                     shading[g + 1] += shaded[k + 1]
                     shading[g + 2] += shaded[k + 2]
             else:
-                for slot, g, _ in borders[f]:
+                for slot, g in zip(*borders[f][:2], strict=True):
                     i, j = divmod(slot, r)
                     if i0 <= i < i1 and j0 <= j < j1:
                         k = 3 * ((i - i0) * span + j - j0)
@@ -1131,6 +1150,7 @@ def atlas_ring(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> l
     return sorted(found)
 
 
+@_without_cyclic_gc()
 def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
                 rings: int = 1) -> AtlasPart:
     """The groups of patches ``groups`` of ``atlas`` with ``rings`` rings of patches around
