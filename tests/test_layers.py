@@ -548,7 +548,7 @@ def test_displace_grid_kernels_agree_exactly_and_keep_the_base_normal_at_a_pole(
 def test_displace_grid_panels_are_the_grids_alone_in_both_kernels():
     """Grids side by side as panels of one call: each panel's normals (one-sided on its own
     outer columns, the base normal at a pole) and positions are those of the grid alone,
-    bit for bit, in both kernels."""
+    bit for bit, in both kernels; without positions, the same normals."""
     from array import array
 
     from client_py._kernel import backend
@@ -578,6 +578,10 @@ def test_displace_grid_panels_are_the_grids_alone_in_both_kernels():
                                          (0, rows, 0, width))
             assert pos[:, g].tobytes() == np.array(alone[0]).tobytes()
             assert nrm[:, g].tobytes() == np.array(alone[1]).tobytes()
+        bare = kernel.displace_grid(side_by_side(S), side_by_side(n), side_by_side(D), rows,
+                                    count * width, (0, rows, 0, count * width), width,
+                                    with_positions=False)
+        assert len(bare[0]) == 0 and np.array(bare[1]).tobytes() == nrm.tobytes()
 
 
 def test_add_level_takes_each_vertex_from_the_first_block_covering_it():
