@@ -69,7 +69,7 @@ def _packs_of(cells, groups, cell, level, files=None):
         first = groups[g]["first"]
         end = groups[g + count - 1]["first"] + groups[g + count - 1]["count"]
         if files is None:
-            image = pack_image(cells[first:end], cell)
+            image = pack_image(cells[first:end], cell, cell_block(cell))
             width, height, rgb = image.shape[1], image.shape[0], image.tobytes()
         else:
             width, height, rgb = _decode(files[colour_pack_name(level, g)])

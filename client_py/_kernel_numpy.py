@@ -25,6 +25,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from ._kernel_python import check_panel
 from ._numpy_basis import basis_arrays
 from .surface import normal_tolerance
 
@@ -149,6 +150,7 @@ def displace_grid(positions, normals, displacement, n_rows: int, n_cols: int,
     are copies with each panel's end columns clamped); the arithmetic is the
     pure-Python kernel's, term for term, so the results are the same.
     """
+    check_panel(n_cols, panel)
     S = np.frombuffer(positions, dtype=float).reshape(n_rows, n_cols, 3)
     n = np.frombuffer(normals, dtype=float).reshape(n_rows, n_cols, 3)
     D = np.frombuffer(displacement, dtype=float).reshape(n_rows, n_cols)

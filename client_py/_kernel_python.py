@@ -296,7 +296,7 @@ def field_grids(degree: int, knots_u: Sequence[float], knots_v: Sequence[float],
     blended = _blend(p + 1)(coeffs, [list(map(flat.__getitem__, gather))
                                      for gather in gathers])
     if count > 1:  # (grid, row) -> (row, grid): row a of every grid in one slice
-        blended = list(map(blended.__getitem__, _swap_blocks(count, rows, n_j)))
+        blended = swap_blocks(blended, count, rows, n_j)
     width = count * n_j
     combine = _combine(p + 1)
     out: list[float] = []
@@ -305,19 +305,27 @@ def field_grids(degree: int, knots_u: Sequence[float], knots_v: Sequence[float],
         out += combine(nu_i, [blended[(lo + k) * width : (lo + k + 1) * width]
                               for k in range(p + 1)])
     if count > 1:  # (i, grid) -> (grid, i)
-        out = list(map(out.__getitem__, _swap_blocks(n_i, count, n_j)))
+        out = swap_blocks(out, n_i, count, n_j)
     size = n_i * n_j
     return [array("d", out[t * size : (t + 1) * size]) for t in range(count)]
 
 
-@lru_cache(maxsize=32)
-def _swap_blocks(outer: int, inner: int, width: int) -> list[int]:
-    """Indices that reorder ``outer x inner`` blocks of ``width`` values, laid ``(x, y)``
-    (block ``(x, y)`` at ``(x inner + y) width``), to the order ``(y, x)``: many small grids
-    from (grid, row) order to (row, grid), so that one pass of arithmetic takes a row of
-    all of them, and back."""
-    return [x * inner * width + y * width + m
-            for y in range(inner) for x in range(outer) for m in range(width)]
+def swap_blocks(values: Sequence[float], outer: int, inner: int, width: int) -> list:
+    """``values``, ``outer x inner`` blocks of ``width`` values laid ``(x, y)`` (block
+    ``(x, y)`` at ``(x inner + y) width``), reordered to ``(y, x)``: many small grids from
+    (grid, row) order to (row, grid), so that one pass of arithmetic takes a row of all of
+    them, and back. By slices, with no index list: a cached list of indices had held 80 MB
+    for 256 patches of 33 x 33 samples."""
+    return list(chain.from_iterable(values[(x * inner + y) * width:(x * inner + y + 1) * width]
+                                    for y in range(inner) for x in range(outer)))
+
+
+def check_panel(n_cols: int, panel: int | None) -> None:
+    """``ValueError`` unless ``panel`` is ``None`` or ``n_cols`` is whole panels of it
+    (:func:`displace_grid`'s grids side by side: a part panel would be clamped wrong)."""
+    if panel is not None and (isinstance(panel, bool) or not isinstance(panel, int)
+                              or panel < 1 or n_cols % panel):
+        raise ValueError(f"panel = {panel!r}: the grid's {n_cols} columns must be whole panels")
 
 
 def displace_grid(positions: array, normals: array, displacement: array, n_rows: int,
@@ -345,6 +353,7 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
     loop over the row's vertices does arithmetic only; the positions are
     copied a component at a time.
     """
+    check_panel(n_cols, panel)
     comps = [[p + d * n for p, d, n in zip(positions[c::3], displacement, normals[c::3],
                                             strict=True)] for c in range(3)]
     r0, r1, c0, c1 = window

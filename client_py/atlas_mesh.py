@@ -62,12 +62,12 @@ from itertools import chain
 from operator import itemgetter
 
 from . import _kernel, _kernel_python
-from ._kernel_python import _swap_blocks
+from ._kernel_python import swap_blocks
 from .atlas import AtlasSurface, atlas_edges
 from .basis import basis_table
+from .gc_pause import without_cyclic_gc
 from .layers import DetailTile, displacement_grid, displacement_grids, drawn_cell_indices
 from .ply import write_ply
-from .smooth_base import _without_cyclic_gc
 from .surface import NORMAL_TOLERANCE
 from .tessellate import MAX_GRID, Mesh, _samples, grid_indices
 
@@ -217,7 +217,7 @@ def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: lis
         count = len(batch)
         # control point (f, a, b) of the batch at (a count + f) n + b: rows a of all patches
         flat = list(chain.from_iterable(map(atlas.flat_patch_indices, batch)))
-        flat = list(map(flat.__getitem__, _swap_blocks(count, n, n)))
+        flat = swap_blocks(flat, count, n, n)
         gathers, coeffs, dcoeffs = ((lists if count == most else
                                      [values[: n * count * r] for values in lists])
                                     for lists in (all_gathers, all_coeffs, all_dcoeffs))
@@ -242,9 +242,9 @@ def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: lis
             nrm_rows.append(nrm)
             bad += [(i, b) for b in row_bad]
         # the rows (i, patch, j) reordered to (patch, i, j) at once, then cut per patch
-        order, size = _swap_blocks(r, count, 3 * r), 3 * r * r
-        pos_all = list(map(list(chain.from_iterable(pos_rows)).__getitem__, order))
-        nrm_all = list(map(list(chain.from_iterable(nrm_rows)).__getitem__, order))
+        size = 3 * r * r
+        pos_all = swap_blocks(list(chain.from_iterable(pos_rows)), r, count, 3 * r)
+        nrm_all = swap_blocks(list(chain.from_iterable(nrm_rows)), r, count, 3 * r)
         for g, f in enumerate(batch):
             out[f] = (pos_all[g * size : (g + 1) * size], nrm_all[g * size : (g + 1) * size],
                       [])
@@ -398,17 +398,17 @@ def _evaluated_flags(fine: int, step: int) -> tuple[bool, ...]:
 
 @lru_cache(maxsize=64)
 def _side_slices(r: int) -> tuple[slice, ...]:
-    """:func:`_side_slots` as slices of the grid's slots."""
+    """Each side's samples (``SIDES`` order: ``v = 0``, ``u = 1``, ``v = 1``, ``u = 0``)
+    as a slice of the ``r x r`` grid's slots ``i r + j``, along increasing ``u`` or ``v``."""
     last = r - 1
     return slice(0, None, r), slice(last * r, None), slice(last, None, r), slice(0, r)
 
 
 @lru_cache(maxsize=64)
 def _side_slots(r: int) -> tuple[tuple[int, ...], ...]:
-    """Grid slots ``i r + j`` of sample ``t`` along each side (``SIDES`` order)."""
-    last = r - 1
-    return (tuple(t * r for t in range(r)), tuple(last * r + t for t in range(r)),
-            tuple(t * r + last for t in range(r)), tuple(t for t in range(r)))
+    """Grid slots ``i r + j`` of sample ``t`` along each side (``SIDES`` order): those of
+    :func:`_side_slices`."""
+    return tuple(tuple(range(r * r)[side]) for side in _side_slices(r))
 
 
 @lru_cache(maxsize=64)
@@ -451,16 +451,16 @@ def _drawn_normals(backend, coords: list[array], ids: Mapping[int, list[int]],
         count, size = len(some), 3 * r * r
         # row i of every patch in turn: from (patch, row) order to (row, patch)
         nodes = list(chain.from_iterable(ids[f] for f in some))
-        nodes = list(map(nodes.__getitem__, _swap_blocks(count, r, r)))
+        nodes = swap_blocks(nodes, count, r, r)
         grid = array("d", bytes(8 * size * count))
         for c, xs in enumerate(coords):
             grid[c::3] = array("d", map(xs.__getitem__, nodes))
         base = list(chain.from_iterable(grids[f][1] for f in some))
-        base = array("d", map(base.__getitem__, _swap_blocks(count, r, 3 * r)))
+        base = array("d", swap_blocks(base, count, r, 3 * r))
         shaded = array("d", backend.displace_grid(
             grid, base, array("d", bytes(8 * count * r * r)), r, count * r,
             (0, r, 0, count * r), r, with_positions=False)[1])
-        shaded = array("d", map(shaded.__getitem__, _swap_blocks(r, count, 3 * r)))
+        shaded = array("d", swap_blocks(shaded, r, count, 3 * r))
         for g, f in enumerate(some):
             out[f] = shaded[g * size : (g + 1) * size]
     return out
@@ -631,7 +631,7 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
     return out
 
 
-@_without_cyclic_gc()
+@without_cyclic_gc()
 def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                  kernel: str | None, tol: float | None = None,
                  drawn: Sequence[Sequence[int]] | None = None,
@@ -653,7 +653,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     speed); ``weld='python'`` welds it here whatever the kernel (the two are compared in
     tests/test_atlas_mesh.py).
 
-    The cyclic garbage collector is paused meanwhile (``smooth_base._without_cyclic_gc``):
+    The cyclic garbage collector is paused meanwhile (``client_py.gc_pause``):
     the per-patch lists and tuples of a 24,000-patch smooth base, none in a reference
     cycle, set off full collections that took a fifth of the time (the bunny's welded base,
     pure-Python kernel: 1.45 s, 1.13 s with the collector paused)."""
@@ -710,7 +710,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     uvs = array("d", bytes(16 * count))
     owners = array("I", bytes(4 * count))
     n_border = layout.border_count
-    first = bytearray(n_border)  # whether a border vertex has had its first sampler
+    seen = bytearray(n_border)  # whether a border vertex has had its first sampler
     shift = [0.0] * n_border  # sum of the samplers' displacements
     direction = [0.0] * (3 * n_border)  # sum of their unit base normals
     samplers = [0] * n_border
@@ -744,8 +744,8 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # below); then each sampler adds to the vertex's sums
         border = borders[f]
         for slot, node, evaluated in zip(*border, strict=True):
-            if not first[node]:
-                first[node] = 1
+            if not seen[node]:
+                seen[node] = 1
                 owners[node] = f
                 uvs[2 * node], uvs[2 * node + 1] = params[slot // r], params[slot % r]
                 if evaluated:
@@ -787,15 +787,15 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # a window of the grid one sample wider, where the differences are the whole grid's
         shading = [0.0] * (3 * n_border)
         used = () if drawn is None else set(chain.from_iterable(ids[f] for f in mine))
-        whole: dict[int, array] = {}  # the drawn patches' normals, a chunk of patches at a time
+        chunk_normals: dict[int, array] = {}  # the drawn patches', a chunk of them at a time
         coords = [positions[c::3] for c in range(3)]
         for f, r in enumerate(res):
             if f % PATCHES_PER_BATCH == 0:
-                whole = _drawn_normals(backend, coords, ids, grids, res, [
+                chunk_normals = _drawn_normals(backend, coords, ids, grids, res, [
                     g for g in range(f, min(f + PATCHES_PER_BATCH, len(res))) if g in mine])
             i0, i1, j0, j1 = 0, r, 0, r
             if f in mine:
-                shaded = whole[f]
+                shaded = chunk_normals[f]
             else:
                 rows_cols = [divmod(slot, r) for slot, g in zip(*borders[f][:2], strict=True)
                              if g in used]
@@ -1150,7 +1150,7 @@ def atlas_ring(atlas: AtlasSurface, patches: Sequence[int], rings: int = 1) -> l
     return sorted(found)
 
 
-@_without_cyclic_gc()
+@without_cyclic_gc()
 def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
                 rings: int = 1) -> AtlasPart:
     """The groups of patches ``groups`` of ``atlas`` with ``rings`` rings of patches around

@@ -40,6 +40,10 @@ from .layers import MAX_LEVEL, TextureImage
 
 #: the extension of an atlas's colour images
 COLOUR_PACK_EXTENSION = "webp"
+#: ``tiles.texture.format`` of packs whose cells lie in rows (every level's ``block`` 1), and
+#: of packs laid in blocks: a reader from before blocks accepts only the first, so it refuses
+#: a bundle whose cells it would read from the wrong places
+ROWS_FORMAT, BLOCKS_FORMAT = "webp", "webp-blocks"
 #: texels per side of the largest cell (a level's cells are at most this wide)
 MAX_CELL = 1024
 #: cells per side of the largest block of a pack's layout (:func:`cell_origin`)
@@ -89,6 +93,12 @@ def check_block(block: object) -> int:
 def _block_count(count: int, block: int) -> int:
     pack_columns(count)  # checks count
     return -(-count // (check_block(block) ** 2))
+
+
+def texture_format(blocks: Sequence[int]) -> str:
+    """``tiles.texture.format`` of colour levels laid in blocks of ``blocks[c]`` cells a
+    side: :data:`ROWS_FORMAT` when every block is 1, else :data:`BLOCKS_FORMAT`."""
+    return ROWS_FORMAT if all(check_block(b) == 1 for b in blocks) else BLOCKS_FORMAT
 
 
 def pack_shape(count: int, cell: int, block: int = 1) -> tuple[int, int]:
@@ -145,8 +155,9 @@ class ColourPack:
                 raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {value!r}")
         expected = pack_shape(self.count, self.cell, self.block)
         if (self.width, self.height) != expected:
-            raise ValueError(f"a colour pack of {self.count} cells of {self.cell} texels is "
-                             f"{expected[0]}x{expected[1]}, got {self.width}x{self.height}")
+            raise ValueError(f"a colour pack of {self.count} cells of {self.cell} texels in "
+                             f"blocks of {self.block} is {expected[0]}x{expected[1]}, got "
+                             f"{self.width}x{self.height}")
         if len(self.rgb) != 3 * self.width * self.height:
             raise ValueError(f"rgb has {len(self.rgb)} bytes; a {self.width}x{self.height} "
                              f"RGB image needs {3 * self.width * self.height}")

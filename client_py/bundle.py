@@ -37,8 +37,10 @@ from .atlas_detail import pack_is_welded, pack_name, read_pack
 from .atlas_format import read_atlas
 from .atlas_mesh import tessellate_atlas
 from .atlas_texture import (
+    BLOCKS_FORMAT,
     MAX_CELL,
     MAX_PACK_SIDE,
+    ROWS_FORMAT,
     ColourPack,
     atlas_vertex_colours,
     check_block,
@@ -754,11 +756,11 @@ class AtlasColour:
     ----------
     levels : tuple of dict
         ``tiles.texture.levels``, entry ``c`` of colour level ``c`` (``cell``: texels per
-        patch side).
+        patch side; ``block``: cells per side of the pack layout's blocks).
     packs : tuple of dict
         Every colour pack, by level then group: ``level``, ``group`` (its first detail
-        group), ``groups``, ``first`` and ``count`` (its patches), ``cell``, ``width``,
-        ``height``, ``file`` and ``bytes``.
+        group), ``groups``, ``first`` and ``count`` (its patches), ``cell``, ``block``,
+        ``width``, ``height``, ``file`` and ``bytes``.
     """
 
     levels: tuple[dict, ...]
@@ -789,9 +791,11 @@ def atlas_colour(manifest: dict) -> AtlasColour | None:
     if section is None:
         return None
     section = _mapping(section, "tiles.texture", optional=False)
-    if section.get("format") != "webp":
-        raise ManifestError("tiles.texture.format", "must be 'webp' (the atlas's colour "
-                            f"images), got {_shown(section.get('format'))}")
+    layout = section.get("format")
+    if layout not in (ROWS_FORMAT, BLOCKS_FORMAT):
+        raise ManifestError("tiles.texture.format", f"must be '{ROWS_FORMAT}' or "
+                            f"'{BLOCKS_FORMAT}' (the atlas's colour images, their cells in "
+                            f"rows or in blocks), got {_shown(layout)}")
     if not spec.levels:
         raise ManifestError("tiles.texture", "needs tiles.detail with at least one level: "
                             "the colour packs follow its groups and levels")
@@ -811,11 +815,15 @@ def atlas_colour(manifest: dict) -> AtlasColour | None:
                                 f"in 1..{MAX_CELL} texels per patch side"
                                 + (f", {wanted} (twice the previous level's)" if wanted else "")
                                 + f", got {_shown(entry)}")
-        try:  # absent in bundles written before blocks: a row of cells after another
-            blocks.append(check_block(entry.get("block", 1)))
+        block = entry.get("block", 1 if layout == ROWS_FORMAT else None)
+        try:  # rows: absent (bundles written before blocks) or 1
+            blocks.append(check_block(block))
         except ValueError as error:
             raise ManifestError(f"{where}.block", f"cells per side of the pack layout's "
                                 f"blocks: {error}") from None
+        if layout == ROWS_FORMAT and block != 1:
+            raise ManifestError(f"{where}.block", f"is {block}; cells in blocks need "
+                                f"tiles.texture.format '{BLOCKS_FORMAT}'")
         texel = entry.get("texel")
         if texel is not None and not (_finite(texel) and texel >= 0):
             raise ManifestError(f"{where}.texel", f"must be a finite number >= 0 or null, "

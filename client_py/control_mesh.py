@@ -168,15 +168,21 @@ def canonical_control_mesh(n_points: int, triangles: Sequence[Sequence[int]]
     return order, [(new[a], new[b], new[c]) for a, b, c in triangles]
 
 
+def _points_in_triangles(triangles: Sequence[Sequence[int]]) -> int:
+    """One past the highest point in a triangle: the points from it on are in none, and
+    the decoders make no per-point state for them."""
+    return 1 + max(map(max, triangles), default=-1)
+
+
 def _earlier_neighbours(n_points: int, triangles: Sequence[Sequence[int]]
                         ) -> tuple[list[Sequence[int]], list[int]]:
     """Version 5: per point, its neighbours (across a triangle edge) numbered before it,
     whose mean predicts it (version 3's layout vertex rule), and the highest of them (``-1``:
     none), its *source*, whose residual's size is a context of its own. (Sets and lists are
     made up to the highest point in a triangle only, the points past it sharing one empty
-    tuple, as :func:`point_predictors` does: a hostile header may state ``2^17`` points and
+    tuple, as :func:`grow_steps` does: a hostile header may state ``2^17`` points and
     two triangles.)"""
-    used = 1 + max(map(max, triangles), default=-1)  # points past it are in no triangle
+    used = _points_in_triangles(triangles)
     sets: list[set[int]] = [set() for _ in range(used)]
     for a, b, c in triangles:
         for x, y in ((a, b), (b, c), (c, a)):
@@ -203,7 +209,7 @@ def point_order(n_points: int, triangles: Sequence[Sequence[int]]) -> list[int]:
     fitted bases of session 31 (4,000-6,400 points) the points took 0.5-2.0 % fewer bytes in
     it than in the numbering's order.
     """
-    return [step.point for step in point_predictors(n_points, triangles)]
+    return [step.point for step in grow_steps(n_points, triangles)]
 
 
 class Step(NamedTuple):
@@ -239,7 +245,7 @@ def grow_steps(n_points: int, triangles: Sequence[Sequence[int]]) -> Iterator[St
     points and one triangle, and the decoder stops at the first point its stream lacks.)"""
     n = n_points
     across: dict[int, int] = {}  # the directed edge a -> b, as a n + b: its triangle's c
-    used = 1 + max(map(max, triangles), default=-1)  # points past it are in no triangle
+    used = _points_in_triangles(triangles)
     corners: list[list[int]] = [[] for _ in range(used)]  # per point its triangles' a, b
     ring: list[set[int]] = [set() for _ in range(used)]
     for a, b, c in triangles:

@@ -59,14 +59,13 @@ Standard library only (Pyodide).
 
 from __future__ import annotations
 
-import contextlib
-import gc
 import math
 import operator
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from .atlas import MAX_ATLAS_QUADS, MAX_ATLAS_VERTICES, AtlasSurface
+from .gc_pause import without_cyclic_gc
 
 Row = list[tuple[int, float]]
 
@@ -100,23 +99,6 @@ class SmoothBase:
     def step_vertex_count(self) -> int:
         """``V₁``: step-1 vertices, the atlas's layout vertices."""
         return len(self.step_rows)
-
-
-@contextlib.contextmanager
-def _without_cyclic_gc() -> Iterator[None]:
-    """Pause CPython's cyclic garbage collector, restoring its state after.
-
-    At ``T = 10,000`` the rows are about 1.6 M small tuples in 0.3 M lists, with no
-    reference cycle among them; their growth alone set off full collections that took
-    0.9-1.0 s of the 2.2-3.2 s :func:`smooth_base` and :func:`smooth_atlas` took together
-    (CPython 3.11; 1.6 s with the collector paused)."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def _as_list(value: object) -> object:
@@ -392,7 +374,7 @@ def smooth_base(n_points: int, triangles: Sequence[Sequence[int]]) -> SmoothBase
         ``MAX_ATLAS_VERTICES``).
     """
     n_points, checked = check_control_mesh(n_points, triangles)
-    with _without_cyclic_gc():
+    with without_cyclic_gc():
         step_rows, quads = _catmull_clark_rows(n_points, checked)
         return SmoothBase(quads, step_rows, _acc_rows(len(step_rows), quads))
 
@@ -471,7 +453,7 @@ def smooth_atlas(points: Sequence[Sequence[float]], triangles: Sequence[Sequence
                 for t, tri in enumerate(checked) for k in range(3)):
             raise ValueError(f"base is not the smooth_base of these {len(rows)} points and "
                              f"{len(checked)} triangles")
-    with _without_cyclic_gc():
+    with without_cyclic_gc():
         step_x, step_y, step_z = _applied(base.step_rows, xs, ys, zs)
         acc_x, acc_y, acc_z = _applied(base.acc_rows, step_x, step_y, step_z)
         return base_atlas(base, list(zip(acc_x, acc_y, acc_z, strict=True)))

@@ -668,3 +668,23 @@ def test_patches_without_normal_are_what_the_tessellation_refuses(kernel):
     small = [f for f, quad in enumerate(collapsed.quads)
              if all(abs(c - 0.5) < 0.01 for k in quad for c in collapsed.vertices[k])]
     assert set(refused) <= set(small) and len(small) == 12  # the small one's 4 x 3 quads
+
+
+def test_the_garbage_collector_comes_back_as_it_was_after_a_failed_mesh():
+    """tessellate_atlas pauses the cyclic collector (client_py.gc_pause): a progress callback
+    that raises leaves it enabled as it was, and paused when the caller had paused it."""
+    import gc
+
+    atlas = sphere_atlas(1)
+
+    def stop(share):
+        raise RuntimeError("stop")
+
+    for enabled in (True, False):
+        (gc.enable if enabled else gc.disable)()
+        try:
+            with pytest.raises(RuntimeError, match="stop"):
+                tessellate_atlas(atlas, 5, progress=stop)
+            assert gc.isenabled() is enabled
+        finally:
+            gc.enable()

@@ -94,8 +94,12 @@ def test_a_coloured_closed_mesh_gets_colour_packs_listed_with_their_bytes(colour
     _, folder, manifest = coloured_sphere
     texture = manifest["tiles"]["texture"]
     colour = atlas_colour(manifest)
-    assert texture["format"] == "webp" and texture["source"] == "vertex colours"
     first = 2 * manifest["tiles"]["detail"]["spans_per_tile"]  # T_0 = 2 m
+    # cells narrower than a 16-texel macroblock lie in blocks (a smooth base's 4 texels)
+    assert texture["format"] == ("webp-blocks" if first < 16 else "webp")
+    assert [lv["block"] for lv in texture["levels"]] == [
+        max(1, 16 // (first << c)) for c in range(len(colour.levels))]
+    assert texture["source"] == "vertex colours"
     assert [lv["cell"] for lv in texture["levels"]] == [first << c
                                                          for c in range(len(colour.levels))]
     for pack in colour.packs:
@@ -385,7 +389,7 @@ def test_pack_layout_round_trips_exactly_without_encoding():
     assert [cell_block(c) for c in (1, 2, 4, 6, 8, 16, 32)] == [16, 8, 4, 2, 2, 1, 1]
     for cell in (16, 4, 2):
         cells = rng.integers(0, 256, size=(70, cell, cell, 3), dtype=np.uint8)
-        image = pack_image(cells, cell)
+        image = pack_image(cells, cell, cell_block(cell))
         pack = ColourPack(1, 10, 70, cell, image.shape[1], image.shape[0], image.tobytes(),
                           cell_block(cell))
         for s in range(70):  # the writer's cell s is the reader's cell of patch 10 + s
@@ -427,7 +431,8 @@ def test_a_manifest_colour_section_is_checked(tmp_path):
     assert [n["file"] for n in plan_level(manifest, -1).texture_nodes] == ["texture/0/0.webp"]
     assert plan_level(manifest, 1).texture_bytes == 20
     assert [(p["block"], p["width"]) for p in colour.packs] == [(1, 48), (1, 64), (1, 64)]
-    blocks = {**good, "levels": [{"level": 0, "cell": 16, "block": 2}, good["levels"][1]]}
+    blocks = {**good, "format": "webp-blocks",
+              "levels": [{"level": 0, "cell": 16, "block": 2}, {**good["levels"][1], "block": 1}]}
     manifest["tiles"]["texture"] = blocks  # 6 patches in blocks of 2 x 2: 2 blocks a row
     assert [(p["block"], p["width"], p["height"]) for p in atlas_colour(manifest).packs][0] \
         == (2, 2 * 32, 32)
@@ -442,6 +447,10 @@ def test_a_manifest_colour_section_is_checked(tmp_path):
             ({"levels": [{"level": 0, "cell": 16}] * 3}, "at most the detail levels"),
             ({"levels": [{"level": 0, "cell": 16, "block": 3}, good["levels"][1]]},
              r"levels\[0\]\.block cells per side .* power of two"),
+            # a reader from before blocks would take blocks for rows: they need a new format
+            ({"levels": [{"level": 0, "cell": 16, "block": 2}, good["levels"][1]]},
+             r"levels\[0\]\.block is 2; cells in blocks need tiles.texture.format"),
+            ({"format": "webp-blocks"}, r"levels\[0\]\.block cells per side .* got None"),
             ({"packs": good["packs"][:2]}, "every group 0..5 must be in one pack"),
             ({"packs": [{**good["packs"][0], "group": 1}, *good["packs"][1:]]},
              "previous pack ended"),

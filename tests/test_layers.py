@@ -582,6 +582,11 @@ def test_displace_grid_panels_are_the_grids_alone_in_both_kernels():
                                     count * width, (0, rows, 0, count * width), width,
                                     with_positions=False)
         assert len(bare[0]) == 0 and np.array(bare[1]).tobytes() == nrm.tobytes()
+        for panel in (3, 0, True):  # 11 columns are no whole panels of 3; 0, True no width
+            with pytest.raises(ValueError, match="whole panels"):
+                kernel.displace_grid(side_by_side(S), side_by_side(n), side_by_side(D), rows,
+                                     count * width - 1 if panel == 3 else count * width,
+                                     (0, rows, 0, 1), panel)
 
 
 def test_add_level_takes_each_vertex_from_the_first_block_covering_it():

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from client_py.atlas_texture import cell_origin, colour_pack_name, pack_shape
+from client_py.atlas_texture import cell_origin, colour_pack_name, pack_shape, texture_format
 from client_py.layers import displacement_grid
 
 from ..texture import (
@@ -154,11 +154,11 @@ def cell_block(cell: int) -> int:
     return block
 
 
-def pack_image(cells: np.ndarray, cell: int) -> np.ndarray:
+def pack_image(cells: np.ndarray, cell: int, block: int) -> np.ndarray:
     """The image ``(H, W, 3)`` of consecutive patches' ``cells (count, T, T, 3)`` in the
-    pack layout of :func:`cell_block`'s blocks (``client_py.atlas_texture.cell_origin``),
-    filler grey past the last."""
-    count, block = len(cells), cell_block(cell)
+    pack layout of ``block x block`` cell blocks (``client_py.atlas_texture.cell_origin``;
+    the fitter's :func:`cell_block`), filler grey past the last."""
+    count = len(cells)
     width, height = pack_shape(count, cell, block)
     image = np.full((height, width, 3), FILLER, np.uint8)
     for s in range(count):
@@ -204,17 +204,19 @@ def encode_levels(cells: list[np.ndarray], groups: list[dict], texel_zero: float
     packs, rows = [], []
     for c, level_cells in enumerate(cells):
         cell = level_cells.shape[1]
+        block = cell_block(cell)
         total = 0
         runs = pack_runs(groups, cell)
         for g, count in runs:
             first = groups[g]["first"]
             last = groups[g + count - 1]
             end = last["first"] + last["count"]
-            data = encode_image(pack_image(level_cells[first:end], cell), quality=quality)
+            data = encode_image(pack_image(level_cells[first:end], cell, block),
+                                quality=quality)
             files[colour_pack_name(c, g)] = data
             total += len(data)
             packs.append({"level": c, "group": g, "groups": count, "bytes": len(data)})
-        rows.append({"level": c, "cell": cell, "block": cell_block(cell),
+        rows.append({"level": c, "cell": cell, "block": block,
                      "texel": float(f"{texel_zero / cell:.6g}"),
                      "bytes_total": total, "packs": len(runs)})
     return files, packs, rows
@@ -237,7 +239,8 @@ def fit_atlas_texture(scan, detail, enabled: bool = True) -> AtlasTexture | None
     cells = coarser_cells(top, levels)
     groups = detail.tree["groups"]
     files, packs, rows = encode_levels(cells, groups, float(detail.patch_side))
-    tree = {"format": "webp", "levels": rows, "packs": packs,
+    tree = {"format": texture_format([row["block"] for row in rows]), "levels": rows,
+            "packs": packs,
             "source": "texture" if scan.uv is not None and scan.texture is not None
             and scan.faces is not None else "vertex colours"}
     return AtlasTexture(tree, files, cells, groups)
