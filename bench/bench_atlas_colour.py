@@ -59,23 +59,23 @@ def _drawn(atlas, resolution: int, tiles: dict, packs) -> tuple[np.ndarray, ...]
     return (*mesh_arrays(mesh), np.frombuffer(rgb, np.uint8).reshape(-1, 3).astype(float))
 
 
-def _packs_of(cells, groups, cell, level, files=None):
-    """ColourPacks of one level from raw ``cells`` (no encoding) or decoded ``files``."""
-    from client_py.atlas_texture import ColourPack, colour_pack_name
-    from fitter.fitting.atlas.texture import cell_block, pack_image, pack_runs
+def _packs_of(nodes, cells=None, files=None):
+    """The ColourPacks of one colour level's manifest packs ``nodes`` (``atlas_colour``'s,
+    with their cell and block), read as the client reads them (``colour_packs_of``): from
+    the raw ``cells`` laid out unencoded, or from decoded ``files`` (the bundle's, or the
+    same cells re-encoded at another quality)."""
+    from client_py.bundle import colour_packs_of
+    from fitter.fitting.atlas.texture import pack_image
 
-    out = []
-    for g, count in pack_runs(groups, cell):
-        first = groups[g]["first"]
-        end = groups[g + count - 1]["first"] + groups[g + count - 1]["count"]
+    images = {}
+    for node in nodes:
         if files is None:
-            image = pack_image(cells[first:end], cell, cell_block(cell))
-            width, height, rgb = image.shape[1], image.shape[0], image.tobytes()
+            image = pack_image(cells[node["first"]:node["first"] + node["count"]],
+                               node["cell"], node["block"])
+            images[node["file"]] = (image.shape[1], image.shape[0], image.tobytes())
         else:
-            width, height, rgb = _decode(files[colour_pack_name(level, g)])
-        out.append(ColourPack(level, first, end - first, cell, width, height, rgb,
-                              cell_block(cell)))
-    return out
+            images[node["file"]] = _decode(files[node["file"]])
+    return colour_packs_of(nodes, images)
 
 
 def _splat_colour(points, colours, frame, centre, half, size):
@@ -178,9 +178,10 @@ def score_object(name: str, path: Path, work: Path) -> dict:
         tiles = atlas_level_detail(manifest, read, level) if level >= 0 else {}
         row = {"level": level, "colour_level": c, "cell": cell,
                "bytes": colour.levels[c]["bytes_total"]}
-        for label, packs in [("bundle", _packs_of(None, groups, cell, c, files)),
-                             ("unencoded", _packs_of(raw[c], groups, cell, c)),
-                             *[(f"q{q}", _packs_of(None, groups, cell, c, by_quality[q][0]))
+        nodes = [p for p in colour.packs if p["level"] == c]
+        for label, packs in [("bundle", _packs_of(nodes, files=files)),
+                             ("unencoded", _packs_of(nodes, cells=raw[c])),
+                             *[(f"q{q}", _packs_of(nodes, files=by_quality[q][0]))
                                for q in QUALITIES]]:
             vertices, faces, rgb = _drawn(atlas, spec.resolution(level), tiles, packs)
             row[label] = colour_error(scan, vertices, faces, rgb)
@@ -189,7 +190,7 @@ def score_object(name: str, path: Path, work: Path) -> dict:
         rows.append(row)
         if level == levels - 1:
             scan_rgb = scan_vertex_colours(scan)
-            bundle_packs = _packs_of(None, groups, cell, c, files)
+            bundle_packs = _packs_of(nodes, files=files)
             vertices, faces, rgb = _drawn(atlas, spec.resolution(level), tiles, bundle_packs)
             view = manifest["view"]
             for face in (False, True):
