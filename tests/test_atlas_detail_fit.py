@@ -1184,8 +1184,9 @@ def test_the_fold_re_solve_of_the_changed_patches_is_the_full_re_solve(monkeypat
 
 def test_a_level_solved_in_one_batch_per_core_gives_the_packs_of_one_batch(monkeypatch):
     """A level within one batch of ``BATCH_UNKNOWNS`` is solved and quantised in one batch
-    per core (``_BatchSystem.per_batch``), with one ``lambda`` for the level: the packs of
-    one batch, byte for byte, on 1 and 3 cores (3 batches of the 24 patches). The cores are
+    per core (``_BatchSystem.per_batch``), with one ``lambda`` for the level (the ring's
+    slots too): the packs of one batch, byte for byte, on 1 and 3 cores (3 batches of the
+    24 patches). The cores are
     those the process may run on (its affinity mask, ``fitting.cores.usable_cores``), not
     the machine's."""
     fit, scan = _bumpy_sphere_fit()
@@ -1202,7 +1203,8 @@ def test_a_level_solved_in_one_batch_per_core_gives_the_packs_of_one_batch(monke
 
         monkeypatch.setattr(atlas_detail, "lattice_descent", counted)
         files[cores] = atlas_detail.fit_atlas_detail(fit, scan, levels=2, spans=4).files
-    assert calls == {1: 2, 3: 6}
+    # per level: each batch's interiors, the ring's slots once, each batch's interiors again
+    assert calls == {1: 2 * (1 + 1 + 1), 3: 2 * (3 + 1 + 3)}
     assert files[1] == files[3] and files[1]
 
 

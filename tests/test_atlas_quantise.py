@@ -129,3 +129,95 @@ def test_one_colour_shares_no_term_of_the_objective():
     colour = (a % (s - 1)) * (s - 1) + b % (s - 1)
     same = (colour[:, None] == colour[None, :]) & ~np.eye(n * n, dtype=bool)
     assert np.any(M[same] != 0)
+
+
+def _strip_slots(n: int) -> np.ndarray:
+    """``G (F, n, n)`` of ``F`` patches side by side in ``u``: patch ``f``'s last column of
+    coefficients is patch ``f + 1``'s first (one shared slot each), as ``shared_index``
+    numbers a welded level's slots."""
+    width = F * (n - 1) + 1
+    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    return np.stack([a * width + f * (n - 1) + b for f in range(F)])
+
+
+def _welded_objective(samples, weights, q, step, rate, G):
+    """:func:`_objective` without its rate, plus ``lambda`` times ``|q|`` of every interior
+    value and of every border slot once (a welded pack codes a shared slot once)."""
+    n = q.shape[1]
+    ring = atlas_detail.border_ring(n)
+    slots = {}
+    for f in range(F):
+        for g, value in zip(G[f][ring], q[f][ring], strict=True):
+            assert slots.setdefault(int(g), int(value)) == value  # one value a slot
+    with_rate = _objective(samples, weights, q, step, rate)
+    without = _objective(samples, weights, q, step, 0.0)
+    lam_inner = with_rate - without  # lambda * sum |q| over the interiors
+    inner_sum = float(np.abs(q[:, ~ring]).sum())
+    lam = lam_inner / inner_sum if inner_sum else 0.0
+    return without + lam * (inner_sum + sum(abs(v) for v in slots.values()))
+
+
+@pytest.fixture(scope="module")
+def welded(problem):
+    """The independent fits bounded per patch, then their shared slots set to the mean (as
+    ``_solve_level``), the bound ``limit (F,)`` and the slots ``G``."""
+    samples, w, _, step = problem
+    c, weight = atlas_detail._solve_blocks(samples, samples.s, LEVEL, SPANS, weights=w)
+    limit = np.array([0.3, 0.5, 0.3]) * float(np.abs(c).max())
+    c = np.clip(c, -limit[:, None, None], limit[:, None, None])
+    G = _strip_slots(c.shape[1])
+    return atlas_detail._share_borders(c, weight, G), limit, G
+
+
+@pytest.mark.parametrize("rate", [0.0, 1.0])
+def test_shared_ring_moves_as_one_and_lowers_the_objective(problem, welded, rate):
+    """With the shared slots, the ring moves too: every slot keeps one integer in all its
+    patches, within the largest of their bounds, and the penalised objective (each slot's
+    rate once) is below that of the ring rounded; the interiors are converged again after
+    the ring moved (no single step of one lowers it)."""
+    samples, w, _, step = problem
+    c, limit, G = welded
+    kwargs = dict(weights=w, sweeps=50, rate=rate)
+    plain = atlas_detail.quantised_blocks(samples, samples.s, LEVEL, SPANS, c, step, limit,
+                                          **kwargs)
+    q = atlas_detail.quantised_blocks(samples, samples.s, LEVEL, SPANS, c, step, limit,
+                                      shared=G, **kwargs)
+    ring = atlas_detail.border_ring(c.shape[1])
+    assert np.any(q[:, ring] != plain[:, ring])  # the ring did move
+    j = _welded_objective(samples, w, q, step, rate, G)  # also checks one value a slot
+    assert j < _welded_objective(samples, w, plain, step, rate, G)
+    most = np.rint(limit / step)
+    holders = {}
+    for f in range(F):
+        for g in G[f][ring]:
+            holders[int(g)] = max(holders.get(int(g), 0.0), most[f])
+    for f in range(F):
+        for g, value in zip(G[f][ring], q[f][ring], strict=True):
+            assert abs(value) <= holders[int(g)]
+    for f, a, b in zip(*np.nonzero(~ring[None].repeat(F, axis=0)), strict=True):
+        for move in (-1, 1):
+            other = q.copy()
+            other[f, a, b] += move
+            if abs(other[f, a, b]) <= most[f]:
+                assert _welded_objective(samples, w, other, step, rate, G) >= j * (1 - 1e-12)
+
+
+def test_shared_ring_moves_each_slot_to_its_best_integer(problem, welded):
+    """The ring's own descent (interiors held), run to convergence: no single step of one
+    slot, in all its patches at once, lowers the objective (``J`` alone: rate 0)."""
+    samples, w, _, step = problem
+    c, _, G = welded
+    q0 = atlas_detail.quantised_blocks(samples, samples.s, LEVEL, SPANS, c, step,
+                                       np.full(F, np.inf), weights=w, sweeps=50, rate=0.0)
+    system = atlas_detail._BatchSystem(samples, samples.s, LEVEL, SPANS, w, None, None, None)
+    q = atlas_detail._ring_descent(q0, G, system.per_batch,
+                                   lambda first: system.normal(first)[:2], step,
+                                   np.full(F, np.inf), 0.0, 50)
+    ring = atlas_detail.border_ring(c.shape[1])
+    np.testing.assert_array_equal(q[:, ~ring], q0[:, ~ring])
+    j = _welded_objective(samples, w, q, step, 0.0, G)
+    for g in np.unique(G[:, ring]):
+        for move in (-1, 1):
+            other = q.copy()
+            other[G == g] += move
+            assert _welded_objective(samples, w, other, step, 0.0, G) >= j * (1 - 1e-12)
