@@ -95,13 +95,17 @@ exactly: the mean the client takes is each side's own value (no seam).
 Quantisation. The border ring is rounded to the level's step; each patch's interior is then
 quantised with the rounding error fed back through the level's own least squares and a
 weight on the integers' size, its rate (:func:`quantised_blocks`): plain rounding had been
-28 % of Laurana's and 26 % of Lucy's level-0 squared error of all points. Then the ring's
-shared slots move the same way, each as one value under the terms of every patch that
-holds it (:func:`_ring_descent`), and the interiors again. The shared mean of two
-independent fits is not the welded field's least squares, and the ring's plain rounding
-spent bytes on it: with the ring moved, level 0 of the smooth default went, in bytes of
-packs and RMS of all points, bunny -4.3 % and -3.1 %, Nefertiti -8.6 % and -31 %, Lucy
--7.7 % and -19 %, Laurana -6.2 % and -18 % (docs/benchmarks.md, session 33).
+28 % of Laurana's and 26 % of Lucy's level-0 squared error of all points. Then, on a
+mesh, the ring's shared slots move the same way, each as one value under the terms of
+every patch that holds it (:func:`_ring_descent`), and the interiors again. The shared mean
+of two independent fits is not the welded field's least squares, and the ring's plain
+rounding spent bytes: with the ring moved, level 0 of the smooth default (bytes a visitor
+downloads, RMS of all points; docs/benchmarks.md, session 33) went bunny 77.0 -> 73.9 KB
+and 2.03e-5 -> 1.97e-5, Nefertiti 75.5 -> 68.8 KB and 0.0201 -> 0.0140, Lucy 59.4 -> 54.9
+KB and 0.124 -> 0.104, Laurana 67.7 -> 63.7 KB and 0.0250 -> 0.0206. Not over a cloud's
+stand-in (its Poisson surface spans the gaps between the registered sheets): the 15-scan
+Happy Buddha's level 0 then drew a point 1.09 % of the diagonal off the scan (1.44 % with a
+slot's bound the largest of its patches'), against 0.98 % with the ring rounded.
 
 Depth. Levels ``0..L-1`` with ``L`` the smallest count whose finest knot spacing, the
 median patch side over ``m 2^(L-1)``, reaches the scan's median edge length (mesh) or
@@ -1740,8 +1744,9 @@ def _ring_descent(q: np.ndarray, shared: np.ndarray, per_batch: int,
     slot), ``s^T H s - 2 g^T s`` plus a constant, ``H = sum P^T M_rr P`` and ``g = sum P^T
     (b_r - M_ri c_i)``: a slot's terms are those of every patch that holds it. Its rate
     ``lambda |q_s|`` counts once (a welded pack codes a shared slot once), its bound is the
-    largest of its patches' ``bound (F,)`` (their rounded shared mean is within it; or its
-    own start, so that the descent never ends worse than it began), and
+    least of its patches' ``bound (F,)`` (it is a coefficient of each), or its start where
+    that is larger (the rounded shared mean of bounded values: the descent never ends worse
+    than it began), and
     the slots are coloured by :func:`atlas.lattice.coupling_colours` of ``H``."""
     F, n, _ = q.shape
     nn = n * n
@@ -1767,8 +1772,9 @@ def _ring_descent(q: np.ndarray, shared: np.ndarray, per_batch: int,
     H = H.tocsr()
     codes = np.zeros(count, np.int64)
     codes[slot_of] = q.reshape(F, nn)[:, at_ring]  # equal in every patch of a slot
-    high = np.abs(codes).astype(float)  # never out of bounds at the start: never worse
-    np.maximum.at(high, slot_of, bound[:, None])
+    high = np.full(count, np.inf)
+    np.minimum.at(high, slot_of, np.broadcast_to(bound[:, None], slot_of.shape))
+    high = np.maximum(high, np.abs(codes))  # never out of bounds at the start: never worse
     diag = H.diagonal()
     shrink = np.zeros(count)
     seen = diag > 0
@@ -2273,7 +2279,8 @@ def fit_detail_pyramid(fit: AtlasFit, scan: Scan, levels: int | None = None, *,
                                  float(np.abs(residual[use]).max(initial=0.0)), step_factor)
         limit = COEFFICIENT_REACH * _largest_residual(samples, residual, use)
         q = quantised_blocks(samples, residual, k, spans, c, step, limit, weights=fit_weight,
-                             model=model, rows=solved.rows, pull=pull, shared=G)
+                             model=model, rows=solved.rows, pull=pull,
+                             shared=G if is_mesh else None)  # "Quantisation"
         del solved, nodes
         clock = _tick(timings, "quantise", clock)
         fields.append(q * step)
