@@ -101,8 +101,8 @@ every patch that holds it (:func:`_ring_descent`), and the interiors again. The 
 of two independent fits is not the welded field's least squares, and the ring's plain
 rounding spent bytes: with the ring moved, level 0 of the smooth default (bytes a visitor
 downloads, RMS of all points; docs/benchmarks.md, session 33) went bunny 77.0 -> 73.9 KB
-and 2.03e-5 -> 1.97e-5, Nefertiti 75.5 -> 68.8 KB and 0.0201 -> 0.0140, Lucy 59.4 -> 54.9
-KB and 0.124 -> 0.104, Laurana 67.7 -> 63.7 KB and 0.0250 -> 0.0206. Not over a cloud's
+and 2.03e-5 -> 1.97e-5, Nefertiti 75.5 -> 68.6 KB and 0.0201 -> 0.0150, Lucy 59.4 -> 54.9
+KB and 0.124 -> 0.104, Laurana 67.7 -> 63.5 KB and 0.0250 -> 0.0209. Not over a cloud's
 stand-in (its Poisson surface spans the gaps between the registered sheets): the 15-scan
 Happy Buddha's level 0 then drew a point 1.09 % of the diagonal off the scan (1.44 % with a
 slot's bound the largest of its patches'), against 0.98 % with the ring rounded.
@@ -1659,7 +1659,7 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     slots is then moved as one value, the interiors held (:func:`_ring_descent`), and the
     interiors moved again from the new ring: each step lowers ``J + lambda sum |q|`` or
     keeps it. On a smooth base (4 x 4 coefficients a patch at level 0) the ring is more
-    than half of the level's slots: the bunny's level 0 went from 64.4 to 61.3 KB of packs
+    than half of the level's slots: the bunny's level 0 went from 64.4 to 61.2 KB of packs
     with the RMS of all points 2.03e-5 -> 1.97e-5 (docs/benchmarks.md, session 33).
     """
     sweeps = QUANTISE_SWEEPS if sweeps is None else sweeps
