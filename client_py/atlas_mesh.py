@@ -472,15 +472,18 @@ def _drawn_normals(backend, coords: list[array], ids: Mapping[int, list[int]],
     return out
 
 
-def _units(xs: Sequence[float], ys: Sequence[float], zs: Sequence[float]
-           ) -> list[list[float]]:
-    """``x / |v|``, ``y / |v|``, ``z / |v|`` of the vectors ``v = (x, y, z)`` given a
-    component at a time, ``|v| = sqrt(x x + y y + z z)``; ``0, 0, 0`` where ``|v| = 0``."""
+def _units(xs: Sequence[float], ys: Sequence[float], zs: Sequence[float]) -> list[float]:
+    """``x / |v|, y / |v|, z / |v|`` of each vector ``v = (x, y, z)`` given a component at a
+    time, ``|v| = sqrt(x x + y y + z z)``, interleaved; ``0, 0, 0`` where ``|v| = 0``."""
     sqrt = math.sqrt
-    lengths = [sqrt(x * x + y * y + z * z) for x, y, z in zip(xs, ys, zs, strict=True)]
-    return [[a / length if length != 0.0 else 0.0 for a, length in zip(values, lengths,
-                                                                         strict=True)]
-            for values in (xs, ys, zs)]
+    out: list[float] = []
+    for x, y, z in zip(xs, ys, zs, strict=True):
+        length = sqrt(x * x + y * y + z * z)
+        if length != 0.0:
+            out += (x / length, y / length, z / length)
+        else:
+            out += (0.0, 0.0, 0.0)
+    return out
 
 
 def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
@@ -721,11 +724,13 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     owners = array("I", bytes(4 * count))
     n_border = layout.border_count
     seen = bytearray(n_border)  # whether a border vertex has had its first sampler
-    # the border vertices' sums, x, y and z apart
-    shift = [0.0] * n_border  # sum of the samplers' displacements
-    direction = [[0.0] * n_border for _ in range(3)]  # sum of their unit base normals
+    # the border vertices' sums, x, y and z apart, in arrays: their values stay together
+    # in memory (list items made one by one scatter, and every later pass over them waits)
+    shift = array("d", bytes(8 * n_border))  # sum of the samplers' displacements
+    direction = [array("d", bytes(8 * n_border)) for _ in range(3)]  # of their unit normals
     samplers = [0] * n_border
-    shading = [[0.0] * n_border for _ in range(3)]  # sum of the drawn surface's unit normals
+    # sum of the unit normals of the drawn surface
+    shading = [array("d", bytes(8 * n_border)) for _ in range(3)]
 
     ids, borders = {}, {}
     mine = range(len(res)) if drawn is None else set(chain.from_iterable(drawn))
@@ -793,10 +798,10 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     if tiles and n_border:
         units = _units(*direction)
         means = [s / k if s else 0.0 for s, k in zip(shift, samplers, strict=True)]
-        for c, unit in enumerate(units):
+        for c in range(3):
             positions[c : 3 * n_border : 3] = array("d", [
                 p + d * n if d_shift else p for p, d, n, d_shift in
-                zip(positions[c : 3 * n_border : 3], means, unit, shift, strict=True)])
+                zip(positions[c : 3 * n_border : 3], means, units[c::3], shift, strict=True)])
     for node, a, b, s in zip(*layout.in_between(), strict=True):
         positions[3 * node : 3 * node + 3] = array("d", [
             (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
@@ -807,7 +812,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # normals of the drawn (displaced, welded) surface by differences within each patch;
         # of a patch not drawn (drawn's ring), only those at the drawn patches' vertices: on
         # a window of the grid one sample wider, where the differences are the whole grid's
-        shading = [[0.0] * n_border for _ in range(3)]
+        shading = [array("d", bytes(8 * n_border)) for _ in range(3)]
         used = () if drawn is None else set(chain.from_iterable(ids[f] for f in mine))
         chunk_normals: dict[int, list] = {}  # the drawn patches', a chunk of them at a time
         coords = [positions[c::3] for c in range(3)]
@@ -856,14 +861,16 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                         for c in range(3):
                             shading[c][g] += shaded[k + c]
     if shade and n_border:  # the border vertices' sums normalised, a component at a time
-        for c, unit in enumerate(_units(*shading)):
-            normals[c : 3 * n_border : 3] = array("d", unit)
+        normals[: 3 * n_border] = array("d", _units(*shading))
 
     centres = _Centres(surface, tiles, kernel, count)
-    triangles = []  # per part: its triangles' vertices (numbered in the whole mesh)
+    # per part, per patch: its triangles as (vertices, cells, whole), the triangles'
+    # corners vertices[c] for c in cells (or the vertices themselves, cells None: a patch
+    # fanned to finer sides), whole when they use every one of the vertices
+    pieces: list[list[tuple[list[int], array | None, bool]]] = []
     whole_grids: dict[int, array] = {}  # r -> the triangles of every cell of an r x r grid
     for patches in [range(len(res))] if drawn is None else drawn:
-        indices = array("I")
+        mine_pieces = []
         for f in patches:
             r, local = res[f], ids[f]
             finer = layout.finer_sides(f)
@@ -871,36 +878,49 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             if not any(finer):
                 if kept is None and r not in whole_grids:
                     whole_grids[r] = grid_indices(r, r, kernel=kernel)
-                cells = whole_grids[r] if kept is None else kept
-                indices.extend(map(local.__getitem__, cells))
-                continue
-            indices.extend(_patch_triangles(layout, f, r, local, finer, centres.add, kept))
-        triangles.append(indices)
+                mine_pieces.append((local, whole_grids[r] if kept is None else kept,
+                                    kept is None))
+            else:
+                mine_pieces.append((_patch_triangles(layout, f, r, local, finer, centres.add,
+                                                     kept), None, True))
+        pieces.append(mine_pieces)
     if centres.owners:
         positions.extend(centres.positions)
         normals.extend(centres.normals if shade else ())
         uvs.extend(centres.uvs)
         owners.extend(centres.owners)
     if drawn is None:
-        return [_packed(positions, normals, uvs, owners, triangles[0])]
+        indices = array("I")
+        for vertices, cells, _ in pieces[0]:
+            indices.extend(vertices if cells is None else map(vertices.__getitem__, cells))
+        return [_packed(positions, normals, uvs, owners, indices)]
     meshes = []
     # x, y, z (u, v) of every vertex apart, so that a part's are gathered at C speed
     planes = [[values[c::width] for c in range(width)] if values else []
               for values, width in ((positions, 3), (normals, 3), (uvs, 2))]
     # the new number of each vertex of the part at hand (a list: read at C speed by map)
     number = [0] * len(owners)
-    for indices in triangles:  # the vertices a part's triangles use, renumbered in order
-        if not indices:  # every cell of the part left out (walls): an empty mesh
-            meshes.append(_packed(array("d"), array("d"), array("d"), array("I"), indices))
+    for part in pieces:
+        # the vertices the part's triangles use, in order: every vertex of a patch whose
+        # cells are all drawn (its r^2 ids, not its 6 (r - 1)^2 corners), else its corners
+        used: set[int] = set()
+        for vertices, cells, whole in part:
+            used.update(vertices if whole else map(vertices.__getitem__, cells))
+        if not used:  # every cell of the part left out (walls): an empty mesh
+            meshes.append(_packed(array("d"), array("d"), array("d"), array("I"),
+                                  array("I")))
             continue
-        keep = sorted(set(indices))
+        keep = sorted(used)
         for new, old in enumerate(keep):
             number[old] = new
+        indices = array("I")
+        for vertices, cells, _ in part:  # renumbered once per vertex, then the corners read
+            renumbered = list(map(number.__getitem__, vertices))
+            indices.extend(renumbered if cells is None else map(renumbered.__getitem__, cells))
         pos, nrm, uv = (_interleaved(comps, keep) if comps else array("d")
                         for comps in planes)  # no normals: not shaded
-        meshes.append(_packed(pos, nrm, uv,
-                              array("I", map(owners.__getitem__, keep)),
-                              array("I", map(number.__getitem__, indices))))
+        meshes.append(_packed(pos, nrm, uv, array("I", map(owners.__getitem__, keep)),
+                              indices))
     return meshes
 
 
@@ -1203,7 +1223,8 @@ def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
             raise ValueError(f"part patch {f!r} is no patch index in 0..{count - 1}")
     if len(set(chosen)) != len(chosen):
         raise ValueError("a part lists a patch twice")
-    ring = atlas_ring(atlas, chosen, rings)
+    # chosen holds distinct indices: all of them, or a ring to find
+    ring = range(count) if len(chosen) == count else atlas_ring(atlas, chosen, rings)
     if len(ring) == count:  # every patch (the viewer's first close view): the atlas itself
         return AtlasPart(atlas, tuple(ring), tuple(tuple(sorted(group)) for group in groups),
                          count, rings, _atlas_tolerance(atlas))
