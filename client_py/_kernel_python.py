@@ -279,26 +279,27 @@ def field_grids(degree: int, knots_u: Sequence[float], knots_v: Sequence[float],
                 vs: Sequence[float]) -> list[array]:
     """:func:`field_grid` of each of several coefficient grids on the same knots and
     parameters (the detail tiles of many patches), bit for bit: the control rows of all
-    of them blended along ``v`` in one pass, and grid row ``i`` of all of them combined
-    along ``u`` in one pass (a call per tile cost more than its arithmetic)."""
+    of them blended along ``v`` in one pass per ``v_j``, and grid row ``i`` of all of them
+    combined along ``u`` in one pass (a call per tile cost more than its arithmetic)."""
     p = degree
     spans_u, Nu = _value_table(p, tuple(knots_u), n_u, tuple(us))
     spans_v, Nv = _value_table(p, tuple(knots_v), n_v, tuple(vs))
     count, n_i, n_j = len(coefficients), len(us), len(vs)
     first = min(spans_u) - p  # the control rows read: first .. first + rows - 1
     rows = max(spans_u) + 1 - first
-    # along v: control row first + a of grid t, sampled at v_j, at (t rows + a) n_j + j
+    # the control rows first + a of every grid t, ordered (a, t): coefficient b of all of
+    # them is one strided slice, and each v_j one combination of the slices its span reads
     flat = list(chain.from_iterable(c[first * n_v : (first + rows) * n_v]
                                     for c in coefficients))
-    gathers = [[row * n_v + span - p + k for row in range(count * rows) for span in spans_v]
-               for k in range(p + 1)]
-    coeffs = [[values[k] for values in Nv] * (count * rows) for k in range(p + 1)]
-    blended = _blend(p + 1)(coeffs, [list(map(flat.__getitem__, gather))
-                                     for gather in gathers])
-    if count > 1:  # (grid, row) -> (row, grid): row a of every grid in one slice
-        blended = swap_blocks(blended, count, rows, n_j)
-    width = count * n_j
+    flat = swap_blocks(flat, count, rows, n_v)
+    columns = [flat[b::n_v] for b in range(n_v)]
     combine = _combine(p + 1)
+    along_v: list[float] = []
+    for span, nv_j in zip(spans_v, Nv, strict=True):
+        along_v += combine(nv_j, columns[span - p : span + 1])
+    # (j, a, t) -> (a, t, j): row a of every grid, sampled at every v_j, in one slice
+    blended = swap_blocks(along_v, n_j, rows * count, 1)
+    width = count * n_j
     out: list[float] = []
     for span, nu_i in zip(spans_u, Nu, strict=True):
         lo = span - p - first

@@ -442,7 +442,7 @@ def _slot_uvs(r: int) -> tuple[tuple[float, float], ...]:
 
 
 def _drawn_normals(backend, coords: list[array], ids: Mapping[int, list[int]],
-                   grids: Mapping[int, tuple], res: list[int], patches: list[int]
+                   grids: Mapping[int, tuple], res: list[int], patches: Sequence[int]
                    ) -> dict[int, list[float]]:
     """``{f: unit normals}`` of the drawn surface (the welded positions, ``coords`` their
     ``x``, ``y`` and ``z``) by differences on the whole grid of each of ``patches`` (``ids``:
@@ -809,57 +809,27 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     if not shade:  # measured, not drawn: no shading normals
         normals = array("d")
     elif tiles:
-        # normals of the drawn (displaced, welded) surface by differences within each patch;
-        # of a patch not drawn (drawn's ring), only those at the drawn patches' vertices: on
-        # a window of the grid one sample wider, where the differences are the whole grid's
+        # normals of the drawn (displaced, welded) surface by differences within each patch,
+        # on its whole grid, also for a patch not drawn (drawn's ring): those at the drawn
+        # patches' vertices are what its window of them one sample wider would give, and
+        # its others go to vertices no part keeps
         shading = [array("d", bytes(8 * n_border)) for _ in range(3)]
-        used = () if drawn is None else set(chain.from_iterable(ids[f] for f in mine))
-        chunk_normals: dict[int, list] = {}  # the drawn patches', a chunk of them at a time
+        sx, sy, sz = shading
+        chunk_normals: dict[int, list] = {}  # a chunk of PATCHES_PER_BATCH patches' at a time
         coords = [positions[c::3] for c in range(3)]
         for f, r in enumerate(res):
             if f % PATCHES_PER_BATCH == 0:
-                chunk_normals = _drawn_normals(backend, coords, ids, grids, res, [
-                    g for g in range(f, min(f + PATCHES_PER_BATCH, len(res))) if g in mine])
-            i0, i1, j0, j1 = 0, r, 0, r
-            if f in mine:
-                shaded = chunk_normals[f]
-            else:
-                rows_cols = [divmod(slot, r) for slot, g in zip(*borders[f][:2], strict=True)
-                             if g in used]
-                if not rows_cols:
-                    continue
-                i0, i1 = min(i for i, _ in rows_cols), max(i for i, _ in rows_cols) + 1
-                j0, j1 = min(j for _, j in rows_cols), max(j for _, j in rows_cols) + 1
-                a0, a1 = max(i0 - 1, 0), min(i1 + 1, r)
-                b0, b1 = max(j0 - 1, 0), min(j1 + 1, r)
-                height, width = a1 - a0, b1 - b0
-                local, nrm = ids[f], grids[f][1]
-                slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
-                grid = array("d", bytes(24 * height * width))
-                for c in range(3):
-                    grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
-                base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
-                shaded = array("d", backend.displace_grid(
-                    grid, base_normals, array("d", bytes(8 * height * width)), height, width,
-                    (i0 - a0, i1 - a0, j0 - b0, j1 - b0))[1])
+                chunk_normals = _drawn_normals(backend, coords, ids, grids, res,
+                                               range(f, min(f + PATCHES_PER_BATCH, len(res))))
+            shaded = chunk_normals[f]
             if f in mine and r > 2:  # the whole grid in slot order: its interior block
                 at = layout.face_base[f]
                 normals[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", _interior(r)[0](shaded))
-            span = j1 - j0
-            if span * (i1 - i0) == r * r:  # the whole grid: every border sample, at its slot
-                sx, sy, sz = shading
-                nx, ny, nz = shaded[0::3], shaded[1::3], shaded[2::3]
-                for slot, g in zip(*borders[f][:2], strict=True):
-                    sx[g] += nx[slot]
-                    sy[g] += ny[slot]
-                    sz[g] += nz[slot]
-            else:
-                for slot, g in zip(*borders[f][:2], strict=True):
-                    i, j = divmod(slot, r)
-                    if i0 <= i < i1 and j0 <= j < j1:
-                        k = 3 * ((i - i0) * span + j - j0)
-                        for c in range(3):
-                            shading[c][g] += shaded[k + c]
+            nx, ny, nz = shaded[0::3], shaded[1::3], shaded[2::3]
+            for slot, g in zip(*borders[f][:2], strict=True):  # every border sample
+                sx[g] += nx[slot]
+                sy[g] += ny[slot]
+                sz[g] += nz[slot]
     if shade and n_border:  # the border vertices' sums normalised, a component at a time
         normals[: 3 * n_border] = array("d", _units(*shading))
 
@@ -917,20 +887,21 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         for vertices, cells, _ in part:  # renumbered once per vertex, then the corners read
             renumbered = list(map(number.__getitem__, vertices))
             indices.extend(renumbered if cells is None else map(renumbered.__getitem__, cells))
-        pos, nrm, uv = (_interleaved(comps, keep) if comps else array("d")
-                        for comps in planes)  # no normals: not shaded
-        meshes.append(_packed(pos, nrm, uv, array("I", map(owners.__getitem__, keep)),
-                              indices))
+        # gathered at C speed, each straight into float32 (the same rounding as _packed's)
+        get = itemgetter(*keep) if len(keep) > 1 else itemgetter(slice(keep[0], keep[0] + 1))
+        pos, nrm, uv = (_gathered(comps, get, len(keep)) for comps in planes)
+        meshes.append(AtlasMesh(pos, nrm, uv, indices, patches=array("I", get(owners))))
     return meshes
 
 
-def _interleaved(planes: list[array], keep: list[int]) -> array:
-    """The values of ``planes`` (one array per component) at the vertices ``keep``, the
-    components interleaved (``x, y, z`` of each vertex in turn)."""
+def _gathered(planes: list[array], get: itemgetter, count: int) -> array:
+    """The values of ``planes`` (one array per component) at the ``count`` vertices ``get``
+    picks, the components interleaved (``x, y, z`` of each vertex in turn), as float32
+    (``array('f')``, empty for no planes)."""
     width = len(planes)
-    out = array("d", bytes(8 * width * len(keep)))
+    out = array("f", bytes(4 * width * count))
     for c, values in enumerate(planes):
-        out[c::width] = array("d", map(values.__getitem__, keep))
+        out[c::width] = array("f", get(values))
     return out
 
 
