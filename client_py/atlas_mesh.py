@@ -740,7 +740,6 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     for f, r in enumerate(res):
         if progress is not None and f % PROGRESS_BATCH == PROGRESS_BATCH - 1:
             progress(PROGRESS_EVALUATION + (1 - PROGRESS_EVALUATION) * f / len(res))
-        params = _tables(atlas.degree, atlas.spans, r)[0]
         pos, nrm = grids[f]
         disp = displacements.get(f)
         # interior vertices: one contiguous block of the patch, gathered at C speed
