@@ -421,8 +421,8 @@ def _displaced(positions: Sequence[float], normals: Sequence[float],
                displacement: Sequence[float]) -> list[list[float]]:
     """``X = S + D n`` a component at a time (lists). Where every ``D`` is zero, ``S + D n``
     is ``S`` itself, bit for bit, in a component without a zero (``p + (+-0) = p`` for
-    ``p != 0``, ``n`` finite), which is then only copied; a component with a zero (where
-    ``-0 + 0 = +0``) is computed as in general."""
+    ``p != 0``, ``n`` a finite unit normal), which is then only copied; a component with a
+    zero (where ``-0 + 0 = +0``) is computed as in general."""
     zero = not any(displacement)
     comps = []
     for c in range(3):

@@ -435,6 +435,12 @@ def _interior(r: int) -> tuple[itemgetter, itemgetter, array]:
 
 
 @lru_cache(maxsize=64)
+def _zeros(count: int) -> tuple[float, ...]:
+    """``count`` times ``+0.0``."""
+    return (0.0,) * count
+
+
+@lru_cache(maxsize=64)
 def _slot_uvs(r: int) -> tuple[tuple[float, float], ...]:
     """``(u_i, v_j)`` of each slot ``i r + j`` of an ``r x r`` grid."""
     params = _samples(0.0, 1.0, r)
@@ -775,14 +781,15 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             if not all(evaluated):  # an in-between vertex: its segment's, not summed
                 slots = [slot for slot, on in zip(slots, evaluated, strict=True) if on]
                 nodes = [node for node, on in zip(nodes, evaluated, strict=True) if on]
+            # a patch without detail adds +0.0 to the shifts, which changes none: a sum
+            # from +0.0 is never -0.0
+            shifts = disp if disp is not None else _zeros(r * r)
             for slot, node in zip(slots, nodes, strict=True):
                 samplers[node] += 1
+                shift[node] += shifts[slot]
                 sx[node] += nx[slot]
                 sy[node] += ny[slot]
                 sz[node] += nz[slot]
-            if disp is not None:
-                for slot, node in zip(slots, nodes, strict=True):
-                    shift[node] += disp[slot]
         else:  # not displaced: shaded by the sum of the unit normals
             sx, sy, sz = shading
             for slot, node in zip(slots, nodes, strict=True):
@@ -790,10 +797,9 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 sy[node] += ny[slot]
                 sz[node] += nz[slot]
 
-    # welded border positions: evaluated vertices displaced, then the in-between ones on
-    # their segment
-    # (_unit's normalisation and the mean, a component at a time; a vertex whose shift is
-    # zero stays where it is)
+    # welded border positions: evaluated vertices displaced (by the mean shift along the
+    # normalised sum of the unit normals, a component at a time; a vertex whose shift sums
+    # to zero stays where it is), then the in-between ones on their segment
     if tiles and n_border:
         units = _units(*direction)
         means = [s / k if s else 0.0 for s, k in zip(shift, samplers, strict=True)]
@@ -829,7 +835,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 sx[g] += nx[slot]
                 sy[g] += ny[slot]
                 sz[g] += nz[slot]
-    if shade and n_border:  # the border vertices' sums normalised, a component at a time
+    if shade and n_border:  # the border vertices' sums normalised
         normals[: 3 * n_border] = array("d", _units(*shading))
 
     centres = _Centres(surface, tiles, kernel, count)
