@@ -279,26 +279,27 @@ def field_grids(degree: int, knots_u: Sequence[float], knots_v: Sequence[float],
                 vs: Sequence[float]) -> list[array]:
     """:func:`field_grid` of each of several coefficient grids on the same knots and
     parameters (the detail tiles of many patches), bit for bit: the control rows of all
-    of them blended along ``v`` in one pass, and grid row ``i`` of all of them combined
-    along ``u`` in one pass (a call per tile cost more than its arithmetic)."""
+    of them blended along ``v`` in one pass per ``v_j``, and grid row ``i`` of all of them
+    combined along ``u`` in one pass (a call per tile cost more than its arithmetic)."""
     p = degree
     spans_u, Nu = _value_table(p, tuple(knots_u), n_u, tuple(us))
     spans_v, Nv = _value_table(p, tuple(knots_v), n_v, tuple(vs))
     count, n_i, n_j = len(coefficients), len(us), len(vs)
     first = min(spans_u) - p  # the control rows read: first .. first + rows - 1
     rows = max(spans_u) + 1 - first
-    # along v: control row first + a of grid t, sampled at v_j, at (t rows + a) n_j + j
+    # the control rows first + a of every grid t, ordered (a, t): coefficient b of all of
+    # them is one strided slice, and each v_j one combination of the slices its span reads
     flat = list(chain.from_iterable(c[first * n_v : (first + rows) * n_v]
                                     for c in coefficients))
-    gathers = [[row * n_v + span - p + k for row in range(count * rows) for span in spans_v]
-               for k in range(p + 1)]
-    coeffs = [[values[k] for values in Nv] * (count * rows) for k in range(p + 1)]
-    blended = _blend(p + 1)(coeffs, [list(map(flat.__getitem__, gather))
-                                     for gather in gathers])
-    if count > 1:  # (grid, row) -> (row, grid): row a of every grid in one slice
-        blended = swap_blocks(blended, count, rows, n_j)
-    width = count * n_j
+    flat = swap_blocks(flat, count, rows, n_v)
+    columns = [flat[b::n_v] for b in range(n_v)]
     combine = _combine(p + 1)
+    along_v: list[float] = []
+    for span, nv_j in zip(spans_v, Nv, strict=True):
+        along_v += combine(nv_j, columns[span - p : span + 1])
+    # (j, a, t) -> (a, t, j): row a of every grid, sampled at every v_j, in one slice
+    blended = swap_blocks(along_v, n_j, rows * count, 1)
+    width = count * n_j
     out: list[float] = []
     for span, nu_i in zip(spans_u, Nu, strict=True):
         lo = span - p - first
@@ -314,10 +315,34 @@ def swap_blocks(values: Sequence[float], outer: int, inner: int, width: int) -> 
     """``values``, ``outer x inner`` blocks of ``width`` values laid ``(x, y)`` (block
     ``(x, y)`` at ``(x inner + y) width``), reordered to ``(y, x)``: many small grids from
     (grid, row) order to (row, grid), so that one pass of arithmetic takes a row of all of
-    them, and back. By slices, with no index list: a cached list of indices had held 80 MB
-    for 256 patches of 33 x 33 samples."""
-    return list(chain.from_iterable(values[(x * inner + y) * width:(x * inner + y + 1) * width]
-                                    for y in range(inner) for x in range(outer)))
+    them, and back.
+
+    By slices, with no index list (a cached list of indices had held 80 MB for 256
+    patches of 33 x 33 samples), along whichever axis needs the fewest of them: value
+    ``c`` of block ``(x, y)`` moves from ``(x inner + y) width + c`` to ``(y outer + x)
+    width + c``, so fixing two of ``x, y, c`` makes the third a strided run on both sides:
+    ``outer inner`` runs of ``width`` (whole blocks), ``inner width`` runs of ``outer`` or
+    ``outer width`` runs of ``inner``. The patches' grids are few rows of many patches, or
+    the reverse: a whole-block copy per block cost 10-20 times the fewest runs there."""
+    if isinstance(values, array):
+        values = values.tolist()
+    blocks, across_x, across_y = outer * inner, inner * width, outer * width
+    if blocks <= min(across_x, across_y):
+        return list(chain.from_iterable(
+            values[(x * inner + y) * width : (x * inner + y + 1) * width]
+            for y in range(inner) for x in range(outer)))
+    out = [0.0] * (blocks * width)
+    if across_x <= across_y:  # (y, c) fixed: x runs with steps width (out) and inner width
+        for y in range(inner):
+            for c in range(width):
+                out[y * across_y + c : (y + 1) * across_y : width] = \
+                    values[y * width + c :: across_x]
+    else:  # (x, c) fixed: y runs with steps outer width (out) and width
+        for x in range(outer):
+            for c in range(width):
+                out[x * width + c :: across_y] = \
+                    values[x * across_x + c : (x + 1) * across_x : width]
+    return out
 
 
 def check_panel(n_cols: int, panel: int | None) -> None:
@@ -351,11 +376,11 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
     Per grid row, the rows above and below and the row shifted left and right
     (clamped at its ends) are sliced once per component and zipped, so the
     loop over the row's vertices does arithmetic only; the positions are
-    copied a component at a time.
+    copied a component at a time. A zero displacement (the welded positions of
+    ``client_py.atlas_mesh``, shaded as they are) is not added (:func:`_displaced`).
     """
     check_panel(n_cols, panel)
-    comps = [[p + d * n for p, d, n in zip(positions[c::3], displacement, normals[c::3],
-                                            strict=True)] for c in range(3)]
+    comps = _displaced(positions, normals, displacement)
     r0, r1, c0, c1 = window
     sqrt = math.sqrt
     nrm: list[float] = []
@@ -390,6 +415,22 @@ def displace_grid(positions: array, normals: array, displacement: array, n_rows:
         pos[c::3] = array("f", [x for i in range(r0, r1)
                                 for x in xs[i * n_cols + c0 : i * n_cols + c1]])
     return pos, array("f", nrm)
+
+
+def _displaced(positions: Sequence[float], normals: Sequence[float],
+               displacement: Sequence[float]) -> list[list[float]]:
+    """``X = S + D n`` a component at a time (lists). Where every ``D`` is zero, ``S + D n``
+    is ``S`` itself, bit for bit, in a component without a zero (``p + (+-0) = p`` for
+    ``p != 0``, ``n`` a finite unit normal), which is then only copied; a component with a
+    zero (where ``-0 + 0 = +0``) is computed as in general."""
+    zero = not any(displacement)
+    comps = []
+    for c in range(3):
+        xs = list(positions[c::3])
+        if not zero or 0.0 in xs:
+            xs = [p + d * n for p, d, n in zip(xs, displacement, normals[c::3], strict=True)]
+        comps.append(xs)
+    return comps
 
 
 def add_level(total: array, n_cols: int, blocks: Sequence[tuple]) -> None:

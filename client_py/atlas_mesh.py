@@ -194,38 +194,38 @@ def _evaluate_python(atlas: AtlasSurface, comps: list[list[float]], patches: lis
 
     All patches share the knots and the parameters, so a batch of ``B`` patches is blended
     as one: along ``v``, ``T_{a f}(v_j) = sum_k N_k(v_j) P^w_{f, a, span_j - d + k}`` for
-    every control row ``a`` of every patch in one generated comprehension per term list
-    (ordered ``(a, f, j)``, so that row ``a`` of all patches is one slice); along ``u``, grid
-    row ``i`` of all ``B`` patches is one call of the kernel's row evaluator
-    (``client_py._kernel_python``) over ``B r`` vertices with the shared ``N_a(u_i)``.
+    every control row ``a`` of every patch at once, one written-out combination with the
+    scalars ``N_k(v_j)`` per ``v_j`` (``client_py._kernel_python``'s ``_combine``) over the
+    strided slices ``P^w_{., ., span_j - d + k}`` of the batch's control points (ordered
+    ``(a, f, b)``); along ``u``, grid row ``i`` of all ``B`` patches is one call of the
+    kernel's row evaluator over ``B r`` vertices with the shared ``N_a(u_i)``.
     """
     d, n = atlas.degree, atlas.side
     _, spans_t, N, dN = _tables(d, atlas.spans, r)
     rational = atlas.weights is not None
     evaluate_row = _kernel_python._row_evaluator(d, rational)
-    blend = _kernel_python._blend(d + 1)
-    starts = [[span - d + k for span in spans_t] for k in range(d + 1)]
-    # the gathers and coefficients of the largest batch; a smaller one reads their first
-    # n count r entries (they run over the control rows of the batch in order)
-    most = min(len(patches), PATCHES_PER_BATCH)
-    all_gathers = [[row * n + s for row in range(n * most) for s in run] for run in starts]
-    all_coeffs = [[N[j][k] for j in range(r)] * (n * most) for k in range(d + 1)]
-    all_dcoeffs = [[dN[j][k] for j in range(r)] * (n * most) for k in range(d + 1)]
+    combine = _kernel_python._combine(d + 1)
     out = {}
     for first in range(0, len(patches), PATCHES_PER_BATCH):
         batch = patches[first : first + PATCHES_PER_BATCH]
         count = len(batch)
+        rows_all = n * count  # control rows (a, f) of the batch
         # control point (f, a, b) of the batch at (a count + f) n + b: rows a of all patches
         flat = list(chain.from_iterable(map(atlas.flat_patch_indices, batch)))
         flat = swap_blocks(flat, count, n, n)
-        gathers, coeffs, dcoeffs = ((lists if count == most else
-                                     [values[: n * count * r] for values in lists])
-                                    for lists in (all_gathers, all_coeffs, all_dcoeffs))
         blended = []
         for comp in comps:
             mine = list(map(comp.__getitem__, flat))
-            window = [list(map(mine.__getitem__, gather)) for gather in gathers]
-            blended.append((blend(coeffs, window), blend(dcoeffs, window)))
+            # column b of every control row: the terms of each v_j's span
+            columns = [mine[b::n] for b in range(n)]
+            values, derivatives = [], []
+            for span, nv_j, dnv_j in zip(spans_t, N, dN, strict=True):
+                window = columns[span - d : span + 1]
+                values += combine(nv_j, window)
+                derivatives += combine(dnv_j, window)
+            # (j, a, f) -> (a, f, j): control row a of every patch, sampled at every v_j
+            blended.append((swap_blocks(values, r, rows_all, 1),
+                            swap_blocks(derivatives, r, rows_all, 1)))
         width = count * r  # one control row of every patch, sampled at every v_j
         pos_rows, nrm_rows, bad = [], [], []
         for i, (span, nu_i, dnu_i) in enumerate(zip(spans_t, N, dN, strict=True)):
@@ -434,13 +434,26 @@ def _interior(r: int) -> tuple[itemgetter, itemgetter, array]:
     return itemgetter(*[3 * s + c for s in slots for c in range(3)]), take1, uv
 
 
+@lru_cache(maxsize=64)
+def _zeros(count: int) -> tuple[float, ...]:
+    """``count`` times ``+0.0``."""
+    return (0.0,) * count
+
+
+@lru_cache(maxsize=64)
+def _slot_uvs(r: int) -> tuple[tuple[float, float], ...]:
+    """``(u_i, v_j)`` of each slot ``i r + j`` of an ``r x r`` grid."""
+    params = _samples(0.0, 1.0, r)
+    return tuple((u, v) for u in params for v in params)
+
+
 def _drawn_normals(backend, coords: list[array], ids: Mapping[int, list[int]],
-                   grids: Mapping[int, tuple], res: list[int], patches: list[int]
-                   ) -> dict[int, array]:
+                   grids: Mapping[int, tuple], res: list[int], patches: Sequence[int]
+                   ) -> dict[int, list[float]]:
     """``{f: unit normals}`` of the drawn surface (the welded positions, ``coords`` their
     ``x``, ``y`` and ``z``) by differences on the whole grid of each of ``patches`` (``ids``:
-    its vertices, ``grids``: its unit base normals, kept at a pole): ``array('d')`` in slot
-    order, of the kernel's float32 normals. Per resolution, the patches' grids side by side
+    its vertices, ``grids``: its unit base normals, kept at a pole): a list in slot order,
+    of the kernel's float32 normals. Per resolution, the patches' grids side by side
     as the panels of one ``displace_grid`` call (each panel's normals are those of its grid
     alone): one call per patch cost more than its arithmetic."""
     by_res: dict[int, list[int]] = {}
@@ -457,20 +470,26 @@ def _drawn_normals(backend, coords: list[array], ids: Mapping[int, list[int]],
             grid[c::3] = array("d", map(xs.__getitem__, nodes))
         base = list(chain.from_iterable(grids[f][1] for f in some))
         base = array("d", swap_blocks(base, count, r, 3 * r))
-        shaded = array("d", backend.displace_grid(
+        shaded = swap_blocks(backend.displace_grid(
             grid, base, array("d", bytes(8 * count * r * r)), r, count * r,
-            (0, r, 0, count * r), r, with_positions=False)[1])
-        shaded = array("d", swap_blocks(shaded, r, count, 3 * r))
+            (0, r, 0, count * r), r, with_positions=False)[1], r, count, 3 * r)
         for g, f in enumerate(some):
             out[f] = shaded[g * size : (g + 1) * size]
     return out
 
 
-def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
-    length = math.sqrt(x * x + y * y + z * z)
-    if length == 0.0:
-        return (0.0, 0.0, 0.0)
-    return (x / length, y / length, z / length)
+def _units(xs: Sequence[float], ys: Sequence[float], zs: Sequence[float]) -> list[float]:
+    """``x / |v|, y / |v|, z / |v|`` of each vector ``v = (x, y, z)`` given a component at a
+    time, ``|v| = sqrt(x x + y y + z z)``, interleaved; ``0, 0, 0`` where ``|v| = 0``."""
+    sqrt = math.sqrt
+    out: list[float] = []
+    for x, y, z in zip(xs, ys, zs, strict=True):
+        length = sqrt(x * x + y * y + z * z)
+        if length != 0.0:
+            out += (x / length, y / length, z / length)
+        else:
+            out += (0.0, 0.0, 0.0)
+    return out
 
 
 def tessellate_atlas(atlas: AtlasSurface, resolution: int | Sequence[int],
@@ -711,10 +730,13 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     owners = array("I", bytes(4 * count))
     n_border = layout.border_count
     seen = bytearray(n_border)  # whether a border vertex has had its first sampler
-    shift = [0.0] * n_border  # sum of the samplers' displacements
-    direction = [0.0] * (3 * n_border)  # sum of their unit base normals
+    # the border vertices' sums, x, y and z apart, in arrays: their values stay together
+    # in memory (list items made one by one scatter, and every later pass over them waits)
+    shift = array("d", bytes(8 * n_border))  # sum of the samplers' displacements
+    direction = [array("d", bytes(8 * n_border)) for _ in range(3)]  # of their unit normals
     samplers = [0] * n_border
-    shading = [0.0] * (3 * n_border)  # sum of the unit normals of the drawn surface
+    # sum of the unit normals of the drawn surface
+    shading = [array("d", bytes(8 * n_border)) for _ in range(3)]
 
     ids, borders = {}, {}
     mine = range(len(res)) if drawn is None else set(chain.from_iterable(drawn))
@@ -724,7 +746,6 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     for f, r in enumerate(res):
         if progress is not None and f % PROGRESS_BATCH == PROGRESS_BATCH - 1:
             progress(PROGRESS_EVALUATION + (1 - PROGRESS_EVALUATION) * f / len(res))
-        params = _tables(atlas.degree, atlas.spans, r)[0]
         pos, nrm = grids[f]
         disp = displacements.get(f)
         # interior vertices: one contiguous block of the patch, gathered at C speed
@@ -742,39 +763,50 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # border samples: the first sampler of a welded vertex gives its (u, v), its patch
         # and, when evaluated, its base point (an in-between vertex's is its segment's,
         # below); then each sampler adds to the vertex's sums
-        border = borders[f]
-        for slot, node, evaluated in zip(*border, strict=True):
+        slots, nodes, evaluated = borders[f]
+        slot_uvs = _slot_uvs(r)
+        for slot, node, on in zip(slots, nodes, evaluated, strict=True):
             if not seen[node]:
                 seen[node] = 1
                 owners[node] = f
-                uvs[2 * node], uvs[2 * node + 1] = params[slot // r], params[slot % r]
-                if evaluated:
-                    positions[3 * node : 3 * node + 3] = array("d", pos[3 * slot : 3 * slot + 3])
-        if tiles:  # displaced along the mean normal (the drawn normals come by differences)
-            for slot, node, evaluated in zip(*border, strict=True):
-                if evaluated:
+                m = 2 * node
+                uvs[m], uvs[m + 1] = slot_uvs[slot]
+                if on:
                     k, m = 3 * slot, 3 * node
-                    samplers[node] += 1
-                    if disp is not None:
-                        shift[node] += disp[slot]
-                    direction[m] += nrm[k]
-                    direction[m + 1] += nrm[k + 1]
-                    direction[m + 2] += nrm[k + 2]
+                    positions[m], positions[m + 1] = pos[k], pos[k + 1]
+                    positions[m + 2] = pos[k + 2]
+        nx, ny, nz = nrm[0::3], nrm[1::3], nrm[2::3]
+        if tiles:  # displaced along the mean normal (the drawn normals come by differences)
+            sx, sy, sz = direction
+            if not all(evaluated):  # an in-between vertex: its segment's, not summed
+                slots = [slot for slot, on in zip(slots, evaluated, strict=True) if on]
+                nodes = [node for node, on in zip(nodes, evaluated, strict=True) if on]
+            # a patch without detail adds +0.0 to the shifts, which changes none: a sum
+            # from +0.0 is never -0.0
+            shifts = disp if disp is not None else _zeros(r * r)
+            for slot, node in zip(slots, nodes, strict=True):
+                samplers[node] += 1
+                shift[node] += shifts[slot]
+                sx[node] += nx[slot]
+                sy[node] += ny[slot]
+                sz[node] += nz[slot]
         else:  # not displaced: shaded by the sum of the unit normals
-            for slot, node in zip(border[0], border[1], strict=True):
-                k, m = 3 * slot, 3 * node
-                shading[m] += nrm[k]
-                shading[m + 1] += nrm[k + 1]
-                shading[m + 2] += nrm[k + 2]
+            sx, sy, sz = shading
+            for slot, node in zip(slots, nodes, strict=True):
+                sx[node] += nx[slot]
+                sy[node] += ny[slot]
+                sz[node] += nz[slot]
 
-    # welded border positions: evaluated vertices displaced, then the in-between ones on
-    # their segment
-    for node in range(n_border) if tiles else ():
-        if shift[node]:
-            n = _unit(*direction[3 * node : 3 * node + 3])
-            d = shift[node] / samplers[node]
-            positions[3 * node : 3 * node + 3] = array("d", [
-                positions[3 * node + c] + d * n[c] for c in range(3)])
+    # welded border positions: evaluated vertices displaced (by the mean shift along the
+    # normalised sum of the unit normals, a component at a time; a vertex whose shift sums
+    # to zero stays where it is), then the in-between ones on their segment
+    if tiles and n_border:
+        units = _units(*direction)
+        means = [s / k if s else 0.0 for s, k in zip(shift, samplers, strict=True)]
+        for c in range(3):
+            positions[c : 3 * n_border : 3] = array("d", [
+                p + d * n if d_shift else p for p, d, n, d_shift in
+                zip(positions[c : 3 * n_border : 3], means, units[c::3], shift, strict=True)])
     for node, a, b, s in zip(*layout.in_between(), strict=True):
         positions[3 * node : 3 * node + 3] = array("d", [
             (1 - s) * positions[3 * a + c] + s * positions[3 * b + c] for c in range(3)])
@@ -782,69 +814,38 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
     if not shade:  # measured, not drawn: no shading normals
         normals = array("d")
     elif tiles:
-        # normals of the drawn (displaced, welded) surface by differences within each patch;
-        # of a patch not drawn (drawn's ring), only those at the drawn patches' vertices: on
-        # a window of the grid one sample wider, where the differences are the whole grid's
-        shading = [0.0] * (3 * n_border)
-        used = () if drawn is None else set(chain.from_iterable(ids[f] for f in mine))
-        chunk_normals: dict[int, array] = {}  # the drawn patches', a chunk of them at a time
+        # normals of the drawn (displaced, welded) surface by differences within each patch,
+        # on its whole grid, also for a patch not drawn (drawn's ring): those at the drawn
+        # patches' vertices are what its window of them one sample wider would give, and
+        # its others go to vertices no part keeps
+        shading = [array("d", bytes(8 * n_border)) for _ in range(3)]
+        sx, sy, sz = shading
+        chunk_normals: dict[int, list] = {}  # a chunk of PATCHES_PER_BATCH patches' at a time
         coords = [positions[c::3] for c in range(3)]
         for f, r in enumerate(res):
             if f % PATCHES_PER_BATCH == 0:
-                chunk_normals = _drawn_normals(backend, coords, ids, grids, res, [
-                    g for g in range(f, min(f + PATCHES_PER_BATCH, len(res))) if g in mine])
-            i0, i1, j0, j1 = 0, r, 0, r
-            if f in mine:
-                shaded = chunk_normals[f]
-            else:
-                rows_cols = [divmod(slot, r) for slot, g in zip(*borders[f][:2], strict=True)
-                             if g in used]
-                if not rows_cols:
-                    continue
-                i0, i1 = min(i for i, _ in rows_cols), max(i for i, _ in rows_cols) + 1
-                j0, j1 = min(j for _, j in rows_cols), max(j for _, j in rows_cols) + 1
-                a0, a1 = max(i0 - 1, 0), min(i1 + 1, r)
-                b0, b1 = max(j0 - 1, 0), min(j1 + 1, r)
-                height, width = a1 - a0, b1 - b0
-                local, nrm = ids[f], grids[f][1]
-                slots = [i * r + j for i in range(a0, a1) for j in range(b0, b1)]
-                grid = array("d", bytes(24 * height * width))
-                for c in range(3):
-                    grid[c::3] = array("d", [positions[3 * local[k] + c] for k in slots])
-                base_normals = array("d", [nrm[3 * k + c] for k in slots for c in range(3)])
-                shaded = array("d", backend.displace_grid(
-                    grid, base_normals, array("d", bytes(8 * height * width)), height, width,
-                    (i0 - a0, i1 - a0, j0 - b0, j1 - b0))[1])
+                chunk_normals = _drawn_normals(backend, coords, ids, grids, res,
+                                               range(f, min(f + PATCHES_PER_BATCH, len(res))))
+            shaded = chunk_normals[f]
             if f in mine and r > 2:  # the whole grid in slot order: its interior block
                 at = layout.face_base[f]
                 normals[3 * at : 3 * at + 3 * (r - 2) ** 2] = array("d", _interior(r)[0](shaded))
-            span = j1 - j0
-            if span * (i1 - i0) == r * r:  # the whole grid: every border sample, at its slot
-                for slot, g in zip(*borders[f][:2], strict=True):
-                    k, g = 3 * slot, 3 * g
-                    shading[g] += shaded[k]
-                    shading[g + 1] += shaded[k + 1]
-                    shading[g + 2] += shaded[k + 2]
-            else:
-                for slot, g in zip(*borders[f][:2], strict=True):
-                    i, j = divmod(slot, r)
-                    if i0 <= i < i1 and j0 <= j < j1:
-                        k = 3 * ((i - i0) * span + j - j0)
-                        for c in range(3):
-                            shading[3 * g + c] += shaded[k + c]
-    if shade and n_border:  # the border vertices' sums normalised (_unit's), a component at a time
-        sums = [shading[c::3] for c in range(3)]
-        lengths = [math.sqrt(x * x + y * y + z * z) for x, y, z in zip(*sums, strict=True)]
-        for c, values in enumerate(sums):
-            normals[c : 3 * n_border : 3] = array("d", [
-                a / length if length != 0.0 else 0.0
-                for a, length in zip(values, lengths, strict=True)])
+            nx, ny, nz = shaded[0::3], shaded[1::3], shaded[2::3]
+            for slot, g in zip(*borders[f][:2], strict=True):  # every border sample
+                sx[g] += nx[slot]
+                sy[g] += ny[slot]
+                sz[g] += nz[slot]
+    if shade and n_border:  # the border vertices' sums normalised
+        normals[: 3 * n_border] = array("d", _units(*shading))
 
     centres = _Centres(surface, tiles, kernel, count)
-    triangles = []  # per part: its triangles' vertices (numbered in the whole mesh)
+    # per part, per patch: its triangles as (vertices, cells, whole), the triangles'
+    # corners vertices[c] for c in cells (or the vertices themselves, cells None: a patch
+    # fanned to finer sides), whole when they use every one of the vertices
+    pieces: list[list[tuple[list[int], array | None, bool]]] = []
     whole_grids: dict[int, array] = {}  # r -> the triangles of every cell of an r x r grid
     for patches in [range(len(res))] if drawn is None else drawn:
-        indices = array("I")
+        mine_pieces = []
         for f in patches:
             r, local = res[f], ids[f]
             finer = layout.finer_sides(f)
@@ -852,43 +853,60 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             if not any(finer):
                 if kept is None and r not in whole_grids:
                     whole_grids[r] = grid_indices(r, r, kernel=kernel)
-                cells = whole_grids[r] if kept is None else kept
-                indices.extend(map(local.__getitem__, cells))
-                continue
-            indices.extend(_patch_triangles(layout, f, r, local, finer, centres.add, kept))
-        triangles.append(indices)
+                mine_pieces.append((local, whole_grids[r] if kept is None else kept,
+                                    kept is None))
+            else:
+                mine_pieces.append((_patch_triangles(layout, f, r, local, finer, centres.add,
+                                                     kept), None, True))
+        pieces.append(mine_pieces)
     if centres.owners:
         positions.extend(centres.positions)
         normals.extend(centres.normals if shade else ())
         uvs.extend(centres.uvs)
         owners.extend(centres.owners)
     if drawn is None:
-        return [_packed(positions, normals, uvs, owners, triangles[0])]
+        indices = array("I")
+        for vertices, cells, _ in pieces[0]:
+            indices.extend(vertices if cells is None else map(vertices.__getitem__, cells))
+        return [_packed(positions, normals, uvs, owners, indices)]
     meshes = []
     # x, y, z (u, v) of every vertex apart, so that a part's are gathered at C speed
     planes = [[values[c::width] for c in range(width)] if values else []
               for values, width in ((positions, 3), (normals, 3), (uvs, 2))]
-    for indices in triangles:  # the vertices a part's triangles use, renumbered in order
-        if not indices:  # every cell of the part left out (walls): an empty mesh
-            meshes.append(_packed(array("d"), array("d"), array("d"), array("I"), indices))
+    # the new number of each vertex of the part at hand (a list: read at C speed by map)
+    number = [0] * len(owners)
+    for part in pieces:
+        # the vertices the part's triangles use, in order: every vertex of a patch whose
+        # cells are all drawn (its r^2 ids, not its 6 (r - 1)^2 corners), else its corners
+        used: set[int] = set()
+        for vertices, cells, whole in part:
+            used.update(vertices if whole else map(vertices.__getitem__, cells))
+        if not used:  # every cell of the part left out (walls): an empty mesh
+            meshes.append(_packed(array("d"), array("d"), array("d"), array("I"),
+                                  array("I")))
             continue
-        keep = sorted(set(indices))
-        number = {old: new for new, old in enumerate(keep)}
-        pos, nrm, uv = (_interleaved(comps, keep) if comps else array("d")
-                        for comps in planes)  # no normals: not shaded
-        meshes.append(_packed(pos, nrm, uv,
-                              array("I", map(owners.__getitem__, keep)),
-                              array("I", map(number.__getitem__, indices))))
+        keep = sorted(used)
+        for new, old in enumerate(keep):
+            number[old] = new
+        indices = array("I")
+        for vertices, cells, _ in part:  # renumbered once per vertex, then the corners read
+            renumbered = list(map(number.__getitem__, vertices))
+            indices.extend(renumbered if cells is None else map(renumbered.__getitem__, cells))
+        # gathered at C speed, each straight into float32 (the same rounding as _packed's)
+        get = itemgetter(*keep) if len(keep) > 1 else itemgetter(slice(keep[0], keep[0] + 1))
+        pos, nrm, uv = (_gathered(comps, get, len(keep)) for comps in planes)
+        meshes.append(AtlasMesh(pos, nrm, uv, indices, patches=array("I", get(owners))))
     return meshes
 
 
-def _interleaved(planes: list[array], keep: list[int]) -> array:
-    """The values of ``planes`` (one array per component) at the vertices ``keep``, the
-    components interleaved (``x, y, z`` of each vertex in turn)."""
+def _gathered(planes: list[array], get: itemgetter, count: int) -> array:
+    """The values of ``planes`` (one array per component) at the ``count`` vertices ``get``
+    picks, the components interleaved (``x, y, z`` of each vertex in turn), as float32
+    (``array('f')``, empty for no planes)."""
     width = len(planes)
-    out = array("d", bytes(8 * width * len(keep)))
+    out = array("f", bytes(4 * width * count))
     for c, values in enumerate(planes):
-        out[c::width] = array("d", map(values.__getitem__, keep))
+        out[c::width] = array("f", get(values))
     return out
 
 
@@ -1118,7 +1136,8 @@ class AtlasPart:
         The groups' patches and their rings (:func:`atlas_ring`) as an atlas of their own, in
         the full atlas's patch order, on its layout vertices (unused ones stay, so vertex
         indices are the full atlas's), with their own edge numbering (``atlas_edges`` of
-        their quads) and the control points of their edges and faces.
+        their quads) and the control points of their edges and faces; the full atlas
+        itself when that is every patch (the same numbers, without cutting them out).
     patches : tuple of int
         The full atlas's index of each patch of ``atlas`` (increasing).
     drawn : tuple of tuple of int
@@ -1180,7 +1199,11 @@ def atlas_parts(atlas: AtlasSurface, groups: Sequence[Sequence[int]],
             raise ValueError(f"part patch {f!r} is no patch index in 0..{count - 1}")
     if len(set(chosen)) != len(chosen):
         raise ValueError("a part lists a patch twice")
-    ring = atlas_ring(atlas, chosen, rings)
+    # chosen holds distinct indices: all of them, or a ring to find
+    ring = range(count) if len(chosen) == count else atlas_ring(atlas, chosen, rings)
+    if len(ring) == count:  # every patch (the viewer's first close view): the atlas itself
+        return AtlasPart(atlas, tuple(ring), tuple(tuple(sorted(group)) for group in groups),
+                         count, rings, _atlas_tolerance(atlas))
     quads = [atlas.quads[f] for f in ring]
     table = atlas_edges(quads)
     full_edges = list(map(atlas.edge_numbers.__getitem__, table.edges))

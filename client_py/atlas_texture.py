@@ -196,8 +196,10 @@ def atlas_vertex_colours(patches: Sequence[int], uvs: Sequence[float],
         raise ValueError(f"uvs has {len(uvs)} values; {n} vertices need {2 * n}")
     out = bytearray(3 * n)
     where: dict[int, tuple | None] = {}
-    for k in range(n):
-        f = patches[k]
+    # (u, v, cell, image row) -> the four texels' offsets from the cell's first byte and
+    # the weights: the mesh's vertices sit at a few grid parameters, so these come once
+    sampling: dict[tuple, tuple] = {}
+    for m, f, u, v in zip(range(0, 3 * n, 3), patches, uvs[0::2], uvs[1::2], strict=True):
         cell = where.get(f, False)
         if cell is False:
             pack = colour_of_patch.get(f)
@@ -205,30 +207,17 @@ def atlas_vertex_colours(patches: Sequence[int], uvs: Sequence[float],
                 cell = where[f] = None
             else:
                 x, y = pack.origin(f)
-                cell = where[f] = (pack.rgb, 3 * pack.width, 3 * x, y, pack.cell)
+                row = 3 * pack.width
+                cell = where[f] = (pack.rgb, row, y * row + 3 * x, pack.cell)
         if cell is None:
             continue
-        rgb, row, left, top, t = cell
-        x = uvs[2 * k] * t - 0.5
-        y = (1.0 - uvs[2 * k + 1]) * t - 0.5
-        last = t - 1.0
-        x = 0.0 if x < 0.0 else (last if x > last else x)
-        y = 0.0 if y < 0.0 else (last if y > last else y)
-        if t > 1:
-            x0, y0 = int(x), int(y)
-            if x0 > t - 2:
-                x0 = t - 2
-            if y0 > t - 2:
-                y0 = t - 2
-            x1, y1 = x0 + 1, y0 + 1
-        else:
-            x0 = y0 = x1 = y1 = 0
-        fx, fy = x - x0, y - y0
-        gx, gy = 1 - fx, 1 - fy
-        a = (top + y0) * row + left
-        b = (top + y1) * row + left
-        p00, p01, p10, p11 = a + 3 * x0, a + 3 * x1, b + 3 * x0, b + 3 * x1
-        m = 3 * k
+        rgb, row, first, t = cell
+        key = (u, v, t, row)
+        at = sampling.get(key)
+        if at is None:
+            at = sampling[key] = _bilinear_taps(u, v, t, row)
+        o00, o01, o10, o11, gx, fx, gy, fy = at
+        p00, p01, p10, p11 = first + o00, first + o01, first + o10, first + o11
         out[m] = int((rgb[p00] * gx + rgb[p01] * fx) * gy
                      + (rgb[p10] * gx + rgb[p11] * fx) * fy + 0.5)
         out[m + 1] = int((rgb[p00 + 1] * gx + rgb[p01 + 1] * fx) * gy
@@ -236,6 +225,28 @@ def atlas_vertex_colours(patches: Sequence[int], uvs: Sequence[float],
         out[m + 2] = int((rgb[p00 + 2] * gx + rgb[p01 + 2] * fx) * gy
                          + (rgb[p10 + 2] * gx + rgb[p11 + 2] * fx) * fy + 0.5)
     return array("B", out)
+
+
+def _bilinear_taps(u: float, v: float, t: int, row: int) -> tuple:
+    """The bilinear sample at ``(u, v)`` of a ``t x t`` cell in an image of ``row`` bytes a
+    row (:func:`atlas_vertex_colours`): the byte offsets of texels ``(x0, y0), (x1, y0),
+    (x0, y1), (x1, y1)`` from the cell's first byte and the weights ``1 - fx, fx, 1 - fy,
+    fy``, with ``x = u t - 1/2``, ``y = (1 - v) t - 1/2`` clamped to ``[0, t - 1]`` (image
+    rows run down in ``v``), ``x0 = min(int(x), t - 2)`` (``0`` for one texel), ``x1 = x0 +
+    1``, ``fx = x - x0`` (``y`` likewise)."""
+    x = u * t - 0.5
+    y = (1.0 - v) * t - 0.5
+    last = t - 1.0
+    x = 0.0 if x < 0.0 else (last if x > last else x)
+    y = 0.0 if y < 0.0 else (last if y > last else y)
+    if t > 1:
+        x0, y0 = min(int(x), t - 2), min(int(y), t - 2)
+        x1, y1 = x0 + 1, y0 + 1
+    else:
+        x0 = y0 = x1 = y1 = 0
+    fx, fy = x - x0, y - y0
+    return (y0 * row + 3 * x0, y0 * row + 3 * x1, y1 * row + 3 * x0, y1 * row + 3 * x1,
+            1 - fx, fx, 1 - fy, fy)
 
 
 def colours_by_patch(packs: Sequence[ColourPack], patches: int) -> dict[int, ColourPack]:

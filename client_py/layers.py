@@ -383,8 +383,14 @@ def displacement_grids(tile_lists: Sequence[Iterable[DetailTile]], us: Sequence[
     add_level = _kernel.backend(kernel).add_level
     out = []
     for levels in _displacement_levels(tile_lists, us, vs, kernel):
-        total = array("d", bytes(8 * n_i * n_j))
-        for _, level_field in levels:
+        if not levels:
+            out.append(array("d", bytes(8 * n_i * n_j)))
+            continue
+        # +0.0 + the first level's field is that field itself: add_level makes it +0.0 plus
+        # the tiles' values, or +0.0 where no tile holds a vertex, so it holds no -0.0 (the
+        # one value that adding +0.0 changes)
+        total = levels[0][1]
+        for _, level_field in levels[1:]:
             add_level(total, n_j, [(0, n_i, 0, n_j, level_field)])
         out.append(total)
     return out
