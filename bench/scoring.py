@@ -109,7 +109,8 @@ def largest_at_corners(vertices: np.ndarray, faces: np.ndarray, scan_points: np.
     if scan_faces is not None and len(scan_faces):
         _, d, _ = farther_than(points, scan_points, scan_faces, reach)
     else:
-        d, _ = cKDTree(scan_points).query(points, distance_upper_bound=np.inf)
+        d, _ = cKDTree(scan_points).query(points)
+        d = d[d > reach]
     return float(d.max(initial=0.0))
 
 

@@ -1658,9 +1658,8 @@ def quantised_blocks(samples: AtlasSamples, residual: np.ndarray, level: int, sp
     it is plain rounding. With ``shared (F, n, n)`` (:func:`shared_index`) each of its
     slots is then moved as one value, the interiors held (:func:`_ring_descent`), and the
     interiors moved again from the new ring: each step lowers ``J + lambda sum |q|`` or
-    keeps it. On a smooth base (4 x 4 coefficients a patch at level 0) the ring is more
-    than half of the level's slots: the bunny's level 0 went from 64.4 to 61.2 KB of packs
-    with the RMS of all points 2.03e-5 -> 1.97e-5 (docs/benchmarks.md, session 33).
+    keeps it (module docstring, "Quantisation": what it gains, and why a cloud's ring
+    stays rounded).
     """
     sweeps = QUANTISE_SWEEPS if sweeps is None else sweeps
     rate = QUANTISE_RATE if rate is None else rate
@@ -1746,8 +1745,8 @@ def _ring_descent(q: np.ndarray, shared: np.ndarray, per_batch: int,
     ``lambda |q_s|`` counts once (a welded pack codes a shared slot once), its bound is the
     least of its patches' ``bound (F,)`` (it is a coefficient of each), or its start where
     that is larger (the rounded shared mean of bounded values: the descent never ends worse
-    than it began), and
-    the slots are coloured by :func:`atlas.lattice.coupling_colours` of ``H``."""
+    than it began), and the slots are coloured by :func:`atlas.lattice.coupling_colours`
+    of ``H``."""
     F, n, _ = q.shape
     nn = n * n
     ring = border_ring(n).reshape(-1)
