@@ -99,9 +99,13 @@ def _alive(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    # a zombie (dead, not yet reaped by its parent) counts as gone
-    status = Path(f"/proc/{pid}/stat")
-    return not (status.exists() and status.read_text().split(") ")[1].startswith("Z"))
+    # a zombie (dead, not yet reaped by its parent) counts as gone; so does a process reaped
+    # between the signal and the read (its /proc entry vanishes: ENOENT or ESRCH)
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(") ")[1]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return not state.startswith("Z")
 
 
 def test_kill_9_of_the_server_mid_fit_then_restart_and_retry(tmp_path):
