@@ -332,6 +332,9 @@ FINEST_LATTICE = 32  # reaching_cells' finest lattice (twice as fine each time, 
 # most this share of DRAWN_REACH to the mesh without it (module docstring, "Drawn cells"):
 # 0.05 is 0.05 % of the diagonal, a quarter of the 15-scan Buddha's level-0 RMS of all points.
 HANDOVER_SLACK = 0.05
+# ... or when each ends within this share of DRAWN_REACH of the mesh without it: 0.5 is the
+# 0.5 % of the diagonal within which issue 13 asks 99.5 % of the scan points to lie
+HANDOVER_WITHIN = 0.5
 # Whether a mesh's levels leave cells out too (module docstring, "Drawn cells"): no. A
 # mesh's triangles are the surface its makers published, holes and borders included, and
 # its layout follows its border (layout.decimate_on_border); a closed one must stay
@@ -1199,7 +1202,8 @@ def reaching_cells(cells: np.ndarray, distance: Callable[[np.ndarray], np.ndarra
 
 def far_cells(vertices: np.ndarray, faces: np.ndarray, patches: int, resolution: int,
               points: np.ndarray, distance: Callable[[np.ndarray], np.ndarray], reach: float,
-              lattice: int = CELL_LATTICE, slack: float = HANDOVER_SLACK) -> np.ndarray:
+              lattice: int = CELL_LATTICE, slack: float = HANDOVER_SLACK,
+              within: float | None = HANDOVER_WITHIN) -> np.ndarray:
     """``(F, r - 1, r - 1)`` booleans: the cells of an atlas mesh drawn at ``r =
     resolution`` samples per patch side that reach farther than ``reach`` from the scan and
     whose near scan points keep their distance to the mesh without them (module
@@ -1261,7 +1265,10 @@ def far_cells(vertices: np.ndarray, faces: np.ndarray, patches: int, resolution:
         mine = far[hit] & (held <= reach)  # a farther point (an outlier) may lose more
         holders, held, hit = near[mine], held[mine], hit[mine]
         if len(hit):  # the cells within a holder's reach once the slack is added
-            radius = float(held.max()) + slack * reach + float(rho.max())
+            # the farthest each may end: the slack, or the bound of the issue's two it meets
+            bound = (held + slack * reach if within is None
+                     else np.where(held <= within * reach, within * reach, reach))
+            radius = float(np.maximum(held + slack * reach, bound).max() + rho.max())
             gap, _ = cKDTree(holders).query(centre, distance_upper_bound=radius, workers=-1)
             local = np.flatnonzero(gap <= radius)
         while len(hit):  # hand the role over where the holders lose at most the slack
@@ -1270,12 +1277,12 @@ def far_cells(vertices: np.ndarray, faces: np.ndarray, patches: int, resolution:
                 lost = np.ones(len(hit), bool)
             else:
                 d, _, _ = closest_points_on_mesh(holders, vertices, tri[drawn].reshape(-1, 3))
-                lost = d > held + slack * reach
+                lost = (d > held + slack * reach) & (d > bound)
             if not lost.any():
                 break
             far[hit[lost]] = False
             keep = far[hit]
-            holders, held, hit = holders[keep], held[keep], hit[keep]
+            holders, held, hit, bound = holders[keep], held[keep], hit[keep], bound[keep]
     return far.reshape(patches, cells, cells)
 
 

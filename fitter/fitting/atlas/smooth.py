@@ -59,6 +59,10 @@ from .surface import ScanSurface, border_edges, scan_surface
 #: triangles, 2 (r - 1)^2 a patch, are what the closest points are found on)
 FIT_RESOLUTION = 4
 FIT_ROUNDS = 4
+#: a drawn vertex of the fit farther than this share of the diagonal from the scan has its
+#: reverse row weighed :data:`FAR_WEIGHT` times (``fit_control_points``' far rows)
+FAR_REACH = 0.0075
+FAR_WEIGHT = 3.0
 #: the smooth base's ``.tsa`` bytes with ``--patches auto``: the most control
 #: triangles, :data:`MAX_TRIANGLES`, at 12 bits. Manifest included, against quadric
 #: decimation + Draco at the same bytes (session 29, RMS of all points): Nefertiti's base
@@ -211,8 +215,8 @@ def sample_matrix(table: np.ndarray, n_control: int, resolution: int
 
 
 def fit_control_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
-                     rounds: int = FIT_ROUNDS, resolution: int = FIT_RESOLUTION
-                     ) -> tuple[np.ndarray, list[float]]:
+                     rounds: int = FIT_ROUNDS, resolution: int = FIT_RESOLUTION,
+                     far_reach: float | None = None) -> tuple[np.ndarray, list[float]]:
     """Control points (starting from ``vertices (n, 3)``) of the control mesh ``triangles
     (T, 3)`` whose drawn atlas fits ``points (N, 3)``: ``fit_control_points`` on the atlas
     sampled at ``resolution`` per patch side. Returns the points and the RMS history."""
@@ -222,7 +226,8 @@ def fit_control_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.nda
     table = index_table(base_atlas(base, (M @ vertices).tolist()))
     B, faces = sample_matrix(table, M.shape[0], resolution)
     drawn = Subdivided("acc", 1, len(vertices), (triangles,), (B @ M).tocsr(), faces)
-    return fit_control_points(points, vertices, drawn, rounds=rounds)
+    return fit_control_points(points, vertices, drawn, rounds=rounds, far_reach=far_reach,
+                              far_weight=FAR_WEIGHT)
 
 
 def control_bits(vertices: np.ndarray, rms: float) -> int:
@@ -300,7 +305,9 @@ def fit_smooth_atlas(scan, *, byte_budget: int, surface: ScanSurface | None = No
         vertices, faces = decimate(source, max(4, target), border_weights(source, target))
         timings["layout"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        fitted, history = fit_control_mesh(points, vertices, faces, rounds=rounds)
+        fitted, history = fit_control_mesh(
+            points, vertices, faces, rounds=rounds,
+            far_reach=FAR_REACH if surface.origin == "mesh" else None)
         timings["solve"] = time.perf_counter() - clock
         chosen = bits or control_bits(fitted, history[-1])
         data = write_control_mesh(fitted, faces, chosen, {"units": scan.units or "unknown"})

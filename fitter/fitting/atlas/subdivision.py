@@ -335,7 +335,8 @@ def beyond_border_weights(residual: np.ndarray, normal: np.ndarray, tangential: 
 
 def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivided,
                        scan_faces: np.ndarray | None = None, rounds: int = 10,
-                       smoothing: float = 1e-4, reverse: float = 0.3, tangential: float = 0.1
+                       smoothing: float = 1e-4, reverse: float = 0.3, tangential: float = 0.1,
+                       far_reach: float | None = None, far_weight: float = 1.0
                        ) -> tuple[np.ndarray, list[float]]:
     """Control points whose drawn surface (``surface.matrix @ V``) fits ``points``.
 
@@ -363,6 +364,15 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
 
     the last two the same every round (computed once).
 
+    Far drawn vertices. Where the control mesh bridges a crease or a wedge (the Bali mask's
+    stand-in across the fold where the relief meets a ragged sheet), the drawn surface
+    stands off the scan as a fin that few points reach, and the uniform reverse term
+    (``r``) holds it against the points' pull and the umbrella only partly. With
+    ``far_reach`` (a share of the points' bounding-box diagonal), each round a drawn vertex
+    farther than it from its ``q_j`` has its reverse row weighed ``far_weight`` times
+    (its squared term ``far_weight^2`` times): the other half of the two-sided distance,
+    where it is large, as the patches base's ``fit.reverse_rows`` does.
+
     Parameters
     ----------
     points : ndarray, shape (N, 3)
@@ -376,6 +386,8 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
     rounds : int
     smoothing, reverse, tangential : float
         ``s > 0``, ``r >= 0``, ``t >= 0``.
+    far_reach, far_weight : float
+        ``None`` (no far rows) or ``> 0``; ``>= 1``.
 
     Returns
     -------
@@ -400,8 +412,12 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
     if not smoothing > 0 or not reverse >= 0 or not tangential >= 0 or rounds < 1:
         raise ValueError(f"smoothing must be > 0, reverse and tangential >= 0, rounds >= 1; "
                          f"got {smoothing}, {reverse}, {tangential}, {rounds}")
+    if (far_reach is not None and not far_reach > 0) or not far_weight >= 1:
+        raise ValueError(f"far_reach must be None or > 0 and far_weight >= 1; got "
+                         f"{far_reach}, {far_weight}")
     smooth = umbrella(n, surface.faces) * np.sqrt(smoothing * len(points) / n)
     pull = np.sqrt(len(points) / m) * reverse
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
     # the reverse and smoothing rows are the same every round: their part of the normal
     # matrix once
     fixed = (pull ** 2 * (S.T @ S) + smooth.T @ smooth).tocsr()
@@ -419,7 +435,7 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
         return drawn, tri, foot
 
     drawn, tri, foot = closest(V)
-    for _ in range(rounds):
+    for round_ in range(rounds):
         corners = [drawn[triangles[tri, k]] for k in range(3)]
         w = barycentric(foot, *corners)
         # B_i: the rows of the triangle's corners weighed by the barycentric coordinates
@@ -432,6 +448,13 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
         else:
             target = points[nearest.query(drawn)[1]]
         weight = beyond_border_weights(points - foot, normal, tangential) ** 2
+        reverse_matrix, far_rhs = fixed, np.zeros((n, 3))
+        if far_reach is not None and round_ > 0:  # far vertices' rows weigh far_weight^2
+            far = np.flatnonzero(np.linalg.norm(drawn - target, axis=1) > far_reach * diagonal)
+            rows_far = S[far]
+            extra = (far_weight ** 2 - 1) * pull ** 2
+            reverse_matrix = (fixed + extra * (rows_far.T @ rows_far)).tocsr()
+            far_rhs = extra * (rows_far.T @ target[far])
         rows_t = rows.T.tocsr()
         blocks = [[None] * 3 for _ in range(3)]
         for c in range(3):
@@ -439,10 +462,10 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
                 share = normal[:, c] * normal[:, d] + (weight if c == d else 0.0)
                 blocks[c][d] = rows_t @ (sp.diags(share) @ rows)
                 blocks[d][c] = blocks[c][d].T
-            blocks[c][c] = blocks[c][c] + fixed
+            blocks[c][c] = blocks[c][c] + reverse_matrix
         along = np.einsum("ic,ic->i", normal, points)
         rhs = np.concatenate([rows_t @ (normal[:, c] * along + weight * points[:, c])
-                              + pull_rows @ target[:, c] for c in range(3)])
+                              + pull_rows @ target[:, c] + far_rhs[:, c] for c in range(3)])
         # single-column supernodes are too narrow for these factors (some 400 non-zeros a
         # column; minimum degree on all 3 n unknowns: 1.5 s a round on the bunny against 2.3)
         lu = spd_lu(sp.bmat(blocks, format="csr")[order][:, order], permc_spec="NATURAL",
