@@ -339,8 +339,9 @@ FINEST_LATTICE = 32  # reaching_cells' finest lattice (twice as fine each time, 
 # most this share of DRAWN_REACH to the mesh without it (module docstring, "Drawn cells"):
 # 0.05 is 0.05 % of the diagonal, a quarter of the 15-scan Buddha's level-0 RMS of all points.
 HANDOVER_SLACK = 0.05
-# ... or when each ends within this share of DRAWN_REACH of the mesh without it: 0.5 is the
-# 0.5 % of the diagonal within which issue 13 asks 99.5 % of the scan points to lie
+# ... or when each ends within this share of DRAWN_REACH of the mesh without it if it was
+# within it, else within DRAWN_REACH: 0.5 is the 0.5 % of the diagonal within which issue 13
+# asks 99.5 % of the scan points to lie, 1 % the farthest it lets the drawn mesh reach
 HANDOVER_WITHIN = 0.5
 # Whether a mesh's levels leave cells out too (module docstring, "Drawn cells"): no. A
 # mesh's triangles are the surface its makers published, holes and borders included, and

@@ -368,10 +368,12 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
     stand-in across the fold where the relief meets a ragged sheet), the drawn surface
     stands off the scan as a fin that few points reach, and the uniform reverse term
     (``r``) holds it against the points' pull and the umbrella only partly. With
-    ``far_reach`` (a share of the points' bounding-box diagonal), each round a drawn vertex
-    farther than it from its ``q_j`` has its reverse row weighed ``far_weight`` times
-    (its squared term ``far_weight^2`` times): the other half of the two-sided distance,
-    where it is large, as the patches base's ``fit.reverse_rows`` does.
+    ``far_reach`` (a share of the points' bounding-box diagonal), from the second round on
+    a drawn vertex farther than it from its ``q_j`` has its reverse row weighed
+    ``far_weight`` times (its squared term ``far_weight^2`` times): the other half of the
+    two-sided distance, where it is large, as the patches base's ``fit.reverse_rows`` does.
+    Not in the first round: its start, the control mesh itself, lies off the scan where the
+    fit will not (the bunny's level 0 had 0.9 % more bytes and RMS with them).
 
     Parameters
     ----------
