@@ -365,7 +365,7 @@ def fit_control_points(points: np.ndarray, control: np.ndarray, surface: Subdivi
     the last two the same every round (computed once).
 
     Far drawn vertices. Where the control mesh bridges a crease or a wedge (the Bali mask's
-    stand-in across the fold where the relief meets a ragged sheet), the drawn surface
+    stand-in across a sharp inner fold of the carving by a tusk), the drawn surface
     stands off the scan as a fin that few points reach, and the uniform reverse term
     (``r``) holds it against the points' pull and the umbrella only partly. With
     ``far_reach`` (a share of the points' bounding-box diagonal), from the second round on
