@@ -607,6 +607,23 @@ class PatchGrids:
         self._items.move_to_end(key)
         return item[1]
 
+    def holds(self, key: tuple) -> bool:
+        """Whether ``key`` is held (without making it the most recently used)."""
+        return key in self._items
+
+    def first_kept(self, samples: Sequence[int], later: int = 0) -> int:
+        """The first of puts of ``samples[k]`` samples, in order and followed by puts of at
+        least ``later`` samples more, that outlives them: entry ``k`` is dropped by the
+        puts after it when ``sum(samples[k:]) + later > max_samples`` and one comes after
+        it (the least recently used go first, and no put makes room for an older one), so
+        the caller need not make the copies of those before it."""
+        total = later
+        for k in range(len(samples) - 1, -1, -1):
+            total += samples[k]
+            if total > self.max_samples and (k < len(samples) - 1 or later > 0):
+                return k + 1
+        return 0
+
     def put(self, key: tuple, value: object, samples: int) -> None:
         old = self._items.pop(key, None)
         if old is not None:
@@ -618,6 +635,12 @@ class PatchGrids:
             self._samples -= dropped
 
 
+def _detail_key(names: Sequence[int], res: list[int], tiles: dict[int, list[DetailTile]],
+                f: int) -> tuple:
+    """The :class:`PatchGrids` key of patch ``f``'s summed tiles (:func:`_displacements`)."""
+    return ("detail", names[f], res[f], tuple(map(id, tiles[f])))
+
+
 def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                    kernel: str | None, names: Sequence[int], cache: PatchGrids | None
                    ) -> dict[int, array]:
@@ -625,11 +648,8 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
     with tiles; those not held in ``cache`` (under their ``names``, resolution and tiles)
     are summed :data:`PATCHES_PER_BATCH` patches of one resolution at a time
     (``displacement_grids``: their tiles that share their knots in one kernel call) and
-    put there."""
-
-    def key(f: int) -> tuple:
-        return ("detail", names[f], res[f], tuple(map(id, tiles[f])))
-
+    put there (but those the later ones would drop at once: :meth:`PatchGrids.first_kept`)."""
+    key = partial(_detail_key, names, res, tiles)
     out: dict[int, array] = {}
     wanted: dict[int, list[int]] = {}  # r -> the patches to sum
     for f in sorted(tiles):
@@ -638,6 +658,8 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
             out[f] = held[1]
         else:
             wanted.setdefault(res[f], []).append(f)
+    order = list(chain.from_iterable(wanted.values()))  # in the order they are put
+    kept = set(order[cache.first_kept([res[f] ** 2 for f in order]):] if cache else ())
     for r, patches in wanted.items():
         params = _tables(atlas.degree, atlas.spans, r)[0]
         for start in range(0, len(patches), PATCHES_PER_BATCH):
@@ -645,7 +667,7 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
             sums = displacement_grids([tiles[f] for f in some], params, params, kernel)
             for f, disp in zip(some, sums, strict=True):
                 out[f] = disp
-                if cache is not None:  # the tiles stay referenced: their ids stay theirs
+                if f in kept:  # the tiles stay referenced: their ids stay theirs
                     cache.put(key(f), (tuple(tiles[f]), array("d", disp)), r * r)
     return out
 
@@ -708,6 +730,13 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             grids[f] = held
         else:
             by_res.setdefault(r, []).append(f)
+    kept: set[int] = set()  # the grids to put in the cache: those its later puts keep
+    if cache is not None:
+        order = list(chain.from_iterable(patches for _, patches in sorted(by_res.items())))
+        # the tiles' sums not held are put after the grids
+        later = sum(res[f] ** 2 for f in tiles if not cache.holds(_detail_key(names, res,
+                                                                               tiles, f)))
+        kept = set(order[cache.first_kept([res[f] ** 2 for f in order], later):])
     batch = PROGRESS_BATCH if progress is not None else len(res)
     for r, patches in sorted(by_res.items()):
         params = _tables(atlas.degree, atlas.spans, r)[0]
@@ -717,7 +746,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 for k in bad:  # a pole: the limit normal from inside the patch
                     nrm[3 * k : 3 * k + 3] = _pole_normal(surface(f), params, r, k)
                 grids[f] = (pos, nrm)
-                if cache is not None:
+                if f in kept:
                     cache.put(("grid", names[f], r), (array("d", pos), array("d", nrm)),
                               r * r)
             if progress is not None:
