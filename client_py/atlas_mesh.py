@@ -425,13 +425,13 @@ def _border_samples(r: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
 @lru_cache(maxsize=64)
 def _interior(r: int) -> tuple[itemgetter, itemgetter, array]:
     """Gatherers of the ``(r - 2)^2`` interior samples of an ``r x r`` grid (row-major):
-    their ``x, y, z`` triples and their scalars, and their ``(u, v)`` block."""
+    their ``x, y, z`` triples, and their scalars each three times (one per ``x, y, z``);
+    and their ``(u, v)`` block."""
     slots = [i * r + j for i in range(1, r - 1) for j in range(1, r - 1)]
     params = _samples(0.0, 1.0, r)
     uv = array("d", [t for slot in slots for t in (params[slot // r], params[slot % r])])
-    # itemgetter of one index returns the item, not a 1-tuple: r = 3 has one interior sample
-    take1 = itemgetter(*slots) if len(slots) > 1 else itemgetter(slice(4, 5))
-    return itemgetter(*[3 * s + c for s in slots for c in range(3)]), take1, uv
+    return (itemgetter(*[3 * s + c for s in slots for c in range(3)]),
+            itemgetter(*[s for s in slots for _ in range(3)]), uv)
 
 
 @lru_cache(maxsize=64)
@@ -780,10 +780,10 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # interior vertices: one contiguous block of the patch, gathered at C speed
         at, block = layout.face_base[f], 3 * (r - 2) ** 2
         if block and (f in mine or tiles):  # else never read
-            take3, take1, block_uvs = _interior(r)
+            take3, take_thrice, block_uvs = _interior(r)
             inner_pos, inner_nrm = take3(pos), take3(nrm)
             if disp is not None:
-                d3 = [x for x in take1(disp) for _ in range(3)]
+                d3 = take_thrice(disp)
                 inner_pos = [p + d * n for p, d, n in zip(inner_pos, d3, inner_nrm, strict=True)]
             positions[3 * at : 3 * at + block] = array("d", inner_pos)
             normals[3 * at : 3 * at + block] = array("d", inner_nrm)
@@ -1331,5 +1331,5 @@ def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],
     meshes = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn,
                           part.patches, cache)
     for mesh in meshes:
-        mesh.patches = array("I", [part.patches[k] for k in mesh.patches])
+        mesh.patches = array("I", map(part.patches.__getitem__, mesh.patches))
     return meshes
