@@ -332,7 +332,12 @@ class _Layout:
         whether it is *evaluated* (at the edge's coarser resolution) or lies between two
         evaluated vertices (a finer neighbour's)."""
         e, reverse = self.table.sides[f][k]
-        step = (self.fine[e] - 1) // (self.res[f] - 1)
+        return self.edge_samples(e, reverse, self.res[f])
+
+    def edge_samples(self, e: int, reverse: bool, r: int) -> tuple[list[int], tuple[bool, ...]]:
+        """:meth:`side_nodes` of a side of ``r`` samples on edge ``e``, from its ``hi`` end
+        when ``reverse``."""
+        step = (self.fine[e] - 1) // (r - 1)
         if reverse:  # from hi: the edge's last vertex is its hi corner
             step = -step
         return self.edge_nodes[e][::step], self.edge_evaluated[e][::step]
@@ -353,24 +358,25 @@ class _Layout:
         way = 1 if K1 > K0 else -1
         return [self.edge_node(e, K) for K in range(K0 + way, K1, way)]
 
-    def patch_vertices(self, f: int) -> tuple[list[int], tuple[tuple, list[int], list[bool]]]:
+    def patch_vertices(self, f: int) -> tuple[list[int], tuple[tuple, tuple, tuple]]:
         """``(ids, border)``: the global vertex of each sample ``(i, j)`` of patch ``f`` at
         ``i r + j``, and its border samples, each corner once, as ``(slots, vertices,
-        evaluated)`` lists (``zip`` them: sample ``(slot, vertex, evaluated)``)."""
+        evaluated)`` tuples (``zip`` them: sample ``(slot, vertex, evaluated)``)."""
         r = self.res[f]
         ids = [0] * (r * r)
         base, inner = self.face_base[f], r - 2
         for i in range(1, r - 1):
             ids[i * r + 1 : i * r + r - 1] = range(base + (i - 1) * inner,
                                                    base + i * inner)
-        sides = [self.side_nodes(f, k) for k in range(4)]
-        for side, (nodes, _) in zip(_side_slices(r), sides, strict=True):
-            ids[side] = nodes
-        slots, picks = _border_samples(r)
-        (n0, e0), (n1, e1), (n2, e2), (n3, e3) = sides
-        nodes, evaluated = [*n0, *n1, *n2, *n3], [*e0, *e1, *e2, *e3]  # at k r + t
-        return ids, (slots, list(map(nodes.__getitem__, picks)),
-                     list(map(evaluated.__getitem__, picks)))
+        nodes: list[int] = []  # sample t of side k at k r + t
+        evaluated: list[bool] = []
+        for side, (e, reverse) in zip(_side_slices(r), self.table.sides[f], strict=True):
+            side_nodes, side_evaluated = self.edge_samples(e, reverse, r)
+            ids[side] = side_nodes
+            nodes += side_nodes
+            evaluated += side_evaluated
+        pick = _border_picker(r)
+        return ids, (_border_samples(r)[0], pick(nodes), pick(evaluated))
 
     def in_between(self) -> tuple[list[int], list[int], list[int], list[float]]:
         """The edge vertices between two evaluated ones (a finer side's, where the edge is
@@ -420,6 +426,13 @@ def _border_samples(r: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
                   if k in (0, 2) or 0 < t < r - 1)
     sides = _side_slots(r)
     return tuple(sides[k // r][k % r] for k in picks), picks
+
+
+@lru_cache(maxsize=64)
+def _border_picker(r: int) -> itemgetter:
+    """The gatherer of a patch's border samples (:func:`_border_samples`) from its sides'
+    samples listed side after side."""
+    return itemgetter(*_border_samples(r)[1])
 
 
 @lru_cache(maxsize=64)
