@@ -332,7 +332,12 @@ class _Layout:
         whether it is *evaluated* (at the edge's coarser resolution) or lies between two
         evaluated vertices (a finer neighbour's)."""
         e, reverse = self.table.sides[f][k]
-        step = (self.fine[e] - 1) // (self.res[f] - 1)
+        return self.edge_samples(e, reverse, self.res[f])
+
+    def edge_samples(self, e: int, reverse: bool, r: int) -> tuple[list[int], tuple[bool, ...]]:
+        """:meth:`side_nodes` of a side of ``r`` samples on edge ``e``, from its ``hi`` end
+        when ``reverse``."""
+        step = (self.fine[e] - 1) // (r - 1)
         if reverse:  # from hi: the edge's last vertex is its hi corner
             step = -step
         return self.edge_nodes[e][::step], self.edge_evaluated[e][::step]
@@ -353,24 +358,25 @@ class _Layout:
         way = 1 if K1 > K0 else -1
         return [self.edge_node(e, K) for K in range(K0 + way, K1, way)]
 
-    def patch_vertices(self, f: int) -> tuple[list[int], tuple[tuple, list[int], list[bool]]]:
+    def patch_vertices(self, f: int) -> tuple[list[int], tuple[tuple, tuple, tuple]]:
         """``(ids, border)``: the global vertex of each sample ``(i, j)`` of patch ``f`` at
         ``i r + j``, and its border samples, each corner once, as ``(slots, vertices,
-        evaluated)`` lists (``zip`` them: sample ``(slot, vertex, evaluated)``)."""
+        evaluated)`` tuples (``zip`` them: sample ``(slot, vertex, evaluated)``)."""
         r = self.res[f]
         ids = [0] * (r * r)
         base, inner = self.face_base[f], r - 2
         for i in range(1, r - 1):
             ids[i * r + 1 : i * r + r - 1] = range(base + (i - 1) * inner,
                                                    base + i * inner)
-        sides = [self.side_nodes(f, k) for k in range(4)]
-        for side, (nodes, _) in zip(_side_slices(r), sides, strict=True):
-            ids[side] = nodes
-        slots, picks = _border_samples(r)
-        (n0, e0), (n1, e1), (n2, e2), (n3, e3) = sides
-        nodes, evaluated = [*n0, *n1, *n2, *n3], [*e0, *e1, *e2, *e3]  # at k r + t
-        return ids, (slots, list(map(nodes.__getitem__, picks)),
-                     list(map(evaluated.__getitem__, picks)))
+        nodes: list[int] = []  # sample t of side k at k r + t
+        evaluated: list[bool] = []
+        for side, (e, reverse) in zip(_side_slices(r), self.table.sides[f], strict=True):
+            side_nodes, side_evaluated = self.edge_samples(e, reverse, r)
+            ids[side] = side_nodes
+            nodes += side_nodes
+            evaluated += side_evaluated
+        pick = _border_picker(r)
+        return ids, (_border_samples(r)[0], pick(nodes), pick(evaluated))
 
     def in_between(self) -> tuple[list[int], list[int], list[int], list[float]]:
         """The edge vertices between two evaluated ones (a finer side's, where the edge is
@@ -423,15 +429,22 @@ def _border_samples(r: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
 
 
 @lru_cache(maxsize=64)
+def _border_picker(r: int) -> itemgetter:
+    """The gatherer of a patch's border samples (:func:`_border_samples`) from its sides'
+    samples listed side after side."""
+    return itemgetter(*_border_samples(r)[1])
+
+
+@lru_cache(maxsize=64)
 def _interior(r: int) -> tuple[itemgetter, itemgetter, array]:
     """Gatherers of the ``(r - 2)^2`` interior samples of an ``r x r`` grid (row-major):
-    their ``x, y, z`` triples and their scalars, and their ``(u, v)`` block."""
+    their ``x, y, z`` triples, and their scalars each three times (one per ``x, y, z``);
+    and their ``(u, v)`` block."""
     slots = [i * r + j for i in range(1, r - 1) for j in range(1, r - 1)]
     params = _samples(0.0, 1.0, r)
     uv = array("d", [t for slot in slots for t in (params[slot // r], params[slot % r])])
-    # itemgetter of one index returns the item, not a 1-tuple: r = 3 has one interior sample
-    take1 = itemgetter(*slots) if len(slots) > 1 else itemgetter(slice(4, 5))
-    return itemgetter(*[3 * s + c for s in slots for c in range(3)]), take1, uv
+    return (itemgetter(*[3 * s + c for s in slots for c in range(3)]),
+            itemgetter(*[s for s in slots for _ in range(3)]), uv)
 
 
 @lru_cache(maxsize=64)
@@ -607,6 +620,23 @@ class PatchGrids:
         self._items.move_to_end(key)
         return item[1]
 
+    def holds(self, key: tuple) -> bool:
+        """Whether ``key`` is held (without making it the most recently used)."""
+        return key in self._items
+
+    def first_kept(self, samples: Sequence[int], later: int = 0) -> int:
+        """The first of puts of ``samples[k]`` samples, in order and followed by puts of at
+        least ``later`` samples more, that outlives them: entry ``k`` is dropped by the
+        puts after it when ``sum(samples[k:]) + later > max_samples`` and one comes after
+        it (the least recently used go first, and no put makes room for an older one), so
+        the caller need not make the copies of those before it."""
+        total = later
+        for k in range(len(samples) - 1, -1, -1):
+            total += samples[k]
+            if total > self.max_samples and (k < len(samples) - 1 or later > 0):
+                return k + 1
+        return 0
+
     def put(self, key: tuple, value: object, samples: int) -> None:
         old = self._items.pop(key, None)
         if old is not None:
@@ -618,6 +648,12 @@ class PatchGrids:
             self._samples -= dropped
 
 
+def _detail_key(names: Sequence[int], res: list[int], tiles: dict[int, list[DetailTile]],
+                f: int) -> tuple:
+    """The :class:`PatchGrids` key of patch ``f``'s summed tiles (:func:`_displacements`)."""
+    return ("detail", names[f], res[f], tuple(map(id, tiles[f])))
+
+
 def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[DetailTile]],
                    kernel: str | None, names: Sequence[int], cache: PatchGrids | None
                    ) -> dict[int, array]:
@@ -625,11 +661,8 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
     with tiles; those not held in ``cache`` (under their ``names``, resolution and tiles)
     are summed :data:`PATCHES_PER_BATCH` patches of one resolution at a time
     (``displacement_grids``: their tiles that share their knots in one kernel call) and
-    put there."""
-
-    def key(f: int) -> tuple:
-        return ("detail", names[f], res[f], tuple(map(id, tiles[f])))
-
+    put there (but those the later ones would drop at once: :meth:`PatchGrids.first_kept`)."""
+    key = partial(_detail_key, names, res, tiles)
     out: dict[int, array] = {}
     wanted: dict[int, list[int]] = {}  # r -> the patches to sum
     for f in sorted(tiles):
@@ -638,6 +671,8 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
             out[f] = held[1]
         else:
             wanted.setdefault(res[f], []).append(f)
+    order = list(chain.from_iterable(wanted.values()))  # in the order they are put
+    kept = set(order[cache.first_kept([res[f] ** 2 for f in order]):] if cache else ())
     for r, patches in wanted.items():
         params = _tables(atlas.degree, atlas.spans, r)[0]
         for start in range(0, len(patches), PATCHES_PER_BATCH):
@@ -645,7 +680,7 @@ def _displacements(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[De
             sums = displacement_grids([tiles[f] for f in some], params, params, kernel)
             for f, disp in zip(some, sums, strict=True):
                 out[f] = disp
-                if cache is not None:  # the tiles stay referenced: their ids stay theirs
+                if f in kept:  # the tiles stay referenced: their ids stay theirs
                     cache.put(key(f), (tuple(tiles[f]), array("d", disp)), r * r)
     return out
 
@@ -708,6 +743,13 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
             grids[f] = held
         else:
             by_res.setdefault(r, []).append(f)
+    kept: set[int] = set()  # the grids to put in the cache: those its later puts keep
+    if cache is not None:
+        order = list(chain.from_iterable(patches for _, patches in sorted(by_res.items())))
+        # the tiles' sums not held are put after the grids
+        later = sum(res[f] ** 2 for f in tiles if not cache.holds(_detail_key(names, res,
+                                                                               tiles, f)))
+        kept = set(order[cache.first_kept([res[f] ** 2 for f in order], later):])
     batch = PROGRESS_BATCH if progress is not None else len(res)
     for r, patches in sorted(by_res.items()):
         params = _tables(atlas.degree, atlas.spans, r)[0]
@@ -717,7 +759,7 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
                 for k in bad:  # a pole: the limit normal from inside the patch
                     nrm[3 * k : 3 * k + 3] = _pole_normal(surface(f), params, r, k)
                 grids[f] = (pos, nrm)
-                if cache is not None:
+                if f in kept:
                     cache.put(("grid", names[f], r), (array("d", pos), array("d", nrm)),
                               r * r)
             if progress is not None:
@@ -751,10 +793,10 @@ def _welded_mesh(atlas: AtlasSurface, res: list[int], tiles: dict[int, list[Deta
         # interior vertices: one contiguous block of the patch, gathered at C speed
         at, block = layout.face_base[f], 3 * (r - 2) ** 2
         if block and (f in mine or tiles):  # else never read
-            take3, take1, block_uvs = _interior(r)
+            take3, take_thrice, block_uvs = _interior(r)
             inner_pos, inner_nrm = take3(pos), take3(nrm)
             if disp is not None:
-                d3 = [x for x in take1(disp) for _ in range(3)]
+                d3 = take_thrice(disp)
                 inner_pos = [p + d * n for p, d, n in zip(inner_pos, d3, inner_nrm, strict=True)]
             positions[3 * at : 3 * at + block] = array("d", inner_pos)
             normals[3 * at : 3 * at + block] = array("d", inner_nrm)
@@ -1302,5 +1344,5 @@ def tessellate_atlas_parts(part: AtlasPart, resolution: int | Sequence[int],
     meshes = _welded_mesh(atlas, res, tiles, kernel, part.tolerance, part.drawn,
                           part.patches, cache)
     for mesh in meshes:
-        mesh.patches = array("I", [part.patches[k] for k in mesh.patches])
+        mesh.patches = array("I", map(part.patches.__getitem__, mesh.patches))
     return meshes

@@ -598,6 +598,24 @@ def test_patch_grids_drop_the_least_recently_used_beyond_their_samples():
     assert kept.get(("grid", 2, 2)) is None and kept.get(("grid", 1, 2)) == 1
 
 
+@pytest.mark.parametrize("later", [0, 3])
+def test_patch_grids_first_kept_is_the_first_put_that_outlives_the_later_ones(later):
+    """PatchGrids.first_kept: the puts before it are all dropped by the puts after them
+    (and ``later`` samples more), the one at it is held at the end."""
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        sizes = [int(s) for s in rng.integers(1, 6, rng.integers(1, 12))]
+        kept = PatchGrids(max_samples=int(rng.integers(1, 20)))
+        first = kept.first_kept(sizes, later)
+        for k, size in enumerate(sizes):
+            kept.put(("grid", k, 2), k, size)
+        if later:
+            kept.put(("detail", 0, 2), None, later)
+        assert all(not kept.holds(("grid", k, 2)) for k in range(first))
+        if first < len(sizes) and sum(sizes[first:]) + later <= kept.max_samples:
+            assert all(kept.holds(("grid", k, 2)) for k in range(first, len(sizes)))
+
+
 @pytest.mark.parametrize("kernel", ["python", "numpy"])
 def test_progress_reports_rise_to_the_end_and_change_nothing(kernel):
     """tessellate_atlas(progress=...): one report per PROGRESS_BATCH patches evaluated and
