@@ -65,10 +65,10 @@ FIT_ROUNDS = 4
 #: decimated) bridges a fold by a tusk, and the drawn fin there, reached by no working
 #: point, stood 1.04 % of the diagonal off the scan (1.047 % at level 0). Weighed 3 times:
 #: 0.91 % (0.881 %), level 0's RMS of all points +2.8 %; 2 times: 1.02 % (0.994 %); 3 times
-#: past 0.9 %: 0.991 % (1.005 %), RMS +3.5 %. From the
-#: first round on the bunny's level 0 changed too (+0.9 % bytes and RMS), from the second
-#: it is byte-identical, as are Lucy's and Laurana's. Over a cloud's stand-in the 15-scan
-#: Buddha's level 0 went 1.12 -> 1.19 %: a mesh's only (docs/benchmarks.md, session 34)
+#: past 0.9 %: 0.991 % (1.005 %), RMS +3.5 %. The bunny's, Lucy's and Laurana's bundles are
+#: byte-identical (why not from the first round: ``fit_control_points``). Over a cloud's
+#: stand-in the 15-scan Buddha's level 0 went 1.12 -> 1.19 %: a mesh's only
+#: (docs/benchmarks.md, session 34)
 FAR_REACH = 0.0075
 FAR_WEIGHT = 3.0
 #: the smooth base's ``.tsa`` bytes with ``--patches auto``: the most control
